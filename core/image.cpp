@@ -1,0 +1,191 @@
+#include "core/image.h"
+
+#include <ImfChannelList.h>
+#include <ImfFrameBuffer.h>
+#include <ImfHeader.h>
+#include <ImfInputFile.h>
+#include <ImfOutputFile.h>
+#include <unistd.h>
+#include <zstd.h>
+
+#include <cstring>
+#include <opencv2/imgcodecs.hpp>
+#include <random>
+
+#include "core/error.h"
+#include "core/fs.h"
+
+namespace holocap {
+namespace {
+
+constexpr char kZstdMagic[4] = {'H', 'C', 'Z', '1'};
+
+struct ZstdHeader {
+  char magic[4];
+  int32_t rows;
+  int32_t cols;
+  int32_t type;
+};
+
+}  // namespace
+
+const char* ExtensionOf(ImageCodec codec) {
+  switch (codec) {
+    case ImageCodec::kPng: return ".png";
+    case ImageCodec::kZstd: return ".zst";
+    case ImageCodec::kExr: return ".exr";
+  }
+  return "";
+}
+
+ImageCodec CodecOfFile(const std::filesystem::path& file) {
+  std::string ext = file.extension().string();
+  if (ext == ".png") return ImageCodec::kPng;
+  if (ext == ".zst") return ImageCodec::kZstd;
+  if (ext == ".exr") return ImageCodec::kExr;
+  Fail("'", file.string(), "': unknown image file type '", ext, "'");
+}
+
+void WritePng(const std::filesystem::path& file, const cv::Mat& image, int compression) {
+  if (image.empty()) Fail("cannot write an empty image to '", file.string(), "'");
+  if (image.depth() != CV_8U && image.depth() != CV_16U) {
+    Fail("PNG holds 8- or 16-bit images only ('", file.string(), "')");
+  }
+  std::vector<uchar> bytes;
+  if (!cv::imencode(".png", image, bytes, {cv::IMWRITE_PNG_COMPRESSION, compression})) {
+    Fail("cannot encode PNG for '", file.string(), "'");
+  }
+  WriteFileAtomic(file, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+}
+
+void WriteZstd(const std::filesystem::path& file, const cv::Mat& image, int level) {
+  if (image.empty()) Fail("cannot write an empty image to '", file.string(), "'");
+  cv::Mat contiguous = image.isContinuous() ? image : image.clone();
+  size_t raw_size = contiguous.total() * contiguous.elemSize();
+  ZstdHeader header;
+  std::memcpy(header.magic, kZstdMagic, 4);
+  header.rows = contiguous.rows;
+  header.cols = contiguous.cols;
+  header.type = contiguous.type();
+  std::string bytes(sizeof(header) + ZSTD_compressBound(raw_size), '\0');
+  std::memcpy(bytes.data(), &header, sizeof(header));
+  size_t n = ZSTD_compress(bytes.data() + sizeof(header), bytes.size() - sizeof(header),
+                           contiguous.data, raw_size, level);
+  if (ZSTD_isError(n)) Fail("zstd compression failed for '", file.string(), "': ", ZSTD_getErrorName(n));
+  bytes.resize(sizeof(header) + n);
+  WriteFileAtomic(file, bytes);
+}
+
+void WriteExrDepth(const std::filesystem::path& file, const cv::Mat& depth_m) {
+  if (depth_m.type() != CV_32FC1) Fail("depth for '", file.string(), "' must be CV_32FC1 metres");
+  cv::Mat contiguous = depth_m.isContinuous() ? depth_m : depth_m.clone();
+  thread_local std::mt19937_64 random{std::random_device{}()};
+  std::filesystem::path temp = file;
+  temp += ".tmp" + std::to_string(::getpid()) + "_" + std::to_string(random() % 1000000007);
+  try {
+    Imf::Header header(contiguous.cols, contiguous.rows);
+    header.channels().insert("Z", Imf::Channel(Imf::FLOAT));
+    header.compression() = Imf::ZIP_COMPRESSION;
+    Imf::OutputFile out(temp.c_str(), header);
+    Imf::FrameBuffer buffer;
+    buffer.insert("Z", Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(contiguous.ptr<float>()),
+                                  sizeof(float), sizeof(float) * contiguous.cols));
+    out.setFrameBuffer(buffer);
+    out.writePixels(contiguous.rows);
+  } catch (const std::exception& e) {
+    std::filesystem::remove(temp);
+    Fail("cannot write '", file.string(), "': ", e.what());
+  }
+  std::error_code ec;
+  std::filesystem::rename(temp, file, ec);
+  if (ec) {
+    std::filesystem::remove(temp);
+    Fail("cannot replace '", file.string(), "': ", ec.message());
+  }
+}
+
+namespace {
+
+cv::Mat ReadExr(const std::filesystem::path& file) {
+  if (!std::filesystem::exists(file)) Fail("'", file.string(), "' does not exist");
+  try {
+    Imf::InputFile in(file.c_str());
+    const Imath::Box2i window = in.header().dataWindow();
+    int width = window.max.x - window.min.x + 1;
+    int height = window.max.y - window.min.y + 1;
+    const char* channel = in.header().channels().findChannel("Z") ? "Z" : nullptr;
+    if (channel == nullptr) {
+      for (auto it = in.header().channels().begin(); it != in.header().channels().end(); ++it) {
+        channel = it.name();
+        break;
+      }
+    }
+    if (channel == nullptr) Fail("'", file.string(), "' has no channels");
+    cv::Mat depth(height, width, CV_32FC1);
+    Imf::FrameBuffer buffer;
+    char* base = reinterpret_cast<char*>(depth.ptr<float>()) -
+                 (window.min.x + static_cast<ptrdiff_t>(window.min.y) * width) * sizeof(float);
+    buffer.insert(channel, Imf::Slice(Imf::FLOAT, base, sizeof(float), sizeof(float) * width));
+    in.setFrameBuffer(buffer);
+    if (!in.isComplete()) Fail("'", file.string(), "' is truncated");
+    in.readPixels(window.min.y, window.max.y);
+    return depth;
+  } catch (const Error&) {
+    throw;
+  } catch (const std::exception& e) {
+    Fail("'", file.string(), "' is not a readable OpenEXR file: ", e.what());
+  }
+}
+
+cv::Mat ReadZstd(const std::filesystem::path& file) {
+  std::string bytes = ReadFileToString(file);
+  ZstdHeader header;
+  if (bytes.size() < sizeof(header)) Fail("'", file.string(), "' is truncated");
+  std::memcpy(&header, bytes.data(), sizeof(header));
+  if (std::memcmp(header.magic, kZstdMagic, 4) != 0) Fail("'", file.string(), "' is not a holocap zstd frame");
+  if (header.rows <= 0 || header.cols <= 0 || header.rows > 1 << 16 || header.cols > 1 << 16) {
+    Fail("'", file.string(), "' has a corrupt header");
+  }
+  cv::Mat image;
+  try {
+    image.create(header.rows, header.cols, header.type);
+  } catch (const cv::Exception&) {
+    Fail("'", file.string(), "' has a corrupt header");
+  }
+  size_t raw_size = image.total() * image.elemSize();
+  size_t n = ZSTD_decompress(image.data, raw_size, bytes.data() + sizeof(header),
+                             bytes.size() - sizeof(header));
+  if (ZSTD_isError(n) || n != raw_size) Fail("'", file.string(), "' is truncated or corrupt");
+  return image;
+}
+
+}  // namespace
+
+cv::Mat ReadImage(const std::filesystem::path& file) {
+  switch (CodecOfFile(file)) {
+    case ImageCodec::kExr: return ReadExr(file);
+    case ImageCodec::kZstd: return ReadZstd(file);
+    case ImageCodec::kPng: {
+      std::string bytes = ReadFileToString(file);
+      cv::Mat image;
+      try {
+        image = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, bytes.data()),
+                             cv::IMREAD_UNCHANGED);
+      } catch (const cv::Exception&) {
+      }
+      if (image.empty()) Fail("'", file.string(), "' is truncated or not a PNG image");
+      return image;
+    }
+  }
+  Fail("unreachable");
+}
+
+void WriteImage(const std::filesystem::path& file, const cv::Mat& image) {
+  switch (CodecOfFile(file)) {
+    case ImageCodec::kExr: return WriteExrDepth(file, image);
+    case ImageCodec::kZstd: return WriteZstd(file, image);
+    case ImageCodec::kPng: return WritePng(file, image);
+  }
+}
+
+}  // namespace holocap

@@ -1,0 +1,59 @@
+#include "core/report.h"
+
+#include "core/fs.h"
+
+namespace holocap {
+
+const char* ToString(Termination termination) {
+  switch (termination) {
+    case Termination::kSuccess: return "SUCCESS";
+    case Termination::kConvergence: return "CONVERGENCE";
+    case Termination::kNoConvergence: return "NO_CONVERGENCE";
+    case Termination::kDegenerate: return "DEGENERATE";
+    case Termination::kFailure: return "FAILURE";
+  }
+  return "?";
+}
+
+bool IsUsable(Termination termination) {
+  return termination == Termination::kSuccess || termination == Termination::kConvergence;
+}
+
+Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
+  json_["command"] = std::move(command);
+  json_["options"] = nlohmann::json::object();
+  json_["plan"] = nlohmann::json::object();
+  json_["summary"] = {{"termination", ToString(Termination::kFailure)},
+                      {"message", "did not finish"}};
+  json_["metrics"] = nlohmann::json::object();
+  json_["series"] = nlohmann::json::array();
+}
+
+void Report::SetSummary(const Summary& summary) {
+  std::lock_guard lock(mutex_);
+  json_["summary"] = {{"termination", ToString(summary.termination)}, {"message", summary.message}};
+}
+
+double Report::ElapsedSeconds() const {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+}
+
+void Report::AddPoint(const std::string& metric, double value, int64_t iter) {
+  double t = ElapsedSeconds();
+  std::lock_guard lock(mutex_);
+  json_["series"].push_back({{"t_s", t}, {"iter", iter}, {"metric", metric}, {"value", value}});
+}
+
+void Report::Write(const std::filesystem::path& file) const {
+  std::string text;
+  {
+    std::lock_guard lock(mutex_);
+    nlohmann::json copy = json_;
+    copy["elapsed_s"] = ElapsedSeconds();
+    text = copy.dump(2, ' ', false, nlohmann::json::error_handler_t::replace) + "\n";
+  }
+  if (file.has_parent_path()) CreateDirectories(file.parent_path());
+  WriteFileAtomic(file, text);
+}
+
+}  // namespace holocap

@@ -1,0 +1,226 @@
+#include "core/rig.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <set>
+
+#include "core/error.h"
+#include "core/fs.h"
+
+namespace holocap {
+namespace {
+
+nlohmann::json JsonFromYaml(const YAML::Node& node) {
+  switch (node.Type()) {
+    case YAML::NodeType::Null:
+    case YAML::NodeType::Undefined:
+      return nullptr;
+    case YAML::NodeType::Sequence: {
+      nlohmann::json array = nlohmann::json::array();
+      for (const auto& item : node) array.push_back(JsonFromYaml(item));
+      return array;
+    }
+    case YAML::NodeType::Map: {
+      nlohmann::json object = nlohmann::json::object();
+      for (const auto& item : node) object[item.first.as<std::string>()] = JsonFromYaml(item.second);
+      return object;
+    }
+    case YAML::NodeType::Scalar: {
+      const std::string& text = node.Scalar();
+      if (node.Tag() == "!") return text;  // quoted in the file: keep as a string
+      bool boolean;
+      if (YAML::convert<bool>::decode(node, boolean) &&
+          (text == "true" || text == "false" || text == "True" || text == "False")) {
+        return boolean;
+      }
+      try {
+        size_t used = 0;
+        long long integer = std::stoll(text, &used);
+        if (used == text.size()) return integer;
+      } catch (...) {
+      }
+      try {
+        size_t used = 0;
+        double number = std::stod(text, &used);
+        if (used == text.size()) return number;
+      } catch (...) {
+      }
+      return text;
+    }
+  }
+  return nullptr;
+}
+
+template <typename T>
+T Field(const nlohmann::json& object, const char* key, const T& fallback, const std::string& where) {
+  if (!object.contains(key) || object[key].is_null()) return fallback;
+  try {
+    return object[key].get<T>();
+  } catch (const nlohmann::json::exception&) {
+    Fail(where, ": field '", key, "' has the wrong type (", object[key].dump(), ")");
+  }
+}
+
+}  // namespace
+
+const char* ToString(SensorRole role) {
+  switch (role) {
+    case SensorRole::kColor: return "color";
+    case SensorRole::kDepth: return "depth";
+    case SensorRole::kWitness: return "witness";
+  }
+  return "?";
+}
+
+const char* ToString(SyncMode mode) {
+  switch (mode) {
+    case SyncMode::kHardwareTrigger: return "hardware";
+    case SyncMode::kSoftwareTrigger: return "software";
+    case SyncMode::kFreeRun: return "free-run";
+  }
+  return "?";
+}
+
+SensorRole SensorRoleFromString(const std::string& text) {
+  if (text == "color" || text == "colour") return SensorRole::kColor;
+  if (text == "depth") return SensorRole::kDepth;
+  if (text == "witness") return SensorRole::kWitness;
+  Fail("unknown sensor role '", text, "' (color, depth or witness)");
+}
+
+SyncMode SyncModeFromString(const std::string& text) {
+  if (text == "hardware" || text == "hardware-trigger") return SyncMode::kHardwareTrigger;
+  if (text == "software" || text == "software-trigger") return SyncMode::kSoftwareTrigger;
+  if (text == "free-run" || text == "freerun") return SyncMode::kFreeRun;
+  Fail("unknown sync mode '", text, "' (hardware, software or free-run)");
+}
+
+std::string SensorSpec::scheme() const {
+  size_t colon = uri.find(':');
+  return colon == std::string::npos ? std::string() : uri.substr(0, colon);
+}
+
+RigDescription RigDescription::FromJson(const nlohmann::json& json, const std::string& origin) {
+  if (!json.is_object()) Fail(origin, ": a rig description must be a mapping");
+  RigDescription rig;
+  rig.name = Field<std::string>(json, "name", rig.name, origin);
+  try {
+    rig.sync = SyncModeFromString(Field<std::string>(json, "sync", ToString(rig.sync), origin));
+  } catch (const Error& e) {
+    Fail(origin, ": ", e.what());
+  }
+  rig.fps = Field<double>(json, "fps", rig.fps, origin);
+  if (json.contains("options") && json["options"].is_object()) rig.options = json["options"];
+  if (!json.contains("sensors") || !json["sensors"].is_array()) {
+    Fail(origin, ": 'sensors' must be a list of sensors");
+  }
+  int index = 0;
+  for (const auto& item : json["sensors"]) {
+    std::string where = origin + ": sensors[" + std::to_string(index++) + "]";
+    if (!item.is_object()) Fail(where, " must be a mapping");
+    SensorSpec spec;
+    spec.name = Field<std::string>(item, "name", "", where);
+    spec.uri = Field<std::string>(item, "uri", "", where);
+    if (spec.name.empty()) Fail(where, ": 'name' is missing");
+    if (spec.uri.empty()) Fail(where, " (", spec.name, "): 'uri' is missing");
+    try {
+      spec.role = SensorRoleFromString(Field<std::string>(item, "role", "color", where));
+    } catch (const Error& e) {
+      Fail(where, " (", spec.name, "): ", e.what());
+    }
+    spec.exposure_us = Field<double>(item, "exposure_us", 0.0, where);
+    spec.gain_db = Field<double>(item, "gain_db", 0.0, where);
+    spec.paired_with = Field<std::string>(item, "paired_with", "", where);
+    if (item.contains("options")) {
+      if (!item["options"].is_object()) Fail(where, ": 'options' must be a mapping");
+      spec.options = item["options"];
+    }
+    rig.sensors.push_back(std::move(spec));
+  }
+  try {
+    rig.Check();
+  } catch (const Error& e) {
+    Fail(origin, ": ", e.what());
+  }
+  return rig;
+}
+
+RigDescription RigDescription::Load(const std::filesystem::path& file) {
+  std::string text = ReadFileToString(file);
+  nlohmann::json json;
+  if (file.extension() == ".json") {
+    try {
+      json = nlohmann::json::parse(text);
+    } catch (const nlohmann::json::parse_error& e) {
+      Fail("'", file.string(), "' is not valid JSON: ", e.what());
+    }
+  } else {
+    try {
+      json = JsonFromYaml(YAML::Load(text));
+    } catch (const YAML::Exception& e) {
+      Fail("'", file.string(), "' is not valid YAML: line ", e.mark.line + 1, ": ", e.msg);
+    }
+  }
+  return FromJson(json, file.string());
+}
+
+nlohmann::json RigDescription::ToJson() const {
+  nlohmann::json json;
+  json["name"] = name;
+  json["sync"] = ToString(sync);
+  json["fps"] = fps;
+  if (!options.empty()) json["options"] = options;
+  json["sensors"] = nlohmann::json::array();
+  for (const auto& spec : sensors) {
+    nlohmann::json item;
+    item["name"] = spec.name;
+    item["uri"] = spec.uri;
+    item["role"] = ToString(spec.role);
+    if (spec.exposure_us != 0) item["exposure_us"] = spec.exposure_us;
+    if (spec.gain_db != 0) item["gain_db"] = spec.gain_db;
+    if (!spec.paired_with.empty()) item["paired_with"] = spec.paired_with;
+    if (!spec.options.empty()) item["options"] = spec.options;
+    json["sensors"].push_back(item);
+  }
+  return json;
+}
+
+void RigDescription::Check() const {
+  if (!(fps > 0) || fps > 10000) Fail("fps must be in (0, 10000], got ", fps);
+  if (sensors.empty()) Fail("the rig has no sensors");
+  std::set<std::string> names;
+  for (const auto& spec : sensors) {
+    if (spec.name.find_first_of("/\\ \t#") != std::string::npos) {
+      Fail("sensor name '", spec.name, "' may not contain '/', '\\', '#' or spaces");
+    }
+    if (!names.insert(spec.name).second) Fail("sensor name '", spec.name, "' appears twice");
+    if (spec.scheme().empty()) Fail("sensor '", spec.name, "': URI '", spec.uri, "' has no scheme (like sim: or aravis:)");
+  }
+  for (const auto& spec : sensors) {
+    if (!spec.paired_with.empty() && !names.count(spec.paired_with)) {
+      Fail("sensor '", spec.name, "' is paired with '", spec.paired_with, "', which is not in the rig");
+    }
+  }
+}
+
+const SensorSpec& RigDescription::sensor(const std::string& sensor_name) const {
+  int i = IndexOf(sensor_name);
+  if (i < 0) Fail("the rig has no sensor named '", sensor_name, "'");
+  return sensors[i];
+}
+
+int RigDescription::IndexOf(const std::string& sensor_name) const {
+  for (size_t i = 0; i < sensors.size(); ++i) {
+    if (sensors[i].name == sensor_name) return static_cast<int>(i);
+  }
+  return -1;
+}
+
+bool RigDescription::HasRole(SensorRole role) const {
+  for (const auto& spec : sensors) {
+    if (spec.role == role) return true;
+  }
+  return false;
+}
+
+}  // namespace holocap

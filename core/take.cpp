@@ -1,0 +1,362 @@
+#include "core/take.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <ctime>
+#include <limits>
+
+#include "core/error.h"
+
+namespace holocap {
+namespace {
+
+constexpr const char* kManifest = "take.json";
+constexpr const char* kIndex = "index.jsonl";
+
+std::string NowIso8601() {
+  std::time_t now = std::time(nullptr);
+  char buffer[32];
+  std::strftime(buffer, sizeof(buffer), "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&now));
+  return buffer;
+}
+
+std::string FrameFileName(const StreamInfo& stream, int64_t index) {
+  char buffer[32];
+  std::snprintf(buffer, sizeof(buffer), "%06lld", static_cast<long long>(index));
+  return "frames/" + stream.name + "/" + buffer + ExtensionOf(stream.codec);
+}
+
+const char* CodecName(ImageCodec codec) {
+  switch (codec) {
+    case ImageCodec::kPng: return "png";
+    case ImageCodec::kZstd: return "zstd";
+    case ImageCodec::kExr: return "exr";
+  }
+  return "?";
+}
+
+ImageCodec CodecFromName(const std::string& name) {
+  if (name == "png") return ImageCodec::kPng;
+  if (name == "zstd") return ImageCodec::kZstd;
+  if (name == "exr") return ImageCodec::kExr;
+  Fail("unknown frame codec '", name, "'");
+}
+
+}  // namespace
+
+nlohmann::json StreamInfo::ToJson() const {
+  nlohmann::json json{{"name", name},     {"uri", uri},
+                      {"role", ToString(role)}, {"width", width},
+                      {"height", height}, {"pixel_format", pixel_format},
+                      {"codec", CodecName(codec)}, {"clock", clock}};
+  if (!paired_with.empty()) json["paired_with"] = paired_with;
+  return json;
+}
+
+StreamInfo StreamInfo::FromJson(const nlohmann::json& json) {
+  StreamInfo stream;
+  stream.name = json.at("name").get<std::string>();
+  stream.uri = json.value("uri", "");
+  stream.role = SensorRoleFromString(json.value("role", "color"));
+  stream.width = json.at("width").get<int>();
+  stream.height = json.at("height").get<int>();
+  stream.pixel_format = json.at("pixel_format").get<std::string>();
+  stream.codec = CodecFromName(json.value("codec", "png"));
+  stream.clock = json.value("clock", "unknown");
+  stream.paired_with = json.value("paired_with", "");
+  stream.cv_type();  // validates the pixel format
+  return stream;
+}
+
+int StreamInfo::cv_type() const {
+  if (pixel_format == "mono8") return CV_8UC1;
+  if (pixel_format == "bgr8") return CV_8UC3;
+  if (pixel_format == "mono16") return CV_16UC1;
+  if (pixel_format == "bgr16") return CV_16UC3;
+  if (pixel_format == "depth_m") return CV_32FC1;
+  Fail("stream '", name, "': unknown pixel format '", pixel_format,
+       "' (mono8, bgr8, mono16, bgr16, depth_m)");
+}
+
+int64_t FrameSet::SpreadNs() const {
+  if (frames.size() < 2) return 0;
+  int64_t lo = std::numeric_limits<int64_t>::max(), hi = std::numeric_limits<int64_t>::min();
+  for (const auto& frame : frames) {
+    lo = std::min(lo, frame.timestamp_ns);
+    hi = std::max(hi, frame.timestamp_ns);
+  }
+  return hi - lo;
+}
+
+const Frame* FrameSet::Find(const std::string& sensor) const {
+  for (const auto& frame : frames) {
+    if (frame.sensor == sensor) return &frame;
+  }
+  return nullptr;
+}
+
+const FrameSetEntry::Item* FrameSetEntry::Find(const std::string& sensor) const {
+  for (const auto& item : items) {
+    if (item.sensor == sensor) return &item;
+  }
+  return nullptr;
+}
+
+TakeWriter::TakeWriter(const std::filesystem::path& dir, const RigDescription& rig,
+                       std::vector<StreamInfo> streams, nlohmann::json metadata,
+                       TakeWriterOptions options)
+    : dir_(dir), rig_(rig), streams_(std::move(streams)), metadata_(std::move(metadata)),
+      options_(options) {
+  if (streams_.empty()) Fail("a take needs at least one stream");
+  for (auto& stream : streams_) {
+    stream.cv_type();
+    if (stream.width <= 0 || stream.height <= 0) Fail("stream '", stream.name, "' has no size");
+    if (stream.pixel_format == "depth_m") stream.codec = ImageCodec::kExr;
+    if (stream.codec == ImageCodec::kExr && stream.pixel_format != "depth_m") {
+      Fail("stream '", stream.name, "': EXR frames hold depth_m only");
+    }
+  }
+  std::error_code ec;
+  if (std::filesystem::exists(dir_, ec)) {
+    if (!std::filesystem::is_directory(dir_)) Fail("'", dir_.string(), "' exists and is not a directory");
+    if (!std::filesystem::is_empty(dir_)) {
+      if (!options_.overwrite) Fail("'", dir_.string(), "' is not empty (refusing to overwrite a take)");
+      std::filesystem::remove_all(dir_, ec);
+      if (ec) Fail("cannot clear '", dir_.string(), "': ", ec.message());
+    }
+  }
+  CreateDirectories(dir_);
+  for (const auto& stream : streams_) CreateDirectories(dir_ / "frames" / stream.name);
+  for (const auto& stream : streams_) dropped_[stream.name] = 0;
+  WriteManifest("recording");
+  index_ = LineAppender(dir_ / kIndex, options_.durable);
+}
+
+TakeWriter::~TakeWriter() {
+  try {
+    Close();
+  } catch (...) {
+    // The index already holds every complete set; a manifest left at "recording" is readable.
+  }
+}
+
+void TakeWriter::WriteManifest(const std::string& state) {
+  nlohmann::json manifest;
+  manifest["format"] = "holocap-take";
+  manifest["format_version"] = kTakeFormatVersion;
+  manifest["state"] = state;
+  manifest["updated"] = NowIso8601();
+  manifest["rig"] = rig_.ToJson();
+  manifest["streams"] = nlohmann::json::array();
+  for (const auto& stream : streams_) manifest["streams"].push_back(stream.ToJson());
+  manifest["metadata"] = metadata_;
+  manifest["dropped"] = dropped_;
+  manifest["frame_sets"] = sets_written_;
+  manifest["first_timestamp_ns"] = first_timestamp_ns_;
+  manifest["last_timestamp_ns"] = last_timestamp_ns_;
+  manifest["index"] = kIndex;
+  WriteFileAtomic(dir_ / kManifest, manifest.dump(2) + "\n", options_.durable);
+}
+
+void TakeWriter::Append(const FrameSet& set) {
+  {
+    std::lock_guard lock(mutex_);
+    if (closed_) Fail("take '", dir_.string(), "' is closed");
+  }
+  nlohmann::json line;
+  line["set"] = set.index;
+  line["spread_ns"] = set.SpreadNs();
+  line["frames"] = nlohmann::json::array();
+  uint64_t bytes = 0;
+  for (const auto& frame : set.frames) {
+    auto it = std::find_if(streams_.begin(), streams_.end(),
+                           [&](const StreamInfo& s) { return s.name == frame.sensor; });
+    if (it == streams_.end()) Fail("frame from '", frame.sensor, "', which is not a stream of this take");
+    const StreamInfo& stream = *it;
+    if (frame.image.type() != stream.cv_type() || frame.image.cols != stream.width ||
+        frame.image.rows != stream.height) {
+      Fail("frame from '", frame.sensor, "' is ", frame.image.cols, "x", frame.image.rows,
+           " type ", frame.image.type(), ", the stream is ", stream.width, "x", stream.height, " ",
+           stream.pixel_format);
+    }
+    std::string relative = FrameFileName(stream, set.index);
+    std::filesystem::path file = dir_ / relative;
+    switch (stream.codec) {
+      case ImageCodec::kPng: WritePng(file, frame.image, options_.png_compression); break;
+      case ImageCodec::kZstd: WriteZstd(file, frame.image); break;
+      case ImageCodec::kExr: WriteExrDepth(file, frame.image); break;
+    }
+    std::error_code ec;
+    bytes += std::filesystem::file_size(file, ec);
+    line["frames"].push_back({{"sensor", frame.sensor},
+                              {"file", relative},
+                              {"t_ns", frame.timestamp_ns},
+                              {"seq", frame.sequence}});
+  }
+  std::lock_guard lock(mutex_);
+  index_.Append(line.dump());
+  ++sets_written_;
+  bytes_written_ += bytes;
+  for (const auto& frame : set.frames) {
+    if (first_timestamp_ns_ == 0 || frame.timestamp_ns < first_timestamp_ns_) first_timestamp_ns_ = frame.timestamp_ns;
+    last_timestamp_ns_ = std::max(last_timestamp_ns_, frame.timestamp_ns);
+  }
+  if (options_.manifest_every > 0 && sets_written_ % options_.manifest_every == 0) WriteManifest("recording");
+}
+
+void TakeWriter::CountDropped(const std::string& sensor, int64_t count) {
+  std::lock_guard lock(mutex_);
+  dropped_[sensor] += count;
+}
+
+void TakeWriter::Close() {
+  std::lock_guard lock(mutex_);
+  if (closed_) return;
+  closed_ = true;
+  index_.Close();
+  WriteManifest("complete");
+}
+
+int64_t TakeWriter::sets_written() const {
+  std::lock_guard lock(mutex_);
+  return sets_written_;
+}
+
+uint64_t TakeWriter::bytes_written() const {
+  std::lock_guard lock(mutex_);
+  return bytes_written_;
+}
+
+Take Take::Open(const std::filesystem::path& dir) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir, ec)) Fail("take '", dir.string(), "' does not exist");
+  if (!std::filesystem::exists(dir / kManifest)) {
+    Fail("'", dir.string(), "' is not a holocap take: ", kManifest, " is missing");
+  }
+  Take take;
+  take.dir_ = dir;
+  nlohmann::json manifest;
+  try {
+    manifest = nlohmann::json::parse(ReadFileToString(dir / kManifest));
+  } catch (const nlohmann::json::parse_error& e) {
+    Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
+  }
+  try {
+    if (manifest.value("format", "") != "holocap-take") Fail("not a holocap take manifest");
+    take.format_version_ = manifest.at("format_version").get<int>();
+    if (take.format_version_ < 1 || take.format_version_ > kTakeFormatVersion) {
+      Fail("format version ", take.format_version_, " is not supported (this holocap reads 1..",
+           kTakeFormatVersion, ")");
+    }
+    take.state_ = manifest.value("state", "recording");
+    take.rig_ = RigDescription::FromJson(manifest.at("rig"), "take.json rig");
+    for (const auto& stream : manifest.at("streams")) take.streams_.push_back(StreamInfo::FromJson(stream));
+    take.metadata_ = manifest.value("metadata", nlohmann::json::object());
+    if (manifest.contains("dropped")) take.dropped_ = manifest["dropped"].get<std::map<std::string, int64_t>>();
+  } catch (const nlohmann::json::exception& e) {
+    Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
+  } catch (const Error& e) {
+    Fail("'", (dir / kManifest).string(), "': ", e.what());
+  }
+  std::string index_text;
+  if (std::filesystem::exists(dir / kIndex)) index_text = ReadFileToString(dir / kIndex);
+  size_t start = 0;
+  while (start < index_text.size()) {
+    size_t end = index_text.find('\n', start);
+    bool torn = end == std::string::npos;  // the last line of a killed writer
+    std::string line = index_text.substr(start, torn ? std::string::npos : end - start);
+    start = torn ? index_text.size() : end + 1;
+    if (line.empty()) continue;
+    FrameSetEntry entry;
+    bool valid = !torn;
+    if (valid) {
+      try {
+        auto json = nlohmann::json::parse(line);
+        entry.index = json.at("set").get<int64_t>();
+        entry.spread_ns = json.value("spread_ns", int64_t{0});
+        for (const auto& frame : json.at("frames")) {
+          FrameSetEntry::Item item;
+          item.sensor = frame.at("sensor").get<std::string>();
+          item.file = frame.at("file").get<std::string>();
+          item.timestamp_ns = frame.at("t_ns").get<int64_t>();
+          item.sequence = frame.value("seq", uint64_t{0});
+          if (!take.has_stream(item.sensor) || !std::filesystem::exists(dir / item.file)) valid = false;
+          entry.items.push_back(std::move(item));
+        }
+      } catch (const nlohmann::json::exception&) {
+        valid = false;
+      }
+    }
+    if (valid) {
+      take.entries_.push_back(std::move(entry));
+    } else {
+      ++take.skipped_index_lines_;
+    }
+  }
+  std::stable_sort(take.entries_.begin(), take.entries_.end(),
+                   [](const FrameSetEntry& a, const FrameSetEntry& b) { return a.index < b.index; });
+  return take;
+}
+
+const StreamInfo& Take::stream(const std::string& name) const {
+  for (const auto& s : streams_) {
+    if (s.name == name) return s;
+  }
+  Fail("take '", dir_.string(), "' has no sensor named '", name, "'");
+}
+
+bool Take::has_stream(const std::string& name) const {
+  return std::any_of(streams_.begin(), streams_.end(), [&](const StreamInfo& s) { return s.name == name; });
+}
+
+FrameSet Take::Read(size_t i, const std::vector<std::string>& sensors) const {
+  if (i >= entries_.size()) Fail("take '", dir_.string(), "' has ", entries_.size(), " frame sets; asked for set ", i);
+  for (const auto& name : sensors) stream(name);
+  const FrameSetEntry& entry = entries_[i];
+  FrameSet set;
+  set.index = entry.index;
+  for (const auto& item : entry.items) {
+    if (!sensors.empty() && std::find(sensors.begin(), sensors.end(), item.sensor) == sensors.end()) continue;
+    Frame frame;
+    frame.sensor = item.sensor;
+    frame.timestamp_ns = item.timestamp_ns;
+    frame.sequence = item.sequence;
+    frame.image = ReadImage(dir_ / item.file);
+    const StreamInfo& info = stream(item.sensor);
+    if (frame.image.type() != info.cv_type() || frame.image.cols != info.width || frame.image.rows != info.height) {
+      Fail("'", (dir_ / item.file).string(), "' does not match its stream (", info.width, "x", info.height, " ",
+           info.pixel_format, ")");
+    }
+    set.frames.push_back(std::move(frame));
+  }
+  return set;
+}
+
+cv::Mat Take::ReadFrame(size_t i, const std::string& sensor) const {
+  FrameSet set = Read(i, {sensor});
+  if (set.frames.empty()) Fail("frame set ", i, " of '", dir_.string(), "' has no frame from '", sensor, "' (dropped)");
+  return set.frames.front().image;
+}
+
+bool Take::has_calibration() const {
+  for (const auto& s : streams_) {
+    if (s.role != SensorRole::kWitness && !std::filesystem::exists(calib_dir() / (s.name + ".cameramodel"))) return false;
+  }
+  return !streams_.empty();
+}
+
+bool Take::has_ground_truth() const { return std::filesystem::is_directory(gt_dir()); }
+
+CameraModel Take::Camera(const std::string& sensor, bool ground_truth) const {
+  stream(sensor);
+  std::filesystem::path file =
+      (ground_truth ? gt_dir() / "cameras" : calib_dir()) / (sensor + ".cameramodel");
+  if (!std::filesystem::exists(file)) {
+    Fail("take '", dir_.string(), "' has no ", ground_truth ? "ground-truth model" : "calibration",
+         " for '", sensor, "' (", file.string(), " is missing)", ground_truth ? "" : ": run holocap calibrate");
+  }
+  return CameraModel::Read(file);
+}
+
+}  // namespace holocap

@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# Installs the Debian packages holocap needs (only the missing ones), then configures and
+# builds it with every core. Idempotent; works as root or through sudo.
+#   scripts/setup.sh            build dependencies + build
+#   scripts/setup.sh --tests    also the packages the tests and peer checks use
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+want_tests=0
+for arg in "$@"; do
+  case "$arg" in
+    --tests) want_tests=1 ;;
+    *) echo "setup.sh: unknown option '$arg'" >&2; exit 2 ;;
+  esac
+done
+
+packages=(
+  build-essential cmake ninja-build pkg-config git
+  libeigen3-dev libopencv-dev libopenexr-dev libzstd-dev
+  libmrcal-dev libapriltag-dev libceres-dev
+  libcamera-dev libaravis-dev aravis-tools libusb-1.0-0-dev libv4l-dev
+  libtorch-dev
+  nlohmann-json3-dev libcli11-dev libyaml-cpp-dev
+  ffmpeg
+)
+if [ "$want_tests" = 1 ]; then
+  packages+=(googletest libgtest-dev python3-mrcal mrcal python3-numpy python3-opencv iproute2)
+fi
+
+missing=()
+for p in "${packages[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if [ "${#missing[@]}" -gt 0 ]; then
+  sudo_cmd=()
+  [ "$(id -u)" -ne 0 ] && sudo_cmd=(sudo)
+  echo "setup.sh: installing ${missing[*]}"
+  export DEBIAN_FRONTEND=noninteractive
+  "${sudo_cmd[@]}" apt-get update -qq
+  "${sudo_cmd[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+build_dir=${HOLOCAP_BUILD_DIR:-build}
+cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
+cmake --build "$build_dir" -j "$(nproc)"

@@ -1,0 +1,213 @@
+#include "core/camera.h"
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <opencv2/calib3d.hpp>
+#include <random>
+
+#include "core/error.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::TempDir;
+
+CameraModel RealWideLens() {
+  return CameraModel::Read(testing::SharedDataDir() / "lenses/wide-4000x2200.opencv8.cameramodel");
+}
+
+// Points spread over the field of view at 0.5..20 m.
+Eigen::Matrix3Xd PointsInView(const CameraModel& camera, int count, uint64_t seed) {
+  std::mt19937_64 random(seed);
+  std::uniform_real_distribution<double> u(0.05, 0.95), depth(0.5, 20.0);
+  Eigen::Matrix3Xd points(3, count);
+  for (int i = 0; i < count; ++i) {
+    Eigen::Vector2d pixel(u(random) * camera.width(), u(random) * camera.height());
+    points.col(i) = camera.Unproject(pixel) * depth(random);
+  }
+  return points;
+}
+
+TEST(CameraModel, ReadsTheRealLensFile) {
+  CameraModel lens = RealWideLens();
+  EXPECT_EQ(lens.lensmodel(), "LENSMODEL_OPENCV8");
+  EXPECT_EQ(lens.width(), 4000);
+  EXPECT_EQ(lens.height(), 2200);
+  EXPECT_NEAR(lens.intrinsics()[0], 1761.181055, 1e-9);
+  EXPECT_NEAR(lens.cam_from_world().translation().y(), 2.0, 1e-12);
+}
+
+// OpenCV's projectPoints is an independent implementation of the OPENCV lens models.
+TEST(CameraModel, OpenCvModelsProjectAsOpenCvDoes) {
+  CameraModel lens = RealWideLens();
+  for (int n : {4, 5, 8}) {
+    std::vector<double> intrinsics(lens.intrinsics().begin(), lens.intrinsics().begin() + 4 + n);
+    CameraModel camera("LENSMODEL_OPENCV" + std::to_string(n), intrinsics, lens.width(), lens.height());
+    Eigen::Matrix3Xd points = PointsInView(camera, 500, n);
+    cv::Mat K = (cv::Mat_<double>(3, 3) << intrinsics[0], 0, intrinsics[2], 0, intrinsics[1], intrinsics[3], 0, 0, 1);
+    cv::Mat distortion(1, n, CV_64F, intrinsics.data() + 4);
+    std::vector<cv::Point3d> cv_points;
+    for (int i = 0; i < points.cols(); ++i) cv_points.emplace_back(points(0, i), points(1, i), points(2, i));
+    std::vector<cv::Point2d> expected;
+    cv::projectPoints(cv_points, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K, distortion, expected);
+    Eigen::Matrix2Xd pixels = camera.ProjectMany(points);
+    double worst = 0;
+    for (int i = 0; i < points.cols(); ++i) {
+      Eigen::Vector2d single;
+      ASSERT_TRUE(camera.Project(points.col(i), &single));
+      worst = std::max(worst, (single - Eigen::Vector2d(expected[i].x, expected[i].y)).norm());
+      EXPECT_EQ(single, pixels.col(i));
+    }
+    EXPECT_LT(worst, 1e-9) << "OPENCV" << n;
+  }
+}
+
+// mrcal's own Python reads the file holocap writes and projects the same points.
+TEST(CameraModel, MatchesMrcalPythonThroughCameramodelFiles) {
+  ASSERT_EQ(std::system("/usr/bin/python3 -c 'import mrcal' 2>/dev/null"), 0)
+      << "python3-mrcal is missing: scripts/setup.sh --tests installs it";
+  TempDir dir;
+  std::vector<CameraModel> cameras = {
+      RealWideLens(),
+      CameraModel("LENSMODEL_PINHOLE", {800, 805, 319.5, 239.5}, 640, 480),
+      CameraModel("LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=8_Ny=6_fov_x_deg=150",
+                  [] {
+                    std::vector<double> v = {300, 300, 320, 240};
+                    std::mt19937_64 random(3);
+                    std::normal_distribution<double> knot(0, 0.02);
+                    for (int i = 0; i < 2 * 8 * 6; ++i) v.push_back(knot(random));
+                    return v;
+                  }(),
+                  640, 480)};
+  for (size_t c = 0; c < cameras.size(); ++c) {
+    const CameraModel& camera = cameras[c];
+    auto model_file = dir / ("camera" + std::to_string(c) + ".cameramodel");
+    camera.Write(model_file);
+    Eigen::Matrix3Xd points = PointsInView(camera, 200, 10 + c);
+    auto points_file = dir / "points.txt";
+    {
+      std::ofstream out(points_file);
+      out.precision(17);
+      for (int i = 0; i < points.cols(); ++i) out << points(0, i) << " " << points(1, i) << " " << points(2, i) << "\n";
+    }
+    auto result = testing::RunShell(
+        "/usr/bin/python3 -c \"import mrcal, numpy; m = mrcal.cameramodel('" + model_file.string() +
+        "'); p = numpy.loadtxt('" + points_file.string() +
+        "'); q = mrcal.project(p, *m.intrinsics()); numpy.savetxt('" + (dir / "q.txt").string() +
+        "', q, fmt='%.17g')\"");
+    ASSERT_EQ(result.exit_code, 0) << result.output;
+    std::ifstream in(dir / "q.txt");
+    Eigen::Matrix2Xd ours = camera.ProjectMany(points);
+    double worst = 0;
+    for (int i = 0; i < points.cols(); ++i) {
+      double x, y;
+      in >> x >> y;
+      worst = std::max(worst, (ours.col(i) - Eigen::Vector2d(x, y)).norm());
+    }
+    EXPECT_LT(worst, 1e-9) << camera.lensmodel();
+  }
+}
+
+TEST(CameraModel, UnprojectRoundTrips) {
+  CameraModel lens = RealWideLens().Scaled(0.16);
+  std::mt19937_64 random(7);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  double worst = 0;
+  for (int i = 0; i < 1000; ++i) {
+    Eigen::Vector2d pixel(u(random) * (lens.width() - 1), u(random) * (lens.height() - 1));
+    Eigen::Vector3d direction = lens.Unproject(pixel);
+    EXPECT_NEAR(direction.norm(), 1.0, 1e-12);
+    Eigen::Vector2d back;
+    ASSERT_TRUE(lens.Project(direction * 3.0, &back));
+    worst = std::max(worst, (back - pixel).norm());
+  }
+  EXPECT_LT(worst, 1e-6);
+}
+
+TEST(CameraModel, JacobiansMatchFiniteDifferences) {
+  CameraModel lens = RealWideLens().Scaled(0.16);
+  Eigen::Vector3d point(0.3, -0.2, 2.0);
+  Eigen::Vector2d pixel;
+  Eigen::Matrix<double, 2, 3> dpixel_dpoint;
+  Eigen::MatrixXd dpixel_dintrinsics;
+  ASSERT_TRUE(lens.Project(point, &pixel, &dpixel_dpoint, &dpixel_dintrinsics));
+  const double h = 1e-6;
+  for (int k = 0; k < 3; ++k) {
+    Eigen::Vector3d plus = point, minus = point;
+    plus[k] += h;
+    minus[k] -= h;
+    Eigen::Vector2d qp, qm;
+    lens.Project(plus, &qp);
+    lens.Project(minus, &qm);
+    Eigen::Vector2d numeric = (qp - qm) / (2 * h);
+    EXPECT_LT((numeric - dpixel_dpoint.col(k)).norm(), 1e-5 * (1 + numeric.norm()));
+  }
+  for (size_t k = 0; k < lens.intrinsics().size(); ++k) {
+    CameraModel plus = lens, minus = lens;
+    double step = h * std::max(1.0, std::abs(lens.intrinsics()[k]));
+    plus.mutable_intrinsics()[k] += step;
+    minus.mutable_intrinsics()[k] -= step;
+    Eigen::Vector2d qp, qm;
+    plus.Project(point, &qp);
+    minus.Project(point, &qm);
+    Eigen::Vector2d numeric = (qp - qm) / (2 * step);
+    EXPECT_LT((numeric - dpixel_dintrinsics.col(k)).norm(), 1e-4 * (1 + numeric.norm())) << k;
+  }
+}
+
+TEST(CameraModel, FileRoundTripIsExact) {
+  TempDir dir;
+  CameraModel lens = RealWideLens();
+  Pose pose = PoseFromRt({0.1234567890123, -0.3, 0.7, 1000.25, -2.5, 3.0});
+  lens.set_cam_from_world(pose);
+  lens.Write(dir / "a.cameramodel");
+  CameraModel back = CameraModel::Read(dir / "a.cameramodel");
+  EXPECT_EQ(back.lensmodel(), lens.lensmodel());
+  EXPECT_EQ(back.intrinsics(), lens.intrinsics());
+  EXPECT_EQ(back.width(), lens.width());
+  EXPECT_EQ(back.height(), lens.height());
+  EXPECT_LT((back.cam_from_world().matrix() - pose.matrix()).cwiseAbs().maxCoeff(), 1e-12);
+}
+
+TEST(CameraModel, ScalingKeepsThePixelCentreConvention) {
+  CameraModel camera("LENSMODEL_PINHOLE", {500, 500, 319.5, 239.5}, 640, 480);
+  CameraModel half = camera.Scaled(0.5);
+  EXPECT_EQ(half.width(), 320);
+  EXPECT_DOUBLE_EQ(half.intrinsics()[2], 159.5);  // still the imager centre
+  Eigen::Vector2d q, q_half;
+  camera.Project({0.2, 0.1, 1.0}, &q);
+  half.Project({0.2, 0.1, 1.0}, &q_half);
+  EXPECT_NEAR(q_half.x(), (q.x() + 0.5) * 0.5 - 0.5, 1e-12);
+}
+
+TEST(CameraModel, RejectsBadInput) {
+  EXPECT_THROW(CameraModel("LENSMODEL_NOPE", {1, 2, 3, 4}, 10, 10), Error);
+  EXPECT_THROW(CameraModel("LENSMODEL_OPENCV8", {1, 2, 3, 4}, 10, 10), Error);
+  EXPECT_THROW(CameraModel("LENSMODEL_PINHOLE", {1, 2, 3, NAN}, 10, 10), Error);
+  EXPECT_THROW(CameraModel::Parse("{ 'lensmodel': ", "broken"), Error);
+  EXPECT_THROW(CameraModel::Read("/nonexistent/x.cameramodel"), Error);
+  CameraModel pinhole = CameraModel::Pinhole(500, 640, 480);
+  Eigen::Vector2d q;
+  EXPECT_FALSE(pinhole.Project({0, 0, -1}, &q));
+  EXPECT_FALSE(pinhole.Project({NAN, 0, 1}, &q));
+}
+
+TEST(Pose, LookAtUsesOpenCvAxesInAZUpWorld) {
+  Pose cam_from_world = CamFromWorldLookAt({3, 0, 1.5}, {0, 0, 1.5});
+  Eigen::Vector3d target = cam_from_world * Eigen::Vector3d(0, 0, 1.5);
+  EXPECT_NEAR(target.x(), 0, 1e-12);
+  EXPECT_NEAR(target.y(), 0, 1e-12);
+  EXPECT_NEAR(target.z(), 3, 1e-12);
+  Eigen::Vector3d above = cam_from_world * Eigen::Vector3d(0, 0, 2.5);
+  EXPECT_LT(above.y(), 0);  // up in the world is up (negative y) in the image
+  EXPECT_THROW(CamFromWorldLookAt({0, 0, 0}, {0, 0, 1}), Error);
+  Rt rt = {0.1, 0.2, -0.3, 1, 2, 3};
+  Rt back = RtFromPose(PoseFromRt(rt));
+  for (int i = 0; i < 6; ++i) EXPECT_NEAR(back[i], rt[i], 1e-14);
+  EXPECT_NEAR(RotationAngleDeg(PoseFromRt({1e-9, 0, 0, 0, 0, 0}).linear()), 1e-9 * 180 / M_PI, 1e-20);
+}
+
+}  // namespace
+}  // namespace holocap

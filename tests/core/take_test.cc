@@ -1,0 +1,188 @@
+#include "core/take.h"
+
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <fstream>
+#include <random>
+#include <thread>
+
+#include "core/error.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::TempDir;
+
+RigDescription TwoSensorRig() {
+  RigDescription rig;
+  rig.name = "test";
+  rig.sensors = {{.name = "cam0", .uri = "sim:test#cam0"},
+                 {.name = "depth0", .uri = "sim:test#depth0", .role = SensorRole::kDepth, .paired_with = "cam0"}};
+  return rig;
+}
+
+std::vector<StreamInfo> TwoStreams(ImageCodec color_codec = ImageCodec::kPng) {
+  StreamInfo color{.name = "cam0", .uri = "sim:test#cam0", .width = 64, .height = 48,
+                   .pixel_format = "bgr8", .codec = color_codec, .clock = "sim"};
+  StreamInfo depth{.name = "depth0", .uri = "sim:test#depth0", .role = SensorRole::kDepth, .width = 32,
+                   .height = 24, .pixel_format = "depth_m", .codec = ImageCodec::kExr, .clock = "sim",
+                   .paired_with = "cam0"};
+  return {color, depth};
+}
+
+FrameSet RandomSet(int64_t index, uint64_t seed) {
+  cv::RNG rng(seed);
+  cv::Mat color(48, 64, CV_8UC3), depth(24, 32, CV_32FC1);
+  rng.fill(color, cv::RNG::UNIFORM, 0, 256);
+  rng.fill(depth, cv::RNG::UNIFORM, 0.3, 5.0);
+  depth.at<float>(3, 4) = std::numeric_limits<float>::quiet_NaN();
+  FrameSet set;
+  set.index = index;
+  set.frames.push_back({"cam0", color, 1000000 * index + 17, static_cast<uint64_t>(index)});
+  set.frames.push_back({"depth0", depth, 1000000 * index + 250, static_cast<uint64_t>(index)});
+  return set;
+}
+
+bool SameImage(const cv::Mat& a, const cv::Mat& b) {
+  if (a.size() != b.size() || a.type() != b.type()) return false;
+  cv::Mat a_bytes = a.reshape(1), b_bytes = b.reshape(1);
+  if (a.depth() == CV_32F) {
+    for (int r = 0; r < a_bytes.rows; ++r)
+      for (int c = 0; c < a_bytes.cols; ++c) {
+        float x = a_bytes.at<float>(r, c), y = b_bytes.at<float>(r, c);
+        if (!(x == y || (std::isnan(x) && std::isnan(y)))) return false;
+      }
+    return true;
+  }
+  return cv::countNonZero(a_bytes != b_bytes) == 0;
+}
+
+TEST(Take, WritesAndReadsBackBitExactly) {
+  for (ImageCodec codec : {ImageCodec::kPng, ImageCodec::kZstd}) {
+    TempDir dir;
+    {
+      TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams(codec));
+      for (int i = 0; i < 5; ++i) writer.Append(RandomSet(i, i));
+      writer.CountDropped("cam0", 2);
+      writer.Close();
+    }
+    Take take = Take::Open(dir / "take");
+    EXPECT_EQ(take.state(), "complete");
+    ASSERT_EQ(take.size(), 5u);
+    EXPECT_EQ(take.dropped().at("cam0"), 2);
+    EXPECT_EQ(take.rig().sensor("depth0").paired_with, "cam0");
+    for (int i = 0; i < 5; ++i) {
+      FrameSet expected = RandomSet(i, i);
+      FrameSet got = take.Read(i);
+      ASSERT_EQ(got.frames.size(), 2u);
+      for (int k = 0; k < 2; ++k) {
+        EXPECT_TRUE(SameImage(got.frames[k].image, expected.frames[k].image)) << i << " " << k;
+        EXPECT_EQ(got.frames[k].timestamp_ns, expected.frames[k].timestamp_ns);
+      }
+      EXPECT_EQ(take.entry(i).spread_ns, 233);
+    }
+  }
+}
+
+TEST(Take, RefusesToOverwriteAndNamesBadFrames) {
+  TempDir dir;
+  {
+    TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams());
+    FrameSet wrong = RandomSet(0, 0);
+    wrong.frames[0].image = cv::Mat(10, 10, CV_8UC3);
+    EXPECT_THROW(writer.Append(wrong), Error);
+    FrameSet stranger = RandomSet(0, 0);
+    stranger.frames[0].sensor = "cam9";
+    EXPECT_THROW(writer.Append(stranger), Error);
+  }
+  EXPECT_THROW(TakeWriter(dir / "take", TwoSensorRig(), TwoStreams()), Error);
+}
+
+// A writer killed with SIGKILL mid-take leaves a take that opens with every complete set.
+TEST(Take, SurvivesKillNineMidWrite) {
+  TempDir dir;
+  auto take_dir = dir / "take";
+  pid_t child = fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    TakeWriter writer(take_dir, TwoSensorRig(), TwoStreams());
+    for (int i = 0;; ++i) writer.Append(RandomSet(i, i));
+  }
+  // Wait until a few sets are in the index, then kill without warning.
+  for (int tries = 0; tries < 2000; ++tries) {
+    std::ifstream index(take_dir / "index.jsonl");
+    int lines = std::count(std::istreambuf_iterator<char>(index), {}, '\n');
+    if (lines >= 12) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+  }
+  kill(child, SIGKILL);
+  int status = 0;
+  waitpid(child, &status, 0);
+  ASSERT_TRUE(WIFSIGNALED(status));
+  Take take = Take::Open(take_dir);
+  EXPECT_EQ(take.state(), "recording");
+  ASSERT_GE(take.size(), 12u);
+  for (size_t i = 0; i < take.size(); ++i) {
+    FrameSet set = take.Read(i);
+    FrameSet expected = RandomSet(take.entry(i).index, take.entry(i).index);
+    ASSERT_EQ(set.frames.size(), 2u);
+    EXPECT_TRUE(SameImage(set.frames[0].image, expected.frames[0].image));
+    EXPECT_TRUE(SameImage(set.frames[1].image, expected.frames[1].image));
+  }
+}
+
+TEST(Take, SkipsATornIndexLineAndSetsWithMissingFrames) {
+  TempDir dir;
+  {
+    TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams());
+    for (int i = 0; i < 4; ++i) writer.Append(RandomSet(i, i));
+  }
+  std::filesystem::remove(dir / "take/frames/cam0/000002.png");
+  {
+    std::ofstream index(dir / "take/index.jsonl", std::ios::app);
+    index << R"({"set": 4, "frames": [{"sensor": "cam0", "fi)";
+  }
+  Take take = Take::Open(dir / "take");
+  EXPECT_EQ(take.size(), 3u);
+  EXPECT_EQ(take.skipped_index_lines(), 2);
+}
+
+TEST(Take, BadInputGivesOneClearError) {
+  TempDir dir;
+  try {
+    Take::Open(dir.path());
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("take.json is missing"), std::string::npos) << e.what();
+  }
+  {
+    TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams());
+    writer.Append(RandomSet(0, 0));
+  }
+  // Truncate a frame file: reading it names the file.
+  auto frame = dir / "take/frames/depth0/000000.exr";
+  std::filesystem::resize_file(frame, std::filesystem::file_size(frame) / 2);
+  Take take = Take::Open(dir / "take");
+  try {
+    take.Read(0);
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("000000.exr"), std::string::npos) << e.what();
+  }
+  auto png = dir / "take/frames/cam0/000000.png";
+  std::filesystem::resize_file(png, std::filesystem::file_size(png) / 2);
+  EXPECT_THROW(take.ReadFrame(0, "cam0"), Error);
+  {
+    std::ofstream manifest(dir / "take/take.json");
+    manifest << "{\"format\": \"holocap-take\", \"format_version\": 99}";
+  }
+  EXPECT_THROW(Take::Open(dir / "take"), Error);
+  EXPECT_THROW(TakeWriter("/proc/holocap-cannot-write", TwoSensorRig(), TwoStreams()), Error);
+}
+
+}  // namespace
+}  // namespace holocap

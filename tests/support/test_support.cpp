@@ -1,0 +1,52 @@
+#include "tests/support/test_support.h"
+
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <array>
+#include <cstdio>
+#include <random>
+
+#include "core/error.h"
+
+namespace holocap::testing {
+
+TempDir::TempDir(const std::string& prefix) {
+  std::random_device device;
+  for (int attempt = 0; attempt < 100; ++attempt) {
+    auto candidate = std::filesystem::temp_directory_path() /
+                     (prefix + "-" + std::to_string(getpid()) + "-" + std::to_string(device()));
+    if (std::filesystem::create_directory(candidate)) {
+      path_ = candidate;
+      return;
+    }
+  }
+  Fail("cannot create a temporary directory");
+}
+
+TempDir::~TempDir() {
+  std::error_code ignored;
+  std::filesystem::remove_all(path_, ignored);
+}
+
+std::filesystem::path SharedDataDir() { return HOLOCAP_SHARED_DATA_DIR; }
+std::filesystem::path SourceDir() { return HOLOCAP_SOURCE_DIR; }
+std::string CliPath() { return HOLOCAP_CLI; }
+
+CommandResult RunShell(const std::string& command) {
+  CommandResult result;
+  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
+  if (pipe == nullptr) Fail("cannot run: ", command);
+  std::array<char, 4096> buffer;
+  size_t n;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) result.output.append(buffer.data(), n);
+  int status = pclose(pipe);
+  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+  return result;
+}
+
+CommandResult RunCli(const std::string& args) {
+  return RunShell("HOLOCAP_NO_PROGRESS=1 '" + CliPath() + "' " + args);
+}
+
+}  // namespace holocap::testing
