@@ -1,0 +1,158 @@
+// The simulated rig: a studio with an animated subject, a static object or a calibration board,
+// seen by colour cameras and depth sensors whose lenses, poses, clocks and noise are known
+// exactly. It writes takes with ground truth (SimulateTake) and is the HAL driver `sim:`.
+//
+// World: z up, floor at z = 0, metres. The studio is a closed room [-5, 5] x [-5, 5] x [0, 3.5]
+// with a textured floor and walls, lit by a fixed directional light plus ambient light, without
+// shadows, so the background never changes and a frame without the subject is a clean plate.
+//
+// Rendering is ray casting through each sensor's true mrcal model (a per-pixel ray table from
+// CameraModel::UnprojectMany, interpolated bilinearly for sub-pixel samples). Colour pixels
+// are the average radiance over the pixel's area: pixels whose neighbours see another surface
+// or another board cell are supersampled (N x N stratified jittered samples), and pixels that
+// lie wholly on the board are integrated exactly over their footprint (Board::MeanReflectance).
+// The colour response is linear: DN = 255 * radiance * exposure_ratio * gain, with shot noise
+// (Poisson, as Gaussian) and read noise in electrons. Depth sensors report z-depth (metres,
+// quantised to millimetres like Z16 devices), with noise sigma(z) = depth_noise_k * z^2 and
+// no measurement (NaN) at grazing incidence, at depth edges and outside their range.
+//
+// Rig files. Built-in rigs are "studio8" and "single-rgbd"; any other name is a rig file
+// (RigDescription::Load, YAML or JSON) whose sensors carry their simulation settings in
+// `options`:
+//
+//   sensors:
+//     - name: cam0
+//       uri: sim:myrig#cam0           # any sim: URI; the fragment names the sensor
+//       role: color                   # color | depth
+//       options:
+//         lens: LENSMODEL_OPENCV5     # mrcal lens model name ...
+//         intrinsics: [fx, fy, cx, cy, k1, k2, p1, p2, k3]
+//         size: [640, 480]            # imager width, height the intrinsics are for
+//         # cameramodel: lens.cameramodel   # ... or an mrcal file (relative to the rig file);
+//         #                                 # its pose is used unless a position is given
+//         position: [3.0, 0.0, 1.5]   # camera centre in the world, metres
+//         look_at: [0.0, 0.0, 1.0]    # a point on the optical axis (image "up" is world +z)
+//     - name: depth0
+//       uri: sim:myrig#depth0
+//       role: depth
+//       paired_with: cam0
+//       options:
+//         lens: LENSMODEL_OPENCV4
+//         intrinsics: [570, 570, 319.5, 239.5, 0, 0, 0, 0]
+//         size: [640, 480]
+//         depth_from_color: [0, 0, 0, -0.025, 0, 0]   # mrcal rt from the paired colour camera,
+//                                                     # used instead of position/look_at
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "capture/hal.h"
+#include "core/board.h"
+#include "core/camera.h"
+#include "core/report.h"
+#include "core/rig.h"
+
+namespace holocap {
+
+struct SimOptions {
+  std::string rig = "studio8";      // "studio8", "single-rgbd", or a rig file (see above)
+  int64_t frames = 30;              // frame sets to simulate
+  std::string scene = "subject";    // "subject" (walking humanoid), "object" (static knot on a
+                                    // pedestal) or "board" (calibration board sequence)
+  uint64_t seed = 1;                // seeds the board poses, clocks, noise and drops
+  int image_width = 0;              // > 0: render every sensor at this width (lens rescaled)
+  int image_height = 0;             // > 0 with image_width: this height (centred crop/pad);
+                                    // 0: the sensor's own aspect ratio
+  double fps = 0;                   // frame sets per second; 0: the rig's fps
+  int64_t clean_plate_frames = 0;   // leading frame sets rendered without the subject/object
+  BoardLayout board = DefaultSimBoard();  // the board of the "board" scene
+
+  // Colour sensor response.
+  bool noise = true;                   // shot and read noise (false: exact, deterministic)
+  double full_well_electrons = 8000;   // electrons at DN 255 with unit gain
+  double read_noise_electrons = 4;     // Gaussian read noise, electrons
+  double exposure_us = 8000;           // exposure of sensors whose rig entry leaves it at 0
+  double exposure_scale = 1;           // multiplies every exposure (brightness), > 0
+  double gain_db = 0;                  // added to every sensor's own gain
+  double reference_exposure_us = 8000; // the exposure at which a white wall reads ~230 DN
+  int antialias = 4;                   // N: edge pixels get N x N samples; 1 = centre only
+  bool motion_blur = false;            // integrate the scene over each exposure
+  int motion_blur_samples = 5;         // time samples per exposure when motion_blur is on
+
+  // Depth sensors.
+  double depth_noise_k = 0.0012;         // sigma(z) = k * z^2, 1/m (0.0012: 4.8 mm at 2 m)
+  double depth_max_incidence_deg = 75;   // no measurement beyond this angle to the normal
+  double depth_edge_threshold_m = 0.05;  // no measurement next to a jump in depth of more
+  double depth_min_m = 0.3;              // nearest measurable z-depth
+  double depth_max_m = 6.0;              // farthest measurable z-depth
+  double depth_dropout_probability = 0;  // extra random missing pixels
+
+  // Timing and delivery.
+  double timestamp_jitter_ns = 50000;     // sigma of Gaussian timestamp jitter per frame
+  double clock_offset_max_ns = 2000000;   // each sensor's clock offset ~ U(-max, max)
+  double drop_probability = 0;            // chance that a sensor loses a given frame
+  int threads = 0;                        // render threads; 0: all cores
+  bool overwrite = false;                 // replace an existing take directory
+
+  // Throws Error with the reason when a field is out of range.
+  void Check() const;
+  nlohmann::json ToJson() const;
+
+  static BoardLayout DefaultSimBoard();  // tag36h11, 5 x 4 tags, 8 cm spacing
+};
+
+struct SimSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  int64_t frame_sets = 0;          // frame sets written
+  int64_t frames_written = 0;      // sensor frames written
+  int64_t frames_dropped = 0;      // sensor frames dropped on purpose (drop_probability)
+  double seconds = 0;              // wall time of the whole simulation
+  double frame_sets_per_minute = 0;
+  double render_seconds = 0;       // of which rendering (the rest: setup, encoding, writing)
+};
+
+// Simulates a take into `out` (a new directory): frames through TakeWriter (colour "bgr8"
+// PNG, depth "depth_m" EXR in metres, NaN = no measurement, clock "sim") and ground truth:
+//   gt/cameras/<sensor>.cameramodel   true lens and cam_from_world of every sensor
+//   gt/meshes/<set:06d>.ply           the subject in world coordinates at the set's nominal
+//                                     time set / fps (clean plates have none)
+//   gt/meshes/static.ply              the static object (object scene), world coordinates
+//   gt/masks/<sensor>/<set:06d>.png   the subject's silhouette (255) per delivered frame
+//   gt/depth/<sensor>/<set:06d>.exr   true z-depth (metres) for depth sensors
+//   gt/board.json                     board layout and per-set world_from_board (board scene)
+//   gt/sim.json                       options, per-sensor clock offsets, exposure times,
+//                                     every frame's true time and timestamp, dropped frames,
+//                                     noise parameters, depth_from_color of paired sensors
+// `report` (optional) gets the options, metrics and a frame-sets-per-minute series.
+// Throws Error for bad options or an unwritable directory.
+SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& out,
+                        Report* report = nullptr);
+
+// Built-in rigs. "studio8": eight 640x480-class colour cameras on a 3 m ring around a 2 m
+// stage (one of them the real OPENCV8 wide lens rescaled, one stereographic 112-degree lens,
+// the rest OPENCV4/5/8 with modest distortion) and two 640x480 depth sensors paired with cam2
+// and cam6. "single-rgbd": one colour camera cam0 and one depth sensor depth0.
+std::vector<std::string> BuiltinRigNames();
+RigDescription BuiltinRig(const std::string& name);  // throws Error for an unknown name
+// A built-in rig by name, otherwise the rig file at `name_or_path`.
+RigDescription LoadSimRig(const std::string& name_or_path);
+
+// The true model (lens, imager size and cam_from_world) of a sensor of a sim rig, optionally
+// re-rendered at another size (width > 0; height 0 keeps the aspect ratio). `base_dir`
+// resolves relative .cameramodel paths. Throws Error naming the sensor and field.
+CameraModel SimSensorModel(const RigDescription& rig, const SensorSpec& sensor, int width = 0,
+                           int height = 0, const std::filesystem::path& base_dir = {});
+
+// Registers the `sim:` driver. URIs: "sim:<rig>#<sensor>", e.g. "sim:studio8#cam3",
+// "sim:single-rgbd#depth0", or a rig file path as <rig>. Sensor options (SensorSpec.options,
+// all optional): scene, seed, frames (0 = endless), width, height, noise, antialias. Sensors
+// of one rig with the same scene and seed share one world; each Grab renders the sensor's
+// next frame at its own time. known_model() is the true model.
+void RegisterSimDriver(DriverRegistry& registry);
+
+}  // namespace holocap

@@ -1,0 +1,264 @@
+#include "sim/world.h"
+
+#include <cmath>
+#include <random>
+
+#include "core/error.h"
+
+namespace holocap {
+
+BoardLayout SimOptions::DefaultSimBoard() {
+  BoardLayout board;
+  board.type = BoardType::kAprilGrid;
+  board.family = "tag36h11";
+  board.tags_across = 5;
+  board.tags_down = 4;
+  board.spacing = 0.08;
+  board.margin = 0.08;
+  return board;
+}
+
+void SimOptions::Check() const {
+  if (rig.empty()) Fail("sim: rig must name a built-in rig or a rig file");
+  if (frames < 1) Fail("sim: frames must be >= 1, got ", frames);
+  sim::SceneKindFromString(scene);
+  if (image_width < 0 || image_height < 0) Fail("sim: image size must be >= 0");
+  if (image_height > 0 && image_width == 0) Fail("sim: image_height needs image_width");
+  if (image_width > 0 && image_width < 8) Fail("sim: image_width must be >= 8, got ", image_width);
+  if (image_height > 0 && image_height < 8) {
+    Fail("sim: image_height must be >= 8, got ", image_height);
+  }
+  if (!(fps >= 0) || !std::isfinite(fps)) Fail("sim: fps must be >= 0 (0: the rig's), got ", fps);
+  if (clean_plate_frames < 0) Fail("sim: clean_plate_frames must be >= 0");
+  board.Check();
+  if (!(full_well_electrons > 0)) Fail("sim: full_well_electrons must be > 0");
+  if (!(read_noise_electrons >= 0)) Fail("sim: read_noise_electrons must be >= 0");
+  if (!(exposure_us > 0)) Fail("sim: exposure_us must be > 0, got ", exposure_us);
+  if (!(exposure_scale > 0)) Fail("sim: exposure_scale must be > 0, got ", exposure_scale);
+  if (!std::isfinite(gain_db)) Fail("sim: gain_db must be finite");
+  if (!(reference_exposure_us > 0)) Fail("sim: reference_exposure_us must be > 0");
+  if (antialias < 1 || antialias > 32) Fail("sim: antialias must be in 1..32, got ", antialias);
+  if (motion_blur_samples < 1 || motion_blur_samples > 64) {
+    Fail("sim: motion_blur_samples must be in 1..64, got ", motion_blur_samples);
+  }
+  if (!(depth_noise_k >= 0)) Fail("sim: depth_noise_k must be >= 0");
+  if (!(depth_max_incidence_deg > 0 && depth_max_incidence_deg <= 90)) {
+    Fail("sim: depth_max_incidence_deg must be in (0, 90], got ", depth_max_incidence_deg);
+  }
+  if (!(depth_edge_threshold_m > 0)) Fail("sim: depth_edge_threshold_m must be > 0");
+  if (!(depth_min_m >= 0 && depth_max_m > depth_min_m)) {
+    Fail("sim: need 0 <= depth_min_m < depth_max_m, got ", depth_min_m, ", ", depth_max_m);
+  }
+  if (!(depth_dropout_probability >= 0 && depth_dropout_probability <= 1)) {
+    Fail("sim: depth_dropout_probability must be in [0, 1]");
+  }
+  if (!(timestamp_jitter_ns >= 0)) Fail("sim: timestamp_jitter_ns must be >= 0");
+  if (!(clock_offset_max_ns >= 0)) Fail("sim: clock_offset_max_ns must be >= 0");
+  if (!(drop_probability >= 0 && drop_probability < 1)) {
+    Fail("sim: drop_probability must be in [0, 1), got ", drop_probability);
+  }
+  if (threads < 0) Fail("sim: threads must be >= 0 (0: all cores)");
+}
+
+nlohmann::json SimOptions::ToJson() const {
+  return {{"rig", rig},
+          {"frames", frames},
+          {"scene", scene},
+          {"seed", seed},
+          {"image_width", image_width},
+          {"image_height", image_height},
+          {"fps", fps},
+          {"clean_plate_frames", clean_plate_frames},
+          {"board", board.ToJson()},
+          {"noise", noise},
+          {"full_well_electrons", full_well_electrons},
+          {"read_noise_electrons", read_noise_electrons},
+          {"exposure_us", exposure_us},
+          {"exposure_scale", exposure_scale},
+          {"gain_db", gain_db},
+          {"reference_exposure_us", reference_exposure_us},
+          {"antialias", antialias},
+          {"motion_blur", motion_blur},
+          {"motion_blur_samples", motion_blur_samples},
+          {"depth_noise_k", depth_noise_k},
+          {"depth_max_incidence_deg", depth_max_incidence_deg},
+          {"depth_edge_threshold_m", depth_edge_threshold_m},
+          {"depth_min_m", depth_min_m},
+          {"depth_max_m", depth_max_m},
+          {"depth_dropout_probability", depth_dropout_probability},
+          {"timestamp_jitter_ns", timestamp_jitter_ns},
+          {"clock_offset_max_ns", clock_offset_max_ns},
+          {"drop_probability", drop_probability},
+          {"threads", threads}};
+}
+
+namespace sim {
+
+SimWorld::SimWorld(const SimOptions& options) : options_(options) {
+  options_.Check();
+  rig_ = LoadSimRig(options_.rig);
+  rig_.Check();
+  fps_ = options_.fps > 0 ? options_.fps : rig_.fps;
+  if (!(fps_ > 0)) Fail("sim: the rig's fps must be > 0");
+  const std::filesystem::path base_dir =
+      std::filesystem::exists(options_.rig) ? std::filesystem::path(options_.rig).parent_path()
+                                            : std::filesystem::path();
+  std::vector<CameraModel> colour_cameras;
+  for (size_t i = 0; i < rig_.sensors.size(); ++i) {
+    const SensorSpec& spec = rig_.sensors[i];
+    SimSensorState state;
+    state.spec = spec;
+    state.model =
+        SimSensorModel(rig_, spec, options_.image_width, options_.image_height, base_dir);
+    state.stream.name = spec.name;
+    state.stream.uri = spec.uri;
+    state.stream.role = spec.role;
+    state.stream.width = state.model.width();
+    state.stream.height = state.model.height();
+    state.stream.clock = "sim";
+    state.stream.paired_with = spec.paired_with;
+    if (spec.role == SensorRole::kDepth) {
+      state.stream.pixel_format = "depth_m";
+      state.stream.codec = ImageCodec::kExr;
+    } else {
+      state.stream.pixel_format = "bgr8";
+      state.stream.codec = ImageCodec::kPng;
+      colour_cameras.push_back(state.model);
+    }
+    std::mt19937_64 rng(MixSeed(options_.seed, 1, i));
+    std::uniform_real_distribution<double> unit(0, 1);
+    state.clock_offset_ns = (2 * unit(rng) - 1) * options_.clock_offset_max_ns;
+    state.exposure_offset_s = rig_.sync == SyncMode::kFreeRun ? unit(rng) / fps_ : 0.0;
+    state.exposure_us = (spec.exposure_us > 0 ? spec.exposure_us : options_.exposure_us) *
+                        options_.exposure_scale;
+    state.gain_db = spec.gain_db + options_.gain_db;
+    sensors_.push_back(std::move(state));
+  }
+  rays_.resize(sensors_.size());
+  scene_ = std::make_unique<Scene>(SceneKindFromString(options_.scene), options_.board,
+                                   colour_cameras, options_.clean_plate_frames, options_.seed);
+}
+
+int SimWorld::IndexOf(const std::string& name) const {
+  for (int i = 0; i < size(); ++i) {
+    if (sensors_[i].spec.name == name) return i;
+  }
+  return -1;
+}
+
+std::vector<StreamInfo> SimWorld::streams() const {
+  std::vector<StreamInfo> streams;
+  for (const SimSensorState& state : sensors_) streams.push_back(state.stream);
+  return streams;
+}
+
+void SimWorld::PrepareRayTables(int threads) {
+  for (int i = 0; i < size(); ++i) {
+    auto table = std::make_shared<const RayTable>(sensors_[i].model, threads);
+    std::lock_guard lock(mutex_);
+    if (!rays_[i]) rays_[i] = std::move(table);
+  }
+}
+
+const RayTable& SimWorld::Rays(int index) const {
+  {
+    std::lock_guard lock(mutex_);
+    if (rays_[index]) return *rays_[index];
+  }
+  auto table = std::make_shared<const RayTable>(sensors_[index].model, options_.threads);
+  std::lock_guard lock(mutex_);
+  if (!rays_[index]) rays_[index] = std::move(table);
+  return *rays_[index];
+}
+
+std::shared_ptr<const Snapshot> SimWorld::SnapshotAt(double t_s, int64_t set) const {
+  const auto key = std::make_pair(t_s, set);
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [cached_key, snapshot] : snapshots_) {
+      if (cached_key == key) return snapshot;
+    }
+  }
+  std::shared_ptr<const Snapshot> snapshot = scene_->At(t_s, set);
+  std::lock_guard lock(mutex_);
+  snapshots_.emplace_back(key, snapshot);
+  // Enough for every sensor of a free-running rig and the motion-blur samples of a set.
+  const size_t keep = static_cast<size_t>(2 * size() + 2 * options_.motion_blur_samples);
+  while (snapshots_.size() > keep) snapshots_.pop_front();
+  return snapshot;
+}
+
+bool SimWorld::Dropped(int index, int64_t set) const {
+  if (options_.drop_probability <= 0) return false;
+  const uint64_t draw = MixSeed(options_.seed, 6, static_cast<uint64_t>(index),
+                                static_cast<uint64_t>(set));
+  return static_cast<double>(draw >> 11) * (1.0 / 9007199254740992.0) <
+         options_.drop_probability;
+}
+
+double SimWorld::TrueTime(int index, int64_t set) const {
+  return static_cast<double>(set) / fps_ + sensors_[index].exposure_offset_s;
+}
+
+SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
+  const SimSensorState& sensor = sensors_[index];
+  const RayTable& rays = Rays(index);
+  SensorFrame frame;
+  frame.time_s = TrueTime(index, set);
+  std::mt19937_64 rng(MixSeed(options_.seed, 2, static_cast<uint64_t>(index),
+                              static_cast<uint64_t>(set)));
+  std::normal_distribution<double> jitter(0, 1);
+  frame.timestamp_ns = kSimClockStartNs +
+                       std::llround(frame.time_s * 1e9 + sensor.clock_offset_ns +
+                                    options_.timestamp_jitter_ns * jitter(rng));
+  const std::shared_ptr<const Snapshot> snapshot = SnapshotAt(frame.time_s, set);
+  const uint64_t noise_seed =
+      MixSeed(options_.seed, 3, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
+
+  if (sensor.spec.role == SensorRole::kDepth) {
+    const DepthRender truth = RenderDepth(*snapshot, sensor.model, rays, threads);
+    DepthSensorModel model;
+    model.noise_k = options_.depth_noise_k;
+    model.max_incidence_deg = options_.depth_max_incidence_deg;
+    model.edge_threshold_m = options_.depth_edge_threshold_m;
+    model.min_m = options_.depth_min_m;
+    model.max_m = options_.depth_max_m;
+    model.dropout_probability = options_.depth_dropout_probability;
+    model.noise = options_.noise;
+    frame.image = MeasureDepth(truth, model, noise_seed);
+    frame.mask = truth.mask;
+    frame.true_depth = truth.z;
+    return frame;
+  }
+
+  const uint64_t jitter_seed =
+      MixSeed(options_.seed, 5, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
+  ColorRender render = RenderColor(*snapshot, sensor.model, rays, options_.antialias,
+                                   jitter_seed, threads);
+  frame.mask = render.mask;
+  cv::Mat radiance = render.radiance;
+  const int samples = options_.motion_blur ? options_.motion_blur_samples : 1;
+  if (samples > 1) {
+    // The exposure integrates the moving scene: average renders spread over it.
+    radiance = cv::Mat::zeros(radiance.size(), radiance.type());
+    const double exposure_s = sensor.exposure_us * 1e-6;
+    for (int s = 0; s < samples; ++s) {
+      const double t = frame.time_s + ((s + 0.5) / samples - 0.5) * exposure_s;
+      const ColorRender sub = RenderColor(*SnapshotAt(t, set), sensor.model, rays,
+                                          options_.antialias, jitter_seed + s, threads);
+      radiance += sub.radiance;
+    }
+    radiance /= samples;
+  }
+  ColorSensorModel model;
+  model.noise = options_.noise;
+  model.full_well_electrons = options_.full_well_electrons;
+  model.read_noise_electrons = options_.read_noise_electrons;
+  model.exposure_ratio = sensor.exposure_us / options_.reference_exposure_us;
+  model.gain = std::pow(10.0, sensor.gain_db / 20);
+  frame.image = MeasureColor(radiance, model, noise_seed);
+  return frame;
+}
+
+}  // namespace sim
+}  // namespace holocap

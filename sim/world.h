@@ -1,0 +1,81 @@
+// A simulated rig in motion: its sensors (true models, ray tables, clocks) and its scene,
+// shared by SimulateTake and the sim: driver so that both render identical frames.
+#pragma once
+
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "core/take.h"
+#include "sim/render.h"
+#include "sim/scene.h"
+#include "sim/sim.h"
+
+namespace holocap::sim {
+
+struct SimSensorState {
+  SensorSpec spec;
+  CameraModel model;
+  StreamInfo stream;
+  std::shared_ptr<const RayTable> rays;  // built on first use
+  double clock_offset_ns = 0;    // this sensor's clock minus true time
+  double exposure_offset_s = 0;  // true exposure time minus the set's nominal time
+  double exposure_us = 0;        // exposure time
+  double gain_db = 0;
+};
+
+struct SensorFrame {
+  cv::Mat image;       // bgr8 or depth_m, as the stream says
+  cv::Mat mask;        // subject silhouette at pixel centres, 0/255
+  cv::Mat true_depth;  // depth sensors: exact z-depth, metres
+  double time_s = 0;   // true mid-exposure time
+  int64_t timestamp_ns = 0;
+};
+
+class SimWorld {
+ public:
+  // Loads the rig, builds the sensors' true models and the scene. Throws Error.
+  explicit SimWorld(const SimOptions& options);
+
+  const SimOptions& options() const { return options_; }
+  const RigDescription& rig() const { return rig_; }
+  double fps() const { return fps_; }
+  const Scene& scene() const { return *scene_; }
+  int size() const { return static_cast<int>(sensors_.size()); }
+  const SimSensorState& sensor(int index) const { return sensors_[index]; }
+  int IndexOf(const std::string& name) const;  // -1 if absent
+  std::vector<StreamInfo> streams() const;
+
+  // Builds every ray table now (in parallel inside each), so later renders do not wait.
+  void PrepareRayTables(int threads);
+  // The world at an instant, shared between sensors that render the same instant.
+  std::shared_ptr<const Snapshot> SnapshotAt(double t_s, int64_t set) const;
+  // Whether sensor `index` loses frame `set` (drop_probability, fixed by the seed).
+  bool Dropped(int index, int64_t set) const;
+  // Renders frame `set` of sensor `index` at its own exposure time; thread-safe.
+  SensorFrame Render(int index, int64_t set, int threads) const;
+  // Exact noise-free timestamp part: nominal time + exposure offset + clock offset.
+  double TrueTime(int index, int64_t set) const;
+
+ private:
+  const RayTable& Rays(int index) const;
+
+  SimOptions options_;
+  RigDescription rig_;
+  double fps_ = 30;
+  std::vector<SimSensorState> sensors_;
+  std::unique_ptr<Scene> scene_;
+  mutable std::mutex mutex_;
+  mutable std::vector<std::shared_ptr<const RayTable>> rays_;
+  mutable std::deque<std::pair<std::pair<double, int64_t>, std::shared_ptr<const Snapshot>>>
+      snapshots_;
+};
+
+// Timestamps start here so that clock offsets never make them negative.
+inline constexpr int64_t kSimClockStartNs = 1000000000;
+
+}  // namespace holocap::sim

@@ -1,0 +1,114 @@
+#include "core/board.h"
+
+#include <gtest/gtest.h>
+
+#include <random>
+#include <set>
+
+#include "core/error.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+TEST(BoardTest, EveryGridPointIsACornerOfExactlyOneTag) {
+  for (const std::string family : {"tag36h11", "tagStandard41h12"}) {
+    BoardLayout layout;
+    layout.family = family;
+    layout.tags_across = 4;
+    layout.tags_down = 3;
+    layout.first_id = 7;
+    const Board board(layout);
+    ASSERT_EQ(board.width_n(), 8);
+    ASSERT_EQ(board.height_n(), 6);
+    std::set<std::pair<int, int>> seen;
+    for (int j = 0; j < board.height_n(); ++j) {
+      for (int i = 0; i < board.width_n(); ++i) {
+        const TagCorner corner = board.TagCornerOf(i, j);
+        EXPECT_TRUE(seen.insert({corner.tag_id, corner.corner}).second) << family;
+        int ri = -1, rj = -1;
+        ASSERT_TRUE(board.GridPointOf(corner.tag_id, corner.corner, &ri, &rj));
+        EXPECT_EQ(ri, i);
+        EXPECT_EQ(rj, j);
+      }
+    }
+    EXPECT_EQ(seen.size(), 4u * 12u);
+    EXPECT_EQ(seen.begin()->first, 7);
+    EXPECT_FALSE(board.GridPointOf(6, 0, nullptr, nullptr));
+  }
+}
+
+TEST(BoardTest, TagCornersSitOnTheBlackBorder) {
+  // Just inside each detection corner (towards the tag's centre) the border is black; just
+  // outside (away from it, diagonally) the tag36h11 quiet ring is white.
+  const Board board(BoardLayout{});
+  const double s = board.layout().spacing, eps = s / 100;
+  for (int j = 0; j < board.height_n(); ++j) {
+    for (int i = 0; i < board.width_n(); ++i) {
+      const Eigen::Vector3d p = board.GridPoint(i, j);
+      const double inward_u = i % 2 == 0 ? 1 : -1, inward_v = j % 2 == 0 ? 1 : -1;
+      EXPECT_EQ(board.Reflectance(p.x() + inward_u * eps, p.y() + inward_v * eps), 0.0);
+      EXPECT_EQ(board.Reflectance(p.x() - inward_u * eps, p.y() - inward_v * eps), 1.0);
+      EXPECT_EQ(board.Reflectance(p.x() - inward_u * eps, p.y() + inward_v * eps), 1.0);
+    }
+  }
+}
+
+TEST(BoardTest, MeanReflectanceIsTheAreaIntegral) {
+  for (BoardType type : {BoardType::kAprilGrid, BoardType::kChessboard}) {
+    BoardLayout layout;
+    layout.type = type;
+    const Board board(layout);
+    std::mt19937 rng(3);
+    std::uniform_real_distribution<double> where(0, 0.3), size(0.002, 0.02);
+    for (int trial = 0; trial < 20; ++trial) {
+      const Eigen::Vector2d c(where(rng), where(rng));
+      const double a = size(rng), b = size(rng);
+      // A sheared parallelogram, as a pixel's footprint seen at an angle.
+      const Eigen::Vector2d e1(a, 0.3 * b), e2(-0.2 * a, b);
+      const std::vector<Eigen::Vector2d> quad = {c, c + e1, c + e1 + e2, c + e2};
+      double sum = 0;
+      const int n = 400;
+      for (int y = 0; y < n; ++y) {
+        for (int x = 0; x < n; ++x) {
+          const Eigen::Vector2d p = c + (x + 0.5) / n * e1 + (y + 0.5) / n * e2;
+          sum += board.Reflectance(p.x(), p.y());
+        }
+      }
+      EXPECT_NEAR(board.MeanReflectance(quad), sum / (n * n), 3e-3);
+    }
+  }
+}
+
+TEST(BoardTest, YamlRoundTripAndChecks) {
+  testing::TempDir dir;
+  BoardLayout layout;
+  layout.family = "tagStandard41h12";
+  layout.tags_across = 7;
+  layout.spacing = 0.0312;
+  layout.margin = 0.05;
+  layout.first_id = 100;
+  layout.Save(dir / "board.yaml");
+  const BoardLayout loaded = BoardLayout::Load(dir / "board.yaml");
+  EXPECT_EQ(loaded.family, layout.family);
+  EXPECT_EQ(loaded.tags_across, 7);
+  EXPECT_EQ(loaded.first_id, 100);
+  EXPECT_DOUBLE_EQ(loaded.spacing, 0.0312);
+  EXPECT_EQ(BoardLayout::FromJson(layout.ToJson()).ToJson(), layout.ToJson());
+
+  BoardLayout bad = layout;
+  bad.margin = 0.001;  // cuts tagStandard41h12's outer data bits
+  EXPECT_THROW(bad.Check(), Error);
+  bad = layout;
+  bad.family = "tag25h9";
+  EXPECT_THROW(bad.Check(), Error);
+  bad = layout;
+  bad.first_id = 2110;
+  EXPECT_THROW(bad.Check(), Error);
+  bad = layout;
+  bad.spacing = 0;
+  EXPECT_THROW(bad.Check(), Error);
+}
+
+}  // namespace
+}  // namespace holocap
