@@ -203,15 +203,16 @@ BoardLayout BoardLayout::Load(const std::filesystem::path& file) {
   if (!node.IsMap()) Fail(origin, ": a board layout must be a mapping");
   BoardLayout layout;
   try {
-    layout.type = BoardTypeFromString(
-        YamlField<std::string>(node, "type", ToString(layout.type), origin));
+    layout.type =
+        BoardTypeFromString(YamlField<std::string>(node, "type", ToString(layout.type), origin));
   } catch (const Error& e) {
     Fail(origin, ": field 'type': ", e.what());
   }
   layout.family = YamlField(node, "family", layout.family, origin);
   layout.tags_across = YamlField(node, "tags_across", layout.tags_across, origin);
   layout.tags_down = YamlField(node, "tags_down", layout.tags_down, origin);
-  layout.chessboard_width_n = YamlField(node, "chessboard_width_n", layout.chessboard_width_n, origin);
+  layout.chessboard_width_n =
+      YamlField(node, "chessboard_width_n", layout.chessboard_width_n, origin);
   layout.chessboard_height_n =
       YamlField(node, "chessboard_height_n", layout.chessboard_height_n, origin);
   layout.spacing = YamlField(node, "spacing", layout.spacing, origin);

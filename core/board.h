@@ -24,20 +24,20 @@
 namespace holocap {
 
 enum class BoardType { kAprilGrid, kChessboard };
-const char* ToString(BoardType type);                // "apriltag", "chessboard"
+const char* ToString(BoardType type);                    // "apriltag", "chessboard"
 BoardType BoardTypeFromString(const std::string& text);  // throws Error
 
 struct BoardLayout {
   BoardType type = BoardType::kAprilGrid;  // tags on one corner grid, or a chessboard
-  std::string family = "tag36h11";  // AprilTag family: "tag36h11" or "tagStandard41h12"
-  int tags_across = 6;              // AprilTag boards: tags per row (grid is 2x as many points)
-  int tags_down = 5;                // AprilTag boards: tags per column
-  int chessboard_width_n = 9;       // chessboards: inner corners per row
-  int chessboard_height_n = 6;      // chessboards: inner corners per column
-  double spacing = 0.04;            // metres between neighbouring grid points (the tag side)
-  int first_id = 0;                 // id of the top-left tag; ids run row by row
-  double margin = 0.04;             // metres of white between the outermost grid points and
-                                    // the board's edge (covers the tags' outer bits)
+  std::string family = "tag36h11";         // AprilTag family: "tag36h11" or "tagStandard41h12"
+  int tags_across = 6;          // AprilTag boards: tags per row (grid is 2x as many points)
+  int tags_down = 5;            // AprilTag boards: tags per column
+  int chessboard_width_n = 9;   // chessboards: inner corners per row
+  int chessboard_height_n = 6;  // chessboards: inner corners per column
+  double spacing = 0.04;        // metres between neighbouring grid points (the tag side)
+  int first_id = 0;             // id of the top-left tag; ids run row by row
+  double margin = 0.04;         // metres of white between the outermost grid points and
+                                // the board's edge (covers the tags' outer bits)
 
   // Throws Error with the reason for an inconsistent layout (unknown family, too few points,
   // ids beyond the family, a margin that cuts the tags' outer bits).

@@ -116,10 +116,9 @@ int Bvh::BuildRange(int begin, int end, std::vector<Eigen::Vector3f>& centroids,
     std::nth_element(order_.begin() + begin, order_.begin() + middle, order_.begin() + end,
                      [&](int a, int b) { return centroids[a][axis] < centroids[b][axis]; });
   } else {
-    middle = static_cast<int>(
-        std::partition(order_.begin() + begin, order_.begin() + end,
-                       [&](int f) { return bin_of(f) <= best_split; }) -
-        order_.begin());
+    middle = static_cast<int>(std::partition(order_.begin() + begin, order_.begin() + end,
+                                             [&](int f) { return bin_of(f) <= best_split; }) -
+                              order_.begin());
   }
   BuildRange(begin, middle, centroids, lo, hi);
   const int right = BuildRange(middle, end, centroids, lo, hi);

@@ -11,8 +11,8 @@
 namespace holocap::sim {
 
 struct TriangleHit {
-  float t = 0;        // distance along the (unit) ray
-  int triangle = -1;  // index into the faces given to Build
+  float t = 0;           // distance along the (unit) ray
+  int triangle = -1;     // index into the faces given to Build
   float b1 = 0, b2 = 0;  // barycentrics of vertices 1 and 2
 };
 
@@ -42,8 +42,8 @@ class Bvh {
                  std::vector<Eigen::Vector3f>& lo, std::vector<Eigen::Vector3f>& hi);
 
   std::vector<Node> nodes_;
-  std::vector<Tri> tris_;      // in leaf order
-  std::vector<int> order_;     // leaf order -> original face index
+  std::vector<Tri> tris_;   // in leaf order
+  std::vector<int> order_;  // leaf order -> original face index
 };
 
 }  // namespace holocap::sim

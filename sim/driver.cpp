@@ -37,16 +37,16 @@ std::shared_ptr<sim::SimWorld> SharedWorld(const SimOptions& options) {
 class SimSensor : public Sensor {
  public:
   SimSensor(std::shared_ptr<sim::SimWorld> world, int index, int64_t frames)
-      : world_(std::move(world)), index_(index), frames_(frames),
+      : world_(std::move(world)),
+        index_(index),
+        frames_(frames),
         stream_(world_->sensor(index).stream) {}
 
   const StreamInfo& stream() const override { return stream_; }
   void Start() override { started_ = true; }
   void Stop() override { started_ = false; }
   bool ended() const override { return ended_; }
-  std::optional<CameraModel> known_model() const override {
-    return world_->sensor(index_).model;
-  }
+  std::optional<CameraModel> known_model() const override { return world_->sensor(index_).model; }
 
   bool Grab(Frame* frame, std::chrono::milliseconds timeout) override {
     if (!started_ || ended_) return false;
@@ -125,8 +125,8 @@ class SimDriver : public Driver {
     if (index < 0) {
       std::string known;
       for (int i = 0; i < world->size(); ++i) known += (i ? ", " : "") + world->sensor(i).spec.name;
-      Fail("sim URI '", spec.uri, "': rig '", world->rig().name, "' has no sensor '",
-           uri.fragment, "' (sensors: ", known, ")");
+      Fail("sim URI '", spec.uri, "': rig '", world->rig().name, "' has no sensor '", uri.fragment,
+           "' (sensors: ", known, ")");
     }
     return std::make_unique<SimSensor>(std::move(world), index, frames);
   }

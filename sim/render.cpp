@@ -154,8 +154,7 @@ ColorRender RenderColor(const Snapshot& scene, const CameraModel& camera, const 
       }
       extra_rays += static_cast<int64_t>(footprint.size()) + 1;
       if (footprint.size() == 4) {
-        const SurfaceHit centre =
-            scene.Trace(cam.origin, cam.world_from_cam * rays.Center(x, y));
+        const SurfaceHit centre = scene.Trace(cam.origin, cam.world_from_cam * rays.Center(x, y));
         const double value = Snapshot::BoardAlbedo(scene.board()->MeanReflectance(footprint)) *
                              Snapshot::Irradiance(centre.normal);
         out.radiance.at<cv::Vec3f>(y, x) = cv::Vec3f(value, value, value);
@@ -248,8 +247,8 @@ cv::Mat MeasureColor(const cv::Mat& radiance, const ColorSensorModel& model, uin
     auto* out = image.ptr<cv::Vec3b>(y);
     for (int x = 0; x < radiance.cols; ++x) {
       for (int c = 0; c < 3; ++c) {
-        double electrons = std::max(0.0, static_cast<double>(in[x][c])) * model.exposure_ratio *
-                           full_well;
+        double electrons =
+            std::max(0.0, static_cast<double>(in[x][c])) * model.exposure_ratio * full_well;
         if (model.noise) electrons += std::sqrt(electrons + read2) * gauss(rng);
         electrons = std::clamp(electrons, 0.0, full_well);
         const double dn = 255.0 * electrons / full_well * model.gain;

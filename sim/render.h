@@ -49,22 +49,22 @@ ColorRender RenderColor(const Snapshot& scene, const CameraModel& camera, const 
                         int antialias, uint64_t seed, int threads = 0);
 
 struct DepthRender {
-  cv::Mat z;             // CV_32F true z-depth in metres (the camera-frame z of the hit)
-  cv::Mat cos_incidence; // CV_32F |cos| of the angle between the ray and the surface normal
-  cv::Mat mask;          // CV_8U, 255 on the subject
+  cv::Mat z;              // CV_32F true z-depth in metres (the camera-frame z of the hit)
+  cv::Mat cos_incidence;  // CV_32F |cos| of the angle between the ray and the surface normal
+  cv::Mat mask;           // CV_8U, 255 on the subject
 };
 // Centre-of-pixel depth (depth sensors do not average over their pixels).
 DepthRender RenderDepth(const Snapshot& scene, const CameraModel& camera, const RayTable& rays,
                         int threads = 0);
 
 struct DepthSensorModel {
-  double noise_k = 0.0012;          // sigma(z) = noise_k * z^2 (1/m)
-  double max_incidence_deg = 75;    // grazing surfaces give no measurement
-  double edge_threshold_m = 0.05;   // pixels next to a larger depth jump give none
+  double noise_k = 0.0012;         // sigma(z) = noise_k * z^2 (1/m)
+  double max_incidence_deg = 75;   // grazing surfaces give no measurement
+  double edge_threshold_m = 0.05;  // pixels next to a larger depth jump give none
   double min_m = 0.3;
   double max_m = 6.0;
-  double dropout_probability = 0;   // extra random holes
-  bool noise = true;                // false: only quantisation and dropouts
+  double dropout_probability = 0;  // extra random holes
+  bool noise = true;               // false: only quantisation and dropouts
 };
 // Metres in CV_32F, NaN = no measurement; values are whole millimetres (Z16).
 cv::Mat MeasureDepth(const DepthRender& truth, const DepthSensorModel& model, uint64_t seed);

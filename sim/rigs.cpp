@@ -16,9 +16,8 @@ using Json = nlohmann::json;
 constexpr int kWideLensWidth = 4000;
 constexpr int kWideLensHeight = 2200;
 const std::vector<double> kWideLensIntrinsics = {
-    1761.181055,    1761.250444,   1965.706996,     1087.518797,
-    -0.01266096516, 0.03590794372, -0.0002547045941, 0.0005275929652,
-    0.01968883397,  0.01482863541, -0.0562239888,   0.0500223357};
+    1761.181055,      1761.250444,     1965.706996,   1087.518797,   -0.01266096516, 0.03590794372,
+    -0.0002547045941, 0.0005275929652, 0.01968883397, 0.01482863541, -0.0562239888,  0.0500223357};
 
 Json ColorCamera(const std::string& rig, const std::string& name, const std::string& lens,
                  const std::vector<double>& intrinsics, int width, int height,
@@ -50,8 +49,9 @@ Json DepthCamera(const std::string& rig, const std::string& name, const std::str
 RigDescription Studio8() {
   const std::string rig = "studio8";
   Json sensors = Json::array();
-  const CameraModel wide = CameraModel("LENSMODEL_OPENCV8", kWideLensIntrinsics, kWideLensWidth, kWideLensHeight)
-                               .Scaled(640.0 / kWideLensWidth);
+  const CameraModel wide =
+      CameraModel("LENSMODEL_OPENCV8", kWideLensIntrinsics, kWideLensWidth, kWideLensHeight)
+          .Scaled(640.0 / kWideLensWidth);
   struct Lens {
     std::string model;
     std::vector<double> intrinsics;
@@ -61,18 +61,24 @@ RigDescription Studio8() {
       {"LENSMODEL_OPENCV8", wide.intrinsics(), wide.width(), wide.height()},
       // Stereographic r = 2 f tan(theta / 2): 112 degrees across 640 px.
       {"LENSMODEL_STEREOGRAPHIC", {300.0, 300.0, 318.2, 241.1}, 640, 480},
-      {"LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004}, 640,
-       480},
+      {"LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004}, 640, 480},
       {"LENSMODEL_OPENCV5",
-       {561.7, 560.2, 316.8, 243.5, -0.121, 0.094, -0.0003, 0.0007, -0.021}, 640, 480},
+       {561.7, 560.2, 316.8, 243.5, -0.121, 0.094, -0.0003, 0.0007, -0.021},
+       640,
+       480},
       {"LENSMODEL_OPENCV8",
-       {498.6, 499.4, 321.0, 238.2, 0.35, -0.05, 0.0004, 0.0002, 0.01, 0.42, -0.02, 0.015}, 640,
+       {498.6, 499.4, 321.0, 238.2, 0.35, -0.05, 0.0004, 0.0002, 0.01, 0.42, -0.02, 0.015},
+       640,
        480},
       {"LENSMODEL_OPENCV4", {612.5, 611.8, 318.9, 240.7, -0.05, 0.012, 0.0002, 0.0001}, 640, 480},
       {"LENSMODEL_OPENCV5",
-       {478.9, 479.6, 320.3, 239.0, -0.15, 0.11, 0.0005, -0.0002, -0.03}, 640, 480},
+       {478.9, 479.6, 320.3, 239.0, -0.15, 0.11, 0.0005, -0.0002, -0.03},
+       640,
+       480},
       {"LENSMODEL_OPENCV8",
-       {541.2, 540.5, 317.5, 242.8, -0.2, 0.05, -0.0003, 0.0004, 0.0, 0.1, 0.02, 0.0}, 640, 480},
+       {541.2, 540.5, 317.5, 242.8, -0.2, 0.05, -0.0003, 0.0004, 0.0, 0.1, 0.02, 0.0},
+       640,
+       480},
   };
   for (int i = 0; i < 8; ++i) {
     const double azimuth = (22.5 + 45.0 * i) * std::numbers::pi / 180;
@@ -98,10 +104,10 @@ RigDescription Studio8() {
 RigDescription SingleRgbd() {
   const std::string rig = "single-rgbd";
   Json sensors = Json::array();
-  sensors.push_back(ColorCamera(
-      rig, "cam0", "LENSMODEL_OPENCV5",
-      {535.4, 534.8, 320.6, 238.3, 0.08, -0.18, 0.0004, -0.0002, 0.09}, 640, 480,
-      Eigen::Vector3d(2.4, -1.3, 1.15), Eigen::Vector3d(0, 0, 0.95)));
+  sensors.push_back(ColorCamera(rig, "cam0", "LENSMODEL_OPENCV5",
+                                {535.4, 534.8, 320.6, 238.3, 0.08, -0.18, 0.0004, -0.0002, 0.09},
+                                640, 480, Eigen::Vector3d(2.4, -1.3, 1.15),
+                                Eigen::Vector3d(0, 0, 0.95)));
   sensors.push_back(DepthCamera(rig, "depth0", "cam0",
                                 {570.3, 570.9, 319.2, 241.6, 0.01, -0.02, 0.0002, -0.0001},
                                 {0.0015, -0.002, 0.001, -0.045, 0.0002, 0.0008}));
@@ -121,8 +127,7 @@ CameraModel Resized(const CameraModel& model, int width, int height) {
   if (width <= 0 || width == model.width()) {
     if (height <= 0 || height == model.height()) return model;
   }
-  CameraModel scaled = width > 0 ? model.Scaled(static_cast<double>(width) / model.width())
-                                 : model;
+  CameraModel scaled = width > 0 ? model.Scaled(static_cast<double>(width) / model.width()) : model;
   if (height <= 0 || height == scaled.height()) return scaled;
   std::vector<double> intrinsics = scaled.intrinsics();
   intrinsics[3] += 0.5 * (height - scaled.height());
@@ -169,16 +174,15 @@ CameraModel SimSensorModel(const RigDescription& rig, const SensorSpec& sensor, 
       const Json& size = options.at("size");
       if (!size.is_array() || size.size() != 2) Fail(where, ": 'size' must be [width, height]");
       model = CameraModel(options.at("lens").get<std::string>(),
-                          options.at("intrinsics").get<std::vector<double>>(),
-                          size[0].get<int>(), size[1].get<int>());
+                          options.at("intrinsics").get<std::vector<double>>(), size[0].get<int>(),
+                          size[1].get<int>());
     }
     if (options.contains("depth_from_color")) {
       if (sensor.paired_with.empty()) {
         Fail(where, ": 'depth_from_color' needs paired_with to name the colour sensor");
       }
       const Rt rt = options.at("depth_from_color").get<Rt>();
-      const CameraModel color =
-          SimSensorModel(rig, rig.sensor(sensor.paired_with), 0, 0, base_dir);
+      const CameraModel color = SimSensorModel(rig, rig.sensor(sensor.paired_with), 0, 0, base_dir);
       model.set_cam_from_world(PoseFromRt(rt) * color.cam_from_world());
     } else if (options.contains("position")) {
       if (!options.contains("look_at")) Fail(where, ": 'position' needs 'look_at'");

@@ -33,7 +33,9 @@ uint32_t Hash(int x, int y, int z, uint32_t seed) {
   return h;
 }
 
-double Lattice(int x, int y, int z, uint32_t seed) { return Hash(x, y, z, seed) * (1.0 / 4294967296.0); }
+double Lattice(int x, int y, int z, uint32_t seed) {
+  return Hash(x, y, z, seed) * (1.0 / 4294967296.0);
+}
 
 double ValueNoise(const Eigen::Vector3d& p, uint32_t seed) {
   const double fx = std::floor(p.x()), fy = std::floor(p.y()), fz = std::floor(p.z());
@@ -141,9 +143,22 @@ Pose MakePose(const Eigen::Matrix3d& rotation, const Eigen::Vector3d& translatio
 
 // Humanoid part indices (body frame: x forward, y left, z up).
 enum HumanoidPart {
-  kPelvis, kTorso, kHead,
-  kUpperArmL, kForearmL, kHandL, kUpperArmR, kForearmR, kHandR,
-  kThighL, kShinL, kFootL, kThighR, kShinR, kFootR, kPartCount
+  kPelvis,
+  kTorso,
+  kHead,
+  kUpperArmL,
+  kForearmL,
+  kHandL,
+  kUpperArmR,
+  kForearmR,
+  kHandR,
+  kThighL,
+  kShinL,
+  kFootL,
+  kThighR,
+  kShinR,
+  kFootR,
+  kPartCount
 };
 
 // Walking speed around a circle of this radius about the stage centre.
@@ -163,8 +178,10 @@ Eigen::Vector3d BoardCenter(const Board& board) {
 
 bool BoardPoseUsable(const Board& board, const Pose& world_from_board,
                      const std::vector<const CameraModel*>& viewers) {
-  const double corners[4][2] = {{board.u_min(), board.v_min()}, {board.u_max(), board.v_min()},
-                                {board.u_min(), board.v_max()}, {board.u_max(), board.v_max()}};
+  const double corners[4][2] = {{board.u_min(), board.v_min()},
+                                {board.u_max(), board.v_min()},
+                                {board.u_min(), board.v_max()},
+                                {board.u_max(), board.v_max()}};
   for (const auto& c : corners) {
     const Eigen::Vector3d p = world_from_board * Eigen::Vector3d(c[0], c[1], 0);
     if (p.z() < 0.05 || p.z() > kRoomHeight - 0.05 || std::abs(p.x()) > kRoomHalf - 0.05 ||
@@ -217,11 +234,9 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
       const Eigen::Vector2d aim((gx + 0.2 + 0.6 * unit(rng)) / 3 * camera.width() - 0.5,
                                 (gy + 0.2 + 0.6 * unit(rng)) / 3 * camera.height() - 0.5);
       const double fill = 0.45 + 0.45 * unit(rng);  // fraction of the image width
-      const double distance =
-          board_width / (fill * camera.width() * AnglePerPixel(camera));
+      const double distance = board_width / (fill * camera.width() * AnglePerPixel(camera));
       viewpoint = camera.center_in_world();
-      const Eigen::Vector3d ray_in_world =
-          camera.world_from_cam().linear() * camera.Unproject(aim);
+      const Eigen::Vector3d ray_in_world = camera.world_from_cam().linear() * camera.Unproject(aim);
       center = viewpoint + distance * ray_in_world;
       max_tilt = 45 * kDeg;
     }
@@ -232,8 +247,8 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
     const Eigen::Vector3d axis =
         upright.linear() * Eigen::Vector3d(std::cos(axis_angle), std::sin(axis_angle), 0);
     const double roll = (2 * unit(rng) - 1) * 25 * kDeg;
-    const Eigen::Matrix3d rotation = Eigen::AngleAxisd(tilt, axis).matrix() * upright.linear() *
-                                     RotZ(roll);
+    const Eigen::Matrix3d rotation =
+        Eigen::AngleAxisd(tilt, axis).matrix() * upright.linear() * RotZ(roll);
     const Pose world_from_board = MakePose(rotation, center - rotation * board_center);
     if (BoardPoseUsable(board, world_from_board, viewers)) return world_from_board;
   }
@@ -255,9 +270,12 @@ SceneKind SceneKindFromString(const std::string& text) {
 
 const char* ToString(SceneKind kind) {
   switch (kind) {
-    case SceneKind::kSubject: return "subject";
-    case SceneKind::kObject: return "object";
-    case SceneKind::kBoard: return "board";
+    case SceneKind::kSubject:
+      return "subject";
+    case SceneKind::kObject:
+      return "object";
+    case SceneKind::kBoard:
+      return "board";
   }
   return "?";
 }
@@ -266,8 +284,8 @@ std::vector<Part> MakeHumanoid() {
   std::vector<Part> parts(kPartCount);
   const Eigen::Vector3d shirt(0.75, 0.25, 0.2), trousers(0.2, 0.3, 0.6), skin(0.85, 0.65, 0.5),
       shoes(0.25, 0.2, 0.15), hair(0.35, 0.25, 0.15);
-  auto set = [&](int index, const char* name, int parent, const Eigen::Vector3d& joint,
-                 Mesh mesh, const Eigen::Vector3d& color) {
+  auto set = [&](int index, const char* name, int parent, const Eigen::Vector3d& joint, Mesh mesh,
+                 const Eigen::Vector3d& color) {
     parts[index] = {name, std::move(mesh), color, parent, joint};
   };
   set(kPelvis, "pelvis", -1, {0, 0, 0}, Ellipsoid({0, 0, 0}, {0.11, 0.17, 0.11}), trousers);
@@ -315,7 +333,9 @@ std::vector<Part> MakeObject() {
 Scene::Scene(SceneKind kind, const BoardLayout& board,
              const std::vector<CameraModel>& board_cameras, int64_t clean_plate_frames,
              uint64_t seed)
-    : kind_(kind), board_cameras_(board_cameras), clean_plate_frames_(clean_plate_frames),
+    : kind_(kind),
+      board_cameras_(board_cameras),
+      clean_plate_frames_(clean_plate_frames),
       seed_(seed) {
   if (kind == SceneKind::kSubject) parts_ = MakeHumanoid();
   if (kind == SceneKind::kObject) parts_ = MakeObject();
@@ -503,8 +523,8 @@ Eigen::Vector3d Snapshot::Albedo(const SurfaceHit& hit) const {
     case kCeiling:
       return Eigen::Vector3d::Constant(0.5 + 0.1 * Detail(p, 5, 4));
     case kBoardFront:
-      return Eigen::Vector3d::Constant(BoardAlbedo(board_->Reflectance(hit.board_uv.x(),
-                                                                       hit.board_uv.y())));
+      return Eigen::Vector3d::Constant(
+          BoardAlbedo(board_->Reflectance(hit.board_uv.x(), hit.board_uv.y())));
     case kBoardBack:
       return Eigen::Vector3d::Constant(0.35);
     default: {

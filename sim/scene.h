@@ -35,11 +35,11 @@ inline constexpr double kRoomHalf = 5.0;
 inline constexpr double kRoomHeight = 3.5;
 
 struct SurfaceHit {
-  double t = 0;               // distance along the unit ray
-  int surface = -1;           // see the ids above
-  Eigen::Vector3d point = Eigen::Vector3d::Zero();   // world
-  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ(); // world, unit, facing the ray's origin
-  Eigen::Vector2d board_uv = Eigen::Vector2d::Zero(); // board coordinates on kBoardFront
+  double t = 0;                                        // distance along the unit ray
+  int surface = -1;                                    // see the ids above
+  Eigen::Vector3d point = Eigen::Vector3d::Zero();     // world
+  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();   // world, unit, facing the ray's origin
+  Eigen::Vector2d board_uv = Eigen::Vector2d::Zero();  // board coordinates on kBoardFront
   bool is_subject() const { return surface >= kFirstPart; }
 };
 

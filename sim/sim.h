@@ -59,29 +59,29 @@
 namespace holocap {
 
 struct SimOptions {
-  std::string rig = "studio8";      // "studio8", "single-rgbd", or a rig file (see above)
-  int64_t frames = 30;              // frame sets to simulate
-  std::string scene = "subject";    // "subject" (walking humanoid), "object" (static knot on a
-                                    // pedestal) or "board" (calibration board sequence)
-  uint64_t seed = 1;                // seeds the board poses, clocks, noise and drops
-  int image_width = 0;              // > 0: render every sensor at this width (lens rescaled)
-  int image_height = 0;             // > 0 with image_width: this height (centred crop/pad);
-                                    // 0: the sensor's own aspect ratio
-  double fps = 0;                   // frame sets per second; 0: the rig's fps
-  int64_t clean_plate_frames = 0;   // leading frame sets rendered without the subject/object
+  std::string rig = "studio8";     // "studio8", "single-rgbd", or a rig file (see above)
+  int64_t frames = 30;             // frame sets to simulate
+  std::string scene = "subject";   // "subject" (walking humanoid), "object" (static knot on a
+                                   // pedestal) or "board" (calibration board sequence)
+  uint64_t seed = 1;               // seeds the board poses, clocks, noise and drops
+  int image_width = 0;             // > 0: render every sensor at this width (lens rescaled)
+  int image_height = 0;            // > 0 with image_width: this height (centred crop/pad);
+                                   // 0: the sensor's own aspect ratio
+  double fps = 0;                  // frame sets per second; 0: the rig's fps
+  int64_t clean_plate_frames = 0;  // leading frame sets rendered without the subject/object
   BoardLayout board = DefaultSimBoard();  // the board of the "board" scene
 
   // Colour sensor response.
-  bool noise = true;                   // shot and read noise (false: exact, deterministic)
-  double full_well_electrons = 8000;   // electrons at DN 255 with unit gain
-  double read_noise_electrons = 4;     // Gaussian read noise, electrons
-  double exposure_us = 8000;           // exposure of sensors whose rig entry leaves it at 0
-  double exposure_scale = 1;           // multiplies every exposure (brightness), > 0
-  double gain_db = 0;                  // added to every sensor's own gain
-  double reference_exposure_us = 8000; // the exposure at which a white wall reads ~230 DN
-  int antialias = 4;                   // N: edge pixels get N x N samples; 1 = centre only
-  bool motion_blur = false;            // integrate the scene over each exposure
-  int motion_blur_samples = 5;         // time samples per exposure when motion_blur is on
+  bool noise = true;                    // shot and read noise (false: exact, deterministic)
+  double full_well_electrons = 8000;    // electrons at DN 255 with unit gain
+  double read_noise_electrons = 4;      // Gaussian read noise, electrons
+  double exposure_us = 8000;            // exposure of sensors whose rig entry leaves it at 0
+  double exposure_scale = 1;            // multiplies every exposure (brightness), > 0
+  double gain_db = 0;                   // added to every sensor's own gain
+  double reference_exposure_us = 8000;  // the exposure at which a white wall reads ~230 DN
+  int antialias = 4;                    // N: edge pixels get N x N samples; 1 = centre only
+  bool motion_blur = false;             // integrate the scene over each exposure
+  int motion_blur_samples = 5;          // time samples per exposure when motion_blur is on
 
   // Depth sensors.
   double depth_noise_k = 0.0012;         // sigma(z) = k * z^2, 1/m (0.0012: 4.8 mm at 2 m)
@@ -92,11 +92,11 @@ struct SimOptions {
   double depth_dropout_probability = 0;  // extra random missing pixels
 
   // Timing and delivery.
-  double timestamp_jitter_ns = 50000;     // sigma of Gaussian timestamp jitter per frame
-  double clock_offset_max_ns = 2000000;   // each sensor's clock offset ~ U(-max, max)
-  double drop_probability = 0;            // chance that a sensor loses a given frame
-  int threads = 0;                        // render threads; 0: all cores
-  bool overwrite = false;                 // replace an existing take directory
+  double timestamp_jitter_ns = 50000;    // sigma of Gaussian timestamp jitter per frame
+  double clock_offset_max_ns = 2000000;  // each sensor's clock offset ~ U(-max, max)
+  double drop_probability = 0;           // chance that a sensor loses a given frame
+  int threads = 0;                       // render threads; 0: all cores
+  bool overwrite = false;                // replace an existing take directory
 
   // Throws Error with the reason when a field is out of range.
   void Check() const;
@@ -108,12 +108,12 @@ struct SimOptions {
 struct SimSummary {
   Termination termination = Termination::kSuccess;
   std::string message;
-  int64_t frame_sets = 0;          // frame sets written
-  int64_t frames_written = 0;      // sensor frames written
-  int64_t frames_dropped = 0;      // sensor frames dropped on purpose (drop_probability)
-  double seconds = 0;              // wall time of the whole simulation
+  int64_t frame_sets = 0;      // frame sets written
+  int64_t frames_written = 0;  // sensor frames written
+  int64_t frames_dropped = 0;  // sensor frames dropped on purpose (drop_probability)
+  double seconds = 0;          // wall time of the whole simulation
   double frame_sets_per_minute = 0;
-  double render_seconds = 0;       // of which rendering (the rest: setup, encoding, writing)
+  double render_seconds = 0;  // of which rendering (the rest: setup, encoding, writing)
 };
 
 // Simulates a take into `out` (a new directory): frames through TakeWriter (colour "bgr8"

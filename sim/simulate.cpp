@@ -28,8 +28,8 @@ Json PoseJson(const Pose& pose) {
   const Rt rt = RtFromPose(pose);
   Json matrix = Json::array();
   for (int r = 0; r < 4; ++r) {
-    matrix.push_back({pose.matrix()(r, 0), pose.matrix()(r, 1), pose.matrix()(r, 2),
-                      pose.matrix()(r, 3)});
+    matrix.push_back(
+        {pose.matrix()(r, 0), pose.matrix()(r, 1), pose.matrix()(r, 2), pose.matrix()(r, 3)});
   }
   return {{"rt", rt}, {"matrix", matrix}};
 }
@@ -86,8 +86,8 @@ SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& 
     if (!sensor.spec.paired_with.empty()) {
       const int color = world.IndexOf(sensor.spec.paired_with);
       entry["paired_with"] = sensor.spec.paired_with;
-      entry["depth_from_color"] = PoseJson(sensor.model.cam_from_world() *
-                                           world.sensor(color).model.world_from_cam());
+      entry["depth_from_color"] =
+          PoseJson(sensor.model.cam_from_world() * world.sensor(color).model.world_from_cam());
     }
     sensors_json[sensor.spec.name] = entry;
   }
@@ -169,7 +169,8 @@ SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& 
         board_poses.push_back(pose);
       }
       ++summary.frame_sets;
-      const double rate = 60.0 * summary.frame_sets / std::max(1e-9, Seconds(start) - setup_seconds);
+      const double rate =
+          60.0 * summary.frame_sets / std::max(1e-9, Seconds(start) - setup_seconds);
       if (report != nullptr) report->AddPoint("frame_sets_per_minute", rate, set);
       char status[64];
       std::snprintf(status, sizeof(status), "%.1f sets/min", rate);
@@ -201,15 +202,17 @@ SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& 
       {"noise",
        {{"color",
          {{"enabled", options.noise},
-          {"model", "DN = 255 * gain * clamp(e, 0, full_well) / full_well, e = radiance * "
-                    "exposure_us / reference_exposure_us * full_well + N(0, e + read^2)"},
+          {"model",
+           "DN = 255 * gain * clamp(e, 0, full_well) / full_well, e = radiance * "
+           "exposure_us / reference_exposure_us * full_well + N(0, e + read^2)"},
           {"full_well_electrons", options.full_well_electrons},
           {"read_noise_electrons", options.read_noise_electrons},
           {"reference_exposure_us", options.reference_exposure_us}}},
         {"depth",
          {{"enabled", options.noise},
-          {"model", "z_measured = round_mm(z + N(0, (k z^2)^2)); NaN beyond max incidence, next "
-                    "to depth jumps, outside [min, max], and at random dropouts"},
+          {"model",
+           "z_measured = round_mm(z + N(0, (k z^2)^2)); NaN beyond max incidence, next "
+           "to depth jumps, outside [min, max], and at random dropouts"},
           {"k_per_m", options.depth_noise_k},
           {"max_incidence_deg", options.depth_max_incidence_deg},
           {"edge_threshold_m", options.depth_edge_threshold_m},

@@ -100,16 +100,15 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options) {
   rig_.Check();
   fps_ = options_.fps > 0 ? options_.fps : rig_.fps;
   if (!(fps_ > 0)) Fail("sim: the rig's fps must be > 0");
-  const std::filesystem::path base_dir =
-      std::filesystem::exists(options_.rig) ? std::filesystem::path(options_.rig).parent_path()
-                                            : std::filesystem::path();
+  const std::filesystem::path base_dir = std::filesystem::exists(options_.rig)
+                                             ? std::filesystem::path(options_.rig).parent_path()
+                                             : std::filesystem::path();
   std::vector<CameraModel> colour_cameras;
   for (size_t i = 0; i < rig_.sensors.size(); ++i) {
     const SensorSpec& spec = rig_.sensors[i];
     SimSensorState state;
     state.spec = spec;
-    state.model =
-        SimSensorModel(rig_, spec, options_.image_width, options_.image_height, base_dir);
+    state.model = SimSensorModel(rig_, spec, options_.image_width, options_.image_height, base_dir);
     state.stream.name = spec.name;
     state.stream.uri = spec.uri;
     state.stream.role = spec.role;
@@ -129,8 +128,8 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options) {
     std::uniform_real_distribution<double> unit(0, 1);
     state.clock_offset_ns = (2 * unit(rng) - 1) * options_.clock_offset_max_ns;
     state.exposure_offset_s = rig_.sync == SyncMode::kFreeRun ? unit(rng) / fps_ : 0.0;
-    state.exposure_us = (spec.exposure_us > 0 ? spec.exposure_us : options_.exposure_us) *
-                        options_.exposure_scale;
+    state.exposure_us =
+        (spec.exposure_us > 0 ? spec.exposure_us : options_.exposure_us) * options_.exposure_scale;
     state.gain_db = spec.gain_db + options_.gain_db;
     sensors_.push_back(std::move(state));
   }
@@ -190,10 +189,9 @@ std::shared_ptr<const Snapshot> SimWorld::SnapshotAt(double t_s, int64_t set) co
 
 bool SimWorld::Dropped(int index, int64_t set) const {
   if (options_.drop_probability <= 0) return false;
-  const uint64_t draw = MixSeed(options_.seed, 6, static_cast<uint64_t>(index),
-                                static_cast<uint64_t>(set));
-  return static_cast<double>(draw >> 11) * (1.0 / 9007199254740992.0) <
-         options_.drop_probability;
+  const uint64_t draw =
+      MixSeed(options_.seed, 6, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
+  return static_cast<double>(draw >> 11) * (1.0 / 9007199254740992.0) < options_.drop_probability;
 }
 
 double SimWorld::TrueTime(int index, int64_t set) const {
@@ -205,12 +203,11 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
   const RayTable& rays = Rays(index);
   SensorFrame frame;
   frame.time_s = TrueTime(index, set);
-  std::mt19937_64 rng(MixSeed(options_.seed, 2, static_cast<uint64_t>(index),
-                              static_cast<uint64_t>(set)));
+  std::mt19937_64 rng(
+      MixSeed(options_.seed, 2, static_cast<uint64_t>(index), static_cast<uint64_t>(set)));
   std::normal_distribution<double> jitter(0, 1);
-  frame.timestamp_ns = kSimClockStartNs +
-                       std::llround(frame.time_s * 1e9 + sensor.clock_offset_ns +
-                                    options_.timestamp_jitter_ns * jitter(rng));
+  frame.timestamp_ns = kSimClockStartNs + std::llround(frame.time_s * 1e9 + sensor.clock_offset_ns +
+                                                       options_.timestamp_jitter_ns * jitter(rng));
   const std::shared_ptr<const Snapshot> snapshot = SnapshotAt(frame.time_s, set);
   const uint64_t noise_seed =
       MixSeed(options_.seed, 3, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
@@ -233,8 +230,8 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
 
   const uint64_t jitter_seed =
       MixSeed(options_.seed, 5, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
-  ColorRender render = RenderColor(*snapshot, sensor.model, rays, options_.antialias,
-                                   jitter_seed, threads);
+  ColorRender render =
+      RenderColor(*snapshot, sensor.model, rays, options_.antialias, jitter_seed, threads);
   frame.mask = render.mask;
   cv::Mat radiance = render.radiance;
   const int samples = options_.motion_blur ? options_.motion_blur_samples : 1;

@@ -22,9 +22,9 @@ struct SimSensorState {
   CameraModel model;
   StreamInfo stream;
   std::shared_ptr<const RayTable> rays;  // built on first use
-  double clock_offset_ns = 0;    // this sensor's clock minus true time
-  double exposure_offset_s = 0;  // true exposure time minus the set's nominal time
-  double exposure_us = 0;        // exposure time
+  double clock_offset_ns = 0;            // this sensor's clock minus true time
+  double exposure_offset_s = 0;          // true exposure time minus the set's nominal time
+  double exposure_us = 0;                // exposure time
   double gain_db = 0;
 };
 

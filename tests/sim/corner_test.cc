@@ -43,7 +43,8 @@ void MeasureCorners(const BoardLayout& layout, const std::string& rig_name, Corn
     const auto snapshot = scene.At(0, set);
     ColorSensorModel exact;
     exact.noise = false;
-    const cv::Mat bgr = MeasureColor(RenderColor(*snapshot, camera, table, 4, 1).radiance, exact, 0);
+    const cv::Mat bgr =
+        MeasureColor(RenderColor(*snapshot, camera, table, 4, 1).radiance, exact, 0);
     cv::Mat gray;
     cv::cvtColor(bgr, gray, cv::COLOR_BGR2GRAY);
     const Pose& world_from_board = snapshot->world_from_board();
@@ -90,8 +91,7 @@ TEST(BoardCornerTest, AprilTagCornerPixelsAreExactAreaAverages) {
     const Pose camera_from_world = camera.cam_from_world();
     const Eigen::Vector3d origin = camera.center_in_world();
     const Eigen::Matrix3d world_from_cam = camera.world_from_cam().linear();
-    const double irradiance =
-        Snapshot::Irradiance(-snapshot->world_from_board().linear().col(2));
+    const double irradiance = Snapshot::Irradiance(-snapshot->world_from_board().linear().col(2));
     const double contrast = (Snapshot::BoardAlbedo(1) - Snapshot::BoardAlbedo(0)) * irradiance;
     for (const Eigen::Vector3d& point : board.GridPoints()) {
       Eigen::Vector2d truth;
@@ -124,9 +124,11 @@ TEST(BoardCornerTest, AprilTagCornerPixelsAreExactAreaAverages) {
     }
   }
   const double rms = std::sqrt(sum_squares / std::max(pixels, 1));
-  std::printf("AprilTag corners through the real OPENCV8 lens: %d corners, %d pixels; pixel "
-              "error vs exact area average: max %.4f, RMS %.4f of the contrast (<= px of edge "
-              "shift)\n", corners, pixels, worst, rms);
+  std::printf(
+      "AprilTag corners through the real OPENCV8 lens: %d corners, %d pixels; pixel "
+      "error vs exact area average: max %.4f, RMS %.4f of the contrast (<= px of edge "
+      "shift)\n",
+      corners, pixels, worst, rms);
   ASSERT_GT(corners, 30);
   // The 100x100 reference itself is exact only to ~1/100 of a pixel on an edge.
   EXPECT_LE(worst, 0.02);
@@ -143,8 +145,10 @@ TEST(BoardCornerTest, ChessboardCornersThroughTheRealWideLens) {
   CornerStats stats;
   MeasureCorners(layout, "studio8", &stats);  // cam0: the real OPENCV8 lens at 640x352
   const double rms = std::sqrt(stats.sum_squares / std::max(stats.count, 1));
-  std::printf("chessboard, studio8 cam0 (real OPENCV8 640x352), %d corners: max %.4f px, "
-              "RMS %.4f px\n", stats.count, stats.max, rms);
+  std::printf(
+      "chessboard, studio8 cam0 (real OPENCV8 640x352), %d corners: max %.4f px, "
+      "RMS %.4f px\n",
+      stats.count, stats.max, rms);
   ASSERT_GT(stats.count, 50);
   // cornerSubPix's own floor on exact X-junctions is 0.049 px RMS, 0.094 px max.
   EXPECT_LE(stats.max, 0.12);

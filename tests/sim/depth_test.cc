@@ -39,8 +39,8 @@ TEST(DepthSensorTest, NoiseFollowsKZSquared) {
     const double mean = sum / n;
     const double sigma = std::sqrt(sum_squares / n - mean * mean);
     const double expected = std::sqrt(std::pow(model.noise_k * z * z, 2) + 1e-6 / 12);
-    std::printf("z %.1f m: measured sigma %.3f mm, model %.3f mm (k = %.4f /m), bias %.3f mm\n",
-                z, sigma * 1000, expected * 1000, model.noise_k, mean * 1000);
+    std::printf("z %.1f m: measured sigma %.3f mm, model %.3f mm (k = %.4f /m), bias %.3f mm\n", z,
+                sigma * 1000, expected * 1000, model.noise_k, mean * 1000);
     EXPECT_NEAR(sigma / expected, 1.0, 0.03);
     EXPECT_LT(std::abs(mean), 3 * expected / std::sqrt(n) + 1e-5);
   }

@@ -45,8 +45,9 @@ TEST(SceneMeshTest, WorldMeshPerFrameIsClosedMovesAndStandsOnTheFloor) {
   ASSERT_EQ(a->subject_mesh().vertices.size(), b->subject_mesh().vertices.size());
   double moved = 0, lowest = 1e9, highest = -1e9;
   for (size_t v = 0; v < a->subject_mesh().vertices.size(); ++v) {
-    moved = std::max(moved, static_cast<double>((a->subject_mesh().vertices[v] -
-                                                 b->subject_mesh().vertices[v]).norm()));
+    moved = std::max(moved,
+                     static_cast<double>(
+                         (a->subject_mesh().vertices[v] - b->subject_mesh().vertices[v]).norm()));
     lowest = std::min(lowest, static_cast<double>(a->subject_mesh().vertices[v].z()));
     highest = std::max(highest, static_cast<double>(a->subject_mesh().vertices[v].z()));
   }

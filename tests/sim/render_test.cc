@@ -38,8 +38,8 @@ TEST(RayTableTest, InterpolatedRaysProjectBackToTheirPixels) {
         worst_centre = std::max(worst_centre, (back - Eigen::Vector2d(cx, cy)).norm());
       }
       std::printf("%s %s (%s, %dx%d): max round-trip error %.2e px (centres %.2e px)\n",
-                  rig_name.c_str(), sensor.name.c_str(), camera.lensmodel().c_str(),
-                  camera.width(), camera.height(), worst, worst_centre);
+                  rig_name.c_str(), sensor.name.c_str(), camera.lensmodel().c_str(), camera.width(),
+                  camera.height(), worst, worst_centre);
       EXPECT_LT(worst, 0.005) << sensor.name;
       EXPECT_LT(worst_centre, 1e-4) << sensor.name;
     }

@@ -84,8 +84,8 @@ TEST(SimulateTakeTest, GroundTruthMasksMatchTheProjectedMesh) {
   // outline (depth edges) and grazing parts.
   EXPECT_GT(valid, depth.rows * depth.cols / 10);
   EXPECT_GT(valid_on_subject, 0.5 * cv::countNonZero(subject));
-  const nlohmann::json sim = nlohmann::json::parse(
-      ReadFileToString(dir / "take" / "gt" / "sim.json"));
+  const nlohmann::json sim =
+      nlohmann::json::parse(ReadFileToString(dir / "take" / "gt" / "sim.json"));
   EXPECT_EQ(sim["sensors"]["depth0"]["paired_with"], "cam0");
   EXPECT_EQ(sim["frames"].size(), 6u);
 }
@@ -110,11 +110,11 @@ TEST(SimulateTakeTest, DroppedFramesAreCountedAndRecorded) {
   int64_t present = 0;
   for (const FrameSetEntry& entry : take.entries()) present += entry.items.size();
   EXPECT_EQ(present, summary.frames_written);
-  const nlohmann::json sim = nlohmann::json::parse(
-      ReadFileToString(dir / "take" / "gt" / "sim.json"));
+  const nlohmann::json sim =
+      nlohmann::json::parse(ReadFileToString(dir / "take" / "gt" / "sim.json"));
   EXPECT_EQ(static_cast<int64_t>(sim["dropped"].size()), summary.frames_dropped);
-  const nlohmann::json board = nlohmann::json::parse(
-      ReadFileToString(dir / "take" / "gt" / "board.json"));
+  const nlohmann::json board =
+      nlohmann::json::parse(ReadFileToString(dir / "take" / "gt" / "board.json"));
   EXPECT_EQ(board["world_from_board"].size(), 4u);
   EXPECT_EQ(board["layout"]["width_n"], 10);
 }
