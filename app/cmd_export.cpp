@@ -28,6 +28,8 @@ static void AddExportCommand(CLI::App& app) {
   command->add_flag("--ground-truth", args->options.ground_truth,
                     "Export the true cameras (gt/cameras, simulated takes) instead of calib/");
   command->add_flag("--no-images", args->no_images, "Write the cameras only, not the frames");
+  command->add_flag("--skip-unrepresentable", args->options.skip_unrepresentable,
+                    "Export the cameras the format holds exactly and skip the others (default: refuse)");
   command->add_flag("--overwrite", args->options.overwrite, "Write into a non-empty directory");
   command->callback([args] {
     ExportOptions options = args->options;

@@ -66,7 +66,7 @@ CameraModel CameraFromKrt(const KrtCamera& camera, const Pose& cam_from_world) {
   const std::string who = "camera '" + camera.name + "'";
   const Eigen::Matrix3d& K = camera.K;
   if (K(1, 0) != 0 || K(2, 0) != 0 || K(2, 1) != 0 || !(K(2, 2) != 0)) {
-    Fail(who, ": K must be upper triangular with K33 != 0, got\n", K);
+    Fail(who, ": K must be upper triangular with K33 != 0, got [", K.row(0), "; ", K.row(1), "; ", K.row(2), "]");
   }
   Eigen::Matrix3d k = K / K(2, 2);
   if (k(0, 1) != 0) {

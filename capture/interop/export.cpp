@@ -35,20 +35,38 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, cons
   ExportSummary summary;
   // Cameras first: a model the format cannot hold stops the export before anything is written.
   std::vector<std::pair<const StreamInfo*, CameraModel>> cameras;
+  std::vector<std::string> unrepresentable;
   for (const auto& stream : take.streams()) {
     if (stream.role != SensorRole::kColor) {
       summary.skipped.push_back(Cat(stream.name, " (", ToString(stream.role), ": the format holds colour cameras)"));
       continue;
     }
     CameraModel camera = take.Camera(stream.name, options.ground_truth);
-    if (options.format == InteropFormat::kColmap) {
-      ColmapFromCamera(camera, 1);
-    } else {
-      NerfFromCamera(camera);
+    try {
+      if (options.format == InteropFormat::kColmap) {
+        ColmapFromCamera(camera, 1);
+      } else {
+        NerfFromCamera(camera);
+      }
+    } catch (const Error& e) {
+      unrepresentable.push_back(Cat(stream.name, " (", e.what(), ")"));
+      continue;
     }
     cameras.emplace_back(&stream, std::move(camera));
   }
-  if (cameras.empty()) Fail("take '", take_dir.string(), "' has no colour stream to export");
+  if (!unrepresentable.empty()) {
+    if (!options.skip_unrepresentable) {
+      std::string names;
+      for (const auto& item : unrepresentable) {
+        if (!names.empty()) names += "; ";
+        names += item;
+      }
+      Fail(unrepresentable.size(), " camera(s) cannot be exported exactly to ", ToString(options.format), ": ",
+           names, " (--skip-unrepresentable exports the others)");
+    }
+    summary.skipped.insert(summary.skipped.end(), unrepresentable.begin(), unrepresentable.end());
+  }
+  if (cameras.empty()) Fail("take '", take_dir.string(), "' has no colour camera to export to ", ToString(options.format));
   std::error_code ec;
   if (fs::exists(out_dir, ec) && !fs::is_empty(out_dir, ec) && !options.overwrite) {
     Fail("'", out_dir.string(), "' is not empty (pass --overwrite to write into it)");

@@ -199,13 +199,16 @@ struct ExportOptions {
   InteropFormat format = InteropFormat::kColmap;  // kColmap or kNerf
   bool ground_truth = false;  // export gt/cameras (simulated takes) instead of calib/
   bool copy_images = true;    // write the colour frames as PNG under DIR/images/<sensor>/
+  // Export the cameras the format can hold and list the others in `skipped`; false: refuse the
+  // whole export, naming every camera the format cannot hold exactly.
+  bool skip_unrepresentable = false;
   bool overwrite = false;     // allow a non-empty output directory
   void Check() const;
 };
 struct ExportSummary : Summary {
   int cameras = 0;
   int64_t images = 0;
-  std::vector<std::string> skipped;  // streams not exported (depth, witness), with why
+  std::vector<std::string> skipped;  // streams not exported (depth, witness, lens), with why
 };
 // COLMAP: DIR/sparse/0/{cameras,images,points3D}.txt and DIR/images/; NeRF: DIR/transforms.json
 // and DIR/images/. Throws Error for a model the format cannot hold exactly.
