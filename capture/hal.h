@@ -5,6 +5,7 @@
 #include <chrono>
 #include <functional>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <memory>
 #include <optional>
 #include <string>
@@ -15,6 +16,14 @@
 #include "core/take.h"
 
 namespace holocap {
+
+// What a sensor knows about frames it lost before they reached Grab(). Drivers that cannot
+// tell leave these at zero; the recorder also counts gaps in Frame::sequence.
+struct SensorStats {
+  uint64_t frames_delivered = 0;  // handed out by Grab()
+  uint64_t frames_lost = 0;       // incomplete, timed out or overrun inside the driver
+  nlohmann::json details = nlohmann::json::object();  // driver-specific (packets resent, PTP, ...)
+};
 
 // A sensor a driver can open, as `holocap devices` lists it.
 struct DeviceInfo {
@@ -40,6 +49,8 @@ class Sensor {
   virtual void Trigger() {}
   // The exact lens and pose, where the driver knows them (simulation, replayed calibration).
   virtual std::optional<CameraModel> known_model() const { return std::nullopt; }
+  // Counters since Start(). Thread-safe: the recorder reads them while Grab() runs.
+  virtual SensorStats stats() const { return {}; }
 };
 
 class Driver {

@@ -1,0 +1,116 @@
+// Fake GigE Vision cameras (arv-fake-gv-camera-0.8) for tests, each a real process speaking
+// GVCP/GVSP. The test process first moves into a network namespace of its own, so the
+// addresses 127.0.0.1..N exist only there and vanish with the process, even when a test
+// crashes; the cameras are started and stopped by their own process ids and are killed by
+// the kernel if the test process dies first.
+#pragma once
+
+#include <signal.h>
+#include <sched.h>
+#include <sys/prctl.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <gtest/gtest.h>
+
+#include <chrono>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "capture/aravis/aravis_driver.h"
+
+namespace holocap::testing {
+
+// Enters a private network namespace with the loopback interface up (once per process).
+// Returns an empty string on success, else why it could not.
+inline std::string EnterPrivateNetwork() {
+  static std::string result = [] {
+    if (unshare(CLONE_NEWNET) != 0) return std::string("unshare(CLONE_NEWNET) failed: ") + strerror(errno);
+    if (std::system("ip link set lo up") != 0) return std::string("cannot bring lo up");
+    return std::string();
+  }();
+  return result;
+}
+
+class FakeGigeCameras {
+ public:
+  // Starts `count` cameras on 127.0.0.1..count with serials HC1..HCn. `lost_per_thousand` is
+  // their GVSP packet loss.
+  FakeGigeCameras(int count, int lost_per_thousand = 0) {
+    std::string error = EnterPrivateNetwork();
+    if (!error.empty()) {
+      ADD_FAILURE() << error;
+      return;
+    }
+    for (int i = 1; i <= count; ++i) {
+      const std::string address = "127.0.0." + std::to_string(i);
+      if (i > 1) std::system(("ip addr add " + address + "/32 dev lo 2>/dev/null").c_str());
+      pid_t pid = fork();
+      if (pid == 0) {
+        prctl(PR_SET_PDEATHSIG, SIGKILL);
+        const std::string serial = "HC" + std::to_string(i);
+        const std::string ratio = std::to_string(lost_per_thousand);
+        std::freopen("/dev/null", "w", stdout);
+        execlp("arv-fake-gv-camera-0.8", "arv-fake-gv-camera-0.8", "-i", address.c_str(), "-s", serial.c_str(), "-r",
+               ratio.c_str(), static_cast<char*>(nullptr));
+        _exit(127);
+      }
+      pids_.push_back(pid);
+      ids_.push_back("Aravis-Fake-HC" + std::to_string(i));
+    }
+    WaitUntilDiscovered();
+  }
+  ~FakeGigeCameras() {
+    for (size_t i = 0; i < pids_.size(); ++i) Stop(static_cast<int>(i));
+  }
+  FakeGigeCameras(const FakeGigeCameras&) = delete;
+  FakeGigeCameras& operator=(const FakeGigeCameras&) = delete;
+
+  // The device id of camera i (0-based), as aravis names it.
+  const std::string& id(int i) const { return ids_.at(i); }
+  pid_t pid(int i) const { return pids_.at(i); }
+  int size() const { return static_cast<int>(ids_.size()); }
+
+  // Kills camera i now (a camera that vanishes) and reaps it.
+  void Kill(int i) { Stop(i, SIGKILL); }
+
+ private:
+  void Stop(int i, int signal = SIGTERM) {
+    if (pids_[i] <= 0) return;
+    kill(pids_[i], signal);
+    int status = 0;
+    for (int tries = 0; tries < 100; ++tries) {
+      if (waitpid(pids_[i], &status, WNOHANG) == pids_[i]) {
+        pids_[i] = -1;
+        return;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    kill(pids_[i], SIGKILL);
+    waitpid(pids_[i], &status, 0);
+    pids_[i] = -1;
+  }
+
+  void WaitUntilDiscovered() {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    DriverRegistry registry;
+    RegisterAravisDriver(registry);
+    while (std::chrono::steady_clock::now() < deadline) {
+      int found = 0;
+      for (const auto& device : registry.ForUri("aravis:x").Enumerate()) {
+        for (const auto& id : ids_) found += device.uri == "aravis:" + id;
+      }
+      if (found == static_cast<int>(ids_.size())) return;
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    ADD_FAILURE() << "the fake cameras did not all answer discovery within 5 s";
+  }
+
+  std::vector<pid_t> pids_;
+  std::vector<std::string> ids_;
+};
+
+}  // namespace holocap::testing
