@@ -239,6 +239,7 @@ class V4l2Sensor : public Sensor {
     path_ = ParseSensorUri(spec.uri).path;
     if (path_.empty()) Fail("'", uri_, "': no device path (expected v4l2:/dev/videoN)");
     fd_ = v4l2_open(path_.c_str(), O_RDWR | O_NONBLOCK);
+    if (fd_ < 0 && errno == ENOTTY) Fail("'", uri_, "': ", path_, " is not a V4L2 device");
     if (fd_ < 0) Fail("'", uri_, "': cannot open ", path_, ": ", std::strerror(errno));
     try {
       Configure(spec);

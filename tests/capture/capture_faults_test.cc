@@ -1,0 +1,152 @@
+// holocap capture end to end, and what happens when things go wrong: a killed recorder, a full
+// disk, an unknown device. Fake GigE Vision cameras are the sensors.
+#include <sched.h>
+#include <sys/mount.h>
+
+#include <gtest/gtest.h>
+
+#include <fstream>
+
+#include "capture/recorder.h"
+#include "core/error.h"
+#include "core/fs.h"
+#include "tests/capture/fake_gige.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::FakeGigeCameras;
+using testing::RunCli;
+using testing::RunShell;
+using testing::TempDir;
+
+std::filesystem::path WriteRig(const TempDir& dir, const FakeGigeCameras& cameras, int count, double fps) {
+  std::ofstream rig(dir / "rig.yaml");
+  rig << "name: fake-booth\nsync: software\nfps: " << fps << "\nsensors:\n";
+  for (int i = 0; i < count; ++i) {
+    rig << "  - {name: cam" << i << ", uri: \"aravis:" << cameras.id(i) << "\", options: {roi: [0, 0, 128, 96]}}\n";
+  }
+  return dir / "rig.yaml";
+}
+
+TEST(CaptureCli, RecordsATakeThatInfoAndReplayRead) {
+  FakeGigeCameras cameras(3);
+  TempDir dir;
+  auto rig = WriteRig(dir, cameras, 3, 20);
+  auto take = dir / "take";
+  auto result = RunCli("capture --rig '" + rig.string() + "' --out '" + take.string() + "' --frames 20");
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  auto report = nlohmann::json::parse(ReadFileToString(take / "report.json"));
+  const auto& metrics = report.at("metrics");
+  EXPECT_EQ(metrics.at("frame_sets_complete").get<int64_t>() + 0, Take::Open(take).size());
+  EXPECT_GE(metrics.at("frame_sets_complete").get<int64_t>(), 16);
+  EXPECT_GE(metrics.at("frames_dropped").get<int64_t>(), 0);
+  EXPECT_LT(metrics.at("sync_spread_us_max").get<double>(), 20000);
+  EXPECT_GT(metrics.at("write_mb_s").get<double>(), 0);
+  EXPECT_EQ(report.at("summary").at("termination"), ToString(Termination::kSuccess));
+  // Frames triggered and frames accounted for agree per sensor.
+  for (const auto& [name, sensor] : metrics.at("sensors").items()) {
+    EXPECT_EQ(sensor.at("frames_written").get<int64_t>() + sensor.at("frames_dropped").get<int64_t>(), 20) << name;
+  }
+  auto info = RunCli("info '" + take.string() + "' --verify");
+  ASSERT_EQ(info.exit_code, 0) << info.output;
+  EXPECT_NE(info.output.find("clock=device:Aravis-Fake-HC1"), std::string::npos) << info.output;
+  EXPECT_NE(info.output.find("verified"), std::string::npos) << info.output;
+  auto replay = RunCli("devices --probe 'replay:" + take.string() + "#cam2'");
+  ASSERT_EQ(replay.exit_code, 0) << replay.output;
+  EXPECT_NE(replay.output.find("128x96 mono8"), std::string::npos) << replay.output;
+}
+
+TEST(CaptureCli, UnknownDeviceIsOneLineAndNoTake) {
+  ASSERT_EQ(testing::EnterPrivateNetwork(), "");
+  TempDir dir;
+  {
+    std::ofstream rig(dir / "rig.yaml");
+    rig << "name: x\nsync: software\nfps: 10\nsensors:\n  - {name: cam0, uri: \"aravis:Nobody-Home\"}\n";
+  }
+  auto result = RunCli("capture --rig '" + (dir / "rig.yaml").string() + "' --out '" + (dir / "take").string() +
+                       "' --frames 5");
+  EXPECT_NE(result.exit_code, 0);
+  EXPECT_NE(result.output.find("holocap: error: sensor 'cam0': 'aravis:Nobody-Home': no such camera"),
+            std::string::npos)
+      << result.output;
+  EXPECT_FALSE(std::filesystem::exists(dir / "take"));
+}
+
+TEST(CaptureFaults, KilledRecorderLeavesATakeWithEveryCompleteSet) {
+  FakeGigeCameras cameras(2);
+  TempDir dir;
+  auto rig = WriteRig(dir, cameras, 2, 20);
+  auto take = dir / "take";
+  auto result = RunShell("HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() + "' capture --rig '" + rig.string() +
+                         "' --out '" + take.string() + "' --seconds 60 > /dev/null 2>&1 & pid=$!; "
+                         "for i in $(seq 200); do [ $(cat '" + (take / "index.jsonl").string() +
+                         "' 2>/dev/null | wc -l) -ge 12 ] && break; sleep 0.05; done; kill -9 $pid; wait $pid; "
+                         "echo exit=$?");
+  EXPECT_NE(result.output.find("exit=137"), std::string::npos) << result.output;
+  Take opened = Take::Open(take);
+  EXPECT_EQ(opened.state(), "recording");
+  EXPECT_GE(opened.size(), 12u);
+  for (size_t i = 0; i < opened.size(); ++i) EXPECT_EQ(opened.Read(i).frames.size(), 2u);
+  EXPECT_EQ(RunCli("info '" + take.string() + "' --verify").exit_code, 0);
+}
+
+// A tmpfs of a few pages, mounted in a mount namespace of this process only (it vanishes with
+// the process even if the test dies).
+class SmallDisk {
+ public:
+  SmallDisk(const std::filesystem::path& dir, const std::string& size) : dir_(dir) {
+    if (unshare(CLONE_NEWNS) != 0 || mount(nullptr, "/", nullptr, MS_REC | MS_PRIVATE, nullptr) != 0) {
+      ADD_FAILURE() << "cannot make a private mount namespace: " << strerror(errno);
+      return;
+    }
+    std::filesystem::create_directories(dir_);
+    if (mount("tmpfs", dir_.c_str(), "tmpfs", 0, ("size=" + size).c_str()) != 0) {
+      ADD_FAILURE() << "cannot mount a tmpfs: " << strerror(errno);
+      return;
+    }
+    mounted_ = true;
+  }
+  ~SmallDisk() {
+    if (mounted_) umount2(dir_.c_str(), MNT_DETACH);
+  }
+
+ private:
+  std::filesystem::path dir_;
+  bool mounted_ = false;
+};
+
+TEST(CaptureFaults, FullDiskStopsTheTakeCleanly) {
+  FakeGigeCameras cameras(2);
+  TempDir dir;
+  SmallDisk disk(dir / "disk", "320k");
+  RigDescription rig;
+  rig.name = "fake";
+  rig.fps = 20;
+  for (int i = 0; i < 2; ++i) {
+    SensorSpec spec;
+    spec.name = "cam" + std::to_string(i);
+    spec.uri = "aravis:" + cameras.id(i);
+    spec.options = {{"roi", {0, 0, 128, 96}}};
+    rig.sensors.push_back(spec);
+  }
+  DriverRegistry registry;
+  RegisterAravisDriver(registry);
+  RecorderOptions options;
+  options.seconds = 30;
+  Recorder recorder(rig, dir / "disk" / "take", options, registry);
+  const auto start = std::chrono::steady_clock::now();
+  RecorderSummary summary = recorder.Run();
+  EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(20));
+  ASSERT_EQ(summary.termination, Termination::kFailure);
+  EXPECT_NE(summary.message.find("No space left on device"), std::string::npos) << summary.message;
+  EXPECT_NE(summary.message.find("complete frame sets kept"), std::string::npos) << summary.message;
+  Take take = Take::Open(dir / "disk" / "take");
+  EXPECT_GT(take.size(), 5u);
+  EXPECT_EQ(static_cast<int64_t>(take.size()), summary.frame_sets_complete);
+  for (size_t i = 0; i < take.size(); ++i) EXPECT_EQ(take.Read(i).frames.size(), 2u);
+}
+
+}  // namespace
+}  // namespace holocap
