@@ -1,0 +1,587 @@
+// Training a Neural Volume: random pixel batches across cameras and frames, Adam, held-out
+// cameras evaluated against wall time, checkpoints, resume and a divergence guard.
+#include <omp.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <deque>
+#include <numeric>
+#include <opencv2/imgproc.hpp>
+#include <random>
+
+#include "core/error.h"
+#include "core/fs.h"
+#include "core/image.h"
+#include "core/progress.h"
+#include "neural/data.h"
+#include "neural/nvol.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+using neural::MarchContext;
+using neural::NvolConfig;
+using neural::NvolModel;
+using neural::TrainingData;
+
+// Everything that must be saved and restored together.
+struct Snapshot {
+  std::vector<torch::Tensor> parameters;
+  torch::Tensor backgrounds;
+  int64_t iteration = 0;
+};
+
+Snapshot TakeSnapshot(NvolModel& model, const torch::Tensor& backgrounds, int64_t iteration) {
+  torch::NoGradGuard no_grad;
+  Snapshot s;
+  for (const auto& p : model->parameters()) s.parameters.push_back(p.detach().clone());
+  s.backgrounds = backgrounds.detach().clone();
+  s.iteration = iteration;
+  return s;
+}
+
+void RestoreSnapshot(const Snapshot& s, NvolModel& model, torch::Tensor& backgrounds) {
+  torch::NoGradGuard no_grad;
+  auto params = model->parameters();
+  for (size_t i = 0; i < params.size(); ++i) params[i].copy_(s.parameters[i]);
+  backgrounds.copy_(s.backgrounds);
+}
+
+struct Evaluation {
+  double psnr_db = 0;
+  double psnr_fg_db = 0;
+  double ssim = 0;
+};
+
+class Trainer {
+ public:
+  Trainer(const TrainingData& data, const NeuralVolumeOptions& options, const fs::path& model_dir)
+      : data_(data), options_(options), model_dir_(model_dir), rng_(options.seed) {
+    config_.dynamic = data.dynamic;
+    config_.grid = options.grid;
+    config_.latent_dim = options.latent_dim;
+    config_.warp_count = options.warp_count;
+    config_.warp_grid = options.warp_grid;
+    config_.encoder_views = static_cast<int>(data.encoder_views.size());
+    config_.encoder_width = options.encoder_width;
+    const auto& first = data.views.front().camera;
+    config_.encoder_height = std::max(16, static_cast<int>(std::lround(
+        options.encoder_width * static_cast<double>(first.height()) / first.width())));
+    config_.decoder_channels = options.decoder_channels;
+    config_.cameras = static_cast<int>(data.views.size());
+    config_.box_min = data.box_min;
+    config_.box_max = data.box_max;
+    torch::manual_seed(options.seed);
+    model_ = NvolModel(config_);
+    step_m_ = options.step_voxels * (data.box_max - data.box_min).minCoeff() / options.grid;
+
+    training_ = data.TrainingViews();
+    heldout_ = data.HeldoutViews();
+    // Pixels of all views, concatenated: view v's pixel p is row offset_[v] + p.
+    for (const auto& view : data.views) {
+      offset_.push_back(total_pixels_);
+      total_pixels_ += static_cast<int64_t>(view.camera.width()) * view.camera.height();
+    }
+    // Backgrounds [P, 3] BGR in [0, 1].
+    std::vector<torch::Tensor> backgrounds;
+    for (const auto& view : data.views) backgrounds.push_back(ImageTensor(view.background).view({-1, 3}));
+    backgrounds_ = torch::cat(backgrounds).contiguous();
+    if (options.learn_background) backgrounds_.set_requires_grad(true);
+    // Rays of every pixel of every view, and the pixels whose rays meet the box.
+    for (const auto& view : data.views) {
+      all_rays_.push_back(neural::CameraRaysAllPixels(view.camera, data.box_min_f(), data.box_max_f()));
+      std::vector<int32_t> pixels;
+      for (int64_t i = 0; i < all_rays_.back().size(); ++i) {
+        if (all_rays_.back().t_far[i] > all_rays_.back().t_near[i]) pixels.push_back(static_cast<int32_t>(i));
+      }
+      box_pixels_.push_back(std::move(pixels));
+    }
+    // Pixels of each frame's training silhouettes (grown by 4 pixels) that see the box: half
+    // of every batch is drawn from them so that the subject, a small part of each image, is
+    // fitted early.
+    subject_pixels_.resize(data.sets.size());
+    for (size_t f = 0; f < data.sets.size(); ++f) {
+      for (int v : training_) {
+        cv::Mat grown;
+        cv::dilate(data.masks[f][v], grown, cv::Mat(), cv::Point(-1, -1), 4);
+        for (int32_t p : box_pixels_[v]) {
+          if (grown.data[p] != 0) subject_pixels_[f].emplace_back(v, p);
+        }
+      }
+    }
+    for (int v : training_) {
+      if (box_pixels_[v].empty()) Fail("training camera ", data.views[v].name, " does not see the volume's box");
+    }
+    // Frame images as float tensors [F, V, H, W, 3] and encoder inputs [F, 3E, eh, ew].
+    std::vector<torch::Tensor> frames, encoder_inputs;
+    for (size_t f = 0; f < data.images.size(); ++f) {
+      std::vector<torch::Tensor> views, encoder_views;
+      for (const auto& image : data.images[f]) views.push_back(ImageTensor(image).view({-1, 3}));
+      frames.push_back(torch::cat(views));
+      if (data.dynamic) {
+        for (int v : data.encoder_views) {
+          cv::Mat small;
+          cv::resize(data.images[f][v], small, cv::Size(config_.encoder_width, config_.encoder_height), 0, 0, cv::INTER_AREA);
+          encoder_views.push_back(ImageTensor(small).permute({2, 0, 1}) - 0.5);
+        }
+        encoder_inputs.push_back(torch::cat(encoder_views, 0));
+      }
+    }
+    images_ = torch::stack(frames).contiguous();
+    if (data.dynamic) encoder_inputs_ = torch::stack(encoder_inputs).contiguous();
+    // Evaluation frames, spread over the take.
+    const int64_t count = std::min<int64_t>(options.eval_frames, data.sets.size());
+    for (int64_t i = 0; i < count; ++i) eval_frames_.push_back(i * static_cast<int64_t>(data.sets.size()) / count);
+    MakeOptimizer(options.learning_rate, data.dynamic ? options.learning_rate : options.static_learning_rate);
+  }
+
+  nlohmann::json Modules() const {
+    nlohmann::json modules = nlohmann::json::array();
+    for (const auto& child : model_->named_children()) modules.push_back(child.key());
+    for (const auto& param : model_->named_parameters(false)) modules.push_back(param.key());
+    return modules;
+  }
+  bool Has(const std::string& name) const {
+    for (const auto& child : model_->named_children()) {
+      if (child.key() == name) return true;
+    }
+    return false;
+  }
+
+  NeuralVolumeSummary Run(Report* report);
+
+ private:
+  static torch::Tensor ImageTensor(const cv::Mat& bgr8) {
+    cv::Mat f;
+    bgr8.convertTo(f, CV_32FC3, 1.0 / 255.0);
+    return torch::from_blob(f.data, {f.rows, f.cols, 3}, torch::kFloat32).clone();
+  }
+
+  void MakeOptimizer(double network_lr, double grid_lr) {
+    std::vector<torch::Tensor> network, calibration;
+    for (const auto& p : model_->named_parameters()) {
+      if (p.key() == "gain" || p.key() == "bias") calibration.push_back(p.value());
+      else network.push_back(p.value());
+    }
+    std::vector<torch::optim::OptimizerParamGroup> groups;
+    groups.emplace_back(network, std::make_unique<torch::optim::AdamOptions>(data_.dynamic ? network_lr : grid_lr));
+    groups.emplace_back(calibration, std::make_unique<torch::optim::AdamOptions>(network_lr));
+    if (backgrounds_.requires_grad()) {
+      groups.emplace_back(std::vector<torch::Tensor>{backgrounds_}, std::make_unique<torch::optim::AdamOptions>(network_lr));
+    }
+    optimizer_ = std::make_unique<torch::optim::Adam>(std::move(groups), torch::optim::AdamOptions(network_lr));
+  }
+
+  // The latent of frame f: sampled (training) or the mean (evaluation); adds its KL.
+  torch::Tensor Latent(int64_t f, bool sample, torch::Tensor* kl) {
+    if (!data_.dynamic) return {};
+    auto [mu, log_sigma] = model_->encoder->forward(encoder_inputs_.narrow(0, f, 1));
+    if (kl != nullptr) {
+      *kl = 0.5 * (mu.pow(2) + (2 * log_sigma).exp() - 1 - 2 * log_sigma).sum(1).mean();
+    }
+    if (!sample) return mu;
+    return mu + log_sigma.exp() * torch::randn_like(mu);
+  }
+
+  double TrainStep(int64_t iteration, double* photometric, double* samples_per_ray);
+  Evaluation Evaluate();
+  void SaveCheckpoint(int64_t iteration);
+  bool LoadCheckpoint(int64_t* iteration);
+  void SaveModel(const nlohmann::json& plan);
+
+  const TrainingData& data_;
+  NeuralVolumeOptions options_;
+  fs::path model_dir_;
+  std::mt19937_64 rng_;
+  NvolConfig config_;
+  NvolModel model_{nullptr};
+  double step_m_ = 0;
+  std::vector<int> training_, heldout_;
+  std::vector<int64_t> offset_;
+  int64_t total_pixels_ = 0;
+  torch::Tensor backgrounds_, images_, encoder_inputs_;
+  std::vector<neural::RayBatch> all_rays_;
+  std::vector<std::vector<int32_t>> box_pixels_;
+  std::vector<std::vector<std::pair<int, int32_t>>> subject_pixels_;  // [frame] (view, pixel)
+  std::vector<int64_t> eval_frames_;
+  std::unique_ptr<torch::optim::Adam> optimizer_;
+  double lr_scale_ = 1;
+};
+
+double Trainer::TrainStep(int64_t iteration, double* photometric, double* samples_per_ray) {
+  optimizer_->zero_grad();
+  const int64_t frames = static_cast<int64_t>(data_.sets.size());
+  const int per_frame = options_.rays_per_batch / options_.frames_per_batch;
+  std::uniform_int_distribution<int64_t> pick_frame(0, frames - 1);
+  std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+  int64_t total_pixels = 0;
+  for (int v : training_) total_pixels += box_pixels_[v].size();
+  torch::Tensor loss = torch::zeros({});
+  double photo_sum = 0, samples = 0;
+  std::vector<std::unique_ptr<MarchContext>> contexts;
+  for (int b = 0; b < options_.frames_per_batch; ++b) {
+    const int64_t f = data_.dynamic ? pick_frame(rng_) : 0;
+    auto context = std::make_unique<MarchContext>();
+    context->box_min = data_.box_min_f();
+    context->box_max = data_.box_max_f();
+    context->occupancy = &data_.occupancy[f];
+    context->options.step_m = static_cast<float>(step_m_);
+    context->options.min_transmittance = static_cast<float>(options_.min_transmittance);
+    context->rays.Resize(per_frame);
+    std::vector<int64_t> camera(per_frame), pixel_index(per_frame);
+    std::uniform_int_distribution<int64_t> pick_pixel(0, total_pixels - 1);
+    const auto& subject = subject_pixels_[f];
+    for (int i = 0; i < per_frame; ++i) {
+      int v = training_.front();
+      int32_t p = 0;
+      if (i % 2 == 0 && !subject.empty()) {
+        const auto& pick = subject[std::uniform_int_distribution<size_t>(0, subject.size() - 1)(rng_)];
+        v = pick.first;
+        p = pick.second;
+      } else {
+        // Uniform over the pixels of all training cameras that see the box.
+        int64_t k = pick_pixel(rng_);
+        for (int candidate : training_) {
+          if (k < static_cast<int64_t>(box_pixels_[candidate].size())) {
+            v = candidate;
+            break;
+          }
+          k -= box_pixels_[candidate].size();
+        }
+        p = box_pixels_[v][k];
+      }
+      const auto& source = all_rays_[v];
+      for (int a = 0; a < 3; ++a) {
+        context->rays.origin[3 * i + a] = source.origin[3 * p + a];
+        context->rays.direction[3 * i + a] = source.direction[3 * p + a];
+      }
+      context->rays.t_near[i] = source.t_near[p];
+      context->rays.t_far[i] = source.t_far[p];
+      context->rays.jitter[i] = options_.jitter ? unit(rng_) : 0.0f;
+      camera[i] = v;
+      pixel_index[i] = f * total_pixels_ + offset_[v] + p;
+    }
+    torch::Tensor kl;
+    torch::Tensor latent = Latent(f, /*sample=*/true, data_.dynamic ? &kl : nullptr);
+    torch::Tensor rgba = model_->DecodeRgba(latent);
+    torch::Tensor warp = model_->DecodeWarp(latent);
+    auto marched = neural::MarchRays(rgba, warp, context.get());
+    torch::Tensor rgb = marched[0], alpha = marched[1].unsqueeze(1);
+    torch::Tensor cameras = torch::from_blob(camera.data(), {per_frame}, torch::kInt64).clone();
+    torch::Tensor pixels = torch::from_blob(pixel_index.data(), {per_frame}, torch::kInt64).clone();
+    torch::Tensor target = images_.view({-1, 3}).index_select(0, pixels);
+    torch::Tensor background = backgrounds_.index_select(0, pixels.remainder(total_pixels_));
+    torch::Tensor prediction = model_->gain.index_select(0, cameras) * rgb +
+                               model_->bias.index_select(0, cameras) * alpha + (1 - alpha) * background;
+    torch::Tensor photo = (prediction - target).pow(2).mean();
+    // The beta prior of the paper on ray alpha, zero at alpha 0 and 1.
+    torch::Tensor prior = (torch::log(0.1 + alpha) + torch::log(0.1 + 1 - alpha) - std::log(0.1) - std::log(1.1)).mean();
+    // Total variation of colour and of density in optical depth per voxel.
+    torch::Tensor normalised = rgba / torch::tensor({1.0f, 1.0f, 1.0f, static_cast<float>(config_.density_scale())});
+    torch::Tensor tv = (normalised.narrow(0, 1, config_.grid - 1) - normalised.narrow(0, 0, config_.grid - 1)).pow(2).mean() +
+                       (normalised.narrow(1, 1, config_.grid - 1) - normalised.narrow(1, 0, config_.grid - 1)).pow(2).mean() +
+                       (normalised.narrow(2, 1, config_.grid - 1) - normalised.narrow(2, 0, config_.grid - 1)).pow(2).mean();
+    torch::Tensor frame_loss = photo + options_.alpha_prior_weight * prior + options_.tv_weight * tv;
+    if (data_.dynamic) frame_loss = frame_loss + options_.kl_weight * kl;
+    loss = loss + frame_loss / options_.frames_per_batch;
+    photo_sum += photo.item<double>();
+    samples += context->outputs.MeanSamples();
+    contexts.push_back(std::move(context));
+  }
+  const double value = loss.item<double>();
+  if (std::isfinite(value)) {
+    loss.backward();
+    optimizer_->step();
+    // The first training camera is the colour reference: its calibration stays the identity
+    // (gain and bias are otherwise ambiguous with the volume's colours). Held-out cameras
+    // never receive a gradient and stay at the identity too.
+    torch::NoGradGuard no_grad;
+    model_->gain[training_.front()].fill_(1.0);
+    model_->bias[training_.front()].fill_(0.0);
+  }
+  *photometric = photo_sum / options_.frames_per_batch;
+  *samples_per_ray = samples / options_.frames_per_batch;
+  return value;
+}
+
+Evaluation Trainer::Evaluate() {
+  torch::NoGradGuard no_grad;
+  Evaluation result;
+  if (heldout_.empty()) return result;
+  double mse_sum = 0, mse_fg_sum = 0, ssim_sum = 0;
+  int count = 0;
+  for (int64_t f : eval_frames_) {
+    torch::Tensor latent = Latent(f, /*sample=*/false, nullptr);
+    torch::Tensor rgba = model_->DecodeRgba(latent).contiguous();
+    torch::Tensor warp = model_->DecodeWarp(latent);
+    if (warp.defined()) warp = warp.contiguous();
+    for (int v : heldout_) {
+      const int h = data_.views[v].camera.height(), w = data_.views[v].camera.width();
+      MarchContext context;
+      context.box_min = data_.box_min_f();
+      context.box_max = data_.box_max_f();
+      context.occupancy = &data_.occupancy[f];
+      context.options.step_m = static_cast<float>(step_m_);
+      context.options.min_transmittance = static_cast<float>(options_.min_transmittance);
+      context.rays = all_rays_[v];
+      auto out = neural::MarchRays(rgba, warp, &context);
+      torch::Tensor alpha = out[1].unsqueeze(1);
+      torch::Tensor prediction = (out[0] + (1 - alpha) * backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w)).clamp(0, 1);
+      cv::Mat predicted(h, w, CV_32FC3), truth;
+      std::memcpy(predicted.data, prediction.contiguous().data_ptr<float>(), sizeof(float) * h * w * 3);
+      data_.images[f][v].convertTo(truth, CV_32FC3, 1.0 / 255.0);
+      // The subject's silhouette in the held-out view, grown by 3 pixels.
+      cv::Mat mask;
+      cv::dilate(data_.masks[f][v], mask, cv::Mat(), cv::Point(-1, -1), 3);
+      mse_sum += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
+      mse_fg_sum += std::pow(10.0, -PsnrDb(predicted, truth, mask) / 10.0);
+      ssim_sum += Ssim(predicted, truth);
+      ++count;
+    }
+  }
+  // PSNR of the mean squared error over every evaluated image (not the mean of PSNRs).
+  result.psnr_db = -10.0 * std::log10(mse_sum / count);
+  result.psnr_fg_db = -10.0 * std::log10(mse_fg_sum / count);
+  result.ssim = ssim_sum / count;
+  return result;
+}
+
+void Trainer::SaveCheckpoint(int64_t iteration) {
+  CreateDirectories(model_dir_);
+  const fs::path tmp = model_dir_ / "checkpoint.pt.tmp";
+  {
+    torch::serialize::OutputArchive archive;
+    model_->save(archive);
+    archive.write("backgrounds", backgrounds_.detach());
+    archive.write("iteration", torch::tensor(iteration));
+    archive.write("lr_scale", torch::tensor(lr_scale_));
+    torch::serialize::OutputArchive optimizer_archive;
+    optimizer_->save(optimizer_archive);
+    archive.write("optimizer", optimizer_archive);
+    archive.save_to(tmp.string());
+  }
+  fs::rename(tmp, model_dir_ / "checkpoint.pt");
+}
+
+bool Trainer::LoadCheckpoint(int64_t* iteration) {
+  const fs::path file = model_dir_ / "checkpoint.pt";
+  if (!fs::exists(file)) return false;
+  try {
+    torch::serialize::InputArchive archive;
+    archive.load_from(file.string());
+    model_->load(archive);
+    torch::Tensor backgrounds, it, scale;
+    archive.read("backgrounds", backgrounds);
+    archive.read("iteration", it);
+    archive.read("lr_scale", scale);
+    {
+      torch::NoGradGuard no_grad;
+      backgrounds_.copy_(backgrounds);
+    }
+    lr_scale_ = scale.item<double>();
+    MakeOptimizer(options_.learning_rate * lr_scale_, options_.static_learning_rate * lr_scale_);
+    torch::serialize::InputArchive optimizer_archive;
+    archive.read("optimizer", optimizer_archive);
+    optimizer_->load(optimizer_archive);
+    *iteration = it.item<int64_t>();
+  } catch (const c10::Error& e) {
+    Fail("cannot resume from ", file.string(), " (a checkpoint of another configuration?): ", e.what_without_backtrace());
+  }
+  return true;
+}
+
+void Trainer::SaveModel(const nlohmann::json& plan) {
+  torch::NoGradGuard no_grad;
+  CreateDirectories(model_dir_ / "cameras");
+  CreateDirectories(model_dir_ / "backgrounds");
+  torch::save(model_, (model_dir_ / "model.pt").string());
+  if (!data_.occupancy.empty() && !data_.occupancy.front().empty()) {
+    // Training never sampled outside these cells: playback must skip them too.
+    const int64_t cells = data_.occupancy.front().size;
+    torch::Tensor occupancy = torch::zeros({static_cast<int64_t>(data_.occupancy.size()), cells * cells * cells}, torch::kUInt8);
+    for (size_t f = 0; f < data_.occupancy.size(); ++f) {
+      std::memcpy(occupancy[f].data_ptr<uint8_t>(), data_.occupancy[f].occupied.data(), cells * cells * cells);
+    }
+    torch::save(occupancy, (model_dir_ / "occupancy.pt").string());
+  }
+  if (data_.dynamic) {
+    std::vector<torch::Tensor> latents;
+    for (int64_t f = 0; f < static_cast<int64_t>(data_.sets.size()); ++f) latents.push_back(Latent(f, false, nullptr));
+    torch::save(torch::cat(latents, 0), (model_dir_ / "latents.pt").string());
+  }
+  nlohmann::json cameras = nlohmann::json::array();
+  for (size_t v = 0; v < data_.views.size(); ++v) {
+    const auto& view = data_.views[v];
+    view.camera.Write(model_dir_ / "cameras" / (view.name + ".cameramodel"));
+    cameras.push_back(view.name);
+    const int h = view.camera.height(), w = view.camera.width();
+    torch::Tensor bg = (backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w).clamp(0, 1) * 255)
+                           .round().to(torch::kUInt8).contiguous();
+    cv::Mat image(h, w, CV_8UC3, bg.data_ptr<uint8_t>());
+    WritePng(model_dir_ / "backgrounds" / (view.name + ".png"), image.clone());
+  }
+  nlohmann::json json = {{"method", "nvol"},
+                         {"config", config_.ToJson()},
+                         {"cameras", cameras},
+                         {"frame_sets", data_.sets},
+                         {"modules", Modules()},
+                         {"plan", plan}};
+  WriteFileAtomic(model_dir_ / "model.json", json.dump(2) + "\n");
+}
+
+NeuralVolumeSummary Trainer::Run(Report* report) {
+  NeuralVolumeSummary summary;
+  summary.plan = data_.plan;
+  summary.built_encoder = Has("encoder");
+  summary.built_warp = Has("warp");
+  summary.plan["modules"] = Modules();
+  summary.plan["left_out"] = data_.dynamic
+      ? nlohmann::json::array()
+      : nlohmann::json::array({"encoder (one static frame: no latent to infer)",
+                               "warp field (nothing moves)",
+                               "template decoder (the RGBA grid itself is optimised)"});
+  summary.plan["device"] = "cpu (the ray marcher is CPU code)";
+  summary.plan["step_m"] = step_m_;
+  if (report != nullptr) {
+    report->plan() = summary.plan;
+    report->Write(model_dir_ / "report.json");
+  }
+  int64_t iteration = 0;
+  if (options_.resume && LoadCheckpoint(&iteration)) {
+    summary.plan["resumed_from_iteration"] = iteration;
+    if (report != nullptr) report->plan()["resumed_from_iteration"] = iteration;
+  }
+  Snapshot snapshot = TakeSnapshot(model_, backgrounds_, iteration);
+  const auto start = std::chrono::steady_clock::now();
+  auto elapsed = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(); };
+  const double budget_s = options_.minutes * 60.0;
+  const int64_t first_iteration = iteration;
+  Progress progress("nvol train", options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
+  std::deque<double> recent;
+  std::vector<double> photo_history;
+  double running = 0;
+  double next_eval = 0, next_checkpoint = options_.checkpoint_every_s;
+  Evaluation last_eval;
+  auto log_eval = [&](int64_t it) {
+    last_eval = Evaluate();
+    if (report != nullptr && !heldout_.empty()) {
+      report->AddPoint("heldout_psnr_db", last_eval.psnr_db, it);
+      report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, it);
+      report->AddPoint("heldout_ssim", last_eval.ssim, it);
+      report->Write(model_dir_ / "report.json");
+    }
+  };
+  while (true) {
+    const double t = elapsed();
+    if (options_.iterations > 0 && iteration - first_iteration >= options_.iterations) break;
+    if (options_.minutes > 0 && t >= budget_s) break;
+    if (t >= next_eval) {
+      log_eval(iteration);
+      next_eval = t + options_.eval_every_s;
+    }
+    double photo = 0, samples = 0;
+    const double loss = TrainStep(iteration, &photo, &samples);
+    const bool exploded = recent.size() >= 10 && loss > options_.divergence_factor * running;
+    if (!std::isfinite(loss) || exploded) {
+      ++summary.divergences;
+      RestoreSnapshot(snapshot, model_, backgrounds_);
+      lr_scale_ *= 0.5;
+      MakeOptimizer(options_.learning_rate * lr_scale_, options_.static_learning_rate * lr_scale_);
+      std::fprintf(stderr, "nvol: iteration %lld: loss %g %s; restored the checkpoint of iteration %lld, learning rate x%.3g\n",
+                   static_cast<long long>(iteration), loss, std::isfinite(loss) ? "exploded" : "is not finite",
+                   static_cast<long long>(snapshot.iteration), lr_scale_);
+      if (report != nullptr) report->AddPoint("divergence_lr_scale", lr_scale_, iteration);
+      iteration = snapshot.iteration;
+      recent.clear();
+      if (summary.divergences > options_.max_divergences) {
+        summary.termination = Termination::kFailure;
+        summary.message = Cat("training diverged ", summary.divergences, " times; stopped");
+        break;
+      }
+      continue;
+    }
+    recent.push_back(loss);
+    if (recent.size() > 50) recent.pop_front();
+    running = std::accumulate(recent.begin(), recent.end(), 0.0) / recent.size();
+    photo_history.push_back(photo);
+    summary.samples_per_ray = samples;
+    ++iteration;
+    if (report != nullptr && iteration % 10 == 0) report->AddPoint("loss", photo, iteration);
+    progress.Update(options_.iterations > 0 ? iteration - first_iteration : static_cast<int64_t>(t),
+                    Cat("it ", iteration, " loss ", photo, " held-out ", last_eval.psnr_db, " dB"));
+    if (elapsed() >= next_checkpoint) {
+      snapshot = TakeSnapshot(model_, backgrounds_, iteration);
+      SaveCheckpoint(iteration);
+      next_checkpoint = elapsed() + options_.checkpoint_every_s;
+    }
+  }
+  progress.Finish();
+  summary.seconds = elapsed();
+  summary.iterations = iteration;
+  SaveCheckpoint(iteration);
+  log_eval(iteration);
+  const size_t window = std::max<size_t>(1, std::min<size_t>(10, photo_history.size() / 4));
+  if (!photo_history.empty()) {
+    summary.first_loss = std::accumulate(photo_history.begin(), photo_history.begin() + window, 0.0) / window;
+    summary.last_loss = std::accumulate(photo_history.end() - window, photo_history.end(), 0.0) / window;
+  }
+  summary.heldout_psnr_db = last_eval.psnr_db;
+  summary.heldout_psnr_fg_db = last_eval.psnr_fg_db;
+  summary.heldout_ssim = last_eval.ssim;
+  if (summary.termination != Termination::kFailure) {
+    if (!std::isfinite(summary.last_loss) || (!heldout_.empty() && !std::isfinite(summary.heldout_psnr_db))) {
+      summary.termination = Termination::kFailure;
+      summary.message = "the loss or the held-out PSNR is not finite";
+    } else {
+      summary.termination = Termination::kSuccess;
+      summary.message = heldout_.empty()
+          ? Cat("trained ", iteration, " iterations in ", summary.seconds, " s (no held-out camera)")
+          : Cat("trained ", iteration, " iterations in ", summary.seconds, " s; held-out PSNR ",
+                summary.heldout_psnr_db, " dB (subject box ", summary.heldout_psnr_fg_db, " dB)");
+    }
+  }
+  SaveModel(summary.plan);
+  return summary;
+}
+
+}  // namespace
+
+NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& model_dir,
+                                      const NeuralVolumeOptions& options, Report* report) {
+  options.Check();
+  if (options.threads > 0) {
+    torch::set_num_threads(options.threads);
+    omp_set_num_threads(options.threads);
+  }
+  CreateDirectories(model_dir);
+  if (report != nullptr) report->options() = options.ToJson();
+  TrainingData data = neural::LoadTrainingData(take_dir, options);
+  NeuralVolumeSummary summary;
+  try {
+    Trainer trainer(data, options, model_dir);
+    summary = trainer.Run(report);
+  } catch (const c10::Error& e) {
+    // LibTorch reports broken preconditions (shapes, devices) with a backtrace: one line here.
+    Fail("neural volume training: ", e.what_without_backtrace());
+  }
+  if (report != nullptr) {
+    report->plan() = summary.plan;
+    report->metrics() = {{"heldout_psnr_db", summary.heldout_psnr_db},
+                         {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
+                         {"heldout_ssim", summary.heldout_ssim},
+                         {"iterations", summary.iterations},
+                         {"seconds", summary.seconds},
+                         {"first_loss", summary.first_loss},
+                         {"last_loss", summary.last_loss},
+                         {"divergences", summary.divergences},
+                         {"samples_per_ray", summary.samples_per_ray}};
+    report->SetSummary({summary.termination, summary.message});
+    report->Write(model_dir / "report.json");
+  }
+  return summary;
+}
+
+}  // namespace holocap
