@@ -1,0 +1,133 @@
+// holocap calibrate: detect the board in a take, solve the rig with mrcal, write
+// calib/<sensor>.cameramodel and calib/report.json; the demo's calibration stage.
+#include <cstdio>
+#include <iostream>
+
+#include "app/commands.h"
+#include "calibration/calibration.h"
+#include "core/error.h"
+#include "core/fs.h"
+#include "core/take.h"
+#include "sim/sim.h"
+
+namespace holocap {
+namespace {
+
+struct CalibrateArgs {
+  std::string take;
+  std::string board;
+  std::string lensmodel;
+  std::vector<std::string> sensors;
+  std::string reference;
+  bool no_uncertainty = false;
+  bool cross_validation = false;
+  bool no_pictures = false;
+  int threads = 0;
+};
+
+void PrintSummary(const TakeCalibrationSummary& s) {
+  const CalibrationSummary& c = s.calibration;
+  std::printf("detected %lld board views in %lld frames (%.1f frames/s)\n",
+              static_cast<long long>(s.detection.views), static_cast<long long>(s.detection.frames),
+              s.detection.frames_per_second);
+  std::printf("%s: %s\n", ToString(c.termination), c.message.c_str());
+  std::printf("lens model %s, reference %s, solve %.2f s, uncertainty %.2f s\n", c.lensmodel.c_str(),
+              c.reference_camera.c_str(), c.solve_seconds, c.uncertainty_seconds);
+  std::printf("%-8s %6s %7s %8s %9s %11s  %s\n", "camera", "views", "points", "outliers", "rms_px",
+              "sigma_seen", "flag");
+  for (const auto& cam : c.cameras) {
+    std::printf("%-8s %6d %7d %8d %9.3f %11.3f  %s\n", cam.name.c_str(), cam.views, cam.points,
+                cam.outliers, cam.rms_px, cam.uncertainty.worst_observed_px, cam.flag.c_str());
+  }
+  for (const auto& d : s.depth) {
+    std::printf("%s from %s: %s: %s\n", d.depth_sensor.c_str(), d.color_sensor.c_str(),
+                ToString(d.termination), d.message.c_str());
+  }
+  if (s.has_ground_truth) {
+    const auto& g = s.ground_truth;
+    std::printf(
+        "vs truth: focal %.4f%%, principal point %.3f px, rotation %.4f deg, translation %.3f mm, "
+        "projection %.3f px RMS, within 3 sigma %.1f%%\n",
+        100 * g.focal_rel_err_max, g.principal_point_err_px_max, g.rotation_err_deg_max,
+        g.translation_err_mm_max, g.projection_diff_rms_px, 100 * g.within_3sigma_fraction);
+  }
+}
+
+void AddCalibrateCommand(CLI::App& app) {
+  auto* command = app.add_subcommand(
+      "calibrate", "Calibrate a take's cameras from board views (AprilTag/chessboard, mrcal)");
+  auto args = std::make_shared<CalibrateArgs>();
+  command->add_option("take", args->take, "The take directory")->required();
+  command->add_option("--board", args->board, "Board layout YAML (default: the take's gt/board.json)");
+  command->add_option("--lens-model", args->lensmodel,
+                      "mrcal lens model for every camera (default: per camera from the rig, "
+                      "else LENSMODEL_OPENCV8)");
+  command->add_option("--sensors", args->sensors, "Cameras to calibrate (default: all colour cameras)");
+  command->add_option("--reference", args->reference, "Reference camera (default: the first)");
+  command->add_flag("--no-uncertainty", args->no_uncertainty, "Skip the projection uncertainty");
+  command->add_flag("--cross-validate", args->cross_validation, "Also solve two halves of the frames");
+  command->add_flag("--no-pictures", args->no_pictures, "Skip the residual/coverage/uncertainty PNGs");
+  command->add_option("--threads", args->threads, "Detection threads (0: all cores)")->capture_default_str();
+  command->callback([args] {
+    TakeCalibrationOptions options;
+    options.board_file = args->board;
+    options.lensmodel = args->lensmodel;
+    options.sensors = args->sensors;
+    options.solve.reference_camera = args->reference;
+    options.solve.uncertainty = !args->no_uncertainty;
+    options.solve.cross_validation = args->cross_validation;
+    options.pictures = !args->no_pictures;
+    options.detection.threads = args->threads;
+    Report report("calibrate");
+    const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
+    PrintSummary(summary);
+    std::printf("report: %s\n", (std::filesystem::path(args->take) / "calib" / "report.json").c_str());
+    if (!IsUsable(summary.termination)) Fail("calibration not trusted: ", summary.message);
+  });
+}
+
+// The demo's calibration stage: a small board take of the demo's rig, calibrated.
+Summary CalibrateDemoTake(DemoContext& context) {
+  SimOptions sim;
+  sim.rig = "studio8";
+  sim.scene = "board";
+  sim.frames = 40;
+  sim.seed = context.seed;
+  sim.overwrite = true;
+  const std::filesystem::path take = context.out / "board-take";
+  const SimSummary simulated = SimulateTake(sim, take);
+  if (!IsUsable(simulated.termination)) return {simulated.termination, simulated.message};
+  TakeCalibrationOptions options;
+  options.solve.uncertainty_grid_x = 12;
+  options.solve.uncertainty_grid_y = 9;
+  Report report("calibrate");
+  const TakeCalibrationSummary summary = CalibrateTake(take, options, &report);
+  PrintSummary(summary);
+  nlohmann::json metrics = {{"termination", ToString(summary.termination)},
+                            {"rms_reprojection_px", summary.calibration.rms_reprojection_px},
+                            {"solve_s", summary.calibration.solve_seconds},
+                            {"take", take.string()}};
+  if (summary.has_ground_truth) {
+    metrics["gt"] = summary.ground_truth.ToJson();
+    metrics["gt"].erase("cameras");
+  }
+  context.report->metrics()["calibration"] = metrics;
+  // The demo's own take is of the same rig: it gets these models.
+  if (IsUsable(summary.termination) && std::filesystem::exists(context.take)) {
+    CreateDirectories(context.take / "calib");
+    for (const auto& file : summary.written) {
+      if (file.extension() == ".cameramodel") {
+        std::filesystem::copy_file(file, context.take / "calib" / file.filename(),
+                                   std::filesystem::copy_options::overwrite_existing);
+      }
+    }
+  }
+  return {summary.termination, summary.message};
+}
+HOLOCAP_DEMO_STAGE(20, "calibration", CalibrateDemoTake);
+
+}  // namespace
+
+HOLOCAP_COMMAND(40, AddCalibrateCommand);
+
+}  // namespace holocap

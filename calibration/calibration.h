@@ -1,0 +1,324 @@
+// Calibration: AprilTag and chessboard boards, their detection, seeding, the multi-camera mrcal
+// solve, projection uncertainty, cross-validation, depth-sensor extrinsics and the outputs a
+// take gets (calib/<sensor>.cameramodel, calib/report.json, pictures).
+//
+// The board model is mrcal's: width_n x height_n points on one regular grid (core/board.h).
+// One observation is one camera seeing the board in one frame set: every grid point gets a
+// pixel and a weight, weight < 0 where the point was not seen (mrcal's convention).
+//
+// The solve is staged like mrcal's own mrcal-calibrate-cameras: board poses and rig geometry
+// first with a stereographic lens, then the intrinsics core, then everything in the final lens
+// model with regularisation and outlier rejection. mrcal 2.2 solves one lens model per problem,
+// so a rig whose cameras ask for different models is solved in the most general of them (a
+// splined model if any camera asks for one); the plan in the report says which model ran.
+//
+// Projection uncertainty follows mrcal's Python projection_uncertainty() ("mean-frames"): the
+// observation noise is propagated through the Jacobian returned by mrcal_optimizer_callback,
+// Var(b) = s^2 inv(JtJ) Jobs^t Jobs inv(JtJ), and the projection of a point at a working
+// distance is differentiated through the intrinsics, the camera's extrinsics and the mean of
+// the board poses.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "core/board.h"
+#include "core/camera.h"
+#include "core/pose.h"
+#include "core/report.h"
+
+namespace holocap {
+
+class Take;
+
+// ---------------------------------------------------------------------------------------------
+// Printing boards.
+
+// The board rendered to scale at `dpi` (8-bit grey, white margin included).
+cv::Mat RenderBoardImage(const BoardLayout& layout, double dpi = 300);
+// Writes the board as PNG (rendered at `dpi`) or PDF (vector squares on one page exactly the
+// board's size, so it prints to scale at 100%), by extension. Throws Error for another extension or an unwritable file.
+void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& file,
+                     double dpi = 300);
+
+// ---------------------------------------------------------------------------------------------
+// Detection.
+
+struct DetectionOptions {
+  int threads = 0;                  // frames detected in parallel; 0: all cores
+  bool refine_corners = true;       // refine libapriltag's corners on the image edges
+  int refine_half_window_px = 0;    // edge-refinement reach across an edge; 0: automatic
+  int max_hamming = 1;              // reject tags decoded with more corrected bits
+  double min_decision_margin = 30;  // reject weak decodes (libapriltag's decision_margin)
+  int min_tags = 4;                 // AprilTag boards: fewer tags seen = partial, rejected
+  double min_tag_side_px = 12;      // reject tags whose sides are shorter (too far, too blurred)
+  double quad_sigma = 0;            // libapriltag's blur before quad finding
+  double max_corner_residual_px = 2;  // reject a view whose corners leave a local homography by
+                                      // more than this (shifted or swapped corners)
+  void Check() const;
+  nlohmann::json ToJson() const;
+};
+
+// One camera's view of the board.
+struct BoardObservation {
+  std::string sensor;
+  int64_t frame_set = 0;       // the take's frame-set index (shared views share it)
+  int64_t timestamp_ns = 0;    // the frame's timestamp, in its stream's clock
+  // width_n * height_n rows (row-major, grid index j * width_n + i): x, y pixel, weight
+  // (1 = seen, < 0 = not seen or rejected).
+  Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor> points;
+  int seen() const;             // points with weight > 0
+};
+
+// Why a view was not used.
+struct RejectedView {
+  std::string sensor;
+  int64_t frame_set = 0;
+  std::string reason;
+};
+
+class BoardDetector {
+ public:
+  BoardDetector(const BoardLayout& layout, const DetectionOptions& options = {});
+  ~BoardDetector();
+  BoardDetector(const BoardDetector&) = delete;
+  BoardDetector& operator=(const BoardDetector&) = delete;
+
+  const Board& board() const { return board_; }
+  // Detects the board in an 8-bit grey or BGR image. Returns false with the reason when the
+  // board is absent, partial or ambiguous. Safe to call from several threads.
+  bool Detect(const cv::Mat& image, BoardObservation* observation, std::string* reason) const;
+  // Tag ids of the layout's family found in the image, whether or not they belong to the board
+  // (for telling "no board" from "a different board").
+  std::vector<int> DetectTagIds(const cv::Mat& image) const;
+
+ private:
+  struct Impl;
+  Board board_;
+  DetectionOptions options_;
+  Impl* impl_;
+};
+
+struct DetectionSummary {
+  int64_t frames = 0;             // images looked at
+  int64_t views = 0;              // accepted board views
+  std::vector<RejectedView> rejected;
+  double seconds = 0;
+  double frames_per_second = 0;
+  std::map<std::string, int64_t> views_per_sensor;
+  std::vector<int> foreign_tag_ids;  // ids of the family seen that are not on the board
+  nlohmann::json ToJson() const;
+};
+
+// Detects the board in every frame of the named colour sensors (all colour sensors if empty),
+// in parallel. Throws Error for a sensor absent from the take and when no frame shows the
+// board (naming tags of another board when those were seen instead).
+std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLayout& layout,
+                                                 const std::vector<std::string>& sensors,
+                                                 const DetectionOptions& options,
+                                                 DetectionSummary* summary);
+
+// ---------------------------------------------------------------------------------------------
+// The solve.
+
+struct CalibrationCamera {
+  std::string name;
+  int width = 0;
+  int height = 0;
+  std::string lensmodel = "LENSMODEL_OPENCV8";  // the model asked for this camera
+};
+
+struct CalibrationOptions {
+  std::string reference_camera;      // the camera at the rig's origin; empty: the first
+  int min_views_per_camera = 8;      // fewer board views: the camera is flagged, not solved
+  int min_points_per_view = 12;      // fewer seen points: the view is dropped
+  bool regularization = true;        // mrcal's regularisation in the final stage
+  bool outlier_rejection = true;     // mrcal's outlier rejection in the final stage
+  bool solve_board_warp = false;     // solve mrcal's board warp (printed boards that bow)
+  double max_seed_rms_px = 50;       // a seed solve worse than this is reported as failed
+  // Uncertainty.
+  bool uncertainty = true;           // propagate the observation noise (the costliest part)
+  int uncertainty_grid_x = 16;       // imager sample points across ...
+  int uncertainty_grid_y = 12;       // ... and down
+  double uncertainty_distance_m = 0; // distance of the projected points; 0: each camera's
+                                     // median board distance
+  double observed_pixel_sigma = 0;   // noise of one corner coordinate; 0: from the residuals
+  double max_uncertainty_px = 1.0;   // worst 1-sigma where the board was seen above this:
+                                     // ill-conditioned (degenerate)
+  // Cross-validation.
+  bool cross_validation = false;     // also solve two disjoint halves of the frames
+  bool verbose = false;              // mrcal's own iteration log on stderr
+
+  void Check() const;
+  nlohmann::json ToJson() const;
+};
+
+struct CameraUncertainty {
+  int grid_x = 0, grid_y = 0;
+  Eigen::MatrixXd worst_sigma_px;    // grid_y x grid_x worst-direction 1-sigma
+  Eigen::Matrix2Xd pixels;           // the sample pixels, row-major over the grid
+  std::vector<Eigen::Matrix2d> covariance;  // per sample pixel
+  Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic> observed;  // grid cells holding data
+  double distance_m = 0;
+  double worst_px = 0;               // max over the grid
+  double worst_observed_px = 0;      // max over the cells the board was seen in
+  double mean_px = 0;
+};
+
+struct CalibratedCamera {
+  std::string name;
+  bool solved = false;               // false: flagged (see `flag`), no model
+  std::string flag;                  // why it is not trusted (empty when fine)
+  CameraModel model;                 // cam_from_world with world = the reference camera
+  int views = 0;
+  int points = 0;                    // observed points used
+  int outliers = 0;                  // points mrcal rejected
+  double rms_px = 0;                 // of its inlier residuals
+  double median_board_distance_m = 0;
+  CameraUncertainty uncertainty;
+  std::vector<Eigen::Vector2d> observed;  // inlier observed pixels (for pictures)
+  std::vector<Eigen::Vector2d> residuals; // their residuals (observed - projected)
+};
+
+struct SolveStage {
+  std::string name;
+  std::string lensmodel;
+  double rms_px = 0;
+  int outliers = 0;
+  double seconds = 0;                // since the solve began, at the stage's end
+};
+
+struct CalibrationSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  std::string lensmodel;             // the model solved
+  std::string reference_camera;
+  std::vector<CalibratedCamera> cameras;
+  std::vector<SolveStage> stages;
+  std::vector<std::string> warnings;
+  double rms_reprojection_px = 0;    // all inliers, all cameras
+  double observed_pixel_sigma = 0;   // the noise the uncertainty assumed
+  int frames = 0;                    // board poses solved
+  int observations = 0;              // camera views solved
+  int outliers = 0;
+  double solve_seconds = 0;
+  double uncertainty_seconds = 0;
+  // Solved board poses (ref_from_board) per frame set, for comparisons with truth.
+  std::map<int64_t, Pose> ref_from_board;
+  nlohmann::json cross_validation;   // empty unless requested
+
+  const CalibratedCamera* Find(const std::string& name) const;
+  nlohmann::json ToJson() const;
+};
+
+// Calibrates the cameras from their board observations. Never throws for numerical trouble
+// (the summary says what went wrong); throws Error for broken preconditions (no cameras, an
+// observation of an unknown camera, options that fail Check()).
+CalibrationSummary Calibrate(const BoardLayout& layout,
+                             const std::vector<CalibrationCamera>& cameras,
+                             const std::vector<BoardObservation>& observations,
+                             const CalibrationOptions& options, Report* report = nullptr);
+
+// ---------------------------------------------------------------------------------------------
+// Comparing with ground truth (simulated takes and tests).
+
+struct GroundTruthComparison {
+  double focal_rel_err_max = 0;
+  double principal_point_err_px_max = 0;
+  double rotation_err_deg_max = 0;       // cam_from_reference, against the truth
+  double translation_err_mm_max = 0;
+  double projection_diff_rms_px = 0;     // true vs solved projection over the imagers
+  double projection_diff_max_px = 0;
+  double projection_diff_rms_observed_px = 0;  // only where the board was seen
+  double within_3sigma_fraction = 0;     // of the imager samples with |diff| <= 3 worst sigma
+  std::map<std::string, nlohmann::json> per_camera;
+  nlohmann::json ToJson() const;
+};
+
+// `truth` holds each camera's true model (cam_from_world); `world_from_board` the true board
+// pose per frame set. The solved rig is placed in the world by the rigid fit of its board
+// points to the true ones (the same mean-of-frames anchoring the uncertainty assumes).
+GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
+                                       const std::map<std::string, CameraModel>& truth,
+                                       const std::map<int64_t, Pose>& world_from_board,
+                                       const BoardLayout& layout);
+
+// ---------------------------------------------------------------------------------------------
+// Depth sensors.
+
+struct DepthAlignmentOptions {
+  double plane_inlier_m = 0.01;      // RANSAC band around the fitted board plane
+  int min_planes = 3;                // board poses needed (non-parallel normals)
+  double min_normal_spread_deg = 10; // smallest angle between normals that counts as spread
+  double max_time_offset_s = 0.05;   // searched range of the time offset
+  void Check() const;
+};
+
+struct DepthAlignmentSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  std::string depth_sensor;
+  std::string color_sensor;
+  Pose depth_from_color = Pose::Identity();
+  int planes = 0;
+  double plane_rms_m = 0;            // board-plane residuals of the fitted transform
+  double time_offset_s = 0;          // depth clock minus colour clock, from board motion
+  bool time_offset_valid = false;
+  nlohmann::json ToJson() const;
+};
+
+// depth_from_color from the board planes seen by both: each frame's board plane in the colour
+// camera (from the solved board pose) and in the depth sensor (RANSAC plane fit of its depth
+// image, back-projected through `depth_model`, inside the board's outline). The time offset
+// is the shift that best aligns the two sensors' board-distance signals over time.
+DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& depth_sensor,
+                                        const CameraModel& depth_model,
+                                        const std::string& color_sensor,
+                                        const CameraModel& color_model,
+                                        const std::map<int64_t, Pose>& color_from_board,
+                                        const BoardLayout& layout,
+                                        const DepthAlignmentOptions& options);
+
+// ---------------------------------------------------------------------------------------------
+// A whole take.
+
+struct TakeCalibrationOptions {
+  std::filesystem::path board_file;    // board YAML; empty: gt/board.json, then the sim board
+  std::string lensmodel;               // for every camera; empty: per camera from the rig
+                                       // (sensor option calib_lensmodel), else OPENCV8
+  std::vector<std::string> sensors;    // colour sensors to calibrate; empty: all
+  bool pictures = true;                // residual, coverage and uncertainty PNGs
+  bool depth_sensors = true;           // depth_from_color for paired depth sensors
+  DetectionOptions detection;
+  CalibrationOptions solve;
+  DepthAlignmentOptions depth;
+  void Check() const;
+};
+
+struct TakeCalibrationSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  DetectionSummary detection;
+  CalibrationSummary calibration;
+  std::vector<DepthAlignmentSummary> depth;
+  bool has_ground_truth = false;
+  GroundTruthComparison ground_truth;
+  std::vector<std::filesystem::path> written;  // models, report and pictures
+};
+
+// Detects, solves, writes calib/<sensor>.cameramodel for every solved camera (cam_from_world
+// with world = the reference camera, or the true world on a simulated take, which the report
+// states), calib/report.json and the pictures. Throws Error for bad input (no board visible, a
+// board file that does not match the prints, a sensor absent from the take).
+TakeCalibrationSummary CalibrateTake(const std::filesystem::path& take_dir,
+                                     const TakeCalibrationOptions& options,
+                                     Report* report = nullptr);
+
+}  // namespace holocap

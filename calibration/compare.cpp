@@ -1,0 +1,151 @@
+// Solved calibration against the simulated truth.
+#include <cmath>
+
+#include "calibration/calibration.h"
+#include "calibration/internal.h"
+#include "core/error.h"
+
+namespace holocap {
+namespace {
+
+// Both models' cores mean the same thing only within a projection family.
+bool CoresComparable(const std::string& a, const std::string& b) {
+  auto family = [](const std::string& m) {
+    if (m.rfind("LENSMODEL_OPENCV", 0) == 0 || m == "LENSMODEL_PINHOLE") return 0;
+    if (m == "LENSMODEL_STEREOGRAPHIC" || m.rfind("LENSMODEL_SPLINED_STEREOGRAPHIC", 0) == 0) return 1;
+    return 2;
+  };
+  return family(a) == family(b) && family(a) != 2;
+}
+
+}  // namespace
+
+nlohmann::json GroundTruthComparison::ToJson() const {
+  return {{"focal_rel_err_max", focal_rel_err_max},
+          {"principal_point_err_px_max", principal_point_err_px_max},
+          {"rotation_err_deg_max", rotation_err_deg_max},
+          {"translation_err_mm_max", translation_err_mm_max},
+          {"projection_diff_rms_px", projection_diff_rms_px},
+          {"projection_diff_max_px", projection_diff_max_px},
+          {"projection_diff_rms_observed_px", projection_diff_rms_observed_px},
+          {"within_3sigma_fraction", within_3sigma_fraction},
+          {"cameras", per_camera}};
+}
+
+GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
+                                       const std::map<std::string, CameraModel>& truth,
+                                       const std::map<int64_t, Pose>& world_from_board,
+                                       const BoardLayout& layout) {
+  const Board board(layout);
+  const std::vector<Eigen::Vector3d> grid = board.GridPoints();
+  std::vector<Eigen::Vector3d> in_ref, in_world;
+  for (const auto& [set, ref_from_board] : summary.ref_from_board) {
+    auto it = world_from_board.find(set);
+    if (it == world_from_board.end()) continue;
+    for (const auto& g : grid) {
+      in_ref.push_back(ref_from_board * g);
+      in_world.push_back(it->second * g);
+    }
+  }
+  auto ref_truth = truth.find(summary.reference_camera);
+  if (ref_truth == truth.end()) Fail("no true model of reference camera ", summary.reference_camera);
+  // The solved reference frame in the world: the board poses' rigid fit when the true board
+  // poses are known, otherwise the reference camera's true pose.
+  const Pose world_from_ref = in_ref.size() >= 3 ? calibration_internal::FitRigid(in_ref, in_world)
+                                                 : ref_truth->second.world_from_cam();
+  const Pose true_world_from_ref_cam = ref_truth->second.world_from_cam();
+
+  GroundTruthComparison result;
+  double sum2 = 0, observed_sum2 = 0;
+  int64_t samples = 0, within = 0, with_sigma = 0, observed_n = 0;
+  for (const auto& cam : summary.cameras) {
+    if (!cam.solved) continue;
+    auto t = truth.find(cam.name);
+    if (t == truth.end()) Fail("no true model of camera ", cam.name);
+    const CameraModel& solved = cam.model;
+    const CameraModel& real = t->second;
+    nlohmann::json j;
+    if (CoresComparable(solved.lensmodel(), real.lensmodel()) && solved.has_core() && real.has_core()) {
+      const auto& a = solved.intrinsics();
+      const auto& b = real.intrinsics();
+      const double focal = std::max(std::abs(a[0] - b[0]) / b[0], std::abs(a[1] - b[1]) / b[1]);
+      const double pp = std::hypot(a[2] - b[2], a[3] - b[3]);
+      result.focal_rel_err_max = std::max(result.focal_rel_err_max, focal);
+      result.principal_point_err_px_max = std::max(result.principal_point_err_px_max, pp);
+      j["focal_rel_err"] = focal;
+      j["principal_point_err_px"] = pp;
+    } else {
+      j["core_comparable"] = false;  // e.g. a splined model against a pinhole-family lens
+    }
+    // Geometry relative to the reference camera: gauge-free.
+    const Pose solved_cam_from_ref = solved.cam_from_world();
+    const Pose true_cam_from_ref = real.cam_from_world() * true_world_from_ref_cam;
+    const Pose delta = solved_cam_from_ref * true_cam_from_ref.inverse();
+    const double rotation = RotationAngleDeg(delta.linear());
+    const double translation =
+        1000 * (solved_cam_from_ref.inverse().translation() - true_cam_from_ref.inverse().translation()).norm();
+    result.rotation_err_deg_max = std::max(result.rotation_err_deg_max, rotation);
+    result.translation_err_mm_max = std::max(result.translation_err_mm_max, translation);
+    j["rotation_err_deg"] = rotation;
+    j["translation_err_mm"] = translation;
+
+    // Projection over the imager at the working distance, the solved point placed in the world
+    // through the board-anchored frame.
+    Eigen::Matrix2Xd pixels = cam.uncertainty.pixels;
+    int grid_x = cam.uncertainty.grid_x;
+    if (grid_x == 0) {
+      grid_x = 16;
+      pixels.resize(2, 16 * 12);
+      for (int k = 0; k < 16 * 12; ++k) {
+        pixels.col(k) << ((k % 16) + 0.5) * solved.width() / 16 - 0.5,
+            ((k / 16) + 0.5) * solved.height() / 12 - 0.5;
+      }
+    }
+    const double distance = cam.uncertainty.distance_m > 0 ? cam.uncertainty.distance_m
+                                                           : std::max(0.5, cam.median_board_distance_m);
+    const Eigen::Matrix3Xd rays = solved.UnprojectMany(pixels);
+    double cam_sum2 = 0, cam_max = 0, cam_observed_sum2 = 0;
+    int cam_n = 0, cam_within = 0, cam_observed_n = 0;
+    for (int k = 0; k < pixels.cols(); ++k) {
+      if (!rays.col(k).allFinite()) continue;
+      const Eigen::Vector3d world = world_from_ref * (solved.world_from_cam() * (rays.col(k) * distance));
+      Eigen::Vector2d q;
+      if (!real.ProjectWorld(world, &q)) continue;
+      const double diff = (q - pixels.col(k)).norm();
+      cam_sum2 += diff * diff;
+      cam_max = std::max(cam_max, diff);
+      ++cam_n;
+      if (cam.uncertainty.observed.size() > 0 && cam.uncertainty.observed(k / grid_x, k % grid_x)) {
+        observed_sum2 += diff * diff;
+        ++observed_n;
+        cam_observed_sum2 += diff * diff;
+        ++cam_observed_n;
+      }
+      if (cam.uncertainty.grid_x > 0) {
+        const double sigma = cam.uncertainty.worst_sigma_px(k / grid_x, k % grid_x);
+        if (std::isfinite(sigma)) {
+          ++with_sigma;
+          const bool ok = diff <= 3 * sigma;
+          within += ok;
+          cam_within += ok;
+        }
+      }
+    }
+    sum2 += cam_sum2;
+    samples += cam_n;
+    result.projection_diff_max_px = std::max(result.projection_diff_max_px, cam_max);
+    j["projection_diff_rms_px"] = cam_n > 0 ? std::sqrt(cam_sum2 / cam_n) : 0.0;
+    j["projection_diff_max_px"] = cam_max;
+    if (cam_observed_n > 0) j["projection_diff_rms_observed_px"] = std::sqrt(cam_observed_sum2 / cam_observed_n);
+    if (cam.uncertainty.grid_x > 0 && cam_n > 0) {
+      j["within_3sigma_fraction"] = static_cast<double>(cam_within) / cam_n;
+    }
+    result.per_camera[cam.name] = j;
+  }
+  result.projection_diff_rms_px = samples > 0 ? std::sqrt(sum2 / samples) : 0;
+  result.projection_diff_rms_observed_px = observed_n > 0 ? std::sqrt(observed_sum2 / observed_n) : 0;
+  result.within_3sigma_fraction = with_sigma > 0 ? static_cast<double>(within) / with_sigma : 0;
+  return result;
+}
+
+}  // namespace holocap

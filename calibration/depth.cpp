@@ -1,0 +1,264 @@
+// depth_from_color from board planes seen by a depth sensor and its colour camera, and the
+// time offset between the two from the board's motion.
+#include <Eigen/Dense>
+#include <cmath>
+#include <random>
+
+#include "calibration/calibration.h"
+#include "core/error.h"
+#include "core/take.h"
+
+namespace holocap {
+namespace {
+
+struct Plane {
+  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();  // unit, pointing away from the sensor
+  double offset = 0;                                  // normal . x = offset
+};
+
+// The board's outline shrunk by `inset` of its size, in board coordinates.
+std::vector<Eigen::Vector3d> InnerOutline(const Board& board, double inset) {
+  const double du = (board.u_max() - board.u_min()) * inset;
+  const double dv = (board.v_max() - board.v_min()) * inset;
+  return {{board.u_min() + du, board.v_min() + dv, 0}, {board.u_max() - du, board.v_min() + dv, 0},
+          {board.u_max() - du, board.v_max() - dv, 0}, {board.u_min() + du, board.v_max() - dv, 0}};
+}
+
+bool InsidePolygon(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vector2d& q) {
+  bool inside = false;
+  for (size_t a = 0, b = polygon.size() - 1; a < polygon.size(); b = a++) {
+    if ((polygon[a].y() > q.y()) != (polygon[b].y() > q.y()) &&
+        q.x() < (polygon[b].x() - polygon[a].x()) * (q.y() - polygon[a].y()) /
+                        (polygon[b].y() - polygon[a].y()) + polygon[a].x()) {
+      inside = !inside;
+    }
+  }
+  return inside;
+}
+
+// RANSAC plane, refined by least squares on its inliers.
+bool FitPlane(const std::vector<Eigen::Vector3d>& points, double band, Plane* plane, double* rms,
+              std::mt19937_64* random) {
+  if (points.size() < 50) return false;
+  std::uniform_int_distribution<size_t> pick(0, points.size() - 1);
+  size_t best = 0;
+  Plane best_plane;
+  for (int iteration = 0; iteration < 200; ++iteration) {
+    const Eigen::Vector3d a = points[pick(*random)], b = points[pick(*random)], c = points[pick(*random)];
+    Eigen::Vector3d n = (b - a).cross(c - a);
+    if (n.norm() < 1e-9) continue;
+    n.normalize();
+    const double d = n.dot(a);
+    size_t count = 0;
+    for (const auto& p : points) count += std::abs(n.dot(p) - d) < band;
+    if (count > best) {
+      best = count;
+      best_plane = {n, d};
+    }
+  }
+  if (best < points.size() / 2) return false;
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  std::vector<Eigen::Vector3d> inliers;
+  for (const auto& p : points) {
+    if (std::abs(best_plane.normal.dot(p) - best_plane.offset) < band) inliers.push_back(p);
+  }
+  for (const auto& p : inliers) mean += p / static_cast<double>(inliers.size());
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  for (const auto& p : inliers) scatter += (p - mean) * (p - mean).transpose();
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(scatter);
+  Eigen::Vector3d n = eigen.eigenvectors().col(0);
+  if (n.dot(mean) < 0) n = -n;
+  plane->normal = n;
+  plane->offset = n.dot(mean);
+  double sum2 = 0;
+  for (const auto& p : inliers) sum2 += std::pow(n.dot(p) - plane->offset, 2);
+  *rms = std::sqrt(sum2 / inliers.size());
+  return true;
+}
+
+Plane BoardPlane(const Pose& cam_from_board) {
+  Plane plane;
+  plane.normal = cam_from_board.linear().col(2);
+  plane.offset = plane.normal.dot(cam_from_board.translation());
+  if (plane.offset < 0) {
+    plane.normal = -plane.normal;
+    plane.offset = -plane.offset;
+  }
+  return plane;
+}
+
+}  // namespace
+
+void DepthAlignmentOptions::Check() const {
+  if (!(plane_inlier_m > 0)) Fail("plane_inlier_m must be > 0");
+  if (min_planes < 3) Fail("min_planes must be >= 3 (three normals fix a rotation and translation)");
+  if (!(min_normal_spread_deg > 0 && min_normal_spread_deg < 90)) Fail("min_normal_spread_deg must be in (0, 90)");
+  if (!(max_time_offset_s >= 0)) Fail("max_time_offset_s must be >= 0");
+}
+
+nlohmann::json DepthAlignmentSummary::ToJson() const {
+  return {{"termination", ToString(termination)},
+          {"message", message},
+          {"depth_sensor", depth_sensor},
+          {"color_sensor", color_sensor},
+          {"rt_depth_from_color", RtFromPose(depth_from_color)},
+          {"planes", planes},
+          {"plane_rms_m", plane_rms_m},
+          {"time_offset_s", time_offset_s},
+          {"time_offset_valid", time_offset_valid}};
+}
+
+DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& depth_sensor,
+                                        const CameraModel& depth_model,
+                                        const std::string& color_sensor,
+                                        const CameraModel& color_model,
+                                        const std::map<int64_t, Pose>& color_from_board,
+                                        const BoardLayout& layout,
+                                        const DepthAlignmentOptions& options) {
+  options.Check();
+  if (!take.has_stream(depth_sensor)) Fail("depth sensor '", depth_sensor, "' is not in the take");
+  if (!take.has_stream(color_sensor)) Fail("camera '", color_sensor, "' is not in the take");
+  const Board board(layout);
+  DepthAlignmentSummary summary;
+  summary.depth_sensor = depth_sensor;
+  summary.color_sensor = color_sensor;
+  std::mt19937_64 random(7);
+
+  struct Sample {
+    Plane color, depth;
+    double color_time_s = 0, depth_time_s = 0;
+    std::vector<Eigen::Vector3d> points;
+  };
+  // Two passes: the board outline first through an identity guess (the sensors sit
+  // centimetres apart), then through the first estimate.
+  Pose depth_from_color = Pose::Identity();
+  std::vector<Sample> samples;
+  for (int pass = 0; pass < 2; ++pass) {
+    samples.clear();
+    for (size_t i = 0; i < take.size(); ++i) {
+      const FrameSetEntry& entry = take.entry(i);
+      auto pose = color_from_board.find(entry.index);
+      const auto* depth_item = entry.Find(depth_sensor);
+      const auto* color_item = entry.Find(color_sensor);
+      if (pose == color_from_board.end() || depth_item == nullptr || color_item == nullptr) continue;
+      std::vector<Eigen::Vector2d> outline;
+      bool visible = true;
+      for (const auto& corner : InnerOutline(board, 0.12)) {
+        Eigen::Vector2d q;
+        if (!depth_model.Project(depth_from_color * (pose->second * corner), &q)) visible = false;
+        outline.push_back(q);
+      }
+      if (!visible) continue;
+      const cv::Mat depth = take.ReadFrame(i, depth_sensor);
+      if (depth.type() != CV_32FC1) Fail("depth sensor '", depth_sensor, "' frames are not metres (CV_32F)");
+      double x0 = 1e9, x1 = -1e9, y0 = 1e9, y1 = -1e9;
+      for (const auto& q : outline) {
+        x0 = std::min(x0, q.x());
+        x1 = std::max(x1, q.x());
+        y0 = std::min(y0, q.y());
+        y1 = std::max(y1, q.y());
+      }
+      Sample sample;
+      std::vector<Eigen::Vector2d> pixels;
+      for (int y = std::max(0, static_cast<int>(y0)); y <= std::min(depth.rows - 1, static_cast<int>(y1)); ++y) {
+        for (int x = std::max(0, static_cast<int>(x0)); x <= std::min(depth.cols - 1, static_cast<int>(x1)); ++x) {
+          const float z = depth.at<float>(y, x);
+          if (!std::isfinite(z) || z <= 0) continue;
+          if (!InsidePolygon(outline, Eigen::Vector2d(x, y))) continue;
+          pixels.emplace_back(x, y);
+        }
+      }
+      if (pixels.size() < 50) continue;
+      Eigen::Matrix2Xd q(2, pixels.size());
+      for (size_t k = 0; k < pixels.size(); ++k) q.col(k) = pixels[k];
+      const Eigen::Matrix3Xd rays = depth_model.UnprojectMany(q);
+      for (size_t k = 0; k < pixels.size(); ++k) {
+        if (!rays.col(k).allFinite() || rays(2, k) <= 0) continue;
+        const double z = depth.at<float>(static_cast<int>(pixels[k].y()), static_cast<int>(pixels[k].x()));
+        sample.points.push_back(rays.col(k) * (z / rays(2, k)));
+      }
+      double rms = 0;
+      if (!FitPlane(sample.points, options.plane_inlier_m, &sample.depth, &rms, &random)) continue;
+      sample.color = BoardPlane(pose->second);
+      sample.color_time_s = color_item->timestamp_ns * 1e-9;
+      sample.depth_time_s = depth_item->timestamp_ns * 1e-9;
+      samples.push_back(std::move(sample));
+    }
+    summary.planes = static_cast<int>(samples.size());
+    if (summary.planes < options.min_planes) {
+      summary.termination = Termination::kDegenerate;
+      summary.message = Cat("only ", summary.planes, " board planes seen by both ", depth_sensor,
+                            " and ", color_sensor, " (needs ", options.min_planes, ")");
+      return summary;
+    }
+    // Rotation from the normals (Kabsch), translation from the plane offsets.
+    Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
+    for (const auto& s : samples) h += s.color.normal * s.depth.normal.transpose();
+    Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
+    d(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
+    const Eigen::Matrix3d rotation = svd.matrixV() * d * svd.matrixU().transpose();
+    // Normals spread: the smallest singular value of the stacked normals.
+    Eigen::MatrixXd normals(samples.size(), 3);
+    Eigen::VectorXd offsets(samples.size());
+    for (size_t k = 0; k < samples.size(); ++k) {
+      normals.row(k) = samples[k].depth.normal.transpose();
+      offsets(k) = samples[k].depth.offset - samples[k].color.offset;
+    }
+    const Eigen::JacobiSVD<Eigen::MatrixXd> spread(normals);
+    const double weakest = spread.singularValues()(2) / std::sqrt(static_cast<double>(samples.size()));
+    if (weakest < std::sin(options.min_normal_spread_deg * M_PI / 180) / 2) {
+      summary.termination = Termination::kDegenerate;
+      summary.message = Cat("the board planes are too close to parallel to fix depth_from_color (",
+                            summary.planes, " planes)");
+      return summary;
+    }
+    const Eigen::Vector3d translation = normals.colPivHouseholderQr().solve(offsets);
+    depth_from_color = Pose::Identity();
+    depth_from_color.linear() = rotation;
+    depth_from_color.translation() = translation;
+  }
+  summary.depth_from_color = depth_from_color;
+  double sum2 = 0;
+  int64_t n = 0;
+  for (const auto& s : samples) {
+    // The colour plane carried into the depth frame against the measured points.
+    const Eigen::Vector3d normal = depth_from_color.linear() * s.color.normal;
+    const double offset = s.color.offset + normal.dot(depth_from_color.translation());
+    for (const auto& p : s.points) {
+      const double r = normal.dot(p) - offset;
+      if (std::abs(r) < options.plane_inlier_m) {
+        sum2 += r * r;
+        ++n;
+      }
+    }
+  }
+  summary.plane_rms_m = n > 0 ? std::sqrt(sum2 / n) : 0;
+
+  // Time offset: the board's distance from the depth sensor as measured, against the same
+  // distance predicted from the colour camera's board poses, differentiated in time.
+  std::vector<double> t, predicted, measured;
+  for (const auto& s : samples) {
+    const Eigen::Vector3d normal = depth_from_color.linear() * s.color.normal;
+    t.push_back(s.color_time_s);
+    predicted.push_back(s.color.offset + normal.dot(depth_from_color.translation()));
+    measured.push_back(s.depth.offset);
+  }
+  double num = 0, den = 0;
+  for (size_t k = 1; k + 1 < t.size(); ++k) {
+    const double dt = t[k + 1] - t[k - 1];
+    if (!(dt > 0)) continue;
+    const double rate = (predicted[k + 1] - predicted[k - 1]) / dt;
+    num += (measured[k] - predicted[k]) * rate;
+    den += rate * rate;
+  }
+  if (den > 1e-6) {
+    summary.time_offset_s = num / den;
+    summary.time_offset_valid = std::abs(summary.time_offset_s) <= options.max_time_offset_s;
+  }
+  summary.termination = Termination::kSuccess;
+  summary.message = Cat(summary.planes, " board planes, plane residual ", 1000 * summary.plane_rms_m, " mm RMS");
+  return summary;
+}
+
+}  // namespace holocap

@@ -1,0 +1,555 @@
+// Board detection: libapriltag (quad_decimate = 1) or OpenCV's chessboard finder, corners
+// refined on the image edges, views checked for consistency.
+#include <Eigen/Dense>
+#include <algorithm>
+#include <array>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+#include <set>
+#include <thread>
+
+#include "calibration/calibration.h"
+#include "calibration/internal.h"
+#include "core/error.h"
+#include "core/progress.h"
+#include "core/take.h"
+
+extern "C" {
+#include <apriltag/apriltag.h>
+#include <apriltag/common/zarray.h>
+#include <apriltag/tag36h11.h>
+#include <apriltag/tagStandard41h12.h>
+}
+
+namespace holocap {
+namespace {
+
+// libapriltag 3.3 reports corners with pixel (0, 0) covering [0, 1]²; holocap's pixel centres
+// are at integers. Measured against rendered boards whose corners are known exactly.
+constexpr double kApriltagPixelOffset = -0.5;
+
+struct Detector {
+  apriltag_detector_t* detector = nullptr;
+  apriltag_family_t* family = nullptr;
+  void (*destroy_family)(apriltag_family_t*) = nullptr;
+};
+
+Detector MakeDetector(const std::string& family_name, const DetectionOptions& options) {
+  Detector d;
+  if (family_name == "tag36h11") {
+    d.family = tag36h11_create();
+    d.destroy_family = tag36h11_destroy;
+  } else if (family_name == "tagStandard41h12") {
+    d.family = tagStandard41h12_create();
+    d.destroy_family = tagStandard41h12_destroy;
+  } else {
+    Fail("unknown AprilTag family '", family_name, "'");
+  }
+  d.detector = apriltag_detector_create();
+  // Each family instance gets its own decode table (libapriltag keeps it in family->impl), so
+  // every detector owns its family.
+  apriltag_detector_add_family_bits(d.detector, d.family, std::max(0, options.max_hamming));
+  d.detector->quad_decimate = 1;  // 3.3's decimated corners are biased
+  d.detector->quad_sigma = static_cast<float>(options.quad_sigma);
+  d.detector->nthreads = 1;       // frames run in parallel instead
+  d.detector->refine_edges = true;
+  d.detector->decode_sharpening = 0.25;
+  return d;
+}
+
+void DestroyDetector(Detector* d) {
+  if (d->detector != nullptr) apriltag_detector_destroy(d->detector);
+  if (d->family != nullptr) d->destroy_family(d->family);
+  *d = Detector{};
+}
+
+cv::Mat ToGrey(const cv::Mat& image) {
+  if (image.empty()) Fail("board detection: empty image");
+  cv::Mat grey;
+  if (image.channels() == 3) {
+    cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+  } else if (image.channels() == 4) {
+    cv::cvtColor(image, grey, cv::COLOR_BGRA2GRAY);
+  } else {
+    grey = image;
+  }
+  if (grey.depth() == CV_16U) grey.convertTo(grey, CV_8U, 1.0 / 257.0);
+  if (grey.type() != CV_8UC1) Fail("board detection needs an 8/16-bit grey or colour image");
+  return grey;
+}
+
+double Bilinear(const cv::Mat& grey, double x, double y) {
+  const int x0 = static_cast<int>(std::floor(x));
+  const int y0 = static_cast<int>(std::floor(y));
+  if (x0 < 0 || y0 < 0 || x0 + 1 >= grey.cols || y0 + 1 >= grey.rows) return NAN;
+  const double fx = x - x0, fy = y - y0;
+  const uint8_t* r0 = grey.ptr<uint8_t>(y0);
+  const uint8_t* r1 = grey.ptr<uint8_t>(y0 + 1);
+  return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) +
+         fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
+}
+
+// Refines a quad's corners (counter-clockwise or clockwise, as libapriltag orders them)
+// by locating each edge where the intensity crosses halfway between the two sides, fitting a line to those edge points and intersecting neighbouring lines. `reach`
+// stays within one bit on either side, clear of the data bits.
+bool RefineQuad(const cv::Mat& grey, std::array<Eigen::Vector2d, 4>* corners, double reach) {
+  std::array<Eigen::Vector3d, 4> lines;  // a x + b y + c = 0, (a, b) unit
+  Eigen::Vector2d centre = Eigen::Vector2d::Zero();
+  for (const auto& c : *corners) centre += c / 4;
+  for (int e = 0; e < 4; ++e) {
+    const Eigen::Vector2d a = (*corners)[e];
+    const Eigen::Vector2d b = (*corners)[(e + 1) % 4];
+    const double length = (b - a).norm();
+    Eigen::Vector2d direction = (b - a) / length;
+    Eigen::Vector2d normal(-direction.y(), direction.x());
+    if (normal.dot(a - centre) < 0) normal = -normal;  // points out of the quad
+    const int samples = std::clamp(static_cast<int>(length / 1.5), 4, 40);
+    std::vector<Eigen::Vector2d> points;
+    for (int s = 0; s < samples; ++s) {
+      const double t = 0.2 + 0.6 * (s + 0.5) / samples;
+      const Eigen::Vector2d on_edge = a + t * (b - a);
+      const double step = 0.25;
+      const int steps = static_cast<int>(std::ceil(reach / step));
+      std::vector<double> profile;
+      profile.reserve(2 * steps + 1);
+      bool valid = true;
+      for (int k = -steps; k <= steps; ++k) {
+        const Eigen::Vector2d p = on_edge + normal * (k * step);
+        const double v = Bilinear(grey, p.x(), p.y());
+        if (!std::isfinite(v)) {
+          valid = false;
+          break;
+        }
+        profile.push_back(v);
+      }
+      if (!valid) continue;
+      // Either polarity: tagStandard41h12's detection border is light inside, dark outside.
+      const double inner = 0.5 * (profile[0] + profile[1]);
+      const double outer = 0.5 * (profile[profile.size() - 1] + profile[profile.size() - 2]);
+      if (std::abs(outer - inner) < 20) continue;
+      const double half = 0.5 * (inner + outer);
+      // The crossing nearest the initial edge.
+      double best = NAN;
+      for (size_t k = 0; k + 1 < profile.size(); ++k) {
+        if ((profile[k] - half) * (profile[k + 1] - half) <= 0 && profile[k + 1] != profile[k]) {
+          const double at = (static_cast<double>(k) - steps +
+                             (half - profile[k]) / (profile[k + 1] - profile[k])) * step;
+          if (!std::isfinite(best) || std::abs(at) < std::abs(best)) best = at;
+        }
+      }
+      if (std::isfinite(best)) points.push_back(on_edge + normal * best);
+    }
+    if (points.size() < 3) return false;
+    Eigen::Vector2d mean = Eigen::Vector2d::Zero();
+    for (const auto& p : points) mean += p / static_cast<double>(points.size());
+    Eigen::Matrix2d scatter = Eigen::Matrix2d::Zero();
+    for (const auto& p : points) scatter += (p - mean) * (p - mean).transpose();
+    Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eigen(scatter);
+    const Eigen::Vector2d line_normal = eigen.eigenvectors().col(0);
+    lines[e] << line_normal, -line_normal.dot(mean);
+  }
+  std::array<Eigen::Vector2d, 4> refined;
+  for (int k = 0; k < 4; ++k) {
+    // Corner k lies between edge k-1 (ending at it) and edge k (starting at it).
+    const Eigen::Vector3d p = lines[(k + 3) % 4].cross(lines[k]);
+    if (std::abs(p.z()) < 1e-12) return false;
+    refined[k] = p.head<2>() / p.z();
+    if ((refined[k] - (*corners)[k]).norm() > reach) return false;
+  }
+  *corners = refined;
+  return true;
+}
+
+}  // namespace
+
+namespace calibration_internal {
+
+void FamilyGeometry(const std::string& family, int* width_at_border, int* total_width) {
+  Detector d;
+  if (family == "tag36h11") {
+    d.family = tag36h11_create();
+    d.destroy_family = tag36h11_destroy;
+  } else if (family == "tagStandard41h12") {
+    d.family = tagStandard41h12_create();
+    d.destroy_family = tagStandard41h12_destroy;
+  } else {
+    Fail("unknown AprilTag family '", family, "'");
+  }
+  *width_at_border = d.family->width_at_border;
+  *total_width = d.family->total_width;
+  d.destroy_family(d.family);
+}
+
+}  // namespace calibration_internal
+
+int BoardObservation::seen() const {
+  int count = 0;
+  for (int r = 0; r < points.rows(); ++r) count += points(r, 2) > 0;
+  return count;
+}
+
+void DetectionOptions::Check() const {
+  if (threads < 0) Fail("detection threads must be >= 0, got ", threads);
+  if (refine_half_window_px < 0) Fail("refine_half_window_px must be >= 0");
+  if (max_hamming < 0 || max_hamming > 3) Fail("max_hamming must be in 0..3, got ", max_hamming);
+  if (!(min_decision_margin >= 0)) Fail("min_decision_margin must be >= 0");
+  if (min_tags < 1) Fail("min_tags must be >= 1, got ", min_tags);
+  if (!(min_tag_side_px > 0)) Fail("min_tag_side_px must be > 0");
+  if (!(quad_sigma >= 0)) Fail("quad_sigma must be >= 0");
+  if (!(max_corner_residual_px > 0)) Fail("max_corner_residual_px must be > 0");
+}
+
+nlohmann::json DetectionOptions::ToJson() const {
+  return {{"threads", threads},
+          {"refine_corners", refine_corners},
+          {"refine_half_window_px", refine_half_window_px},
+          {"max_hamming", max_hamming},
+          {"min_decision_margin", min_decision_margin},
+          {"min_tags", min_tags},
+          {"min_tag_side_px", min_tag_side_px},
+          {"quad_sigma", quad_sigma},
+          {"max_corner_residual_px", max_corner_residual_px},
+          {"quad_decimate", 1}};
+}
+
+struct BoardDetector::Impl {
+  std::mutex mutex;
+  std::vector<Detector> idle;
+  std::string family;
+  DetectionOptions options;
+
+  Detector Acquire() {
+    {
+      std::lock_guard<std::mutex> lock(mutex);
+      if (!idle.empty()) {
+        Detector d = idle.back();
+        idle.pop_back();
+        return d;
+      }
+    }
+    return MakeDetector(family, options);
+  }
+  void Release(Detector d) {
+    std::lock_guard<std::mutex> lock(mutex);
+    idle.push_back(d);
+  }
+  ~Impl() {
+    for (Detector& d : idle) DestroyDetector(&d);
+  }
+};
+
+BoardDetector::BoardDetector(const BoardLayout& layout, const DetectionOptions& options)
+    : board_(layout), options_(options), impl_(new Impl) {
+  options_.Check();
+  impl_->family = layout.family;
+  impl_->options = options_;
+}
+
+BoardDetector::~BoardDetector() { delete impl_; }
+
+namespace {
+
+struct TagSeen {
+  int id = 0;
+  std::array<Eigen::Vector2d, 4> corners;
+};
+
+std::vector<TagSeen> RunApriltag(apriltag_detector_t* detector, const cv::Mat& grey,
+                                 const DetectionOptions& options, bool filter) {
+  image_u8_t image{grey.cols, grey.rows, static_cast<int32_t>(grey.step[0]),
+                   const_cast<uint8_t*>(grey.ptr<uint8_t>(0))};
+  zarray_t* detections = apriltag_detector_detect(detector, &image);
+  std::vector<TagSeen> tags;
+  for (int k = 0; k < zarray_size(detections); ++k) {
+    apriltag_detection_t* detection = nullptr;
+    zarray_get(detections, k, &detection);
+    if (filter && (detection->hamming > options.max_hamming ||
+                   detection->decision_margin < options.min_decision_margin)) {
+      continue;
+    }
+    TagSeen tag;
+    tag.id = detection->id;
+    for (int c = 0; c < 4; ++c) {
+      tag.corners[c] = Eigen::Vector2d(detection->p[c][0], detection->p[c][1]) +
+                       Eigen::Vector2d::Constant(kApriltagPixelOffset);
+    }
+    tags.push_back(tag);
+  }
+  apriltag_detections_destroy(detections);
+  return tags;
+}
+
+double MinSide(const std::array<Eigen::Vector2d, 4>& corners) {
+  double side = 1e300;
+  for (int k = 0; k < 4; ++k) side = std::min(side, (corners[(k + 1) % 4] - corners[k]).norm());
+  return side;
+}
+
+}  // namespace
+
+std::vector<int> BoardDetector::DetectTagIds(const cv::Mat& image) const {
+  if (board_.layout().type != BoardType::kAprilGrid) return {};
+  const cv::Mat grey = ToGrey(image);
+  Detector d = impl_->Acquire();
+  std::vector<TagSeen> tags = RunApriltag(d.detector, grey, options_, true);
+  impl_->Release(d);
+  std::vector<int> ids;
+  for (const auto& t : tags) ids.push_back(t.id);
+  std::sort(ids.begin(), ids.end());
+  return ids;
+}
+
+bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
+                           std::string* reason) const {
+  const cv::Mat grey = ToGrey(image);
+  const int width_n = board_.width_n();
+  const int height_n = board_.height_n();
+  observation->points.setZero(static_cast<Eigen::Index>(width_n) * height_n, 3);
+  observation->points.col(2).setConstant(-1);
+
+  if (board_.layout().type == BoardType::kChessboard) {
+    std::vector<cv::Point2f> corners;
+    const cv::Size size(width_n, height_n);
+    if (!cv::findChessboardCorners(grey, size, corners,
+                                   cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE)) {
+      *reason = "no chessboard found";
+      return false;
+    }
+    cv::cornerSubPix(grey, corners, cv::Size(5, 5), cv::Size(-1, -1),
+                     cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
+    // OpenCV may start from either end of a board. On holocap's chessboards the square
+    // diagonally outside the first corner is black and its neighbour along the first column
+    // white; a board with width_n + height_n even looks the same from both ends and cannot be
+    // told apart (BoardLayout documents odd + even sizes).
+    const Eigen::Vector2d c0(corners[0].x, corners[0].y);
+    const Eigen::Vector2d c1(corners[1].x, corners[1].y);
+    const Eigen::Vector2d cw(corners[width_n].x, corners[width_n].y);
+    const Eigen::Vector2d diagonal = c0 - 0.5 * (c1 - c0) - 0.5 * (cw - c0);
+    const Eigen::Vector2d beside = c0 - 0.5 * (c1 - c0) + 0.5 * (cw - c0);
+    const double diagonal_value = Bilinear(grey, diagonal.x(), diagonal.y());
+    const double beside_value = Bilinear(grey, beside.x(), beside.y());
+    const bool reversed = std::isfinite(diagonal_value) && std::isfinite(beside_value) &&
+                          diagonal_value > beside_value;
+    if (reversed) std::reverse(corners.begin(), corners.end());
+    for (int k = 0; k < static_cast<int>(corners.size()); ++k) {
+      observation->points.row(k) << corners[k].x, corners[k].y, 1.0;
+    }
+    return true;
+  }
+
+  Detector d = impl_->Acquire();
+  std::vector<TagSeen> tags = RunApriltag(d.detector, grey, options_, true);
+  impl_->Release(d);
+
+  // Ids seen twice are ambiguous (a second board, a reflection): both are dropped.
+  std::map<int, int> count;
+  for (const auto& t : tags) ++count[t.id];
+  std::map<std::pair<int, int>, int> tag_at;  // tag grid cell -> index in `tags`
+  std::vector<TagSeen> kept;
+  int foreign = 0;
+  for (const auto& t : tags) {
+    int i = 0, j = 0;
+    if (!board_.GridPointOf(t.id, 0, &i, &j)) {
+      ++foreign;
+      continue;
+    }
+    if (count[t.id] > 1) continue;
+    if (MinSide(t.corners) < options_.min_tag_side_px) continue;
+    kept.push_back(t);
+  }
+  for (auto& t : kept) {
+    if (!options_.refine_corners) continue;
+    int border_bits = 0, total_bits = 0;
+    calibration_internal::FamilyGeometry(board_.layout().family, &border_bits, &total_bits);
+    const double bit_px = MinSide(t.corners) / border_bits;
+    const double reach = options_.refine_half_window_px > 0
+                             ? options_.refine_half_window_px
+                             : std::clamp(0.8 * bit_px, 1.0, 6.0);
+    RefineQuad(grey, &t.corners, reach);
+  }
+  for (size_t k = 0; k < kept.size(); ++k) {
+    const int index = kept[k].id - board_.layout().first_id;
+    tag_at[{index % board_.layout().tags_across, index / board_.layout().tags_across}] =
+        static_cast<int>(k);
+  }
+
+  // Consistency: each tag's corners against the homography of its neighbours' corners. A tag
+  // decoded with the wrong id or with a shifted corner lands far from where they put it.
+  std::vector<bool> consistent(kept.size(), true);
+  for (const auto& [cell, k] : tag_at) {
+    std::vector<cv::Point2f> board_points, image_points;
+    for (int dj = -1; dj <= 1; ++dj) {
+      for (int di = -1; di <= 1; ++di) {
+        if (di == 0 && dj == 0) continue;
+        auto it = tag_at.find({cell.first + di, cell.second + dj});
+        if (it == tag_at.end()) continue;
+        const TagSeen& n = kept[it->second];
+        for (int c = 0; c < 4; ++c) {
+          int i = 0, j = 0;
+          board_.GridPointOf(n.id, c, &i, &j);
+          board_points.emplace_back(static_cast<float>(i), static_cast<float>(j));
+          image_points.emplace_back(static_cast<float>(n.corners[c].x()),
+                                    static_cast<float>(n.corners[c].y()));
+        }
+      }
+    }
+    if (board_points.size() < 8) continue;  // too few neighbours to judge
+    cv::Mat h = cv::findHomography(board_points, image_points, 0);
+    if (h.empty()) continue;
+    const TagSeen& t = kept[k];
+    const double tolerance = std::max(options_.max_corner_residual_px, 0.25 * MinSide(t.corners));
+    for (int c = 0; c < 4; ++c) {
+      int i = 0, j = 0;
+      board_.GridPointOf(t.id, c, &i, &j);
+      const cv::Mat p = h * (cv::Mat_<double>(3, 1) << i, j, 1);
+      const Eigen::Vector2d predicted(p.at<double>(0) / p.at<double>(2),
+                                      p.at<double>(1) / p.at<double>(2));
+      if ((predicted - t.corners[c]).norm() > tolerance) consistent[k] = false;
+    }
+  }
+
+  int used = 0;
+  for (size_t k = 0; k < kept.size(); ++k) {
+    if (!consistent[k]) continue;
+    ++used;
+    for (int c = 0; c < 4; ++c) {
+      int i = 0, j = 0;
+      board_.GridPointOf(kept[k].id, c, &i, &j);
+      observation->points.row(static_cast<Eigen::Index>(j) * width_n + i)
+          << kept[k].corners[c].x(), kept[k].corners[c].y(), 1.0;
+    }
+  }
+  if (used < options_.min_tags) {
+    *reason = used == 0 && foreign > 0
+                  ? Cat(foreign, " tags of ", board_.layout().family, " not on this board")
+                  : Cat("partial board: ", used, " tags (needs ", options_.min_tags, ")");
+    observation->points.col(2).setConstant(-1);
+    return false;
+  }
+  return true;
+}
+
+nlohmann::json DetectionSummary::ToJson() const {
+  nlohmann::json rejected_json = nlohmann::json::array();
+  for (const auto& r : rejected) {
+    rejected_json.push_back({{"sensor", r.sensor}, {"frame_set", r.frame_set}, {"reason", r.reason}});
+  }
+  return {{"frames", frames},
+          {"views", views},
+          {"rejected", rejected_json},
+          {"seconds", seconds},
+          {"frames_per_second", frames_per_second},
+          {"views_per_sensor", views_per_sensor},
+          {"foreign_tag_ids", foreign_tag_ids}};
+}
+
+std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLayout& layout,
+                                                 const std::vector<std::string>& sensors_in,
+                                                 const DetectionOptions& options,
+                                                 DetectionSummary* summary) {
+  options.Check();
+  std::vector<std::string> sensors = sensors_in;
+  if (sensors.empty()) {
+    for (const auto& s : take.streams()) {
+      if (s.role == SensorRole::kColor) sensors.push_back(s.name);
+    }
+  }
+  for (const auto& s : sensors) {
+    if (!take.has_stream(s)) Fail("camera '", s, "' is not in the take ", take.dir().string());
+    if (take.stream(s).role != SensorRole::kColor) {
+      Fail("sensor '", s, "' is not a colour camera (role ", ToString(take.stream(s).role), ")");
+    }
+  }
+  if (take.size() == 0) Fail("take ", take.dir().string(), " has no complete frame sets");
+
+  struct Job {
+    size_t set;
+    std::string sensor;
+  };
+  std::vector<Job> jobs;
+  for (size_t i = 0; i < take.size(); ++i) {
+    for (const auto& s : sensors) {
+      if (take.entry(i).Find(s) != nullptr) jobs.push_back({i, s});
+    }
+  }
+  BoardDetector detector(layout, options);
+  std::vector<std::optional<BoardObservation>> results(jobs.size());
+  std::vector<std::string> reasons(jobs.size());
+  std::vector<std::vector<int>> foreign_ids(jobs.size());
+  std::atomic<size_t> next{0};
+  std::mutex error_mutex;
+  std::string first_error;
+  Progress progress("detect", static_cast<int64_t>(jobs.size()));
+  const auto start = std::chrono::steady_clock::now();
+  auto work = [&] {
+    for (size_t k = next++; k < jobs.size(); k = next++) {
+      try {
+        const FrameSetEntry& entry = take.entry(jobs[k].set);
+        const cv::Mat image = take.ReadFrame(jobs[k].set, jobs[k].sensor);
+        BoardObservation observation;
+        observation.sensor = jobs[k].sensor;
+        observation.frame_set = entry.index;
+        observation.timestamp_ns = entry.Find(jobs[k].sensor)->timestamp_ns;
+        std::string reason;
+        if (detector.Detect(image, &observation, &reason)) {
+          results[k] = std::move(observation);
+        } else {
+          reasons[k] = reason;
+          if (layout.type == BoardType::kAprilGrid && reason.find("not on this board") != std::string::npos) {
+            foreign_ids[k] = detector.DetectTagIds(image);
+          }
+        }
+      } catch (const Error& e) {
+        std::lock_guard<std::mutex> lock(error_mutex);
+        if (first_error.empty()) first_error = e.what();
+      }
+      progress.Increment();
+    }
+  };
+  const int threads = ResolveThreads(options.threads, static_cast<int>(jobs.size()));
+  std::vector<std::thread> pool;
+  for (int t = 1; t < threads; ++t) pool.emplace_back(work);
+  work();
+  for (auto& t : pool) t.join();
+  progress.Finish();
+  if (!first_error.empty()) Fail(first_error);
+
+  DetectionSummary local;
+  DetectionSummary& s = summary != nullptr ? *summary : local;
+  s = DetectionSummary{};
+  s.frames = static_cast<int64_t>(jobs.size());
+  s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  s.frames_per_second = s.seconds > 0 ? s.frames / s.seconds : 0;
+  std::vector<BoardObservation> observations;
+  std::set<int> foreign;
+  for (size_t k = 0; k < jobs.size(); ++k) {
+    if (results[k]) {
+      ++s.views_per_sensor[jobs[k].sensor];
+      observations.push_back(std::move(*results[k]));
+    } else {
+      s.rejected.push_back({jobs[k].sensor, take.entry(jobs[k].set).index, reasons[k]});
+      for (int id : foreign_ids[k]) foreign.insert(id);
+    }
+  }
+  s.views = static_cast<int64_t>(observations.size());
+  s.foreign_tag_ids.assign(foreign.begin(), foreign.end());
+  for (const auto& name : sensors) s.views_per_sensor.emplace(name, 0);
+  if (observations.empty()) {
+    if (!foreign.empty()) {
+      Fail("the board file does not match the prints: the take shows ", layout.family,
+           " tags with ids ", *foreign.begin(), "..", *foreign.rbegin(), " but the board has ids ",
+           layout.first_id, "..", layout.first_id + layout.tags_across * layout.tags_down - 1);
+    }
+    Fail("no board visible in any of the ", s.frames, " frames of ", take.dir().string(), " (",
+         ToString(layout.type), " ", layout.width_n(), "x", layout.height_n(), ")");
+  }
+  return observations;
+}
+
+}  // namespace holocap

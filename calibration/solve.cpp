@@ -1,0 +1,1055 @@
+// Seeding and the staged mrcal solve, with projection uncertainty from mrcal's Jacobian.
+#include <Eigen/Dense>
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <numeric>
+#include <opencv2/calib3d.hpp>
+#include <queue>
+#include <random>
+#include <set>
+
+#include "calibration/calibration.h"
+#include "calibration/internal.h"
+#include "core/error.h"
+
+extern "C" {
+#include <mrcal/mrcal.h>
+#include <mrcal/poseutils.h>
+#include <suitesparse/cholmod.h>
+}
+
+namespace holocap {
+namespace calibration_internal {
+
+Pose FitRigid(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen::Vector3d>& b) {
+  if (a.size() != b.size() || a.size() < 3) Fail("FitRigid needs >= 3 matched points");
+  Eigen::Matrix3Xd ma(3, a.size()), mb(3, b.size());
+  for (size_t k = 0; k < a.size(); ++k) {
+    ma.col(k) = a[k];
+    mb.col(k) = b[k];
+  }
+  const Eigen::Matrix4d m = Eigen::umeyama(ma, mb, false);
+  Pose pose = Pose::Identity();
+  pose.matrix() = m;
+  return pose;
+}
+
+void CheckLensmodelName(const std::string& name) {
+  mrcal_lensmodel_t model;
+  if (!mrcal_lensmodel_from_name(&model, name.c_str()) || !mrcal_lensmodel_type_is_valid(model.type)) {
+    Fail("unknown or unconfigured lens model '", name, "'");
+  }
+}
+
+Pose AveragePoses(const std::vector<Pose>& poses) {
+  if (poses.empty()) Fail("AveragePoses of nothing");
+  Eigen::Matrix4d accumulate = Eigen::Matrix4d::Zero();
+  Eigen::Vector3d translation = Eigen::Vector3d::Zero();
+  const Eigen::Quaterniond first(poses[0].linear());
+  for (const Pose& p : poses) {
+    Eigen::Quaterniond q(p.linear());
+    if (q.dot(first) < 0) q.coeffs() = -q.coeffs();
+    accumulate += q.coeffs() * q.coeffs().transpose();
+    translation += p.translation();
+  }
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eigen(accumulate);
+  Eigen::Quaterniond mean(Eigen::Vector4d(eigen.eigenvectors().col(3)));
+  Pose result = Pose::Identity();
+  result.linear() = mean.normalized().toRotationMatrix();
+  result.translation() = translation / static_cast<double>(poses.size());
+  return result;
+}
+
+}  // namespace calibration_internal
+
+namespace {
+
+using calibration_internal::AveragePoses;
+
+mrcal_pose_t ToMrcal(const Pose& pose) {
+  const Rt rt = RtFromPose(pose);
+  mrcal_pose_t out;
+  for (int k = 0; k < 3; ++k) {
+    out.r.xyz[k] = rt[k];
+    out.t.xyz[k] = rt[3 + k];
+  }
+  return out;
+}
+
+Pose FromMrcal(const mrcal_pose_t& pose) {
+  return PoseFromRt({pose.r.x, pose.r.y, pose.r.z, pose.t.x, pose.t.y, pose.t.z});
+}
+
+mrcal_lensmodel_t ParseModel(const std::string& name) {
+  mrcal_lensmodel_t model;
+  if (!mrcal_lensmodel_from_name(&model, name.c_str()) ||
+      !mrcal_lensmodel_type_is_valid(model.type)) {
+    Fail("unknown or unconfigured lens model '", name, "'");
+  }
+  return model;
+}
+
+bool IsSplined(const std::string& name) {
+  return name.rfind("LENSMODEL_SPLINED_STEREOGRAPHIC", 0) == 0;
+}
+
+// The model that can represent every requested one: splined beats OPENCV12 beats OPENCV8 ...
+std::string MostGeneralModel(const std::vector<std::string>& names) {
+  auto rank = [](const std::string& n) {
+    if (IsSplined(n)) return 10;
+    if (n == "LENSMODEL_OPENCV12") return 6;
+    if (n == "LENSMODEL_OPENCV8") return 5;
+    if (n == "LENSMODEL_OPENCV5") return 4;
+    if (n == "LENSMODEL_OPENCV4") return 3;
+    if (n == "LENSMODEL_STEREOGRAPHIC") return 2;
+    return 1;
+  };
+  std::string best = names.front();
+  for (const auto& n : names) {
+    if (rank(n) > rank(best)) best = n;
+  }
+  return best;
+}
+
+// The problem as mrcal sees it; the state lives here between stages.
+struct Problem {
+  BoardLayout layout;
+  int width_n = 0, height_n = 0;
+  std::vector<int> camera_index;          // mrcal camera -> index into the caller's cameras
+  std::vector<int> imagersizes;           // 2 per mrcal camera
+  std::vector<mrcal_observation_board_t> observations;
+  std::vector<mrcal_point3_t> pool;       // Nobservations * height_n * width_n
+  std::vector<int> observation_source;    // mrcal observation -> caller's observation index
+  std::vector<int64_t> frame_sets;        // mrcal frame -> frame-set index
+  std::string lensmodel;
+  mrcal_lensmodel_t parsed{};
+  std::vector<double> intrinsics;         // Ncameras * Nparams
+  std::vector<mrcal_pose_t> extrinsics;   // Ncameras - 1
+  std::vector<mrcal_pose_t> frames;
+  mrcal_calobject_warp_t warp{};
+  mrcal_problem_selections_t selections{};
+  mrcal_problem_constants_t constants{};
+  std::vector<double> x;                  // last residuals
+
+  int ncams() const { return static_cast<int>(camera_index.size()); }
+  int nparams() const { return mrcal_lensmodel_num_params(&parsed); }
+  int nmeasurements() const {
+    return mrcal_num_measurements(static_cast<int>(observations.size()), 0, width_n, height_n,
+                                  ncams(), ncams() - 1, static_cast<int>(frames.size()), 0, 0,
+                                  selections, &parsed);
+  }
+  int nstate() const {
+    return mrcal_num_states(ncams(), ncams() - 1, static_cast<int>(frames.size()), 0, 0,
+                            static_cast<int>(observations.size()), selections, &parsed);
+  }
+
+  void SetModel(const std::string& name) {
+    lensmodel = name;
+    parsed = ParseModel(name);
+  }
+
+  mrcal_stats_t Optimize(bool verbose) {
+    x.assign(nmeasurements(), 0.0);
+    return mrcal_optimize(nullptr, 0, x.data(), static_cast<int>(x.size() * sizeof(double)),
+                          intrinsics.data(),
+                          extrinsics.empty() ? nullptr : extrinsics.data(), frames.data(),
+                          nullptr, selections.do_optimize_calobject_warp ? &warp : nullptr,
+                          ncams(), ncams() - 1, static_cast<int>(frames.size()), 0, 0,
+                          observations.data(), nullptr, static_cast<int>(observations.size()), 0,
+                          pool.data(), &parsed, imagersizes.data(), selections, &constants,
+                          layout.spacing, width_n, height_n, verbose, false);
+  }
+};
+
+mrcal_problem_selections_t Selections(bool core, bool distortions, bool regularization,
+                                      bool outliers, bool warp) {
+  mrcal_problem_selections_t s{};
+  s.do_optimize_intrinsics_core = core;
+  s.do_optimize_intrinsics_distortions = distortions;
+  s.do_optimize_extrinsics = true;
+  s.do_optimize_frames = true;
+  s.do_optimize_calobject_warp = warp;
+  s.do_apply_regularization = regularization;
+  s.do_apply_outlier_rejection = outliers;
+  return s;
+}
+
+// A pinhole-free seed of one view: the observed pixels are unprojected through a
+// stereographic lens of focal `focal` (valid beyond 90 degrees, unlike a pinhole), put on the
+// z = 1 plane and handed to solvePnP with an identity camera matrix.
+bool SeedView(const BoardObservation& obs, const Board& board, double focal, double cx,
+              double cy, Pose* cam_from_board) {
+  std::vector<cv::Point3d> object;
+  std::vector<cv::Point2d> normalised;
+  const int width_n = board.width_n();
+  for (int r = 0; r < obs.points.rows(); ++r) {
+    if (obs.points(r, 2) <= 0) continue;
+    mrcal_point2_t q{{obs.points(r, 0), obs.points(r, 1)}};
+    mrcal_point3_t v;
+    const double fxycxy[4] = {focal, focal, cx, cy};
+    mrcal_unproject_stereographic(&v, nullptr, &q, 1, fxycxy);
+    if (v.z < 0.2 * std::hypot(v.x, v.y)) continue;  // beyond ~80 degrees: pinhole breaks down
+    const Eigen::Vector3d p = board.GridPoint(r % width_n, r / width_n);
+    object.emplace_back(p.x(), p.y(), p.z());
+    normalised.emplace_back(v.x / v.z, v.y / v.z);
+  }
+  if (object.size() < 6) return false;
+  cv::Mat rvec, tvec;
+  std::vector<int> inliers;
+  const cv::Mat K = cv::Mat::eye(3, 3, CV_64F);
+  if (!cv::solvePnPRansac(object, normalised, K, cv::noArray(), rvec, tvec, false, 200,
+                          8.0 / focal, 0.99, inliers, cv::SOLVEPNP_IPPE) ||
+      inliers.size() < 6) {
+    return false;
+  }
+  std::vector<cv::Point3d> object_in;
+  std::vector<cv::Point2d> normalised_in;
+  for (int k : inliers) {
+    object_in.push_back(object[k]);
+    normalised_in.push_back(normalised[k]);
+  }
+  cv::solvePnPRefineLM(object_in, normalised_in, K, cv::noArray(), rvec, tvec);
+  *cam_from_board = PoseFromRt({rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2),
+                                tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2)});
+  return cam_from_board->translation().z() > 0;
+}
+
+// Focal length from the board views' homographies (OpenCV's closed form), in pinhole terms.
+double SeedFocal(const std::vector<const BoardObservation*>& views, const Board& board, int width,
+                 int height) {
+  std::vector<std::vector<cv::Point3f>> object;
+  std::vector<std::vector<cv::Point2f>> image;
+  const int width_n = board.width_n();
+  for (const BoardObservation* obs : views) {
+    std::vector<cv::Point3f> o;
+    std::vector<cv::Point2f> i;
+    for (int r = 0; r < obs->points.rows(); ++r) {
+      if (obs->points(r, 2) <= 0) continue;
+      const Eigen::Vector3d p = board.GridPoint(r % width_n, r / width_n);
+      o.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), 0.f);
+      i.emplace_back(static_cast<float>(obs->points(r, 0)), static_cast<float>(obs->points(r, 1)));
+    }
+    if (o.size() >= 6) {
+      object.push_back(o);
+      image.push_back(i);
+    }
+  }
+  double focal = 0;
+  if (!object.empty()) {
+    const cv::Mat K = cv::initCameraMatrix2D(object, image, cv::Size(width, height));
+    focal = 0.5 * (K.at<double>(0, 0) + K.at<double>(1, 1));
+  }
+  if (!std::isfinite(focal) || focal < 0.1 * width || focal > 20.0 * width) focal = 0.8 * width;
+  return focal;
+}
+
+// Median reprojection error (pixels) of a seeded view through the stereographic seed lens.
+double SeedViewError(const BoardObservation& obs, const Board& board, double focal, double cx,
+                     double cy, const Pose& cam_from_board) {
+  std::vector<double> errors;
+  const double fxycxy[4] = {focal, focal, cx, cy};
+  for (int r = 0; r < obs.points.rows(); ++r) {
+    if (obs.points(r, 2) <= 0) continue;
+    const Eigen::Vector3d p = cam_from_board * board.GridPoint(r % board.width_n(), r / board.width_n());
+    mrcal_point3_t pm{{p.x(), p.y(), p.z()}};
+    mrcal_point2_t q;
+    mrcal_project_stereographic(&q, nullptr, &pm, 1, fxycxy);
+    errors.push_back(std::hypot(q.x - obs.points(r, 0), q.y - obs.points(r, 1)));
+  }
+  if (errors.empty()) return 1e9;
+  std::nth_element(errors.begin(), errors.begin() + errors.size() / 2, errors.end());
+  return errors[errors.size() / 2];
+}
+
+double WorstDirectionSigma(const Eigen::Matrix2d& cov) {
+  const double a = cov(0, 0), b = cov(1, 0), c = cov(1, 1);
+  return std::sqrt((a + c) / 2 + std::sqrt((a - c) * (a - c) / 4 + b * b));
+}
+
+// The Jacobian of the final solve from mrcal_optimizer_callback (packed, unitless state),
+// as Jt: Nstate x Nmeasurements.
+bool Jacobian(Problem& p, Eigen::SparseMatrix<double>* jt) {
+  cholmod_common common;
+  if (!cholmod_start(&common)) return false;
+  const int nstate = p.nstate();
+  const int nmeas = p.nmeasurements();
+  const int nnz = _mrcal_num_j_nonzero(static_cast<int>(p.observations.size()), 0, p.width_n,
+                                       p.height_n, p.ncams(), p.ncams() - 1,
+                                       static_cast<int>(p.frames.size()), 0, 0,
+                                       p.observations.data(), nullptr, p.selections, &p.parsed);
+  cholmod_sparse* sparse =
+      cholmod_allocate_sparse(nstate, nmeas, nnz, 1, 1, 0, CHOLMOD_REAL, &common);
+  if (sparse == nullptr) {
+    cholmod_finish(&common);
+    return false;
+  }
+  std::vector<double> b(nstate), x(nmeas);
+  const bool ok = mrcal_optimizer_callback(
+      b.data(), static_cast<int>(nstate * sizeof(double)), x.data(),
+      static_cast<int>(nmeas * sizeof(double)), reinterpret_cast<cholmod_sparse_struct*>(sparse),
+      p.intrinsics.data(), p.extrinsics.empty() ? nullptr : p.extrinsics.data(), p.frames.data(),
+      nullptr, p.selections.do_optimize_calobject_warp ? &p.warp : nullptr, p.ncams(),
+      p.ncams() - 1, static_cast<int>(p.frames.size()), 0, 0, p.observations.data(), nullptr,
+      static_cast<int>(p.observations.size()), 0, p.pool.data(), &p.parsed, p.imagersizes.data(),
+      p.selections, &p.constants, p.layout.spacing, p.width_n, p.height_n, false);
+  if (ok) {
+    const int* col = static_cast<const int*>(sparse->p);
+    const int* row = static_cast<const int*>(sparse->i);
+    const double* value = static_cast<const double*>(sparse->x);
+    std::vector<Eigen::Triplet<double>> triplets;
+    triplets.reserve(col[nmeas]);
+    for (int c = 0; c < nmeas; ++c) {
+      for (int k = col[c]; k < col[c + 1]; ++k) triplets.emplace_back(row[k], c, value[k]);
+    }
+    jt->resize(nstate, nmeas);
+    jt->setFromTriplets(triplets.begin(), triplets.end());
+  }
+  cholmod_free_sparse(&sparse, &common);
+  cholmod_finish(&common);
+  return ok;
+}
+
+// d(transform_point_rt(rt, x))/d(rt) and /d(x).
+void TransformGradients(const mrcal_pose_t& pose, const Eigen::Vector3d& x, Eigen::Vector3d* out,
+                        Eigen::Matrix<double, 3, 6, Eigen::RowMajor>* d_rt,
+                        Eigen::Matrix<double, 3, 3, Eigen::RowMajor>* d_x) {
+  double rt[6] = {pose.r.x, pose.r.y, pose.r.z, pose.t.x, pose.t.y, pose.t.z};
+  double xin[3] = {x.x(), x.y(), x.z()};
+  double xout[3];
+  mrcal_transform_point_rt(xout, d_rt ? d_rt->data() : nullptr, d_x ? d_x->data() : nullptr, rt,
+                           xin);
+  *out << xout[0], xout[1], xout[2];
+}
+
+Eigen::Vector3d InvertTransform(const mrcal_pose_t& pose, const Eigen::Vector3d& x) {
+  double rt[6] = {pose.r.x, pose.r.y, pose.r.z, pose.t.x, pose.t.y, pose.t.z};
+  double xin[3] = {x.x(), x.y(), x.z()};
+  double xout[3];
+  mrcal_transform_point_rt_inverted(xout, nullptr, nullptr, rt, xin);
+  return Eigen::Vector3d(xout[0], xout[1], xout[2]);
+}
+
+struct Factorization {
+  Eigen::SparseMatrix<double> jt;   // packed
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt;
+  Eigen::SparseMatrix<double> jobs_t_jobs;  // the observations' share of J*tJ*
+  int nmeas_observations = 0;
+  bool regularized = false;
+};
+
+// mrcal's projection_uncertainty(): Var(q) for pixels of camera `icam` at `distance`.
+CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double distance,
+                              double sigma, int grid_x, int grid_y) {
+  CameraUncertainty u;
+  u.grid_x = grid_x;
+  u.grid_y = grid_y;
+  u.distance_m = distance;
+  const int width = p.imagersizes[2 * icam], height = p.imagersizes[2 * icam + 1];
+  const int n = grid_x * grid_y;
+  u.pixels.resize(2, n);
+  for (int gy = 0; gy < grid_y; ++gy) {
+    for (int gx = 0; gx < grid_x; ++gx) {
+      u.pixels.col(gy * grid_x + gx) << (gx + 0.5) * width / grid_x - 0.5,
+          (gy + 0.5) * height / grid_y - 0.5;
+    }
+  }
+  const int nparams = p.nparams();
+  const double* intrinsics = p.intrinsics.data() + icam * nparams;
+  const int nstate = p.nstate();
+  const int nframes = static_cast<int>(p.frames.size());
+  const int i_intr = mrcal_state_index_intrinsics(icam, p.ncams(), p.ncams() - 1, nframes, 0, 0,
+                                                  static_cast<int>(p.observations.size()),
+                                                  p.selections, &p.parsed);
+  const int i_extr = icam == 0 ? -1
+                               : mrcal_state_index_extrinsics(
+                                     icam - 1, p.ncams(), p.ncams() - 1, nframes, 0, 0,
+                                     static_cast<int>(p.observations.size()), p.selections,
+                                     &p.parsed);
+  const int i_frames = mrcal_state_index_frames(0, p.ncams(), p.ncams() - 1, nframes, 0, 0,
+                                                static_cast<int>(p.observations.size()),
+                                                p.selections, &p.parsed);
+  const bool has_core = mrcal_lensmodel_metadata(&p.parsed).has_core;
+  const int first_optimized = has_core && !p.selections.do_optimize_intrinsics_core ? 4 : 0;
+
+  u.covariance.assign(n, Eigen::Matrix2d::Constant(std::numeric_limits<double>::quiet_NaN()));
+  u.worst_sigma_px = Eigen::MatrixXd::Constant(grid_y, grid_x, std::numeric_limits<double>::quiet_NaN());
+  const int chunk = 16;
+  for (int start = 0; start < n; start += chunk) {
+    const int count = std::min(chunk, n - start);
+    Eigen::MatrixXd dq_db = Eigen::MatrixXd::Zero(nstate, 2 * count);  // columns: (dq/db*)^t
+    std::vector<bool> valid(count, true);
+    for (int k = 0; k < count; ++k) {
+      mrcal_point2_t q{{u.pixels(0, start + k), u.pixels(1, start + k)}};
+      mrcal_point3_t v;
+      if (!mrcal_unproject(&v, &q, 1, &p.parsed, intrinsics) || !std::isfinite(v.x)) {
+        valid[k] = false;
+        continue;
+      }
+      Eigen::Vector3d p_cam(v.x, v.y, v.z);
+      p_cam = p_cam.normalized() * distance;
+      mrcal_point3_t pc{{p_cam.x(), p_cam.y(), p_cam.z()}};
+      mrcal_point2_t q2;
+      mrcal_point3_t dq_dp[2];
+      std::vector<double> dq_dintr(2 * nparams);
+      if (!mrcal_project(&q2, dq_dp, dq_dintr.data(), &pc, 1, &p.parsed, intrinsics)) {
+        valid[k] = false;
+        continue;
+      }
+      Eigen::Matrix<double, 2, 3> dq_dpcam;
+      for (int r = 0; r < 2; ++r) {
+        for (int c = 0; c < 3; ++c) dq_dpcam(r, c) = dq_dp[r].xyz[c];
+      }
+      Eigen::MatrixXd rows = Eigen::MatrixXd::Zero(2, nstate);
+      if (i_intr >= 0) {
+        for (int r = 0; r < 2; ++r) {
+          for (int c = first_optimized; c < nparams; ++c) {
+            rows(r, i_intr + c - first_optimized) = dq_dintr[r * nparams + c];
+          }
+        }
+      }
+      Eigen::Vector3d p_ref = p_cam;
+      Eigen::Matrix3d dpcam_dpref = Eigen::Matrix3d::Identity();
+      if (icam > 0) {
+        p_ref = InvertTransform(p.extrinsics[icam - 1], p_cam);
+        Eigen::Vector3d check;
+        Eigen::Matrix<double, 3, 6, Eigen::RowMajor> d_rt;
+        Eigen::Matrix<double, 3, 3, Eigen::RowMajor> d_x;
+        TransformGradients(p.extrinsics[icam - 1], p_ref, &check, &d_rt, &d_x);
+        rows.block(0, i_extr, 2, 6) = dq_dpcam * d_rt;
+        dpcam_dpref = d_x;
+      }
+      // The point as each board pose sees it, mapped back and averaged: its sensitivity to
+      // every frame, divided by Nframes.
+      const Eigen::Matrix<double, 2, 3> dq_dpref = dq_dpcam * dpcam_dpref;
+      for (int fr = 0; fr < nframes; ++fr) {
+        const Eigen::Vector3d p_frame = InvertTransform(p.frames[fr], p_ref);
+        Eigen::Vector3d back;
+        Eigen::Matrix<double, 3, 6, Eigen::RowMajor> d_rt;
+        TransformGradients(p.frames[fr], p_frame, &back, &d_rt, nullptr);
+        rows.block(0, i_frames + 6 * fr, 2, 6) = dq_dpref * d_rt / nframes;
+      }
+      // To the packed state: the state is in the denominator, so "unpack" scales it.
+      for (int r = 0; r < 2; ++r) {
+        Eigen::VectorXd row = rows.row(r).transpose();
+        mrcal_unpack_solver_state_vector(row.data(), p.ncams(), p.ncams() - 1, nframes, 0, 0,
+                                         p.selections, &p.parsed);
+        dq_db.col(2 * k + r) = row;
+      }
+    }
+    const Eigen::MatrixXd a = f.ldlt.solve(dq_db);  // inv(J*tJ*) D dF/db^t
+    // Regularised: A^t (Jobs^t Jobs) A; otherwise the observations are all of J and
+    // A^t (J^t J) A collapses to dF/db D A.
+    const Eigen::MatrixXd b = f.regularized ? Eigen::MatrixXd(f.jobs_t_jobs * a) : dq_db;
+    for (int k = 0; k < count; ++k) {
+      if (!valid[k]) continue;
+      const Eigen::Matrix2d cov =
+          b.middleCols(2 * k, 2).transpose() * a.middleCols(2 * k, 2) * sigma * sigma;
+      u.covariance[start + k] = cov;
+      const int index = start + k;
+      u.worst_sigma_px(index / grid_x, index % grid_x) = WorstDirectionSigma(cov);
+    }
+  }
+  double worst = 0, sum = 0;
+  int counted = 0;
+  bool finite = true;
+  for (int k = 0; k < n; ++k) {
+    const double s = u.worst_sigma_px(k / grid_x, k % grid_x);
+    if (!std::isfinite(s)) {
+      finite = false;
+      continue;
+    }
+    worst = std::max(worst, s);
+    sum += s;
+    ++counted;
+  }
+  u.worst_px = finite ? worst : std::numeric_limits<double>::infinity();
+  u.mean_px = counted > 0 ? sum / counted : std::numeric_limits<double>::infinity();
+  return u;
+}
+
+}  // namespace
+
+void CalibrationOptions::Check() const {
+  if (min_views_per_camera < 3) Fail("min_views_per_camera must be >= 3, got ", min_views_per_camera);
+  if (min_points_per_view < 4) Fail("min_points_per_view must be >= 4, got ", min_points_per_view);
+  if (!(max_seed_rms_px > 0)) Fail("max_seed_rms_px must be > 0");
+  if (uncertainty_grid_x < 2 || uncertainty_grid_y < 2) Fail("the uncertainty grid needs >= 2x2 points");
+  if (!(uncertainty_distance_m >= 0)) Fail("uncertainty_distance_m must be >= 0 (0: automatic)");
+  if (!(observed_pixel_sigma >= 0)) Fail("observed_pixel_sigma must be >= 0 (0: from the residuals)");
+  if (!(max_uncertainty_px > 0)) Fail("max_uncertainty_px must be > 0");
+}
+
+nlohmann::json CalibrationOptions::ToJson() const {
+  return {{"reference_camera", reference_camera},
+          {"min_views_per_camera", min_views_per_camera},
+          {"min_points_per_view", min_points_per_view},
+          {"regularization", regularization},
+          {"outlier_rejection", outlier_rejection},
+          {"solve_board_warp", solve_board_warp},
+          {"max_seed_rms_px", max_seed_rms_px},
+          {"uncertainty", uncertainty},
+          {"uncertainty_grid", {uncertainty_grid_x, uncertainty_grid_y}},
+          {"uncertainty_distance_m", uncertainty_distance_m},
+          {"observed_pixel_sigma", observed_pixel_sigma},
+          {"max_uncertainty_px", max_uncertainty_px},
+          {"cross_validation", cross_validation}};
+}
+
+const CalibratedCamera* CalibrationSummary::Find(const std::string& name) const {
+  for (const auto& c : cameras) {
+    if (c.name == name) return &c;
+  }
+  return nullptr;
+}
+
+nlohmann::json CalibrationSummary::ToJson() const {
+  nlohmann::json cams = nlohmann::json::object();
+  for (const auto& c : cameras) {
+    nlohmann::json j = {{"solved", c.solved},
+                        {"flag", c.flag},
+                        {"views", c.views},
+                        {"points", c.points},
+                        {"outliers", c.outliers},
+                        {"rms_px", c.rms_px},
+                        {"median_board_distance_m", c.median_board_distance_m}};
+    if (c.solved) {
+      j["lensmodel"] = c.model.lensmodel();
+      j["intrinsics"] = c.model.intrinsics();
+      j["rt_cam_ref"] = RtFromPose(c.model.cam_from_world());
+      if (c.uncertainty.grid_x > 0) {
+        std::vector<std::vector<double>> grid;
+        for (int y = 0; y < c.uncertainty.grid_y; ++y) {
+          std::vector<double> row;
+          for (int x = 0; x < c.uncertainty.grid_x; ++x) row.push_back(c.uncertainty.worst_sigma_px(y, x));
+          grid.push_back(row);
+        }
+        j["uncertainty"] = {{"worst_px", c.uncertainty.worst_px},
+                            {"worst_observed_px", c.uncertainty.worst_observed_px},
+                            {"mean_px", c.uncertainty.mean_px},
+                            {"distance_m", c.uncertainty.distance_m},
+                            {"grid", {c.uncertainty.grid_x, c.uncertainty.grid_y}},
+                            {"worst_direction_sigma_px", grid}};
+      }
+    }
+    cams[c.name] = j;
+  }
+  nlohmann::json stage_json = nlohmann::json::array();
+  for (const auto& s : stages) {
+    stage_json.push_back({{"stage", s.name}, {"lensmodel", s.lensmodel}, {"rms_px", s.rms_px},
+                          {"outliers", s.outliers}, {"t_s", s.seconds}});
+  }
+  nlohmann::json j = {{"termination", ToString(termination)},
+                      {"message", message},
+                      {"lensmodel", lensmodel},
+                      {"reference_camera", reference_camera},
+                      {"rms_reprojection_px", rms_reprojection_px},
+                      {"observed_pixel_sigma", observed_pixel_sigma},
+                      {"frames", frames},
+                      {"observations", observations},
+                      {"outliers", outliers},
+                      {"warnings", warnings},
+                      {"cameras", cams},
+                      {"stages", stage_json},
+                      {"timing", {{"solve_s", solve_seconds}, {"uncertainty_s", uncertainty_seconds}}}};
+  if (!cross_validation.is_null()) j["cross_validation"] = cross_validation;
+  return j;
+}
+
+namespace {
+
+// Cross-validation: each half's models projected against the other's at the working
+// distance, in each camera's own frame, set against the sum of the two 1-sigma estimates.
+nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSummary& b) {
+  nlohmann::json result = nlohmann::json::object();
+  double worst_ratio = 0;
+  for (const auto& ca : a.cameras) {
+    const CalibratedCamera* cb = b.Find(ca.name);
+    if (!ca.solved || cb == nullptr || !cb->solved || ca.uncertainty.grid_x == 0 ||
+        cb->uncertainty.grid_x == 0) {
+      continue;
+    }
+    // Like mrcal's projection_diff: the two halves' camera frames may differ by a rotation
+    // that their principal points absorb, so the implied rotation is fitted over the imager
+    // (where the board was seen) before the projections are compared.
+    const Eigen::Matrix2Xd& pixels = ca.uncertainty.pixels;
+    const Eigen::Matrix3Xd rays = ca.model.UnprojectMany(pixels);
+    const Eigen::Matrix3Xd rays_b = cb->model.UnprojectMany(pixels);
+    Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
+    for (int k = 0; k < pixels.cols(); ++k) {
+      const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
+      if (!rays.col(k).allFinite() || !rays_b.col(k).allFinite()) continue;
+      if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy, gx)) continue;
+      h += rays.col(k) * rays_b.col(k).transpose();
+    }
+    Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
+    fix(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
+    const Eigen::Matrix3d b_from_a = svd.matrixV() * fix * svd.matrixU().transpose();
+    double sum2 = 0, worst = 0;
+    int within = 0, n = 0;
+    for (int k = 0; k < pixels.cols(); ++k) {
+      if (!rays.col(k).allFinite()) continue;
+      const int gx0 = k % ca.uncertainty.grid_x, gy0 = k / ca.uncertainty.grid_x;
+      if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy0, gx0)) continue;
+      Eigen::Vector2d q;
+      if (!cb->model.Project(b_from_a * rays.col(k) * ca.uncertainty.distance_m, &q)) continue;
+      const double diff = (q - pixels.col(k)).norm();
+      const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
+      const double bound = ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx);
+      sum2 += diff * diff;
+      worst = std::max(worst, diff);
+      within += diff <= bound;
+      ++n;
+    }
+    if (n == 0) continue;
+    const double rms = std::sqrt(sum2 / n);
+    double sigma_sum = 0;
+    for (int k = 0; k < pixels.cols(); ++k) {
+      const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
+      if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy, gx)) continue;
+      sigma_sum += (ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx)) / n;
+    }
+    worst_ratio = std::max(worst_ratio, sigma_sum > 0 ? rms / sigma_sum : 0);
+    result[ca.name] = {{"diff_rms_px", rms},
+                       {"diff_max_px", worst},
+                       {"sigma_sum_mean_px", sigma_sum},
+                       {"ratio", sigma_sum > 0 ? rms / sigma_sum : 0},
+                       {"within_sigma_sum_fraction", static_cast<double>(within) / n}};
+  }
+  return {{"cameras", result}, {"worst_ratio", worst_ratio},
+          {"method", "implied rotation fitted where the board was seen, then projection differences"},
+          {"halves", {{"a", {{"termination", ToString(a.termination)}, {"rms_px", a.rms_reprojection_px}, {"frames", a.frames}}},
+                      {"b", {{"termination", ToString(b.termination)}, {"rms_px", b.rms_reprojection_px}, {"frames", b.frames}}}}}};
+}
+
+}  // namespace
+
+CalibrationSummary Calibrate(const BoardLayout& layout,
+                             const std::vector<CalibrationCamera>& cameras,
+                             const std::vector<BoardObservation>& observations_in,
+                             const CalibrationOptions& options, Report* report) {
+  options.Check();
+  const Board board(layout);
+  if (cameras.empty()) Fail("calibration needs at least one camera");
+  std::map<std::string, int> index_of;
+  for (size_t k = 0; k < cameras.size(); ++k) {
+    if (cameras[k].width <= 0 || cameras[k].height <= 0) {
+      Fail("camera '", cameras[k].name, "' has no imager size");
+    }
+    ParseModel(cameras[k].lensmodel);
+    if (!index_of.emplace(cameras[k].name, static_cast<int>(k)).second) {
+      Fail("camera '", cameras[k].name, "' is listed twice");
+    }
+  }
+  const int points_per_view = board.width_n() * board.height_n();
+  for (const auto& obs : observations_in) {
+    if (!index_of.count(obs.sensor)) Fail("observation of unknown camera '", obs.sensor, "'");
+    if (obs.points.rows() != points_per_view) {
+      Fail("observation of '", obs.sensor, "' in set ", obs.frame_set, " has ", obs.points.rows(),
+           " points; the board has ", points_per_view);
+    }
+  }
+  const auto start = std::chrono::steady_clock::now();
+  auto elapsed = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  };
+
+  CalibrationSummary summary;
+  summary.cameras.resize(cameras.size());
+  for (size_t k = 0; k < cameras.size(); ++k) summary.cameras[k].name = cameras[k].name;
+  summary.reference_camera = options.reference_camera.empty() ? cameras[0].name : options.reference_camera;
+  if (!index_of.count(summary.reference_camera)) {
+    Fail("reference camera '", summary.reference_camera, "' is not among the cameras");
+  }
+  const int reference = index_of[summary.reference_camera];
+
+  // Usable views per camera.
+  std::vector<std::vector<int>> views(cameras.size());
+  for (size_t k = 0; k < observations_in.size(); ++k) {
+    if (observations_in[k].seen() >= options.min_points_per_view) {
+      views[index_of[observations_in[k].sensor]].push_back(static_cast<int>(k));
+    }
+  }
+  // Seeds: a stereographic focal length per camera and every view's board pose.
+  std::vector<double> focal(cameras.size(), 0);
+  std::map<int, Pose> cam_from_board;  // by observation index
+  for (size_t c = 0; c < cameras.size(); ++c) {
+    auto& out = summary.cameras[c];
+    out.views = static_cast<int>(views[c].size());
+    if (out.views < options.min_views_per_camera) {
+      out.flag = Cat("only ", out.views, " usable board views (needs ", options.min_views_per_camera, ")");
+      continue;
+    }
+    std::vector<const BoardObservation*> list;
+    for (int k : views[c]) list.push_back(&observations_in[k]);
+    const double cx = (cameras[c].width - 1) / 2.0, cy = (cameras[c].height - 1) / 2.0;
+    // mrcal's seeding tries several focal scales; the stereographic focal matching a pinhole
+    // seed lies below it for wide lenses.
+    const double f0 = SeedFocal(list, board, cameras[c].width, cameras[c].height);
+    double best_error = 1e300;
+    for (double scale : {1.0, 0.85, 0.7, 0.55, 0.4}) {
+      double total = 0;
+      int ok = 0;
+      for (int k : views[c]) {
+        Pose pose;
+        if (SeedView(observations_in[k], board, f0 * scale, cx, cy, &pose)) {
+          total += SeedViewError(observations_in[k], board, f0 * scale, cx, cy, pose);
+          ++ok;
+        }
+      }
+      const double error = ok > 0 ? total / ok + 1e3 * (static_cast<int>(views[c].size()) - ok) : 1e300;
+      if (error < best_error) {
+        best_error = error;
+        focal[c] = f0 * scale;
+      }
+    }
+    std::vector<int> seeded;
+    for (int k : views[c]) {
+      Pose pose;
+      const double cx2 = cx, cy2 = cy;
+      if (SeedView(observations_in[k], board, focal[c], cx2, cy2, &pose)) {
+        cam_from_board[k] = pose;
+        seeded.push_back(k);
+      }
+    }
+    views[c] = seeded;
+    out.views = static_cast<int>(seeded.size());
+    if (out.views < options.min_views_per_camera) {
+      out.flag = Cat("only ", out.views, " board views could be seeded (needs ",
+                     options.min_views_per_camera, ")");
+    }
+  }
+
+  // The camera graph: cameras joined by shared frame sets, explored from the reference camera
+  // along the edges with the most shared views.
+  std::vector<std::map<int64_t, int>> by_set(cameras.size());
+  for (size_t c = 0; c < cameras.size(); ++c) {
+    if (!summary.cameras[c].flag.empty()) continue;
+    for (int k : views[c]) by_set[c][observations_in[k].frame_set] = k;
+  }
+  auto shared = [&](int a, int b) {
+    std::vector<std::pair<int, int>> pairs;
+    for (const auto& [set, ka] : by_set[a]) {
+      auto it = by_set[b].find(set);
+      if (it != by_set[b].end()) pairs.emplace_back(ka, it->second);
+    }
+    return pairs;
+  };
+  if (!summary.cameras[reference].flag.empty()) {
+    summary.termination = Termination::kDegenerate;
+    summary.message = Cat("reference camera ", summary.reference_camera, ": ", summary.cameras[reference].flag);
+    return summary;
+  }
+  std::vector<Pose> cam_from_ref(cameras.size(), Pose::Identity());
+  std::vector<bool> placed(cameras.size(), false);
+  placed[reference] = true;
+  for (;;) {
+    int best_from = -1, best_to = -1;
+    size_t best_count = 0;
+    for (size_t a = 0; a < cameras.size(); ++a) {
+      if (!placed[a]) continue;
+      for (size_t b = 0; b < cameras.size(); ++b) {
+        if (placed[b] || !summary.cameras[b].flag.empty()) continue;
+        const size_t n = shared(static_cast<int>(a), static_cast<int>(b)).size();
+        if (n > best_count) {
+          best_count = n;
+          best_from = static_cast<int>(a);
+          best_to = static_cast<int>(b);
+        }
+      }
+    }
+    if (best_to < 0) break;
+    std::vector<Pose> estimates;  // b_from_a
+    for (const auto& [ka, kb] : shared(best_from, best_to)) {
+      estimates.push_back(cam_from_board[kb] * cam_from_board[ka].inverse());
+    }
+    cam_from_ref[best_to] = AveragePoses(estimates) * cam_from_ref[best_from];
+    placed[best_to] = true;
+  }
+  for (size_t c = 0; c < cameras.size(); ++c) {
+    if (!placed[c] && summary.cameras[c].flag.empty()) {
+      summary.cameras[c].flag = "never shares a board view with the reference camera's group";
+    }
+  }
+
+  // The mrcal problem: the reference camera first (mrcal's reference frame), then the rest.
+  Problem p;
+  p.layout = layout;
+  p.width_n = board.width_n();
+  p.height_n = board.height_n();
+  p.camera_index.push_back(reference);
+  for (size_t c = 0; c < cameras.size(); ++c) {
+    if (static_cast<int>(c) != reference && placed[c]) p.camera_index.push_back(static_cast<int>(c));
+  }
+  std::map<int64_t, std::vector<std::pair<int, int>>> frame_members;  // set -> (mrcal cam, obs)
+  for (int m = 0; m < p.ncams(); ++m) {
+    for (int k : views[p.camera_index[m]]) frame_members[observations_in[k].frame_set].emplace_back(m, k);
+  }
+  std::vector<std::string> requested;
+  for (int m = 0; m < p.ncams(); ++m) {
+    const CalibrationCamera& cam = cameras[p.camera_index[m]];
+    p.imagersizes.push_back(cam.width);
+    p.imagersizes.push_back(cam.height);
+    requested.push_back(cam.lensmodel);
+    if (m > 0) p.extrinsics.push_back(ToMrcal(cam_from_ref[p.camera_index[m]]));
+  }
+  for (const auto& [set, members] : frame_members) {
+    std::vector<Pose> estimates;
+    for (const auto& [m, k] : members) {
+      estimates.push_back(cam_from_ref[p.camera_index[m]].inverse() * cam_from_board[k]);
+    }
+    const int iframe = static_cast<int>(p.frames.size());
+    p.frames.push_back(ToMrcal(AveragePoses(estimates)));
+    p.frame_sets.push_back(set);
+    for (const auto& [m, k] : members) {
+      mrcal_observation_board_t o;
+      o.icam.intrinsics = m;
+      o.icam.extrinsics = m - 1;
+      o.iframe = iframe;
+      p.observations.push_back(o);
+      p.observation_source.push_back(k);
+      const auto& pts = observations_in[k].points;
+      for (int r = 0; r < pts.rows(); ++r) {
+        mrcal_point3_t q{{pts(r, 0), pts(r, 1), pts(r, 2) > 0 ? pts(r, 2) : -1.0}};
+        p.pool.push_back(q);
+      }
+    }
+  }
+  summary.frames = static_cast<int>(p.frames.size());
+  summary.observations = static_cast<int>(p.observations.size());
+  summary.lensmodel = MostGeneralModel(requested);
+  std::set<std::string> distinct(requested.begin(), requested.end());
+  if (distinct.size() > 1) {
+    summary.warnings.push_back(Cat("cameras ask for ", distinct.size(),
+                                   " lens models; mrcal 2.2 solves one per problem, so all use ",
+                                   summary.lensmodel));
+  }
+  for (const auto& c : summary.cameras) {
+    if (!c.flag.empty()) summary.warnings.push_back(c.name + ": " + c.flag);
+  }
+
+  auto record = [&](const std::string& name, const mrcal_stats_t& stats) {
+    int outliers = 0;
+    for (const auto& q : p.pool) outliers += q.z < 0;
+    SolveStage stage{name, p.lensmodel, stats.rms_reproj_error__pixels, stats.Noutliers, elapsed()};
+    summary.stages.push_back(stage);
+    if (report != nullptr) {
+      report->AddPoint("rms_reprojection_px", stage.rms_px, static_cast<int64_t>(summary.stages.size()));
+    }
+    return std::isfinite(stats.rms_reproj_error__pixels);
+  };
+  auto fail = [&](Termination t, const std::string& message) {
+    summary.termination = t;
+    summary.message = message;
+    summary.solve_seconds = elapsed();
+    return summary;
+  };
+
+  // Stage 1 and 2: geometry, then the core, through a stereographic lens (as mrcal's tool).
+  p.SetModel("LENSMODEL_STEREOGRAPHIC");
+  for (int m = 0; m < p.ncams(); ++m) {
+    const CalibrationCamera& cam = cameras[p.camera_index[m]];
+    const double f = focal[p.camera_index[m]];
+    for (double v : {f, f, (cam.width - 1) / 2.0, (cam.height - 1) / 2.0}) p.intrinsics.push_back(v);
+  }
+  p.selections = Selections(false, false, false, false, false);
+  if (!record("geometry", p.Optimize(options.verbose))) {
+    return fail(Termination::kFailure, "the geometry stage produced NaN");
+  }
+  p.selections = Selections(true, false, false, false, false);
+  if (!record("core", p.Optimize(options.verbose))) {
+    return fail(Termination::kFailure, "the intrinsics-core stage produced NaN");
+  }
+  if (summary.stages.back().rms_px > options.max_seed_rms_px) {
+    return fail(Termination::kFailure,
+                Cat("the seed does not fit the observations (", summary.stages.back().rms_px,
+                    " px RMS after the stereographic stages): wrong board layout or lens?"));
+  }
+
+  // Stage 3: the final lens model, everything, regularised, outliers rejected.
+  const std::vector<double> core = p.intrinsics;
+  p.SetModel(summary.lensmodel);
+  const int nparams = p.nparams();
+  p.intrinsics.assign(static_cast<size_t>(p.ncams()) * nparams, 0.0);
+  for (int m = 0; m < p.ncams(); ++m) {
+    for (int k = 0; k < 4; ++k) p.intrinsics[m * nparams + k] = core[m * 4 + k];
+  }
+  const bool splined = IsSplined(summary.lensmodel);
+  const bool has_core = mrcal_lensmodel_metadata(&p.parsed).has_core;
+  // Splined models keep the core fixed: the spline already covers what it would do.
+  p.selections = Selections(has_core && !splined, nparams > 4, options.regularization, false,
+                            false);
+  if (!record("intrinsics", p.Optimize(options.verbose))) {
+    return fail(Termination::kFailure, "the intrinsics stage produced NaN");
+  }
+  p.selections = Selections(has_core && !splined, nparams > 4, options.regularization,
+                            options.outlier_rejection, options.solve_board_warp);
+  const mrcal_stats_t final_stats = p.Optimize(options.verbose);
+  if (!record("everything", final_stats)) {
+    return fail(Termination::kFailure, "the final stage produced NaN");
+  }
+  summary.solve_seconds = elapsed();
+
+  // Residuals per camera.
+  const int nobs = static_cast<int>(p.observations.size());
+  double sum2 = 0;
+  int inliers = 0;
+  std::vector<double> all_residuals;
+  std::vector<std::vector<double>> distances(p.ncams());
+  for (int o = 0; o < nobs; ++o) {
+    const int m = p.observations[o].icam.intrinsics;
+    CalibratedCamera& out = summary.cameras[p.camera_index[m]];
+    const int base = mrcal_measurement_index_boards(o, nobs, 0, p.width_n, p.height_n);
+    const Pose ref_from_board = FromMrcal(p.frames[p.observations[o].iframe]);
+    const Pose cam_from_ref_m = m == 0 ? Pose::Identity() : FromMrcal(p.extrinsics[m - 1]);
+    distances[m].push_back((cam_from_ref_m * ref_from_board).translation().norm());
+    const auto& source = observations_in[p.observation_source[o]].points;
+    for (int r = 0; r < p.width_n * p.height_n; ++r) {
+      const mrcal_point3_t& q = p.pool[static_cast<size_t>(o) * p.width_n * p.height_n + r];
+      if (source(r, 2) <= 0) continue;
+      if (q.z < 0) {
+        ++out.outliers;
+        continue;
+      }
+      const Eigen::Vector2d residual(-p.x[base + 2 * r] / q.z, -p.x[base + 2 * r + 1] / q.z);
+      out.observed.emplace_back(q.x, q.y);
+      out.residuals.push_back(residual);
+      ++out.points;
+      sum2 += residual.squaredNorm();
+      all_residuals.push_back(residual.x());
+      all_residuals.push_back(residual.y());
+      ++inliers;
+    }
+  }
+  for (int m = 0; m < p.ncams(); ++m) {
+    CalibratedCamera& out = summary.cameras[p.camera_index[m]];
+    double s2 = 0;
+    for (const auto& r : out.residuals) s2 += r.squaredNorm();
+    out.rms_px = out.points > 0 ? std::sqrt(s2 / (2.0 * out.points)) : 0;
+    summary.outliers += out.outliers;
+    auto& d = distances[m];
+    std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
+    out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
+    const Pose pose = m == 0 ? Pose::Identity() : FromMrcal(p.extrinsics[m - 1]);
+    std::vector<double> intrinsics(p.intrinsics.begin() + m * nparams,
+                                   p.intrinsics.begin() + (m + 1) * nparams);
+    out.model = CameraModel(p.lensmodel, intrinsics, p.imagersizes[2 * m], p.imagersizes[2 * m + 1], pose);
+    out.solved = true;
+  }
+  // Per coordinate, so it compares directly with a per-axis detection noise.
+  summary.rms_reprojection_px = inliers > 0 ? std::sqrt(sum2 / (2.0 * inliers)) : 0;
+  for (size_t f = 0; f < p.frames.size(); ++f) summary.ref_from_board[p.frame_sets[f]] = FromMrcal(p.frames[f]);
+  if (summary.observations > 0 && summary.outliers > 0.25 * inliers) {
+    summary.warnings.push_back(Cat(summary.outliers, " outliers against ", inliers, " inliers"));
+  }
+
+  // Uncertainty.
+  double mean = 0;
+  for (double v : all_residuals) mean += v / all_residuals.size();
+  double var = 0;
+  for (double v : all_residuals) var += (v - mean) * (v - mean) / all_residuals.size();
+  summary.observed_pixel_sigma = options.observed_pixel_sigma > 0 ? options.observed_pixel_sigma : std::sqrt(var);
+  std::vector<std::string> ill;
+  if (options.uncertainty) {
+    const auto u_start = std::chrono::steady_clock::now();
+    Factorization f;
+    bool ok = Jacobian(p, &f.jt);
+    if (ok) {
+      const Eigen::SparseMatrix<double> jtj = f.jt * Eigen::SparseMatrix<double>(f.jt.transpose());
+      f.ldlt.compute(jtj);
+      ok = f.ldlt.info() == Eigen::Success;
+      f.nmeas_observations = mrcal_num_measurements_boards(nobs, p.width_n, p.height_n);
+      f.regularized = f.nmeas_observations != p.nmeasurements();
+      if (f.regularized) {
+        const Eigen::SparseMatrix<double> jobs_t = f.jt.leftCols(f.nmeas_observations);
+        f.jobs_t_jobs = jobs_t * Eigen::SparseMatrix<double>(jobs_t.transpose());
+      }
+    }
+    for (int m = 0; m < p.ncams(); ++m) {
+      CalibratedCamera& out = summary.cameras[p.camera_index[m]];
+      const double distance = options.uncertainty_distance_m > 0 ? options.uncertainty_distance_m
+                                                                  : out.median_board_distance_m;
+      if (ok) {
+        out.uncertainty = Uncertainty(p, f, m, distance, summary.observed_pixel_sigma,
+                                      options.uncertainty_grid_x, options.uncertainty_grid_y);
+      } else {
+        out.uncertainty.worst_px = out.uncertainty.mean_px = std::numeric_limits<double>::infinity();
+      }
+      // Where the board never was (a fisheye's corners), any model is a guess; judge the
+      // solve where it has data.
+      CameraUncertainty& u = out.uncertainty;
+      if (ok && u.grid_x > 0) {
+        const int width = out.model.width(), height = out.model.height();
+        u.observed = Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic>::Constant(u.grid_y, u.grid_x, false);
+        for (const auto& q : out.observed) {
+          const int gx = std::clamp(static_cast<int>((q.x() + 0.5) * u.grid_x / width), 0, u.grid_x - 1);
+          const int gy = std::clamp(static_cast<int>((q.y() + 0.5) * u.grid_y / height), 0, u.grid_y - 1);
+          u.observed(gy, gx) = true;
+        }
+        u.worst_observed_px = 0;
+        for (int gy = 0; gy < u.grid_y; ++gy) {
+          for (int gx = 0; gx < u.grid_x; ++gx) {
+            if (!u.observed(gy, gx)) continue;
+            const double sigma = u.worst_sigma_px(gy, gx);
+            u.worst_observed_px = std::isfinite(sigma) ? std::max(u.worst_observed_px, sigma)
+                                                       : std::numeric_limits<double>::infinity();
+          }
+        }
+      } else {
+        u.worst_observed_px = std::numeric_limits<double>::infinity();
+      }
+      if (!(u.worst_observed_px <= options.max_uncertainty_px)) {
+        out.flag = Cat("ill-conditioned: worst projection 1-sigma where the board was seen ",
+                       u.worst_observed_px,
+                       " px (limit ", options.max_uncertainty_px, ")");
+        ill.push_back(out.name);
+      }
+    }
+    summary.uncertainty_seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - u_start).count();
+    if (!ok) summary.warnings.push_back("the Jacobian could not be factored: the problem is singular");
+  }
+
+  if (options.cross_validation) {
+    // A seeded shuffle, not odd/even: sequences often alternate their poses.
+    std::vector<size_t> order(p.frame_sets.size());
+    std::iota(order.begin(), order.end(), size_t{0});
+    std::shuffle(order.begin(), order.end(), std::mt19937_64(1));
+    std::vector<BoardObservation> half[2];
+    for (size_t i = 0; i < order.size(); ++i) {
+      for (const auto& [m, k] : frame_members[p.frame_sets[order[i]]]) {
+        half[2 * i < order.size() ? 0 : 1].push_back(observations_in[k]);
+      }
+    }
+    CalibrationOptions half_options = options;
+    half_options.cross_validation = false;
+    half_options.min_views_per_camera = std::max(3, options.min_views_per_camera / 2);
+    half_options.max_uncertainty_px = 1e9;  // judged here against each other instead
+    const CalibrationSummary a = Calibrate(layout, cameras, half[0], half_options);
+    const CalibrationSummary b = Calibrate(layout, cameras, half[1], half_options);
+    summary.cross_validation = CrossValidate(a, b);
+  }
+
+  std::vector<std::string> flagged;
+  for (const auto& c : summary.cameras) {
+    if (!c.flag.empty()) flagged.push_back(c.name + " (" + c.flag + ")");
+  }
+  if (!flagged.empty()) {
+    std::string list;
+    for (const auto& f : flagged) list += (list.empty() ? "" : "; ") + f;
+    summary.termination = Termination::kDegenerate;
+    summary.message = Cat(flagged.size(), " of ", cameras.size(), " cameras cannot be trusted: ", list);
+  } else {
+    summary.termination = Termination::kConvergence;
+    summary.message = Cat(cameras.size(), " cameras, ", summary.frames, " board poses, ",
+                          summary.observations, " views: ", summary.rms_reprojection_px,
+                          " px RMS per coordinate, ", summary.outliers, " outliers");
+  }
+  return summary;
+}
+
+}  // namespace holocap

@@ -1,0 +1,156 @@
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <fstream>
+
+#include "calibration/calibration.h"
+#include "core/error.h"
+#include "core/fs.h"
+#include "tests/calibration/synthetic_rig.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::RenderBoard;
+using testing::TempDir;
+
+// A slightly distorted 640x480 lens looking at the board from 1.1 m, tilted.
+struct Scene {
+  CameraModel camera{"LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004},
+                     640, 480};
+  Pose cam_from_board = Pose::Identity();
+  explicit Scene(const Board& board, double tilt_deg = 25, double distance = 1.1) {
+    const Eigen::Vector3d centre((board.width_n() - 1) * board.layout().spacing / 2,
+                                 (board.height_n() - 1) * board.layout().spacing / 2, 0);
+    cam_from_board.linear() =
+        Eigen::AngleAxisd(tilt_deg * M_PI / 180, Eigen::Vector3d(0.6, 0.8, 0)).toRotationMatrix();
+    cam_from_board.translation() = Eigen::Vector3d(0.03, -0.02, distance) - cam_from_board.linear() * centre;
+  }
+};
+
+struct CornerErrors {
+  double mean = 0, max = 0;
+  int count = 0;
+};
+
+CornerErrors Errors(const BoardObservation& obs, const Scene& scene, const Board& board) {
+  CornerErrors e;
+  const auto grid = board.GridPoints();
+  for (int r = 0; r < obs.points.rows(); ++r) {
+    if (obs.points(r, 2) <= 0) continue;
+    Eigen::Vector2d truth;
+    EXPECT_TRUE(scene.camera.Project(scene.cam_from_board * grid[r], &truth));
+    const double d = (obs.points.row(r).head<2>().transpose() - truth).norm();
+    e.mean += d;
+    e.max = std::max(e.max, d);
+    ++e.count;
+  }
+  if (e.count > 0) e.mean /= e.count;
+  return e;
+}
+
+class AprilTagFamilies : public ::testing::TestWithParam<std::string> {};
+
+// Corners against the exact projection of the true grid: libapriltag alone and refined.
+TEST_P(AprilTagFamilies, CornersAreSubPixelAgainstTheTruth) {
+  BoardLayout layout = testing::TestBoard();
+  layout.family = GetParam();
+  if (layout.family == "tagStandard41h12") layout.margin = 0.08;
+  const Board board(layout);
+  const Scene scene(board);
+  const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board, 2.0);
+  DetectionOptions raw_options;
+  raw_options.refine_corners = false;
+  BoardObservation raw, refined;
+  std::string reason;
+  ASSERT_TRUE(BoardDetector(layout, raw_options).Detect(image, &raw, &reason)) << reason;
+  ASSERT_TRUE(BoardDetector(layout).Detect(image, &refined, &reason)) << reason;
+  const CornerErrors before = Errors(raw, scene, board);
+  const CornerErrors after = Errors(refined, scene, board);
+  std::printf("[%s] %d corners: libapriltag mean %.3f max %.3f px; refined mean %.3f max %.3f px\n",
+              layout.family.c_str(), after.count, before.mean, before.max, after.mean, after.max);
+  EXPECT_EQ(after.count, board.width_n() * board.height_n());
+  EXPECT_LT(after.mean, 0.06);
+  EXPECT_LT(after.max, 0.2);
+  EXPECT_LT(after.mean, before.mean);
+}
+
+INSTANTIATE_TEST_SUITE_P(Families, AprilTagFamilies,
+                         ::testing::Values("tag36h11", "tagStandard41h12"));
+
+TEST(BoardDetector, FindsChessboardCornersInHolocapOrder) {
+  BoardLayout layout;
+  layout.type = BoardType::kChessboard;
+  layout.chessboard_width_n = 9;
+  layout.chessboard_height_n = 6;
+  layout.spacing = 0.05;
+  layout.margin = 0.06;
+  const Board board(layout);
+  for (double tilt : {20.0, 160.0}) {  // 160: seen upside down, OpenCV starts at the other end
+    Scene scene(board, 20);
+    scene.cam_from_board.linear() =
+        scene.cam_from_board.linear() * Eigen::AngleAxisd(tilt > 90 ? M_PI : 0, Eigen::Vector3d::UnitZ());
+    const Eigen::Vector3d centre(4 * 0.05, 2.5 * 0.05, 0);
+    scene.cam_from_board.translation() = Eigen::Vector3d(0, 0, 1.0) - scene.cam_from_board.linear() * centre;
+    const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board, 2.0);
+    BoardObservation obs;
+    std::string reason;
+    ASSERT_TRUE(BoardDetector(layout).Detect(image, &obs, &reason)) << reason;
+    const CornerErrors e = Errors(obs, scene, board);
+    EXPECT_EQ(e.count, 54);
+    EXPECT_LT(e.max, 0.2) << "rotation " << tilt;
+  }
+}
+
+TEST(BoardDetector, RejectsAPartialBoardAndAnEmptyImage) {
+  const BoardLayout layout = testing::TestBoard();
+  const Board board(layout);
+  Scene scene(board, 10, 1.0);
+  scene.cam_from_board.translation().x() += 0.75;  // most of the board beyond the right edge
+  const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board);
+  BoardObservation obs;
+  std::string reason;
+  DetectionOptions options;
+  options.min_tags = 8;
+  EXPECT_FALSE(BoardDetector(layout, options).Detect(image, &obs, &reason));
+  EXPECT_NE(reason.find("partial"), std::string::npos) << reason;
+  EXPECT_EQ(obs.seen(), 0);
+  const cv::Mat blank(480, 640, CV_8UC1, cv::Scalar(128));
+  EXPECT_FALSE(BoardDetector(layout).Detect(blank, &obs, &reason));
+}
+
+// Another board's tags (ids outside this layout) are told apart from "no board".
+TEST(BoardDetector, NamesTagsOfADifferentBoard) {
+  BoardLayout printed = testing::TestBoard();
+  printed.first_id = 100;
+  const Board board(printed);
+  const Scene scene(board);
+  const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board);
+  BoardObservation obs;
+  std::string reason;
+  EXPECT_FALSE(BoardDetector(testing::TestBoard()).Detect(image, &obs, &reason));
+  EXPECT_NE(reason.find("not on this board"), std::string::npos) << reason;
+  EXPECT_EQ(BoardDetector(testing::TestBoard()).DetectTagIds(image).front(), 100);
+}
+
+TEST(BoardPrint, PdfPageIsTheBoardsSizeAndThePngDetects) {
+  TempDir dir;
+  const BoardLayout layout = testing::TestBoard();
+  const Board board(layout);
+  WriteBoardPrint(layout, dir / "board.pdf");
+  const std::string pdf = ReadFileToString(dir / "board.pdf");
+  const double width_pt = (board.u_max() - board.u_min()) / 0.0254 * 72;
+  char media[96];
+  std::snprintf(media, sizeof(media), "/MediaBox [0 0 %.4f ", width_pt);
+  EXPECT_NE(pdf.find(media), std::string::npos) << pdf.substr(0, 300);
+  EXPECT_EQ(pdf.substr(0, 8), "%PDF-1.4");
+
+  const cv::Mat print = RenderBoardImage(layout, 100);
+  EXPECT_NEAR(print.cols, (board.u_max() - board.u_min()) / 0.0254 * 100, 1.0);
+  EXPECT_EQ(BoardDetector(layout).DetectTagIds(print).size(), 20u);
+  EXPECT_THROW(WriteBoardPrint(layout, dir / "board.jpg"), Error);
+}
+
+}  // namespace
+}  // namespace holocap
