@@ -108,7 +108,9 @@ struct NeuralVolumeSummary {
   double first_loss = 0;              // mean photometric loss over the first iterations
   double last_loss = 0;               // and over the last ones
   double heldout_psnr_db = 0;         // held-out cameras, whole image (background included)
-  double heldout_psnr_fg_db = 0;      // held-out cameras, inside the subject's box only
+  double heldout_psnr_fg_db = 0;      // held-out cameras, inside the subject's silhouette only
+  double background_psnr_fg_db = 0;   // the same pixels rendered as background alone (the
+                                      // score of an empty volume: what training must beat)
   double heldout_ssim = 0;
   int divergences = 0;                // restored checkpoints
   bool built_encoder = false;

@@ -53,6 +53,7 @@ void RestoreSnapshot(const Snapshot& s, NvolModel& model, torch::Tensor& backgro
 struct Evaluation {
   double psnr_db = 0;
   double psnr_fg_db = 0;
+  double background_psnr_fg_db = 0;  // the backgrounds alone, in the same pixels
   double ssim = 0;
 };
 
@@ -311,7 +312,7 @@ Evaluation Trainer::Evaluate() {
   torch::NoGradGuard no_grad;
   Evaluation result;
   if (heldout_.empty()) return result;
-  double mse_sum = 0, mse_fg_sum = 0, ssim_sum = 0;
+  double mse_sum = 0, mse_fg_sum = 0, mse_background_sum = 0, ssim_sum = 0;
   int count = 0;
   for (int64_t f : eval_frames_) {
     torch::Tensor latent = Latent(f, /*sample=*/false, nullptr);
@@ -338,6 +339,9 @@ Evaluation Trainer::Evaluate() {
       cv::dilate(data_.masks[f][v], mask, cv::Mat(), cv::Point(-1, -1), 3);
       mse_sum += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
       mse_fg_sum += std::pow(10.0, -PsnrDb(predicted, truth, mask) / 10.0);
+      cv::Mat background;
+      data_.views[v].background.convertTo(background, CV_32FC3, 1.0 / 255.0);
+      mse_background_sum += std::pow(10.0, -PsnrDb(background, truth, mask) / 10.0);
       ssim_sum += Ssim(predicted, truth);
       ++count;
     }
@@ -345,6 +349,7 @@ Evaluation Trainer::Evaluate() {
   // PSNR of the mean squared error over every evaluated image (not the mean of PSNRs).
   result.psnr_db = -10.0 * std::log10(mse_sum / count);
   result.psnr_fg_db = -10.0 * std::log10(mse_fg_sum / count);
+  result.background_psnr_fg_db = -10.0 * std::log10(mse_background_sum / count);
   result.ssim = ssim_sum / count;
   return result;
 }
@@ -530,6 +535,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   }
   summary.heldout_psnr_db = last_eval.psnr_db;
   summary.heldout_psnr_fg_db = last_eval.psnr_fg_db;
+  summary.background_psnr_fg_db = last_eval.background_psnr_fg_db;
   summary.heldout_ssim = last_eval.ssim;
   if (summary.termination != Termination::kFailure) {
     if (!std::isfinite(summary.last_loss) || (!heldout_.empty() && !std::isfinite(summary.heldout_psnr_db))) {
@@ -540,7 +546,8 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
       summary.message = heldout_.empty()
           ? Cat("trained ", iteration, " iterations in ", summary.seconds, " s (no held-out camera)")
           : Cat("trained ", iteration, " iterations in ", summary.seconds, " s; held-out PSNR ",
-                summary.heldout_psnr_db, " dB (subject box ", summary.heldout_psnr_fg_db, " dB)");
+                summary.heldout_psnr_db, " dB (subject ", summary.heldout_psnr_fg_db, " dB, background alone ",
+                summary.background_psnr_fg_db, " dB)");
     }
   }
   SaveModel(summary.plan);
@@ -572,6 +579,7 @@ NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& 
     report->metrics() = {{"heldout_psnr_db", summary.heldout_psnr_db},
                          {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
                          {"heldout_ssim", summary.heldout_ssim},
+                         {"background_psnr_fg_db", summary.background_psnr_fg_db},
                          {"iterations", summary.iterations},
                          {"seconds", summary.seconds},
                          {"first_loss", summary.first_loss},
