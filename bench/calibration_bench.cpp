@@ -1,0 +1,305 @@
+// Calibration on the simulated studio8 board sequence: holocap's figures against the issue's
+// targets, and peers on the same detections in the same run: OpenCV calibrateCamera /
+// stereoCalibrate, and mrcal's own mrcal-calibrate-cameras on the same corners (corners.vnl).
+//
+//   calibration_bench [--take DIR] [--frames 60] [--no-mrcal]
+// Without --take it simulates `holocap sim --rig studio8 --board --frames N` into a temporary
+// directory first.
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <opencv2/calib3d.hpp>
+#include <string>
+
+#include "calibration/calibration.h"
+#include "core/error.h"
+#include "core/take.h"
+#include "sim/sim.h"
+
+namespace holocap {
+namespace {
+
+double Seconds(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+}
+
+std::map<int64_t, Pose> TrueBoardPoses(const Take& take) {
+  std::map<int64_t, Pose> poses;
+  const auto json = nlohmann::json::parse(std::ifstream(take.gt_dir() / "board.json"));
+  for (const auto& e : json["world_from_board"]) {
+    const auto rt = e["rt"].get<std::vector<double>>();
+    poses[e["set"].get<int64_t>()] = PoseFromRt({rt[0], rt[1], rt[2], rt[3], rt[4], rt[5]});
+  }
+  return poses;
+}
+
+// Projection difference of two models of one camera over its imager, after the rotation the
+// two frames imply is fitted out (mrcal's projection_diff at the given distance).
+double ProjectionDiffRms(const CameraModel& a, const CameraModel& b, double distance) {
+  Eigen::Matrix2Xd pixels(2, 16 * 12);
+  for (int k = 0; k < pixels.cols(); ++k) {
+    pixels.col(k) << ((k % 16) + 0.5) * a.width() / 16 - 0.5, ((k / 16) + 0.5) * a.height() / 12 - 0.5;
+  }
+  const Eigen::Matrix3Xd ra = a.UnprojectMany(pixels), rb = b.UnprojectMany(pixels);
+  Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
+  for (int k = 0; k < pixels.cols(); ++k) {
+    if (ra.col(k).allFinite() && rb.col(k).allFinite()) h += ra.col(k) * rb.col(k).transpose();
+  }
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
+  fix(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
+  const Eigen::Matrix3d rotation = svd.matrixV() * fix * svd.matrixU().transpose();
+  double sum2 = 0;
+  int n = 0;
+  for (int k = 0; k < pixels.cols(); ++k) {
+    Eigen::Vector2d q;
+    if (!ra.col(k).allFinite() || !b.Project(rotation * ra.col(k) * distance, &q)) continue;
+    sum2 += (q - pixels.col(k)).squaredNorm();
+    ++n;
+  }
+  return n > 0 ? std::sqrt(sum2 / n) : NAN;
+}
+
+int Run(int argc, char** argv) {
+  std::setvbuf(stdout, nullptr, _IOLBF, 0);
+  std::filesystem::path take_dir;
+  int frames = 60;
+  bool mrcal = true;
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    if (arg == "--take" && i + 1 < argc) take_dir = argv[++i];
+    else if (arg == "--frames" && i + 1 < argc) frames = std::atoi(argv[++i]);
+    else if (arg == "--no-mrcal") mrcal = false;
+    else Fail("usage: calibration_bench [--take DIR] [--frames N] [--no-mrcal]");
+  }
+  if (take_dir.empty()) {
+    take_dir = std::filesystem::temp_directory_path() / "holocap-calibration-bench";
+    SimOptions sim;
+    sim.scene = "board";
+    sim.frames = frames;
+    sim.overwrite = true;
+    const auto start = std::chrono::steady_clock::now();
+    const SimSummary s = SimulateTake(sim, take_dir);
+    std::printf("simulated studio8 board take: %lld frame sets in %.1f s -> %s\n",
+                static_cast<long long>(s.frame_sets), Seconds(start), take_dir.c_str());
+  }
+  const Take take = Take::Open(take_dir);
+  const BoardLayout layout =
+      BoardLayout::FromJson(nlohmann::json::parse(std::ifstream(take.gt_dir() / "board.json"))["layout"]);
+  const Board board(layout);
+  std::vector<std::string> sensors;
+  std::vector<CalibrationCamera> cameras;
+  std::map<std::string, CameraModel> truth;
+  for (const auto& s : take.streams()) {
+    if (s.role != SensorRole::kColor) continue;
+    sensors.push_back(s.name);
+    cameras.push_back({s.name, s.width, s.height, "LENSMODEL_OPENCV8"});
+    truth.emplace(s.name, take.Camera(s.name, true));
+  }
+  DetectionSummary detection;
+  const std::vector<BoardObservation> observations =
+      DetectBoardsInTake(take, layout, sensors, {}, &detection);
+  // Detection noise actually present: detected corners against the true projections.
+  const std::map<int64_t, Pose> world_from_board = TrueBoardPoses(take);
+  double noise2 = 0;
+  int64_t noise_n = 0;
+  for (const auto& obs : observations) {
+    const CameraModel& cam = truth.at(obs.sensor);
+    auto truth_pose = world_from_board.find(obs.frame_set);
+    if (truth_pose == world_from_board.end()) continue;
+    const Pose view = cam.cam_from_world() * truth_pose->second;
+    for (int r = 0; r < obs.points.rows(); ++r) {
+      if (obs.points(r, 2) <= 0) continue;
+      Eigen::Vector2d q;
+      if (!cam.Project(view * board.GridPoint(r % board.width_n(), r / board.width_n()), &q)) continue;
+      noise2 += (obs.points.row(r).head<2>().transpose() - q).squaredNorm();
+      ++noise_n;
+    }
+  }
+  const double noise = std::sqrt(noise2 / (2.0 * noise_n));
+  std::printf("detection: %lld views of %lld frames, %.1f frames/s, corner noise vs truth %.3f px per coordinate\n",
+              static_cast<long long>(detection.views), static_cast<long long>(detection.frames),
+              detection.frames_per_second, noise);
+  for (const auto& [name, n] : detection.views_per_sensor) std::printf("  %s: %lld views\n", name.c_str(), static_cast<long long>(n));
+
+  const auto start = std::chrono::steady_clock::now();
+  const CalibrationSummary s = Calibrate(layout, cameras, observations, {});
+  const double holocap_seconds = Seconds(start);
+  const GroundTruthComparison g = CompareWithTruth(s, truth, world_from_board, layout);
+  std::printf("\nholocap: %s: %s\n", ToString(s.termination), s.message.c_str());
+  std::printf("| figure | measured | target |\n|---|---|---|\n");
+  std::printf("| RMS reprojection / corner noise | %.3f / %.3f px (%.1f%%) | within 20%% |\n",
+              s.rms_reprojection_px, noise, 100 * (s.rms_reprojection_px / noise - 1));
+  std::printf("| focal relative error, max | %.4f%% | <= 0.05%% |\n", 100 * g.focal_rel_err_max);
+  std::printf("| principal point error, max | %.3f px | <= 0.5 px |\n", g.principal_point_err_px_max);
+  std::printf("| rotation error, max | %.4f deg | <= 0.02 deg |\n", g.rotation_err_deg_max);
+  std::printf("| translation error, max | %.3f mm | <= 1 mm |\n", g.translation_err_mm_max);
+  std::printf("| true vs solved projection, RMS | %.3f px (where seen: %.3f px) | <= 0.2 px |\n",
+              g.projection_diff_rms_px, g.projection_diff_rms_observed_px);
+  std::printf("| within 3x reported 1-sigma | %.1f%% | >= 90%% |\n", 100 * g.within_3sigma_fraction);
+  std::printf("| solve (+ uncertainty) | %.1f s (+ %.1f s), %.1f s in all | <= 60 s on 2 cores |\n",
+              s.solve_seconds, s.uncertainty_seconds, holocap_seconds);
+  for (const auto& [name, j] : g.per_camera) std::printf("  %s %s\n", name.c_str(), j.dump().c_str());
+
+  // OpenCV on the same detections: one calibrateCamera per camera with the rational model
+  // (the same 8 distortion terms as OPENCV8).
+  std::printf("\n| camera | holocap focal err | OpenCV focal err | holocap pp err | OpenCV pp err | OpenCV rms px | OpenCV s |\n|---|---|---|---|---|---|---|\n");
+  double opencv_seconds = 0;
+  std::map<std::string, cv::Mat> opencv_K, opencv_dist;
+  for (const auto& cam : cameras) {
+    std::vector<std::vector<cv::Point3f>> object;
+    std::vector<std::vector<cv::Point2f>> image;
+    for (const auto& obs : observations) {
+      if (obs.sensor != cam.name) continue;
+      std::vector<cv::Point3f> o;
+      std::vector<cv::Point2f> i;
+      for (int r = 0; r < obs.points.rows(); ++r) {
+        if (obs.points(r, 2) <= 0) continue;
+        const Eigen::Vector3d p = board.GridPoint(r % board.width_n(), r / board.width_n());
+        o.emplace_back(p.x(), p.y(), 0);
+        i.emplace_back(obs.points(r, 0), obs.points(r, 1));
+      }
+      object.push_back(o);
+      image.push_back(i);
+    }
+    cv::Mat K, dist;
+    std::vector<cv::Mat> rvecs, tvecs;
+    const auto t0 = std::chrono::steady_clock::now();
+    const double rms = cv::calibrateCamera(object, image, cv::Size(cam.width, cam.height), K, dist, rvecs, tvecs,
+                                           cv::CALIB_RATIONAL_MODEL);
+    const double seconds = Seconds(t0);
+    opencv_seconds += seconds;
+    opencv_K[cam.name] = K;
+    opencv_dist[cam.name] = dist;
+    const auto& t = truth.at(cam.name).intrinsics();
+    const double focal = std::max(std::abs(K.at<double>(0, 0) - t[0]) / t[0], std::abs(K.at<double>(1, 1) - t[1]) / t[1]);
+    const double pp = std::hypot(K.at<double>(0, 2) - t[2], K.at<double>(1, 2) - t[3]);
+    const nlohmann::json pc = g.per_camera.count(cam.name) ? g.per_camera.at(cam.name) : nlohmann::json::object();
+    std::printf("| %s | %.4f%% | %.4f%% | %.3f | %.3f | %.3f | %.2f |\n", cam.name.c_str(),
+                100 * pc.value("focal_rel_err", NAN), 100 * focal, pc.value("principal_point_err_px", NAN), pp,
+                rms / std::sqrt(2.0), seconds);
+  }
+  std::printf("OpenCV calibrateCamera, 8 cameras one by one (no rig, no uncertainty): %.1f s; holocap joint solve: %.1f s; time ratio holocap/OpenCV %.2f\n",
+              opencv_seconds, holocap_seconds, holocap_seconds / opencv_seconds);
+  // stereoCalibrate of the reference camera with its best-connected neighbour.
+  {
+    const std::string a = cameras[0].name;
+    std::string b;
+    size_t best = 0;
+    for (size_t c = 1; c < cameras.size(); ++c) {
+      size_t shared = 0;
+      for (const auto& oa : observations) {
+        if (oa.sensor != a) continue;
+        for (const auto& ob : observations) shared += ob.sensor == cameras[c].name && ob.frame_set == oa.frame_set;
+      }
+      if (shared > best) {
+        best = shared;
+        b = cameras[c].name;
+      }
+    }
+    std::vector<std::vector<cv::Point3f>> object;
+    std::vector<std::vector<cv::Point2f>> ia, ib;
+    for (const auto& oa : observations) {
+      if (oa.sensor != a) continue;
+      for (const auto& ob : observations) {
+        if (ob.sensor != b || ob.frame_set != oa.frame_set) continue;
+        std::vector<cv::Point3f> o;
+        std::vector<cv::Point2f> pa, pb;
+        for (int r = 0; r < oa.points.rows(); ++r) {
+          if (oa.points(r, 2) <= 0 || ob.points(r, 2) <= 0) continue;
+          const Eigen::Vector3d p = board.GridPoint(r % board.width_n(), r / board.width_n());
+          o.emplace_back(p.x(), p.y(), 0);
+          pa.emplace_back(oa.points(r, 0), oa.points(r, 1));
+          pb.emplace_back(ob.points(r, 0), ob.points(r, 1));
+        }
+        if (o.size() >= 8) {
+          object.push_back(o);
+          ia.push_back(pa);
+          ib.push_back(pb);
+        }
+      }
+    }
+    if (object.size() >= 3) {
+      cv::Mat R, T, E, F;
+      const auto t0 = std::chrono::steady_clock::now();
+      cv::stereoCalibrate(object, ia, ib, opencv_K[a], opencv_dist[a], opencv_K[b], opencv_dist[b],
+                          cv::Size(cameras[0].width, cameras[0].height), R, T, E, F, cv::CALIB_FIX_INTRINSIC);
+      const double seconds = Seconds(t0);
+      Pose b_from_a = Pose::Identity();
+      for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) b_from_a.linear()(r, c) = R.at<double>(r, c);
+        b_from_a.translation()(r) = T.at<double>(r);
+      }
+      const Pose true_b_from_a = truth.at(b).cam_from_world() * truth.at(a).world_from_cam();
+      const Pose delta = b_from_a * true_b_from_a.inverse();
+      std::printf("OpenCV stereoCalibrate %s-%s (%zu shared views, %.2f s): rotation err %.4f deg, translation err %.3f mm; holocap %s: %.4f deg, %.3f mm\n",
+                  a.c_str(), b.c_str(), object.size(), seconds, RotationAngleDeg(delta.linear()),
+                  1000 * (b_from_a.inverse().translation() - true_b_from_a.inverse().translation()).norm(), b.c_str(),
+                  g.per_camera.count(b) ? g.per_camera.at(b).value("rotation_err_deg", NAN) : NAN,
+                  g.per_camera.count(b) ? g.per_camera.at(b).value("translation_err_mm", NAN) : NAN);
+    }
+  }
+
+  if (!mrcal) return 0;
+  // mrcal's own tool on the same corners.
+  const std::filesystem::path dir = std::filesystem::temp_directory_path() / "holocap-calibration-bench-mrcal";
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  {
+    std::ofstream vnl(dir / "corners.vnl");
+    vnl << "# filename x y level\n";
+    for (const auto& obs : observations) {
+      char name[64];
+      std::snprintf(name, sizeof(name), "frame%06lld-%s.png", static_cast<long long>(obs.frame_set), obs.sensor.c_str());
+      for (int r = 0; r < obs.points.rows(); ++r) {
+        if (obs.points(r, 2) > 0) {
+          vnl << name << " " << obs.points(r, 0) << " " << obs.points(r, 1) << " 0\n";
+        } else {
+          vnl << name << " - - -\n";
+        }
+      }
+    }
+  }
+  std::string command = "cd " + dir.string() + " && /usr/bin/python3 /usr/bin/mrcal-calibrate-cameras --corners-cache corners.vnl --lensmodel LENSMODEL_OPENCV8 --focal " +
+                        std::to_string(truth.at(cameras[0].name).intrinsics()[0] * 0.9) +
+                        " --object-spacing " + std::to_string(layout.spacing) + " --object-width-n " + std::to_string(board.width_n()) +
+                        " --object-height-n " + std::to_string(board.height_n()) + " --imagersize " +
+                        std::to_string(cameras[0].width) + " " + std::to_string(cameras[0].height) + " --outdir " + dir.string();
+  for (const auto& cam : cameras) command += " 'frame*-" + cam.name + ".png'";
+  command += " > mrcal.log 2>&1";
+  const auto t0 = std::chrono::steady_clock::now();
+  const int rc = std::system(command.c_str());
+  const double mrcal_seconds = Seconds(t0);
+  if (rc != 0) {
+    std::printf("mrcal-calibrate-cameras failed (exit %d): see %s\n", rc, (dir / "mrcal.log").c_str());
+    return 0;
+  }
+  std::printf("\nmrcal-calibrate-cameras on the same corners: %.1f s (holocap %.1f s, ratio %.2f)\n",
+              mrcal_seconds, holocap_seconds, holocap_seconds / mrcal_seconds);
+  std::printf("| camera | holocap vs mrcal projection diff (px RMS, implied rotation fitted) | holocap 1-sigma mean / worst where seen (px) | within? |\n|---|---|---|---|\n");
+  for (size_t c = 0; c < cameras.size(); ++c) {
+    const CalibratedCamera* mine = s.Find(cameras[c].name);
+    const std::filesystem::path file = dir / ("camera-" + std::to_string(c) + ".cameramodel");
+    if (mine == nullptr || !mine->solved || !std::filesystem::exists(file)) continue;
+    const CameraModel theirs = CameraModel::Read(file);
+    const double diff = ProjectionDiffRms(mine->model, theirs, mine->uncertainty.distance_m);
+    std::printf("| %s | %.3f | %.3f / %.3f | %s |\n", cameras[c].name.c_str(), diff, mine->uncertainty.mean_px,
+                mine->uncertainty.worst_observed_px, diff <= 3 * mine->uncertainty.mean_px ? "yes" : "no");
+  }
+  return 0;
+}
+
+}  // namespace
+}  // namespace holocap
+
+int main(int argc, char** argv) {
+  try {
+    return holocap::Run(argc, argv);
+  } catch (const holocap::Error& e) {
+    std::fprintf(stderr, "calibration_bench: error: %s\n", e.what());
+    return 1;
+  }
+}

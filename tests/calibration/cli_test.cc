@@ -1,0 +1,95 @@
+// End to end through the CLI on small simulated studio8 board takes, and its bad-input errors.
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "core/fs.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::RunCli;
+using testing::TempDir;
+
+// One small board take shared by the tests of this file (simulating is the slow part).
+const std::filesystem::path& BoardTake() {
+  static TempDir dir("holocap-calib-cli");
+  static const bool made = [] {
+    const auto result = RunCli("sim --rig studio8 --board --frames 40 --size 480 --out " + (dir / "take").string());
+    EXPECT_EQ(result.exit_code, 0) << result.output;
+    return true;
+  }();
+  (void)made;
+  static const std::filesystem::path take = dir / "take";
+  return take;
+}
+
+TEST(CalibrateCli, CalibratesASimulatedBoardTake) {
+  const auto result = RunCli("calibrate " + BoardTake().string() + " --no-pictures");
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  for (int i = 0; i < 8; ++i) {
+    EXPECT_TRUE(std::filesystem::exists(BoardTake() / "calib" / ("cam" + std::to_string(i) + ".cameramodel"))) << i;
+  }
+  const auto report = nlohmann::json::parse(ReadFileToString(BoardTake() / "calib" / "report.json"));
+  const auto& m = report["metrics"];
+  EXPECT_LT(m["rms_reprojection_px"].get<double>(), 0.6);
+  EXPECT_GT(m["timing"]["solve_s"].get<double>(), 0);
+  EXPECT_TRUE(m["cameras"]["cam3"].contains("outliers"));
+  EXPECT_GT(m["uncertainty"]["worst_observed_px"].get<double>(), 0);
+  EXPECT_FALSE(report["series"].empty());
+  // Against the simulated truth; this reduced take (40 sets, 480 px) is held to looser bounds
+  // than the full studio8 figures the benchmark prints.
+  EXPECT_LT(m["gt"]["projection_diff_rms_observed_px"].get<double>(), 0.3);
+  EXPECT_LT(m["gt"]["focal_rel_err_max"].get<double>(), 0.005);
+  EXPECT_GE(m["gt"]["within_3sigma_fraction"].get<double>(), 0.8);
+}
+
+TEST(CalibrateCli, BadInputGivesOneClearError) {
+  TempDir dir;
+  const std::string take = BoardTake().string();
+  // A camera absent from the take.
+  auto r = RunCli("calibrate " + take + " --sensors cam9 --no-pictures");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("holocap: error: camera 'cam9' is not in the take"), std::string::npos) << r.output;
+  // A board file that does not match the prints.
+  {
+    std::ofstream(dir / "other.yaml") << "type: apriltag\nfamily: tag36h11\ntags_across: 5\ntags_down: 4\n"
+                                         "spacing: 0.08\nmargin: 0.08\nfirst_id: 200\n";
+  }
+  r = RunCli("calibrate " + take + " --board " + (dir / "other.yaml").string() + " --sensors cam0 --no-pictures");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("does not match the prints"), std::string::npos) << r.output;
+  // Missing frames: a copy of the take whose frame files are gone.
+  std::filesystem::copy(BoardTake(), dir / "gutted", std::filesystem::copy_options::recursive);
+  std::filesystem::remove_all(dir / "gutted" / "frames");
+  r = RunCli("calibrate " + (dir / "gutted").string() + " --no-pictures");
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("holocap: error:"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("no complete frame sets"), std::string::npos) << r.output;
+  // No board visible: a take of the static object.
+  r = RunCli("sim --rig single-rgbd --scene object --frames 2 --size 160 --out " + (dir / "object").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  std::filesystem::copy_file(BoardTake() / "gt" / "board.json", dir / "board.json");
+  r = RunCli("calibrate " + (dir / "object").string() + " --board " + (dir / "board.json").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("no board visible"), std::string::npos) << r.output;
+}
+
+TEST(BoardCli, PrintsABoardToScale) {
+  TempDir dir;
+  std::ofstream(dir / "board.yaml") << "type: apriltag\nfamily: tagStandard41h12\ntags_across: 4\ntags_down: 3\n"
+                                       "spacing: 0.05\nmargin: 0.05\n";
+  auto r = RunCli("board " + (dir / "board.yaml").string() + " --out " + (dir / "board.pdf").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_GT(std::filesystem::file_size(dir / "board.pdf"), 500u);
+  r = RunCli("board " + (dir / "board.yaml").string() + " --out " + (dir / "board.png").string() + " --dpi 150");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = RunCli("board " + (dir / "missing.yaml").string() + " --out " + (dir / "x.png").string());
+  EXPECT_NE(r.exit_code, 0);
+  EXPECT_NE(r.output.find("holocap: error:"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace holocap
