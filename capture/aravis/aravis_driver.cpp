@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <deque>
 #include <mutex>
 #include <opencv2/imgproc.hpp>
 
@@ -75,10 +76,12 @@ class AravisSensor : public Sensor {
     ConfigureTrigger(options.value("sync", "free-run"), options.value("trigger_source", "Line0"),
                      options.value("fps", 0.0));
     ConfigurePtp(options.value("ptp", false));
-    device_clock_ = options.value("timestamp", "device") == "device";
-    if (!device_clock_ && options.value("timestamp", "device") != "host") {
-      Fail("'", uri_, "': option timestamp must be \"host\" or \"device\"");
+    const std::string timestamp = options.value("timestamp", "device");
+    if (timestamp != "device" && timestamp != "host" && timestamp != "raw-device") {
+      Fail("'", uri_, "': option timestamp must be \"device\", \"host\" or \"raw-device\"");
     }
+    device_clock_ = timestamp != "host";
+    map_device_to_host_ = timestamp == "device" && !options.value("ptp", false);
 
     gint x = 0, y = 0, width = 0, height = 0;
     arv_camera_get_region(camera_, &x, &y, &width, &height, &error);
@@ -90,7 +93,7 @@ class AravisSensor : public Sensor {
     stream_info_.height = height;
     stream_info_.pixel_format = layout_.stored;
     stream_info_.codec = ImageCodec::kZstd;
-    stream_info_.clock = device_clock_ ? (ptp_enabled_ ? "PTP" : "device:" + id) : "CLOCK_REALTIME";
+    stream_info_.clock = !device_clock_ || map_device_to_host_ ? "CLOCK_REALTIME" : (ptp_enabled_ ? "PTP" : "device:" + id);
 
     is_gige_ = arv_camera_is_gv_device(camera_);
     if (is_gige_ && !options.value("packet_socket", false)) {
@@ -179,8 +182,9 @@ class AravisSensor : public Sensor {
       frame->image = ConvertAravisImage(wire, layout_);
       if (frame->image.data == wire.data) frame->image = frame->image.clone();
       frame->sensor = stream_info_.name;
-      frame->timestamp_ns = static_cast<int64_t>(device_clock_ ? arv_buffer_get_timestamp(buffer)
-                                                               : arv_buffer_get_system_timestamp(buffer));
+      const int64_t device_ns = static_cast<int64_t>(arv_buffer_get_timestamp(buffer));
+      const int64_t host_ns = static_cast<int64_t>(arv_buffer_get_system_timestamp(buffer));
+      frame->timestamp_ns = !device_clock_ ? host_ns : map_device_to_host_ ? MapToHost(device_ns, host_ns) : device_ns;
       frame->sequence = UnwrapFrameId(arv_buffer_get_frame_id(buffer));
       // The buffer goes back before the frame leaves, so the driver's queue never waits on us.
       arv_stream_push_buffer(stream_, buffer);
@@ -343,6 +347,15 @@ class AravisSensor : public Sensor {
     }
   }
 
+  // The host sees a frame some time after the camera stamped it, never before: the smallest
+  // (host - device) over recent frames is the clock offset plus the shortest transfer, free of
+  // the host's scheduling delays. Recent only, so that the camera clock's drift is followed.
+  int64_t MapToHost(int64_t device_ns, int64_t host_ns) {
+    host_minus_device_.push_back(host_ns - device_ns);
+    if (host_minus_device_.size() > 128) host_minus_device_.pop_front();
+    return device_ns + *std::min_element(host_minus_device_.begin(), host_minus_device_.end());
+  }
+
   uint64_t UnwrapFrameId(uint64_t raw) {
     if (is_gige_ && raw <= 0xffff) {
       if (have_last_id_ && raw < last_raw_id_ && last_raw_id_ - raw > kGvBlockIdPeriod / 2) {
@@ -364,6 +377,8 @@ class AravisSensor : public Sensor {
   bool is_gige_ = false;
   bool software_trigger_ = false;
   bool device_clock_ = false;
+  bool map_device_to_host_ = false;
+  std::deque<int64_t> host_minus_device_;
   bool ptp_enabled_ = false;
   bool started_ = false;
   std::string ptp_status_;

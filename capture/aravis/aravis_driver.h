@@ -11,10 +11,12 @@
 //   "fps"            free-running frame rate (the recorder passes the rig's rate)
 //   "trigger_source" hardware trigger line, default "Line0"
 //   "ptp"            true: enable IEEE 1588 (PtpEnable or GevIEEE1588) where the device has it
-//   "timestamp"      "device" (default: the camera's own clock, stamped at exposure; PTP-
-//                    disciplined where enabled, else the recorder estimates its offset) or "host"
-//                    (CLOCK_REALTIME when the host saw the first packet: one clock for every
-//                    camera, but late by however long the host took to schedule its stream thread)
+//   "timestamp"      "device" (default): the camera's own stamp (start of exposure), carried
+//                    into CLOCK_REALTIME by the smallest recent (host - device) difference, so
+//                    that every camera shares one clock without the host's scheduling delays;
+//                    "host": CLOCK_REALTIME when the host saw the first packet (late by however
+//                    long the stream thread waited for a core); "raw-device": the camera's clock
+//                    as is (named "PTP" when PTP is enabled, which also keeps it raw)
 //   "buffers"        size of the buffer pool handed to the stream, default 16
 //   "debayer"        true (default): Bayer frames become bgr8/bgr16; false: stored raw as mono
 //   "packet_resend"  true (default): ask GigE cameras to resend lost packets

@@ -11,18 +11,20 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include <gtest/gtest.h>
-
 #include <chrono>
 #include <cstdlib>
+#include <cstdio>
 #include <cstring>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "capture/aravis/aravis_driver.h"
+#include "core/error.h"
 
 namespace holocap::testing {
+
+// Shared by the tests and bench/capture_bench; failures throw holocap::Error.
 
 // Enters a private network namespace with the loopback interface up (once per process).
 // Returns an empty string on success, else why it could not.
@@ -41,13 +43,11 @@ class FakeGigeCameras {
   // their GVSP packet loss.
   FakeGigeCameras(int count, int lost_per_thousand = 0) {
     std::string error = EnterPrivateNetwork();
-    if (!error.empty()) {
-      ADD_FAILURE() << error;
-      return;
-    }
+    if (!error.empty()) Fail("fake GigE cameras: ", error);
     for (int i = 1; i <= count; ++i) {
       const std::string address = "127.0.0." + std::to_string(i);
       if (i > 1) std::system(("ip addr add " + address + "/32 dev lo 2>/dev/null").c_str());
+      std::fflush(nullptr);  // or the child flushes our buffered output a second time
       pid_t pid = fork();
       if (pid == 0) {
         prctl(PR_SET_PDEATHSIG, SIGKILL);
@@ -106,7 +106,8 @@ class FakeGigeCameras {
       if (found == static_cast<int>(ids_.size())) return;
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
-    ADD_FAILURE() << "the fake cameras did not all answer discovery within 5 s";
+    for (size_t i = 0; i < pids_.size(); ++i) Stop(static_cast<int>(i));
+    Fail("the fake cameras did not all answer discovery within 5 s");
   }
 
   std::vector<pid_t> pids_;
