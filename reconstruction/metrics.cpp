@@ -1,0 +1,234 @@
+// Surface-to-surface distances (accuracy, completeness, Chamfer, F-score) and the kd-tree
+// they use.
+#include <omp.h>
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <memory>
+
+#include "core/error.h"
+#include "reconstruction/nearest.h"
+#include "reconstruction/projector.h"
+#include "reconstruction/reconstruction.h"
+
+namespace holocap {
+namespace recon {
+
+namespace {
+constexpr int kLeafSize = 12;
+}
+
+PointTree::PointTree(std::vector<Eigen::Vector3d> points) : points_(std::move(points)) {
+  index_.resize(points_.size());
+  for (size_t i = 0; i < index_.size(); ++i) index_[i] = static_cast<int>(i);
+  if (!points_.empty()) Build(0, static_cast<int>(points_.size()), 0);
+}
+
+double PointTriangleDistance(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b,
+                             const Eigen::Vector3d& c) {
+  const Eigen::Vector3d ab = b - a, ac = c - a, ap = p - a;
+  const double d1 = ab.dot(ap), d2 = ac.dot(ap);
+  if (d1 <= 0 && d2 <= 0) return ap.norm();
+  const Eigen::Vector3d bp = p - b;
+  const double d3 = ab.dot(bp), d4 = ac.dot(bp);
+  if (d3 >= 0 && d4 <= d3) return bp.norm();
+  const double vc = d1 * d4 - d3 * d2;
+  if (vc <= 0 && d1 >= 0 && d3 <= 0) return (p - (a + d1 / (d1 - d3) * ab)).norm();
+  const Eigen::Vector3d cp = p - c;
+  const double d5 = ab.dot(cp), d6 = ac.dot(cp);
+  if (d6 >= 0 && d5 <= d6) return cp.norm();
+  const double vb = d5 * d2 - d1 * d6;
+  if (vb <= 0 && d2 >= 0 && d6 <= 0) return (p - (a + d2 / (d2 - d6) * ac)).norm();
+  const double va = d3 * d6 - d5 * d4;
+  if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) {
+    return (p - (b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b))).norm();
+  }
+  const double denom = 1 / (va + vb + vc);
+  return (p - (a + ab * (vb * denom) + ac * (vc * denom))).norm();
+}
+
+int PointTree::Build(int begin, int end, int depth) {
+  int index = static_cast<int>(nodes_.size());
+  nodes_.emplace_back();
+  if (end - begin <= kLeafSize) {
+    nodes_[index].begin = begin;
+    nodes_[index].end = end;
+    return index;
+  }
+  Eigen::Vector3d lo = points_[begin], hi = points_[begin];
+  for (int i = begin; i < end; ++i) {
+    lo = lo.cwiseMin(points_[i]);
+    hi = hi.cwiseMax(points_[i]);
+  }
+  int axis;
+  (hi - lo).maxCoeff(&axis);
+  int mid = (begin + end) / 2;
+  std::vector<int> order(end - begin);
+  for (int i = begin; i < end; ++i) order[i - begin] = i;
+  std::nth_element(order.begin(), order.begin() + (mid - begin), order.end(),
+                   [&](int a, int b) { return points_[a][axis] < points_[b][axis]; });
+  std::vector<Eigen::Vector3d> moved_points(end - begin);
+  std::vector<int> moved_index(end - begin);
+  for (int i = 0; i < end - begin; ++i) {
+    moved_points[i] = points_[order[i]];
+    moved_index[i] = index_[order[i]];
+  }
+  std::copy(moved_points.begin(), moved_points.end(), points_.begin() + begin);
+  std::copy(moved_index.begin(), moved_index.end(), index_.begin() + begin);
+  double split = points_[mid][axis];
+  int left = Build(begin, mid, depth + 1);
+  int right = Build(mid, end, depth + 1);
+  nodes_[index].axis = axis;
+  nodes_[index].split = split;
+  nodes_[index].left = left;
+  nodes_[index].right = right;
+  return index;
+}
+
+}  // namespace recon
+
+SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
+                              double fscore_threshold_m, size_t samples,
+                              const std::function<bool(const Eigen::Vector3d&)>& truth_filter) {
+  if (truth.empty() || truth.faces.empty()) Fail("CompareSurfaces: the true mesh is empty");
+  if (!(fscore_threshold_m > 0) || samples == 0) Fail("CompareSurfaces: bad threshold or sample count");
+  SurfaceErrors errors;
+  if (reconstruction.faces.empty()) {
+    errors.accuracy_mm = errors.completeness_mm = errors.chamfer_mm =
+        std::numeric_limits<double>::infinity();
+    return errors;
+  }
+  std::vector<Eigen::Vector3d> recon_points = reconstruction.SampleSurface(samples, 7);
+  std::vector<Eigen::Vector3d> truth_points = truth.SampleSurface(samples, 11);
+  if (truth_filter) {
+    std::vector<Eigen::Vector3d> kept;
+    for (const auto& p : truth_points) {
+      if (truth_filter(p)) kept.push_back(p);
+    }
+    truth_points = std::move(kept);
+    if (truth_points.empty()) Fail("CompareSurfaces: the filter kept no true surface point");
+  }
+  // Samples of one surface against the triangles of the other (exact point-to-surface
+  // distances; sample-to-sample distances would add the sampling spacing to every figure).
+  struct Surface {
+    const Mesh* mesh;
+    std::unique_ptr<recon::PointTree> centroids;
+    double slack = 0;  // largest centroid-to-corner distance
+    double Distance(const Eigen::Vector3d& q) const {
+      return centroids->Nearest(q, slack, [&](int f) {
+        const Eigen::Vector3i& face = mesh->faces[f];
+        return recon::PointTriangleDistance(q, mesh->vertices[face[0]].cast<double>(),
+                                            mesh->vertices[face[1]].cast<double>(),
+                                            mesh->vertices[face[2]].cast<double>());
+      });
+    }
+  };
+  auto surface_of = [](const Mesh& mesh) {
+    Surface s{&mesh, nullptr, 0};
+    std::vector<Eigen::Vector3d> centres(mesh.faces.size());
+    for (size_t f = 0; f < mesh.faces.size(); ++f) {
+      Eigen::Vector3d a = mesh.vertices[mesh.faces[f][0]].cast<double>();
+      Eigen::Vector3d b = mesh.vertices[mesh.faces[f][1]].cast<double>();
+      Eigen::Vector3d c = mesh.vertices[mesh.faces[f][2]].cast<double>();
+      centres[f] = (a + b + c) / 3;
+      s.slack = std::max({s.slack, (a - centres[f]).norm(), (b - centres[f]).norm(), (c - centres[f]).norm()});
+    }
+    s.centroids = std::make_unique<recon::PointTree>(std::move(centres));
+    return s;
+  };
+  const Surface recon_surface = surface_of(reconstruction);
+  const Surface truth_surface = surface_of(truth);
+  double accuracy = 0, completeness = 0;
+  int64_t precise = 0, recalled = 0;
+  const int64_t nr = static_cast<int64_t>(recon_points.size());
+  const int64_t nt = static_cast<int64_t>(truth_points.size());
+#pragma omp parallel for reduction(+ : accuracy, precise) schedule(dynamic, 256)
+  for (int64_t i = 0; i < nr; ++i) {
+    double d = truth_surface.Distance(recon_points[i]);
+    accuracy += d;
+    precise += d <= fscore_threshold_m;
+  }
+#pragma omp parallel for reduction(+ : completeness, recalled) schedule(dynamic, 256)
+  for (int64_t i = 0; i < nt; ++i) {
+    double d = recon_surface.Distance(truth_points[i]);
+    completeness += d;
+    recalled += d <= fscore_threshold_m;
+  }
+  errors.samples = nr + nt;
+  errors.accuracy_mm = 1e3 * accuracy / nr;
+  errors.completeness_mm = 1e3 * completeness / nt;
+  errors.chamfer_mm = 0.5 * (errors.accuracy_mm + errors.completeness_mm);
+  errors.precision = static_cast<double>(precise) / nr;
+  errors.recall = static_cast<double>(recalled) / nt;
+  errors.fscore = (errors.precision + errors.recall) > 0
+                      ? 2 * errors.precision * errors.recall / (errors.precision + errors.recall)
+                      : 0;
+  return errors;
+}
+
+std::function<bool(const Eigen::Vector3d&)> SeenInDepthMaps(
+    const std::vector<std::pair<CameraModel, cv::Mat>>& true_depths, double tolerance_m) {
+  auto maps = std::make_shared<std::vector<std::pair<recon::FastProjector, cv::Mat>>>();
+  for (const auto& [camera, depth] : true_depths) {
+    if (depth.type() != CV_32FC1 || depth.cols != camera.width() || depth.rows != camera.height()) {
+      Fail("SeenInDepthMaps: depth maps must be CV_32F and their camera's size");
+    }
+    maps->emplace_back(recon::FastProjector(camera), depth);
+  }
+  const float tolerance = static_cast<float>(tolerance_m);
+  return [maps, tolerance](const Eigen::Vector3d& p) {
+    for (const auto& [projector, depth] : *maps) {
+      float u, v, z;
+      if (!projector.ProjectWorld(p.cast<float>(), &u, &v, &z)) continue;
+      int x = static_cast<int>(std::lround(u)), y = static_cast<int>(std::lround(v));
+      if (x < 0 || y < 0 || x >= depth.cols || y >= depth.rows) continue;
+      float d = depth.at<float>(y, x);
+      if (std::isfinite(d) && std::abs(d - z) < tolerance) return true;
+    }
+    return false;
+  };
+}
+
+cv::Mat DepthForeground(const cv::Mat& depth, const cv::Mat& plate, double noise_k) {
+  if (depth.type() != CV_32FC1 || plate.type() != CV_32FC1 || depth.size() != plate.size()) {
+    Fail("DepthForeground: depth map and clean plate must be CV_32F of one size");
+  }
+  // Single-pixel holes of the plate (noise dropouts, grazing floor, depth edges) take the
+  // nearest depth around them, so that a later measurement there is not mistaken for the
+  // subject; only wide holes (out of range) stay unknown.
+  constexpr int kFill = 3;
+  cv::Mat filled = plate.clone();
+  for (int y = 0; y < plate.rows; ++y) {
+    for (int x = 0; x < plate.cols; ++x) {
+      if (std::isfinite(plate.at<float>(y, x))) continue;
+      float nearest = std::numeric_limits<float>::infinity();
+      for (int dy = -kFill; dy <= kFill; ++dy) {
+        for (int dx = -kFill; dx <= kFill; ++dx) {
+          int yy = y + dy, xx = x + dx;
+          if (yy < 0 || xx < 0 || yy >= plate.rows || xx >= plate.cols) continue;
+          float v = plate.at<float>(yy, xx);
+          if (std::isfinite(v)) nearest = std::min(nearest, v);
+        }
+      }
+      filled.at<float>(y, x) = std::isfinite(nearest) ? nearest : std::numeric_limits<float>::quiet_NaN();
+    }
+  }
+  cv::Mat mask(depth.size(), CV_8U, cv::Scalar(0));
+  for (int y = 0; y < depth.rows; ++y) {
+    const float* d = depth.ptr<float>(y);
+    const float* p = filled.ptr<float>(y);
+    uint8_t* m = mask.ptr<uint8_t>(y);
+    for (int x = 0; x < depth.cols; ++x) {
+      if (!std::isfinite(d[x])) continue;
+      float margin = std::max(0.02f, static_cast<float>(4 * noise_k * d[x] * d[x]));
+      m[x] = (!std::isfinite(p[x]) || d[x] < p[x] - margin) ? 255 : 0;
+    }
+  }
+  // Isolated pixels are noise, not a subject.
+  cv::morphologyEx(mask, mask, cv::MORPH_OPEN, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(3, 3)));
+  return mask;
+}
+
+}  // namespace holocap

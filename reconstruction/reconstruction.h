@@ -1,0 +1,420 @@
+// Reconstruction: silhouettes, visual hull, depth fusion (TSDF on hashed sparse blocks),
+// multi-view stereo, marching cubes, simplification and texturing, and the per-take pipeline
+// that plans which of them a rig needs and writes one mesh per frame set.
+//
+// Everything projects through the distortion-aware CameraModel (mrcal lens models); inner
+// loops use a lookup table built from the model's own projections (see FastProjector in
+// reconstruction/projector.h), accurate to well under a hundredth of a pixel.
+//
+// Signs: signed distances are negative inside the subject, positive in free space. Voxel
+// centres sit at integer multiples of the voxel size in world coordinates; blocks hold 8³
+// voxels and exist only where something was observed, so memory follows the surface area,
+// not the volume of the stage.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <deque>
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <string>
+#include <unordered_map>
+#include <unordered_set>
+#include <vector>
+
+#include "core/camera.h"
+#include "core/mesh.h"
+#include "core/report.h"
+
+namespace holocap {
+
+// An axis-aligned box in world coordinates, metres.
+struct Box {
+  Eigen::Vector3d min = Eigen::Vector3d(-1.5, -1.5, 0.0);
+  Eigen::Vector3d max = Eigen::Vector3d(1.5, 1.5, 2.5);
+  bool Contains(const Eigen::Vector3d& point) const;
+  bool valid() const { return (max.array() > min.array()).all(); }
+};
+
+// One calibrated view of a frame set.
+struct View {
+  std::string name;
+  CameraModel camera;  // lens and cam_from_world
+  cv::Mat image;       // CV_8UC3 BGR; may be empty for hull-only use
+  cv::Mat mask;        // CV_8UC1, 255 = subject; may be empty when not needed
+};
+
+// ---------------------------------------------------------------------------------------------
+// Silhouettes
+
+enum class SilhouetteMode {
+  kBackgroundSubtraction,  // against a clean plate of the same camera
+  kThreshold,              // bright subject on a dark background (no clean plate)
+};
+
+struct SilhouetteOptions {
+  SilhouetteMode mode = SilhouetteMode::kBackgroundSubtraction;
+  // Background subtraction: a pixel is foreground when its largest channel difference to the
+  // clean plate exceeds noise_sigmas times the noise, estimated robustly (1.4826 x median of
+  // the differences, most pixels being background), and at least min_difference DN.
+  double noise_sigmas = 3;
+  double min_difference = 8;
+  // Threshold mode: foreground where the largest channel exceeds threshold (0..1 of full
+  // scale). 0.19 is the Middlebury recipe.
+  double threshold = 0.19;
+  // Morphology, in pixels: open (removes specks), then close as dilate/erode (fills holes and
+  // thin gaps). The Middlebury recipe is dilate 10, erode 7.
+  int open_px = 1;
+  int dilate_px = 3;
+  int erode_px = 3;
+  // Connected components smaller than this fraction of the image are dropped.
+  double min_component_fraction = 0.0005;
+
+  void Check() const;  // throws Error naming the bad field
+};
+
+// A CV_8UC1 mask (255 = foreground). `clean_plate` is required for background subtraction and
+// must match the image's size and type; ignored in threshold mode. Throws Error on bad input.
+cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
+                          const SilhouetteOptions& options);
+// Intersection over union of two masks (non-zero = set); 1 when both are empty.
+double MaskIoU(const cv::Mat& a, const cv::Mat& b);
+
+// ---------------------------------------------------------------------------------------------
+// Sparse voxel volume (hashed 8³ blocks), shared by the hull and the TSDF
+
+struct Voxel {
+  float sdf = 0;     // metres (TSDF: truncated)
+  float weight = 0;  // 0 = never observed: such voxels never produce a surface
+  uint8_t r = 0, g = 0, b = 0;
+};
+
+inline constexpr int kBlockSide = 8;
+inline constexpr int kBlockVoxels = kBlockSide * kBlockSide * kBlockSide;
+
+struct VoxelBlock {
+  Voxel voxels[kBlockVoxels];
+  Voxel& at(int x, int y, int z) { return voxels[(z * kBlockSide + y) * kBlockSide + x]; }
+  const Voxel& at(int x, int y, int z) const {
+    return voxels[(z * kBlockSide + y) * kBlockSide + x];
+  }
+};
+
+class SparseVolume {
+ public:
+  // `truncation_m` marks the values that carry no surface position: a sign change between two
+  // values at +-truncation is a jump across unobserved space, not a surface (no double layers).
+  // Use infinity for a field without truncation (the hull).
+  SparseVolume(double voxel_m, Box bounds, double truncation_m);
+
+  double voxel_m() const { return voxel_m_; }
+  double truncation_m() const { return truncation_m_; }
+  const Box& bounds() const { return bounds_; }
+  size_t block_count() const { return blocks_.size(); }
+  size_t memory_bytes() const;  // blocks plus the hash table
+
+  // Block coordinates of the block holding voxel (i, j, k) and the key packing them.
+  static Eigen::Vector3i BlockOf(const Eigen::Vector3i& voxel);
+  static uint64_t Key(const Eigen::Vector3i& block);
+  static Eigen::Vector3i Unkey(uint64_t key);
+  Eigen::Vector3i VoxelOf(const Eigen::Vector3d& point_in_world) const;  // nearest centre
+  Eigen::Vector3d CenterOf(const Eigen::Vector3i& voxel) const;
+  // Whether a block's voxel centres can lie in the bounds.
+  bool BlockInBounds(const Eigen::Vector3i& block) const;
+
+  VoxelBlock* Find(const Eigen::Vector3i& block);
+  const VoxelBlock* Find(const Eigen::Vector3i& block) const;
+  VoxelBlock& Allocate(const Eigen::Vector3i& block);  // zero-weight voxels when new
+  const Voxel* FindVoxel(const Eigen::Vector3i& voxel) const;
+  // Visits every block (coordinates, data); not thread-safe against allocation.
+  void ForEachBlock(const std::function<void(const Eigen::Vector3i&, const VoxelBlock&)>& fn) const;
+  std::vector<Eigen::Vector3i> BlockCoordinates() const;
+
+  // Trilinear sdf at a point; false when any of the 8 voxels around it is unobserved.
+  bool Sample(const Eigen::Vector3d& point_in_world, double* sdf) const;
+
+ private:
+  double voxel_m_;
+  Box bounds_;
+  double truncation_m_;
+  std::unordered_map<uint64_t, size_t> index_;
+  std::deque<VoxelBlock> blocks_;
+  std::vector<Eigen::Vector3i> coordinates_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Visual hull
+
+struct HullOptions {
+  double voxel_m = 0.004;      // leaf voxel edge
+  Box bounds;                  // the capture volume; nothing outside is carved in
+  // Conservative mode: a point survives when at most this many views put it outside their
+  // silhouette (1 tolerates one bad silhouette, such as an empty or truncated mask).
+  int tolerated_bad_views = 0;
+  int min_views = 2;           // a point seen (inside the image) by fewer views is outside
+  double margin_px = 1.0;      // silhouettes grown by this much before carving (edge pixels)
+  int threads = 0;             // 0: all cores
+
+  void Check() const;
+};
+
+struct HullSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  int64_t octree_cells = 0;     // cells tested before reaching blocks
+  int64_t surface_blocks = 0;   // blocks evaluated voxel by voxel
+  int64_t inside_blocks = 0;    // blocks wholly inside, never evaluated voxel by voxel
+  double volume_m3 = 0;
+  double seconds = 0;
+};
+
+// The hull as a signed field (metres, from each view's 2D distance transform scaled by depth
+// over focal length; the intersection is the max over views, the conservative mode the
+// (k+1)-th largest). Stored only in blocks near the surface; wholly-inside blocks are a set.
+struct VisualHull {
+  std::unique_ptr<SparseVolume> volume;
+  std::unordered_set<uint64_t> inside_blocks;
+  // Whether a point lies in the hull, allowing `tolerance_m` outside its surface.
+  bool Contains(const Eigen::Vector3d& point_in_world, double tolerance_m = 0) const;
+};
+
+// Carves through an octree of cells down to 8³-voxel blocks, evaluating voxels only in blocks
+// that the surface crosses. Views need camera and mask. Throws Error for views without masks
+// or with masks of the wrong size. An empty hull is reported kDegenerate.
+VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
+                             HullSummary* summary = nullptr);
+
+// ---------------------------------------------------------------------------------------------
+// Depth fusion
+
+struct TsdfOptions {
+  double voxel_m = 0.004;            // voxel edge
+  double truncation_voxels = 4;      // truncation distance in voxels
+  float max_weight = 64;             // weights are capped so that the volume can follow change
+  Box bounds;                        // nothing outside is allocated
+  double depth_min_m = 0.2;          // measurements outside [min, max] are ignored
+  double depth_max_m = 8.0;
+  // Sensor noise sigma(z) = depth_noise_k * z^2 (the simulated sensors' model; structured
+  // light and ToF sensors follow it closely). It sets each measurement's weight
+  // (sigma(1 m)/sigma(z))^2 and the range of the edge-preserving pre-filter.
+  double depth_noise_k = 0.0012;
+  // Edge-preserving smoothing of each depth map before fusion: pixels within this radius whose
+  // depth is within 3 sigma(z) are averaged. 0 = off.
+  int smoothing_radius_px = 3;
+  // Measurements whose surface is seen more obliquely than this (from the depth map's own
+  // normals) are dropped: at grazing incidence depth is unreliable and smears surfaces.
+  double max_incidence_deg = 80;
+  int threads = 0;                   // 0: all cores
+
+  void Check() const;
+};
+
+struct TsdfFrameStats {
+  int64_t valid_pixels = 0;     // finite, in range, foreground
+  int64_t rejected_pixels = 0;  // NaN, inf, <= 0, out of range, grazing
+  int64_t blocks_touched = 0;
+  int64_t voxels_updated = 0;
+  double seconds = 0;
+};
+
+// A TSDF volume with colour.
+class TsdfVolume {
+ public:
+  explicit TsdfVolume(const TsdfOptions& options);
+  // Fuses one depth map (CV_32F z-depth in metres; NaN, 0, negative and inf mean no
+  // measurement). `foreground` (CV_8U, optional) keeps only its non-zero pixels. With `color`
+  // (CV_8UC3 BGR) and `color_camera`, voxels also average colour. Throws Error when sizes do
+  // not match the cameras.
+  TsdfFrameStats Integrate(const cv::Mat& depth_m, const CameraModel& depth_camera,
+                           const cv::Mat& foreground = {}, const cv::Mat& color = {},
+                           const CameraModel* color_camera = nullptr);
+  const SparseVolume& volume() const { return volume_; }
+  const TsdfOptions& options() const { return options_; }
+
+ private:
+  TsdfOptions options_;
+  SparseVolume volume_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Meshing
+
+struct MeshingOptions {
+  float min_weight = 0;        // corners at or below this weight end a surface (0: unobserved)
+  double simplify_cell_m = 0;  // > 0: vertex clustering on cells of this size after meshing
+  bool normals = true;         // compute per-vertex normals
+  void Check() const;
+};
+
+// Marching cubes over every block, welding vertices across block boundaries so the surface is
+// seamless. Cubes with an unobserved corner, or whose sign change is a jump between truncated
+// values, give no triangles. Colours come from the voxels when they carry any.
+Mesh ExtractMesh(const SparseVolume& volume, const MeshingOptions& options = {});
+
+// Vertex-clustering simplification: vertices in one cell of size `cell_m` merge into their
+// mean (colour averaged); triangles that collapse are dropped, duplicates removed.
+Mesh SimplifyMesh(const Mesh& mesh, double cell_m);
+
+// ---------------------------------------------------------------------------------------------
+// Multi-view stereo
+
+struct MvsOptions {
+  int neighbors = 3;            // source views per reference view (nearest optical centres)
+  int window_radius = 3;        // NCC window is (2r+1)²
+  double depth_step_px = 0.5;   // plane spacing: the disparity step in the nearest source view
+  double hull_margin_m = 0.02;  // the search starts this far in front of the hull's surface
+  double search_depth_m = 0.2;  // ... and reaches this far behind it
+  double min_ncc = 0.5;         // best mean NCC below this leaves the pixel empty
+  int best_k = 2;               // cost = mean of the k best source NCCs (occlusion-robust)
+  // Geometric consistency: a depth survives when at least min_consistent_views source depth
+  // maps agree: reprojection within max_reprojection_px and depth within max_relative_depth.
+  int min_consistent_views = 1;
+  double max_reprojection_px = 1.0;
+  double max_relative_depth = 0.01;
+  int threads = 0;              // 0: all cores
+
+  void Check() const;
+};
+
+struct MvsSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  int64_t pixels_searched = 0;
+  int64_t pixels_matched = 0;     // best NCC above min_ncc
+  int64_t pixels_consistent = 0;  // surviving the geometric check
+  int64_t planes = 0;             // depth hypotheses evaluated, summed over views
+  double seconds = 0;
+};
+
+// Plane-sweep depth (z-depth, metres, NaN = none) for every view, searched inside the hull's
+// depth range along each ray and cross-checked between views. Views need image, mask and
+// camera. Views parallel across cores.
+std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const VisualHull& hull,
+                                     const MvsOptions& options, MvsSummary* summary = nullptr);
+
+// ---------------------------------------------------------------------------------------------
+// Texturing and export
+
+struct TextureOptions {
+  int texels_per_cell = 8;          // atlas: two triangles share one square cell of this side
+  double min_cos_incidence = 0.1;   // views seeing a surface more obliquely do not contribute
+  double depth_tolerance_m = 0.01;  // visibility: a vertex within this of the view's depth map
+  int max_views = 3;                // blend the best views (highest incidence cosine)
+  bool atlas = true;                // also build the atlas (vertex colour is always set)
+  void Check() const;
+};
+
+struct TexturedMesh {
+  Mesh mesh;                            // with per-vertex colour
+  std::vector<Eigen::Vector2f> corner_uv;  // 3 per face, glTF convention (v down)
+  cv::Mat atlas;                        // CV_8UC3 BGR; empty without an atlas
+  int64_t uncoloured_vertices = 0;      // seen by no view
+};
+
+// Colours every vertex (and every atlas texel) by blending the views that see it, weighted by
+// incidence; visibility from each view's own rendered depth of the mesh.
+TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views,
+                         const TextureOptions& options = {});
+
+// Binary glTF 2.0 (.glb): positions, normals, vertex colours and, with an atlas, texture
+// coordinates and the atlas as an embedded PNG. Atomic write.
+void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured);
+
+// Renders a mesh's silhouette into a camera (triangles through the lens model): CV_8U, 255 =
+// covered. Used to compare hulls with held-out views.
+cv::Mat RenderSilhouette(const Mesh& mesh, const CameraModel& camera);
+// Renders a mesh's z-depth (metres, NaN where empty) into a camera.
+cv::Mat RenderDepth(const Mesh& mesh, const CameraModel& camera);
+
+// Foreground of a depth map against a depth clean plate (the empty room): pixels measured in
+// front of the plate by more than 4 sigma(z) of the noise model and at least 2 cm, or where the
+// plate has no measurement in a 7x7 neighbourhood (out of range); isolated pixels dropped.
+// CV_8U, 255 = foreground.
+cv::Mat DepthForeground(const cv::Mat& depth_m, const cv::Mat& clean_plate_m, double depth_noise_k);
+
+// ---------------------------------------------------------------------------------------------
+// Accuracy against ground truth
+
+struct SurfaceErrors {
+  double accuracy_mm = 0;      // mean distance, reconstruction -> truth
+  double completeness_mm = 0;  // mean distance, truth -> reconstruction
+  double chamfer_mm = 0;       // mean of the two
+  double precision = 0;        // fraction of reconstruction within the threshold of truth
+  double recall = 0;           // fraction of truth within the threshold of reconstruction
+  double fscore = 0;           // harmonic mean of precision and recall
+  int64_t samples = 0;
+};
+// Distances between surfaces sampled uniformly (area-weighted, `samples` each way).
+// `truth_filter`, when set, keeps only truth samples it accepts (e.g. those a sensor saw).
+SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
+                              double fscore_threshold_m = 0.005, size_t samples = 40000,
+                              const std::function<bool(const Eigen::Vector3d&)>& truth_filter = {});
+
+// A truth filter for CompareSurfaces: points that one of the (camera, true z-depth map) pairs
+// sees, i.e. whose depth there matches the map within `tolerance_m`.
+std::function<bool(const Eigen::Vector3d&)> SeenInDepthMaps(
+    const std::vector<std::pair<CameraModel, cv::Mat>>& true_depths, double tolerance_m = 0.01);
+
+// ---------------------------------------------------------------------------------------------
+// The per-take pipeline
+
+enum class ReconstructionMethod { kAuto, kHull, kTsdf, kMvs };
+const char* ToString(ReconstructionMethod method);
+ReconstructionMethod ReconstructionMethodFromString(const std::string& text);  // throws Error
+
+struct ReconstructionOptions {
+  ReconstructionMethod method = ReconstructionMethod::kAuto;  // auto: depth -> tsdf, else mvs
+  double voxel_m = 0.004;           // TSDF and hull voxel (the hull for MVS uses 2x)
+  int64_t first_frame = 0;          // frame sets [first, last) after the clean plate
+  int64_t last_frame = -1;          // -1: to the end
+  // Leading frame sets without the subject; -1: from the take's metadata (sim writes it),
+  // else 0. Their colour and depth frames are the clean plates.
+  int64_t clean_plate_frames = -1;
+  Box bounds;                       // the capture volume
+  SilhouetteOptions silhouette;
+  HullOptions hull;                 // voxel and bounds are set from the fields above
+  TsdfOptions tsdf;                 // voxel and bounds likewise
+  MvsOptions mvs;
+  MeshingOptions meshing;
+  TextureOptions texture;
+  bool write_glb = true;            // recon/<set>.glb beside recon/<set>.ply
+  // On takes with ground truth, the first frame is also reconstructed at these voxel sizes to
+  // record error against time (empty: none).
+  std::vector<double> sweep_voxels_m = {0.016, 0.008};
+  int threads = 0;                  // 0: all cores; frames run in parallel when there are
+                                    // at least as many frames as threads
+
+  void Check() const;
+  nlohmann::json ToJson() const;
+};
+
+struct FrameResult {
+  int64_t set = 0;
+  double seconds = 0;
+  int64_t vertices = 0;
+  int64_t faces = 0;
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  nlohmann::json metrics;  // per stage, and gt.* on simulated takes
+};
+
+struct ReconstructionSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  nlohmann::json plan;
+  std::vector<FrameResult> frames;
+  double seconds = 0;
+};
+
+// Reconstructs frame sets of a take into `out` (recon/<set:06d>.ply and .glb, report.json):
+// calib/ models when the take is calibrated, else the true models from gt/ (said in the
+// plan), else Error. Throws Error for bad options, a missing take, a take without cameras, or
+// a frame set missing a camera's frame.
+ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir,
+                                      const std::filesystem::path& out,
+                                      const ReconstructionOptions& options, Report* report);
+
+}  // namespace holocap

@@ -1,0 +1,375 @@
+// Rendering meshes into calibrated cameras (silhouette, depth), visibility-aware colouring of
+// vertices and of a texture atlas, and binary glTF export.
+#include <omp.h>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <nlohmann/json.hpp>
+
+#include "core/error.h"
+#include "core/fs.h"
+#include "reconstruction/projector.h"
+#include "reconstruction/reconstruction.h"
+
+namespace holocap {
+
+namespace {
+
+struct Projected {
+  std::vector<Eigen::Vector2f> pixels;
+  std::vector<float> depth;  // z in the camera; <= 0 behind
+  std::vector<uint8_t> valid;
+};
+
+Projected ProjectVertices(const Mesh& mesh, const CameraModel& camera) {
+  Projected out;
+  const size_t n = mesh.vertices.size();
+  Eigen::Matrix3Xd points(3, n);
+  const Pose& cam_from_world = camera.cam_from_world();
+  for (size_t i = 0; i < n; ++i) points.col(i) = cam_from_world * mesh.vertices[i].cast<double>();
+  Eigen::Matrix2Xd pixels = camera.ProjectMany(points);
+  out.pixels.resize(n);
+  out.depth.resize(n);
+  out.valid.resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    out.pixels[i] = pixels.col(i).cast<float>();
+    out.depth[i] = static_cast<float>(points(2, i));
+    out.valid[i] = points(2, i) > 1e-6 && pixels.col(i).allFinite();
+  }
+  return out;
+}
+
+// Z-buffer rasterisation of triangles in pixel space (depth interpolated linearly there; the
+// triangles of a mesh are small against the lens's curvature).
+cv::Mat Rasterise(const Mesh& mesh, const Projected& p, int width, int height) {
+  cv::Mat depth(height, width, CV_32F, cv::Scalar(std::numeric_limits<float>::infinity()));
+  for (const auto& f : mesh.faces) {
+    if (!p.valid[f.x()] || !p.valid[f.y()] || !p.valid[f.z()]) continue;
+    const Eigen::Vector2f a = p.pixels[f.x()], b = p.pixels[f.y()], c = p.pixels[f.z()];
+    float area = (b - a).x() * (c - a).y() - (b - a).y() * (c - a).x();
+    if (std::abs(area) < 1e-12f) continue;
+    int x0 = std::max(0, static_cast<int>(std::ceil(std::min({a.x(), b.x(), c.x()}))));
+    int x1 = std::min(width - 1, static_cast<int>(std::floor(std::max({a.x(), b.x(), c.x()}))));
+    int y0 = std::max(0, static_cast<int>(std::ceil(std::min({a.y(), b.y(), c.y()}))));
+    int y1 = std::min(height - 1, static_cast<int>(std::floor(std::max({a.y(), b.y(), c.y()}))));
+    for (int y = y0; y <= y1; ++y) {
+      float* row = depth.ptr<float>(y);
+      for (int x = x0; x <= x1; ++x) {
+        Eigen::Vector2f q(static_cast<float>(x), static_cast<float>(y));
+        float w0 = ((b - q).x() * (c - q).y() - (b - q).y() * (c - q).x()) / area;
+        float w1 = ((c - q).x() * (a - q).y() - (c - q).y() * (a - q).x()) / area;
+        float w2 = 1 - w0 - w1;
+        if (w0 < 0 || w1 < 0 || w2 < 0) continue;
+        float z = w0 * p.depth[f.x()] + w1 * p.depth[f.y()] + w2 * p.depth[f.z()];
+        if (z < row[x]) row[x] = z;
+      }
+    }
+  }
+  return depth;
+}
+
+struct ViewSampler {
+  const View* view;
+  recon::FastProjector projector;
+  cv::Mat depth;
+  Eigen::Vector3f centre;
+};
+
+cv::Vec3f SampleColor(const cv::Mat& image, float u, float v) {
+  int x = std::clamp(static_cast<int>(std::floor(u)), 0, image.cols - 2);
+  int y = std::clamp(static_cast<int>(std::floor(v)), 0, image.rows - 2);
+  float fx = std::clamp(u - x, 0.0f, 1.0f), fy = std::clamp(v - y, 0.0f, 1.0f);
+  cv::Vec3f c00 = image.at<cv::Vec3b>(y, x), c01 = image.at<cv::Vec3b>(y, x + 1);
+  cv::Vec3f c10 = image.at<cv::Vec3b>(y + 1, x), c11 = image.at<cv::Vec3b>(y + 1, x + 1);
+  return (1 - fy) * ((1 - fx) * c00 + fx * c01) + fy * ((1 - fx) * c10 + fx * c11);
+}
+
+// Whether a view sees a point of the mesh (depth test against its own rendering).
+bool Visible(const ViewSampler& s, float u, float v, float z, double tolerance) {
+  if (!s.view->camera.InImage(Eigen::Vector2d(u, v), 1)) return false;
+  int x = static_cast<int>(std::lround(u)), y = static_cast<int>(std::lround(v));
+  float nearest = std::numeric_limits<float>::infinity();
+  for (int dy = -1; dy <= 1; ++dy) {
+    for (int dx = -1; dx <= 1; ++dx) {
+      int xx = std::clamp(x + dx, 0, s.depth.cols - 1), yy = std::clamp(y + dy, 0, s.depth.rows - 1);
+      nearest = std::min(nearest, s.depth.at<float>(yy, xx));
+    }
+  }
+  return z <= nearest + tolerance;
+}
+
+// Blends the best `max_views` views by incidence cosine; false when none sees the point.
+bool BlendColor(const std::vector<ViewSampler>& samplers, const Eigen::Vector3f& point,
+                const Eigen::Vector3f& normal, const TextureOptions& options, cv::Vec3f* color) {
+  struct Candidate {
+    float weight;
+    cv::Vec3f color;
+  };
+  Candidate best[8];
+  int count = 0;
+  const int keep = std::min(options.max_views, 8);
+  for (const ViewSampler& s : samplers) {
+    Eigen::Vector3f to_camera = s.centre - point;
+    float cos_incidence = normal.dot(to_camera) / (to_camera.norm() + 1e-12f);
+    if (cos_incidence < options.min_cos_incidence) continue;
+    float u, v, z;
+    if (!s.projector.ProjectWorld(point, &u, &v, &z)) continue;
+    if (!Visible(s, u, v, z, options.depth_tolerance_m)) continue;
+    Candidate c{cos_incidence * cos_incidence, SampleColor(s.view->image, u, v)};
+    if (count < keep) {
+      best[count++] = c;
+    } else {
+      auto worst = std::min_element(best, best + count, [](auto& a, auto& b) { return a.weight < b.weight; });
+      if (worst->weight < c.weight) *worst = c;
+    }
+  }
+  if (count == 0) return false;
+  cv::Vec3f sum(0, 0, 0);
+  float total = 0;
+  for (int i = 0; i < count; ++i) sum += best[i].weight * best[i].color, total += best[i].weight;
+  *color = sum / total;
+  return true;
+}
+
+}  // namespace
+
+cv::Mat RenderDepth(const Mesh& mesh, const CameraModel& camera) {
+  cv::Mat depth = Rasterise(mesh, ProjectVertices(mesh, camera), camera.width(), camera.height());
+  depth.setTo(std::numeric_limits<float>::quiet_NaN(), depth == std::numeric_limits<float>::infinity());
+  return depth;
+}
+
+cv::Mat RenderSilhouette(const Mesh& mesh, const CameraModel& camera) {
+  cv::Mat depth = Rasterise(mesh, ProjectVertices(mesh, camera), camera.width(), camera.height());
+  return depth < std::numeric_limits<float>::infinity();
+}
+
+void TextureOptions::Check() const {
+  if (texels_per_cell < 4 || texels_per_cell > 64) Fail("texture texels_per_cell must be in [4, 64]");
+  if (!(min_cos_incidence >= 0 && min_cos_incidence < 1)) Fail("texture min_cos_incidence must be in [0, 1)");
+  if (!(depth_tolerance_m > 0)) Fail("texture depth_tolerance_m must be > 0");
+  if (max_views < 1 || max_views > 8) Fail("texture max_views must be in [1, 8]");
+}
+
+TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views, const TextureOptions& options) {
+  options.Check();
+  TexturedMesh out;
+  out.mesh = mesh;
+  if (out.mesh.normals.size() != out.mesh.vertices.size()) out.mesh.ComputeNormals();
+  std::vector<ViewSampler> samplers;
+  for (const View& view : views) {
+    if (view.image.empty()) continue;
+    if (view.image.type() != CV_8UC3 || view.image.cols != view.camera.width() ||
+        view.image.rows != view.camera.height()) {
+      Fail("texturing: image of '", view.name, "' does not match its camera model");
+    }
+    ViewSampler s{&view, recon::FastProjector(view.camera),
+                  Rasterise(out.mesh, ProjectVertices(out.mesh, view.camera), view.camera.width(), view.camera.height()),
+                  view.camera.center_in_world().cast<float>()};
+    samplers.push_back(std::move(s));
+  }
+  if (samplers.empty()) Fail("texturing needs at least one view with an image");
+  const size_t n = out.mesh.vertices.size();
+  out.mesh.colors.assign(n, Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
+  int64_t uncoloured = 0;
+#pragma omp parallel for reduction(+ : uncoloured) schedule(dynamic, 256)
+  for (size_t i = 0; i < n; ++i) {
+    cv::Vec3f bgr;
+    if (BlendColor(samplers, out.mesh.vertices[i], out.mesh.normals[i], options, &bgr)) {
+      out.mesh.colors[i] = Eigen::Matrix<uint8_t, 3, 1>(cv::saturate_cast<uint8_t>(bgr[2]),
+                                                        cv::saturate_cast<uint8_t>(bgr[1]),
+                                                        cv::saturate_cast<uint8_t>(bgr[0]));
+    } else {
+      ++uncoloured;
+    }
+  }
+  out.uncoloured_vertices = uncoloured;
+  if (!options.atlas || out.mesh.faces.empty()) return out;
+
+  // Atlas: two triangles per square cell, one in each half, inset so that bilinear lookups
+  // of a triangle never reach its neighbour's texels.
+  const int s = options.texels_per_cell;
+  const int64_t cells = (static_cast<int64_t>(out.mesh.faces.size()) + 1) / 2;
+  const int grid = static_cast<int>(std::ceil(std::sqrt(static_cast<double>(cells))));
+  const int side = grid * s;
+  if (side > 16384) Fail("texture atlas would be ", side, " texels wide: simplify the mesh first");
+  out.atlas = cv::Mat(side, side, CV_8UC3, cv::Scalar(128, 128, 128));
+  out.corner_uv.resize(out.mesh.faces.size() * 3);
+  const float fs = static_cast<float>(s);
+  const Eigen::Vector2f corners[2][3] = {
+      {{0.5f, 0.5f}, {fs - 1.5f, 0.5f}, {0.5f, fs - 1.5f}},
+      {{fs - 0.5f, fs - 0.5f}, {1.5f, fs - 0.5f}, {fs - 0.5f, 1.5f}}};
+#pragma omp parallel for schedule(dynamic, 64)
+  for (int64_t cell = 0; cell < cells; ++cell) {
+    const int cx = static_cast<int>(cell % grid), cy = static_cast<int>(cell / grid);
+    const Eigen::Vector2f origin(static_cast<float>(cx * s), static_cast<float>(cy * s));
+    for (int half = 0; half < 2; ++half) {
+      const size_t face = static_cast<size_t>(2 * cell + half);
+      if (face >= out.mesh.faces.size()) break;
+      const Eigen::Vector3i f = out.mesh.faces[face];
+      for (int k = 0; k < 3; ++k) {
+        Eigen::Vector2f t = origin + corners[half][k];
+        out.corner_uv[3 * face + k] = Eigen::Vector2f(t.x() / side, t.y() / side);
+      }
+      const Eigen::Vector3f p[3] = {out.mesh.vertices[f.x()], out.mesh.vertices[f.y()], out.mesh.vertices[f.z()]};
+      Eigen::Vector3f normal = (p[1] - p[0]).cross(p[2] - p[0]);
+      if (normal.norm() > 0) normal.normalize();
+      const Eigen::Vector2f a = corners[half][0], b = corners[half][1], c = corners[half][2];
+      const float area = (b - a).x() * (c - a).y() - (b - a).y() * (c - a).x();
+      for (int ty = 0; ty < s; ++ty) {
+        for (int tx = 0; tx < s; ++tx) {
+          // Texel centres on the diagonal and beyond belong to the other half.
+          bool lower = (tx + ty) < s - 1 || ((tx + ty) == s - 1 && tx < ty);
+          if (lower != (half == 0)) continue;
+          Eigen::Vector2f q(tx + 0.5f, ty + 0.5f);
+          float w1 = ((q - a).x() * (c - a).y() - (q - a).y() * (c - a).x()) / area;
+          float w2 = ((b - a).x() * (q - a).y() - (b - a).y() * (q - a).x()) / area;
+          w1 = std::clamp(w1, 0.0f, 1.0f);
+          w2 = std::clamp(w2, 0.0f, 1.0f - w1);
+          float w0 = 1 - w1 - w2;
+          Eigen::Vector3f point = w0 * p[0] + w1 * p[1] + w2 * p[2];
+          cv::Vec3f bgr;
+          if (!BlendColor(samplers, point, normal, options, &bgr)) {
+            const auto& c0 = out.mesh.colors[f.x()];
+            const auto& c1 = out.mesh.colors[f.y()];
+            const auto& c2 = out.mesh.colors[f.z()];
+            for (int ch = 0; ch < 3; ++ch) bgr[2 - ch] = w0 * c0[ch] + w1 * c1[ch] + w2 * c2[ch];
+          }
+          out.atlas.at<cv::Vec3b>(cy * s + ty, cx * s + tx) =
+              cv::Vec3b(cv::saturate_cast<uint8_t>(bgr[0]), cv::saturate_cast<uint8_t>(bgr[1]),
+                        cv::saturate_cast<uint8_t>(bgr[2]));
+        }
+      }
+    }
+  }
+  return out;
+}
+
+namespace {
+
+void Pad(std::string* bytes, char fill) {
+  while (bytes->size() % 4 != 0) bytes->push_back(fill);
+}
+
+template <typename T>
+void AppendRaw(std::string* bytes, const T* data, size_t count) {
+  bytes->append(reinterpret_cast<const char*>(data), count * sizeof(T));
+}
+
+}  // namespace
+
+void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured) {
+  const Mesh& mesh = textured.mesh;
+  if (mesh.vertices.empty() || mesh.faces.empty()) Fail("cannot write an empty mesh to ", file.string());
+  const bool atlas = !textured.atlas.empty() && textured.corner_uv.size() == mesh.faces.size() * 3;
+  const bool colors = !atlas && mesh.colors.size() == mesh.vertices.size();
+  const bool normals = mesh.normals.size() == mesh.vertices.size();
+  // With an atlas every corner has its own texture coordinate, so corners are not shared.
+  std::vector<Eigen::Vector3f> positions, vertex_normals;
+  std::vector<Eigen::Vector2f> uvs;
+  std::vector<uint32_t> indices;
+  if (atlas) {
+    for (size_t f = 0; f < mesh.faces.size(); ++f) {
+      for (int k = 0; k < 3; ++k) {
+        int v = mesh.faces[f][k];
+        positions.push_back(mesh.vertices[v]);
+        if (normals) vertex_normals.push_back(mesh.normals[v]);
+        uvs.push_back(textured.corner_uv[3 * f + k]);
+        indices.push_back(static_cast<uint32_t>(positions.size() - 1));
+      }
+    }
+  } else {
+    positions = mesh.vertices;
+    if (normals) vertex_normals = mesh.normals;
+    for (const auto& f : mesh.faces) {
+      for (int k = 0; k < 3; ++k) indices.push_back(static_cast<uint32_t>(f[k]));
+    }
+  }
+  for (auto& n : vertex_normals) {
+    float norm = n.norm();
+    n = norm > 0 ? Eigen::Vector3f(n / norm) : Eigen::Vector3f(0, 0, 1);
+  }
+  nlohmann::json json;
+  json["asset"] = {{"version", "2.0"}, {"generator", "holocap"}};
+  json["scene"] = 0;
+  json["scenes"] = {{{"nodes", {0}}}};
+  json["nodes"] = {{{"mesh", 0}}};
+  json["bufferViews"] = nlohmann::json::array();
+  json["accessors"] = nlohmann::json::array();
+  std::string bin;
+  auto add_view = [&](const void* data, size_t bytes, int target) {
+    Pad(&bin, '\0');
+    nlohmann::json view = {{"buffer", 0}, {"byteOffset", bin.size()}, {"byteLength", bytes}};
+    if (target != 0) view["target"] = target;
+    bin.append(static_cast<const char*>(data), bytes);
+    json["bufferViews"].push_back(view);
+    return static_cast<int>(json["bufferViews"].size() - 1);
+  };
+  auto add_accessor = [&](int view, int component, size_t count, const char* type, bool normalized) {
+    nlohmann::json accessor = {{"bufferView", view}, {"componentType", component}, {"count", count}, {"type", type}};
+    if (normalized) accessor["normalized"] = true;
+    json["accessors"].push_back(accessor);
+    return static_cast<int>(json["accessors"].size() - 1);
+  };
+  constexpr int kArrayBuffer = 34962, kElementArrayBuffer = 34963;
+  constexpr int kFloat = 5126, kUnsignedInt = 5125, kUnsignedByte = 5121;
+  nlohmann::json attributes;
+  int position = add_accessor(add_view(positions.data(), positions.size() * 12, kArrayBuffer), kFloat,
+                              positions.size(), "VEC3", false);
+  Eigen::Vector3f lo = positions[0], hi = positions[0];
+  for (const auto& p : positions) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
+  json["accessors"][position]["min"] = {lo.x(), lo.y(), lo.z()};
+  json["accessors"][position]["max"] = {hi.x(), hi.y(), hi.z()};
+  attributes["POSITION"] = position;
+  if (normals) {
+    attributes["NORMAL"] = add_accessor(add_view(vertex_normals.data(), vertex_normals.size() * 12, kArrayBuffer),
+                                        kFloat, vertex_normals.size(), "VEC3", false);
+  }
+  if (colors) {
+    // RGBA bytes: a 4-byte stride keeps the attribute aligned as glTF requires.
+    std::vector<uint8_t> rgba;
+    for (const auto& c : mesh.colors) rgba.insert(rgba.end(), {c[0], c[1], c[2], 255});
+    attributes["COLOR_0"] = add_accessor(add_view(rgba.data(), rgba.size(), kArrayBuffer), kUnsignedByte,
+                                         mesh.colors.size(), "VEC4", true);
+  }
+  if (atlas) {
+    attributes["TEXCOORD_0"] = add_accessor(add_view(uvs.data(), uvs.size() * 8, kArrayBuffer), kFloat,
+                                            uvs.size(), "VEC2", false);
+  }
+  int index_accessor = add_accessor(add_view(indices.data(), indices.size() * 4, kElementArrayBuffer),
+                                    kUnsignedInt, indices.size(), "SCALAR", false);
+  nlohmann::json primitive = {{"attributes", attributes}, {"indices", index_accessor}, {"mode", 4}, {"material", 0}};
+  json["meshes"] = {{{"primitives", {primitive}}}};
+  nlohmann::json material = {{"pbrMetallicRoughness", {{"metallicFactor", 0.0}, {"roughnessFactor", 1.0}}},
+                             {"doubleSided", false}};
+  if (atlas) {
+    std::vector<uint8_t> png;
+    if (!cv::imencode(".png", textured.atlas, png)) Fail("cannot encode the texture atlas");
+    int image_view = add_view(png.data(), png.size(), 0);
+    json["images"] = {{{"bufferView", image_view}, {"mimeType", "image/png"}}};
+    json["samplers"] = {{{"magFilter", 9729}, {"minFilter", 9729}, {"wrapS", 33071}, {"wrapT", 33071}}};
+    json["textures"] = {{{"source", 0}, {"sampler", 0}}};
+    material["pbrMetallicRoughness"]["baseColorTexture"] = {{"index", 0}};
+  }
+  json["materials"] = {material};
+  Pad(&bin, '\0');
+  json["buffers"] = {{{"byteLength", bin.size()}}};
+  std::string text = json.dump();
+  Pad(&text, ' ');
+  std::string out;
+  const uint32_t header[3] = {0x46546C67u, 2u, static_cast<uint32_t>(12 + 8 + text.size() + 8 + bin.size())};
+  AppendRaw(&out, header, 3);
+  const uint32_t json_chunk[2] = {static_cast<uint32_t>(text.size()), 0x4E4F534Au};
+  AppendRaw(&out, json_chunk, 2);
+  out += text;
+  const uint32_t bin_chunk[2] = {static_cast<uint32_t>(bin.size()), 0x004E4942u};
+  AppendRaw(&out, bin_chunk, 2);
+  out += bin;
+  WriteFileAtomic(file, out);
+}
+
+}  // namespace holocap

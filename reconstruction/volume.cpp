@@ -1,0 +1,376 @@
+// The hashed sparse voxel volume and TSDF fusion of depth maps into it.
+#include <omp.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <mutex>
+
+#include "core/error.h"
+#include "reconstruction/projector.h"
+#include "reconstruction/reconstruction.h"
+
+namespace holocap {
+
+namespace {
+
+constexpr int kKeyBits = 21;
+constexpr int64_t kKeyOffset = int64_t{1} << (kKeyBits - 1);
+constexpr uint64_t kKeyMask = (uint64_t{1} << kKeyBits) - 1;
+
+int FloorDiv(int a, int b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
+
+}  // namespace
+
+bool Box::Contains(const Eigen::Vector3d& point) const {
+  return (point.array() >= min.array()).all() && (point.array() <= max.array()).all();
+}
+
+SparseVolume::SparseVolume(double voxel_m, Box bounds, double truncation_m)
+    : voxel_m_(voxel_m), bounds_(bounds), truncation_m_(truncation_m) {
+  if (!(voxel_m > 0)) Fail("voxel size must be > 0 (got ", voxel_m, ")");
+  if (!bounds.valid()) Fail("volume bounds are empty (max must exceed min on every axis)");
+  Eigen::Vector3d extent_voxels = (bounds.max - bounds.min) / voxel_m;
+  double limit = static_cast<double>(kKeyOffset) * kBlockSide;
+  if ((bounds.min.array().abs() / voxel_m >= limit).any() ||
+      (bounds.max.array().abs() / voxel_m >= limit).any() || !extent_voxels.allFinite()) {
+    Fail("volume bounds span too many voxels of ", voxel_m, " m for the block index");
+  }
+}
+
+size_t SparseVolume::memory_bytes() const {
+  return blocks_.size() * sizeof(VoxelBlock) +
+         index_.size() * (sizeof(uint64_t) + sizeof(size_t) + 2 * sizeof(void*)) +
+         index_.bucket_count() * sizeof(void*) + coordinates_.capacity() * sizeof(Eigen::Vector3i);
+}
+
+Eigen::Vector3i SparseVolume::BlockOf(const Eigen::Vector3i& voxel) {
+  return {FloorDiv(voxel.x(), kBlockSide), FloorDiv(voxel.y(), kBlockSide),
+          FloorDiv(voxel.z(), kBlockSide)};
+}
+
+uint64_t SparseVolume::Key(const Eigen::Vector3i& block) {
+  return (static_cast<uint64_t>(block.x() + kKeyOffset) & kKeyMask) |
+         ((static_cast<uint64_t>(block.y() + kKeyOffset) & kKeyMask) << kKeyBits) |
+         ((static_cast<uint64_t>(block.z() + kKeyOffset) & kKeyMask) << (2 * kKeyBits));
+}
+
+Eigen::Vector3i SparseVolume::Unkey(uint64_t key) {
+  return {static_cast<int>(static_cast<int64_t>(key & kKeyMask) - kKeyOffset),
+          static_cast<int>(static_cast<int64_t>((key >> kKeyBits) & kKeyMask) - kKeyOffset),
+          static_cast<int>(static_cast<int64_t>((key >> (2 * kKeyBits)) & kKeyMask) - kKeyOffset)};
+}
+
+Eigen::Vector3i SparseVolume::VoxelOf(const Eigen::Vector3d& point_in_world) const {
+  return (point_in_world / voxel_m_).array().round().cast<int>();
+}
+
+Eigen::Vector3d SparseVolume::CenterOf(const Eigen::Vector3i& voxel) const {
+  return voxel.cast<double>() * voxel_m_;
+}
+
+bool SparseVolume::BlockInBounds(const Eigen::Vector3i& block) const {
+  Eigen::Vector3d lo = (block * kBlockSide).cast<double>() * voxel_m_;
+  Eigen::Vector3d hi = lo + Eigen::Vector3d::Constant((kBlockSide - 1) * voxel_m_);
+  return (hi.array() >= bounds_.min.array()).all() && (lo.array() <= bounds_.max.array()).all();
+}
+
+VoxelBlock* SparseVolume::Find(const Eigen::Vector3i& block) {
+  auto it = index_.find(Key(block));
+  return it == index_.end() ? nullptr : &blocks_[it->second];
+}
+
+const VoxelBlock* SparseVolume::Find(const Eigen::Vector3i& block) const {
+  auto it = index_.find(Key(block));
+  return it == index_.end() ? nullptr : &blocks_[it->second];
+}
+
+VoxelBlock& SparseVolume::Allocate(const Eigen::Vector3i& block) {
+  auto [it, inserted] = index_.try_emplace(Key(block), blocks_.size());
+  if (inserted) {
+    blocks_.emplace_back();
+    coordinates_.push_back(block);
+  }
+  return blocks_[it->second];
+}
+
+const Voxel* SparseVolume::FindVoxel(const Eigen::Vector3i& voxel) const {
+  Eigen::Vector3i block = BlockOf(voxel);
+  const VoxelBlock* data = Find(block);
+  if (data == nullptr) return nullptr;
+  Eigen::Vector3i local = voxel - block * kBlockSide;
+  return &data->at(local.x(), local.y(), local.z());
+}
+
+void SparseVolume::ForEachBlock(
+    const std::function<void(const Eigen::Vector3i&, const VoxelBlock&)>& fn) const {
+  for (size_t i = 0; i < blocks_.size(); ++i) fn(coordinates_[i], blocks_[i]);
+}
+
+std::vector<Eigen::Vector3i> SparseVolume::BlockCoordinates() const { return coordinates_; }
+
+bool SparseVolume::Sample(const Eigen::Vector3d& point_in_world, double* sdf) const {
+  Eigen::Vector3d g = point_in_world / voxel_m_;
+  Eigen::Vector3i base = g.array().floor().cast<int>();
+  Eigen::Vector3d f = g - base.cast<double>();
+  double value = 0;
+  for (int corner = 0; corner < 8; ++corner) {
+    Eigen::Vector3i offset(corner & 1, (corner >> 1) & 1, (corner >> 2) & 1);
+    const Voxel* voxel = FindVoxel(base + offset);
+    if (voxel == nullptr || voxel->weight <= 0) return false;
+    double w = (offset.x() ? f.x() : 1 - f.x()) * (offset.y() ? f.y() : 1 - f.y()) *
+               (offset.z() ? f.z() : 1 - f.z());
+    value += w * voxel->sdf;
+  }
+  *sdf = value;
+  return true;
+}
+
+void TsdfOptions::Check() const {
+  if (!(voxel_m > 0 && voxel_m < 1)) Fail("tsdf voxel must be in (0, 1) m (got ", voxel_m, ")");
+  if (!(truncation_voxels >= 1)) Fail("tsdf truncation must be >= 1 voxel (got ", truncation_voxels, ")");
+  if (!(max_weight > 0)) Fail("tsdf max_weight must be > 0 (got ", max_weight, ")");
+  if (!bounds.valid()) Fail("tsdf bounds are empty");
+  if (!(depth_min_m >= 0 && depth_max_m > depth_min_m)) {
+    Fail("tsdf depth range must satisfy 0 <= min < max (got ", depth_min_m, ", ", depth_max_m, ")");
+  }
+  if (!(depth_noise_k >= 0)) Fail("tsdf depth_noise_k must be >= 0 (got ", depth_noise_k, ")");
+  if (smoothing_radius_px < 0 || smoothing_radius_px > 10) {
+    Fail("tsdf smoothing_radius_px must be in [0, 10] (got ", smoothing_radius_px, ")");
+  }
+  if (!(max_incidence_deg > 0 && max_incidence_deg <= 90)) {
+    Fail("tsdf max_incidence_deg must be in (0, 90] (got ", max_incidence_deg, ")");
+  }
+  if (threads < 0) Fail("tsdf threads must be >= 0");
+}
+
+namespace {
+
+struct CameraTables {
+  recon::FastProjector projector;
+  cv::Mat rays;  // normalised rays per pixel
+};
+
+std::shared_ptr<const CameraTables> TablesFor(const CameraModel& camera) {
+  return std::make_shared<const CameraTables>(
+      CameraTables{recon::FastProjector(camera), recon::NormalisedRays(camera)});
+}
+
+bool ValidDepth(float d, const TsdfOptions& options) {
+  return std::isfinite(d) && d > 0 && d >= options.depth_min_m && d <= options.depth_max_m;
+}
+
+}  // namespace
+
+TsdfVolume::TsdfVolume(const TsdfOptions& options)
+    : options_((options.Check(), options)),
+      volume_(options.voxel_m, options.bounds, options.voxel_m * options.truncation_voxels) {}
+
+TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel& depth_camera,
+                                     const cv::Mat& foreground, const cv::Mat& color,
+                                     const CameraModel* color_camera) {
+  auto start = std::chrono::steady_clock::now();
+  TsdfFrameStats stats;
+  if (depth_in.type() != CV_32FC1) Fail("depth map must be CV_32F metres");
+  if (depth_in.cols != depth_camera.width() || depth_in.rows != depth_camera.height()) {
+    Fail("depth map is ", depth_in.cols, "x", depth_in.rows, " but its camera model is ",
+         depth_camera.width(), "x", depth_camera.height());
+  }
+  if (!foreground.empty() && (foreground.size() != depth_in.size() || foreground.type() != CV_8UC1)) {
+    Fail("foreground mask must be CV_8U and the depth map's size");
+  }
+  const bool use_color = !color.empty() && color_camera != nullptr;
+  if (use_color) {
+    if (color.type() != CV_8UC3) Fail("colour image must be CV_8UC3");
+    if (color.cols != color_camera->width() || color.rows != color_camera->height()) {
+      Fail("colour image size does not match its camera model");
+    }
+  }
+  const int threads = recon::ResolveThreads(options_.threads);
+  auto tables = TablesFor(depth_camera);
+  std::shared_ptr<const CameraTables> color_tables;
+  if (use_color) color_tables = TablesFor(*color_camera);
+  const int w = depth_in.cols, h = depth_in.rows;
+  const float k = static_cast<float>(options_.depth_noise_k);
+
+  // 1. Valid, foreground, smoothed depth; grazing measurements removed.
+  cv::Mat depth(h, w, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
+  int64_t valid = 0, rejected = 0;
+  const int r = options_.smoothing_radius_px;
+#pragma omp parallel for num_threads(threads) reduction(+ : valid, rejected) schedule(static)
+  for (int y = 0; y < h; ++y) {
+    const float* in = depth_in.ptr<float>(y);
+    float* out = depth.ptr<float>(y);
+    for (int x = 0; x < w; ++x) {
+      float d = in[x];
+      if (std::isnan(d)) continue;  // no measurement
+      if (!ValidDepth(d, options_)) {
+        ++rejected;  // 0, negative, infinite or out of range: a sensor's error code
+        continue;
+      }
+      if (!foreground.empty() && foreground.at<uint8_t>(y, x) == 0) continue;
+      if (r > 0) {
+        float sigma = std::max(k * d * d, 1e-4f);
+        float range = 3 * sigma, sum = 0;
+        int count = 0;
+        for (int dy = -r; dy <= r; ++dy) {
+          int yy = y + dy;
+          if (yy < 0 || yy >= h) continue;
+          const float* row = depth_in.ptr<float>(yy);
+          for (int dx = -r; dx <= r; ++dx) {
+            int xx = x + dx;
+            if (xx < 0 || xx >= w) continue;
+            float e = row[xx];
+            if (ValidDepth(e, options_) && std::abs(e - d) <= range) sum += e, ++count;
+          }
+        }
+        d = sum / count;
+      }
+      out[x] = d;
+    }
+  }
+  const float cos_max = static_cast<float>(std::cos(options_.max_incidence_deg * M_PI / 180));
+  cv::Mat kept = depth.clone();
+  if (options_.max_incidence_deg < 90) {
+#pragma omp parallel for num_threads(threads) reduction(+ : rejected) schedule(static)
+    for (int y = 1; y < h - 1; ++y) {
+      for (int x = 1; x < w - 1; ++x) {
+        float d = depth.at<float>(y, x);
+        if (!std::isfinite(d)) continue;
+        auto point = [&](int xx, int yy, Eigen::Vector3f* p) {
+          float e = depth.at<float>(yy, xx);
+          cv::Vec2f ray = tables->rays.at<cv::Vec2f>(yy, xx);
+          if (!std::isfinite(e) || !std::isfinite(ray[0])) return false;
+          *p = Eigen::Vector3f(ray[0] * e, ray[1] * e, e);
+          return true;
+        };
+        Eigen::Vector3f c, px0, px1, py0, py1;
+        point(x, y, &c);
+        bool hx0 = point(x - 1, y, &px0), hx1 = point(x + 1, y, &px1);
+        bool hy0 = point(x, y - 1, &py0), hy1 = point(x, y + 1, &py1);
+        if (!(hx0 || hx1) || !(hy0 || hy1)) continue;
+        Eigen::Vector3f dx = (hx1 ? px1 : c) - (hx0 ? px0 : c);
+        Eigen::Vector3f dy = (hy1 ? py1 : c) - (hy0 ? py0 : c);
+        Eigen::Vector3f normal = dx.cross(dy);
+        float norm = normal.norm();
+        if (norm <= 0) continue;
+        float cos_incidence = std::abs(normal.dot(c)) / (norm * c.norm());
+        if (cos_incidence < cos_max) {
+          kept.at<float>(y, x) = std::numeric_limits<float>::quiet_NaN();
+          ++rejected;
+        }
+      }
+    }
+  }
+  depth = kept;
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) valid += std::isfinite(depth.at<float>(y, x));
+  }
+  stats.valid_pixels = valid;
+  stats.rejected_pixels = rejected;
+
+  // 2. Blocks within the truncation band of every measurement.
+  const Pose world_from_cam = depth_camera.world_from_cam();
+  const Eigen::Matrix3f rotation = world_from_cam.rotation().cast<float>();
+  const Eigen::Vector3f translation = world_from_cam.translation().cast<float>();
+  const float voxel = static_cast<float>(volume_.voxel_m());
+  const float truncation = static_cast<float>(volume_.truncation_m());
+  const float block_m = voxel * kBlockSide;
+  const int band_steps = std::max(1, static_cast<int>(std::ceil(truncation / (0.5f * block_m))));
+  std::vector<std::vector<uint64_t>> per_thread(threads);
+#pragma omp parallel num_threads(threads)
+  {
+    auto& keys = per_thread[omp_get_thread_num()];
+    uint64_t last = ~uint64_t{0};
+#pragma omp for schedule(static)
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0; x < w; ++x) {
+        float d = depth.at<float>(y, x);
+        if (!std::isfinite(d)) continue;
+        cv::Vec2f ray = tables->rays.at<cv::Vec2f>(y, x);
+        Eigen::Vector3f direction(ray[0], ray[1], 1);
+        float length = direction.norm();
+        for (int s = -band_steps; s <= band_steps; ++s) {
+          float along = d * length + s * truncation / band_steps;
+          Eigen::Vector3f p = rotation * (direction * (along / length)) + translation;
+          Eigen::Vector3d pd = p.cast<double>();
+          if (!volume_.bounds().Contains(pd)) continue;
+          Eigen::Vector3i v = (p / voxel).array().round().cast<int>();
+          uint64_t key = SparseVolume::Key(SparseVolume::BlockOf(v));
+          if (key != last) keys.push_back(key), last = key;
+        }
+      }
+    }
+    std::sort(keys.begin(), keys.end());
+    keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
+  }
+  std::vector<uint64_t> touched;
+  for (auto& keys : per_thread) touched.insert(touched.end(), keys.begin(), keys.end());
+  std::sort(touched.begin(), touched.end());
+  touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
+  std::vector<VoxelBlock*> blocks(touched.size());
+  std::vector<Eigen::Vector3i> coordinates(touched.size());
+  for (size_t i = 0; i < touched.size(); ++i) {
+    coordinates[i] = SparseVolume::Unkey(touched[i]);
+    blocks[i] = &volume_.Allocate(coordinates[i]);
+  }
+  stats.blocks_touched = static_cast<int64_t>(touched.size());
+
+  // 3. Projective signed distances, noise-weighted running averages with capped weights.
+  const auto& projector = tables->projector;
+  const float max_weight = options_.max_weight;
+  const Box& bounds = volume_.bounds();
+  int64_t updated = 0;
+#pragma omp parallel for num_threads(threads) reduction(+ : updated) schedule(dynamic, 16)
+  for (size_t b = 0; b < blocks.size(); ++b) {
+    VoxelBlock& block = *blocks[b];
+    const Eigen::Vector3i base = coordinates[b] * kBlockSide;
+    for (int z = 0; z < kBlockSide; ++z) {
+      for (int y = 0; y < kBlockSide; ++y) {
+        for (int x = 0; x < kBlockSide; ++x) {
+          Eigen::Vector3f world = (base + Eigen::Vector3i(x, y, z)).cast<float>() * voxel;
+          if (!bounds.Contains(world.cast<double>())) continue;
+          Eigen::Vector3f p = projector.ToCamera(world);
+          float u, v;
+          if (!projector.Project(p, &u, &v)) continue;
+          int px = static_cast<int>(std::lround(u)), py = static_cast<int>(std::lround(v));
+          if (px < 0 || py < 0 || px >= w || py >= h) continue;
+          float d = depth.at<float>(py, px);
+          if (!std::isfinite(d)) continue;
+          // Distance along the ray rather than along z: projective, but not stretched at the
+          // image border.
+          float sdf = (d - p.z()) * (p.norm() / p.z());
+          if (sdf < -truncation) continue;
+          sdf = std::min(sdf, truncation);
+          float sigma_ratio = k > 0 ? 1.0f / (d * d) : 1.0f;  // sigma(1 m) / sigma(d)
+          float weight = std::clamp(sigma_ratio * sigma_ratio, 1e-3f, 1.0f);
+          Voxel& voxel_data = block.at(x, y, z);
+          float total = voxel_data.weight + weight;
+          voxel_data.sdf = (voxel_data.sdf * voxel_data.weight + sdf * weight) / total;
+          if (use_color && std::abs(sdf) < 0.5f * truncation) {
+            float cu, cv_;
+            Eigen::Vector3f pc = color_tables->projector.ToCamera(world);
+            if (color_tables->projector.Project(pc, &cu, &cv_) &&
+                color_tables->projector.InImage(cu, cv_, 0.5f)) {
+              cv::Vec3b bgr = color.at<cv::Vec3b>(static_cast<int>(std::lround(cv_)),
+                                                  static_cast<int>(std::lround(cu)));
+              float old = voxel_data.weight;
+              voxel_data.r = static_cast<uint8_t>((voxel_data.r * old + bgr[2] * weight) / total + 0.5f);
+              voxel_data.g = static_cast<uint8_t>((voxel_data.g * old + bgr[1] * weight) / total + 0.5f);
+              voxel_data.b = static_cast<uint8_t>((voxel_data.b * old + bgr[0] * weight) / total + 0.5f);
+            }
+          }
+          voxel_data.weight = std::min(total, max_weight);
+          ++updated;
+        }
+      }
+    }
+  }
+  stats.voxels_updated = updated;
+  stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return stats;
+}
+
+}  // namespace holocap

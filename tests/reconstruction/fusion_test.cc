@@ -1,0 +1,327 @@
+// Depth fusion, marching cubes and hull on analytic spheres: exact answers, stiff inputs.
+#include <gtest/gtest.h>
+#include <sys/resource.h>
+
+#include <map>
+#include <random>
+
+#include <opencv2/imgproc.hpp>
+
+#include "core/error.h"
+#include "reconstruction/projector.h"
+#include "reconstruction/reconstruction.h"
+#include "tests/reconstruction/synthetic.h"
+
+namespace holocap {
+namespace {
+
+using testing::RenderSphere;
+using testing::RingCameras;
+using testing::Sphere;
+using testing::SphereError;
+
+// Ring cameras plus one above and one below, so every part of the sphere is seen.
+std::vector<CameraModel> SurroundingCameras(const Sphere& sphere, int width = 320, int height = 240) {
+  std::vector<CameraModel> cameras = RingCameras(6, sphere, 1.5, width, height);
+  for (double side : {1.0, -1.0}) {
+    Eigen::Vector3d eye = sphere.centre + Eigen::Vector3d(0.05, 0.02, side * 1.5);
+    cameras.push_back(CameraModel::Pinhole(0.9 * width, width, height, CamFromWorldLookAt(eye, sphere.centre)));
+  }
+  return cameras;
+}
+
+// Each undirected edge: how many faces use it, and whether the two uses run opposite ways.
+struct EdgeCheck {
+  int64_t boundary = 0, non_manifold = 0, inconsistent = 0;
+};
+EdgeCheck CheckEdges(const Mesh& mesh) {
+  std::map<std::pair<int, int>, std::pair<int, int>> edges;  // (min, max) -> (forward, backward)
+  for (const auto& f : mesh.faces) {
+    for (int k = 0; k < 3; ++k) {
+      int a = f[k], b = f[(k + 1) % 3];
+      auto& e = edges[{std::min(a, b), std::max(a, b)}];
+      (a < b ? e.first : e.second)++;
+    }
+  }
+  EdgeCheck check;
+  for (const auto& [key, uses] : edges) {
+    int total = uses.first + uses.second;
+    check.boundary += total == 1;
+    check.non_manifold += total > 2;
+    check.inconsistent += total == 2 && uses.first != 1;
+  }
+  return check;
+}
+
+TEST(ProjectorTest, TableMatchesMrcalToAHundredthOfAPixel) {
+  std::vector<CameraModel> lenses = {
+      CameraModel("LENSMODEL_OPENCV8",
+                  {498.6, 499.4, 321.0, 238.2, 0.35, -0.05, 0.0004, 0.0002, 0.01, 0.42, -0.02, 0.015}, 640, 480),
+      CameraModel("LENSMODEL_STEREOGRAPHIC", {300.0, 300.0, 318.2, 241.1}, 640, 480),
+      CameraModel("LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004}, 640, 480)};
+  std::mt19937 rng(3);
+  for (const CameraModel& lens : lenses) {
+    recon::FastProjector projector(lens);
+    double worst = 0;
+    for (int i = 0; i < 2000; ++i) {
+      Eigen::Vector2d pixel(std::uniform_real_distribution<>(0, 639)(rng), std::uniform_real_distribution<>(0, 479)(rng));
+      Eigen::Vector3d ray = lens.Unproject(pixel) * std::uniform_real_distribution<>(0.5, 5)(rng);
+      float u, v;
+      ASSERT_TRUE(projector.Project(ray.cast<float>(), &u, &v)) << lens.lensmodel();
+      Eigen::Vector2d exact;
+      ASSERT_TRUE(lens.Project(ray, &exact));
+      worst = std::max(worst, (Eigen::Vector2d(u, v) - exact).norm());
+    }
+    EXPECT_LT(worst, 0.01) << lens.lensmodel();
+  }
+}
+
+TEST(TsdfTest, SphereIsClosedSeamlessAndAccurate) {
+  const Sphere sphere;
+  TsdfOptions options;
+  options.voxel_m = 0.01;
+  options.smoothing_radius_px = 0;
+  options.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  TsdfVolume tsdf(options);
+  for (const CameraModel& camera : SurroundingCameras(sphere)) {
+    cv::Mat depth;
+    RenderSphere(camera, sphere, &depth, nullptr);
+    TsdfFrameStats stats = tsdf.Integrate(depth, camera);
+    EXPECT_GT(stats.valid_pixels, 1000);
+  }
+  Mesh mesh = ExtractMesh(tsdf.volume());
+  ASSERT_GT(mesh.faces.size(), 1000u);
+  auto [mean, worst] = SphereError(mesh, sphere);
+  EXPECT_LT(mean, 0.001) << "mean radial error (m)";
+  EXPECT_LT(worst, 0.004);
+  // Seamless across the 8^3 blocks (the sphere spans many): closed and consistently wound.
+  EdgeCheck edges = CheckEdges(mesh);
+  EXPECT_EQ(edges.boundary, 0);
+  EXPECT_EQ(edges.non_manifold, 0);
+  EXPECT_EQ(edges.inconsistent, 0);
+  // Counter-clockwise seen from outside: face normals point away from the centre.
+  int64_t outward = 0;
+  for (const auto& f : mesh.faces) {
+    Eigen::Vector3f a = mesh.vertices[f[0]], b = mesh.vertices[f[1]], c = mesh.vertices[f[2]];
+    outward += (b - a).cross(c - a).dot((a + b + c) / 3 - sphere.centre.cast<float>()) > 0;
+  }
+  EXPECT_EQ(outward, static_cast<int64_t>(mesh.faces.size()));
+  // Simplification keeps the shape with fewer triangles.
+  Mesh simple = SimplifyMesh(mesh, 0.03);
+  EXPECT_LT(simple.faces.size(), mesh.faces.size() / 4);
+  EXPECT_LT(SphereError(simple, sphere).first, 0.004);
+}
+
+TEST(TsdfTest, InvalidDepthPixelsAreRejectedNotFused) {
+  const Sphere sphere;
+  TsdfOptions options;
+  options.voxel_m = 0.01;
+  options.max_incidence_deg = 90;  // only invalid values are rejected here
+  options.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  TsdfVolume tsdf(options);
+  std::mt19937 rng(5);
+  int64_t error_codes = 0, rejected = 0;
+  const float bad[] = {std::numeric_limits<float>::quiet_NaN(), 0.0f, std::numeric_limits<float>::infinity(),
+                       -std::numeric_limits<float>::infinity(), -1.0f, 100.0f};
+  for (const CameraModel& camera : SurroundingCameras(sphere)) {
+    cv::Mat depth;
+    RenderSphere(camera, sphere, &depth, nullptr);
+    for (int y = 0; y < depth.rows; ++y) {
+      for (int x = 0; x < depth.cols; ++x) {
+        if (!std::isfinite(depth.at<float>(y, x)) || rng() % 4 != 0) continue;
+        float value = bad[rng() % 6];
+        depth.at<float>(y, x) = value;
+        error_codes += !std::isnan(value);
+      }
+    }
+    rejected += tsdf.Integrate(depth, camera).rejected_pixels;
+  }
+  // NaN is "no measurement"; 0, +-inf, negative and out-of-range values are each rejected.
+  EXPECT_EQ(rejected, error_codes);
+  Mesh mesh = ExtractMesh(tsdf.volume());
+  ASSERT_GT(mesh.faces.size(), 1000u);
+  for (const auto& v : mesh.vertices) ASSERT_TRUE(v.allFinite());
+  EXPECT_LT(SphereError(mesh, sphere).first, 0.0015);
+}
+
+TEST(TsdfTest, GrazingMeasurementsAreDroppedAndLeaveNoSmear) {
+  // A floor seen from 0.3 m height: incidence runs from ~60 to ~89 degrees across the image.
+  const CameraModel camera = CameraModel::Pinhole(
+      300, 320, 240, CamFromWorldLookAt(Eigen::Vector3d(0, 0, 0.3), Eigen::Vector3d(0, 0.6, 0)));
+  cv::Mat depth(240, 320, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
+  const Eigen::Matrix3d world_from_cam = camera.world_from_cam().rotation();
+  for (int y = 0; y < 240; ++y) {
+    for (int x = 0; x < 320; ++x) {
+      Eigen::Vector3d ray = camera.Unproject(Eigen::Vector2d(x, y));
+      Eigen::Vector3d dir = world_from_cam * ray;
+      if (dir.z() >= -1e-6) continue;
+      double t = -0.3 / dir.z();
+      if (t < 8) depth.at<float>(y, x) = static_cast<float>(t * ray.z());
+    }
+  }
+  TsdfOptions options;
+  options.voxel_m = 0.01;
+  options.max_incidence_deg = 80;
+  options.bounds = {Eigen::Vector3d(-2, -1, -0.2), Eigen::Vector3d(2, 8, 1)};
+  TsdfVolume tsdf(options);
+  TsdfFrameStats stats = tsdf.Integrate(depth, camera);
+  EXPECT_GT(stats.rejected_pixels, 1000) << "beyond 80 degrees of incidence";
+  Mesh mesh = ExtractMesh(tsdf.volume());
+  ASSERT_GT(mesh.faces.size(), 500u);
+  double worst = 0;
+  for (const auto& v : mesh.vertices) worst = std::max(worst, std::abs(static_cast<double>(v.z())));
+  EXPECT_LT(worst, 0.01) << "the floor stays flat where it is kept";
+}
+
+TEST(TsdfTest, MillimetreVoxelsOnATwoMetreStageStayBoundedBySurface) {
+  const Sphere sphere{Eigen::Vector3d(0, 0, 1), 0.2};
+  TsdfOptions options;
+  options.voxel_m = 0.001;
+  options.smoothing_radius_px = 0;
+  options.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  TsdfVolume tsdf(options);
+  std::vector<CameraModel> cameras = RingCameras(3, sphere, 1.2, 640, 480, false);
+  for (const CameraModel& camera : cameras) {
+    cv::Mat depth;
+    RenderSphere(camera, sphere, &depth, nullptr);
+    tsdf.Integrate(depth, camera);
+  }
+  // Dense 1 mm voxels over the stage would be 8e9 voxels (~96 GB); sparse blocks hold only
+  // the truncation band around the seen surface.
+  const double surface_m2 = 4 * M_PI * sphere.radius * sphere.radius;
+  const double band_blocks = surface_m2 / std::pow(kBlockSide * options.voxel_m, 2) * 3;
+  EXPECT_LT(static_cast<double>(tsdf.volume().block_count()), band_blocks);
+  EXPECT_LT(tsdf.volume().memory_bytes(), size_t{400} << 20);
+  Mesh mesh = ExtractMesh(tsdf.volume());
+  EXPECT_LT(SphereError(mesh, sphere).first, 0.0003);
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  std::printf("1 mm voxels: %zu blocks, %.1f MB volume, peak RSS %.1f MB, %zu triangles\n",
+              tsdf.volume().block_count(), tsdf.volume().memory_bytes() / 1048576.0, usage.ru_maxrss / 1024.0,
+              mesh.faces.size());
+  EXPECT_LT(usage.ru_maxrss / 1024.0, 1024.0) << "peak RSS, MB";
+}
+
+TEST(TsdfTest, SubjectTouchingTheBoundsIsCutThere) {
+  // The sphere pokes 10 cm through the floor of the volume.
+  const Sphere sphere{Eigen::Vector3d(0, 0, 0.1), 0.2};
+  TsdfOptions options;
+  options.voxel_m = 0.01;
+  options.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  TsdfVolume tsdf(options);
+  for (const CameraModel& camera : SurroundingCameras(sphere)) {
+    cv::Mat depth;
+    RenderSphere(camera, sphere, &depth, nullptr);
+    tsdf.Integrate(depth, camera);
+  }
+  Mesh mesh = ExtractMesh(tsdf.volume());
+  ASSERT_GT(mesh.faces.size(), 500u);
+  float lowest = 1e9f;
+  for (const auto& v : mesh.vertices) lowest = std::min(lowest, v.z());
+  EXPECT_GE(lowest, -1e-6f) << "nothing below the volume";
+  EXPECT_LT(lowest, 0.011f) << "the surface reaches the boundary";
+  EXPECT_LT(SphereError(mesh, sphere).first, 0.0015);
+}
+
+class HullTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    cameras_ = RingCameras(8, sphere_, 1.5, 320, 240);
+    for (size_t i = 0; i < cameras_.size(); ++i) {
+      View view{"cam" + std::to_string(i), cameras_[i], {}, {}};
+      RenderSphere(cameras_[i], sphere_, nullptr, &view.mask);
+      views_.push_back(view);
+    }
+    options_.voxel_m = 0.01;
+    options_.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  }
+  double ContainedFraction(const VisualHull& hull, double tolerance) const {
+    auto points = testing::SphereMesh(sphere_).SampleSurface(5000, 1);
+    int64_t inside = 0;
+    for (const auto& p : points) inside += hull.Contains(p, tolerance);
+    return static_cast<double>(inside) / points.size();
+  }
+  Sphere sphere_;
+  std::vector<CameraModel> cameras_;
+  std::vector<View> views_;
+  HullOptions options_;
+};
+
+TEST_F(HullTest, ContainsTheSphereAndIsTight) {
+  HullSummary summary;
+  VisualHull hull = ComputeVisualHull(views_, options_, &summary);
+  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  EXPECT_GE(ContainedFraction(hull, 0), 0.999);
+  const double sphere_volume = 4.0 / 3 * M_PI * std::pow(sphere_.radius, 3);
+  EXPECT_GT(summary.volume_m3, sphere_volume);
+  EXPECT_LT(summary.volume_m3, 1.15 * sphere_volume);
+  // The octree decided most of the stage without touching voxels.
+  const double stage_blocks = 2.0 * 2 * 2 / std::pow(kBlockSide * options_.voxel_m, 3);
+  EXPECT_LT(summary.surface_blocks, 0.15 * stage_blocks);
+  Mesh mesh = ExtractMesh(*hull.volume);
+  EXPECT_EQ(CheckEdges(mesh).boundary, 0);
+  // Every hull vertex is outside or on the sphere, and not far from it for 8 views.
+  double below = 0, above = 0;
+  for (const auto& v : mesh.vertices) {
+    double r = (v.cast<double>() - sphere_.centre).norm() - sphere_.radius;
+    below = std::min(below, r);
+    above = std::max(above, r);
+  }
+  EXPECT_GT(below, -0.006);
+  EXPECT_LT(above, 0.08);
+}
+
+TEST_F(HullTest, EmptySilhouetteEmptiesTheStrictHullButNotTheConservativeOne) {
+  views_[3].mask.setTo(0);
+  HullSummary strict;
+  ComputeVisualHull(views_, options_, &strict);
+  EXPECT_EQ(strict.termination, Termination::kDegenerate) << strict.message;
+  options_.tolerated_bad_views = 1;
+  HullSummary conservative;
+  VisualHull hull = ComputeVisualHull(views_, options_, &conservative);
+  ASSERT_EQ(conservative.termination, Termination::kSuccess);
+  EXPECT_GE(ContainedFraction(hull, 0), 0.99);
+}
+
+TEST_F(HullTest, SilhouetteOfTheWrongSizeIsAnError) {
+  views_[1].mask = cv::Mat::zeros(10, 10, CV_8U);
+  EXPECT_THROW(ComputeVisualHull(views_, options_), Error);
+  views_[1].mask = cv::Mat();
+  EXPECT_THROW(ComputeVisualHull(views_, options_), Error);
+}
+
+TEST(SilhouetteTest, BackgroundSubtractionRecoversANoisyDisk) {
+  std::mt19937 rng(9);
+  std::normal_distribution<double> noise(0, 2.0);
+  cv::Mat plate(240, 320, CV_8UC3), image, truth = cv::Mat::zeros(240, 320, CV_8U);
+  cv::randu(plate, 40, 200);
+  cv::circle(truth, {160, 120}, 60, 255, -1);
+  image = plate.clone();
+  for (int y = 0; y < 240; ++y) {
+    for (int x = 0; x < 320; ++x) {
+      cv::Vec3b& p = image.at<cv::Vec3b>(y, x);
+      if (truth.at<uint8_t>(y, x)) p = cv::Vec3b((x * 7) % 255, 90, (y * 5) % 255);
+      for (int c = 0; c < 3; ++c) p[c] = cv::saturate_cast<uint8_t>(p[c] + noise(rng));
+    }
+  }
+  // Pixels of the subject that happen to match the background are holes the closing fills.
+  cv::Mat mask = ExtractSilhouette(image, plate, SilhouetteOptions{});
+  EXPECT_GT(MaskIoU(mask, truth), 0.97);
+  EXPECT_THROW(ExtractSilhouette(image, cv::Mat(), SilhouetteOptions{}), Error);
+  SilhouetteOptions bad;
+  bad.threshold = 2;
+  EXPECT_THROW(bad.Check(), Error);
+}
+
+TEST(SurfaceErrorsTest, ScaledSphereGivesItsOffset) {
+  Sphere a, b = a;
+  b.radius = a.radius + 0.004;
+  SurfaceErrors e = CompareSurfaces(testing::SphereMesh(a), testing::SphereMesh(b), 0.005, 20000);
+  EXPECT_NEAR(e.chamfer_mm, 4.0, 0.2);
+  EXPECT_NEAR(e.fscore, 1.0, 1e-9);
+  SurfaceErrors far = CompareSurfaces(testing::SphereMesh(a), testing::SphereMesh(b), 0.003, 20000);
+  EXPECT_LT(far.fscore, 0.01);
+}
+
+}  // namespace
+}  // namespace holocap
