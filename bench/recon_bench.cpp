@@ -66,7 +66,7 @@ DepthInput ToPinhole(const DepthInput& in) {
   return {pinhole, out};
 }
 
-struct Frame {
+struct BenchFrame {
   int64_t set;
   std::vector<DepthInput> depth;
   Mesh truth;
@@ -83,7 +83,7 @@ void PrintErrors(const char* label, double voxel, double integrate_s, double mes
 const char* kHeader =
     "%-22s %6s %11s %8s %9s %9s %9s %9s %9s %7s %s\n";
 
-void TsdfSections(const std::vector<Frame>& frames, int threads, const fs::path& work, bool peer, bool sweep) {
+void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::path& work, bool peer, bool sweep) {
   auto run_holocap = [&](const std::vector<std::vector<DepthInput>>& inputs, TsdfOptions options, double* integrate_s,
                          double* mesh_s, std::vector<Mesh>* meshes, size_t* blocks, double* memory_mb) {
     options.threads = threads;
@@ -115,7 +115,7 @@ void TsdfSections(const std::vector<Frame>& frames, int threads, const fs::path&
     }
   };
   std::vector<std::vector<DepthInput>> original, pinhole;
-  for (const Frame& f : frames) {
+  for (const BenchFrame& f : frames) {
     original.push_back(f.depth);
     pinhole.emplace_back();
     for (const auto& d : f.depth) pinhole.back().push_back(ToPinhole(d));
@@ -213,14 +213,14 @@ void TsdfSections(const std::vector<Frame>& frames, int threads, const fs::path&
   }
 }
 
-void HullAndMvs(const fs::path& take_dir, const std::vector<Frame>& frames, int threads) {
+void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames, int threads) {
   const Take take = Take::Open(take_dir);
   std::printf("== studio8 visual hull (background-subtracted silhouettes, 8 cameras, %d threads)\n", threads);
   std::printf("%6s %8s %12s %12s %10s %9s\n", "voxmm", "hull_s", "contained", "within_vox/2", "litres", "mask_IoU");
   for (double voxel : {0.016, 0.008, 0.004}) {
     double seconds = 0, contained = 0, near = 0, litres = 0, iou = 0;
     int masks = 0;
-    for (const Frame& frame : frames) {
+    for (const BenchFrame& frame : frames) {
       std::vector<View> views;
       for (const StreamInfo& s : take.streams()) {
         if (s.role != SensorRole::kColor) continue;
@@ -345,9 +345,9 @@ int main(int argc, char** argv) {
       SimulateTake(sim, take_dir);
     }
     const Take take = Take::Open(take_dir);
-    std::vector<Frame> frames;
+    std::vector<BenchFrame> frames;
     for (int64_t set = 1; set <= frame_count && set < static_cast<int64_t>(take.size()); ++set) {
-      Frame frame;
+      BenchFrame frame;
       frame.set = set;
       frame.truth = ReadPly(take.gt_dir() / "meshes" / (SetName(set) + ".ply"));
       std::vector<std::pair<CameraModel, cv::Mat>> seen;
