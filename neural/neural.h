@@ -79,7 +79,7 @@ struct NeuralVolumeOptions {
   double kl_weight = 1e-3;       // KL of the latent (dynamic scenes)
   double alpha_prior_weight = 1e-4;  // beta prior pushing ray alpha towards 0 or 1 (colours in
                                      // [0, 1]: the paper weighs it against 0..255 pixel errors)
-  double tv_weight = 1e-3;       // total variation of the grid
+  double tv_weight = 1e-2;       // total variation of the grid
   bool learn_background = true;  // refine the training cameras' backgrounds
   double step_voxels = 1.0;      // ray-marching step in voxels
   bool jitter = true;            // random offset of the first sample of each training ray
@@ -135,13 +135,15 @@ struct ViewRenderOptions {
   double step_voxels = 1.0;         // ray-marching step in voxels
   bool skip_empty = true;           // skip empty space through the occupancy grid
   double min_transmittance = 1e-3;  // a ray stops once this little light is left
+  double depth_min_alpha = 0.5;     // depth is reported where alpha reaches this (else NaN)
   int threads = 0;                  // 0: all cores
 };
 
 struct RenderedView {
   cv::Mat color;  // CV_32FC3, BGR in [0, 1], premultiplied by alpha (over black)
   cv::Mat alpha;  // CV_32FC1 in [0, 1]
-  cv::Mat depth;  // CV_32FC1 z-depth in metres along the optical axis, NaN where alpha < 0.5
+  cv::Mat depth;  // CV_32FC1 z-depth in metres along the optical axis, NaN where alpha is
+                  // below ViewRenderOptions::depth_min_alpha
   double samples_per_ray = 0;  // mean over the rays that enter the volume
   int64_t rays_in_volume = 0;
   double seconds = 0;          // marching (and decoding, when the frame was not cached)

@@ -175,7 +175,12 @@ NvolModelImpl::NvolModelImpl(const NvolConfig& config) : config_(config) {
     warp = register_module("warp", WarpDecoder(config.latent_dim, config.warp_grid, config.warp_count,
                                                std::max(config.decoder_channels / 2, 16)));
   } else {
-    grid = register_parameter("grid", torch::zeros({1, 4, config.grid, config.grid, config.grid}));
+    // Grey and nearly empty (optical depth softplus(-5) = 0.007 per voxel): Adam moves each
+    // voxel by about the learning rate per step, so density appears within tens of steps
+    // where the views need it, and unobserved fog stays faint.
+    torch::Tensor initial = torch::zeros({1, 4, config.grid, config.grid, config.grid});
+    initial.narrow(1, 3, 1).fill_(-3.0);
+    grid = register_parameter("grid", initial);
   }
   gain = register_parameter("gain", torch::ones({std::max(config.cameras, 1), 3}));
   bias = register_parameter("bias", torch::zeros({std::max(config.cameras, 1), 3}));
@@ -319,7 +324,7 @@ class NeuralVolumeAvatar : public AvatarModel {
         for (int c = 0; c < 3; ++c) view.color.at<cv::Vec3f>(y, x)[c] = context.outputs.rgb[3 * i + c];
         view.alpha.at<float>(y, x) = alpha;
         float depth = std::numeric_limits<float>::quiet_NaN();
-        if (alpha >= 0.5f) {
+        if (alpha >= options.depth_min_alpha && alpha > 0) {
           const double t = context.outputs.depth[i] / alpha;
           const Eigen::Vector3d d(context.rays.direction[3 * i], context.rays.direction[3 * i + 1],
                                   context.rays.direction[3 * i + 2]);

@@ -467,7 +467,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   Progress progress("nvol train", options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
   std::deque<double> recent;
   std::vector<double> photo_history;
-  double running = 0;
+  double running = 0, first_finite_loss = -1;
   double next_eval = 0, next_checkpoint = options_.checkpoint_every_s;
   Evaluation last_eval;
   auto log_eval = [&](int64_t it) {
@@ -489,7 +489,11 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
     }
     double photo = 0, samples = 0;
     const double loss = TrainStep(iteration, &photo, &samples);
-    const bool exploded = recent.size() >= 10 && loss > options_.divergence_factor * running;
+    // Against the running mean, or the first loss until there is one: an explosion in the
+    // very first steps must not become the reference itself.
+    if (first_finite_loss < 0 && std::isfinite(loss)) first_finite_loss = loss;
+    const double reference = recent.size() >= 10 ? running : first_finite_loss;
+    const bool exploded = reference > 0 && loss > options_.divergence_factor * reference;
     if (!std::isfinite(loss) || exploded) {
       ++summary.divergences;
       RestoreSnapshot(snapshot, model_, backgrounds_);

@@ -1,0 +1,200 @@
+// Training Neural Volumes on small simulated takes: the CI configuration of the dynamic
+// subject (loss falls, held-out PSNR), the static path that builds no encoder or warp,
+// checkpoints and resume, the divergence guard, model directories and the CLI.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <nlohmann/json.hpp>
+
+#include "core/error.h"
+#include "core/fs.h"
+#include "core/take.h"
+#include "neural/neural.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::RunCli;
+using testing::TempDir;
+
+// Takes shared by the tests of this suite (simulated once).
+class NeuralTrainTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new TempDir("holocap-nvol");
+    auto dynamic = RunCli("sim --rig studio8 --frames 5 --clean-plate 1 --size 192 --seed 4 --out '" +
+                          (dir_->path() / "walk").string() + "'");
+    ASSERT_EQ(dynamic.exit_code, 0) << dynamic.output;
+    auto still = RunCli("sim --rig studio8 --scene object --frames 2 --clean-plate 1 --size 192 --seed 5 --out '" +
+                        (dir_->path() / "object").string() + "'");
+    ASSERT_EQ(still.exit_code, 0) << still.output;
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  static std::filesystem::path Walk() { return dir_->path() / "walk"; }
+  static std::filesystem::path Object() { return dir_->path() / "object"; }
+  static std::filesystem::path Dir() { return dir_->path(); }
+
+  static NeuralVolumeOptions StaticOptions() {
+    NeuralVolumeOptions options;
+    options.grid = 32;
+    options.image_width = 96;
+    options.iterations = 500;
+    options.minutes = 2;
+    options.eval_every_s = 1000;  // only at the start and the end
+    return options;
+  }
+
+  static TempDir* dir_;
+};
+TempDir* NeuralTrainTest::dir_ = nullptr;
+
+TEST_F(NeuralTrainTest, DynamicCiConfigurationLearnsTheSubject) {
+  NeuralVolumeOptions options;
+  options.grid = 32;
+  options.image_width = 96;
+  options.latent_dim = 64;
+  options.decoder_channels = 64;
+  options.warp_grid = 16;
+  options.rays_per_batch = 2048;
+  options.minutes = 1.0;
+  options.eval_every_s = 15;
+  Report report("train");
+  const auto model = Dir() / "walk-model";
+  NeuralVolumeSummary summary = TrainNeuralVolume(Walk(), model, options, &report);
+  ASSERT_TRUE(IsUsable(summary.termination)) << summary.message;
+  EXPECT_TRUE(summary.built_encoder);
+  EXPECT_TRUE(summary.built_warp);
+  EXPECT_EQ(summary.plan["scene"], "dynamic");
+  EXPECT_EQ(summary.plan["heldout_cameras"].size(), 2u);
+  EXPECT_EQ(summary.plan["bounds"]["source"], "hull");
+  EXPECT_GT(summary.iterations, 20);
+  // The loss falls and held-out cameras (never trained on) reach 20 dB. In a minute on two
+  // cores the subject itself is only about as good as an empty volume's background (see
+  // bench/nvol_bench for longer runs): the model must at least not fog it.
+  EXPECT_LT(summary.last_loss, 0.5 * summary.first_loss);
+  EXPECT_GE(summary.heldout_psnr_db, 20.0);
+  EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db - 0.5)
+      << "subject " << summary.heldout_psnr_fg_db << " dB vs background alone " << summary.background_psnr_fg_db;
+  const auto json = nlohmann::json::parse(ReadFileToString(model / "report.json"));
+  EXPECT_NEAR(json["metrics"]["heldout_psnr_db"].get<double>(), summary.heldout_psnr_db, 1e-9);
+  int points = 0;
+  for (const auto& point : json["series"]) points += point["metric"] == "heldout_psnr_db";
+  EXPECT_GE(points, 3);
+  auto avatar = OpenModel(model);
+  EXPECT_EQ(avatar->frame_count(), 4);  // 5 sets, the first the clean plate
+}
+
+TEST_F(NeuralTrainTest, StaticSceneLeavesOutEncoderAndWarp) {
+  Report report("train");
+  const auto model = Dir() / "object-model";
+  NeuralVolumeSummary summary = TrainNeuralVolume(Object(), model, StaticOptions(), &report);
+  ASSERT_TRUE(IsUsable(summary.termination)) << summary.message;
+  EXPECT_EQ(summary.plan["scene"], "static");
+  EXPECT_FALSE(summary.built_encoder);
+  EXPECT_FALSE(summary.built_warp);
+  const auto json = nlohmann::json::parse(ReadFileToString(model / "model.json"));
+  EXPECT_EQ(json["method"], "nvol");
+  for (const auto& module : json["modules"]) {
+    EXPECT_NE(module, "encoder");
+    EXPECT_NE(module, "warp");
+    EXPECT_NE(module, "decoder");
+  }
+  EXPECT_FALSE(std::filesystem::exists(model / "latents.pt"));
+  EXPECT_LT(summary.last_loss, 0.2 * summary.first_loss);
+  EXPECT_GE(summary.heldout_psnr_db, 25.0);
+  EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db + 1.0)
+      << "subject " << summary.heldout_psnr_fg_db << " dB vs background alone " << summary.background_psnr_fg_db;
+
+  // The model renders a training camera with depth (where opaque) between camera and box.
+  auto avatar = OpenModel(model);
+  const Take take = Take::Open(Object());
+  const std::string trained = summary.plan["training_cameras"][0];
+  CameraModel camera = take.Camera(trained, true);
+  camera = camera.Scaled(96.0 / camera.width());
+  // Sparse views leave this model semi-transparent (see the report): depth from alpha 0.2.
+  ViewRenderOptions render;
+  render.depth_min_alpha = 0.2;
+  RenderedView view = avatar->Render(camera, 0, render);
+  ASSERT_EQ(view.color.cols, camera.width());
+  int64_t opaque = 0;
+  const double far = (camera.center_in_world() - 0.5 * (avatar->box_min() + avatar->box_max())).norm() +
+                     (avatar->box_max() - avatar->box_min()).norm();
+  for (int y = 0; y < view.depth.rows; ++y) {
+    for (int x = 0; x < view.depth.cols; ++x) {
+      const float d = view.depth.at<float>(y, x);
+      if (std::isnan(d)) continue;
+      ++opaque;
+      EXPECT_GT(d, 0.0f);
+      EXPECT_LT(d, far);
+    }
+  }
+  EXPECT_GT(opaque, 3);
+  EXPECT_GT(view.samples_per_ray, 0.0);
+
+  // Resume continues from the checkpoint's iteration.
+  NeuralVolumeOptions more = StaticOptions();
+  more.iterations = 20;
+  more.resume = true;
+  NeuralVolumeSummary resumed = TrainNeuralVolume(Object(), model, more, nullptr);
+  EXPECT_EQ(resumed.plan["resumed_from_iteration"], summary.iterations);
+  EXPECT_EQ(resumed.iterations, summary.iterations + 20);
+  EXPECT_GE(resumed.heldout_psnr_db, summary.heldout_psnr_db - 1.0);
+}
+
+TEST_F(NeuralTrainTest, DivergenceRestoresTheCheckpointAndLowersTheRate) {
+  NeuralVolumeOptions options = StaticOptions();
+  options.iterations = 60;
+  options.static_learning_rate = 1e4;  // every step throws the grid far away
+  options.tv_weight = 1.0;
+  options.max_divergences = 3;
+  Report report("train");
+  NeuralVolumeSummary summary = TrainNeuralVolume(Object(), Dir() / "diverging", options, &report);
+  EXPECT_GE(summary.divergences, 1);
+  int logged = 0;
+  for (const auto& point : report.json()["series"]) logged += point["metric"] == "divergence_lr_scale";
+  EXPECT_EQ(logged, summary.divergences);
+  if (summary.termination == Termination::kFailure) {
+    EXPECT_NE(summary.message.find("diverged"), std::string::npos);
+  } else {
+    EXPECT_TRUE(std::isfinite(summary.heldout_psnr_db));
+  }
+}
+
+TEST_F(NeuralTrainTest, BadInputGivesOneClearError) {
+  NeuralVolumeOptions options = StaticOptions();
+  options.grid = 48;
+  EXPECT_THROW(options.Check(), Error);
+  options = StaticOptions();
+  options.heldout = {"nosuchcam"};
+  EXPECT_THROW(TrainNeuralVolume(Object(), Dir() / "bad", options), Error);
+  EXPECT_THROW(TrainNeuralVolume(Dir() / "missing-take", Dir() / "bad", StaticOptions()), Error);
+  EXPECT_THROW(OpenModel(Dir() / "no-model"), Error);
+  CreateDirectories(Dir() / "other-kind");
+  WriteFileAtomic(Dir() / "other-kind" / "model.json", R"({"method": "rerender"})");
+  try {
+    OpenModel(Dir() / "other-kind");
+    FAIL() << "an unknown model kind opened";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("nvol"), std::string::npos) << e.what();
+  }
+}
+
+TEST_F(NeuralTrainTest, CliTrainsAndRejectsUnknownMethods) {
+  const auto out = Dir() / "cli-model";
+  auto result = RunCli("train '" + Object().string() + "' --method nvol --grid 16 --width 64 --iterations 30 --out '" +
+                       out.string() + "'");
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  EXPECT_NE(result.output.find("held-out"), std::string::npos) << result.output;
+  EXPECT_NE(result.output.find("left_out"), std::string::npos) << result.output;
+  EXPECT_TRUE(std::filesystem::exists(out / "model.json"));
+  auto bad = RunCli("train '" + Object().string() + "' --method nerf --out '" + out.string() + "'");
+  EXPECT_NE(bad.exit_code, 0);
+  EXPECT_NE(bad.output.find("holocap: error: unknown training method"), std::string::npos) << bad.output;
+}
+
+}  // namespace
+}  // namespace holocap
