@@ -1,0 +1,93 @@
+// holocap render TAKE --model DIR --path orbit|PATH.json --out DIR|file.mp4: free-viewpoint
+// playback of any trained model (model.json names its kind).
+#include <cstdio>
+#include <filesystem>
+
+#include "app/commands.h"
+#include "core/error.h"
+#include "core/report.h"
+#include "neural/neural.h"
+#include "playback/playback.h"
+
+namespace holocap {
+namespace {
+
+struct RenderArgs {
+  std::string take;
+  std::string model;
+  std::string path = "orbit";
+  std::string out;
+  int size = 512;
+  int views = 60;
+  int64_t frame = -1;
+  bool no_skip = false;
+  bool no_exr = false;
+  double fps = 30;
+  double step = 1.0;
+  int threads = 0;
+};
+
+void AddRenderCommand(CLI::App& app) {
+  auto* command = app.add_subcommand("render", "Render a trained avatar along a camera path to frames or an MP4");
+  auto args = std::make_shared<RenderArgs>();
+  command->add_option("TAKE", args->take, "The take the model was trained on (default model: TAKE/models/nvol)")->required();
+  command->add_option("--model", args->model, "Model directory (holds model.json)");
+  command->add_option("--path", args->path, "orbit, or a camera path JSON file")->capture_default_str();
+  command->add_option("--size", args->size, "Output width and height of the orbit (JSON paths: width)")->capture_default_str();
+  command->add_option("--views", args->views, "Views of the orbit")->capture_default_str();
+  command->add_option("--frame", args->frame, "Show only this frame (-1: play the sequence)")->capture_default_str();
+  command->add_option("--fps", args->fps, "Video frame rate")->capture_default_str();
+  command->add_option("--step", args->step, "Ray-marching step in voxels")->capture_default_str();
+  command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
+  command->add_option("--out", args->out, "A directory (PNG + EXR frames) or a file.mp4")->required();
+  command->add_flag("--no-skip", args->no_skip, "Evaluate every sample (no empty-space skipping)");
+  command->add_flag("--no-exr", args->no_exr, "Directory output: PNG frames only");
+  command->callback([args] {
+    const std::filesystem::path model_dir = args->model.empty()
+        ? std::filesystem::path(args->take) / "models" / "nvol" : std::filesystem::path(args->model);
+    auto model = OpenModel(model_dir);
+    CameraPath path;
+    if (args->path == "orbit") {
+      OrbitOptions orbit;
+      orbit.views = args->views;
+      orbit.width = args->size;
+      orbit.height = args->size;
+      orbit.fps = args->fps;
+      orbit.advance_frames = args->frame < 0;
+      orbit.frame = std::max<int64_t>(args->frame, 0);
+      path = OrbitPath(*model, orbit);
+    } else {
+      const CameraModel& first = model->cameras().front();
+      const int height = 2 * static_cast<int>(std::lround(0.5 * args->size * first.height() / first.width()));
+      path = ReadCameraPath(args->path, *model, args->size, height);
+      if (args->frame >= 0) for (auto& f : path.frames) f = args->frame;
+    }
+    PlaybackOptions options;
+    options.out = args->out;
+    options.exr = !args->no_exr;
+    options.render.skip_empty = !args->no_skip;
+    options.render.step_voxels = args->step;
+    options.render.threads = args->threads;
+    Report report("render");
+    report.options() = {{"take", args->take}, {"model", model_dir.string()}, {"path", args->path},
+                        {"size", args->size}, {"views", args->views}, {"frame", args->frame},
+                        {"skip_empty", !args->no_skip}, {"step_voxels", args->step}, {"out", args->out}};
+    report.plan() = {{"method", model->method()}, {"model_frames", model->frame_count()},
+                     {"views", path.size()}};
+    PlaybackSummary summary = RenderPath(*model, path, options, &report);
+    report.SetSummary({summary.termination, summary.message});
+    const std::filesystem::path out(args->out);
+    const std::filesystem::path report_file =
+        out.extension() == ".mp4" ? std::filesystem::path(out.string() + ".report.json") : out / "report.json";
+    report.Write(report_file);
+    std::printf("%s (%s model, %lld frame(s))\n%s: %s\nreport: %s\n", summary.message.c_str(), model->method().c_str(),
+                static_cast<long long>(model->frame_count()), ToString(summary.termination), out.c_str(),
+                report_file.c_str());
+  });
+}
+
+}  // namespace
+
+HOLOCAP_COMMAND(70, AddRenderCommand);
+
+}  // namespace holocap
