@@ -159,6 +159,23 @@ cv::Mat ReadZstd(const std::filesystem::path& file) {
   return image;
 }
 
+// Walks a PNG's chunk structure (signature, then length/type/data/CRC up to IEND) so that a
+// truncated or damaged file is refused before the decoder sees it; libpng would otherwise
+// print its own diagnostics to stderr before failing.
+bool PngStructureIsComplete(const std::string& bytes) {
+  static constexpr unsigned char kSignature[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  if (bytes.size() < 8 || std::memcmp(bytes.data(), kSignature, 8) != 0) return false;
+  size_t at = 8;
+  while (at + 12 <= bytes.size()) {
+    const auto* p = reinterpret_cast<const unsigned char*>(bytes.data() + at);
+    uint64_t length = (uint64_t{p[0]} << 24) | (uint64_t{p[1]} << 16) | (uint64_t{p[2]} << 8) | p[3];
+    if (length > 0x7fffffffu || at + 12 + length > bytes.size()) return false;
+    if (std::memcmp(p + 4, "IEND", 4) == 0) return true;
+    at += 12 + length;
+  }
+  return false;
+}
+
 }  // namespace
 
 cv::Mat ReadImage(const std::filesystem::path& file) {
@@ -168,6 +185,7 @@ cv::Mat ReadImage(const std::filesystem::path& file) {
     case ImageCodec::kPng: {
       std::string bytes = ReadFileToString(file);
       cv::Mat image;
+      if (!PngStructureIsComplete(bytes)) Fail("'", file.string(), "' is truncated or not a PNG image");
       try {
         image = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, bytes.data()),
                              cv::IMREAD_UNCHANGED);

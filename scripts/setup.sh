@@ -24,7 +24,7 @@ packages=(
   ffmpeg
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev python3-mrcal mrcal python3-numpy python3-opencv iproute2)
+  packages+=(googletest libgtest-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2)
 fi
 
 missing=()

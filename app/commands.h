@@ -1,0 +1,63 @@
+// The `holocap` subcommands: one file each, each parsing its options and calling one stage's
+// public API.
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <filesystem>
+#include <functional>
+#include <iosfwd>
+#include <string>
+#include <vector>
+
+#include "core/report.h"
+
+namespace holocap {
+
+class Take;
+
+// Each cmd_*.cpp registers its subcommand with HOLOCAP_COMMAND(order, AddFn); `order` sets
+// where it appears in --help (pipeline order: sim 10, capture 20, info 30, ...).
+struct CommandEntry {
+  int order;
+  std::function<void(CLI::App&)> add;
+};
+std::vector<CommandEntry>& CommandTable();
+struct CommandRegistrar {
+  CommandRegistrar(int order, std::function<void(CLI::App&)> add) {
+    CommandTable().push_back({order, std::move(add)});
+  }
+};
+#define HOLOCAP_COMMAND(order, add_function) \
+  static const ::holocap::CommandRegistrar add_function##_registrar(order, add_function)
+
+// `holocap demo` runs every registered stage in order on a small simulated take. A stage
+// file registers with HOLOCAP_DEMO_STAGE(order, "name", Fn), Fn(DemoContext&) -> Summary;
+// sim is 10, calibration 20, reconstruction 30, neural 40, playback 50.
+struct DemoContext {
+  std::filesystem::path out;   // out/demo
+  std::filesystem::path take;  // the simulated studio8 take of the walking subject
+  int64_t frames = 0;
+  uint64_t seed = 1;
+  Report* report = nullptr;    // out/demo/report.json: stages add metrics under their name
+};
+struct DemoStage {
+  int order;
+  std::string name;
+  std::function<Summary(DemoContext&)> run;
+};
+std::vector<DemoStage>& DemoStageTable();
+struct DemoStageRegistrar {
+  DemoStageRegistrar(int order, std::string name, std::function<Summary(DemoContext&)> run) {
+    DemoStageTable().push_back({order, std::move(name), std::move(run)});
+  }
+};
+#define HOLOCAP_DEMO_STAGE(order, name, run_function) \
+  static const ::holocap::DemoStageRegistrar run_function##_demo_registrar(order, name, run_function)
+
+// Every driver compiled into this build, registered in DriverRegistry::Global().
+void RegisterBuiltinDrivers();
+
+// What `holocap info` prints about a take.
+void PrintTakeInfo(const Take& take, std::ostream& out);
+
+}  // namespace holocap

@@ -1,0 +1,116 @@
+// End-to-end tests of the holocap CLI on the simulated rig, and its bad-input contract: one
+// clear error line and a non-zero exit.
+#include <gtest/gtest.h>
+
+#include <fstream>
+
+#include "capture/hal.h"
+#include "capture/replay/replay_driver.h"
+#include "core/take.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::RunCli;
+using testing::TempDir;
+
+// The error contract: exit status non-zero and exactly one line, starting "holocap: error:".
+void ExpectOneLineError(const testing::CommandResult& result, const std::string& needle) {
+  EXPECT_NE(result.exit_code, 0) << result.output;
+  std::string output = result.output;
+  while (!output.empty() && output.back() == '\n') output.pop_back();
+  EXPECT_EQ(output.find('\n'), std::string::npos) << "more than one line:\n" << result.output;
+  EXPECT_EQ(output.rfind("holocap: error: ", 0), 0u) << result.output;
+  EXPECT_NE(output.find(needle), std::string::npos) << "expected '" << needle << "' in: " << output;
+}
+
+class SimulatedTake : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new TempDir("holocap-cli");
+    auto result = RunCli("sim --rig single-rgbd --frames 3 --size 160x120 --no-noise --out " +
+                         (dir_->path() / "take").string());
+    ASSERT_EQ(result.exit_code, 0) << result.output;
+  }
+  static void TearDownTestSuite() { delete dir_; }
+  static std::filesystem::path take() { return dir_->path() / "take"; }
+  static TempDir* dir_;
+};
+TempDir* SimulatedTake::dir_ = nullptr;
+
+TEST_F(SimulatedTake, InfoDescribesSensorsLensesAndGroundTruth) {
+  auto result = RunCli("info --verify " + take().string());
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  EXPECT_NE(result.output.find("frame sets  3"), std::string::npos) << result.output;
+  EXPECT_NE(result.output.find("ground truth yes"), std::string::npos) << result.output;
+  EXPECT_NE(result.output.find("depth_m"), std::string::npos) << result.output;
+  EXPECT_NE(result.output.find("true-lens=LENSMODEL_"), std::string::npos) << result.output;
+  EXPECT_NE(result.output.find("sync spread"), std::string::npos) << result.output;
+  EXPECT_NE(result.output.find("verified"), std::string::npos) << result.output;
+}
+
+TEST_F(SimulatedTake, ReplayReproducesEveryFrameBitExactly) {
+  Take recorded = Take::Open(take());
+  DriverRegistry registry;
+  RegisterReplayDriver(registry);
+  for (const auto& stream : recorded.streams()) {
+    auto sensor = registry.Open({.name = stream.name, .uri = "replay:" + take().string() + "#" + stream.name});
+    sensor->Start();
+    Frame frame;
+    size_t count = 0;
+    while (sensor->Grab(&frame, std::chrono::milliseconds(100))) {
+      cv::Mat original = recorded.ReadFrame(count, stream.name);
+      cv::Mat a = frame.image.reshape(1), b = original.reshape(1);
+      ASSERT_EQ(a.size(), b.size());
+      EXPECT_EQ(std::memcmp(a.data, b.data, a.total() * a.elemSize()), 0) << stream.name << " " << count;
+      EXPECT_EQ(frame.timestamp_ns, recorded.entry(count).Find(stream.name)->timestamp_ns);
+      ++count;
+    }
+    EXPECT_EQ(count, recorded.size()) << stream.name;
+    ASSERT_TRUE(sensor->known_model().has_value());
+  }
+}
+
+TEST_F(SimulatedTake, DevicesListsTheSimulatedRigsAndProbesASensor) {
+  auto list = RunCli("devices");
+  ASSERT_EQ(list.exit_code, 0) << list.output;
+  EXPECT_NE(list.output.find("sim:studio8#cam0"), std::string::npos) << list.output;
+  EXPECT_NE(list.output.find("sim:single-rgbd#depth0"), std::string::npos) << list.output;
+  auto probe = RunCli("devices --probe 'replay:" + take().string() + "#cam0'");
+  ASSERT_EQ(probe.exit_code, 0) << probe.output;
+  EXPECT_NE(probe.output.find("160x120 bgr8"), std::string::npos) << probe.output;
+}
+
+TEST_F(SimulatedTake, CorruptTakesGiveOneClearError) {
+  TempDir dir;
+  std::filesystem::copy(take(), dir / "copy", std::filesystem::copy_options::recursive);
+  // A truncated frame file: named in the error.
+  auto frame = dir / "copy/frames/cam0/000001.png";
+  std::filesystem::resize_file(frame, std::filesystem::file_size(frame) / 3);
+  ExpectOneLineError(RunCli("info --verify " + (dir / "copy").string()), "000001.png");
+  // A missing manifest.
+  std::filesystem::remove(dir / "copy/take.json");
+  ExpectOneLineError(RunCli("info " + (dir / "copy").string()), "take.json is missing");
+  ExpectOneLineError(RunCli("info " + (dir / "nothing-here").string()), "does not exist");
+}
+
+TEST(Cli, BadInputGivesOneClearError) {
+  TempDir dir;
+  ExpectOneLineError(RunCli("devices --probe gopro:cam1"), "unknown URI scheme 'gopro'");
+  ExpectOneLineError(RunCli("devices --probe nocolon"), "malformed sensor URI");
+  std::ofstream(dir / "bad.yaml") << "name: x\nsensors: [ {name: cam0, uri: 'sim:x#cam0' ";
+  ExpectOneLineError(RunCli("sim --frames 1 --rig " + (dir / "bad.yaml").string() + " --out " + (dir / "t").string()),
+                     "not valid YAML");
+  ExpectOneLineError(RunCli("sim --rig studio9 --frames 1 --out " + (dir / "t2").string()), "studio9");
+  ExpectOneLineError(RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out /proc/holocap-denied/take"),
+                     "/proc/holocap-denied");
+  std::filesystem::create_directories(dir / "full");
+  std::ofstream(dir / "full/keep.txt") << "recorded";
+  ExpectOneLineError(RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out " + (dir / "full").string()),
+                     "not empty");
+  EXPECT_TRUE(std::filesystem::exists(dir / "full/keep.txt"));  // nothing already there is lost
+}
+
+}  // namespace
+}  // namespace holocap
