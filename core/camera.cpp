@@ -1,5 +1,6 @@
 #include "core/camera.h"
 
+#include <cctype>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -51,6 +52,115 @@ void CameraModel::ParseLensmodel() {
   std::memcpy(parsed_lensmodel_, &parsed, sizeof(parsed));
 }
 
+namespace {
+
+// libmrcal 2.2's .cameramodel parser reads past the end of malformed text (an unterminated
+// comment or string is enough to crash it), so the text is checked here first: one Python
+// dict literal of strings, numbers, names, lists, tuples and dicts, with '#' comments, and
+// nothing after it but whitespace and comments. Returns an empty string when well formed,
+// else what is wrong.
+class LiteralChecker {
+ public:
+  explicit LiteralChecker(const std::string& text) : text_(text) {}
+
+  std::string Check() {
+    SkipSpace();
+    if (Peek() != '{') return Where("does not start with '{'");
+    if (!Value(0)) return error_;
+    SkipSpace();
+    if (at_ != text_.size()) return Where("has text after the closing '}'");
+    return {};
+  }
+
+ private:
+  static constexpr int kMaxDepth = 32;
+
+  char Peek() const { return at_ < text_.size() ? text_[at_] : '\0'; }
+  std::string Where(const std::string& what) const {
+    return what + " (at byte " + std::to_string(at_) + ")";
+  }
+  bool Error(const std::string& what) {
+    error_ = Where(what);
+    return false;
+  }
+  void SkipSpace() {
+    while (at_ < text_.size()) {
+      char c = text_[at_];
+      if (c == '#') {
+        while (at_ < text_.size() && text_[at_] != '\n') ++at_;
+      } else if (std::isspace(static_cast<unsigned char>(c))) {
+        ++at_;
+      } else {
+        return;
+      }
+    }
+  }
+  bool String() {
+    char quote = text_[at_++];
+    while (at_ < text_.size() && text_[at_] != quote) {
+      if (text_[at_] == '\n') return Error("has a string broken by a newline");
+      if (text_[at_] == '\\') ++at_;
+      ++at_;
+    }
+    if (at_ >= text_.size()) return Error("ends inside a string");
+    ++at_;
+    return true;
+  }
+  bool Scalar() {
+    size_t start = at_;
+    while (at_ < text_.size() &&
+           (std::isalnum(static_cast<unsigned char>(text_[at_])) || std::strchr("+-._", text_[at_]) != nullptr)) {
+      ++at_;
+    }
+    if (at_ == start) return Error(std::string("has an unexpected character '") + Peek() + "'");
+    return true;
+  }
+  // A '{...}', '[...]' or '(...)' whose items are separated by commas (a trailing comma is
+  // allowed, as in Python); a dict's items are 'key: value'.
+  bool Container(int depth) {
+    const char open = text_[at_++];
+    const char close = open == '{' ? '}' : open == '[' ? ']' : ')';
+    for (;;) {
+      SkipSpace();
+      if (at_ >= text_.size()) return Error(std::string("ends before its closing '") + close + "'");
+      if (Peek() == close) {
+        ++at_;
+        return true;
+      }
+      if (!Value(depth + 1)) return false;
+      SkipSpace();
+      if (open == '{') {
+        if (Peek() != ':') return Error("has a dict key without ':'");
+        ++at_;
+        SkipSpace();
+        if (!Value(depth + 1)) return false;
+        SkipSpace();
+      }
+      if (Peek() == ',') {
+        ++at_;
+      } else if (Peek() != close) {
+        return Error(at_ >= text_.size() ? std::string("ends before its closing '") + close + "'"
+                                         : std::string("lacks a ',' or '") + close + "'");
+      }
+    }
+  }
+  bool Value(int depth) {
+    if (depth > kMaxDepth) return Error("nests too deeply");
+    SkipSpace();
+    char c = Peek();
+    if (c == '{' || c == '[' || c == '(') return Container(depth);
+    if (c == '\'' || c == '"') return String();
+    if (c == '\0' && at_ >= text_.size()) return Error("ends where a value was expected");
+    return Scalar();
+  }
+
+  const std::string& text_;
+  size_t at_ = 0;
+  std::string error_;
+};
+
+}  // namespace
+
 CameraModel CameraModel::Parse(const std::string& original_text, const std::string& origin) {
   // Older mrcal files call the key 'lens_model'; mrcal's Python accepts both, its C parser
   // only the new name.
@@ -59,6 +169,10 @@ CameraModel CameraModel::Parse(const std::string& original_text, const std::stri
     size_t at = text.find(old_key);
     if (at != std::string::npos) text.replace(at + 1, 10, "lensmodel");
   }
+  std::string malformed = LiteralChecker(text).Check();
+  if (!malformed.empty()) Fail("'", origin, "' is not a valid mrcal .cameramodel: it ", malformed);
+  // A final newline keeps mrcal's comment skipping inside the buffer.
+  text += '\n';
   mrcal_cameramodel_t* model =
       mrcal_read_cameramodel_string(text.c_str(), static_cast<int>(text.size()));
   if (model == nullptr) Fail("'", origin, "' is not a valid mrcal .cameramodel");

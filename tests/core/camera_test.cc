@@ -7,11 +7,13 @@
 #include <random>
 
 #include "core/error.h"
+#include "core/fs.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
 namespace {
 
+using testing::SourceDir;
 using testing::TempDir;
 
 CameraModel RealWideLens() {
@@ -192,6 +194,26 @@ TEST(CameraModel, RejectsBadInput) {
   Eigen::Vector2d q;
   EXPECT_FALSE(pinhole.Project({0, 0, -1}, &q));
   EXPECT_FALSE(pinhole.Project({NAN, 0, 1}, &q));
+}
+
+// Every truncation of a valid file, and the inputs on which libmrcal's own parser reads out of
+// bounds (bench/fuzz/crashes/), give an Error, never a crash.
+TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
+  TempDir dir;
+  RealWideLens().Write(dir / "a.cameramodel");
+  const std::string text = ReadFileToString(dir / "a.cameramodel");
+  ASSERT_NO_THROW(CameraModel::Parse(text, "whole"));
+  size_t last_brace = text.rfind('}');
+  for (size_t size = 0; size < last_brace; size += 7) {
+    EXPECT_THROW(CameraModel::Parse(text.substr(0, size), "cut"), Error) << size;
+  }
+  for (const char* file : {"mrcal-parser-oob-1.cameramodel", "mrcal-parser-oob-truncated.cameramodel"}) {
+    EXPECT_THROW(CameraModel::Read(SourceDir() / "bench/fuzz/crashes" / file), Error) << file;
+  }
+  for (const char* bad : {"{ 'lensmodel': 'LENSMODEL_PINHOLE' # x", "{ 'el': 'LEN{P# INHd", "{ 'a': [1, 2 }",
+                          "{ 'a': 1 } trailing", "{ 'a' 1 }", "[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[["}) {
+    EXPECT_THROW(CameraModel::Parse(bad, "bad"), Error) << bad;
+  }
 }
 
 TEST(Pose, LookAtUsesOpenCvAxesInAZUpWorld) {
