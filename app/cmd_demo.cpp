@@ -85,8 +85,9 @@ void AddDemoCommand(CLI::App& app) {
     if (overall.message.empty()) overall.message = "every stage ran";
     report.SetSummary(overall);
     report.Write(context.out / "report.json");
-    std::printf("[demo] %s: %s\n[demo] report: %s\n", ToString(overall.termination),
-                overall.message.c_str(), (context.out / "report.json").c_str());
+    std::printf("[demo] %s: %s\n[demo] report: %s\n[demo] every stage's report and plots: holocap report %s --out %s\n",
+                ToString(overall.termination), overall.message.c_str(), (context.out / "report.json").c_str(),
+                context.out.c_str(), (context.out / "plots").c_str());
     if (!IsUsable(overall.termination)) Fail("demo stopped: ", overall.message);
   });
 }

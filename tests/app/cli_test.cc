@@ -2,10 +2,13 @@
 // clear error line and a non-zero exit.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <fstream>
+#include <opencv2/imgcodecs.hpp>
 
 #include "capture/hal.h"
 #include "capture/replay/replay_driver.h"
+#include "core/report.h"
 #include "core/take.h"
 #include "tests/support/test_support.h"
 
@@ -110,6 +113,35 @@ TEST(Cli, BadInputGivesOneClearError) {
   ExpectOneLineError(RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out " + (dir / "full").string()),
                      "not empty");
   EXPECT_TRUE(std::filesystem::exists(dir / "full/keep.txt"));  // nothing already there is lost
+}
+
+// holocap report reads what a run wrote: its outcome, metrics and series as text, the series
+// as a plot; a directory is searched for reports.
+TEST(Cli, ReportShowsOutcomeMetricsAndTheErrorAgainstTime) {
+  TempDir dir;
+  Report report("train");
+  report.metrics()["heldout_psnr_db"] = 27.25;
+  for (int i = 0; i < 20; ++i) report.AddPoint("loss", std::pow(0.5, i), i);
+  report.SetSummary({Termination::kNoConvergence, "ran out of time"});
+  report.Write(dir / "run/a/report.json");
+  auto shown = RunCli("report " + (dir / "run/a/report.json").string() + " --rows 3 --out " +
+                      (dir / "loss.png").string());
+  ASSERT_EQ(shown.exit_code, 0) << shown.output;
+  EXPECT_NE(shown.output.find("NO_CONVERGENCE: ran out of time"), std::string::npos) << shown.output;
+  EXPECT_NE(shown.output.find("heldout_psnr_db"), std::string::npos) << shown.output;
+  EXPECT_NE(shown.output.find("loss against time (20 points)"), std::string::npos) << shown.output;
+  EXPECT_NE(shown.output.find("1.90735e-06"), std::string::npos) << "the last point is always shown";
+  cv::Mat plot = cv::imread((dir / "loss.png").string());
+  ASSERT_FALSE(plot.empty());
+  EXPECT_GT(plot.rows, 200);
+
+  auto all = RunCli("report " + (dir / "run").string() + " --out " + (dir / "plots").string());
+  ASSERT_EQ(all.exit_code, 0) << all.output;
+  EXPECT_TRUE(std::filesystem::exists(dir / "plots/a.png")) << all.output;
+
+  std::ofstream(dir / "bad.json") << "{ \"command\": ";
+  ExpectOneLineError(RunCli("report " + (dir / "bad.json").string()), "not valid JSON");
+  ExpectOneLineError(RunCli("report " + (dir / "empty").string()), "does not exist");
 }
 
 }  // namespace

@@ -1,0 +1,223 @@
+// holocap report REPORT.json|DIR: what a run did and how its error fell with time, as text
+// and as a plot a person can look at.
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <string>
+#include <vector>
+
+#include "app/commands.h"
+#include "core/error.h"
+#include "core/fs.h"
+
+namespace holocap {
+namespace {
+
+struct Point {
+  double t_s = 0;
+  int64_t iter = 0;
+  double value = 0;
+};
+using Series = std::map<std::string, std::vector<Point>>;
+
+struct ReportArgs {
+  std::string path;
+  std::string out;
+  std::vector<std::string> metrics;
+  int rows = 8;
+  bool log_y = false;
+};
+
+nlohmann::json LoadReport(const std::filesystem::path& file) {
+  const std::string text = ReadFileToString(file);
+  nlohmann::json json = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (json.is_discarded() || !json.is_object()) Fail("'", file.string(), "' is not valid JSON");
+  if (!json.contains("command") || !json.contains("summary")) {
+    Fail("'", file.string(), "' is not a holocap report (no command or summary)");
+  }
+  return json;
+}
+
+Series SeriesOf(const nlohmann::json& report, const std::vector<std::string>& only) {
+  Series series;
+  if (!report.contains("series") || !report["series"].is_array()) return series;
+  for (const auto& point : report["series"]) {
+    if (!point.is_object() || !point.contains("metric") || !point.contains("value") ||
+        !point["value"].is_number()) {
+      continue;
+    }
+    const std::string metric = point["metric"].get<std::string>();
+    if (!only.empty() && std::find(only.begin(), only.end(), metric) == only.end()) continue;
+    series[metric].push_back({point.value("t_s", 0.0), point.value("iter", int64_t{0}),
+                              point["value"].get<double>()});
+  }
+  return series;
+}
+
+// Nested metrics as dotted names, numbers and strings only; long arrays are summarised.
+void FlattenMetrics(const nlohmann::json& json, const std::string& prefix,
+                    std::vector<std::pair<std::string, std::string>>* out) {
+  if (json.is_object()) {
+    for (const auto& [key, value] : json.items()) {
+      FlattenMetrics(value, prefix.empty() ? key : prefix + "." + key, out);
+    }
+  } else if (json.is_array()) {
+    if (json.size() <= 4) {
+      out->push_back({prefix, json.dump()});
+    } else {
+      out->push_back({prefix, "[" + std::to_string(json.size()) + " items]"});
+    }
+  } else if (json.is_number_float()) {
+    char text[64];
+    std::snprintf(text, sizeof(text), "%.6g", json.get<double>());
+    out->push_back({prefix, text});
+  } else {
+    out->push_back({prefix, json.is_string() ? json.get<std::string>() : json.dump()});
+  }
+}
+
+void PrintReport(const std::filesystem::path& file, const nlohmann::json& report, const Series& series,
+                 int rows) {
+  const auto& summary = report["summary"];
+  std::printf("%s  (%s, %.1f s)\n", file.c_str(), report["command"].get<std::string>().c_str(),
+              report.value("elapsed_s", 0.0));
+  std::printf("  %s: %s\n", summary.value("termination", "?").c_str(), summary.value("message", "").c_str());
+  if (report.contains("metrics")) {
+    std::vector<std::pair<std::string, std::string>> metrics;
+    FlattenMetrics(report["metrics"], "", &metrics);
+    if (!metrics.empty()) std::printf("  metrics\n");
+    for (const auto& [name, value] : metrics) std::printf("    %-40s %s\n", name.c_str(), value.c_str());
+  }
+  for (const auto& [metric, points] : series) {
+    std::printf("  %s against time (%zu points)\n    %10s %10s %14s\n", metric.c_str(), points.size(), "t_s",
+                "iter", "value");
+    // Evenly spread rows, always the first and the last.
+    const size_t shown = std::min<size_t>(points.size(), std::max(rows, 2));
+    for (size_t k = 0; k < shown; ++k) {
+      const size_t i = shown == 1 ? 0 : k * (points.size() - 1) / (shown - 1);
+      std::printf("    %10.2f %10lld %14.6g\n", points[i].t_s, static_cast<long long>(points[i].iter),
+                  points[i].value);
+    }
+  }
+}
+
+std::string Tick(double value) {
+  char text[32];
+  std::snprintf(text, sizeof(text), "%.3g", value);
+  return text;
+}
+
+// One panel per metric: value against wall time, log scale where asked or where the values
+// span more than two decades (losses do).
+cv::Mat PlotSeries(const std::string& title, const Series& series, bool log_y) {
+  constexpr int kPanelWidth = 720, kPanelHeight = 260, kLeft = 80, kRight = 20, kTop = 34, kBottom = 40;
+  cv::Mat image(kPanelHeight * static_cast<int>(series.size()) + 30, kPanelWidth, CV_8UC3,
+                cv::Scalar(255, 255, 255));
+  cv::putText(image, title, {10, 20}, cv::FONT_HERSHEY_SIMPLEX, 0.55, {0, 0, 0}, 1, cv::LINE_AA);
+  // One time axis for every panel, so that the series line up.
+  double t_max = 0;
+  for (const auto& [metric, points] : series) {
+    for (const auto& p : points) t_max = std::max(t_max, p.t_s);
+  }
+  if (t_max <= 0) t_max = 1;
+  int panel = 0;
+  for (const auto& [metric, points] : series) {
+    const int y0 = 30 + panel++ * kPanelHeight;
+    double v_min = INFINITY, v_max = -INFINITY;
+    bool positive = true;
+    for (const auto& p : points) {
+      if (!std::isfinite(p.value)) continue;
+      v_min = std::min(v_min, p.value);
+      v_max = std::max(v_max, p.value);
+      positive = positive && p.value > 0;
+    }
+    const bool log_scale = positive && (log_y || (v_min > 0 && v_max / v_min > 100));
+    auto to_axis = [&](double v) { return log_scale ? std::log10(v) : v; };
+    double a_min = to_axis(v_min), a_max = to_axis(v_max);
+    if (!std::isfinite(a_min)) a_min = 0, a_max = 1;
+    if (a_max - a_min < 1e-12) a_min -= 0.5, a_max += 0.5;
+    const cv::Rect box(kLeft, y0 + kTop, kPanelWidth - kLeft - kRight, kPanelHeight - kTop - kBottom);
+    cv::rectangle(image, box, {0, 0, 0}, 1);
+    auto to_pixel = [&](const Point& p) {
+      return cv::Point(box.x + static_cast<int>(std::lround(p.t_s / t_max * box.width)),
+                       box.y + box.height -
+                           static_cast<int>(std::lround((to_axis(p.value) - a_min) / (a_max - a_min) * box.height)));
+    };
+    for (int k = 0; k <= 4; ++k) {
+      const double a = a_min + (a_max - a_min) * k / 4;
+      const int y = box.y + box.height - box.height * k / 4;
+      cv::line(image, {box.x, y}, {box.x + box.width, y}, {225, 225, 225}, 1);
+      cv::putText(image, Tick(log_scale ? std::pow(10, a) : a), {6, y + 4}, cv::FONT_HERSHEY_SIMPLEX, 0.4,
+                  {60, 60, 60}, 1, cv::LINE_AA);
+      const int x = box.x + box.width * k / 4;
+      cv::putText(image, Tick(t_max * k / 4), {x - 12, box.y + box.height + 16}, cv::FONT_HERSHEY_SIMPLEX, 0.4,
+                  {60, 60, 60}, 1, cv::LINE_AA);
+    }
+    cv::putText(image, metric + (log_scale ? "  (log scale)" : "") + "  against seconds", {box.x, y0 + 24},
+                cv::FONT_HERSHEY_SIMPLEX, 0.5, {0, 0, 0}, 1, cv::LINE_AA);
+    const Point* previous = nullptr;
+    for (const auto& p : points) {
+      if (!std::isfinite(p.value) || (log_scale && p.value <= 0)) continue;
+      if (previous != nullptr) cv::line(image, to_pixel(*previous), to_pixel(p), {180, 90, 20}, 2, cv::LINE_AA);
+      cv::circle(image, to_pixel(p), 2, {180, 90, 20}, cv::FILLED, cv::LINE_AA);
+      previous = &p;
+    }
+  }
+  return image;
+}
+
+std::vector<std::filesystem::path> ReportsUnder(const std::filesystem::path& path) {
+  if (!std::filesystem::exists(path)) Fail("'", path.string(), "' does not exist");
+  if (!std::filesystem::is_directory(path)) return {path};
+  std::vector<std::filesystem::path> files;
+  for (const auto& entry : std::filesystem::recursive_directory_iterator(path)) {
+    if (entry.is_regular_file() && entry.path().filename() == "report.json") files.push_back(entry.path());
+  }
+  if (files.empty()) Fail("no report.json under '", path.string(), "'");
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
+void AddReportCommand(CLI::App& app) {
+  auto* command = app.add_subcommand(
+      "report", "Show a run's report.json (or every one under a directory): outcome, metrics, error against time");
+  auto args = std::make_shared<ReportArgs>();
+  command->add_option("PATH", args->path, "A report.json, or a directory searched for them")->required();
+  command->add_option("--out", args->out,
+                      "Plot the error-against-time series to this PNG (with a directory: one PNG per report, "
+                      "into this directory)");
+  command->add_option("--metric", args->metrics, "Only these series (default: all)");
+  command->add_option("--rows", args->rows, "Rows shown per series")->capture_default_str()->check(CLI::Range(2, 1000));
+  command->add_flag("--log", args->log_y, "Log scale for every positive series");
+  command->callback([args] {
+    const auto files = ReportsUnder(args->path);
+    const bool many = files.size() > 1 || std::filesystem::is_directory(args->path);
+    if (many && !args->out.empty()) CreateDirectories(args->out);
+    for (const auto& file : files) {
+      const nlohmann::json report = LoadReport(file);
+      const Series series = SeriesOf(report, args->metrics);
+      PrintReport(file, report, series, args->rows);
+      if (args->out.empty() || series.empty()) continue;
+      std::filesystem::path png = args->out;
+      if (many) {
+        std::string name = std::filesystem::relative(file.parent_path(), args->path).string();
+        std::replace(name.begin(), name.end(), '/', '-');
+        png = std::filesystem::path(args->out) / ((name == "." ? std::string("report") : name) + ".png");
+      }
+      std::vector<uchar> bytes;
+      cv::imencode(".png", PlotSeries(file.string(), series, args->log_y), bytes);
+      WriteFileAtomic(png, std::string(bytes.begin(), bytes.end()));
+      std::printf("  plot: %s\n", png.c_str());
+    }
+  });
+}
+
+}  // namespace
+
+HOLOCAP_COMMAND(110, AddReportCommand);
+
+}  // namespace holocap
