@@ -95,7 +95,9 @@ CubeTables BuildTables() {
     }
     return loops;
   };
-  auto midpoint = [&](int e) {
+  // Returns a vector, not an Eigen expression: an expression would refer to the corner
+  // temporaries after they are gone (and read whatever the stack then holds).
+  auto midpoint = [&](int e) -> Eigen::Vector3d {
     return 0.5 * (CornerOffset(tables.edges[e].c0) + CornerOffset(tables.edges[e].c1)).cast<double>();
   };
   // Orientation is fixed once, from the case with only corner 0 inside, to the winding whose
@@ -106,7 +108,7 @@ CubeTables BuildTables() {
     auto loop = loops_of(1).at(0);
     Eigen::Vector3d normal = (midpoint(loop[1]) - midpoint(loop[0]))
                                  .cross(midpoint(loop[2]) - midpoint(loop[0]));
-    flip = normal.dot(Eigen::Vector3d(1, 1, 1)) > 0;
+    flip = normal.dot(Eigen::Vector3d(1, 1, 1)) < 0;
   }
   for (int mask = 0; mask < 256; ++mask) {
     for (auto loop : loops_of(mask)) {

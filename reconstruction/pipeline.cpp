@@ -72,6 +72,8 @@ nlohmann::json ReconstructionOptions::ToJson() const {
            {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background"},
             {"noise_sigmas", silhouette.noise_sigmas},
             {"min_difference", silhouette.min_difference},
+            {"hysteresis_sigmas", silhouette.hysteresis_sigmas},
+            {"hysteresis_min_difference", silhouette.hysteresis_min_difference},
             {"threshold", silhouette.threshold},
             {"open_px", silhouette.open_px},
             {"dilate_px", silhouette.dilate_px},

@@ -57,11 +57,17 @@ enum class SilhouetteMode {
 
 struct SilhouetteOptions {
   SilhouetteMode mode = SilhouetteMode::kBackgroundSubtraction;
-  // Background subtraction: a pixel is foreground when its largest channel difference to the
-  // clean plate exceeds noise_sigmas times the noise, estimated robustly (1.4826 x median of
-  // the differences, most pixels being background), and at least min_difference DN.
+  // Background subtraction: a pixel is foreground when its colour distance (Euclidean over
+  // the channels) to the clean plate exceeds noise_sigmas times the noise, estimated robustly
+  // (1.4826 x median of the distances, most pixels being background), and at least
+  // min_difference DN.
   double noise_sigmas = 3;
   double min_difference = 8;
+  // Hysteresis: pixels above this lower bound (hysteresis_sigmas x noise and at least
+  // hysteresis_min_difference DN) join the foreground when connected to it, so that skin or
+  // hair close to the wall's colour is not cut from the silhouette. 0 sigmas = off.
+  double hysteresis_sigmas = 1.8;
+  double hysteresis_min_difference = 6;
   // Threshold mode: foreground where the largest channel exceeds threshold (0..1 of full
   // scale). 0.19 is the Middlebury recipe.
   double threshold = 0.19;
@@ -262,8 +268,12 @@ Mesh SimplifyMesh(const Mesh& mesh, double cell_m);
 // Multi-view stereo
 
 struct MvsOptions {
-  int neighbors = 3;            // source views per reference view (nearest optical centres)
-  int window_radius = 3;        // NCC window is (2r+1)²
+  // Source views per reference view (nearest optical centres facing the same way). On a ring
+  // of eight, four keeps a pair that sees every patch the reference sees past occlusions.
+  int neighbors = 4;
+  // NCC window is (2r+1)²: 5x5 keeps a window on one surface where the subject spans only a
+  // few hundred pixels (7x7 straddles limbs and edges and loses a quarter of the Chamfer).
+  int window_radius = 2;
   double depth_step_px = 0.5;   // plane spacing: the disparity step in the nearest source view
   double hull_margin_m = 0.02;  // the search starts this far in front of the hull's surface
   double search_depth_m = 0.2;  // ... and reaches this far behind it

@@ -15,6 +15,12 @@ void SilhouetteOptions::Check() const {
   if (!(min_difference >= 0 && min_difference < 255)) {
     Fail("silhouette min_difference must be in [0, 255) DN (got ", min_difference, ")");
   }
+  if (!(hysteresis_sigmas >= 0 && hysteresis_sigmas < 100)) {
+    Fail("silhouette hysteresis_sigmas must be in [0, 100) (got ", hysteresis_sigmas, ")");
+  }
+  if (!(hysteresis_min_difference >= 0 && hysteresis_min_difference < 255)) {
+    Fail("silhouette hysteresis_min_difference must be in [0, 255) DN (got ", hysteresis_min_difference, ")");
+  }
   if (!(threshold > 0 && threshold < 1)) Fail("silhouette threshold must be in (0, 1) (got ", threshold, ")");
   if (open_px < 0 || dilate_px < 0 || erode_px < 0 || open_px > 50 || dilate_px > 50 || erode_px > 50) {
     Fail("silhouette morphology radii must be in [0, 50] px");
@@ -56,26 +62,65 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
       Fail("silhouette: clean plate is ", clean_plate.cols, "x", clean_plate.rows,
            " but the image is ", image.cols, "x", image.rows, " (or their types differ)");
     }
+    // Euclidean rather than the largest channel: skin against a brown wall differs a little
+    // in every channel, and only their sum stands out of the noise.
     cv::Mat difference;
-    cv::absdiff(image, clean_plate, difference);
-    difference = MaxChannel(difference);
-    // Robust noise: most pixels are background, so the median difference is noise.
-    int histogram[256] = {};
+    {
+      cv::Mat a, b, squared;
+      image.convertTo(a, CV_32F);
+      clean_plate.convertTo(b, CV_32F);
+      cv::Mat delta = a - b;
+      cv::multiply(delta, delta, squared);
+      squared = squared.reshape(1, static_cast<int>(squared.total()));
+      cv::reduce(squared, squared, 1, cv::REDUCE_SUM);
+      cv::sqrt(squared.reshape(1, image.rows), difference);
+    }
+    // Robust noise: most pixels are background, so the median distance is noise (a histogram
+    // of 0.25 DN bins finds it in one pass).
+    constexpr int kBins = 2048;
+    constexpr float kBinsPerDn = 4;
+    std::vector<int64_t> histogram(kBins, 0);
     for (int y = 0; y < difference.rows; ++y) {
-      const uint8_t* row = difference.ptr<uint8_t>(y);
-      for (int x = 0; x < difference.cols; ++x) ++histogram[row[x]];
+      const float* row = difference.ptr<float>(y);
+      for (int x = 0; x < difference.cols; ++x) ++histogram[std::min(kBins - 1, static_cast<int>(row[x] * kBinsPerDn))];
     }
     int64_t half = static_cast<int64_t>(difference.total()) / 2, seen = 0;
     int median = 0;
-    for (; median < 255; ++median) {
+    for (; median < kBins - 1; ++median) {
       seen += histogram[median];
       if (seen > half) break;
     }
-    // The max of three channels' |differences| has a median ~1.5 sigma of one channel's noise
-    // for Gaussian noise; 1.4826 x median keeps the usual MAD scale and errs high.
-    double sigma = 1.4826 * std::max(median, 1);
-    double threshold = std::max(options.min_difference, options.noise_sigmas * sigma);
-    cv::threshold(difference, mask, threshold, 255, cv::THRESH_BINARY);
+    // 1.4826 x median is the usual MAD scale; for a distance over three noisy channels (a chi
+    // distribution) it errs high, which keeps the thresholds above the noise.
+    const double sigma = 1.4826 * std::max((median + 0.5) / kBinsPerDn, 1.0);
+    const double strong = std::max(options.min_difference, options.noise_sigmas * sigma);
+    cv::threshold(difference, mask, strong, 255, cv::THRESH_BINARY);
+    mask.convertTo(mask, CV_8U);
+    if (options.hysteresis_sigmas > 0) {
+      // Specks are opened away before they can seed a region; weak pixels join only through a
+      // connected path to what remains.
+      if (options.open_px > 0) cv::morphologyEx(mask, mask, cv::MORPH_OPEN, Disk(options.open_px));
+      const double weak_threshold =
+          std::min(strong, std::max(options.hysteresis_min_difference, options.hysteresis_sigmas * sigma));
+      cv::Mat weak;
+      cv::threshold(difference, weak, weak_threshold, 255, cv::THRESH_BINARY);
+      weak.convertTo(weak, CV_8U);
+      weak |= mask;
+      cv::Mat labels;
+      const int count = cv::connectedComponents(weak, labels, 8, CV_32S);
+      std::vector<uint8_t> seeded(count, 0);
+      for (int y = 0; y < mask.rows; ++y) {
+        const uint8_t* m = mask.ptr<uint8_t>(y);
+        const int* label = labels.ptr<int>(y);
+        for (int x = 0; x < mask.cols; ++x) seeded[label[x]] |= m[x] != 0;
+      }
+      seeded[0] = 0;
+      for (int y = 0; y < mask.rows; ++y) {
+        uint8_t* m = mask.ptr<uint8_t>(y);
+        const int* label = labels.ptr<int>(y);
+        for (int x = 0; x < mask.cols; ++x) m[x] = seeded[label[x]] ? 255 : 0;
+      }
+    }
   }
   if (options.open_px > 0) cv::morphologyEx(mask, mask, cv::MORPH_OPEN, Disk(options.open_px));
   if (options.dilate_px > 0) cv::dilate(mask, mask, Disk(options.dilate_px));

@@ -67,13 +67,13 @@ TEST(StudioTest, TsdfFromTheDepthSensorsIsWithinFourMillimetres) {
   EXPECT_FALSE(report["metrics"]["frames"][0]["metrics"].contains("hull")) << "no hull was computed";
 }
 
-TEST(StudioTest, MvsFromColourAloneIsWithinNineAndAHalfMillimetres) {
+TEST(StudioTest, MvsFromColourAloneIsWithinEightMillimetres) {
   TempDir out;
   nlohmann::json report = RunPipeline(ReconstructionMethod::kMvs, 0.004, out.path());
   const auto& gt = report["metrics"]["gt"];
   std::printf("mvs 4 mm: %s\n", report["metrics"]["frames"][0]["metrics"].dump().c_str());
-  // The issue asks for 8 mm; this plane sweep reaches ~8.7 mm here (see the closing note).
-  EXPECT_LE(gt["chamfer_mm"].get<double>(), 9.5);
+  EXPECT_LE(gt["chamfer_mm"].get<double>(), 8.0);
+  EXPECT_LE(gt["accuracy_mm"].get<double>(), 6.0);
   EXPECT_FALSE(report["metrics"]["frames"][0]["metrics"].contains("tsdf") &&
                report["metrics"]["frames"][0]["metrics"]["tsdf"].contains("valid_pixels"))
       << "no depth sensor was fused";
@@ -105,15 +105,16 @@ TEST(StudioTest, HullContainsTheTrueSurface) {
                 tolerated ? "conservative, one bad view tolerated" : "strict", fraction[tolerated],
                 summary.volume_m3 * 1e3);
   }
-  // Background-subtracted silhouettes miss a few edge pixels in every view; the strict hull
-  // carves what any one of them misses, the conservative one needs two to agree.
-  EXPECT_GE(fraction[0], 0.94);
-  // The issue asks for 99%; 98.6% is reached here (see the closing note).
-  EXPECT_GE(fraction[1], 0.98);
-  // Masks from background subtraction against the true silhouettes.
+  // The strict hull carves whatever any one silhouette misses; hysteresis keeps skin and hair
+  // that are close to the wall's colour (without it: 95.1% strict, 98.6% conservative).
+  EXPECT_GE(fraction[0], 0.99);
+  EXPECT_GE(fraction[1], 0.995);
+  // Masks from background subtraction against the true silhouettes: few true pixels lost.
   for (const View& view : views) {
     cv::Mat truth_mask = ReadImage(StudioTake() / "gt" / "masks" / view.name / "000001.png");
     EXPECT_GT(MaskIoU(view.mask, truth_mask), 0.9) << view.name;
+    const double lost = cv::countNonZero(truth_mask & ~view.mask) / static_cast<double>(cv::countNonZero(truth_mask));
+    EXPECT_LT(lost, 0.02) << view.name;  // 6% in cam6 without hysteresis
   }
 }
 
@@ -142,6 +143,45 @@ TEST(StudioTest, CliWritesMeshesThatOpen3dReads) {
   EXPECT_EQ(static_cast<size_t>(triangles), ply.faces.size());
   EXPECT_GT(vertices, 0);
   EXPECT_STREQ(textured, "True");
+}
+
+// A take with calib/ is reconstructed through those models even when gt/ is there too: a
+// calibration whose world is shifted by 10 cm moves the mesh by 10 cm.
+TEST(StudioTest, CalibratedTakePrefersCalib) {
+  TempDir dir;
+  const fs::path take_dir = dir / "take";
+  auto copy = RunShell("cp -r '" + StudioTake().string() + "' '" + take_dir.string() + "'");
+  ASSERT_EQ(copy.exit_code, 0) << copy.output;
+  const Eigen::Vector3d shift(0.1, 0, 0);  // point_in_calib = point_in_gt + shift
+  Pose gt_from_calib = Pose::Identity();
+  gt_from_calib.translation() = -shift;
+  const Take take = Take::Open(take_dir);
+  fs::create_directories(take.calib_dir());
+  for (const StreamInfo& stream : take.streams()) {
+    CameraModel model = take.Camera(stream.name, true);
+    model.set_cam_from_world(model.cam_from_world() * gt_from_calib);
+    model.Write(take.calib_dir() / (stream.name + ".cameramodel"));
+  }
+  ASSERT_TRUE(Take::Open(take_dir).has_calibration());
+  auto centroid = [](const fs::path& ply) {
+    Mesh mesh = ReadPly(ply);
+    Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+    for (const auto& v : mesh.vertices) sum += v.cast<double>();
+    return Eigen::Vector3d(sum / std::max<size_t>(1, mesh.vertices.size()));
+  };
+  ReconstructionOptions options;
+  options.method = ReconstructionMethod::kTsdf;
+  options.voxel_m = 0.008;
+  options.last_frame = 1;
+  options.write_glb = false;
+  options.sweep_voxels_m.clear();
+  TempDir calibrated_out, truth_out;
+  ReconstructionSummary calibrated = ReconstructTake(take_dir, calibrated_out.path(), options, nullptr);
+  EXPECT_EQ(calibrated.plan["cameras"], "calib/");
+  ReconstructionSummary truth = ReconstructTake(StudioTake(), truth_out.path(), options, nullptr);
+  EXPECT_EQ(truth.plan["cameras"].get<std::string>().rfind("gt/cameras", 0), 0u);
+  const Eigen::Vector3d moved = centroid(calibrated_out / "000001.ply") - centroid(truth_out / "000001.ply");
+  EXPECT_LT((moved - shift).norm(), 0.005) << moved.transpose();
 }
 
 TEST(StudioTest, TakeWithoutCalibrationIsAClearError) {
