@@ -318,8 +318,9 @@ class NeuralVolumeAvatar : public AvatarModel {
     const Eigen::Vector3d axis = camera.world_from_cam().rotation().col(2);
     double samples = 0;
     int64_t in_volume = 0;
-    for (int y = 0, i = 0; y < h; ++y) {
-      for (int x = 0; x < w; ++x, ++i) {
+#pragma omp parallel for schedule(static) reduction(+ : samples, in_volume)
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0, i = y * w; x < w; ++x, ++i) {
         const float alpha = context.outputs.alpha[i];
         for (int c = 0; c < 3; ++c) view.color.at<cv::Vec3f>(y, x)[c] = context.outputs.rgb[3 * i + c];
         view.alpha.at<float>(y, x) = alpha;

@@ -81,16 +81,93 @@ inline void EvaluateSample(const MarchVolume& volume, const Eigen::Vector3f& u, 
   s->value[3] = std::max(s->value[3], 0.0f);
 }
 
+// The trilinear value alone (the forward pass needs no weight derivatives) of a channels-last
+// n³ grid: the same corners and weights as TrilinearCorners, with one bounds test for the
+// common case of a sample whose 8 corners all lie inside.
+template <int kChannels>
+inline void Interpolate(const float* grid, int n, bool clamp, const Eigen::Vector3f& u, float* out) {
+  int base[3];
+  float frac[3];
+  for (int a = 0; a < 3; ++a) {
+    float g = u[a] * n - 0.5f;
+    if (clamp) g = std::clamp(g, 0.0f, static_cast<float>(n - 1));
+    base[a] = static_cast<int>(std::floor(g));
+    if (clamp && base[a] >= n - 1) base[a] = std::max(n - 2, 0);
+    frac[a] = g - base[a];
+  }
+  for (int ch = 0; ch < kChannels; ++ch) out[ch] = 0.0f;
+  const int64_t sy = static_cast<int64_t>(n) * kChannels, sz = sy * n;
+  const bool inside = base[0] >= 0 && base[1] >= 0 && base[2] >= 0 && base[0] + 1 < n &&
+                      base[1] + 1 < n && base[2] + 1 < n;
+  for (int c = 0; c < 8; ++c) {
+    const int ox = c & 1, oy = (c >> 1) & 1, oz = (c >> 2) & 1;
+    const int x = base[0] + ox, y = base[1] + oy, z = base[2] + oz;
+    if (!inside && (x < 0 || y < 0 || z < 0 || x >= n || y >= n || z >= n)) continue;
+    const float w = (ox ? frac[0] : 1.0f - frac[0]) * (oy ? frac[1] : 1.0f - frac[1]) *
+                    (oz ? frac[2] : 1.0f - frac[2]);
+    const float* v = grid + z * sz + y * sy + static_cast<int64_t>(x) * kChannels;
+    for (int ch = 0; ch < kChannels; ++ch) out[ch] += w * v[ch];
+  }
+}
+
+// r, g, b, sigma of a sample, as EvaluateSample computes them.
+inline void EvaluateValue(const MarchVolume& volume, const Eigen::Vector3f& u, float value[4]) {
+  Eigen::Vector3f y = u;
+  if (volume.warp != nullptr) Interpolate<3>(volume.warp, volume.warp_grid, /*clamp=*/true, u, y.data());
+  Interpolate<4>(volume.rgba, volume.grid, /*clamp=*/false, y, value);
+  value[3] = std::max(value[3], 0.0f);
+}
+
+// The world box of a volume's occupied cells: every sample outside it lies in an empty cell,
+// so a skipping ray is clipped to it before it walks any cell. `any` is false when no cell is
+// occupied; without a grid (or when empty cells are evaluated) it is the whole box.
+struct OccupiedBox {
+  bool any = true;
+  Eigen::Vector3f min, max;
+};
+
+OccupiedBox OccupiedBoxOf(const MarchVolume& volume, const MarchOptions& options) {
+  OccupiedBox box;
+  box.min = volume.box_min;
+  box.max = volume.box_max;
+  const OccupancyGrid* occ = volume.occupancy;
+  if (occ == nullptr || occ->empty() || options.evaluate_empty_cells) return box;
+  const int n = occ->size;
+  int lo[3] = {n, n, n}, hi[3] = {-1, -1, -1};
+  for (int z = 0; z < n; ++z) {
+    for (int y = 0; y < n; ++y) {
+      for (int x = 0; x < n; ++x) {
+        if (!occ->occupied[(static_cast<int64_t>(z) * n + y) * n + x]) continue;
+        const int cell[3] = {x, y, z};
+        for (int a = 0; a < 3; ++a) {
+          lo[a] = std::min(lo[a], cell[a]);
+          hi[a] = std::max(hi[a], cell[a] + 1);
+        }
+      }
+    }
+  }
+  if (hi[0] < 0) {
+    box.any = false;
+    return box;
+  }
+  const Eigen::Vector3f cell_size = (volume.box_max - volume.box_min) / static_cast<float>(n);
+  for (int a = 0; a < 3; ++a) {
+    box.min[a] = volume.box_min[a] + lo[a] * cell_size[a];
+    box.max[a] = volume.box_min[a] + hi[a] * cell_size[a];
+  }
+  return box;
+}
+
 // Visits the samples t_k = t_near + (k + jitter) step of one ray, jumping over empty occupancy
 // cells without changing where the remaining samples fall. `visit(t, u, masked)` returns false
 // to stop; `masked` samples lie in empty cells (evaluate_empty_cells) and add nothing.
 // Returns the number of samples visited; sets *truncated when max_samples_per_ray stopped it.
 template <typename Visit>
-int64_t ForEachSample(const MarchVolume& volume, const RayBatch& rays, int64_t r,
-                      const MarchOptions& options, bool* truncated, Visit&& visit) {
+int64_t ForEachSample(const MarchVolume& volume, const OccupiedBox& occupied, const RayBatch& rays,
+                      int64_t r, const MarchOptions& options, bool* truncated, Visit&& visit) {
   *truncated = false;
   const float t_near = rays.t_near[r], t_far = rays.t_far[r];
-  if (!(t_far > t_near)) return 0;
+  if (!(t_far > t_near) || !occupied.any) return 0;
   const Eigen::Vector3f o(rays.origin[3 * r], rays.origin[3 * r + 1], rays.origin[3 * r + 2]);
   const Eigen::Vector3f d(rays.direction[3 * r], rays.direction[3 * r + 1],
                           rays.direction[3 * r + 2]);
@@ -99,10 +176,21 @@ int64_t ForEachSample(const MarchVolume& volume, const RayBatch& rays, int64_t r
       (volume.occupancy != nullptr && !volume.occupancy->empty()) ? volume.occupancy : nullptr;
   const double step = options.step_m;
   const double jitter = rays.jitter.empty() ? 0.0 : rays.jitter[r];
+  // Samples stay on the ray's own lattice t_near + (k + jitter) step; clipping only moves the
+  // first and last k, one step wide of the occupied box so that rounding at its faces cannot
+  // drop a sample (those extra samples go through the cell test like any other).
+  int64_t k_first = 0;
+  double t_last = t_far;
+  if (occ != nullptr && !options.evaluate_empty_cells) {
+    float t0 = 0, t1 = 0;
+    if (!ClipToBox(o, d, occupied.min, occupied.max, t_near, &t0, &t1)) return 0;
+    k_first = std::max<int64_t>(0, static_cast<int64_t>(std::floor((t0 - t_near) / step - jitter)) - 1);
+    t_last = std::min<double>(t_far, t1 + step);
+  }
   int64_t visited = 0;
-  for (int64_t k = 0;;) {
+  for (int64_t k = k_first;;) {
     const double t = t_near + (k + jitter) * step;
-    if (t >= t_far) break;
+    if (t >= t_last) break;
     const Eigen::Vector3f p = o + static_cast<float>(t) * d;
     const Eigen::Vector3f u = ((p - volume.box_min).array() / extent.array()).matrix();
     if (occ != nullptr) {
@@ -222,12 +310,22 @@ RayBatch CameraRays(const CameraModel& camera, const Eigen::Matrix2Xd& pixels,
                     const Eigen::Vector3f& box_min, const Eigen::Vector3f& box_max,
                     float near_m) {
   RayBatch rays;
-  rays.Resize(pixels.cols());
-  const Eigen::Matrix3Xd dirs_cam = camera.UnprojectMany(pixels);
+  const int64_t count = pixels.cols();
+  rays.Resize(count);
   const Pose world_from_cam = camera.world_from_cam();
   const Eigen::Vector3f center = world_from_cam.translation().cast<float>();
   const Eigen::Matrix3d rotation = world_from_cam.rotation();
-  for (int64_t i = 0; i < pixels.cols(); ++i) {
+  // Unprojection (iterative for most lens models) costs as much as marching a view: chunks of
+  // pixels in parallel.
+  Eigen::Matrix3Xd dirs_cam(3, count);
+  constexpr int64_t kChunk = 4096;
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int64_t begin = 0; begin < count; begin += kChunk) {
+    const int64_t size = std::min(kChunk, count - begin);
+    dirs_cam.middleCols(begin, size) = camera.UnprojectMany(pixels.middleCols(begin, size));
+  }
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < count; ++i) {
     if (!dirs_cam.col(i).allFinite()) continue;
     const Eigen::Vector3f d = (rotation * dirs_cam.col(i).normalized()).cast<float>();
     for (int a = 0; a < 3; ++a) {
@@ -255,6 +353,7 @@ RayBatch CameraRaysAllPixels(const CameraModel& camera, const Eigen::Vector3f& b
 void MarchForward(const MarchVolume& volume, const RayBatch& rays, const MarchOptions& options,
                   MarchOutputs* out) {
   const int64_t n = rays.size();
+  const OccupiedBox occupied = OccupiedBoxOf(volume, options);
   out->rgb.assign(3 * n, 0.0f);
   out->alpha.assign(n, 0.0f);
   out->depth.assign(n, 0.0f);
@@ -263,19 +362,20 @@ void MarchForward(const MarchVolume& volume, const RayBatch& rays, const MarchOp
   const double step = options.step_m;
 #pragma omp parallel for schedule(dynamic, 64) reduction(+ : truncated_rays)
   for (int64_t r = 0; r < n; ++r) {
-    double tau = 0, transmittance = 1, rgb[3] = {0, 0, 0}, depth = 0;
-    Sample s;
+    double transmittance = 1, rgb[3] = {0, 0, 0}, depth = 0;
+    float value[4];
     bool truncated = false;
     out->samples[r] = static_cast<int32_t>(ForEachSample(
-        volume, rays, r, options, &truncated, [&](float t, const Eigen::Vector3f& u, bool masked) {
-          EvaluateSample(volume, u, &s);
+        volume, occupied, rays, r, options, &truncated, [&](float t, const Eigen::Vector3f& u, bool masked) {
+          EvaluateValue(volume, u, value);
           if (masked) return true;
-          const double optical = s.value[3] * step;
-          const double w = transmittance * -std::expm1(-optical);
-          for (int c = 0; c < 3; ++c) rgb[c] += w * s.value[c];
+          // One exponential per sample; in double, 1 - decay keeps its precision for the
+          // faintest samples and the product underflows to 0, never to NaN.
+          const double decay = std::exp(-value[3] * step);
+          const double w = transmittance * (1.0 - decay);
+          for (int c = 0; c < 3; ++c) rgb[c] += w * value[c];
           depth += w * t;
-          tau += optical;
-          transmittance = std::exp(-tau);
+          transmittance *= decay;
           return !(transmittance < options.min_transmittance);
         }));
     truncated_rays += truncated;
@@ -290,6 +390,7 @@ void MarchBackward(const MarchVolume& volume, const RayBatch& rays, const MarchO
                    const float* grad_rgb, const float* grad_alpha, float* grad_rgba,
                    float* grad_warp) {
   const int64_t n = rays.size();
+  const OccupiedBox occupied = OccupiedBoxOf(volume, options);
   const int64_t rgba_size = static_cast<int64_t>(volume.grid) * volume.grid * volume.grid * 4;
   const bool has_warp = volume.warp != nullptr;
   const int64_t warp_size =
@@ -323,12 +424,13 @@ void MarchBackward(const MarchVolume& volume, const RayBatch& rays, const MarchO
       double tau = 0, transmittance = 1, total[3] = {0, 0, 0};
       Sample s;
       bool truncated = false;
-      ForEachSample(volume, rays, r, options, &truncated, [&](float, const Eigen::Vector3f& u, bool masked) {
+      ForEachSample(volume, occupied, rays, r, options, &truncated, [&](float, const Eigen::Vector3f& u, bool masked) {
         if (masked) return true;
-        EvaluateSample(volume, u, &s);
-        const double optical = s.value[3] * step;
+        float value[4];
+        EvaluateValue(volume, u, value);
+        const double optical = value[3] * step;
         const double w = transmittance * -std::expm1(-optical);
-        for (int c = 0; c < 3; ++c) total[c] += w * s.value[c];
+        for (int c = 0; c < 3; ++c) total[c] += w * value[c];
         tau += optical;
         transmittance = std::exp(-tau);
         return !(transmittance < options.min_transmittance);
@@ -339,7 +441,7 @@ void MarchBackward(const MarchVolume& volume, const RayBatch& rays, const MarchO
       tau = 0;
       transmittance = 1;
       double prefix[3] = {0, 0, 0};
-      ForEachSample(volume, rays, r, options, &truncated, [&](float, const Eigen::Vector3f& u, bool masked) {
+      ForEachSample(volume, occupied, rays, r, options, &truncated, [&](float, const Eigen::Vector3f& u, bool masked) {
         if (masked) return true;
         EvaluateSample(volume, u, &s);
         const double optical = s.value[3] * step;
@@ -399,12 +501,12 @@ OccupancyGrid OccupancyFromVolume(const MarchVolume& volume, int cells, float mi
   const int d = volume.grid;
 #pragma omp parallel for schedule(static)
   for (int z = 0; z < d; ++z) {
-    Sample s;
+    float value[4];
     for (int y = 0; y < d; ++y) {
       for (int x = 0; x < d; ++x) {
         const Eigen::Vector3f u((x + 0.5f) / d, (y + 0.5f) / d, (z + 0.5f) / d);
-        EvaluateSample(volume, u, &s);
-        if (s.value[3] <= min_density) continue;
+        EvaluateValue(volume, u, value);
+        if (value[3] <= min_density) continue;
         const int cx = std::min(x * cells / d, cells - 1);
         const int cy = std::min(y * cells / d, cells - 1);
         const int cz = std::min(z * cells / d, cells - 1);
