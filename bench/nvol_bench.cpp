@@ -2,7 +2,7 @@
 // (and, with --dino, on Middlebury's dinoSparseRing as a static scene), then playback speed of
 // the trained model at 512² with and without empty-space skipping. Prints tables; never
 // passes or fails on time. Usage:
-//   nvol_bench [--minutes 30] [--grid 64] [--frames 30] [--width 160] [--sim-width 320]
+//   nvol_bench [--minutes 30] [--grid 64] [--frames 30] [--width 160] [--sim-width 320] [--rays 16384]
 //              [--work /tmp/nvol-bench] [--dino] [--dino-only] [--dino-minutes 5]
 #include <CLI/CLI.hpp>
 #include <cstdio>
@@ -62,7 +62,7 @@ void PlaybackTable(const fs::path& model_dir, const fs::path& out) {
 int main(int argc, char** argv) {
   CLI::App app{"Neural Volumes benchmark"};
   double minutes = 30, dino_minutes = 5;
-  int grid = 64, frames = 30, width = 160, sim_width = 320;
+  int grid = 64, frames = 30, width = 160, sim_width = 320, rays = 16384;
   std::string work = "/tmp/nvol-bench";
   bool dino = false, dino_only = false;
   std::string scene = "subject";
@@ -70,6 +70,7 @@ int main(int argc, char** argv) {
   app.add_option("--grid", grid, "RGBA grid side");
   app.add_option("--frames", frames, "Frame sets of the simulated take");
   app.add_option("--width", width, "Training image width");
+  app.add_option("--rays", rays, "Rays per batch of the dynamic take (the decoder, not the marcher, sets the step time)");
   app.add_option("--sim-width", sim_width, "Simulated image width");
   app.add_option("--work", work, "Working directory (takes and models are kept)");
   app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
@@ -99,6 +100,7 @@ int main(int argc, char** argv) {
     options.grid = grid;
     options.minutes = minutes;
     options.image_width = width;
+    options.rays_per_batch = rays;
     options.eval_every_s = std::max(10.0, minutes * 60 / 20);
     Report report("nvol_bench");
     const fs::path model = root / ("model-" + scene + "-grid" + std::to_string(grid));

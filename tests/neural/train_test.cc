@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <nlohmann/json.hpp>
 
 #include "core/error.h"
@@ -72,12 +73,18 @@ TEST_F(NeuralTrainTest, DynamicCiConfigurationLearnsTheSubject) {
   EXPECT_EQ(summary.plan["heldout_cameras"].size(), 2u);
   EXPECT_EQ(summary.plan["bounds"]["source"], "hull");
   EXPECT_GT(summary.iterations, 20);
-  // The loss falls and held-out cameras (never trained on) reach 20 dB. In a minute on two
-  // cores the subject itself is only about as good as an empty volume's background (see
-  // bench/nvol_bench for longer runs): the model must at least not fog it.
+  std::printf("dynamic CI configuration: %lld iterations, loss %.5f -> %.5f, held-out PSNR %.2f dB whole image, "
+              "%.2f dB subject (background alone %.2f dB)\n",
+              static_cast<long long>(summary.iterations), summary.first_loss, summary.last_loss,
+              summary.heldout_psnr_db, summary.heldout_psnr_fg_db, summary.background_psnr_fg_db);
+  // The loss falls and held-out cameras (never trained on) reach 20 dB where it is hard: inside
+  // the subject's silhouette (the whole image, mostly clean-plate background, scores >30 dB
+  // with an empty volume). The subject must also beat an empty volume, whose background alone
+  // scores about 22.6 dB there; 24.2 dB was measured after 255 iterations on a loaded machine.
   EXPECT_LT(summary.last_loss, 0.5 * summary.first_loss);
   EXPECT_GE(summary.heldout_psnr_db, 20.0);
-  EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db - 0.5)
+  EXPECT_GE(summary.heldout_psnr_fg_db, 20.0);
+  EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db + 0.5)
       << "subject " << summary.heldout_psnr_fg_db << " dB vs background alone " << summary.background_psnr_fg_db;
   const auto json = nlohmann::json::parse(ReadFileToString(model / "report.json"));
   EXPECT_NEAR(json["metrics"]["heldout_psnr_db"].get<double>(), summary.heldout_psnr_db, 1e-9);
