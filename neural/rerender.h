@@ -1,0 +1,172 @@
+// Neural rerendering (after LookinGood, Martin-Brualla et al. 2018): the reconstruction of a
+// take is rasterised into a camera (colour, depth, normal and coverage buffers) and a U-Net
+// turns those buffers into the photo the camera would have taken (RGB and alpha). The network
+// learns on "witness" cameras that the reconstruction never saw, so it learns to repair what
+// the reconstruction gets wrong (holes, blurry texture, over-smooth silhouettes) in views it
+// was not built from; further cameras are held out from both for measurement.
+//
+// This header pulls in no LibTorch header (the CLI and playback include it).
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "core/camera.h"
+#include "core/mesh.h"
+#include "core/report.h"
+#include "neural/neural.h"
+#include "reconstruction/reconstruction.h"
+
+namespace holocap {
+
+// ---------------------------------------------------------------------------------------------
+// Rasterising a reconstruction into a calibrated camera
+
+struct RasterOptions {
+  // Vertices go through the lens model exactly, but a triangle's interior is filled in pixel
+  // space, where a wide lens bends its straight edges: triangles whose projected edge exceeds
+  // this are split in 3D (midpoints projected through the lens) until it holds.
+  double max_edge_px = 16;
+  int max_subdivisions = 5;     // splitting depth limit (4^5 pieces per triangle at most)
+  double point_radius_px = 1.5; // a mesh without faces (fused points) is splatted as squares
+  int threads = 0;              // 0: all cores
+  void Check() const;           // throws Error naming the bad field
+};
+
+// What the network sees of a reconstruction through one camera.
+struct GBuffer {
+  cv::Mat color;   // CV_32FC3 BGR in [0, 1] (the reconstruction's vertex colours), 0 where empty
+  cv::Mat depth;   // CV_32F z-depth in metres, NaN where empty
+  cv::Mat normal;  // CV_32FC3 unit normal in camera coordinates (OpenCV axes), 0 where empty
+  cv::Mat mask;    // CV_8U, 255 where a surface covers the pixel centre
+  int64_t triangles_drawn = 0;  // after splitting
+  int64_t triangles_split = 0;  // triangles of the mesh that needed splitting
+};
+
+// Z-buffered rasterisation of a mesh (per-vertex colours and normals; normals are computed
+// when the mesh has none) or, without faces, of its points. Parallel over bands of rows.
+// Throws Error for a mesh with faces indexing missing vertices.
+GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterOptions& options = {});
+
+// The raw textured-mesh render composited over a background (CV_32FC3 BGR in [0, 1], or empty
+// for black): what the reconstruction alone shows a camera.
+cv::Mat CompositeRawRender(const GBuffer& buffers, const cv::Mat& background);
+
+// ---------------------------------------------------------------------------------------------
+// The network
+
+struct UNetConfig {
+  int width = 24;        // channels of the first level (doubled per level, capped at 8x)
+  int depth = 4;         // levels (each halves the resolution; inputs are padded to 2^depth)
+  nlohmann::json ToJson() const;
+  static UNetConfig FromJson(const nlohmann::json& json);
+  void Check() const;
+};
+
+// A U-Net from G-buffers to RGB and alpha. Its output starts as the raw render (the last layer
+// is zero at initialisation: colour is the render's, alpha its coverage), so training only
+// has to learn corrections. Holds LibTorch state behind a pointer.
+class RerenderNetwork {
+ public:
+  RerenderNetwork(const UNetConfig& config, uint64_t seed);
+  ~RerenderNetwork();
+  RerenderNetwork(RerenderNetwork&&) noexcept;
+  RerenderNetwork& operator=(RerenderNetwork&&) noexcept;
+  static RerenderNetwork Load(const std::filesystem::path& weights, const UNetConfig& config);
+  void Save(const std::filesystem::path& weights) const;  // atomic
+
+  const UNetConfig& config() const;
+  int64_t parameter_count() const;
+  // Inference on one view: colour premultiplied by alpha (BGR in [0, 1]), alpha, depth copied
+  // from the buffers. Empty, holed or NaN buffers give finite output (NaN depth is no depth).
+  RenderedView Apply(const GBuffer& buffers, int threads = 0) const;
+
+  struct State;
+  State& state() const { return *state_; }
+
+ private:
+  explicit RerenderNetwork(std::unique_ptr<State> state);
+  std::unique_ptr<State> state_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Training
+
+struct RerenderOptions {
+  UNetConfig net;
+
+  // Cameras. The colour cameras are split three ways: the reconstruction's, the witnesses
+  // (the network trains on them) and the held-out ones (measurement only).
+  int witness_cameras = 2;              // spread around the rig
+  int heldout_cameras = 1;              // spread around the rig
+  std::vector<std::string> witness;     // by name (overrides witness_cameras)
+  std::vector<std::string> heldout;     // by name (overrides heldout_cameras)
+  bool ground_truth_cameras = false;    // use gt/cameras even when calib/ exists
+
+  // The reconstruction, built from the other cameras into MODEL/recon (or taken from
+  // `recon_dir` when given: it must then not have used the witnesses).
+  std::filesystem::path recon_dir;
+  ReconstructionOptions reconstruction;
+
+  // Data.
+  int image_width = 160;                // training/evaluation width (cameras rescaled); 0: native
+  int64_t first_frame = 0;              // frame sets [first, last) after the clean plate
+  int64_t last_frame = -1;              // -1: to the end
+
+  // Optimisation.
+  double minutes = 3;                   // wall-clock budget
+  int64_t iterations = 0;               // > 0: stop after this many (whichever first)
+  int batch_pairs = 2;                  // pairs of consecutive frames of one camera per step
+  double learning_rate = 1e-3;          // Adam
+  double l1_weight = 1;
+  double ssim_weight = 0.5;             // 1 - SSIM averaged over three scales
+  double subject_weight = 4;            // loss weight of pixels near the rendered subject (the
+                                        // rest, mostly background, weighs 1)
+  double temporal_weight = 0.5;         // L1 of (output change - truth change) between frames
+  double gan_weight = 0;                // > 0: adds a PatchGAN discriminator (LSGAN)
+  uint64_t seed = 1;
+
+  // Bookkeeping.
+  double eval_every_s = 15;             // held-out PSNR/SSIM every this many seconds
+  int threads = 0;                      // 0: all cores
+
+  void Check() const;                   // throws Error naming the bad field and why
+  nlohmann::json ToJson() const;
+};
+
+struct RerenderSummary {
+  Termination termination = Termination::kSuccess;
+  std::string message;
+  nlohmann::json plan;
+  int64_t iterations = 0;
+  double seconds = 0;                   // training wall time
+  double first_loss = 0, last_loss = 0; // means over the first and last iterations
+  // Held-out cameras over every trained frame, whole images over the clean plate.
+  double heldout_psnr_db = 0, raw_render_psnr_db = 0;
+  double heldout_ssim = 0, raw_render_ssim = 0;
+  // The same, on the pixels near the subject only.
+  double heldout_psnr_subject_db = 0, raw_render_psnr_subject_db = 0;
+  // Flicker on the first held-out camera: mean |frame-to-frame difference| divided by the
+  // truth's (1 = as steady as reality), and the mean |output change - truth change|.
+  double flicker_ratio = 0, raw_flicker_ratio = 0;
+  double flicker_excess = 0, raw_flicker_excess = 0;
+};
+
+// Trains a rerendering model on a take into `model_dir` (model.json, unet.pt, cameras/,
+// recon/, report.json). `report` receives options, plan, metrics (heldout_psnr_db,
+// raw_render_psnr_db, heldout_ssim, raw_render_ssim, flicker) and the series heldout_psnr_db,
+// heldout_ssim and loss. Throws Error for bad options or a take that cannot be used (no
+// cameras, too few colour cameras for the split, no frames); numerical trouble (a diverging
+// loss, a reconstruction that failed) is reported in the summary.
+RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::filesystem::path& model_dir,
+                              const RerenderOptions& options, Report* report = nullptr);
+
+// Adds the "rerender" kind to OpenModel() (idempotent).
+void RegisterRerenderModelKind();
+
+}  // namespace holocap

@@ -1,0 +1,242 @@
+// Neural rerendering: the G-buffer rasteriser against analytic spheres and planes through
+// distorted and wide lenses, the U-Net on empty, holed and NaN buffers, and the CLI end to
+// end on a tiny simulated take (train --method rerender, render --model).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <fstream>
+#include <limits>
+#include <iostream>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "core/camera.h"
+#include "core/error.h"
+#include "core/image.h"
+#include "core/pose.h"
+#include "neural/rerender.h"
+#include "tests/reconstruction/synthetic.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::Sphere;
+
+int CountMismatch(const cv::Mat& a, const cv::Mat& b) {
+  cv::Mat diff;
+  cv::bitwise_xor(a, b, diff);
+  return cv::countNonZero(diff);
+}
+
+TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
+  const Sphere sphere;
+  const Mesh mesh = testing::SphereMesh(sphere, 64, 128);
+  for (const CameraModel& camera : testing::RingCameras(4, sphere, 1.4, 160, 120, /*distorted=*/true)) {
+    const GBuffer buffers = RasteriseMesh(mesh, camera);
+    cv::Mat depth, mask;
+    testing::RenderSphere(camera, sphere, &depth, &mask);
+    const int area = cv::countNonZero(mask);
+    ASSERT_GT(area, 2000) << camera.lensmodel();
+    // Only pixels on the rim may disagree (the mesh is a polygon inscribed in the sphere).
+    EXPECT_LT(CountMismatch(buffers.mask, mask), 0.03 * area) << camera.lensmodel();
+    double depth_error = 0, normal_error_deg = 0;
+    int count = 0;
+    const Eigen::Vector3d centre_in_cam = camera.cam_from_world() * sphere.centre;
+    for (int y = 0; y < mask.rows; ++y) {
+      for (int x = 0; x < mask.cols; ++x) {
+        if (!mask.at<uint8_t>(y, x) || !buffers.mask.at<uint8_t>(y, x)) continue;
+        const float z = buffers.depth.at<float>(y, x);
+        depth_error += std::abs(z - depth.at<float>(y, x));
+        const Eigen::Vector3d ray = camera.Unproject(Eigen::Vector2d(x, y));
+        const Eigen::Vector3d point = ray * (depth.at<float>(y, x) / ray.z());
+        const Eigen::Vector3d truth = (point - centre_in_cam).normalized();
+        const cv::Vec3f n = buffers.normal.at<cv::Vec3f>(y, x);
+        const double cosine = std::clamp(truth.dot(Eigen::Vector3d(n[0], n[1], n[2])), -1.0, 1.0);
+        normal_error_deg += std::acos(cosine) * 180 / M_PI;
+        ++count;
+      }
+    }
+    ASSERT_GT(count, 0);
+    EXPECT_LT(depth_error / count, 1e-3) << camera.lensmodel();  // metres
+    EXPECT_LT(normal_error_deg / count, 2.0) << camera.lensmodel();
+    // Vertex colours default to mid grey where the mesh has none.
+    EXPECT_NEAR(cv::mean(buffers.color, buffers.mask)[1], 0.5, 1e-3);
+  }
+}
+
+// A slanted wall filling most of a real wide lens's view: its straight edges and its depth
+// bend in the image, so big triangles must be split.
+TEST(RerenderRaster, WideLensNeedsSplitTriangles) {
+  CameraModel camera = CameraModel::Read(testing::SharedDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel").Scaled(0.1);
+  camera.set_cam_from_world(Pose::Identity());
+  // The plane z = 2.2 + 0.6 x (camera coordinates): depth along a ray of direction d.
+  auto plane_depth = [](const Eigen::Vector3d& d) { return 2.2 * d.z() / (d.z() - 0.6 * d.x()); };
+  Mesh wall;
+  for (const auto& [u, v] : {std::pair{0.1, 0.1}, std::pair{0.9, 0.1}, std::pair{0.9, 0.9}, std::pair{0.1, 0.9}}) {
+    const Eigen::Vector3d ray = camera.Unproject(Eigen::Vector2d(u * camera.width(), v * camera.height()));
+    wall.vertices.push_back((ray * (plane_depth(ray) / ray.z())).cast<float>());
+  }
+  wall.faces = {{0, 1, 2}, {0, 2, 3}};
+  auto worst_depth_error = [&](const GBuffer& buffers) {
+    double worst = 0;
+    for (int y = 0; y < buffers.depth.rows; ++y) {
+      for (int x = 0; x < buffers.depth.cols; ++x) {
+        const float z = buffers.depth.at<float>(y, x);
+        if (std::isfinite(z)) worst = std::max(worst, std::abs(z - plane_depth(camera.Unproject(Eigen::Vector2d(x, y)))));
+      }
+    }
+    return worst;
+  };
+  const GBuffer split = RasteriseMesh(wall, camera);
+  RasterOptions whole;
+  whole.max_subdivisions = 0;
+  const GBuffer unsplit = RasteriseMesh(wall, camera, whole);
+  EXPECT_EQ(split.triangles_split, 2);
+  EXPECT_GT(split.triangles_drawn, 100);
+  EXPECT_EQ(unsplit.triangles_drawn, 2);
+  std::cout << "wide lens wall: worst depth error " << worst_depth_error(split) * 1e3 << " mm split, "
+            << worst_depth_error(unsplit) * 1e3 << " mm unsplit\n";
+  EXPECT_LT(worst_depth_error(split), 0.01);
+  EXPECT_GT(worst_depth_error(unsplit), 3 * worst_depth_error(split));
+}
+
+TEST(RerenderRaster, CameraLookingAwaySeesNothing) {
+  const Sphere sphere;
+  const Mesh mesh = testing::SphereMesh(sphere, 16, 32);
+  const CameraModel camera = CameraModel::Pinhole(
+      80, 96, 64, CamFromWorldLookAt(sphere.centre + Eigen::Vector3d(2, 0, 0), sphere.centre + Eigen::Vector3d(4, 0, 0)));
+  const GBuffer buffers = RasteriseMesh(mesh, camera);
+  EXPECT_EQ(buffers.triangles_drawn, 0);
+  EXPECT_EQ(cv::countNonZero(buffers.mask), 0);
+  EXPECT_EQ(cv::countNonZero(buffers.depth == buffers.depth), 0);  // all NaN
+  const RenderedView view = RerenderNetwork(UNetConfig{.width = 8, .depth = 3}, 1).Apply(buffers);
+  ASSERT_EQ(view.alpha.size(), cv::Size(camera.width(), camera.height()));
+  double lo, hi;
+  cv::minMaxLoc(view.alpha, &lo, &hi);
+  EXPECT_LT(hi, 0.01);
+  EXPECT_EQ(cv::checkRange(view.color), true);
+}
+
+TEST(RerenderRaster, PointsWithoutFacesAreSplatted) {
+  const Sphere sphere;
+  Mesh points = testing::SphereMesh(sphere, 32, 64);
+  points.faces.clear();
+  const CameraModel camera = testing::RingCameras(1, sphere, 1.4, 120, 90, false)[0];
+  const GBuffer buffers = RasteriseMesh(points, camera);
+  cv::Mat mask;
+  testing::RenderSphere(camera, sphere, nullptr, &mask);
+  EXPECT_GT(cv::countNonZero(buffers.mask & mask), 0.9 * cv::countNonZero(mask));
+  // 1.5 px splats spill about that far past the rim.
+  EXPECT_LT(cv::countNonZero(buffers.mask & ~mask), 0.2 * cv::countNonZero(mask));
+}
+
+TEST(RerenderRaster, RejectsBadInput) {
+  Mesh mesh;
+  mesh.vertices = {{0, 0, 1}, {1, 0, 1}, {0, 1, 1}};
+  mesh.faces = {{0, 1, 3}};
+  const CameraModel camera = CameraModel::Pinhole(50, 64, 48);
+  EXPECT_THROW(RasteriseMesh(mesh, camera), Error);
+  mesh.faces = {{0, 1, 2}};
+  RasterOptions bad;
+  bad.max_edge_px = 0;
+  EXPECT_THROW(RasteriseMesh(mesh, camera, bad), Error);
+}
+
+// The untrained network returns the raw render: colour where covered, no alpha elsewhere.
+TEST(RerenderNet, StartsAsTheRawRender) {
+  const Sphere sphere;
+  Mesh mesh = testing::SphereMesh(sphere, 32, 64);
+  for (size_t i = 0; i < mesh.vertices.size(); ++i) mesh.colors.push_back({static_cast<uint8_t>(i % 200 + 20), 90, 160});
+  const CameraModel camera = testing::RingCameras(1, sphere, 1.4, 100, 70, false)[0];
+  const GBuffer buffers = RasteriseMesh(mesh, camera);
+  const RerenderNetwork network(UNetConfig{.width = 8, .depth = 3}, 3);
+  const RenderedView view = network.Apply(buffers);
+  const cv::Mat raw = CompositeRawRender(buffers, {});
+  cv::Mat alpha3;
+  cv::cvtColor(view.alpha, alpha3, cv::COLOR_GRAY2BGR);
+  cv::Mat straight = view.color / cv::max(alpha3, 1e-6);
+  double worst = 0;
+  for (int y = 0; y < raw.rows; ++y) {
+    for (int x = 0; x < raw.cols; ++x) {
+      if (!buffers.mask.at<uint8_t>(y, x)) {
+        EXPECT_LT(view.alpha.at<float>(y, x), 0.01f);
+        continue;
+      }
+      EXPECT_GT(view.alpha.at<float>(y, x), 0.99f);
+      const cv::Vec3f d = straight.at<cv::Vec3f>(y, x) - raw.at<cv::Vec3f>(y, x);
+      worst = std::max({worst, std::abs<double>(d[0]), std::abs<double>(d[1]), std::abs<double>(d[2])});
+    }
+  }
+  EXPECT_LT(worst, 0.021);  // colours are clamped to [0.02, 0.98] before the logit
+}
+
+// Holes in the coverage and NaN where depth or colour should be never reach the output.
+TEST(RerenderNet, HolesAndNanBuffersGiveFiniteOutput) {
+  const Sphere sphere;
+  const CameraModel camera = testing::RingCameras(1, sphere, 1.4, 96, 64, false)[0];
+  GBuffer buffers = RasteriseMesh(testing::SphereMesh(sphere, 24, 48), camera);
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  buffers.mask(cv::Rect(40, 20, 10, 10)).setTo(0);
+  buffers.depth(cv::Rect(40, 20, 10, 10)).setTo(nan);
+  buffers.depth(cv::Rect(30, 30, 6, 6)).setTo(nan);  // covered, but no depth
+  buffers.color(cv::Rect(50, 30, 4, 4)).setTo(cv::Scalar::all(nan));
+  buffers.normal(cv::Rect(50, 30, 4, 4)).setTo(cv::Scalar::all(std::numeric_limits<float>::infinity()));
+  const RenderedView view = RerenderNetwork(UNetConfig{.width = 8, .depth = 2}, 5).Apply(buffers);
+  EXPECT_TRUE(cv::checkRange(view.color));
+  EXPECT_TRUE(cv::checkRange(view.alpha));
+  EXPECT_LT(view.alpha.at<float>(25, 45), 0.01f);  // the hole is empty
+  EXPECT_LT(view.alpha.at<float>(33, 33), 0.01f);  // covered without depth counts as empty
+}
+
+TEST(RerenderOptions, ChecksExplainBadValues) {
+  RerenderOptions options;
+  options.net.depth = 9;
+  EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.subject_weight = 0.5;
+  EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.image_width = 8;
+  EXPECT_THROW(options.Check(), Error);
+  EXPECT_NO_THROW(RerenderOptions{}.Check());
+}
+
+// End to end: a 3-frame simulated take, the reconstruction from the other cameras, a short
+// training, then playback through the model.
+TEST(RerenderCli, TrainsAndRendersATinyTake) {
+  testing::TempDir dir("rerender-cli");
+  const auto take = dir / "take";
+  auto sim = testing::RunCli("sim --rig studio8 --frames 4 --clean-plate 1 --size 128 --no-noise --out " + take.string());
+  ASSERT_EQ(sim.exit_code, 0) << sim.output;
+  const auto model = dir / "model";
+  auto too_many = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() + " --witness 6");
+  EXPECT_NE(too_many.exit_code, 0);
+  EXPECT_NE(too_many.output.find("for the reconstruction"), std::string::npos) << too_many.output;
+
+  auto train = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
+                               " --iterations 60 --width 64 --unet-width 8 --unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
+  ASSERT_EQ(train.exit_code, 0) << train.output;
+  std::ifstream file(model / "report.json");
+  const nlohmann::json report = nlohmann::json::parse(file);
+  const auto& m = report.at("metrics");
+  EXPECT_EQ(m.at("iterations").get<int>(), 60);
+  EXPECT_LT(m.at("last_loss").get<double>(), m.at("first_loss").get<double>());
+  EXPECT_GT(m.at("raw_render_psnr_db").get<double>(), 10);
+  // Training on witnesses must not make the held-out view worse than what it started from.
+  EXPECT_GT(m.at("heldout_psnr_db").get<double>(), m.at("raw_render_psnr_db").get<double>() - 0.5);
+  EXPECT_EQ(report.at("plan").at("witness").size(), 2u);
+  EXPECT_EQ(report.at("plan").at("temporal_term"), "on");
+
+  const auto frames = dir / "frames";
+  auto render = testing::RunCli("render " + take.string() + " --model " + model.string() + " --views 3 --size 64 --no-exr --out " + frames.string());
+  ASSERT_EQ(render.exit_code, 0) << render.output;
+  EXPECT_TRUE(std::filesystem::exists(frames / "000002.png")) << render.output;
+  const cv::Mat first = ReadImage(frames / "000000.png");
+  EXPECT_EQ(first.channels(), 4);
+  EXPECT_EQ(first.cols, 64);
+  EXPECT_EQ(first.rows, 64);
+}
+
+}  // namespace
+}  // namespace holocap
