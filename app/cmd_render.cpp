@@ -7,6 +7,7 @@
 #include "core/error.h"
 #include "core/report.h"
 #include "neural/neural.h"
+#include "neural/rerender.h"
 #include "playback/playback.h"
 
 namespace holocap {
@@ -45,6 +46,7 @@ void AddRenderCommand(CLI::App& app) {
   command->callback([args] {
     const std::filesystem::path model_dir = args->model.empty()
         ? std::filesystem::path(args->take) / "models" / "nvol" : std::filesystem::path(args->model);
+    RegisterRerenderModelKind();
     auto model = OpenModel(model_dir);
     CameraPath path;
     if (args->path == "orbit") {

@@ -8,6 +8,7 @@
 #include "core/error.h"
 #include "core/report.h"
 #include "neural/neural.h"
+#include "neural/rerender.h"
 #include "playback/playback.h"
 
 namespace holocap {
@@ -19,6 +20,8 @@ struct TrainArgs {
   std::string out;
   std::string bounds = "auto";
   NeuralVolumeOptions options;
+  RerenderOptions rerender;  // --method rerender
+  std::string silhouettes = "background";
 };
 
 void PrintPlan(const nlohmann::json& plan) {
@@ -26,12 +29,47 @@ void PrintPlan(const nlohmann::json& plan) {
   for (const auto& [key, value] : plan.items()) std::printf("  %-18s %s\n", key.c_str(), value.dump().c_str());
 }
 
+// Neural rerendering shares the data and budget options with Neural Volumes.
+void TrainRerenderCommand(const TrainArgs& args, const std::filesystem::path& out) {
+  RerenderOptions o = args.rerender;
+  const NeuralVolumeOptions& shared = args.options;
+  o.minutes = shared.minutes;
+  o.iterations = shared.iterations;
+  o.image_width = shared.image_width;
+  o.heldout_cameras = shared.heldout_cameras;
+  o.heldout = shared.heldout;
+  o.last_frame = shared.last_frame;
+  o.eval_every_s = shared.eval_every_s;
+  o.seed = shared.seed;
+  o.threads = shared.threads;
+  o.ground_truth_cameras = shared.ground_truth_cameras;
+  if (args.silhouettes != "background" && args.silhouettes != "threshold") {
+    Fail("--silhouettes must be background or threshold (got '", args.silhouettes, "')");
+  }
+  o.reconstruction.silhouette.mode =
+      args.silhouettes == "threshold" ? SilhouetteMode::kThreshold : SilhouetteMode::kBackgroundSubtraction;
+  o.Check();
+  Report report("train");
+  RerenderSummary summary = TrainRerender(args.take, out, o, &report);
+  PrintPlan(summary.plan);
+  std::printf("iterations   %lld in %.1f s\n", static_cast<long long>(summary.iterations), summary.seconds);
+  std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
+  std::printf("held-out     PSNR %.2f dB (raw render %.2f dB), SSIM %.4f (raw %.4f)\n", summary.heldout_psnr_db,
+              summary.raw_render_psnr_db, summary.heldout_ssim, summary.raw_render_ssim);
+  std::printf("flicker      %.3f x truth's (raw render %.3f x)\n", summary.flicker_ratio, summary.raw_flicker_ratio);
+  std::printf("%s: %s\nmodel: %s\nreport: %s\n", ToString(summary.termination), summary.message.c_str(), out.c_str(),
+              (out / "report.json").c_str());
+  if (!IsUsable(summary.termination) && summary.termination != Termination::kNoConvergence) {
+    Fail("training ended with ", ToString(summary.termination), ": ", summary.message);
+  }
+}
+
 void AddTrainCommand(CLI::App& app) {
   auto* command = app.add_subcommand("train", "Learn an avatar (Neural Volumes) from a calibrated take");
   auto args = std::make_shared<TrainArgs>();
   NeuralVolumeOptions& o = args->options;
   command->add_option("TAKE", args->take, "The take directory")->required();
-  command->add_option("--method", args->method, "Model kind: nvol (Neural Volumes)")->capture_default_str();
+  command->add_option("--method", args->method, "Model kind: nvol (Neural Volumes) or rerender (neural rerendering)")->capture_default_str();
   command->add_option("--out", args->out, "Model directory (default: TAKE/models/<method>)");
   command->add_option("--grid", o.grid, "RGBA voxels per axis (16..128, power of two)")->capture_default_str();
   command->add_option("--minutes", o.minutes, "Training time budget")->capture_default_str();
@@ -49,12 +87,25 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--threads", o.threads, "Threads (0: all cores)")->capture_default_str();
   command->add_flag("--ground-truth-cameras", o.ground_truth_cameras, "Use gt/cameras even when calib/ exists");
   command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
+  RerenderOptions& r = args->rerender;
+  command->add_option("--witness", r.witness_cameras, "rerender: witness cameras left out of the reconstruction")->capture_default_str();
+  command->add_option("--witness-names", r.witness, "rerender: these witness cameras (names)");
+  command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
+  command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();
+  command->add_option("--recon", r.recon_dir, "rerender: use this reconstruction (built without the witnesses)");
+  command->add_option("--recon-voxel", r.reconstruction.voxel_m, "rerender: reconstruction voxel in metres")->capture_default_str();
+  command->add_option("--silhouettes", args->silhouettes, "rerender: reconstruction silhouettes, background or threshold")->capture_default_str();
+  command->add_option("--temporal-weight", r.temporal_weight, "rerender: temporal-consistency loss weight")->capture_default_str();
+  command->add_option("--gan-weight", r.gan_weight, "rerender: PatchGAN loss weight (0: none)")->capture_default_str();
   command->callback([args] {
-    if (args->method != "nvol") Fail("unknown training method '", args->method, "' (known: nvol)");
+    if (args->method != "nvol" && args->method != "rerender") {
+      Fail("unknown training method '", args->method, "' (known: nvol, rerender)");
+    }
     args->options.bounds = VolumeBoundsSourceFromString(args->bounds);
     args->options.Check();
     const std::filesystem::path out = args->out.empty()
         ? std::filesystem::path(args->take) / "models" / args->method : std::filesystem::path(args->out);
+    if (args->method == "rerender") return TrainRerenderCommand(*args, out);
     Report report("train");
     NeuralVolumeSummary summary = TrainNeuralVolume(args->take, out, args->options, &report);
     PrintPlan(summary.plan);
