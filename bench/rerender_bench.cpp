@@ -1,0 +1,184 @@
+// Neural rerendering: held-out PSNR/SSIM of the U-Net against the raw textured-mesh render and
+// against training time, temporal flicker on a fixed held-out camera, on a simulated studio8
+// walking subject and (with --dino) on Middlebury's dinoSparseRing; then inference time per
+// 512² frame (rasterising and the network apart). Prints tables; never passes or fails on time.
+// Usage:
+//   rerender_bench [--minutes 10] [--frames 30] [--width 160] [--sim-width 320]
+//                  [--unet-width 24] [--unet-depth 4] [--threads 2] [--train-threads 0]
+//                  [--work /tmp/rerender-bench]
+//                  [--dino] [--dino-only] [--dino-minutes 5]
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "capture/interop/interop.h"
+#include "core/mesh.h"
+#include "core/report.h"
+#include "neural/rerender.h"
+#include "playback/playback.h"
+#include "sim/sim.h"
+
+namespace {
+
+namespace fs = std::filesystem;
+using namespace holocap;
+
+void PrintSeries(const Report& report) {
+  std::printf("%8s %7s %14s %8s\n", "t_s", "iter", "heldout_psnr", "ssim");
+  const auto& series = report.json()["series"];
+  for (size_t i = 0; i < series.size(); ++i) {
+    if (series[i]["metric"] != "heldout_psnr_db") continue;
+    double ssim = 0;
+    for (size_t j = i + 1; j < series.size() && j < i + 3; ++j) {
+      if (series[j]["metric"] == "heldout_ssim") ssim = series[j]["value"];
+    }
+    std::printf("%8.1f %7lld %11.2f dB %8.4f\n", series[i]["t_s"].get<double>(),
+                static_cast<long long>(series[i]["iter"].get<int64_t>()), series[i]["value"].get<double>(), ssim);
+  }
+}
+
+void PrintComparison(const RerenderSummary& s) {
+  std::printf("\n%-22s %12s %12s %10s\n", "held-out", "raw render", "rerendered", "gain");
+  std::printf("%-22s %9.2f dB %9.2f dB %+7.2f dB\n", "PSNR (whole image)", s.raw_render_psnr_db, s.heldout_psnr_db,
+              s.heldout_psnr_db - s.raw_render_psnr_db);
+  std::printf("%-22s %9.2f dB %9.2f dB %+7.2f dB\n", "PSNR (near subject)", s.raw_render_psnr_subject_db,
+              s.heldout_psnr_subject_db, s.heldout_psnr_subject_db - s.raw_render_psnr_subject_db);
+  std::printf("%-22s %12.4f %12.4f %+10.4f\n", "SSIM", s.raw_render_ssim, s.heldout_ssim, s.heldout_ssim - s.raw_render_ssim);
+  std::printf("%-22s %12.3f %12.3f\n", "flicker / truth's", s.raw_flicker_ratio, s.flicker_ratio);
+  std::printf("%-22s %12.4f %12.4f\n", "flicker excess", s.raw_flicker_excess, s.flicker_excess);
+  std::printf("%s: %s\nloss %.5f -> %.5f, %lld iterations in %.0f s\n", ToString(s.termination), s.message.c_str(),
+              s.first_loss, s.last_loss, static_cast<long long>(s.iterations), s.seconds);
+}
+
+void InferenceTable(const fs::path& model_dir, int threads) {
+  RegisterRerenderModelKind();
+  auto model = OpenModel(model_dir);
+  const nlohmann::json json = nlohmann::json::parse(std::ifstream(model_dir / "model.json"));
+  const RerenderNetwork network = RerenderNetwork::Load(model_dir / "unet.pt", UNetConfig::FromJson(json["net"]));
+  fs::path mesh_file = json["meshes"][0].get<std::string>();
+  if (mesh_file.is_relative()) mesh_file = model_dir / mesh_file;
+  const Mesh mesh = ReadPly(mesh_file);
+  OrbitOptions orbit;
+  orbit.views = 8;
+  orbit.width = 512;
+  orbit.height = 512;
+  orbit.advance_frames = false;
+  const CameraPath path = OrbitPath(*model, orbit);
+  std::printf("\ninference at 512x512, %zu orbit views, U-Net width %d depth %d (%lld parameters), mesh %zu triangles\n",
+              path.size(), network.config().width, network.config().depth,
+              static_cast<long long>(network.parameter_count()), mesh.faces.size());
+  std::printf("%8s %14s %14s %14s %8s\n", "threads", "rasterise ms", "U-Net ms", "total ms", "fps");
+  for (int t : {1, threads}) {
+    RasterOptions raster;
+    raster.threads = t;
+    double raster_s = 0, net_s = 0;
+    network.Apply(RasteriseMesh(mesh, path.cameras[0], raster), t);  // warm-up
+    for (const CameraModel& camera : path.cameras) {
+      auto t0 = std::chrono::steady_clock::now();
+      GBuffer buffers = RasteriseMesh(mesh, camera, raster);
+      auto t1 = std::chrono::steady_clock::now();
+      network.Apply(buffers, t);
+      auto t2 = std::chrono::steady_clock::now();
+      raster_s += std::chrono::duration<double>(t1 - t0).count();
+      net_s += std::chrono::duration<double>(t2 - t1).count();
+    }
+    const double n = static_cast<double>(path.size());
+    std::printf("%8d %14.1f %14.1f %14.1f %8.2f\n", t, 1e3 * raster_s / n, 1e3 * net_s / n, 1e3 * (raster_s + net_s) / n,
+                n / (raster_s + net_s));
+    if (t == threads) break;
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"Neural rerendering benchmark"};
+  double minutes = 10, dino_minutes = 5;
+  int frames = 30, width = 160, sim_width = 320, threads = 2;
+  RerenderOptions base;
+  std::string work = "/tmp/rerender-bench";
+  bool dino = false, dino_only = false;
+  app.add_option("--minutes", minutes, "Training budget on studio8");
+  app.add_option("--frames", frames, "Frame sets of the simulated take");
+  app.add_option("--width", width, "Training image width");
+  app.add_option("--sim-width", sim_width, "Simulated image width");
+  app.add_option("--unet-width", base.net.width, "U-Net channels of the first level");
+  app.add_option("--unet-depth", base.net.depth, "U-Net levels");
+  app.add_option("--gan-weight", base.gan_weight, "PatchGAN weight (0: none)");
+  app.add_option("--temporal-weight", base.temporal_weight, "Temporal-consistency weight");
+  int train_threads = 0;
+  app.add_option("--threads", threads, "Threads for inference (and training unless --train-threads)");
+  app.add_option("--train-threads", train_threads, "Threads for reconstruction and training (0: --threads)");
+  app.add_option("--work", work, "Working directory (takes and models are kept)");
+  app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
+  app.add_flag("--dino-only", dino_only, "Only the dinoSparseRing case");
+  app.add_option("--dino-minutes", dino_minutes, "Training budget on dinoSparseRing");
+  CLI11_PARSE(app, argc, argv);
+  const fs::path root = work;
+  fs::create_directories(root);
+  base.threads = train_threads > 0 ? train_threads : threads;
+  if (!dino_only) {
+    const fs::path take = root / ("studio8-" + std::to_string(frames) + "-" + std::to_string(sim_width));
+    if (!fs::exists(take / "take.json")) {
+      SimOptions sim;
+      sim.rig = "studio8";
+      sim.frames = frames + 1;
+      sim.scene = "subject";
+      sim.clean_plate_frames = 1;
+      sim.image_width = sim_width;
+      sim.overwrite = true;
+      SimSummary s = SimulateTake(sim, take);
+      std::printf("simulated %s: %lld frame sets in %.1f s\n", take.c_str(), static_cast<long long>(s.frame_sets), s.seconds);
+    }
+    RerenderOptions options = base;
+    options.minutes = minutes;
+    options.image_width = width;
+    options.eval_every_s = std::max(10.0, minutes * 60 / 15);
+    Report report("rerender_bench");
+    const fs::path model = root / "model-studio8";
+    RerenderSummary summary = TrainRerender(take, model, options, &report);
+    std::printf("\nstudio8 walking subject, %d frame(s), %dpx wide, U-Net width %d depth %d\n", frames, width,
+                options.net.width, options.net.depth);
+    std::printf("plan: %s\n", summary.plan.dump().c_str());
+    PrintSeries(report);
+    PrintComparison(summary);
+    InferenceTable(model, threads);
+  }
+  if (dino || dino_only) {
+    const fs::path source = fs::path(HOLOCAP_SHARED_DATA_DIR) / "middlebury" / "dinoSparseRing" / "dinoSR_par.txt";
+    const fs::path take = root / "dino";
+    if (!fs::exists(take / "take.json")) {
+      ImportOptions import;
+      import.format = InteropFormat::kMiddlebury;
+      import.overwrite = true;
+      ImportTake(source, take, import);
+    }
+    RerenderOptions options = base;
+    options.minutes = dino_minutes;
+    options.image_width = 320;
+    options.witness_cameras = 4;
+    options.heldout_cameras = 1;
+    options.eval_every_s = std::max(10.0, dino_minutes * 60 / 10);
+    // The Middlebury recipe: a hull from thresholded silhouettes inside the README's box.
+    ReconstructionOptions& r = options.reconstruction;
+    r.method = ReconstructionMethod::kHull;
+    r.voxel_m = 0.001;
+    r.bounds.min = Eigen::Vector3d(-0.072, -0.029, -0.068);
+    r.bounds.max = Eigen::Vector3d(0.021, 0.079, 0.026);
+    r.silhouette.mode = SilhouetteMode::kThreshold;
+    r.silhouette.open_px = 0;
+    r.silhouette.dilate_px = 10;
+    r.silhouette.erode_px = 7;
+    r.hull.min_views = 3;
+    Report report("rerender_bench_dino");
+    RerenderSummary summary = TrainRerender(take, root / "model-dino", options, &report);
+    std::printf("\ndinoSparseRing (one frame), 320px wide, %s\n", summary.plan.dump().c_str());
+    PrintSeries(report);
+    PrintComparison(summary);
+  }
+  return 0;
+}
