@@ -95,82 +95,65 @@ double Bilinear(const cv::Mat& grey, double x, double y) {
          fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
 }
 
-// Refines a quad's corners (counter-clockwise or clockwise, as libapriltag orders them)
-// by locating each edge where the intensity crosses halfway between the two sides, fitting a line to those edge points and intersecting neighbouring lines. `reach`
-// stays within one bit on either side, clear of the data bits.
-bool RefineQuad(const cv::Mat& grey, std::array<Eigen::Vector2d, 4>* corners, double reach) {
-  std::array<Eigen::Vector3d, 4> lines;  // a x + b y + c = 0, (a, b) unit
-  Eigen::Vector2d centre = Eigen::Vector2d::Zero();
-  for (const auto& c : *corners) centre += c / 4;
-  for (int e = 0; e < 4; ++e) {
-    const Eigen::Vector2d a = (*corners)[e];
-    const Eigen::Vector2d b = (*corners)[(e + 1) % 4];
-    const double length = (b - a).norm();
-    Eigen::Vector2d direction = (b - a) / length;
-    Eigen::Vector2d normal(-direction.y(), direction.x());
-    if (normal.dot(a - centre) < 0) normal = -normal;  // points out of the quad
-    const int samples = std::clamp(static_cast<int>(length / 1.5), 4, 40);
-    std::vector<Eigen::Vector2d> points;
-    for (int s = 0; s < samples; ++s) {
-      const double t = 0.2 + 0.6 * (s + 0.5) / samples;
-      const Eigen::Vector2d on_edge = a + t * (b - a);
-      const double step = 0.25;
-      const int steps = static_cast<int>(std::ceil(reach / step));
-      std::vector<double> profile;
-      profile.reserve(2 * steps + 1);
-      bool valid = true;
-      for (int k = -steps; k <= steps; ++k) {
-        const Eigen::Vector2d p = on_edge + normal * (k * step);
-        const double v = Bilinear(grey, p.x(), p.y());
-        if (!std::isfinite(v)) {
-          valid = false;
-          break;
-        }
-        profile.push_back(v);
-      }
-      if (!valid) continue;
-      // Either polarity: tagStandard41h12's detection border is light inside, dark outside.
-      const double inner = 0.5 * (profile[0] + profile[1]);
-      const double outer = 0.5 * (profile[profile.size() - 1] + profile[profile.size() - 2]);
-      if (std::abs(outer - inner) < 20) continue;
-      const double half = 0.5 * (inner + outer);
-      // The crossing nearest the initial edge.
-      double best = NAN;
-      for (size_t k = 0; k + 1 < profile.size(); ++k) {
-        if ((profile[k] - half) * (profile[k + 1] - half) <= 0 && profile[k + 1] != profile[k]) {
-          const double at = (static_cast<double>(k) - steps +
-                             (half - profile[k]) / (profile[k + 1] - profile[k])) * step;
-          if (!std::isfinite(best) || std::abs(at) < std::abs(best)) best = at;
-        }
-      }
-      if (std::isfinite(best)) points.push_back(on_edge + normal * best);
-    }
-    if (points.size() < 3) return false;
-    Eigen::Vector2d mean = Eigen::Vector2d::Zero();
-    for (const auto& p : points) mean += p / static_cast<double>(points.size());
-    Eigen::Matrix2d scatter = Eigen::Matrix2d::Zero();
-    for (const auto& p : points) scatter += (p - mean) * (p - mean).transpose();
-    Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eigen(scatter);
-    const Eigen::Vector2d line_normal = eigen.eigenvectors().col(0);
-    lines[e] << line_normal, -line_normal.dot(mean);
-  }
-  std::array<Eigen::Vector2d, 4> refined;
+// A tag's corners, each from the two quad sides that leave it. Every pixel used inside the quad
+// stays within its one-bit border (`bits` bits span a side), clear of the data bits; outside,
+// a tag with a white border (tag36h11) is white well beyond a bit, one with a dark outer ring
+// (tagStandard41h12, reversed_border) only for one bit. `reach_px` > 0 caps both.
+void RefineQuad(const cv::Mat& grey, std::array<Eigen::Vector2d, 4>* corners, int bits,
+                bool reversed_border, double reach_px) {
+  std::array<Eigen::Vector2d, 4> refined = *corners;
   for (int k = 0; k < 4; ++k) {
-    // Corner k lies between edge k-1 (ending at it) and edge k (starting at it).
-    const Eigen::Vector3d p = lines[(k + 3) % 4].cross(lines[k]);
-    if (std::abs(p.z()) < 1e-12) return false;
-    refined[k] = p.head<2>() / p.z();
-    if ((refined[k] - (*corners)[k]).norm() > reach) return false;
+    const Eigen::Vector2d& c = (*corners)[k];
+    const Eigen::Vector2d to_next = (*corners)[(k + 1) % 4] - c;
+    const Eigen::Vector2d to_previous = (*corners)[(k + 3) % 4] - c;
+    const double side = std::min(to_next.norm(), to_previous.norm());
+    // A pixel reaches 0.71 px beyond its centre.
+    const double bit = side / bits;
+    double inside = std::min(bit - 0.8, 4.0);
+    double outside = reversed_border ? inside : std::min(1.5 * bit, 4.0);
+    if (reach_px > 0) {
+      inside = std::min(inside, reach_px);
+      outside = std::min(outside, reach_px);
+    }
+    calibration_internal::RefineEdgeCorner(grey, {to_next, to_previous}, inside, outside,
+                                           0.5 * side, &refined[k]);
   }
   *corners = refined;
-  return true;
+}
+
+// A chessboard's inner corners (OpenCV's order, width_n per row), each from the four edges
+// towards its grid neighbours.
+void RefineChessboard(const cv::Mat& grey, int width_n, int height_n,
+                      std::vector<cv::Point2f>* corners) {
+  auto at = [&](int i, int j) {
+    const cv::Point2f& p = (*corners)[static_cast<size_t>(j) * width_n + i];
+    return Eigen::Vector2d(p.x, p.y);
+  };
+  std::vector<cv::Point2f> refined = *corners;
+  for (int j = 0; j < height_n; ++j) {
+    for (int i = 0; i < width_n; ++i) {
+      const Eigen::Vector2d c = at(i, j);
+      const Eigen::Vector2d u = i + 1 < width_n ? at(i + 1, j) - c : c - at(i - 1, j);
+      const Eigen::Vector2d v = j + 1 < height_n ? at(i, j + 1) - c : c - at(i, j - 1);
+      const double side = std::min(u.norm(), v.norm());
+      const double reach = std::min(0.3 * side, 4.0);
+      const double length = side - 1.5 * reach - 2;
+      Eigen::Vector2d p = c;
+      if (calibration_internal::RefineEdgeCorner(grey, {u, v, -u, -v}, reach, reach, length, &p)) {
+        refined[static_cast<size_t>(j) * width_n + i] =
+            cv::Point2f(static_cast<float>(p.x()), static_cast<float>(p.y()));
+      }
+    }
+  }
+  *corners = refined;
 }
 
 }  // namespace
 
 namespace calibration_internal {
 
-void FamilyGeometry(const std::string& family, int* width_at_border, int* total_width) {
+void FamilyGeometry(const std::string& family, int* width_at_border, int* total_width,
+                    bool* reversed_border) {
   Detector d;
   if (family == "tag36h11") {
     d.family = tag36h11_create();
@@ -183,6 +166,7 @@ void FamilyGeometry(const std::string& family, int* width_at_border, int* total_
   }
   *width_at_border = d.family->width_at_border;
   *total_width = d.family->total_width;
+  if (reversed_border != nullptr) *reversed_border = d.family->reversed_border;
   d.destroy_family(d.family);
 }
 
@@ -323,6 +307,7 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
     }
     cv::cornerSubPix(grey, corners, cv::Size(5, 5), cv::Size(-1, -1),
                      cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
+    if (options_.refine_corners) RefineChessboard(grey, width_n, height_n, &corners);
     // OpenCV may start from either end of a board. On holocap's chessboards the square
     // diagonally outside the first corner is black and its neighbour along the first column
     // white; a board with width_n + height_n even looks the same from both ends and cannot be
@@ -363,15 +348,14 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
     if (MinSide(t.corners) < options_.min_tag_side_px) continue;
     kept.push_back(t);
   }
-  for (auto& t : kept) {
-    if (!options_.refine_corners) continue;
+  if (options_.refine_corners) {
     int border_bits = 0, total_bits = 0;
-    calibration_internal::FamilyGeometry(board_.layout().family, &border_bits, &total_bits);
-    const double bit_px = MinSide(t.corners) / border_bits;
-    const double reach = options_.refine_half_window_px > 0
-                             ? options_.refine_half_window_px
-                             : std::clamp(0.8 * bit_px, 1.0, 6.0);
-    RefineQuad(grey, &t.corners, reach);
+    bool reversed = false;
+    calibration_internal::FamilyGeometry(board_.layout().family, &border_bits, &total_bits,
+                                         &reversed);
+    for (auto& t : kept) {
+      RefineQuad(grey, &t.corners, border_bits, reversed, options_.refine_half_window_px);
+    }
   }
   for (size_t k = 0; k < kept.size(); ++k) {
     const int index = kept[k].id - board_.layout().first_id;
