@@ -572,23 +572,24 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
         cb->uncertainty.grid_x == 0) {
       continue;
     }
-    // Like mrcal's projection_diff: the two halves' camera frames may differ by a rotation
-    // that their principal points absorb, so the implied rotation is fitted over the imager
-    // (where the board was seen) before the projections are compared.
+    // Like mrcal's projection_diff at a finite distance: the two halves' camera frames may
+    // differ by a rigid motion that their intrinsics absorb (each half anchors its world to its
+    // own mean of board poses), so the implied transform is fitted where the board was seen,
+    // on the points both put at the working distance, before the projections are compared.
     const Eigen::Matrix2Xd& pixels = ca.uncertainty.pixels;
+    const double distance = ca.uncertainty.distance_m;
     const Eigen::Matrix3Xd rays = ca.model.UnprojectMany(pixels);
     const Eigen::Matrix3Xd rays_b = cb->model.UnprojectMany(pixels);
-    Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
+    std::vector<Eigen::Vector3d> points_a, points_b;
     for (int k = 0; k < pixels.cols(); ++k) {
       const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
       if (!rays.col(k).allFinite() || !rays_b.col(k).allFinite()) continue;
       if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy, gx)) continue;
-      h += rays.col(k) * rays_b.col(k).transpose();
+      points_a.push_back(rays.col(k).normalized() * distance);
+      points_b.push_back(rays_b.col(k).normalized() * distance);
     }
-    Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
-    fix(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
-    const Eigen::Matrix3d b_from_a = svd.matrixV() * fix * svd.matrixU().transpose();
+    if (points_a.size() < 3) continue;
+    const Pose b_from_a = calibration_internal::FitRigid(points_a, points_b);
     double sum2 = 0, worst = 0;
     int within = 0, n = 0;
     for (int k = 0; k < pixels.cols(); ++k) {
@@ -596,7 +597,7 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
       const int gx0 = k % ca.uncertainty.grid_x, gy0 = k / ca.uncertainty.grid_x;
       if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy0, gx0)) continue;
       Eigen::Vector2d q;
-      if (!cb->model.Project(b_from_a * rays.col(k) * ca.uncertainty.distance_m, &q)) continue;
+      if (!cb->model.Project(b_from_a * (rays.col(k).normalized() * distance), &q)) continue;
       const double diff = (q - pixels.col(k)).norm();
       const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
       const double bound = ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx);
@@ -621,7 +622,7 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
                        {"within_sigma_sum_fraction", static_cast<double>(within) / n}};
   }
   return {{"cameras", result}, {"worst_ratio", worst_ratio},
-          {"method", "implied rotation fitted where the board was seen, then projection differences"},
+          {"method", "implied rigid transform fitted where the board was seen, then projection differences"},
           {"halves", {{"a", {{"termination", ToString(a.termination)}, {"rms_px", a.rms_reprojection_px}, {"frames", a.frames}}},
                       {"b", {{"termination", ToString(b.termination)}, {"rms_px", b.rms_reprojection_px}, {"frames", b.frames}}}}}};
 }
