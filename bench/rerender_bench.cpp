@@ -5,7 +5,7 @@
 // Usage:
 //   rerender_bench [--minutes 10] [--frames 30] [--width 160] [--sim-width 320]
 //                  [--unet-width 24] [--unet-depth 4] [--threads 2] [--train-threads 0]
-//                  [--work /tmp/rerender-bench]
+//                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
 #include <CLI/CLI.hpp>
 #include <chrono>
@@ -114,6 +114,9 @@ int main(int argc, char** argv) {
   app.add_option("--threads", threads, "Threads for inference (and training unless --train-threads)");
   app.add_option("--train-threads", train_threads, "Threads for reconstruction and training (0: --threads)");
   app.add_option("--work", work, "Working directory (takes and models are kept)");
+  std::string model_name = "model-studio8";
+  app.add_option("--model-name", model_name, "Model directory under --work for studio8");
+  app.add_option("--recon", base.recon_dir, "studio8: reuse this reconstruction (built without the same witnesses)");
   app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
   app.add_flag("--dino-only", dino_only, "Only the dinoSparseRing case");
   app.add_option("--dino-minutes", dino_minutes, "Training budget on dinoSparseRing");
@@ -139,7 +142,7 @@ int main(int argc, char** argv) {
     options.image_width = width;
     options.eval_every_s = std::max(10.0, minutes * 60 / 15);
     Report report("rerender_bench");
-    const fs::path model = root / "model-studio8";
+    const fs::path model = root / model_name;
     RerenderSummary summary = TrainRerender(take, model, options, &report);
     std::printf("\nstudio8 walking subject, %d frame(s), %dpx wide, U-Net width %d depth %d\n", frames, width,
                 options.net.width, options.net.depth);
@@ -159,6 +162,7 @@ int main(int argc, char** argv) {
     }
     RerenderOptions options = base;
     options.minutes = dino_minutes;
+    options.recon_dir.clear();
     options.image_width = 320;
     options.witness_cameras = 4;
     options.heldout_cameras = 1;
