@@ -82,6 +82,7 @@ struct ReconstructArgs {
   bool no_glb = false;
   bool no_atlas = false;
   bool no_sweep = false;
+  bool no_completion = false;
 };
 
 void PrintSummary(const ReconstructionSummary& summary, const Report& report) {
@@ -131,6 +132,8 @@ void AddReconstructCommand(CLI::App& app) {
   command->add_flag("--no-glb", args->no_glb, "Write PLY only");
   command->add_flag("--no-atlas", args->no_atlas, "Vertex colours only, no texture atlas");
   command->add_flag("--no-sweep", args->no_sweep, "Skip the voxel-size sweep on takes with ground truth");
+  command->add_flag("--no-completion", args->no_completion,
+                    "TSDF: mesh only what the depth sensors saw (no completion from the visual hull)");
   command->callback([args] {
     ReconstructionOptions options;
     options.method = ReconstructionMethodFromString(args->method);
@@ -149,6 +152,7 @@ void AddReconstructCommand(CLI::App& app) {
     options.write_glb = !args->no_glb;
     options.texture.atlas = !args->no_atlas;
     if (args->no_sweep) options.sweep_voxels_m.clear();
+    options.tsdf_hull_completion = !args->no_completion;
     std::filesystem::path out = args->out.empty() ? std::filesystem::path(args->take) / "recon" : std::filesystem::path(args->out);
     Report report("reconstruct");
     ReconstructionSummary summary = ReconstructTake(args->take, out, options, &report);

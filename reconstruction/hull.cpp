@@ -23,19 +23,24 @@ void HullOptions::Check() const {
   if (!bounds.valid()) Fail("hull bounds are empty");
   if (tolerated_bad_views < 0) Fail("hull tolerated_bad_views must be >= 0");
   if (min_views < 1) Fail("hull min_views must be >= 1 (got ", min_views, ")");
-  if (!(margin_px >= 0)) Fail("hull margin_px must be >= 0");
+  if (!(margin_px > -10 && margin_px < 100)) Fail("hull margin_px must be in (-10, 100) px (got ", margin_px, ")");
   if (threads < 0) Fail("hull threads must be >= 0");
 }
 
-bool VisualHull::Contains(const Eigen::Vector3d& point_in_world, double tolerance_m) const {
-  if (volume == nullptr) return false;
-  Eigen::Vector3i block = SparseVolume::BlockOf(volume->VoxelOf(point_in_world));
+double VisualHull::Field(const Eigen::Vector3d& point_in_world) const {
+  constexpr double kInfinity = std::numeric_limits<double>::infinity();
+  if (volume == nullptr) return kInfinity;
   double sdf;
-  if (volume->Sample(point_in_world, &sdf)) return sdf <= tolerance_m;
-  if (inside_blocks.count(SparseVolume::Key(block))) return true;
+  if (volume->Sample(point_in_world, &sdf)) return sdf;
+  const Eigen::Vector3i voxel = volume->VoxelOf(point_in_world);
+  if (inside_blocks.count(SparseVolume::Key(SparseVolume::BlockOf(voxel)))) return -kInfinity;
   // Within a voxel of evaluated blocks, the nearest voxel decides.
-  const Voxel* voxel = volume->FindVoxel(volume->VoxelOf(point_in_world));
-  return voxel != nullptr && voxel->weight > 0 && voxel->sdf <= tolerance_m;
+  const Voxel* nearest = volume->FindVoxel(voxel);
+  return nearest != nullptr && nearest->weight > 0 ? nearest->sdf : kInfinity;
+}
+
+bool VisualHull::Contains(const Eigen::Vector3d& point_in_world, double tolerance_m) const {
+  return Field(point_in_world) <= tolerance_m;
 }
 
 namespace {

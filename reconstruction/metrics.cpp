@@ -3,9 +3,12 @@
 #include <omp.h>
 #include <opencv2/imgproc.hpp>
 
+#include <Eigen/Geometry>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
+#include <map>
 #include <memory>
 
 #include "core/error.h"
@@ -188,6 +191,71 @@ std::function<bool(const Eigen::Vector3d&)> SeenInDepthMaps(
       if (std::isfinite(d) && std::abs(d - z) < tolerance) return true;
     }
     return false;
+  };
+}
+
+std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, double tolerance_m) {
+  // Parts: faces connected through shared vertices.
+  const size_t n = truth.vertices.size();
+  std::vector<int> parent(n);
+  for (size_t i = 0; i < n; ++i) parent[i] = static_cast<int>(i);
+  auto find = [&](int x) {
+    while (parent[x] != x) x = parent[x] = parent[parent[x]];
+    return x;
+  };
+  for (const auto& f : truth.faces) {
+    parent[find(f[1])] = find(f[0]);
+    parent[find(f[2])] = find(f[0]);
+  }
+  struct Part {
+    std::vector<std::array<Eigen::Vector3d, 3>> triangles;
+    Eigen::AlignedBox3d box;
+    std::map<std::pair<int, int>, int> edge_uses;
+  };
+  std::map<int, Part> by_root;
+  for (const auto& f : truth.faces) {
+    Part& part = by_root[find(f[0])];
+    std::array<Eigen::Vector3d, 3> t;
+    for (int k = 0; k < 3; ++k) {
+      t[k] = truth.vertices[f[k]].cast<double>();
+      part.box.extend(t[k]);
+      ++part.edge_uses[{std::min(f[k], f[(k + 1) % 3]), std::max(f[k], f[(k + 1) % 3])}];
+    }
+    part.triangles.push_back(t);
+  }
+  // Only closed parts enclose a solid.
+  auto parts = std::make_shared<std::vector<Part>>();
+  for (auto& [root, part] : by_root) {
+    bool closed = std::all_of(part.edge_uses.begin(), part.edge_uses.end(),
+                              [](const auto& e) { return e.second == 2; });
+    part.edge_uses.clear();
+    if (closed) parts->push_back(std::move(part));
+  }
+  return [parts, tolerance_m](const Eigen::Vector3d& p) {
+    for (const Part& part : *parts) {
+      if (!part.box.contains(p)) continue;
+      // Ray parity along a direction no axis-aligned structure shares.
+      const Eigen::Vector3d direction = Eigen::Vector3d(0.0123, 0.0371, 1.0).normalized();
+      int crossings = 0;
+      for (const auto& t : part.triangles) {
+        const Eigen::Vector3d e1 = t[1] - t[0], e2 = t[2] - t[0], h = direction.cross(e2);
+        const double det = e1.dot(h);
+        if (std::abs(det) < 1e-18) continue;
+        const Eigen::Vector3d s = p - t[0];
+        const double u = s.dot(h) / det;
+        if (u < 0 || u > 1) continue;
+        const Eigen::Vector3d q = s.cross(e1);
+        const double v = direction.dot(q) / det;
+        if (v < 0 || u + v > 1) continue;
+        crossings += e2.dot(q) / det > 0;
+      }
+      if (crossings % 2 == 0) continue;
+      // Inside this part, and not on its surface: buried in the solid.
+      double nearest = std::numeric_limits<double>::infinity();
+      for (const auto& t : part.triangles) nearest = std::min(nearest, recon::PointTriangleDistance(p, t[0], t[1], t[2]));
+      if (nearest > tolerance_m) return false;
+    }
+    return true;
   };
 }
 

@@ -52,6 +52,9 @@ void ReconstructionOptions::Check() const {
     if (!(v > 0 && v < 1)) Fail("sweep voxel sizes must be in (0, 1) m (got ", v, ")");
   }
   if (threads < 0) Fail("threads must be >= 0");
+  if (!(completion_margin_px > -10 && completion_margin_px < 100)) {
+    Fail("completion margin must be in (-10, 100) px (got ", completion_margin_px, ")");
+  }
   silhouette.Check();
   mvs.Check();
   meshing.Check();
@@ -86,6 +89,8 @@ nlohmann::json ReconstructionOptions::ToJson() const {
           {"mvs", {{"neighbors", mvs.neighbors}, {"window_radius", mvs.window_radius},
                    {"depth_step_px", mvs.depth_step_px}, {"min_ncc", mvs.min_ncc},
                    {"min_consistent_views", mvs.min_consistent_views}}},
+          {"tsdf_hull_completion", tsdf_hull_completion},
+          {"completion_margin_px", completion_margin_px},
           {"meshing", {{"simplify_cell_m", meshing.simplify_cell_m}}},
           {"texture", {{"texels_per_cell", texture.texels_per_cell}, {"max_views", texture.max_views},
                        {"atlas", texture.atlas}}},
@@ -122,6 +127,7 @@ struct Plan {
   int outer_threads = 1;
   int inner_threads = 1;
   bool depth_background = false;
+  bool hull_completion = false;  // TSDF: completed from the visual hull
 };
 
 // Everything one frame needs, read once (the clean plates are shared by all frames).
@@ -146,7 +152,7 @@ FrameOutput ReconstructFrame(const Take& take, const Sensors& sensors, const Pla
   if (plan.method == ReconstructionMethod::kTsdf) needed.insert(needed.end(), sensors.depth.begin(), sensors.depth.end());
   FrameSet frames = take.Read(static_cast<size_t>(set), needed);
   std::vector<View> views;
-  const bool need_masks = plan.method != ReconstructionMethod::kTsdf;
+  const bool need_masks = plan.method != ReconstructionMethod::kTsdf || plan.hull_completion;
   for (const std::string& name : sensors.color) {
     const Frame* frame = frames.Find(name);
     View view{name, sensors.models.at(name), frame->image, {}};
@@ -182,6 +188,7 @@ FrameOutput ReconstructFrame(const Take& take, const Sensors& sensors, const Pla
       tsdf.emplace(tsdf_options);
       double seconds = 0;
       int64_t valid = 0;
+      std::vector<std::pair<CameraModel, cv::Mat>> depth_maps;
       for (const std::string& name : sensors.depth) {
         const Frame* frame = frames.Find(name);
         const std::string& paired = take.stream(name).paired_with;
@@ -195,10 +202,32 @@ FrameOutput ReconstructFrame(const Take& take, const Sensors& sensors, const Pla
                                    : tsdf->Integrate(frame->image, sensors.models.at(name), foreground);
         seconds += stats.seconds;
         valid += stats.valid_pixels;
+        depth_maps.emplace_back(sensors.models.at(name), frame->image);
       }
       out.metrics["tsdf"] = {{"integrate_seconds", seconds}, {"valid_pixels", valid},
                              {"blocks", tsdf->volume().block_count()},
                              {"memory_mb", tsdf->volume().memory_bytes() / 1048576.0}};
+      if (plan.hull_completion) {
+        HullOptions hull_options = options.hull;
+        hull_options.voxel_m = voxel;
+        hull_options.bounds = bounds;
+        hull_options.margin_px = options.completion_margin_px;
+        hull_options.threads = threads;
+        HullSummary hull_summary;
+        VisualHull hull = ComputeVisualHull(views, hull_options, &hull_summary);
+        out.metrics["hull"] = {{"seconds", hull_summary.seconds}, {"volume_m3", hull_summary.volume_m3}};
+        if (IsUsable(hull_summary.termination)) {
+          CompletionStats completion = tsdf->CompleteFromHull(hull, depth_maps);
+          out.metrics["completion"] = {{"seconds", completion.seconds},
+                                       {"blocks_added", completion.blocks_added},
+                                       {"voxels_filled", completion.voxels_filled},
+                                       {"voxels_carved", completion.voxels_carved},
+                                       {"memory_mb", tsdf->volume().memory_bytes() / 1048576.0}};
+        } else {
+          // The depth sensors' surface stands alone; the frame says why.
+          out.metrics["completion"] = {{"skipped", "hull: " + hull_summary.message}};
+        }
+      }
     } else {
       HullOptions hull_options = options.hull;
       hull_options.voxel_m = 2 * voxel;
@@ -250,10 +279,16 @@ void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, cons
   if (!std::filesystem::exists(file)) file = take.gt_dir() / "meshes" / "static.ply";
   if (!std::filesystem::exists(file)) return;
   Mesh truth = ReadPly(file);
-  SurfaceErrors e = CompareSurfaces(mesh, truth, 0.005);
+  // The simulated subject is a union of overlapping closed body parts: what lies inside another
+  // part is not its surface, and completeness is measured on the outer surface only.
+  const auto outer = OnOuterSurface(truth);
+  SurfaceErrors e = CompareSurfaces(mesh, truth, 0.005, 40000, outer);
+  SurfaceErrors all = CompareSurfaces(mesh, truth, 0.005);
   nlohmann::json gt = {{"chamfer_mm", e.chamfer_mm}, {"accuracy_mm", e.accuracy_mm},
                        {"completeness_mm", e.completeness_mm}, {"fscore_5mm", e.fscore},
-                       {"precision_5mm", e.precision}, {"recall_5mm", e.recall}};
+                       {"precision_5mm", e.precision}, {"recall_5mm", e.recall},
+                       {"chamfer_with_buried_faces_mm", all.chamfer_mm},
+                       {"completeness_with_buried_faces_mm", all.completeness_mm}};
   if (plan.method == ReconstructionMethod::kTsdf) {
     // Depth sensors see only part of the subject: also measure on what they saw.
     std::vector<std::pair<CameraModel, cv::Mat>> seen;
@@ -344,6 +379,16 @@ ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, con
     }
     plan.depth_background = plan.method == ReconstructionMethod::kTsdf;
   }
+  std::string completion = "not a TSDF run";
+  if (plan.method == ReconstructionMethod::kTsdf) {
+    const bool silhouettes = options.silhouette.mode == SilhouetteMode::kThreshold || plan.clean_plate_frames > 0;
+    plan.hull_completion = options.tsdf_hull_completion && sensors.color.size() >= 2 && silhouettes;
+    completion = plan.hull_completion ? "visual hull of the colour cameras, carved by the depth sensors' free space, "
+                                        "fills what the depth sensors did not see"
+                 : !options.tsdf_hull_completion ? "off (asked for)"
+                 : sensors.color.size() < 2     ? "off: fewer than two colour cameras"
+                                                : "off: no clean plate for the colour cameras' silhouettes";
+  }
   const int threads = recon::ResolveThreads(options.threads);
   const int frame_count = static_cast<int>(plan.sets.size());
   plan.outer_threads = frame_count >= threads ? threads : 1;
@@ -359,8 +404,10 @@ ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, con
                                             : "calib/"},
       {"color_sensors", sensors.color},
       {"depth_sensors", plan.method == ReconstructionMethod::kTsdf ? sensors.depth : std::vector<std::string>{}},
-      {"silhouettes", need_plate ? (options.silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background subtraction")
-                                 : "not needed"},
+      {"silhouettes", need_plate || plan.hull_completion
+                          ? (options.silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background subtraction")
+                          : "not needed"},
+      {"completion", completion},
       {"depth_background", plan.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)"},
       {"clean_plate_frames", plan.clean_plate_frames},
       {"frame_sets", plan.sets},
@@ -368,12 +415,13 @@ ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, con
       {"parallel", plan.outer_threads > 1 ? Cat(plan.outer_threads, " frames at once, 1 thread each")
                                           : Cat("one frame at a time, ", plan.inner_threads, " threads each")},
       {"texture", options.texture.atlas ? "per-vertex colour and atlas" : "per-vertex colour"},
-      {"skipped", plan.method == ReconstructionMethod::kTsdf ? "silhouettes, hull, stereo"
+      {"skipped", plan.method == ReconstructionMethod::kTsdf ? (plan.hull_completion ? "stereo" : "silhouettes, hull, stereo")
                   : plan.method == ReconstructionMethod::kHull ? "depth fusion, stereo" : "depth sensors"}};
   summary.plan = plan_json;
   std::printf("reconstruct: %s on %d frame set(s), voxel %.1f mm, cameras from %s\n", ToString(plan.method),
               frame_count, options.voxel_m * 1e3, plan.ground_truth_cameras ? "gt/ (not calibrated)" : "calib/");
   std::printf("  %s\n", plan_json["method_reason"].get<std::string>().c_str());
+  if (plan.method == ReconstructionMethod::kTsdf) std::printf("  completion: %s\n", completion.c_str());
   std::printf("  %s\n", plan_json["parallel"].get<std::string>().c_str());
   std::fflush(stdout);
   if (report != nullptr) {

@@ -161,7 +161,8 @@ struct HullOptions {
   // silhouette (1 tolerates one bad silhouette, such as an empty or truncated mask).
   int tolerated_bad_views = 0;
   int min_views = 2;           // a point seen (inside the image) by fewer views is outside
-  double margin_px = 1.0;      // silhouettes grown by this much before carving (edge pixels)
+  double margin_px = 1.0;      // silhouettes grown by this much before carving (edge pixels);
+                               // negative shrinks them
   int threads = 0;             // 0: all cores
 
   void Check() const;
@@ -183,6 +184,9 @@ struct HullSummary {
 struct VisualHull {
   std::unique_ptr<SparseVolume> volume;
   std::unordered_set<uint64_t> inside_blocks;
+  // The signed field at a point (metres, trilinear in evaluated blocks): -infinity in blocks
+  // wholly inside, +infinity elsewhere outside.
+  double Field(const Eigen::Vector3d& point_in_world) const;
   // Whether a point lies in the hull, allowing `tolerance_m` outside its surface.
   bool Contains(const Eigen::Vector3d& point_in_world, double tolerance_m = 0) const;
 };
@@ -226,6 +230,13 @@ struct TsdfFrameStats {
   double seconds = 0;
 };
 
+struct CompletionStats {
+  int64_t blocks_added = 0;   // blocks no depth map reached
+  int64_t voxels_filled = 0;  // unobserved voxels given the completion field
+  int64_t voxels_carved = 0;  // ... of them inside the hull but in a depth map's free space
+  double seconds = 0;
+};
+
 // A TSDF volume with colour.
 class TsdfVolume {
  public:
@@ -237,6 +248,17 @@ class TsdfVolume {
   TsdfFrameStats Integrate(const cv::Mat& depth_m, const CameraModel& depth_camera,
                            const cv::Mat& foreground = {}, const cv::Mat& color = {},
                            const CameraModel* color_camera = nullptr);
+  // Hull-constrained completion, as studio pipelines close what their depth sensors miss:
+  // every voxel no depth map observed, in the blocks around `hull`'s surface and in the
+  // volume's own, takes the hull's signed field intersected with the free space the depth maps
+  // saw (a point in front of a measured surface, the room's included, is outside by the
+  // projective distance Integrate uses), truncated, with weight `weight` (a measurement at 1 m
+  // weighs 1). Observed voxels keep their values, so the sensors' surface is unchanged where
+  // they saw it. `depth_maps` are the sensors' raw z-depth maps, background included; they are
+  // smoothed like Integrate's. Throws Error when a map does not match its camera.
+  CompletionStats CompleteFromHull(const VisualHull& hull,
+                                   const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
+                                   float weight = 1e-3f);
   const SparseVolume& volume() const { return volume_; }
   const TsdfOptions& options() const { return options_; }
 
@@ -363,6 +385,12 @@ SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
                               double fscore_threshold_m = 0.005, size_t samples = 40000,
                               const std::function<bool(const Eigen::Vector3d&)>& truth_filter = {});
 
+// A truth filter for CompareSurfaces: points on the outer surface of a truth made of closed
+// parts that overlap (the simulated subject is a union of body parts, each a closed mesh): a
+// point more than `tolerance_m` inside another closed part is buried in the solid, surface no
+// sensor can see and no reconstruction of the subject has. Open parts are kept as they are.
+std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, double tolerance_m = 1e-4);
+
 // A truth filter for CompareSurfaces: points that one of the (camera, true z-depth map) pairs
 // sees, i.e. whose depth there matches the map within `tolerance_m`.
 std::function<bool(const Eigen::Vector3d&)> SeenInDepthMaps(
@@ -387,6 +415,15 @@ struct ReconstructionOptions {
   SilhouetteOptions silhouette;
   HullOptions hull;                 // voxel and bounds are set from the fields above
   TsdfOptions tsdf;                 // voxel and bounds likewise
+  // TSDF: what the depth sensors did not see is completed from the colour cameras' visual hull
+  // carved by the sensors' free space (TsdfVolume::CompleteFromHull). Needs silhouettes, so a
+  // clean plate or threshold silhouettes, and two colour cameras; the plan says when it is off.
+  bool tsdf_hull_completion = true;
+  // Silhouettes of the completion's hull grow by this many pixels; negative shrinks them. The
+  // completion wants the surface, not a container: a silhouette's edge pixels are partly
+  // background, so its boundary lies half a pixel inside them on average. (The hull that MVS
+  // searches and the hull method use options.hull.margin_px, a conservative margin.)
+  double completion_margin_px = -0.5;
   MvsOptions mvs;
   MeshingOptions meshing;
   TextureOptions texture;

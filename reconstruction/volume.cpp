@@ -162,6 +162,52 @@ bool ValidDepth(float d, const TsdfOptions& options) {
   return std::isfinite(d) && d > 0 && d >= options.depth_min_m && d <= options.depth_max_m;
 }
 
+// Valid measurements (within `foreground` when given), each replaced by the mean of the valid
+// depths within options.smoothing_radius_px that lie within 3 sigma(z) of it (edge-preserving);
+// NaN elsewhere. Counts the error codes (0, negative, infinite, out of range) in `rejected`.
+cv::Mat SmoothedDepth(const cv::Mat& depth_in, const cv::Mat& foreground, const TsdfOptions& options,
+                      int threads, int64_t* rejected_out) {
+  const int w = depth_in.cols, h = depth_in.rows;
+  const float k = static_cast<float>(options.depth_noise_k);
+  cv::Mat depth(h, w, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
+  int64_t rejected = 0;
+  const int r = options.smoothing_radius_px;
+#pragma omp parallel for num_threads(threads) reduction(+ : rejected) schedule(static)
+  for (int y = 0; y < h; ++y) {
+    const float* in = depth_in.ptr<float>(y);
+    float* out = depth.ptr<float>(y);
+    for (int x = 0; x < w; ++x) {
+      float d = in[x];
+      if (std::isnan(d)) continue;  // no measurement
+      if (!ValidDepth(d, options)) {
+        ++rejected;  // 0, negative, infinite or out of range: a sensor's error code
+        continue;
+      }
+      if (!foreground.empty() && foreground.at<uint8_t>(y, x) == 0) continue;
+      if (r > 0) {
+        float sigma = std::max(k * d * d, 1e-4f);
+        float range = 3 * sigma, sum = 0;
+        int count = 0;
+        for (int dy = -r; dy <= r; ++dy) {
+          int yy = y + dy;
+          if (yy < 0 || yy >= h) continue;
+          const float* row = depth_in.ptr<float>(yy);
+          for (int dx = -r; dx <= r; ++dx) {
+            int xx = x + dx;
+            if (xx < 0 || xx >= w) continue;
+            float e = row[xx];
+            if (ValidDepth(e, options) && std::abs(e - d) <= range) sum += e, ++count;
+          }
+        }
+        d = sum / count;
+      }
+      out[x] = d;
+    }
+  }
+  if (rejected_out != nullptr) *rejected_out += rejected;
+  return depth;
+}
+
 }  // namespace
 
 TsdfVolume::TsdfVolume(const TsdfOptions& options)
@@ -196,41 +242,8 @@ TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel&
   const float k = static_cast<float>(options_.depth_noise_k);
 
   // 1. Valid, foreground, smoothed depth; grazing measurements removed.
-  cv::Mat depth(h, w, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
   int64_t valid = 0, rejected = 0;
-  const int r = options_.smoothing_radius_px;
-#pragma omp parallel for num_threads(threads) reduction(+ : valid, rejected) schedule(static)
-  for (int y = 0; y < h; ++y) {
-    const float* in = depth_in.ptr<float>(y);
-    float* out = depth.ptr<float>(y);
-    for (int x = 0; x < w; ++x) {
-      float d = in[x];
-      if (std::isnan(d)) continue;  // no measurement
-      if (!ValidDepth(d, options_)) {
-        ++rejected;  // 0, negative, infinite or out of range: a sensor's error code
-        continue;
-      }
-      if (!foreground.empty() && foreground.at<uint8_t>(y, x) == 0) continue;
-      if (r > 0) {
-        float sigma = std::max(k * d * d, 1e-4f);
-        float range = 3 * sigma, sum = 0;
-        int count = 0;
-        for (int dy = -r; dy <= r; ++dy) {
-          int yy = y + dy;
-          if (yy < 0 || yy >= h) continue;
-          const float* row = depth_in.ptr<float>(yy);
-          for (int dx = -r; dx <= r; ++dx) {
-            int xx = x + dx;
-            if (xx < 0 || xx >= w) continue;
-            float e = row[xx];
-            if (ValidDepth(e, options_) && std::abs(e - d) <= range) sum += e, ++count;
-          }
-        }
-        d = sum / count;
-      }
-      out[x] = d;
-    }
-  }
+  cv::Mat depth = SmoothedDepth(depth_in, foreground, options_, threads, &rejected);
   const float cos_max = static_cast<float>(std::cos(options_.max_incidence_deg * M_PI / 180));
   cv::Mat kept = depth.clone();
   if (options_.max_incidence_deg < 90) {
@@ -369,6 +382,95 @@ TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel&
     }
   }
   stats.voxels_updated = updated;
+  stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return stats;
+}
+
+CompletionStats TsdfVolume::CompleteFromHull(const VisualHull& hull,
+                                             const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
+                                             float weight) {
+  auto start = std::chrono::steady_clock::now();
+  if (hull.volume == nullptr) Fail("completion needs a computed visual hull");
+  if (!(weight > 0)) Fail("completion weight must be > 0 (got ", weight, ")");
+  const int threads = recon::ResolveThreads(options_.threads);
+  struct FreeSpace {
+    std::shared_ptr<const CameraTables> tables;
+    cv::Mat depth;
+  };
+  std::vector<FreeSpace> free_space;
+  for (const auto& [camera, depth] : depth_maps) {
+    if (depth.type() != CV_32FC1 || depth.cols != camera.width() || depth.rows != camera.height()) {
+      Fail("completion: depth map must be CV_32F metres of its camera's size (", camera.width(), "x",
+           camera.height(), ")");
+    }
+    // Background included: a point in front of the wall a sensor measured is outside too.
+    free_space.push_back({TablesFor(camera), SmoothedDepth(depth, cv::Mat(), options_, threads, nullptr)});
+  }
+
+  // The blocks around the hull's surface, on this volume's grid, and the volume's own.
+  std::vector<uint64_t> keys;
+  const SparseVolume& hull_volume = *hull.volume;
+  const double voxel = volume_.voxel_m();
+  hull_volume.ForEachBlock([&](const Eigen::Vector3i& block, const VoxelBlock&) {
+    Eigen::Vector3d lo = (block * kBlockSide).cast<double>() * hull_volume.voxel_m();
+    Eigen::Vector3d hi = lo + Eigen::Vector3d::Constant((kBlockSide - 1) * hull_volume.voxel_m());
+    Eigen::Vector3i first = SparseVolume::BlockOf((lo / voxel).array().floor().cast<int>());
+    Eigen::Vector3i last = SparseVolume::BlockOf((hi / voxel).array().ceil().cast<int>());
+    for (int z = first.z(); z <= last.z(); ++z)
+      for (int y = first.y(); y <= last.y(); ++y)
+        for (int x = first.x(); x <= last.x(); ++x) keys.push_back(SparseVolume::Key({x, y, z}));
+  });
+  std::sort(keys.begin(), keys.end());
+  keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
+  CompletionStats stats;
+  for (uint64_t key : keys) {
+    Eigen::Vector3i block = SparseVolume::Unkey(key);
+    if (volume_.Find(block) != nullptr || !volume_.BlockInBounds(block)) continue;
+    volume_.Allocate(block);
+    ++stats.blocks_added;
+  }
+  std::vector<Eigen::Vector3i> coordinates = volume_.BlockCoordinates();
+  std::vector<VoxelBlock*> blocks;
+  for (const auto& block : coordinates) blocks.push_back(volume_.Find(block));
+
+  const float truncation = static_cast<float>(volume_.truncation_m());
+  const Box& bounds = volume_.bounds();
+  int64_t filled = 0, carved = 0;
+#pragma omp parallel for num_threads(threads) reduction(+ : filled, carved) schedule(dynamic, 16)
+  for (size_t b = 0; b < blocks.size(); ++b) {
+    const Eigen::Vector3i base = coordinates[b] * kBlockSide;
+    for (int z = 0; z < kBlockSide; ++z) {
+      for (int y = 0; y < kBlockSide; ++y) {
+        for (int x = 0; x < kBlockSide; ++x) {
+          Voxel& out = blocks[b]->at(x, y, z);
+          if (out.weight > 0) continue;  // a depth map saw it
+          const Eigen::Vector3d world = (base + Eigen::Vector3i(x, y, z)).cast<double>() * voxel;
+          if (!bounds.Contains(world)) continue;
+          const double hull_field = hull.Field(world);
+          float field = static_cast<float>(std::clamp(hull_field, -1e3, 1e3));
+          for (const FreeSpace& sensor : free_space) {
+            const auto& projector = sensor.tables->projector;
+            Eigen::Vector3f p = projector.ToCamera(world.cast<float>());
+            float u, v;
+            if (!projector.Project(p, &u, &v)) continue;
+            int px = static_cast<int>(std::lround(u)), py = static_cast<int>(std::lround(v));
+            if (px < 0 || py < 0 || px >= sensor.depth.cols || py >= sensor.depth.rows) continue;
+            float d = sensor.depth.at<float>(py, px);
+            if (!std::isfinite(d)) continue;
+            float sdf = (d - p.z()) * (p.norm() / p.z());  // as Integrate measures it
+            if (sdf < -truncation) continue;                // behind the surface: not seen
+            field = std::max(field, sdf);
+          }
+          carved += field > 0 && hull_field <= 0;
+          out.sdf = std::clamp(field, -truncation, truncation);
+          out.weight = weight;
+          ++filled;
+        }
+      }
+    }
+  }
+  stats.voxels_filled = filled;
+  stats.voxels_carved = carved;
   stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   return stats;
 }

@@ -223,6 +223,69 @@ TEST(TsdfTest, SubjectTouchingTheBoundsIsCutThere) {
   EXPECT_LT(SphereError(mesh, sphere).first, 0.0015);
 }
 
+// One depth sensor sees the front of a sphere; eight silhouettes close the rest. Completion
+// fills what the sensor did not see from the hull, carved where the sensor saw free space, and
+// leaves what it saw untouched.
+TEST(TsdfTest, HullCompletionClosesWhatTheDepthSensorDidNotSee) {
+  const Sphere sphere;
+  std::vector<View> views;
+  for (const CameraModel& camera : RingCameras(8, sphere, 1.5, 320, 240)) {
+    View view{"cam" + std::to_string(views.size()), camera, {}, {}};
+    RenderSphere(camera, sphere, nullptr, &view.mask);
+    views.push_back(view);
+  }
+  // The sensor sits between two ring cameras, so the hull's facets facing it are its to carve.
+  const CameraModel sensor = CameraModel::Pinhole(
+      300, 320, 240, CamFromWorldLookAt(sphere.centre + Eigen::Vector3d(1.2, 0.5, 0.1), sphere.centre));
+  cv::Mat depth;
+  RenderSphere(sensor, sphere, &depth, nullptr);
+  TsdfOptions options;
+  options.voxel_m = 0.01;
+  options.smoothing_radius_px = 0;
+  options.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  TsdfVolume tsdf(options);
+  tsdf.Integrate(depth, sensor);
+  const Mesh seen_only = ExtractMesh(tsdf.volume());
+  HullOptions hull_options;
+  hull_options.voxel_m = options.voxel_m;
+  hull_options.bounds = options.bounds;
+  hull_options.margin_px = 0;
+  VisualHull hull = ComputeVisualHull(views, hull_options);
+  CompletionStats stats = tsdf.CompleteFromHull(hull, {{sensor, depth}});
+  EXPECT_GT(stats.blocks_added, 0);
+  EXPECT_GT(stats.voxels_carved, 0) << "the sensor's free space cuts into the hull";
+  const Mesh completed = ExtractMesh(tsdf.volume());
+  EXPECT_GT(CheckEdges(seen_only).boundary, 0) << "one sensor sees only a cap";
+  EXPECT_EQ(CheckEdges(completed).boundary, 0) << "completed into a closed surface";
+  const Mesh truth = testing::SphereMesh(sphere);
+  SurfaceErrors before = CompareSurfaces(seen_only, truth, 0.005, 20000);
+  SurfaceErrors after = CompareSurfaces(completed, truth, 0.005, 20000);
+  std::printf("sensor only: completeness %.1f mm; completed: completeness %.2f mm, accuracy %.2f mm\n",
+              before.completeness_mm, after.completeness_mm, after.accuracy_mm);
+  EXPECT_LT(after.completeness_mm, 3.0);
+  EXPECT_GT(before.completeness_mm, 50.0);
+  // Where the sensor saw the sphere the surface is the sensor's: vertices facing it are as
+  // accurate as before, not pulled out to the hull.
+  const Eigen::Vector3d towards = (sensor.center_in_world() - sphere.centre).normalized();
+  auto facing_error = [&](const Mesh& mesh) {
+    double sum = 0;
+    int count = 0;
+    for (const auto& v : mesh.vertices) {
+      Eigen::Vector3d d = v.cast<double>() - sphere.centre;
+      if (d.normalized().dot(towards) < 0.7) continue;
+      sum += std::abs(d.norm() - sphere.radius);
+      ++count;
+    }
+    return sum / std::max(count, 1);
+  };
+  EXPECT_LT(facing_error(completed), 0.001);
+  EXPECT_NEAR(facing_error(completed), facing_error(seen_only), 1e-4);
+  // Every completed vertex lies in the hull (the fill only ever removes from it).
+  int64_t outside = 0;
+  for (const auto& v : completed.vertices) outside += !hull.Contains(v.cast<double>(), options.voxel_m);
+  EXPECT_EQ(outside, 0);
+}
+
 class HullTest : public ::testing::Test {
  protected:
   void SetUp() override {
