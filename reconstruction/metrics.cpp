@@ -195,17 +195,24 @@ std::function<bool(const Eigen::Vector3d&)> SeenInDepthMaps(
 }
 
 std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, double tolerance_m) {
-  // Parts: faces connected through shared vertices.
-  const size_t n = truth.vertices.size();
-  std::vector<int> parent(n);
-  for (size_t i = 0; i < n; ++i) parent[i] = static_cast<int>(i);
+  // Parts: faces connected through shared vertices, vertices within a micrometre welded (meshes
+  // repeat a pole or seam vertex), faces that collapse when welded left out of the edge count.
+  std::map<std::array<int64_t, 3>, int> welded;  // on a micrometre grid
+  std::vector<int> id(truth.vertices.size());
+  for (size_t i = 0; i < truth.vertices.size(); ++i) {
+    const Eigen::Vector3d v = truth.vertices[i].cast<double>() * 1e6;
+    const std::array<int64_t, 3> cell = {std::llround(v.x()), std::llround(v.y()), std::llround(v.z())};
+    id[i] = welded.emplace(cell, static_cast<int>(welded.size())).first->second;
+  }
+  std::vector<int> parent(welded.size());
+  for (size_t i = 0; i < parent.size(); ++i) parent[i] = static_cast<int>(i);
   auto find = [&](int x) {
     while (parent[x] != x) x = parent[x] = parent[parent[x]];
     return x;
   };
   for (const auto& f : truth.faces) {
-    parent[find(f[1])] = find(f[0]);
-    parent[find(f[2])] = find(f[0]);
+    parent[find(id[f[1]])] = find(id[f[0]]);
+    parent[find(id[f[2]])] = find(id[f[0]]);
   }
   struct Part {
     std::vector<std::array<Eigen::Vector3d, 3>> triangles;
@@ -214,13 +221,15 @@ std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, do
   };
   std::map<int, Part> by_root;
   for (const auto& f : truth.faces) {
-    Part& part = by_root[find(f[0])];
+    Part& part = by_root[find(id[f[0]])];
+    const int w[3] = {id[f[0]], id[f[1]], id[f[2]]};
     std::array<Eigen::Vector3d, 3> t;
     for (int k = 0; k < 3; ++k) {
       t[k] = truth.vertices[f[k]].cast<double>();
       part.box.extend(t[k]);
-      ++part.edge_uses[{std::min(f[k], f[(k + 1) % 3]), std::max(f[k], f[(k + 1) % 3])}];
     }
+    if (w[0] == w[1] || w[1] == w[2] || w[0] == w[2]) continue;
+    for (int k = 0; k < 3; ++k) ++part.edge_uses[{std::min(w[k], w[(k + 1) % 3]), std::max(w[k], w[(k + 1) % 3])}];
     part.triangles.push_back(t);
   }
   // Only closed parts enclose a solid.

@@ -386,5 +386,36 @@ TEST(SurfaceErrorsTest, ScaledSphereGivesItsOffset) {
   EXPECT_LT(far.fscore, 0.01);
 }
 
+// A truth made of two overlapping closed parts: the faces of each inside the other are buried,
+// not surface; a part that is not closed buries nothing.
+TEST(SurfaceErrorsTest, OuterSurfaceLeavesOutFacesBuriedInOtherParts) {
+  const Sphere a{Eigen::Vector3d(0, 0, 1), 0.3}, b{Eigen::Vector3d(0.4, 0, 1), 0.3};
+  Mesh truth = testing::SphereMesh(a, 48, 96);
+  const Mesh second = testing::SphereMesh(b, 48, 96);
+  const int offset = static_cast<int>(truth.vertices.size());
+  truth.vertices.insert(truth.vertices.end(), second.vertices.begin(), second.vertices.end());
+  for (const auto& f : second.faces) truth.faces.emplace_back(f + Eigen::Vector3i::Constant(offset));
+  const auto outer = OnOuterSurface(truth);
+  int64_t wrong = 0, buried = 0;
+  const auto points = truth.SampleSurface(4000, 2);
+  for (const auto& p : points) {
+    const bool inside_other = (p - a.centre).norm() < a.radius - 1e-3 || (p - b.centre).norm() < b.radius - 1e-3;
+    buried += !outer(p);
+    wrong += outer(p) == inside_other;
+  }
+  // Each sphere has a cap of height 0.1 m inside the other: 1/6 of its area.
+  EXPECT_NEAR(static_cast<double>(buried) / points.size(), 1.0 / 6, 0.02);
+  EXPECT_LT(wrong, 20) << "of " << points.size() << " (the facets stand off the true spheres by < 1 mm)";
+  // Open parts enclose nothing: half of the second sphere buries none of the first.
+  Mesh open = testing::SphereMesh(a, 48, 96);
+  const int open_offset = static_cast<int>(open.vertices.size());
+  open.vertices.insert(open.vertices.end(), second.vertices.begin(), second.vertices.end());
+  for (size_t f = 0; f < second.faces.size() / 2; ++f) open.faces.emplace_back(second.faces[f] + Eigen::Vector3i::Constant(open_offset));
+  const auto open_outer = OnOuterSurface(open);
+  int64_t dropped = 0;
+  for (const auto& p : testing::SphereMesh(a, 48, 96).SampleSurface(2000, 3)) dropped += !open_outer(p);
+  EXPECT_EQ(dropped, 0);
+}
+
 }  // namespace
 }  // namespace holocap
