@@ -91,7 +91,7 @@ Summary CalibrateDemoTake(DemoContext& context) {
   SimOptions sim;
   sim.rig = "studio8";
   sim.scene = "board";
-  sim.frames = 40;
+  sim.frames = 48;  // about 10 board views per camera
   sim.seed = context.seed;
   sim.overwrite = true;
   const std::filesystem::path take = context.out / "board-take";

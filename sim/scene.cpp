@@ -167,17 +167,21 @@ constexpr double kWalkAngularSpeed = 0.8;  // rad/s: 0.4 m/s
 constexpr double kStepFrequency = 0.8;     // gait cycles per second
 
 // ---------------------------------------------------------------------------------------------
-// Board poses: each colour camera in turn gets a tilted close-up that covers a part of its
-// imager (a 3x3 pattern of aim points, so that over the sequence boards reach every corner),
-// alternating with a view shared with its neighbour at mid range, which links the cameras.
+// Board poses. The sequence visits each colour camera in turn, in rounds of three: a tilted
+// close-up that fills much of that camera's imager (a 3x3 pattern of aim points, so that over
+// the sequence boards reach every corner), then two views shared with its next neighbour, which
+// link the cameras and give each camera more views. A pose counts only if every camera it is
+// meant for sees the whole board with tags large enough to decode.
 
 Eigen::Vector3d BoardCenter(const Board& board) {
   return Eigen::Vector3d(0.5 * (board.u_min() + board.u_max()),
                          0.5 * (board.v_min() + board.v_max()), 0);
 }
 
-bool BoardPoseUsable(const Board& board, const Pose& world_from_board,
-                     const std::vector<const CameraModel*>& viewers) {
+// Smallest grid spacing the board shows any of `viewers`, in pixels; 0 when a viewer does not
+// see the whole board in its image or the board leaves the room.
+double BoardPoseScore(const Board& board, const Pose& world_from_board,
+                      const std::vector<const CameraModel*>& viewers) {
   const double corners[4][2] = {{board.u_min(), board.v_min()},
                                 {board.u_max(), board.v_min()},
                                 {board.u_min(), board.v_max()},
@@ -186,13 +190,35 @@ bool BoardPoseUsable(const Board& board, const Pose& world_from_board,
     const Eigen::Vector3d p = world_from_board * Eigen::Vector3d(c[0], c[1], 0);
     if (p.z() < 0.05 || p.z() > kRoomHeight - 0.05 || std::abs(p.x()) > kRoomHalf - 0.05 ||
         std::abs(p.y()) > kRoomHalf - 0.05) {
-      return false;
-    }
-    for (const CameraModel* camera : viewers) {
-      if ((camera->cam_from_world() * p).z() < 0.15) return false;
+      return 0;
     }
   }
-  return true;
+  double smallest = std::numeric_limits<double>::infinity();
+  for (const CameraModel* camera : viewers) {
+    for (const auto& c : corners) {
+      const Eigen::Vector3d p = world_from_board * Eigen::Vector3d(c[0], c[1], 0);
+      Eigen::Vector2d pixel;
+      if ((camera->cam_from_world() * p).z() < 0.15 || !camera->ProjectWorld(p, &pixel) ||
+          !camera->InImage(pixel, 2)) {
+        return 0;
+      }
+    }
+    // The grid spacing at the board's four outer grid points, both ways.
+    for (int j : {0, board.height_n() - 1}) {
+      for (int i : {0, board.width_n() - 1}) {
+        const Eigen::Vector3d p = world_from_board * board.GridPoint(i, j);
+        const Eigen::Vector3d pu = world_from_board * board.GridPoint(i == 0 ? 1 : i - 1, j);
+        const Eigen::Vector3d pv = world_from_board * board.GridPoint(i, j == 0 ? 1 : j - 1);
+        Eigen::Vector2d q, qu, qv;
+        if (!camera->ProjectWorld(p, &q) || !camera->ProjectWorld(pu, &qu) ||
+            !camera->ProjectWorld(pv, &qv)) {
+          return 0;
+        }
+        smallest = std::min({smallest, (qu - q).norm(), (qv - q).norm()});
+      }
+    }
+  }
+  return std::isfinite(smallest) ? smallest : 0;
 }
 
 // Radians per pixel near the image centre.
@@ -210,31 +236,45 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
   const int n = static_cast<int>(cameras.size());
   const int64_t round = set / std::max(n, 1);
   const int c = static_cast<int>(set % std::max(n, 1));
-  const bool shared = n > 1 && round % 2 == 1;
+  const bool shared = n > 1 && round % 3 != 0;
   const CameraModel& camera = cameras[c];
   const CameraModel& neighbour = cameras[(c + 1) % std::max(n, 1)];
   const double board_width = board.u_max() - board.u_min();
   const Eigen::Vector3d board_center = BoardCenter(board);
+  // Tags need about 12 px to decode; the grid spacing is a tag's side.
+  const double min_spacing_px = 14;
+  std::vector<const CameraModel*> viewers = {&camera};
+  if (shared) viewers.push_back(&neighbour);
 
-  for (int attempt = 0; attempt < 200; ++attempt) {
-    const double tilt_scale = attempt < 100 ? 1.0 : 0.5;
+  Pose best = Pose::Identity();
+  double best_score = 0;
+  for (int attempt = 0; attempt < 300; ++attempt) {
+    const double tilt_scale = attempt < 150 ? 1.0 : 0.5;
     Eigen::Vector3d viewpoint, center;
     double max_tilt;
-    std::vector<const CameraModel*> viewers = {&camera};
     if (shared) {
-      viewers.push_back(&neighbour);
+      // On the way from the stage to the point between the two cameras; the closer, the larger
+      // the tags, until the board leaves one of the two views.
       viewpoint = 0.5 * (camera.center_in_world() + neighbour.center_in_world());
       const Eigen::Vector3d stage(0, 0, 1.0);
-      center = stage + (0.5 + 0.15 * unit(rng)) * (viewpoint - stage);
-      center.z() = 0.9 + 0.6 * unit(rng);
-      max_tilt = 20 * kDeg;
+      center = stage + (0.25 + 0.7 * unit(rng)) * (viewpoint - stage);
+      center.z() = 0.8 + 0.8 * unit(rng);
+      max_tilt = 25 * kDeg;
     } else {
-      const int cell = static_cast<int>((round / 2) % 9);
+      // Fraction of the image the board spans, across or down, whichever binds first.
+      const double fill = 0.45 + 0.4 * unit(rng);
+      const double board_height = board.v_max() - board.v_min();
+      const double span_px = std::min<double>(camera.width(), camera.height() * board_width / board_height);
+      const double distance = board_width / (fill * span_px * AnglePerPixel(camera));
+      // The board's centre goes where the whole board still fits: the 3x3 cells divide the
+      // range of centres, so the outer cells put the board against the imager's edges.
+      const double half_x = 0.5 * fill * span_px, half_y = half_x * board_height / board_width;
+      const double range_x = std::max(0.0, camera.width() - 2 * half_x);
+      const double range_y = std::max(0.0, camera.height() - 2 * half_y);
+      const int cell = static_cast<int>((round / 3) % 9);
       const int gx = cell % 3, gy = cell / 3;
-      const Eigen::Vector2d aim((gx + 0.2 + 0.6 * unit(rng)) / 3 * camera.width() - 0.5,
-                                (gy + 0.2 + 0.6 * unit(rng)) / 3 * camera.height() - 0.5);
-      const double fill = 0.45 + 0.45 * unit(rng);  // fraction of the image width
-      const double distance = board_width / (fill * camera.width() * AnglePerPixel(camera));
+      const Eigen::Vector2d aim(half_x + (gx + 0.2 + 0.6 * unit(rng)) / 3 * range_x - 0.5,
+                                half_y + (gy + 0.2 + 0.6 * unit(rng)) / 3 * range_y - 0.5);
       viewpoint = camera.center_in_world();
       const Eigen::Vector3d ray_in_world = camera.world_from_cam().linear() * camera.Unproject(aim);
       center = viewpoint + distance * ray_in_world;
@@ -250,8 +290,14 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
     const Eigen::Matrix3d rotation =
         Eigen::AngleAxisd(tilt, axis).matrix() * upright.linear() * RotZ(roll);
     const Pose world_from_board = MakePose(rotation, center - rotation * board_center);
-    if (BoardPoseUsable(board, world_from_board, viewers)) return world_from_board;
+    const double score = BoardPoseScore(board, world_from_board, viewers);
+    if (score >= min_spacing_px) return world_from_board;
+    if (score > best_score) {
+      best_score = score;
+      best = world_from_board;
+    }
   }
+  if (best_score > 0) return best;
   // Fall back to a frontal view in front of the camera, which is always usable.
   const Eigen::Vector3d center =
       camera.center_in_world() + 1.5 * board_width * (camera.world_from_cam().linear().col(2));

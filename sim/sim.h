@@ -102,7 +102,7 @@ struct SimOptions {
   void Check() const;
   nlohmann::json ToJson() const;
 
-  static BoardLayout DefaultSimBoard();  // tag36h11, 5 x 4 tags, 8 cm spacing
+  static BoardLayout DefaultSimBoard();  // tag36h11, 5 x 4 tags, 10 cm spacing
 };
 
 struct SimSummary {

@@ -13,8 +13,10 @@ BoardLayout SimOptions::DefaultSimBoard() {
   board.family = "tag36h11";
   board.tags_across = 5;
   board.tags_down = 4;
-  board.spacing = 0.08;
-  board.margin = 0.08;
+  // 10 cm tags: the wide studio8 lenses see them large enough to decode in the views they
+  // share with a neighbour.
+  board.spacing = 0.10;
+  board.margin = 0.10;
   return board;
 }
 
