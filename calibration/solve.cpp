@@ -561,6 +561,53 @@ nlohmann::json CalibrationSummary::ToJson() const {
 
 namespace {
 
+// The rigid motion b_from_a that best carries points of camera a onto the pixels camera b
+// sees them at (Gauss-Newton on the pixel residuals, numeric derivatives, seeded by `seed`).
+// A point-to-point fit of the two halves' points weighs range as much as direction, while
+// what is compared is projections.
+Pose FitImpliedTransform(const CameraModel& b, const std::vector<Eigen::Vector3d>& points_a,
+                         const std::vector<Eigen::Vector2d>& pixels, const Pose& seed) {
+  Rt rt = RtFromPose(seed);
+  const int n = static_cast<int>(points_a.size());
+  auto residuals = [&](const Rt& x, Eigen::VectorXd* r) {
+    const Pose pose = PoseFromRt(x);
+    r->resize(2 * n);
+    for (int k = 0; k < n; ++k) {
+      Eigen::Vector2d q;
+      if (!b.Project(pose * points_a[k], &q)) return false;
+      r->segment<2>(2 * k) = q - pixels[k];
+    }
+    return true;
+  };
+  Eigen::VectorXd r;
+  if (!residuals(rt, &r)) return seed;
+  for (int iteration = 0; iteration < 10; ++iteration) {
+    Eigen::MatrixXd jacobian(2 * n, 6);
+    bool ok = true;
+    for (int d = 0; d < 6 && ok; ++d) {
+      const double h = d < 3 ? 1e-7 : 1e-7 * std::max(1.0, points_a[0].norm());
+      Rt plus = rt, minus = rt;
+      plus[d] += h;
+      minus[d] -= h;
+      Eigen::VectorXd rp, rm;
+      ok = residuals(plus, &rp) && residuals(minus, &rm);
+      if (ok) jacobian.col(d) = (rp - rm) / (2 * h);
+    }
+    if (!ok) break;
+    const Eigen::Matrix<double, 6, 1> step =
+        (jacobian.transpose() * jacobian).ldlt().solve(-jacobian.transpose() * r);
+    if (!step.allFinite()) break;
+    Rt next = rt;
+    for (int d = 0; d < 6; ++d) next[d] += step[d];
+    Eigen::VectorXd r_next;
+    if (!residuals(next, &r_next) || r_next.squaredNorm() >= r.squaredNorm()) break;
+    rt = next;
+    r = r_next;
+    if (step.norm() < 1e-12) break;
+  }
+  return PoseFromRt(rt);
+}
+
 // Cross-validation: each half's models projected against the other's at the working
 // distance, in each camera's own frame, set against the sum of the two 1-sigma estimates.
 nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSummary& b) {
@@ -575,21 +622,29 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
     // Like mrcal's projection_diff at a finite distance: the two halves' camera frames may
     // differ by a rigid motion that their intrinsics absorb (each half anchors its world to its
     // own mean of board poses), so the implied transform is fitted where the board was seen,
-    // on the points both put at the working distance, before the projections are compared.
+    // to the pixels of the points half a puts there, before the projections are compared at
+    // the working distance.
     const Eigen::Matrix2Xd& pixels = ca.uncertainty.pixels;
     const double distance = ca.uncertainty.distance_m;
     const Eigen::Matrix3Xd rays = ca.model.UnprojectMany(pixels);
     const Eigen::Matrix3Xd rays_b = cb->model.UnprojectMany(pixels);
+    // One distance lets a shift along the axis stand in for a focal-length change, so the
+    // transform is fitted over half, one and twice the working distance together.
     std::vector<Eigen::Vector3d> points_a, points_b;
+    std::vector<Eigen::Vector2d> seen_pixels;
     for (int k = 0; k < pixels.cols(); ++k) {
       const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
       if (!rays.col(k).allFinite() || !rays_b.col(k).allFinite()) continue;
       if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy, gx)) continue;
-      points_a.push_back(rays.col(k).normalized() * distance);
-      points_b.push_back(rays_b.col(k).normalized() * distance);
+      for (double scale : {0.5, 1.0, 2.0}) {
+        points_a.push_back(rays.col(k).normalized() * distance * scale);
+        points_b.push_back(rays_b.col(k).normalized() * distance * scale);
+        seen_pixels.push_back(pixels.col(k));
+      }
     }
     if (points_a.size() < 3) continue;
-    const Pose b_from_a = calibration_internal::FitRigid(points_a, points_b);
+    const Pose b_from_a = FitImpliedTransform(cb->model, points_a, seen_pixels,
+                                              calibration_internal::FitRigid(points_a, points_b));
     double sum2 = 0, worst = 0;
     int within = 0, n = 0;
     for (int k = 0; k < pixels.cols(); ++k) {
@@ -622,7 +677,7 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
                        {"within_sigma_sum_fraction", static_cast<double>(within) / n}};
   }
   return {{"cameras", result}, {"worst_ratio", worst_ratio},
-          {"method", "implied rigid transform fitted where the board was seen, then projection differences"},
+          {"method", "implied rigid transform fitted to the pixels where the board was seen, then projection differences"},
           {"halves", {{"a", {{"termination", ToString(a.termination)}, {"rms_px", a.rms_reprojection_px}, {"frames", a.frames}}},
                       {"b", {{"termination", ToString(b.termination)}, {"rms_px", b.rms_reprojection_px}, {"frames", b.frames}}}}}};
 }
