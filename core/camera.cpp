@@ -150,6 +150,11 @@ class LiteralChecker {
     char c = Peek();
     if (c == '{' || c == '[' || c == '(') return Container(depth);
     if (c == '\'' || c == '"') return String();
+    // Python's bytes literal, as in the optimization_inputs mrcal's own tools write.
+    if (c == 'b' && at_ + 1 < text_.size() && (text_[at_ + 1] == '\'' || text_[at_ + 1] == '"')) {
+      ++at_;
+      return String();
+    }
     if (c == '\0' && at_ >= text_.size()) return Error("ends where a value was expected");
     return Scalar();
   }

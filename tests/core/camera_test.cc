@@ -203,6 +203,10 @@ TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
   RealWideLens().Write(dir / "a.cameramodel");
   const std::string text = ReadFileToString(dir / "a.cameramodel");
   ASSERT_NO_THROW(CameraModel::Parse(text, "whole"));
+  // mrcal's tools store their optimisation inputs as a Python bytes literal.
+  std::string with_bytes = text;
+  with_bytes.insert(with_bytes.find('{') + 1, "\n    'optimization_inputs': b'P)h>@6aWAK2',");
+  EXPECT_NO_THROW(CameraModel::Parse(with_bytes, "bytes"));
   size_t last_brace = text.rfind('}');
   for (size_t size = 0; size < last_brace; size += 7) {
     EXPECT_THROW(CameraModel::Parse(text.substr(0, size), "cut"), Error) << size;
