@@ -3,6 +3,7 @@
 #include <sys/mman.h>
 
 #include <condition_variable>
+#include <cstdlib>
 #include <deque>
 #include <libcamera/libcamera.h>
 #include <mutex>
@@ -22,6 +23,12 @@ std::shared_ptr<lc::CameraManager> Manager() {
   static std::weak_ptr<lc::CameraManager> shared;
   std::lock_guard lock(mutex);
   if (auto manager = shared.lock()) return manager;
+  // libcamera logs every start (its version, a missing IPA module) to stderr, which would
+  // interleave with holocap's own output: only its errors are shown, unless the user chose
+  // levels. Its logger reads LIBCAMERA_LOG_LEVELS once, when the first CameraManager creates
+  // it, and logSetLevel() reaches only the log categories that exist already, so the default
+  // goes in through the variable, before the first manager.
+  setenv("LIBCAMERA_LOG_LEVELS", "*:ERROR", /*overwrite=*/0);
   auto manager = std::shared_ptr<lc::CameraManager>(new lc::CameraManager(), [](lc::CameraManager* m) {
     m->stop();
     delete m;
