@@ -51,6 +51,9 @@ static void AddCaptureCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--trigger-phase", args->options.trigger_phase_s,
                       "Software triggers on the CLOCK_REALTIME grid of the frame period plus this phase (s)");
+  command->add_option("--trigger-priority", args->options.trigger_priority,
+                      "SCHED_FIFO priority of the software-trigger threads where permitted (0: normal scheduling)")
+      ->capture_default_str();
   command->add_flag("--durable", args->options.take.durable, "fsync every frame and index line");
   command->add_flag("--overwrite", args->options.take.overwrite, "Replace an existing take directory");
   command->callback([args] {
@@ -66,6 +69,7 @@ static void AddCaptureCommand(CLI::App& app) {
                         {"writers", args->options.writer_threads},
                         {"queue_frames", args->options.queue_frames},
                         {"trigger_phase_s", args->options.trigger_phase_s},
+                        {"trigger_priority", args->options.trigger_priority},
                         {"durable", args->options.take.durable}};
     report.plan() = {{"sync", ToString(rig.sync)}, {"fps", rig.fps}, {"sensors", rig.sensors.size()}};
     const int64_t total = args->options.frames > 0 ? args->options.frames

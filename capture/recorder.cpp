@@ -1,9 +1,13 @@
 #include "capture/recorder.h"
 
+#include <pthread.h>
+#include <sched.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
+#include <cstring>
 #include <deque>
 #include <mutex>
 #include <thread>
@@ -32,6 +36,7 @@ void RecorderOptions::Check() const {
   if (!(stall_s > 0)) Fail("capture: stall_s must be positive");
   if (!codec.empty() && codec != "png" && codec != "zstd") Fail("capture: codec must be png or zstd (not '", codec, "')");
   if (sync_tolerance_ns < 0) Fail("capture: sync_tolerance_ns must be >= 0");
+  if (trigger_priority < 0 || trigger_priority > 99) Fail("capture: trigger_priority must be 0..99");
 }
 
 nlohmann::json RecorderSummary::Metrics() const {
@@ -58,6 +63,7 @@ nlohmann::json RecorderSummary::Metrics() const {
           {"bytes_written", bytes_written},
           {"write_mb_s", write_mb_s},
           {"clock_offset_ns", clock_offset_ns},
+          {"trigger_scheduling", trigger_scheduling},
           {"sensors", per_sensor}};
 }
 
@@ -250,11 +256,22 @@ RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& 
   }
 
   // Software trigger: one thread per sensor, all firing on the same ticks, so that a slow or
-  // dead camera delays only itself.
+  // dead camera delays only itself. A trigger sent late exposes its camera late, so the
+  // threads ask for real-time scheduling: other work on the host cannot hold them back.
   std::vector<std::thread> trigger_threads;
+  std::string trigger_scheduling = software ? "normal" : "none (not software-triggered)";
   if (software) {
     for (size_t s = 0; s < n; ++s) {
       trigger_threads.emplace_back([&, s] {
+        if (options_.trigger_priority > 0) {
+          sched_param param{};
+          param.sched_priority = options_.trigger_priority;
+          const int refused = pthread_setschedparam(pthread_self(), SCHED_FIFO, &param);
+          if (s == 0) {  // read after the threads are joined
+            trigger_scheduling = refused == 0 ? Cat("SCHED_FIFO ", options_.trigger_priority)
+                                              : Cat("normal (SCHED_FIFO refused: ", std::strerror(refused), ")");
+          }
+        }
         // Two triggers during the warm-up, their frames discarded: the first wakes up cameras
         // that start streaming late, the second is one instant every camera stamps, which
         // ties their clocks together (FrameSetAssembler::SeedClocks).
@@ -500,6 +517,7 @@ RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& 
   summary.bytes_written = writer->bytes_written();
   summary.write_mb_s = summary.seconds > 0 ? static_cast<double>(summary.bytes_written) / 1e6 / summary.seconds : 0;
   summary.clock_offset_ns = sync.offset_ns;
+  summary.trigger_scheduling = trigger_scheduling;
   for (size_t s = 0; s < n; ++s) {
     SensorRecord record;
     record.name = streams_[s].name;

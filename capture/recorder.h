@@ -45,6 +45,10 @@ struct RecorderOptions {
   double stall_s = 5.0;        // a sensor silent this long while frames are due is reported lost
   std::string codec;           // "png" | "zstd" | "" (each driver's choice)
   int64_t sync_tolerance_ns = 0;  // SyncOptions::tolerance_ns (0: 0.4 frame periods)
+  // SCHED_FIFO priority of the software-trigger threads, where the process may use it (root,
+  // CAP_SYS_NICE or an rtprio limit; refused: normal scheduling, named in the summary).
+  // 0: normal scheduling.
+  int trigger_priority = 10;
   TakeWriterOptions take;      // crash-safety and compression of the take
 
   void Check() const;  // throws Error explaining a bad value
@@ -76,6 +80,7 @@ struct RecorderSummary : Summary {
   uint64_t bytes_written = 0;
   double write_mb_s = 0;              // bytes_written / seconds
   std::vector<int64_t> clock_offset_ns;  // per sensor, its clock minus the first sensor's
+  std::string trigger_scheduling;        // how the software-trigger threads were scheduled
   std::vector<SensorRecord> sensors;
 
   nlohmann::json Metrics() const;  // the report's "metrics" object

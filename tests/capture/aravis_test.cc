@@ -45,6 +45,16 @@ DriverRegistry& AravisOnly() {
   return registry;
 }
 
+// Records `frames` software triggers at `fps` from the first `count` cameras into `take`.
+RecorderSummary RecordTriggered(const FakeGigeCameras& cameras, int count, double fps, RecorderOptions options,
+                                int64_t frames, const nlohmann::json& sensor_options,
+                                const std::filesystem::path& take) {
+  options.frames = frames;
+  Recorder recorder(FakeRig(cameras, count, SyncMode::kSoftwareTrigger, fps, sensor_options), take, options,
+                    AravisOnly());
+  return recorder.Run();
+}
+
 TEST(AravisPixels, LayoutsAndUnsupportedFormats) {
   EXPECT_EQ(AravisLayoutFor("Mono8", true).stored, "mono8");
   EXPECT_EQ(AravisLayoutFor("Mono16", true).stored, "mono16");
@@ -130,30 +140,10 @@ TEST(AravisDriver, InProcessFakeCameraStreamsFreeRunning) {
   }
 }
 
-// arv-fake-gv-camera-0.8 serves a software trigger only on its own 25 Hz ticks, which fall on
-// multiples of 40 ms of CLOCK_REALTIME (its trigger_frequency, not reachable over GVCP): two
-// triggers inside one tick make one frame, and a fake process that misses a tick under CPU load
-// folds two triggers the same way. Triggers on the realtime grid, mid-tick, at 25 Hz must then
-// come back as complete sets with a sub-tick spread, every trigger written or counted lost, and
-// no set may mix frames of two ticks.
-TEST(FakeGige, EightCamerasSoftwareTriggeredEveryFrameWrittenOrCounted) {
-  FakeGigeCameras cameras(8);
-  TempDir dir;
-  RecorderOptions options;
-  options.frames = 30;
-  options.trigger_phase_s = 0.020;
-  Recorder recorder(FakeRig(cameras, 8, SyncMode::kSoftwareTrigger, 25, {{"roi", {0, 0, 256, 256}}}),
-                    dir / "take", options, AravisOnly());
-  RecorderSummary summary = recorder.Run();
-  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
-  EXPECT_GE(summary.frame_sets_complete, 24) << summary.Metrics().dump(1);
-  for (const auto& sensor : summary.sensors) {
-    EXPECT_EQ(sensor.triggers, 30) << sensor.name;
-    EXPECT_EQ(sensor.written + sensor.dropped(), 30) << sensor.name;
-    EXPECT_EQ(sensor.written, summary.frame_sets_complete) << sensor.name;
-  }
-  EXPECT_LT(summary.sync_spread_us_max, 16000);  // the tolerance: 0.4 of the 40 ms period
-  Take take = Take::Open(dir / "take");
+// Every set in the take has all of its sensors, each frame an unbroken ramp; the take's drop
+// counts are the summary's.
+void ExpectTakeMatchesSummary(const std::filesystem::path& dir, const RecorderSummary& summary, size_t sensors) {
+  Take take = Take::Open(dir);
   EXPECT_EQ(take.state(), "complete");
   ASSERT_EQ(static_cast<int64_t>(take.size()), summary.frame_sets_complete);
   int64_t dropped_in_take = 0;
@@ -161,24 +151,97 @@ TEST(FakeGige, EightCamerasSoftwareTriggeredEveryFrameWrittenOrCounted) {
   EXPECT_EQ(dropped_in_take, summary.frames_dropped);
   for (size_t i = 0; i < take.size(); ++i) {
     FrameSet set = take.Read(i);
-    ASSERT_EQ(set.frames.size(), 8u);
+    ASSERT_EQ(set.frames.size(), sensors);
     for (const auto& frame : set.frames) {
-      EXPECT_EQ(frame.image.cols, 256);
-      EXPECT_EQ(BrokenRampPixels(frame.image), 0) << frame.sensor << " set " << i;
+      ASSERT_EQ(BrokenRampPixels(frame.image), 0) << "torn frame from " << frame.sensor << " in set " << i;
     }
   }
+}
+
+// The libaravis fake camera looking for software triggers every 10 ms (holocap-fake-gige-camera)
+// answers each one: 8 cameras triggered 60 times at 30 Hz give 60 complete sets with nothing
+// lost. arv-fake-gv-camera-0.8 cannot show this: it looks for triggers only every 40 ms, so
+// at 30 Hz it folds triggers (the next test). Frames of one trigger are stamped on the same
+// 10 ms tick or the next, well inside the half-period tolerance; the recorder's trigger threads
+// and the cameras run real-time, so the two cores' other work does not delay them. Under a
+// load of 8 on two cores, about one run in four still sees a camera acknowledge a trigger that
+// was sent on time and then send no frame for it (at most two such triggers in a run): the
+// recorder must count each one as lost in the driver, and the set it leaves incomplete.
+TEST(FakeGige, EightCamerasSoftwareTriggeredAt30HzEverySetCompleteOrCounted) {
+  FakeGigeCameras cameras(8, /*lost_per_thousand=*/0, /*trigger_tick_hz=*/100);
+  TempDir dir;
+  RecorderOptions options;
+  options.sync_tolerance_ns = 16'666'666;
+  RecorderSummary summary = RecordTriggered(cameras, 8, 30, options, 60, {{"roi", {0, 0, 256, 256}}}, dir / "take");
+  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  EXPECT_EQ(summary.trigger_scheduling, "SCHED_FIFO 10");
+  EXPECT_GE(summary.frame_sets_complete, 58) << summary.Metrics().dump(1);
+  EXPECT_EQ(summary.frame_sets_complete + summary.frame_sets_incomplete, 60);
+  int64_t unanswered = 0;
+  for (const auto& sensor : summary.sensors) {
+    EXPECT_EQ(sensor.triggers, 60) << sensor.name;
+    EXPECT_EQ(sensor.written, summary.frame_sets_complete) << sensor.name;
+    EXPECT_EQ(sensor.written + sensor.dropped(), 60) << sensor.name;
+    EXPECT_EQ(sensor.dropped_queue + sensor.dropped_sets, 0) << sensor.name;
+    unanswered += sensor.lost_in_driver;
+    // Nothing is lost on the wire at 0 per thousand packet loss.
+    EXPECT_EQ(sensor.driver.value("n_failures", int64_t{-1}), 0) << sensor.name;
+    EXPECT_EQ(sensor.driver.value("n_underruns", int64_t{-1}), 0) << sensor.name;
+    EXPECT_EQ(sensor.driver.value("n_missing_packets", int64_t{-1}), 0) << sensor.name;
+  }
+  // Every incomplete set is a trigger some camera left unanswered.
+  EXPECT_LE(summary.frame_sets_incomplete, unanswered);
+  EXPECT_LT(summary.sync_spread_us_max, 16667);
+  ExpectTakeMatchesSummary(dir / "take", summary, 8);
+}
+
+// arv-fake-gv-camera-0.8 looks for a software trigger only on its own 25 Hz tick, 40 ms of
+// CLOCK_REALTIME apart (TriggerMode=On sets its frame period; AcquisitionFrameRate does not),
+// and that rate is not reachable over GVCP. Triggered at 30 Hz it must fold at least one
+// trigger in six into a neighbour's frame: each fold is counted lost, and no set may mix frames
+// of two ticks.
+TEST(FakeGige, PackagedFakeCameraAt30HzFoldsTriggersAndCountsEachOne) {
+  FakeGigeCameras cameras(3);
+  TempDir dir;
+  RecorderSummary summary = RecordTriggered(cameras, 3, 30, {}, 30, {{"roi", {0, 0, 128, 128}}}, dir / "take");
+  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  for (const auto& sensor : summary.sensors) {
+    EXPECT_EQ(sensor.triggers, 30) << sensor.name;
+    EXPECT_EQ(sensor.written + sensor.dropped(), 30) << sensor.name;
+    // The ticks next after 30 triggers spread over 967 ms are at most 1000 ms apart: at most
+    // 26 distinct ticks, so at least 4 folds.
+    EXPECT_GE(sensor.lost_in_driver, 4) << sensor.name;
+  }
+  EXPECT_LE(summary.frame_sets_complete, 26);
+  EXPECT_GE(summary.frame_sets_complete, 15) << summary.Metrics().dump(1);
+  ExpectTakeMatchesSummary(dir / "take", summary, 3);
+}
+
+// On its own tick rate with the triggers mid-tick, the packaged camera serves every trigger that
+// reaches it within 20 ms; on this shared machine a few do not.
+TEST(FakeGige, PackagedFakeCamerasTriggeredMidTickAt25HzWriteEverySetOrCountIt) {
+  FakeGigeCameras cameras(8);
+  TempDir dir;
+  RecorderOptions options;
+  options.trigger_phase_s = 0.020;
+  RecorderSummary summary = RecordTriggered(cameras, 8, 25, options, 30, {{"roi", {0, 0, 256, 256}}}, dir / "take");
+  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  EXPECT_GE(summary.frame_sets_complete, 27) << summary.Metrics().dump(1);
+  for (const auto& sensor : summary.sensors) {
+    EXPECT_EQ(sensor.written + sensor.dropped(), 30) << sensor.name;
+    EXPECT_EQ(sensor.written, summary.frame_sets_complete) << sensor.name;
+  }
+  EXPECT_LT(summary.sync_spread_us_max, 16000);  // the tolerance: 0.4 of the 40 ms period
+  ExpectTakeMatchesSummary(dir / "take", summary, 8);
 }
 
 TEST(FakeGige, UnderPacketLossEveryFrameIsCompleteOrCountedLost) {
   FakeGigeCameras cameras(3, /*lost_per_thousand=*/20);
   TempDir dir;
-  RecorderOptions options;
-  options.frames = 60;
   // Small frames (a handful of packets each) so that a fair share arrives whole.
-  Recorder recorder(FakeRig(cameras, 3, SyncMode::kSoftwareTrigger, 30,
-                            {{"roi", {0, 0, 128, 64}}, {"frame_retention_ms", 20}, {"packet_timeout_ms", 5}}),
-                    dir / "take", options, AravisOnly());
-  RecorderSummary summary = recorder.Run();
+  RecorderSummary summary = RecordTriggered(
+      cameras, 3, 30, {}, 60, {{"roi", {0, 0, 128, 64}}, {"frame_retention_ms", 20}, {"packet_timeout_ms", 5}},
+      dir / "take");
   ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
   int64_t resend_requests = 0, lost = 0;
   for (const auto& sensor : summary.sensors) {

@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <fstream>
 
 #include "capture/recorder.h"
@@ -71,6 +72,25 @@ TEST(CaptureCli, UnknownDeviceIsOneLineAndNoTake) {
   EXPECT_NE(result.output.find("holocap: error: sensor 'cam0': 'aravis:Nobody-Home': no such camera"),
             std::string::npos)
       << result.output;
+  EXPECT_FALSE(std::filesystem::exists(dir / "take"));
+}
+
+TEST(CaptureCli, UnsupportedPixelFormatIsOneLineAndNoTake) {
+  FakeGigeCameras cameras(1);
+  TempDir dir;
+  {
+    std::ofstream rig(dir / "rig.yaml");
+    rig << "name: x\nsync: software\nfps: 10\nsensors:\n  - {name: cam0, uri: \"aravis:" << cameras.id(0)
+        << "\", options: {pixel_format: YUV422_8}}\n";
+  }
+  auto result = RunCli("capture --rig '" + (dir / "rig.yaml").string() + "' --out '" + (dir / "take").string() +
+                       "' --frames 5");
+  EXPECT_NE(result.exit_code, 0);
+  EXPECT_NE(result.output.find("holocap: error: sensor 'cam0': 'aravis:" + cameras.id(0) +
+                               "': the camera has no pixel format 'YUV422_8' (it offers "),
+            std::string::npos)
+      << result.output;
+  EXPECT_EQ(std::count(result.output.begin(), result.output.end(), '\n'), 1) << result.output;
   EXPECT_FALSE(std::filesystem::exists(dir / "take"));
 }
 

@@ -1,10 +1,14 @@
-// Fake GigE Vision cameras (arv-fake-gv-camera-0.8) for tests, each a real process speaking
-// GVCP/GVSP. The test process first moves into a network namespace of its own, so the
-// addresses 127.0.0.1..N exist only there and vanish with the process, even when a test
-// crashes; the cameras are started and stopped by their own process ids and are killed by
-// the kernel if the test process dies first.
+// Fake GigE Vision cameras for tests, each a real process speaking GVCP/GVSP. The test process
+// first moves into a network namespace of its own, so the addresses 127.0.0.1..N exist only
+// there and vanish with the process, even when a test crashes; the cameras are started and
+// stopped by their own process ids and are killed by the kernel if the test process dies first.
+//
+// By default each camera is arv-fake-gv-camera-0.8, which serves a software trigger only on a
+// fixed 25 Hz tick. With a trigger tick given, each camera is the same libaravis fake camera
+// served by holocap-fake-gige-camera, looking for triggers that often.
 #pragma once
 
+#include <fcntl.h>
 #include <signal.h>
 #include <sched.h>
 #include <sys/prctl.h>
@@ -20,6 +24,7 @@
 #include <vector>
 
 #include "capture/aravis/aravis_driver.h"
+#include "capture/aravis/fake_gige_camera.h"
 #include "core/error.h"
 
 namespace holocap::testing {
@@ -39,25 +44,46 @@ inline std::string EnterPrivateNetwork() {
 
 class FakeGigeCameras {
  public:
+  // SCHED_FIFO priority of the camera processes: above the recorder's trigger threads
+  // (RecorderOptions::trigger_priority), which wait for each camera's acknowledgement.
+  static constexpr int kCameraPriority = 20;
+
   // Starts `count` cameras on 127.0.0.1..count with serials HC1..HCn. `lost_per_thousand` is
-  // their GVSP packet loss.
-  FakeGigeCameras(int count, int lost_per_thousand = 0) {
+  // their GVSP packet loss; `trigger_tick_hz` > 0 runs holocap-fake-gige-camera with that
+  // software-trigger tick, 0 runs arv-fake-gv-camera-0.8 (25 Hz tick).
+  FakeGigeCameras(int count, int lost_per_thousand = 0, double trigger_tick_hz = 0) {
     std::string error = EnterPrivateNetwork();
     if (!error.empty()) Fail("fake GigE cameras: ", error);
     for (int i = 1; i <= count; ++i) {
       const std::string address = "127.0.0." + std::to_string(i);
       if (i > 1) std::system(("ip addr add " + address + "/32 dev lo 2>/dev/null").c_str());
+      const std::string serial = "HC" + std::to_string(i);
+      const std::string ratio = std::to_string(lost_per_thousand);
+      // Built before fork(): the child of a threaded process may only exec.
+      const std::string program = FakeGigeCameraProgram();
+      const std::string tick = std::to_string(trigger_tick_hz);
+      const int null_output = open("/dev/null", O_WRONLY | O_CLOEXEC);
       std::fflush(nullptr);  // or the child flushes our buffered output a second time
       pid_t pid = fork();
       if (pid == 0) {
         prctl(PR_SET_PDEATHSIG, SIGKILL);
-        const std::string serial = "HC" + std::to_string(i);
-        const std::string ratio = std::to_string(lost_per_thousand);
-        std::freopen("/dev/null", "w", stdout);
-        execlp("arv-fake-gv-camera-0.8", "arv-fake-gv-camera-0.8", "-i", address.c_str(), "-s", serial.c_str(), "-r",
-               ratio.c_str(), static_cast<char*>(nullptr));
+        // A camera is hardware of its own: the host's load never delays its answer to a
+        // trigger. Real-time scheduling gives each simulated camera that independence on a
+        // machine whose cores the recorder and other work share (kept when refused).
+        sched_param param{};
+        param.sched_priority = kCameraPriority;
+        sched_setscheduler(0, SCHED_FIFO, &param);
+        if (null_output >= 0) dup2(null_output, STDOUT_FILENO);
+        if (trigger_tick_hz > 0) {
+          execl(program.c_str(), program.c_str(), "-i", address.c_str(), "-s", serial.c_str(), "-r", ratio.c_str(),
+                "-t", tick.c_str(), static_cast<char*>(nullptr));
+        } else {
+          execlp("arv-fake-gv-camera-0.8", "arv-fake-gv-camera-0.8", "-i", address.c_str(), "-s", serial.c_str(),
+                 "-r", ratio.c_str(), static_cast<char*>(nullptr));
+        }
         _exit(127);
       }
+      if (null_output >= 0) close(null_output);
       pids_.push_back(pid);
       ids_.push_back("Aravis-Fake-HC" + std::to_string(i));
     }
