@@ -92,6 +92,7 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--witness-names", r.witness, "rerender: these witness cameras (names)");
   command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
   command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();
+  command->add_option("--crop", r.crop_px, "rerender: training crop size near the subject (0: whole images)")->capture_default_str();
   command->add_option("--recon", r.recon_dir, "rerender: use this reconstruction (built without the witnesses)");
   command->add_option("--recon-voxel", r.reconstruction.voxel_m, "rerender: reconstruction voxel in metres")->capture_default_str();
   command->add_option("--silhouettes", args->silhouettes, "rerender: reconstruction silhouettes, background or threshold")->capture_default_str();

@@ -4,7 +4,8 @@
 // 512² frame (rasterising and the network apart). Prints tables; never passes or fails on time.
 // Usage:
 //   rerender_bench [--minutes 10] [--frames 30] [--width 160] [--sim-width 320]
-//                  [--unet-width 24] [--unet-depth 4] [--threads 2] [--train-threads 0]
+//                  [--unet-width 24] [--unet-depth 4] [--crop 64] [--batch-pairs 2]
+//                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
 #include <CLI/CLI.hpp>
@@ -110,6 +111,8 @@ int main(int argc, char** argv) {
   app.add_option("--unet-depth", base.net.depth, "U-Net levels");
   app.add_option("--gan-weight", base.gan_weight, "PatchGAN weight (0: none)");
   app.add_option("--temporal-weight", base.temporal_weight, "Temporal-consistency weight");
+  app.add_option("--crop", base.crop_px, "Training crop size near the subject (0: whole images)");
+  app.add_option("--batch-pairs", base.batch_pairs, "Pairs of consecutive frames per step");
   int train_threads = 0;
   app.add_option("--threads", threads, "Threads for inference (and training unless --train-threads)");
   app.add_option("--train-threads", train_threads, "Threads for reconstruction and training (0: --threads)");
@@ -140,7 +143,7 @@ int main(int argc, char** argv) {
     RerenderOptions options = base;
     options.minutes = minutes;
     options.image_width = width;
-    options.eval_every_s = std::max(10.0, minutes * 60 / 15);
+    options.eval_every_s = std::max(10.0, minutes * 60 / 5);  // an evaluation costs many steps
     Report report("rerender_bench");
     const fs::path model = root / model_name;
     RerenderSummary summary = TrainRerender(take, model, options, &report);
@@ -166,7 +169,7 @@ int main(int argc, char** argv) {
     options.image_width = 320;
     options.witness_cameras = 4;
     options.heldout_cameras = 1;
-    options.eval_every_s = std::max(10.0, dino_minutes * 60 / 10);
+    options.eval_every_s = std::max(10.0, dino_minutes * 60 / 4);
     // The Middlebury recipe: a hull from thresholded silhouettes inside the README's box.
     ReconstructionOptions& r = options.reconstruction;
     r.method = ReconstructionMethod::kHull;

@@ -43,6 +43,8 @@ struct GBuffer {
   cv::Mat color;   // CV_32FC3 BGR in [0, 1] (the reconstruction's vertex colours), 0 where empty
   cv::Mat depth;   // CV_32F z-depth in metres, NaN where empty
   cv::Mat normal;  // CV_32FC3 unit normal in camera coordinates (OpenCV axes), 0 where empty
+  cv::Mat position;  // CV_32FC3 surface point in world coordinates (metres), 0 where empty:
+                     // where on the body a pixel lies, whichever camera looks
   cv::Mat mask;    // CV_8U, 255 where a surface covers the pixel centre
   int64_t triangles_drawn = 0;  // after splitting
   int64_t triangles_split = 0;  // triangles of the mesh that needed splitting
@@ -70,7 +72,8 @@ struct UNetConfig {
 
 // A U-Net from G-buffers to RGB and alpha. Its output starts as the raw render (the last layer
 // is zero at initialisation: colour is the render's, alpha its coverage), so training only
-// has to learn corrections. Holds LibTorch state behind a pointer.
+// has to learn corrections; the alpha correction is bounded so that a large early step cannot
+// saturate it beyond recovery. Holds LibTorch state behind a pointer.
 class RerenderNetwork {
  public:
   RerenderNetwork(const UNetConfig& config, uint64_t seed);
@@ -121,8 +124,13 @@ struct RerenderOptions {
   // Optimisation.
   double minutes = 3;                   // wall-clock budget
   int64_t iterations = 0;               // > 0: stop after this many (whichever first)
-  int batch_pairs = 2;                  // pairs of consecutive frames of one camera per step
-  double learning_rate = 1e-3;          // Adam
+  int batch_pairs = 2;                  // pairs of consecutive frames (same camera, same crop)
+  int crop_px = 64;                     // square training crops centred on a pixel near the
+                                        // subject (rounded up to a multiple of 2^depth, at
+                                        // most the image): the network learns where the
+                                        // reconstruction is, not on empty background; 0:
+                                        // whole images
+  double learning_rate = 3e-4;          // Adam, decayed to a tenth over the budget (cosine)
   double l1_weight = 1;
   double ssim_weight = 0.5;             // 1 - SSIM averaged over three scales
   double subject_weight = 4;            // loss weight of pixels near the rendered subject (the
@@ -158,7 +166,8 @@ struct RerenderSummary {
 };
 
 // Trains a rerendering model on a take into `model_dir` (model.json, unet.pt, cameras/,
-// recon/, report.json). `report` receives options, plan, metrics (heldout_psnr_db,
+// recon/, report.json, and heldout.png: truth, raw render and rerendered view side by side
+// for the first held-out camera's middle frame). `report` receives options, plan, metrics (heldout_psnr_db,
 // raw_render_psnr_db, heldout_ssim, raw_render_ssim, flicker) and the series heldout_psnr_db,
 // heldout_ssim and loss. Throws Error for bad options or a take that cannot be used (no
 // cameras, too few colour cameras for the split, no frames); numerical trouble (a diverging

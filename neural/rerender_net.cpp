@@ -103,6 +103,26 @@ torch::Tensor RerenderFeatures(const GBuffer& buffers) {
   cv::Mat relative(height, width, CV_32F, cv::Scalar(0));
   cv::Mat coverage(height, width, CV_32F, cv::Scalar(0));
   cv::Mat color(height, width, CV_32FC3, cv::Scalar::all(0)), normal(height, width, CV_32FC3, cv::Scalar::all(0));
+  // World position about the per-axis median of the covered pixels: the body's layout
+  // (legs below, head above) without the subject's place on the stage.
+  const bool has_position = buffers.position.size() == buffers.color.size() && buffers.position.type() == CV_32FC3;
+  cv::Mat position(height, width, CV_32FC3, cv::Scalar::all(0));
+  cv::Vec3f position_median(0, 0, 0);
+  if (has_position) {
+    std::vector<float> axis;
+    for (int k = 0; k < 3; ++k) {
+      axis.clear();
+      for (int y = 0; y < height; ++y) {
+        for (int x = 0; x < width; ++x) {
+          const float value = buffers.position.at<cv::Vec3f>(y, x)[k];
+          if (valid.at<uint8_t>(y, x) && std::isfinite(value)) axis.push_back(value);
+        }
+      }
+      if (axis.empty()) continue;
+      std::nth_element(axis.begin(), axis.begin() + axis.size() / 2, axis.end());
+      position_median[k] = axis[axis.size() / 2];
+    }
+  }
   for (int y = 0; y < height; ++y) {
     for (int x = 0; x < width; ++x) {
       if (!valid.at<uint8_t>(y, x)) continue;
@@ -115,9 +135,16 @@ torch::Tensor RerenderFeatures(const GBuffer& buffers) {
       }
       color.at<cv::Vec3f>(y, x) = c;
       normal.at<cv::Vec3f>(y, x) = n;
+      if (has_position) {
+        cv::Vec3f p = buffers.position.at<cv::Vec3f>(y, x) - position_median;
+        for (int k = 0; k < 3; ++k) p[k] = std::isfinite(p[k]) ? std::clamp(p[k], -1.5f, 1.5f) : 0.0f;
+        position.at<cv::Vec3f>(y, x) = p;
+      }
     }
   }
-  return torch::cat({ImageToTensor(color), ImageToTensor(coverage), ImageToTensor(normal), ImageToTensor(relative)}, 0);
+  return torch::cat({ImageToTensor(color), ImageToTensor(coverage), ImageToTensor(normal), ImageToTensor(relative),
+                     ImageToTensor(position)},
+                    0);
 }
 
 torch::Tensor PadToMultiple(const torch::Tensor& x, int multiple) {
@@ -132,7 +159,9 @@ std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw,
   const torch::Tensor color = features.index({Slice(), Slice(0, 3)}).clamp(0.02, 0.98);
   const torch::Tensor coverage = features.index({Slice(), Slice(3, 4)});
   torch::Tensor rgb = torch::sigmoid(raw.index({Slice(), Slice(0, 3)}) + torch::log(color / (1 - color)));
-  torch::Tensor alpha = torch::sigmoid(raw.index({Slice(), Slice(3, 4)}) + 12 * coverage - 6);
+  // The correction is bounded (tanh): alpha can be overruled, but never pushed so far into the
+  // sigmoid's flat tails that its gradient vanishes.
+  torch::Tensor alpha = torch::sigmoid(10 * torch::tanh(raw.index({Slice(), Slice(3, 4)}) / 10) + 12 * coverage - 6);
   return {rgb, alpha};
 }
 

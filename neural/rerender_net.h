@@ -11,13 +11,14 @@
 
 namespace holocap::neural {
 
-// Colour (3), coverage (1), camera-frame normal (3), depth about the subject's median (1).
-inline constexpr int kRerenderInputChannels = 8;
+// Colour (3), coverage (1), camera-frame normal (3), depth about the subject's median (1),
+// world position about the subject's median (3).
+inline constexpr int kRerenderInputChannels = 11;
 
 class UNetImpl : public torch::nn::Module {
  public:
   explicit UNetImpl(const UNetConfig& config);
-  // features [B, 8, H, W], H and W multiples of 2^depth -> raw [B, 4, H, W] (0 at start).
+  // features [B, 11, H, W], H and W multiples of 2^depth -> raw [B, 4, H, W] (0 at start).
   torch::Tensor forward(const torch::Tensor& features);
 
  private:
@@ -27,7 +28,7 @@ class UNetImpl : public torch::nn::Module {
 };
 TORCH_MODULE(UNet);
 
-// G-buffers -> [8, H, W] inputs. NaN or infinite depth counts as empty.
+// G-buffers -> [11, H, W] inputs. NaN or infinite depth counts as empty.
 torch::Tensor RerenderFeatures(const GBuffer& buffers);
 // Zero-pads [B, C, H, W] on the right and bottom to multiples of `multiple`.
 torch::Tensor PadToMultiple(const torch::Tensor& x, int multiple);

@@ -21,6 +21,7 @@ struct ScreenTriangle {
   Eigen::Vector2f pixel[3];
   float inv_z[3];
   Eigen::Vector3f color[3];   // BGR in [0, 1]
+  Eigen::Vector3f world[3];
   Eigen::Vector3f normal[3];  // camera coordinates
 };
 
@@ -67,6 +68,7 @@ class TriangleSplitter {
           t.pixel[i] = pixel[i];
           t.inv_z[i] = 1.0f / cam[i].z();
           t.color[i] = corner[i].color;
+          t.world[i] = corner[i].world;
           t.normal[i] = rotation_ * corner[i].normal;
         }
         out->push_back(t);
@@ -118,6 +120,7 @@ void SplatPoint(const recon::FastProjector& projector, const SurfacePoint& point
       t.pixel[i] = corner[index[i]];
       t.inv_z[i] = 1.0f / cam.z();
       t.color[i] = point.color;
+      t.world[i] = point.world;
       t.normal[i] = normal;
     }
     out->push_back(t);
@@ -189,6 +192,7 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
   out.triangles_split = split;
   out.color = cv::Mat(height, width, CV_32FC3, cv::Scalar::all(0));
   out.normal = cv::Mat(height, width, CV_32FC3, cv::Scalar::all(0));
+  out.position = cv::Mat(height, width, CV_32FC3, cv::Scalar::all(0));
   out.depth = cv::Mat(height, width, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
   out.mask = cv::Mat(height, width, CV_8U, cv::Scalar(0));
   if (triangles.empty()) return out;
@@ -232,11 +236,13 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
           best[x] = inv_z;
           const float p0 = w0 * t.inv_z[0] / inv_z, p1 = w1 * t.inv_z[1] / inv_z, p2 = w2 * t.inv_z[2] / inv_z;
           const Eigen::Vector3f color = p0 * t.color[0] + p1 * t.color[1] + p2 * t.color[2];
+          const Eigen::Vector3f world = p0 * t.world[0] + p1 * t.world[1] + p2 * t.world[2];
           Eigen::Vector3f normal = p0 * t.normal[0] + p1 * t.normal[1] + p2 * t.normal[2];
           const float norm = normal.norm();
           if (norm > 0) normal /= norm;
           out.color.at<cv::Vec3f>(y, x) = {color.x(), color.y(), color.z()};
           out.normal.at<cv::Vec3f>(y, x) = {normal.x(), normal.y(), normal.z()};
+          out.position.at<cv::Vec3f>(y, x) = {world.x(), world.y(), world.z()};
           out.depth.at<float>(y, x) = 1.0f / inv_z;
           out.mask.at<uint8_t>(y, x) = 255;
         }

@@ -5,13 +5,16 @@
 #include <cstdio>
 #include <limits>
 #include <map>
+#include <numbers>
 #include <numeric>
 #include <opencv2/imgproc.hpp>
 #include <random>
 #include <set>
+#include <tuple>
 
 #include "core/error.h"
 #include "core/fs.h"
+#include "core/image.h"
 #include "core/progress.h"
 #include "core/take.h"
 #include "neural/data.h"
@@ -88,6 +91,7 @@ struct CameraData {
   torch::Tensor background;       // [1, 3, Hp, Wp]
   torch::Tensor weight;           // [F, 1, Hp, Wp] loss weights (subject favoured)
   std::vector<cv::Mat> truth_images, raw_images, subject_masks;  // unpadded
+  std::vector<std::vector<int32_t>> subject_pixels;  // per frame, y * width + x near the subject
   int height = 0, width = 0;
 };
 
@@ -167,6 +171,7 @@ void RerenderOptions::Check() const {
   if (!(minutes > 0) && iterations <= 0) Fail("give a positive time budget (minutes) or an iteration count");
   if (iterations < 0) Fail("iterations must be >= 0");
   if (batch_pairs < 1 || batch_pairs > 64) Fail("batch_pairs must be in [1, 64] (got ", batch_pairs, ")");
+  if (crop_px < 0 || (crop_px > 0 && crop_px < 16)) Fail("crop_px must be 0 (whole images) or >= 16 (got ", crop_px, ")");
   if (!(learning_rate > 0 && learning_rate < 1)) Fail("learning_rate must be in (0, 1) (got ", learning_rate, ")");
   for (double w : {l1_weight, ssim_weight, temporal_weight, gan_weight}) {
     if (!(w >= 0 && std::isfinite(w))) Fail("loss weights must be finite and >= 0");
@@ -184,7 +189,7 @@ nlohmann::json RerenderOptions::ToJson() const {
           {"recon_dir", recon_dir.string()}, {"reconstruction", reconstruction.ToJson()},
           {"image_width", image_width}, {"first_frame", first_frame}, {"last_frame", last_frame},
           {"minutes", minutes}, {"iterations", iterations}, {"batch_pairs", batch_pairs},
-          {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
+          {"crop_px", crop_px},           {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
           {"subject_weight", subject_weight}, {"temporal_weight", temporal_weight}, {"gan_weight", gan_weight},
           {"seed", seed}, {"eval_every_s", eval_every_s}, {"threads", threads}};
 }
@@ -341,6 +346,10 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       d.truth_images.push_back(image);
       d.raw_images.push_back(CompositeRawRender(buffers, background));
       d.subject_masks.push_back(subject);
+      std::vector<cv::Point> near;
+      cv::findNonZero(subject, near);
+      d.subject_pixels.emplace_back();
+      for (const cv::Point& p : near) d.subject_pixels.back().push_back(p.y * d.width + p.x);
     }
     d.features = neural::PadToMultiple(torch::stack(features), multiple);
     d.truth = neural::PadToMultiple(torch::stack(truth), multiple);
@@ -353,6 +362,19 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   plan["temporal_term"] = temporal ? "on" : (sets.size() < 2 ? "off: one frame" : "off: weight 0");
   plan["patch_gan"] = options.gan_weight > 0 ? "on" : "off";
   plan["train_resolution"] = Cat(data[0].width, "x", data[0].height);
+  // Crops share one size across the witnesses: the requested one rounded up to the network's
+  // multiple, at most the smallest padded image.
+  int64_t crop_w = std::numeric_limits<int64_t>::max(), crop_h = crop_w;
+  for (size_t i = 0; i < witness.size(); ++i) {
+    crop_w = std::min(crop_w, data[i].features.size(3));
+    crop_h = std::min(crop_h, data[i].features.size(2));
+  }
+  if (options.crop_px > 0) {
+    const int64_t crop = (options.crop_px + multiple - 1) / multiple * multiple;
+    crop_w = std::min(crop_w, crop);
+    crop_h = std::min(crop_h, crop);
+  }
+  plan["train_crop"] = options.crop_px > 0 ? Cat(crop_w, "x", crop_h, " near the subject") : std::string("whole images");
 
   RerenderNetwork network(options.net, options.seed);
   neural::UNet& net = network.state().net;
@@ -401,6 +423,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   const auto start = std::chrono::steady_clock::now();
   double next_eval = 0;
   Evaluation last;
+  std::vector<std::vector<cv::Mat>> last_images;
   std::vector<double> losses;
   Progress progress("rerender", options.iterations > 0 ? options.iterations : static_cast<int64_t>(options.minutes * 60));
   const std::filesystem::path weights = model_dir / "unet.pt";
@@ -411,7 +434,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     const bool done = (options.iterations > 0 && iteration >= options.iterations) ||
                       (options.minutes > 0 && elapsed >= options.minutes * 60);
     if (!eval_cameras.empty() && (elapsed >= next_eval || done)) {
-      last = evaluate(false).first;
+      std::tie(last, last_images) = evaluate(false);
       if (report) {
         report->AddPoint("heldout_psnr_db", last.psnr_db, iteration);
         report->AddPoint("heldout_ssim", last.ssim, iteration);
@@ -420,25 +443,47 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       next_eval = elapsed + options.eval_every_s;
     }
     if (done) break;
+    // Cosine decay of the rate to a tenth over the budget: large steps first, then refinement
+    // without their noise.
+    const double spent = std::max(options.minutes > 0 ? elapsed / (options.minutes * 60) : 0.0,
+                                  options.iterations > 0 ? static_cast<double>(iteration) / options.iterations : 0.0);
+    static_cast<torch::optim::AdamOptions&>(optimizer.param_groups()[0].options())
+        .lr(options.learning_rate * (0.1 + 0.45 * (1 + std::cos(std::numbers::pi * std::min(spent, 1.0)))));
 
-    // A batch: pairs of consecutive frames of one witness camera.
-    CameraData& d = *train_cameras[std::uniform_int_distribution<size_t>(0, train_cameras.size() - 1)(rng)];
-    const int64_t frames = d.features.size(0);
-    std::vector<int64_t> index;
+    // A batch: pairs of consecutive frames of a witness camera, each pair cropped alike around
+    // a pixel near the subject (whole images when crops are off).
+    std::vector<torch::Tensor> xs, truths, weights, backgrounds;
+    int64_t samples = 0;
     for (int p = 0; p < options.batch_pairs; ++p) {
+      const CameraData& d = *train_cameras[std::uniform_int_distribution<size_t>(0, train_cameras.size() - 1)(rng)];
+      const int64_t frames = d.features.size(0);
       const int64_t t = std::uniform_int_distribution<int64_t>(0, std::max<int64_t>(0, frames - (temporal ? 2 : 1)))(rng);
-      index.push_back(t);
-      if (temporal) index.push_back(t + 1);
+      const int64_t count = temporal ? 2 : 1;
+      int64_t x0 = 0, y0 = 0;
+      if (options.crop_px > 0) {
+        const std::vector<int32_t>& near = d.subject_pixels[t];
+        const int64_t pixel = near.empty() ? std::uniform_int_distribution<int64_t>(0, int64_t{d.width} * d.height - 1)(rng)
+                                           : near[std::uniform_int_distribution<size_t>(0, near.size() - 1)(rng)];
+        x0 = std::clamp<int64_t>(pixel % d.width - crop_w / 2, 0, d.features.size(3) - crop_w);
+        y0 = std::clamp<int64_t>(pixel / d.width - crop_h / 2, 0, d.features.size(2) - crop_h);
+      }
+      const auto window = [&](const torch::Tensor& all, int64_t first, int64_t n) {
+        return all.index({Slice(first, first + n), Slice(), Slice(y0, y0 + crop_h), Slice(x0, x0 + crop_w)});
+      };
+      xs.push_back(window(d.features, t, count));
+      truths.push_back(window(d.truth, t, count));
+      weights.push_back(window(d.weight, t, count));
+      backgrounds.push_back(window(d.background, 0, 1).expand({count, 3, crop_h, crop_w}));
+      samples += count;
     }
-    const torch::Tensor ids = torch::tensor(index, torch::kLong);
-    const torch::Tensor x = d.features.index_select(0, ids), truth = d.truth.index_select(0, ids);
-    const torch::Tensor weight = d.weight.index_select(0, ids);
+    const torch::Tensor x = torch::cat(xs), truth = torch::cat(truths), weight = torch::cat(weights);
+    const torch::Tensor background = torch::cat(backgrounds);
     auto [rgb, alpha] = neural::DecodeRerender(net->forward(x), x);
-    const torch::Tensor out = Composite(rgb, alpha, d.background);
+    const torch::Tensor out = Composite(rgb, alpha, background);
     torch::Tensor loss = options.l1_weight * (weight * (out - truth).abs()).mean() / weight.mean();
     if (options.ssim_weight > 0) loss = loss + options.ssim_weight * (1 - MultiScaleSsim(out, truth));
     if (temporal) {
-      const torch::Tensor even = torch::arange(0, static_cast<int64_t>(index.size()), 2), odd = even + 1;
+      const torch::Tensor even = torch::arange(0, samples, 2), odd = even + 1;
       const torch::Tensor change = out.index_select(0, odd) - out.index_select(0, even);
       const torch::Tensor truth_change = truth.index_select(0, odd) - truth.index_select(0, even);
       loss = loss + options.temporal_weight * (change - truth_change).abs().mean();
@@ -476,7 +521,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   if (diverged) {
     // The weights on disk are those of the last evaluation, before the loss broke down.
     network = RerenderNetwork::Load(weights, options.net);
-    last = evaluate(false).first;
+    std::tie(last, last_images) = evaluate(false);
   }
   network.Save(weights);
   summary.heldout_psnr_db = last.psnr_db;
@@ -484,6 +529,14 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   summary.heldout_psnr_subject_db = last.psnr_subject_db;
   summary.flicker_ratio = last.flicker_ratio;
   summary.flicker_excess = last.flicker_excess;
+
+  if (!eval_cameras.empty() && !last_images[0].empty()) {
+    const size_t f = last_images[0].size() / 2;
+    cv::Mat strip, eight_bit;
+    cv::hconcat(std::vector<cv::Mat>{eval_cameras[0]->truth_images[f], eval_cameras[0]->raw_images[f], last_images[0][f]}, strip);
+    strip.convertTo(eight_bit, CV_8UC3, 255);
+    WritePng(model_dir / "heldout.png", eight_bit);
+  }
 
   // The model directory.
   std::filesystem::create_directories(model_dir / "cameras");

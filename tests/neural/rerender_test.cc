@@ -40,7 +40,7 @@ TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
     ASSERT_GT(area, 2000) << camera.lensmodel();
     // Only pixels on the rim may disagree (the mesh is a polygon inscribed in the sphere).
     EXPECT_LT(CountMismatch(buffers.mask, mask), 0.03 * area) << camera.lensmodel();
-    double depth_error = 0, normal_error_deg = 0;
+    double depth_error = 0, normal_error_deg = 0, position_error = 0;
     int count = 0;
     const Eigen::Vector3d centre_in_cam = camera.cam_from_world() * sphere.centre;
     for (int y = 0; y < mask.rows; ++y) {
@@ -51,6 +51,8 @@ TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
         const Eigen::Vector3d ray = camera.Unproject(Eigen::Vector2d(x, y));
         const Eigen::Vector3d point = ray * (depth.at<float>(y, x) / ray.z());
         const Eigen::Vector3d truth = (point - centre_in_cam).normalized();
+        const cv::Vec3f p = buffers.position.at<cv::Vec3f>(y, x);
+        position_error += (camera.cam_from_world().inverse() * point - Eigen::Vector3d(p[0], p[1], p[2])).norm();
         const cv::Vec3f n = buffers.normal.at<cv::Vec3f>(y, x);
         const double cosine = std::clamp(truth.dot(Eigen::Vector3d(n[0], n[1], n[2])), -1.0, 1.0);
         normal_error_deg += std::acos(cosine) * 180 / M_PI;
@@ -59,6 +61,7 @@ TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
     }
     ASSERT_GT(count, 0);
     EXPECT_LT(depth_error / count, 1e-3) << camera.lensmodel();  // metres
+    EXPECT_LT(position_error / count, 2e-3) << camera.lensmodel();
     EXPECT_LT(normal_error_deg / count, 2.0) << camera.lensmodel();
     // Vertex colours default to mid grey where the mesh has none.
     EXPECT_NEAR(cv::mean(buffers.color, buffers.mask)[1], 0.5, 1e-3);
@@ -198,6 +201,9 @@ TEST(RerenderOptions, ChecksExplainBadValues) {
   EXPECT_THROW(options.Check(), Error);
   options = {};
   options.image_width = 8;
+  EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.crop_px = 8;
   EXPECT_THROW(options.Check(), Error);
   EXPECT_NO_THROW(RerenderOptions{}.Check());
 }
