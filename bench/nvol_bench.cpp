@@ -63,7 +63,11 @@ int main(int argc, char** argv) {
   CLI::App app{"Neural Volumes benchmark"};
   double minutes = 30, dino_minutes = 5;
   int grid = 64, frames = 30, width = 160, sim_width = 320, rays = 16384;
-  std::string work = "/tmp/nvol-bench";
+  NeuralVolumeOptions defaults;
+  int latent = defaults.latent_dim, channels = defaults.decoder_channels, warp_grid = defaults.warp_grid;
+  double lr = defaults.learning_rate, tv = defaults.tv_weight, template_lr = defaults.template_learning_rate;
+  bool playback = true;
+  std::string work = "/tmp/nvol-bench", take_option;
   bool dino = false, dino_only = false;
   std::string scene = "subject";
   app.add_option("--minutes", minutes, "Training budget of the dynamic take");
@@ -77,13 +81,23 @@ int main(int argc, char** argv) {
   app.add_flag("--dino-only", dino_only, "Only the dinoSparseRing case");
   app.add_option("--scene", scene, "Simulated scene: subject (dynamic) or object (static)");
   app.add_option("--dino-minutes", dino_minutes, "Training budget of dinoSparseRing");
+  app.add_option("--take", take_option, "Train on this take instead of simulating one");
+  app.add_option("--latent", latent, "Latent code size");
+  app.add_option("--channels", channels, "Decoder channels after its first layer");
+  app.add_option("--warp-grid", warp_grid, "Warp field voxels per axis");
+  app.add_option("--lr", lr, "Adam learning rate of the networks");
+  app.add_option("--tv", tv, "Total-variation weight of the grid");
+  app.add_option("--template-lr", template_lr, "Adam learning rate of the template's residual grid");
+  app.add_flag("!--no-playback", playback, "Skip the playback table");
   CLI11_PARSE(app, argc, argv);
   const fs::path root = work;
   fs::create_directories(root);
 
   if (!dino_only) {
     if (scene == "object") frames = 1;
-    const fs::path take = root / ("studio8-" + scene + "-" + std::to_string(frames) + "-" + std::to_string(sim_width));
+    const fs::path take = take_option.empty()
+        ? root / ("studio8-" + scene + "-" + std::to_string(frames) + "-" + std::to_string(sim_width))
+        : fs::path(take_option);
     if (!fs::exists(take / "take.json")) {
       SimOptions sim;
       sim.rig = "studio8";
@@ -101,6 +115,12 @@ int main(int argc, char** argv) {
     options.minutes = minutes;
     options.image_width = width;
     options.rays_per_batch = rays;
+    options.latent_dim = latent;
+    options.decoder_channels = channels;
+    options.warp_grid = warp_grid;
+    options.learning_rate = lr;
+    options.tv_weight = tv;
+    options.template_learning_rate = template_lr;
     options.eval_every_s = std::max(10.0, minutes * 60 / 20);
     Report report("nvol_bench");
     const fs::path model = root / ("model-" + scene + "-grid" + std::to_string(grid));
@@ -112,7 +132,7 @@ int main(int argc, char** argv) {
     std::printf("%s: %s\nloss %.5f -> %.5f, %lld iterations, %.1f samples/ray (skipping on)\n",
                 ToString(summary.termination), summary.message.c_str(), summary.first_loss,
                 summary.last_loss, static_cast<long long>(summary.iterations), summary.samples_per_ray);
-    PlaybackTable(model, root / "playback");
+    if (playback) PlaybackTable(model, root / "playback");
   }
 
   if (dino || dino_only) {

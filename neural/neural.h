@@ -76,11 +76,14 @@ struct NeuralVolumeOptions {
   int frames_per_batch = 1;      // frames decoded per iteration (dynamic scenes)
   double learning_rate = 2e-3;   // Adam
   double static_learning_rate = 3e-2;  // Adam on the grid itself (static scenes)
+  double template_learning_rate = 1e-2;  // Adam on the template's directly optimised residual
+                                         // grid (dynamic scenes)
   double kl_weight = 1e-3;       // KL of the latent (dynamic scenes)
   double alpha_prior_weight = 1e-4;  // beta prior pushing ray alpha towards 0 or 1 (colours in
                                      // [0, 1]: the paper weighs it against 0..255 pixel errors)
   double tv_weight = 1e-2;       // total variation of the grid
-  bool learn_background = true;  // refine the training cameras' backgrounds
+  bool learn_background = true;  // refine the training cameras' backgrounds where no frame
+                                 // shows the subject
   double step_voxels = 1.0;      // ray-marching step in voxels
   bool jitter = true;            // random offset of the first sample of each training ray
   double min_transmittance = 1e-3;  // training rays stop once this little light is left

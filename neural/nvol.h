@@ -28,6 +28,7 @@ struct NvolConfig {
   int encoder_height = 48;
   int decoder_channels = 128;
   int cameras = 0;
+  int frames = 0;  // dynamic: frames with a learnt code of their own
   Eigen::Vector3d box_min = Eigen::Vector3d::Zero();
   Eigen::Vector3d box_max = Eigen::Vector3d::Ones();
 
@@ -80,7 +81,8 @@ class WarpDecoderImpl : public torch::nn::Module {
 TORCH_MODULE(WarpDecoder);
 
 // The whole model. A static model holds only `grid` (the raw RGBA grid itself is optimised);
-// a dynamic one the encoder, the template decoder and the warp decoder. Both hold per-camera
+// a dynamic one the encoder, the template decoder (plus `grid`, a directly optimised
+// residual), per-frame codes and the warp decoder. Both hold per-camera
 // colour calibration.
 class NvolModelImpl : public torch::nn::Module {
  public:
@@ -94,7 +96,11 @@ class NvolModelImpl : public torch::nn::Module {
   Encoder encoder{nullptr};
   TemplateDecoder decoder{nullptr};
   WarpDecoder warp{nullptr};
-  torch::Tensor grid;   // static: raw [1, 4, D, D, D]
+  torch::Tensor grid;   // raw [1, 4, D, D, D]: the volume (static), the template's residual (dynamic)
+  // Dynamic: a learnt code per frame [frames, L], added to the encoder's mean. The encoder
+  // sees the subject small in a few low-resolution views, so its means barely tell frames
+  // apart at first; the codes let each frame's volume separate from the others early.
+  torch::Tensor frame_codes;
   torch::Tensor gain;   // [cameras, 3], around 1
   torch::Tensor bias;   // [cameras, 3], around 0
 

@@ -59,6 +59,7 @@ nlohmann::json NvolConfig::ToJson() const {
           {"encoder_height", encoder_height},
           {"decoder_channels", decoder_channels},
           {"cameras", cameras},
+          {"frames", frames},
           {"box_min", {box_min.x(), box_min.y(), box_min.z()}},
           {"box_max", {box_max.x(), box_max.y(), box_max.z()}}};
 }
@@ -75,6 +76,7 @@ NvolConfig NvolConfig::FromJson(const nlohmann::json& json) {
   c.encoder_height = json.at("encoder_height").get<int>();
   c.decoder_channels = json.at("decoder_channels").get<int>();
   c.cameras = json.at("cameras").get<int>();
+  c.frames = json.value("frames", 0);
   c.box_min = VectorFromJson(json.at("box_min"));
   c.box_max = VectorFromJson(json.at("box_max"));
   return c;
@@ -174,6 +176,11 @@ NvolModelImpl::NvolModelImpl(const NvolConfig& config) : config_(config) {
     decoder = register_module("decoder", TemplateDecoder(config.latent_dim, config.grid, config.decoder_channels));
     warp = register_module("warp", WarpDecoder(config.latent_dim, config.warp_grid, config.warp_count,
                                                std::max(config.decoder_channels / 2, 16)));
+    // The template's fine detail, optimised directly (as a static grid is) and added to the
+    // decoder's output: a per-voxel parameter follows the images within tens of steps, while
+    // the decoder and the warp learn what changes from frame to frame.
+    grid = register_parameter("grid", torch::zeros({1, 4, config.grid, config.grid, config.grid}));
+    if (config.frames > 0) frame_codes = register_parameter("frame_codes", torch::zeros({config.frames, config.latent_dim}));
   } else {
     // Grey and nearly empty (optical depth softplus(-5) = 0.007 per voxel): Adam moves each
     // voxel by about the learning rate per step, so density appears within tens of steps
@@ -196,7 +203,7 @@ torch::Tensor ActivateRgba(const torch::Tensor& raw, double density_scale) {
 }
 
 torch::Tensor NvolModelImpl::DecodeRgba(const torch::Tensor& latent) {
-  torch::Tensor raw = config_.dynamic ? decoder->forward(latent) : grid;
+  torch::Tensor raw = config_.dynamic ? decoder->forward(latent) + grid : grid;
   return ActivateRgba(raw, config_.density_scale());
 }
 

@@ -74,6 +74,7 @@ class Trainer {
         options.encoder_width * static_cast<double>(first.height()) / first.width())));
     config_.decoder_channels = options.decoder_channels;
     config_.cameras = static_cast<int>(data.views.size());
+    config_.frames = data.dynamic ? static_cast<int>(data.sets.size()) : 0;
     config_.box_min = data.box_min;
     config_.box_max = data.box_max;
     torch::manual_seed(options.seed);
@@ -100,6 +101,22 @@ class Trainer {
         if (all_rays_.back().t_far[i] > all_rays_.back().t_near[i]) pixels.push_back(static_cast<int32_t>(i));
       }
       box_pixels_.push_back(std::move(pixels));
+    }
+    // The backgrounds are refined only where no frame shows the subject (silhouettes grown by
+    // 4 pixels): a per-pixel background would otherwise absorb a subject that moves little
+    // (or not at all) and leave the volume empty, which held-out cameras then expose.
+    if (options.learn_background) {
+      std::vector<torch::Tensor> learnable;
+      for (size_t v = 0; v < data.views.size(); ++v) {
+        cv::Mat subject_anywhere = cv::Mat::zeros(data.views[v].background.size(), CV_8UC1);
+        for (size_t f = 0; f < data.sets.size(); ++f) subject_anywhere |= data.masks[f][v];
+        cv::dilate(subject_anywhere, subject_anywhere, cv::Mat(), cv::Point(-1, -1), 4);
+        cv::Mat free;
+        cv::compare(subject_anywhere, 0, free, cv::CmpTypes::CMP_EQ);
+        free.convertTo(free, CV_32FC1, 1.0 / 255.0);
+        learnable.push_back(torch::from_blob(free.data, {free.rows * free.cols, 1}, torch::kFloat32).clone());
+      }
+      background_learnable_ = torch::cat(learnable).contiguous();
     }
     // Pixels of each frame's training silhouettes (grown by 4 pixels) that see the box: half
     // of every batch is drawn from them so that the subject, a small part of each image, is
@@ -137,7 +154,7 @@ class Trainer {
     // Evaluation frames, spread over the take.
     const int64_t count = std::min<int64_t>(options.eval_frames, data.sets.size());
     for (int64_t i = 0; i < count; ++i) eval_frames_.push_back(i * static_cast<int64_t>(data.sets.size()) / count);
-    MakeOptimizer(options.learning_rate, data.dynamic ? options.learning_rate : options.static_learning_rate);
+    MakeOptimizer(1.0);
   }
 
   nlohmann::json Modules() const {
@@ -162,14 +179,19 @@ class Trainer {
     return torch::from_blob(f.data, {f.rows, f.cols, 3}, torch::kFloat32).clone();
   }
 
-  void MakeOptimizer(double network_lr, double grid_lr) {
-    std::vector<torch::Tensor> network, calibration;
+  // Rates scaled by `scale` (the divergence guard lowers it).
+  void MakeOptimizer(double scale) {
+    const double network_lr = options_.learning_rate * scale;
+    const double grid_lr = (data_.dynamic ? options_.template_learning_rate : options_.static_learning_rate) * scale;
+    std::vector<torch::Tensor> network, grid, calibration;
     for (const auto& p : model_->named_parameters()) {
       if (p.key() == "gain" || p.key() == "bias") calibration.push_back(p.value());
+      else if (p.key() == "grid") grid.push_back(p.value());
       else network.push_back(p.value());
     }
     std::vector<torch::optim::OptimizerParamGroup> groups;
-    groups.emplace_back(network, std::make_unique<torch::optim::AdamOptions>(data_.dynamic ? network_lr : grid_lr));
+    groups.emplace_back(grid, std::make_unique<torch::optim::AdamOptions>(grid_lr));
+    if (!network.empty()) groups.emplace_back(network, std::make_unique<torch::optim::AdamOptions>(network_lr));
     groups.emplace_back(calibration, std::make_unique<torch::optim::AdamOptions>(network_lr));
     if (backgrounds_.requires_grad()) {
       groups.emplace_back(std::vector<torch::Tensor>{backgrounds_}, std::make_unique<torch::optim::AdamOptions>(network_lr));
@@ -197,12 +219,15 @@ class Trainer {
     if (kl != nullptr) {
       *kl = 0.5 * (mu.pow(2) + (2 * log_sigma).exp() - 1 - 2 * log_sigma).sum(1).mean();
     }
+    if (model_->frame_codes.defined()) mu = mu + model_->frame_codes.narrow(0, f, 1);
     if (!sample) return mu;
     return mu + log_sigma.exp() * torch::randn_like(mu);
   }
 
   double TrainStep(int64_t iteration, double* photometric, double* samples_per_ray);
-  Evaluation Evaluate();
+  // Held-out PSNR/SSIM; with `write_images`, each held-out view is also written to
+  // model_dir/heldout/ as the rendering beside the truth, for a person to look at.
+  Evaluation Evaluate(bool write_images = false);
   void SaveCheckpoint(int64_t iteration);
   bool LoadCheckpoint(int64_t* iteration);
   void SaveModel(const nlohmann::json& plan);
@@ -218,6 +243,7 @@ class Trainer {
   std::vector<int64_t> offset_;
   int64_t total_pixels_ = 0;
   torch::Tensor backgrounds_, images_, encoder_inputs_;
+  torch::Tensor background_learnable_;  // [P, 1]: 1 where no frame's silhouette reaches
   std::vector<neural::RayBatch> all_rays_;
   std::vector<std::vector<int32_t>> box_pixels_;
   std::vector<std::vector<std::pair<int, int32_t>>> subject_pixels_;  // [frame] (view, pixel)
@@ -310,6 +336,7 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
   const double value = loss.item<double>();
   if (std::isfinite(value)) {
     loss.backward();
+    if (backgrounds_.requires_grad() && backgrounds_.grad().defined()) backgrounds_.mutable_grad().mul_(background_learnable_);
     optimizer_->step();
     // The first training camera is the colour reference: its calibration stays the identity
     // (gain and bias are otherwise ambiguous with the volume's colours). Held-out cameras
@@ -323,7 +350,7 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
   return value;
 }
 
-Evaluation Trainer::Evaluate() {
+Evaluation Trainer::Evaluate(bool write_images) {
   torch::NoGradGuard no_grad;
   Evaluation result;
   if (heldout_.empty()) return result;
@@ -359,6 +386,13 @@ Evaluation Trainer::Evaluate() {
       mse_background_sum += std::pow(10.0, -PsnrDb(background, truth, mask) / 10.0);
       ssim_sum += Ssim(predicted, truth);
       ++count;
+      if (write_images) {
+        cv::Mat side_by_side, image8;
+        cv::hconcat(predicted, truth, side_by_side);
+        side_by_side.convertTo(image8, CV_8UC3, 255.0);
+        CreateDirectories(model_dir_ / "heldout");
+        WritePng(model_dir_ / "heldout" / Cat(data_.views[v].name, "_frame", data_.sets[f], ".png"), image8);
+      }
     }
   }
   // PSNR of the mean squared error over every evaluated image (not the mean of PSNRs).
@@ -402,7 +436,7 @@ bool Trainer::LoadCheckpoint(int64_t* iteration) {
       backgrounds_.copy_(backgrounds);
     }
     lr_scale_ = scale.item<double>();
-    MakeOptimizer(options_.learning_rate * lr_scale_, options_.static_learning_rate * lr_scale_);
+    MakeOptimizer(lr_scale_);
     torch::serialize::InputArchive optimizer_archive;
     archive.read("optimizer", optimizer_archive);
     optimizer_->load(optimizer_archive);
@@ -485,8 +519,8 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   double running = 0, first_finite_loss = -1;
   double next_eval = 0, next_checkpoint = options_.checkpoint_every_s;
   Evaluation last_eval;
-  auto log_eval = [&](int64_t it) {
-    last_eval = Evaluate();
+  auto log_eval = [&](int64_t it, bool write_images = false) {
+    last_eval = Evaluate(write_images);
     if (report != nullptr && !heldout_.empty()) {
       report->AddPoint("heldout_psnr_db", last_eval.psnr_db, it);
       report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, it);
@@ -518,7 +552,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
       ++summary.divergences;
       RestoreSnapshot(snapshot, model_, backgrounds_);
       lr_scale_ *= 0.5;
-      MakeOptimizer(options_.learning_rate * lr_scale_, options_.static_learning_rate * lr_scale_);
+      MakeOptimizer(lr_scale_);
       std::fprintf(stderr, "nvol: iteration %lld: loss %g %s; restored the checkpoint of iteration %lld, learning rate x%.3g\n",
                    static_cast<long long>(iteration), loss, std::isfinite(loss) ? "exploded" : "is not finite",
                    static_cast<long long>(snapshot.iteration), lr_scale_);
@@ -551,7 +585,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   summary.seconds = elapsed();
   summary.iterations = iteration;
   SaveCheckpoint(iteration);
-  log_eval(iteration);
+  log_eval(iteration, /*write_images=*/true);
   const size_t window = std::max<size_t>(1, std::min<size_t>(10, photo_history.size() / 4));
   if (!photo_history.empty()) {
     summary.first_loss = std::accumulate(photo_history.begin(), photo_history.begin() + window, 0.0) / window;
