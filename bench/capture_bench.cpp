@@ -4,7 +4,9 @@
 // triggers, frames lost, packet resend requests, sync spread, and the disk's own sequential
 // write speed measured in the same run. The peers are arv-fake-gv-camera-0.8 ("arv", software
 // triggers served on a 25 Hz tick only) and holocap-fake-gige-camera ("hc", the same libaravis
-// camera with a 100 Hz trigger tick); "loss" is their GVSP packet loss per thousand.
+// camera with a 100 Hz trigger tick); "loss" is their GVSP packet loss per thousand. Frames
+// carry libaravis' ramp (compresses to almost nothing) or noise (incompressible: what the
+// disk must take is the rig rate itself).
 //
 //   capture_bench [--seconds 60] [--out /tmp/holocap-capture-bench]   (seconds per row)
 
@@ -47,6 +49,7 @@ double DiskWriteMBs(const std::filesystem::path& dir, size_t bytes) {
 struct Config {
   double tick_hz;  // 0: arv-fake-gv-camera-0.8
   int lost_per_thousand;
+  std::string pattern;  // "ramp" | "noise"
   int cameras;
   int width;
   int height;
@@ -74,16 +77,17 @@ int main(int argc, char** argv) {
     DriverRegistry registry;
     RegisterAravisDriver(registry);
     const std::vector<Config> configs = {
-        {0, 0, 8, 256, 256, 25, "zstd"},   {0, 0, 8, 256, 256, 30, "zstd"},   {100, 0, 8, 256, 256, 30, "zstd"},
-        {100, 20, 8, 256, 256, 30, "zstd"}, {100, 0, 8, 512, 512, 30, "zstd"}, {100, 0, 8, 512, 512, 30, "png"},
-        {100, 0, 8, 1024, 768, 30, "zstd"}};
-    std::printf("%-4s %-4s %-4s %-9s %-4s %-5s %8s %10s %8s %11s %7s %8s %9s %8s\n", "peer", "loss", "cams", "size",
-                "fps", "codec", "rig MB/s", "write MB/s", "vs disk", "sets/trig", "lost", "resends", "spread ms",
-                "mean ms");
+        {0, 0, "ramp", 8, 256, 256, 25, "zstd"},    {0, 0, "ramp", 8, 256, 256, 30, "zstd"},
+        {100, 0, "ramp", 8, 256, 256, 30, "zstd"},  {100, 20, "ramp", 8, 128, 64, 30, "zstd"},
+        {100, 0, "noise", 8, 512, 512, 30, "zstd"}, {100, 0, "noise", 8, 1024, 768, 30, "zstd"},
+        {100, 0, "noise", 8, 1024, 768, 30, "png"}};
+    std::printf("%-4s %-4s %-5s %-4s %-9s %-4s %-5s %8s %10s %8s %11s %7s %8s %9s %8s\n", "peer", "loss", "frame",
+                "cams", "size", "fps", "codec", "rig MB/s", "write MB/s", "vs disk", "sets/trig", "lost", "resends",
+                "spread ms", "mean ms");
     double best_zero_drop = 0;
     std::string best_text = "none";
     for (const Config& config : configs) {
-      testing::FakeGigeCameras cameras(config.cameras, config.lost_per_thousand, config.tick_hz);
+      testing::FakeGigeCameras cameras(config.cameras, config.lost_per_thousand, config.tick_hz, config.pattern);
       RigDescription rig;
       rig.name = "fake-booth";
       rig.sync = SyncMode::kSoftwareTrigger;
@@ -112,7 +116,7 @@ int main(int argc, char** argv) {
       const auto take = out / ("take-" + std::to_string(config.width) + "-" + config.codec + "-" +
                                std::to_string(static_cast<int>(config.fps)) + "-" +
                                std::to_string(static_cast<int>(config.tick_hz)) + "-" +
-                               std::to_string(config.lost_per_thousand));
+                               std::to_string(config.lost_per_thousand) + "-" + config.pattern);
       Recorder recorder(rig, take, options, registry);
       RecorderSummary summary = recorder.Run();
       int64_t triggers = 0, resends = 0;
@@ -121,8 +125,9 @@ int main(int argc, char** argv) {
         resends += sensor.driver.value("n_resend_requests", int64_t{0});
       }
       const double rig_mb_s = config.cameras * config.width * config.height * config.fps / 1e6;
-      std::printf("%-4s %-4d %-4d %4dx%-4d %-4.0f %-5s %8.1f %10.2f %7.2f%% %5lld/%-5lld %7lld %8lld %9.2f %8.2f%s\n",
-                  config.tick_hz == 0 ? "arv" : "hc", config.lost_per_thousand, config.cameras, config.width,
+      std::printf("%-4s %-4d %-5s %-4d %4dx%-4d %-4.0f %-5s %8.1f %10.2f %7.2f%% %5lld/%-5lld %7lld %8lld %9.2f %8.2f%s\n",
+                  config.tick_hz == 0 ? "arv" : "hc", config.lost_per_thousand, config.pattern.c_str(), config.cameras,
+                  config.width,
                   config.height, config.fps, config.codec.c_str(), rig_mb_s, summary.write_mb_s,
                   100.0 * summary.write_mb_s / disk, static_cast<long long>(summary.frame_sets_complete),
                   static_cast<long long>(triggers), static_cast<long long>(summary.frames_dropped),
@@ -132,9 +137,9 @@ int main(int argc, char** argv) {
       if (summary.frames_dropped == 0 && summary.termination == Termination::kSuccess && rig_mb_s > best_zero_drop) {
         best_zero_drop = rig_mb_s;
         char text[128];
-        std::snprintf(text, sizeof(text), "%d x %dx%d x %.0f fps = %.1f MB/s (%s, %s)", config.cameras,
+        std::snprintf(text, sizeof(text), "%d x %dx%d x %.0f fps = %.1f MB/s (%s, %s, %s frames)", config.cameras,
                       config.width, config.height, config.fps, rig_mb_s, config.codec.c_str(),
-                      config.tick_hz == 0 ? "arv" : "hc");
+                      config.tick_hz == 0 ? "arv" : "hc", config.pattern.c_str());
         best_text = text;
       }
       std::filesystem::remove_all(take);

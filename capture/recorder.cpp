@@ -111,7 +111,8 @@ Recorder::~Recorder() = default;
 struct Recorder::Shared {
   explicit Shared(size_t n)
       : queued(n, 0), triggers(n), captured(n), dropped_queue(n), dropped_sets(n), unmatched(n), written(n),
-        sequence_gaps(n), after_end(n), warmup_frames(n), warmup_sequence(n), warmup_timestamp(n), ended(n) {}
+        sequence_gaps(n), after_end(n), warmup_frames(n), warmup_sequence(n), warmup_timestamp(n),
+        lost_before_first_trigger(n), ended(n) {}
 
   void Failure(const std::string& message) {
     std::lock_guard lock(failure_mutex);
@@ -143,7 +144,7 @@ struct Recorder::Shared {
   std::string failure;
 
   std::vector<std::atomic<int64_t>> triggers, captured, dropped_queue, dropped_sets, unmatched, written,
-      sequence_gaps, after_end, warmup_frames, warmup_sequence, warmup_timestamp;
+      sequence_gaps, after_end, warmup_frames, warmup_sequence, warmup_timestamp, lost_before_first_trigger;
   std::vector<std::atomic<bool>> ended;
   std::atomic<int64_t> sets_complete{0}, sets_incomplete{0}, sets_dropped{0};
   std::atomic<int64_t> spread_last_ns{0}, spread_max_ns{0};
@@ -285,6 +286,8 @@ RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& 
             return;
           }
         }
+        // Incomplete frames of the warm-up triggers are no frames of the take.
+        shared.lost_before_first_trigger[s] = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
         for (int64_t k = 0; k < trigger_count && !shared.stop_triggers; ++k) {
           const auto tick = first_tick + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(k * period_s));
           while (Clock::now() < tick && !shared.stop_triggers) {
@@ -416,7 +419,12 @@ RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& 
   // and hardware trigger: the driver's count or the gaps in the frame counter.
   auto lost_in_driver = [&](size_t s, bool final) -> int64_t {
     const int64_t reported = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
-    if (software && final) return std::max<int64_t>(reported, shared.triggers[s] - shared.captured[s]);
+    if (software) {
+      // Every trigger the take sent and no complete frame answered; while frames may still be
+      // on their way, only those the driver already saw incomplete.
+      const int64_t unanswered = std::max<int64_t>(0, shared.triggers[s] - shared.captured[s]);
+      return final ? unanswered : std::min(unanswered, reported - shared.lost_before_first_trigger[s]);
+    }
     return std::max<int64_t>(reported, shared.sequence_gaps[s]);
   };
   std::vector<int64_t> counted_drops(n, 0);
@@ -454,7 +462,9 @@ RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& 
       if (triggers_done_at_set) {
         bool all_answered = true;
         for (size_t s = 0; s < n; ++s) {
-          all_answered &= shared.captured[s] + static_cast<int64_t>(sensors_[s]->stats().frames_lost) >= trigger_count;
+          all_answered &= shared.captured[s] + static_cast<int64_t>(sensors_[s]->stats().frames_lost) -
+                              shared.lost_before_first_trigger[s] >=
+                          trigger_count;
         }
         if (all_answered || SecondsSince(triggers_done) > options_.drain_s) shared.stop_capture = true;
       }

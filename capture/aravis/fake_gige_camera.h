@@ -18,6 +18,10 @@ struct FakeGigeCameraSpec {
   // triggers closer than 40 ms fold into one frame; a finer tick serves every trigger. It
   // busy-polls through the last millisecond before each tick, so 1 kHz keeps a core busy.
   double trigger_tick_hz = 25;
+  // Pixel values: "ramp", libaravis' diagonal ramp whose start moves with every frame (a frame
+  // assembled from two frames' packets breaks it), or "noise", pseudo-random bytes that no
+  // codec can shrink, for measuring what a take's disk writes.
+  std::string pattern = "ramp";
 
   void Check() const;  // throws Error explaining a bad value
 };
@@ -29,6 +33,7 @@ int ServeFakeGigeCamera(const FakeGigeCameraSpec& spec);
 
 // The holocap-fake-gige-camera program built with this library, which serves one fake camera:
 //   holocap-fake-gige-camera -i ADDRESS -s SERIAL [-r LOST_PER_THOUSAND] [-t TRIGGER_TICK_HZ]
+//                            [-p ramp|noise]
 std::string FakeGigeCameraProgram();
 
 }  // namespace holocap

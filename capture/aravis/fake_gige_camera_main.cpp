@@ -3,6 +3,7 @@
 // FakeGigeCameraSpec). Started by the capture tests and capture_bench.
 //
 //   holocap-fake-gige-camera -i ADDRESS -s SERIAL [-r LOST_PER_THOUSAND] [-t TRIGGER_TICK_HZ]
+//                            [-p ramp|noise]
 #include <cstdio>
 #include <string>
 
@@ -24,8 +25,10 @@ int main(int argc, char** argv) {
         spec.lost_per_thousand = std::stod(value);
       } else if (flag == "-t") {
         spec.trigger_tick_hz = std::stod(value);
+      } else if (flag == "-p") {
+        spec.pattern = value;
       } else {
-        holocap::Fail("unknown option ", flag, " (expected -i ADDRESS -s SERIAL [-r LOST] [-t TICK_HZ])");
+        holocap::Fail("unknown option ", flag, " (expected -i ADDRESS -s SERIAL [-r LOST] [-t TICK_HZ] [-p ramp|noise])");
       }
     }
     const int status = holocap::ServeFakeGigeCamera(spec);

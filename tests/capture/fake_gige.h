@@ -50,8 +50,11 @@ class FakeGigeCameras {
 
   // Starts `count` cameras on 127.0.0.1..count with serials HC1..HCn. `lost_per_thousand` is
   // their GVSP packet loss; `trigger_tick_hz` > 0 runs holocap-fake-gige-camera with that
-  // software-trigger tick, 0 runs arv-fake-gv-camera-0.8 (25 Hz tick).
-  FakeGigeCameras(int count, int lost_per_thousand = 0, double trigger_tick_hz = 0) {
+  // software-trigger tick, 0 runs arv-fake-gv-camera-0.8 (25 Hz tick); `pattern` "noise"
+  // (holocap-fake-gige-camera only) fills frames with bytes no codec can shrink.
+  FakeGigeCameras(int count, int lost_per_thousand = 0, double trigger_tick_hz = 0,
+                  const std::string& pattern = "ramp") {
+    if (pattern != "ramp" && trigger_tick_hz <= 0) Fail("fake GigE cameras: arv-fake-gv-camera-0.8 has only the ramp");
     std::string error = EnterPrivateNetwork();
     if (!error.empty()) Fail("fake GigE cameras: ", error);
     for (int i = 1; i <= count; ++i) {
@@ -76,7 +79,7 @@ class FakeGigeCameras {
         if (null_output >= 0) dup2(null_output, STDOUT_FILENO);
         if (trigger_tick_hz > 0) {
           execl(program.c_str(), program.c_str(), "-i", address.c_str(), "-s", serial.c_str(), "-r", ratio.c_str(),
-                "-t", tick.c_str(), static_cast<char*>(nullptr));
+                "-t", tick.c_str(), "-p", pattern.c_str(), static_cast<char*>(nullptr));
         } else {
           execlp("arv-fake-gv-camera-0.8", "arv-fake-gv-camera-0.8", "-i", address.c_str(), "-s", serial.c_str(),
                  "-r", ratio.c_str(), static_cast<char*>(nullptr));
