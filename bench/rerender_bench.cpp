@@ -4,7 +4,7 @@
 // 512² frame (rasterising and the network apart). Prints tables; never passes or fails on time.
 // Usage:
 //   rerender_bench [--minutes 10] [--frames 30] [--width 160] [--sim-width 320]
-//                  [--unet-width 24] [--unet-depth 4] [--crop 64] [--batch-pairs 2]
+//                  [--unet-width 24] [--unet-depth 4] [--crop 64] [--batch-pairs 2] [--lr 3e-4]
 //                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
@@ -113,6 +113,7 @@ int main(int argc, char** argv) {
   app.add_option("--temporal-weight", base.temporal_weight, "Temporal-consistency weight");
   app.add_option("--crop", base.crop_px, "Training crop size near the subject (0: whole images)");
   app.add_option("--batch-pairs", base.batch_pairs, "Pairs of consecutive frames per step");
+  app.add_option("--lr", base.learning_rate, "Adam learning rate (decayed to a tenth over the budget)");
   int train_threads = 0;
   app.add_option("--threads", threads, "Threads for inference (and training unless --train-threads)");
   app.add_option("--train-threads", train_threads, "Threads for reconstruction and training (0: --threads)");
