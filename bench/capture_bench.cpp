@@ -84,8 +84,8 @@ int main(int argc, char** argv) {
     std::printf("%-4s %-4s %-5s %-4s %-9s %-4s %-5s %8s %10s %8s %11s %7s %8s %9s %8s\n", "peer", "loss", "frame",
                 "cams", "size", "fps", "codec", "rig MB/s", "write MB/s", "vs disk", "sets/trig", "lost", "resends",
                 "spread ms", "mean ms");
-    double best_zero_drop = 0;
-    std::string best_text = "none";
+    double best_zero_drop = 0, best_nearly = 0;
+    std::string best_text = "none", best_nearly_text = "none";
     for (const Config& config : configs) {
       testing::FakeGigeCameras cameras(config.cameras, config.lost_per_thousand, config.tick_hz, config.pattern);
       RigDescription rig;
@@ -134,17 +134,25 @@ int main(int argc, char** argv) {
                   static_cast<long long>(resends), summary.sync_spread_us_max / 1e3, summary.sync_spread_us_mean / 1e3,
                   summary.termination == Termination::kSuccess ? "" : ("  " + summary.message).c_str());
       std::fflush(stdout);
-      if (summary.frames_dropped == 0 && summary.termination == Termination::kSuccess && rig_mb_s > best_zero_drop) {
+      char text[160];
+      std::snprintf(text, sizeof(text), "%d x %dx%d x %.0f fps = %.1f MB/s (%s, %s, %s frames)", config.cameras,
+                    config.width, config.height, config.fps, rig_mb_s, config.codec.c_str(),
+                    config.tick_hz == 0 ? "arv" : "hc", config.pattern.c_str());
+      const bool ok = summary.termination == Termination::kSuccess;
+      if (ok && summary.frames_dropped == 0 && rig_mb_s > best_zero_drop) {
         best_zero_drop = rig_mb_s;
-        char text[128];
-        std::snprintf(text, sizeof(text), "%d x %dx%d x %.0f fps = %.1f MB/s (%s, %s, %s frames)", config.cameras,
-                      config.width, config.height, config.fps, rig_mb_s, config.codec.c_str(),
-                      config.tick_hz == 0 ? "arv" : "hc", config.pattern.c_str());
         best_text = text;
+      }
+      // The fake cameras now and then acknowledge a trigger and send nothing for it (a set or a
+      // few in 1800 on a loaded two-core host), so the zero-drop line has a companion.
+      if (ok && triggers > 0 && summary.frame_sets_complete * 1000 >= triggers * 995 && rig_mb_s > best_nearly) {
+        best_nearly = rig_mb_s;
+        best_nearly_text = text;
       }
       std::filesystem::remove_all(take);
     }
     std::printf("\nlargest rig rate recorded with zero drops: %s\n", best_text.c_str());
+    std::printf("largest rig rate with at least 99.5%% of triggered sets complete: %s\n", best_nearly_text.c_str());
   } catch (const std::exception& e) {
     std::fprintf(stderr, "capture_bench: %s\n", e.what());
     return 1;
