@@ -9,8 +9,11 @@
 // The solve is staged like mrcal's own mrcal-calibrate-cameras: board poses and rig geometry
 // first with a stereographic lens, then the intrinsics core, then everything in the final lens
 // model with regularisation and outlier rejection. mrcal 2.2 solves one lens model per problem,
-// so a rig whose cameras ask for different models is solved in the most general of them (a
-// splined model if any camera asks for one); the plan in the report says which model ran.
+// so a rig whose cameras ask for different models is solved jointly in the most general model
+// of the cameras that do not ask for a splined one (when they are at least half the rig), then
+// each camera whose model that cannot stand in for is re-solved alone in its own model (its
+// intrinsics and its pose relative to the reference, against the joint solve's board poses);
+// the report's notes and stages say which cameras were.
 //
 // Projection uncertainty follows mrcal's Python projection_uncertainty() ("mean-frames"): the
 // observation noise is propagated through the Jacobian returned by mrcal_optimizer_callback,
@@ -203,6 +206,7 @@ struct CalibrationSummary {
   std::vector<CalibratedCamera> cameras;
   std::vector<SolveStage> stages;
   std::vector<std::string> warnings;
+  std::vector<std::string> notes;    // how the solve was arranged (e.g. cameras re-solved alone)
   double rms_reprojection_px = 0;    // all inliers, all cameras
   double observed_pixel_sigma = 0;   // the noise the uncertainty assumed
   int frames = 0;                    // board poses solved
@@ -232,8 +236,12 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
 struct GroundTruthComparison {
   double focal_rel_err_max = 0;
   double principal_point_err_px_max = 0;
-  double rotation_err_deg_max = 0;       // cam_from_reference, against the truth
-  double translation_err_mm_max = 0;
+  // Each camera's pose after the rigid motion that best lays the solved rig onto the true one.
+  double rotation_err_deg_max = 0;
+  double translation_err_mm_max = 0;     // of the camera centres
+  // cam_from_reference against the truth (the reference camera's own error in every camera).
+  double rotation_err_deg_max_from_reference = 0;
+  double translation_err_mm_max_from_reference = 0;
   double projection_diff_rms_px = 0;     // true vs solved projection over the imagers
   double projection_diff_max_px = 0;
   double projection_diff_rms_observed_px = 0;  // only where the board was seen
@@ -312,6 +320,10 @@ struct TakeCalibrationSummary {
   GroundTruthComparison ground_truth;
   std::vector<std::filesystem::path> written;  // models, report and pictures
 };
+
+// The lens model the take's rig asks for `sensor` (its option calib_lensmodel), else OPENCV8.
+// Throws Error for a model mrcal does not know.
+std::string RigLensModel(const Take& take, const std::string& sensor);
 
 // Detects, solves, writes calib/<sensor>.cameramodel for every solved camera (cam_from_world
 // with world = the reference camera, or the true world on a simulated take, which the report

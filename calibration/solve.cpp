@@ -128,7 +128,8 @@ struct Problem {
   std::string lensmodel;
   mrcal_lensmodel_t parsed{};
   std::vector<double> intrinsics;         // Ncameras * Nparams
-  std::vector<mrcal_pose_t> extrinsics;   // Ncameras - 1
+  std::vector<mrcal_pose_t> extrinsics;   // cam_from_ref of the cameras away from the reference
+  std::vector<int> extrinsics_of;         // mrcal camera -> index into extrinsics, -1: reference
   std::vector<mrcal_pose_t> frames;
   mrcal_calobject_warp_t warp{};
   mrcal_problem_selections_t selections{};
@@ -136,14 +137,18 @@ struct Problem {
   std::vector<double> x;                  // last residuals
 
   int ncams() const { return static_cast<int>(camera_index.size()); }
+  int next() const { return static_cast<int>(extrinsics.size()); }
+  Pose CamFromRef(int icam) const {
+    return extrinsics_of[icam] < 0 ? Pose::Identity() : FromMrcal(extrinsics[extrinsics_of[icam]]);
+  }
   int nparams() const { return mrcal_lensmodel_num_params(&parsed); }
   int nmeasurements() const {
     return mrcal_num_measurements(static_cast<int>(observations.size()), 0, width_n, height_n,
-                                  ncams(), ncams() - 1, static_cast<int>(frames.size()), 0, 0,
+                                  ncams(), next(), static_cast<int>(frames.size()), 0, 0,
                                   selections, &parsed);
   }
   int nstate() const {
-    return mrcal_num_states(ncams(), ncams() - 1, static_cast<int>(frames.size()), 0, 0,
+    return mrcal_num_states(ncams(), next(), static_cast<int>(frames.size()), 0, 0,
                             static_cast<int>(observations.size()), selections, &parsed);
   }
 
@@ -158,12 +163,79 @@ struct Problem {
                           intrinsics.data(),
                           extrinsics.empty() ? nullptr : extrinsics.data(), frames.data(),
                           nullptr, selections.do_optimize_calobject_warp ? &warp : nullptr,
-                          ncams(), ncams() - 1, static_cast<int>(frames.size()), 0, 0,
+                          ncams(), next(), static_cast<int>(frames.size()), 0, 0,
                           observations.data(), nullptr, static_cast<int>(observations.size()), 0,
                           pool.data(), &parsed, imagersizes.data(), selections, &constants,
                           layout.spacing, width_n, height_n, verbose, false);
   }
 };
+
+// The model of the joint solve: the most general one of the cameras that do not ask for a
+// splined model when those are at least half the rig (a splined model for every camera is
+// slow and needs many views), otherwise the most general of all.
+std::string JointModel(const std::vector<std::string>& names) {
+  std::vector<std::string> plain;
+  for (const auto& n : names) {
+    if (!IsSplined(n)) plain.push_back(n);
+  }
+  return 2 * plain.size() >= names.size() && !plain.empty() ? MostGeneralModel(plain)
+                                                             : MostGeneralModel(names);
+}
+
+// Whether a camera asking for `requested` is served by the joint solve in `joint`: a splined
+// model stands in for any other, an OPENCV model for any less general one.
+bool Represents(const std::string& joint, const std::string& requested) {
+  if (IsSplined(joint) || joint == requested) return true;
+  auto opencv = [](const std::string& m) { return m.rfind("LENSMODEL_OPENCV", 0) == 0 || m == "LENSMODEL_PINHOLE"; };
+  return opencv(joint) && opencv(requested) && MostGeneralModel({joint, requested}) == joint;
+}
+
+// The problem `q` of one camera seen from the camera itself (no extrinsics, its board poses
+// free): the state its projection uncertainty is propagated through, as a single-camera
+// calibration would (the board poses it was solved against are not held fixed here).
+Problem CameraFrame(const Problem& q) {
+  Problem mono = q;
+  for (auto& frame : mono.frames) frame = ToMrcal(q.CamFromRef(0) * FromMrcal(frame));
+  mono.extrinsics.clear();
+  mono.extrinsics_of = {-1};
+  for (auto& obs : mono.observations) obs.icam.extrinsics = -1;
+  mono.selections.do_optimize_extrinsics = false;
+  mono.selections.do_optimize_frames = true;
+  return mono;
+}
+
+// Camera m of the joint problem alone: its own views, the joint solve's board poses (held
+// fixed) and its pose relative to the reference as the seed. `pool` holds the observations'
+// weights as given, before the joint solve's outlier rejection.
+Problem CameraAlone(const Problem& p, int m, const std::vector<mrcal_point3_t>& pool) {
+  Problem q;
+  q.layout = p.layout;
+  q.width_n = p.width_n;
+  q.height_n = p.height_n;
+  q.camera_index = {p.camera_index[m]};
+  q.imagersizes = {p.imagersizes[2 * m], p.imagersizes[2 * m + 1]};
+  if (p.extrinsics_of[m] >= 0) q.extrinsics.push_back(p.extrinsics[p.extrinsics_of[m]]);
+  q.extrinsics_of = {q.extrinsics.empty() ? -1 : 0};
+  const size_t per_view = static_cast<size_t>(p.width_n) * p.height_n;
+  std::map<int, int> frame_of;
+  for (size_t o = 0; o < p.observations.size(); ++o) {
+    if (p.observations[o].icam.intrinsics != m) continue;
+    const int iframe = p.observations[o].iframe;
+    const auto [it, inserted] = frame_of.emplace(iframe, static_cast<int>(q.frames.size()));
+    if (inserted) {
+      q.frames.push_back(p.frames[iframe]);
+      q.frame_sets.push_back(p.frame_sets[iframe]);
+    }
+    mrcal_observation_board_t obs = p.observations[o];
+    obs.icam.intrinsics = 0;
+    obs.icam.extrinsics = q.extrinsics_of[0];
+    obs.iframe = it->second;
+    q.observations.push_back(obs);
+    q.observation_source.push_back(p.observation_source[o]);
+    q.pool.insert(q.pool.end(), pool.begin() + o * per_view, pool.begin() + (o + 1) * per_view);
+  }
+  return q;
+}
 
 mrcal_problem_selections_t Selections(bool core, bool distortions, bool regularization,
                                       bool outliers, bool warp) {
@@ -278,7 +350,7 @@ bool Jacobian(Problem& p, Eigen::SparseMatrix<double>* jt) {
   const int nstate = p.nstate();
   const int nmeas = p.nmeasurements();
   const int nnz = _mrcal_num_j_nonzero(static_cast<int>(p.observations.size()), 0, p.width_n,
-                                       p.height_n, p.ncams(), p.ncams() - 1,
+                                       p.height_n, p.ncams(), p.next(),
                                        static_cast<int>(p.frames.size()), 0, 0,
                                        p.observations.data(), nullptr, p.selections, &p.parsed);
   cholmod_sparse* sparse =
@@ -293,7 +365,7 @@ bool Jacobian(Problem& p, Eigen::SparseMatrix<double>* jt) {
       static_cast<int>(nmeas * sizeof(double)), reinterpret_cast<cholmod_sparse_struct*>(sparse),
       p.intrinsics.data(), p.extrinsics.empty() ? nullptr : p.extrinsics.data(), p.frames.data(),
       nullptr, p.selections.do_optimize_calobject_warp ? &p.warp : nullptr, p.ncams(),
-      p.ncams() - 1, static_cast<int>(p.frames.size()), 0, 0, p.observations.data(), nullptr,
+      p.next(), static_cast<int>(p.frames.size()), 0, 0, p.observations.data(), nullptr,
       static_cast<int>(p.observations.size()), 0, p.pool.data(), &p.parsed, p.imagersizes.data(),
       p.selections, &p.constants, p.layout.spacing, p.width_n, p.height_n, false);
   if (ok) {
@@ -341,6 +413,22 @@ struct Factorization {
   bool regularized = false;
 };
 
+// The solve's J*tJ* factored for the noise propagation.
+bool Factor(Problem& p, Factorization* f) {
+  if (!Jacobian(p, &f->jt)) return false;
+  const Eigen::SparseMatrix<double> jtj = f->jt * Eigen::SparseMatrix<double>(f->jt.transpose());
+  f->ldlt.compute(jtj);
+  if (f->ldlt.info() != Eigen::Success) return false;
+  f->nmeas_observations =
+      mrcal_num_measurements_boards(static_cast<int>(p.observations.size()), p.width_n, p.height_n);
+  f->regularized = f->nmeas_observations != p.nmeasurements();
+  if (f->regularized) {
+    const Eigen::SparseMatrix<double> jobs_t = f->jt.leftCols(f->nmeas_observations);
+    f->jobs_t_jobs = jobs_t * Eigen::SparseMatrix<double>(jobs_t.transpose());
+  }
+  return true;
+}
+
 // mrcal's projection_uncertainty(): Var(q) for pixels of camera `icam` at `distance`.
 CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double distance,
                               double sigma, int grid_x, int grid_y) {
@@ -361,17 +449,21 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
   const double* intrinsics = p.intrinsics.data() + icam * nparams;
   const int nstate = p.nstate();
   const int nframes = static_cast<int>(p.frames.size());
-  const int i_intr = mrcal_state_index_intrinsics(icam, p.ncams(), p.ncams() - 1, nframes, 0, 0,
+  const int i_intr = mrcal_state_index_intrinsics(icam, p.ncams(), p.next(), nframes, 0, 0,
                                                   static_cast<int>(p.observations.size()),
                                                   p.selections, &p.parsed);
-  const int i_extr = icam == 0 ? -1
-                               : mrcal_state_index_extrinsics(
-                                     icam - 1, p.ncams(), p.ncams() - 1, nframes, 0, 0,
-                                     static_cast<int>(p.observations.size()), p.selections,
-                                     &p.parsed);
-  const int i_frames = mrcal_state_index_frames(0, p.ncams(), p.ncams() - 1, nframes, 0, 0,
-                                                static_cast<int>(p.observations.size()),
-                                                p.selections, &p.parsed);
+  const int extr = p.extrinsics_of[icam];
+  const int i_extr = extr < 0 || !p.selections.do_optimize_extrinsics
+                         ? -1
+                         : mrcal_state_index_extrinsics(
+                               extr, p.ncams(), p.next(), nframes, 0, 0,
+                               static_cast<int>(p.observations.size()), p.selections, &p.parsed);
+  // Board poses held fixed (a camera re-solved alone) carry no uncertainty of their own here.
+  const int i_frames = !p.selections.do_optimize_frames
+                           ? -1
+                           : mrcal_state_index_frames(0, p.ncams(), p.next(), nframes, 0, 0,
+                                                      static_cast<int>(p.observations.size()),
+                                                      p.selections, &p.parsed);
   const bool has_core = mrcal_lensmodel_metadata(&p.parsed).has_core;
   const int first_optimized = has_core && !p.selections.do_optimize_intrinsics_core ? 4 : 0;
 
@@ -413,19 +505,19 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
       }
       Eigen::Vector3d p_ref = p_cam;
       Eigen::Matrix3d dpcam_dpref = Eigen::Matrix3d::Identity();
-      if (icam > 0) {
-        p_ref = InvertTransform(p.extrinsics[icam - 1], p_cam);
+      if (extr >= 0) {
+        p_ref = InvertTransform(p.extrinsics[extr], p_cam);
         Eigen::Vector3d check;
         Eigen::Matrix<double, 3, 6, Eigen::RowMajor> d_rt;
         Eigen::Matrix<double, 3, 3, Eigen::RowMajor> d_x;
-        TransformGradients(p.extrinsics[icam - 1], p_ref, &check, &d_rt, &d_x);
-        rows.block(0, i_extr, 2, 6) = dq_dpcam * d_rt;
+        TransformGradients(p.extrinsics[extr], p_ref, &check, &d_rt, &d_x);
+        if (i_extr >= 0) rows.block(0, i_extr, 2, 6) = dq_dpcam * d_rt;
         dpcam_dpref = d_x;
       }
       // The point as each board pose sees it, mapped back and averaged: its sensitivity to
       // every frame, divided by Nframes.
       const Eigen::Matrix<double, 2, 3> dq_dpref = dq_dpcam * dpcam_dpref;
-      for (int fr = 0; fr < nframes; ++fr) {
+      for (int fr = 0; fr < nframes && i_frames >= 0; ++fr) {
         const Eigen::Vector3d p_frame = InvertTransform(p.frames[fr], p_ref);
         Eigen::Vector3d back;
         Eigen::Matrix<double, 3, 6, Eigen::RowMajor> d_rt;
@@ -435,7 +527,7 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
       // To the packed state: the state is in the denominator, so "unpack" scales it.
       for (int r = 0; r < 2; ++r) {
         Eigen::VectorXd row = rows.row(r).transpose();
-        mrcal_unpack_solver_state_vector(row.data(), p.ncams(), p.ncams() - 1, nframes, 0, 0,
+        mrcal_unpack_solver_state_vector(row.data(), p.ncams(), p.next(), nframes, 0, 0,
                                          p.selections, &p.parsed);
         dq_db.col(2 * k + r) = row;
       }
@@ -552,6 +644,7 @@ nlohmann::json CalibrationSummary::ToJson() const {
                       {"observations", observations},
                       {"outliers", outliers},
                       {"warnings", warnings},
+                      {"notes", notes},
                       {"cameras", cams},
                       {"stages", stage_json},
                       {"timing", {{"solve_s", solve_seconds}, {"uncertainty_s", uncertainty_seconds}}}};
@@ -852,6 +945,7 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
     p.imagersizes.push_back(cam.height);
     requested.push_back(cam.lensmodel);
     if (m > 0) p.extrinsics.push_back(ToMrcal(cam_from_ref[p.camera_index[m]]));
+    p.extrinsics_of.push_back(m - 1);
   }
   for (const auto& [set, members] : frame_members) {
     std::vector<Pose> estimates;
@@ -875,14 +969,22 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
       }
     }
   }
+  const std::vector<mrcal_point3_t> given_pool = p.pool;  // before any outlier rejection
   summary.frames = static_cast<int>(p.frames.size());
   summary.observations = static_cast<int>(p.observations.size());
-  summary.lensmodel = MostGeneralModel(requested);
+  summary.lensmodel = JointModel(requested);
   std::set<std::string> distinct(requested.begin(), requested.end());
   if (distinct.size() > 1) {
-    summary.warnings.push_back(Cat("cameras ask for ", distinct.size(),
-                                   " lens models; mrcal 2.2 solves one per problem, so all use ",
-                                   summary.lensmodel));
+    std::string alone;
+    for (int m = 0; m < p.ncams(); ++m) {
+      if (!Represents(summary.lensmodel, requested[m])) {
+        alone += (alone.empty() ? "" : ", ") + cameras[p.camera_index[m]].name + " (" + requested[m] + ")";
+      }
+    }
+    summary.notes.push_back(Cat("cameras ask for ", distinct.size(), " lens models and mrcal 2.2 solves one per problem: ",
+                                "the rig is solved in ", summary.lensmodel,
+                                alone.empty() ? std::string(", which contains every model asked for")
+                                              : ", then re-solved alone in their own models against the rig's board poses: " + alone));
   }
   for (const auto& c : summary.cameras) {
     if (!c.flag.empty()) summary.warnings.push_back(c.name + ": " + c.flag);
@@ -948,53 +1050,111 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
   if (!record("everything", final_stats)) {
     return fail(Termination::kFailure, "the final stage produced NaN");
   }
+  // Cameras that ask for another model than the joint solve's: each alone in its own model,
+  // the board poses held where the whole rig put them, its intrinsics (staged as above) and
+  // its pose relative to the reference free.
+  std::map<int, Problem> alone;  // by mrcal camera of the joint problem
+  for (int m = 0; m < p.ncams(); ++m) {
+    const std::string& model = requested[m];
+    if (Represents(summary.lensmodel, model)) continue;
+    Problem q = CameraAlone(p, m, given_pool);
+    q.SetModel(model);
+    const int n = q.nparams();
+    q.intrinsics.assign(n, 0.0);
+    for (int k = 0; k < 4; ++k) q.intrinsics[k] = core[m * 4 + k];
+    const bool q_splined = IsSplined(model);
+    const bool q_core = mrcal_lensmodel_metadata(&q.parsed).has_core;
+    const std::string name = cameras[p.camera_index[m]].name;
+    {
+      // Its core and pose first through a stereographic lens against the rig's board poses: the
+      // joint stereographic core was fitted while the rig's other lenses pulled the board poses,
+      // and a splined model's fixed core off by pixels is traded for a turned camera.
+      Problem seed = q;
+      seed.SetModel("LENSMODEL_STEREOGRAPHIC");
+      seed.intrinsics.assign(q.intrinsics.begin(), q.intrinsics.begin() + 4);
+      seed.selections = Selections(true, false, false, false, false);
+      seed.selections.do_optimize_frames = false;
+      seed.selections.do_optimize_extrinsics = !seed.extrinsics.empty();
+      const mrcal_stats_t stats = seed.Optimize(options.verbose);
+      summary.stages.push_back({Cat(name, " alone, core"), seed.lensmodel, stats.rms_reproj_error__pixels,
+                                stats.Noutliers, elapsed()});
+      if (std::isfinite(stats.rms_reproj_error__pixels)) {
+        std::copy(seed.intrinsics.begin(), seed.intrinsics.end(), q.intrinsics.begin());
+        q.extrinsics = seed.extrinsics;
+      }
+    }
+    for (bool last : {false, true}) {
+      q.selections = Selections(q_core && !q_splined, n > 4, options.regularization,
+                                last && options.outlier_rejection, false);
+      q.selections.do_optimize_frames = false;
+      q.selections.do_optimize_extrinsics = !q.extrinsics.empty();
+      const mrcal_stats_t stats = q.Optimize(options.verbose);
+      summary.stages.push_back({Cat(name, " alone, ", last ? "everything" : "intrinsics"), model,
+                                stats.rms_reproj_error__pixels, stats.Noutliers, elapsed()});
+      if (!std::isfinite(stats.rms_reproj_error__pixels)) {
+        return fail(Termination::kFailure, Cat("re-solving ", name, " in ", model, " produced NaN"));
+      }
+    }
+    alone.emplace(m, std::move(q));
+  }
   summary.solve_seconds = elapsed();
 
-  // Residuals per camera.
-  const int nobs = static_cast<int>(p.observations.size());
+  // Residuals, models and board distances per camera, from the problem that solved it.
+  auto absorb = [&](const Problem& q, int only) {
+    const int nobs = static_cast<int>(q.observations.size());
+    const int np = q.nparams();
+    std::vector<std::vector<double>> distances(q.ncams());
+    for (int o = 0; o < nobs; ++o) {
+      const int m = q.observations[o].icam.intrinsics;
+      if (only >= 0 && m != only) continue;
+      CalibratedCamera& out = summary.cameras[q.camera_index[m]];
+      const int base = mrcal_measurement_index_boards(o, nobs, 0, q.width_n, q.height_n);
+      const Pose ref_from_board = FromMrcal(q.frames[q.observations[o].iframe]);
+      distances[m].push_back((q.CamFromRef(m) * ref_from_board).translation().norm());
+      const auto& source = observations_in[q.observation_source[o]].points;
+      for (int r = 0; r < q.width_n * q.height_n; ++r) {
+        const mrcal_point3_t& point = q.pool[static_cast<size_t>(o) * q.width_n * q.height_n + r];
+        if (source(r, 2) <= 0) continue;
+        if (point.z < 0) {
+          ++out.outliers;
+          continue;
+        }
+        out.observed.emplace_back(point.x, point.y);
+        out.residuals.emplace_back(-q.x[base + 2 * r] / point.z, -q.x[base + 2 * r + 1] / point.z);
+        ++out.points;
+      }
+    }
+    for (int m = 0; m < q.ncams(); ++m) {
+      if (only >= 0 && m != only) continue;
+      CalibratedCamera& out = summary.cameras[q.camera_index[m]];
+      double s2 = 0;
+      for (const auto& r : out.residuals) s2 += r.squaredNorm();
+      out.rms_px = out.points > 0 ? std::sqrt(s2 / (2.0 * out.points)) : 0;
+      auto& d = distances[m];
+      std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
+      out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
+      std::vector<double> intrinsics(q.intrinsics.begin() + m * np, q.intrinsics.begin() + (m + 1) * np);
+      out.model = CameraModel(q.lensmodel, intrinsics, q.imagersizes[2 * m], q.imagersizes[2 * m + 1],
+                              q.CamFromRef(m));
+      out.solved = true;
+    }
+  };
+  for (int m = 0; m < p.ncams(); ++m) {
+    if (!alone.count(m)) absorb(p, m);
+  }
+  for (const auto& [m, q] : alone) absorb(q, 0);
   double sum2 = 0;
   int inliers = 0;
   std::vector<double> all_residuals;
-  std::vector<std::vector<double>> distances(p.ncams());
-  for (int o = 0; o < nobs; ++o) {
-    const int m = p.observations[o].icam.intrinsics;
-    CalibratedCamera& out = summary.cameras[p.camera_index[m]];
-    const int base = mrcal_measurement_index_boards(o, nobs, 0, p.width_n, p.height_n);
-    const Pose ref_from_board = FromMrcal(p.frames[p.observations[o].iframe]);
-    const Pose cam_from_ref_m = m == 0 ? Pose::Identity() : FromMrcal(p.extrinsics[m - 1]);
-    distances[m].push_back((cam_from_ref_m * ref_from_board).translation().norm());
-    const auto& source = observations_in[p.observation_source[o]].points;
-    for (int r = 0; r < p.width_n * p.height_n; ++r) {
-      const mrcal_point3_t& q = p.pool[static_cast<size_t>(o) * p.width_n * p.height_n + r];
-      if (source(r, 2) <= 0) continue;
-      if (q.z < 0) {
-        ++out.outliers;
-        continue;
-      }
-      const Eigen::Vector2d residual(-p.x[base + 2 * r] / q.z, -p.x[base + 2 * r + 1] / q.z);
-      out.observed.emplace_back(q.x, q.y);
-      out.residuals.push_back(residual);
-      ++out.points;
-      sum2 += residual.squaredNorm();
-      all_residuals.push_back(residual.x());
-      all_residuals.push_back(residual.y());
-      ++inliers;
-    }
-  }
   for (int m = 0; m < p.ncams(); ++m) {
-    CalibratedCamera& out = summary.cameras[p.camera_index[m]];
-    double s2 = 0;
-    for (const auto& r : out.residuals) s2 += r.squaredNorm();
-    out.rms_px = out.points > 0 ? std::sqrt(s2 / (2.0 * out.points)) : 0;
+    const CalibratedCamera& out = summary.cameras[p.camera_index[m]];
     summary.outliers += out.outliers;
-    auto& d = distances[m];
-    std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
-    out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
-    const Pose pose = m == 0 ? Pose::Identity() : FromMrcal(p.extrinsics[m - 1]);
-    std::vector<double> intrinsics(p.intrinsics.begin() + m * nparams,
-                                   p.intrinsics.begin() + (m + 1) * nparams);
-    out.model = CameraModel(p.lensmodel, intrinsics, p.imagersizes[2 * m], p.imagersizes[2 * m + 1], pose);
-    out.solved = true;
+    inliers += out.points;
+    for (const auto& r : out.residuals) {
+      sum2 += r.squaredNorm();
+      all_residuals.push_back(r.x());
+      all_residuals.push_back(r.y());
+    }
   }
   // Per coordinate, so it compares directly with a per-axis detection noise.
   summary.rms_reprojection_px = inliers > 0 ? std::sqrt(sum2 / (2.0 * inliers)) : 0;
@@ -1012,26 +1172,26 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
   std::vector<std::string> ill;
   if (options.uncertainty) {
     const auto u_start = std::chrono::steady_clock::now();
-    Factorization f;
-    bool ok = Jacobian(p, &f.jt);
-    if (ok) {
-      const Eigen::SparseMatrix<double> jtj = f.jt * Eigen::SparseMatrix<double>(f.jt.transpose());
-      f.ldlt.compute(jtj);
-      ok = f.ldlt.info() == Eigen::Success;
-      f.nmeas_observations = mrcal_num_measurements_boards(nobs, p.width_n, p.height_n);
-      f.regularized = f.nmeas_observations != p.nmeasurements();
-      if (f.regularized) {
-        const Eigen::SparseMatrix<double> jobs_t = f.jt.leftCols(f.nmeas_observations);
-        f.jobs_t_jobs = jobs_t * Eigen::SparseMatrix<double>(jobs_t.transpose());
-      }
-    }
+    Factorization joint;
+    const bool joint_ok = Factor(p, &joint);
+    bool all_ok = joint_ok;
     for (int m = 0; m < p.ncams(); ++m) {
       CalibratedCamera& out = summary.cameras[p.camera_index[m]];
       const double distance = options.uncertainty_distance_m > 0 ? options.uncertainty_distance_m
                                                                   : out.median_board_distance_m;
+      // A camera re-solved alone: its noise propagated as in a single-camera calibration.
+      Factorization own;
+      auto it = alone.find(m);
+      Problem mono;
+      if (it != alone.end()) mono = CameraFrame(it->second);
+      const bool ok = it == alone.end() ? joint_ok : Factor(mono, &own);
+      all_ok = all_ok && ok;
       if (ok) {
-        out.uncertainty = Uncertainty(p, f, m, distance, summary.observed_pixel_sigma,
-                                      options.uncertainty_grid_x, options.uncertainty_grid_y);
+        out.uncertainty = it == alone.end()
+                              ? Uncertainty(p, joint, m, distance, summary.observed_pixel_sigma,
+                                            options.uncertainty_grid_x, options.uncertainty_grid_y)
+                              : Uncertainty(mono, own, 0, distance, summary.observed_pixel_sigma,
+                                            options.uncertainty_grid_x, options.uncertainty_grid_y);
       } else {
         out.uncertainty.worst_px = out.uncertainty.mean_px = std::numeric_limits<double>::infinity();
       }
@@ -1067,7 +1227,7 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
     }
     summary.uncertainty_seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - u_start).count();
-    if (!ok) summary.warnings.push_back("the Jacobian could not be factored: the problem is singular");
+    if (!all_ok) summary.warnings.push_back("the Jacobian could not be factored: the problem is singular");
   }
 
   if (options.cross_validation) {

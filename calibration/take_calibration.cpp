@@ -102,6 +102,16 @@ std::map<int64_t, Pose> TrueBoardPoses(const Take& take) {
 
 }  // namespace
 
+std::string RigLensModel(const Take& take, const std::string& sensor) {
+  const int in_rig = take.rig().IndexOf(sensor);
+  if (in_rig >= 0 && take.rig().sensors[in_rig].options.contains("calib_lensmodel")) {
+    const std::string model = take.rig().sensors[in_rig].options["calib_lensmodel"].get<std::string>();
+    calibration_internal::CheckLensmodelName(model);
+    return model;
+  }
+  return "LENSMODEL_OPENCV8";
+}
+
 void TakeCalibrationOptions::Check() const {
   detection.Check();
   solve.Check();
@@ -127,14 +137,8 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibra
   for (const auto& name : sensors) {
     if (!take.has_stream(name)) Fail("camera '", name, "' is not in the take ", take_dir.string());
     const StreamInfo& stream = take.stream(name);
-    CalibrationCamera cam{name, stream.width, stream.height, "LENSMODEL_OPENCV8"};
-    const int in_rig = take.rig().IndexOf(name);
-    if (!options.lensmodel.empty()) {
-      cam.lensmodel = options.lensmodel;
-    } else if (in_rig >= 0 && take.rig().sensors[in_rig].options.contains("calib_lensmodel")) {
-      cam.lensmodel = take.rig().sensors[in_rig].options["calib_lensmodel"].get<std::string>();
-    }
-    cameras.push_back(cam);
+    cameras.push_back({name, stream.width, stream.height,
+                       options.lensmodel.empty() ? RigLensModel(take, name) : options.lensmodel});
   }
 
   TakeCalibrationSummary result;

@@ -262,6 +262,32 @@ TEST(Calibrate, SolvesA170DegreeFisheyeWithTheSplinedModel) {
   EXPECT_GE(g.within_3sigma_fraction, 0.9);
 }
 
+// mrcal 2.2 solves one lens model per problem: the rig is solved in OPENCV8, then the camera
+// that asks for a splined model is re-solved alone in it against the rig's board poses.
+TEST(Calibrate, ReSolvesACameraThatAsksForAnotherModelAlone) {
+  SyntheticOptions options = ReducedRig();
+  const double f = 320.0 / (2 * std::tan(56.0 * M_PI / 180 / 2));  // 112 degrees across 640 px
+  options.lenses[1] = CameraModel("LENSMODEL_STEREOGRAPHIC", {f, f, 318.2, 241.1}, 640, 480);
+  options.frames = 100;
+  const SyntheticRig rig = MakeSyntheticRig(options);
+  std::vector<CalibrationCamera> cameras = rig.cameras;
+  cameras[1].lensmodel = "LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=8_Ny=6_fov_x_deg=120";
+  const CalibrationSummary s = Calibrate(rig.layout, cameras, rig.observations, {});
+  const GroundTruthComparison g = Compare(rig, s);
+  Print("re-solved alone", s, g);
+  ASSERT_TRUE(IsUsable(s.termination)) << s.message;
+  EXPECT_EQ(s.lensmodel, "LENSMODEL_OPENCV8");
+  EXPECT_EQ(s.Find("cam1")->model.lensmodel(), cameras[1].lensmodel);
+  EXPECT_EQ(s.Find("cam0")->model.lensmodel(), "LENSMODEL_OPENCV8");
+  ASSERT_EQ(s.notes.size(), 1u);
+  EXPECT_NE(s.notes[0].find("cam1 (LENSMODEL_SPLINED"), std::string::npos) << s.notes[0];
+  EXPECT_EQ(s.stages.size(), 7u);  // the rig's four, then cam1's core, intrinsics, everything
+  EXPECT_NEAR(s.Find("cam1")->rms_px, options.noise_px, 0.2 * options.noise_px);
+  EXPECT_LE(g.per_camera.at("cam1")["projection_diff_rms_observed_px"].get<double>(), 0.2);
+  EXPECT_LE(g.per_camera.at("cam1")["rotation_err_deg"].get<double>(), 0.1);
+  EXPECT_GE(g.within_3sigma_fraction, 0.9);
+}
+
 TEST(Calibrate, SolvesAnEightKImager) {
   SyntheticOptions options;
   options.lenses = {CameraModel("LENSMODEL_OPENCV4", {5600, 5605, 3841.2, 2158.7, -0.06, 0.02, 0.0003, -0.0002}, 7680, 4320),
