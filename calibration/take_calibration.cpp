@@ -264,6 +264,7 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibra
   Report local("calibrate");
   Report& r = report != nullptr ? *report : local;
   r.plan()["lensmodel"] = cal.lensmodel;
+  if (!cal.notes.empty()) r.plan()["lens_models"] = cal.notes;
   r.plan()["reference_camera"] = cal.reference_camera;
   r.plan()["world_frame"] = world_frame;
   r.plan()["cameras"] = sensors;
@@ -280,6 +281,7 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibra
   m["cameras"] = cal_json["cameras"];
   m["stages"] = cal_json["stages"];
   m["warnings"] = cal.warnings;
+  m["notes"] = cal.notes;
   m["detection"] = result.detection.ToJson();
   m["timing"] = {{"solve_s", cal.solve_seconds},
                  {"uncertainty_s", cal.uncertainty_seconds},

@@ -90,6 +90,11 @@ RigDescription Studio8() {
     const Lens& lens = lenses[i];
     sensors.push_back(ColorCamera(rig, "cam" + std::to_string(i), lens.model, lens.intrinsics,
                                   lens.width, lens.height, position, look_at));
+    // The wide stereographic lens is calibrated with the splined model (knots every ~17 degrees).
+    if (lens.model == "LENSMODEL_STEREOGRAPHIC") {
+      sensors.back()["options"]["calib_lensmodel"] =
+          "LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=8_Ny=6_fov_x_deg=120";
+    }
   }
   sensors.push_back(DepthCamera(rig, "depth0", "cam2",
                                 {570.3, 570.9, 319.2, 241.6, 0.01, -0.02, 0.0002, -0.0001},
