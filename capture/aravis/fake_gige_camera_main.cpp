@@ -1,9 +1,10 @@
-// holocap-fake-gige-camera: one GigE Vision camera simulated by libaravis, as
-// arv-fake-gv-camera-0.8 serves it, but with a chosen software-trigger tick (see
-// FakeGigeCameraSpec). Started by the capture tests and capture_bench.
+// holocap-fake-gige-camera: one simulated GigE Vision camera, libaravis' camera model served
+// by holocap's GVCP/GVSP peer (which answers packet resend requests) or by libaravis' own, with
+// a chosen software-trigger tick (see FakeGigeCameraSpec). Started by the capture tests and
+// capture_bench.
 //
 //   holocap-fake-gige-camera -i ADDRESS -s SERIAL [-r LOST_PER_THOUSAND] [-t TRIGGER_TICK_HZ]
-//                            [-p ramp|noise]
+//                            [-p ramp|noise] [-m holocap|libaravis]
 #include <cstdio>
 #include <string>
 
@@ -27,8 +28,11 @@ int main(int argc, char** argv) {
         spec.trigger_tick_hz = std::stod(value);
       } else if (flag == "-p") {
         spec.pattern = value;
+      } else if (flag == "-m") {
+        spec.peer = value;
       } else {
-        holocap::Fail("unknown option ", flag, " (expected -i ADDRESS -s SERIAL [-r LOST] [-t TICK_HZ] [-p ramp|noise])");
+        holocap::Fail("unknown option ", flag, " (expected -i ADDRESS -s SERIAL [-r LOST] [-t TICK_HZ] [-p ramp|noise]",
+                      " [-m holocap|libaravis])");
       }
     }
     const int status = holocap::ServeFakeGigeCamera(spec);

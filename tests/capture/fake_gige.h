@@ -4,8 +4,9 @@
 // stopped by their own process ids and are killed by the kernel if the test process dies first.
 //
 // By default each camera is arv-fake-gv-camera-0.8, which serves a software trigger only on a
-// fixed 25 Hz tick. With a trigger tick given, each camera is the same libaravis fake camera
-// served by holocap-fake-gige-camera, looking for triggers that often.
+// fixed 25 Hz tick. With a trigger tick given, each camera is holocap-fake-gige-camera, looking
+// for triggers that often: libaravis' camera model behind holocap's GVCP/GVSP peer, which answers
+// packet resend requests, or behind libaravis' own peer, which does not.
 #pragma once
 
 #include <fcntl.h>
@@ -51,9 +52,10 @@ class FakeGigeCameras {
   // Starts `count` cameras on 127.0.0.1..count with serials HC1..HCn. `lost_per_thousand` is
   // their GVSP packet loss; `trigger_tick_hz` > 0 runs holocap-fake-gige-camera with that
   // software-trigger tick, 0 runs arv-fake-gv-camera-0.8 (25 Hz tick); `pattern` "noise"
-  // (holocap-fake-gige-camera only) fills frames with bytes no codec can shrink.
+  // (holocap-fake-gige-camera only) fills frames with bytes no codec can shrink; `peer` picks
+  // holocap-fake-gige-camera's protocol peer ("holocap" resends lost packets, "libaravis" not).
   FakeGigeCameras(int count, int lost_per_thousand = 0, double trigger_tick_hz = 0,
-                  const std::string& pattern = "ramp") {
+                  const std::string& pattern = "ramp", const std::string& peer = "holocap") {
     if (pattern != "ramp" && trigger_tick_hz <= 0) Fail("fake GigE cameras: arv-fake-gv-camera-0.8 has only the ramp");
     std::string error = EnterPrivateNetwork();
     if (!error.empty()) Fail("fake GigE cameras: ", error);
@@ -79,7 +81,7 @@ class FakeGigeCameras {
         if (null_output >= 0) dup2(null_output, STDOUT_FILENO);
         if (trigger_tick_hz > 0) {
           execl(program.c_str(), program.c_str(), "-i", address.c_str(), "-s", serial.c_str(), "-r", ratio.c_str(),
-                "-t", tick.c_str(), "-p", pattern.c_str(), static_cast<char*>(nullptr));
+                "-t", tick.c_str(), "-p", pattern.c_str(), "-m", peer.c_str(), static_cast<char*>(nullptr));
         } else {
           execlp("arv-fake-gv-camera-0.8", "arv-fake-gv-camera-0.8", "-i", address.c_str(), "-s", serial.c_str(),
                  "-r", ratio.c_str(), static_cast<char*>(nullptr));
