@@ -197,7 +197,26 @@ void FrameSetAssembler::AssembleByTriggerIndex(bool flushing, std::vector<FrameS
 void FrameSetAssembler::AssembleByTimestamp(bool flushing, std::vector<FrameSet>* out) {
   const size_t n = queues_.size();
   const int64_t tolerance = options_.tolerance();
+  // Each set owns the instants nearer to its first frame than to the next set's, half a period
+  // on: a frame there belongs to this set's trigger, also when it is too far to join the set.
+  const int64_t window = std::max(tolerance, static_cast<int64_t>(0.5e9 / options_.fps));
+  auto count_unmatched = [&](size_t s) {
+    ++stats_.frames_unmatched;
+    ++stats_.unmatched_per_sensor[s];
+  };
   while (true) {
+    // A frame of an instant already decided (its sensor was given up on after the latency and
+    // delivered it later) is counted against its sensor; it opens no set of its own, which would
+    // count that instant twice.
+    if (decided_any_) {
+      for (size_t s = 0; s < n; ++s) {
+        while (!queues_[s].empty() &&
+               Corrected(static_cast<int>(s), queues_[s].front().timestamp_ns) - last_anchor_ <= window) {
+          queues_[s].pop_front();
+          count_unmatched(s);
+        }
+      }
+    }
     int64_t anchor = std::numeric_limits<int64_t>::max();
     int64_t newest = std::numeric_limits<int64_t>::min();
     for (size_t s = 0; s < n; ++s) {
@@ -215,22 +234,30 @@ void FrameSetAssembler::AssembleByTimestamp(bool flushing, std::vector<FrameSet>
     if (waiting) return;
     std::vector<Frame> frames;
     std::vector<int64_t> corrected;
-    std::vector<size_t> members;
+    std::vector<size_t> members, outside;
     for (size_t s = 0; s < n; ++s) {
       if (queues_[s].empty()) continue;
       const int64_t t = Corrected(static_cast<int>(s), queues_[s].front().timestamp_ns);
-      if (t - anchor > tolerance) continue;
+      if (t - anchor > window) continue;
+      if (t - anchor > tolerance) {
+        // This instant's frame, beyond the tolerance: the set is incomplete.
+        queues_[s].pop_front();
+        outside.push_back(s);
+        continue;
+      }
       corrected.push_back(t);
       frames.push_back(std::move(queues_[s].front()));
       queues_[s].pop_front();
       members.push_back(s);
     }
+    decided_any_ = true;
+    last_anchor_ = anchor;
     if (frames.size() == n) {
       Emit(std::move(frames), std::move(corrected), out);
     } else {
       ++stats_.sets_incomplete;
-      stats_.frames_unmatched += static_cast<int64_t>(frames.size());
-      for (size_t s : members) ++stats_.unmatched_per_sensor[s];
+      for (size_t s : members) count_unmatched(s);
+      for (size_t s : outside) count_unmatched(s);
     }
   }
 }

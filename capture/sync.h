@@ -9,7 +9,9 @@
 // Software-triggered and free-running rigs: frames group by nearest timestamp within a
 // tolerance, after removing each sensor's clock offset to the first sensor, estimated from the
 // sets matched so far. Each set's spread is measured in the first sensor's clock; a set missing
-// a sensor is counted incomplete and not emitted.
+// a sensor is counted incomplete and not emitted. A set owns the half period after its first
+// frame: a frame there that is too far to join it, or that arrives after the set was given up
+// on, is counted unmatched against its sensor and never opens a second set for one instant.
 #pragma once
 
 #include <cstdint>
@@ -95,6 +97,8 @@ class FrameSetAssembler {
   std::vector<bool> base_set_;
   static constexpr size_t kSeedSets = 5;
   std::vector<std::vector<int64_t>> seed_samples_;  // by sequence, different clocks
+  bool decided_any_ = false;  // by timestamp: whether a set (complete or not) was decided yet
+  int64_t last_anchor_ = 0;   // the first frame's corrected time in the last set decided
   int64_t next_index_ = 0;
   double spread_sum_ns_ = 0;
   SyncStats stats_;

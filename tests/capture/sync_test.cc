@@ -90,6 +90,85 @@ TEST(FrameSetAssembler, HardwareTriggerGroupsByTriggerIndexAndCountsGaps) {
   for (const auto& set : sets) EXPECT_EQ(set.frames[0].sequence - 500, set.frames[1].sequence - 9000);
 }
 
+// Software trigger, one clock: sensor c's capture falls behind and delivers its frames of
+// triggers 10..13 only after a and b delivered trigger 13, more than the 3-period latency on in
+// stream time. Trigger 10's set is given up without c; c's late frame of trigger 10 is counted
+// against c and must not open a second, one-frame set for the same trigger: 30 triggers are 30
+// sets, complete or not.
+TEST(FrameSetAssembler, FrameArrivingAfterItsSetWasGivenUpOpensNoSecondSet) {
+  SyncOptions options;
+  options.mode = SyncMode::kSoftwareTrigger;
+  options.fps = 30;
+  options.tolerance_ns = 16'666'666;
+  FrameSetAssembler assembler({"a", "b", "c"}, {"CLOCK_REALTIME", "CLOCK_REALTIME", "CLOCK_REALTIME"}, options);
+  const int64_t period = 33'333'333;
+  const int64_t delay[3] = {0, 4'000'000, 9'000'000};  // each camera's answer to a trigger
+  auto stamp = [&](int k, int s) { return 1'000'000'000 + k * period + delay[s]; };
+  std::vector<FrameSet> sets;
+  auto pop = [&] {
+    for (auto& set : assembler.Pop()) sets.push_back(std::move(set));
+  };
+  for (int k = 0; k < 30; ++k) {
+    assembler.Add(0, MakeFrame(stamp(k, 0), k));
+    assembler.Add(1, MakeFrame(stamp(k, 1), k));
+    if (k < 10 || k > 13) assembler.Add(2, MakeFrame(stamp(k, 2), k));
+    if (k == 13) {
+      // Trigger 10's set was given up when b delivered trigger 13; trigger 11's still waits.
+      EXPECT_EQ(assembler.stats().sets_incomplete, 1);
+      for (int late = 10; late <= 13; ++late) assembler.Add(2, MakeFrame(stamp(late, 2), late));
+    }
+    pop();
+  }
+  for (auto& set : assembler.Flush()) sets.push_back(std::move(set));
+  const SyncStats& stats = assembler.stats();
+  EXPECT_EQ(stats.sets_complete, 29);
+  EXPECT_EQ(stats.sets_incomplete, 1);
+  EXPECT_EQ(stats.sets_complete + stats.sets_incomplete, 30);
+  EXPECT_EQ(stats.unmatched_per_sensor, (std::vector<int64_t>{1, 1, 1}));
+  EXPECT_EQ(stats.frames_unmatched, 3);
+  ASSERT_EQ(sets.size(), 29u);
+  for (const auto& set : sets) {
+    ASSERT_EQ(set.frames.size(), 3u);
+    EXPECT_NE(set.frames[0].sequence, 10u);
+    EXPECT_EQ(set.frames[0].sequence, set.frames[2].sequence);
+    EXPECT_EQ(set.frames[1].sequence, set.frames[2].sequence);
+  }
+}
+
+// The default tolerance (0.4 of the period) with one camera answering trigger 5 15 ms late: its
+// frame is too far to join the set, yet nearer to trigger 5 than to trigger 6. Trigger 5 is one
+// incomplete set, whichever of the two sensors' frames arrives first.
+TEST(FrameSetAssembler, FrameBeyondTheToleranceLeavesOneIncompleteSetForItsInstant) {
+  for (const bool late_first : {false, true}) {
+    SyncOptions options;
+    options.mode = SyncMode::kSoftwareTrigger;
+    options.fps = 30;
+    FrameSetAssembler assembler({"a", "b"}, {"CLOCK_REALTIME", "CLOCK_REALTIME"}, options);
+    const int64_t period = 33'333'333;
+    std::vector<FrameSet> sets;
+    for (int k = 0; k < 12; ++k) {
+      const int64_t t = 2'000'000'000 + k * period;
+      const int64_t t_b = t + (k == 5 ? 15'000'000 : 1'000'000);
+      if (late_first) {
+        assembler.Add(1, MakeFrame(t_b, k));
+        assembler.Add(0, MakeFrame(t, k));
+      } else {
+        assembler.Add(0, MakeFrame(t, k));
+        assembler.Add(1, MakeFrame(t_b, k));
+      }
+      for (auto& set : assembler.Pop()) sets.push_back(std::move(set));
+    }
+    for (auto& set : assembler.Flush()) sets.push_back(std::move(set));
+    const SyncStats& stats = assembler.stats();
+    EXPECT_EQ(stats.sets_complete, 11) << late_first;
+    EXPECT_EQ(stats.sets_incomplete, 1) << late_first;
+    EXPECT_EQ(stats.unmatched_per_sensor, (std::vector<int64_t>{1, 1})) << late_first;
+    EXPECT_LE(stats.spread_max_ns, 1'000'000) << late_first;
+    ASSERT_EQ(sets.size(), 11u);
+    for (const auto& set : sets) EXPECT_EQ(set.frames[0].sequence, set.frames[1].sequence);
+  }
+}
+
 TEST(SyncOptions, BadValuesAreExplained) {
   SyncOptions options;
   options.fps = 0;
