@@ -2,7 +2,8 @@
 // targets, and peers on the same detections in the same run: OpenCV calibrateCamera /
 // stereoCalibrate, and mrcal's own mrcal-calibrate-cameras on the same corners (corners.vnl).
 //
-//   calibration_bench [--take DIR] [--frames 288] [--corner-noise 0.3] [--no-mrcal]
+//   calibration_bench [--take DIR | --planned] [--frames 288] [--corner-noise 0.3] [--seed 1]
+//                     [--tags WxH] [--spacing M] [--true-corners] [--no-mrcal] [--no-peers]
 //                     [--lens-model CAMERA=MODEL]...
 // Each camera is solved in the model its rig entry asks for (calib_lensmodel, else OPENCV8)
 // unless --lens-model names another.
@@ -10,12 +11,22 @@
 // directory first (288 sets: about 60 board views per camera). The rendered corners are found
 // to a few hundredths of a pixel, so Gaussian noise is added to every detected corner until
 // the total detection noise is --corner-noise per coordinate (the 0.3 px).
+// --true-corners replaces every detected corner by its exact projection before the noise is
+// added (detection bias removed: what is left is the board sequence's statistics);
+// --planned renders nothing: the sim's board poses for --frames sets are projected through the
+// true models (a camera sees a pose when the whole board lies in its image, facing it, with
+// tags of at least 12 px), so the sequence's information is measured in seconds.
+// --tags and --spacing give the simulated board other tags and grid spacing (margin = spacing);
+// --seed the sim's seed (board poses); --no-peers leaves OpenCV and mrcal out.
+// Next to each error it prints the solve's own 1-sigma of that parameter: errors of a few
+// sigma are what the board views can tell, not a fault of the solve.
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <random>
@@ -25,6 +36,7 @@
 #include "core/error.h"
 #include "core/take.h"
 #include "sim/sim.h"
+#include "sim/world.h"
 
 namespace holocap {
 namespace {
@@ -70,62 +82,138 @@ double ProjectionDiffRms(const CameraModel& a, const CameraModel& b, double dist
   return n > 0 ? std::sqrt(sum2 / n) : NAN;
 }
 
+// Observations of the planned board poses: the exact projections of the grid for every camera
+// that sees the whole board in its image, facing it, with grid spacing of at least 12 px (the
+// tags' decoding limit), as the detector would accept them.
+std::vector<BoardObservation> PlannedObservations(const Board& board, const std::vector<std::string>& sensors,
+                                                  const std::map<std::string, CameraModel>& truth,
+                                                  const std::map<int64_t, Pose>& world_from_board) {
+  std::vector<BoardObservation> observations;
+  const int n = board.width_n() * board.height_n();
+  for (const auto& [set, pose] : world_from_board) {
+    for (const auto& name : sensors) {
+      const CameraModel& cam = truth.at(name);
+      const Pose view = cam.cam_from_world() * pose;
+      // The board's front faces the camera: its normal (+z) points away from it.
+      if (view.linear().col(2).dot(view.translation()) <= 0) continue;
+      BoardObservation obs;
+      obs.sensor = name;
+      obs.frame_set = set;
+      obs.points.resize(n, 3);
+      bool ok = true;
+      double spacing = std::numeric_limits<double>::infinity();
+      for (int r = 0; r < n && ok; ++r) {
+        const int i = r % board.width_n(), j = r / board.width_n();
+        Eigen::Vector2d q, qn;
+        ok = (view * board.GridPoint(i, j)).z() > 0.05 && cam.Project(view * board.GridPoint(i, j), &q) &&
+             cam.InImage(q, 2) && cam.Project(view * board.GridPoint(i == 0 ? 1 : i - 1, j), &qn);
+        if (!ok) break;
+        spacing = std::min(spacing, (qn - q).norm());
+        obs.points.row(r) << q.x(), q.y(), 1.0;
+      }
+      if (ok && spacing >= 12) observations.push_back(std::move(obs));
+    }
+  }
+  return observations;
+}
+
 int Run(int argc, char** argv) {
   std::setvbuf(stdout, nullptr, _IOLBF, 0);
   std::filesystem::path take_dir;
   int frames = 288;
+  uint64_t seed = 1;
   double corner_noise = 0.3;
-  bool mrcal = true;
+  bool mrcal = true, peers = true, planned = false, true_corners = false;
+  std::string tags;    // the simulated board's tags across x down ("8x6"); empty: the sim's
+  double spacing = 0;  // its grid spacing in metres; 0: the sim's
   std::map<std::string, std::string> lens_models;  // per camera, over the rig's choice
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (arg == "--take" && i + 1 < argc) take_dir = argv[++i];
     else if (arg == "--frames" && i + 1 < argc) frames = std::atoi(argv[++i]);
+    else if (arg == "--seed" && i + 1 < argc) seed = std::strtoull(argv[++i], nullptr, 10);
     else if (arg == "--corner-noise" && i + 1 < argc) corner_noise = std::atof(argv[++i]);
     else if (arg == "--no-mrcal") mrcal = false;
+    else if (arg == "--no-peers") peers = mrcal = false;
+    else if (arg == "--planned") planned = true;
+    else if (arg == "--tags" && i + 1 < argc) tags = argv[++i];
+    else if (arg == "--spacing" && i + 1 < argc) spacing = std::atof(argv[++i]);
+    else if (arg == "--true-corners") true_corners = true;
     else if (arg == "--lens-model" && i + 1 < argc) {
       const std::string value = argv[++i];
       const size_t eq = value.find('=');
       if (eq == std::string::npos) Fail("--lens-model takes CAMERA=MODEL, got '", value, "'");
       lens_models[value.substr(0, eq)] = value.substr(eq + 1);
     } else {
-      Fail("usage: calibration_bench [--take DIR] [--frames N] [--corner-noise PX] [--no-mrcal] [--lens-model CAMERA=MODEL]...");
+      Fail("usage: calibration_bench [--take DIR | --planned] [--frames N] [--seed N] [--tags WxH] [--spacing M] "
+           "[--corner-noise PX] [--true-corners] "
+           "[--no-mrcal] [--no-peers] [--lens-model CAMERA=MODEL]...");
     }
   }
-  if (take_dir.empty()) {
+  if (planned && !take_dir.empty()) Fail("--planned and --take exclude each other");
+  SimOptions sim;
+  sim.scene = "board";
+  sim.frames = frames;
+  sim.seed = seed;
+  sim.overwrite = true;
+  if (!tags.empty()) {
+    if (std::sscanf(tags.c_str(), "%dx%d", &sim.board.tags_across, &sim.board.tags_down) != 2) {
+      Fail("--tags takes ACROSSxDOWN, got '", tags, "'");
+    }
+  }
+  if (spacing > 0) sim.board.spacing = sim.board.margin = spacing;
+  sim.board.Check();
+  if (take_dir.empty() && !planned) {
     take_dir = std::filesystem::temp_directory_path() / "holocap-calibration-bench";
-    SimOptions sim;
-    sim.scene = "board";
-    sim.frames = frames;
-    sim.overwrite = true;
     const auto start = std::chrono::steady_clock::now();
     const SimSummary s = SimulateTake(sim, take_dir);
     std::printf("simulated studio8 board take: %lld frame sets in %.1f s -> %s\n",
                 static_cast<long long>(s.frame_sets), Seconds(start), take_dir.c_str());
   }
-  const Take take = Take::Open(take_dir);
-  const BoardLayout layout =
-      BoardLayout::FromJson(nlohmann::json::parse(std::ifstream(take.gt_dir() / "board.json"))["layout"]);
-  const Board board(layout);
+  BoardLayout layout = sim.board;
   std::vector<std::string> sensors;
   std::vector<CalibrationCamera> cameras;
   std::map<std::string, CameraModel> truth;
-  for (const auto& s : take.streams()) {
-    if (s.role != SensorRole::kColor) continue;
-    sensors.push_back(s.name);
-    cameras.push_back({s.name, s.width, s.height,
-                       lens_models.count(s.name) ? lens_models.at(s.name) : RigLensModel(take, s.name)});
-    truth.emplace(s.name, take.Camera(s.name, true));
-  }
+  std::map<int64_t, Pose> world_from_board;
+  std::vector<BoardObservation> observations;
   DetectionSummary detection;
-  std::vector<BoardObservation> observations =
-      DetectBoardsInTake(take, layout, sensors, {}, &detection);
+  if (planned) {
+    const sim::SimWorld world(sim);
+    for (int i = 0; i < world.size(); ++i) {
+      const auto& sensor = world.sensor(i);
+      if (sensor.spec.role != SensorRole::kColor) continue;
+      sensors.push_back(sensor.spec.name);
+      std::string model = sensor.spec.options.value("calib_lensmodel", std::string("LENSMODEL_OPENCV8"));
+      if (lens_models.count(sensor.spec.name)) model = lens_models.at(sensor.spec.name);
+      cameras.push_back({sensor.spec.name, sensor.model.width(), sensor.model.height(), model});
+      truth.emplace(sensor.spec.name, sensor.model);
+    }
+    for (int64_t set = 0; set < frames; ++set) world_from_board[set] = world.scene().WorldFromBoard(set);
+    observations = PlannedObservations(Board(layout), sensors, truth, world_from_board);
+    detection.frames = frames * static_cast<int64_t>(sensors.size());
+    detection.views = static_cast<int64_t>(observations.size());
+    for (const auto& obs : observations) ++detection.views_per_sensor[obs.sensor];
+    std::printf("planned studio8 board sequence (seed %llu): %d frame sets, true corners, nothing rendered\n",
+                static_cast<unsigned long long>(seed), frames);
+  } else {
+    const Take take = Take::Open(take_dir);
+    layout = BoardLayout::FromJson(nlohmann::json::parse(std::ifstream(take.gt_dir() / "board.json"))["layout"]);
+    for (const auto& s : take.streams()) {
+      if (s.role != SensorRole::kColor) continue;
+      sensors.push_back(s.name);
+      cameras.push_back({s.name, s.width, s.height,
+                         lens_models.count(s.name) ? lens_models.at(s.name) : RigLensModel(take, s.name)});
+      truth.emplace(s.name, take.Camera(s.name, true));
+    }
+    observations = DetectBoardsInTake(take, layout, sensors, {}, &detection);
+    world_from_board = TrueBoardPoses(take);
+  }
+  const Board board(layout);
   // Detection noise actually present: detected corners against the true projections.
-  const std::map<int64_t, Pose> world_from_board = TrueBoardPoses(take);
-  auto measure_noise = [&] {
+  auto measure_noise = [&](bool replace) {
     double noise2 = 0;
     int64_t noise_n = 0;
-    for (const auto& obs : observations) {
+    for (auto& obs : observations) {
       const CameraModel& cam = truth.at(obs.sensor);
       auto truth_pose = world_from_board.find(obs.frame_set);
       if (truth_pose == world_from_board.end()) continue;
@@ -136,12 +224,14 @@ int Run(int argc, char** argv) {
         if (!cam.Project(view * board.GridPoint(r % board.width_n(), r / board.width_n()), &q)) continue;
         noise2 += (obs.points.row(r).head<2>().transpose() - q).squaredNorm();
         ++noise_n;
+        if (replace) obs.points.row(r).head<2>() = q.transpose();
       }
     }
     return std::sqrt(noise2 / (2.0 * noise_n));
   };
-  const double found_noise = measure_noise();
-  const double added = std::sqrt(std::max(0.0, corner_noise * corner_noise - found_noise * found_noise));
+  const double found_noise = measure_noise(true_corners);
+  const double present = true_corners ? 0.0 : found_noise;
+  const double added = std::sqrt(std::max(0.0, corner_noise * corner_noise - present * present));
   std::mt19937_64 random(7);
   std::normal_distribution<double> gauss(0, added);
   for (auto& obs : observations) {
@@ -151,11 +241,11 @@ int Run(int argc, char** argv) {
       obs.points(r, 1) += gauss(random);
     }
   }
-  const double noise = measure_noise();
+  const double noise = measure_noise(false);
   std::printf("detection: %lld views of %lld frames, %.1f frames/s, corners found to %.3f px per coordinate "
-              "against the truth; %.3f px added, %.3f px in all\n",
+              "against the truth%s; %.3f px added, %.3f px in all\n",
               static_cast<long long>(detection.views), static_cast<long long>(detection.frames),
-              detection.frames_per_second, found_noise, added, noise);
+              detection.frames_per_second, found_noise, true_corners ? " (replaced by the truth)" : "", added, noise);
   for (const auto& [name, n] : detection.views_per_sensor) std::printf("  %s: %lld views\n", name.c_str(), static_cast<long long>(n));
 
   const auto start = std::chrono::steady_clock::now();
@@ -183,6 +273,21 @@ int Run(int argc, char** argv) {
   std::printf("| solve (+ uncertainty) | %.1f s (+ %.1f s), %.1f s in all | <= 60 s on 2 cores |\n",
               s.solve_seconds, s.uncertainty_seconds, holocap_seconds);
   for (const auto& [name, j] : g.per_camera) std::printf("  %s %s\n", name.c_str(), j.dump().c_str());
+  // The errors against the solve's own 1-sigma (relative to the reference camera, the frame
+  // the solve states its poses in): errors of a few sigma are the data's limit.
+  std::printf("\n| camera | focal err (1-sigma) | pp err px (1-sigma cx, cy) | rotation from ref err deg (1-sigma) | centre from ref err mm (1-sigma) |\n|---|---|---|---|---|\n");
+  for (const auto& cam : s.cameras) {
+    if (!cam.solved) continue;
+    const nlohmann::json pc = g.per_camera.count(cam.name) ? g.per_camera.at(cam.name) : nlohmann::json::object();
+    const auto& sigma = cam.intrinsics_sigma;
+    const double f_sigma = sigma.size() >= 4 ? std::max(sigma[0] / cam.model.intrinsics()[0], sigma[1] / cam.model.intrinsics()[1]) : NAN;
+    std::printf("| %s | %.4f%% (%.4f%%) | %.3f (%.3f, %.3f) | %.4f (%.4f) | %.3f (%.3f) |\n", cam.name.c_str(),
+                100 * pc.value("focal_rel_err", NAN), 100 * f_sigma, pc.value("principal_point_err_px", NAN),
+                sigma.size() >= 4 ? sigma[2] : NAN, sigma.size() >= 4 ? sigma[3] : NAN,
+                pc.value("rotation_err_deg_from_reference", NAN), cam.rotation_sigma_deg,
+                pc.value("translation_err_mm_from_reference", NAN), cam.center_sigma_mm);
+  }
+  if (!peers) return 0;
 
   // OpenCV on the same detections: one calibrateCamera per camera with the rational model
   // (the same 8 distortion terms as OPENCV8).

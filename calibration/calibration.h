@@ -26,6 +26,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <limits>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -188,6 +189,12 @@ struct CalibratedCamera {
   CameraUncertainty uncertainty;
   std::vector<Eigen::Vector2d> observed;  // inlier observed pixels (for pictures)
   std::vector<Eigen::Vector2d> residuals; // their residuals (observed - projected)
+  // The solve's own 1-sigma of its parameters, from the same noise propagation as the
+  // projection uncertainty (NaN where a parameter was held fixed or the camera is the
+  // reference): each intrinsic, and the pose relative to the reference camera.
+  std::vector<double> intrinsics_sigma;
+  double rotation_sigma_deg = std::numeric_limits<double>::quiet_NaN();  // worst axis
+  double center_sigma_mm = std::numeric_limits<double>::quiet_NaN();     // worst direction
 };
 
 struct SolveStage {

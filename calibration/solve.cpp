@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <numbers>
 #include <numeric>
 #include <opencv2/calib3d.hpp>
 #include <queue>
@@ -429,6 +430,82 @@ bool Factor(Problem& p, Factorization* f) {
   return true;
 }
 
+// Where camera `icam`'s parameters sit in the solve's state (-1: not optimised).
+struct CameraState {
+  int intrinsics = -1;
+  int first_optimized = 0;  // first intrinsic in the state (4 when the core is held fixed)
+  int extrinsics = -1;
+  int frames = -1;          // the first board pose
+};
+
+CameraState StateOf(Problem& p, int icam) {
+  const int nframes = static_cast<int>(p.frames.size());
+  const int nobs = static_cast<int>(p.observations.size());
+  CameraState state;
+  state.intrinsics = mrcal_state_index_intrinsics(icam, p.ncams(), p.next(), nframes, 0, 0, nobs,
+                                                  p.selections, &p.parsed);
+  const int extr = p.extrinsics_of[icam];
+  if (extr >= 0 && p.selections.do_optimize_extrinsics) {
+    state.extrinsics = mrcal_state_index_extrinsics(extr, p.ncams(), p.next(), nframes, 0, 0, nobs,
+                                                    p.selections, &p.parsed);
+  }
+  // Board poses held fixed (a camera re-solved alone) carry no uncertainty of their own here.
+  if (p.selections.do_optimize_frames) {
+    state.frames = mrcal_state_index_frames(0, p.ncams(), p.next(), nframes, 0, 0, nobs,
+                                            p.selections, &p.parsed);
+  }
+  const bool has_core = mrcal_lensmodel_metadata(&p.parsed).has_core;
+  state.first_optimized = has_core && !p.selections.do_optimize_intrinsics_core ? 4 : 0;
+  return state;
+}
+
+// Covariance of functions of the state whose gradients (by the unpacked state) are the
+// columns of `gradients`, propagated from the observation noise like the projections.
+Eigen::MatrixXd StateCovariance(Problem& p, Factorization& f, Eigen::MatrixXd gradients, double sigma) {
+  for (int c = 0; c < gradients.cols(); ++c) {
+    Eigen::VectorXd column = gradients.col(c);
+    mrcal_unpack_solver_state_vector(column.data(), p.ncams(), p.next(),
+                                     static_cast<int>(p.frames.size()), 0, 0, p.selections, &p.parsed);
+    gradients.col(c) = column;
+  }
+  const Eigen::MatrixXd a = f.ldlt.solve(gradients);
+  const Eigen::MatrixXd b = f.regularized ? Eigen::MatrixXd(f.jobs_t_jobs * a) : gradients;
+  return b.transpose() * a * sigma * sigma;
+}
+
+// The 1-sigma of camera `icam`'s intrinsics and of its pose relative to the reference.
+void ParameterSigma(Problem& p, Factorization& f, int icam, double sigma, CalibratedCamera* out) {
+  const CameraState state = StateOf(p, icam);
+  const int nparams = p.nparams();
+  const int nstate = p.nstate();
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  out->intrinsics_sigma.assign(nparams, kNaN);
+  if (state.intrinsics >= 0) {
+    const int k = nparams - state.first_optimized;
+    Eigen::MatrixXd gradients = Eigen::MatrixXd::Zero(nstate, k);
+    for (int c = 0; c < k; ++c) gradients(state.intrinsics + c, c) = 1;
+    const Eigen::MatrixXd cov = StateCovariance(p, f, gradients, sigma);
+    for (int c = 0; c < k; ++c) out->intrinsics_sigma[state.first_optimized + c] = std::sqrt(cov(c, c));
+  }
+  if (state.extrinsics < 0) return;
+  // Rotation (the rt's r, radians) and camera centre -R^t t (numeric derivatives by rt).
+  const mrcal_pose_t& pose = p.extrinsics[p.extrinsics_of[icam]];
+  const Rt rt = RtFromPose(FromMrcal(pose));
+  Eigen::MatrixXd gradients = Eigen::MatrixXd::Zero(nstate, 6);
+  for (int c = 0; c < 3; ++c) gradients(state.extrinsics + c, c) = 1;
+  for (int d = 0; d < 6; ++d) {
+    Rt plus = rt, minus = rt;
+    plus[d] += 1e-7;
+    minus[d] -= 1e-7;
+    const Eigen::Vector3d dc = (PoseFromRt(plus).inverse().translation() - PoseFromRt(minus).inverse().translation()) / 2e-7;
+    for (int r = 0; r < 3; ++r) gradients(state.extrinsics + d, 3 + r) = dc(r);
+  }
+  const Eigen::MatrixXd cov = StateCovariance(p, f, gradients, sigma);
+  const Eigen::Matrix3d rotation = cov.topLeftCorner<3, 3>(), center = cov.bottomRightCorner<3, 3>();
+  out->rotation_sigma_deg = std::sqrt(Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(rotation).eigenvalues().maxCoeff()) * 180 / std::numbers::pi;
+  out->center_sigma_mm = 1000 * std::sqrt(Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(center).eigenvalues().maxCoeff());
+}
+
 // mrcal's projection_uncertainty(): Var(q) for pixels of camera `icam` at `distance`.
 CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double distance,
                               double sigma, int grid_x, int grid_y) {
@@ -449,23 +526,10 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
   const double* intrinsics = p.intrinsics.data() + icam * nparams;
   const int nstate = p.nstate();
   const int nframes = static_cast<int>(p.frames.size());
-  const int i_intr = mrcal_state_index_intrinsics(icam, p.ncams(), p.next(), nframes, 0, 0,
-                                                  static_cast<int>(p.observations.size()),
-                                                  p.selections, &p.parsed);
+  const CameraState state = StateOf(p, icam);
+  const int i_intr = state.intrinsics, i_extr = state.extrinsics, i_frames = state.frames;
   const int extr = p.extrinsics_of[icam];
-  const int i_extr = extr < 0 || !p.selections.do_optimize_extrinsics
-                         ? -1
-                         : mrcal_state_index_extrinsics(
-                               extr, p.ncams(), p.next(), nframes, 0, 0,
-                               static_cast<int>(p.observations.size()), p.selections, &p.parsed);
-  // Board poses held fixed (a camera re-solved alone) carry no uncertainty of their own here.
-  const int i_frames = !p.selections.do_optimize_frames
-                           ? -1
-                           : mrcal_state_index_frames(0, p.ncams(), p.next(), nframes, 0, 0,
-                                                      static_cast<int>(p.observations.size()),
-                                                      p.selections, &p.parsed);
-  const bool has_core = mrcal_lensmodel_metadata(&p.parsed).has_core;
-  const int first_optimized = has_core && !p.selections.do_optimize_intrinsics_core ? 4 : 0;
+  const int first_optimized = state.first_optimized;
 
   u.covariance.assign(n, Eigen::Matrix2d::Constant(std::numeric_limits<double>::quiet_NaN()));
   u.worst_sigma_px = Eigen::MatrixXd::Constant(grid_y, grid_x, std::numeric_limits<double>::quiet_NaN());
@@ -612,6 +676,12 @@ nlohmann::json CalibrationSummary::ToJson() const {
       j["lensmodel"] = c.model.lensmodel();
       j["intrinsics"] = c.model.intrinsics();
       j["rt_cam_ref"] = RtFromPose(c.model.cam_from_world());
+      if (!c.intrinsics_sigma.empty()) {
+        // NaN (a parameter held fixed, the reference camera's pose) is written as null.
+        j["intrinsics_sigma"] = c.intrinsics_sigma;
+        j["rotation_sigma_deg"] = c.rotation_sigma_deg;
+        j["center_sigma_mm"] = c.center_sigma_mm;
+      }
       if (c.uncertainty.grid_x > 0) {
         std::vector<std::vector<double>> grid;
         for (int y = 0; y < c.uncertainty.grid_y; ++y) {
@@ -1192,6 +1262,11 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
                                             options.uncertainty_grid_x, options.uncertainty_grid_y)
                               : Uncertainty(mono, own, 0, distance, summary.observed_pixel_sigma,
                                             options.uncertainty_grid_x, options.uncertainty_grid_y);
+        if (it == alone.end()) {
+          ParameterSigma(p, joint, m, summary.observed_pixel_sigma, &out);
+        } else {
+          ParameterSigma(mono, own, 0, summary.observed_pixel_sigma, &out);
+        }
       } else {
         out.uncertainty.worst_px = out.uncertainty.mean_px = std::numeric_limits<double>::infinity();
       }

@@ -1,5 +1,6 @@
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 
@@ -93,6 +94,7 @@ TEST(Calibrate, UncertaintyMatchesTheSpreadOfRepeatedSolves) {
   solve.uncertainty_grid_y = 6;
   double diff2 = 0, predicted2 = 0;
   int n = 0;
+  double core_error2 = 0, core_sigma2 = 0;  // fx, fy, cx, cy against their own 1-sigma
   for (uint64_t trial = 0; trial < 6; ++trial) {
     options.seed = 100 + trial;  // fresh noise and fresh board poses, as a new calibration
     const SyntheticRig rig = MakeSyntheticRig(options);
@@ -106,12 +108,34 @@ TEST(Calibrate, UncertaintyMatchesTheSpreadOfRepeatedSolves) {
       for (const auto& cov : cam.uncertainty.covariance) trace += cov.trace() / cam.uncertainty.covariance.size();
       predicted2 += trace;
       ++n;
+      ASSERT_EQ(cam.intrinsics_sigma.size(), cam.model.intrinsics().size());
+      for (int k = 0; k < 4; ++k) {
+        ASSERT_GT(cam.intrinsics_sigma[k], 0) << cam.name << " intrinsic " << k;
+        const double error = cam.model.intrinsics()[k] - rig.truth.at(cam.name).intrinsics()[k];
+        core_error2 += error * error;
+        core_sigma2 += cam.intrinsics_sigma[k] * cam.intrinsics_sigma[k];
+      }
+      if (cam.name == s.reference_camera) {
+        EXPECT_TRUE(std::isnan(cam.rotation_sigma_deg));  // the reference's pose is not solved for
+      } else {
+        EXPECT_GT(cam.rotation_sigma_deg, 0);
+        EXPECT_GT(cam.center_sigma_mm, 0);
+        // Within 5 sigma: a wrong propagation is off by far more.
+        EXPECT_LE(g.per_camera.at(cam.name).at("rotation_err_deg_from_reference").get<double>(),
+                  5 * cam.rotation_sigma_deg);
+        EXPECT_LE(g.per_camera.at(cam.name).at("translation_err_mm_from_reference").get<double>(),
+                  5 * cam.center_sigma_mm);
+      }
     }
   }
   const double ratio = std::sqrt(diff2 / predicted2);
-  std::printf("[monte carlo] observed / predicted projection error: %.3f over %d solves\n", ratio, n);
+  const double core_ratio = std::sqrt(core_error2 / core_sigma2);
+  std::printf("[monte carlo] observed / predicted projection error: %.3f over %d solves; "
+              "focal and principal point errors / their 1-sigma: %.3f\n", ratio, n, core_ratio);
   EXPECT_GT(ratio, 0.5);
   EXPECT_LT(ratio, 1.8);
+  EXPECT_GT(core_ratio, 0.5);
+  EXPECT_LT(core_ratio, 1.8);
 }
 
 TEST(Calibrate, FrontoParallelViewsAreIllConditionedNotSuccess) {
