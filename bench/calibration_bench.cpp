@@ -3,7 +3,7 @@
 // stereoCalibrate, and mrcal's own mrcal-calibrate-cameras on the same corners (corners.vnl).
 //
 //   calibration_bench [--take DIR | --planned] [--frames 288] [--corner-noise 0.3] [--seed 1]
-//                     [--tags WxH] [--spacing M] [--true-corners] [--no-mrcal] [--no-peers]
+//                     [--noise-seed 7] [--tags WxH] [--spacing M] [--true-corners] [--no-mrcal] [--no-peers]
 //                     [--lens-model CAMERA=MODEL]...
 // Each camera is solved in the model its rig entry asks for (calib_lensmodel, else OPENCV8)
 // unless --lens-model names another.
@@ -17,7 +17,8 @@
 // true models (a camera sees a pose when the whole board lies in its image, facing it, with
 // tags of at least 12 px), so the sequence's information is measured in seconds.
 // --tags and --spacing give the simulated board other tags and grid spacing (margin = spacing);
-// --seed the sim's seed (board poses); --no-peers leaves OpenCV and mrcal out.
+// --seed the sim's seed (board poses), --noise-seed the added noise's (another draw of the same
+// noise); --no-peers leaves OpenCV and mrcal out.
 // Next to each error it prints the solve's own 1-sigma of that parameter: errors of a few
 // sigma are what the board views can tell, not a fault of the solve.
 #include <chrono>
@@ -121,7 +122,7 @@ int Run(int argc, char** argv) {
   std::setvbuf(stdout, nullptr, _IOLBF, 0);
   std::filesystem::path take_dir;
   int frames = 288;
-  uint64_t seed = 1;
+  uint64_t seed = 1, noise_seed = 7;
   double corner_noise = 0.3;
   bool mrcal = true, peers = true, planned = false, true_corners = false;
   std::string tags;    // the simulated board's tags across x down ("8x6"); empty: the sim's
@@ -132,6 +133,7 @@ int Run(int argc, char** argv) {
     if (arg == "--take" && i + 1 < argc) take_dir = argv[++i];
     else if (arg == "--frames" && i + 1 < argc) frames = std::atoi(argv[++i]);
     else if (arg == "--seed" && i + 1 < argc) seed = std::strtoull(argv[++i], nullptr, 10);
+    else if (arg == "--noise-seed" && i + 1 < argc) noise_seed = std::strtoull(argv[++i], nullptr, 10);
     else if (arg == "--corner-noise" && i + 1 < argc) corner_noise = std::atof(argv[++i]);
     else if (arg == "--no-mrcal") mrcal = false;
     else if (arg == "--no-peers") peers = mrcal = false;
@@ -146,7 +148,7 @@ int Run(int argc, char** argv) {
       lens_models[value.substr(0, eq)] = value.substr(eq + 1);
     } else {
       Fail("usage: calibration_bench [--take DIR | --planned] [--frames N] [--seed N] [--tags WxH] [--spacing M] "
-           "[--corner-noise PX] [--true-corners] "
+           "[--corner-noise PX] [--noise-seed N] [--true-corners] "
            "[--no-mrcal] [--no-peers] [--lens-model CAMERA=MODEL]...");
     }
   }
@@ -232,7 +234,7 @@ int Run(int argc, char** argv) {
   const double found_noise = measure_noise(true_corners);
   const double present = true_corners ? 0.0 : found_noise;
   const double added = std::sqrt(std::max(0.0, corner_noise * corner_noise - present * present));
-  std::mt19937_64 random(7);
+  std::mt19937_64 random(noise_seed);
   std::normal_distribution<double> gauss(0, added);
   for (auto& obs : observations) {
     for (int r = 0; r < obs.points.rows(); ++r) {
