@@ -7,6 +7,7 @@
 #include <CLI/CLI.hpp>
 #include <cstdio>
 #include <filesystem>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 
@@ -22,18 +23,51 @@ namespace fs = std::filesystem;
 using namespace holocap;
 
 void PrintSeries(const Report& report) {
-  std::printf("%8s %7s %14s %14s %8s\n", "t_s", "iter", "heldout_psnr", "subject_psnr", "ssim");
+  std::printf("%8s %7s %14s %14s %8s %10s\n", "t_s", "iter", "heldout_psnr", "subject_psnr", "ssim", "fog_alpha");
   const auto& series = report.json()["series"];
   for (size_t i = 0; i < series.size(); ++i) {
     if (series[i]["metric"] != "heldout_psnr_db") continue;
-    double fg = 0, ssim = 0;
-    for (size_t j = i + 1; j < series.size() && j < i + 3; ++j) {
+    double fg = 0, ssim = 0, fog = 0;
+    for (size_t j = i + 1; j < series.size() && j < i + 4; ++j) {
       if (series[j]["metric"] == "heldout_psnr_fg_db") fg = series[j]["value"];
       if (series[j]["metric"] == "heldout_ssim") ssim = series[j]["value"];
+      if (series[j]["metric"] == "heldout_alpha_outside") fog = series[j]["value"];
     }
-    std::printf("%8.1f %7lld %11.2f dB %11.2f dB %8.4f\n", series[i]["t_s"].get<double>(),
+    std::printf("%8.1f %7lld %11.2f dB %11.2f dB %8.4f %10.4f\n", series[i]["t_s"].get<double>(),
                 static_cast<long long>(series[i]["iter"].get<int64_t>()),
-                series[i]["value"].get<double>(), fg, ssim);
+                series[i]["value"].get<double>(), fg, ssim, fog);
+  }
+}
+
+// The loss terms and drifts logged every 10 iterations, at about `rows` iterations.
+void PrintTerms(const Report& report, int rows) {
+  const char* names[] = {"loss", "loss_alpha_prior", "loss_tv", "loss_silhouette", "loss_kl", "warp_voxels",
+                         "train_alpha_inside", "train_alpha_outside", "gain_drift", "bias_drift"};
+  std::map<std::string, std::map<int64_t, double>> values;
+  int64_t last = 0;
+  for (const auto& point : report.json()["series"]) {
+    const std::string metric = point["metric"];
+    for (const char* name : names) {
+      if (metric != name) continue;
+      const int64_t iter = point["iter"].get<int64_t>();
+      values[metric][iter] = point["value"].get<double>();
+      last = std::max(last, iter);
+    }
+  }
+  if (values["loss"].empty()) return;
+  std::printf("%7s %10s %10s %10s %10s %10s %8s %8s %8s %8s %8s\n", "iter", "photo", "prior", "tv", "silhouette", "kl",
+              "warp_vx", "a_in", "a_out", "gain_d", "bias_d");
+  const int64_t stride = std::max<int64_t>(10, (last / rows + 9) / 10 * 10);
+  for (const auto& [iter, photo] : values["loss"]) {
+    if (iter % stride != 0 && iter != last) continue;
+    auto at = [&](const char* name) {
+      auto it = values[name].find(iter);
+      return it == values[name].end() ? 0.0 : it->second;
+    };
+    std::printf("%7lld %10.5f %10.5f %10.6f %10.5f %10.3f %8.3f %8.3f %8.3f %8.3f %8.3f\n",
+                static_cast<long long>(iter), photo, at("loss_alpha_prior"), at("loss_tv"), at("loss_silhouette"), at("loss_kl"),
+                at("warp_voxels"), at("train_alpha_inside"), at("train_alpha_outside"), at("gain_drift"),
+                at("bias_drift"));
   }
 }
 
@@ -87,6 +121,8 @@ int main(int argc, char** argv) {
   app.add_option("--warp-grid", warp_grid, "Warp field voxels per axis");
   app.add_option("--lr", lr, "Adam learning rate of the networks");
   app.add_option("--tv", tv, "Total-variation weight of the grid");
+  double kl = defaults.kl_weight;
+  app.add_option("--kl", kl, "KL weight of the latent");
   app.add_option("--template-lr", template_lr, "Adam learning rate of the template's residual grid");
   app.add_flag("!--no-playback", playback, "Skip the playback table");
   CLI11_PARSE(app, argc, argv);
@@ -120,6 +156,7 @@ int main(int argc, char** argv) {
     options.warp_grid = warp_grid;
     options.learning_rate = lr;
     options.tv_weight = tv;
+    options.kl_weight = kl;
     options.template_learning_rate = template_lr;
     options.eval_every_s = std::max(10.0, minutes * 60 / 20);
     Report report("nvol_bench");
@@ -129,6 +166,7 @@ int main(int argc, char** argv) {
                 scene == "object" ? "static object" : "walking subject", frames, grid, width);
     std::printf("plan: %s\n", summary.plan.dump().c_str());
     PrintSeries(report);
+    PrintTerms(report, 20);
     std::printf("%s: %s\nloss %.5f -> %.5f, %lld iterations, %.1f samples/ray (skipping on)\n",
                 ToString(summary.termination), summary.message.c_str(), summary.first_loss,
                 summary.last_loss, static_cast<long long>(summary.iterations), summary.samples_per_ray);

@@ -67,7 +67,10 @@ void NeuralVolumeOptions::Check() const {
   if (rays_per_batch < 16) Fail("rays_per_batch must be at least 16, got ", rays_per_batch);
   if (frames_per_batch < 1) Fail("frames_per_batch must be at least 1, got ", frames_per_batch);
   if (!(learning_rate > 0) || !(static_learning_rate > 0) || !(template_learning_rate > 0)) Fail("learning rates must be positive");
-  if (!(kl_weight >= 0) || !(alpha_prior_weight >= 0) || !(tv_weight >= 0)) Fail("loss weights must be >= 0");
+  if (!(kl_weight >= 0) || !(alpha_prior_weight >= 0) || !(tv_weight >= 0) || !(silhouette_weight >= 0) ||
+      !(warp_prior_weight >= 0)) {
+    Fail("loss weights must be >= 0");
+  }
   if (!(step_voxels > 0)) Fail("step_voxels must be positive, got ", step_voxels);
   if (!(min_transmittance >= 0 && min_transmittance < 1)) Fail("min_transmittance must be in [0, 1), got ", min_transmittance);
   if (!(eval_every_s > 0)) Fail("eval_every_s must be positive, got ", eval_every_s);
@@ -91,7 +94,8 @@ nlohmann::json NeuralVolumeOptions::ToJson() const {
           {"learning_rate", learning_rate}, {"static_learning_rate", static_learning_rate},
           {"template_learning_rate", template_learning_rate},
           {"kl_weight", kl_weight}, {"alpha_prior_weight", alpha_prior_weight},
-          {"tv_weight", tv_weight}, {"learn_background", learn_background},
+          {"tv_weight", tv_weight}, {"silhouette_weight", silhouette_weight},
+          {"warp_prior_weight", warp_prior_weight}, {"learn_background", learn_background},
           {"step_voxels", step_voxels}, {"jitter", jitter}, {"min_transmittance", min_transmittance},
           {"seed", seed}, {"eval_every_s", eval_every_s}, {"eval_frames", eval_frames},
           {"checkpoint_every_s", checkpoint_every_s}, {"resume", resume},

@@ -76,12 +76,24 @@ struct NeuralVolumeOptions {
   int frames_per_batch = 1;      // frames decoded per iteration (dynamic scenes)
   double learning_rate = 2e-3;   // Adam
   double static_learning_rate = 3e-2;  // Adam on the grid itself (static scenes)
-  double template_learning_rate = 1e-2;  // Adam on the template's directly optimised residual
+  double template_learning_rate = 3e-2;  // Adam on the template's directly optimised residual
                                          // grid (dynamic scenes)
-  double kl_weight = 1e-3;       // KL of the latent (dynamic scenes)
+  double kl_weight = 1.5e-8;     // KL of the latent (dynamic scenes): the paper's 1e-3 against
+                                 // 0..255 pixel errors. Much more and the posterior collapses to
+                                 // the prior: each sampled latent is mostly noise, the decoder
+                                 // learns to ignore it and renders every frame as the take's
+                                 // average, a fog filling each frame's hull.
   double alpha_prior_weight = 1e-4;  // beta prior pushing ray alpha towards 0 or 1 (colours in
                                      // [0, 1]: the paper weighs it against 0..255 pixel errors)
   double tv_weight = 1e-2;       // total variation of the grid
+  double silhouette_weight = 0.05;  // ray alpha of training pixels against their silhouettes
+                                    // (where the take gives them): the six views' hull holds a
+                                    // faint subject as well as an opaque one, and only the
+                                    // opaque one is right from cameras between them
+  double warp_prior_weight = 0.1;   // mean squared displacement of the warp field (template
+                                    // units, dynamic scenes): unchecked, the affine warps move
+                                    // every sample out of the template within tens of steps
+                                    // and the volume renders empty with no gradient left
   bool learn_background = true;  // refine the training cameras' backgrounds where no frame
                                  // shows the subject
   double step_voxels = 1.0;      // ray-marching step in voxels

@@ -179,7 +179,12 @@ NvolModelImpl::NvolModelImpl(const NvolConfig& config) : config_(config) {
     // The template's fine detail, optimised directly (as a static grid is) and added to the
     // decoder's output: a per-voxel parameter follows the images within tens of steps, while
     // the decoder and the warp learn what changes from frame to frame.
-    grid = register_parameter("grid", torch::zeros({1, 4, config.grid, config.grid, config.grid}));
+    // Nearly empty at first, as a static grid: an initial fog over the whole box is removed
+    // fastest by warping every sample out of the template, after which no sample reaches a
+    // density and nothing receives a gradient again.
+    torch::Tensor initial = torch::zeros({1, 4, config.grid, config.grid, config.grid});
+    initial.narrow(1, 3, 1).fill_(-3.0);
+    grid = register_parameter("grid", initial);
     if (config.frames > 0) frame_codes = register_parameter("frame_codes", torch::zeros({config.frames, config.latent_dim}));
   } else {
     // Grey and nearly empty (optical depth softplus(-5) = 0.007 per voxel): Adam moves each

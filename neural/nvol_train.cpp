@@ -24,6 +24,8 @@ namespace {
 
 namespace fs = std::filesystem;
 using neural::MarchContext;
+
+constexpr int64_t kWarmupIterations = 20;  // of the learning rates (dynamic scenes)
 using neural::NvolConfig;
 using neural::NvolModel;
 using neural::TrainingData;
@@ -56,6 +58,16 @@ struct Evaluation {
   double psnr_fg_db = 0;
   double background_psnr_fg_db = 0;  // the backgrounds alone, in the same pixels
   double ssim = 0;
+  double alpha_outside = 0;  // mean alpha of held-out pixels that see the box outside the
+                             // subject's grown silhouette: fog the training views cannot see
+};
+
+// The terms of one training step, logged as series of the report.
+struct StepTerms {
+  double photometric = 0, alpha_prior = 0, tv = 0, kl = 0, silhouette = 0;
+  double alpha_inside = 0, alpha_outside = 0;  // mean ray alpha in / out of the silhouettes
+  double gain_drift = 0, bias_drift = 0;       // largest |gain - 1|, |bias| over the cameras
+  double warp_voxels = 0;                      // mean displacement of the warp, template voxels
 };
 
 class Trainer {
@@ -203,9 +215,12 @@ class Trainer {
 
   // Cosine decay of every group's rate to a tenth over the run (`progress` in [0, 1]): the
   // early steps move the volume fast, the late ones refine it without the noise of a full
-  // rate.
-  void ScheduleLearningRate(double progress) {
-    const double factor = 0.1 + 0.45 * (1.0 + std::cos(std::numbers::pi * std::clamp(progress, 0.0, 1.0)));
+  // rate. Dynamic scenes first warm up linearly over `steps` iterations: Adam's first steps
+  // move every weight of the decoder's transposed convolutions by the full rate at once, and
+  // their product threw the density out by orders of magnitude within three steps.
+  void ScheduleLearningRate(double progress, int64_t steps) {
+    double factor = 0.1 + 0.45 * (1.0 + std::cos(std::numbers::pi * std::clamp(progress, 0.0, 1.0)));
+    if (data_.dynamic && steps < kWarmupIterations) factor *= static_cast<double>(steps + 1) / (kWarmupIterations + 1);
     auto& groups = optimizer_->param_groups();
     for (size_t i = 0; i < groups.size() && i < base_lrs_.size(); ++i) {
       static_cast<torch::optim::AdamOptions&>(groups[i].options()).lr(base_lrs_[i] * factor);
@@ -225,6 +240,12 @@ class Trainer {
   }
 
   double TrainStep(int64_t iteration, double* photometric, double* samples_per_ray);
+  // Template coordinates of the identity warp [W, W, W, 3] (voxel centres, x y z).
+  static torch::Tensor IdentityWarp(int64_t side) {
+    torch::Tensor axis = (torch::arange(side, torch::kFloat32) + 0.5) / side;
+    auto mesh = torch::meshgrid({axis, axis, axis}, "ij");
+    return torch::stack({mesh[2], mesh[1], mesh[0]}, -1);
+  }
   // Held-out PSNR/SSIM; with `write_images`, each held-out view is also written to
   // model_dir/heldout/ as the rendering beside the truth, for a person to look at.
   Evaluation Evaluate(bool write_images = false);
@@ -251,6 +272,7 @@ class Trainer {
   std::unique_ptr<torch::optim::Adam> optimizer_;
   std::vector<double> base_lrs_;  // of each group, before the schedule
   double lr_scale_ = 1;
+  StepTerms last_terms_;
 };
 
 double Trainer::TrainStep(int64_t iteration, double* photometric, double* samples_per_ray) {
@@ -263,6 +285,7 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
   for (int v : training_) total_pixels += box_pixels_[v].size();
   torch::Tensor loss = torch::zeros({});
   double photo_sum = 0, samples = 0;
+  StepTerms terms;
   std::vector<std::unique_ptr<MarchContext>> contexts;
   for (int b = 0; b < options_.frames_per_batch; ++b) {
     const int64_t f = data_.dynamic ? pick_frame(rng_) : 0;
@@ -327,9 +350,50 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
                        (normalised.narrow(1, 1, config_.grid - 1) - normalised.narrow(1, 0, config_.grid - 1)).pow(2).mean() +
                        (normalised.narrow(2, 1, config_.grid - 1) - normalised.narrow(2, 0, config_.grid - 1)).pow(2).mean();
     torch::Tensor frame_loss = photo + options_.alpha_prior_weight * prior + options_.tv_weight * tv;
+    torch::Tensor silhouette_term, warp_term;
     if (data_.dynamic) frame_loss = frame_loss + options_.kl_weight * kl;
+    if (options_.silhouette_weight > 0) {
+      // The silhouettes of the training views (from the clean plate, else gt/masks, else a
+      // threshold: the plan names the source): opaque inside, empty outside.
+      std::vector<float> inside(per_frame);
+      for (int i = 0; i < per_frame; ++i) {
+        const int32_t p = static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
+        inside[i] = data_.masks[f][camera[i]].data[p] != 0 ? 1.0f : 0.0f;
+      }
+      torch::Tensor silhouette = torch::from_blob(inside.data(), {per_frame, 1}, torch::kFloat32).clone();
+      silhouette_term = (alpha - silhouette).pow(2).mean();
+      frame_loss = frame_loss + options_.silhouette_weight * silhouette_term;
+    }
+    if (warp.defined() && options_.warp_prior_weight > 0) {
+      warp_term = (warp - IdentityWarp(warp.size(0))).pow(2).sum(-1).mean();
+      frame_loss = frame_loss + options_.warp_prior_weight * warp_term;
+    }
     loss = loss + frame_loss / options_.frames_per_batch;
     photo_sum += photo.item<double>();
+    {
+      torch::NoGradGuard no_grad;
+      const double share = 1.0 / options_.frames_per_batch;
+      terms.alpha_prior += share * prior.item<double>();
+      terms.tv += share * tv.item<double>();
+      if (kl.defined()) terms.kl += share * kl.item<double>();
+      if (silhouette_term.defined()) terms.silhouette += share * silhouette_term.item<double>();
+      const float* a = alpha.contiguous().data_ptr<float>();
+      double in_sum = 0, out_sum = 0;
+      int64_t in_count = 0, out_count = 0;
+      for (int i = 0; i < per_frame; ++i) {
+        const int32_t p = static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
+        if (data_.masks[f][camera[i]].data[p] != 0) {
+          in_sum += a[i];
+          ++in_count;
+        } else {
+          out_sum += a[i];
+          ++out_count;
+        }
+      }
+      terms.alpha_inside += share * (in_count > 0 ? in_sum / in_count : 0.0);
+      terms.alpha_outside += share * (out_count > 0 ? out_sum / out_count : 0.0);
+      if (warp.defined()) terms.warp_voxels += share * (warp - IdentityWarp(warp.size(0))).norm(2, -1).mean().item<double>() * config_.grid;
+    }
     samples += context->outputs.MeanSamples();
     contexts.push_back(std::move(context));
   }
@@ -347,6 +411,13 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
   }
   *photometric = photo_sum / options_.frames_per_batch;
   *samples_per_ray = samples / options_.frames_per_batch;
+  terms.photometric = *photometric;
+  {
+    torch::NoGradGuard no_grad;
+    terms.gain_drift = (model_->gain - 1).abs().max().item<double>();
+    terms.bias_drift = model_->bias.abs().max().item<double>();
+  }
+  last_terms_ = terms;
   return value;
 }
 
@@ -354,7 +425,7 @@ Evaluation Trainer::Evaluate(bool write_images) {
   torch::NoGradGuard no_grad;
   Evaluation result;
   if (heldout_.empty()) return result;
-  double mse_sum = 0, mse_fg_sum = 0, mse_background_sum = 0, ssim_sum = 0;
+  double mse_sum = 0, mse_fg_sum = 0, mse_background_sum = 0, ssim_sum = 0, alpha_outside_sum = 0;
   int count = 0;
   for (int64_t f : eval_frames_) {
     torch::Tensor latent = Latent(f, /*sample=*/false, nullptr);
@@ -381,6 +452,17 @@ Evaluation Trainer::Evaluate(bool write_images) {
       cv::dilate(data_.masks[f][v], mask, cv::Mat(), cv::Point(-1, -1), 3);
       mse_sum += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
       mse_fg_sum += std::pow(10.0, -PsnrDb(predicted, truth, mask) / 10.0);
+      {
+        const float* a = out[1].contiguous().data_ptr<float>();
+        double sum = 0;
+        int64_t n = 0;
+        for (int32_t p : box_pixels_[v]) {
+          if (mask.data[p] != 0) continue;
+          sum += a[p];
+          ++n;
+        }
+        if (n > 0) alpha_outside_sum += sum / n;
+      }
       cv::Mat background;
       data_.views[v].background.convertTo(background, CV_32FC3, 1.0 / 255.0);
       mse_background_sum += std::pow(10.0, -PsnrDb(background, truth, mask) / 10.0);
@@ -400,6 +482,7 @@ Evaluation Trainer::Evaluate(bool write_images) {
   result.psnr_fg_db = -10.0 * std::log10(mse_fg_sum / count);
   result.background_psnr_fg_db = -10.0 * std::log10(mse_background_sum / count);
   result.ssim = ssim_sum / count;
+  result.alpha_outside = alpha_outside_sum / count;
   return result;
 }
 
@@ -498,6 +581,14 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
                                "warp field (nothing moves)",
                                "template decoder (the RGBA grid itself is optimised)"});
   summary.plan["device"] = "cpu (the ray marcher is CPU code)";
+  nlohmann::json losses = {{"photometric", 1.0}, {"alpha_prior", options_.alpha_prior_weight},
+                           {"total_variation", options_.tv_weight}};
+  if (options_.silhouette_weight > 0) losses["silhouette"] = options_.silhouette_weight;
+  if (data_.dynamic) {
+    losses["kl"] = options_.kl_weight;
+    losses["warp_prior"] = options_.warp_prior_weight;
+  }
+  summary.plan["losses"] = losses;
   summary.plan["step_m"] = step_m_;
   if (report != nullptr) {
     report->plan() = summary.plan;
@@ -525,6 +616,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
       report->AddPoint("heldout_psnr_db", last_eval.psnr_db, it);
       report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, it);
       report->AddPoint("heldout_ssim", last_eval.ssim, it);
+      report->AddPoint("heldout_alpha_outside", last_eval.alpha_outside, it);
       report->Write(model_dir_ / "report.json");
     }
   };
@@ -541,7 +633,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
     double progress_fraction = 0;
     if (options_.iterations > 0) progress_fraction = static_cast<double>(iteration - first_iteration) / options_.iterations;
     if (options_.minutes > 0) progress_fraction = std::max(progress_fraction, t / budget_s);
-    ScheduleLearningRate(progress_fraction);
+    ScheduleLearningRate(progress_fraction, iteration);
     const double loss = TrainStep(iteration, &photo, &samples);
     // Against the running mean, or the first loss until there is one: an explosion in the
     // very first steps must not become the reference itself.
@@ -572,7 +664,21 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
     photo_history.push_back(photo);
     summary.samples_per_ray = samples;
     ++iteration;
-    if (report != nullptr && iteration % 10 == 0) report->AddPoint("loss", photo, iteration);
+    if (report != nullptr && iteration % 10 == 0) {
+      const StepTerms& terms = last_terms_;
+      report->AddPoint("loss", photo, iteration);
+      report->AddPoint("loss_alpha_prior", terms.alpha_prior, iteration);
+      report->AddPoint("loss_tv", terms.tv, iteration);
+      report->AddPoint("loss_silhouette", terms.silhouette, iteration);
+      if (data_.dynamic) {
+        report->AddPoint("loss_kl", terms.kl, iteration);
+        report->AddPoint("warp_voxels", terms.warp_voxels, iteration);
+      }
+      report->AddPoint("train_alpha_inside", terms.alpha_inside, iteration);
+      report->AddPoint("train_alpha_outside", terms.alpha_outside, iteration);
+      report->AddPoint("gain_drift", terms.gain_drift, iteration);
+      report->AddPoint("bias_drift", terms.bias_drift, iteration);
+    }
     progress.Update(options_.iterations > 0 ? iteration - first_iteration : static_cast<int64_t>(t),
                     Cat("it ", iteration, " loss ", photo, " held-out ", last_eval.psnr_db, " dB"));
     if (elapsed() >= next_checkpoint) {
