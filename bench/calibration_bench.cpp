@@ -21,6 +21,7 @@
 // noise); --no-peers leaves OpenCV and mrcal out.
 // Next to each error it prints the solve's own 1-sigma of that parameter: errors of a few
 // sigma are what the board views can tell, not a fault of the solve.
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -231,6 +232,47 @@ int Run(int argc, char** argv) {
     }
     return std::sqrt(noise2 / (2.0 * noise_n));
   };
+  // Where the detected corners miss the truth, per camera: their RMS, 99th percentile and the
+  // mean radial component (outward +) by distance from the imager's centre, which shows a
+  // bias under lens distortion.
+  if (!planned) {
+    std::printf("detected corners against the truth, per camera: RMS, 99th percentile, mean radial error (px) "
+                "in 4 rings from the imager centre out\n");
+    for (const auto& name : sensors) {
+      const CameraModel& cam = truth.at(name);
+      const Eigen::Vector2d centre(0.5 * (cam.width() - 1), 0.5 * (cam.height() - 1));
+      const double corner_radius = centre.norm();
+      std::vector<double> errors;
+      double radial[4] = {0, 0, 0, 0};
+      int in_ring[4] = {0, 0, 0, 0};
+      for (const auto& obs : observations) {
+        auto pose = world_from_board.find(obs.frame_set);
+        if (obs.sensor != name || pose == world_from_board.end()) continue;
+        const Pose view = cam.cam_from_world() * pose->second;
+        for (int r = 0; r < obs.points.rows(); ++r) {
+          Eigen::Vector2d q;
+          if (obs.points(r, 2) <= 0 ||
+              !cam.Project(view * board.GridPoint(r % board.width_n(), r / board.width_n()), &q)) {
+            continue;
+          }
+          const Eigen::Vector2d e = obs.points.row(r).head<2>().transpose() - q;
+          errors.push_back(e.norm());
+          const Eigen::Vector2d out = q - centre;
+          const int ring = std::min(3, static_cast<int>(4 * out.norm() / corner_radius));
+          radial[ring] += out.norm() > 1 ? e.dot(out.normalized()) : 0;
+          ++in_ring[ring];
+        }
+      }
+      if (errors.empty()) continue;
+      double sum2 = 0;
+      for (double e : errors) sum2 += e * e;
+      std::sort(errors.begin(), errors.end());
+      std::printf("  %s: %.3f px RMS, 99%% under %.3f px; radial", name.c_str(), std::sqrt(sum2 / errors.size()),
+                  errors[static_cast<size_t>(0.99 * (errors.size() - 1))]);
+      for (int k = 0; k < 4; ++k) std::printf(" %+.3f (%d)", in_ring[k] ? radial[k] / in_ring[k] : NAN, in_ring[k]);
+      std::printf("\n");
+    }
+  }
   const double found_noise = measure_noise(true_corners);
   const double present = true_corners ? 0.0 : found_noise;
   const double added = std::sqrt(std::max(0.0, corner_noise * corner_noise - present * present));

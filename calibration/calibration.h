@@ -19,7 +19,8 @@
 // observation noise is propagated through the Jacobian returned by mrcal_optimizer_callback,
 // Var(b) = s^2 inv(JtJ) Jobs^t Jobs inv(JtJ), and the projection of a point at a working
 // distance is differentiated through the intrinsics, the camera's extrinsics and the mean of
-// the board poses.
+// the board poses. The same propagation gives each camera's 1-sigma of its intrinsics and of its
+// rotation and centre relative to the reference camera.
 #pragma once
 
 #include <Eigen/Core>
