@@ -93,7 +93,9 @@ nlohmann::json ReconstructionOptions::ToJson() const {
           {"completion_margin_px", completion_margin_px},
           {"meshing", {{"simplify_cell_m", meshing.simplify_cell_m}}},
           {"texture", {{"texels_per_cell", texture.texels_per_cell}, {"max_views", texture.max_views},
-                       {"atlas", texture.atlas}}},
+                       {"min_cos_incidence", texture.min_cos_incidence}, {"depth_tolerance_m", texture.depth_tolerance_m},
+                       {"occlusion_scale", texture.occlusion_scale}, {"fill_unseen", texture.fill_unseen},
+                       {"fill_smoothing_iterations", texture.fill_smoothing_iterations}, {"atlas", texture.atlas}}},
           {"write_glb", write_glb},
           {"sweep_voxels_m", sweep_voxels_m},
           {"threads", threads}};
@@ -460,8 +462,7 @@ ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, con
         TexturedMesh textured = TextureMesh(frame.mesh, views, texture);
         WritePly(out / (SetName(set) + ".ply"), textured.mesh);
         if (options.write_glb) WriteGlb(out / (SetName(set) + ".glb"), textured);
-        result.metrics["texture"] = {{"uncoloured_vertices", textured.uncoloured_vertices},
-                                     {"atlas_px", textured.atlas.cols}};
+        result.metrics["texture"] = textured.Metrics();
       }
       result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - frame_start).count();
       result.vertices = static_cast<int64_t>(frame.mesh.vertices.size());

@@ -333,8 +333,15 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
 struct TextureOptions {
   int texels_per_cell = 8;          // atlas: two triangles share one square cell of this side
   double min_cos_incidence = 0.1;   // views seeing a surface more obliquely do not contribute
-  double depth_tolerance_m = 0.01;  // visibility: a vertex within this of the view's depth map
+  double depth_tolerance_m = 0.01;  // visibility: the view's own rendered depth under the image
+                                    // pixels a lookup reads is within this (plus what the
+                                    // surface's slope spans over them) of the point's: no
+                                    // occluder, no silhouette edge
+  int occlusion_scale = 2;          // occlusion buffers at this multiple of each image's size
   int max_views = 3;                // blend the best views (highest incidence cosine)
+  bool fill_unseen = true;          // vertices no view sees take their seen neighbours' colour,
+                                    // diffused over the mesh's edges
+  int fill_smoothing_iterations = 20;  // Jacobi smoothing of the filled colours afterwards
   bool atlas = true;                // also build the atlas (vertex colour is always set)
   void Check() const;
 };
@@ -343,11 +350,16 @@ struct TexturedMesh {
   Mesh mesh;                            // with per-vertex colour
   std::vector<Eigen::Vector2f> corner_uv;  // 3 per face, glTF convention (v down)
   cv::Mat atlas;                        // CV_8UC3 BGR; empty without an atlas
-  int64_t uncoloured_vertices = 0;      // seen by no view
+  int64_t seen_vertices = 0;            // coloured from the views
+  int64_t filled_vertices = 0;          // seen by no view, coloured from seen neighbours
+  int64_t uncoloured_vertices = 0;      // neither (no seen vertex in their part of the mesh,
+                                        // or filling off): mid grey
+  nlohmann::json Metrics() const;       // counts and fractions for reports
 };
 
 // Colours every vertex (and every atlas texel) by blending the views that see it, weighted by
-// incidence; visibility from each view's own rendered depth of the mesh.
+// incidence; visibility from each view's own rendered depth of the mesh. Vertices no view sees
+// are filled from their seen neighbours over the mesh (front propagation, then smoothing).
 TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views,
                          const TextureOptions& options = {});
 

@@ -44,12 +44,18 @@ Projected ProjectVertices(const Mesh& mesh, const CameraModel& camera) {
 }
 
 // Z-buffer rasterisation of triangles in pixel space (depth interpolated linearly there; the
-// triangles of a mesh are small against the lens's curvature).
-cv::Mat Rasterise(const Mesh& mesh, const Projected& p, int width, int height) {
+// triangles of a mesh are small against the lens's curvature), at `scale` times the image's
+// resolution: pixel x of the image is (x + 0.5) * scale - 0.5 of the buffer.
+cv::Mat Rasterise(const Mesh& mesh, const Projected& p, int width, int height, int scale = 1) {
+  width *= scale;
+  height *= scale;
+  const float s = static_cast<float>(scale), offset = 0.5f * (s - 1);
   cv::Mat depth(height, width, CV_32F, cv::Scalar(std::numeric_limits<float>::infinity()));
   for (const auto& f : mesh.faces) {
     if (!p.valid[f.x()] || !p.valid[f.y()] || !p.valid[f.z()]) continue;
-    const Eigen::Vector2f a = p.pixels[f.x()], b = p.pixels[f.y()], c = p.pixels[f.z()];
+    const Eigen::Vector2f a = p.pixels[f.x()] * s + Eigen::Vector2f::Constant(offset);
+    const Eigen::Vector2f b = p.pixels[f.y()] * s + Eigen::Vector2f::Constant(offset);
+    const Eigen::Vector2f c = p.pixels[f.z()] * s + Eigen::Vector2f::Constant(offset);
     float area = (b - a).x() * (c - a).y() - (b - a).y() * (c - a).x();
     if (std::abs(area) < 1e-12f) continue;
     int x0 = std::max(0, static_cast<int>(std::ceil(std::min({a.x(), b.x(), c.x()}))));
@@ -75,9 +81,19 @@ cv::Mat Rasterise(const Mesh& mesh, const Projected& p, int width, int height) {
 struct ViewSampler {
   const View* view;
   recon::FastProjector projector;
-  cv::Mat depth;
+  cv::Mat depth;               // occlusion buffer at `scale` times the image's resolution
+  int scale = 1;
   Eigen::Vector3f centre;
+  float radians_per_pixel = 0; // of the occlusion buffer, near the image centre
 };
+
+// The angle one pixel spans near the image's centre (any lens model).
+float RadiansPerPixel(const CameraModel& camera) {
+  const Eigen::Vector2d c(0.5 * (camera.width() - 1), 0.5 * (camera.height() - 1));
+  const Eigen::Vector3d a = camera.Unproject(c).normalized(), b = camera.Unproject(c + Eigen::Vector2d(1, 0)).normalized();
+  const double angle = std::acos(std::clamp(a.dot(b), -1.0, 1.0));
+  return std::isfinite(angle) && angle > 0 ? static_cast<float>(angle) : 1e-3f;
+}
 
 cv::Vec3f SampleColor(const cv::Mat& image, float u, float v) {
   int x = std::clamp(static_cast<int>(std::floor(u)), 0, image.cols - 2);
@@ -88,18 +104,29 @@ cv::Vec3f SampleColor(const cv::Mat& image, float u, float v) {
   return (1 - fy) * ((1 - fx) * c00 + fx * c01) + fy * ((1 - fx) * c10 + fx * c11);
 }
 
-// Whether a view sees a point of the mesh (depth test against its own rendering).
-bool Visible(const ViewSampler& s, float u, float v, float z, double tolerance) {
-  if (!s.view->camera.InImage(Eigen::Vector2d(u, v), 1)) return false;
-  int x = static_cast<int>(std::lround(u)), y = static_cast<int>(std::lround(v));
-  float nearest = std::numeric_limits<float>::infinity();
-  for (int dy = -1; dy <= 1; ++dy) {
-    for (int dx = -1; dx <= 1; ++dx) {
-      int xx = std::clamp(x + dx, 0, s.depth.cols - 1), yy = std::clamp(y + dy, 0, s.depth.rows - 1);
-      nearest = std::min(nearest, s.depth.at<float>(yy, xx));
+// Whether a view sees a point of the mesh cleanly: its depth against the view's own rendering
+// of the mesh at every occlusion-buffer pixel inside the four image pixels that a bilinear
+// lookup reads. All four must lie on the point's surface: a tap in front is an occluder, an
+// empty or farther one a silhouette edge where the image mixes in what lies behind. The taps
+// lie up to 1.5 image pixels from the point, over which a surface at incidence angle t changes
+// depth by that footprint * tan t, so the tolerance grows with it (cosines below 0.1 are cut).
+bool Visible(const ViewSampler& s, float u, float v, float z, float cos_incidence, double tolerance) {
+  if (!s.view->camera.InImage(Eigen::Vector2d(u, v), 0.5)) return false;
+  const float cos_t = std::max(cos_incidence, 0.1f);
+  const float slope = std::sqrt(std::max(0.0f, 1 - cos_t * cos_t)) / cos_t;
+  const float image_footprint = z * s.radians_per_pixel * s.scale;
+  const float allowed = static_cast<float>(tolerance) + 1.5f * image_footprint * slope;
+  const int x0 = static_cast<int>(std::floor(u)), y0 = static_cast<int>(std::floor(v));
+  // Every occlusion-buffer pixel inside the four image pixels.
+  const int xs = std::clamp(x0 * s.scale, 0, s.depth.cols - 1), xe = std::clamp((x0 + 2) * s.scale - 1, 0, s.depth.cols - 1);
+  const int ys = std::clamp(y0 * s.scale, 0, s.depth.rows - 1), ye = std::clamp((y0 + 2) * s.scale - 1, 0, s.depth.rows - 1);
+  for (int y = ys; y <= ye; ++y) {
+    const float* row = s.depth.ptr<float>(y);
+    for (int x = xs; x <= xe; ++x) {
+      if (!(std::abs(row[x] - z) <= allowed)) return false;
     }
   }
-  return z <= nearest + tolerance;
+  return true;
 }
 
 // Blends the best `max_views` views by incidence cosine; false when none sees the point.
@@ -118,7 +145,7 @@ bool BlendColor(const std::vector<ViewSampler>& samplers, const Eigen::Vector3f&
     if (cos_incidence < options.min_cos_incidence) continue;
     float u, v, z;
     if (!s.projector.ProjectWorld(point, &u, &v, &z)) continue;
-    if (!Visible(s, u, v, z, options.depth_tolerance_m)) continue;
+    if (!Visible(s, u, v, z, cos_incidence, options.depth_tolerance_m)) continue;
     Candidate c{cos_incidence * cos_incidence, SampleColor(s.view->image, u, v)};
     if (count < keep) {
       best[count++] = c;
@@ -133,6 +160,82 @@ bool BlendColor(const std::vector<ViewSampler>& samplers, const Eigen::Vector3f&
   for (int i = 0; i < count; ++i) sum += best[i].weight * best[i].color, total += best[i].weight;
   *color = sum / total;
   return true;
+}
+
+// Colours the vertices no view saw from those it did, over the mesh's edges: a front grows
+// from the seen vertices (each newly reached vertex takes the mean of its already coloured
+// neighbours), then Jacobi iterations smooth the filled colours with the seen ones held fixed
+// (a discrete harmonic fill). Vertices in parts of the mesh without a seen vertex stay as they
+// are. Returns the number filled; `seen` is 1 for seen vertices, `rgb` their colours.
+int64_t FillUnseen(const Mesh& mesh, const std::vector<uint8_t>& seen, int smoothing_iterations,
+                   std::vector<Eigen::Vector3f>* rgb) {
+  const size_t n = mesh.vertices.size();
+  // Vertex adjacency (compressed rows) from the faces' edges; duplicates only weigh an edge more.
+  std::vector<int32_t> start(n + 1, 0), neighbours;
+  for (const auto& f : mesh.faces) {
+    for (int k = 0; k < 3; ++k) start[f[k] + 1] += 2;
+  }
+  for (size_t i = 0; i < n; ++i) start[i + 1] += start[i];
+  neighbours.resize(start[n]);
+  std::vector<int32_t> fill = start;
+  for (const auto& f : mesh.faces) {
+    for (int k = 0; k < 3; ++k) {
+      neighbours[fill[f[k]]++] = f[(k + 1) % 3];
+      neighbours[fill[f[k]]++] = f[(k + 2) % 3];
+    }
+  }
+  std::vector<uint8_t> coloured = seen;
+  std::vector<int32_t> front, next, filled;
+  for (size_t i = 0; i < n; ++i) {
+    if (coloured[i]) continue;
+    for (int32_t j = start[i]; j < start[i + 1]; ++j) {
+      if (coloured[neighbours[j]]) {
+        front.push_back(static_cast<int32_t>(i));
+        break;
+      }
+    }
+  }
+  std::vector<uint8_t> queued(n, 0);
+  for (int32_t v : front) queued[v] = 1;
+  while (!front.empty()) {
+    // Colours of a front come from the vertices coloured before it, so the order inside a
+    // front does not matter (deterministic).
+    std::vector<Eigen::Vector3f> colours(front.size());
+    for (size_t k = 0; k < front.size(); ++k) {
+      Eigen::Vector3f sum = Eigen::Vector3f::Zero();
+      int count = 0;
+      for (int32_t j = start[front[k]]; j < start[front[k] + 1]; ++j) {
+        if (coloured[neighbours[j]]) sum += (*rgb)[neighbours[j]], ++count;
+      }
+      colours[k] = sum / static_cast<float>(std::max(count, 1));
+    }
+    next.clear();
+    for (size_t k = 0; k < front.size(); ++k) {
+      (*rgb)[front[k]] = colours[k];
+      coloured[front[k]] = 1;
+      filled.push_back(front[k]);
+    }
+    for (int32_t v : front) {
+      for (int32_t j = start[v]; j < start[v + 1]; ++j) {
+        const int32_t u = neighbours[j];
+        if (!coloured[u] && !queued[u]) queued[u] = 1, next.push_back(u);
+      }
+    }
+    front.swap(next);
+  }
+  std::vector<Eigen::Vector3f> smoothed(filled.size());
+  for (int iteration = 0; iteration < smoothing_iterations; ++iteration) {
+#pragma omp parallel for schedule(static)
+    for (size_t k = 0; k < filled.size(); ++k) {
+      Eigen::Vector3f sum = Eigen::Vector3f::Zero();
+      const int32_t v = filled[k];
+      for (int32_t j = start[v]; j < start[v + 1]; ++j) sum += (*rgb)[neighbours[j]];
+      const int32_t degree = start[v + 1] - start[v];
+      smoothed[k] = degree > 0 ? Eigen::Vector3f(sum / static_cast<float>(degree)) : (*rgb)[v];
+    }
+    for (size_t k = 0; k < filled.size(); ++k) (*rgb)[filled[k]] = smoothed[k];
+  }
+  return static_cast<int64_t>(filled.size());
 }
 
 }  // namespace
@@ -153,6 +256,21 @@ void TextureOptions::Check() const {
   if (!(min_cos_incidence >= 0 && min_cos_incidence < 1)) Fail("texture min_cos_incidence must be in [0, 1)");
   if (!(depth_tolerance_m > 0)) Fail("texture depth_tolerance_m must be > 0");
   if (max_views < 1 || max_views > 8) Fail("texture max_views must be in [1, 8]");
+  if (occlusion_scale < 1 || occlusion_scale > 4) Fail("texture occlusion_scale must be in [1, 4]");
+  if (fill_smoothing_iterations < 0 || fill_smoothing_iterations > 1000) {
+    Fail("texture fill_smoothing_iterations must be in [0, 1000]");
+  }
+}
+
+nlohmann::json TexturedMesh::Metrics() const {
+  const double n = std::max<double>(1, static_cast<double>(mesh.vertices.size()));
+  return {{"seen_vertices", seen_vertices},
+          {"filled_vertices", filled_vertices},
+          {"uncoloured_vertices", uncoloured_vertices},
+          {"seen_fraction", seen_vertices / n},
+          {"filled_fraction", filled_vertices / n},
+          {"uncoloured_fraction", uncoloured_vertices / n},
+          {"atlas_px", atlas.cols}};
 }
 
 TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views, const TextureOptions& options) {
@@ -167,27 +285,32 @@ TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views, const
         view.image.rows != view.camera.height()) {
       Fail("texturing: image of '", view.name, "' does not match its camera model");
     }
+    const int scale = options.occlusion_scale;
     ViewSampler s{&view, recon::FastProjector(view.camera),
-                  Rasterise(out.mesh, ProjectVertices(out.mesh, view.camera), view.camera.width(), view.camera.height()),
-                  view.camera.center_in_world().cast<float>()};
+                  Rasterise(out.mesh, ProjectVertices(out.mesh, view.camera), view.camera.width(), view.camera.height(), scale),
+                  scale, view.camera.center_in_world().cast<float>(), RadiansPerPixel(view.camera) / scale};
     samplers.push_back(std::move(s));
   }
   if (samplers.empty()) Fail("texturing needs at least one view with an image");
   const size_t n = out.mesh.vertices.size();
   out.mesh.colors.assign(n, Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
-  int64_t uncoloured = 0;
-#pragma omp parallel for reduction(+ : uncoloured) schedule(dynamic, 256)
+  std::vector<uint8_t> seen(n, 0);
+  std::vector<Eigen::Vector3f> rgb(n, Eigen::Vector3f::Constant(128));
+#pragma omp parallel for schedule(dynamic, 256)
   for (size_t i = 0; i < n; ++i) {
     cv::Vec3f bgr;
     if (BlendColor(samplers, out.mesh.vertices[i], out.mesh.normals[i], options, &bgr)) {
-      out.mesh.colors[i] = Eigen::Matrix<uint8_t, 3, 1>(cv::saturate_cast<uint8_t>(bgr[2]),
-                                                        cv::saturate_cast<uint8_t>(bgr[1]),
-                                                        cv::saturate_cast<uint8_t>(bgr[0]));
-    } else {
-      ++uncoloured;
+      rgb[i] = Eigen::Vector3f(bgr[2], bgr[1], bgr[0]);
+      seen[i] = 1;
     }
   }
-  out.uncoloured_vertices = uncoloured;
+  out.seen_vertices = std::count(seen.begin(), seen.end(), uint8_t{1});
+  if (options.fill_unseen) out.filled_vertices = FillUnseen(out.mesh, seen, options.fill_smoothing_iterations, &rgb);
+  out.uncoloured_vertices = static_cast<int64_t>(n) - out.seen_vertices - out.filled_vertices;
+  for (size_t i = 0; i < n; ++i) {
+    if (seen[i] == 0 && !options.fill_unseen) continue;
+    for (int ch = 0; ch < 3; ++ch) out.mesh.colors[i][ch] = cv::saturate_cast<uint8_t>(rgb[i][ch]);
+  }
   if (!options.atlas || out.mesh.faces.empty()) return out;
 
   // Atlas: two triangles per square cell, one in each half, inset so that bilinear lookups
