@@ -4,6 +4,7 @@
 // passes or fails on time. Usage:
 //   nvol_bench [--minutes 30] [--grid 64] [--frames 30] [--width 160] [--sim-width 320] [--rays 16384]
 //              [--work /tmp/nvol-bench] [--dino] [--dino-only] [--dino-minutes 5]
+//   nvol_bench --playback-only --model DIR [--work /tmp/nvol-bench]   (playback table of a trained model)
 #include <CLI/CLI.hpp>
 #include <cstdio>
 #include <filesystem>
@@ -73,22 +74,68 @@ void PrintTerms(const Report& report, int rows) {
 
 void PlaybackTable(const fs::path& model_dir, const fs::path& out) {
   auto model = OpenModel(model_dir);
-  std::printf("\nplayback at 512x512, 24-view orbit of frame 0 (PNG writing excluded)\n");
-  std::printf("%-10s %10s %14s %10s\n", "skipping", "fps", "samples/ray", "ms/view");
-  for (bool skip : {true, false}) {
+  const int kViews = 24;
+  std::printf("\nplayback of %s at 512x512, %d-view orbit (PNG writing excluded)\n", model_dir.c_str(), kViews);
+  std::printf("frame 0: decoded once before the orbit; sequence: frame i at view i, decoded (and baked) per view\n");
+  std::printf("baked: bake_scale %.1f (the default)\n", ViewRenderOptions{}.bake_scale);
+  std::printf("%-16s %-9s %-9s %8s %12s %9s\n", "sampling", "frames", "skipping", "fps", "samples/ray", "ms/view");
+  struct Row {
+    bool bake, sequence, skip;
+  };
+  const Row rows[] = {{true, false, true},  {true, false, false},  {true, true, true},
+                      {false, false, true}, {false, false, false}, {false, true, true}};
+  for (const Row& row : rows) {
     OrbitOptions orbit;
-    orbit.views = 24;
+    orbit.views = kViews;
     orbit.width = 512;
     orbit.height = 512;
+    orbit.advance_frames = row.sequence;
     CameraPath path = OrbitPath(*model, orbit);
     PlaybackOptions options;
-    options.out = out / (skip ? "skip" : "noskip");
-    options.render.skip_empty = skip;
+    options.out = out / "frames";
+    options.render.skip_empty = row.skip;
+    options.render.bake = row.bake;
     options.write_frames = false;
+    // The frame on show before the orbit starts: frame 0 for a fixed frame, the last one for a
+    // sequence (so that its first view decodes too).
+    model->Render(path.cameras[0], row.sequence ? model->frame_count() - 1 : 0, options.render);
     PlaybackSummary summary = RenderPath(*model, path, options);
-    std::printf("%-10s %10.2f %14.1f %10.1f\n", skip ? "on" : "off", summary.render_fps,
+    std::printf("%-16s %-9s %-9s %8.2f %12.1f %9.1f\n", row.bake ? "baked" : "warp+template",
+                row.sequence ? "sequence" : "frame 0", row.skip ? "on" : "off", summary.render_fps,
                 summary.samples_per_ray, 1000.0 / summary.render_fps);
   }
+  // The baked grid against warp + template, on four views of the orbit (frame 0), for three
+  // bake resolutions.
+  OrbitOptions orbit;
+  orbit.views = 4;
+  orbit.width = 512;
+  orbit.height = 512;
+  orbit.advance_frames = false;
+  const CameraPath path = OrbitPath(*model, orbit);
+  ViewRenderOptions direct_options;
+  direct_options.bake = false;
+  std::vector<RenderedView> direct;
+  for (size_t i = 0; i < path.size(); ++i) direct.push_back(model->Render(path.cameras[i], 0, direct_options));
+  std::printf("baked against warp+template, 4 views of frame 0 (colour and alpha where either covers):\n");
+  std::printf("%-12s %10s %10s %16s\n", "bake_scale", "min PSNR", "max abs", "1st view ms (*)");
+  for (double scale : {1.0, 1.5, 2.0}) {
+    ViewRenderOptions options;
+    options.bake_scale = scale;
+    double worst_psnr = 1e9, worst_abs = 0, first_ms = 0;
+    for (size_t i = 0; i < path.size(); ++i) {
+      const RenderedView baked = model->Render(path.cameras[i], 0, options);
+      if (i == 0) first_ms = 1000 * baked.seconds;  // a new bake resolution decodes and bakes again
+      std::vector<cv::Mat> a = {baked.color, baked.alpha}, b = {direct[i].color, direct[i].alpha};
+      cv::Mat rgba_baked, rgba_direct;
+      cv::merge(a, rgba_baked);
+      cv::merge(b, rgba_direct);
+      const cv::Mat covered = (baked.alpha > 1.0 / 255) | (direct[i].alpha > 1.0 / 255);
+      worst_psnr = std::min(worst_psnr, PsnrDb(rgba_baked, rgba_direct, covered));
+      worst_abs = std::max(worst_abs, cv::norm(rgba_baked, rgba_direct, cv::NORM_INF));
+    }
+    std::printf("%-12.1f %7.1f dB %10.4f %16.0f\n", scale, worst_psnr, worst_abs, first_ms);
+  }
+  std::printf("(*) decode, bake at that resolution and render one view\n");
 }
 
 }  // namespace
@@ -125,9 +172,26 @@ int main(int argc, char** argv) {
   app.add_option("--kl", kl, "KL weight of the latent");
   app.add_option("--template-lr", template_lr, "Adam learning rate of the template's residual grid");
   app.add_flag("!--no-playback", playback, "Skip the playback table");
+  bool playback_only = false;
+  std::string model_option;
+  app.add_flag("--playback-only", playback_only, "Only the playback table of the model given by --model");
+  app.add_option("--model", model_option, "Trained model directory (with --playback-only)");
   CLI11_PARSE(app, argc, argv);
   const fs::path root = work;
   fs::create_directories(root);
+  if (playback_only) {
+    if (model_option.empty()) {
+      std::fprintf(stderr, "nvol_bench: --playback-only needs --model DIR\n");
+      return 1;
+    }
+    try {
+      PlaybackTable(model_option, root / "playback");
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "nvol_bench: %s\n", e.what());
+      return 1;
+    }
+    return 0;
+  }
 
   if (!dino_only) {
     if (scene == "object") frames = 1;

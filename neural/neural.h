@@ -152,6 +152,9 @@ struct ViewRenderOptions {
   double min_transmittance = 1e-3;  // a ray stops once this little light is left
   double depth_min_alpha = 0.5;     // depth is reported where alpha reaches this (else NaN)
   int threads = 0;                  // 0: all cores
+  bool bake = true;                 // march one world-space RGBA grid (the template resampled
+                                    // through the warp once per frame) instead of warp + template
+  double bake_scale = 1.0;          // baked voxels per template voxel along each axis (>= 1)
 };
 
 struct RenderedView {

@@ -309,7 +309,7 @@ class NeuralVolumeAvatar : public AvatarModel {
     if (options.threads > 0) omp_set_num_threads(options.threads);
     const auto start = std::chrono::steady_clock::now();
     frame = std::clamp<int64_t>(frame, 0, frames_ - 1);
-    Decode(frame);
+    Decode(frame, options.bake_scale);
     MarchContext context;
     context.box_min = config_.box_min.cast<float>();
     context.box_max = config_.box_max.cast<float>();
@@ -320,7 +320,8 @@ class NeuralVolumeAvatar : public AvatarModel {
     context.options.step_m = static_cast<float>(StepMetres(options.step_voxels));
     context.options.min_transmittance = static_cast<float>(options.min_transmittance);
     context.rays = CameraRaysAllPixels(camera, context.box_min, context.box_max);
-    MarchForward(VolumeOf(rgba_, warp_, context), context.rays, context.options, &context.outputs);
+    MarchPlayback(options.bake ? baked_.View(context.occupancy) : VolumeOf(rgba_, warp_, context), context.rays,
+                  context.options, &context.outputs);
 
     RenderedView view;
     const int w = camera.width(), h = camera.height();
@@ -361,8 +362,11 @@ class NeuralVolumeAvatar : public AvatarModel {
     return step_voxels * (config_.box_max - config_.box_min).minCoeff() / config_.grid;
   }
 
-  void Decode(int64_t frame) {
-    if (frame == decoded_frame_) return;
+  void Decode(int64_t frame, double bake_scale) {
+    if (!(bake_scale >= 1)) Fail("bake_scale must be at least 1, got ", bake_scale);
+    // A static volume has no warp: its grid is sampled as it is.
+    const int bake_grid = config_.dynamic ? static_cast<int>(std::lround(bake_scale * config_.grid)) : config_.grid;
+    if (frame == decoded_frame_ && bake_grid == baked_.grid) return;
     torch::NoGradGuard no_grad;
     torch::Tensor latent = config_.dynamic ? latents_.narrow(0, frame, 1) : torch::Tensor();
     rgba_ = model_->DecodeRgba(latent).contiguous();
@@ -375,7 +379,8 @@ class NeuralVolumeAvatar : public AvatarModel {
     const bool has_hull = hull_occupancy_.defined();
     const int cells = has_hull ? static_cast<int>(std::lround(std::cbrt(static_cast<double>(hull_occupancy_.size(1)))))
                                : std::max(config_.grid / 4, 4);
-    occupancy_ = OccupancyFromVolume(VolumeOf(rgba_, warp_, context), cells, min_density);
+    baked_ = BakeVolume(VolumeOf(rgba_, warp_, context), bake_grid);
+    occupancy_ = OccupancyFromVolume(baked_.View(), cells, min_density);
     occupancy_.Dilate(1);
     if (has_hull) {
       // Training sampled only the hull's cells; density elsewhere was never fitted.
@@ -393,6 +398,7 @@ class NeuralVolumeAvatar : public AvatarModel {
   int64_t frames_ = 1;
   int64_t decoded_frame_ = -1;
   torch::Tensor rgba_, warp_;
+  BakedVolume baked_;
   OccupancyGrid occupancy_;
 };
 

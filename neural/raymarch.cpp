@@ -70,7 +70,7 @@ inline void EvaluateSample(const MarchVolume& volume, const Eigen::Vector3f& u, 
   } else {
     s->y = u;
   }
-  TrilinearCorners(s->y, volume.grid, /*clamp=*/false, &s->corners);
+  TrilinearCorners(s->y, volume.grid, volume.rgba_clamped, &s->corners);
   for (float& v : s->value) v = 0;
   for (int c = 0; c < 8; ++c) {
     if (s->corners.index[c] < 0) continue;
@@ -114,8 +114,33 @@ inline void Interpolate(const float* grid, int n, bool clamp, const Eigen::Vecto
 inline void EvaluateValue(const MarchVolume& volume, const Eigen::Vector3f& u, float value[4]) {
   Eigen::Vector3f y = u;
   if (volume.warp != nullptr) Interpolate<3>(volume.warp, volume.warp_grid, /*clamp=*/true, u, y.data());
-  Interpolate<4>(volume.rgba, volume.grid, /*clamp=*/false, y, value);
+  Interpolate<4>(volume.rgba, volume.grid, volume.rgba_clamped, y, value);
   value[3] = std::max(value[3], 0.0f);
+}
+
+// Interpolate<4> without a border test where all 8 corners lie inside, as 4-wide lerps of
+// the interleaved RGBA voxels (playback: a sample is this one lookup).
+inline void InterpolateRgba(const float* grid, int n, bool clamp, const Eigen::Vector3f& u, float out[4]) {
+  const float gx = u[0] * n - 0.5f, gy = u[1] * n - 0.5f, gz = u[2] * n - 0.5f;
+  const int bx = static_cast<int>(std::floor(gx)), by = static_cast<int>(std::floor(gy)),
+            bz = static_cast<int>(std::floor(gz));
+  if (bx < 0 || by < 0 || bz < 0 || bx + 1 >= n || by + 1 >= n || bz + 1 >= n) {
+    Interpolate<4>(grid, n, clamp, u, out);
+    return;
+  }
+  using V = Eigen::Array4f;
+  const float fx = gx - bx, fy = gy - by, fz = gz - bz;
+  const int64_t sy = static_cast<int64_t>(n) * 4, sz = sy * n;
+  const float* p = grid + bz * sz + by * sy + static_cast<int64_t>(bx) * 4;
+  auto at = [&](int64_t offset) { return Eigen::Map<const V>(p + offset); };
+  const V x00 = at(0) + fx * (at(4) - at(0));
+  const V x10 = at(sy) + fx * (at(sy + 4) - at(sy));
+  const V x01 = at(sz) + fx * (at(sz + 4) - at(sz));
+  const V x11 = at(sz + sy) + fx * (at(sz + sy + 4) - at(sz + sy));
+  const V y0 = x00 + fy * (x10 - x00);
+  const V y1 = x01 + fy * (x11 - x01);
+  Eigen::Map<V> result(out);
+  result = y0 + fz * (y1 - y0);
 }
 
 // The world box of a volume's occupied cells: every sample outside it lies in an empty cell,
@@ -517,6 +542,183 @@ OccupancyGrid OccupancyFromVolume(const MarchVolume& volume, int cells, float mi
     }
   }
   return occupancy;
+}
+
+
+MarchVolume BakedVolume::View(const OccupancyGrid* occupancy) const {
+  MarchVolume volume;
+  volume.box_min = box_min;
+  volume.box_max = box_max;
+  volume.rgba = rgba.data();
+  volume.grid = grid;
+  volume.occupancy = occupancy;
+  volume.rgba_clamped = clamped;
+  return volume;
+}
+
+BakedVolume BakeVolume(const MarchVolume& volume, int grid) {
+  BakedVolume baked;
+  baked.box_min = volume.box_min;
+  baked.box_max = volume.box_max;
+  baked.grid = grid;
+  const int64_t voxels = static_cast<int64_t>(grid) * grid * grid;
+  if (volume.warp == nullptr && grid == volume.grid) {
+    baked.rgba.assign(volume.rgba, volume.rgba + 4 * voxels);
+    return baked;
+  }
+  baked.rgba.resize(4 * voxels);
+  baked.clamped = true;
+#pragma omp parallel for schedule(static)
+  for (int z = 0; z < grid; ++z) {
+    for (int y = 0; y < grid; ++y) {
+      for (int x = 0; x < grid; ++x) {
+        const Eigen::Vector3f u((x + 0.5f) / grid, (y + 0.5f) / grid, (z + 0.5f) / grid);
+        EvaluateValue(volume, u, &baked.rgba[4 * ((static_cast<int64_t>(z) * grid + y) * grid + x)]);
+      }
+    }
+  }
+  return baked;
+}
+
+namespace {
+
+// The playback walk of one ray: ForEachSample's lattice, cell test and exit rule, plus a
+// coarse level (kCoarse³ fine cells each) whose empty cells are left in one stride.
+constexpr int kCoarse = 4;
+
+struct CoarseOccupancy {
+  int size = 0;
+  std::vector<uint8_t> occupied;
+};
+
+CoarseOccupancy CoarseOf(const OccupancyGrid& occ) {
+  CoarseOccupancy coarse;
+  const int n = occ.size;
+  coarse.size = (n + kCoarse - 1) / kCoarse;
+  const int m = coarse.size;
+  coarse.occupied.assign(static_cast<int64_t>(m) * m * m, 0);
+  for (int z = 0; z < n; ++z) {
+    for (int y = 0; y < n; ++y) {
+      for (int x = 0; x < n; ++x) {
+        if (!occ.occupied[(static_cast<int64_t>(z) * n + y) * n + x]) continue;
+        coarse.occupied[(static_cast<int64_t>(z / kCoarse) * m + y / kCoarse) * m + x / kCoarse] = 1;
+      }
+    }
+  }
+  return coarse;
+}
+
+template <bool kWarp>
+void MarchPlaybackRays(const MarchVolume& volume, const RayBatch& rays, const MarchOptions& options,
+                       MarchOutputs* out) {
+  const int64_t count = rays.size();
+  const OccupiedBox occupied = OccupiedBoxOf(volume, options);
+  const OccupancyGrid* occ =
+      (volume.occupancy != nullptr && !volume.occupancy->empty()) ? volume.occupancy : nullptr;
+  const CoarseOccupancy coarse = occ != nullptr ? CoarseOf(*occ) : CoarseOccupancy{};
+  const Eigen::Vector3f extent = volume.box_max - volume.box_min;
+  const double step = options.step_m;
+  const float step_f = options.step_m;
+  int64_t truncated_rays = 0;
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : truncated_rays)
+  for (int64_t r = 0; r < count; ++r) {
+    float transmittance = 1, rgb[3] = {0, 0, 0}, depth = 0;
+    int64_t visited = 0;
+    const float t_near = rays.t_near[r], t_far = rays.t_far[r];
+    const Eigen::Vector3f o(rays.origin[3 * r], rays.origin[3 * r + 1], rays.origin[3 * r + 2]);
+    const Eigen::Vector3f d(rays.direction[3 * r], rays.direction[3 * r + 1], rays.direction[3 * r + 2]);
+    const double jitter = rays.jitter.empty() ? 0.0 : rays.jitter[r];
+    int64_t k_first = 0;
+    double t_last = t_far;
+    bool live = t_far > t_near && occupied.any;
+    if (live && occ != nullptr && !options.evaluate_empty_cells) {
+      float t0 = 0, t1 = 0;
+      live = ClipToBox(o, d, occupied.min, occupied.max, t_near, &t0, &t1);
+      k_first = std::max<int64_t>(0, static_cast<int64_t>(std::floor((t0 - t_near) / step - jitter)) - 1);
+      t_last = std::min<double>(t_far, t1 + step);
+    }
+    for (int64_t k = k_first; live;) {
+      const double t = t_near + (k + jitter) * step;
+      if (t >= t_last) break;
+      const Eigen::Vector3f p = o + static_cast<float>(t) * d;
+      const Eigen::Vector3f u = ((p - volume.box_min).array() / extent.array()).matrix();
+      bool masked = false;
+      if (occ != nullptr) {
+        const int n = occ->size;
+        int cell[3];
+        for (int a = 0; a < 3; ++a) cell[a] = std::clamp(static_cast<int>(std::floor(u[a] * n)), 0, n - 1);
+        if (!occ->occupied[(static_cast<int64_t>(cell[2]) * n + cell[1]) * n + cell[0]]) {
+          if (options.evaluate_empty_cells) {
+            masked = true;
+          } else {
+            // Leave the empty coarse cell when the whole of it is empty, else the fine cell.
+            const int m = coarse.size;
+            const bool coarse_empty =
+                !coarse.occupied[(static_cast<int64_t>(cell[2] / kCoarse) * m + cell[1] / kCoarse) * m +
+                                 cell[0] / kCoarse];
+            double exit = std::numeric_limits<double>::infinity();
+            for (int a = 0; a < 3; ++a) {
+              if (std::abs(d[a]) < 1e-12f) continue;
+              const double cell_size = extent[a] / n;
+              int face = d[a] > 0 ? cell[a] + 1 : cell[a];
+              if (coarse_empty) {
+                const int c = cell[a] / kCoarse;
+                face = d[a] > 0 ? std::min(n, (c + 1) * kCoarse) : c * kCoarse;
+              }
+              const double plane = volume.box_min[a] + face * cell_size;
+              exit = std::min(exit, (plane - p[a]) / d[a]);
+            }
+            const double t_exit = t + std::max(exit, 0.0);
+            const int64_t next = static_cast<int64_t>(std::ceil((t_exit - t_near) / step - jitter + 1e-6));
+            k = std::max(k + 1, next);
+            continue;
+          }
+        }
+      }
+      if (visited >= options.max_samples_per_ray) {
+        ++truncated_rays;
+        break;
+      }
+      ++visited;
+      float value[4];
+      if constexpr (kWarp) {
+        EvaluateValue(volume, u, value);
+      } else {
+        InterpolateRgba(volume.rgba, volume.grid, volume.rgba_clamped, u, value);
+      }
+      // A masked sample is read but composited with zero density: it adds nothing.
+      const float sigma = masked ? 0.0f : std::max(value[3], 0.0f);
+      const float decay = std::exp(-sigma * step_f);
+      const float w = transmittance * (1.0f - decay);
+      for (int c = 0; c < 3; ++c) rgb[c] += w * value[c];
+      depth += w * static_cast<float>(t);
+      transmittance *= decay;
+      if (transmittance < options.min_transmittance) break;
+      ++k;
+    }
+    out->samples[r] = static_cast<int32_t>(visited);
+    for (int c = 0; c < 3; ++c) out->rgb[3 * r + c] = rgb[c];
+    out->alpha[r] = 1.0f - transmittance;
+    out->depth[r] = depth;
+  }
+  out->truncated_rays = truncated_rays;
+}
+
+}  // namespace
+
+void MarchPlayback(const MarchVolume& volume, const RayBatch& rays, const MarchOptions& options,
+                   MarchOutputs* out) {
+  const int64_t n = rays.size();
+  out->rgb.assign(3 * n, 0.0f);
+  out->alpha.assign(n, 0.0f);
+  out->depth.assign(n, 0.0f);
+  out->samples.assign(n, 0);
+  out->truncated_rays = 0;
+  if (volume.warp != nullptr) {
+    MarchPlaybackRays<true>(volume, rays, options, out);
+  } else {
+    MarchPlaybackRays<false>(volume, rays, options, out);
+  }
 }
 
 }  // namespace holocap::neural

@@ -55,6 +55,9 @@ struct MarchVolume {
   const float* warp = nullptr;  // W³ x 3, or null: no warp (the template is the volume)
   int warp_grid = 0;            // W
   const OccupancyGrid* occupancy = nullptr;  // null or empty: no skipping
+  // The RGBA grid is border-padded (clamped, as the warp is) instead of zero outside its voxel
+  // centres: a baked grid, whose outermost half voxel continues the warped template.
+  bool rgba_clamped = false;
 };
 
 struct MarchOptions {
@@ -102,5 +105,34 @@ void MarchBackward(const MarchVolume& volume, const RayBatch& rays, const MarchO
 // Occupancy of a volume seen through its warp: a cell is occupied when the density at any of
 // the grid's sample points inside it (D per axis, through the warp) exceeds `min_density`.
 OccupancyGrid OccupancyFromVolume(const MarchVolume& volume, int cells, float min_density);
+
+// ---------------------------------------------------------------------------------------------
+// Playback (forward only, no gradient).
+
+// A volume baked for playback: the template seen through the warp, resampled at the voxel
+// centres of one world-space RGBA grid over the box (channels last, as MarchVolume::rgba), so
+// that a sample costs one trilinear lookup instead of a warp lookup and a template lookup.
+// Trilinear interpolation of the baked voxels differs from the warped template between voxel
+// centres only (exactly equal at them); a volume without a warp baked at its own resolution is
+// a plain copy.
+struct BakedVolume {
+  Eigen::Vector3f box_min = Eigen::Vector3f::Zero();
+  Eigen::Vector3f box_max = Eigen::Vector3f::Ones();
+  int grid = 0;
+  std::vector<float> rgba;  // grid³ x 4
+  bool clamped = false;     // resampled (border-padded); a copy keeps the template's zero border
+  // The baked grid as a volume without a warp (it must outlive the view).
+  MarchVolume View(const OccupancyGrid* occupancy = nullptr) const;
+};
+BakedVolume BakeVolume(const MarchVolume& volume, int grid);
+
+// Forward marching for playback: the samples, weights and outputs of MarchForward (same sample
+// lattice, same skipping, same counts; colour, alpha and depth agree to float rounding), but
+// accumulated in float, with empty space left in strides of an 4x coarser occupancy level
+// where a whole coarse cell is empty, and samples of a volume without a warp read as one
+// 4-channel trilinear lookup. With evaluate_empty_cells every sample in an empty cell is read
+// and composited with zero density (the cost of marching without skipping, the same image).
+void MarchPlayback(const MarchVolume& volume, const RayBatch& rays, const MarchOptions& options,
+                   MarchOutputs* outputs);
 
 }  // namespace holocap::neural

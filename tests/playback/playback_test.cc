@@ -156,5 +156,63 @@ TEST_F(PlaybackTest, CliRendersAnOrbitVideo) {
   EXPECT_NE(missing.output.find("holocap: error: no model"), std::string::npos) << missing.output;
 }
 
+// A dynamic model plays back from one world-space grid per frame, the template resampled
+// through the warp: its image stays within 40 dB PSNR (colour and alpha, where either render
+// covers) of marching warp + template, and its skipping changes no pixel.
+TEST(PlaybackDynamicTest, BakedFramesRenderLikeWarpAndTemplate) {
+  TempDir dir("holocap-playback-dynamic");
+  auto sim = RunCli("sim --rig studio8 --frames 3 --clean-plate 1 --size 128 --seed 8 --out '" +
+                    (dir.path() / "take").string() + "'");
+  ASSERT_EQ(sim.exit_code, 0) << sim.output;
+  NeuralVolumeOptions options;
+  options.grid = 32;
+  options.image_width = 64;
+  options.latent_dim = 32;
+  options.decoder_channels = 32;
+  options.warp_grid = 16;
+  options.rays_per_batch = 1024;
+  options.iterations = 60;
+  options.eval_every_s = 1000;
+  NeuralVolumeSummary summary = TrainNeuralVolume(dir.path() / "take", dir.path() / "model", options);
+  ASSERT_TRUE(IsUsable(summary.termination)) << summary.message;
+  ASSERT_TRUE(summary.built_warp);
+  auto model = OpenModel(dir.path() / "model");
+  OrbitOptions orbit;
+  orbit.views = 3;
+  orbit.width = 96;
+  orbit.height = 72;
+  CameraPath path = OrbitPath(*model, orbit);
+  ViewRenderOptions direct_options;
+  direct_options.bake = false;
+  for (size_t i = 0; i < path.size(); ++i) {
+    const RenderedView baked = model->Render(path.cameras[i], path.frames[i], {});
+    const RenderedView direct = model->Render(path.cameras[i], path.frames[i], direct_options);
+    double squared = 0, alpha_sum = 0;
+    int64_t covered = 0;
+    for (int y = 0; y < baked.alpha.rows; ++y) {
+      for (int x = 0; x < baked.alpha.cols; ++x) {
+        const float a = baked.alpha.at<float>(y, x), b = direct.alpha.at<float>(y, x);
+        alpha_sum += b;
+        if (a < 1.0f / 255 && b < 1.0f / 255) continue;
+        ++covered;
+        squared += (a - b) * (a - b);
+        for (int c = 0; c < 3; ++c) squared += std::pow(baked.color.at<cv::Vec3f>(y, x)[c] - direct.color.at<cv::Vec3f>(y, x)[c], 2);
+      }
+    }
+    EXPECT_GT(alpha_sum / baked.alpha.total(), 0.01) << "view " << i << " shows too little of the volume to compare";
+    ASSERT_GT(covered, 0);
+    const double psnr = 10 * std::log10(1.0 / (squared / (4.0 * covered)));
+    EXPECT_GT(psnr, 40.0) << "view " << i;
+    std::printf("view %zu (frame %lld): baked against warp + template %.1f dB over %lld covered pixels\n", i,
+                static_cast<long long>(path.frames[i]), psnr, static_cast<long long>(covered));
+    ViewRenderOptions no_skip;
+    no_skip.skip_empty = false;
+    const RenderedView full = model->Render(path.cameras[i], path.frames[i], no_skip);
+    EXPECT_LT(baked.samples_per_ray, full.samples_per_ray);
+    EXPECT_LT(cv::norm(full.alpha, baked.alpha, cv::NORM_INF), 1e-5);
+    EXPECT_LT(cv::norm(full.color, baked.color, cv::NORM_INF), 1e-5);
+  }
+}
+
 }  // namespace
 }  // namespace holocap
