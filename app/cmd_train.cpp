@@ -96,6 +96,8 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--recon", r.recon_dir, "rerender: use this reconstruction (built without the witnesses)");
   command->add_option("--recon-voxel", r.reconstruction.voxel_m, "rerender: reconstruction voxel in metres")->capture_default_str();
   command->add_option("--silhouettes", args->silhouettes, "rerender: reconstruction silhouettes, background or threshold")->capture_default_str();
+  command->add_option("--subject-weight", r.subject_weight, "rerender: loss weight of pixels near the subject")->capture_default_str();
+  command->add_option("--alpha-weight", r.alpha_weight, "rerender: weight of alpha against the witnesses' silhouettes (0: off)")->capture_default_str();
   command->add_option("--temporal-weight", r.temporal_weight, "rerender: temporal-consistency loss weight")->capture_default_str();
   command->add_option("--gan-weight", r.gan_weight, "rerender: PatchGAN loss weight (0: none)")->capture_default_str();
   command->callback([args] {

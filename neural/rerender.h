@@ -135,6 +135,11 @@ struct RerenderOptions {
   double ssim_weight = 0.5;             // 1 - SSIM averaged over three scales
   double subject_weight = 4;            // loss weight of pixels near the rendered subject (the
                                         // rest, mostly background, weighs 1)
+  double alpha_weight = 1;              // L1 of alpha against the witness's own silhouette
+                                        // (the reconstruction's silhouette options on the
+                                        // witness image; background subtraction needs a clean
+                                        // plate): the subject is drawn opaque where the
+                                        // witness saw it, and only there; 0: off
   double temporal_weight = 0.5;         // L1 of (output change - truth change) between frames
   double gan_weight = 0;                // > 0: adds a PatchGAN discriminator (LSGAN)
   uint64_t seed = 1;
@@ -159,6 +164,9 @@ struct RerenderSummary {
   double heldout_ssim = 0, raw_render_ssim = 0;
   // The same, on the pixels near the subject only.
   double heldout_psnr_subject_db = 0, raw_render_psnr_subject_db = 0;
+  // The background alone (clean plate, or black) on the same frames: what an output that
+  // dropped the subject would score.
+  double background_psnr_db = 0, background_psnr_subject_db = 0, background_ssim = 0;
   // Flicker on the first held-out camera: mean |frame-to-frame difference| divided by the
   // truth's (1 = as steady as reality), and the mean |output change - truth change|.
   double flicker_ratio = 0, raw_flicker_ratio = 0;
@@ -168,7 +176,7 @@ struct RerenderSummary {
 // Trains a rerendering model on a take into `model_dir` (model.json, unet.pt, cameras/,
 // recon/, report.json, and heldout.png: truth, raw render and rerendered view side by side
 // for the first held-out camera's middle frame). `report` receives options, plan, metrics (heldout_psnr_db,
-// raw_render_psnr_db, heldout_ssim, raw_render_ssim, flicker) and the series heldout_psnr_db,
+// raw_render_psnr_db, background_psnr_db, heldout_ssim, raw_render_ssim, flicker) and the series heldout_psnr_db,
 // heldout_ssim and loss. Throws Error for bad options or a take that cannot be used (no
 // cameras, too few colour cameras for the split, no frames); numerical trouble (a diverging
 // loss, a reconstruction that failed) is reported in the summary.

@@ -90,7 +90,10 @@ struct CameraData {
   torch::Tensor truth;            // [F, 3, Hp, Wp] BGR in [0, 1]
   torch::Tensor background;       // [1, 3, Hp, Wp]
   torch::Tensor weight;           // [F, 1, Hp, Wp] loss weights (subject favoured)
+  torch::Tensor alpha_target;     // [F, 1, Hp, Wp] the camera's own silhouette (witnesses), or
+                                  // undefined without one
   std::vector<cv::Mat> truth_images, raw_images, subject_masks;  // unpadded
+  cv::Mat background_image;                                       // unpadded
   std::vector<std::vector<int32_t>> subject_pixels;  // per frame, y * width + x near the subject
   int height = 0, width = 0;
 };
@@ -107,6 +110,14 @@ cv::Mat ToFloatImage(const cv::Mat& image, const cv::Size& size) {
   cv::Mat out;
   scaled.convertTo(out, CV_32FC3, color.depth() == CV_16U ? 1.0 / 65535 : 1.0 / 255);
   return out;
+}
+
+// 8-bit BGR at native size (what silhouette extraction takes).
+cv::Mat ToEightBitColor(const cv::Mat& image) {
+  cv::Mat color = image;
+  if (color.depth() == CV_16U) color.convertTo(color, CV_8U, 1.0 / 257.0);
+  if (color.channels() == 1) cv::cvtColor(color, color, cv::COLOR_GRAY2BGR);
+  return color;
 }
 
 // The composite over the background [B, 3, H, W].
@@ -178,6 +189,7 @@ void RerenderOptions::Check() const {
   }
   if (!(l1_weight + ssim_weight > 0)) Fail("l1_weight and ssim_weight cannot both be 0");
   if (!(subject_weight >= 1 && subject_weight <= 100)) Fail("subject_weight must be in [1, 100] (got ", subject_weight, ")");
+  if (!(alpha_weight >= 0 && alpha_weight <= 100)) Fail("alpha_weight must be in [0, 100] (got ", alpha_weight, ")");
   if (!(eval_every_s > 0)) Fail("eval_every_s must be > 0");
   if (threads < 0) Fail("threads must be >= 0 (0: all cores)");
   reconstruction.Check();
@@ -190,7 +202,7 @@ nlohmann::json RerenderOptions::ToJson() const {
           {"image_width", image_width}, {"first_frame", first_frame}, {"last_frame", last_frame},
           {"minutes", minutes}, {"iterations", iterations}, {"batch_pairs", batch_pairs},
           {"crop_px", crop_px},           {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
-          {"subject_weight", subject_weight}, {"temporal_weight", temporal_weight}, {"gan_weight", gan_weight},
+          {"subject_weight", subject_weight}, {"alpha_weight", alpha_weight}, {"temporal_weight", temporal_weight}, {"gan_weight", gan_weight},
           {"seed", seed}, {"eval_every_s", eval_every_s}, {"threads", threads}};
 }
 
@@ -330,12 +342,26 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     cv::Mat background = clean_plates > 0 ? ToFloatImage(take.ReadFrame(0, d.name), size)
                                           : cv::Mat(size, CV_32FC3, cv::Scalar::all(0));
     d.background = neural::PadToMultiple(neural::ImageToTensor(background).unsqueeze(0), multiple);
-    std::vector<torch::Tensor> features, truth, weight;
+    d.background_image = background;
+    const bool is_witness = std::find(witness.begin(), witness.end(), index) != witness.end();
+    const bool silhouettes = is_witness && options.alpha_weight > 0 &&
+                             (options.reconstruction.silhouette.mode == SilhouetteMode::kThreshold || clean_plates > 0);
+    cv::Mat plate;
+    if (silhouettes && clean_plates > 0) plate = ToEightBitColor(take.ReadFrame(0, d.name));
+    std::vector<torch::Tensor> features, truth, weight, alpha_target;
     const int dilate = std::max(2, d.width / 40);
     const cv::Mat kernel = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * dilate + 1, 2 * dilate + 1));
     for (size_t f = 0; f < sets.size(); ++f) {
       GBuffer buffers = RasteriseMesh(mesh_cache[f], d.scaled, RasterOptions{.threads = threads});
-      cv::Mat image = ToFloatImage(take.ReadFrame(entry_of_set[sets[f]], d.name), size);
+      const cv::Mat native = take.ReadFrame(entry_of_set[sets[f]], d.name);
+      cv::Mat image = ToFloatImage(native, size);
+      if (silhouettes) {
+        // The witness's silhouette at the training resolution (area-averaged: soft edges).
+        cv::Mat mask = ExtractSilhouette(ToEightBitColor(native), plate, options.reconstruction.silhouette), soft;
+        mask.convertTo(mask, CV_32F, 1.0 / 255);
+        cv::resize(mask, soft, size, 0, 0, cv::INTER_AREA);
+        alpha_target.push_back(neural::ImageToTensor(soft));
+      }
       cv::Mat subject;
       cv::dilate(buffers.mask, subject, kernel);
       features.push_back(neural::RerenderFeatures(buffers));
@@ -354,6 +380,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     d.features = neural::PadToMultiple(torch::stack(features), multiple);
     d.truth = neural::PadToMultiple(torch::stack(truth), multiple);
     d.weight = neural::PadToMultiple(torch::stack(weight), multiple);
+    if (!alpha_target.empty()) d.alpha_target = neural::PadToMultiple(torch::stack(alpha_target), multiple);
     data.push_back(std::move(d));
   }
   std::vector<CameraData*> train_cameras, eval_cameras;
@@ -361,6 +388,10 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   const bool temporal = sets.size() >= 2 && options.temporal_weight > 0;
   plan["temporal_term"] = temporal ? "on" : (sets.size() < 2 ? "off: one frame" : "off: weight 0");
   plan["patch_gan"] = options.gan_weight > 0 ? "on" : "off";
+  plan["alpha_target"] = options.alpha_weight <= 0 ? std::string("off: weight 0")
+                         : train_cameras[0]->alpha_target.defined()
+                             ? std::string("the witnesses' silhouettes")
+                             : std::string("off: background subtraction without a clean plate");
   plan["train_resolution"] = Cat(data[0].width, "x", data[0].height);
   // Crops share one size across the witnesses: the requested one rounded up to the network's
   // multiple, at most the smallest padded image.
@@ -387,15 +418,16 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     d_optimizer = std::make_unique<torch::optim::Adam>(discriminator->parameters(), torch::optim::AdamOptions(options.learning_rate).betas({0.5, 0.999}));
   }
 
-  auto evaluate = [&](bool raw) {
+  enum class Output { kNetwork, kRaw, kBackground };
+  auto evaluate = [&](Output what) {
     std::vector<std::vector<cv::Mat>> images(eval_cameras.size());
     torch::NoGradGuard no_grad;
     net->eval();
     for (size_t c = 0; c < eval_cameras.size(); ++c) {
       CameraData& d = *eval_cameras[c];
       for (int64_t f = 0; f < d.features.size(0); ++f) {
-        if (raw) {
-          images[c].push_back(d.raw_images[f]);
+        if (what != Output::kNetwork) {
+          images[c].push_back(what == Output::kRaw ? d.raw_images[f] : d.background_image);
           continue;
         }
         const torch::Tensor x = d.features.index({Slice(f, f + 1)});
@@ -412,7 +444,11 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     report->options() = options.ToJson();
     report->plan() = plan;
   }
-  const Evaluation raw = evaluate(true).first;
+  const Evaluation raw = evaluate(Output::kRaw).first;
+  const Evaluation background_only = evaluate(Output::kBackground).first;
+  summary.background_psnr_db = background_only.psnr_db;
+  summary.background_psnr_subject_db = background_only.psnr_subject_db;
+  summary.background_ssim = background_only.ssim;
   summary.raw_render_psnr_db = raw.psnr_db;
   summary.raw_render_ssim = raw.ssim;
   summary.raw_render_psnr_subject_db = raw.psnr_subject_db;
@@ -434,7 +470,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     const bool done = (options.iterations > 0 && iteration >= options.iterations) ||
                       (options.minutes > 0 && elapsed >= options.minutes * 60);
     if (!eval_cameras.empty() && (elapsed >= next_eval || done)) {
-      std::tie(last, last_images) = evaluate(false);
+      std::tie(last, last_images) = evaluate(Output::kNetwork);
       if (report) {
         report->AddPoint("heldout_psnr_db", last.psnr_db, iteration);
         report->AddPoint("heldout_ssim", last.ssim, iteration);
@@ -452,7 +488,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
 
     // A batch: pairs of consecutive frames of a witness camera, each pair cropped alike around
     // a pixel near the subject (whole images when crops are off).
-    std::vector<torch::Tensor> xs, truths, weights, backgrounds;
+    std::vector<torch::Tensor> xs, truths, weights, backgrounds, alpha_targets;
     int64_t samples = 0;
     for (int p = 0; p < options.batch_pairs; ++p) {
       const CameraData& d = *train_cameras[std::uniform_int_distribution<size_t>(0, train_cameras.size() - 1)(rng)];
@@ -474,6 +510,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       truths.push_back(window(d.truth, t, count));
       weights.push_back(window(d.weight, t, count));
       backgrounds.push_back(window(d.background, 0, 1).expand({count, 3, crop_h, crop_w}));
+      if (d.alpha_target.defined()) alpha_targets.push_back(window(d.alpha_target, t, count));
       samples += count;
     }
     const torch::Tensor x = torch::cat(xs), truth = torch::cat(truths), weight = torch::cat(weights);
@@ -482,6 +519,9 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     const torch::Tensor out = Composite(rgb, alpha, background);
     torch::Tensor loss = options.l1_weight * (weight * (out - truth).abs()).mean() / weight.mean();
     if (options.ssim_weight > 0) loss = loss + options.ssim_weight * (1 - MultiScaleSsim(out, truth));
+    if (alpha_targets.size() == xs.size()) {
+      loss = loss + options.alpha_weight * (weight * (alpha - torch::cat(alpha_targets)).abs()).mean() / weight.mean();
+    }
     if (temporal) {
       const torch::Tensor even = torch::arange(0, samples, 2), odd = even + 1;
       const torch::Tensor change = out.index_select(0, odd) - out.index_select(0, even);
@@ -521,7 +561,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   if (diverged) {
     // The weights on disk are those of the last evaluation, before the loss broke down.
     network = RerenderNetwork::Load(weights, options.net);
-    std::tie(last, last_images) = evaluate(false);
+    std::tie(last, last_images) = evaluate(Output::kNetwork);
   }
   network.Save(weights);
   summary.heldout_psnr_db = last.psnr_db;
@@ -571,6 +611,9 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     auto& m = report->metrics();
     m["heldout_psnr_db"] = summary.heldout_psnr_db;
     m["raw_render_psnr_db"] = summary.raw_render_psnr_db;
+    m["background_psnr_db"] = summary.background_psnr_db;
+    m["background_psnr_subject_db"] = summary.background_psnr_subject_db;
+    m["background_ssim"] = summary.background_ssim;
     m["heldout_ssim"] = summary.heldout_ssim;
     m["raw_render_ssim"] = summary.raw_render_ssim;
     m["heldout_psnr_subject_db"] = summary.heldout_psnr_subject_db;
