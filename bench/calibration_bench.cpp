@@ -4,7 +4,7 @@
 //
 //   calibration_bench [--take DIR | --planned] [--frames 288] [--corner-noise 0.3] [--seed 1]
 //                     [--noise-seed 7] [--tags WxH] [--spacing M] [--true-corners] [--no-mrcal] [--no-peers]
-//                     [--lens-model CAMERA=MODEL]...
+//                     [--lens-model CAMERA=MODEL]... [--width W]
 // Each camera is solved in the model its rig entry asks for (calib_lensmodel, else OPENCV8)
 // unless --lens-model names another.
 // Without --take it simulates `holocap sim --rig studio8 --board --frames N` into a temporary
@@ -17,6 +17,8 @@
 // true models (a camera sees a pose when the whole board lies in its image, facing it, with
 // tags of at least 12 px), so the sequence's information is measured in seconds.
 // --tags and --spacing give the simulated board other tags and grid spacing (margin = spacing);
+// --width renders (or plans) every camera's imager W pixels wide, its lens rescaled: the same
+// rig and board sequence at another sensor resolution, for the same detection noise in pixels;
 // --seed the sim's seed (board poses), --noise-seed the added noise's (another draw of the same
 // noise); --no-peers leaves OpenCV and mrcal out.
 // Next to each error it prints the solve's own 1-sigma of that parameter: errors of a few
@@ -128,6 +130,7 @@ int Run(int argc, char** argv) {
   bool mrcal = true, peers = true, planned = false, true_corners = false;
   std::string tags;    // the simulated board's tags across x down ("8x6"); empty: the sim's
   double spacing = 0;  // its grid spacing in metres; 0: the sim's
+  int width = 0;       // > 0: every camera's imager this wide (lens rescaled); 0: the rig's
   std::map<std::string, std::string> lens_models;  // per camera, over the rig's choice
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
@@ -142,6 +145,7 @@ int Run(int argc, char** argv) {
     else if (arg == "--tags" && i + 1 < argc) tags = argv[++i];
     else if (arg == "--spacing" && i + 1 < argc) spacing = std::atof(argv[++i]);
     else if (arg == "--true-corners") true_corners = true;
+    else if (arg == "--width" && i + 1 < argc) width = std::atoi(argv[++i]);
     else if (arg == "--lens-model" && i + 1 < argc) {
       const std::string value = argv[++i];
       const size_t eq = value.find('=');
@@ -149,7 +153,7 @@ int Run(int argc, char** argv) {
       lens_models[value.substr(0, eq)] = value.substr(eq + 1);
     } else {
       Fail("usage: calibration_bench [--take DIR | --planned] [--frames N] [--seed N] [--tags WxH] [--spacing M] "
-           "[--corner-noise PX] [--noise-seed N] [--true-corners] "
+           "[--corner-noise PX] [--noise-seed N] [--true-corners] [--width W] "
            "[--no-mrcal] [--no-peers] [--lens-model CAMERA=MODEL]...");
     }
   }
@@ -159,6 +163,7 @@ int Run(int argc, char** argv) {
   sim.frames = frames;
   sim.seed = seed;
   sim.overwrite = true;
+  sim.image_width = width;
   if (!tags.empty()) {
     if (std::sscanf(tags.c_str(), "%dx%d", &sim.board.tags_across, &sim.board.tags_down) != 2) {
       Fail("--tags takes ACROSSxDOWN, got '", tags, "'");
