@@ -83,6 +83,13 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--bounds", args->bounds, "Volume bounds: auto, hull, gt or stage")->capture_default_str();
   command->add_option("--lr", o.learning_rate, "Adam learning rate of the networks")->capture_default_str();
   command->add_option("--eval-every", o.eval_every_s, "Held-out evaluation interval, seconds")->capture_default_str();
+  command->add_option("--kl-weight", o.kl_weight, "nvol: KL weight of the latent (dynamic scenes)")->capture_default_str();
+  command->add_option("--tv-weight", o.tv_weight, "nvol: total-variation weight of the grid")->capture_default_str();
+  command->add_option("--alpha-prior-weight", o.alpha_prior_weight, "nvol: beta prior on ray alpha")->capture_default_str();
+  command->add_option("--silhouette-weight", o.silhouette_weight,
+                      "nvol: ray alpha against the training silhouettes (0: off)")->capture_default_str();
+  command->add_option("--warp-prior-weight", o.warp_prior_weight,
+                      "nvol: mean squared warp displacement (dynamic scenes)")->capture_default_str();
   command->add_option("--seed", o.seed, "Random seed")->capture_default_str();
   command->add_option("--threads", o.threads, "Threads (0: all cores)")->capture_default_str();
   command->add_flag("--ground-truth-cameras", o.ground_truth_cameras, "Use gt/cameras even when calib/ exists");
@@ -90,6 +97,9 @@ void AddTrainCommand(CLI::App& app) {
   RerenderOptions& r = args->rerender;
   command->add_option("--witness", r.witness_cameras, "rerender: witness cameras left out of the reconstruction")->capture_default_str();
   command->add_option("--witness-names", r.witness, "rerender: these witness cameras (names)");
+  command->add_option("--witness-folds", r.witness_folds,
+                      "rerender: further witness sets, each with a reconstruction built without them (1: one set)")
+      ->capture_default_str();
   command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
   command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();
   command->add_option("--crop", r.crop_px, "rerender: training crop size near the subject (0: whole images)")->capture_default_str();

@@ -8,6 +8,7 @@
 //                  [--subject-weight 4] [--alpha-weight 1]
 //                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
+//                  [--witness-folds 1] [--fold-recon DIR ...]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
 #include <CLI/CLI.hpp>
 #include <chrono>
@@ -128,6 +129,8 @@ int main(int argc, char** argv) {
   std::string model_name = "model-studio8";
   app.add_option("--model-name", model_name, "Model directory under --work for studio8");
   app.add_option("--recon", base.recon_dir, "studio8: reuse this reconstruction (built without the same witnesses)");
+  app.add_option("--witness-folds", base.witness_folds, "Witness sets, each with a reconstruction built without them");
+  app.add_option("--fold-recon", base.fold_recon_dirs, "studio8: reuse these reconstructions of the further folds");
   app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
   app.add_flag("--dino-only", dino_only, "Only the dinoSparseRing case");
   app.add_option("--dino-minutes", dino_minutes, "Training budget on dinoSparseRing");
@@ -174,6 +177,7 @@ int main(int argc, char** argv) {
     RerenderOptions options = base;
     options.minutes = dino_minutes;
     options.recon_dir.clear();
+    options.fold_recon_dirs.clear();
     options.image_width = 320;
     options.witness_cameras = 4;
     options.heldout_cameras = 1;

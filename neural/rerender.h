@@ -114,6 +114,16 @@ struct RerenderOptions {
   // The reconstruction, built from the other cameras into MODEL/recon (or taken from
   // `recon_dir` when given: it must then not have used the witnesses).
   std::filesystem::path recon_dir;
+  // More witnesses: each further fold is another set of witness cameras with a reconstruction
+  // of its own, built without them (and without the held-out cameras) into MODEL/recon-<k>.
+  // The network trains on the witnesses of every fold, each through the reconstruction that
+  // never saw it, so it sees more viewpoints of what a reconstruction gets wrong. Held-out
+  // measurement and playback use the first fold's reconstruction.
+  int witness_folds = 1;                // folds in all; further witnesses are picked spread
+                                        // around among the cameras not yet a witness
+  std::vector<std::vector<std::string>> fold_witness;  // by name, the folds after the first
+                                                       // (overrides witness_folds)
+  std::vector<std::filesystem::path> fold_recon_dirs;  // their reconstructions, when given
   ReconstructionOptions reconstruction;
 
   // Data.

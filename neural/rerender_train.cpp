@@ -96,6 +96,7 @@ struct CameraData {
   cv::Mat background_image;                                       // unpadded
   std::vector<std::vector<int32_t>> subject_pixels;  // per frame, y * width + x near the subject
   int height = 0, width = 0;
+  bool witness = false;           // trained on (else held out for measurement)
 };
 
 cv::Mat ToFloatImage(const cv::Mat& image, const cv::Size& size) {
@@ -176,6 +177,11 @@ void RerenderOptions::Check() const {
   net.Check();
   if (witness_cameras < 1 && witness.empty()) Fail("rerender needs at least one witness camera");
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
+  if (witness_folds < 1 || witness_folds > 16) Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
+  for (const auto& fold : fold_witness) if (fold.empty()) Fail("a fold of witnesses cannot be empty");
+  if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {
+    Fail(fold_recon_dirs.size(), " fold reconstructions given for ", witness_folds - 1, " further fold(s)");
+  }
   if (image_width < 0 || (image_width > 0 && image_width < 32)) Fail("image_width must be 0 (native) or >= 32 px (got ", image_width, ")");
   if (first_frame < 0) Fail("first_frame must be >= 0");
   if (last_frame >= 0 && last_frame <= first_frame) Fail("last_frame must be -1 or > first_frame");
@@ -198,7 +204,9 @@ void RerenderOptions::Check() const {
 nlohmann::json RerenderOptions::ToJson() const {
   return {{"net", net.ToJson()}, {"witness_cameras", witness_cameras}, {"heldout_cameras", heldout_cameras},
           {"witness", witness}, {"heldout", heldout}, {"ground_truth_cameras", ground_truth_cameras},
-          {"recon_dir", recon_dir.string()}, {"reconstruction", reconstruction.ToJson()},
+          {"recon_dir", recon_dir.string()}, {"witness_folds", witness_folds}, {"fold_witness", fold_witness},
+          {"fold_recon_dirs", [&] { std::vector<std::string> d; for (const auto& p : fold_recon_dirs) d.push_back(p.string()); return d; }()},
+          {"reconstruction", reconstruction.ToJson()},
           {"image_width", image_width}, {"first_frame", first_frame}, {"last_frame", last_frame},
           {"minutes", minutes}, {"iterations", iterations}, {"batch_pairs", batch_pairs},
           {"crop_px", crop_px},           {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
@@ -257,55 +265,116 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     Fail("take '", take_dir.string(), "' has ", names.size(), " colour cameras: ", witness.size(), " witness and ",
          heldout.size(), " held-out ones leave ", recon_count, " for the reconstruction (it needs 2)");
   }
-  std::set<std::string> left_out;
+  // Further folds: other witness sets, each with its own reconstruction.
+  std::vector<std::vector<int>> folds = {witness};
+  auto is_witness_yet = [&](int c) {
+    for (const auto& f : folds) if (std::find(f.begin(), f.end(), c) != f.end()) return true;
+    return false;
+  };
+  if (!options.fold_witness.empty()) {
+    for (const auto& named : options.fold_witness) {
+      std::vector<int> fold = by_name(named, "witness");
+      for (int c : fold) {
+        if (std::find(heldout.begin(), heldout.end(), c) != heldout.end()) Fail("camera '", names[c], "' cannot be both witness and held out");
+        if (is_witness_yet(c)) Fail("camera '", names[c], "' is a witness of two folds");
+      }
+      folds.push_back(fold);
+    }
+  } else {
+    for (int k = 1; k < options.witness_folds; ++k) {
+      std::vector<int> pool;
+      for (int c : rest) if (!is_witness_yet(c)) pool.push_back(c);
+      if (pool.empty()) break;
+      folds.push_back(neural::SpreadAround(cameras, pool, std::min<int>(static_cast<int>(witness.size()), static_cast<int>(pool.size())), center));
+    }
+  }
+  for (const auto& fold : folds) {
+    const int left = static_cast<int>(names.size() - fold.size() - heldout.size());
+    if (fold.empty() || left < 2) Fail("a fold of ", fold.size(), " witnesses leaves ", left, " cameras for its reconstruction (it needs 2)");
+  }
+  if (options.fold_recon_dirs.size() > folds.size() - 1) {
+    Fail(options.fold_recon_dirs.size(), " fold reconstructions given for ", folds.size() - 1, " further fold(s)");
+  }
   std::vector<std::string> witness_names, heldout_names;
-  for (int w : witness) left_out.insert(names[w]), witness_names.push_back(names[w]);
-  for (int h : heldout) left_out.insert(names[h]), heldout_names.push_back(names[h]);
+  for (const auto& fold : folds) for (int w : fold) witness_names.push_back(names[w]);
+  for (int h : heldout) heldout_names.push_back(names[h]);
   plan["cameras"] = ground_truth ? "gt/cameras" : "calib/";
   plan["witness"] = witness_names;
   plan["heldout"] = heldout_names;
   plan["reconstruction_cameras"] = recon_count;
 
-  // The reconstruction, from the other cameras.
+  // The reconstructions, each from the cameras that are neither its fold's witnesses nor held out.
   std::filesystem::create_directories(model_dir);
-  std::filesystem::path recon_dir = options.recon_dir;
-  std::map<int64_t, std::filesystem::path> meshes;
   const auto start_all = std::chrono::steady_clock::now();
-  if (recon_dir.empty()) {
-    recon_dir = model_dir / "recon";
-    const std::filesystem::path view = model_dir / "witness_take";
-    WriteWitnessView(take, left_out, view);
-    ReconstructionOptions recon = options.reconstruction;
-    recon.first_frame = options.first_frame;
-    recon.last_frame = options.last_frame;
-    recon.write_glb = false;
-    recon.sweep_voxels_m.clear();
-    recon.threads = options.threads;
-    Report recon_report("reconstruct");
-    ReconstructionSummary built = ReconstructTake(view, recon_dir, recon, &recon_report);
-    for (const auto& f : built.frames) {
-      char file[32];
-      std::snprintf(file, sizeof(file), "%06lld.ply", static_cast<long long>(f.set));
-      if (IsUsable(f.termination) && f.faces > 0) meshes[f.set] = recon_dir / file;
-    }
-    plan["reconstruction"] = Cat(ToString(built.termination), ": ", built.message);
-    std::filesystem::remove_all(view);
-  } else {
-    if (!std::filesystem::is_directory(recon_dir)) Fail("reconstruction directory ", recon_dir.string(), " does not exist");
-    for (const auto& entry : std::filesystem::directory_iterator(recon_dir)) {
-      if (entry.path().extension() != ".ply") continue;
-      try {
-        meshes[std::stoll(entry.path().stem().string())] = entry.path();
-      } catch (const std::exception&) {
+  auto reconstruct = [&](size_t k, nlohmann::json& fold_plan) {
+    std::set<std::string> left_out;
+    for (int w : folds[k]) left_out.insert(names[w]);
+    for (int h : heldout) left_out.insert(names[h]);
+    std::filesystem::path recon_dir = k == 0 ? options.recon_dir
+                                      : k - 1 < options.fold_recon_dirs.size() ? options.fold_recon_dirs[k - 1]
+                                                                               : std::filesystem::path();
+    std::map<int64_t, std::filesystem::path> meshes;
+    const auto start_fold = std::chrono::steady_clock::now();
+    if (recon_dir.empty()) {
+      recon_dir = k == 0 ? model_dir / "recon" : model_dir / Cat("recon-", k);
+      const std::filesystem::path view = model_dir / "witness_take";
+      WriteWitnessView(take, left_out, view);
+      ReconstructionOptions recon = options.reconstruction;
+      recon.first_frame = options.first_frame;
+      recon.last_frame = options.last_frame;
+      recon.write_glb = false;
+      recon.sweep_voxels_m.clear();
+      recon.threads = options.threads;
+      Report recon_report("reconstruct");
+      ReconstructionSummary built = ReconstructTake(view, recon_dir, recon, &recon_report);
+      for (const auto& f : built.frames) {
+        char file[32];
+        std::snprintf(file, sizeof(file), "%06lld.ply", static_cast<long long>(f.set));
+        if (IsUsable(f.termination) && f.faces > 0) meshes[f.set] = recon_dir / file;
       }
+      fold_plan["reconstruction"] = Cat(ToString(built.termination), ": ", built.message);
+      std::filesystem::remove_all(view);
+    } else {
+      if (!std::filesystem::is_directory(recon_dir)) Fail("reconstruction directory ", recon_dir.string(), " does not exist");
+      for (const auto& entry : std::filesystem::directory_iterator(recon_dir)) {
+        if (entry.path().extension() != ".ply") continue;
+        try {
+          meshes[std::stoll(entry.path().stem().string())] = entry.path();
+        } catch (const std::exception&) {
+        }
+      }
+      fold_plan["reconstruction"] = Cat("given: ", recon_dir.string());
     }
-    plan["reconstruction"] = Cat("given: ", recon_dir.string());
+    fold_plan["reconstruction_seconds"] = Seconds(start_fold);
+    return meshes;
+  };
+  std::vector<std::map<int64_t, std::filesystem::path>> fold_meshes;
+  nlohmann::json fold_plans = nlohmann::json::array();
+  for (size_t k = 0; k < folds.size(); ++k) {
+    nlohmann::json fold_plan;
+    std::vector<std::string> fold_names;
+    for (int w : folds[k]) fold_names.push_back(names[w]);
+    fold_plan["witness"] = fold_names;
+    fold_plan["reconstruction_cameras"] = static_cast<int>(names.size() - folds[k].size() - heldout.size());
+    fold_meshes.push_back(reconstruct(k, fold_plan));
+    if (k == 0) plan["reconstruction"] = fold_plan["reconstruction"];
+    fold_plans.push_back(fold_plan);
+  }
+  std::map<int64_t, std::filesystem::path>& meshes = fold_meshes[0];
+  if (folds.size() > 1) plan["folds"] = fold_plans;
+  if (options.fold_witness.empty() && static_cast<int>(folds.size()) < options.witness_folds) {
+    plan["witness_folds"] = Cat(options.witness_folds, " asked, ", folds.size(),
+                                " possible: every other camera is a witness, held out or colours a depth sensor");
   }
   plan["reconstruction_seconds"] = Seconds(start_all);
   std::map<int64_t, size_t> entry_of_set;
   for (size_t i = 0; i < take.size(); ++i) entry_of_set[take.entry(i).index] = i;
   std::vector<int64_t> sets;
-  for (const auto& [set, file] : meshes) if (entry_of_set.count(set)) sets.push_back(set);
+  for (const auto& [set, file] : meshes) {
+    bool everywhere = entry_of_set.count(set) > 0;
+    for (const auto& other : fold_meshes) everywhere = everywhere && other.count(set) > 0;
+    if (everywhere) sets.push_back(set);
+  }
   plan["frames"] = sets.size();
   if (sets.empty()) {
     summary.termination = Termination::kDegenerate;
@@ -324,15 +393,11 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   const int64_t clean_plates = take.metadata().value("clean_plate_frames", int64_t{0});
   const int multiple = 1 << options.net.depth;
   std::vector<CameraData> data;
-  std::vector<Mesh> mesh_cache;
-  for (int64_t set : sets) mesh_cache.push_back(ReadPly(meshes[set]));
   Eigen::Vector3d box_min = Eigen::Vector3d::Constant(1e30), box_max = Eigen::Vector3d::Constant(-1e30);
-  for (const Mesh& m : mesh_cache) {
-    for (const auto& v : m.vertices) box_min = box_min.cwiseMin(v.cast<double>()), box_max = box_max.cwiseMax(v.cast<double>());
-  }
-  for (int index : [&] { std::vector<int> all = witness; all.insert(all.end(), heldout.begin(), heldout.end()); return all; }()) {
+  auto load_camera = [&](int index, const std::vector<Mesh>& mesh_cache, bool is_witness) {
     CameraData d;
     d.name = names[index];
+    d.witness = is_witness;
     d.camera = cameras[index];
     const double scale = options.image_width > 0 ? static_cast<double>(options.image_width) / d.camera.width() : 1.0;
     d.scaled = scale == 1.0 ? d.camera : d.camera.Scaled(scale);
@@ -343,7 +408,6 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
                                           : cv::Mat(size, CV_32FC3, cv::Scalar::all(0));
     d.background = neural::PadToMultiple(neural::ImageToTensor(background).unsqueeze(0), multiple);
     d.background_image = background;
-    const bool is_witness = std::find(witness.begin(), witness.end(), index) != witness.end();
     const bool silhouettes = is_witness && options.alpha_weight > 0 &&
                              (options.reconstruction.silhouette.mode == SilhouetteMode::kThreshold || clean_plates > 0);
     cv::Mat plate;
@@ -382,9 +446,21 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     d.weight = neural::PadToMultiple(torch::stack(weight), multiple);
     if (!alpha_target.empty()) d.alpha_target = neural::PadToMultiple(torch::stack(alpha_target), multiple);
     data.push_back(std::move(d));
+  };
+  for (size_t k = 0; k < folds.size(); ++k) {
+    // One fold's meshes in memory at a time.
+    std::vector<Mesh> mesh_cache;
+    for (int64_t set : sets) mesh_cache.push_back(ReadPly(fold_meshes[k][set]));
+    if (k == 0) {
+      for (const Mesh& m : mesh_cache) {
+        for (const auto& v : m.vertices) box_min = box_min.cwiseMin(v.cast<double>()), box_max = box_max.cwiseMax(v.cast<double>());
+      }
+      for (int h : heldout) load_camera(h, mesh_cache, false);
+    }
+    for (int w : folds[k]) load_camera(w, mesh_cache, true);
   }
   std::vector<CameraData*> train_cameras, eval_cameras;
-  for (size_t i = 0; i < data.size(); ++i) (i < witness.size() ? train_cameras : eval_cameras).push_back(&data[i]);
+  for (CameraData& d : data) (d.witness ? train_cameras : eval_cameras).push_back(&d);
   const bool temporal = sets.size() >= 2 && options.temporal_weight > 0;
   plan["temporal_term"] = temporal ? "on" : (sets.size() < 2 ? "off: one frame" : "off: weight 0");
   plan["patch_gan"] = options.gan_weight > 0 ? "on" : "off";
@@ -396,9 +472,9 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   // Crops share one size across the witnesses: the requested one rounded up to the network's
   // multiple, at most the smallest padded image.
   int64_t crop_w = std::numeric_limits<int64_t>::max(), crop_h = crop_w;
-  for (size_t i = 0; i < witness.size(); ++i) {
-    crop_w = std::min(crop_w, data[i].features.size(3));
-    crop_h = std::min(crop_h, data[i].features.size(2));
+  for (const CameraData* d : train_cameras) {
+    crop_w = std::min(crop_w, d->features.size(3));
+    crop_h = std::min(crop_h, d->features.size(2));
   }
   if (options.crop_px > 0) {
     const int64_t crop = (options.crop_px + multiple - 1) / multiple * multiple;

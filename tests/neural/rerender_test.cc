@@ -6,6 +6,7 @@
 #include <cmath>
 #include <fstream>
 #include <limits>
+#include <set>
 #include <iostream>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
@@ -208,6 +209,15 @@ TEST(RerenderOptions, ChecksExplainBadValues) {
   options = {};
   options.alpha_weight = -1;
   EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.witness_folds = 0;
+  EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.fold_witness = {{}};
+  EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.fold_recon_dirs = {"a"};  // one further reconstruction for no further fold
+  EXPECT_THROW(options.Check(), Error);
   EXPECT_NO_THROW(RerenderOptions{}.Check());
 }
 
@@ -254,6 +264,62 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
   EXPECT_EQ(first.channels(), 4);
   EXPECT_EQ(first.cols, 64);
   EXPECT_EQ(first.rows, 64);
+}
+
+// Further witness folds: every fold's witnesses are seen through a reconstruction built without
+// them (and without the held-out camera), and the network trains on all of them.
+TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
+  testing::TempDir dir("rerender-folds");
+  const auto take = dir / "take";
+  auto sim = testing::RunCli("sim --rig studio8 --frames 3 --clean-plate 1 --size 96 --no-noise --out " + take.string());
+  ASSERT_EQ(sim.exit_code, 0) << sim.output;
+  const auto model = dir / "model";
+  auto train = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
+                               " --heldout 1 --witness-folds 3 --iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+                               " --recon-voxel 0.016 --eval-every 1000 --threads 1");
+  ASSERT_EQ(train.exit_code, 0) << train.output;
+  const nlohmann::json report = nlohmann::json::parse(std::ifstream(model / "report.json"));
+  const auto& plan = report.at("plan");
+  ASSERT_TRUE(plan.contains("folds")) << plan.dump();
+  const auto& folds = plan.at("folds");
+  ASSERT_EQ(folds.size(), 3u);  // cam0 held out; {cam1, cam5}, then two of cam3, cam4, cam7, then the last
+  const std::string heldout = plan.at("heldout").at(0);
+  std::set<std::string> all_witnesses;
+  size_t witnesses = 0;
+  for (size_t k = 0; k < folds.size(); ++k) {
+    const auto recon = model / (k == 0 ? std::string("recon") : "recon-" + std::to_string(k));
+    ASSERT_TRUE(std::filesystem::exists(recon / "report.json")) << recon;
+    const nlohmann::json built = nlohmann::json::parse(std::ifstream(recon / "report.json"));
+    std::set<std::string> used;
+    for (const auto& name : built.at("plan").at("color_sensors")) used.insert(name.get<std::string>());
+    EXPECT_EQ(used.count(heldout), 0u) << "fold " << k;
+    EXPECT_GE(used.size(), 2u);
+    for (const auto& w : folds[k].at("witness")) {
+      EXPECT_EQ(used.count(w.get<std::string>()), 0u) << "fold " << k << " reconstruction used its witness " << w;
+      EXPECT_NE(w.get<std::string>(), heldout);
+      all_witnesses.insert(w.get<std::string>());
+      ++witnesses;
+    }
+  }
+  // No camera is a witness twice, and every witness of every fold is trained on.
+  EXPECT_EQ(all_witnesses.size(), witnesses);
+  EXPECT_EQ(plan.at("witness").size(), witnesses);
+  EXPECT_GT(witnesses, 4u);
+  EXPECT_EQ(report.at("metrics").at("iterations").get<int>(), 10);
+  // More folds than cameras to spare: as many as there are, and the plan says so.
+  const auto fewer = dir / "fewer";
+  auto again = testing::RunCli("train --method rerender " + take.string() + " --out " + fewer.string() +
+                               " --heldout 1 --witness-folds 5 --recon " + (model / "recon").string() +
+                               " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+                               " --recon-voxel 0.016 --eval-every 1000 --threads 1");
+  ASSERT_EQ(again.exit_code, 0) << again.output;
+  const nlohmann::json fewer_report = nlohmann::json::parse(std::ifstream(fewer / "report.json"));
+  EXPECT_EQ(fewer_report.at("plan").at("folds").size(), 3u);
+  EXPECT_NE(fewer_report.at("plan").at("witness_folds").get<std::string>().find("5 asked, 3 possible"), std::string::npos)
+      << fewer_report.at("plan").dump();
+  // Playback uses the first fold's reconstruction.
+  const nlohmann::json model_json = nlohmann::json::parse(std::ifstream(model / "model.json"));
+  EXPECT_EQ(model_json.at("meshes").at(0).get<std::string>().rfind("recon/", 0), 0u) << model_json.at("meshes").dump();
 }
 
 }  // namespace
