@@ -100,6 +100,9 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--witness-folds", r.witness_folds,
                       "rerender: further witness sets, each with a reconstruction built without them (1: one set)")
       ->capture_default_str();
+  command->add_option("--validation-witnesses", r.validation_witnesses,
+                      "rerender: witnesses kept from training to choose the weights where they peak (0: last weights)")
+      ->capture_default_str();
   command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
   command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();
   command->add_option("--crop", r.crop_px, "rerender: training crop size near the subject (0: whole images)")->capture_default_str();

@@ -8,13 +8,14 @@
 //                  [--subject-weight 4] [--alpha-weight 1]
 //                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
-//                  [--witness-folds 1] [--fold-recon DIR ...]
+//                  [--witness-folds 1] [--fold-recon DIR ...] [--validation-witnesses 0] [--eval-every S]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 
@@ -31,16 +32,28 @@ namespace fs = std::filesystem;
 using namespace holocap;
 
 void PrintSeries(const Report& report) {
-  std::printf("%8s %7s %14s %8s\n", "t_s", "iter", "heldout_psnr", "ssim");
+  // One row per evaluation: held-out PSNR and SSIM, and the validation witnesses' PSNR when
+  // early stopping is on.
+  std::map<int64_t, std::map<std::string, double>> rows;
+  std::map<int64_t, double> time_of;
   const auto& series = report.json()["series"];
-  for (size_t i = 0; i < series.size(); ++i) {
-    if (series[i]["metric"] != "heldout_psnr_db") continue;
-    double ssim = 0;
-    for (size_t j = i + 1; j < series.size() && j < i + 3; ++j) {
-      if (series[j]["metric"] == "heldout_ssim") ssim = series[j]["value"];
+  for (const auto& point : series) {
+    const std::string metric = point["metric"];
+    if (metric != "heldout_psnr_db" && metric != "heldout_ssim" && metric != "validation_psnr_db") continue;
+    const int64_t iter = point["iter"].get<int64_t>();
+    rows[iter][metric] = point["value"].get<double>();
+    if (!time_of.count(iter)) time_of[iter] = point["t_s"].get<double>();
+  }
+  std::printf("%8s %7s %14s %8s %16s\n", "t_s", "iter", "heldout_psnr", "ssim", "validation_psnr");
+  for (const auto& [iter, row] : rows) {
+    std::printf("%8.1f %7lld", time_of[iter], static_cast<long long>(iter));
+    if (row.count("heldout_psnr_db")) {
+      std::printf(" %11.2f dB %8.4f", row.at("heldout_psnr_db"), row.count("heldout_ssim") ? row.at("heldout_ssim") : 0.0);
+    } else {
+      std::printf(" %14s %8s", "", "");
     }
-    std::printf("%8.1f %7lld %11.2f dB %8.4f\n", series[i]["t_s"].get<double>(),
-                static_cast<long long>(series[i]["iter"].get<int64_t>()), series[i]["value"].get<double>(), ssim);
+    if (row.count("validation_psnr_db")) std::printf(" %13.2f dB", row.at("validation_psnr_db"));
+    std::printf("\n");
   }
 }
 
@@ -57,6 +70,11 @@ void PrintComparison(const RerenderSummary& s) {
   std::printf("%-22s %12s %12.4f %12.4f\n", "flicker excess", "", s.raw_flicker_excess, s.flicker_excess);
   std::printf("rerendered over background only: %+.2f dB whole, %+.2f dB near the subject\n",
               s.heldout_psnr_db - s.background_psnr_db, s.heldout_psnr_subject_db - s.background_psnr_subject_db);
+  if (s.kept_iteration >= 0) {
+    std::printf("validation witnesses: raw render %.2f dB, best %.2f dB (%+.2f dB) at iteration %lld, whose weights are kept\n",
+                s.validation_raw_psnr_db, s.validation_psnr_db, s.validation_psnr_db - s.validation_raw_psnr_db,
+                static_cast<long long>(s.kept_iteration));
+  }
   std::printf("%s: %s\nloss %.5f -> %.5f, %lld iterations in %.0f s\n", ToString(s.termination), s.message.c_str(),
               s.first_loss, s.last_loss, static_cast<long long>(s.iterations), s.seconds);
 }
@@ -131,6 +149,9 @@ int main(int argc, char** argv) {
   app.add_option("--recon", base.recon_dir, "studio8: reuse this reconstruction (built without the same witnesses)");
   app.add_option("--witness-folds", base.witness_folds, "Witness sets, each with a reconstruction built without them");
   app.add_option("--fold-recon", base.fold_recon_dirs, "studio8: reuse these reconstructions of the further folds");
+  app.add_option("--validation-witnesses", base.validation_witnesses, "Witnesses that choose the weights (early stopping)");
+  double eval_every = 0;
+  app.add_option("--eval-every", eval_every, "Seconds between evaluations (0: a fifth of the budget, at least 10)");
   app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
   app.add_flag("--dino-only", dino_only, "Only the dinoSparseRing case");
   app.add_option("--dino-minutes", dino_minutes, "Training budget on dinoSparseRing");
@@ -154,7 +175,7 @@ int main(int argc, char** argv) {
     RerenderOptions options = base;
     options.minutes = minutes;
     options.image_width = width;
-    options.eval_every_s = std::max(10.0, minutes * 60 / 5);  // an evaluation costs many steps
+    options.eval_every_s = eval_every > 0 ? eval_every : std::max(10.0, minutes * 60 / 5);  // an evaluation costs many steps
     Report report("rerender_bench");
     const fs::path model = root / model_name;
     RerenderSummary summary = TrainRerender(take, model, options, &report);
@@ -181,7 +202,7 @@ int main(int argc, char** argv) {
     options.image_width = 320;
     options.witness_cameras = 4;
     options.heldout_cameras = 1;
-    options.eval_every_s = std::max(10.0, dino_minutes * 60 / 4);
+    options.eval_every_s = eval_every > 0 ? eval_every : std::max(10.0, dino_minutes * 60 / 4);
     // The Middlebury recipe: a hull from thresholded silhouettes inside the README's box.
     ReconstructionOptions& r = options.reconstruction;
     r.method = ReconstructionMethod::kHull;

@@ -124,6 +124,10 @@ struct RerenderOptions {
   std::vector<std::vector<std::string>> fold_witness;  // by name, the folds after the first
                                                        // (overrides witness_folds)
   std::vector<std::filesystem::path> fold_recon_dirs;  // their reconstructions, when given
+  // Early stopping: this many witnesses (the last fold's) are not trained on but scored at
+  // every evaluation, and the model keeps the weights where their PSNR peaked (the network
+  // starts as the raw render, so it never ends worse than that on them); 0: the last weights.
+  int validation_witnesses = 0;
   ReconstructionOptions reconstruction;
 
   // Data.
@@ -172,6 +176,9 @@ struct RerenderSummary {
   // Held-out cameras over every trained frame, whole images over the clean plate.
   double heldout_psnr_db = 0, raw_render_psnr_db = 0;
   double heldout_ssim = 0, raw_render_ssim = 0;
+  // Early stopping: the validation witnesses' best PSNR, its iteration, and their raw render's.
+  double validation_psnr_db = 0, validation_raw_psnr_db = 0;
+  int64_t kept_iteration = -1;          // the weights kept (-1: the last ones)
   // The same, on the pixels near the subject only.
   double heldout_psnr_subject_db = 0, raw_render_psnr_subject_db = 0;
   // The background alone (clean plate, or black) on the same frames: what an output that

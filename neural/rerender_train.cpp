@@ -177,6 +177,7 @@ void RerenderOptions::Check() const {
   net.Check();
   if (witness_cameras < 1 && witness.empty()) Fail("rerender needs at least one witness camera");
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
+  if (validation_witnesses < 0) Fail("validation_witnesses must be >= 0");
   if (witness_folds < 1 || witness_folds > 16) Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
   for (const auto& fold : fold_witness) if (fold.empty()) Fail("a fold of witnesses cannot be empty");
   if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {
@@ -204,7 +205,7 @@ void RerenderOptions::Check() const {
 nlohmann::json RerenderOptions::ToJson() const {
   return {{"net", net.ToJson()}, {"witness_cameras", witness_cameras}, {"heldout_cameras", heldout_cameras},
           {"witness", witness}, {"heldout", heldout}, {"ground_truth_cameras", ground_truth_cameras},
-          {"recon_dir", recon_dir.string()}, {"witness_folds", witness_folds}, {"fold_witness", fold_witness},
+          {"recon_dir", recon_dir.string()}, {"witness_folds", witness_folds}, {"validation_witnesses", validation_witnesses}, {"fold_witness", fold_witness},
           {"fold_recon_dirs", [&] { std::vector<std::string> d; for (const auto& p : fold_recon_dirs) d.push_back(p.string()); return d; }()},
           {"reconstruction", reconstruction.ToJson()},
           {"image_width", image_width}, {"first_frame", first_frame}, {"last_frame", last_frame},
@@ -298,6 +299,10 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   std::vector<std::string> witness_names, heldout_names;
   for (const auto& fold : folds) for (int w : fold) witness_names.push_back(names[w]);
   for (int h : heldout) heldout_names.push_back(names[h]);
+  if (options.validation_witnesses >= static_cast<int>(witness_names.size())) {
+    Fail(options.validation_witnesses, " validation witness(es) leave no witness to train on (", witness_names.size(),
+         " in all): ask for more witnesses or folds");
+  }
   plan["cameras"] = ground_truth ? "gt/cameras" : "calib/";
   plan["witness"] = witness_names;
   plan["heldout"] = heldout_names;
@@ -461,6 +466,17 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   }
   std::vector<CameraData*> train_cameras, eval_cameras;
   for (CameraData& d : data) (d.witness ? train_cameras : eval_cameras).push_back(&d);
+  // Validation witnesses: the last ones loaded (the last fold's).
+  std::vector<CameraData*> validation_cameras;
+  if (options.validation_witnesses > 0) {
+    for (int v = 0; v < options.validation_witnesses; ++v) {
+      validation_cameras.insert(validation_cameras.begin(), train_cameras.back());
+      train_cameras.pop_back();
+    }
+    std::vector<std::string> validation_names;
+    for (const CameraData* d : validation_cameras) validation_names.push_back(d->name);
+    plan["validation"] = validation_names;
+  }
   const bool temporal = sets.size() >= 2 && options.temporal_weight > 0;
   plan["temporal_term"] = temporal ? "on" : (sets.size() < 2 ? "off: one frame" : "off: weight 0");
   plan["patch_gan"] = options.gan_weight > 0 ? "on" : "off";
@@ -495,12 +511,12 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   }
 
   enum class Output { kNetwork, kRaw, kBackground };
-  auto evaluate = [&](Output what) {
-    std::vector<std::vector<cv::Mat>> images(eval_cameras.size());
+  auto evaluate = [&](Output what, const std::vector<CameraData*>& on) {
+    std::vector<std::vector<cv::Mat>> images(on.size());
     torch::NoGradGuard no_grad;
     net->eval();
-    for (size_t c = 0; c < eval_cameras.size(); ++c) {
-      CameraData& d = *eval_cameras[c];
+    for (size_t c = 0; c < on.size(); ++c) {
+      CameraData& d = *on[c];
       for (int64_t f = 0; f < d.features.size(0); ++f) {
         if (what != Output::kNetwork) {
           images[c].push_back(what == Output::kRaw ? d.raw_images[f] : d.background_image);
@@ -513,15 +529,17 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       }
     }
     net->train();
-    return std::make_pair(Score(images, eval_cameras), images);
+    return std::make_pair(Score(images, on), images);
   };
 
   if (report) {
     report->options() = options.ToJson();
     report->plan() = plan;
   }
-  const Evaluation raw = evaluate(Output::kRaw).first;
-  const Evaluation background_only = evaluate(Output::kBackground).first;
+  const Evaluation raw = evaluate(Output::kRaw, eval_cameras).first;
+  const Evaluation background_only = evaluate(Output::kBackground, eval_cameras).first;
+  if (!validation_cameras.empty()) summary.validation_raw_psnr_db = evaluate(Output::kRaw, validation_cameras).first.psnr_db;
+  double best_validation = -std::numeric_limits<double>::infinity();
   summary.background_psnr_db = background_only.psnr_db;
   summary.background_psnr_subject_db = background_only.psnr_subject_db;
   summary.background_ssim = background_only.ssim;
@@ -545,13 +563,25 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     const double elapsed = Seconds(start);
     const bool done = (options.iterations > 0 && iteration >= options.iterations) ||
                       (options.minutes > 0 && elapsed >= options.minutes * 60);
-    if (!eval_cameras.empty() && (elapsed >= next_eval || done)) {
-      std::tie(last, last_images) = evaluate(Output::kNetwork);
-      if (report) {
-        report->AddPoint("heldout_psnr_db", last.psnr_db, iteration);
-        report->AddPoint("heldout_ssim", last.ssim, iteration);
+    if ((!eval_cameras.empty() || !validation_cameras.empty()) && (elapsed >= next_eval || done)) {
+      bool keep = true;
+      if (!validation_cameras.empty()) {
+        const double psnr = evaluate(Output::kNetwork, validation_cameras).first.psnr_db;
+        if (report) report->AddPoint("validation_psnr_db", psnr, iteration);
+        keep = psnr > best_validation;
+        if (keep) best_validation = psnr, summary.kept_iteration = iteration;
       }
-      network.Save(weights);
+      if (!eval_cameras.empty()) {
+        Evaluation now;
+        std::vector<std::vector<cv::Mat>> now_images;
+        std::tie(now, now_images) = evaluate(Output::kNetwork, eval_cameras);
+        if (report) {
+          report->AddPoint("heldout_psnr_db", now.psnr_db, iteration);
+          report->AddPoint("heldout_ssim", now.ssim, iteration);
+        }
+        if (keep) last = now, last_images = std::move(now_images);
+      }
+      if (keep) network.Save(weights);
       next_eval = elapsed + options.eval_every_s;
     }
     if (done) break;
@@ -634,12 +664,14 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     summary.first_loss = std::accumulate(losses.begin(), losses.begin() + window, 0.0) / window;
     summary.last_loss = std::accumulate(losses.end() - window, losses.end(), 0.0) / window;
   }
-  if (diverged) {
-    // The weights on disk are those of the last evaluation, before the loss broke down.
+  summary.validation_psnr_db = validation_cameras.empty() ? 0 : best_validation;
+  if (diverged || !validation_cameras.empty()) {
+    // The weights on disk are those of the last evaluation before the loss broke down, or
+    // those where the validation witnesses peaked; `last` holds their held-out scores.
     network = RerenderNetwork::Load(weights, options.net);
-    std::tie(last, last_images) = evaluate(Output::kNetwork);
+  } else {
+    network.Save(weights);
   }
-  network.Save(weights);
   summary.heldout_psnr_db = last.psnr_db;
   summary.heldout_ssim = last.ssim;
   summary.heldout_psnr_subject_db = last.psnr_subject_db;
@@ -682,6 +714,10 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     summary.message = Cat("trained ", iteration, " iterations in ", summary.seconds, " s (budget spent); held-out PSNR ",
                           summary.heldout_psnr_db, " dB against the raw render's ", summary.raw_render_psnr_db, " dB");
   }
+  if (!validation_cameras.empty() && !diverged) {
+    summary.message += Cat("; kept the weights of iteration ", summary.kept_iteration, ", where the validation witnesses peaked at ",
+                           summary.validation_psnr_db, " dB (raw render ", summary.validation_raw_psnr_db, " dB)");
+  }
   if (report) {
     report->plan() = plan;
     auto& m = report->metrics();
@@ -698,6 +734,11 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     m["raw_flicker_ratio"] = summary.raw_flicker_ratio;
     m["flicker_excess"] = summary.flicker_excess;
     m["raw_flicker_excess"] = summary.raw_flicker_excess;
+    if (!validation_cameras.empty()) {
+      m["validation_psnr_db"] = summary.validation_psnr_db;
+      m["validation_raw_psnr_db"] = summary.validation_raw_psnr_db;
+      m["kept_iteration"] = summary.kept_iteration;
+    }
     m["iterations"] = summary.iterations;
     m["seconds"] = summary.seconds;
     m["first_loss"] = summary.first_loss;

@@ -218,6 +218,9 @@ TEST(RerenderOptions, ChecksExplainBadValues) {
   options = {};
   options.fold_recon_dirs = {"a"};  // one further reconstruction for no further fold
   EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.validation_witnesses = -1;
+  EXPECT_THROW(options.Check(), Error);
   EXPECT_NO_THROW(RerenderOptions{}.Check());
 }
 
@@ -274,8 +277,12 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   auto sim = testing::RunCli("sim --rig studio8 --frames 3 --clean-plate 1 --size 96 --no-noise --out " + take.string());
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   const auto model = dir / "model";
+  auto no_trainer = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
+                                    " --witness 1 --validation-witnesses 1 --iterations 1");
+  EXPECT_NE(no_trainer.exit_code, 0);
+  EXPECT_NE(no_trainer.output.find("leave no witness to train on"), std::string::npos) << no_trainer.output;
   auto train = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
-                               " --heldout 1 --witness-folds 3 --iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+                               " --heldout 1 --witness-folds 3 --validation-witnesses 1 --iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
                                " --recon-voxel 0.016 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   const nlohmann::json report = nlohmann::json::parse(std::ifstream(model / "report.json"));
@@ -306,6 +313,14 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   EXPECT_EQ(plan.at("witness").size(), witnesses);
   EXPECT_GT(witnesses, 4u);
   EXPECT_EQ(report.at("metrics").at("iterations").get<int>(), 10);
+  // Early stopping: the last fold's witness is scored, not trained on, and the weights kept are
+  // those of an evaluation (the first, iteration 0, is the raw render itself).
+  ASSERT_EQ(plan.at("validation").size(), 1u);
+  EXPECT_EQ(plan.at("validation").at(0), folds.back().at("witness").back());
+  const auto& metrics = report.at("metrics");
+  const int kept = metrics.at("kept_iteration").get<int>();
+  EXPECT_TRUE(kept == 0 || kept == 10) << kept;
+  EXPECT_GT(metrics.at("validation_psnr_db").get<double>(), metrics.at("validation_raw_psnr_db").get<double>() - 0.1);
   // More folds than cameras to spare: as many as there are, and the plan says so.
   const auto fewer = dir / "fewer";
   auto again = testing::RunCli("train --method rerender " + take.string() + " --out " + fewer.string() +
