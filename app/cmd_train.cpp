@@ -98,10 +98,11 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--witness", r.witness_cameras, "rerender: witness cameras left out of the reconstruction")->capture_default_str();
   command->add_option("--witness-names", r.witness, "rerender: these witness cameras (names)");
   command->add_option("--witness-folds", r.witness_folds,
-                      "rerender: further witness sets, each with a reconstruction built without them (1: one set)")
+                      "rerender: witness sets, each seen through a reconstruction built without it (1: one set)")
       ->capture_default_str();
   command->add_option("--validation-witnesses", r.validation_witnesses,
-                      "rerender: witnesses kept from training to choose the weights where they peak (0: last weights)")
+                      "rerender: witnesses kept from training to choose the weights where they peak (0: last weights, "
+                      "-1: one when there are three witnesses or more)")
       ->capture_default_str();
   command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
   command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();

@@ -119,15 +119,17 @@ struct RerenderOptions {
   // The network trains on the witnesses of every fold, each through the reconstruction that
   // never saw it, so it sees more viewpoints of what a reconstruction gets wrong. Held-out
   // measurement and playback use the first fold's reconstruction.
-  int witness_folds = 1;                // folds in all; further witnesses are picked spread
-                                        // around among the cameras not yet a witness
+  int witness_folds = 3;                // folds in all (fewer when the cameras run out); further
+                                        // witnesses are picked spread around among the cameras
+                                        // not yet a witness; 1: the first set only
   std::vector<std::vector<std::string>> fold_witness;  // by name, the folds after the first
                                                        // (overrides witness_folds)
   std::vector<std::filesystem::path> fold_recon_dirs;  // their reconstructions, when given
   // Early stopping: this many witnesses (the last fold's) are not trained on but scored at
   // every evaluation, and the model keeps the weights where their PSNR peaked (the network
-  // starts as the raw render, so it never ends worse than that on them); 0: the last weights.
-  int validation_witnesses = 0;
+  // starts as the raw render, so it never ends worse than that on them); 0: the last weights;
+  // -1: one when there are at least three witnesses in all, else none.
+  int validation_witnesses = -1;
   ReconstructionOptions reconstruction;
 
   // Data.

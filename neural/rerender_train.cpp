@@ -177,7 +177,7 @@ void RerenderOptions::Check() const {
   net.Check();
   if (witness_cameras < 1 && witness.empty()) Fail("rerender needs at least one witness camera");
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
-  if (validation_witnesses < 0) Fail("validation_witnesses must be >= 0");
+  if (validation_witnesses < -1) Fail("validation_witnesses must be >= 0 (or -1: automatic)");
   if (witness_folds < 1 || witness_folds > 16) Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
   for (const auto& fold : fold_witness) if (fold.empty()) Fail("a fold of witnesses cannot be empty");
   if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {
@@ -299,8 +299,10 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   std::vector<std::string> witness_names, heldout_names;
   for (const auto& fold : folds) for (int w : fold) witness_names.push_back(names[w]);
   for (int h : heldout) heldout_names.push_back(names[h]);
-  if (options.validation_witnesses >= static_cast<int>(witness_names.size())) {
-    Fail(options.validation_witnesses, " validation witness(es) leave no witness to train on (", witness_names.size(),
+  const int validation_count = options.validation_witnesses >= 0 ? options.validation_witnesses
+                               : witness_names.size() >= 3 ? 1 : 0;
+  if (validation_count >= static_cast<int>(witness_names.size())) {
+    Fail(validation_count, " validation witness(es) leave no witness to train on (", witness_names.size(),
          " in all): ask for more witnesses or folds");
   }
   plan["cameras"] = ground_truth ? "gt/cameras" : "calib/";
@@ -468,8 +470,8 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   for (CameraData& d : data) (d.witness ? train_cameras : eval_cameras).push_back(&d);
   // Validation witnesses: the last ones loaded (the last fold's).
   std::vector<CameraData*> validation_cameras;
-  if (options.validation_witnesses > 0) {
-    for (int v = 0; v < options.validation_witnesses; ++v) {
+  if (validation_count > 0) {
+    for (int v = 0; v < validation_count; ++v) {
       validation_cameras.insert(validation_cameras.begin(), train_cameras.back());
       train_cameras.pop_back();
     }
@@ -484,7 +486,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
                          : train_cameras[0]->alpha_target.defined()
                              ? std::string("the witnesses' silhouettes")
                              : std::string("off: background subtraction without a clean plate");
-  plan["train_resolution"] = Cat(data[0].width, "x", data[0].height);
+  plan["train_resolution"] = Cat(train_cameras[0]->width, "x", train_cameras[0]->height, " (", train_cameras[0]->name, ")");
   // Crops share one size across the witnesses: the requested one rounded up to the network's
   // multiple, at most the smallest padded image.
   int64_t crop_w = std::numeric_limits<int64_t>::max(), crop_h = crop_w;

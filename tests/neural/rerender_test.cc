@@ -216,10 +216,11 @@ TEST(RerenderOptions, ChecksExplainBadValues) {
   options.fold_witness = {{}};
   EXPECT_THROW(options.Check(), Error);
   options = {};
+  options.witness_folds = 1;
   options.fold_recon_dirs = {"a"};  // one further reconstruction for no further fold
   EXPECT_THROW(options.Check(), Error);
   options = {};
-  options.validation_witnesses = -1;
+  options.validation_witnesses = -2;
   EXPECT_THROW(options.Check(), Error);
   EXPECT_NO_THROW(RerenderOptions{}.Check());
 }
@@ -237,7 +238,7 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
   EXPECT_NE(too_many.output.find("for the reconstruction"), std::string::npos) << too_many.output;
 
   auto train = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
-                               " --iterations 60 --width 64 --crop 0 --unet-width 8 --unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
+                               " --witness-folds 1 --iterations 60 --width 64 --crop 0 --unet-width 8 --unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   std::ifstream file(model / "report.json");
   const nlohmann::json report = nlohmann::json::parse(file);
@@ -278,7 +279,7 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   const auto model = dir / "model";
   auto no_trainer = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
-                                    " --witness 1 --validation-witnesses 1 --iterations 1");
+                                    " --witness 1 --witness-folds 1 --validation-witnesses 1 --iterations 1");
   EXPECT_NE(no_trainer.exit_code, 0);
   EXPECT_NE(no_trainer.output.find("leave no witness to train on"), std::string::npos) << no_trainer.output;
   auto train = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
