@@ -333,8 +333,9 @@ PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path, const Pla
   summary.render_fps = summary.views / std::max(summary.render_seconds, 1e-9);
   summary.overall_fps = summary.views / std::max(summary.seconds, 1e-9);
   summary.samples_per_ray = samples / summary.views;
-  summary.message = Cat(summary.views, " views rendered at ", summary.render_fps, " fps (",
-                        summary.overall_fps, " fps with writing), ", summary.samples_per_ray, " samples/ray");
+  // Models that march no rays (rerendering rasterises) report no samples per ray.
+  summary.message = Cat(summary.views, " views rendered at ", summary.render_fps, " fps (", summary.overall_fps,
+                        " fps with writing)", summary.samples_per_ray > 0 ? Cat(", ", summary.samples_per_ray, " samples/ray") : "");
   if (report != nullptr) {
     report->metrics()["playback"] = {{"views", summary.views},
                                      {"render_fps", summary.render_fps},
