@@ -11,6 +11,25 @@
 
 namespace holocap {
 
+Box ParseBounds(const std::string& text, const char* option) {
+  std::stringstream in(text);
+  std::vector<double> v;
+  std::string item;
+  while (std::getline(in, item, ',')) {
+    try {
+      v.push_back(std::stod(item));
+    } catch (const std::exception&) {
+      Fail(option, " must be six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got '", text, "'");
+    }
+  }
+  if (v.size() != 6) Fail(option, " must be six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got '", text, "'");
+  Box box;
+  box.min = Eigen::Vector3d(v[0], v[1], v[2]);
+  box.max = Eigen::Vector3d(v[3], v[4], v[5]);
+  if (!box.valid()) Fail(option, ": max must exceed min on every axis");
+  return box;
+}
+
 namespace {
 
 // "4mm", "4 mm", "0.4cm", "0.004m" or a bare number of metres.
@@ -46,25 +65,6 @@ void ParseFrames(const std::string& text, int64_t* first, int64_t* last) {
   } catch (const std::exception&) {
     Fail("--frames must be A:B, A: or A, got '", text, "'");
   }
-}
-
-Box ParseBounds(const std::string& text) {
-  std::stringstream in(text);
-  std::vector<double> v;
-  std::string item;
-  while (std::getline(in, item, ',')) {
-    try {
-      v.push_back(std::stod(item));
-    } catch (const std::exception&) {
-      Fail("--bounds must be six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got '", text, "'");
-    }
-  }
-  if (v.size() != 6) Fail("--bounds must be six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got '", text, "'");
-  Box box;
-  box.min = Eigen::Vector3d(v[0], v[1], v[2]);
-  box.max = Eigen::Vector3d(v[3], v[4], v[5]);
-  if (!box.valid()) Fail("--bounds: max must exceed min on every axis");
-  return box;
 }
 
 struct ReconstructArgs {

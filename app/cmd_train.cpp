@@ -22,6 +22,8 @@ struct TrainArgs {
   NeuralVolumeOptions options;
   RerenderOptions rerender;  // --method rerender
   std::string silhouettes = "background";
+  std::string recon_method = "auto";
+  std::string recon_bounds;
 };
 
 void PrintPlan(const nlohmann::json& plan) {
@@ -48,6 +50,8 @@ void TrainRerenderCommand(const TrainArgs& args, const std::filesystem::path& ou
   }
   o.reconstruction.silhouette.mode =
       args.silhouettes == "threshold" ? SilhouetteMode::kThreshold : SilhouetteMode::kBackgroundSubtraction;
+  o.reconstruction.method = ReconstructionMethodFromString(args.recon_method);
+  if (!args.recon_bounds.empty()) o.reconstruction.bounds = ParseBounds(args.recon_bounds, "--recon-bounds");
   o.Check();
   Report report("train");
   RerenderSummary summary = TrainRerender(args.take, out, o, &report);
@@ -110,6 +114,10 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--recon", r.recon_dir, "rerender: use this reconstruction (built without the witnesses)");
   command->add_option("--recon-voxel", r.reconstruction.voxel_m, "rerender: reconstruction voxel in metres")->capture_default_str();
   command->add_option("--silhouettes", args->silhouettes, "rerender: reconstruction silhouettes, background or threshold")->capture_default_str();
+  command->add_option("--recon-method", args->recon_method,
+                      "rerender: reconstruction method of every fold, auto, hull, tsdf or mvs")->capture_default_str();
+  command->add_option("--recon-bounds", args->recon_bounds,
+                      "rerender: reconstruction volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default -1.5,-1.5,0,1.5,1.5,2.5)");
   command->add_option("--subject-weight", r.subject_weight, "rerender: loss weight of pixels near the subject")->capture_default_str();
   command->add_option("--alpha-weight", r.alpha_weight, "rerender: weight of alpha against the witnesses' silhouettes (0: off)")->capture_default_str();
   command->add_option("--temporal-weight", r.temporal_weight, "rerender: temporal-consistency loss weight")->capture_default_str();

@@ -236,6 +236,12 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
   auto too_many = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() + " --witness 6");
   EXPECT_NE(too_many.exit_code, 0);
   EXPECT_NE(too_many.output.find("for the reconstruction"), std::string::npos) << too_many.output;
+  auto bad_bounds = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() + " --recon-bounds 1,2,3");
+  EXPECT_NE(bad_bounds.exit_code, 0);
+  EXPECT_NE(bad_bounds.output.find("--recon-bounds must be six numbers"), std::string::npos) << bad_bounds.output;
+  auto bad_method = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() + " --recon-method sculpt");
+  EXPECT_NE(bad_method.exit_code, 0);
+  EXPECT_NE(bad_method.output.find("sculpt"), std::string::npos) << bad_method.output;
 
   auto train = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
                                " --witness-folds 1 --iterations 60 --width 64 --crop 0 --unet-width 8 --unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
