@@ -24,6 +24,7 @@ struct TrainArgs {
   std::string silhouettes = "background";
   std::string recon_method = "auto";
   std::string recon_bounds;
+  bool recon_no_completion = false;
 };
 
 void PrintPlan(const nlohmann::json& plan) {
@@ -52,6 +53,7 @@ void TrainRerenderCommand(const TrainArgs& args, const std::filesystem::path& ou
       args.silhouettes == "threshold" ? SilhouetteMode::kThreshold : SilhouetteMode::kBackgroundSubtraction;
   o.reconstruction.method = ReconstructionMethodFromString(args.recon_method);
   if (!args.recon_bounds.empty()) o.reconstruction.bounds = ParseBounds(args.recon_bounds, "--recon-bounds");
+  if (args.recon_no_completion) o.reconstruction.tsdf_hull_completion = false;
   o.Check();
   Report report("train");
   RerenderSummary summary = TrainRerender(args.take, out, o, &report);
@@ -110,6 +112,8 @@ void AddTrainCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
   command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();
+  command->add_option("--supersample", r.supersample,
+                      "rerender: raster samples per pixel along each axis (1..4; playback does the same)")->capture_default_str();
   command->add_option("--crop", r.crop_px, "rerender: training crop size near the subject (0: whole images)")->capture_default_str();
   command->add_option("--recon", r.recon_dir, "rerender: use this reconstruction (built without the witnesses)");
   command->add_option("--recon-voxel", r.reconstruction.voxel_m, "rerender: reconstruction voxel in metres")->capture_default_str();
@@ -118,6 +122,9 @@ void AddTrainCommand(CLI::App& app) {
                       "rerender: reconstruction method of every fold, auto, hull, tsdf or mvs")->capture_default_str();
   command->add_option("--recon-bounds", args->recon_bounds,
                       "rerender: reconstruction volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default -1.5,-1.5,0,1.5,1.5,2.5)");
+  command->add_flag("--recon-no-completion", args->recon_no_completion,
+                    "rerender: TSDF folds mesh only what the depth sensors saw, as a live fusion system does "
+                    "(no completion from the visual hull)");
   command->add_option("--subject-weight", r.subject_weight, "rerender: loss weight of pixels near the subject")->capture_default_str();
   command->add_option("--alpha-weight", r.alpha_weight, "rerender: weight of alpha against the witnesses' silhouettes (0: off)")->capture_default_str();
   command->add_option("--temporal-weight", r.temporal_weight, "rerender: temporal-consistency loss weight")->capture_default_str();

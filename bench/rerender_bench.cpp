@@ -5,7 +5,8 @@
 // Usage:
 //   rerender_bench [--minutes 10] [--frames 30] [--width 160] [--sim-width 320]
 //                  [--unet-width 24] [--unet-depth 4] [--crop 64] [--batch-pairs 2] [--lr 3e-4]
-//                  [--subject-weight 4] [--alpha-weight 1]
+//                  [--subject-weight 4] [--alpha-weight 1] [--supersample 2]
+//                  [--recon-voxel 0.004] [--recon-no-completion]
 //                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
 //                  [--witness-folds 1] [--fold-recon DIR ...] [--validation-witnesses 0] [--eval-every S]
@@ -93,13 +94,16 @@ void InferenceTable(const fs::path& model_dir, int threads) {
   orbit.height = 512;
   orbit.advance_frames = false;
   const CameraPath path = OrbitPath(*model, orbit);
-  std::printf("\ninference at 512x512, %zu orbit views, U-Net width %d depth %d (%lld parameters), mesh %zu triangles\n",
+  std::printf("\ninference at 512x512, %zu orbit views, U-Net width %d depth %d (%lld parameters), mesh %zu triangles, "
+              "%d raster sample(s) per pixel\n",
               path.size(), network.config().width, network.config().depth,
-              static_cast<long long>(network.parameter_count()), mesh.faces.size());
+              static_cast<long long>(network.parameter_count()), mesh.faces.size(),
+              json.value("supersample", 1) * json.value("supersample", 1));
   std::printf("%8s %14s %14s %14s %8s\n", "threads", "rasterise ms", "U-Net ms", "total ms", "fps");
   for (int t : {1, threads}) {
     RasterOptions raster;
     raster.threads = t;
+    raster.supersample = json.value("supersample", 1);  // as playback does
     double raster_s = 0, net_s = 0;
     network.Apply(RasteriseMesh(mesh, path.cameras[0], raster), t);  // warm-up
     for (const CameraModel& camera : path.cameras) {
@@ -147,6 +151,11 @@ int main(int argc, char** argv) {
   std::string model_name = "model-studio8";
   app.add_option("--model-name", model_name, "Model directory under --work for studio8");
   app.add_option("--recon", base.recon_dir, "studio8: reuse this reconstruction (built without the same witnesses)");
+  app.add_option("--supersample", base.supersample, "Raster samples per pixel along each axis");
+  app.add_option("--recon-voxel", base.reconstruction.voxel_m, "studio8: reconstruction voxel in metres");
+  bool no_completion = false;
+  app.add_flag("--recon-no-completion", no_completion,
+               "studio8: fuse the depth sensors alone (holes where they saw nothing), as a live fusion system does");
   app.add_option("--witness-folds", base.witness_folds, "Witness sets, each with a reconstruction built without them");
   app.add_option("--fold-recon", base.fold_recon_dirs, "studio8: reuse these reconstructions of the further folds");
   app.add_option("--validation-witnesses", base.validation_witnesses, "Witnesses that choose the weights (early stopping)");
@@ -159,6 +168,7 @@ int main(int argc, char** argv) {
   const fs::path root = work;
   fs::create_directories(root);
   base.threads = train_threads > 0 ? train_threads : threads;
+  if (no_completion) base.reconstruction.tsdf_hull_completion = false;
   if (!dino_only) {
     const fs::path take = root / ("studio8-" + std::to_string(frames) + "-" + std::to_string(sim_width));
     if (!fs::exists(take / "take.json")) {

@@ -34,6 +34,10 @@ struct RasterOptions {
   double max_edge_px = 16;
   int max_subdivisions = 5;     // splitting depth limit (4^5 pieces per triangle at most)
   double point_radius_px = 1.5; // a mesh without faces (fused points) is splatted as squares
+  int supersample = 1;          // samples per pixel along each axis (1..4): the buffers average
+                                // the covered samples and the mask holds the covered fraction,
+                                // as a camera integrates its pixel, instead of one sample at
+                                // the pixel centre (edge lengths and radii stay in output pixels)
   int threads = 0;              // 0: all cores
   void Check() const;           // throws Error naming the bad field
 };
@@ -45,7 +49,9 @@ struct GBuffer {
   cv::Mat normal;  // CV_32FC3 unit normal in camera coordinates (OpenCV axes), 0 where empty
   cv::Mat position;  // CV_32FC3 surface point in world coordinates (metres), 0 where empty:
                      // where on the body a pixel lies, whichever camera looks
-  cv::Mat mask;    // CV_8U, 255 where a surface covers the pixel centre
+  cv::Mat mask;    // CV_8U, 255 where a surface covers the pixel centre (supersampled: 255 x the
+                   // covered fraction of the pixel's samples; colour, depth, normal and position
+                   // then average the covered samples)
   int64_t triangles_drawn = 0;  // after splitting
   int64_t triangles_split = 0;  // triangles of the mesh that needed splitting
 };
@@ -56,7 +62,7 @@ struct GBuffer {
 GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterOptions& options = {});
 
 // The raw textured-mesh render composited over a background (CV_32FC3 BGR in [0, 1], or empty
-// for black): what the reconstruction alone shows a camera.
+// for black) by the mask's coverage: what the reconstruction alone shows a camera.
 cv::Mat CompositeRawRender(const GBuffer& buffers, const cv::Mat& background);
 
 // ---------------------------------------------------------------------------------------------
@@ -134,6 +140,10 @@ struct RerenderOptions {
 
   // Data.
   int image_width = 160;                // training/evaluation width (cameras rescaled); 0: native
+  int supersample = 2;                  // raster samples per pixel along each axis, averaged
+                                        // (the raw render too; the model keeps it and playback
+                                        // rasterises alike): 1 samples pixel centres only,
+                                        // whose aliased edges the network would learn to smooth
   int64_t first_frame = 0;              // frame sets [first, last) after the clean plate
   int64_t last_frame = -1;              // -1: to the end
 

@@ -21,6 +21,9 @@ namespace {
 
 int LevelChannels(const UNetConfig& config, int level) { return config.width << std::min(level, 3); }
 
+// Alpha of an uncovered pixel at the start, and 1 minus that of a fully covered one: sigmoid(-6).
+const double kAlphaFloor = 1 / (1 + std::exp(6.0));
+
 torch::nn::Sequential DoubleConv(int in, int out) {
   return torch::nn::Sequential(
       torch::nn::Conv2d(torch::nn::Conv2dOptions(in, out, 3).padding(1)),
@@ -127,7 +130,7 @@ torch::Tensor RerenderFeatures(const GBuffer& buffers) {
     for (int x = 0; x < width; ++x) {
       if (!valid.at<uint8_t>(y, x)) continue;
       relative.at<float>(y, x) = std::clamp(depth.at<float>(y, x) - median, -1.0f, 1.0f);
-      coverage.at<float>(y, x) = 1;
+      coverage.at<float>(y, x) = valid.at<uint8_t>(y, x) / 255.0f;  // the covered fraction when supersampled
       cv::Vec3f c = buffers.color.at<cv::Vec3f>(y, x), n = buffers.normal.at<cv::Vec3f>(y, x);
       for (int k = 0; k < 3; ++k) {
         c[k] = std::isfinite(c[k]) ? std::clamp(c[k], 0.0f, 1.0f) : 0.0f;
@@ -159,9 +162,11 @@ std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw,
   const torch::Tensor color = features.index({Slice(), Slice(0, 3)}).clamp(0.02, 0.98);
   const torch::Tensor coverage = features.index({Slice(), Slice(3, 4)});
   torch::Tensor rgb = torch::sigmoid(raw.index({Slice(), Slice(0, 3)}) + torch::log(color / (1 - color)));
-  // The correction is bounded (tanh): alpha can be overruled, but never pushed so far into the
-  // sigmoid's flat tails that its gradient vanishes.
-  torch::Tensor alpha = torch::sigmoid(10 * torch::tanh(raw.index({Slice(), Slice(3, 4)}) / 10) + 12 * coverage - 6);
+  // Alpha starts as the coverage (the covered fraction of a supersampled pixel, as the raw render
+  // composites it; kept off 0 and 1 by sigmoid(+-6)). The correction is bounded (tanh): alpha can
+  // be overruled, but never pushed so far into the sigmoid's flat tails that its gradient vanishes.
+  const torch::Tensor start = coverage.clamp(kAlphaFloor, 1 - kAlphaFloor);
+  torch::Tensor alpha = torch::sigmoid(10 * torch::tanh(raw.index({Slice(), Slice(3, 4)}) / 10) + torch::log(start / (1 - start)));
   return {rgb, alpha};
 }
 
@@ -171,7 +176,8 @@ namespace {
 class RerenderModel : public AvatarModel {
  public:
   RerenderModel(const std::filesystem::path& dir, const nlohmann::json& json)
-      : network_(RerenderNetwork::Load(dir / "unet.pt", UNetConfig::FromJson(json.at("net")))) {
+      : network_(RerenderNetwork::Load(dir / "unet.pt", UNetConfig::FromJson(json.at("net")))),
+        supersample_(json.value("supersample", 1)) {
     for (const auto& entry : json.at("meshes")) {
       std::filesystem::path file = entry.get<std::string>();
       meshes_.push_back(file.is_absolute() ? file : dir / file);
@@ -196,6 +202,7 @@ class RerenderModel : public AvatarModel {
     }
     RasterOptions raster;
     raster.threads = options.threads;
+    raster.supersample = supersample_;  // as the network was trained
     RenderedView view = network_.Apply(RasteriseMesh(mesh_, camera, raster), options.threads);
     view.depth.setTo(std::numeric_limits<float>::quiet_NaN(), view.alpha < options.depth_min_alpha);
     view.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -204,6 +211,7 @@ class RerenderModel : public AvatarModel {
 
  private:
   RerenderNetwork network_;
+  int supersample_ = 1;
   std::vector<std::filesystem::path> meshes_;
   std::vector<CameraModel> cameras_;
   Eigen::Vector3d box_min_, box_max_;

@@ -127,6 +127,46 @@ void SplatPoint(const recon::FastProjector& projector, const SurfacePoint& point
   }
 }
 
+// Each s x s block of a supersampled buffer to one pixel: the covered fraction into the mask,
+// the covered samples' mean colour, depth, world position and (renormalised) normal.
+GBuffer AverageBlocks(const GBuffer& fine, int s, int width, int height) {
+  GBuffer out;
+  out.triangles_drawn = fine.triangles_drawn;
+  out.triangles_split = fine.triangles_split;
+  out.color = cv::Mat(height, width, CV_32FC3, cv::Scalar::all(0));
+  out.normal = cv::Mat(height, width, CV_32FC3, cv::Scalar::all(0));
+  out.position = cv::Mat(height, width, CV_32FC3, cv::Scalar::all(0));
+  out.depth = cv::Mat(height, width, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
+  out.mask = cv::Mat(height, width, CV_8U, cv::Scalar(0));
+  for (int y = 0; y < height; ++y) {
+    for (int x = 0; x < width; ++x) {
+      int covered = 0;
+      cv::Vec3f color(0, 0, 0), normal(0, 0, 0), position(0, 0, 0);
+      float depth = 0;
+      for (int dy = 0; dy < s; ++dy) {
+        for (int dx = 0; dx < s; ++dx) {
+          const int fy = y * s + dy, fx = x * s + dx;
+          if (fine.mask.at<uint8_t>(fy, fx) == 0) continue;
+          ++covered;
+          color += fine.color.at<cv::Vec3f>(fy, fx);
+          normal += fine.normal.at<cv::Vec3f>(fy, fx);
+          position += fine.position.at<cv::Vec3f>(fy, fx);
+          depth += fine.depth.at<float>(fy, fx);
+        }
+      }
+      if (covered == 0) continue;
+      const float n = static_cast<float>(covered);
+      out.color.at<cv::Vec3f>(y, x) = color / n;
+      const float length = static_cast<float>(cv::norm(normal));
+      if (length > 0) out.normal.at<cv::Vec3f>(y, x) = normal / length;
+      out.position.at<cv::Vec3f>(y, x) = position / n;
+      out.depth.at<float>(y, x) = depth / n;
+      out.mask.at<uint8_t>(y, x) = static_cast<uint8_t>(std::lround(255.0 * covered / (s * s)));
+    }
+  }
+  return out;
+}
+
 }  // namespace
 
 void RasterOptions::Check() const {
@@ -134,12 +174,21 @@ void RasterOptions::Check() const {
   if (max_subdivisions < 0 || max_subdivisions > 8) Fail("raster max_subdivisions must be in [0, 8] (got ", max_subdivisions, ")");
   if (!(point_radius_px > 0 && point_radius_px <= 32)) Fail("raster point_radius_px must be in (0, 32] (got ", point_radius_px, ")");
   if (threads < 0) Fail("raster threads must be >= 0 (0: all cores)");
+  if (supersample < 1 || supersample > 4) Fail("raster supersample must be in [1, 4] (got ", supersample, ")");
 }
 
 GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterOptions& options) {
   options.Check();
   const int width = camera.width(), height = camera.height();
   if (width <= 0 || height <= 0) Fail("rasterise: the camera has no imager size");
+  if (options.supersample > 1) {
+    const int s = options.supersample;
+    RasterOptions fine = options;
+    fine.supersample = 1;
+    fine.max_edge_px = options.max_edge_px * s;
+    fine.point_radius_px = options.point_radius_px * s;
+    return AverageBlocks(RasteriseMesh(mesh, camera.Scaled(s), fine), s, width, height);
+  }
   const int64_t vertex_count = static_cast<int64_t>(mesh.vertices.size());
   for (const auto& f : mesh.faces) {
     if (f.minCoeff() < 0 || f.maxCoeff() >= vertex_count) Fail("rasterise: a face indexes a vertex the mesh does not have");
@@ -258,7 +307,14 @@ cv::Mat CompositeRawRender(const GBuffer& buffers, const cv::Mat& background) {
     Fail("raw render: the background is ", out.cols, "x", out.rows, " but the buffers are ", buffers.color.cols, "x",
          buffers.color.rows, " (both must be CV_32FC3)");
   }
-  buffers.color.copyTo(out, buffers.mask);
+  for (int y = 0; y < out.rows; ++y) {
+    for (int x = 0; x < out.cols; ++x) {
+      const uint8_t m = buffers.mask.at<uint8_t>(y, x);
+      if (m == 0) continue;
+      const float a = m / 255.0f;
+      out.at<cv::Vec3f>(y, x) = a * buffers.color.at<cv::Vec3f>(y, x) + (1 - a) * out.at<cv::Vec3f>(y, x);
+    }
+  }
   return out;
 }
 

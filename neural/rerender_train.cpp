@@ -178,6 +178,7 @@ void RerenderOptions::Check() const {
   if (witness_cameras < 1 && witness.empty()) Fail("rerender needs at least one witness camera");
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
   if (validation_witnesses < -1) Fail("validation_witnesses must be >= 0 (or -1: automatic)");
+  if (supersample < 1 || supersample > 4) Fail("supersample must be in [1, 4] (got ", supersample, ")");
   if (witness_folds < 1 || witness_folds > 16) Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
   for (const auto& fold : fold_witness) if (fold.empty()) Fail("a fold of witnesses cannot be empty");
   if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {
@@ -208,7 +209,7 @@ nlohmann::json RerenderOptions::ToJson() const {
           {"recon_dir", recon_dir.string()}, {"witness_folds", witness_folds}, {"validation_witnesses", validation_witnesses}, {"fold_witness", fold_witness},
           {"fold_recon_dirs", [&] { std::vector<std::string> d; for (const auto& p : fold_recon_dirs) d.push_back(p.string()); return d; }()},
           {"reconstruction", reconstruction.ToJson()},
-          {"image_width", image_width}, {"first_frame", first_frame}, {"last_frame", last_frame},
+          {"image_width", image_width}, {"supersample", supersample}, {"first_frame", first_frame}, {"last_frame", last_frame},
           {"minutes", minutes}, {"iterations", iterations}, {"batch_pairs", batch_pairs},
           {"crop_px", crop_px},           {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
           {"subject_weight", subject_weight}, {"alpha_weight", alpha_weight}, {"temporal_weight", temporal_weight}, {"gan_weight", gan_weight},
@@ -423,7 +424,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     const int dilate = std::max(2, d.width / 40);
     const cv::Mat kernel = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * dilate + 1, 2 * dilate + 1));
     for (size_t f = 0; f < sets.size(); ++f) {
-      GBuffer buffers = RasteriseMesh(mesh_cache[f], d.scaled, RasterOptions{.threads = threads});
+      GBuffer buffers = RasteriseMesh(mesh_cache[f], d.scaled, RasterOptions{.supersample = options.supersample, .threads = threads});
       const cv::Mat native = take.ReadFrame(entry_of_set[sets[f]], d.name);
       cv::Mat image = ToFloatImage(native, size);
       if (silhouettes) {
@@ -487,6 +488,9 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
                              ? std::string("the witnesses' silhouettes")
                              : std::string("off: background subtraction without a clean plate");
   plan["train_resolution"] = Cat(train_cameras[0]->width, "x", train_cameras[0]->height, " (", train_cameras[0]->name, ")");
+  plan["raster_samples"] = options.supersample == 1
+      ? std::string("1 per pixel (its centre)")
+      : Cat(options.supersample, "x", options.supersample, " per pixel, averaged (the raw render too)");
   // Crops share one size across the witnesses: the requested one rounded up to the network's
   // multiple, at most the smallest padded image.
   int64_t crop_w = std::numeric_limits<int64_t>::max(), crop_h = crop_w;
@@ -692,6 +696,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   std::filesystem::create_directories(model_dir / "cameras");
   nlohmann::json model = {{"method", "rerender"}, {"net", options.net.ToJson()}, {"cameras", nlohmann::json::array()},
                           {"meshes", nlohmann::json::array()}, {"image_width", options.image_width},
+                          {"supersample", options.supersample},
                           {"box_min", {box_min.x(), box_min.y(), box_min.z()}},
                           {"box_max", {box_max.x(), box_max.y(), box_max.z()}}, {"frame_sets", sets}};
   for (size_t i = 0; i < names.size(); ++i) {

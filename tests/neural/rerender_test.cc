@@ -3,6 +3,7 @@
 // end on a tiny simulated take (train --method rerender, render --model).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <limits>
@@ -122,6 +123,45 @@ TEST(RerenderRaster, CameraLookingAwaySeesNothing) {
   EXPECT_EQ(cv::checkRange(view.color), true);
 }
 
+// A plane's edge crossing pixel column 10 at x = 10.1: one sample at the pixel centre calls the
+// column covered; 2x2 or 4x4 samples cover half of it, and the buffers average what they hit.
+TEST(RerenderRaster, SupersamplingGivesTheCoveredFractionOfEdgePixels) {
+  const CameraModel camera = CameraModel::Pinhole(40, 32, 16, Pose::Identity());
+  // Pixel (u, v) sees x = (u - 15.5) z / 40, y = (v - 7.5) z / 40; the quad spans u from -0.4
+  // to 10.1 and v from -0.4 to 15.4, its corners inside the image.
+  const float z = 2, left = (-0.4f - 15.5f) * z / 40, right = (10.1f - 15.5f) * z / 40;
+  const float top = (-0.4f - 7.5f) * z / 40, bottom = (15.4f - 7.5f) * z / 40;
+  Mesh quad;
+  quad.vertices = {{left, top, z}, {right, top, z}, {right, bottom, z}, {left, bottom, z}};
+  quad.faces = {{0, 2, 1}, {0, 3, 2}};
+  quad.colors.assign(4, Eigen::Matrix<uint8_t, 3, 1>(200, 100, 50));
+  const cv::Mat white(camera.height(), camera.width(), CV_32FC3, cv::Scalar::all(1));
+  for (int s : {1, 2, 4}) {
+    SCOPED_TRACE(s);
+    const GBuffer b = RasteriseMesh(quad, camera, RasterOptions{.supersample = s, .threads = 1});
+    ASSERT_EQ(b.mask.size(), cv::Size(32, 16));
+    for (int y = 0; y < 16; ++y) {
+      EXPECT_EQ(b.mask.at<uint8_t>(y, 9), 255);
+      EXPECT_EQ(b.mask.at<uint8_t>(y, 10), s == 1 ? 255 : 128);
+      EXPECT_EQ(b.mask.at<uint8_t>(y, 11), 0);
+      EXPECT_NEAR(b.depth.at<float>(y, 10), z, 1e-4);
+      const cv::Vec3f c = b.color.at<cv::Vec3f>(y, 10);  // BGR of the covered samples
+      EXPECT_NEAR(c[0], 50 / 255.0, 1e-5);
+      EXPECT_NEAR(c[2], 200 / 255.0, 1e-5);
+      EXPECT_NEAR(b.normal.at<cv::Vec3f>(y, 10)[2], -1, 1e-4);  // facing the camera
+    }
+    EXPECT_TRUE(std::isnan(b.depth.at<float>(0, 11)));
+    // The raw render blends the surface over the background by that fraction.
+    const cv::Mat raw = CompositeRawRender(b, white);
+    const double a = s == 1 ? 1.0 : 128 / 255.0;
+    EXPECT_NEAR(raw.at<cv::Vec3f>(5, 10)[0], a * 50 / 255.0 + (1 - a), 1e-5);
+    EXPECT_NEAR(raw.at<cv::Vec3f>(5, 11)[0], 1, 1e-6);
+  }
+  RasterOptions bad;
+  bad.supersample = 5;
+  EXPECT_THROW(RasteriseMesh(quad, camera, bad), Error);
+}
+
 TEST(RerenderRaster, PointsWithoutFacesAreSplatted) {
   const Sphere sphere;
   Mesh points = testing::SphereMesh(sphere, 32, 64);
@@ -173,6 +213,34 @@ TEST(RerenderNet, StartsAsTheRawRender) {
     }
   }
   EXPECT_LT(worst, 0.021);  // colours are clamped to [0.02, 0.98] before the logit
+}
+
+// Supersampled, edge pixels are partly covered: the untrained network's alpha is that fraction,
+// so composited over a background it gives the raw render there too.
+TEST(RerenderNet, StartsAsTheSupersampledRawRenderAtPartlyCoveredEdges) {
+  const Sphere sphere;
+  Mesh mesh = testing::SphereMesh(sphere, 32, 64);
+  mesh.colors.assign(mesh.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(200, 90, 40));
+  const CameraModel camera = testing::RingCameras(1, sphere, 1.4, 100, 70, false)[0];
+  const GBuffer buffers = RasteriseMesh(mesh, camera, RasterOptions{.supersample = 4, .threads = 1});
+  const RenderedView view = RerenderNetwork(UNetConfig{.width = 8, .depth = 3}, 3).Apply(buffers, 1);
+  const cv::Mat background(buffers.color.size(), CV_32FC3, cv::Scalar(0.1, 0.8, 0.5));
+  const cv::Mat raw = CompositeRawRender(buffers, background);
+  int partial = 0;
+  double worst = 0;
+  for (int y = 0; y < raw.rows; ++y) {
+    for (int x = 0; x < raw.cols; ++x) {
+      const uint8_t m = buffers.mask.at<uint8_t>(y, x);
+      const float a = view.alpha.at<float>(y, x);
+      if (m > 0 && m < 255) ++partial;
+      EXPECT_NEAR(a, std::clamp(m / 255.0, 0.0025, 0.9975), 1e-3) << x << "," << y;
+      const cv::Vec3f composited = view.color.at<cv::Vec3f>(y, x) + (1 - a) * background.at<cv::Vec3f>(y, x);
+      const cv::Vec3f d = composited - raw.at<cv::Vec3f>(y, x);
+      worst = std::max({worst, std::abs<double>(d[0]), std::abs<double>(d[1]), std::abs<double>(d[2])});
+    }
+  }
+  EXPECT_GT(partial, 50);   // the sphere's outline
+  EXPECT_LT(worst, 0.021);  // the colour clamp, and alpha's +-0.0025 against a far background
 }
 
 // Holes in the coverage and NaN where depth or colour should be never reach the output.
@@ -289,7 +357,7 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   EXPECT_NE(no_trainer.exit_code, 0);
   EXPECT_NE(no_trainer.output.find("leave no witness to train on"), std::string::npos) << no_trainer.output;
   auto train = testing::RunCli("train --method rerender " + take.string() + " --out " + model.string() +
-                               " --heldout 1 --witness-folds 3 --validation-witnesses 1 --iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+                               " --heldout 1 --witness-folds 3 --validation-witnesses 1 --supersample 3 --iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
                                " --recon-voxel 0.016 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   const nlohmann::json report = nlohmann::json::parse(std::ifstream(model / "report.json"));
@@ -342,6 +410,13 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   // Playback uses the first fold's reconstruction.
   const nlohmann::json model_json = nlohmann::json::parse(std::ifstream(model / "model.json"));
   EXPECT_EQ(model_json.at("meshes").at(0).get<std::string>().rfind("recon/", 0), 0u) << model_json.at("meshes").dump();
+  // The model keeps its raster sampling, and playback rasterises alike.
+  EXPECT_EQ(model_json.at("supersample").get<int>(), 3);
+  EXPECT_EQ(report.at("plan").at("raster_samples").get<std::string>().rfind("3x3 per pixel", 0), 0u) << report.at("plan").dump();
+  const auto frames = dir / "frames";
+  auto render = testing::RunCli("render " + take.string() + " --model " + model.string() + " --views 1 --size 48 --no-exr --out " + frames.string());
+  ASSERT_EQ(render.exit_code, 0) << render.output;
+  EXPECT_TRUE(std::filesystem::exists(frames / "000000.png")) << render.output;
 }
 
 }  // namespace
