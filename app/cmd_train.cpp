@@ -108,7 +108,7 @@ void AddTrainCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--validation-witnesses", r.validation_witnesses,
                       "rerender: witnesses kept from training to choose the weights where they peak (0: last weights, "
-                      "-1: one when there are three witnesses or more)")
+                      "-1: a fifth of the witnesses, at least one when there are three or more)")
       ->capture_default_str();
   command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
   command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();

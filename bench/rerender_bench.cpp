@@ -9,7 +9,7 @@
 //                  [--recon-voxel 0.004] [--recon-no-completion]
 //                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
-//                  [--witness-folds 1] [--fold-recon DIR ...] [--validation-witnesses 0] [--eval-every S]
+//                  [--witness-folds 3] [--fold-recon DIR ...] [--validation-witnesses -1] [--eval-every S]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
 #include <CLI/CLI.hpp>
 #include <chrono>

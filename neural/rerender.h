@@ -134,7 +134,8 @@ struct RerenderOptions {
   // Early stopping: this many witnesses (the last fold's) are not trained on but scored at
   // every evaluation, and the model keeps the weights where their PSNR peaked (the network
   // starts as the raw render, so it never ends worse than that on them); 0: the last weights;
-  // -1: one when there are at least three witnesses in all, else none.
+  // -1: a fifth of the witnesses, at least one once there are three in all (one view's PSNR
+  // swings from evaluation to evaluation and chooses early, noisy weights), else none.
   int validation_witnesses = -1;
   ReconstructionOptions reconstruction;
 

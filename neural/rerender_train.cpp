@@ -301,7 +301,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   for (const auto& fold : folds) for (int w : fold) witness_names.push_back(names[w]);
   for (int h : heldout) heldout_names.push_back(names[h]);
   const int validation_count = options.validation_witnesses >= 0 ? options.validation_witnesses
-                               : witness_names.size() >= 3 ? 1 : 0;
+                               : witness_names.size() >= 3 ? std::max(1, static_cast<int>(witness_names.size()) / 5) : 0;
   if (validation_count >= static_cast<int>(witness_names.size())) {
     Fail(validation_count, " validation witness(es) leave no witness to train on (", witness_names.size(),
          " in all): ask for more witnesses or folds");

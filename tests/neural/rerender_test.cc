@@ -407,6 +407,10 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   EXPECT_EQ(fewer_report.at("plan").at("folds").size(), 3u);
   EXPECT_NE(fewer_report.at("plan").at("witness_folds").get<std::string>().find("5 asked, 3 possible"), std::string::npos)
       << fewer_report.at("plan").dump();
+  // By default a fifth of the witnesses validate, at least one once there are three.
+  const size_t fewer_witnesses = fewer_report.at("plan").at("witness").size();
+  ASSERT_GE(fewer_witnesses, 3u);
+  EXPECT_EQ(fewer_report.at("plan").at("validation").size(), std::max<size_t>(1, fewer_witnesses / 5)) << fewer_report.at("plan").dump();
   // Playback uses the first fold's reconstruction.
   const nlohmann::json model_json = nlohmann::json::parse(std::ifstream(model / "model.json"));
   EXPECT_EQ(model_json.at("meshes").at(0).get<std::string>().rfind("recon/", 0), 0u) << model_json.at("meshes").dump();
