@@ -178,7 +178,7 @@ void RerenderOptions::Check() const {
   if (witness_cameras < 1 && witness.empty()) Fail("rerender needs at least one witness camera");
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
   if (validation_witnesses < -1) Fail("validation_witnesses must be >= 0 (or -1: automatic)");
-  if (supersample < 1 || supersample > 4) Fail("supersample must be in [1, 4] (got ", supersample, ")");
+  RasterOptions{.supersample = supersample}.Check();
   if (witness_folds < 1 || witness_folds > 16) Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
   for (const auto& fold : fold_witness) if (fold.empty()) Fail("a fold of witnesses cannot be empty");
   if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {

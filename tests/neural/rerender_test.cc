@@ -290,6 +290,9 @@ TEST(RerenderOptions, ChecksExplainBadValues) {
   options = {};
   options.validation_witnesses = -2;
   EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.supersample = 0;
+  EXPECT_THROW(options.Check(), Error);
   EXPECT_NO_THROW(RerenderOptions{}.Check());
 }
 
