@@ -208,15 +208,21 @@ TEST(FakeGige, PackagedFakeCameraAt30HzFoldsTriggersAndCountsEachOne) {
   TempDir dir;
   RecorderSummary summary = RecordTriggered(cameras, 3, 30, {}, 30, {{"roi", {0, 0, 128, 128}}}, dir / "take");
   ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  int64_t missed = 0;
   for (const auto& sensor : summary.sensors) {
     EXPECT_EQ(sensor.triggers, 30) << sensor.name;
     EXPECT_EQ(sensor.written + sensor.dropped(), 30) << sensor.name;
     // The ticks next after 30 triggers spread over 967 ms are at most 1000 ms apart: at most
     // 26 distinct ticks, so at least 4 folds.
     EXPECT_GE(sensor.lost_in_driver, 4) << sensor.name;
+    missed += sensor.dropped();
   }
   EXPECT_LE(summary.frame_sets_complete, 26);
-  EXPECT_GE(summary.frame_sets_complete, 15) << summary.Metrics().dump(1);
+  // Each camera folds on its own tick's phase, so how many triggers every camera answered depends
+  // on the phases (and on the host's load); but a trigger can only miss its complete set through
+  // a camera that counted its frame lost.
+  EXPECT_GE(summary.frame_sets_complete, 30 - missed) << summary.Metrics().dump(1);
+  EXPECT_GT(summary.frame_sets_complete, 0) << summary.Metrics().dump(1);
   ExpectTakeMatchesSummary(dir / "take", summary, 3);
 }
 
