@@ -129,7 +129,7 @@ void SplatPoint(const recon::FastProjector& projector, const SurfacePoint& point
 
 // Each s x s block of a supersampled buffer to one pixel: the covered fraction into the mask,
 // the covered samples' mean colour, depth, world position and (renormalised) normal.
-GBuffer AverageBlocks(const GBuffer& fine, int s, int width, int height) {
+GBuffer AverageBlocks(const GBuffer& fine, int s, int width, int height, int threads) {
   GBuffer out;
   out.triangles_drawn = fine.triangles_drawn;
   out.triangles_split = fine.triangles_split;
@@ -138,6 +138,7 @@ GBuffer AverageBlocks(const GBuffer& fine, int s, int width, int height) {
   out.position = cv::Mat(height, width, CV_32FC3, cv::Scalar::all(0));
   out.depth = cv::Mat(height, width, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
   out.mask = cv::Mat(height, width, CV_8U, cv::Scalar(0));
+#pragma omp parallel for num_threads(threads) schedule(static)
   for (int y = 0; y < height; ++y) {
     for (int x = 0; x < width; ++x) {
       int covered = 0;
@@ -187,7 +188,7 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
     fine.supersample = 1;
     fine.max_edge_px = options.max_edge_px * s;
     fine.point_radius_px = options.point_radius_px * s;
-    return AverageBlocks(RasteriseMesh(mesh, camera.Scaled(s), fine), s, width, height);
+    return AverageBlocks(RasteriseMesh(mesh, camera.Scaled(s), fine), s, width, height, recon::ResolveThreads(options.threads));
   }
   const int64_t vertex_count = static_cast<int64_t>(mesh.vertices.size());
   for (const auto& f : mesh.faces) {
