@@ -102,10 +102,16 @@ void AddTrainCommand(CLI::App& app) {
   command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
   RerenderOptions& r = args->rerender;
   command->add_option("--witness", r.witness_cameras, "rerender: witness cameras left out of the reconstruction")->capture_default_str();
-  command->add_option("--witness-names", r.witness, "rerender: these witness cameras (names)");
+  command->add_option("--witness-names", r.witness, "rerender: these witness cameras (names, comma- or space-separated)")
+      ->delimiter(',');
   command->add_option("--witness-folds", r.witness_folds,
                       "rerender: witness sets, each seen through a reconstruction built without it (1: one set)")
       ->capture_default_str();
+  command->add_option("--fold-witnesses", r.fold_witness,
+                      "rerender: the witnesses of a further fold, comma-separated (once per fold, in order; the "
+                      "last fold's validate; overrides --witness-folds)")
+      ->delimiter(',');
+  command->add_option("--fold-recon", r.fold_recon_dirs, "rerender: use these reconstructions of the further folds (in order)");
   command->add_option("--validation-witnesses", r.validation_witnesses,
                       "rerender: witnesses kept from training to choose the weights where they peak (0: last weights, "
                       "-1: a fifth of the witnesses, at least one when there are three or more)")
@@ -114,6 +120,11 @@ void AddTrainCommand(CLI::App& app) {
   command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();
   command->add_option("--supersample", r.supersample,
                       "rerender: raster samples per pixel along each axis (1..4; playback does the same)")->capture_default_str();
+  command->add_option("--witness-scales", r.witness_scales,
+                      "rerender: the witnesses also train at these fractions of the training width, e.g. 1,0.6 "
+                      "(views with shorter lenses or from farther away see the subject smaller)")
+      ->delimiter(',')
+      ->capture_default_str();
   command->add_option("--crop", r.crop_px, "rerender: training crop size near the subject (0: whole images)")->capture_default_str();
   command->add_option("--recon", r.recon_dir, "rerender: use this reconstruction (built without the witnesses)");
   command->add_option("--recon-voxel", r.reconstruction.voxel_m, "rerender: reconstruction voxel in metres")->capture_default_str();

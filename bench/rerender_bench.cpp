@@ -5,11 +5,11 @@
 // Usage:
 //   rerender_bench [--minutes 10] [--frames 30] [--width 160] [--sim-width 320]
 //                  [--unet-width 24] [--unet-depth 4] [--crop 64] [--batch-pairs 2] [--lr 3e-4]
-//                  [--subject-weight 4] [--alpha-weight 1] [--supersample 2]
+//                  [--subject-weight 4] [--alpha-weight 1] [--supersample 2] [--witness-scales 1]
 //                  [--recon-voxel 0.004] [--recon-no-completion]
 //                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
-//                  [--witness-folds 3] [--fold-recon DIR ...] [--validation-witnesses -1] [--eval-every S]
+//                  [--witness-folds 3] [--witness-names A,B] [--fold-witnesses C,D ...] [--fold-recon DIR ...] [--validation-witnesses -1] [--eval-every S]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
 #include <CLI/CLI.hpp>
 #include <chrono>
@@ -152,11 +152,14 @@ int main(int argc, char** argv) {
   app.add_option("--model-name", model_name, "Model directory under --work for studio8");
   app.add_option("--recon", base.recon_dir, "studio8: reuse this reconstruction (built without the same witnesses)");
   app.add_option("--supersample", base.supersample, "Raster samples per pixel along each axis");
+  app.add_option("--witness-scales", base.witness_scales, "Fractions of the training width the witnesses also train at")->delimiter(',');
   app.add_option("--recon-voxel", base.reconstruction.voxel_m, "studio8: reconstruction voxel in metres");
   bool no_completion = false;
   app.add_flag("--recon-no-completion", no_completion,
                "studio8: fuse the depth sensors alone (holes where they saw nothing), as a live fusion system does");
   app.add_option("--witness-folds", base.witness_folds, "Witness sets, each with a reconstruction built without them");
+  app.add_option("--witness-names", base.witness, "studio8: the first fold's witnesses (names)")->delimiter(',');
+  app.add_option("--fold-witnesses", base.fold_witness, "studio8: a further fold's witnesses, comma-separated (once per fold)")->delimiter(',');
   app.add_option("--fold-recon", base.fold_recon_dirs, "studio8: reuse these reconstructions of the further folds");
   app.add_option("--validation-witnesses", base.validation_witnesses, "Witnesses that choose the weights (early stopping)");
   double eval_every = 0;

@@ -145,6 +145,11 @@ struct RerenderOptions {
                                         // (the raw render too; the model keeps it and playback
                                         // rasterises alike): 1 samples pixel centres only,
                                         // whose aliased edges the network would learn to smooth
+  std::vector<double> witness_scales = {1.0};  // the witnesses are also trained on at these
+                                        // fractions of the training width (rasterised anew,
+                                        // their images area-averaged): a view asked for with
+                                        // a shorter lens or from farther away sees the subject
+                                        // smaller than any witness did; must include 1
   int64_t first_frame = 0;              // frame sets [first, last) after the clean plate
   int64_t last_frame = -1;              // -1: to the end
 

@@ -3,6 +3,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <fstream>
 #include <limits>
 #include <map>
 #include <numbers>
@@ -97,6 +98,7 @@ struct CameraData {
   std::vector<std::vector<int32_t>> subject_pixels;  // per frame, y * width + x near the subject
   int height = 0, width = 0;
   bool witness = false;           // trained on (else held out for measurement)
+  double extra_scale = 1;         // of the training width (witnesses seen closer or farther)
 };
 
 cv::Mat ToFloatImage(const cv::Mat& image, const cv::Size& size) {
@@ -179,6 +181,13 @@ void RerenderOptions::Check() const {
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
   if (validation_witnesses < -1) Fail("validation_witnesses must be >= 0 (or -1: automatic)");
   RasterOptions{.supersample = supersample}.Check();
+  if (witness_scales.empty()) Fail("witness_scales cannot be empty (1: the training width only)");
+  for (double s : witness_scales) {
+    if (!(s >= 0.25 && s <= 2)) Fail("witness scales must be in [0.25, 2] (got ", s, ")");
+  }
+  if (std::find(witness_scales.begin(), witness_scales.end(), 1.0) == witness_scales.end()) {
+    Fail("witness_scales must include 1 (the training width, where validation and held-out cameras are scored)");
+  }
   if (witness_folds < 1 || witness_folds > 16) Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
   for (const auto& fold : fold_witness) if (fold.empty()) Fail("a fold of witnesses cannot be empty");
   if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {
@@ -209,7 +218,7 @@ nlohmann::json RerenderOptions::ToJson() const {
           {"recon_dir", recon_dir.string()}, {"witness_folds", witness_folds}, {"validation_witnesses", validation_witnesses}, {"fold_witness", fold_witness},
           {"fold_recon_dirs", [&] { std::vector<std::string> d; for (const auto& p : fold_recon_dirs) d.push_back(p.string()); return d; }()},
           {"reconstruction", reconstruction.ToJson()},
-          {"image_width", image_width}, {"supersample", supersample}, {"first_frame", first_frame}, {"last_frame", last_frame},
+          {"image_width", image_width}, {"supersample", supersample}, {"witness_scales", witness_scales}, {"first_frame", first_frame}, {"last_frame", last_frame},
           {"minutes", minutes}, {"iterations", iterations}, {"batch_pairs", batch_pairs},
           {"crop_px", crop_px},           {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
           {"subject_weight", subject_weight}, {"alpha_weight", alpha_weight}, {"temporal_weight", temporal_weight}, {"gan_weight", gan_weight},
@@ -344,6 +353,29 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       std::filesystem::remove_all(view);
     } else {
       if (!std::filesystem::is_directory(recon_dir)) Fail("reconstruction directory ", recon_dir.string(), " does not exist");
+      // A reconstruction that saw a witness or a held-out camera would score the network on
+      // views it was coloured from: refused when its report names the cameras it used.
+      const std::filesystem::path built_report = recon_dir / "report.json";
+      std::string cameras_used = "cameras not recorded";
+      if (std::filesystem::exists(built_report)) {
+        nlohmann::json built;
+        try {
+          built = nlohmann::json::parse(std::ifstream(built_report));
+        } catch (const std::exception& e) {
+          Fail("reconstruction report ", built_report.string(), " is unreadable: ", e.what());
+        }
+        const nlohmann::json used = built.contains("plan") ? built["plan"].value("color_sensors", nlohmann::json()) : nlohmann::json();
+        if (used.is_array()) {
+          for (const auto& name : used) {
+            const std::string camera = name.get<std::string>();
+            if (!left_out.count(camera)) continue;
+            const bool is_heldout = std::any_of(heldout.begin(), heldout.end(), [&](int h) { return names[h] == camera; });
+            Fail("reconstruction ", recon_dir.string(), " was built with camera '", camera, "', ",
+                 is_heldout ? "held out" : "a witness of its fold", ": build it without that camera");
+          }
+          cameras_used = Cat(used.size(), " colour cameras, none of this fold's witnesses or held-out");
+        }
+      }
       for (const auto& entry : std::filesystem::directory_iterator(recon_dir)) {
         if (entry.path().extension() != ".ply") continue;
         try {
@@ -351,7 +383,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
         } catch (const std::exception&) {
         }
       }
-      fold_plan["reconstruction"] = Cat("given: ", recon_dir.string());
+      fold_plan["reconstruction"] = Cat("given: ", recon_dir.string(), " (", cameras_used, ")");
     }
     fold_plan["reconstruction_seconds"] = Seconds(start_fold);
     return meshes;
@@ -395,19 +427,21 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     return summary;
   }
 
-  // Data at the training resolution.
+  // Data at the training resolution (and, for the witnesses, at the further scales asked for).
+  const std::set<std::string> validation_names(witness_names.end() - validation_count, witness_names.end());
   const int threads = recon::ResolveThreads(options.threads);
   torch::set_num_threads(threads);
   const int64_t clean_plates = take.metadata().value("clean_plate_frames", int64_t{0});
   const int multiple = 1 << options.net.depth;
   std::vector<CameraData> data;
   Eigen::Vector3d box_min = Eigen::Vector3d::Constant(1e30), box_max = Eigen::Vector3d::Constant(-1e30);
-  auto load_camera = [&](int index, const std::vector<Mesh>& mesh_cache, bool is_witness) {
+  auto load_camera = [&](int index, const std::vector<Mesh>& mesh_cache, bool is_witness, double extra_scale) {
     CameraData d;
     d.name = names[index];
     d.witness = is_witness;
     d.camera = cameras[index];
-    const double scale = options.image_width > 0 ? static_cast<double>(options.image_width) / d.camera.width() : 1.0;
+    d.extra_scale = extra_scale;
+    const double scale = (options.image_width > 0 ? static_cast<double>(options.image_width) / d.camera.width() : 1.0) * extra_scale;
     d.scaled = scale == 1.0 ? d.camera : d.camera.Scaled(scale);
     d.width = d.scaled.width();
     d.height = d.scaled.height();
@@ -463,22 +497,27 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       for (const Mesh& m : mesh_cache) {
         for (const auto& v : m.vertices) box_min = box_min.cwiseMin(v.cast<double>()), box_max = box_max.cwiseMax(v.cast<double>());
       }
-      for (int h : heldout) load_camera(h, mesh_cache, false);
+      for (int h : heldout) load_camera(h, mesh_cache, false, 1.0);
     }
-    for (int w : folds[k]) load_camera(w, mesh_cache, true);
+    for (int w : folds[k]) {
+      load_camera(w, mesh_cache, true, 1.0);
+      // Validation witnesses are scored at the training width only; the others train at every
+      // scale asked for.
+      if (validation_names.count(names[w])) continue;
+      for (double s : options.witness_scales) if (s != 1.0) load_camera(w, mesh_cache, true, s);
+    }
   }
-  std::vector<CameraData*> train_cameras, eval_cameras;
-  for (CameraData& d : data) (d.witness ? train_cameras : eval_cameras).push_back(&d);
-  // Validation witnesses: the last ones loaded (the last fold's).
-  std::vector<CameraData*> validation_cameras;
-  if (validation_count > 0) {
-    for (int v = 0; v < validation_count; ++v) {
-      validation_cameras.insert(validation_cameras.begin(), train_cameras.back());
-      train_cameras.pop_back();
-    }
-    std::vector<std::string> validation_names;
-    for (const CameraData* d : validation_cameras) validation_names.push_back(d->name);
-    plan["validation"] = validation_names;
+  // Validation witnesses: the last ones (the last fold's), at the training width.
+  std::vector<CameraData*> train_cameras, eval_cameras, validation_cameras;
+  for (CameraData& d : data) {
+    if (!d.witness) eval_cameras.push_back(&d);
+    else if (validation_names.count(d.name)) validation_cameras.push_back(&d);
+    else train_cameras.push_back(&d);
+  }
+  if (!validation_cameras.empty()) {
+    std::vector<std::string> validation_list;
+    for (const CameraData* d : validation_cameras) validation_list.push_back(d->name);
+    plan["validation"] = validation_list;
   }
   const bool temporal = sets.size() >= 2 && options.temporal_weight > 0;
   plan["temporal_term"] = temporal ? "on" : (sets.size() < 2 ? "off: one frame" : "off: weight 0");
@@ -487,6 +526,8 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
                          : train_cameras[0]->alpha_target.defined()
                              ? std::string("the witnesses' silhouettes")
                              : std::string("off: background subtraction without a clean plate");
+  if (options.witness_scales.size() > 1 || options.witness_scales[0] != 1.0) plan["witness_scales"] = options.witness_scales;
+  plan["trained_views"] = train_cameras.size();  // witness cameras trained on, once per scale
   plan["train_resolution"] = Cat(train_cameras[0]->width, "x", train_cameras[0]->height, " (", train_cameras[0]->name, ")");
   plan["raster_samples"] = options.supersample == 1
       ? std::string("1 per pixel (its centre)")

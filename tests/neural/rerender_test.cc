@@ -293,6 +293,15 @@ TEST(RerenderOptions, ChecksExplainBadValues) {
   options = {};
   options.supersample = 0;
   EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.witness_scales = {0.5};  // the training width itself is where views are scored
+  EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.witness_scales = {1, 0.1};
+  EXPECT_THROW(options.Check(), Error);
+  options = {};
+  options.witness_scales = {1, 0.5};
+  EXPECT_NO_THROW(options.Check());
   EXPECT_NO_THROW(RerenderOptions{}.Check());
 }
 
@@ -424,6 +433,35 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   auto render = testing::RunCli("render " + take.string() + " --model " + model.string() + " --views 1 --size 48 --no-exr --out " + frames.string());
   ASSERT_EQ(render.exit_code, 0) << render.output;
   EXPECT_TRUE(std::filesystem::exists(frames / "000000.png")) << render.output;
+
+  // Folds named on the command line, their reconstructions reused, and the witnesses trained
+  // at a second scale too: the last fold's witness validates at the training width only.
+  auto names = [](const nlohmann::json& list) {
+    std::string joined;
+    for (const auto& n : list) joined += (joined.empty() ? "" : ",") + n.get<std::string>();
+    return joined;
+  };
+  const auto named = dir / "named";
+  // The first fold's reconstruction saw the second fold's witnesses: refused for that fold.
+  auto leaked = testing::RunCli("train --method rerender " + take.string() + " --out " + named.string() +
+                                " --heldout-names " + heldout + " --witness-names " + names(folds[0].at("witness")) +
+                                " --fold-witnesses " + names(folds[1].at("witness")) + " --recon " + (model / "recon").string() +
+                                " --fold-recon " + (model / "recon").string() + " --iterations 1 --width 48 --threads 1");
+  EXPECT_NE(leaked.exit_code, 0);
+  EXPECT_NE(leaked.output.find("was built with camera"), std::string::npos) << leaked.output;
+  auto by_name = testing::RunCli("train --method rerender " + take.string() + " --out " + named.string() +
+                                 " --heldout-names " + heldout + " --witness-names " + names(folds[0].at("witness")) +
+                                 " --fold-witnesses " + names(folds[1].at("witness")) + " --recon " + (model / "recon").string() +
+                                 " --fold-recon " + (model / "recon-1").string() + " --witness-scales 1,0.5 --validation-witnesses 1"
+                                 " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
+  ASSERT_EQ(by_name.exit_code, 0) << by_name.output;
+  const nlohmann::json named_plan = nlohmann::json::parse(std::ifstream(named / "report.json")).at("plan");
+  ASSERT_EQ(named_plan.at("folds").size(), 2u) << named_plan.dump();
+  EXPECT_EQ(named_plan.at("folds").at(1).at("witness"), folds[1].at("witness"));
+  EXPECT_EQ(named_plan.at("validation").at(0), folds[1].at("witness").back());
+  EXPECT_EQ(named_plan.at("witness_scales"), nlohmann::json({1.0, 0.5}));
+  const size_t named_witnesses = named_plan.at("witness").size();
+  EXPECT_EQ(named_plan.at("trained_views").get<size_t>(), 2 * (named_witnesses - 1)) << named_plan.dump();
 }
 
 }  // namespace
