@@ -11,6 +11,7 @@
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
 //                  [--witness-folds 3] [--witness-names A,B] [--fold-witnesses C,D ...] [--fold-recon DIR ...] [--validation-witnesses -1] [--eval-every S]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
+//   rerender_bench --inference-only MODEL_DIR [--threads 2]
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <cstdio>
@@ -167,7 +168,18 @@ int main(int argc, char** argv) {
   app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
   app.add_flag("--dino-only", dino_only, "Only the dinoSparseRing case");
   app.add_option("--dino-minutes", dino_minutes, "Training budget on dinoSparseRing");
+  std::string inference_only;
+  app.add_option("--inference-only", inference_only, "Only time playback of this trained rerendering model at 512x512");
   CLI11_PARSE(app, argc, argv);
+  if (!inference_only.empty()) {
+    try {
+      InferenceTable(inference_only, threads);
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "error: %s\n", e.what());
+      return 1;
+    }
+    return 0;
+  }
   const fs::path root = work;
   fs::create_directories(root);
   base.threads = train_threads > 0 ? train_threads : threads;
