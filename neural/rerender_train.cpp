@@ -98,7 +98,6 @@ struct CameraData {
   std::vector<std::vector<int32_t>> subject_pixels;  // per frame, y * width + x near the subject
   int height = 0, width = 0;
   bool witness = false;           // trained on (else held out for measurement)
-  double extra_scale = 1;         // of the training width (witnesses seen closer or farther)
 };
 
 cv::Mat ToFloatImage(const cv::Mat& image, const cv::Size& size) {
@@ -440,7 +439,6 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     d.name = names[index];
     d.witness = is_witness;
     d.camera = cameras[index];
-    d.extra_scale = extra_scale;
     const double scale = (options.image_width > 0 ? static_cast<double>(options.image_width) / d.camera.width() : 1.0) * extra_scale;
     d.scaled = scale == 1.0 ? d.camera : d.camera.Scaled(scale);
     d.width = d.scaled.width();
