@@ -149,7 +149,8 @@ struct RerenderOptions {
                                         // fractions of the training width (rasterised anew,
                                         // their images area-averaged): a view asked for with
                                         // a shorter lens or from farther away sees the subject
-                                        // smaller than any witness did; must include 1
+                                        // smaller than any witness did; must include 1;
+                                        // training crops are at most the smallest such image
   int64_t first_frame = 0;              // frame sets [first, last) after the clean plate
   int64_t last_frame = -1;              // -1: to the end
 
