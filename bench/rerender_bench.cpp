@@ -160,6 +160,8 @@ int main(int argc, char** argv) {
                "studio8: fuse the depth sensors alone (holes where they saw nothing), as a live fusion system does");
   app.add_option("--witness-folds", base.witness_folds, "Witness sets, each with a reconstruction built without them");
   app.add_option("--witness-names", base.witness, "studio8: the first fold's witnesses (names)")->delimiter(',');
+  app.add_option("--heldout-names", base.heldout, "studio8: the held-out cameras (names; default: one spread around the rig)")
+      ->delimiter(',');
   app.add_option("--fold-witnesses", base.fold_witness, "studio8: a further fold's witnesses, comma-separated (once per fold)")->delimiter(',');
   app.add_option("--fold-recon", base.fold_recon_dirs, "studio8: reuse these reconstructions of the further folds");
   app.add_option("--validation-witnesses", base.validation_witnesses, "Witnesses that choose the weights (early stopping)");
@@ -171,6 +173,7 @@ int main(int argc, char** argv) {
   std::string inference_only;
   app.add_option("--inference-only", inference_only, "Only time playback of this trained rerendering model at 512x512");
   CLI11_PARSE(app, argc, argv);
+  std::setvbuf(stdout, nullptr, _IOLBF, 0);  // tables reach a redirected log as they are printed
   if (!inference_only.empty()) {
     try {
       InferenceTable(inference_only, threads);
