@@ -7,7 +7,7 @@
 //                  [--unet-width 24] [--unet-depth 4] [--crop 64] [--batch-pairs 2] [--lr 3e-4]
 //                  [--subject-weight 4] [--alpha-weight 1] [--supersample 2] [--witness-scales 1]
 //                  [--recon-voxel 0.004] [--recon-no-completion]
-//                  [--gan-weight 0] [--temporal-weight 0.5] [--threads 2] [--train-threads 0]
+//                  [--gan-weight 0] [--temporal-weight 8] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
 //                  [--witness-folds 3] [--witness-names A,B] [--fold-witnesses C,D ...] [--fold-recon DIR ...] [--validation-witnesses -1] [--eval-every S]
 //                  [--dino] [--dino-only] [--dino-minutes 5]
