@@ -5,8 +5,8 @@
 // Usage:
 //   rerender_bench [--minutes 10] [--frames 30] [--width 160] [--sim-width 320]
 //                  [--unet-width 24] [--unet-depth 4] [--crop 64] [--batch-pairs 2] [--lr 3e-4]
-//                  [--subject-weight 4] [--alpha-weight 1] [--supersample 2] [--witness-scales 1]
-//                  [--recon-voxel 0.004] [--recon-no-completion]
+//                  [--subject-weight 4] [--alpha-weight 1] [--seed 1] [--supersample 2] [--witness-scales 1]
+//                  [--recon-voxel 0.004] [--recon-method auto] [--recon-no-completion]
 //                  [--gan-weight 0] [--temporal-weight 8] [--threads 2] [--train-threads 0]
 //                  [--work /tmp/rerender-bench] [--model-name model-studio8] [--recon DIR]
 //                  [--witness-folds 3] [--witness-names A,B] [--fold-witnesses C,D ...] [--fold-recon DIR ...] [--validation-witnesses -1] [--eval-every S]
@@ -144,6 +144,7 @@ int main(int argc, char** argv) {
   app.add_option("--batch-pairs", base.batch_pairs, "Pairs of consecutive frames per step");
   app.add_option("--subject-weight", base.subject_weight, "Loss weight of pixels near the subject");
   app.add_option("--alpha-weight", base.alpha_weight, "Weight of alpha against the witnesses' silhouettes (0: off)");
+  app.add_option("--seed", base.seed, "Seed of the network's initial weights and of the batches");
   app.add_option("--lr", base.learning_rate, "Adam learning rate (decayed to a tenth over the budget)");
   int train_threads = 0;
   app.add_option("--threads", threads, "Threads for inference (and training unless --train-threads)");
@@ -155,6 +156,8 @@ int main(int argc, char** argv) {
   app.add_option("--supersample", base.supersample, "Raster samples per pixel along each axis");
   app.add_option("--witness-scales", base.witness_scales, "Fractions of the training width the witnesses also train at")->delimiter(',');
   app.add_option("--recon-voxel", base.reconstruction.voxel_m, "studio8: reconstruction voxel in metres");
+  std::string recon_method = "auto";
+  app.add_option("--recon-method", recon_method, "studio8: reconstruction method (auto, hull, tsdf, mvs)");
   bool no_completion = false;
   app.add_flag("--recon-no-completion", no_completion,
                "studio8: fuse the depth sensors alone (holes where they saw nothing), as a live fusion system does");
@@ -187,6 +190,12 @@ int main(int argc, char** argv) {
   fs::create_directories(root);
   base.threads = train_threads > 0 ? train_threads : threads;
   if (no_completion) base.reconstruction.tsdf_hull_completion = false;
+  try {
+    base.reconstruction.method = ReconstructionMethodFromString(recon_method);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 1;
+  }
   if (!dino_only) {
     const fs::path take = root / ("studio8-" + std::to_string(frames) + "-" + std::to_string(sim_width));
     if (!fs::exists(take / "take.json")) {
