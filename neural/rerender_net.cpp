@@ -170,6 +170,10 @@ std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw,
   return {rgb, alpha};
 }
 
+torch::Tensor RawOutputPenalty(const torch::Tensor& raw) {
+  return torch::relu(raw.abs() - kRawOutputRange).pow(2).mean();
+}
+
 namespace {
 
 // A rerendering model on disk: model.json, unet.pt, cameras/*.cameramodel and the meshes.

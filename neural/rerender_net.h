@@ -35,6 +35,13 @@ torch::Tensor PadToMultiple(const torch::Tensor& x, int multiple);
 // Raw network output and the inputs -> {rgb [B, 3, H, W] in (0, 1), alpha [B, 1, H, W]}:
 // corrections on top of the raw render's colour and coverage.
 std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw, const torch::Tensor& features);
+// A penalty that keeps the raw output where DecodeRerender's sigmoids and bound still pass a
+// gradient (|raw| <= kRawOutputRange): without it, a loss that pushes every pixel one way (a
+// reconstruction mostly phantom volume asks for alpha 0 nearly everywhere) lets Adam's momentum
+// compound through the unnormalised layers, the output runs to 1e5 within ten steps and the
+// network is stuck erasing the subject for good. 0 while the output stays in range.
+inline constexpr double kRawOutputRange = 20;
+torch::Tensor RawOutputPenalty(const torch::Tensor& raw);
 // CV_32FC3 / CV_32FC1 <-> [C, H, W] float tensors.
 torch::Tensor ImageToTensor(const cv::Mat& image);
 cv::Mat TensorToImage(const torch::Tensor& chw);

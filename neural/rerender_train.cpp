@@ -82,6 +82,13 @@ torch::nn::Sequential PatchDiscriminator() {
                                torch::nn::Conv2d(torch::nn::Conv2dOptions(64, 1, 3).padding(1)));
 }
 
+// Weight of neural::RawOutputPenalty: small, so that it is felt only once the output leaves its
+// range, where every other term's gradient has vanished.
+constexpr double kRawOutputPenaltyWeight = 0.01;
+// A kept network whose held-out PSNR near the subject is within this of the background alone's
+// draws no subject (a healthy one is several dB above it).
+constexpr double kErasedMarginDb = 0.5;
+
 // One camera at the training resolution, over every frame.
 struct CameraData {
   std::string name;
@@ -666,9 +673,11 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     }
     const torch::Tensor x = torch::cat(xs), truth = torch::cat(truths), weight = torch::cat(weights);
     const torch::Tensor background = torch::cat(backgrounds);
-    auto [rgb, alpha] = neural::DecodeRerender(net->forward(x), x);
+    const torch::Tensor raw_output = net->forward(x);
+    auto [rgb, alpha] = neural::DecodeRerender(raw_output, x);
     const torch::Tensor out = Composite(rgb, alpha, background);
     torch::Tensor loss = options.l1_weight * (weight * (out - truth).abs()).mean() / weight.mean();
+    loss = loss + kRawOutputPenaltyWeight * neural::RawOutputPenalty(raw_output);
     if (options.ssim_weight > 0) loss = loss + options.ssim_weight * (1 - MultiScaleSsim(out, truth));
     if (alpha_targets.size() == xs.size()) {
       loss = loss + options.alpha_weight * (weight * (alpha - torch::cat(alpha_targets)).abs()).mean() / weight.mean();
@@ -752,6 +761,21 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   if (diverged) {
     summary.termination = Termination::kFailure;
     summary.message = Cat("the loss became non-finite at iteration ", iteration, "; kept the weights of the last evaluation");
+  } else if (!eval_cameras.empty() && std::isfinite(summary.heldout_psnr_subject_db) &&
+             std::isfinite(summary.background_psnr_subject_db) &&
+             summary.heldout_psnr_subject_db <= summary.background_psnr_subject_db + kErasedMarginDb) {
+    // The kept network shows the held-out cameras the background and hardly anything of the
+    // subject (it erased it, or the raw render it started from shows no more): a better PSNR
+    // than a poor raw render is no model of the subject.
+    summary.termination = Termination::kDegenerate;
+    summary.message = Cat("the network's output shows the held-out cameras no more of the subject than the background alone: "
+                          "near the subject they score ", summary.heldout_psnr_subject_db,
+                          " dB, the background alone ", summary.background_psnr_subject_db, " dB and the raw render ",
+                          summary.raw_render_psnr_subject_db, " dB",
+                          summary.raw_render_psnr_subject_db < summary.background_psnr_subject_db
+                              ? Cat(" (the reconstruction, built from ", recon_count,
+                                    " colour cameras, renders worse than no subject at all: give it more cameras or depth)")
+                              : std::string());
   } else if (eval_cameras.empty()) {
     summary.termination = Termination::kNoConvergence;
     summary.message = Cat("trained ", iteration, " iterations in ", summary.seconds, " s; no held-out camera to measure on");
