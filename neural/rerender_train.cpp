@@ -89,6 +89,15 @@ constexpr double kRawOutputPenaltyWeight = 0.01;
 // draws no subject (a healthy one is several dB above it).
 constexpr double kErasedMarginDb = 0.5;
 
+// Whether the kept network's held-out scores are within kErasedMarginDb of the background
+// alone's: near the rendered subject, or over the whole image where nothing is rendered.
+bool ShowsNoSubject(const RerenderSummary& s) {
+  const bool near = std::isfinite(s.heldout_psnr_subject_db) && std::isfinite(s.background_psnr_subject_db);
+  const double shown = near ? s.heldout_psnr_subject_db : s.heldout_psnr_db;
+  const double background = near ? s.background_psnr_subject_db : s.background_psnr_db;
+  return std::isfinite(shown) && std::isfinite(background) && shown <= background + kErasedMarginDb;
+}
+
 // One camera at the training resolution, over every frame.
 struct CameraData {
   std::string name;
@@ -761,18 +770,19 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   if (diverged) {
     summary.termination = Termination::kFailure;
     summary.message = Cat("the loss became non-finite at iteration ", iteration, "; kept the weights of the last evaluation");
-  } else if (!eval_cameras.empty() && std::isfinite(summary.heldout_psnr_subject_db) &&
-             std::isfinite(summary.background_psnr_subject_db) &&
-             summary.heldout_psnr_subject_db <= summary.background_psnr_subject_db + kErasedMarginDb) {
+  } else if (!eval_cameras.empty() && ShowsNoSubject(summary)) {
     // The kept network shows the held-out cameras the background and hardly anything of the
     // subject (it erased it, or the raw render it started from shows no more): a better PSNR
     // than a poor raw render is no model of the subject.
+    const bool near = std::isfinite(summary.heldout_psnr_subject_db) && std::isfinite(summary.background_psnr_subject_db);
+    const double raw_score = near ? summary.raw_render_psnr_subject_db : summary.raw_render_psnr_db;
+    const double background_score = near ? summary.background_psnr_subject_db : summary.background_psnr_db;
     summary.termination = Termination::kDegenerate;
-    summary.message = Cat("the network's output shows the held-out cameras no more of the subject than the background alone: "
-                          "near the subject they score ", summary.heldout_psnr_subject_db,
-                          " dB, the background alone ", summary.background_psnr_subject_db, " dB and the raw render ",
-                          summary.raw_render_psnr_subject_db, " dB",
-                          summary.raw_render_psnr_subject_db < summary.background_psnr_subject_db
+    summary.message = Cat("the network's output shows the held-out cameras no more of the subject than the background alone: ",
+                          near ? "near the subject" : "over the whole image (the reconstruction draws nothing there)",
+                          " they score ", near ? summary.heldout_psnr_subject_db : summary.heldout_psnr_db,
+                          " dB, the background alone ", background_score, " dB and the raw render ", raw_score, " dB",
+                          raw_score < background_score - kErasedMarginDb
                               ? Cat(" (the reconstruction, built from ", recon_count,
                                     " colour cameras, renders worse than no subject at all: give it more cameras or depth)")
                               : std::string());

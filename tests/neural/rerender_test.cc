@@ -15,6 +15,7 @@
 #include "core/camera.h"
 #include "core/error.h"
 #include "core/image.h"
+#include "core/mesh.h"
 #include "core/pose.h"
 #include "neural/rerender.h"
 #include "tests/reconstruction/synthetic.h"
@@ -345,6 +346,25 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
   EXPECT_EQ(report.at("plan").at("alpha_target"), "the witnesses' silhouettes");
   EXPECT_GT(m.at("background_psnr_db").get<double>(), 10);
   EXPECT_GT(m.at("background_psnr_subject_db").get<double>(), 5);
+
+  // A reconstruction that draws nothing: the held-out cameras see no more of the subject than
+  // the background alone, which training reports as DEGENERATE (exit status 1), not as a model.
+  const auto empty = dir / "empty-recon";
+  std::filesystem::create_directories(empty);
+  for (const auto& entry : std::filesystem::directory_iterator(model / "recon")) {
+    if (entry.path().extension() == ".ply") {
+      WritePly(empty / entry.path().filename(), Mesh{});
+    } else if (entry.is_regular_file()) {
+      std::filesystem::copy_file(entry.path(), empty / entry.path().filename());
+    }
+  }
+  const auto nothing = dir / "nothing";
+  auto degenerate = testing::RunCli("train --method rerender " + take.string() + " --out " + nothing.string() + " --recon " +
+                                    empty.string() + " --witness-folds 1 --iterations 10 --width 64 --crop 0 --unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
+  EXPECT_NE(degenerate.exit_code, 0);
+  EXPECT_NE(degenerate.output.find("DEGENERATE"), std::string::npos) << degenerate.output;
+  EXPECT_NE(degenerate.output.find("no more of the subject than the background alone"), std::string::npos) << degenerate.output;
+  EXPECT_TRUE(std::filesystem::exists(nothing / "report.json")) << degenerate.output;
 
   const auto frames = dir / "frames";
   auto render = testing::RunCli("render " + take.string() + " --model " + model.string() + " --views 3 --size 64 --no-exr --out " + frames.string());
