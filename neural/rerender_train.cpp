@@ -89,13 +89,21 @@ constexpr double kRawOutputPenaltyWeight = 0.01;
 // draws no subject (a healthy one is several dB above it).
 constexpr double kErasedMarginDb = 0.5;
 
-// Whether the kept network's held-out scores are within kErasedMarginDb of the background
-// alone's: near the rendered subject, or over the whole image where nothing is rendered.
-bool ShowsNoSubject(const RerenderSummary& s) {
-  const bool near = std::isfinite(s.heldout_psnr_subject_db) && std::isfinite(s.background_psnr_subject_db);
-  const double shown = near ? s.heldout_psnr_subject_db : s.heldout_psnr_db;
-  const double background = near ? s.background_psnr_subject_db : s.background_psnr_db;
-  return std::isfinite(shown) && std::isfinite(background) && shown <= background + kErasedMarginDb;
+// The held-out scores that tell whether the kept network draws the subject: near the rendered
+// subject, or over the whole image where nothing is rendered.
+struct SubjectScores {
+  bool near = false;
+  double shown = 0, background = 0, raw = 0;
+  // Within kErasedMarginDb of the background alone: no more of the subject than no subject.
+  bool shows_none() const { return std::isfinite(shown) && std::isfinite(background) && shown <= background + kErasedMarginDb; }
+};
+SubjectScores ScoresNearSubject(const RerenderSummary& s) {
+  SubjectScores scores;
+  scores.near = std::isfinite(s.heldout_psnr_subject_db) && std::isfinite(s.background_psnr_subject_db);
+  scores.shown = scores.near ? s.heldout_psnr_subject_db : s.heldout_psnr_db;
+  scores.background = scores.near ? s.background_psnr_subject_db : s.background_psnr_db;
+  scores.raw = scores.near ? s.raw_render_psnr_subject_db : s.raw_render_psnr_db;
+  return scores;
 }
 
 // One camera at the training resolution, over every frame.
@@ -770,19 +778,16 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
   if (diverged) {
     summary.termination = Termination::kFailure;
     summary.message = Cat("the loss became non-finite at iteration ", iteration, "; kept the weights of the last evaluation");
-  } else if (!eval_cameras.empty() && ShowsNoSubject(summary)) {
+  } else if (const SubjectScores scores = ScoresNearSubject(summary); !eval_cameras.empty() && scores.shows_none()) {
     // The kept network shows the held-out cameras the background and hardly anything of the
     // subject (it erased it, or the raw render it started from shows no more): a better PSNR
     // than a poor raw render is no model of the subject.
-    const bool near = std::isfinite(summary.heldout_psnr_subject_db) && std::isfinite(summary.background_psnr_subject_db);
-    const double raw_score = near ? summary.raw_render_psnr_subject_db : summary.raw_render_psnr_db;
-    const double background_score = near ? summary.background_psnr_subject_db : summary.background_psnr_db;
     summary.termination = Termination::kDegenerate;
     summary.message = Cat("the network's output shows the held-out cameras no more of the subject than the background alone: ",
-                          near ? "near the subject" : "over the whole image (the reconstruction draws nothing there)",
-                          " they score ", near ? summary.heldout_psnr_subject_db : summary.heldout_psnr_db,
-                          " dB, the background alone ", background_score, " dB and the raw render ", raw_score, " dB",
-                          raw_score < background_score - kErasedMarginDb
+                          scores.near ? "near the subject" : "over the whole image (the reconstruction draws nothing there)",
+                          " they score ", scores.shown, " dB, the background alone ", scores.background, " dB and the raw render ",
+                          scores.raw, " dB",
+                          scores.raw < scores.background - kErasedMarginDb
                               ? Cat(" (the reconstruction, built from ", recon_count,
                                     " colour cameras, renders worse than no subject at all: give it more cameras or depth)")
                               : std::string());
