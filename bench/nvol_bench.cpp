@@ -240,7 +240,7 @@ int main(int argc, char** argv) {
   }
 
   if (dino || dino_only) {
-    const fs::path source = fs::path(HOLOCAP_SHARED_DATA_DIR) / "middlebury" / "dinoSparseRing" / "dinoSR_par.txt";
+    const fs::path source = fs::path(HOLOCAP_TEST_DATA_DIR) / "middlebury" / "dinoSparseRing" / "dinoSR_par.txt";
     const fs::path take = root / "dino";
     if (!fs::exists(take / "take.json")) {
       ImportOptions import;

@@ -314,7 +314,7 @@ void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames,
 }
 
 void Middlebury(const fs::path& work, int threads) {
-  const fs::path source = fs::path(HOLOCAP_SHARED_DATA_DIR) / "middlebury" / "dinoSparseRing";
+  const fs::path source = fs::path(HOLOCAP_TEST_DATA_DIR) / "middlebury" / "dinoSparseRing";
   if (!fs::exists(source)) {
     std::printf("== Middlebury: %s missing, skipped\n", source.c_str());
     return;

@@ -16,8 +16,11 @@ const char* ToString(Termination termination) {
 }
 
 bool IsUsable(Termination termination) {
-  return termination == Termination::kSuccess || termination == Termination::kConvergence;
+  return termination == Termination::kSuccess || termination == Termination::kConvergence ||
+         termination == Termination::kNoConvergence;
 }
+
+int ExitStatus(Termination termination) { return IsUsable(termination) ? 0 : 1; }
 
 Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
   json_["command"] = std::move(command);

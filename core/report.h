@@ -9,23 +9,45 @@
 #include <mutex>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <utility>
 
 namespace holocap {
 
-// How a numerical stage ended. Degenerate input is its own state, never "converged".
+// How a stage ended: one contract for every stage and every command.
+//
+// | state            | means                                                         | usable | exit |
+// |------------------|---------------------------------------------------------------|--------|------|
+// | SUCCESS          | the stage reached its goal (did all it set out to do)         | yes    | 0    |
+// | CONVERGENCE      | an iterative stage stopped because its error stopped falling  | yes    | 0    |
+// | NO_CONVERGENCE   | the budget (iterations, time) ran out while the error fell    | yes    | 0    |
+// | DEGENERATE       | the input cannot support the result; the reason is the message| no     | 1    |
+// | FAILURE          | the stage could not run (I/O, NaN, divergence), or never ran  | no     | 1    |
+//
+// A usable result is written and may be used by the next stage; NO_CONVERGENCE says a larger
+// budget would still improve it. Every stage's summary derives from Summary, which starts as
+// FAILURE "not run" (as Ceres' Solver::Summary does): a stage that returns early can never
+// report success by accident.
 enum class Termination {
-  kSuccess,        // a non-iterative stage did all it set out to do
-  kConvergence,    // an iterative stage met its tolerance
-  kNoConvergence,  // it ran out of iterations or time first
-  kDegenerate,     // the input cannot support a solution (ill-conditioned, too little data)
-  kFailure,        // a numerical failure (NaN, divergence) or an I/O failure mid-run
+  kSuccess,
+  kConvergence,
+  kNoConvergence,
+  kDegenerate,
+  kFailure,
 };
 const char* ToString(Termination termination);
-bool IsUsable(Termination termination);  // success or convergence
+bool IsUsable(Termination termination);  // success, convergence or no convergence
+int ExitStatus(Termination termination);  // 0 when usable, else 1: the CLI's one rule
 
 struct Summary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+  Termination termination = Termination::kFailure;
+  std::string message = "not run";
+
+  bool IsUsable() const { return holocap::IsUsable(termination); }
+  // Sets both fields at once (the one place a stage states how it ended).
+  void End(Termination state, std::string why) {
+    termination = state;
+    message = std::move(why);
+  }
 };
 
 class Report {

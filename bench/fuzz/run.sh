@@ -19,7 +19,7 @@ cmake --build "$build" -j 2 --target "${fuzzers[@]/#/fuzz_}"
 # Seeds: one small valid file per format (the COLMAP fuzzer's first byte picks the file).
 rm -rf "$work" && mkdir -p "$work"
 seed() { mkdir -p "$work/seeds-$1"; cat > "$work/seeds-$1/$2"; }
-data=$root/../shared/data
+data=$root/tests/data
 mkdir -p "$work/seeds-middlebury"
 cp "$data/middlebury/dinoSparseRing/dinoSR_par.txt" "$work/seeds-middlebury/" 2>/dev/null || true
 seed middlebury small <<'X'

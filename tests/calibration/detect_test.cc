@@ -91,9 +91,9 @@ INSTANTIATE_TEST_SUITE_P(Families, AprilTagFamilies,
 
 // The sub-pixel corner finder on noise-free renders: every corner within 0.05 px of the true
 // projection, for tag L corners and chessboard X junctions, through a mildly distorted lens
-// and through the real wide OPENCV8 lens (shared/data/lenses, scaled to 640 px across).
+// and through the real wide OPENCV8 lens (tests/data/lenses, scaled to 640 px across).
 TEST(CornerRefiner, NoiseFreeCornersLieWithinFiveHundredthsOfAPixel) {
-  const CameraModel wide = CameraModel::Read(testing::SharedDataDir() / "lenses" /
+  const CameraModel wide = CameraModel::Read(testing::TestDataDir() / "lenses" /
                                              "wide-4000x2200.opencv8.cameramodel")
                                .Scaled(640.0 / 4000);
   for (const BoardLayout& layout : {testing::TestBoard(), NineBySixChessboard()}) {

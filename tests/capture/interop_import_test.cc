@@ -59,7 +59,7 @@ Eigen::Vector2d KrtProject(const KrtCamera& camera, const Eigen::Vector3d& point
 }
 
 TEST(InteropImport, MiddleburyProjectsExactlyAsItsKRtAndReplaysItsPixels) {
-  const auto source = testing::SharedDataDir() / "middlebury" / "dinoSparseRing";
+  const auto source = testing::TestDataDir() / "middlebury" / "dinoSparseRing";
   ASSERT_TRUE(std::filesystem::exists(source / "dinoSR_par.txt")) << source;
   TempDir dir;
   ImportOptions options;
@@ -411,7 +411,7 @@ TEST(InteropImport, PanopticCentimetresBecomeMetresAndUnrecordedCamerasAreSkippe
 
 TEST(InteropImport, MrcalFoldersKeepTheModels) {
   TempDir dir;
-  CameraModel lens = CameraModel::Read(testing::SharedDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel").Scaled(0.02);
+  CameraModel lens = CameraModel::Read(testing::TestDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel").Scaled(0.02);
   lens.set_cam_from_world(CamFromWorldLookAt({1, 2, 1.5}, {0, 0, 1}));
   lens.Write(dir / "left.cameramodel");
   std::filesystem::create_directories(dir / "left");

@@ -17,7 +17,7 @@ using testing::SourceDir;
 using testing::TempDir;
 
 CameraModel RealWideLens() {
-  return CameraModel::Read(testing::SharedDataDir() / "lenses/wide-4000x2200.opencv8.cameramodel");
+  return CameraModel::Read(testing::TestDataDir() / "lenses/wide-4000x2200.opencv8.cameramodel");
 }
 
 // Points spread over the field of view at 0.5..20 m.

@@ -56,6 +56,27 @@ TEST(Report, WritesSummaryMetricsAndSeries) {
   EXPECT_FALSE(IsUsable(Termination::kDegenerate));
 }
 
+// One contract for every stage: a summary starts as a failure that never ran, and the CLI's
+// exit status follows from the state alone.
+TEST(Report, TerminationContract) {
+  Summary never_ran;
+  EXPECT_EQ(never_ran.termination, Termination::kFailure);
+  EXPECT_EQ(never_ran.message, "not run");
+  EXPECT_FALSE(never_ran.IsUsable());
+  for (Termination usable : {Termination::kSuccess, Termination::kConvergence, Termination::kNoConvergence}) {
+    EXPECT_TRUE(IsUsable(usable)) << ToString(usable);
+    EXPECT_EQ(ExitStatus(usable), 0) << ToString(usable);
+  }
+  for (Termination unusable : {Termination::kDegenerate, Termination::kFailure}) {
+    EXPECT_FALSE(IsUsable(unusable)) << ToString(unusable);
+    EXPECT_EQ(ExitStatus(unusable), 1) << ToString(unusable);
+  }
+  Summary ended;
+  ended.End(Termination::kConvergence, "step below 1e-9");
+  EXPECT_TRUE(ended.IsUsable());
+  EXPECT_EQ(ended.message, "step below 1e-9");
+}
+
 TEST(Image, RejectsTruncatedAndForeignFiles) {
   TempDir dir;
   cv::Mat depth(20, 30, CV_32FC1, cv::Scalar(1.5f));

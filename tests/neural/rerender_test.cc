@@ -74,7 +74,7 @@ TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
 // A slanted wall filling most of a real wide lens's view: its straight edges and its depth
 // bend in the image, so big triangles must be split.
 TEST(RerenderRaster, WideLensNeedsSplitTriangles) {
-  CameraModel camera = CameraModel::Read(testing::SharedDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel").Scaled(0.1);
+  CameraModel camera = CameraModel::Read(testing::TestDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel").Scaled(0.1);
   camera.set_cam_from_world(Pose::Identity());
   // The plane z = 2.2 + 0.6 x (camera coordinates): depth along a ray of direction d.
   auto plane_depth = [](const Eigen::Vector3d& d) { return 2.2 * d.z() / (d.z() - 0.6 * d.x()); };

@@ -34,8 +34,8 @@ SilhouetteOptions DinoSilhouettes() {
 class MiddleburyTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    const fs::path source = testing::SharedDataDir() / "middlebury" / "dinoSparseRing";
-    ASSERT_TRUE(fs::exists(source / "dinoSR_par.txt")) << "the shared data set is missing: " << source;
+    const fs::path source = testing::TestDataDir() / "middlebury" / "dinoSparseRing";
+    ASSERT_TRUE(fs::exists(source / "dinoSR_par.txt")) << "the data set is missing: " << source;
     auto imported = testing::RunCli("import middlebury '" + source.string() + "' --out '" +
                                     (dir_ / "dino").string() + "'");
     ASSERT_EQ(imported.exit_code, 0) << imported.output;

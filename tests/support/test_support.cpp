@@ -29,7 +29,7 @@ TempDir::~TempDir() {
   std::filesystem::remove_all(path_, ignored);
 }
 
-std::filesystem::path SharedDataDir() { return HOLOCAP_SHARED_DATA_DIR; }
+std::filesystem::path TestDataDir() { return HOLOCAP_TEST_DATA_DIR; }
 std::filesystem::path SourceDir() { return HOLOCAP_SOURCE_DIR; }
 std::string CliPath() { return HOLOCAP_CLI; }
 

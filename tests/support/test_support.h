@@ -1,4 +1,4 @@
-// Helpers shared by the test suites: temporary directories, paths to the CLI and shared data,
+// Helpers shared by the test suites: temporary directories, paths to the CLI and the repository's test data,
 // running the CLI as a child process.
 #pragma once
 
@@ -21,7 +21,7 @@ class TempDir {
   std::filesystem::path path_;
 };
 
-std::filesystem::path SharedDataDir();  // ../shared/data beside the checkout
+std::filesystem::path TestDataDir();  // tests/data: real data sets kept in the repository
 std::filesystem::path SourceDir();
 std::string CliPath();                  // the built holocap executable
 
