@@ -4,6 +4,7 @@
 #include <filesystem>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "core/error.h"
 #include "core/report.h"
 #include "neural/neural.h"
@@ -77,14 +78,14 @@ void AddRenderCommand(CLI::App& app) {
     report.plan() = {{"method", model->method()}, {"model_frames", model->frame_count()},
                      {"views", path.size()}};
     PlaybackSummary summary = RenderPath(*model, path, options, &report);
-    report.SetSummary({summary.termination, summary.message});
+    report.SetSummary(summary);
     const std::filesystem::path out(args->out);
     const std::filesystem::path report_file =
         out.extension() == ".mp4" ? std::filesystem::path(out.string() + ".report.json") : out / "report.json";
     report.Write(report_file);
-    std::printf("%s (%s model, %lld frame(s))\n%s: %s\nreport: %s\n", summary.message.c_str(), model->method().c_str(),
-                static_cast<long long>(model->frame_count()), ToString(summary.termination), out.c_str(),
-                report_file.c_str());
+    std::printf("%s model, %lld frame(s) -> %s\nreport: %s\n", model->method().c_str(),
+                static_cast<long long>(model->frame_count()), out.c_str(), report_file.c_str());
+    EndCommand(summary, "rendering");
   });
 }
 

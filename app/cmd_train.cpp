@@ -1,10 +1,12 @@
-// holocap train TAKE --method nvol: learn an avatar from a calibrated take; and the demo's
+// holocap train nvol|rerender TAKE: learn an avatar from a calibrated take, one subcommand per
+// method, each with only its own flags (the shared ones are defined once); and the demo's
 // neural stage (a tiny model on the demo take, then a short orbit).
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "core/error.h"
 #include "core/report.h"
 #include "neural/neural.h"
@@ -14,38 +16,197 @@
 namespace holocap {
 namespace {
 
-struct TrainArgs {
+// What every training method takes, filled by AddSharedTrainFlags.
+struct SharedTrainArgs {
   std::string take;
-  std::string method = "nvol";
   std::string out;
-  std::string bounds = "auto";
-  NeuralVolumeOptions options;
-  RerenderOptions rerender;  // --method rerender
-  std::string silhouettes = "background";
-  std::string recon_method = "auto";
-  std::string recon_bounds;
-  bool recon_no_completion = false;
+  TakeSelectionFlags selection;
+  double minutes = 0;
+  int64_t iterations = 0;
+  int image_width = 0;
+  int heldout_cameras = 0;
+  std::vector<std::string> heldout;
+  double learning_rate = 0;
+  double eval_every_s = 0;
+  uint64_t seed = 1;
+  int threads = 0;
+
+  // The model directory: --out, else TAKE/models/<method>.
+  std::filesystem::path Out(const char* method) const {
+    return out.empty() ? std::filesystem::path(take) / "models" / method : std::filesystem::path(out);
+  }
 };
+
+// The shared fields carry the same names in every method's options.
+template <typename Options>
+void TakeSharedDefaults(const Options& o, SharedTrainArgs* shared) {
+  shared->minutes = o.minutes;
+  shared->iterations = o.iterations;
+  shared->image_width = o.image_width;
+  shared->heldout_cameras = o.heldout_cameras;
+  shared->learning_rate = o.learning_rate;
+  shared->eval_every_s = o.eval_every_s;
+  shared->seed = o.seed;
+  shared->threads = o.threads;
+}
+
+template <typename Options>
+void ApplyShared(const SharedTrainArgs& shared, Options* o) {
+  o->take = shared.selection.Parse();
+  o->minutes = shared.minutes;
+  o->iterations = shared.iterations;
+  o->image_width = shared.image_width;
+  o->heldout_cameras = shared.heldout_cameras;
+  o->heldout = shared.heldout;
+  o->learning_rate = shared.learning_rate;
+  o->eval_every_s = shared.eval_every_s;
+  o->seed = shared.seed;
+  o->threads = shared.threads;
+}
+
+// The shared flags; their defaults are the method's own (TakeSharedDefaults first).
+void AddSharedTrainFlags(CLI::App* command, SharedTrainArgs* args) {
+  command->add_option("TAKE", args->take, "The take directory")->required();
+  command->add_option("--out", args->out, "Model directory (default: TAKE/models/<method>)");
+  AddTakeSelectionFlags(command, &args->selection);
+  command->add_option("--minutes", args->minutes, "Training time budget")->capture_default_str();
+  command->add_option("--iterations", args->iterations, "Stop after this many iterations (0: time only)")->capture_default_str();
+  command->add_option("--width", args->image_width, "Training image width (0: native)")->capture_default_str();
+  command->add_option("--heldout", args->heldout_cameras, "Cameras held out for evaluation, spread around the rig")
+      ->capture_default_str();
+  command->add_option("--heldout-names", args->heldout, "Hold out these cameras (names, comma-separated)")->delimiter(',');
+  command->add_option("--lr", args->learning_rate, "Adam learning rate")->capture_default_str();
+  command->add_option("--eval-every", args->eval_every_s, "Held-out evaluation interval, seconds")->capture_default_str();
+  command->add_option("--seed", args->seed, "Random seed")->capture_default_str();
+  command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
+}
+
+// The flags each shared field was typed as, for option errors.
+const std::map<std::string, std::string> kSharedFlags = {
+    {"minutes", "--minutes"},   {"iterations", "--iterations"}, {"image_width", "--width"},
+    {"heldout_cameras", "--heldout"}, {"learning_rate", "--lr"}, {"eval_every_s", "--eval-every"},
+    {"threads", "--threads"}};
 
 void PrintPlan(const nlohmann::json& plan) {
   std::printf("plan:\n");
   for (const auto& [key, value] : plan.items()) std::printf("  %-18s %s\n", key.c_str(), value.dump().c_str());
 }
 
-// Neural rerendering shares the data and budget options with Neural Volumes.
-void TrainRerenderCommand(const TrainArgs& args, const std::filesystem::path& out) {
-  RerenderOptions o = args.rerender;
-  const NeuralVolumeOptions& shared = args.options;
-  o.minutes = shared.minutes;
-  o.iterations = shared.iterations;
-  o.image_width = shared.image_width;
-  o.heldout_cameras = shared.heldout_cameras;
-  o.heldout = shared.heldout;
-  o.last_frame = shared.last_frame;
-  o.eval_every_s = shared.eval_every_s;
-  o.seed = shared.seed;
-  o.threads = shared.threads;
-  o.ground_truth_cameras = shared.ground_truth_cameras;
+// ---------------------------------------------------------------------------------------------
+// holocap train nvol
+
+struct NvolArgs {
+  SharedTrainArgs shared;
+  NeuralVolumeOptions options;
+  std::string bounds = "auto";
+};
+
+void AddNvolCommand(CLI::App* train) {
+  auto* command = train->add_subcommand("nvol", "Neural Volumes: an RGBA voxel grid decoded per frame, ray-marched");
+  auto args = std::make_shared<NvolArgs>();
+  NeuralVolumeOptions& o = args->options;
+  SharedTrainArgs& shared = args->shared;
+  TakeSharedDefaults(o, &shared);
+  AddSharedTrainFlags(command, &shared);
+  command->add_option("--grid", o.grid, "RGBA voxels per axis (16..128, power of two)")->capture_default_str();
+  command->add_option("--rays", o.rays_per_batch, "Rays per iteration")->capture_default_str();
+  command->add_option("--scene", o.scene, "auto, static or dynamic")->capture_default_str();
+  command->add_option("--bounds", args->bounds, "Volume bounds: auto, hull, gt or stage")->capture_default_str();
+  command->add_option("--kl-weight", o.kl_weight, "KL weight of the latent (dynamic scenes)")->capture_default_str();
+  command->add_option("--tv-weight", o.tv_weight, "Total-variation weight of the grid")->capture_default_str();
+  command->add_option("--alpha-prior-weight", o.alpha_prior_weight, "Beta prior on ray alpha")->capture_default_str();
+  command->add_option("--silhouette-weight", o.silhouette_weight, "Ray alpha against the training silhouettes (0: off)")
+      ->capture_default_str();
+  command->add_option("--warp-prior-weight", o.warp_prior_weight, "Mean squared warp displacement (dynamic scenes)")
+      ->capture_default_str();
+  command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
+  command->callback([args] {
+    NeuralVolumeOptions o = args->options;
+    const SharedTrainArgs& shared = args->shared;
+    ApplyShared(shared, &o);
+    o.bounds = VolumeBoundsSourceFromString(args->bounds);
+    std::map<std::string, std::string> flags = kSharedFlags;
+    flags.insert({{"grid", "--grid"}, {"rays_per_batch", "--rays"}, {"scene", "--scene"}});
+    CheckNamingFlags([&] { o.Check(); }, flags);
+    const std::filesystem::path out = shared.Out("nvol");
+    Report report("train nvol");
+    NeuralVolumeSummary summary = TrainNeuralVolume(shared.take, out, o, &report);
+    PrintPlan(summary.plan);
+    std::printf("iterations   %lld in %.1f s (%.2f it/s)\n", static_cast<long long>(summary.iterations),
+                summary.seconds, summary.iterations / std::max(summary.seconds, 1e-9));
+    std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
+    std::printf("held-out     PSNR %.2f dB (subject %.2f dB), SSIM %.4f\n", summary.heldout_psnr_db,
+                summary.heldout_psnr_fg_db, summary.heldout_ssim);
+    std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+    EndCommand(summary, "training");
+  });
+}
+
+// ---------------------------------------------------------------------------------------------
+// holocap train rerender
+
+struct RerenderArgs {
+  SharedTrainArgs shared;
+  RerenderOptions options;
+  std::string silhouettes = "background";
+  std::string recon_method = "auto";
+  std::string recon_bounds;
+  bool recon_no_completion = false;
+};
+
+void AddRerenderWitnessFlags(CLI::App* command, RerenderOptions& r) {
+  command->add_option("--witness", r.witness_cameras, "Witness cameras left out of the reconstruction")->capture_default_str();
+  command->add_option("--witness-names", r.witness, "These witness cameras (names, comma-separated)")->delimiter(',');
+  command->add_option("--witness-folds", r.witness_folds,
+                      "Witness sets, each seen through a reconstruction built without it (1: one set)")
+      ->capture_default_str();
+  command->add_option("--fold-witnesses", r.fold_witness,
+                      "The witnesses of a further fold, comma-separated (once per fold, in order; the last fold's "
+                      "validate; overrides --witness-folds)")
+      ->delimiter(',');
+  command->add_option("--fold-recon", r.fold_recon_dirs, "Use these reconstructions of the further folds (in order)");
+  command->add_option("--validation-witnesses", r.validation_witnesses,
+                      "Witnesses kept from training to choose the weights where they peak (0: last weights, -1: a "
+                      "fifth of the witnesses, at least one when there are three or more)")
+      ->capture_default_str();
+  command->add_option("--witness-scales", r.witness_scales,
+                      "The witnesses also train at these fractions of the training width, e.g. 1,0.6 (views with "
+                      "shorter lenses or from farther away see the subject smaller)")
+      ->delimiter(',')
+      ->capture_default_str();
+}
+
+void AddRerenderReconstructionFlags(CLI::App* command, RerenderArgs* args) {
+  RerenderOptions& r = args->options;
+  command->add_option("--recon", r.recon_dir, "Use this reconstruction (built without the witnesses)");
+  command->add_option("--recon-voxel", r.reconstruction.voxel_m, "Reconstruction voxel in metres")->capture_default_str();
+  command->add_option("--silhouettes", args->silhouettes, "Reconstruction silhouettes, background or threshold")
+      ->capture_default_str();
+  command->add_option("--recon-method", args->recon_method, "Reconstruction method of every fold, auto, hull, tsdf or mvs")
+      ->capture_default_str();
+  command->add_option("--recon-bounds", args->recon_bounds,
+                      "Reconstruction volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default -1.5,-1.5,0,1.5,1.5,2.5)");
+  command->add_flag("--recon-no-completion", args->recon_no_completion,
+                    "TSDF folds mesh only what the depth sensors saw, as a live fusion system does (no completion "
+                    "from the visual hull)");
+}
+
+void AddRerenderNetworkFlags(CLI::App* command, RerenderOptions& r) {
+  command->add_option("--unet-width", r.net.width, "U-Net channels of the first level")->capture_default_str();
+  command->add_option("--unet-depth", r.net.depth, "U-Net levels")->capture_default_str();
+  command->add_option("--supersample", r.supersample, "Raster samples per pixel along each axis (1..4; playback does the same)")
+      ->capture_default_str();
+  command->add_option("--crop", r.crop_px, "Training crop size near the subject (0: whole images)")->capture_default_str();
+  command->add_option("--subject-weight", r.subject_weight, "Loss weight of pixels near the subject")->capture_default_str();
+  command->add_option("--alpha-weight", r.alpha_weight, "Weight of alpha against the witnesses' silhouettes (0: off)")
+      ->capture_default_str();
+  command->add_option("--temporal-weight", r.temporal_weight, "Temporal-consistency loss weight")->capture_default_str();
+  command->add_option("--gan-weight", r.gan_weight, "PatchGAN loss weight (0: none)")->capture_default_str();
+}
+
+RerenderOptions RerenderOptionsFrom(const RerenderArgs& args) {
+  RerenderOptions o = args.options;
+  ApplyShared(args.shared, &o);
   if (args.silhouettes != "background" && args.silhouettes != "threshold") {
     Fail("--silhouettes must be background or threshold (got '", args.silhouettes, "')");
   }
@@ -54,112 +215,56 @@ void TrainRerenderCommand(const TrainArgs& args, const std::filesystem::path& ou
   o.reconstruction.method = ReconstructionMethodFromString(args.recon_method);
   if (!args.recon_bounds.empty()) o.reconstruction.bounds = ParseBounds(args.recon_bounds, "--recon-bounds");
   if (args.recon_no_completion) o.reconstruction.tsdf_hull_completion = false;
-  o.Check();
-  Report report("train");
-  RerenderSummary summary = TrainRerender(args.take, out, o, &report);
-  PrintPlan(summary.plan);
-  std::printf("iterations   %lld in %.1f s\n", static_cast<long long>(summary.iterations), summary.seconds);
-  std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
-  std::printf("held-out     PSNR %.2f dB (raw render %.2f dB), SSIM %.4f (raw %.4f)\n", summary.heldout_psnr_db,
-              summary.raw_render_psnr_db, summary.heldout_ssim, summary.raw_render_ssim);
-  std::printf("flicker      %.3f x truth's (raw render %.3f x)\n", summary.flicker_ratio, summary.raw_flicker_ratio);
-  std::printf("%s: %s\nmodel: %s\nreport: %s\n", ToString(summary.termination), summary.message.c_str(), out.c_str(),
-              (out / "report.json").c_str());
-  if (!IsUsable(summary.termination) && summary.termination != Termination::kNoConvergence) {
-    Fail("training ended with ", ToString(summary.termination), ": ", summary.message);
-  }
+  std::map<std::string, std::string> flags = kSharedFlags;
+  flags.insert({{"witness_folds", "--witness-folds"}, {"validation_witnesses", "--validation-witnesses"},
+                {"witness_scales", "--witness-scales"}, {"batch_pairs", "--batch-pairs"}, {"crop_px", "--crop"},
+                {"subject_weight", "--subject-weight"}, {"alpha_weight", "--alpha-weight"},
+                {"supersample", "--supersample"}});
+  CheckNamingFlags([&] { o.Check(); }, flags);
+  return o;
+}
+
+void AddRerenderCommand(CLI::App* train) {
+  auto* command = train->add_subcommand(
+      "rerender", "Neural rerendering (LookinGood): a U-Net that repairs renders of the reconstruction, trained on "
+                  "witness cameras the reconstruction never saw");
+  auto args = std::make_shared<RerenderArgs>();
+  RerenderOptions& r = args->options;
+  SharedTrainArgs& shared = args->shared;
+  TakeSharedDefaults(r, &shared);
+  AddSharedTrainFlags(command, &shared);
+  AddRerenderWitnessFlags(command, r);
+  AddRerenderReconstructionFlags(command, args.get());
+  AddRerenderNetworkFlags(command, r);
+  command->add_option("--batch-pairs", r.batch_pairs, "Pairs of consecutive frames per iteration")->capture_default_str();
+  command->callback([args] {
+    const RerenderOptions o = RerenderOptionsFrom(*args);
+    const std::filesystem::path out = args->shared.Out("rerender");
+    Report report("train rerender");
+    RerenderSummary summary = TrainRerender(args->shared.take, out, o, &report);
+    PrintPlan(summary.plan);
+    std::printf("iterations   %lld in %.1f s\n", static_cast<long long>(summary.iterations), summary.seconds);
+    std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
+    std::printf("held-out     PSNR %.2f dB (raw render %.2f dB), SSIM %.4f (raw %.4f)\n", summary.heldout_psnr_db,
+                summary.raw_render_psnr_db, summary.heldout_ssim, summary.raw_render_ssim);
+    std::printf("flicker      %.3f x truth's (raw render %.3f x)\n", summary.flicker_ratio, summary.raw_flicker_ratio);
+    std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+    EndCommand(summary, "training");
+  });
 }
 
 void AddTrainCommand(CLI::App& app) {
-  auto* command = app.add_subcommand("train", "Learn an avatar (Neural Volumes) from a calibrated take");
-  auto args = std::make_shared<TrainArgs>();
-  NeuralVolumeOptions& o = args->options;
-  command->add_option("TAKE", args->take, "The take directory")->required();
-  command->add_option("--method", args->method, "Model kind: nvol (Neural Volumes) or rerender (neural rerendering)")->capture_default_str();
-  command->add_option("--out", args->out, "Model directory (default: TAKE/models/<method>)");
-  command->add_option("--grid", o.grid, "RGBA voxels per axis (16..128, power of two)")->capture_default_str();
-  command->add_option("--minutes", o.minutes, "Training time budget")->capture_default_str();
-  command->add_option("--iterations", o.iterations, "Stop after this many iterations (0: time only)")->capture_default_str();
-  command->add_option("--width", o.image_width, "Training image width (0: native)")->capture_default_str();
-  command->add_option("--rays", o.rays_per_batch, "Rays per iteration")->capture_default_str();
-  command->add_option("--heldout", o.heldout_cameras, "Cameras held out for evaluation")->capture_default_str();
-  command->add_option("--heldout-names", o.heldout, "Hold out these cameras (names)");
-  command->add_option("--scene", o.scene, "auto, static or dynamic")->capture_default_str();
-  command->add_option("--frames", o.last_frame, "Train on the first N frame sets (-1: all)")->capture_default_str();
-  command->add_option("--bounds", args->bounds, "Volume bounds: auto, hull, gt or stage")->capture_default_str();
-  command->add_option("--lr", o.learning_rate, "Adam learning rate of the networks")->capture_default_str();
-  command->add_option("--eval-every", o.eval_every_s, "Held-out evaluation interval, seconds")->capture_default_str();
-  command->add_option("--kl-weight", o.kl_weight, "nvol: KL weight of the latent (dynamic scenes)")->capture_default_str();
-  command->add_option("--tv-weight", o.tv_weight, "nvol: total-variation weight of the grid")->capture_default_str();
-  command->add_option("--alpha-prior-weight", o.alpha_prior_weight, "nvol: beta prior on ray alpha")->capture_default_str();
-  command->add_option("--silhouette-weight", o.silhouette_weight,
-                      "nvol: ray alpha against the training silhouettes (0: off)")->capture_default_str();
-  command->add_option("--warp-prior-weight", o.warp_prior_weight,
-                      "nvol: mean squared warp displacement (dynamic scenes)")->capture_default_str();
-  command->add_option("--seed", o.seed, "Random seed")->capture_default_str();
-  command->add_option("--threads", o.threads, "Threads (0: all cores)")->capture_default_str();
-  command->add_flag("--ground-truth-cameras", o.ground_truth_cameras, "Use gt/cameras even when calib/ exists");
-  command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
-  RerenderOptions& r = args->rerender;
-  command->add_option("--witness", r.witness_cameras, "rerender: witness cameras left out of the reconstruction")->capture_default_str();
-  command->add_option("--witness-names", r.witness, "rerender: these witness cameras (names, comma- or space-separated)")
-      ->delimiter(',');
-  command->add_option("--witness-folds", r.witness_folds,
-                      "rerender: witness sets, each seen through a reconstruction built without it (1: one set)")
-      ->capture_default_str();
-  command->add_option("--fold-witnesses", r.fold_witness,
-                      "rerender: the witnesses of a further fold, comma-separated (once per fold, in order; the "
-                      "last fold's validate; overrides --witness-folds)")
-      ->delimiter(',');
-  command->add_option("--fold-recon", r.fold_recon_dirs, "rerender: use these reconstructions of the further folds (in order)");
-  command->add_option("--validation-witnesses", r.validation_witnesses,
-                      "rerender: witnesses kept from training to choose the weights where they peak (0: last weights, "
-                      "-1: a fifth of the witnesses, at least one when there are three or more)")
-      ->capture_default_str();
-  command->add_option("--unet-width", r.net.width, "rerender: U-Net channels of the first level")->capture_default_str();
-  command->add_option("--unet-depth", r.net.depth, "rerender: U-Net levels")->capture_default_str();
-  command->add_option("--supersample", r.supersample,
-                      "rerender: raster samples per pixel along each axis (1..4; playback does the same)")->capture_default_str();
-  command->add_option("--witness-scales", r.witness_scales,
-                      "rerender: the witnesses also train at these fractions of the training width, e.g. 1,0.6 "
-                      "(views with shorter lenses or from farther away see the subject smaller)")
-      ->delimiter(',')
-      ->capture_default_str();
-  command->add_option("--crop", r.crop_px, "rerender: training crop size near the subject (0: whole images)")->capture_default_str();
-  command->add_option("--recon", r.recon_dir, "rerender: use this reconstruction (built without the witnesses)");
-  command->add_option("--recon-voxel", r.reconstruction.voxel_m, "rerender: reconstruction voxel in metres")->capture_default_str();
-  command->add_option("--silhouettes", args->silhouettes, "rerender: reconstruction silhouettes, background or threshold")->capture_default_str();
-  command->add_option("--recon-method", args->recon_method,
-                      "rerender: reconstruction method of every fold, auto, hull, tsdf or mvs")->capture_default_str();
-  command->add_option("--recon-bounds", args->recon_bounds,
-                      "rerender: reconstruction volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default -1.5,-1.5,0,1.5,1.5,2.5)");
-  command->add_flag("--recon-no-completion", args->recon_no_completion,
-                    "rerender: TSDF folds mesh only what the depth sensors saw, as a live fusion system does "
-                    "(no completion from the visual hull)");
-  command->add_option("--subject-weight", r.subject_weight, "rerender: loss weight of pixels near the subject")->capture_default_str();
-  command->add_option("--alpha-weight", r.alpha_weight, "rerender: weight of alpha against the witnesses' silhouettes (0: off)")->capture_default_str();
-  command->add_option("--temporal-weight", r.temporal_weight, "rerender: temporal-consistency loss weight")->capture_default_str();
-  command->add_option("--gan-weight", r.gan_weight, "rerender: PatchGAN loss weight (0: none)")->capture_default_str();
-  command->callback([args] {
-    if (args->method != "nvol" && args->method != "rerender") {
-      Fail("unknown training method '", args->method, "' (known: nvol, rerender)");
-    }
-    args->options.bounds = VolumeBoundsSourceFromString(args->bounds);
-    args->options.Check();
-    const std::filesystem::path out = args->out.empty()
-        ? std::filesystem::path(args->take) / "models" / args->method : std::filesystem::path(args->out);
-    if (args->method == "rerender") return TrainRerenderCommand(*args, out);
-    Report report("train");
-    NeuralVolumeSummary summary = TrainNeuralVolume(args->take, out, args->options, &report);
-    PrintPlan(summary.plan);
-    std::printf("iterations   %lld in %.1f s (%.2f it/s)\n", static_cast<long long>(summary.iterations),
-                summary.seconds, summary.iterations / std::max(summary.seconds, 1e-9));
-    std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
-    std::printf("held-out     PSNR %.2f dB (subject %.2f dB), SSIM %.4f\n", summary.heldout_psnr_db,
-                summary.heldout_psnr_fg_db, summary.heldout_ssim);
-    std::printf("%s: %s\nmodel: %s\nreport: %s\n", ToString(summary.termination), summary.message.c_str(),
-                out.c_str(), (out / "report.json").c_str());
-    if (!IsUsable(summary.termination)) Fail("training ended with ", ToString(summary.termination), ": ", summary.message);
+  auto* train = app.add_subcommand("train", "Learn an avatar from a calibrated take: `train nvol` or `train rerender`");
+  AddNvolCommand(train);
+  AddRerenderCommand(train);
+  // A word that names no method reaches `train` itself (the methods, added first, keep refusing
+  // each other's flags): it ends with one line naming it and the methods there are.
+  train->allow_extras();
+  train->parse_complete_callback([train] {
+    if (!train->get_subcommands().empty()) return;
+    const std::vector<std::string> extras = train->remaining();
+    if (extras.empty()) Fail("train needs a method: holocap train nvol TAKE or holocap train rerender TAKE");
+    Fail("unknown training method '", extras.front(), "' (known: nvol, rerender)");
   });
 }
 
@@ -175,7 +280,7 @@ Summary TrainDemoAvatar(DemoContext& context) {
   options.rays_per_batch = 2048;
   options.eval_every_s = 8;
   const std::filesystem::path model_dir = context.out / "nvol";
-  Report report("train");
+  Report report("train nvol");
   NeuralVolumeSummary summary = TrainNeuralVolume(context.take, model_dir, options, &report);
   std::printf("[demo] nvol: %s\n", summary.message.c_str());
   nlohmann::json metrics = {{"iterations", summary.iterations},
@@ -184,9 +289,9 @@ Summary TrainDemoAvatar(DemoContext& context) {
                             {"last_loss", summary.last_loss},
                             {"heldout_psnr_db", summary.heldout_psnr_db},
                             {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db}};
-  if (!IsUsable(summary.termination)) {
+  if (!summary.IsUsable()) {
     context.report->metrics()["nvol"] = metrics;
-    return {summary.termination, summary.message};
+    return summary;
   }
   auto model = OpenModel(model_dir);
   OrbitOptions orbit;
@@ -201,7 +306,11 @@ Summary TrainDemoAvatar(DemoContext& context) {
   metrics["samples_per_ray"] = rendered.samples_per_ray;
   context.report->metrics()["nvol"] = metrics;
   std::printf("[demo] nvol orbit: %s -> %s\n\n", rendered.message.c_str(), playback.out.c_str());
-  return {summary.termination, summary.message + "; " + rendered.message};
+  // Training's state stands unless playback failed.
+  Summary stage = summary;
+  if (!rendered.IsUsable()) stage = rendered;
+  stage.message = summary.message + "; " + rendered.message;
+  return stage;
 }
 
 }  // namespace

@@ -14,7 +14,6 @@
 namespace holocap {
 
 class Take;
-struct Box;
 
 // Each cmd_*.cpp registers its subcommand with HOLOCAP_COMMAND(order, AddFn); `order` sets
 // where it appears in --help (pipeline order: sim 10, capture 20, info 30, ...).
@@ -60,9 +59,5 @@ void RegisterBuiltinDrivers();
 
 // What `holocap info` prints about a take.
 void PrintTakeInfo(const Take& take, std::ostream& out);
-
-// A capture volume given as "xmin,ymin,zmin,xmax,ymax,zmax" (metres); throws Error naming
-// `option` when it is not six numbers with max above min on every axis.
-Box ParseBounds(const std::string& text, const char* option = "--bounds");
 
 }  // namespace holocap

@@ -227,15 +227,15 @@ void PipelineTsdf(const fs::path& take_dir, int frame_count, int threads) {
       ReconstructionOptions options;
       options.method = ReconstructionMethod::kTsdf;
       options.voxel_m = voxel;
-      options.first_frame = 0;
-      options.last_frame = frame_count;
       options.threads = threads;
       options.write_glb = false;
       options.texture.atlas = false;
       options.sweep_voxels_m.clear();
       options.tsdf_hull_completion = complete;
       Report report("reconstruct");
-      ReconstructTake(take_dir, take_dir / ("bench-tsdf-" + std::to_string(static_cast<int>(voxel * 1e3))), options,
+      TakeSelection frames;
+      frames.last_frame = frame_count;
+      ReconstructTake(take_dir, frames, take_dir / ("bench-tsdf-" + std::to_string(static_cast<int>(voxel * 1e3))), options,
                       &report);
       const auto& metrics = report.json()["metrics"];
       double completion_s = 0, seen = 0;
@@ -296,13 +296,13 @@ void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames,
     ReconstructionOptions options;
     options.method = ReconstructionMethod::kMvs;
     options.voxel_m = voxel;
-    options.first_frame = 0;
-    options.last_frame = 1;
     options.threads = threads;
     options.write_glb = false;
     options.sweep_voxels_m.clear();
     Report report("reconstruct");
-    ReconstructTake(take_dir, take_dir / ("bench-mvs-" + std::to_string(static_cast<int>(voxel * 1e3))), options, &report);
+    TakeSelection first_set;
+    first_set.last_frame = 1;
+    ReconstructTake(take_dir, first_set, take_dir / ("bench-mvs-" + std::to_string(static_cast<int>(voxel * 1e3))), options, &report);
     const auto& f = report.json()["metrics"]["frames"][0];
     const auto& gt = f["metrics"]["gt"];
     std::printf("%6.1f %9.2f %9.2f %9.2f %9.2f %8.2f %10.3f %12lld\n", voxel * 1e3, f["seconds"].get<double>(),

@@ -10,6 +10,7 @@
 #include "core/image.h"
 #include "core/mesh.h"
 #include "core/take.h"
+#include "core/take_plan.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap::neural {
@@ -109,33 +110,6 @@ std::vector<int> TrainingData::HeldoutViews() const {
   return out;
 }
 
-std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras,
-                              const std::vector<int>& candidates, int count,
-                              const Eigen::Vector3d& center) {
-  // Farthest-point sampling of the viewing directions seen from `center`: works whatever the
-  // world's up axis (Middlebury's is not z).
-  std::vector<int> picked;
-  if (count <= 0 || candidates.empty()) return picked;
-  auto direction = [&](int i) { return (cameras[i].center_in_world() - center).normalized(); };
-  picked.push_back(candidates.front());
-  while (static_cast<int>(picked.size()) < std::min<int>(count, candidates.size())) {
-    int best = -1;
-    double best_distance = -1;
-    for (int c : candidates) {
-      if (std::find(picked.begin(), picked.end(), c) != picked.end()) continue;
-      double nearest = std::numeric_limits<double>::infinity();
-      for (int p : picked) nearest = std::min(nearest, (direction(c) - direction(p)).norm());
-      if (nearest > best_distance) {
-        best_distance = nearest;
-        best = c;
-      }
-    }
-    picked.push_back(best);
-  }
-  std::sort(picked.begin(), picked.end());
-  return picked;
-}
-
 std::vector<int32_t> PixelsSeeingBox(const CameraModel& camera, const Eigen::Vector3f& box_min,
                                      const Eigen::Vector3f& box_max) {
   RayBatch rays = CameraRaysAllPixels(camera, box_min, box_max);
@@ -146,266 +120,288 @@ std::vector<int32_t> PixelsSeeingBox(const CameraModel& camera, const Eigen::Vec
   return pixels;
 }
 
-TrainingData LoadTrainingData(const fs::path& take_dir, const NeuralVolumeOptions& options) {
-  options.Check();
-  Take take = Take::Open(take_dir);
-  TrainingData data;
-  nlohmann::json& plan = data.plan;
+namespace {
 
-  bool ground_truth = options.ground_truth_cameras;
-  if (!ground_truth && !take.has_calibration()) {
-    if (!take.has_ground_truth() || !fs::is_directory(take.gt_dir() / "cameras")) {
-      Fail("take ", take_dir.string(), " has no calib/ camera models (calibrate it first) and no gt/cameras");
+// Reads a planned take into training data, one named step at a time.
+class TrainingDataLoader {
+ public:
+  TrainingDataLoader(const fs::path& take_dir, const NeuralVolumeOptions& options)
+      : take_(Take::Open(take_dir)), options_(options), plan_(data_.plan) {}
+
+  TrainingData Load() {
+    PlanCameras();
+    ReadFrames();
+    ReadBackgrounds();
+    ReadSilhouettes();
+    ChooseBounds();
+    MarkOccupancy();
+    ChooseEncoderViews();
+    return std::move(data_);
+  }
+
+ private:
+  // The take's plan, the held-out cameras and the training views at the training width.
+  void PlanCameras() {
+    take_plan_ = PlanTake(take_, options_.take);
+    names_ = take_plan_.color_sensors;
+    if (names_.size() < 2) {
+      Fail("take ", take_.dir().string(), " has ", names_.size(), " colour camera(s); neural volumes need at least 2");
     }
-    ground_truth = true;
-  }
-  plan["cameras"] = ground_truth ? "gt/cameras (true models: the take is not calibrated)"
-                                 : "calib/ (calibrated models)";
-
-  std::vector<std::string> names;
-  for (const auto& stream : take.streams()) {
-    if (stream.role == SensorRole::kColor) names.push_back(stream.name);
-  }
-  if (names.size() < 2) Fail("take ", take_dir.string(), " has ", names.size(), " colour camera(s); neural volumes need at least 2");
-
-  std::vector<CameraModel> full_cameras;
-  for (const auto& name : names) full_cameras.push_back(take.Camera(name, ground_truth));
-
-  // Frame sets.
-  int64_t clean_plate = options.clean_plate_frames;
-  if (clean_plate < 0) clean_plate = take.metadata().value("clean_plate_frames", int64_t{0});
-  const int64_t available = static_cast<int64_t>(take.size()) - clean_plate;
-  if (available <= 0) Fail("take ", take_dir.string(), " has no frame set after its ", clean_plate, " clean-plate set(s)");
-  const int64_t first = std::min(options.first_frame, available - 1);
-  const int64_t last = options.last_frame < 0 ? available : std::min(options.last_frame, available);
-  if (last <= first) Fail("frame range [", options.first_frame, ", ", options.last_frame, ") selects no frame set of ", available);
-  for (int64_t f = first; f < last; ++f) data.sets.push_back(clean_plate + f);
-  if (options.scene == "auto") data.dynamic = data.sets.size() > 1;
-  else data.dynamic = options.scene == "dynamic";
-  plan["frames"] = data.sets.size();
-  plan["clean_plate_frames"] = clean_plate;
-  plan["scene"] = data.dynamic ? "dynamic" : "static";
-
-  // Held-out cameras.
-  std::vector<int> all(names.size());
-  for (size_t i = 0; i < all.size(); ++i) all[i] = static_cast<int>(i);
-  const Box overlap = RigOverlapBox(full_cameras);
-  const Eigen::Vector3d rig_center = 0.5 * (overlap.min + overlap.max);
-  std::vector<int> heldout;
-  if (!options.heldout.empty()) {
-    for (const auto& name : options.heldout) {
-      auto it = std::find(names.begin(), names.end(), name);
-      if (it == names.end()) Fail("held-out camera '", name, "' is not a colour sensor of the take");
-      heldout.push_back(static_cast<int>(it - names.begin()));
+    const std::vector<CameraModel> full_cameras = take_plan_.Cameras(names_);
+    data_.sets = take_plan_.sets;
+    data_.dynamic = options_.scene == "auto" ? data_.sets.size() > 1 : options_.scene == "dynamic";
+    overlap_ = RigOverlapBox(full_cameras);
+    rig_center_ = 0.5 * (overlap_.min + overlap_.max);
+    std::vector<int> heldout;
+    if (!options_.heldout.empty()) {
+      heldout = take_plan_.ColorIndices(options_.heldout, "held-out");
+    } else {
+      // Spread the held-out cameras, starting from the second one so that cam0 (often the
+      // reference) keeps training.
+      std::vector<int> rotated;
+      for (size_t i = 1; i < names_.size(); ++i) rotated.push_back(static_cast<int>(i));
+      rotated.push_back(0);
+      heldout = SpreadAround(full_cameras, rotated, options_.heldout_cameras, rig_center_);
     }
-  } else {
-    // Spread the held-out cameras, starting from the second one so that cam0 (often the
-    // reference) keeps training.
-    std::vector<int> rotated(all.begin() + 1, all.end());
-    rotated.push_back(all.front());
-    heldout = SpreadAround(full_cameras, rotated, options.heldout_cameras, rig_center);
+    if (heldout.size() + 1 > names_.size()) {
+      Fail("holding out ", heldout.size(), " of ", names_.size(), " cameras leaves none to train on");
+    }
+    for (size_t i = 0; i < names_.size(); ++i) {
+      TrainingView view;
+      view.name = names_[i];
+      const CameraModel& full = full_cameras[i];
+      const double scale = (options_.image_width > 0 && options_.image_width < full.width())
+                               ? static_cast<double>(options_.image_width) / full.width() : 1.0;
+      view.camera = scale == 1.0 ? full : full.Scaled(scale);
+      view.heldout = std::find(heldout.begin(), heldout.end(), static_cast<int>(i)) != heldout.end();
+      if (view.heldout) take_plan_.heldout.push_back(view.name);
+      data_.views.push_back(std::move(view));
+    }
+    if (!take_plan_.depth_sensors.empty()) take_plan_.LeaveOut("depth sensors", "Neural Volumes learn from colour alone");
+    plan_ = take_plan_.ToJson();
+    plan_["scene"] = data_.dynamic ? "dynamic" : "static";
+    plan_["training_cameras"] = nlohmann::json::array();
+    for (const auto& view : data_.views) {
+      if (!view.heldout) plan_["training_cameras"].push_back(view.name);
+    }
+    plan_["image_size"] = {data_.views.front().camera.width(), data_.views.front().camera.height()};
   }
-  if (heldout.size() + 1 > names.size()) Fail("holding out ", heldout.size(), " of ", names.size(), " cameras leaves none to train on");
 
-  for (size_t i = 0; i < names.size(); ++i) {
-    TrainingView view;
-    view.name = names[i];
-    const CameraModel& full = full_cameras[i];
-    const double scale = (options.image_width > 0 && options.image_width < full.width())
-                             ? static_cast<double>(options.image_width) / full.width() : 1.0;
-    view.camera = scale == 1.0 ? full : full.Scaled(scale);
-    view.heldout = std::find(heldout.begin(), heldout.end(), static_cast<int>(i)) != heldout.end();
-    data.views.push_back(std::move(view));
-  }
-  plan["heldout_cameras"] = nlohmann::json::array();
-  plan["training_cameras"] = nlohmann::json::array();
-  for (const auto& view : data.views) plan[view.heldout ? "heldout_cameras" : "training_cameras"].push_back(view.name);
-  plan["image_size"] = {data.views.front().camera.width(), data.views.front().camera.height()};
-
-  data.images.resize(data.sets.size());
-  for (size_t f = 0; f < data.sets.size(); ++f) {
-    FrameSet set = take.Read(data.sets[f], names);
-    for (size_t v = 0; v < names.size(); ++v) {
-      const Frame* frame = set.Find(names[v]);
-      if (frame == nullptr) Fail("frame set ", data.sets[f], " lacks camera ", names[v]);
-      data.images[f].push_back(ToTrainingSize(frame->image, data.views[v].camera));
+  void ReadFrames() {
+    take_plan_.RequireFrames(take_, names_);
+    data_.images.resize(data_.sets.size());
+    for (size_t f = 0; f < data_.sets.size(); ++f) {
+      FrameSet set = take_.Read(data_.sets[f], names_);
+      for (size_t v = 0; v < names_.size(); ++v) {
+        data_.images[f].push_back(ToTrainingSize(set.Find(names_[v])->image, data_.views[v].camera));
+      }
     }
   }
 
-  // Backgrounds.
-  if (clean_plate > 0) {
-    FrameSet plate = take.Read(0, names);
-    for (size_t v = 0; v < names.size(); ++v) {
-      const Frame* frame = plate.Find(names[v]);
-      if (frame == nullptr) Fail("the clean plate lacks camera ", names[v]);
-      data.views[v].background = ToTrainingSize(frame->image, data.views[v].camera);
+  void ReadBackgrounds() {
+    if (take_plan_.has_clean_plate()) {
+      FrameSet plate = take_.Read(take_plan_.plate_set(), names_);
+      for (size_t v = 0; v < names_.size(); ++v) {
+        data_.views[v].background = ToTrainingSize(plate.Find(names_[v])->image, data_.views[v].camera);
+      }
+      plan_["background"] = Cat("clean plate (frame set ", take_plan_.plate_set(), ")");
+    } else if (data_.dynamic && data_.sets.size() >= 3) {
+      for (size_t v = 0; v < names_.size(); ++v) data_.views[v].background = MedianOverFrames(data_.images, v);
+      plan_["background"] = "per-pixel temporal median of each camera's frames (no clean plate)";
+    } else {
+      for (size_t v = 0; v < names_.size(); ++v) data_.views[v].background = BorderColourBackground(data_.images[0][v]);
+      plan_["background"] = "uniform, the median colour of each image's border (static, no clean plate)";
     }
-    plan["background"] = "clean plate (frame set 0)";
-  } else if (data.dynamic && data.sets.size() >= 3) {
-    for (size_t v = 0; v < names.size(); ++v) data.views[v].background = MedianOverFrames(data.images, v);
-    plan["background"] = "per-pixel temporal median of each camera's frames (no clean plate)";
-  } else {
-    for (size_t v = 0; v < names.size(); ++v) data.views[v].background = BorderColourBackground(data.images[0][v]);
-    plan["background"] = "uniform, the median colour of each image's border (static, no clean plate)";
   }
 
-  // Silhouettes of the training views, for the hull.
-  const std::vector<int> training = data.TrainingViews();
-  std::string silhouette_source;
-  SilhouetteOptions silhouette;
-  silhouette.dilate_px = 2;
-  silhouette.erode_px = 1;
-  auto mask_of = [&](size_t f, int v) -> cv::Mat {
-    const auto& camera = data.views[v].camera;
-    if (clean_plate > 0) {
+  cv::Mat SilhouetteOf(size_t f, int v) {
+    SilhouetteOptions silhouette;
+    silhouette.dilate_px = 2;
+    silhouette.erode_px = 1;
+    const auto& camera = data_.views[v].camera;
+    if (take_plan_.has_clean_plate()) {
       silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
-      return ExtractSilhouette(data.images[f][v], data.views[v].background, silhouette);
+      return ExtractSilhouette(data_.images[f][v], data_.views[v].background, silhouette);
     }
-    fs::path gt_mask = take.gt_dir() / "masks" / data.views[v].name / SetFileName(data.sets[f], ".png");
+    fs::path gt_mask = take_.gt_dir() / "masks" / data_.views[v].name / SetFileName(data_.sets[f], ".png");
     if (fs::exists(gt_mask)) {
       cv::Mat mask = ReadImage(gt_mask), resized;
       cv::resize(mask, resized, cv::Size(camera.width(), camera.height()), 0, 0, cv::INTER_NEAREST);
       return resized;
     }
     silhouette.mode = SilhouetteMode::kThreshold;
-    return ExtractSilhouette(data.images[f][v], cv::Mat(), silhouette);
-  };
-  if (clean_plate > 0) silhouette_source = "background subtraction against the clean plate";
-  else if (fs::is_directory(take.gt_dir() / "masks")) silhouette_source = "gt/masks (no clean plate)";
-  else silhouette_source = "threshold on a dark background (no clean plate)";
-
-  data.masks.resize(data.sets.size());
-  for (size_t f = 0; f < data.sets.size(); ++f) {
-    for (size_t v = 0; v < data.views.size(); ++v) data.masks[f].push_back(mask_of(f, static_cast<int>(v)));
+    return ExtractSilhouette(data_.images[f][v], cv::Mat(), silhouette);
   }
 
-  // Bounds: the hull of every frame, else the ground-truth meshes, else the stage.
-  VolumeBoundsSource source = options.bounds;
-  std::vector<VisualHull> hulls;
-  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
-  Eigen::Vector3d hi = -lo;
-  if (source == VolumeBoundsSource::kAuto || source == VolumeBoundsSource::kHull) {
+  void ReadSilhouettes() {
+    if (take_plan_.has_clean_plate()) silhouette_source_ = "background subtraction against the clean plate";
+    else if (fs::is_directory(take_.gt_dir() / "masks")) silhouette_source_ = "gt/masks (no clean plate)";
+    else silhouette_source_ = "threshold on a dark background (no clean plate)";
+    data_.masks.resize(data_.sets.size());
+    for (size_t f = 0; f < data_.sets.size(); ++f) {
+      for (size_t v = 0; v < data_.views.size(); ++v) data_.masks[f].push_back(SilhouetteOf(f, static_cast<int>(v)));
+    }
+  }
+
+  // The hull of every frame's training views; false when one frame's is empty.
+  bool HullBounds() {
+    const std::vector<int> training = data_.TrainingViews();
     HullOptions hull_options;
-    hull_options.bounds = overlap;
-    hull_options.voxel_m = (overlap.max - overlap.min).maxCoeff() / 96.0;
+    hull_options.bounds = overlap_;
+    hull_options.voxel_m = (overlap_.max - overlap_.min).maxCoeff() / 96.0;
     // A point must lie in most training views: points only a few cameras can see are where a
     // sparse ring's hull grows its ghost wedges.
     hull_options.min_views = std::max(2, static_cast<int>(std::ceil(0.6 * training.size())));
     hull_options.tolerated_bad_views = training.size() >= 8 ? 1 : 0;
     hull_options.margin_px = 1.0;
-    hull_options.threads = options.threads;
-    bool ok = true;
-    for (size_t f = 0; f < data.sets.size() && ok; ++f) {
+    hull_options.threads = options_.threads;
+    for (size_t f = 0; f < data_.sets.size(); ++f) {
       std::vector<View> views;
       for (int v : training) {
         View view;
-        view.name = data.views[v].name;
-        view.camera = data.views[v].camera;
-        view.mask = data.masks[f][v];
+        view.name = data_.views[v].name;
+        view.camera = data_.views[v].camera;
+        view.mask = data_.masks[f][v];
         views.push_back(std::move(view));
       }
       HullSummary summary;
       VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
-      if (!IsUsable(summary.termination)) {
-        ok = false;
-        break;
-      }
-      // The hull's extent, from the blocks it holds.
-      for (const auto& block : hull.volume->BlockCoordinates()) {
-        const Eigen::Vector3d a = hull.volume->CenterOf(block * kBlockSide);
-        const Eigen::Vector3d b = hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1));
-        for (int i = 0; i < kBlockSide; ++i) {
-          for (int j = 0; j < kBlockSide; ++j) {
-            for (int k = 0; k < kBlockSide; ++k) {
-              const Eigen::Vector3d p = a + (b - a).cwiseProduct(Eigen::Vector3d(i, j, k) / (kBlockSide - 1));
-              if (!hull.Contains(p)) continue;
-              lo = lo.cwiseMin(p);
-              hi = hi.cwiseMax(p);
-            }
+      if (!summary.IsUsable()) return false;
+      GrowToHull(hull);
+      hulls_.push_back(std::move(hull));
+    }
+    return (hi_.array() > lo_.array()).all();
+  }
+
+  // Grows [lo_, hi_] to the hull's extent, from the blocks it holds.
+  void GrowToHull(const VisualHull& hull) {
+    for (const auto& block : hull.volume->BlockCoordinates()) {
+      const Eigen::Vector3d a = hull.volume->CenterOf(block * kBlockSide);
+      const Eigen::Vector3d b = hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1));
+      for (int i = 0; i < kBlockSide; ++i) {
+        for (int j = 0; j < kBlockSide; ++j) {
+          for (int k = 0; k < kBlockSide; ++k) {
+            const Eigen::Vector3d p = a + (b - a).cwiseProduct(Eigen::Vector3d(i, j, k) / (kBlockSide - 1));
+            if (!hull.Contains(p)) continue;
+            lo_ = lo_.cwiseMin(p);
+            hi_ = hi_.cwiseMax(p);
           }
         }
       }
-      for (uint64_t key : hull.inside_blocks) {
-        const Eigen::Vector3i block = SparseVolume::Unkey(key);
-        lo = lo.cwiseMin(hull.volume->CenterOf(block * kBlockSide));
-        hi = hi.cwiseMax(hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1)));
-      }
-      hulls.push_back(std::move(hull));
     }
-    if (ok && (hi.array() > lo.array()).all()) {
-      source = VolumeBoundsSource::kHull;
-      plan["silhouettes"] = silhouette_source;
-    } else {
-      if (options.bounds == VolumeBoundsSource::kHull) Fail("the visual hull of the training views is empty: no volume to bound");
-      hulls.clear();
-      source = VolumeBoundsSource::kGroundTruth;
+    for (uint64_t key : hull.inside_blocks) {
+      const Eigen::Vector3i block = SparseVolume::Unkey(key);
+      lo_ = lo_.cwiseMin(hull.volume->CenterOf(block * kBlockSide));
+      hi_ = hi_.cwiseMax(hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1)));
     }
   }
-  if (source == VolumeBoundsSource::kGroundTruth) {
-    lo.setConstant(std::numeric_limits<double>::infinity());
-    hi = -lo;
-    for (int64_t set : data.sets) {
-      fs::path file = take.gt_dir() / "meshes" / SetFileName(set, ".ply");
-      if (!fs::exists(file)) file = take.gt_dir() / "meshes" / "000000.ply";
+
+  bool GroundTruthBounds() {
+    lo_.setConstant(std::numeric_limits<double>::infinity());
+    hi_ = -lo_;
+    for (int64_t set : data_.sets) {
+      fs::path file = take_.gt_dir() / "meshes" / SetFileName(set, ".ply");
+      if (!fs::exists(file)) file = take_.gt_dir() / "meshes" / "000000.ply";
       if (!fs::exists(file)) continue;
       for (const auto& v : ReadPly(file).vertices) {
-        lo = lo.cwiseMin(v.cast<double>());
-        hi = hi.cwiseMax(v.cast<double>());
+        lo_ = lo_.cwiseMin(v.cast<double>());
+        hi_ = hi_.cwiseMax(v.cast<double>());
       }
     }
-    if (!(hi.array() > lo.array()).all()) {
-      if (options.bounds == VolumeBoundsSource::kGroundTruth) Fail("take ", take_dir.string(), " has no gt/meshes to bound the volume");
+    return (hi_.array() > lo_.array()).all();
+  }
+
+  // The hull of every frame, else the ground-truth meshes, else the stage.
+  void ChooseBounds() {
+    VolumeBoundsSource source = options_.bounds;
+    lo_ = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+    hi_ = -lo_;
+    if (source == VolumeBoundsSource::kAuto || source == VolumeBoundsSource::kHull) {
+      if (HullBounds()) {
+        source = VolumeBoundsSource::kHull;
+        plan_["silhouettes"] = silhouette_source_;
+      } else {
+        if (options_.bounds == VolumeBoundsSource::kHull) Fail("the visual hull of the training views is empty: no volume to bound");
+        hulls_.clear();
+        source = VolumeBoundsSource::kGroundTruth;
+      }
+    }
+    if (source == VolumeBoundsSource::kGroundTruth && !GroundTruthBounds()) {
+      if (options_.bounds == VolumeBoundsSource::kGroundTruth) {
+        Fail("take ", take_.dir().string(), " has no gt/meshes to bound the volume");
+      }
       source = VolumeBoundsSource::kStage;
     }
+    if (source == VolumeBoundsSource::kStage) {
+      const Box stage;
+      lo_ = stage.min;
+      hi_ = stage.max;
+    }
+    data_.box_min = lo_.array() - options_.bounds_margin_m;
+    data_.box_max = hi_.array() + options_.bounds_margin_m;
+    plan_["bounds"] = {{"source", ToString(source)},
+                       {"box_min", {data_.box_min.x(), data_.box_min.y(), data_.box_min.z()}},
+                       {"box_max", {data_.box_max.x(), data_.box_max.y(), data_.box_max.z()}}};
   }
-  if (source == VolumeBoundsSource::kStage) {
-    const Box stage;
-    lo = stage.min;
-    hi = stage.max;
-  }
-  data.box_min = lo.array() - options.bounds_margin_m;
-  data.box_max = hi.array() + options.bounds_margin_m;
-  plan["bounds"] = {{"source", ToString(source)},
-                    {"box_min", {data.box_min.x(), data.box_min.y(), data.box_min.z()}},
-                    {"box_max", {data.box_max.x(), data.box_max.y(), data.box_max.z()}}};
 
   // Occupancy for skipping: cells the hull reaches (grown by one cell), per frame.
-  data.occupancy.assign(data.sets.size(), OccupancyGrid{});
-  if (!hulls.empty() && options.occupancy_cells > 0) {
-    const int n = options.occupancy_cells;
-    const Eigen::Vector3d cell = (data.box_max - data.box_min) / n;
+  void MarkOccupancy() {
+    data_.occupancy.assign(data_.sets.size(), OccupancyGrid{});
+    if (hulls_.empty() || options_.occupancy_cells <= 0) {
+      plan_["occupancy"] = {{"source", "none (no hull): every sample is evaluated"}};
+      return;
+    }
+    const int n = options_.occupancy_cells;
+    const Eigen::Vector3d cell = (data_.box_max - data_.box_min) / n;
     const double tolerance = 0.5 * cell.norm();
     double occupied_fraction = 0;
-    for (size_t f = 0; f < hulls.size(); ++f) {
-      OccupancyGrid& grid = data.occupancy[f];
+    for (size_t f = 0; f < hulls_.size(); ++f) {
+      OccupancyGrid& grid = data_.occupancy[f];
       grid.size = n;
       grid.occupied.assign(static_cast<int64_t>(n) * n * n, 0);
       for (int z = 0; z < n; ++z) {
         for (int y = 0; y < n; ++y) {
           for (int x = 0; x < n; ++x) {
-            const Eigen::Vector3d center = data.box_min + cell.cwiseProduct(Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5));
-            grid.occupied[(static_cast<int64_t>(z) * n + y) * n + x] = hulls[f].Contains(center, tolerance);
+            const Eigen::Vector3d center = data_.box_min + cell.cwiseProduct(Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5));
+            grid.occupied[(static_cast<int64_t>(z) * n + y) * n + x] = hulls_[f].Contains(center, tolerance);
           }
         }
       }
       grid.Dilate(1);
       occupied_fraction += static_cast<double>(grid.OccupiedCount()) / grid.occupied.size();
     }
-    plan["occupancy"] = {{"source", "visual hull per frame, grown by one cell"},
-                         {"cells", n},
-                         {"occupied_fraction", occupied_fraction / hulls.size()}};
-  } else {
-    plan["occupancy"] = {{"source", "none (no hull): every sample is evaluated"}};
+    plan_["occupancy"] = {{"source", "visual hull per frame, grown by one cell"},
+                          {"cells", n},
+                          {"occupied_fraction", occupied_fraction / hulls_.size()}};
   }
 
-  if (data.dynamic) {
+  void ChooseEncoderViews() {
+    if (!data_.dynamic) return;
     std::vector<CameraModel> cameras;
-    for (const auto& view : data.views) cameras.push_back(view.camera);
-    data.encoder_views = SpreadAround(cameras, training, options.encoder_views, rig_center);
-    plan["encoder_views"] = nlohmann::json::array();
-    for (int v : data.encoder_views) plan["encoder_views"].push_back(data.views[v].name);
+    for (const auto& view : data_.views) cameras.push_back(view.camera);
+    data_.encoder_views = SpreadAround(cameras, data_.TrainingViews(), options_.encoder_views, rig_center_);
+    plan_["encoder_views"] = nlohmann::json::array();
+    for (int v : data_.encoder_views) plan_["encoder_views"].push_back(data_.views[v].name);
   }
-  return data;
+
+  const Take take_;
+  const NeuralVolumeOptions& options_;
+  TrainingData data_;
+  nlohmann::json& plan_;
+  TakePlan take_plan_;
+  std::vector<std::string> names_;
+  Box overlap_;
+  Eigen::Vector3d rig_center_ = Eigen::Vector3d::Zero();
+  std::string silhouette_source_;
+  std::vector<VisualHull> hulls_;
+  Eigen::Vector3d lo_, hi_;
+};
+
+}  // namespace
+
+TrainingData LoadTrainingData(const fs::path& take_dir, const NeuralVolumeOptions& options) {
+  options.Check();
+  return TrainingDataLoader(take_dir, options).Load();
 }
 
 }  // namespace holocap::neural

@@ -48,12 +48,6 @@ struct TrainingData {
 TrainingData LoadTrainingData(const std::filesystem::path& take_dir,
                               const NeuralVolumeOptions& options);
 
-// `count` indices out of `candidates`, spread evenly by angle around the vertical axis through
-// `center` (so held-out and encoder views surround the subject).
-std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras,
-                              const std::vector<int>& candidates, int count,
-                              const Eigen::Vector3d& center);
-
 // Pixels (x, y) of a camera whose rays cross the box.
 std::vector<int32_t> PixelsSeeingBox(const CameraModel& camera, const Eigen::Vector3f& box_min,
                                      const Eigen::Vector3f& box_max);

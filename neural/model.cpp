@@ -58,8 +58,7 @@ void NeuralVolumeOptions::Check() const {
   if (scene != "auto" && scene != "static" && scene != "dynamic") Fail("scene must be auto, static or dynamic, got '", scene, "'");
   if (image_width < 0) Fail("image_width must be >= 0 (0: native), got ", image_width);
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0, got ", heldout_cameras);
-  if (first_frame < 0) Fail("first_frame must be >= 0, got ", first_frame);
-  if (last_frame >= 0 && last_frame <= first_frame) Fail("last_frame (", last_frame, ") must exceed first_frame (", first_frame, ") or be -1");
+  take.Check();
   if (!(bounds_margin_m >= 0)) Fail("bounds_margin_m must be >= 0, got ", bounds_margin_m);
   if (occupancy_cells < 0) Fail("occupancy_cells must be >= 0, got ", occupancy_cells);
   if (!(minutes > 0) && iterations <= 0) Fail("give a positive minutes budget or a number of iterations");
@@ -74,6 +73,7 @@ void NeuralVolumeOptions::Check() const {
   if (!(step_voxels > 0)) Fail("step_voxels must be positive, got ", step_voxels);
   if (!(min_transmittance >= 0 && min_transmittance < 1)) Fail("min_transmittance must be in [0, 1), got ", min_transmittance);
   if (!(eval_every_s > 0)) Fail("eval_every_s must be positive, got ", eval_every_s);
+  if (eval_every_iterations < 0) Fail("eval_every_iterations must be >= 0, got ", eval_every_iterations);
   if (eval_frames < 1) Fail("eval_frames must be at least 1, got ", eval_frames);
   if (!(checkpoint_every_s > 0)) Fail("checkpoint_every_s must be positive, got ", checkpoint_every_s);
   if (!(divergence_factor > 1)) Fail("divergence_factor must exceed 1, got ", divergence_factor);
@@ -86,8 +86,7 @@ nlohmann::json NeuralVolumeOptions::ToJson() const {
           {"warp_grid", warp_grid}, {"encoder_views", encoder_views},
           {"encoder_width", encoder_width}, {"decoder_channels", decoder_channels},
           {"scene", scene}, {"image_width", image_width}, {"heldout_cameras", heldout_cameras},
-          {"heldout", heldout}, {"first_frame", first_frame}, {"last_frame", last_frame},
-          {"clean_plate_frames", clean_plate_frames}, {"ground_truth_cameras", ground_truth_cameras},
+          {"heldout", heldout}, {"take", take.ToJson()},
           {"bounds", ToString(bounds)}, {"bounds_margin_m", bounds_margin_m},
           {"occupancy_cells", occupancy_cells}, {"minutes", minutes}, {"iterations", iterations},
           {"rays_per_batch", rays_per_batch}, {"frames_per_batch", frames_per_batch},
@@ -97,7 +96,7 @@ nlohmann::json NeuralVolumeOptions::ToJson() const {
           {"tv_weight", tv_weight}, {"silhouette_weight", silhouette_weight},
           {"warp_prior_weight", warp_prior_weight}, {"learn_background", learn_background},
           {"step_voxels", step_voxels}, {"jitter", jitter}, {"min_transmittance", min_transmittance},
-          {"seed", seed}, {"eval_every_s", eval_every_s}, {"eval_frames", eval_frames},
+          {"seed", seed}, {"eval_every_s", eval_every_s}, {"eval_every_iterations", eval_every_iterations}, {"eval_frames", eval_frames},
           {"checkpoint_every_s", checkpoint_every_s}, {"resume", resume},
           {"divergence_factor", divergence_factor}, {"max_divergences", max_divergences},
           {"threads", threads}};

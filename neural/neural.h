@@ -33,6 +33,7 @@
 
 #include "core/camera.h"
 #include "core/report.h"
+#include "core/take_plan.h"
 
 namespace holocap {
 
@@ -61,10 +62,7 @@ struct NeuralVolumeOptions {
   int image_width = 160;         // training/evaluation width (cameras rescaled); 0: native
   int heldout_cameras = 2;       // cameras never trained on, spread around the rig
   std::vector<std::string> heldout;  // or these by name (overrides heldout_cameras)
-  int64_t first_frame = 0;       // frame sets [first, last) after the clean plate
-  int64_t last_frame = -1;       // -1: to the end
-  int64_t clean_plate_frames = -1;  // -1: from the take's metadata (sim writes it), else 0
-  bool ground_truth_cameras = false;  // use gt/cameras even when calib/ exists
+  TakeSelection take;            // frame sets, clean plate and cameras (core/take_plan.h)
   VolumeBoundsSource bounds = VolumeBoundsSource::kAuto;
   double bounds_margin_m = 0.08;  // the box grows by this on every side
   int occupancy_cells = 32;      // cells per axis of the skipping grid (0: no skipping)
@@ -103,6 +101,8 @@ struct NeuralVolumeOptions {
 
   // Bookkeeping.
   double eval_every_s = 20;      // held-out PSNR/SSIM every this many seconds
+  int64_t eval_every_iterations = 0;  // > 0: every this many iterations instead (runs that
+                                      // must not depend on the host's speed)
   int eval_frames = 3;           // held-out frames evaluated (spread over the take)
   double checkpoint_every_s = 60;  // checkpoint interval
   bool resume = false;           // continue from the model directory's checkpoint
@@ -114,9 +114,9 @@ struct NeuralVolumeOptions {
   nlohmann::json ToJson() const;
 };
 
-struct NeuralVolumeSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+// NO_CONVERGENCE when the budget is spent (training has no stopping criterion of its own),
+// FAILURE on repeated divergence or a non-finite result.
+struct NeuralVolumeSummary : Summary {
   nlohmann::json plan;                // what was built and why (also in report.json)
   int64_t iterations = 0;
   double seconds = 0;                 // training wall time (data loading excluded)

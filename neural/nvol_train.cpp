@@ -624,7 +624,10 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
     const double t = elapsed();
     if (options_.iterations > 0 && iteration - first_iteration >= options_.iterations) break;
     if (options_.minutes > 0 && t >= budget_s) break;
-    if (t >= next_eval) {
+    const bool eval_due = options_.eval_every_iterations > 0
+                              ? (iteration - first_iteration) % options_.eval_every_iterations == 0
+                              : t >= next_eval;
+    if (eval_due) {
       log_eval(iteration);
       next_eval = t + options_.eval_every_s;
     }
@@ -652,8 +655,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
       iteration = snapshot.iteration;
       recent.clear();
       if (summary.divergences > options_.max_divergences) {
-        summary.termination = Termination::kFailure;
-        summary.message = Cat("training diverged ", summary.divergences, " times; stopped");
+        summary.End(Termination::kFailure, Cat("training diverged ", summary.divergences, " times; stopped"));
         break;
       }
       continue;
@@ -701,17 +703,15 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   summary.heldout_psnr_fg_db = last_eval.psnr_fg_db;
   summary.background_psnr_fg_db = last_eval.background_psnr_fg_db;
   summary.heldout_ssim = last_eval.ssim;
-  if (summary.termination != Termination::kFailure) {
+  if (summary.divergences <= options_.max_divergences) {
     if (!std::isfinite(summary.last_loss) || (!heldout_.empty() && !std::isfinite(summary.heldout_psnr_db))) {
-      summary.termination = Termination::kFailure;
-      summary.message = "the loss or the held-out PSNR is not finite";
+      summary.End(Termination::kFailure, "the loss or the held-out PSNR is not finite");
     } else {
-      summary.termination = Termination::kSuccess;
-      summary.message = heldout_.empty()
+      summary.End(Termination::kNoConvergence, heldout_.empty()
           ? Cat("trained ", iteration, " iterations in ", summary.seconds, " s (no held-out camera)")
           : Cat("trained ", iteration, " iterations in ", summary.seconds, " s; held-out PSNR ",
                 summary.heldout_psnr_db, " dB (subject ", summary.heldout_psnr_fg_db, " dB, background alone ",
-                summary.background_psnr_fg_db, " dB)");
+                summary.background_psnr_fg_db, " dB)"));
     }
   }
   SaveModel(summary.plan);
@@ -750,7 +750,7 @@ NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& 
                          {"last_loss", summary.last_loss},
                          {"divergences", summary.divergences},
                          {"samples_per_ray", summary.samples_per_ray}};
-    report->SetSummary({summary.termination, summary.message});
+    report->SetSummary(summary);
     report->Write(model_dir / "report.json");
   }
   return summary;

@@ -115,7 +115,8 @@ struct RerenderOptions {
   int heldout_cameras = 1;              // spread around the rig
   std::vector<std::string> witness;     // by name (overrides witness_cameras)
   std::vector<std::string> heldout;     // by name (overrides heldout_cameras)
-  bool ground_truth_cameras = false;    // use gt/cameras even when calib/ exists
+  TakeSelection take;                   // frame sets, clean plate and cameras (core/take_plan.h);
+                                        // the folds' reconstructions use the same
 
   // The reconstruction, built from the other cameras into MODEL/recon (or taken from
   // `recon_dir` when given: it must then not have used the witnesses).
@@ -151,8 +152,6 @@ struct RerenderOptions {
                                         // a shorter lens or from farther away sees the subject
                                         // smaller than any witness did; must include 1;
                                         // training crops are at most the smallest such image
-  int64_t first_frame = 0;              // frame sets [first, last) after the clean plate
-  int64_t last_frame = -1;              // -1: to the end
 
   // Optimisation.
   double minutes = 3;                   // wall-clock budget
@@ -186,9 +185,10 @@ struct RerenderOptions {
   nlohmann::json ToJson() const;
 };
 
-struct RerenderSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+// FAILURE when the loss became non-finite; DEGENERATE when the kept network shows the held-out
+// cameras no more of the subject than the background alone; CONVERGENCE when the validation
+// witnesses peaked before the budget ran out (those weights are kept); else NO_CONVERGENCE.
+struct RerenderSummary : Summary {
   nlohmann::json plan;
   int64_t iterations = 0;
   double seconds = 0;                   // training wall time

@@ -18,6 +18,7 @@
 #include "core/image.h"
 #include "core/progress.h"
 #include "core/take.h"
+#include "core/take_plan.h"
 #include "neural/data.h"
 #include "neural/rerender_net.h"
 #include "reconstruction/projector.h"
@@ -217,8 +218,7 @@ void RerenderOptions::Check() const {
     Fail(fold_recon_dirs.size(), " fold reconstructions given for ", witness_folds - 1, " further fold(s)");
   }
   if (image_width < 0 || (image_width > 0 && image_width < 32)) Fail("image_width must be 0 (native) or >= 32 px (got ", image_width, ")");
-  if (first_frame < 0) Fail("first_frame must be >= 0");
-  if (last_frame >= 0 && last_frame <= first_frame) Fail("last_frame must be -1 or > first_frame");
+  take.Check();
   if (!(minutes > 0) && iterations <= 0) Fail("give a positive time budget (minutes) or an iteration count");
   if (iterations < 0) Fail("iterations must be >= 0");
   if (batch_pairs < 1 || batch_pairs > 64) Fail("batch_pairs must be in [1, 64] (got ", batch_pairs, ")");
@@ -237,255 +237,285 @@ void RerenderOptions::Check() const {
 
 nlohmann::json RerenderOptions::ToJson() const {
   return {{"net", net.ToJson()}, {"witness_cameras", witness_cameras}, {"heldout_cameras", heldout_cameras},
-          {"witness", witness}, {"heldout", heldout}, {"ground_truth_cameras", ground_truth_cameras},
+          {"witness", witness}, {"heldout", heldout}, {"take", take.ToJson()},
           {"recon_dir", recon_dir.string()}, {"witness_folds", witness_folds}, {"validation_witnesses", validation_witnesses}, {"fold_witness", fold_witness},
           {"fold_recon_dirs", [&] { std::vector<std::string> d; for (const auto& p : fold_recon_dirs) d.push_back(p.string()); return d; }()},
           {"reconstruction", reconstruction.ToJson()},
-          {"image_width", image_width}, {"supersample", supersample}, {"witness_scales", witness_scales}, {"first_frame", first_frame}, {"last_frame", last_frame},
+          {"image_width", image_width}, {"supersample", supersample}, {"witness_scales", witness_scales},
           {"minutes", minutes}, {"iterations", iterations}, {"batch_pairs", batch_pairs},
           {"crop_px", crop_px},           {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
           {"subject_weight", subject_weight}, {"alpha_weight", alpha_weight}, {"temporal_weight", temporal_weight}, {"gan_weight", gan_weight},
           {"seed", seed}, {"eval_every_s", eval_every_s}, {"threads", threads}};
 }
 
-RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::filesystem::path& model_dir,
-                              const RerenderOptions& options, Report* report) {
-  options.Check();
-  const Take take = Take::Open(take_dir);
-  RerenderSummary summary;
-  nlohmann::json& plan = summary.plan;
+namespace {
 
-  // Cameras and the three-way split.
-  const bool ground_truth = options.ground_truth_cameras || !take.has_calibration();
-  if (ground_truth && !std::filesystem::is_directory(take.gt_dir() / "cameras")) {
-    Fail("take '", take_dir.string(), "' is not calibrated (no calib/ for every sensor, no gt/cameras)");
+// Trains one rerendering model: the take's plan and the three-way camera split, a
+// reconstruction per witness fold, the data at the training resolution, the training loop
+// with early stopping, then the model directory and the summary. Each step is a method; the
+// state they share lives in members.
+class RerenderTrainer {
+ public:
+  RerenderTrainer(const std::filesystem::path& take_dir, const std::filesystem::path& model_dir,
+                  const RerenderOptions& options, Report* report)
+      : take_(Take::Open(take_dir)), model_dir_(model_dir), options_(options), report_(report),
+        plan_(summary_.plan), network_(options.net, options.seed) {}
+
+  RerenderSummary Run() {
+    PlanCameras();
+    ChooseFolds();
+    ReconstructFolds();
+    if (!ChooseFrameSets()) return summary_;
+    LoadData();
+    DescribeTraining();
+    MeasureBaselines();
+    Train();
+    KeepWeights();
+    WriteModel();
+    Summarise();
+    return summary_;
   }
-  std::vector<std::string> names;
-  std::set<std::string> paired;
-  for (const auto& s : take.streams()) {
-    if (s.role == SensorRole::kColor) names.push_back(s.name);
-    if (!s.paired_with.empty()) paired.insert(s.paired_with);
-  }
-  std::vector<CameraModel> cameras;
-  for (const auto& n : names) cameras.push_back(take.Camera(n, ground_truth));
-  auto by_name = [&](const std::vector<std::string>& wanted, const char* what) {
-    std::vector<int> out;
-    for (const auto& w : wanted) {
-      auto it = std::find(names.begin(), names.end(), w);
-      if (it == names.end()) Fail("the ", what, " camera '", w, "' is not a colour camera of the take");
-      out.push_back(static_cast<int>(it - names.begin()));
+
+ private:
+  enum class Output { kNetwork, kRaw, kBackground };
+
+  bool is_heldout(int c) const { return std::find(heldout_.begin(), heldout_.end(), c) != heldout_.end(); }
+  bool is_witness_yet(int c) const {
+    for (const auto& fold : folds_) {
+      if (std::find(fold.begin(), fold.end(), c) != fold.end()) return true;
     }
-    return out;
-  };
-  Eigen::Vector3d center = Eigen::Vector3d::Zero();
-  for (const auto& c : cameras) center += c.center_in_world() / static_cast<double>(cameras.size());
-  // Cameras that colour the depth sensors' fusion stay with the reconstruction when possible.
-  std::vector<int> candidates, fallback;
-  for (int i = 0; i < static_cast<int>(names.size()); ++i) (paired.count(names[i]) ? fallback : candidates).push_back(i);
-  const int wanted_out = (options.heldout.empty() ? options.heldout_cameras : static_cast<int>(options.heldout.size())) +
-                         (options.witness.empty() ? options.witness_cameras : static_cast<int>(options.witness.size()));
-  if (static_cast<int>(candidates.size()) < wanted_out) candidates.insert(candidates.end(), fallback.begin(), fallback.end());
-  std::vector<int> heldout = options.heldout.empty()
-      ? neural::SpreadAround(cameras, candidates, options.heldout_cameras, center) : by_name(options.heldout, "held-out");
-  std::vector<int> rest;
-  for (int c : candidates) if (std::find(heldout.begin(), heldout.end(), c) == heldout.end()) rest.push_back(c);
-  std::vector<int> witness = options.witness.empty() ? neural::SpreadAround(cameras, rest, options.witness_cameras, center)
-                                                     : by_name(options.witness, "witness");
-  for (int w : witness) {
-    if (std::find(heldout.begin(), heldout.end(), w) != heldout.end()) Fail("camera '", names[w], "' cannot be both witness and held out");
-  }
-  const int recon_count = static_cast<int>(names.size() - witness.size() - heldout.size());
-  if (witness.empty() || recon_count < 2) {
-    Fail("take '", take_dir.string(), "' has ", names.size(), " colour cameras: ", witness.size(), " witness and ",
-         heldout.size(), " held-out ones leave ", recon_count, " for the reconstruction (it needs 2)");
-  }
-  // Further folds: other witness sets, each with its own reconstruction.
-  std::vector<std::vector<int>> folds = {witness};
-  auto is_witness_yet = [&](int c) {
-    for (const auto& f : folds) if (std::find(f.begin(), f.end(), c) != f.end()) return true;
     return false;
-  };
-  if (!options.fold_witness.empty()) {
-    for (const auto& named : options.fold_witness) {
-      std::vector<int> fold = by_name(named, "witness");
-      for (int c : fold) {
-        if (std::find(heldout.begin(), heldout.end(), c) != heldout.end()) Fail("camera '", names[c], "' cannot be both witness and held out");
-        if (is_witness_yet(c)) Fail("camera '", names[c], "' is a witness of two folds");
-      }
-      folds.push_back(fold);
-    }
-  } else {
-    for (int k = 1; k < options.witness_folds; ++k) {
-      std::vector<int> pool;
-      for (int c : rest) if (!is_witness_yet(c)) pool.push_back(c);
-      if (pool.empty()) break;
-      folds.push_back(neural::SpreadAround(cameras, pool, std::min<int>(static_cast<int>(witness.size()), static_cast<int>(pool.size())), center));
-    }
   }
-  for (const auto& fold : folds) {
-    const int left = static_cast<int>(names.size() - fold.size() - heldout.size());
-    if (fold.empty() || left < 2) Fail("a fold of ", fold.size(), " witnesses leaves ", left, " cameras for its reconstruction (it needs 2)");
-  }
-  if (options.fold_recon_dirs.size() > folds.size() - 1) {
-    Fail(options.fold_recon_dirs.size(), " fold reconstructions given for ", folds.size() - 1, " further fold(s)");
-  }
-  std::vector<std::string> witness_names, heldout_names;
-  for (const auto& fold : folds) for (int w : fold) witness_names.push_back(names[w]);
-  for (int h : heldout) heldout_names.push_back(names[h]);
-  const int validation_count = options.validation_witnesses >= 0 ? options.validation_witnesses
-                               : witness_names.size() >= 3 ? std::max(1, static_cast<int>(witness_names.size()) / 5) : 0;
-  if (validation_count >= static_cast<int>(witness_names.size())) {
-    Fail(validation_count, " validation witness(es) leave no witness to train on (", witness_names.size(),
-         " in all): ask for more witnesses or folds");
-  }
-  plan["cameras"] = ground_truth ? "gt/cameras" : "calib/";
-  plan["witness"] = witness_names;
-  plan["heldout"] = heldout_names;
-  plan["reconstruction_cameras"] = recon_count;
 
-  // The reconstructions, each from the cameras that are neither its fold's witnesses nor held out.
-  std::filesystem::create_directories(model_dir);
-  const auto start_all = std::chrono::steady_clock::now();
-  auto reconstruct = [&](size_t k, nlohmann::json& fold_plan) {
-    std::set<std::string> left_out;
-    for (int w : folds[k]) left_out.insert(names[w]);
-    for (int h : heldout) left_out.insert(names[h]);
-    std::filesystem::path recon_dir = k == 0 ? options.recon_dir
-                                      : k - 1 < options.fold_recon_dirs.size() ? options.fold_recon_dirs[k - 1]
-                                                                               : std::filesystem::path();
-    std::map<int64_t, std::filesystem::path> meshes;
-    const auto start_fold = std::chrono::steady_clock::now();
-    if (recon_dir.empty()) {
-      recon_dir = k == 0 ? model_dir / "recon" : model_dir / Cat("recon-", k);
-      const std::filesystem::path view = model_dir / "witness_take";
-      WriteWitnessView(take, left_out, view);
-      ReconstructionOptions recon = options.reconstruction;
-      recon.first_frame = options.first_frame;
-      recon.last_frame = options.last_frame;
-      recon.write_glb = false;
-      recon.sweep_voxels_m.clear();
-      recon.threads = options.threads;
-      Report recon_report("reconstruct");
-      ReconstructionSummary built = ReconstructTake(view, recon_dir, recon, &recon_report);
-      for (const auto& f : built.frames) {
-        char file[32];
-        std::snprintf(file, sizeof(file), "%06lld.ply", static_cast<long long>(f.set));
-        if (IsUsable(f.termination) && f.faces > 0) meshes[f.set] = recon_dir / file;
+  // The take's plan; held-out cameras and the first witnesses, spread around the rig.
+  void PlanCameras() {
+    take_plan_ = PlanTake(take_, options_.take);
+    names_ = take_plan_.color_sensors;
+    cameras_ = take_plan_.Cameras(names_);
+    Eigen::Vector3d center = Eigen::Vector3d::Zero();
+    for (const auto& c : cameras_) center += c.center_in_world() / static_cast<double>(cameras_.size());
+    center_ = center;
+    // Cameras that colour the depth sensors' fusion stay with the reconstruction when possible.
+    std::vector<int> candidates, fallback;
+    for (int i = 0; i < static_cast<int>(names_.size()); ++i) {
+      (take_plan_.paired_color.count(names_[i]) ? fallback : candidates).push_back(i);
+    }
+    const int wanted_out =
+        (options_.heldout.empty() ? options_.heldout_cameras : static_cast<int>(options_.heldout.size())) +
+        (options_.witness.empty() ? options_.witness_cameras : static_cast<int>(options_.witness.size()));
+    if (static_cast<int>(candidates.size()) < wanted_out) candidates.insert(candidates.end(), fallback.begin(), fallback.end());
+    heldout_ = options_.heldout.empty() ? SpreadAround(cameras_, candidates, options_.heldout_cameras, center_)
+                                        : take_plan_.ColorIndices(options_.heldout, "held-out");
+    for (int c : candidates) {
+      if (!is_heldout(c)) rest_.push_back(c);
+    }
+    const std::vector<int> witness = options_.witness.empty()
+                                         ? SpreadAround(cameras_, rest_, options_.witness_cameras, center_)
+                                         : take_plan_.ColorIndices(options_.witness, "witness");
+    for (int w : witness) {
+      if (is_heldout(w)) Fail("camera '", names_[w], "' cannot be both witness and held out");
+    }
+    recon_count_ = static_cast<int>(names_.size() - witness.size() - heldout_.size());
+    if (witness.empty() || recon_count_ < 2) {
+      Fail("take '", take_.dir().string(), "' has ", names_.size(), " colour cameras: ", witness.size(), " witness and ",
+           heldout_.size(), " held-out ones leave ", recon_count_, " for the reconstruction (it needs 2)");
+    }
+    folds_ = {witness};
+  }
+
+  // Further folds: other witness sets, each with its own reconstruction.
+  void ChooseFolds() {
+    if (!options_.fold_witness.empty()) {
+      for (const auto& named : options_.fold_witness) {
+        std::vector<int> fold = take_plan_.ColorIndices(named, "witness");
+        for (int c : fold) {
+          if (is_heldout(c)) Fail("camera '", names_[c], "' cannot be both witness and held out");
+          if (is_witness_yet(c)) Fail("camera '", names_[c], "' is a witness of two folds");
+        }
+        folds_.push_back(fold);
       }
-      fold_plan["reconstruction"] = Cat(ToString(built.termination), ": ", built.message);
-      std::filesystem::remove_all(view);
     } else {
-      if (!std::filesystem::is_directory(recon_dir)) Fail("reconstruction directory ", recon_dir.string(), " does not exist");
-      // A reconstruction that saw a witness or a held-out camera would score the network on
-      // views it was coloured from: refused when its report names the cameras it used.
-      const std::filesystem::path built_report = recon_dir / "report.json";
-      std::string cameras_used = "cameras not recorded";
-      if (std::filesystem::exists(built_report)) {
-        nlohmann::json built;
-        try {
-          built = nlohmann::json::parse(std::ifstream(built_report));
-        } catch (const std::exception& e) {
-          Fail("reconstruction report ", built_report.string(), " is unreadable: ", e.what());
+      const int fold_size = static_cast<int>(folds_[0].size());
+      for (int k = 1; k < options_.witness_folds; ++k) {
+        std::vector<int> pool;
+        for (int c : rest_) {
+          if (!is_witness_yet(c)) pool.push_back(c);
         }
-        const nlohmann::json used = built.contains("plan") ? built["plan"].value("color_sensors", nlohmann::json()) : nlohmann::json();
-        if (used.is_array()) {
-          for (const auto& name : used) {
-            const std::string camera = name.get<std::string>();
-            if (!left_out.count(camera)) continue;
-            const bool is_heldout = std::any_of(heldout.begin(), heldout.end(), [&](int h) { return names[h] == camera; });
-            Fail("reconstruction ", recon_dir.string(), " was built with camera '", camera, "', ",
-                 is_heldout ? "held out" : "a witness of its fold", ": build it without that camera");
-          }
-          cameras_used = Cat(used.size(), " colour cameras, none of this fold's witnesses or held-out");
-        }
+        if (pool.empty()) break;
+        folds_.push_back(SpreadAround(cameras_, pool, std::min<int>(fold_size, static_cast<int>(pool.size())), center_));
       }
-      for (const auto& entry : std::filesystem::directory_iterator(recon_dir)) {
-        if (entry.path().extension() != ".ply") continue;
-        try {
-          meshes[std::stoll(entry.path().stem().string())] = entry.path();
-        } catch (const std::exception&) {
-        }
-      }
-      fold_plan["reconstruction"] = Cat("given: ", recon_dir.string(), " (", cameras_used, ")");
     }
-    fold_plan["reconstruction_seconds"] = Seconds(start_fold);
-    return meshes;
-  };
-  std::vector<std::map<int64_t, std::filesystem::path>> fold_meshes;
-  nlohmann::json fold_plans = nlohmann::json::array();
-  for (size_t k = 0; k < folds.size(); ++k) {
-    nlohmann::json fold_plan;
-    std::vector<std::string> fold_names;
-    for (int w : folds[k]) fold_names.push_back(names[w]);
-    fold_plan["witness"] = fold_names;
-    fold_plan["reconstruction_cameras"] = static_cast<int>(names.size() - folds[k].size() - heldout.size());
-    fold_meshes.push_back(reconstruct(k, fold_plan));
-    if (k == 0) plan["reconstruction"] = fold_plan["reconstruction"];
-    fold_plans.push_back(fold_plan);
-  }
-  std::map<int64_t, std::filesystem::path>& meshes = fold_meshes[0];
-  if (folds.size() > 1) plan["folds"] = fold_plans;
-  if (options.fold_witness.empty() && static_cast<int>(folds.size()) < options.witness_folds) {
-    plan["witness_folds"] = Cat(options.witness_folds, " asked, ", folds.size(),
-                                " possible: every other camera is a witness, held out or colours a depth sensor");
-  }
-  plan["reconstruction_seconds"] = Seconds(start_all);
-  std::map<int64_t, size_t> entry_of_set;
-  for (size_t i = 0; i < take.size(); ++i) entry_of_set[take.entry(i).index] = i;
-  std::vector<int64_t> sets;
-  for (const auto& [set, file] : meshes) {
-    bool everywhere = entry_of_set.count(set) > 0;
-    for (const auto& other : fold_meshes) everywhere = everywhere && other.count(set) > 0;
-    if (everywhere) sets.push_back(set);
-  }
-  plan["frames"] = sets.size();
-  if (sets.empty()) {
-    summary.termination = Termination::kDegenerate;
-    summary.message = "the reconstruction gave no mesh to rerender";
-    if (report) {
-      report->plan() = plan;
-      report->SetSummary({summary.termination, summary.message});
-      report->Write(model_dir / "report.json");
+    for (const auto& fold : folds_) {
+      const int left = static_cast<int>(names_.size() - fold.size() - heldout_.size());
+      if (fold.empty() || left < 2) Fail("a fold of ", fold.size(), " witnesses leaves ", left, " cameras for its reconstruction (it needs 2)");
     }
-    return summary;
+    if (options_.fold_recon_dirs.size() > folds_.size() - 1) {
+      Fail(options_.fold_recon_dirs.size(), " fold reconstructions given for ", folds_.size() - 1, " further fold(s)");
+    }
+    for (const auto& fold : folds_) {
+      for (int w : fold) witness_names_.push_back(names_[w]);
+    }
+    for (int h : heldout_) take_plan_.heldout.push_back(names_[h]);
+    take_plan_.witness = witness_names_;
+    validation_count_ = options_.validation_witnesses >= 0 ? options_.validation_witnesses
+                        : witness_names_.size() >= 3 ? std::max(1, static_cast<int>(witness_names_.size()) / 5)
+                                                     : 0;
+    if (validation_count_ >= static_cast<int>(witness_names_.size())) {
+      Fail(validation_count_, " validation witness(es) leave no witness to train on (", witness_names_.size(),
+           " in all): ask for more witnesses or folds");
+    }
+    if (!take_plan_.depth_sensors.empty() && options_.reconstruction.method == ReconstructionMethod::kHull) {
+      take_plan_.LeaveOut("depth sensors", "the folds' reconstruction is a visual hull");
+    }
+    plan_ = take_plan_.ToJson();
+    plan_["reconstruction_cameras"] = recon_count_;
   }
 
-  // Data at the training resolution (and, for the witnesses, at the further scales asked for).
-  const std::set<std::string> validation_names(witness_names.end() - validation_count, witness_names.end());
-  const int threads = recon::ResolveThreads(options.threads);
-  torch::set_num_threads(threads);
-  const int64_t clean_plates = take.metadata().value("clean_plate_frames", int64_t{0});
-  const int multiple = 1 << options.net.depth;
-  std::vector<CameraData> data;
-  Eigen::Vector3d box_min = Eigen::Vector3d::Constant(1e30), box_max = Eigen::Vector3d::Constant(-1e30);
-  auto load_camera = [&](int index, const std::vector<Mesh>& mesh_cache, bool is_witness, double extra_scale) {
+  // Builds fold k's reconstruction from the cameras that are neither its witnesses nor held out.
+  std::map<int64_t, std::filesystem::path> BuildReconstruction(size_t k, const std::set<std::string>& left_out,
+                                                               nlohmann::json& fold_plan) {
+    std::map<int64_t, std::filesystem::path> meshes;
+    const std::filesystem::path recon_dir = k == 0 ? model_dir_ / "recon" : model_dir_ / Cat("recon-", k);
+    const std::filesystem::path view = model_dir_ / "witness_take";
+    WriteWitnessView(take_, left_out, view);
+    ReconstructionOptions recon = options_.reconstruction;
+    recon.write_glb = false;
+    recon.sweep_voxels_m.clear();
+    recon.threads = options_.threads;
+    Report recon_report("reconstruct");
+    ReconstructionSummary built = ReconstructTake(view, options_.take, recon_dir, recon, &recon_report);
+    for (const auto& f : built.frames) {
+      char file[32];
+      std::snprintf(file, sizeof(file), "%06lld.ply", static_cast<long long>(f.set));
+      if (f.IsUsable() && f.faces > 0) meshes[f.set] = recon_dir / file;
+    }
+    fold_plan["reconstruction"] = Cat(ToString(built.termination), ": ", built.message);
+    std::filesystem::remove_all(view);
+    return meshes;
+  }
+
+  // A given reconstruction; refused when its report says it saw a witness or held-out camera
+  // (it would score the network on views it was coloured from).
+  std::map<int64_t, std::filesystem::path> GivenReconstruction(const std::filesystem::path& recon_dir,
+                                                               const std::set<std::string>& left_out,
+                                                               nlohmann::json& fold_plan) {
+    if (!std::filesystem::is_directory(recon_dir)) Fail("reconstruction directory ", recon_dir.string(), " does not exist");
+    const std::filesystem::path built_report = recon_dir / "report.json";
+    std::string cameras_used = "cameras not recorded";
+    if (std::filesystem::exists(built_report)) {
+      nlohmann::json built;
+      try {
+        built = nlohmann::json::parse(std::ifstream(built_report));
+      } catch (const std::exception& e) {
+        Fail("reconstruction report ", built_report.string(), " is unreadable: ", e.what());
+      }
+      const nlohmann::json used = built.contains("plan") ? built["plan"].value("color_sensors", nlohmann::json()) : nlohmann::json();
+      if (used.is_array()) {
+        for (const auto& name : used) {
+          const std::string camera = name.get<std::string>();
+          if (!left_out.count(camera)) continue;
+          const bool was_heldout = std::any_of(heldout_.begin(), heldout_.end(), [&](int h) { return names_[h] == camera; });
+          Fail("reconstruction ", recon_dir.string(), " was built with camera '", camera, "', ",
+               was_heldout ? "held out" : "a witness of its fold", ": build it without that camera");
+        }
+        cameras_used = Cat(used.size(), " colour cameras, none of this fold's witnesses or held-out");
+      }
+    }
+    std::map<int64_t, std::filesystem::path> meshes;
+    for (const auto& entry : std::filesystem::directory_iterator(recon_dir)) {
+      if (entry.path().extension() != ".ply") continue;
+      try {
+        meshes[std::stoll(entry.path().stem().string())] = entry.path();
+      } catch (const std::exception&) {
+      }
+    }
+    fold_plan["reconstruction"] = Cat("given: ", recon_dir.string(), " (", cameras_used, ")");
+    return meshes;
+  }
+
+  void ReconstructFolds() {
+    std::filesystem::create_directories(model_dir_);
+    const auto start_all = std::chrono::steady_clock::now();
+    nlohmann::json fold_plans = nlohmann::json::array();
+    for (size_t k = 0; k < folds_.size(); ++k) {
+      nlohmann::json fold_plan;
+      std::vector<std::string> fold_names;
+      for (int w : folds_[k]) fold_names.push_back(names_[w]);
+      fold_plan["witness"] = fold_names;
+      fold_plan["reconstruction_cameras"] = static_cast<int>(names_.size() - folds_[k].size() - heldout_.size());
+      std::set<std::string> left_out;
+      for (int w : folds_[k]) left_out.insert(names_[w]);
+      for (int h : heldout_) left_out.insert(names_[h]);
+      const std::filesystem::path given = k == 0                                      ? options_.recon_dir
+                                          : k - 1 < options_.fold_recon_dirs.size() ? options_.fold_recon_dirs[k - 1]
+                                                                                    : std::filesystem::path();
+      const auto start_fold = std::chrono::steady_clock::now();
+      fold_meshes_.push_back(given.empty() ? BuildReconstruction(k, left_out, fold_plan)
+                                           : GivenReconstruction(given, left_out, fold_plan));
+      fold_plan["reconstruction_seconds"] = Seconds(start_fold);
+      if (k == 0) plan_["reconstruction"] = fold_plan["reconstruction"];
+      fold_plans.push_back(fold_plan);
+    }
+    if (folds_.size() > 1) plan_["folds"] = fold_plans;
+    if (options_.fold_witness.empty() && static_cast<int>(folds_.size()) < options_.witness_folds) {
+      plan_["witness_folds"] = Cat(options_.witness_folds, " asked, ", folds_.size(),
+                                   " possible: every other camera is a witness, held out or colours a depth sensor");
+    }
+    plan_["reconstruction_seconds"] = Seconds(start_all);
+  }
+
+  // The frame sets every fold reconstructed; false (DEGENERATE, reported) when there are none.
+  bool ChooseFrameSets() {
+    for (size_t i = 0; i < take_.size(); ++i) entry_of_set_[take_.entry(i).index] = i;
+    for (const auto& [set, file] : fold_meshes_[0]) {
+      bool everywhere = entry_of_set_.count(set) > 0;
+      for (const auto& other : fold_meshes_) everywhere = everywhere && other.count(set) > 0;
+      if (everywhere) sets_.push_back(set);
+    }
+    plan_["frames"] = sets_.size();
+    if (!sets_.empty()) return true;
+    summary_.End(Termination::kDegenerate, "the reconstruction gave no mesh to rerender");
+    if (report_) {
+      report_->plan() = plan_;
+      report_->SetSummary(summary_);
+      report_->Write(model_dir_ / "report.json");
+    }
+    return false;
+  }
+
+  // One camera at the training resolution (times `extra_scale`), over every frame set.
+  void LoadCamera(int index, const std::vector<Mesh>& mesh_cache, bool is_witness, double extra_scale) {
     CameraData d;
-    d.name = names[index];
+    d.name = names_[index];
     d.witness = is_witness;
-    d.camera = cameras[index];
-    const double scale = (options.image_width > 0 ? static_cast<double>(options.image_width) / d.camera.width() : 1.0) * extra_scale;
+    d.camera = cameras_[index];
+    const double scale =
+        (options_.image_width > 0 ? static_cast<double>(options_.image_width) / d.camera.width() : 1.0) * extra_scale;
     d.scaled = scale == 1.0 ? d.camera : d.camera.Scaled(scale);
     d.width = d.scaled.width();
     d.height = d.scaled.height();
     const cv::Size size(d.width, d.height);
-    cv::Mat background = clean_plates > 0 ? ToFloatImage(take.ReadFrame(0, d.name), size)
-                                          : cv::Mat(size, CV_32FC3, cv::Scalar::all(0));
-    d.background = neural::PadToMultiple(neural::ImageToTensor(background).unsqueeze(0), multiple);
+    const bool has_plate = take_plan_.has_clean_plate();
+    const size_t plate_set = static_cast<size_t>(std::max<int64_t>(0, take_plan_.plate_set()));
+    cv::Mat background = has_plate ? ToFloatImage(take_.ReadFrame(plate_set, d.name), size)
+                                   : cv::Mat(size, CV_32FC3, cv::Scalar::all(0));
+    d.background = neural::PadToMultiple(neural::ImageToTensor(background).unsqueeze(0), multiple_);
     d.background_image = background;
-    const bool silhouettes = is_witness && options.alpha_weight > 0 &&
-                             (options.reconstruction.silhouette.mode == SilhouetteMode::kThreshold || clean_plates > 0);
+    const bool silhouettes = is_witness && options_.alpha_weight > 0 &&
+                             (options_.reconstruction.silhouette.mode == SilhouetteMode::kThreshold || has_plate);
     cv::Mat plate;
-    if (silhouettes && clean_plates > 0) plate = ToEightBitColor(take.ReadFrame(0, d.name));
+    if (silhouettes && has_plate) plate = ToEightBitColor(take_.ReadFrame(plate_set, d.name));
     std::vector<torch::Tensor> features, truth, weight, alpha_target;
     const int dilate = std::max(2, d.width / 40);
     const cv::Mat kernel = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * dilate + 1, 2 * dilate + 1));
-    for (size_t f = 0; f < sets.size(); ++f) {
-      GBuffer buffers = RasteriseMesh(mesh_cache[f], d.scaled, RasterOptions{.supersample = options.supersample, .threads = threads});
-      const cv::Mat native = take.ReadFrame(entry_of_set[sets[f]], d.name);
+    for (size_t f = 0; f < sets_.size(); ++f) {
+      GBuffer buffers =
+          RasteriseMesh(mesh_cache[f], d.scaled, RasterOptions{.supersample = options_.supersample, .threads = threads_});
+      const cv::Mat native = take_.ReadFrame(entry_of_set_[sets_[f]], d.name);
       cv::Mat image = ToFloatImage(native, size);
       if (silhouettes) {
         // The witness's silhouette at the training resolution (area-averaged: soft edges).
-        cv::Mat mask = ExtractSilhouette(ToEightBitColor(native), plate, options.reconstruction.silhouette), soft;
+        cv::Mat mask = ExtractSilhouette(ToEightBitColor(native), plate, options_.reconstruction.silhouette), soft;
         mask.convertTo(mask, CV_32F, 1.0 / 255);
         cv::resize(mask, soft, size, 0, 0, cv::INTER_AREA);
         alpha_target.push_back(neural::ImageToTensor(soft));
@@ -495,7 +525,7 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       features.push_back(neural::RerenderFeatures(buffers));
       truth.push_back(neural::ImageToTensor(image));
       cv::Mat w;
-      subject.convertTo(w, CV_32F, (options.subject_weight - 1) / 255.0, 1.0);
+      subject.convertTo(w, CV_32F, (options_.subject_weight - 1) / 255.0, 1.0);
       weight.push_back(neural::ImageToTensor(w));
       d.truth_images.push_back(image);
       d.raw_images.push_back(CompositeRawRender(buffers, background));
@@ -505,82 +535,92 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
       d.subject_pixels.emplace_back();
       for (const cv::Point& p : near) d.subject_pixels.back().push_back(p.y * d.width + p.x);
     }
-    d.features = neural::PadToMultiple(torch::stack(features), multiple);
-    d.truth = neural::PadToMultiple(torch::stack(truth), multiple);
-    d.weight = neural::PadToMultiple(torch::stack(weight), multiple);
-    if (!alpha_target.empty()) d.alpha_target = neural::PadToMultiple(torch::stack(alpha_target), multiple);
-    data.push_back(std::move(d));
-  };
-  for (size_t k = 0; k < folds.size(); ++k) {
-    // One fold's meshes in memory at a time.
-    std::vector<Mesh> mesh_cache;
-    for (int64_t set : sets) mesh_cache.push_back(ReadPly(fold_meshes[k][set]));
-    if (k == 0) {
-      for (const Mesh& m : mesh_cache) {
-        for (const auto& v : m.vertices) box_min = box_min.cwiseMin(v.cast<double>()), box_max = box_max.cwiseMax(v.cast<double>());
+    d.features = neural::PadToMultiple(torch::stack(features), multiple_);
+    d.truth = neural::PadToMultiple(torch::stack(truth), multiple_);
+    d.weight = neural::PadToMultiple(torch::stack(weight), multiple_);
+    if (!alpha_target.empty()) d.alpha_target = neural::PadToMultiple(torch::stack(alpha_target), multiple_);
+    data_.push_back(std::move(d));
+  }
+
+  // Data at the training resolution (and, for the witnesses, at the further scales asked for),
+  // one fold's meshes in memory at a time; then the split into trained, validation and
+  // held-out cameras.
+  void LoadData() {
+    validation_names_ = std::set<std::string>(witness_names_.end() - validation_count_, witness_names_.end());
+    threads_ = recon::ResolveThreads(options_.threads);
+    torch::set_num_threads(threads_);
+    multiple_ = 1 << options_.net.depth;
+    for (size_t k = 0; k < folds_.size(); ++k) {
+      std::vector<Mesh> mesh_cache;
+      for (int64_t set : sets_) mesh_cache.push_back(ReadPly(fold_meshes_[k][set]));
+      if (k == 0) {
+        for (const Mesh& m : mesh_cache) {
+          for (const auto& v : m.vertices) {
+            box_min_ = box_min_.cwiseMin(v.cast<double>());
+            box_max_ = box_max_.cwiseMax(v.cast<double>());
+          }
+        }
+        for (int h : heldout_) LoadCamera(h, mesh_cache, false, 1.0);
       }
-      for (int h : heldout) load_camera(h, mesh_cache, false, 1.0);
+      for (int w : folds_[k]) {
+        LoadCamera(w, mesh_cache, true, 1.0);
+        // Validation witnesses are scored at the training width only; the others train at every
+        // scale asked for.
+        if (validation_names_.count(names_[w])) continue;
+        for (double s : options_.witness_scales) {
+          if (s != 1.0) LoadCamera(w, mesh_cache, true, s);
+        }
+      }
     }
-    for (int w : folds[k]) {
-      load_camera(w, mesh_cache, true, 1.0);
-      // Validation witnesses are scored at the training width only; the others train at every
-      // scale asked for.
-      if (validation_names.count(names[w])) continue;
-      for (double s : options.witness_scales) if (s != 1.0) load_camera(w, mesh_cache, true, s);
+    for (CameraData& d : data_) {
+      if (!d.witness) eval_cameras_.push_back(&d);
+      else if (validation_names_.count(d.name)) validation_cameras_.push_back(&d);
+      else train_cameras_.push_back(&d);
     }
-  }
-  // Validation witnesses: the last ones (the last fold's), at the training width.
-  std::vector<CameraData*> train_cameras, eval_cameras, validation_cameras;
-  for (CameraData& d : data) {
-    if (!d.witness) eval_cameras.push_back(&d);
-    else if (validation_names.count(d.name)) validation_cameras.push_back(&d);
-    else train_cameras.push_back(&d);
-  }
-  if (!validation_cameras.empty()) {
-    std::vector<std::string> validation_list;
-    for (const CameraData* d : validation_cameras) validation_list.push_back(d->name);
-    plan["validation"] = validation_list;
-  }
-  const bool temporal = sets.size() >= 2 && options.temporal_weight > 0;
-  plan["temporal_term"] = temporal ? "on" : (sets.size() < 2 ? "off: one frame" : "off: weight 0");
-  plan["patch_gan"] = options.gan_weight > 0 ? "on" : "off";
-  plan["alpha_target"] = options.alpha_weight <= 0 ? std::string("off: weight 0")
-                         : train_cameras[0]->alpha_target.defined()
-                             ? std::string("the witnesses' silhouettes")
-                             : std::string("off: background subtraction without a clean plate");
-  if (options.witness_scales.size() > 1 || options.witness_scales[0] != 1.0) plan["witness_scales"] = options.witness_scales;
-  plan["trained_views"] = train_cameras.size();  // witness cameras trained on, once per scale
-  plan["train_resolution"] = Cat(train_cameras[0]->width, "x", train_cameras[0]->height, " (", train_cameras[0]->name, ")");
-  plan["raster_samples"] = options.supersample == 1
-      ? std::string("1 per pixel (its centre)")
-      : Cat(options.supersample, "x", options.supersample, " per pixel, averaged (the raw render too)");
-  // Crops share one size across the witnesses: the requested one rounded up to the network's
-  // multiple, at most the smallest padded image.
-  int64_t crop_w = std::numeric_limits<int64_t>::max(), crop_h = crop_w;
-  for (const CameraData* d : train_cameras) {
-    crop_w = std::min(crop_w, d->features.size(3));
-    crop_h = std::min(crop_h, d->features.size(2));
-  }
-  if (options.crop_px > 0) {
-    const int64_t crop = (options.crop_px + multiple - 1) / multiple * multiple;
-    crop_w = std::min(crop_w, crop);
-    crop_h = std::min(crop_h, crop);
-  }
-  plan["train_crop"] = options.crop_px > 0 ? Cat(crop_w, "x", crop_h, " near the subject") : std::string("whole images");
-
-  RerenderNetwork network(options.net, options.seed);
-  neural::UNet& net = network.state().net;
-  plan["parameters"] = network.parameter_count();
-  torch::optim::Adam optimizer(net->parameters(), torch::optim::AdamOptions(options.learning_rate));
-  torch::nn::Sequential discriminator{nullptr};
-  std::unique_ptr<torch::optim::Adam> d_optimizer;
-  if (options.gan_weight > 0) {
-    discriminator = PatchDiscriminator();
-    d_optimizer = std::make_unique<torch::optim::Adam>(discriminator->parameters(), torch::optim::AdamOptions(options.learning_rate).betas({0.5, 0.999}));
+    temporal_ = sets_.size() >= 2 && options_.temporal_weight > 0;
   }
 
-  enum class Output { kNetwork, kRaw, kBackground };
-  auto evaluate = [&](Output what, const std::vector<CameraData*>& on) {
+  void DescribeTraining() {
+    if (!validation_cameras_.empty()) {
+      std::vector<std::string> validation_list;
+      for (const CameraData* d : validation_cameras_) validation_list.push_back(d->name);
+      plan_["validation"] = validation_list;
+    }
+    plan_["temporal_term"] = temporal_ ? "on" : (sets_.size() < 2 ? "off: one frame" : "off: weight 0");
+    plan_["patch_gan"] = options_.gan_weight > 0 ? "on" : "off";
+    plan_["alpha_target"] = options_.alpha_weight <= 0 ? std::string("off: weight 0")
+                            : train_cameras_[0]->alpha_target.defined()
+                                ? std::string("the witnesses' silhouettes")
+                                : std::string("off: background subtraction without a clean plate");
+    if (options_.witness_scales.size() > 1 || options_.witness_scales[0] != 1.0) plan_["witness_scales"] = options_.witness_scales;
+    plan_["trained_views"] = train_cameras_.size();  // witness cameras trained on, once per scale
+    plan_["train_resolution"] =
+        Cat(train_cameras_[0]->width, "x", train_cameras_[0]->height, " (", train_cameras_[0]->name, ")");
+    plan_["raster_samples"] = options_.supersample == 1
+                                  ? std::string("1 per pixel (its centre)")
+                                  : Cat(options_.supersample, "x", options_.supersample, " per pixel, averaged (the raw render too)");
+    // Crops share one size across the witnesses: the requested one rounded up to the network's
+    // multiple, at most the smallest padded image.
+    crop_w_ = crop_h_ = std::numeric_limits<int64_t>::max();
+    for (const CameraData* d : train_cameras_) {
+      crop_w_ = std::min(crop_w_, d->features.size(3));
+      crop_h_ = std::min(crop_h_, d->features.size(2));
+    }
+    if (options_.crop_px > 0) {
+      const int64_t crop = (options_.crop_px + multiple_ - 1) / multiple_ * multiple_;
+      crop_w_ = std::min(crop_w_, crop);
+      crop_h_ = std::min(crop_h_, crop);
+    }
+    plan_["train_crop"] = options_.crop_px > 0 ? Cat(crop_w_, "x", crop_h_, " near the subject") : std::string("whole images");
+    plan_["parameters"] = network_.parameter_count();
+    if (report_) {
+      report_->options() = options_.ToJson();
+      report_->plan() = plan_;
+    }
+  }
+
+  std::pair<Evaluation, std::vector<std::vector<cv::Mat>>> Evaluate(Output what, const std::vector<CameraData*>& on) {
+    neural::UNet& net = network_.state().net;
     std::vector<std::vector<cv::Mat>> images(on.size());
     torch::NoGradGuard no_grad;
     net->eval();
@@ -599,92 +639,71 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     }
     net->train();
     return std::make_pair(Score(images, on), images);
-  };
-
-  if (report) {
-    report->options() = options.ToJson();
-    report->plan() = plan;
   }
-  const Evaluation raw = evaluate(Output::kRaw, eval_cameras).first;
-  const Evaluation background_only = evaluate(Output::kBackground, eval_cameras).first;
-  if (!validation_cameras.empty()) summary.validation_raw_psnr_db = evaluate(Output::kRaw, validation_cameras).first.psnr_db;
-  double best_validation = -std::numeric_limits<double>::infinity();
-  summary.background_psnr_db = background_only.psnr_db;
-  summary.background_psnr_subject_db = background_only.psnr_subject_db;
-  summary.background_ssim = background_only.ssim;
-  summary.raw_render_psnr_db = raw.psnr_db;
-  summary.raw_render_ssim = raw.ssim;
-  summary.raw_render_psnr_subject_db = raw.psnr_subject_db;
-  summary.raw_flicker_ratio = raw.flicker_ratio;
-  summary.raw_flicker_excess = raw.flicker_excess;
 
-  std::mt19937_64 rng(options.seed);
-  const auto start = std::chrono::steady_clock::now();
-  double next_eval = 0;
-  Evaluation last;
-  std::vector<std::vector<cv::Mat>> last_images;
-  std::vector<double> losses;
-  Progress progress("rerender", options.iterations > 0 ? options.iterations : static_cast<int64_t>(options.minutes * 60));
-  const std::filesystem::path weights = model_dir / "unet.pt";
-  bool diverged = false;
-  int64_t iteration = 0;
-  for (;; ++iteration) {
-    const double elapsed = Seconds(start);
-    const bool done = (options.iterations > 0 && iteration >= options.iterations) ||
-                      (options.minutes > 0 && elapsed >= options.minutes * 60);
-    if ((!eval_cameras.empty() || !validation_cameras.empty()) && (elapsed >= next_eval || done)) {
-      bool keep = true;
-      if (!validation_cameras.empty()) {
-        const double psnr = evaluate(Output::kNetwork, validation_cameras).first.psnr_db;
-        if (report) report->AddPoint("validation_psnr_db", psnr, iteration);
-        keep = psnr > best_validation;
-        if (keep) best_validation = psnr, summary.kept_iteration = iteration;
-      }
-      if (!eval_cameras.empty()) {
-        Evaluation now;
-        std::vector<std::vector<cv::Mat>> now_images;
-        std::tie(now, now_images) = evaluate(Output::kNetwork, eval_cameras);
-        if (report) {
-          report->AddPoint("heldout_psnr_db", now.psnr_db, iteration);
-          report->AddPoint("heldout_ssim", now.ssim, iteration);
-        }
-        if (keep) last = now, last_images = std::move(now_images);
-      }
-      if (keep) network.Save(weights);
-      next_eval = elapsed + options.eval_every_s;
+  // The raw render and the background alone on the held-out cameras: what training must beat.
+  void MeasureBaselines() {
+    const Evaluation raw = Evaluate(Output::kRaw, eval_cameras_).first;
+    const Evaluation background_only = Evaluate(Output::kBackground, eval_cameras_).first;
+    if (!validation_cameras_.empty()) summary_.validation_raw_psnr_db = Evaluate(Output::kRaw, validation_cameras_).first.psnr_db;
+    summary_.background_psnr_db = background_only.psnr_db;
+    summary_.background_psnr_subject_db = background_only.psnr_subject_db;
+    summary_.background_ssim = background_only.ssim;
+    summary_.raw_render_psnr_db = raw.psnr_db;
+    summary_.raw_render_ssim = raw.ssim;
+    summary_.raw_render_psnr_subject_db = raw.psnr_subject_db;
+    summary_.raw_flicker_ratio = raw.flicker_ratio;
+    summary_.raw_flicker_excess = raw.flicker_excess;
+  }
+
+  // Scores the validation and held-out cameras; saves the weights when validation improved.
+  void EvaluateAndKeep(int64_t iteration) {
+    bool keep = true;
+    if (!validation_cameras_.empty()) {
+      const double psnr = Evaluate(Output::kNetwork, validation_cameras_).first.psnr_db;
+      if (report_) report_->AddPoint("validation_psnr_db", psnr, iteration);
+      keep = psnr > best_validation_;
+      if (keep) best_validation_ = psnr, summary_.kept_iteration = iteration;
     }
-    if (done) break;
-    // Cosine decay of the rate to a tenth over the budget: large steps first, then refinement
-    // without their noise.
-    const double spent = std::max(options.minutes > 0 ? elapsed / (options.minutes * 60) : 0.0,
-                                  options.iterations > 0 ? static_cast<double>(iteration) / options.iterations : 0.0);
-    static_cast<torch::optim::AdamOptions&>(optimizer.param_groups()[0].options())
-        .lr(options.learning_rate * (0.1 + 0.45 * (1 + std::cos(std::numbers::pi * std::min(spent, 1.0)))));
+    if (!eval_cameras_.empty()) {
+      auto [now, now_images] = Evaluate(Output::kNetwork, eval_cameras_);
+      if (report_) {
+        report_->AddPoint("heldout_psnr_db", now.psnr_db, iteration);
+        report_->AddPoint("heldout_ssim", now.ssim, iteration);
+      }
+      if (keep) last_ = now, last_images_ = std::move(now_images);
+    }
+    if (keep) network_.Save(weights_file());
+  }
 
-    // A batch: pairs of consecutive frames of a witness camera, each pair cropped alike around
-    // a pixel near the subject (whole images when crops are off).
+  std::filesystem::path weights_file() const { return model_dir_ / "unet.pt"; }
+
+  // A batch: pairs of consecutive frames of a witness camera, each pair cropped alike around a
+  // pixel near the subject (whole images when crops are off). Returns the loss before the step.
+  double TrainStep(torch::optim::Adam& optimizer, torch::nn::Sequential& discriminator, torch::optim::Adam* d_optimizer) {
+    neural::UNet& net = network_.state().net;
     std::vector<torch::Tensor> xs, truths, weights, backgrounds, alpha_targets;
     int64_t samples = 0;
-    for (int p = 0; p < options.batch_pairs; ++p) {
-      const CameraData& d = *train_cameras[std::uniform_int_distribution<size_t>(0, train_cameras.size() - 1)(rng)];
+    for (int p = 0; p < options_.batch_pairs; ++p) {
+      const CameraData& d = *train_cameras_[std::uniform_int_distribution<size_t>(0, train_cameras_.size() - 1)(rng_)];
       const int64_t frames = d.features.size(0);
-      const int64_t t = std::uniform_int_distribution<int64_t>(0, std::max<int64_t>(0, frames - (temporal ? 2 : 1)))(rng);
-      const int64_t count = temporal ? 2 : 1;
+      const int64_t t = std::uniform_int_distribution<int64_t>(0, std::max<int64_t>(0, frames - (temporal_ ? 2 : 1)))(rng_);
+      const int64_t count = temporal_ ? 2 : 1;
       int64_t x0 = 0, y0 = 0;
-      if (options.crop_px > 0) {
+      if (options_.crop_px > 0) {
         const std::vector<int32_t>& near = d.subject_pixels[t];
-        const int64_t pixel = near.empty() ? std::uniform_int_distribution<int64_t>(0, int64_t{d.width} * d.height - 1)(rng)
-                                           : near[std::uniform_int_distribution<size_t>(0, near.size() - 1)(rng)];
-        x0 = std::clamp<int64_t>(pixel % d.width - crop_w / 2, 0, d.features.size(3) - crop_w);
-        y0 = std::clamp<int64_t>(pixel / d.width - crop_h / 2, 0, d.features.size(2) - crop_h);
+        const int64_t pixel = near.empty() ? std::uniform_int_distribution<int64_t>(0, int64_t{d.width} * d.height - 1)(rng_)
+                                           : near[std::uniform_int_distribution<size_t>(0, near.size() - 1)(rng_)];
+        x0 = std::clamp<int64_t>(pixel % d.width - crop_w_ / 2, 0, d.features.size(3) - crop_w_);
+        y0 = std::clamp<int64_t>(pixel / d.width - crop_h_ / 2, 0, d.features.size(2) - crop_h_);
       }
       const auto window = [&](const torch::Tensor& all, int64_t first, int64_t n) {
-        return all.index({Slice(first, first + n), Slice(), Slice(y0, y0 + crop_h), Slice(x0, x0 + crop_w)});
+        return all.index({Slice(first, first + n), Slice(), Slice(y0, y0 + crop_h_), Slice(x0, x0 + crop_w_)});
       };
       xs.push_back(window(d.features, t, count));
       truths.push_back(window(d.truth, t, count));
       weights.push_back(window(d.weight, t, count));
-      backgrounds.push_back(window(d.background, 0, 1).expand({count, 3, crop_h, crop_w}));
+      backgrounds.push_back(window(d.background, 0, 1).expand({count, 3, crop_h_, crop_w_}));
       if (d.alpha_target.defined()) alpha_targets.push_back(window(d.alpha_target, t, count));
       samples += count;
     }
@@ -693,145 +712,241 @@ RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::
     const torch::Tensor raw_output = net->forward(x);
     auto [rgb, alpha] = neural::DecodeRerender(raw_output, x);
     const torch::Tensor out = Composite(rgb, alpha, background);
-    torch::Tensor loss = options.l1_weight * (weight * (out - truth).abs()).mean() / weight.mean();
+    torch::Tensor loss = options_.l1_weight * (weight * (out - truth).abs()).mean() / weight.mean();
     loss = loss + kRawOutputPenaltyWeight * neural::RawOutputPenalty(raw_output);
-    if (options.ssim_weight > 0) loss = loss + options.ssim_weight * (1 - MultiScaleSsim(out, truth));
+    if (options_.ssim_weight > 0) loss = loss + options_.ssim_weight * (1 - MultiScaleSsim(out, truth));
     if (alpha_targets.size() == xs.size()) {
-      loss = loss + options.alpha_weight * (weight * (alpha - torch::cat(alpha_targets)).abs()).mean() / weight.mean();
+      loss = loss + options_.alpha_weight * (weight * (alpha - torch::cat(alpha_targets)).abs()).mean() / weight.mean();
     }
-    if (temporal) {
+    if (temporal_) {
       const torch::Tensor even = torch::arange(0, samples, 2), odd = even + 1;
       const torch::Tensor change = out.index_select(0, odd) - out.index_select(0, even);
       const torch::Tensor truth_change = truth.index_select(0, odd) - truth.index_select(0, even);
-      loss = loss + options.temporal_weight * (change - truth_change).abs().mean();
+      loss = loss + options_.temporal_weight * (change - truth_change).abs().mean();
     }
     if (discriminator) {
       torch::Tensor fake_score = discriminator->forward(out);
-      loss = loss + options.gan_weight * (fake_score - 1).pow(2).mean();
+      loss = loss + options_.gan_weight * (fake_score - 1).pow(2).mean();
     }
     const double value = loss.item<double>();
-    if (!std::isfinite(value)) {
-      diverged = true;
-      break;
-    }
+    if (!std::isfinite(value)) return value;
     optimizer.zero_grad();
     loss.backward();
     optimizer.step();
     if (discriminator) {
       d_optimizer->zero_grad();
-      const torch::Tensor d_loss = (discriminator->forward(truth) - 1).pow(2).mean() + discriminator->forward(out.detach()).pow(2).mean();
+      const torch::Tensor d_loss =
+          (discriminator->forward(truth) - 1).pow(2).mean() + discriminator->forward(out.detach()).pow(2).mean();
       d_loss.backward();
       d_optimizer->step();
     }
-    losses.push_back(value);
-    if (report && iteration % 10 == 0) report->AddPoint("loss", value, iteration);
-    progress.Update(options.iterations > 0 ? iteration : static_cast<int64_t>(elapsed), Cat(last.psnr_db, " dB"));
-  }
-  progress.Finish();
-  summary.iterations = iteration;
-  summary.seconds = Seconds(start);
-  const size_t window = std::max<size_t>(1, std::min<size_t>(20, losses.size() / 4));
-  if (!losses.empty()) {
-    summary.first_loss = std::accumulate(losses.begin(), losses.begin() + window, 0.0) / window;
-    summary.last_loss = std::accumulate(losses.end() - window, losses.end(), 0.0) / window;
-  }
-  summary.validation_psnr_db = validation_cameras.empty() ? 0 : best_validation;
-  if (diverged || !validation_cameras.empty()) {
-    // The weights on disk are those of the last evaluation before the loss broke down, or
-    // those where the validation witnesses peaked; `last` holds their held-out scores.
-    network = RerenderNetwork::Load(weights, options.net);
-  } else {
-    network.Save(weights);
-  }
-  summary.heldout_psnr_db = last.psnr_db;
-  summary.heldout_ssim = last.ssim;
-  summary.heldout_psnr_subject_db = last.psnr_subject_db;
-  summary.flicker_ratio = last.flicker_ratio;
-  summary.flicker_excess = last.flicker_excess;
-
-  if (!eval_cameras.empty() && !last_images[0].empty()) {
-    const size_t f = last_images[0].size() / 2;
-    cv::Mat strip, eight_bit;
-    cv::hconcat(std::vector<cv::Mat>{eval_cameras[0]->truth_images[f], eval_cameras[0]->raw_images[f], last_images[0][f]}, strip);
-    strip.convertTo(eight_bit, CV_8UC3, 255);
-    WritePng(model_dir / "heldout.png", eight_bit);
+    return value;
   }
 
-  // The model directory.
-  std::filesystem::create_directories(model_dir / "cameras");
-  nlohmann::json model = {{"method", "rerender"}, {"net", options.net.ToJson()}, {"cameras", nlohmann::json::array()},
-                          {"meshes", nlohmann::json::array()}, {"image_width", options.image_width},
-                          {"supersample", options.supersample},
-                          {"box_min", {box_min.x(), box_min.y(), box_min.z()}},
-                          {"box_max", {box_max.x(), box_max.y(), box_max.z()}}, {"frame_sets", sets}};
-  for (size_t i = 0; i < names.size(); ++i) {
-    cameras[i].Write(model_dir / "cameras" / (names[i] + ".cameramodel"));
-    model["cameras"].push_back(names[i]);
-  }
-  for (int64_t set : sets) {
-    const auto file = meshes[set];
-    const auto relative = std::filesystem::relative(file, model_dir);
-    model["meshes"].push_back(!relative.empty() && *relative.begin() != ".." ? relative.string() : std::filesystem::absolute(file).string());
-  }
-  WriteFileAtomic(model_dir / "model.json", model.dump(2));
-
-  if (diverged) {
-    summary.termination = Termination::kFailure;
-    summary.message = Cat("the loss became non-finite at iteration ", iteration, "; kept the weights of the last evaluation");
-  } else if (const SubjectScores scores = ScoresNearSubject(summary); !eval_cameras.empty() && scores.shows_none()) {
-    // The kept network shows the held-out cameras the background and hardly anything of the
-    // subject (it erased it, or the raw render it started from shows no more): a better PSNR
-    // than a poor raw render is no model of the subject.
-    summary.termination = Termination::kDegenerate;
-    summary.message = Cat("the network's output shows the held-out cameras no more of the subject than the background alone: ",
-                          scores.near ? "near the subject" : "over the whole image (the reconstruction draws nothing there)",
-                          " they score ", scores.shown, " dB, the background alone ", scores.background, " dB and the raw render ",
-                          scores.raw, " dB",
-                          scores.raw < scores.background - kErasedMarginDb
-                              ? Cat(" (the reconstruction, built from ", recon_count,
-                                    " colour cameras, renders worse than no subject at all: give it more cameras or depth)")
-                              : std::string());
-  } else if (eval_cameras.empty()) {
-    summary.termination = Termination::kNoConvergence;
-    summary.message = Cat("trained ", iteration, " iterations in ", summary.seconds, " s; no held-out camera to measure on");
-  } else {
-    summary.termination = Termination::kNoConvergence;
-    summary.message = Cat("trained ", iteration, " iterations in ", summary.seconds, " s (budget spent); held-out PSNR ",
-                          summary.heldout_psnr_db, " dB against the raw render's ", summary.raw_render_psnr_db, " dB");
-  }
-  if (!validation_cameras.empty() && !diverged) {
-    summary.message += Cat("; kept the weights of iteration ", summary.kept_iteration, ", where the validation witnesses peaked at ",
-                           summary.validation_psnr_db, " dB (raw render ", summary.validation_raw_psnr_db, " dB)");
-  }
-  if (report) {
-    report->plan() = plan;
-    auto& m = report->metrics();
-    m["heldout_psnr_db"] = summary.heldout_psnr_db;
-    m["raw_render_psnr_db"] = summary.raw_render_psnr_db;
-    m["background_psnr_db"] = summary.background_psnr_db;
-    m["background_psnr_subject_db"] = summary.background_psnr_subject_db;
-    m["background_ssim"] = summary.background_ssim;
-    m["heldout_ssim"] = summary.heldout_ssim;
-    m["raw_render_ssim"] = summary.raw_render_ssim;
-    m["heldout_psnr_subject_db"] = summary.heldout_psnr_subject_db;
-    m["raw_render_psnr_subject_db"] = summary.raw_render_psnr_subject_db;
-    m["flicker_ratio"] = summary.flicker_ratio;
-    m["raw_flicker_ratio"] = summary.raw_flicker_ratio;
-    m["flicker_excess"] = summary.flicker_excess;
-    m["raw_flicker_excess"] = summary.raw_flicker_excess;
-    if (!validation_cameras.empty()) {
-      m["validation_psnr_db"] = summary.validation_psnr_db;
-      m["validation_raw_psnr_db"] = summary.validation_raw_psnr_db;
-      m["kept_iteration"] = summary.kept_iteration;
+  void Train() {
+    neural::UNet& net = network_.state().net;
+    torch::optim::Adam optimizer(net->parameters(), torch::optim::AdamOptions(options_.learning_rate));
+    torch::nn::Sequential discriminator{nullptr};
+    std::unique_ptr<torch::optim::Adam> d_optimizer;
+    if (options_.gan_weight > 0) {
+      discriminator = PatchDiscriminator();
+      d_optimizer = std::make_unique<torch::optim::Adam>(
+          discriminator->parameters(), torch::optim::AdamOptions(options_.learning_rate).betas({0.5, 0.999}));
     }
-    m["iterations"] = summary.iterations;
-    m["seconds"] = summary.seconds;
-    m["first_loss"] = summary.first_loss;
-    m["last_loss"] = summary.last_loss;
-    report->SetSummary({summary.termination, summary.message});
-    report->Write(model_dir / "report.json");
+    rng_.seed(options_.seed);
+    const auto start = std::chrono::steady_clock::now();
+    double next_eval = 0;
+    Progress progress("rerender", options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(options_.minutes * 60));
+    int64_t iteration = 0;
+    for (;; ++iteration) {
+      const double elapsed = Seconds(start);
+      const bool done = (options_.iterations > 0 && iteration >= options_.iterations) ||
+                        (options_.minutes > 0 && elapsed >= options_.minutes * 60);
+      if ((!eval_cameras_.empty() || !validation_cameras_.empty()) && (elapsed >= next_eval || done)) {
+        EvaluateAndKeep(iteration);
+        next_eval = elapsed + options_.eval_every_s;
+      }
+      if (done) break;
+      // Cosine decay of the rate to a tenth over the budget: large steps first, then refinement
+      // without their noise.
+      const double spent = std::max(options_.minutes > 0 ? elapsed / (options_.minutes * 60) : 0.0,
+                                    options_.iterations > 0 ? static_cast<double>(iteration) / options_.iterations : 0.0);
+      static_cast<torch::optim::AdamOptions&>(optimizer.param_groups()[0].options())
+          .lr(options_.learning_rate * (0.1 + 0.45 * (1 + std::cos(std::numbers::pi * std::min(spent, 1.0)))));
+      const double value = TrainStep(optimizer, discriminator, d_optimizer.get());
+      if (!std::isfinite(value)) {
+        diverged_ = true;
+        break;
+      }
+      losses_.push_back(value);
+      if (report_ && iteration % 10 == 0) report_->AddPoint("loss", value, iteration);
+      progress.Update(options_.iterations > 0 ? iteration : static_cast<int64_t>(elapsed), Cat(last_.psnr_db, " dB"));
+    }
+    progress.Finish();
+    summary_.iterations = iteration;
+    summary_.seconds = Seconds(start);
   }
-  return summary;
+
+  // The weights on disk are those of the last evaluation before the loss broke down, or those
+  // where the validation witnesses peaked; `last_` holds their held-out scores.
+  void KeepWeights() {
+    const size_t window = std::max<size_t>(1, std::min<size_t>(20, losses_.size() / 4));
+    if (!losses_.empty()) {
+      summary_.first_loss = std::accumulate(losses_.begin(), losses_.begin() + window, 0.0) / window;
+      summary_.last_loss = std::accumulate(losses_.end() - window, losses_.end(), 0.0) / window;
+    }
+    summary_.validation_psnr_db = validation_cameras_.empty() ? 0 : best_validation_;
+    if (diverged_ || !validation_cameras_.empty()) {
+      network_ = RerenderNetwork::Load(weights_file(), options_.net);
+    } else {
+      network_.Save(weights_file());
+    }
+    summary_.heldout_psnr_db = last_.psnr_db;
+    summary_.heldout_ssim = last_.ssim;
+    summary_.heldout_psnr_subject_db = last_.psnr_subject_db;
+    summary_.flicker_ratio = last_.flicker_ratio;
+    summary_.flicker_excess = last_.flicker_excess;
+  }
+
+  // model.json, the cameras, and heldout.png (truth, raw render, rerendered, side by side).
+  void WriteModel() {
+    if (!eval_cameras_.empty() && !last_images_[0].empty()) {
+      const size_t f = last_images_[0].size() / 2;
+      cv::Mat strip, eight_bit;
+      cv::hconcat(std::vector<cv::Mat>{eval_cameras_[0]->truth_images[f], eval_cameras_[0]->raw_images[f], last_images_[0][f]}, strip);
+      strip.convertTo(eight_bit, CV_8UC3, 255);
+      WritePng(model_dir_ / "heldout.png", eight_bit);
+    }
+    std::filesystem::create_directories(model_dir_ / "cameras");
+    nlohmann::json model = {{"method", "rerender"}, {"net", options_.net.ToJson()}, {"cameras", nlohmann::json::array()},
+                            {"meshes", nlohmann::json::array()}, {"image_width", options_.image_width},
+                            {"supersample", options_.supersample},
+                            {"box_min", {box_min_.x(), box_min_.y(), box_min_.z()}},
+                            {"box_max", {box_max_.x(), box_max_.y(), box_max_.z()}}, {"frame_sets", sets_}};
+    for (size_t i = 0; i < names_.size(); ++i) {
+      cameras_[i].Write(model_dir_ / "cameras" / (names_[i] + ".cameramodel"));
+      model["cameras"].push_back(names_[i]);
+    }
+    for (int64_t set : sets_) {
+      const auto file = fold_meshes_[0][set];
+      const auto relative = std::filesystem::relative(file, model_dir_);
+      model["meshes"].push_back(!relative.empty() && *relative.begin() != ".." ? relative.string()
+                                                                               : std::filesystem::absolute(file).string());
+    }
+    WriteFileAtomic(model_dir_ / "model.json", model.dump(2));
+  }
+
+  // FAILURE on a non-finite loss; DEGENERATE when the kept network shows the held-out cameras
+  // no more of the subject than the background alone; CONVERGENCE when the validation
+  // witnesses peaked before the budget ran out (those weights are kept); else NO_CONVERGENCE.
+  void Summarise() {
+    const int64_t iteration = summary_.iterations;
+    const SubjectScores scores = ScoresNearSubject(summary_);
+    if (diverged_) {
+      summary_.End(Termination::kFailure,
+                   Cat("the loss became non-finite at iteration ", iteration, "; kept the weights of the last evaluation"));
+    } else if (!eval_cameras_.empty() && scores.shows_none()) {
+      // It erased the subject, or the raw render it started from shows no more: a better PSNR
+      // than a poor raw render is no model of the subject.
+      summary_.End(Termination::kDegenerate,
+                   Cat("the network's output shows the held-out cameras no more of the subject than the background alone: ",
+                       scores.near ? "near the subject" : "over the whole image (the reconstruction draws nothing there)",
+                       " they score ", scores.shown, " dB, the background alone ", scores.background,
+                       " dB and the raw render ", scores.raw, " dB",
+                       scores.raw < scores.background - kErasedMarginDb
+                           ? Cat(" (the reconstruction, built from ", recon_count_,
+                                 " colour cameras, renders worse than no subject at all: give it more cameras or depth)")
+                           : std::string()));
+    } else {
+      const bool peaked_early = !validation_cameras_.empty() && summary_.kept_iteration < iteration;
+      summary_.End(peaked_early ? Termination::kConvergence : Termination::kNoConvergence,
+                   eval_cameras_.empty()
+                       ? Cat("trained ", iteration, " iterations in ", summary_.seconds, " s; no held-out camera to measure on")
+                       : Cat("trained ", iteration, " iterations in ", summary_.seconds, " s (budget spent); held-out PSNR ",
+                             summary_.heldout_psnr_db, " dB against the raw render's ", summary_.raw_render_psnr_db, " dB"));
+    }
+    if (!validation_cameras_.empty() && !diverged_) {
+      summary_.message += Cat("; kept the weights of iteration ", summary_.kept_iteration,
+                              ", where the validation witnesses peaked at ", summary_.validation_psnr_db, " dB (raw render ",
+                              summary_.validation_raw_psnr_db, " dB)");
+    }
+    if (report_) WriteReport();
+  }
+
+  void WriteReport() {
+    report_->plan() = plan_;
+    auto& m = report_->metrics();
+    m["heldout_psnr_db"] = summary_.heldout_psnr_db;
+    m["raw_render_psnr_db"] = summary_.raw_render_psnr_db;
+    m["background_psnr_db"] = summary_.background_psnr_db;
+    m["background_psnr_subject_db"] = summary_.background_psnr_subject_db;
+    m["background_ssim"] = summary_.background_ssim;
+    m["heldout_ssim"] = summary_.heldout_ssim;
+    m["raw_render_ssim"] = summary_.raw_render_ssim;
+    m["heldout_psnr_subject_db"] = summary_.heldout_psnr_subject_db;
+    m["raw_render_psnr_subject_db"] = summary_.raw_render_psnr_subject_db;
+    m["flicker_ratio"] = summary_.flicker_ratio;
+    m["raw_flicker_ratio"] = summary_.raw_flicker_ratio;
+    m["flicker_excess"] = summary_.flicker_excess;
+    m["raw_flicker_excess"] = summary_.raw_flicker_excess;
+    if (!validation_cameras_.empty()) {
+      m["validation_psnr_db"] = summary_.validation_psnr_db;
+      m["validation_raw_psnr_db"] = summary_.validation_raw_psnr_db;
+      m["kept_iteration"] = summary_.kept_iteration;
+    }
+    m["iterations"] = summary_.iterations;
+    m["seconds"] = summary_.seconds;
+    m["first_loss"] = summary_.first_loss;
+    m["last_loss"] = summary_.last_loss;
+    report_->SetSummary(summary_);
+    report_->Write(model_dir_ / "report.json");
+  }
+
+  const Take take_;
+  const std::filesystem::path model_dir_;
+  const RerenderOptions& options_;
+  Report* report_;
+  RerenderSummary summary_;
+  nlohmann::json& plan_;
+  TakePlan take_plan_;
+  // The colour cameras, and the split (indices into names_).
+  std::vector<std::string> names_;
+  std::vector<CameraModel> cameras_;
+  Eigen::Vector3d center_ = Eigen::Vector3d::Zero();
+  std::vector<int> heldout_, rest_;
+  std::vector<std::vector<int>> folds_;
+  std::vector<std::string> witness_names_;
+  int validation_count_ = 0;
+  int recon_count_ = 0;
+  // Reconstructions and frames.
+  std::vector<std::map<int64_t, std::filesystem::path>> fold_meshes_;
+  std::map<int64_t, size_t> entry_of_set_;
+  std::vector<int64_t> sets_;
+  // Data.
+  std::set<std::string> validation_names_;
+  int threads_ = 1;
+  int multiple_ = 1;
+  std::vector<CameraData> data_;
+  std::vector<CameraData*> train_cameras_, eval_cameras_, validation_cameras_;
+  Eigen::Vector3d box_min_ = Eigen::Vector3d::Constant(1e30), box_max_ = Eigen::Vector3d::Constant(-1e30);
+  bool temporal_ = false;
+  int64_t crop_w_ = 0, crop_h_ = 0;
+  // Training.
+  RerenderNetwork network_;
+  std::mt19937_64 rng_;
+  double best_validation_ = -std::numeric_limits<double>::infinity();
+  Evaluation last_;
+  std::vector<std::vector<cv::Mat>> last_images_;
+  std::vector<double> losses_;
+  bool diverged_ = false;
+};
+
+}  // namespace
+
+RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::filesystem::path& model_dir,
+                              const RerenderOptions& options, Report* report) {
+  options.Check();
+  return RerenderTrainer(take_dir, model_dir, options, report).Run();
 }
 
 }  // namespace holocap

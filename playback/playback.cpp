@@ -334,8 +334,8 @@ PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path, const Pla
   summary.overall_fps = summary.views / std::max(summary.seconds, 1e-9);
   summary.samples_per_ray = samples / summary.views;
   // Models that march no rays (rerendering rasterises) report no samples per ray.
-  summary.message = Cat(summary.views, " views rendered at ", summary.render_fps, " fps (", summary.overall_fps,
-                        " fps with writing)", summary.samples_per_ray > 0 ? Cat(", ", summary.samples_per_ray, " samples/ray") : "");
+  summary.End(Termination::kSuccess, Cat(summary.views, " views rendered at ", summary.render_fps, " fps (", summary.overall_fps,
+                        " fps with writing)", summary.samples_per_ray > 0 ? Cat(", ", summary.samples_per_ray, " samples/ray") : ""));
   if (report != nullptr) {
     report->metrics()["playback"] = {{"views", summary.views},
                                      {"render_fps", summary.render_fps},

@@ -73,9 +73,8 @@ struct PlaybackOptions {
   void Check() const;
 };
 
-struct PlaybackSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+// SUCCESS once every view is rendered and written (a failure to write throws).
+struct PlaybackSummary : Summary {
   int64_t views = 0;
   double seconds = 0;          // everything: rendering, encoding, writing
   double render_seconds = 0;   // rendering only

@@ -263,12 +263,11 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
                       voxel * voxel * voxel;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (summary.volume_m3 <= 0) {
-    summary.termination = Termination::kDegenerate;
-    summary.message = Cat("the hull is empty: no point in the bounds lies inside ",
+    summary.End(Termination::kDegenerate, Cat("the hull is empty: no point in the bounds lies inside ",
                           tolerated > 0 ? "all but " + std::to_string(tolerated) + " of " : "all ",
-                          views.size(), " silhouettes");
+                          views.size(), " silhouettes"));
   } else {
-    summary.message = Cat("hull of ", summary.volume_m3 * 1e3, " litres from ", views.size(), " views");
+    summary.End(Termination::kSuccess, Cat("hull of ", summary.volume_m3 * 1e3, " litres from ", views.size(), " views"));
   }
   if (summary_out != nullptr) *summary_out = summary;
   return hull;

@@ -329,11 +329,11 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
   summary.pixels_consistent = consistent_total;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (summary.pixels_consistent == 0) {
-    summary.termination = Termination::kDegenerate;
-    summary.message = Cat("no depth survived: ", summary.pixels_matched, " of ", summary.pixels_searched,
-                          " pixels matched, none consistent across views");
+    summary.End(Termination::kDegenerate, Cat("no depth survived: ", summary.pixels_matched, " of ",
+                                              summary.pixels_searched, " pixels matched, none consistent across views"));
   } else {
-    summary.message = Cat(summary.pixels_consistent, " consistent depths of ", summary.pixels_searched, " pixels searched");
+    summary.End(Termination::kSuccess,
+                Cat(summary.pixels_consistent, " consistent depths of ", summary.pixels_searched, " pixels searched"));
   }
   if (summary_out != nullptr) *summary_out = summary;
   return filtered;

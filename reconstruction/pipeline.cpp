@@ -43,10 +43,6 @@ ReconstructionMethod ReconstructionMethodFromString(const std::string& text) {
 
 void ReconstructionOptions::Check() const {
   if (!(voxel_m > 0 && voxel_m < 1)) Fail("voxel must be in (0, 1) m (got ", voxel_m, ")");
-  if (first_frame < 0) Fail("first frame must be >= 0 (got ", first_frame, ")");
-  if (last_frame >= 0 && last_frame <= first_frame) {
-    Fail("frame range ", first_frame, ":", last_frame, " is empty");
-  }
   if (!bounds.valid()) Fail("reconstruction bounds are empty");
   for (double v : sweep_voxels_m) {
     if (!(v > 0 && v < 1)) Fail("sweep voxel sizes must be in (0, 1) m (got ", v, ")");
@@ -67,9 +63,6 @@ nlohmann::json ReconstructionOptions::ToJson() const {
   };
   return {{"method", ToString(method)},
           {"voxel_m", voxel_m},
-          {"first_frame", first_frame},
-          {"last_frame", last_frame},
-          {"clean_plate_frames", clean_plate_frames},
           {"bounds", box(bounds)},
           {"silhouette",
            {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background"},
@@ -115,17 +108,9 @@ double PeakRssMb() {
   return usage.ru_maxrss / 1024.0;
 }
 
-struct Sensors {
-  std::vector<std::string> color;
-  std::vector<std::string> depth;
-  std::map<std::string, CameraModel> models;
-};
-
-struct Plan {
+// How this run reconstructs the take's frames (the take's own selection is the TakePlan).
+struct MethodPlan {
   ReconstructionMethod method = ReconstructionMethod::kAuto;
-  bool ground_truth_cameras = false;
-  int64_t clean_plate_frames = 0;
-  std::vector<int64_t> sets;
   int outer_threads = 1;
   int inner_threads = 1;
   bool depth_background = false;
@@ -138,26 +123,27 @@ struct Plates {
   std::map<std::string, cv::Mat> depth;
 };
 
-struct FrameOutput {
+struct FrameOutput : Summary {
   Mesh mesh;
   nlohmann::json metrics = nlohmann::json::object();
-  Termination termination = Termination::kSuccess;
-  std::string message;
 };
 
 // Reconstructs one frame set at one voxel size.
-FrameOutput ReconstructFrame(const Take& take, const Sensors& sensors, const Plates& plates,
-                             const Plan& plan, const ReconstructionOptions& options, int64_t set,
+FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const Plates& plates,
+                             const MethodPlan& plan, const ReconstructionOptions& options, int64_t set,
                              double voxel, int threads) {
   FrameOutput out;
-  std::vector<std::string> needed = sensors.color;
-  if (plan.method == ReconstructionMethod::kTsdf) needed.insert(needed.end(), sensors.depth.begin(), sensors.depth.end());
+  out.End(Termination::kSuccess, "");  // until a step finds the frame cannot give a surface
+  std::vector<std::string> needed = take_plan.color_sensors;
+  if (plan.method == ReconstructionMethod::kTsdf) {
+    needed.insert(needed.end(), take_plan.depth_sensors.begin(), take_plan.depth_sensors.end());
+  }
   FrameSet frames = take.Read(static_cast<size_t>(set), needed);
   std::vector<View> views;
   const bool need_masks = plan.method != ReconstructionMethod::kTsdf || plan.hull_completion;
-  for (const std::string& name : sensors.color) {
+  for (const std::string& name : take_plan.color_sensors) {
     const Frame* frame = frames.Find(name);
-    View view{name, sensors.models.at(name), frame->image, {}};
+    View view{name, take_plan.cameras.at(name), frame->image, {}};
     if (view.image.type() == CV_8UC1) cv::cvtColor(view.image, view.image, cv::COLOR_GRAY2BGR);
     if (view.image.type() != CV_8UC3) Fail("colour frames of '", name, "' must be 8-bit");
     if (need_masks) {
@@ -191,7 +177,7 @@ FrameOutput ReconstructFrame(const Take& take, const Sensors& sensors, const Pla
       double seconds = 0;
       int64_t valid = 0;
       std::vector<std::pair<CameraModel, cv::Mat>> depth_maps;
-      for (const std::string& name : sensors.depth) {
+      for (const std::string& name : take_plan.depth_sensors) {
         const Frame* frame = frames.Find(name);
         const std::string& paired = take.stream(name).paired_with;
         cv::Mat foreground;
@@ -199,12 +185,12 @@ FrameOutput ReconstructFrame(const Take& take, const Sensors& sensors, const Pla
         const View* color_view = nullptr;
         for (const View& v : views) color_view = v.name == paired ? &v : color_view;
         TsdfFrameStats stats = color_view != nullptr
-                                   ? tsdf->Integrate(frame->image, sensors.models.at(name), foreground,
+                                   ? tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground,
                                                      color_view->image, &color_view->camera)
-                                   : tsdf->Integrate(frame->image, sensors.models.at(name), foreground);
+                                   : tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground);
         seconds += stats.seconds;
         valid += stats.valid_pixels;
-        depth_maps.emplace_back(sensors.models.at(name), frame->image);
+        depth_maps.emplace_back(take_plan.cameras.at(name), frame->image);
       }
       out.metrics["tsdf"] = {{"integrate_seconds", seconds}, {"valid_pixels", valid},
                              {"blocks", tsdf->volume().block_count()},
@@ -275,8 +261,8 @@ FrameOutput ReconstructFrame(const Take& take, const Sensors& sensors, const Pla
   return out;
 }
 
-void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, const Sensors& sensors,
-                           const Plan& plan, nlohmann::json* metrics) {
+void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, const TakePlan& take_plan,
+                           const MethodPlan& plan, nlohmann::json* metrics) {
   std::filesystem::path file = take.gt_dir() / "meshes" / (SetName(set) + ".ply");
   if (!std::filesystem::exists(file)) file = take.gt_dir() / "meshes" / "static.ply";
   if (!std::filesystem::exists(file)) return;
@@ -294,7 +280,7 @@ void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, cons
   if (plan.method == ReconstructionMethod::kTsdf) {
     // Depth sensors see only part of the subject: also measure on what they saw.
     std::vector<std::pair<CameraModel, cv::Mat>> seen;
-    for (const auto& name : sensors.depth) {
+    for (const auto& name : take_plan.depth_sensors) {
       auto depth_file = take.gt_dir() / "depth" / name / (SetName(set) + ".exr");
       if (std::filesystem::exists(depth_file)) seen.emplace_back(take.Camera(name, true), ReadImage(depth_file));
     }
@@ -307,252 +293,252 @@ void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, cons
   (*metrics)["gt"] = gt;
 }
 
-}  // namespace
+// Reconstructs a planned take: method, plates and threads chosen once, then every frame set,
+// the voxel sweep on simulated takes, and the summary. Each step is a method.
+class TakeReconstructor {
+ public:
+  TakeReconstructor(const Take& take, const TakePlan& take_plan, const std::filesystem::path& out,
+                    const ReconstructionOptions& options, Report* report)
+      : take_(take), take_plan_(take_plan), out_(out), options_(options), report_(report) {}
 
-ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, const std::filesystem::path& out,
-                                      const ReconstructionOptions& options, Report* report) {
-  options.Check();
-  auto start = std::chrono::steady_clock::now();
-  const Take take = Take::Open(take_dir);
-  Plan plan;
-  Sensors sensors;
-  for (const StreamInfo& stream : take.streams()) {
-    if (stream.role == SensorRole::kColor) sensors.color.push_back(stream.name);
-    if (stream.role == SensorRole::kDepth) sensors.depth.push_back(stream.name);
+  ReconstructionSummary Run() {
+    ChooseMethod();
+    ReadPlates();
+    DescribePlan();
+    CreateDirectories(out_);
+    ReconstructFrames();
+    const nlohmann::json sweep = SweepVoxels();
+    Summarise(sweep);
+    return summary_;
   }
-  if (sensors.color.empty() && sensors.depth.empty()) Fail("take '", take_dir.string(), "' has no colour or depth sensor");
-  if (take.has_calibration()) {
-    plan.ground_truth_cameras = false;
-  } else if (take.has_ground_truth() && std::filesystem::is_directory(take.gt_dir() / "cameras")) {
-    plan.ground_truth_cameras = true;
-  } else {
-    Fail("take '", take_dir.string(), "' is not calibrated (no calib/<sensor>.cameramodel for every sensor): run holocap calibrate first");
-  }
-  for (const auto& name : sensors.color) sensors.models.emplace(name, take.Camera(name, plan.ground_truth_cameras));
-  for (const auto& name : sensors.depth) sensors.models.emplace(name, take.Camera(name, plan.ground_truth_cameras));
 
-  plan.method = options.method;
-  if (plan.method == ReconstructionMethod::kAuto) {
-    plan.method = sensors.depth.empty() ? ReconstructionMethod::kMvs : ReconstructionMethod::kTsdf;
-  }
-  if (plan.method == ReconstructionMethod::kTsdf && sensors.depth.empty()) {
-    Fail("method tsdf needs depth sensors; take '", take_dir.string(), "' has none (use hull or mvs)");
-  }
-  if (plan.method != ReconstructionMethod::kTsdf && sensors.color.size() < 2) {
-    Fail("method ", ToString(plan.method), " needs at least two colour cameras; the take has ", sensors.color.size());
-  }
-  plan.clean_plate_frames = options.clean_plate_frames;
-  if (plan.clean_plate_frames < 0) {
-    plan.clean_plate_frames = take.metadata().value("clean_plate_frames", int64_t{0});
-  }
-  const bool need_plate = plan.method != ReconstructionMethod::kTsdf;
-  if (need_plate && plan.clean_plate_frames == 0 && options.silhouette.mode == SilhouetteMode::kBackgroundSubtraction) {
-    Fail("method ", ToString(plan.method), " needs silhouettes, and background subtraction needs a clean plate: "
-         "take '", take_dir.string(), "' has none (record leading frames without the subject and pass --clean-plate N)");
-  }
-  if (plan.clean_plate_frames >= static_cast<int64_t>(take.size())) {
-    Fail("take '", take_dir.string(), "' has ", take.size(), " frame sets, all of them clean plate");
-  }
-  const int64_t available = static_cast<int64_t>(take.size()) - plan.clean_plate_frames;
-  const int64_t first = options.first_frame;
-  const int64_t last = options.last_frame < 0 ? available : std::min(options.last_frame, available);
-  if (first >= last) Fail("frame range ", first, ":", last, " selects nothing (the take has ", available, " frame sets after its clean plate)");
-  for (int64_t f = first; f < last; ++f) plan.sets.push_back(plan.clean_plate_frames + f);
+ private:
+  std::string Where() const { return Cat("take '", take_.dir().string(), "'"); }
+  bool is_tsdf() const { return plan_.method == ReconstructionMethod::kTsdf; }
+  bool needs_plate() const { return plan_.method != ReconstructionMethod::kTsdf; }
 
-  // Every frame set must hold every camera the method reads.
-  std::vector<std::string> needed = sensors.color;
-  if (plan.method == ReconstructionMethod::kTsdf) needed.insert(needed.end(), sensors.depth.begin(), sensors.depth.end());
-  for (int64_t set : plan.sets) {
-    for (const auto& name : needed) {
-      if (take.entry(static_cast<size_t>(set)).Find(name) == nullptr) {
-        Fail("frame set ", set, " of take '", take_dir.string(), "' has no frame from '", name, "' (dropped); ",
-             "choose another range with --frames");
-      }
+  // The sensors a method reads, every frame set holding each of them.
+  std::vector<std::string> NeededSensors() const {
+    std::vector<std::string> needed = take_plan_.color_sensors;
+    if (is_tsdf()) needed.insert(needed.end(), take_plan_.depth_sensors.begin(), take_plan_.depth_sensors.end());
+    return needed;
+  }
+
+  void ChooseMethod() {
+    const auto& color = take_plan_.color_sensors;
+    const auto& depth = take_plan_.depth_sensors;
+    plan_.method = options_.method;
+    if (plan_.method == ReconstructionMethod::kAuto) {
+      plan_.method = depth.empty() ? ReconstructionMethod::kMvs : ReconstructionMethod::kTsdf;
     }
+    if (is_tsdf() && depth.empty()) Fail("method tsdf needs depth sensors; ", Where(), " has none (use hull or mvs)");
+    if (!is_tsdf() && color.size() < 2) {
+      Fail("method ", ToString(plan_.method), " needs at least two colour cameras; the take has ", color.size());
+    }
+    if (needs_plate() && !take_plan_.has_clean_plate() &&
+        options_.silhouette.mode == SilhouetteMode::kBackgroundSubtraction) {
+      Fail("method ", ToString(plan_.method), " needs silhouettes, and background subtraction needs a clean plate: ",
+           Where(), " has none (record leading frames without the subject and pass --clean-plate N)");
+    }
+    take_plan_.RequireFrames(take_, NeededSensors());
+    completion_ = "not a TSDF run";
+    if (is_tsdf()) {
+      const bool silhouettes = options_.silhouette.mode == SilhouetteMode::kThreshold || take_plan_.has_clean_plate();
+      plan_.hull_completion = options_.tsdf_hull_completion && color.size() >= 2 && silhouettes;
+      completion_ = plan_.hull_completion ? "visual hull of the colour cameras, carved by the depth sensors' free space, "
+                                            "fills what the depth sensors did not see"
+                    : !options_.tsdf_hull_completion ? "off (asked for)"
+                    : color.size() < 2              ? "off: fewer than two colour cameras"
+                                                    : "off: no clean plate for the colour cameras' silhouettes";
+    }
+    threads_ = recon::ResolveThreads(options_.threads);
+    frame_count_ = static_cast<int>(take_plan_.sets.size());
+    plan_.outer_threads = frame_count_ >= threads_ ? threads_ : 1;
+    plan_.inner_threads = frame_count_ >= threads_ ? 1 : threads_;
   }
-  Plates plates;
-  if (plan.clean_plate_frames > 0) {
-    const size_t plate_set = static_cast<size_t>(plan.clean_plate_frames - 1);
-    for (const auto& name : needed) {
-      if (take.entry(plate_set).Find(name) == nullptr) Fail("the clean plate (set ", plate_set, ") has no frame from '", name, "'");
-      cv::Mat image = take.ReadFrame(plate_set, name);
+
+  void ReadPlates() {
+    if (!take_plan_.has_clean_plate()) return;
+    const size_t plate_set = static_cast<size_t>(take_plan_.plate_set());
+    for (const auto& name : NeededSensors()) {
+      cv::Mat image = take_.ReadFrame(plate_set, name);
       if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
-      (take.stream(name).role == SensorRole::kDepth ? plates.depth : plates.color)[name] = image;
+      (take_.stream(name).role == SensorRole::kDepth ? plates_.depth : plates_.color)[name] = image;
     }
-    plan.depth_background = plan.method == ReconstructionMethod::kTsdf;
+    plan_.depth_background = is_tsdf();
   }
-  std::string completion = "not a TSDF run";
-  if (plan.method == ReconstructionMethod::kTsdf) {
-    const bool silhouettes = options.silhouette.mode == SilhouetteMode::kThreshold || plan.clean_plate_frames > 0;
-    plan.hull_completion = options.tsdf_hull_completion && sensors.color.size() >= 2 && silhouettes;
-    completion = plan.hull_completion ? "visual hull of the colour cameras, carved by the depth sensors' free space, "
-                                        "fills what the depth sensors did not see"
-                 : !options.tsdf_hull_completion ? "off (asked for)"
-                 : sensors.color.size() < 2     ? "off: fewer than two colour cameras"
-                                                : "off: no clean plate for the colour cameras' silhouettes";
-  }
-  const int threads = recon::ResolveThreads(options.threads);
-  const int frame_count = static_cast<int>(plan.sets.size());
-  plan.outer_threads = frame_count >= threads ? threads : 1;
-  plan.inner_threads = frame_count >= threads ? 1 : threads;
 
-  ReconstructionSummary summary;
-  nlohmann::json plan_json = {
-      {"method", ToString(plan.method)},
-      {"method_reason", options.method != ReconstructionMethod::kAuto ? "asked for"
-                        : sensors.depth.empty() ? "no depth sensor: multi-view stereo inside the visual hull"
-                                                : "depth sensors present: TSDF fusion of their depth"},
-      {"cameras", plan.ground_truth_cameras ? "gt/cameras (the take has no calib/: true models of the simulation)"
-                                            : "calib/"},
-      {"color_sensors", sensors.color},
-      {"depth_sensors", plan.method == ReconstructionMethod::kTsdf ? sensors.depth : std::vector<std::string>{}},
-      {"silhouettes", need_plate || plan.hull_completion
-                          ? (options.silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background subtraction")
-                          : "not needed"},
-      {"completion", completion},
-      {"depth_background", plan.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)"},
-      {"clean_plate_frames", plan.clean_plate_frames},
-      {"frame_sets", plan.sets},
-      {"voxel_m", options.voxel_m},
-      {"parallel", plan.outer_threads > 1 ? Cat(plan.outer_threads, " frames at once, 1 thread each")
-                                          : Cat("one frame at a time, ", plan.inner_threads, " threads each")},
-      {"texture", options.texture.atlas ? "per-vertex colour and atlas" : "per-vertex colour"},
-      {"skipped", plan.method == ReconstructionMethod::kTsdf ? (plan.hull_completion ? "stereo" : "silhouettes, hull, stereo")
-                  : plan.method == ReconstructionMethod::kHull ? "depth fusion, stereo" : "depth sensors"}};
-  summary.plan = plan_json;
-  std::printf("reconstruct: %s on %d frame set(s), voxel %.1f mm, cameras from %s\n", ToString(plan.method),
-              frame_count, options.voxel_m * 1e3, plan.ground_truth_cameras ? "gt/ (not calibrated)" : "calib/");
-  std::printf("  %s\n", plan_json["method_reason"].get<std::string>().c_str());
-  if (plan.method == ReconstructionMethod::kTsdf) std::printf("  completion: %s\n", completion.c_str());
-  std::printf("  %s\n", plan_json["parallel"].get<std::string>().c_str());
-  std::fflush(stdout);
-  if (report != nullptr) {
-    report->options() = options.ToJson();
-    report->options()["take"] = take_dir.string();
-    report->options()["out"] = out.string();
-    report->plan() = plan_json;
-  }
-  CreateDirectories(out);
-
-  summary.frames.resize(plan.sets.size());
-  Progress progress("reconstruct", frame_count);
-  std::mutex error_mutex;
-  std::exception_ptr error;
-#pragma omp parallel for num_threads(plan.outer_threads) schedule(dynamic, 1)
-  for (int i = 0; i < frame_count; ++i) {
-    try {
-      const int64_t set = plan.sets[i];
-      auto frame_start = std::chrono::steady_clock::now();
-      FrameOutput frame = ReconstructFrame(take, sensors, plates, plan, options, set, options.voxel_m, plan.inner_threads);
-      FrameResult& result = summary.frames[i];
-      result.set = set;
-      result.termination = frame.termination;
-      result.message = frame.message;
-      result.metrics = frame.metrics;
-      if (IsUsable(frame.termination)) {
-        std::vector<View> views;
-        FrameSet colour = take.Read(static_cast<size_t>(set), sensors.color);
-        for (const auto& name : sensors.color) {
-          cv::Mat image = colour.Find(name)->image;
-          if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
-          views.push_back({name, sensors.models.at(name), image, {}});
-        }
-        TextureOptions texture = options.texture;
-        texture.atlas = texture.atlas && options.write_glb;
-        TexturedMesh textured = TextureMesh(frame.mesh, views, texture);
-        WritePly(out / (SetName(set) + ".ply"), textured.mesh);
-        if (options.write_glb) WriteGlb(out / (SetName(set) + ".glb"), textured);
-        result.metrics["texture"] = textured.Metrics();
-      }
-      result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - frame_start).count();
-      result.vertices = static_cast<int64_t>(frame.mesh.vertices.size());
-      result.faces = static_cast<int64_t>(frame.mesh.faces.size());
-      if (IsUsable(frame.termination) && take.has_ground_truth()) {
-        AddGroundTruthMetrics(take, set, frame.mesh, sensors, plan, &result.metrics);
-      }
-      progress.Increment();
-    } catch (...) {
-      std::lock_guard lock(error_mutex);
-      if (!error) error = std::current_exception();
+  void DescribePlan() {
+    const std::string skipped = is_tsdf() ? (plan_.hull_completion ? "stereo" : "silhouettes, hull, stereo")
+                                : plan_.method == ReconstructionMethod::kHull ? "depth fusion, stereo"
+                                                                              : "depth sensors";
+    TakePlan described = take_plan_;
+    if (!is_tsdf()) {
+      if (!described.depth_sensors.empty()) described.LeaveOut("depth sensors", "the method reads colour cameras only");
+      described.depth_sensors.clear();
+    }
+    nlohmann::json plan = described.ToJson();
+    plan["method"] = ToString(plan_.method);
+    plan["method_reason"] = options_.method != ReconstructionMethod::kAuto ? "asked for"
+                            : take_plan_.depth_sensors.empty() ? "no depth sensor: multi-view stereo inside the visual hull"
+                                                               : "depth sensors present: TSDF fusion of their depth";
+    plan["silhouettes"] = needs_plate() || plan_.hull_completion
+                              ? (options_.silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background subtraction")
+                              : "not needed";
+    plan["completion"] = completion_;
+    plan["depth_background"] = plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
+    plan["voxel_m"] = options_.voxel_m;
+    plan["parallel"] = plan_.outer_threads > 1 ? Cat(plan_.outer_threads, " frames at once, 1 thread each")
+                                               : Cat("one frame at a time, ", plan_.inner_threads, " threads each");
+    plan["texture"] = options_.texture.atlas ? "per-vertex colour and atlas" : "per-vertex colour";
+    plan["skipped"] = skipped;
+    summary_.plan = plan;
+    std::printf("reconstruct: %s on %d frame set(s), voxel %.1f mm, cameras from %s\n", ToString(plan_.method),
+                frame_count_, options_.voxel_m * 1e3, take_plan_.ground_truth_cameras ? "gt/ (not calibrated)" : "calib/");
+    std::printf("  %s\n", plan["method_reason"].get<std::string>().c_str());
+    if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
+    std::printf("  %s\n", plan["parallel"].get<std::string>().c_str());
+    std::fflush(stdout);
+    if (report_ != nullptr) {
+      report_->options() = options_.ToJson();
+      report_->options()["take"] = take_.dir().string();
+      report_->options()["out"] = out_.string();
+      report_->plan() = plan;
     }
   }
-  progress.Finish();
-  if (error) std::rethrow_exception(error);
 
-  // Error against time as the voxel size varies, on the first frame.
-  nlohmann::json sweep = nlohmann::json::array();
-  if (take.has_ground_truth() && !options.sweep_voxels_m.empty() && summary.frames[0].metrics.contains("gt")) {
-    std::vector<double> voxels = options.sweep_voxels_m;
-    voxels.push_back(options.voxel_m);
+  // Reconstructs, textures and writes one frame set; measures it against the truth if any.
+  void ReconstructOne(int i) {
+    const int64_t set = take_plan_.sets[i];
+    auto frame_start = std::chrono::steady_clock::now();
+    FrameOutput frame =
+        ReconstructFrame(take_, take_plan_, plates_, plan_, options_, set, options_.voxel_m, plan_.inner_threads);
+    FrameResult& result = summary_.frames[i];
+    result.set = set;
+    result.End(frame.termination, frame.message);
+    result.metrics = frame.metrics;
+    if (frame.IsUsable()) {
+      std::vector<View> views;
+      FrameSet colour = take_.Read(static_cast<size_t>(set), take_plan_.color_sensors);
+      for (const auto& name : take_plan_.color_sensors) {
+        cv::Mat image = colour.Find(name)->image;
+        if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
+        views.push_back({name, take_plan_.cameras.at(name), image, {}});
+      }
+      TextureOptions texture = options_.texture;
+      texture.atlas = texture.atlas && options_.write_glb;
+      TexturedMesh textured = TextureMesh(frame.mesh, views, texture);
+      WritePly(out_ / (SetName(set) + ".ply"), textured.mesh);
+      if (options_.write_glb) WriteGlb(out_ / (SetName(set) + ".glb"), textured);
+      result.metrics["texture"] = textured.Metrics();
+    }
+    result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - frame_start).count();
+    result.vertices = static_cast<int64_t>(frame.mesh.vertices.size());
+    result.faces = static_cast<int64_t>(frame.mesh.faces.size());
+    if (frame.IsUsable() && take_.has_ground_truth()) {
+      AddGroundTruthMetrics(take_, set, frame.mesh, take_plan_, plan_, &result.metrics);
+    }
+  }
+
+  void ReconstructFrames() {
+    summary_.frames.resize(take_plan_.sets.size());
+    Progress progress("reconstruct", frame_count_);
+    std::mutex error_mutex;
+    std::exception_ptr error;
+#pragma omp parallel for num_threads(plan_.outer_threads) schedule(dynamic, 1)
+    for (int i = 0; i < frame_count_; ++i) {
+      try {
+        ReconstructOne(i);
+        progress.Increment();
+      } catch (...) {
+        std::lock_guard lock(error_mutex);
+        if (!error) error = std::current_exception();
+      }
+    }
+    progress.Finish();
+    if (error) std::rethrow_exception(error);
+  }
+
+  // Error against time as the voxel size varies, on the first frame (simulated takes).
+  nlohmann::json SweepVoxels() {
+    nlohmann::json sweep = nlohmann::json::array();
+    if (!take_.has_ground_truth() || options_.sweep_voxels_m.empty() || !summary_.frames[0].metrics.contains("gt")) {
+      return sweep;
+    }
+    std::vector<double> voxels = options_.sweep_voxels_m;
+    voxels.push_back(options_.voxel_m);
     std::sort(voxels.begin(), voxels.end(), std::greater<double>());
     voxels.erase(std::unique(voxels.begin(), voxels.end()), voxels.end());
     int64_t iter = 0;
     for (double voxel : voxels) {
       double seconds;
       nlohmann::json metrics;
-      if (voxel == options.voxel_m) {
-        seconds = summary.frames[0].seconds;
-        metrics = summary.frames[0].metrics;
+      if (voxel == options_.voxel_m) {
+        seconds = summary_.frames[0].seconds;
+        metrics = summary_.frames[0].metrics;
       } else {
         auto t0 = std::chrono::steady_clock::now();
-        FrameOutput frame = ReconstructFrame(take, sensors, plates, plan, options, plan.sets[0], voxel, threads);
+        FrameOutput frame =
+            ReconstructFrame(take_, take_plan_, plates_, plan_, options_, take_plan_.sets[0], voxel, threads_);
         seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        if (!IsUsable(frame.termination)) continue;
-        AddGroundTruthMetrics(take, plan.sets[0], frame.mesh, sensors, plan, &metrics);
+        if (!frame.IsUsable()) continue;
+        AddGroundTruthMetrics(take_, take_plan_.sets[0], frame.mesh, take_plan_, plan_, &metrics);
       }
       if (!metrics.contains("gt")) continue;
       double chamfer = metrics["gt"]["chamfer_mm"].get<double>();
       sweep.push_back({{"voxel_mm", voxel * 1e3}, {"seconds", seconds}, {"chamfer_mm", chamfer},
                        {"fscore_5mm", metrics["gt"]["fscore_5mm"]}});
-      if (report != nullptr) {
-        report->AddPoint("gt.chamfer_mm", chamfer, iter);
-        report->AddPoint("seconds_per_frame", seconds, iter);
-        report->AddPoint("voxel_mm", voxel * 1e3, iter);
+      if (report_ != nullptr) {
+        report_->AddPoint("gt.chamfer_mm", chamfer, iter);
+        report_->AddPoint("seconds_per_frame", seconds, iter);
+        report_->AddPoint("voxel_mm", voxel * 1e3, iter);
       }
       ++iter;
     }
+    return sweep;
   }
 
-  // Summary and metrics.
-  nlohmann::json per_frame = nlohmann::json::array();
-  nlohmann::json frames_json = nlohmann::json::array();
-  int usable = 0;
-  double total_seconds = 0;
-  std::map<std::string, double> gt_sums;
-  int gt_count = 0;
-  for (const FrameResult& f : summary.frames) {
-    per_frame.push_back(f.seconds);
-    total_seconds += f.seconds;
-    usable += IsUsable(f.termination);
-    frames_json.push_back({{"set", f.set}, {"seconds", f.seconds}, {"vertices", f.vertices}, {"faces", f.faces},
-                           {"termination", ToString(f.termination)}, {"message", f.message}, {"metrics", f.metrics}});
-    if (f.metrics.contains("gt")) {
-      ++gt_count;
-      for (auto& [key, value] : f.metrics["gt"].items()) {
-        if (value.is_number()) gt_sums[key] += value.get<double>();
+  // SUCCESS when at least one frame set gave a surface (the others are named); DEGENERATE when
+  // none did.
+  void Summarise(const nlohmann::json& sweep) {
+    nlohmann::json per_frame = nlohmann::json::array();
+    nlohmann::json frames_json = nlohmann::json::array();
+    int usable = 0;
+    double total_seconds = 0;
+    std::map<std::string, double> gt_sums;
+    int gt_count = 0;
+    for (const FrameResult& f : summary_.frames) {
+      per_frame.push_back(f.seconds);
+      total_seconds += f.seconds;
+      usable += f.IsUsable();
+      frames_json.push_back({{"set", f.set}, {"seconds", f.seconds}, {"vertices", f.vertices}, {"faces", f.faces},
+                             {"termination", ToString(f.termination)}, {"message", f.message}, {"metrics", f.metrics}});
+      if (f.metrics.contains("gt")) {
+        ++gt_count;
+        for (auto& [key, value] : f.metrics["gt"].items()) {
+          if (value.is_number()) gt_sums[key] += value.get<double>();
+        }
       }
     }
-  }
-  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  if (usable == frame_count) {
-    summary.termination = Termination::kSuccess;
-    summary.message = Cat(frame_count, " frame set(s) reconstructed by ", ToString(plan.method));
-  } else {
-    summary.termination = usable == 0 ? Termination::kDegenerate : Termination::kSuccess;
-    summary.message = Cat(usable, " of ", frame_count, " frame sets gave a surface; first failure: ");
-    for (const FrameResult& f : summary.frames) {
-      if (!IsUsable(f.termination)) {
-        summary.message += Cat("set ", f.set, ": ", f.message);
-        break;
+    summary_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+    if (usable == frame_count_) {
+      summary_.End(Termination::kSuccess, Cat(frame_count_, " frame set(s) reconstructed by ", ToString(plan_.method)));
+    } else {
+      std::string message = Cat(usable, " of ", frame_count_, " frame sets gave a surface; first failure: ");
+      for (const FrameResult& f : summary_.frames) {
+        if (!f.IsUsable()) {
+          message += Cat("set ", f.set, ": ", f.message);
+          break;
+        }
       }
+      summary_.End(usable == 0 ? Termination::kDegenerate : Termination::kSuccess, message);
     }
-  }
-  if (report != nullptr) {
-    nlohmann::json& metrics = report->metrics();
+    if (report_ == nullptr) return;
+    nlohmann::json& metrics = report_->metrics();
     metrics["timing"] = {{"per_frame_s", per_frame},
-                         {"mean_frame_s", total_seconds / frame_count},
-                         {"wall_s", summary.seconds},
-                         {"frames_per_minute", 60.0 * frame_count / summary.seconds}};
+                         {"mean_frame_s", total_seconds / frame_count_},
+                         {"wall_s", summary_.seconds},
+                         {"frames_per_minute", 60.0 * frame_count_ / summary_.seconds}};
     metrics["peak_rss_mb"] = PeakRssMb();
     metrics["frames"] = frames_json;
     if (gt_count > 0) {
@@ -560,10 +546,39 @@ ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, con
       metrics["gt"]["frames"] = gt_count;
       metrics["gt"]["voxel_sweep"] = sweep;
     }
-    report->SetSummary({summary.termination, summary.message});
-    report->Write(out / "report.json");
+    report_->SetSummary(summary_);
+    report_->Write(out_ / "report.json");
   }
-  return summary;
+
+  const Take& take_;
+  const TakePlan& take_plan_;
+  const std::filesystem::path out_;
+  const ReconstructionOptions& options_;
+  Report* report_;
+  const std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
+  MethodPlan plan_;
+  Plates plates_;
+  std::string completion_;
+  int threads_ = 1;
+  int frame_count_ = 0;
+  ReconstructionSummary summary_;
+};
+
+}  // namespace
+
+ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan, const std::filesystem::path& out,
+                                      const ReconstructionOptions& options, Report* report) {
+  options.Check();
+  return TakeReconstructor(take, plan, out, options, report).Run();
+}
+
+ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, const TakeSelection& selection,
+                                      const std::filesystem::path& out, const ReconstructionOptions& options,
+                                      Report* report) {
+  options.Check();
+  const Take take = Take::Open(take_dir);
+  const TakePlan plan = PlanTake(take, selection);
+  return ReconstructTake(take, plan, out, options, report);
 }
 
 }  // namespace holocap

@@ -28,6 +28,7 @@
 #include "core/camera.h"
 #include "core/mesh.h"
 #include "core/report.h"
+#include "core/take_plan.h"
 
 namespace holocap {
 
@@ -168,9 +169,7 @@ struct HullOptions {
   void Check() const;
 };
 
-struct HullSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+struct HullSummary : Summary {
   int64_t octree_cells = 0;     // cells tested before reaching blocks
   int64_t surface_blocks = 0;   // blocks evaluated voxel by voxel
   int64_t inside_blocks = 0;    // blocks wholly inside, never evaluated voxel by voxel
@@ -311,9 +310,7 @@ struct MvsOptions {
   void Check() const;
 };
 
-struct MvsSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+struct MvsSummary : Summary {
   int64_t pixels_searched = 0;
   int64_t pixels_matched = 0;     // best NCC above min_ncc
   int64_t pixels_consistent = 0;  // surviving the geometric check
@@ -418,11 +415,7 @@ ReconstructionMethod ReconstructionMethodFromString(const std::string& text);  /
 struct ReconstructionOptions {
   ReconstructionMethod method = ReconstructionMethod::kAuto;  // auto: depth -> tsdf, else mvs
   double voxel_m = 0.004;           // TSDF and hull voxel (the hull for MVS uses 2x)
-  int64_t first_frame = 0;          // frame sets [first, last) after the clean plate
-  int64_t last_frame = -1;          // -1: to the end
-  // Leading frame sets without the subject; -1: from the take's metadata (sim writes it),
-  // else 0. Their colour and depth frames are the clean plates.
-  int64_t clean_plate_frames = -1;
+  // Which frame sets, cameras and clean plates: the TakePlan given beside these options.
   Box bounds;                       // the capture volume
   SilhouetteOptions silhouette;
   HullOptions hull;                 // voxel and bounds are set from the fields above
@@ -450,30 +443,30 @@ struct ReconstructionOptions {
   nlohmann::json ToJson() const;
 };
 
-struct FrameResult {
+struct FrameResult : Summary {
   int64_t set = 0;
   double seconds = 0;
   int64_t vertices = 0;
   int64_t faces = 0;
-  Termination termination = Termination::kSuccess;
-  std::string message;
   nlohmann::json metrics;  // per stage, and gt.* on simulated takes
 };
 
-struct ReconstructionSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
-  nlohmann::json plan;
+struct ReconstructionSummary : Summary {
+  nlohmann::json plan;  // the TakePlan's keys and the method's
   std::vector<FrameResult> frames;
   double seconds = 0;
 };
 
-// Reconstructs frame sets of a take into `out` (recon/<set:06d>.ply and .glb, report.json):
-// calib/ models when the take is calibrated, else the true models from gt/ (said in the
-// plan), else Error. Throws Error for bad options, a missing take, a take without cameras, or
-// a frame set missing a camera's frame.
-ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir,
-                                      const std::filesystem::path& out,
-                                      const ReconstructionOptions& options, Report* report);
+// Reconstructs the plan's frame sets of a take into `out` (recon/<set:06d>.ply and .glb,
+// report.json) with the plan's cameras (calib/, or gt/ on an uncalibrated simulated take).
+// SUCCESS when at least one frame set gave a surface (failed sets are named in the message and
+// metrics), DEGENERATE when none did. Throws Error for bad options, a method the take's sensors
+// cannot support, or a planned frame set missing a frame the method reads.
+ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan, const std::filesystem::path& out,
+                                      const ReconstructionOptions& options, Report* report = nullptr);
+// The same, opening and planning the take first.
+ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, const TakeSelection& selection,
+                                      const std::filesystem::path& out, const ReconstructionOptions& options,
+                                      Report* report = nullptr);
 
 }  // namespace holocap

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Installs the Debian packages holocap needs (only the missing ones), then configures and
 # builds it with every core. Idempotent; works as root or through sudo.
-#   scripts/setup.sh            build dependencies + build
-#   scripts/setup.sh --tests    also the packages the tests and peer checks use
+#   scripts/setup.sh            build dependencies + the holocap CLI alone
+#   scripts/setup.sh --tests    also the packages the tests and peer checks use, and every
+#                               test suite and benchmark
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -41,5 +42,11 @@ if [ "${#missing[@]}" -gt 0 ]; then
 fi
 
 build_dir=${HOLOCAP_BUILD_DIR:-build}
-cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
-cmake --build "$build_dir" -j "$(nproc)"
+if [ "$want_tests" = 1 ]; then
+  cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release -DHOLOCAP_BUILD_TESTS=ON -DHOLOCAP_BUILD_BENCH=ON >/dev/null
+  cmake --build "$build_dir" -j "$(nproc)"
+else
+  # The demo needs the CLI alone: no test suites, no benchmarks (nor GoogleTest to find them).
+  cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release -DHOLOCAP_BUILD_TESTS=OFF -DHOLOCAP_BUILD_BENCH=OFF >/dev/null
+  cmake --build "$build_dir" -j "$(nproc)" --target holocap
+fi

@@ -47,7 +47,7 @@ nlohmann::json RunPipeline(ReconstructionMethod method, double voxel, const fs::
   options.texture.atlas = false;
   options.sweep_voxels_m.clear();
   Report report("reconstruct");
-  ReconstructionSummary summary = ReconstructTake(StudioTake(), out, options, &report);
+  ReconstructionSummary summary = ReconstructTake(StudioTake(), TakeSelection{}, out, options, &report);
   EXPECT_EQ(summary.termination, Termination::kSuccess) << summary.message;
   EXPECT_EQ(summary.plan["cameras"].get<std::string>().rfind("gt/cameras", 0), 0u)
       << "the simulated take is not calibrated: true models are used";
@@ -80,13 +80,14 @@ TEST(StudioTest, TsdfFromTheDepthSensorsIsWithinFourMillimetres) {
   ReconstructionOptions options;
   options.method = ReconstructionMethod::kTsdf;
   options.voxel_m = 0.004;
-  options.last_frame = 1;
   options.write_glb = false;
   options.texture.atlas = false;
   options.sweep_voxels_m.clear();
   options.tsdf_hull_completion = false;
   TempDir plain_out;
-  ReconstructionSummary plain = ReconstructTake(StudioTake(), plain_out.path(), options, nullptr);
+  TakeSelection first_set;
+  first_set.last_frame = 1;
+  ReconstructionSummary plain = ReconstructTake(StudioTake(), first_set, plain_out.path(), options, nullptr);
   const auto& plain_gt = plain.frames[0].metrics["gt"];
   std::printf("tsdf 4 mm without completion: %s\n", plain_gt.dump().c_str());
   EXPECT_LE(plain_gt["accuracy_mm"].get<double>(), 3.0);
@@ -200,13 +201,14 @@ TEST(StudioTest, CalibratedTakePrefersCalib) {
   ReconstructionOptions options;
   options.method = ReconstructionMethod::kTsdf;
   options.voxel_m = 0.008;
-  options.last_frame = 1;
   options.write_glb = false;
   options.sweep_voxels_m.clear();
+  TakeSelection first_set;
+  first_set.last_frame = 1;
   TempDir calibrated_out, truth_out;
-  ReconstructionSummary calibrated = ReconstructTake(take_dir, calibrated_out.path(), options, nullptr);
+  ReconstructionSummary calibrated = ReconstructTake(take_dir, first_set, calibrated_out.path(), options, nullptr);
   EXPECT_EQ(calibrated.plan["cameras"], "calib/");
-  ReconstructionSummary truth = ReconstructTake(StudioTake(), truth_out.path(), options, nullptr);
+  ReconstructionSummary truth = ReconstructTake(StudioTake(), first_set, truth_out.path(), options, nullptr);
   EXPECT_EQ(truth.plan["cameras"].get<std::string>().rfind("gt/cameras", 0), 0u);
   const Eigen::Vector3d moved = centroid(calibrated_out / "000001.ply") - centroid(truth_out / "000001.ply");
   EXPECT_LT((moved - shift).norm(), 0.005) << moved.transpose();

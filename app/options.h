@@ -1,0 +1,46 @@
+// Command-line pieces shared by the subcommands: the take-selection flags (defined once, the
+// same on every command that reads a take), lengths, frame ranges, bounds, name lists, and the
+// one exit rule of every command.
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "core/report.h"
+#include "core/take_plan.h"
+
+namespace holocap {
+
+struct Box;
+
+// --frames A:B, --clean-plate N, --ground-truth-cameras.
+struct TakeSelectionFlags {
+  std::string frames;
+  int64_t clean_plate = -1;
+  bool ground_truth_cameras = false;
+
+  TakeSelection Parse() const;  // throws Error naming the flag
+};
+void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags);
+
+// "a:b", "a:" or "a" (one frame set), counted after the clean plate.
+void ParseFrames(const std::string& text, int64_t* first, int64_t* last);
+// "4mm", "4 mm", "0.4cm", "0.004m" or a bare number of metres; throws Error naming `what`.
+double ParseLength(const std::string& text, const char* what);
+// A capture volume given as "xmin,ymin,zmin,xmax,ymax,zmax" (metres); throws Error naming
+// `option` when it is not six numbers with max above min on every axis.
+Box ParseBounds(const std::string& text, const char* option = "--bounds");
+
+// Runs `check` (an Options::Check()); an Error whose message begins with a field name in
+// `flag_of_field` is rethrown beginning with the flag the user typed instead.
+void CheckNamingFlags(const std::function<void()>& check, const std::map<std::string, std::string>& flag_of_field);
+
+// The one exit rule (core/report.h): prints "STATE: message", and for a state that is not
+// usable ends the command with one `holocap: error:` line (exit status 1).
+void EndCommand(const Summary& summary, const std::string& what);
+
+}  // namespace holocap

@@ -1,0 +1,161 @@
+// The take plan: one reading of a take (camera models, sensors, clean plate, frame sets) that
+// every stage starts from.
+#include "core/take_plan.h"
+
+#include <gtest/gtest.h>
+
+#include "core/error.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::TempDir;
+
+// Three colour cameras on a ring and a depth sensor paired with cam1; `sets` frame sets, the
+// first `plate` of them recorded as clean plate in the take's metadata; cam2 dropped in set 3.
+std::filesystem::path WriteTake(const std::filesystem::path& dir, int sets, int plate) {
+  RigDescription rig;
+  rig.name = "plan";
+  std::vector<StreamInfo> streams;
+  for (const char* name : {"cam0", "cam1", "cam2"}) {
+    rig.sensors.push_back({.name = name, .uri = std::string("sim:plan#") + name});
+    streams.push_back({.name = name, .uri = std::string("sim:plan#") + name, .width = 32, .height = 24,
+                       .pixel_format = "bgr8", .clock = "sim"});
+  }
+  rig.sensors.push_back({.name = "depth0", .uri = "sim:plan#depth0", .role = SensorRole::kDepth, .paired_with = "cam1"});
+  streams.push_back({.name = "depth0", .uri = "sim:plan#depth0", .role = SensorRole::kDepth, .width = 16, .height = 12,
+                     .pixel_format = "depth_m", .codec = ImageCodec::kExr, .clock = "sim", .paired_with = "cam1"});
+  {
+    TakeWriter writer(dir, rig, streams, {{"clean_plate_frames", plate}});
+    for (int i = 0; i < sets; ++i) {
+      FrameSet set;
+      set.index = i;
+      for (const char* name : {"cam0", "cam1", "cam2"}) {
+        if (i == 3 && std::string(name) == "cam2") continue;
+        set.frames.push_back({name, cv::Mat(24, 32, CV_8UC3, cv::Scalar::all(10 * i)), 1000 * i, static_cast<uint64_t>(i)});
+      }
+      set.frames.push_back({"depth0", cv::Mat(12, 16, CV_32FC1, cv::Scalar(1.5f)), 1000 * i, static_cast<uint64_t>(i)});
+      writer.Append(set);
+    }
+    writer.Close();
+  }
+  return dir;
+}
+
+void WriteModels(const std::filesystem::path& folder) {
+  const char* names[] = {"cam0", "cam1", "cam2", "depth0"};
+  for (int i = 0; i < 4; ++i) {
+    const double angle = 2 * 3.14159265358979 * i / 4;
+    Pose cam_from_world = Pose::Identity();
+    cam_from_world.translation() = Eigen::Vector3d(std::cos(angle), std::sin(angle), 3.0);
+    CameraModel::Pinhole(30, i < 3 ? 32 : 16, i < 3 ? 24 : 12, cam_from_world).Write(folder / (std::string(names[i]) + ".cameramodel"));
+  }
+}
+
+TEST(TakePlan, NeedsCameraModelsAndPrefersTheCalibration) {
+  TempDir dir;
+  const Take bare = Take::Open(WriteTake(dir.path() / "take", 3, 1));
+  try {
+    PlanTake(bare, TakeSelection{});
+    FAIL() << "a take without calib/ or gt/cameras was planned";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("holocap calibrate"), std::string::npos) << e.what();
+  }
+  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
+  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  const Take simulated = Take::Open(dir.path() / "take");
+  TakePlan truth = PlanTake(simulated, TakeSelection{});
+  EXPECT_TRUE(truth.ground_truth_cameras);
+  EXPECT_EQ(truth.cameras_source.rfind("gt/cameras", 0), 0u) << truth.cameras_source;
+  std::filesystem::create_directories(dir.path() / "take" / "calib");
+  WriteModels(dir.path() / "take" / "calib");
+  const Take calibrated = Take::Open(dir.path() / "take");
+  EXPECT_EQ(PlanTake(calibrated, TakeSelection{}).cameras_source, "calib/");
+  TakeSelection forced;
+  forced.ground_truth_cameras = true;
+  EXPECT_EQ(PlanTake(calibrated, forced).cameras_source, "gt/cameras (asked for)");
+}
+
+TEST(TakePlan, ChoosesSensorsPlateAndFrameSetsOnce) {
+  TempDir dir;
+  WriteTake(dir.path() / "take", 6, 1);
+  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
+  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  const Take take = Take::Open(dir.path() / "take");
+  TakePlan plan = PlanTake(take, TakeSelection{});
+  EXPECT_EQ(plan.color_sensors, (std::vector<std::string>{"cam0", "cam1", "cam2"}));
+  EXPECT_EQ(plan.depth_sensors, (std::vector<std::string>{"depth0"}));
+  EXPECT_EQ(plan.paired_color, (std::set<std::string>{"cam1"}));
+  EXPECT_EQ(plan.cameras.size(), 4u);
+  EXPECT_EQ(plan.clean_plate_frames, 1);  // from the take's metadata
+  EXPECT_EQ(plan.plate_set(), 0);
+  EXPECT_EQ(plan.sets, (std::vector<int64_t>{1, 2, 3, 4, 5}));
+
+  TakeSelection range;
+  range.first_frame = 1;
+  range.last_frame = 3;
+  range.clean_plate_frames = 2;  // the user's word beats the metadata
+  plan = PlanTake(take, range);
+  EXPECT_EQ(plan.clean_plate_frames, 2);
+  EXPECT_EQ(plan.sets, (std::vector<int64_t>{3, 4}));
+  // Set 3 lacks cam2: a stage that reads cam2 is told which set and sensor, one that does not is not.
+  try {
+    plan.RequireFrames(take, {"cam0", "cam2"});
+    FAIL() << "a dropped frame went unnoticed";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("frame set 3"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("'cam2'"), std::string::npos) << e.what();
+  }
+  EXPECT_NO_THROW(plan.RequireFrames(take, {"cam0", "depth0"}));
+
+  plan.heldout = {"cam2"};
+  plan.LeaveOut("depth sensors", "colour alone");
+  const nlohmann::json json = plan.ToJson();
+  EXPECT_EQ(json.at("frame_sets"), nlohmann::json({3, 4}));
+  EXPECT_EQ(json.at("heldout"), nlohmann::json({"cam2"}));
+  EXPECT_EQ(json.at("left_out").at("depth sensors"), "colour alone");
+  EXPECT_EQ(plan.ColorIndex("cam2", "held-out"), 2);
+  EXPECT_THROW(plan.ColorIndex("depth0", "held-out"), Error);
+}
+
+TEST(TakePlan, RefusesSelectionsThatSelectNothing) {
+  TempDir dir;
+  WriteTake(dir.path() / "take", 3, 1);
+  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
+  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  const Take take = Take::Open(dir.path() / "take");
+  TakeSelection past_the_end;
+  past_the_end.first_frame = 2;  // two sets after the plate: 0 and 1
+  EXPECT_THROW(PlanTake(take, past_the_end), Error);
+  TakeSelection all_plate;
+  all_plate.clean_plate_frames = 3;
+  EXPECT_THROW(PlanTake(take, all_plate), Error);
+  TakeSelection empty;
+  empty.first_frame = 1;
+  empty.last_frame = 1;
+  EXPECT_THROW(empty.Check(), Error);
+  TakeSelection negative;
+  negative.first_frame = -1;
+  EXPECT_THROW(negative.Check(), Error);
+}
+
+TEST(TakePlan, SpreadsPicksAroundTheCentre) {
+  std::vector<CameraModel> ring;
+  for (int i = 0; i < 8; ++i) {
+    const double angle = 2 * 3.14159265358979 * i / 8;
+    Pose cam_from_world = Pose::Identity();
+    cam_from_world.translation() = Eigen::Vector3d(3 * std::cos(angle), 3 * std::sin(angle), 0);
+    ring.push_back(CameraModel::Pinhole(100, 64, 48, cam_from_world));
+  }
+  // world_from_cam's translation is the centre; these cameras sit at -translation.
+  const std::vector<int> all = {0, 1, 2, 3, 4, 5, 6, 7};
+  const std::vector<int> two = SpreadAround(ring, all, 2, Eigen::Vector3d::Zero());
+  EXPECT_EQ(two, (std::vector<int>{0, 4})) << "opposite cameras are farthest apart";
+  EXPECT_EQ(SpreadAround(ring, all, 4, Eigen::Vector3d::Zero()), (std::vector<int>{0, 2, 4, 6}));
+  EXPECT_TRUE(SpreadAround(ring, all, 0, Eigen::Vector3d::Zero()).empty());
+  EXPECT_EQ(SpreadAround(ring, {3, 5}, 5, Eigen::Vector3d::Zero()).size(), 2u);
+}
+
+}  // namespace
+}  // namespace holocap
