@@ -380,11 +380,15 @@ TEST(SolverEnd, EachStateFromTheResidualsAndTheJacobian) {
   EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, with_nan, 1.0).termination, Termination::kFailure);
 }
 
-// A clean rig: every mrcal stage converged, its own figures in the summary.
-TEST(Calibrate, ReportsMrcalsOwnEndingOfEveryStage) {
+SyntheticRig SmallRig() {
   SyntheticOptions options = ReducedRig();
   options.frames = 60;
-  const SyntheticRig rig = MakeSyntheticRig(options);
+  return MakeSyntheticRig(options);
+}
+
+// A clean rig: every mrcal stage converged, its own figures in the summary.
+TEST(Calibrate, ReportsMrcalsOwnEndingOfEveryStage) {
+  const SyntheticRig rig = SmallRig();
   CalibrationOptions solve;
   solve.uncertainty = false;
   const CalibrationSummary s = Calibrate(rig.layout, rig.cameras, rig.observations, solve);
@@ -404,9 +408,7 @@ TEST(Calibrate, ReportsMrcalsOwnEndingOfEveryStage) {
 
 // A seed that cannot fit the observations stops the solve: FAILURE, exit status 1.
 TEST(Calibrate, ASeedThatDoesNotFitIsFailure) {
-  SyntheticOptions options = ReducedRig();
-  options.frames = 60;
-  const SyntheticRig rig = MakeSyntheticRig(options);
+  const SyntheticRig rig = SmallRig();
   CalibrationOptions solve;
   solve.uncertainty = false;
   solve.max_seed_rms_px = 0.01;  // below the detections' own noise
