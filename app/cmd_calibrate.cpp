@@ -33,6 +33,13 @@ void PrintSummary(const TakeCalibrationSummary& s) {
   std::printf("%s: %s\n", ToString(c.termination), c.message.c_str());
   std::printf("lens model %s, reference %s, solve %.2f s, uncertainty %.2f s\n", c.lensmodel.c_str(),
               c.reference_camera.c_str(), c.solve_seconds, c.uncertainty_seconds);
+  for (const auto& stage : c.stages) {
+    if (stage.name != "everything") continue;
+    std::printf("mrcal final stage: %s, rms %.3f px, cost %.6g, %d outliers, one more step would "
+                "remove %.2g of the cost\n",
+                ToString(stage.termination), stage.rms_px, stage.cost, stage.outliers,
+                stage.expected_decrease);
+  }
   std::printf("%-8s %6s %7s %8s %9s %11s  %s\n", "camera", "views", "points", "outliers", "rms_px",
               "sigma_seen", "flag");
   for (const auto& cam : c.cameras) {
@@ -82,7 +89,10 @@ void AddCalibrateCommand(CLI::App& app) {
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
     PrintSummary(summary);
     std::printf("report: %s\n", (std::filesystem::path(args->take) / "calib" / "report.json").c_str());
-    if (!IsUsable(summary.termination)) Fail("calibration not trusted: ", summary.message);
+    // The state line is printed above; an unusable state ends in one error line and exit 1.
+    if (ExitStatus(summary.termination) != 0) {
+      Fail("calibration ", ToString(summary.termination), ": ", summary.message);
+    }
   });
 }
 
@@ -122,7 +132,7 @@ Summary CalibrateDemoTake(DemoContext& context) {
       }
     }
   }
-  return {summary.termination, summary.message};
+  return summary;
 }
 HOLOCAP_DEMO_STAGE(20, "calibration", CalibrateDemoTake);
 

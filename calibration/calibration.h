@@ -198,17 +198,34 @@ struct CalibratedCamera {
   double center_sigma_mm = std::numeric_limits<double>::quiet_NaN();     // worst direction
 };
 
+// One mrcal_optimize call and how it ended, in mrcal's own figures. mrcal 2.2 returns the RMS
+// and the outlier count only (no iteration count, no convergence flag): the ending is judged at
+// its result from its own residuals and Jacobian (the cost one more Gauss-Newton step would
+// remove, against Ceres' default function tolerance of 1e-6).
 struct SolveStage {
   std::string name;
   std::string lensmodel;
-  double rms_px = 0;
-  int outliers = 0;
+  double rms_px = 0;                 // mrcal's rms_reproj_error__pixels (negative: mrcal failed)
+  int outliers = 0;                  // mrcal's Noutliers
   double seconds = 0;                // since the solve began, at the stage's end
+  // CONVERGENCE: one more step would remove <= 1e-6 of the cost; NO_CONVERGENCE: more (mrcal
+  // spent its iterations while the cost still fell); FAILURE: mrcal failed or gave NaN.
+  Termination termination = Termination::kFailure;
+  double cost = std::numeric_limits<double>::quiet_NaN();  // |x|^2 of mrcal's residuals at the end
+  double expected_decrease = std::numeric_limits<double>::quiet_NaN();  // share of the cost one
+                                     // more Gauss-Newton step would remove (NaN: not judged)
 };
 
-struct CalibrationSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+// How a calibration ends (core/report.h's contract):
+// | state          | when                                                                   | exit |
+// |----------------|------------------------------------------------------------------------|------|
+// | CONVERGENCE    | every camera solved and trusted, every mrcal stage converged           | 0    |
+// | NO_CONVERGENCE | every camera trusted, but a stage's cost still fell when mrcal stopped  | 0    |
+// | DEGENERATE     | a camera has too few views, shares none with the reference camera's    | 1    |
+// |                | group, or is ill-conditioned (projection 1-sigma above the limit); the |      |
+// |                | message names each camera and why                                      |      |
+// | FAILURE        | mrcal failed or gave NaN, or the seed does not fit (wrong board/lens)  | 1    |
+struct CalibrationSummary : Summary {
   std::string lensmodel;             // the model solved
   std::string reference_camera;
   std::vector<CalibratedCamera> cameras;
@@ -277,9 +294,9 @@ struct DepthAlignmentOptions {
   void Check() const;
 };
 
-struct DepthAlignmentSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+// SUCCESS: the transform (and the time offset where the board moved enough) was fitted;
+// DEGENERATE: too few board planes, or too close to parallel, to fix it.
+struct DepthAlignmentSummary : Summary {
   std::string depth_sensor;
   std::string color_sensor;
   Pose depth_from_color = Pose::Identity();
@@ -318,9 +335,8 @@ struct TakeCalibrationOptions {
   void Check() const;
 };
 
-struct TakeCalibrationSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+// The calibration's state and message (the depth sensors' own are in `depth`).
+struct TakeCalibrationSummary : Summary {
   DetectionSummary detection;
   CalibrationSummary calibration;
   std::vector<DepthAlignmentSummary> depth;

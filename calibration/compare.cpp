@@ -7,6 +7,27 @@
 #include "core/error.h"
 
 namespace holocap {
+namespace calibration_internal {
+
+Pose WorldFromReference(const CalibrationSummary& summary, const CameraModel& reference_truth,
+                        const std::map<int64_t, Pose>& world_from_board, const BoardLayout& layout,
+                        bool* from_boards) {
+  const std::vector<Eigen::Vector3d> grid = Board(layout).GridPoints();
+  std::vector<Eigen::Vector3d> in_ref, in_world;
+  for (const auto& [set, ref_from_board] : summary.ref_from_board) {
+    auto it = world_from_board.find(set);
+    if (it == world_from_board.end()) continue;
+    for (const auto& g : grid) {
+      in_ref.push_back(ref_from_board * g);
+      in_world.push_back(it->second * g);
+    }
+  }
+  if (from_boards != nullptr) *from_boards = in_ref.size() >= 3;
+  return in_ref.size() >= 3 ? FitRigid(in_ref, in_world) : reference_truth.world_from_cam();
+}
+
+}  // namespace calibration_internal
+
 namespace {
 
 // Both models' cores mean the same thing only within a projection family.
@@ -17,6 +38,190 @@ bool CoresComparable(const std::string& a, const std::string& b) {
     return 2;
   };
   return family(a) == family(b) && family(a) != 2;
+}
+
+
+// Robustly: one badly solved camera would otherwise turn the whole rig by its share of its
+// error. The rotation whose difference lies closest to the others' (medoid), then the mean of
+// those within three times the median distance from it.
+Eigen::Matrix3d RobustMeanRotation(const std::vector<Pose>& rotations) {
+  const size_t n = rotations.size();
+  auto angle = [](const Pose& a, const Pose& b) { return RotationAngleDeg(a.linear().transpose() * b.linear()); };
+  size_t medoid = 0;
+  double best = 1e300;
+  for (size_t i = 0; i < n; ++i) {
+    double sum = 0;
+    for (size_t k = 0; k < n; ++k) sum += angle(rotations[i], rotations[k]);
+    if (sum < best) {
+      best = sum;
+      medoid = i;
+    }
+  }
+  std::vector<double> distance(n);
+  for (size_t i = 0; i < n; ++i) distance[i] = angle(rotations[medoid], rotations[i]);
+  std::vector<double> sorted = distance;
+  std::nth_element(sorted.begin(), sorted.begin() + n / 2, sorted.end());
+  const double limit = std::max(3 * sorted[n / 2], 1e-9);
+  std::vector<Pose> kept;
+  for (size_t i = 0; i < n; ++i) {
+    if (distance[i] <= limit) kept.push_back(rotations[i]);
+  }
+  return calibration_internal::AveragePoses(kept).linear();
+}
+
+// The mean of the offsets within three times the median spread of their per-axis median.
+Eigen::Vector3d RobustMeanOffset(const std::vector<Eigen::Vector3d>& offsets) {
+  const size_t n = offsets.size();
+  Eigen::Vector3d median;
+  for (int d = 0; d < 3; ++d) {
+    std::vector<double> v;
+    for (const auto& o : offsets) v.push_back(o[d]);
+    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+    median[d] = v[v.size() / 2];
+  }
+  std::vector<double> spread;
+  for (const auto& o : offsets) spread.push_back((o - median).norm());
+  std::vector<double> sorted_spread = spread;
+  std::nth_element(sorted_spread.begin(), sorted_spread.begin() + n / 2, sorted_spread.end());
+  Eigen::Vector3d offset = Eigen::Vector3d::Zero();
+  int used = 0;
+  for (size_t i = 0; i < n; ++i) {
+    if (spread[i] > std::max(3 * sorted_spread[n / 2], 1e-12)) continue;
+    offset += offsets[i];
+    ++used;
+  }
+  return offset / std::max(used, 1);
+}
+
+// The solved rig laid onto the true one: the rotation that best carries the solved cameras'
+// orientations onto the true ones (chordal mean of their differences), then the translation
+// that best carries the camera centres (their mean offset). Which world the solve is anchored
+// to is a choice of gauge; what a rig's calibration promises is where each camera is and how
+// it is turned relative to the others.
+Pose TrueWorldFromSolved(const CalibrationSummary& summary,
+                         const std::map<std::string, CameraModel>& truth) {
+  Pose true_world_from_solved = Pose::Identity();
+  std::vector<Pose> rotations;
+  for (const auto& cam : summary.cameras) {
+    auto t = truth.find(cam.name);
+    if (!cam.solved || t == truth.end()) continue;
+    Pose r = Pose::Identity();
+    r.linear() = t->second.world_from_cam().linear() * cam.model.cam_from_world().linear();
+    rotations.push_back(r);
+  }
+  if (rotations.empty()) return true_world_from_solved;
+  true_world_from_solved.linear() = RobustMeanRotation(rotations);
+  std::vector<Eigen::Vector3d> offsets;
+  for (const auto& cam : summary.cameras) {
+    auto t = truth.find(cam.name);
+    if (!cam.solved || t == truth.end()) continue;
+    offsets.push_back(t->second.world_from_cam().translation() -
+                      true_world_from_solved.linear() * cam.model.world_from_cam().translation());
+  }
+  true_world_from_solved.translation() = RobustMeanOffset(offsets);
+  return true_world_from_solved;
+}
+
+// Sums over every camera's imager samples.
+struct ProjectionTally {
+  double sum2 = 0, observed_sum2 = 0;
+  int64_t samples = 0, within = 0, with_sigma = 0, observed_n = 0;
+};
+
+// Core and pose errors of one camera, into `result` and its json `j`.
+void CompareCoreAndPose(const CalibratedCamera& cam, const CameraModel& real,
+                        const Pose& true_world_from_ref_cam, const Pose& true_world_from_solved,
+                        GroundTruthComparison* result, nlohmann::json* j) {
+  const CameraModel& solved = cam.model;
+  if (CoresComparable(solved.lensmodel(), real.lensmodel()) && solved.has_core() && real.has_core()) {
+    const auto& a = solved.intrinsics();
+    const auto& b = real.intrinsics();
+    const double focal = std::max(std::abs(a[0] - b[0]) / b[0], std::abs(a[1] - b[1]) / b[1]);
+    const double pp = std::hypot(a[2] - b[2], a[3] - b[3]);
+    result->focal_rel_err_max = std::max(result->focal_rel_err_max, focal);
+    result->principal_point_err_px_max = std::max(result->principal_point_err_px_max, pp);
+    (*j)["focal_rel_err"] = focal;
+    (*j)["principal_point_err_px"] = pp;
+  } else {
+    (*j)["core_comparable"] = false;  // e.g. a splined model against a pinhole-family lens
+  }
+  // Geometry relative to the reference camera: gauge-free, but the reference camera's own
+  // pose error is in every camera's figure.
+  const Pose solved_cam_from_ref = solved.cam_from_world();
+  const Pose true_cam_from_ref = real.cam_from_world() * true_world_from_ref_cam;
+  const Pose delta = solved_cam_from_ref * true_cam_from_ref.inverse();
+  const double rotation = RotationAngleDeg(delta.linear());
+  const double translation =
+      1000 * (solved_cam_from_ref.inverse().translation() - true_cam_from_ref.inverse().translation()).norm();
+  result->rotation_err_deg_max_from_reference = std::max(result->rotation_err_deg_max_from_reference, rotation);
+  result->translation_err_mm_max_from_reference =
+      std::max(result->translation_err_mm_max_from_reference, translation);
+  (*j)["rotation_err_deg_from_reference"] = rotation;
+  (*j)["translation_err_mm_from_reference"] = translation;
+  // Against the rig alignment.
+  const Pose aligned = true_world_from_solved * solved.world_from_cam();
+  const double aligned_rotation = RotationAngleDeg(real.cam_from_world().linear() * aligned.linear());
+  const double aligned_translation = 1000 * (aligned.translation() - real.world_from_cam().translation()).norm();
+  result->rotation_err_deg_max = std::max(result->rotation_err_deg_max, aligned_rotation);
+  result->translation_err_mm_max = std::max(result->translation_err_mm_max, aligned_translation);
+  (*j)["rotation_err_deg"] = aligned_rotation;
+  (*j)["translation_err_mm"] = aligned_translation;
+}
+
+// Projection over the imager at the working distance, the solved point placed in the world
+// through the board-anchored frame.
+void CompareProjection(const CalibratedCamera& cam, const CameraModel& real, const Pose& world_from_ref,
+                       GroundTruthComparison* result, ProjectionTally* tally, nlohmann::json* j) {
+  const CameraModel& solved = cam.model;
+  Eigen::Matrix2Xd pixels = cam.uncertainty.pixels;
+  int grid_x = cam.uncertainty.grid_x;
+  if (grid_x == 0) {
+    grid_x = 16;
+    pixels.resize(2, 16 * 12);
+    for (int k = 0; k < 16 * 12; ++k) {
+      pixels.col(k) << ((k % 16) + 0.5) * solved.width() / 16 - 0.5,
+          ((k / 16) + 0.5) * solved.height() / 12 - 0.5;
+    }
+  }
+  const double distance = cam.uncertainty.distance_m > 0 ? cam.uncertainty.distance_m
+                                                         : std::max(0.5, cam.median_board_distance_m);
+  const Eigen::Matrix3Xd rays = solved.UnprojectMany(pixels);
+  double cam_sum2 = 0, cam_max = 0, cam_observed_sum2 = 0;
+  int cam_n = 0, cam_within = 0, cam_observed_n = 0;
+  for (int k = 0; k < pixels.cols(); ++k) {
+    if (!rays.col(k).allFinite()) continue;
+    const Eigen::Vector3d world = world_from_ref * (solved.world_from_cam() * (rays.col(k) * distance));
+    Eigen::Vector2d q;
+    if (!real.ProjectWorld(world, &q)) continue;
+    const double diff = (q - pixels.col(k)).norm();
+    cam_sum2 += diff * diff;
+    cam_max = std::max(cam_max, diff);
+    ++cam_n;
+    if (cam.uncertainty.observed.size() > 0 && cam.uncertainty.observed(k / grid_x, k % grid_x)) {
+      tally->observed_sum2 += diff * diff;
+      ++tally->observed_n;
+      cam_observed_sum2 += diff * diff;
+      ++cam_observed_n;
+    }
+    if (cam.uncertainty.grid_x > 0) {
+      const double sigma = cam.uncertainty.worst_sigma_px(k / grid_x, k % grid_x);
+      if (std::isfinite(sigma)) {
+        ++tally->with_sigma;
+        const bool ok = diff <= 3 * sigma;
+        tally->within += ok;
+        cam_within += ok;
+      }
+    }
+  }
+  tally->sum2 += cam_sum2;
+  tally->samples += cam_n;
+  result->projection_diff_max_px = std::max(result->projection_diff_max_px, cam_max);
+  (*j)["projection_diff_rms_px"] = cam_n > 0 ? std::sqrt(cam_sum2 / cam_n) : 0.0;
+  (*j)["projection_diff_max_px"] = cam_max;
+  if (cam_observed_n > 0) (*j)["projection_diff_rms_observed_px"] = std::sqrt(cam_observed_sum2 / cam_observed_n);
+  if (cam.uncertainty.grid_x > 0 && cam_n > 0) {
+    (*j)["within_3sigma_fraction"] = static_cast<double>(cam_within) / cam_n;
+  }
 }
 
 }  // namespace
@@ -40,195 +245,29 @@ GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
                                        const std::map<std::string, CameraModel>& truth,
                                        const std::map<int64_t, Pose>& world_from_board,
                                        const BoardLayout& layout) {
-  const Board board(layout);
-  const std::vector<Eigen::Vector3d> grid = board.GridPoints();
-  std::vector<Eigen::Vector3d> in_ref, in_world;
-  for (const auto& [set, ref_from_board] : summary.ref_from_board) {
-    auto it = world_from_board.find(set);
-    if (it == world_from_board.end()) continue;
-    for (const auto& g : grid) {
-      in_ref.push_back(ref_from_board * g);
-      in_world.push_back(it->second * g);
-    }
-  }
   auto ref_truth = truth.find(summary.reference_camera);
   if (ref_truth == truth.end()) Fail("no true model of reference camera ", summary.reference_camera);
-  // The solved reference frame in the world: the board poses' rigid fit when the true board
-  // poses are known, otherwise the reference camera's true pose.
-  const Pose world_from_ref = in_ref.size() >= 3 ? calibration_internal::FitRigid(in_ref, in_world)
-                                                 : ref_truth->second.world_from_cam();
+  const Pose world_from_ref =
+      calibration_internal::WorldFromReference(summary, ref_truth->second, world_from_board, layout);
   const Pose true_world_from_ref_cam = ref_truth->second.world_from_cam();
-
-  // The solved rig laid onto the true one: the rotation that best carries the solved cameras'
-  // orientations onto the true ones (chordal mean of their differences), then the translation
-  // that best carries the camera centres (their mean offset). Which world the solve is anchored
-  // to is a choice of gauge; what a rig's calibration promises is where each camera is and how
-  // it is turned relative to the others.
-  Pose true_world_from_solved = Pose::Identity();
-  {
-    std::vector<Pose> rotations;
-    for (const auto& cam : summary.cameras) {
-      auto t = truth.find(cam.name);
-      if (!cam.solved || t == truth.end()) continue;
-      Pose r = Pose::Identity();
-      r.linear() = t->second.world_from_cam().linear() * cam.model.cam_from_world().linear();
-      rotations.push_back(r);
-    }
-    if (!rotations.empty()) {
-      // Robustly: one badly solved camera would otherwise turn the whole rig by its share of
-      // its error. The camera whose difference lies closest to the others' (medoid), then the
-      // mean of those within three times the median distance from it.
-      const size_t n = rotations.size();
-      auto angle = [](const Pose& a, const Pose& b) { return RotationAngleDeg(a.linear().transpose() * b.linear()); };
-      size_t medoid = 0;
-      double best = 1e300;
-      for (size_t i = 0; i < n; ++i) {
-        double sum = 0;
-        for (size_t k = 0; k < n; ++k) sum += angle(rotations[i], rotations[k]);
-        if (sum < best) {
-          best = sum;
-          medoid = i;
-        }
-      }
-      std::vector<double> distance(n);
-      for (size_t i = 0; i < n; ++i) distance[i] = angle(rotations[medoid], rotations[i]);
-      std::vector<double> sorted = distance;
-      std::nth_element(sorted.begin(), sorted.begin() + n / 2, sorted.end());
-      const double limit = std::max(3 * sorted[n / 2], 1e-9);
-      std::vector<Pose> kept;
-      for (size_t i = 0; i < n; ++i) {
-        if (distance[i] <= limit) kept.push_back(rotations[i]);
-      }
-      true_world_from_solved.linear() = calibration_internal::AveragePoses(kept).linear();
-      std::vector<Eigen::Vector3d> offsets;
-      for (const auto& cam : summary.cameras) {
-        auto t = truth.find(cam.name);
-        if (!cam.solved || t == truth.end()) continue;
-        offsets.push_back(t->second.world_from_cam().translation() -
-                          true_world_from_solved.linear() * cam.model.world_from_cam().translation());
-      }
-      Eigen::Vector3d median;
-      for (int d = 0; d < 3; ++d) {
-        std::vector<double> v;
-        for (const auto& o : offsets) v.push_back(o[d]);
-        std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-        median[d] = v[v.size() / 2];
-      }
-      std::vector<double> spread;
-      for (const auto& o : offsets) spread.push_back((o - median).norm());
-      std::vector<double> sorted_spread = spread;
-      std::nth_element(sorted_spread.begin(), sorted_spread.begin() + n / 2, sorted_spread.end());
-      Eigen::Vector3d offset = Eigen::Vector3d::Zero();
-      int used = 0;
-      for (size_t i = 0; i < offsets.size(); ++i) {
-        if (spread[i] > std::max(3 * sorted_spread[n / 2], 1e-12)) continue;
-        offset += offsets[i];
-        ++used;
-      }
-      true_world_from_solved.translation() = offset / std::max(used, 1);
-    }
-  }
+  const Pose true_world_from_solved = TrueWorldFromSolved(summary, truth);
 
   GroundTruthComparison result;
-  double sum2 = 0, observed_sum2 = 0;
-  int64_t samples = 0, within = 0, with_sigma = 0, observed_n = 0;
+  ProjectionTally tally;
   for (const auto& cam : summary.cameras) {
     if (!cam.solved) continue;
     auto t = truth.find(cam.name);
     if (t == truth.end()) Fail("no true model of camera ", cam.name);
-    const CameraModel& solved = cam.model;
-    const CameraModel& real = t->second;
     nlohmann::json j;
-    if (CoresComparable(solved.lensmodel(), real.lensmodel()) && solved.has_core() && real.has_core()) {
-      const auto& a = solved.intrinsics();
-      const auto& b = real.intrinsics();
-      const double focal = std::max(std::abs(a[0] - b[0]) / b[0], std::abs(a[1] - b[1]) / b[1]);
-      const double pp = std::hypot(a[2] - b[2], a[3] - b[3]);
-      result.focal_rel_err_max = std::max(result.focal_rel_err_max, focal);
-      result.principal_point_err_px_max = std::max(result.principal_point_err_px_max, pp);
-      j["focal_rel_err"] = focal;
-      j["principal_point_err_px"] = pp;
-    } else {
-      j["core_comparable"] = false;  // e.g. a splined model against a pinhole-family lens
-    }
-    // Geometry relative to the reference camera: gauge-free, but the reference camera's own
-    // pose error is in every camera's figure.
-    const Pose solved_cam_from_ref = solved.cam_from_world();
-    const Pose true_cam_from_ref = real.cam_from_world() * true_world_from_ref_cam;
-    const Pose delta = solved_cam_from_ref * true_cam_from_ref.inverse();
-    const double rotation = RotationAngleDeg(delta.linear());
-    const double translation =
-        1000 * (solved_cam_from_ref.inverse().translation() - true_cam_from_ref.inverse().translation()).norm();
-    result.rotation_err_deg_max_from_reference = std::max(result.rotation_err_deg_max_from_reference, rotation);
-    result.translation_err_mm_max_from_reference =
-        std::max(result.translation_err_mm_max_from_reference, translation);
-    j["rotation_err_deg_from_reference"] = rotation;
-    j["translation_err_mm_from_reference"] = translation;
-    // Against the rig alignment below.
-    const Pose aligned = true_world_from_solved * solved.world_from_cam();
-    const double aligned_rotation = RotationAngleDeg(real.cam_from_world().linear() * aligned.linear());
-    const double aligned_translation = 1000 * (aligned.translation() - real.world_from_cam().translation()).norm();
-    result.rotation_err_deg_max = std::max(result.rotation_err_deg_max, aligned_rotation);
-    result.translation_err_mm_max = std::max(result.translation_err_mm_max, aligned_translation);
-    j["rotation_err_deg"] = aligned_rotation;
-    j["translation_err_mm"] = aligned_translation;
-
-    // Projection over the imager at the working distance, the solved point placed in the world
-    // through the board-anchored frame.
-    Eigen::Matrix2Xd pixels = cam.uncertainty.pixels;
-    int grid_x = cam.uncertainty.grid_x;
-    if (grid_x == 0) {
-      grid_x = 16;
-      pixels.resize(2, 16 * 12);
-      for (int k = 0; k < 16 * 12; ++k) {
-        pixels.col(k) << ((k % 16) + 0.5) * solved.width() / 16 - 0.5,
-            ((k / 16) + 0.5) * solved.height() / 12 - 0.5;
-      }
-    }
-    const double distance = cam.uncertainty.distance_m > 0 ? cam.uncertainty.distance_m
-                                                           : std::max(0.5, cam.median_board_distance_m);
-    const Eigen::Matrix3Xd rays = solved.UnprojectMany(pixels);
-    double cam_sum2 = 0, cam_max = 0, cam_observed_sum2 = 0;
-    int cam_n = 0, cam_within = 0, cam_observed_n = 0;
-    for (int k = 0; k < pixels.cols(); ++k) {
-      if (!rays.col(k).allFinite()) continue;
-      const Eigen::Vector3d world = world_from_ref * (solved.world_from_cam() * (rays.col(k) * distance));
-      Eigen::Vector2d q;
-      if (!real.ProjectWorld(world, &q)) continue;
-      const double diff = (q - pixels.col(k)).norm();
-      cam_sum2 += diff * diff;
-      cam_max = std::max(cam_max, diff);
-      ++cam_n;
-      if (cam.uncertainty.observed.size() > 0 && cam.uncertainty.observed(k / grid_x, k % grid_x)) {
-        observed_sum2 += diff * diff;
-        ++observed_n;
-        cam_observed_sum2 += diff * diff;
-        ++cam_observed_n;
-      }
-      if (cam.uncertainty.grid_x > 0) {
-        const double sigma = cam.uncertainty.worst_sigma_px(k / grid_x, k % grid_x);
-        if (std::isfinite(sigma)) {
-          ++with_sigma;
-          const bool ok = diff <= 3 * sigma;
-          within += ok;
-          cam_within += ok;
-        }
-      }
-    }
-    sum2 += cam_sum2;
-    samples += cam_n;
-    result.projection_diff_max_px = std::max(result.projection_diff_max_px, cam_max);
-    j["projection_diff_rms_px"] = cam_n > 0 ? std::sqrt(cam_sum2 / cam_n) : 0.0;
-    j["projection_diff_max_px"] = cam_max;
-    if (cam_observed_n > 0) j["projection_diff_rms_observed_px"] = std::sqrt(cam_observed_sum2 / cam_observed_n);
-    if (cam.uncertainty.grid_x > 0 && cam_n > 0) {
-      j["within_3sigma_fraction"] = static_cast<double>(cam_within) / cam_n;
-    }
+    CompareCoreAndPose(cam, t->second, true_world_from_ref_cam, true_world_from_solved, &result, &j);
+    CompareProjection(cam, t->second, world_from_ref, &result, &tally, &j);
     result.per_camera[cam.name] = j;
   }
-  result.projection_diff_rms_px = samples > 0 ? std::sqrt(sum2 / samples) : 0;
-  result.projection_diff_rms_observed_px = observed_n > 0 ? std::sqrt(observed_sum2 / observed_n) : 0;
-  result.within_3sigma_fraction = with_sigma > 0 ? static_cast<double>(within) / with_sigma : 0;
+  result.projection_diff_rms_px = tally.samples > 0 ? std::sqrt(tally.sum2 / tally.samples) : 0;
+  result.projection_diff_rms_observed_px =
+      tally.observed_n > 0 ? std::sqrt(tally.observed_sum2 / tally.observed_n) : 0;
+  result.within_3sigma_fraction =
+      tally.with_sigma > 0 ? static_cast<double>(tally.within) / tally.with_sigma : 0;
   return result;
 }
 

@@ -186,9 +186,8 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
     }
     summary.planes = static_cast<int>(samples.size());
     if (summary.planes < options.min_planes) {
-      summary.termination = Termination::kDegenerate;
-      summary.message = Cat("only ", summary.planes, " board planes seen by both ", depth_sensor,
-                            " and ", color_sensor, " (needs ", options.min_planes, ")");
+      summary.End(Termination::kDegenerate, Cat("only ", summary.planes, " board planes seen by both ", depth_sensor,
+                            " and ", color_sensor, " (needs ", options.min_planes, ")"));
       return summary;
     }
     // Rotation from the normals (Kabsch), translation from the plane offsets.
@@ -208,9 +207,8 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
     const Eigen::JacobiSVD<Eigen::MatrixXd> spread(normals);
     const double weakest = spread.singularValues()(2) / std::sqrt(static_cast<double>(samples.size()));
     if (weakest < std::sin(options.min_normal_spread_deg * M_PI / 180) / 2) {
-      summary.termination = Termination::kDegenerate;
-      summary.message = Cat("the board planes are too close to parallel to fix depth_from_color (",
-                            summary.planes, " planes)");
+      summary.End(Termination::kDegenerate, Cat("the board planes are too close to parallel to fix depth_from_color (",
+                            summary.planes, " planes)"));
       return summary;
     }
     const Eigen::Vector3d translation = normals.colPivHouseholderQr().solve(offsets);
@@ -256,8 +254,8 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
     summary.time_offset_s = num / den;
     summary.time_offset_valid = std::abs(summary.time_offset_s) <= options.max_time_offset_s;
   }
-  summary.termination = Termination::kSuccess;
-  summary.message = Cat(summary.planes, " board planes, plane residual ", 1000 * summary.plane_rms_m, " mm RMS");
+  summary.End(Termination::kSuccess, Cat(summary.planes, " board planes, plane residual ",
+                                         1000 * summary.plane_rms_m, " mm RMS"));
   return summary;
 }
 

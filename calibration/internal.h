@@ -2,13 +2,18 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/SparseCore>
 #include <algorithm>
+#include <limits>
+#include <map>
 #include <opencv2/core.hpp>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "calibration/calibration.h"
 #include "core/pose.h"
+#include "core/report.h"
 
 namespace holocap::calibration_internal {
 
@@ -38,6 +43,31 @@ void CheckLensmodelName(const std::string& name);
 bool RefineEdgeCorner(const cv::Mat& grey, const std::vector<Eigen::Vector2d>& rays,
                       double reach_in_px, double reach_out_px, double length_px,
                       Eigen::Vector2d* corner);
+
+// How a least-squares solve ended, judged at its result.
+struct SolverEnd {
+  Termination termination = Termination::kFailure;
+  double cost = std::numeric_limits<double>::quiet_NaN();               // |x|^2
+  double expected_decrease = std::numeric_limits<double>::quiet_NaN();  // share of the cost
+  bool IsUsable() const { return holocap::IsUsable(termination); }
+};
+
+// The share of the cost one more step may still remove at convergence (Ceres' default
+// function_tolerance).
+inline constexpr double kCostTolerance = 1e-6;
+
+// The ending of a solve whose residuals are `x` and Jacobian transposed `jt` (Nstate x
+// Nmeasurements; empty: not judged) at its result, `rms_px` its reported RMS: FAILURE when the
+// RMS is negative (mrcal's failure) or anything is NaN; NO_CONVERGENCE when one more
+// Gauss-Newton step would remove more than kCostTolerance of the cost; else CONVERGENCE.
+SolverEnd JudgeSolverEnd(const Eigen::SparseMatrix<double>& jt, const Eigen::VectorXd& x,
+                         double rms_px);
+
+// The solved reference frame in the world: the rigid fit of the solved board poses to the true
+// ones (`from_boards` true) when they are known, otherwise the reference camera's true pose.
+Pose WorldFromReference(const CalibrationSummary& summary, const CameraModel& reference_truth,
+                        const std::map<int64_t, Pose>& world_from_board, const BoardLayout& layout,
+                        bool* from_boards = nullptr);
 
 // Mean of rotations (chordal L2 on quaternions) and translations.
 Pose AveragePoses(const std::vector<Pose>& poses);

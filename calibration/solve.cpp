@@ -65,11 +65,29 @@ Pose AveragePoses(const std::vector<Pose>& poses) {
   return result;
 }
 
+SolverEnd JudgeSolverEnd(const Eigen::SparseMatrix<double>& jt, const Eigen::VectorXd& x,
+                         double rms_px) {
+  SolverEnd end;
+  if (!(rms_px >= 0) || !std::isfinite(rms_px) || !x.allFinite()) return end;
+  end.cost = x.squaredNorm();
+  end.termination = Termination::kConvergence;
+  if (jt.rows() == 0 || !(end.cost > 0)) return end;
+  const Eigen::VectorXd gradient = jt * x;
+  const Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt(
+      jt * Eigen::SparseMatrix<double>(jt.transpose()));
+  if (ldlt.info() != Eigen::Success) return end;  // singular: the uncertainty says so
+  // The Gauss-Newton model's drop |x|^2 - |x + J step|^2 = g^t inv(J^t J) g.
+  end.expected_decrease = gradient.dot(ldlt.solve(gradient)) / end.cost;
+  if (!(end.expected_decrease <= kCostTolerance)) end.termination = Termination::kNoConvergence;
+  return end;
+}
+
 }  // namespace calibration_internal
 
 namespace {
 
 using calibration_internal::AveragePoses;
+using calibration_internal::SolverEnd;
 
 mrcal_pose_t ToMrcal(const Pose& pose) {
   const Rt rt = RtFromPose(pose);
@@ -384,6 +402,19 @@ bool Jacobian(Problem& p, Eigen::SparseMatrix<double>* jt) {
   cholmod_free_sparse(&sparse, &common);
   cholmod_finish(&common);
   return ok;
+}
+
+// How mrcal's solve of `p` ended. mrcal 2.2's mrcal_optimize returns only mrcal_stats_t: the
+// RMS (negative when it could not run) and the outlier count. libdogleg's own ending (its step
+// below 1e-6, or the 300 iterations mrcal_optimize allows spent) and its iteration count are
+// printed only with verbose, never returned; so the ending is judged at mrcal's result, from
+// mrcal's own residuals and mrcal_optimizer_callback's Jacobian there.
+SolverEnd JudgeEnd(Problem& p, const mrcal_stats_t& stats) {
+  const Eigen::VectorXd x = Eigen::Map<const Eigen::VectorXd>(p.x.data(), static_cast<Eigen::Index>(p.x.size()));
+  const double rms = stats.rms_reproj_error__pixels;
+  Eigen::SparseMatrix<double> jt;
+  if (rms >= 0 && std::isfinite(rms) && !Jacobian(p, &jt)) jt.resize(0, 0);
+  return calibration_internal::JudgeSolverEnd(jt, x, rms);
 }
 
 // d(transform_point_rt(rt, x))/d(rt) and /d(x).
@@ -702,7 +733,9 @@ nlohmann::json CalibrationSummary::ToJson() const {
   nlohmann::json stage_json = nlohmann::json::array();
   for (const auto& s : stages) {
     stage_json.push_back({{"stage", s.name}, {"lensmodel", s.lensmodel}, {"rms_px", s.rms_px},
-                          {"outliers", s.outliers}, {"t_s", s.seconds}});
+                          {"outliers", s.outliers}, {"t_s", s.seconds},
+                          {"termination", ToString(s.termination)}, {"cost", s.cost},
+                          {"expected_decrease", s.expected_decrease}});
   }
   nlohmann::json j = {{"termination", ToString(termination)},
                       {"message", message},
@@ -718,6 +751,13 @@ nlohmann::json CalibrationSummary::ToJson() const {
                       {"cameras", cams},
                       {"stages", stage_json},
                       {"timing", {{"solve_s", solve_seconds}, {"uncertainty_s", uncertainty_seconds}}}};
+  for (const auto& s : stages) {
+    if (s.name != "everything") continue;
+    // mrcal's own figures of its final joint solve (mrcal 2.2 reports no iteration count).
+    j["mrcal"] = {{"termination", ToString(s.termination)}, {"rms_px", s.rms_px},
+                  {"outliers", s.outliers}, {"cost", s.cost},
+                  {"expected_decrease", s.expected_decrease}};
+  }
   if (!cross_validation.is_null()) j["cross_validation"] = cross_validation;
   return j;
 }
@@ -847,108 +887,195 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
 
 }  // namespace
 
-CalibrationSummary Calibrate(const BoardLayout& layout,
-                             const std::vector<CalibrationCamera>& cameras,
-                             const std::vector<BoardObservation>& observations_in,
-                             const CalibrationOptions& options, Report* report) {
-  options.Check();
-  const Board board(layout);
-  if (cameras.empty()) Fail("calibration needs at least one camera");
-  std::map<std::string, int> index_of;
-  for (size_t k = 0; k < cameras.size(); ++k) {
-    if (cameras[k].width <= 0 || cameras[k].height <= 0) {
-      Fail("camera '", cameras[k].name, "' has no imager size");
+namespace {
+
+// The calibration of one rig: each step a method, the state between steps in members.
+class Calibrator {
+ public:
+  Calibrator(const BoardLayout& layout, const std::vector<CalibrationCamera>& cameras,
+             const std::vector<BoardObservation>& observations, const CalibrationOptions& options,
+             Report* report)
+      : layout_(layout),
+        board_(layout),
+        cameras_(cameras),
+        observations_(observations),
+        options_(options),
+        report_(report) {}
+
+  CalibrationSummary Run();
+
+ private:
+  void CheckInput();
+  void SelectViews();
+  void SeedCamera(int c);
+  bool PlaceCameras();
+  void BuildProblem();
+  void NoteLensModels();
+  bool SolveStereographic();
+  bool SolveFinalModel();
+  bool SolveCameraAlone(int m);
+  void Absorb(const Problem& q, int only);
+  void CollectResiduals();
+  void EstimateUncertainty();
+  bool CameraUncertaintyOf(int m, Factorization& joint, bool joint_ok);
+  void CrossValidation();
+  void Conclude();
+
+  // Runs mrcal on `q`, records the stage and says how mrcal's solve ended.
+  SolverEnd Stage(const std::string& name, Problem& q, bool to_report);
+  CalibrationSummary End(Termination state, std::string why);
+  double Elapsed() const {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  }
+
+  const BoardLayout& layout_;
+  const Board board_;
+  const std::vector<CalibrationCamera>& cameras_;
+  const std::vector<BoardObservation>& observations_;
+  const CalibrationOptions& options_;
+  Report* report_;
+  std::chrono::steady_clock::time_point start_;
+
+  CalibrationSummary summary_;
+  std::map<std::string, int> index_of_;
+  int reference_ = 0;
+  std::vector<std::vector<int>> views_;        // usable observations per camera
+  std::vector<double> focal_;                  // stereographic seed focal per camera
+  std::map<int, Pose> cam_from_board_;         // seeded board pose by observation index
+  std::vector<Pose> cam_from_ref_;             // seeded rig geometry
+  std::vector<bool> placed_;                   // joined to the reference camera's group
+  Problem p_;                                  // the joint problem
+  std::map<int64_t, std::vector<std::pair<int, int>>> frame_members_;  // set -> (mrcal cam, obs)
+  std::vector<std::string> requested_;         // lens model asked for, per mrcal camera
+  std::vector<mrcal_point3_t> given_pool_;     // the joint pool before outlier rejection
+  std::vector<double> core_;                   // the stereographic stages' intrinsics
+  std::map<int, Problem> alone_;               // cameras re-solved alone, by mrcal camera
+  std::vector<double> all_residuals_;          // every inlier residual coordinate
+  std::string unconverged_;                    // stages whose cost still fell
+};
+
+CalibrationSummary Calibrator::Run() {
+  CheckInput();
+  start_ = std::chrono::steady_clock::now();
+  SelectViews();
+  focal_.assign(cameras_.size(), 0);
+  for (size_t c = 0; c < cameras_.size(); ++c) SeedCamera(static_cast<int>(c));
+  if (!PlaceCameras()) {
+    summary_.End(Termination::kDegenerate, Cat("reference camera ", summary_.reference_camera, ": ",
+                                               summary_.cameras[reference_].flag));
+    return summary_;
+  }
+  BuildProblem();
+  NoteLensModels();
+  if (!SolveStereographic()) return summary_;
+  if (!SolveFinalModel()) return summary_;
+  for (int m = 0; m < p_.ncams(); ++m) {
+    if (!Represents(summary_.lensmodel, requested_[m]) && !SolveCameraAlone(m)) return summary_;
+  }
+  summary_.solve_seconds = Elapsed();
+  CollectResiduals();
+  if (options_.uncertainty) EstimateUncertainty();
+  if (options_.cross_validation) CrossValidation();
+  Conclude();
+  return summary_;
+}
+
+// Broken preconditions are errors, not states.
+void Calibrator::CheckInput() {
+  options_.Check();
+  if (cameras_.empty()) Fail("calibration needs at least one camera");
+  for (size_t k = 0; k < cameras_.size(); ++k) {
+    if (cameras_[k].width <= 0 || cameras_[k].height <= 0) {
+      Fail("camera '", cameras_[k].name, "' has no imager size");
     }
-    ParseModel(cameras[k].lensmodel);
-    if (!index_of.emplace(cameras[k].name, static_cast<int>(k)).second) {
-      Fail("camera '", cameras[k].name, "' is listed twice");
+    ParseModel(cameras_[k].lensmodel);
+    if (!index_of_.emplace(cameras_[k].name, static_cast<int>(k)).second) {
+      Fail("camera '", cameras_[k].name, "' is listed twice");
     }
   }
-  const int points_per_view = board.width_n() * board.height_n();
-  for (const auto& obs : observations_in) {
-    if (!index_of.count(obs.sensor)) Fail("observation of unknown camera '", obs.sensor, "'");
+  const int points_per_view = board_.width_n() * board_.height_n();
+  for (const auto& obs : observations_) {
+    if (!index_of_.count(obs.sensor)) Fail("observation of unknown camera '", obs.sensor, "'");
     if (obs.points.rows() != points_per_view) {
       Fail("observation of '", obs.sensor, "' in set ", obs.frame_set, " has ", obs.points.rows(),
            " points; the board has ", points_per_view);
     }
   }
-  const auto start = std::chrono::steady_clock::now();
-  auto elapsed = [&] {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  };
-
-  CalibrationSummary summary;
-  summary.cameras.resize(cameras.size());
-  for (size_t k = 0; k < cameras.size(); ++k) summary.cameras[k].name = cameras[k].name;
-  summary.reference_camera = options.reference_camera.empty() ? cameras[0].name : options.reference_camera;
-  if (!index_of.count(summary.reference_camera)) {
-    Fail("reference camera '", summary.reference_camera, "' is not among the cameras");
+  summary_.cameras.resize(cameras_.size());
+  for (size_t k = 0; k < cameras_.size(); ++k) summary_.cameras[k].name = cameras_[k].name;
+  summary_.reference_camera =
+      options_.reference_camera.empty() ? cameras_[0].name : options_.reference_camera;
+  if (!index_of_.count(summary_.reference_camera)) {
+    Fail("reference camera '", summary_.reference_camera, "' is not among the cameras");
   }
-  const int reference = index_of[summary.reference_camera];
+  reference_ = index_of_[summary_.reference_camera];
+}
 
-  // Usable views per camera.
-  std::vector<std::vector<int>> views(cameras.size());
-  for (size_t k = 0; k < observations_in.size(); ++k) {
-    if (observations_in[k].seen() >= options.min_points_per_view) {
-      views[index_of[observations_in[k].sensor]].push_back(static_cast<int>(k));
+void Calibrator::SelectViews() {
+  views_.assign(cameras_.size(), {});
+  for (size_t k = 0; k < observations_.size(); ++k) {
+    if (observations_[k].seen() >= options_.min_points_per_view) {
+      views_[index_of_[observations_[k].sensor]].push_back(static_cast<int>(k));
     }
   }
-  // Seeds: a stereographic focal length per camera and every view's board pose.
-  std::vector<double> focal(cameras.size(), 0);
-  std::map<int, Pose> cam_from_board;  // by observation index
-  for (size_t c = 0; c < cameras.size(); ++c) {
-    auto& out = summary.cameras[c];
-    out.views = static_cast<int>(views[c].size());
-    if (out.views < options.min_views_per_camera) {
-      out.flag = Cat("only ", out.views, " usable board views (needs ", options.min_views_per_camera, ")");
-      continue;
-    }
-    std::vector<const BoardObservation*> list;
-    for (int k : views[c]) list.push_back(&observations_in[k]);
-    const double cx = (cameras[c].width - 1) / 2.0, cy = (cameras[c].height - 1) / 2.0;
-    // mrcal's seeding tries several focal scales; the stereographic focal matching a pinhole
-    // seed lies below it for wide lenses.
-    const double f0 = SeedFocal(list, board, cameras[c].width, cameras[c].height);
-    double best_error = 1e300;
-    for (double scale : {1.0, 0.85, 0.7, 0.55, 0.4}) {
-      double total = 0;
-      int ok = 0;
-      for (int k : views[c]) {
-        Pose pose;
-        if (SeedView(observations_in[k], board, f0 * scale, cx, cy, &pose)) {
-          total += SeedViewError(observations_in[k], board, f0 * scale, cx, cy, pose);
-          ++ok;
-        }
-      }
-      const double error = ok > 0 ? total / ok + 1e3 * (static_cast<int>(views[c].size()) - ok) : 1e300;
-      if (error < best_error) {
-        best_error = error;
-        focal[c] = f0 * scale;
-      }
-    }
-    std::vector<int> seeded;
-    for (int k : views[c]) {
+}
+
+// A stereographic focal length for camera c and every one of its views' board poses.
+void Calibrator::SeedCamera(int c) {
+  auto& out = summary_.cameras[c];
+  out.views = static_cast<int>(views_[c].size());
+  if (out.views < options_.min_views_per_camera) {
+    out.flag = Cat("only ", out.views, " usable board views (needs ", options_.min_views_per_camera, ")");
+    return;
+  }
+  std::vector<const BoardObservation*> list;
+  for (int k : views_[c]) list.push_back(&observations_[k]);
+  const double cx = (cameras_[c].width - 1) / 2.0, cy = (cameras_[c].height - 1) / 2.0;
+  // mrcal's seeding tries several focal scales; the stereographic focal matching a pinhole
+  // seed lies below it for wide lenses.
+  const double f0 = SeedFocal(list, board_, cameras_[c].width, cameras_[c].height);
+  double best_error = 1e300;
+  for (double scale : {1.0, 0.85, 0.7, 0.55, 0.4}) {
+    double total = 0;
+    int ok = 0;
+    for (int k : views_[c]) {
       Pose pose;
-      const double cx2 = cx, cy2 = cy;
-      if (SeedView(observations_in[k], board, focal[c], cx2, cy2, &pose)) {
-        cam_from_board[k] = pose;
-        seeded.push_back(k);
+      if (SeedView(observations_[k], board_, f0 * scale, cx, cy, &pose)) {
+        total += SeedViewError(observations_[k], board_, f0 * scale, cx, cy, pose);
+        ++ok;
       }
     }
-    views[c] = seeded;
-    out.views = static_cast<int>(seeded.size());
-    if (out.views < options.min_views_per_camera) {
-      out.flag = Cat("only ", out.views, " board views could be seeded (needs ",
-                     options.min_views_per_camera, ")");
+    const double error =
+        ok > 0 ? total / ok + 1e3 * (static_cast<int>(views_[c].size()) - ok) : 1e300;
+    if (error < best_error) {
+      best_error = error;
+      focal_[c] = f0 * scale;
     }
   }
+  std::vector<int> seeded;
+  for (int k : views_[c]) {
+    Pose pose;
+    if (SeedView(observations_[k], board_, focal_[c], cx, cy, &pose)) {
+      cam_from_board_[k] = pose;
+      seeded.push_back(k);
+    }
+  }
+  views_[c] = seeded;
+  out.views = static_cast<int>(seeded.size());
+  if (out.views < options_.min_views_per_camera) {
+    out.flag = Cat("only ", out.views, " board views could be seeded (needs ",
+                   options_.min_views_per_camera, ")");
+  }
+}
 
-  // The camera graph: cameras joined by shared frame sets, explored from the reference camera
-  // along the edges with the most shared views.
-  std::vector<std::map<int64_t, int>> by_set(cameras.size());
-  for (size_t c = 0; c < cameras.size(); ++c) {
-    if (!summary.cameras[c].flag.empty()) continue;
-    for (int k : views[c]) by_set[c][observations_in[k].frame_set] = k;
+// The camera graph: cameras joined by shared frame sets, explored from the reference camera
+// along the edges with the most shared views. False when the reference camera is flagged.
+bool Calibrator::PlaceCameras() {
+  const size_t n = cameras_.size();
+  std::vector<std::map<int64_t, int>> by_set(n);
+  for (size_t c = 0; c < n; ++c) {
+    if (!summary_.cameras[c].flag.empty()) continue;
+    for (int k : views_[c]) by_set[c][observations_[k].frame_set] = k;
   }
   auto shared = [&](int a, int b) {
     std::vector<std::pair<int, int>> pairs;
@@ -958,24 +1085,20 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
     }
     return pairs;
   };
-  if (!summary.cameras[reference].flag.empty()) {
-    summary.termination = Termination::kDegenerate;
-    summary.message = Cat("reference camera ", summary.reference_camera, ": ", summary.cameras[reference].flag);
-    return summary;
-  }
-  std::vector<Pose> cam_from_ref(cameras.size(), Pose::Identity());
-  std::vector<bool> placed(cameras.size(), false);
-  placed[reference] = true;
+  if (!summary_.cameras[reference_].flag.empty()) return false;
+  cam_from_ref_.assign(n, Pose::Identity());
+  placed_.assign(n, false);
+  placed_[reference_] = true;
   for (;;) {
     int best_from = -1, best_to = -1;
     size_t best_count = 0;
-    for (size_t a = 0; a < cameras.size(); ++a) {
-      if (!placed[a]) continue;
-      for (size_t b = 0; b < cameras.size(); ++b) {
-        if (placed[b] || !summary.cameras[b].flag.empty()) continue;
-        const size_t n = shared(static_cast<int>(a), static_cast<int>(b)).size();
-        if (n > best_count) {
-          best_count = n;
+    for (size_t a = 0; a < n; ++a) {
+      if (!placed_[a]) continue;
+      for (size_t b = 0; b < n; ++b) {
+        if (placed_[b] || !summary_.cameras[b].flag.empty()) continue;
+        const size_t count = shared(static_cast<int>(a), static_cast<int>(b)).size();
+        if (count > best_count) {
+          best_count = count;
           best_from = static_cast<int>(a);
           best_to = static_cast<int>(b);
         }
@@ -984,363 +1107,396 @@ CalibrationSummary Calibrate(const BoardLayout& layout,
     if (best_to < 0) break;
     std::vector<Pose> estimates;  // b_from_a
     for (const auto& [ka, kb] : shared(best_from, best_to)) {
-      estimates.push_back(cam_from_board[kb] * cam_from_board[ka].inverse());
+      estimates.push_back(cam_from_board_[kb] * cam_from_board_[ka].inverse());
     }
-    cam_from_ref[best_to] = AveragePoses(estimates) * cam_from_ref[best_from];
-    placed[best_to] = true;
+    cam_from_ref_[best_to] = AveragePoses(estimates) * cam_from_ref_[best_from];
+    placed_[best_to] = true;
   }
-  for (size_t c = 0; c < cameras.size(); ++c) {
-    if (!placed[c] && summary.cameras[c].flag.empty()) {
-      summary.cameras[c].flag = "never shares a board view with the reference camera's group";
+  for (size_t c = 0; c < n; ++c) {
+    if (!placed_[c] && summary_.cameras[c].flag.empty()) {
+      summary_.cameras[c].flag = "never shares a board view with the reference camera's group";
     }
   }
+  return true;
+}
 
-  // The mrcal problem: the reference camera first (mrcal's reference frame), then the rest.
-  Problem p;
-  p.layout = layout;
-  p.width_n = board.width_n();
-  p.height_n = board.height_n();
-  p.camera_index.push_back(reference);
-  for (size_t c = 0; c < cameras.size(); ++c) {
-    if (static_cast<int>(c) != reference && placed[c]) p.camera_index.push_back(static_cast<int>(c));
+// The mrcal problem: the reference camera first (mrcal's reference frame), then the rest.
+void Calibrator::BuildProblem() {
+  p_.layout = layout_;
+  p_.width_n = board_.width_n();
+  p_.height_n = board_.height_n();
+  p_.camera_index.push_back(reference_);
+  for (size_t c = 0; c < cameras_.size(); ++c) {
+    if (static_cast<int>(c) != reference_ && placed_[c]) p_.camera_index.push_back(static_cast<int>(c));
   }
-  std::map<int64_t, std::vector<std::pair<int, int>>> frame_members;  // set -> (mrcal cam, obs)
-  for (int m = 0; m < p.ncams(); ++m) {
-    for (int k : views[p.camera_index[m]]) frame_members[observations_in[k].frame_set].emplace_back(m, k);
+  for (int m = 0; m < p_.ncams(); ++m) {
+    for (int k : views_[p_.camera_index[m]]) {
+      frame_members_[observations_[k].frame_set].emplace_back(m, k);
+    }
   }
-  std::vector<std::string> requested;
-  for (int m = 0; m < p.ncams(); ++m) {
-    const CalibrationCamera& cam = cameras[p.camera_index[m]];
-    p.imagersizes.push_back(cam.width);
-    p.imagersizes.push_back(cam.height);
-    requested.push_back(cam.lensmodel);
-    if (m > 0) p.extrinsics.push_back(ToMrcal(cam_from_ref[p.camera_index[m]]));
-    p.extrinsics_of.push_back(m - 1);
+  for (int m = 0; m < p_.ncams(); ++m) {
+    const CalibrationCamera& cam = cameras_[p_.camera_index[m]];
+    p_.imagersizes.push_back(cam.width);
+    p_.imagersizes.push_back(cam.height);
+    requested_.push_back(cam.lensmodel);
+    if (m > 0) p_.extrinsics.push_back(ToMrcal(cam_from_ref_[p_.camera_index[m]]));
+    p_.extrinsics_of.push_back(m - 1);
   }
-  for (const auto& [set, members] : frame_members) {
+  for (const auto& [set, members] : frame_members_) {
     std::vector<Pose> estimates;
     for (const auto& [m, k] : members) {
-      estimates.push_back(cam_from_ref[p.camera_index[m]].inverse() * cam_from_board[k]);
+      estimates.push_back(cam_from_ref_[p_.camera_index[m]].inverse() * cam_from_board_[k]);
     }
-    const int iframe = static_cast<int>(p.frames.size());
-    p.frames.push_back(ToMrcal(AveragePoses(estimates)));
-    p.frame_sets.push_back(set);
+    const int iframe = static_cast<int>(p_.frames.size());
+    p_.frames.push_back(ToMrcal(AveragePoses(estimates)));
+    p_.frame_sets.push_back(set);
     for (const auto& [m, k] : members) {
       mrcal_observation_board_t o;
       o.icam.intrinsics = m;
       o.icam.extrinsics = m - 1;
       o.iframe = iframe;
-      p.observations.push_back(o);
-      p.observation_source.push_back(k);
-      const auto& pts = observations_in[k].points;
+      p_.observations.push_back(o);
+      p_.observation_source.push_back(k);
+      const auto& pts = observations_[k].points;
       for (int r = 0; r < pts.rows(); ++r) {
-        mrcal_point3_t q{{pts(r, 0), pts(r, 1), pts(r, 2) > 0 ? pts(r, 2) : -1.0}};
-        p.pool.push_back(q);
+        p_.pool.push_back(mrcal_point3_t{{pts(r, 0), pts(r, 1), pts(r, 2) > 0 ? pts(r, 2) : -1.0}});
       }
     }
   }
-  const std::vector<mrcal_point3_t> given_pool = p.pool;  // before any outlier rejection
-  summary.frames = static_cast<int>(p.frames.size());
-  summary.observations = static_cast<int>(p.observations.size());
-  summary.lensmodel = JointModel(requested);
-  std::set<std::string> distinct(requested.begin(), requested.end());
+  given_pool_ = p_.pool;
+  summary_.frames = static_cast<int>(p_.frames.size());
+  summary_.observations = static_cast<int>(p_.observations.size());
+  summary_.lensmodel = JointModel(requested_);
+}
+
+void Calibrator::NoteLensModels() {
+  const std::set<std::string> distinct(requested_.begin(), requested_.end());
   if (distinct.size() > 1) {
     std::string alone;
-    for (int m = 0; m < p.ncams(); ++m) {
-      if (!Represents(summary.lensmodel, requested[m])) {
-        alone += (alone.empty() ? "" : ", ") + cameras[p.camera_index[m]].name + " (" + requested[m] + ")";
+    for (int m = 0; m < p_.ncams(); ++m) {
+      if (!Represents(summary_.lensmodel, requested_[m])) {
+        alone += (alone.empty() ? "" : ", ") + cameras_[p_.camera_index[m]].name + " (" + requested_[m] + ")";
       }
     }
-    summary.notes.push_back(Cat("cameras ask for ", distinct.size(), " lens models and mrcal 2.2 solves one per problem: ",
-                                "the rig is solved in ", summary.lensmodel,
-                                alone.empty() ? std::string(", which contains every model asked for")
-                                              : ", then re-solved alone in their own models against the rig's board poses: " + alone));
+    summary_.notes.push_back(Cat(
+        "cameras ask for ", distinct.size(), " lens models and mrcal 2.2 solves one per problem: ",
+        "the rig is solved in ", summary_.lensmodel,
+        alone.empty() ? std::string(", which contains every model asked for")
+                      : ", then re-solved alone in their own models against the rig's board poses: " + alone));
   }
-  for (const auto& c : summary.cameras) {
-    if (!c.flag.empty()) summary.warnings.push_back(c.name + ": " + c.flag);
+  for (const auto& c : summary_.cameras) {
+    if (!c.flag.empty()) summary_.warnings.push_back(c.name + ": " + c.flag);
   }
+}
 
-  auto record = [&](const std::string& name, const mrcal_stats_t& stats) {
-    int outliers = 0;
-    for (const auto& q : p.pool) outliers += q.z < 0;
-    SolveStage stage{name, p.lensmodel, stats.rms_reproj_error__pixels, stats.Noutliers, elapsed()};
-    summary.stages.push_back(stage);
-    if (report != nullptr) {
-      report->AddPoint("rms_reprojection_px", stage.rms_px, static_cast<int64_t>(summary.stages.size()));
-    }
-    return std::isfinite(stats.rms_reproj_error__pixels);
-  };
-  auto fail = [&](Termination t, const std::string& message) {
-    summary.termination = t;
-    summary.message = message;
-    summary.solve_seconds = elapsed();
-    return summary;
-  };
+SolverEnd Calibrator::Stage(const std::string& name, Problem& q, bool to_report) {
+  const mrcal_stats_t stats = q.Optimize(options_.verbose);
+  const SolverEnd end = JudgeEnd(q, stats);
+  summary_.stages.push_back({name, q.lensmodel, stats.rms_reproj_error__pixels, stats.Noutliers,
+                             Elapsed(), end.termination, end.cost, end.expected_decrease});
+  if (to_report && report_ != nullptr) {
+    report_->AddPoint("rms_reprojection_px", stats.rms_reproj_error__pixels,
+                      static_cast<int64_t>(summary_.stages.size()));
+  }
+  if (end.termination == Termination::kNoConvergence) {
+    unconverged_ += (unconverged_.empty() ? "" : ", ") + name;
+  }
+  return end;
+}
 
-  // Stage 1 and 2: geometry, then the core, through a stereographic lens (as mrcal's tool).
-  p.SetModel("LENSMODEL_STEREOGRAPHIC");
-  for (int m = 0; m < p.ncams(); ++m) {
-    const CalibrationCamera& cam = cameras[p.camera_index[m]];
-    const double f = focal[p.camera_index[m]];
-    for (double v : {f, f, (cam.width - 1) / 2.0, (cam.height - 1) / 2.0}) p.intrinsics.push_back(v);
-  }
-  p.selections = Selections(false, false, false, false, false);
-  if (!record("geometry", p.Optimize(options.verbose))) {
-    return fail(Termination::kFailure, "the geometry stage produced NaN");
-  }
-  p.selections = Selections(true, false, false, false, false);
-  if (!record("core", p.Optimize(options.verbose))) {
-    return fail(Termination::kFailure, "the intrinsics-core stage produced NaN");
-  }
-  if (summary.stages.back().rms_px > options.max_seed_rms_px) {
-    return fail(Termination::kFailure,
-                Cat("the seed does not fit the observations (", summary.stages.back().rms_px,
-                    " px RMS after the stereographic stages): wrong board layout or lens?"));
-  }
+CalibrationSummary Calibrator::End(Termination state, std::string why) {
+  summary_.End(state, std::move(why));
+  summary_.solve_seconds = Elapsed();
+  return summary_;
+}
 
-  // Stage 3: the final lens model, everything, regularised, outliers rejected.
-  const std::vector<double> core = p.intrinsics;
-  p.SetModel(summary.lensmodel);
-  const int nparams = p.nparams();
-  p.intrinsics.assign(static_cast<size_t>(p.ncams()) * nparams, 0.0);
-  for (int m = 0; m < p.ncams(); ++m) {
-    for (int k = 0; k < 4; ++k) p.intrinsics[m * nparams + k] = core[m * 4 + k];
+// Stages 1 and 2: geometry, then the core, through a stereographic lens (as mrcal's tool).
+bool Calibrator::SolveStereographic() {
+  p_.SetModel("LENSMODEL_STEREOGRAPHIC");
+  for (int m = 0; m < p_.ncams(); ++m) {
+    const CalibrationCamera& cam = cameras_[p_.camera_index[m]];
+    const double f = focal_[p_.camera_index[m]];
+    for (double v : {f, f, (cam.width - 1) / 2.0, (cam.height - 1) / 2.0}) p_.intrinsics.push_back(v);
   }
-  const bool splined = IsSplined(summary.lensmodel);
-  const bool has_core = mrcal_lensmodel_metadata(&p.parsed).has_core;
+  p_.selections = Selections(false, false, false, false, false);
+  if (!Stage("geometry", p_, true).IsUsable()) {
+    End(Termination::kFailure, "the geometry stage produced NaN");
+    return false;
+  }
+  p_.selections = Selections(true, false, false, false, false);
+  if (!Stage("core", p_, true).IsUsable()) {
+    End(Termination::kFailure, "the intrinsics-core stage produced NaN");
+    return false;
+  }
+  if (summary_.stages.back().rms_px > options_.max_seed_rms_px) {
+    End(Termination::kFailure,
+        Cat("the seed does not fit the observations (", summary_.stages.back().rms_px,
+            " px RMS after the stereographic stages): wrong board layout or lens?"));
+    return false;
+  }
+  core_ = p_.intrinsics;
+  return true;
+}
+
+// Stage 3: the final lens model, everything, regularised, outliers rejected.
+bool Calibrator::SolveFinalModel() {
+  p_.SetModel(summary_.lensmodel);
+  const int nparams = p_.nparams();
+  p_.intrinsics.assign(static_cast<size_t>(p_.ncams()) * nparams, 0.0);
+  for (int m = 0; m < p_.ncams(); ++m) {
+    for (int k = 0; k < 4; ++k) p_.intrinsics[m * nparams + k] = core_[m * 4 + k];
+  }
+  const bool splined = IsSplined(summary_.lensmodel);
+  const bool has_core = mrcal_lensmodel_metadata(&p_.parsed).has_core;
   // Splined models keep the core fixed: the spline already covers what it would do.
-  p.selections = Selections(has_core && !splined, nparams > 4, options.regularization, false,
-                            false);
-  if (!record("intrinsics", p.Optimize(options.verbose))) {
-    return fail(Termination::kFailure, "the intrinsics stage produced NaN");
+  p_.selections = Selections(has_core && !splined, nparams > 4, options_.regularization, false, false);
+  if (!Stage("intrinsics", p_, true).IsUsable()) {
+    End(Termination::kFailure, "the intrinsics stage produced NaN");
+    return false;
   }
-  p.selections = Selections(has_core && !splined, nparams > 4, options.regularization,
-                            options.outlier_rejection, options.solve_board_warp);
-  const mrcal_stats_t final_stats = p.Optimize(options.verbose);
-  if (!record("everything", final_stats)) {
-    return fail(Termination::kFailure, "the final stage produced NaN");
+  p_.selections = Selections(has_core && !splined, nparams > 4, options_.regularization,
+                             options_.outlier_rejection, options_.solve_board_warp);
+  if (!Stage("everything", p_, true).IsUsable()) {
+    End(Termination::kFailure, "the final stage produced NaN");
+    return false;
   }
-  // Cameras that ask for another model than the joint solve's: each alone in its own model,
-  // the board poses held where the whole rig put them, its intrinsics (staged as above) and
-  // its pose relative to the reference free.
-  std::map<int, Problem> alone;  // by mrcal camera of the joint problem
-  for (int m = 0; m < p.ncams(); ++m) {
-    const std::string& model = requested[m];
-    if (Represents(summary.lensmodel, model)) continue;
-    Problem q = CameraAlone(p, m, given_pool);
-    q.SetModel(model);
-    const int n = q.nparams();
-    q.intrinsics.assign(n, 0.0);
-    for (int k = 0; k < 4; ++k) q.intrinsics[k] = core[m * 4 + k];
-    const bool q_splined = IsSplined(model);
-    const bool q_core = mrcal_lensmodel_metadata(&q.parsed).has_core;
-    const std::string name = cameras[p.camera_index[m]].name;
-    {
-      // Its core and pose first through a stereographic lens against the rig's board poses: the
-      // joint stereographic core was fitted while the rig's other lenses pulled the board poses,
-      // and a splined model's fixed core off by pixels is traded for a turned camera.
-      Problem seed = q;
-      seed.SetModel("LENSMODEL_STEREOGRAPHIC");
-      seed.intrinsics.assign(q.intrinsics.begin(), q.intrinsics.begin() + 4);
-      seed.selections = Selections(true, false, false, false, false);
-      seed.selections.do_optimize_frames = false;
-      seed.selections.do_optimize_extrinsics = !seed.extrinsics.empty();
-      const mrcal_stats_t stats = seed.Optimize(options.verbose);
-      summary.stages.push_back({Cat(name, " alone, core"), seed.lensmodel, stats.rms_reproj_error__pixels,
-                                stats.Noutliers, elapsed()});
-      if (std::isfinite(stats.rms_reproj_error__pixels)) {
-        std::copy(seed.intrinsics.begin(), seed.intrinsics.end(), q.intrinsics.begin());
-        q.extrinsics = seed.extrinsics;
-      }
-    }
-    for (bool last : {false, true}) {
-      q.selections = Selections(q_core && !q_splined, n > 4, options.regularization,
-                                last && options.outlier_rejection, false);
-      q.selections.do_optimize_frames = false;
-      q.selections.do_optimize_extrinsics = !q.extrinsics.empty();
-      const mrcal_stats_t stats = q.Optimize(options.verbose);
-      summary.stages.push_back({Cat(name, " alone, ", last ? "everything" : "intrinsics"), model,
-                                stats.rms_reproj_error__pixels, stats.Noutliers, elapsed()});
-      if (!std::isfinite(stats.rms_reproj_error__pixels)) {
-        return fail(Termination::kFailure, Cat("re-solving ", name, " in ", model, " produced NaN"));
-      }
-    }
-    alone.emplace(m, std::move(q));
-  }
-  summary.solve_seconds = elapsed();
+  return true;
+}
 
-  // Residuals, models and board distances per camera, from the problem that solved it.
-  auto absorb = [&](const Problem& q, int only) {
-    const int nobs = static_cast<int>(q.observations.size());
-    const int np = q.nparams();
-    std::vector<std::vector<double>> distances(q.ncams());
-    for (int o = 0; o < nobs; ++o) {
-      const int m = q.observations[o].icam.intrinsics;
-      if (only >= 0 && m != only) continue;
-      CalibratedCamera& out = summary.cameras[q.camera_index[m]];
-      const int base = mrcal_measurement_index_boards(o, nobs, 0, q.width_n, q.height_n);
-      const Pose ref_from_board = FromMrcal(q.frames[q.observations[o].iframe]);
-      distances[m].push_back((q.CamFromRef(m) * ref_from_board).translation().norm());
-      const auto& source = observations_in[q.observation_source[o]].points;
-      for (int r = 0; r < q.width_n * q.height_n; ++r) {
-        const mrcal_point3_t& point = q.pool[static_cast<size_t>(o) * q.width_n * q.height_n + r];
-        if (source(r, 2) <= 0) continue;
-        if (point.z < 0) {
-          ++out.outliers;
-          continue;
-        }
-        out.observed.emplace_back(point.x, point.y);
-        out.residuals.emplace_back(-q.x[base + 2 * r] / point.z, -q.x[base + 2 * r + 1] / point.z);
-        ++out.points;
-      }
+// A camera that asks for another model than the joint solve's: alone in its own model, the
+// board poses held where the whole rig put them, its intrinsics (staged as above) and its pose
+// relative to the reference free.
+bool Calibrator::SolveCameraAlone(int m) {
+  const std::string& model = requested_[m];
+  Problem q = CameraAlone(p_, m, given_pool_);
+  q.SetModel(model);
+  const int n = q.nparams();
+  q.intrinsics.assign(n, 0.0);
+  for (int k = 0; k < 4; ++k) q.intrinsics[k] = core_[m * 4 + k];
+  const bool q_splined = IsSplined(model);
+  const bool q_core = mrcal_lensmodel_metadata(&q.parsed).has_core;
+  const std::string name = cameras_[p_.camera_index[m]].name;
+  {
+    // Its core and pose first through a stereographic lens against the rig's board poses: the
+    // joint stereographic core was fitted while the rig's other lenses pulled the board poses,
+    // and a splined model's fixed core off by pixels is traded for a turned camera.
+    Problem seed = q;
+    seed.SetModel("LENSMODEL_STEREOGRAPHIC");
+    seed.intrinsics.assign(q.intrinsics.begin(), q.intrinsics.begin() + 4);
+    seed.selections = Selections(true, false, false, false, false);
+    seed.selections.do_optimize_frames = false;
+    seed.selections.do_optimize_extrinsics = !seed.extrinsics.empty();
+    if (Stage(Cat(name, " alone, core"), seed, false).IsUsable()) {
+      std::copy(seed.intrinsics.begin(), seed.intrinsics.end(), q.intrinsics.begin());
+      q.extrinsics = seed.extrinsics;
     }
-    for (int m = 0; m < q.ncams(); ++m) {
-      if (only >= 0 && m != only) continue;
-      CalibratedCamera& out = summary.cameras[q.camera_index[m]];
-      double s2 = 0;
-      for (const auto& r : out.residuals) s2 += r.squaredNorm();
-      out.rms_px = out.points > 0 ? std::sqrt(s2 / (2.0 * out.points)) : 0;
-      auto& d = distances[m];
-      std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
-      out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
-      std::vector<double> intrinsics(q.intrinsics.begin() + m * np, q.intrinsics.begin() + (m + 1) * np);
-      out.model = CameraModel(q.lensmodel, intrinsics, q.imagersizes[2 * m], q.imagersizes[2 * m + 1],
-                              q.CamFromRef(m));
-      out.solved = true;
-    }
-  };
-  for (int m = 0; m < p.ncams(); ++m) {
-    if (!alone.count(m)) absorb(p, m);
   }
-  for (const auto& [m, q] : alone) absorb(q, 0);
+  for (bool last : {false, true}) {
+    q.selections = Selections(q_core && !q_splined, n > 4, options_.regularization,
+                              last && options_.outlier_rejection, false);
+    q.selections.do_optimize_frames = false;
+    q.selections.do_optimize_extrinsics = !q.extrinsics.empty();
+    if (!Stage(Cat(name, " alone, ", last ? "everything" : "intrinsics"), q, false).IsUsable()) {
+      End(Termination::kFailure, Cat("re-solving ", name, " in ", model, " produced NaN"));
+      return false;
+    }
+  }
+  alone_.emplace(m, std::move(q));
+  return true;
+}
+
+// Residuals, model and board distances of the cameras of `q` (only mrcal camera `only` when
+// >= 0), from the problem that solved them.
+void Calibrator::Absorb(const Problem& q, int only) {
+  const int nobs = static_cast<int>(q.observations.size());
+  const int np = q.nparams();
+  std::vector<std::vector<double>> distances(q.ncams());
+  for (int o = 0; o < nobs; ++o) {
+    const int m = q.observations[o].icam.intrinsics;
+    if (only >= 0 && m != only) continue;
+    CalibratedCamera& out = summary_.cameras[q.camera_index[m]];
+    const int base = mrcal_measurement_index_boards(o, nobs, 0, q.width_n, q.height_n);
+    const Pose ref_from_board = FromMrcal(q.frames[q.observations[o].iframe]);
+    distances[m].push_back((q.CamFromRef(m) * ref_from_board).translation().norm());
+    const auto& source = observations_[q.observation_source[o]].points;
+    for (int r = 0; r < q.width_n * q.height_n; ++r) {
+      const mrcal_point3_t& point = q.pool[static_cast<size_t>(o) * q.width_n * q.height_n + r];
+      if (source(r, 2) <= 0) continue;
+      if (point.z < 0) {
+        ++out.outliers;
+        continue;
+      }
+      out.observed.emplace_back(point.x, point.y);
+      out.residuals.emplace_back(-q.x[base + 2 * r] / point.z, -q.x[base + 2 * r + 1] / point.z);
+      ++out.points;
+    }
+  }
+  for (int m = 0; m < q.ncams(); ++m) {
+    if (only >= 0 && m != only) continue;
+    CalibratedCamera& out = summary_.cameras[q.camera_index[m]];
+    double s2 = 0;
+    for (const auto& r : out.residuals) s2 += r.squaredNorm();
+    out.rms_px = out.points > 0 ? std::sqrt(s2 / (2.0 * out.points)) : 0;
+    auto& d = distances[m];
+    std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
+    out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
+    std::vector<double> intrinsics(q.intrinsics.begin() + m * np, q.intrinsics.begin() + (m + 1) * np);
+    out.model = CameraModel(q.lensmodel, intrinsics, q.imagersizes[2 * m], q.imagersizes[2 * m + 1],
+                            q.CamFromRef(m));
+    out.solved = true;
+  }
+}
+
+void Calibrator::CollectResiduals() {
+  for (int m = 0; m < p_.ncams(); ++m) {
+    if (!alone_.count(m)) Absorb(p_, m);
+  }
+  for (const auto& [m, q] : alone_) Absorb(q, 0);
   double sum2 = 0;
   int inliers = 0;
-  std::vector<double> all_residuals;
-  for (int m = 0; m < p.ncams(); ++m) {
-    const CalibratedCamera& out = summary.cameras[p.camera_index[m]];
-    summary.outliers += out.outliers;
+  for (int m = 0; m < p_.ncams(); ++m) {
+    const CalibratedCamera& out = summary_.cameras[p_.camera_index[m]];
+    summary_.outliers += out.outliers;
     inliers += out.points;
     for (const auto& r : out.residuals) {
       sum2 += r.squaredNorm();
-      all_residuals.push_back(r.x());
-      all_residuals.push_back(r.y());
+      all_residuals_.push_back(r.x());
+      all_residuals_.push_back(r.y());
     }
   }
   // Per coordinate, so it compares directly with a per-axis detection noise.
-  summary.rms_reprojection_px = inliers > 0 ? std::sqrt(sum2 / (2.0 * inliers)) : 0;
-  for (size_t f = 0; f < p.frames.size(); ++f) summary.ref_from_board[p.frame_sets[f]] = FromMrcal(p.frames[f]);
-  if (summary.observations > 0 && summary.outliers > 0.25 * inliers) {
-    summary.warnings.push_back(Cat(summary.outliers, " outliers against ", inliers, " inliers"));
+  summary_.rms_reprojection_px = inliers > 0 ? std::sqrt(sum2 / (2.0 * inliers)) : 0;
+  for (size_t f = 0; f < p_.frames.size(); ++f) {
+    summary_.ref_from_board[p_.frame_sets[f]] = FromMrcal(p_.frames[f]);
   }
-
-  // Uncertainty.
+  if (summary_.observations > 0 && summary_.outliers > 0.25 * inliers) {
+    summary_.warnings.push_back(Cat(summary_.outliers, " outliers against ", inliers, " inliers"));
+  }
   double mean = 0;
-  for (double v : all_residuals) mean += v / all_residuals.size();
+  for (double v : all_residuals_) mean += v / all_residuals_.size();
   double var = 0;
-  for (double v : all_residuals) var += (v - mean) * (v - mean) / all_residuals.size();
-  summary.observed_pixel_sigma = options.observed_pixel_sigma > 0 ? options.observed_pixel_sigma : std::sqrt(var);
-  std::vector<std::string> ill;
-  if (options.uncertainty) {
-    const auto u_start = std::chrono::steady_clock::now();
-    Factorization joint;
-    const bool joint_ok = Factor(p, &joint);
-    bool all_ok = joint_ok;
-    for (int m = 0; m < p.ncams(); ++m) {
-      CalibratedCamera& out = summary.cameras[p.camera_index[m]];
-      const double distance = options.uncertainty_distance_m > 0 ? options.uncertainty_distance_m
-                                                                  : out.median_board_distance_m;
-      // A camera re-solved alone: its noise propagated as in a single-camera calibration.
-      Factorization own;
-      auto it = alone.find(m);
-      Problem mono;
-      if (it != alone.end()) mono = CameraFrame(it->second);
-      const bool ok = it == alone.end() ? joint_ok : Factor(mono, &own);
-      all_ok = all_ok && ok;
-      if (ok) {
-        out.uncertainty = it == alone.end()
-                              ? Uncertainty(p, joint, m, distance, summary.observed_pixel_sigma,
-                                            options.uncertainty_grid_x, options.uncertainty_grid_y)
-                              : Uncertainty(mono, own, 0, distance, summary.observed_pixel_sigma,
-                                            options.uncertainty_grid_x, options.uncertainty_grid_y);
-        if (it == alone.end()) {
-          ParameterSigma(p, joint, m, summary.observed_pixel_sigma, &out);
-        } else {
-          ParameterSigma(mono, own, 0, summary.observed_pixel_sigma, &out);
-        }
-      } else {
-        out.uncertainty.worst_px = out.uncertainty.mean_px = std::numeric_limits<double>::infinity();
-      }
-      // Where the board never was (a fisheye's corners), any model is a guess; judge the
-      // solve where it has data.
-      CameraUncertainty& u = out.uncertainty;
-      if (ok && u.grid_x > 0) {
-        const int width = out.model.width(), height = out.model.height();
-        u.observed = Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic>::Constant(u.grid_y, u.grid_x, false);
-        for (const auto& q : out.observed) {
-          const int gx = std::clamp(static_cast<int>((q.x() + 0.5) * u.grid_x / width), 0, u.grid_x - 1);
-          const int gy = std::clamp(static_cast<int>((q.y() + 0.5) * u.grid_y / height), 0, u.grid_y - 1);
-          u.observed(gy, gx) = true;
-        }
-        u.worst_observed_px = 0;
-        for (int gy = 0; gy < u.grid_y; ++gy) {
-          for (int gx = 0; gx < u.grid_x; ++gx) {
-            if (!u.observed(gy, gx)) continue;
-            const double sigma = u.worst_sigma_px(gy, gx);
-            u.worst_observed_px = std::isfinite(sigma) ? std::max(u.worst_observed_px, sigma)
-                                                       : std::numeric_limits<double>::infinity();
-          }
-        }
-      } else {
-        u.worst_observed_px = std::numeric_limits<double>::infinity();
-      }
-      if (!(u.worst_observed_px <= options.max_uncertainty_px)) {
-        out.flag = Cat("ill-conditioned: worst projection 1-sigma where the board was seen ",
-                       u.worst_observed_px,
-                       " px (limit ", options.max_uncertainty_px, ")");
-        ill.push_back(out.name);
+  for (double v : all_residuals_) var += (v - mean) * (v - mean) / all_residuals_.size();
+  summary_.observed_pixel_sigma =
+      options_.observed_pixel_sigma > 0 ? options_.observed_pixel_sigma : std::sqrt(var);
+}
+
+void Calibrator::EstimateUncertainty() {
+  const auto u_start = std::chrono::steady_clock::now();
+  Factorization joint;
+  const bool joint_ok = Factor(p_, &joint);
+  bool all_ok = joint_ok;
+  for (int m = 0; m < p_.ncams(); ++m) all_ok = CameraUncertaintyOf(m, joint, joint_ok) && all_ok;
+  summary_.uncertainty_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - u_start).count();
+  if (!all_ok) summary_.warnings.push_back("the Jacobian could not be factored: the problem is singular");
+}
+
+// Mrcal camera m's projection uncertainty and parameter sigmas; flags it ill-conditioned where
+// the board was seen and the 1-sigma passes the limit. False when its problem could not be
+// factored.
+bool Calibrator::CameraUncertaintyOf(int m, Factorization& joint, bool joint_ok) {
+  CalibratedCamera& out = summary_.cameras[p_.camera_index[m]];
+  const double distance = options_.uncertainty_distance_m > 0 ? options_.uncertainty_distance_m
+                                                              : out.median_board_distance_m;
+  const double sigma = summary_.observed_pixel_sigma;
+  // A camera re-solved alone: its noise propagated as in a single-camera calibration.
+  Factorization own;
+  auto it = alone_.find(m);
+  Problem mono;
+  if (it != alone_.end()) mono = CameraFrame(it->second);
+  const bool ok = it == alone_.end() ? joint_ok : Factor(mono, &own);
+  if (ok) {
+    Problem& q = it == alone_.end() ? p_ : mono;
+    Factorization& f = it == alone_.end() ? joint : own;
+    const int icam = it == alone_.end() ? m : 0;
+    out.uncertainty = Uncertainty(q, f, icam, distance, sigma, options_.uncertainty_grid_x,
+                                  options_.uncertainty_grid_y);
+    ParameterSigma(q, f, icam, sigma, &out);
+  } else {
+    out.uncertainty.worst_px = out.uncertainty.mean_px = std::numeric_limits<double>::infinity();
+  }
+  // Where the board never was (a fisheye's corners), any model is a guess; judge the solve
+  // where it has data.
+  CameraUncertainty& u = out.uncertainty;
+  if (ok && u.grid_x > 0) {
+    const int width = out.model.width(), height = out.model.height();
+    u.observed = Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic>::Constant(u.grid_y, u.grid_x, false);
+    for (const auto& q : out.observed) {
+      const int gx = std::clamp(static_cast<int>((q.x() + 0.5) * u.grid_x / width), 0, u.grid_x - 1);
+      const int gy = std::clamp(static_cast<int>((q.y() + 0.5) * u.grid_y / height), 0, u.grid_y - 1);
+      u.observed(gy, gx) = true;
+    }
+    u.worst_observed_px = 0;
+    for (int gy = 0; gy < u.grid_y; ++gy) {
+      for (int gx = 0; gx < u.grid_x; ++gx) {
+        if (!u.observed(gy, gx)) continue;
+        const double s = u.worst_sigma_px(gy, gx);
+        u.worst_observed_px = std::isfinite(s) ? std::max(u.worst_observed_px, s)
+                                               : std::numeric_limits<double>::infinity();
       }
     }
-    summary.uncertainty_seconds =
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - u_start).count();
-    if (!all_ok) summary.warnings.push_back("the Jacobian could not be factored: the problem is singular");
+  } else {
+    u.worst_observed_px = std::numeric_limits<double>::infinity();
   }
+  if (!(u.worst_observed_px <= options_.max_uncertainty_px)) {
+    out.flag = Cat("ill-conditioned: worst projection 1-sigma where the board was seen ",
+                   u.worst_observed_px, " px (limit ", options_.max_uncertainty_px, ")");
+  }
+  return ok;
+}
 
-  if (options.cross_validation) {
-    // A seeded shuffle, not odd/even: sequences often alternate their poses.
-    std::vector<size_t> order(p.frame_sets.size());
-    std::iota(order.begin(), order.end(), size_t{0});
-    std::shuffle(order.begin(), order.end(), std::mt19937_64(1));
-    std::vector<BoardObservation> half[2];
-    for (size_t i = 0; i < order.size(); ++i) {
-      for (const auto& [m, k] : frame_members[p.frame_sets[order[i]]]) {
-        half[2 * i < order.size() ? 0 : 1].push_back(observations_in[k]);
-      }
+// Two disjoint halves of the frame sets solved alone and compared.
+void Calibrator::CrossValidation() {
+  // A seeded shuffle, not odd/even: sequences often alternate their poses.
+  std::vector<size_t> order(p_.frame_sets.size());
+  std::iota(order.begin(), order.end(), size_t{0});
+  std::shuffle(order.begin(), order.end(), std::mt19937_64(1));
+  std::vector<BoardObservation> half[2];
+  for (size_t i = 0; i < order.size(); ++i) {
+    for (const auto& [m, k] : frame_members_[p_.frame_sets[order[i]]]) {
+      half[2 * i < order.size() ? 0 : 1].push_back(observations_[k]);
     }
-    CalibrationOptions half_options = options;
-    half_options.cross_validation = false;
-    half_options.min_views_per_camera = std::max(3, options.min_views_per_camera / 2);
-    half_options.max_uncertainty_px = 1e9;  // judged here against each other instead
-    const CalibrationSummary a = Calibrate(layout, cameras, half[0], half_options);
-    const CalibrationSummary b = Calibrate(layout, cameras, half[1], half_options);
-    summary.cross_validation = CrossValidate(a, b);
   }
+  CalibrationOptions half_options = options_;
+  half_options.cross_validation = false;
+  half_options.min_views_per_camera = std::max(3, options_.min_views_per_camera / 2);
+  half_options.max_uncertainty_px = 1e9;  // judged here against each other instead
+  const CalibrationSummary a = Calibrator(layout_, cameras_, half[0], half_options, nullptr).Run();
+  const CalibrationSummary b = Calibrator(layout_, cameras_, half[1], half_options, nullptr).Run();
+  summary_.cross_validation = CrossValidate(a, b);
+}
 
+// The trust checks: a flagged camera (too few views, unconnected, ill-conditioned) makes the
+// result degenerate; otherwise mrcal's own ending decides between convergence and a budget
+// spent while the cost still fell.
+void Calibrator::Conclude() {
   std::vector<std::string> flagged;
-  for (const auto& c : summary.cameras) {
+  for (const auto& c : summary_.cameras) {
     if (!c.flag.empty()) flagged.push_back(c.name + " (" + c.flag + ")");
   }
+  const std::string solved =
+      Cat(cameras_.size(), " cameras, ", summary_.frames, " board poses, ", summary_.observations,
+          " views: ", summary_.rms_reprojection_px, " px RMS per coordinate, ", summary_.outliers,
+          " outliers");
   if (!flagged.empty()) {
     std::string list;
     for (const auto& f : flagged) list += (list.empty() ? "" : "; ") + f;
-    summary.termination = Termination::kDegenerate;
-    summary.message = Cat(flagged.size(), " of ", cameras.size(), " cameras cannot be trusted: ", list);
+    summary_.End(Termination::kDegenerate,
+                 Cat(flagged.size(), " of ", cameras_.size(), " cameras cannot be trusted: ", list));
+  } else if (!unconverged_.empty()) {
+    summary_.End(Termination::kNoConvergence,
+                 Cat(solved, "; mrcal stopped while the cost still fell in: ", unconverged_));
   } else {
-    summary.termination = Termination::kConvergence;
-    summary.message = Cat(cameras.size(), " cameras, ", summary.frames, " board poses, ",
-                          summary.observations, " views: ", summary.rms_reprojection_px,
-                          " px RMS per coordinate, ", summary.outliers, " outliers");
+    summary_.End(Termination::kConvergence, solved);
   }
-  return summary;
+}
+
+}  // namespace
+
+CalibrationSummary Calibrate(const BoardLayout& layout, const std::vector<CalibrationCamera>& cameras,
+                             const std::vector<BoardObservation>& observations,
+                             const CalibrationOptions& options, Report* report) {
+  return Calibrator(layout, cameras, observations, options, report).Run();
 }
 
 }  // namespace holocap

@@ -119,150 +119,126 @@ void TakeCalibrationOptions::Check() const {
   if (!lensmodel.empty()) calibration_internal::CheckLensmodelName(lensmodel);
 }
 
-TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibrationOptions& options_in,
-                                     Report* report) {
-  const TakeCalibrationOptions& options = options_in;
-  options.Check();
-  const Take take = Take::Open(take_dir);
-  const BoardLayout layout = FindBoard(take, options);
+namespace {
 
-  std::vector<std::string> sensors = options.sensors;
-  if (sensors.empty()) {
+// The colour cameras to calibrate (all when none are named) with their lens models.
+std::vector<CalibrationCamera> CamerasToCalibrate(const Take& take, const TakeCalibrationOptions& options,
+                                                  std::vector<std::string>* sensors) {
+  *sensors = options.sensors;
+  if (sensors->empty()) {
     for (const auto& s : take.streams()) {
-      if (s.role == SensorRole::kColor) sensors.push_back(s.name);
+      if (s.role == SensorRole::kColor) sensors->push_back(s.name);
     }
   }
-  if (sensors.empty()) Fail("take ", take_dir.string(), " has no colour camera to calibrate");
+  if (sensors->empty()) Fail("take ", take.dir().string(), " has no colour camera to calibrate");
   std::vector<CalibrationCamera> cameras;
-  for (const auto& name : sensors) {
-    if (!take.has_stream(name)) Fail("camera '", name, "' is not in the take ", take_dir.string());
+  for (const auto& name : *sensors) {
+    if (!take.has_stream(name)) Fail("camera '", name, "' is not in the take ", take.dir().string());
     const StreamInfo& stream = take.stream(name);
     cameras.push_back({name, stream.width, stream.height,
                        options.lensmodel.empty() ? RigLensModel(take, name) : options.lensmodel});
   }
+  return cameras;
+}
 
-  TakeCalibrationSummary result;
-  if (report != nullptr) {
-    report->options() = {{"take", take_dir.string()},
-                         {"board", layout.ToJson()},
-                         {"detection", options.detection.ToJson()},
-                         {"solve", options.solve.ToJson()},
-                         {"lensmodel", options.lensmodel}};
-  }
-  std::vector<BoardObservation> observations =
-      DetectBoardsInTake(take, layout, sensors, options.detection, &result.detection);
-  result.calibration = Calibrate(layout, cameras, observations, options.solve, report);
-  CalibrationSummary& cal = result.calibration;
-
-  // The world the written models live in.
+// The world the written models live in: the reference camera's frame, or on a simulated take
+// the true world (`world_frame` says which).
+Pose WorldOfTheModels(const Take& take, const BoardLayout& layout, TakeCalibrationSummary* result,
+                      std::string* world_frame) {
+  const CalibrationSummary& cal = result->calibration;
   const std::map<int64_t, Pose> true_board = TrueBoardPoses(take);
-  result.has_ground_truth = take.has_ground_truth() && fs::exists(take.gt_dir() / "cameras");
+  result->has_ground_truth = take.has_ground_truth() && fs::exists(take.gt_dir() / "cameras");
   std::map<std::string, CameraModel> truth;
-  if (result.has_ground_truth) {
+  if (result->has_ground_truth) {
     for (const auto& c : cal.cameras) {
       const fs::path file = take.gt_dir() / "cameras" / (c.name + ".cameramodel");
       if (fs::exists(file)) truth.emplace(c.name, CameraModel::Read(file));
     }
-    result.has_ground_truth = truth.count(cal.reference_camera) > 0;
+    result->has_ground_truth = truth.count(cal.reference_camera) > 0;
   }
-  Pose world_from_ref = Pose::Identity();
-  std::string world_frame = "reference camera " + cal.reference_camera;
-  if (result.has_ground_truth) {
-    std::vector<Eigen::Vector3d> in_ref, in_world;
-    const Board board(layout);
-    for (const auto& [set, pose] : cal.ref_from_board) {
-      auto it = true_board.find(set);
-      if (it == true_board.end()) continue;
-      for (const auto& g : board.GridPoints()) {
-        in_ref.push_back(pose * g);
-        in_world.push_back(it->second * g);
-      }
-    }
-    if (in_ref.size() >= 3) {
-      world_from_ref = calibration_internal::FitRigid(in_ref, in_world);
-      world_frame = "simulated world (rigid fit of the solved board poses to the true ones)";
-    } else {
-      world_from_ref = truth.at(cal.reference_camera).world_from_cam();
-      world_frame = "simulated world (the reference camera's true pose)";
-    }
-  }
+  *world_frame = "reference camera " + cal.reference_camera;
+  if (!result->has_ground_truth) return Pose::Identity();
+  bool from_boards = false;
+  const Pose world_from_ref = calibration_internal::WorldFromReference(
+      cal, truth.at(cal.reference_camera), true_board, layout, &from_boards);
+  *world_frame = from_boards ? "simulated world (rigid fit of the solved board poses to the true ones)"
+                             : "simulated world (the reference camera's true pose)";
+  if (!cal.ref_from_board.empty()) result->ground_truth = CompareWithTruth(cal, truth, true_board, layout);
+  return world_from_ref;
+}
 
-  if (result.has_ground_truth && !cal.ref_from_board.empty()) {
-    result.ground_truth = CompareWithTruth(cal, truth, true_board, layout);
-  }
-
-  // Outputs.
+// calib/<camera>.cameramodel of every trusted camera and the pictures of every solved one.
+void WriteModelsAndPictures(const Take& take, const Pose& world_from_ref, bool pictures,
+                            TakeCalibrationSummary* result) {
   CreateDirectories(take.calib_dir());
-  for (const auto& c : cal.cameras) {
+  for (const auto& c : result->calibration.cameras) {
     if (!c.solved) continue;
     if (c.flag.empty()) {
       CameraModel model = c.model;
       model.set_cam_from_world(c.model.cam_from_world() * world_from_ref.inverse());
       const fs::path file = take.calib_dir() / (c.name + ".cameramodel");
       model.Write(file);
-      result.written.push_back(file);
+      result->written.push_back(file);
     }
-    if (options.pictures) {
-      const fs::path residuals = take.calib_dir() / (c.name + ".residuals.png");
-      WritePng(residuals, ResidualPicture(c));
-      const fs::path coverage = take.calib_dir() / (c.name + ".coverage.png");
-      WritePng(coverage, CoveragePicture(c));
-      result.written.push_back(residuals);
-      result.written.push_back(coverage);
-      if (c.uncertainty.grid_x > 0 && std::isfinite(c.uncertainty.worst_px)) {
-        const fs::path picture = take.calib_dir() / (c.name + ".uncertainty.png");
-        WritePng(picture, UncertaintyPicture(c));
-        result.written.push_back(picture);
-      }
-    }
-  }
-
-  // Depth sensors paired with a solved camera.
-  if (options.depth_sensors) {
-    for (const auto& stream : take.streams()) {
-      if (stream.role != SensorRole::kDepth || stream.paired_with.empty()) continue;
-      const CalibratedCamera* colour = cal.Find(stream.paired_with);
-      if (colour == nullptr || !colour->solved || !colour->flag.empty()) continue;
-      const int in_rig = take.rig().IndexOf(stream.name);
-      DepthAlignmentSummary depth;
-      depth.depth_sensor = stream.name;
-      depth.color_sensor = stream.paired_with;
-      if (in_rig < 0 || !take.rig().sensors[in_rig].options.contains("intrinsics")) {
-        depth.termination = Termination::kDegenerate;
-        depth.message = "the rig gives no depth intrinsics (sensor options lens/intrinsics/size)";
-        result.depth.push_back(depth);
-        continue;
-      }
-      const auto& o = take.rig().sensors[in_rig].options;
-      const auto size = o.value("size", std::vector<int>{stream.width, stream.height});
-      CameraModel depth_model(o.value("lens", std::string("LENSMODEL_OPENCV4")),
-                              o["intrinsics"].get<std::vector<double>>(), size.at(0), size.at(1));
-      if (depth_model.width() != stream.width) {
-        depth_model = depth_model.Scaled(static_cast<double>(stream.width) / depth_model.width());
-      }
-      std::map<int64_t, Pose> colour_from_board;
-      for (const auto& [set, pose] : cal.ref_from_board) colour_from_board[set] = colour->model.cam_from_world() * pose;
-      depth = AlignDepthToColor(take, stream.name, depth_model, stream.paired_with, colour->model,
-                                colour_from_board, layout, options.depth);
-      if (IsUsable(depth.termination)) {
-        CameraModel model = depth_model;
-        model.set_cam_from_world(depth.depth_from_color * colour->model.cam_from_world() * world_from_ref.inverse());
-        const fs::path file = take.calib_dir() / (stream.name + ".cameramodel");
-        model.Write(file);
-        result.written.push_back(file);
-      }
-      result.depth.push_back(depth);
+    if (!pictures) continue;
+    const fs::path residuals = take.calib_dir() / (c.name + ".residuals.png");
+    WritePng(residuals, ResidualPicture(c));
+    const fs::path coverage = take.calib_dir() / (c.name + ".coverage.png");
+    WritePng(coverage, CoveragePicture(c));
+    result->written.push_back(residuals);
+    result->written.push_back(coverage);
+    if (c.uncertainty.grid_x > 0 && std::isfinite(c.uncertainty.worst_px)) {
+      const fs::path picture = take.calib_dir() / (c.name + ".uncertainty.png");
+      WritePng(picture, UncertaintyPicture(c));
+      result->written.push_back(picture);
     }
   }
+}
 
-  result.termination = cal.termination;
-  result.message = cal.message;
-  for (const auto& d : result.depth) {
-    if (!IsUsable(d.termination)) cal.warnings.push_back(d.depth_sensor + ": " + d.message);
+// depth_from_color of every depth sensor paired with a trusted camera.
+void AlignDepthSensors(const Take& take, const BoardLayout& layout, const Pose& world_from_ref,
+                       const TakeCalibrationOptions& options, TakeCalibrationSummary* result) {
+  const CalibrationSummary& cal = result->calibration;
+  for (const auto& stream : take.streams()) {
+    if (stream.role != SensorRole::kDepth || stream.paired_with.empty()) continue;
+    const CalibratedCamera* colour = cal.Find(stream.paired_with);
+    if (colour == nullptr || !colour->solved || !colour->flag.empty()) continue;
+    const int in_rig = take.rig().IndexOf(stream.name);
+    DepthAlignmentSummary depth;
+    depth.depth_sensor = stream.name;
+    depth.color_sensor = stream.paired_with;
+    if (in_rig < 0 || !take.rig().sensors[in_rig].options.contains("intrinsics")) {
+      depth.End(Termination::kDegenerate,
+                "the rig gives no depth intrinsics (sensor options lens/intrinsics/size)");
+      result->depth.push_back(depth);
+      continue;
+    }
+    const auto& o = take.rig().sensors[in_rig].options;
+    const auto size = o.value("size", std::vector<int>{stream.width, stream.height});
+    CameraModel depth_model(o.value("lens", std::string("LENSMODEL_OPENCV4")),
+                            o["intrinsics"].get<std::vector<double>>(), size.at(0), size.at(1));
+    if (depth_model.width() != stream.width) {
+      depth_model = depth_model.Scaled(static_cast<double>(stream.width) / depth_model.width());
+    }
+    std::map<int64_t, Pose> colour_from_board;
+    for (const auto& [set, pose] : cal.ref_from_board) colour_from_board[set] = colour->model.cam_from_world() * pose;
+    depth = AlignDepthToColor(take, stream.name, depth_model, stream.paired_with, colour->model,
+                              colour_from_board, layout, options.depth);
+    if (IsUsable(depth.termination)) {
+      CameraModel model = depth_model;
+      model.set_cam_from_world(depth.depth_from_color * colour->model.cam_from_world() * world_from_ref.inverse());
+      const fs::path file = take.calib_dir() / (stream.name + ".cameramodel");
+      model.Write(file);
+      result->written.push_back(file);
+    }
+    result->depth.push_back(depth);
   }
+}
 
-  Report local("calibrate");
-  Report& r = report != nullptr ? *report : local;
+// The plan, metrics and summary of calib/report.json.
+void FillReport(const TakeCalibrationOptions& options, const std::vector<std::string>& sensors,
+                const std::string& world_frame, const TakeCalibrationSummary& result, Report& r) {
+  const CalibrationSummary& cal = result.calibration;
   r.plan()["lensmodel"] = cal.lensmodel;
   if (!cal.notes.empty()) r.plan()["lens_models"] = cal.notes;
   r.plan()["reference_camera"] = cal.reference_camera;
@@ -280,6 +256,7 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibra
   m["outliers"] = cal.outliers;
   m["cameras"] = cal_json["cameras"];
   m["stages"] = cal_json["stages"];
+  if (cal_json.contains("mrcal")) m["mrcal"] = cal_json["mrcal"];
   m["warnings"] = cal.warnings;
   m["notes"] = cal.notes;
   m["detection"] = result.detection.ToJson();
@@ -301,7 +278,45 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibra
   for (const auto& d : result.depth) depth_json.push_back(d.ToJson());
   m["depth"] = depth_json;
   if (result.has_ground_truth) m["gt"] = result.ground_truth.ToJson();
-  r.SetSummary({result.termination, result.message});
+  r.SetSummary(result);
+}
+
+}  // namespace
+
+TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibrationOptions& options,
+                                     Report* report) {
+  options.Check();
+  const Take take = Take::Open(take_dir);
+  const BoardLayout layout = FindBoard(take, options);
+  std::vector<std::string> sensors;
+  const std::vector<CalibrationCamera> cameras = CamerasToCalibrate(take, options, &sensors);
+
+  TakeCalibrationSummary result;
+  if (report != nullptr) {
+    report->options() = {{"take", take_dir.string()},
+                         {"board", layout.ToJson()},
+                         {"detection", options.detection.ToJson()},
+                         {"solve", options.solve.ToJson()},
+                         {"lensmodel", options.lensmodel}};
+  }
+  std::vector<BoardObservation> observations =
+      DetectBoardsInTake(take, layout, sensors, options.detection, &result.detection);
+  result.calibration = Calibrate(layout, cameras, observations, options.solve, report);
+  CalibrationSummary& cal = result.calibration;
+
+  std::string world_frame;
+  const Pose world_from_ref = WorldOfTheModels(take, layout, &result, &world_frame);
+  WriteModelsAndPictures(take, world_from_ref, options.pictures, &result);
+  if (options.depth_sensors) AlignDepthSensors(take, layout, world_from_ref, options, &result);
+
+  result.End(cal.termination, cal.message);
+  for (const auto& d : result.depth) {
+    if (!IsUsable(d.termination)) cal.warnings.push_back(d.depth_sensor + ": " + d.message);
+  }
+
+  Report local("calibrate");
+  Report& r = report != nullptr ? *report : local;
+  FillReport(options, sensors, world_frame, result, r);
   const fs::path report_file = take.calib_dir() / "report.json";
   r.Write(report_file);
   result.written.push_back(report_file);

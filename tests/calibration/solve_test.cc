@@ -5,6 +5,7 @@
 #include <cstdlib>
 
 #include "calibration/calibration.h"
+#include "calibration/internal.h"
 #include "core/error.h"
 #include "tests/calibration/synthetic_rig.h"
 
@@ -348,6 +349,74 @@ TEST(Calibrate, CrossValidationHalvesAgreeWithinTheirUncertainty) {
     EXPECT_GE(j["within_sigma_sum_fraction"].get<double>(), 0.7) << name;
     EXPECT_LT(j["diff_rms_px"].get<double>(), 0.3) << name;
   }
+}
+
+// Each ending of a solve, from its residuals and Jacobian: a linear least-squares problem
+// x(p) = J p - b, judged away from its minimum, at it, and with mrcal's failure signals.
+TEST(SolverEnd, EachStateFromTheResidualsAndTheJacobian) {
+  Eigen::MatrixXd j(20, 3);
+  Eigen::VectorXd b(20);
+  for (int r = 0; r < 20; ++r) {
+    j.row(r) << 1.0, r * 0.1, std::sin(r * 0.7);
+    b(r) = 2.0 + 0.3 * r + std::cos(r * 1.3);
+  }
+  const Eigen::SparseMatrix<double> jt = Eigen::MatrixXd(j.transpose()).sparseView();
+  const Eigen::VectorXd at_seed = -b;  // p = 0: the cost still falls
+  const calibration_internal::SolverEnd seed = calibration_internal::JudgeSolverEnd(jt, at_seed, 1.0);
+  EXPECT_EQ(seed.termination, Termination::kNoConvergence);
+  EXPECT_GT(seed.expected_decrease, 0.5);
+  const Eigen::Vector3d best = j.colPivHouseholderQr().solve(b);
+  const Eigen::VectorXd at_minimum = j * best - b;
+  const calibration_internal::SolverEnd done = calibration_internal::JudgeSolverEnd(jt, at_minimum, 1.0);
+  EXPECT_EQ(done.termination, Termination::kConvergence);
+  EXPECT_LE(done.expected_decrease, calibration_internal::kCostTolerance);
+  EXPECT_NEAR(done.cost, at_minimum.squaredNorm(), 1e-12);
+  // mrcal_optimize's failure: a negative RMS; NaN anywhere.
+  EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, at_minimum, -1.0).termination, Termination::kFailure);
+  EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, at_minimum, std::nan("")).termination,
+            Termination::kFailure);
+  Eigen::VectorXd with_nan = at_minimum;
+  with_nan(3) = std::nan("");
+  EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, with_nan, 1.0).termination, Termination::kFailure);
+}
+
+SyntheticRig SmallRig() {
+  SyntheticOptions options = ReducedRig();
+  options.frames = 60;
+  return MakeSyntheticRig(options);
+}
+
+// A clean rig: every mrcal stage converged, its own figures in the summary.
+TEST(Calibrate, ReportsMrcalsOwnEndingOfEveryStage) {
+  const SyntheticRig rig = SmallRig();
+  CalibrationOptions solve;
+  solve.uncertainty = false;
+  const CalibrationSummary s = Calibrate(rig.layout, rig.cameras, rig.observations, solve);
+  EXPECT_EQ(s.termination, Termination::kConvergence) << s.message;
+  EXPECT_EQ(ExitStatus(s.termination), 0);
+  ASSERT_EQ(s.stages.size(), 4u);
+  for (const auto& stage : s.stages) {
+    EXPECT_EQ(stage.termination, Termination::kConvergence) << stage.name;
+    EXPECT_GT(stage.cost, 0) << stage.name;
+    EXPECT_LE(stage.expected_decrease, calibration_internal::kCostTolerance) << stage.name;
+  }
+  const nlohmann::json j = s.ToJson();
+  ASSERT_TRUE(j.contains("mrcal"));
+  EXPECT_EQ(j["mrcal"]["termination"], "CONVERGENCE");
+  EXPECT_NEAR(j["mrcal"]["rms_px"].get<double>(), s.stages.back().rms_px, 1e-12);
+}
+
+// A seed that cannot fit the observations stops the solve: FAILURE, exit status 1.
+TEST(Calibrate, ASeedThatDoesNotFitIsFailure) {
+  const SyntheticRig rig = SmallRig();
+  CalibrationOptions solve;
+  solve.uncertainty = false;
+  solve.max_seed_rms_px = 0.01;  // below the detections' own noise
+  const CalibrationSummary s = Calibrate(rig.layout, rig.cameras, rig.observations, solve);
+  EXPECT_EQ(s.termination, Termination::kFailure);
+  EXPECT_EQ(ExitStatus(s.termination), 1);
+  EXPECT_NE(s.message.find("the seed does not fit"), std::string::npos) << s.message;
+  EXPECT_EQ(s.stages.size(), 2u);
 }
 
 TEST(Calibrate, BadInputIsAnError) {
