@@ -25,7 +25,7 @@ packages=(
   ffmpeg
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2)
+  packages+=(googletest libgtest-dev clang-format python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2)
 fi
 
 missing=()
