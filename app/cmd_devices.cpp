@@ -1,8 +1,10 @@
-// holocap devices: every sensor every compiled-in driver can open now.
+// holocap devices: every sensor every compiled-in driver can open now, and the hardware drivers
+// this build left out (-DHOLOCAP_DRIVERS).
 #include <iostream>
 #include <opencv2/core.hpp>
 
 #include "app/commands.h"
+#include "capture/drivers_built.h"
 #include "capture/hal.h"
 #include "core/error.h"
 
@@ -42,6 +44,12 @@ static void AddDevicesCommand(CLI::App& app) {
   command->add_option("--timeout", *timeout_s, "Seconds to wait for the probe's frame")->capture_default_str();
   command->callback([probe, timeout_s] {
     if (!probe->empty()) return Probe(*probe, *timeout_s);
+    std::cout << "drivers compiled in:";
+    for (Driver* driver : DriverRegistry::Global().drivers()) std::cout << " " << driver->scheme();
+    std::cout << "\n";
+    for (const BuiltDriver& built : kHardwareDrivers) {
+      if (!built.compiled) std::cout << built.scheme << ": not compiled in (" << built.why_not << ")\n";
+    }
     for (Driver* driver : DriverRegistry::Global().drivers()) {
       std::cout << driver->scheme() << ":  " << driver->description() << "\n";
       std::vector<DeviceInfo> devices;

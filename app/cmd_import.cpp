@@ -3,7 +3,7 @@
 #include <memory>
 
 #include "app/commands.h"
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 
 namespace holocap {

@@ -6,8 +6,10 @@
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
 
+#include "capture/drivers_built.h"
 #include "capture/hal.h"
 #include "capture/replay/replay_driver.h"
+#include "core/error.h"
 #include "core/report.h"
 #include "core/take.h"
 #include "tests/support/test_support.h"
@@ -83,6 +85,19 @@ TEST_F(SimulatedTake, DevicesListsTheSimulatedRigsAndProbesASensor) {
   auto probe = RunCli("devices --probe 'replay:" + take().string() + "#cam0'");
   ASSERT_EQ(probe.exit_code, 0) << probe.output;
   EXPECT_NE(probe.output.find("160x120 bgr8"), std::string::npos) << probe.output;
+}
+
+TEST(DevicesCli, NamesEveryHardwareDriverCompiledInOrLeftOut) {
+  auto list = RunCli("devices");
+  ASSERT_EQ(list.exit_code, 0) << list.output;
+  const std::string compiled = list.output.substr(0, list.output.find('\n'));
+  EXPECT_EQ(compiled.rfind("drivers compiled in:", 0), 0u) << list.output;
+  for (const BuiltDriver& driver : kHardwareDrivers) {
+    const std::string left_out = Cat(driver.scheme, ": not compiled in (", driver.why_not, ")");
+    const bool listed = (compiled + " ").find(Cat(" ", driver.scheme, " ")) != std::string::npos;
+    EXPECT_EQ(listed, driver.compiled) << driver.scheme << "\n" << list.output;
+    EXPECT_EQ(list.output.find(left_out) != std::string::npos, !driver.compiled) << list.output;
+  }
 }
 
 TEST_F(SimulatedTake, CorruptTakesGiveOneClearError) {

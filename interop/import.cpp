@@ -6,7 +6,7 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"

@@ -1,7 +1,7 @@
 // Writing a take's cameras (and colour frames) as a COLMAP text model or a transforms.json.
 #include <cstdio>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
