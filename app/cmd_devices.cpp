@@ -44,12 +44,6 @@ static void AddDevicesCommand(CLI::App& app) {
   command->add_option("--timeout", *timeout_s, "Seconds to wait for the probe's frame")->capture_default_str();
   command->callback([probe, timeout_s] {
     if (!probe->empty()) return Probe(*probe, *timeout_s);
-    std::cout << "drivers compiled in:";
-    for (Driver* driver : DriverRegistry::Global().drivers()) std::cout << " " << driver->scheme();
-    std::cout << "\n";
-    for (const BuiltDriver& built : kHardwareDrivers) {
-      if (!built.compiled) std::cout << built.scheme << ": not compiled in (" << built.why_not << ")\n";
-    }
     for (Driver* driver : DriverRegistry::Global().drivers()) {
       std::cout << driver->scheme() << ":  " << driver->description() << "\n";
       std::vector<DeviceInfo> devices;
@@ -64,6 +58,10 @@ static void AddDevicesCommand(CLI::App& app) {
         std::cout << "    " << device.uri << "  [" << ToString(device.role) << "]  "
                   << device.description << "\n";
       }
+    }
+    // A driver line like the others, for each hardware driver this build left out.
+    for (const BuiltDriver& built : kHardwareDrivers) {
+      if (!built.compiled) std::cout << built.scheme << ":  not compiled in (" << built.why_not << ")\n";
     }
   });
 }

@@ -41,5 +41,7 @@ if [ "${#missing[@]}" -gt 0 ]; then
 fi
 
 build_dir=${HOLOCAP_BUILD_DIR:-build}
-cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release >/dev/null
+# Every hardware driver, its libraries installed above (named, so that a cached
+# -DHOLOCAP_DRIVERS= from an earlier configure does not leave them out).
+cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release "-DHOLOCAP_DRIVERS=aravis;v4l2;libcamera" >/dev/null
 cmake --build "$build_dir" -j "$(nproc)"
