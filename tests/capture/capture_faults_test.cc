@@ -160,11 +160,11 @@ class SmallDisk {
 };
 
 TEST(CaptureFaults, FullDiskStopsTheTakeCleanly) {
-  FakeGigeCameras cameras(2);
   TempDir dir;
   SmallDisk disk(dir / "disk", "320k");
   if (!disk.lacks_privilege().empty()) GTEST_SKIP() << disk.lacks_privilege();
   ASSERT_FALSE(::testing::Test::HasFailure());
+  FakeGigeCameras cameras(2);
   RigDescription rig;
   rig.name = "fake";
   rig.fps = 20;
