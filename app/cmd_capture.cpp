@@ -98,8 +98,9 @@ static void AddCaptureCommand(CLI::App& app) {
               << "sync spread max " << summary.sync_spread_us_max << " us, mean " << summary.sync_spread_us_mean
               << " us\n"
               << "written     " << summary.bytes_written / 1e6 << " MB in " << summary.seconds << " s ("
-              << summary.write_mb_s << " MB/s)\n";
-    if (!IsUsable(summary.termination)) Fail(summary.message);
+              << summary.write_mb_s << " MB/s)\n"
+              << ToString(summary.termination) << ": " << summary.message << std::endl;
+    if (ExitStatus(summary.termination) != 0) Fail("capture ended ", ToString(summary.termination), ": ", summary.message);
   });
 }
 

@@ -1,8 +1,10 @@
-// holocap devices: every sensor every compiled-in driver can open now.
+// holocap devices: every sensor every compiled-in driver can open now, and the hardware drivers
+// this build left out (-DHOLOCAP_DRIVERS).
 #include <iostream>
 #include <opencv2/core.hpp>
 
 #include "app/commands.h"
+#include "capture/drivers_built.h"
 #include "capture/hal.h"
 #include "core/error.h"
 
@@ -56,6 +58,10 @@ static void AddDevicesCommand(CLI::App& app) {
         std::cout << "    " << device.uri << "  [" << ToString(device.role) << "]  "
                   << device.description << "\n";
       }
+    }
+    // A driver line like the others, for each hardware driver this build left out.
+    for (const BuiltDriver& built : kHardwareDrivers) {
+      if (!built.compiled) std::cout << built.scheme << ":  not compiled in (" << built.why_not << ")\n";
     }
   });
 }

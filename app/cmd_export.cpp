@@ -3,7 +3,7 @@
 #include <memory>
 
 #include "app/commands.h"
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 
 namespace holocap {
@@ -40,6 +40,8 @@ static void AddExportCommand(CLI::App& app) {
     report.Write(std::filesystem::path(args->out) / "report.json");
     std::printf("%s: %s\n", ToString(summary.termination), summary.message.c_str());
     for (const auto& skipped : summary.skipped) std::printf("  skipped %s\n", skipped.c_str());
+    std::fflush(stdout);
+    if (ExitStatus(summary.termination) != 0) Fail("export ended ", ToString(summary.termination), ": ", summary.message);
   });
 }
 

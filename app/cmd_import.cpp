@@ -3,7 +3,7 @@
 #include <memory>
 
 #include "app/commands.h"
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 
 namespace holocap {
@@ -57,6 +57,8 @@ static void AddImportCommand(CLI::App& app) {
                   points["file_mean_reprojection_error_px"].get<double>(),
                   points["max_per_point_difference_px"].get<double>());
     }
+    std::fflush(stdout);
+    if (ExitStatus(summary.termination) != 0) Fail("import ended ", ToString(summary.termination), ": ", summary.message);
   });
 }
 

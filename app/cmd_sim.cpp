@@ -70,7 +70,7 @@ static void AddSimCommand(CLI::App& app) {
                 static_cast<long long>(summary.frames_written),
                 static_cast<long long>(summary.frames_dropped), summary.seconds,
                 summary.frame_sets_per_minute);
-    if (!IsUsable(summary.termination)) Fail("simulation failed: ", summary.message);
+    if (ExitStatus(summary.termination) != 0) Fail("simulation ended ", ToString(summary.termination), ": ", summary.message);
   });
 }
 

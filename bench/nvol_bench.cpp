@@ -12,7 +12,7 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/report.h"
 #include "neural/neural.h"
 #include "playback/playback.h"

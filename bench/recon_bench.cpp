@@ -15,7 +15,7 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 #include "core/mesh.h"
 #include "core/take.h"

@@ -21,7 +21,7 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/mesh.h"
 #include "core/report.h"
 #include "neural/rerender.h"

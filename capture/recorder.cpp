@@ -108,452 +108,561 @@ Recorder::Recorder(const RigDescription& rig, std::filesystem::path out, Recorde
 
 Recorder::~Recorder() = default;
 
-struct Recorder::Shared {
-  explicit Shared(size_t n)
-      : queued(n, 0), triggers(n), captured(n), dropped_queue(n), dropped_sets(n), unmatched(n), written(n),
-        sequence_gaps(n), after_end(n), warmup_frames(n), warmup_sequence(n), warmup_timestamp(n),
-        lost_before_first_trigger(n), ended(n) {}
+// One run of the recorder. Each thread's body is one method:
+//   CaptureLoop   one per sensor: grab, stamp, queue; never blocks on anything downstream
+//   TriggerLoop   one per sensor when software-triggered: fires on the shared clock ticks
+//   AssembleLoop  frame queue -> FrameSetAssembler -> set queue
+//   WriteLoop     writer_threads of them: set queue -> TakeWriter
+//   Supervise     the calling thread: decides when to stop and reports progress
+// What one sensor's threads count lives in its SensorState; the queues and the failure are
+// shared by all.
+class Recorder::Session {
+ public:
+  Session(Recorder& recorder, Report* report);
+  RecorderSummary Run(const std::function<void(const RecorderStatus&)>& on_status);
 
-  void Failure(const std::string& message) {
-    std::lock_guard lock(failure_mutex);
-    if (failure.empty()) failure = message;
-    failed = true;
-    stop_triggers = true;
-    stop_capture = true;
-  }
-  std::string failure_message() {
-    std::lock_guard lock(failure_mutex);
-    return failure;
-  }
+ private:
+  // Written by the sensor's capture and trigger threads, read by the others.
+  struct SensorState {
+    std::atomic<int64_t> triggers{0};          // software triggers sent after the warm-up
+    std::atomic<int64_t> captured{0};          // frames delivered after the warm-up
+    std::atomic<int64_t> dropped_queue{0};     // its frame queue was full
+    std::atomic<int64_t> dropped_sets{0};      // in a set dropped because the writers fell behind
+    std::atomic<int64_t> written{0};
+    std::atomic<int64_t> sequence_gaps{0};     // frames its sequence counter skipped
+    std::atomic<int64_t> after_end{0};         // free run with a frame limit: after the last set
+    std::atomic<int64_t> warmup_frames{0};     // answers to the warm-up triggers (discarded)
+    std::atomic<int64_t> warmup_timestamp{0};  // the last of them: ties the clocks together
+    std::atomic<int64_t> lost_before_first_trigger{0};  // the driver's lost count by then
+    std::atomic<bool> ended{false};            // a finite source has no more frames
+    int queued = 0;                            // its frames in the frame queue (frame_mutex_)
+  };
 
-  std::mutex frame_mutex;
-  std::condition_variable frame_cv;
-  std::deque<std::pair<int, Frame>> frames;
-  std::vector<int> queued;
-  bool capture_done = false;
+  void StartSensorsAndOpenTake();
+  Clock::time_point FirstTriggerTick() const;
+  void RecordFailure(const std::string& message);
+  std::string failure_message();
 
-  std::mutex set_mutex;
-  std::condition_variable set_cv;
-  std::deque<FrameSet> sets;
-  bool sync_done = false;
+  void CaptureLoop(size_t s);
+  void TriggerLoop(size_t s);
+  void AssembleLoop();
+  void EnqueueSet(FrameSet set);
+  void WriteLoop();
+  void Supervise(const std::function<void(const RecorderStatus&)>& on_status);
+  bool AllTriggersAnswered() const;
+  void SendStatus(const std::function<void(const RecorderStatus&)>& on_status, double elapsed, double dt);
+  void StopAndJoin();
 
-  std::atomic<bool> stop_triggers{false};
-  std::atomic<bool> stop_capture{false};
-  std::atomic<bool> failed{false};
-  std::mutex failure_mutex;
-  std::string failure;
+  int64_t LostInDriver(size_t s, bool final) const;
+  void UpdateTakeDrops(bool final);
+  size_t IndexOf(const std::string& name) const;
+  RecorderSummary Summarize() const;
 
-  std::vector<std::atomic<int64_t>> triggers, captured, dropped_queue, dropped_sets, unmatched, written,
-      sequence_gaps, after_end, warmup_frames, warmup_sequence, warmup_timestamp, lost_before_first_trigger;
-  std::vector<std::atomic<bool>> ended;
-  std::atomic<int64_t> sets_complete{0}, sets_incomplete{0}, sets_dropped{0};
-  std::atomic<int64_t> spread_last_ns{0}, spread_max_ns{0};
+  Recorder& recorder_;
+  const RecorderOptions& options_;
+  const std::vector<std::unique_ptr<Sensor>>& sensors_;
+  const std::vector<StreamInfo>& streams_;
+  Report* report_;
+  const size_t n_;
+  const bool software_;
+  const double period_s_;
+  const int64_t trigger_count_;  // software triggers to send (frames, or seconds x fps)
+  const bool free_run_limit_;    // not software-triggered, stopping after options_.frames sets
+  std::vector<std::string> names_;
+  FrameSetAssembler assembler_;  // used by the assembler thread only, read after it ends
+  std::vector<SensorState> state_;
+
+  Clock::time_point start_;
+  Clock::time_point first_tick_;
+  std::unique_ptr<TakeWriter> writer_;
+  std::vector<std::thread> capture_threads_, trigger_threads_, writer_threads_;
+  std::thread assemble_thread_;
+  std::string trigger_scheduling_;
+  std::vector<int64_t> counted_drops_;  // per sensor, already passed to TakeWriter::CountDropped
+  std::vector<int64_t> last_captured_;  // per sensor, at the previous status
+
+  std::mutex frame_mutex_;
+  std::condition_variable frame_cv_;
+  std::deque<std::pair<int, Frame>> frames_;
+  bool capture_done_ = false;
+
+  std::mutex set_mutex_;
+  std::condition_variable set_cv_;
+  std::deque<FrameSet> sets_;
+  bool assemble_done_ = false;
+
+  std::atomic<bool> stop_triggers_{false};
+  std::atomic<bool> stop_capture_{false};
+  std::atomic<bool> failed_{false};
+  std::mutex failure_mutex_;
+  std::string failure_;
+
+  std::atomic<int64_t> sets_complete_{0}, sets_dropped_{0};
+  std::atomic<int64_t> spread_last_ns_{0}, spread_max_ns_{0};
 };
 
-RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& on_status, Report* report) {
-  const size_t n = sensors_.size();
-  const bool software = rig_.sync == SyncMode::kSoftwareTrigger;
-  const double period_s = 1.0 / rig_.fps;
-  Shared shared(n);
-  RecorderSummary summary;
+namespace {
 
-  const auto start = Clock::now();
+std::vector<std::string> StreamNames(const std::vector<StreamInfo>& streams) {
+  std::vector<std::string> names;
+  for (const auto& stream : streams) names.push_back(stream.name);
+  return names;
+}
+
+std::vector<std::string> StreamClocks(const std::vector<StreamInfo>& streams) {
+  std::vector<std::string> clocks;
+  for (const auto& stream : streams) clocks.push_back(stream.clock);
+  return clocks;
+}
+
+SyncOptions AssemblerOptions(const RigDescription& rig, const RecorderOptions& options) {
+  SyncOptions sync_options;
+  sync_options.mode = rig.sync;
+  sync_options.fps = rig.fps;
+  sync_options.tolerance_ns = options.sync_tolerance_ns;
+  return sync_options;
+}
+
+}  // namespace
+
+Recorder::Session::Session(Recorder& recorder, Report* report)
+    : recorder_(recorder),
+      options_(recorder.options_),
+      sensors_(recorder.sensors_),
+      streams_(recorder.streams_),
+      report_(report),
+      n_(recorder.sensors_.size()),
+      software_(recorder.rig_.sync == SyncMode::kSoftwareTrigger),
+      period_s_(1.0 / recorder.rig_.fps),
+      trigger_count_(options_.frames > 0 ? options_.frames
+                                         : static_cast<int64_t>(std::llround(options_.seconds * recorder.rig_.fps))),
+      free_run_limit_(!software_ && options_.frames > 0),
+      names_(StreamNames(streams_)),
+      assembler_(names_, StreamClocks(streams_), AssemblerOptions(recorder.rig_, options_)),
+      state_(n_),
+      trigger_scheduling_(software_ ? "normal" : "none (not software-triggered)"),
+      counted_drops_(n_, 0),
+      last_captured_(n_, 0) {}
+
+void Recorder::Session::RecordFailure(const std::string& message) {
+  std::lock_guard lock(failure_mutex_);
+  if (failure_.empty()) failure_ = message;
+  failed_ = true;
+  stop_triggers_ = true;
+  stop_capture_ = true;
+}
+
+std::string Recorder::Session::failure_message() {
+  std::lock_guard lock(failure_mutex_);
+  return failure_;
+}
+
+size_t Recorder::Session::IndexOf(const std::string& name) const {
+  return static_cast<size_t>(std::distance(names_.begin(), std::find(names_.begin(), names_.end(), name)));
+}
+
+void Recorder::Session::StartSensorsAndOpenTake() {
+  start_ = Clock::now();
   size_t started = 0;
   try {
-    for (; started < n; ++started) sensors_[started]->Start();
+    for (; started < n_; ++started) sensors_[started]->Start();
   } catch (const Error&) {
     for (size_t i = 0; i < started; ++i) sensors_[i]->Stop();
     throw;
   }
-  std::unique_ptr<TakeWriter> writer;
+  const RigDescription& rig = recorder_.rig_;
   try {
     nlohmann::json metadata = {{"capture",
-                                {{"sync", ToString(rig_.sync)},
-                                 {"fps", rig_.fps},
+                                {{"sync", ToString(rig.sync)},
+                                 {"fps", rig.fps},
                                  {"frames", options_.frames},
                                  {"seconds", options_.seconds},
                                  {"sync_tolerance_ns", options_.sync_tolerance_ns}}}};
-    writer = std::make_unique<TakeWriter>(out_, rig_, streams_, metadata, options_.take);
+    writer_ = std::make_unique<TakeWriter>(recorder_.out_, rig, streams_, metadata, options_.take);
   } catch (const Error&) {
     for (auto& sensor : sensors_) sensor->Stop();
     throw;
   }
+}
 
-  const int64_t trigger_count =
-      options_.frames > 0 ? options_.frames : static_cast<int64_t>(std::llround(options_.seconds * rig_.fps));
-  auto first_tick = start + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(options_.warmup_s));
-  if (options_.trigger_phase_s >= 0) {
-    // The first grid instant after the warm-up, carried over to the steady clock.
-    const int64_t period_ns = static_cast<int64_t>(std::llround(period_s * 1e9));
-    const int64_t phase_ns = static_cast<int64_t>(std::llround(options_.trigger_phase_s * 1e9)) % period_ns;
-    const int64_t realtime_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                                    std::chrono::system_clock::now().time_since_epoch()).count();
-    const int64_t steady_now_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now() - start).count();
-    const int64_t earliest = realtime_ns - steady_now_ns + static_cast<int64_t>(options_.warmup_s * 1e9);
-    int64_t grid = (earliest - phase_ns + period_ns - 1) / period_ns * period_ns + phase_ns;
-    first_tick = start + std::chrono::nanoseconds(grid - (realtime_ns - steady_now_ns));
-  }
-  // Capture threads: grab, stamp, queue; never block on anything downstream.
-  std::vector<std::thread> capture_threads;
-  for (size_t s = 0; s < n; ++s) {
-    capture_threads.emplace_back([&, s] {
-      Sensor& sensor = *sensors_[s];
-      auto last_frame = Clock::now();
-      uint64_t last_lost = 0;
-      bool have_sequence = false;
-      uint64_t last_sequence = 0;
-      while (!shared.stop_capture) {
-        Frame frame;
-        bool got = false;
-        try {
-          got = sensor.Grab(&frame, std::chrono::milliseconds(100));
-        } catch (const std::exception& e) {
-          shared.Failure(Cat("sensor '", streams_[s].name, "' was lost mid-take: ", e.what()));
-          break;
-        }
-        if (!got) {
-          if (sensor.ended()) {
-            shared.ended[s] = true;
-            break;
-          }
-          // Incomplete frames the driver throws away still show the camera is alive.
-          const uint64_t lost = sensor.stats().frames_lost;
-          const bool due = (!software || shared.triggers[s] > shared.captured[s]) && lost == last_lost;
-          last_lost = lost;
-          if (due && SecondsSince(last_frame) > options_.stall_s) {
-            shared.Failure(Cat("sensor '", streams_[s].name, "' (", streams_[s].uri, ") delivered no frame for ",
-                               options_.stall_s, " s; it was lost mid-take"));
-            break;
-          }
-          if (!due) last_frame = Clock::now();
-          continue;
-        }
-        last_frame = Clock::now();
-        if (software && last_frame < first_tick) {
-          ++shared.warmup_frames[s];
-          shared.warmup_sequence[s] = static_cast<int64_t>(frame.sequence);
-          shared.warmup_timestamp[s] = frame.timestamp_ns;
-          continue;
-        }
-        ++shared.captured[s];
-        if (have_sequence && frame.sequence > last_sequence + 1) {
-          shared.sequence_gaps[s] += static_cast<int64_t>(frame.sequence - last_sequence - 1);
-        }
-        have_sequence = true;
-        last_sequence = frame.sequence;
-        frame.sensor = streams_[s].name;
-        {
-          std::lock_guard lock(shared.frame_mutex);
-          if (shared.queued[s] >= options_.queue_frames) {
-            ++shared.dropped_queue[s];
-            continue;
-          }
-          ++shared.queued[s];
-          shared.frames.emplace_back(static_cast<int>(s), std::move(frame));
-        }
-        shared.frame_cv.notify_one();
-      }
-    });
-  }
+Clock::time_point Recorder::Session::FirstTriggerTick() const {
+  const auto after_warmup =
+      start_ + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(options_.warmup_s));
+  if (options_.trigger_phase_s < 0) return after_warmup;
+  // The first grid instant after the warm-up, carried over to the steady clock.
+  const int64_t period_ns = static_cast<int64_t>(std::llround(period_s_ * 1e9));
+  const int64_t phase_ns = static_cast<int64_t>(std::llround(options_.trigger_phase_s * 1e9)) % period_ns;
+  const int64_t realtime_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                  std::chrono::system_clock::now().time_since_epoch()).count();
+  const int64_t steady_now_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now() - start_).count();
+  const int64_t earliest = realtime_ns - steady_now_ns + static_cast<int64_t>(options_.warmup_s * 1e9);
+  const int64_t grid = (earliest - phase_ns + period_ns - 1) / period_ns * period_ns + phase_ns;
+  return start_ + std::chrono::nanoseconds(grid - (realtime_ns - steady_now_ns));
+}
 
-  // Software trigger: one thread per sensor, all firing on the same ticks, so that a slow or
-  // dead camera delays only itself. A trigger sent late exposes its camera late, so the
-  // threads ask for real-time scheduling: other work on the host cannot hold them back.
-  std::vector<std::thread> trigger_threads;
-  std::string trigger_scheduling = software ? "normal" : "none (not software-triggered)";
-  if (software) {
-    for (size_t s = 0; s < n; ++s) {
-      trigger_threads.emplace_back([&, s] {
-        if (options_.trigger_priority > 0) {
-          sched_param param{};
-          param.sched_priority = options_.trigger_priority;
-          const int refused = pthread_setschedparam(pthread_self(), SCHED_FIFO, &param);
-          if (s == 0) {  // read after the threads are joined
-            trigger_scheduling = refused == 0 ? Cat("SCHED_FIFO ", options_.trigger_priority)
-                                              : Cat("normal (SCHED_FIFO refused: ", std::strerror(refused), ")");
-          }
-        }
-        // Two triggers during the warm-up, their frames discarded: the first wakes up cameras
-        // that start streaming late, the second is one instant every camera stamps, which
-        // ties their clocks together (FrameSetAssembler::SeedClocks).
-        for (double at : {0.0, 0.5}) {
-          std::this_thread::sleep_until(start + std::chrono::duration_cast<Clock::duration>(
-                                                    std::chrono::duration<double>(at * options_.warmup_s)));
-          try {
-            sensors_[s]->Trigger();
-          } catch (const std::exception& e) {
-            shared.Failure(Cat("sensor '", streams_[s].name, "' did not take a software trigger: ", e.what()));
-            return;
-          }
-        }
-        // Incomplete frames of the warm-up triggers are no frames of the take.
-        shared.lost_before_first_trigger[s] = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
-        for (int64_t k = 0; k < trigger_count && !shared.stop_triggers; ++k) {
-          const auto tick = first_tick + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(k * period_s));
-          while (Clock::now() < tick && !shared.stop_triggers) {
-            std::this_thread::sleep_for(std::min<Clock::duration>(tick - Clock::now(), std::chrono::milliseconds(20)));
-          }
-          if (shared.stop_triggers) break;
-          try {
-            sensors_[s]->Trigger();
-          } catch (const std::exception& e) {
-            shared.Failure(Cat("sensor '", streams_[s].name, "' was lost mid-take: ", e.what()));
-            break;
-          }
-          ++shared.triggers[s];
-        }
-      });
+void Recorder::Session::CaptureLoop(size_t s) {
+  Sensor& sensor = *sensors_[s];
+  SensorState& state = state_[s];
+  auto last_frame = Clock::now();
+  uint64_t last_lost = 0;
+  bool have_sequence = false;
+  uint64_t last_sequence = 0;
+  while (!stop_capture_) {
+    Frame frame;
+    bool got = false;
+    try {
+      got = sensor.Grab(&frame, std::chrono::milliseconds(100));
+    } catch (const std::exception& e) {
+      RecordFailure(Cat("sensor '", streams_[s].name, "' was lost mid-take: ", e.what()));
+      break;
     }
-  }
-
-  // Sync thread: frame queue -> frame sets -> set queue.
-  SyncOptions sync_options;
-  sync_options.mode = rig_.sync;
-  sync_options.fps = rig_.fps;
-  sync_options.tolerance_ns = options_.sync_tolerance_ns;
-  std::vector<std::string> names, clocks;
-  for (const auto& stream : streams_) {
-    names.push_back(stream.name);
-    clocks.push_back(stream.clock);
-  }
-  FrameSetAssembler assembler(names, clocks, sync_options);
-  auto index_of = [&](const std::string& name) {
-    return static_cast<size_t>(std::distance(names.begin(), std::find(names.begin(), names.end(), name)));
-  };
-  const bool free_run_limit = !software && options_.frames > 0;
-  auto enqueue_set = [&](FrameSet set) {
-    if (free_run_limit && shared.sets_complete >= options_.frames) {
-      for (const auto& frame : set.frames) ++shared.after_end[index_of(frame.sensor)];
-      return;
+    if (!got) {
+      if (sensor.ended()) {
+        state.ended = true;
+        break;
+      }
+      // Incomplete frames the driver throws away still show the camera is alive.
+      const uint64_t lost = sensor.stats().frames_lost;
+      const bool due = (!software_ || state.triggers > state.captured) && lost == last_lost;
+      last_lost = lost;
+      if (due && SecondsSince(last_frame) > options_.stall_s) {
+        RecordFailure(Cat("sensor '", streams_[s].name, "' (", streams_[s].uri, ") delivered no frame for ",
+                          options_.stall_s, " s; it was lost mid-take"));
+        break;
+      }
+      if (!due) last_frame = Clock::now();
+      continue;
     }
-    const int64_t spread = set.SpreadNs();
-    if (report != nullptr) report->AddPoint("sync_spread_us", static_cast<double>(spread) / 1e3, set.index);
-    shared.spread_last_ns = spread;
-    shared.spread_max_ns = std::max<int64_t>(shared.spread_max_ns, spread);
-    ++shared.sets_complete;
-    if (free_run_limit && shared.sets_complete >= options_.frames) shared.stop_capture = true;
-    std::unique_lock lock(shared.set_mutex);
-    if (shared.failed || static_cast<int>(shared.sets.size()) >= options_.queue_sets) {
-      lock.unlock();
-      ++shared.sets_dropped;
-      for (size_t s = 0; s < n; ++s) {
-        if (set.Find(names[s]) != nullptr) ++shared.dropped_sets[s];
-      }
-      return;
+    last_frame = Clock::now();
+    if (software_ && last_frame < first_tick_) {
+      ++state.warmup_frames;
+      state.warmup_timestamp = frame.timestamp_ns;
+      continue;
     }
-    shared.sets.push_back(std::move(set));
-    lock.unlock();
-    shared.set_cv.notify_one();
-  };
-  std::thread sync_thread([&] {
-    bool seeded = false;
-    while (true) {
-      std::deque<std::pair<int, Frame>> batch;
-      {
-        std::unique_lock lock(shared.frame_mutex);
-        shared.frame_cv.wait_for(lock, std::chrono::milliseconds(50),
-                                 [&] { return !shared.frames.empty() || shared.capture_done; });
-        batch.swap(shared.frames);
-        std::fill(shared.queued.begin(), shared.queued.end(), 0);
-        if (batch.empty() && shared.capture_done) break;
-      }
-      if (!batch.empty() && !seeded) {
-        // Every camera stamped the warm-up trigger: the one event that ties their clocks.
-        seeded = true;
-        std::vector<std::optional<int64_t>> events(n);
-        for (size_t s = 0; s < n; ++s) {
-          if (shared.warmup_frames[s] > 0) events[s] = shared.warmup_timestamp[s].load();
-        }
-        assembler.SeedClocks(events);
-      }
-      for (auto& [s, frame] : batch) {
-        if (free_run_limit && shared.sets_complete >= options_.frames) {
-          ++shared.after_end[s];
-          continue;
-        }
-        assembler.Add(s, std::move(frame));
-      }
-      for (auto& set : assembler.Pop()) enqueue_set(std::move(set));
+    ++state.captured;
+    if (have_sequence && frame.sequence > last_sequence + 1) {
+      state.sequence_gaps += static_cast<int64_t>(frame.sequence - last_sequence - 1);
     }
-    for (auto& set : assembler.Flush()) enqueue_set(std::move(set));
+    have_sequence = true;
+    last_sequence = frame.sequence;
+    frame.sensor = streams_[s].name;
     {
-      std::lock_guard lock(shared.set_mutex);
-      shared.sync_done = true;
-    }
-    shared.set_cv.notify_all();
-  });
-
-  std::vector<std::thread> writer_threads;
-  for (int w = 0; w < options_.writer_threads; ++w) {
-    writer_threads.emplace_back([&] {
-      while (true) {
-        FrameSet set;
-        {
-          std::unique_lock lock(shared.set_mutex);
-          shared.set_cv.wait(lock, [&] { return !shared.sets.empty() || shared.sync_done; });
-          if (shared.sets.empty()) break;
-          set = std::move(shared.sets.front());
-          shared.sets.pop_front();
-        }
-        if (!shared.failed) {
-          try {
-            writer->Append(set);
-            for (const auto& frame : set.frames) {
-              ++shared.written[index_of(frame.sensor)];
-            }
-            continue;
-          } catch (const std::exception& e) {
-            shared.Failure(Cat("writing frame set ", set.index, " failed: ", e.what(), "; the take keeps every",
-                               " frame set written before"));
-          }
-        }
-        ++shared.sets_dropped;
-        for (const auto& frame : set.frames) {
-          ++shared.dropped_sets[index_of(frame.sensor)];
-        }
+      std::lock_guard lock(frame_mutex_);
+      if (state.queued >= options_.queue_frames) {
+        ++state.dropped_queue;
+        continue;
       }
-    });
+      ++state.queued;
+      frames_.emplace_back(static_cast<int>(s), std::move(frame));
+    }
+    frame_cv_.notify_one();
   }
+}
 
-  // Lost inside the driver. Software trigger: every trigger not answered by a frame. Free run
-  // and hardware trigger: the driver's count or the gaps in the frame counter.
-  auto lost_in_driver = [&](size_t s, bool final) -> int64_t {
-    const int64_t reported = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
-    if (software) {
-      // Every trigger the take sent and no complete frame answered; while frames may still be
-      // on their way, only those the driver already saw incomplete.
-      const int64_t unanswered = std::max<int64_t>(0, shared.triggers[s] - shared.captured[s]);
-      return final ? unanswered : std::min(unanswered, reported - shared.lost_before_first_trigger[s]);
+// One thread per sensor, all firing on the same ticks, so that a slow or dead camera delays
+// only itself. A trigger sent late exposes its camera late, so the threads ask for real-time
+// scheduling: other work on the host cannot hold them back.
+void Recorder::Session::TriggerLoop(size_t s) {
+  if (options_.trigger_priority > 0) {
+    sched_param param{};
+    param.sched_priority = options_.trigger_priority;
+    const int refused = pthread_setschedparam(pthread_self(), SCHED_FIFO, &param);
+    if (s == 0) {  // read after the threads are joined
+      trigger_scheduling_ = refused == 0 ? Cat("SCHED_FIFO ", options_.trigger_priority)
+                                         : Cat("normal (SCHED_FIFO refused: ", std::strerror(refused), ")");
     }
-    return std::max<int64_t>(reported, shared.sequence_gaps[s]);
-  };
-  std::vector<int64_t> counted_drops(n, 0);
-  auto update_take_drops = [&](bool final) {
-    for (size_t s = 0; s < n; ++s) {
-      const int64_t now = lost_in_driver(s, final) + shared.dropped_queue[s] + shared.dropped_sets[s] +
-                          (final ? static_cast<int64_t>(assembler.stats().unmatched_per_sensor[s]) : 0);
-      if (now > counted_drops[s]) writer->CountDropped(streams_[s].name, now - counted_drops[s]);
-      counted_drops[s] = std::max(counted_drops[s], now);
+  }
+  // Two triggers during the warm-up, their frames discarded: the first wakes up cameras that
+  // start streaming late, the second is one instant every camera stamps, which ties their
+  // clocks together (FrameSetAssembler::SeedClocks).
+  for (double at : {0.0, 0.5}) {
+    std::this_thread::sleep_until(
+        start_ + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(at * options_.warmup_s)));
+    try {
+      sensors_[s]->Trigger();
+    } catch (const std::exception& e) {
+      RecordFailure(Cat("sensor '", streams_[s].name, "' did not take a software trigger: ", e.what()));
+      return;
     }
-  };
+  }
+  // Incomplete frames of the warm-up triggers are no frames of the take.
+  state_[s].lost_before_first_trigger = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
+  for (int64_t k = 0; k < trigger_count_ && !stop_triggers_; ++k) {
+    const auto tick =
+        first_tick_ + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(k * period_s_));
+    while (Clock::now() < tick && !stop_triggers_) {
+      std::this_thread::sleep_for(std::min<Clock::duration>(tick - Clock::now(), std::chrono::milliseconds(20)));
+    }
+    if (stop_triggers_) break;
+    try {
+      sensors_[s]->Trigger();
+    } catch (const std::exception& e) {
+      RecordFailure(Cat("sensor '", streams_[s].name, "' was lost mid-take: ", e.what()));
+      break;
+    }
+    ++state_[s].triggers;
+  }
+}
 
-  // The calling thread decides when to stop and reports progress.
-  std::vector<int64_t> last_captured(n, 0);
+void Recorder::Session::AssembleLoop() {
+  bool seeded = false;
+  while (true) {
+    std::deque<std::pair<int, Frame>> batch;
+    {
+      std::unique_lock lock(frame_mutex_);
+      frame_cv_.wait_for(lock, std::chrono::milliseconds(50), [&] { return !frames_.empty() || capture_done_; });
+      batch.swap(frames_);
+      for (auto& state : state_) state.queued = 0;
+      if (batch.empty() && capture_done_) break;
+    }
+    if (!batch.empty() && !seeded) {
+      // Every camera stamped the warm-up trigger: the one event that ties their clocks.
+      seeded = true;
+      std::vector<std::optional<int64_t>> events(n_);
+      for (size_t s = 0; s < n_; ++s) {
+        if (state_[s].warmup_frames > 0) events[s] = state_[s].warmup_timestamp.load();
+      }
+      assembler_.SeedClocks(events);
+    }
+    for (auto& [s, frame] : batch) {
+      if (free_run_limit_ && sets_complete_ >= options_.frames) {
+        ++state_[s].after_end;
+        continue;
+      }
+      assembler_.Add(s, std::move(frame));
+    }
+    for (auto& set : assembler_.Pop()) EnqueueSet(std::move(set));
+  }
+  for (auto& set : assembler_.Flush()) EnqueueSet(std::move(set));
+  {
+    std::lock_guard lock(set_mutex_);
+    assemble_done_ = true;
+  }
+  set_cv_.notify_all();
+}
+
+void Recorder::Session::EnqueueSet(FrameSet set) {
+  if (free_run_limit_ && sets_complete_ >= options_.frames) {
+    for (const auto& frame : set.frames) ++state_[IndexOf(frame.sensor)].after_end;
+    return;
+  }
+  const int64_t spread = set.SpreadNs();
+  if (report_ != nullptr) report_->AddPoint("sync_spread_us", static_cast<double>(spread) / 1e3, set.index);
+  spread_last_ns_ = spread;
+  spread_max_ns_ = std::max<int64_t>(spread_max_ns_, spread);
+  ++sets_complete_;
+  if (free_run_limit_ && sets_complete_ >= options_.frames) stop_capture_ = true;
+  std::unique_lock lock(set_mutex_);
+  if (failed_ || static_cast<int>(sets_.size()) >= options_.queue_sets) {
+    lock.unlock();
+    ++sets_dropped_;
+    for (size_t s = 0; s < n_; ++s) {
+      if (set.Find(names_[s]) != nullptr) ++state_[s].dropped_sets;
+    }
+    return;
+  }
+  sets_.push_back(std::move(set));
+  lock.unlock();
+  set_cv_.notify_one();
+}
+
+void Recorder::Session::WriteLoop() {
+  while (true) {
+    FrameSet set;
+    {
+      std::unique_lock lock(set_mutex_);
+      set_cv_.wait(lock, [&] { return !sets_.empty() || assemble_done_; });
+      if (sets_.empty()) break;
+      set = std::move(sets_.front());
+      sets_.pop_front();
+    }
+    if (!failed_) {
+      try {
+        writer_->Append(set);
+        for (const auto& frame : set.frames) ++state_[IndexOf(frame.sensor)].written;
+        continue;
+      } catch (const std::exception& e) {
+        RecordFailure(Cat("writing frame set ", set.index, " failed: ", e.what(), "; the take keeps every",
+                          " frame set written before"));
+      }
+    }
+    ++sets_dropped_;
+    for (const auto& frame : set.frames) ++state_[IndexOf(frame.sensor)].dropped_sets;
+  }
+}
+
+// Lost inside the driver. Software trigger: every trigger not answered by a frame. Free run and
+// hardware trigger: the driver's count or the gaps in the frame counter.
+int64_t Recorder::Session::LostInDriver(size_t s, bool final) const {
+  const SensorState& state = state_[s];
+  const int64_t reported = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
+  if (software_) {
+    // Every trigger the take sent and no complete frame answered; while frames may still be
+    // on their way, only those the driver already saw incomplete.
+    const int64_t unanswered = std::max<int64_t>(0, state.triggers - state.captured);
+    return final ? unanswered : std::min(unanswered, reported - state.lost_before_first_trigger);
+  }
+  return std::max<int64_t>(reported, state.sequence_gaps);
+}
+
+void Recorder::Session::UpdateTakeDrops(bool final) {
+  for (size_t s = 0; s < n_; ++s) {
+    const int64_t now = LostInDriver(s, final) + state_[s].dropped_queue + state_[s].dropped_sets +
+                        (final ? static_cast<int64_t>(assembler_.stats().unmatched_per_sensor[s]) : 0);
+    if (now > counted_drops_[s]) writer_->CountDropped(streams_[s].name, now - counted_drops_[s]);
+    counted_drops_[s] = std::max(counted_drops_[s], now);
+  }
+}
+
+// Software trigger: every trigger sent is answered by a frame or by a frame the driver lost.
+bool Recorder::Session::AllTriggersAnswered() const {
+  for (size_t s = 0; s < n_; ++s) {
+    const int64_t lost = static_cast<int64_t>(sensors_[s]->stats().frames_lost) - state_[s].lost_before_first_trigger;
+    if (state_[s].captured + lost < trigger_count_) return false;
+  }
+  return true;
+}
+
+void Recorder::Session::Supervise(const std::function<void(const RecorderStatus&)>& on_status) {
   auto last_status = Clock::now();
   bool triggers_done_at_set = false;
   Clock::time_point triggers_done;
-  while (!shared.stop_capture) {
+  while (!stop_capture_) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    const double elapsed = SecondsSince(start);
-    if (stop_requested_) {
-      shared.stop_triggers = true;
-      shared.stop_capture = true;
+    const double elapsed = SecondsSince(start_);
+    if (recorder_.stop_requested_) {
+      stop_triggers_ = true;
+      stop_capture_ = true;
     }
-    if (std::all_of(shared.ended.begin(), shared.ended.end(), [](const auto& e) { return e.load(); })) {
-      shared.stop_capture = true;
+    if (std::all_of(state_.begin(), state_.end(), [](const SensorState& state) { return state.ended.load(); })) {
+      stop_capture_ = true;
     }
-    if (software) {
+    if (software_) {
       bool all_sent = true;
-      for (size_t s = 0; s < n; ++s) all_sent &= shared.triggers[s] >= trigger_count;
+      for (const SensorState& state : state_) all_sent &= state.triggers >= trigger_count_;
       if (all_sent && !triggers_done_at_set) {
         triggers_done_at_set = true;
         triggers_done = Clock::now();
       }
-      if (triggers_done_at_set) {
-        bool all_answered = true;
-        for (size_t s = 0; s < n; ++s) {
-          all_answered &= shared.captured[s] + static_cast<int64_t>(sensors_[s]->stats().frames_lost) -
-                              shared.lost_before_first_trigger[s] >=
-                          trigger_count;
-        }
-        if (all_answered || SecondsSince(triggers_done) > options_.drain_s) shared.stop_capture = true;
+      if (triggers_done_at_set && (AllTriggersAnswered() || SecondsSince(triggers_done) > options_.drain_s)) {
+        stop_capture_ = true;
       }
     } else if (options_.seconds > 0 && elapsed >= options_.seconds + options_.warmup_s) {
-      shared.stop_capture = true;
+      stop_capture_ = true;
     }
     if (Clock::now() - last_status >= std::chrono::milliseconds(500)) {
       const double dt = SecondsSince(last_status);
       last_status = Clock::now();
-      update_take_drops(false);
-      if (on_status) {
-        RecorderStatus status;
-        status.elapsed_s = elapsed;
-        status.frame_sets = writer->sets_written();
-        status.write_mb_s = elapsed > 0 ? static_cast<double>(writer->bytes_written()) / 1e6 / elapsed : 0;
-        status.spread_us_last = static_cast<double>(shared.spread_last_ns) / 1e3;
-        status.spread_us_max = static_cast<double>(shared.spread_max_ns) / 1e3;
-        for (size_t s = 0; s < n; ++s) {
-          const int64_t captured = shared.captured[s];
-          status.sensors.push_back({streams_[s].name, static_cast<double>(captured - last_captured[s]) / dt,
-                                    counted_drops[s]});
-          last_captured[s] = captured;
-        }
-        on_status(status);
-      }
+      UpdateTakeDrops(false);
+      if (on_status) SendStatus(on_status, elapsed, dt);
     }
   }
-  shared.stop_triggers = true;
-  for (auto& thread : trigger_threads) thread.join();
-  for (auto& thread : capture_threads) thread.join();
-  {
-    std::lock_guard lock(shared.frame_mutex);
-    shared.capture_done = true;
+}
+
+void Recorder::Session::SendStatus(const std::function<void(const RecorderStatus&)>& on_status, double elapsed,
+                                   double dt) {
+  RecorderStatus status;
+  status.elapsed_s = elapsed;
+  status.frame_sets = writer_->sets_written();
+  status.write_mb_s = elapsed > 0 ? static_cast<double>(writer_->bytes_written()) / 1e6 / elapsed : 0;
+  status.spread_us_last = static_cast<double>(spread_last_ns_) / 1e3;
+  status.spread_us_max = static_cast<double>(spread_max_ns_) / 1e3;
+  for (size_t s = 0; s < n_; ++s) {
+    const int64_t captured = state_[s].captured;
+    status.sensors.push_back(
+        {streams_[s].name, static_cast<double>(captured - last_captured_[s]) / dt, counted_drops_[s]});
+    last_captured_[s] = captured;
   }
-  shared.frame_cv.notify_all();
-  sync_thread.join();
-  for (auto& thread : writer_threads) thread.join();
+  on_status(status);
+}
+
+void Recorder::Session::StopAndJoin() {
+  stop_triggers_ = true;
+  for (auto& thread : trigger_threads_) thread.join();
+  for (auto& thread : capture_threads_) thread.join();
+  {
+    std::lock_guard lock(frame_mutex_);
+    capture_done_ = true;
+  }
+  frame_cv_.notify_all();
+  assemble_thread_.join();
+  for (auto& thread : writer_threads_) thread.join();
   for (auto& sensor : sensors_) {
     try {
       sensor->Stop();
     } catch (const std::exception& e) {
-      if (!shared.failed) shared.Failure(Cat("stopping sensor: ", e.what()));
+      if (!failed_) RecordFailure(Cat("stopping sensor: ", e.what()));
     }
   }
-
-  update_take_drops(true);
+  UpdateTakeDrops(true);
   try {
-    writer->Close();
+    writer_->Close();
   } catch (const std::exception& e) {
-    if (!shared.failed) shared.Failure(Cat("closing the take: ", e.what()));
+    if (!failed_) RecordFailure(Cat("closing the take: ", e.what()));
   }
+}
 
-  const SyncStats& sync = assembler.stats();
-  summary.seconds = SecondsSince(start);
-  summary.frame_sets_complete = writer->sets_written();
+RecorderSummary Recorder::Session::Summarize() const {
+  RecorderSummary summary;
+  const SyncStats& sync = assembler_.stats();
+  summary.seconds = SecondsSince(start_);
+  summary.frame_sets_complete = writer_->sets_written();
   summary.frame_sets_incomplete = sync.sets_incomplete;
-  summary.frame_sets_dropped = shared.sets_dropped;
-  summary.sync_spread_us_max = static_cast<double>(shared.spread_max_ns) / 1e3;
+  summary.frame_sets_dropped = sets_dropped_;
+  summary.sync_spread_us_max = static_cast<double>(spread_max_ns_) / 1e3;
   summary.sync_spread_us_mean = sync.spread_mean_ns / 1e3;
-  summary.bytes_written = writer->bytes_written();
+  summary.bytes_written = writer_->bytes_written();
   summary.write_mb_s = summary.seconds > 0 ? static_cast<double>(summary.bytes_written) / 1e6 / summary.seconds : 0;
   summary.clock_offset_ns = sync.offset_ns;
-  summary.trigger_scheduling = trigger_scheduling;
-  for (size_t s = 0; s < n; ++s) {
+  summary.trigger_scheduling = trigger_scheduling_;
+  for (size_t s = 0; s < n_; ++s) {
+    const SensorState& state = state_[s];
     SensorRecord record;
     record.name = streams_[s].name;
     record.uri = streams_[s].uri;
-    record.triggers = shared.triggers[s];
-    record.frames_captured = shared.captured[s];
-    record.lost_in_driver = lost_in_driver(s, true);
-    record.dropped_queue = shared.dropped_queue[s];
-    record.dropped_sets = shared.dropped_sets[s];
+    record.triggers = state.triggers;
+    record.frames_captured = state.captured;
+    record.lost_in_driver = LostInDriver(s, true);
+    record.dropped_queue = state.dropped_queue;
+    record.dropped_sets = state.dropped_sets;
     record.unmatched = sync.unmatched_per_sensor[s];
-    record.written = shared.written[s];
+    record.written = state.written;
     record.driver = sensors_[s]->stats().details;
-    if (shared.after_end[s] > 0) record.driver["frames_after_end"] = shared.after_end[s].load();
-    if (shared.warmup_frames[s] > 0) record.driver["warmup_frames"] = shared.warmup_frames[s].load();
+    if (state.after_end > 0) record.driver["frames_after_end"] = state.after_end.load();
+    if (state.warmup_frames > 0) record.driver["warmup_frames"] = state.warmup_frames.load();
     summary.frames_dropped += record.dropped();
     summary.sensors.push_back(std::move(record));
   }
-  if (shared.failed) {
-    summary.termination = Termination::kFailure;
-    summary.message = shared.failure_message() + Cat(" (", summary.frame_sets_complete, " complete frame sets kept)");
+  return summary;
+}
+
+RecorderSummary Recorder::Session::Run(const std::function<void(const RecorderStatus&)>& on_status) {
+  StartSensorsAndOpenTake();
+  first_tick_ = FirstTriggerTick();
+  for (size_t s = 0; s < n_; ++s) capture_threads_.emplace_back([this, s] { CaptureLoop(s); });
+  if (software_) {
+    for (size_t s = 0; s < n_; ++s) trigger_threads_.emplace_back([this, s] { TriggerLoop(s); });
+  }
+  assemble_thread_ = std::thread([this] { AssembleLoop(); });
+  for (int w = 0; w < options_.writer_threads; ++w) writer_threads_.emplace_back([this] { WriteLoop(); });
+  Supervise(on_status);
+  StopAndJoin();
+
+  RecorderSummary summary = Summarize();
+  if (failed_) {
+    summary.End(Termination::kFailure,
+                failure_message() + Cat(" (", summary.frame_sets_complete, " complete frame sets kept)"));
   } else {
-    summary.termination = Termination::kSuccess;
-    summary.message = Cat(summary.frame_sets_complete, " complete frame sets, ", summary.frames_dropped,
-                          " frames dropped, sync spread max ", summary.sync_spread_us_max, " us");
+    summary.End(Termination::kSuccess, Cat(summary.frame_sets_complete, " complete frame sets, ",
+                                           summary.frames_dropped, " frames dropped, sync spread max ",
+                                           summary.sync_spread_us_max, " us"));
   }
   return summary;
+}
+
+RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& on_status, Report* report) {
+  Session session(*this, report);
+  return session.Run(on_status);
 }
 
 }  // namespace holocap

@@ -122,7 +122,7 @@ class Recorder {
   const std::vector<StreamInfo>& streams() const { return streams_; }
 
  private:
-  struct Shared;
+  class Session;  // one run: its threads and what they share (recorder.cpp)
   RigDescription rig_;
   std::filesystem::path out_;
   RecorderOptions options_;

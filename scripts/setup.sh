@@ -42,11 +42,16 @@ if [ "${#missing[@]}" -gt 0 ]; then
 fi
 
 build_dir=${HOLOCAP_BUILD_DIR:-build}
+# Every hardware driver, its libraries installed above (named, so that a cached
+# -DHOLOCAP_DRIVERS= from an earlier configure does not leave them out).
+drivers="-DHOLOCAP_DRIVERS=aravis;v4l2;libcamera"
 if [ "$want_tests" = 1 ]; then
-  cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release -DHOLOCAP_BUILD_TESTS=ON -DHOLOCAP_BUILD_BENCH=ON >/dev/null
+  cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release "$drivers" \
+    -DHOLOCAP_BUILD_TESTS=ON -DHOLOCAP_BUILD_BENCH=ON >/dev/null
   cmake --build "$build_dir" -j "$(nproc)"
 else
   # The demo needs the CLI alone: no test suites, no benchmarks (nor GoogleTest to find them).
-  cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release -DHOLOCAP_BUILD_TESTS=OFF -DHOLOCAP_BUILD_BENCH=OFF >/dev/null
+  cmake -S . -B "$build_dir" -G Ninja -DCMAKE_BUILD_TYPE=Release "$drivers" \
+    -DHOLOCAP_BUILD_TESTS=OFF -DHOLOCAP_BUILD_BENCH=OFF >/dev/null
   cmake --build "$build_dir" -j "$(nproc)" --target holocap
 fi

@@ -105,9 +105,9 @@ struct SimOptions {
   static BoardLayout DefaultSimBoard();  // tag36h11, 5 x 4 tags, 10 cm spacing
 };
 
-struct SimSummary {
-  Termination termination = Termination::kSuccess;
-  std::string message;
+// Ends SUCCESS when every frame set was written, FAILURE when writing stopped it (the take keeps
+// the sets written before).
+struct SimSummary : Summary {
   int64_t frame_sets = 0;      // frame sets written
   int64_t frames_written = 0;  // sensor frames written
   int64_t frames_dropped = 0;  // sensor frames dropped on purpose (drop_probability)

@@ -6,7 +6,7 @@
 #include <cstdint>
 #include <string>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/camera.h"
 #include "core/error.h"
 

@@ -6,8 +6,10 @@
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
 
+#include "capture/drivers_built.h"
 #include "capture/hal.h"
 #include "capture/replay/replay_driver.h"
+#include "core/error.h"
 #include "core/report.h"
 #include "core/take.h"
 #include "tests/support/test_support.h"
@@ -83,6 +85,20 @@ TEST_F(SimulatedTake, DevicesListsTheSimulatedRigsAndProbesASensor) {
   auto probe = RunCli("devices --probe 'replay:" + take().string() + "#cam0'");
   ASSERT_EQ(probe.exit_code, 0) << probe.output;
   EXPECT_NE(probe.output.find("160x120 bgr8"), std::string::npos) << probe.output;
+}
+
+TEST(DevicesCli, NamesEveryHardwareDriverCompiledInOrLeftOut) {
+  auto list = RunCli("devices");
+  ASSERT_EQ(list.exit_code, 0) << list.output;
+  for (const BuiltDriver& driver : kHardwareDrivers) {
+    // One line per driver, at the start of a line: its description, or why it is missing.
+    const std::string line = Cat("\n", driver.scheme, ":  ");
+    const size_t at = ("\n" + list.output).find(line);
+    ASSERT_NE(at, std::string::npos) << driver.scheme << "\n" << list.output;
+    const std::string left_out = Cat("not compiled in (", driver.why_not, ")\n");
+    EXPECT_EQ(list.output.compare(at + line.size() - 1, left_out.size(), left_out) == 0, !driver.compiled)
+        << driver.scheme << "\n" << list.output;
+  }
 }
 
 TEST_F(SimulatedTake, CorruptTakesGiveOneClearError) {

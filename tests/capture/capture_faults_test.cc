@@ -6,6 +6,8 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <cstring>
 #include <fstream>
 
 #include "capture/recorder.h"
@@ -40,16 +42,23 @@ TEST(CaptureCli, RecordsATakeThatInfoAndReplayRead) {
   ASSERT_EQ(result.exit_code, 0) << result.output;
   auto report = nlohmann::json::parse(ReadFileToString(take / "report.json"));
   const auto& metrics = report.at("metrics");
-  EXPECT_EQ(metrics.at("frame_sets_complete").get<int64_t>() + 0, Take::Open(take).size());
-  EXPECT_GE(metrics.at("frame_sets_complete").get<int64_t>(), 16);
-  EXPECT_GE(metrics.at("frames_dropped").get<int64_t>(), 0);
-  EXPECT_LT(metrics.at("sync_spread_us_max").get<double>(), 20000);
+  // How many of the 20 triggers every camera answers in time depends on the host's load; what
+  // the recorder guarantees is that each trigger is a frame of a complete set or counted lost.
+  const int64_t complete = metrics.at("frame_sets_complete").get<int64_t>();
+  EXPECT_EQ(complete + 0, Take::Open(take).size());
+  EXPECT_GT(complete, 0);
+  // SyncOptions::tolerance at 20 fps: 0.4 of the 50 ms period. A wider set is never emitted.
+  EXPECT_LE(metrics.at("sync_spread_us_max").get<double>(), 20000);
   EXPECT_GT(metrics.at("write_mb_s").get<double>(), 0);
   EXPECT_EQ(report.at("summary").at("termination"), ToString(Termination::kSuccess));
-  // Frames triggered and frames accounted for agree per sensor.
+  int64_t dropped = 0;
   for (const auto& [name, sensor] : metrics.at("sensors").items()) {
+    EXPECT_EQ(sensor.at("triggers").get<int64_t>(), 20) << name;
+    EXPECT_EQ(sensor.at("frames_written").get<int64_t>(), complete) << name;
     EXPECT_EQ(sensor.at("frames_written").get<int64_t>() + sensor.at("frames_dropped").get<int64_t>(), 20) << name;
+    dropped += sensor.at("frames_dropped").get<int64_t>();
   }
+  EXPECT_EQ(metrics.at("frames_dropped").get<int64_t>(), dropped);
   auto info = RunCli("info '" + take.string() + "' --verify");
   ASSERT_EQ(info.exit_code, 0) << info.output;
   EXPECT_NE(info.output.find("clock=CLOCK_REALTIME"), std::string::npos) << info.output;
@@ -101,8 +110,8 @@ TEST(CaptureFaults, KilledRecorderLeavesATakeWithEveryCompleteSet) {
   auto take = dir / "take";
   auto result = RunShell("HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() + "' capture --rig '" + rig.string() +
                          "' --out '" + take.string() + "' --seconds 60 > /dev/null 2>&1 & pid=$!; "
-                         "for i in $(seq 200); do [ $(cat '" + (take / "index.jsonl").string() +
-                         "' 2>/dev/null | wc -l) -ge 12 ] && break; sleep 0.05; done; kill -9 $pid; wait $pid; "
+                         "while kill -0 $pid 2>/dev/null && [ $(cat '" + (take / "index.jsonl").string() +
+                         "' 2>/dev/null | wc -l) -lt 12 ]; do sleep 0.05; done; kill -9 $pid; wait $pid; "
                          "echo exit=$?");
   EXPECT_NE(result.output.find("exit=137"), std::string::npos) << result.output;
   Take opened = Take::Open(take);
@@ -113,17 +122,18 @@ TEST(CaptureFaults, KilledRecorderLeavesATakeWithEveryCompleteSet) {
 }
 
 // A tmpfs of a few pages, mounted in a mount namespace of this process only (it vanishes with
-// the process even if the test dies).
+// the process even if the test dies). Needs CAP_SYS_ADMIN: without it, lacks_privilege() says
+// why and the test skips; any other failure to mount fails the test.
 class SmallDisk {
  public:
   SmallDisk(const std::filesystem::path& dir, const std::string& size) : dir_(dir) {
     if (unshare(CLONE_NEWNS) != 0 || mount(nullptr, "/", nullptr, MS_REC | MS_PRIVATE, nullptr) != 0) {
-      ADD_FAILURE() << "cannot make a private mount namespace: " << strerror(errno);
+      Refused("cannot make a private mount namespace");
       return;
     }
     std::filesystem::create_directories(dir_);
     if (mount("tmpfs", dir_.c_str(), "tmpfs", 0, ("size=" + size).c_str()) != 0) {
-      ADD_FAILURE() << "cannot mount a tmpfs: " << strerror(errno);
+      Refused("cannot mount a tmpfs");
       return;
     }
     mounted_ = true;
@@ -131,16 +141,30 @@ class SmallDisk {
   ~SmallDisk() {
     if (mounted_) umount2(dir_.c_str(), MNT_DETACH);
   }
+  // Empty when mounted or when the mount failed for another reason (then the test has failed).
+  const std::string& lacks_privilege() const { return lacks_privilege_; }
 
  private:
+  void Refused(const char* what) {
+    const int error = errno;
+    if (error == EPERM || error == EACCES) {
+      lacks_privilege_ = Cat(what, ": ", strerror(error), " (needs CAP_SYS_ADMIN, e.g. root)");
+    } else {
+      ADD_FAILURE() << what << ": " << strerror(error);
+    }
+  }
+
   std::filesystem::path dir_;
   bool mounted_ = false;
+  std::string lacks_privilege_;
 };
 
 TEST(CaptureFaults, FullDiskStopsTheTakeCleanly) {
-  FakeGigeCameras cameras(2);
   TempDir dir;
   SmallDisk disk(dir / "disk", "320k");
+  if (!disk.lacks_privilege().empty()) GTEST_SKIP() << disk.lacks_privilege();
+  ASSERT_FALSE(::testing::Test::HasFailure());
+  FakeGigeCameras cameras(2);
   RigDescription rig;
   rig.name = "fake";
   rig.fps = 20;
@@ -154,12 +178,12 @@ TEST(CaptureFaults, FullDiskStopsTheTakeCleanly) {
   DriverRegistry registry;
   RegisterAravisDriver(registry);
   RecorderOptions options;
-  options.seconds = 30;
+  options.seconds = 30;  // 600 triggers: far more sets than the disk holds
   Recorder recorder(rig, dir / "disk" / "take", options, registry);
-  const auto start = std::chrono::steady_clock::now();
   RecorderSummary summary = recorder.Run();
-  EXPECT_LT(std::chrono::steady_clock::now() - start, std::chrono::seconds(20));
   ASSERT_EQ(summary.termination, Termination::kFailure);
+  // The failed write stopped the triggers: the take did not run to its end.
+  for (const auto& sensor : summary.sensors) EXPECT_LT(sensor.triggers, 600) << sensor.name;
   EXPECT_NE(summary.message.find("No space left on device"), std::string::npos) << summary.message;
   EXPECT_NE(summary.message.find("complete frame sets kept"), std::string::npos) << summary.message;
   Take take = Take::Open(dir / "disk" / "take");

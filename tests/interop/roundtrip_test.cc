@@ -5,7 +5,7 @@
 #include <algorithm>
 #include <set>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 #include "core/take.h"
 #include "tests/support/test_support.h"

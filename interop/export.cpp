@@ -1,7 +1,7 @@
 // Writing a take's cameras (and colour frames) as a COLMAP text model or a transforms.json.
 #include <cstdio>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -140,9 +140,10 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, cons
   }
   summary.cameras = static_cast<int>(cameras.size());
   summary.images = static_cast<int64_t>(images.size());
-  summary.message = Cat("exported ", summary.cameras, " camera(s) and ", summary.images, " image(s) as ",
-                        ToString(options.format));
-  if (!summary.skipped.empty()) summary.message += Cat("; ", summary.skipped.size(), " stream(s) skipped");
+  std::string message = Cat("exported ", summary.cameras, " camera(s) and ", summary.images, " image(s) as ",
+                            ToString(options.format));
+  if (!summary.skipped.empty()) message += Cat("; ", summary.skipped.size(), " stream(s) skipped");
+  summary.End(Termination::kSuccess, std::move(message));
   if (report != nullptr) {
     report->plan() = {{"cameras", summary.cameras}, {"images", summary.images}, {"skipped", summary.skipped}};
     report->SetSummary(summary);

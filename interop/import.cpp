@@ -6,7 +6,7 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -593,12 +593,13 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir, const
   summary.frames = frames;
   summary.metrics = rig.metrics;
   summary.metrics["alpha_channels_dropped"] = alpha_dropped;
-  summary.message = Cat("imported ", summary.sensors, " camera(s), ", frames, " frame(s) in ", set_index,
-                        " frame set(s) from ", ToString(rig.format));
+  std::string message = Cat("imported ", summary.sensors, " camera(s), ", frames, " frame(s) in ", set_index,
+                            " frame set(s) from ", ToString(rig.format));
   if (alpha_dropped > 0) {
     rig.notes.push_back(Cat("alpha channel of ", alpha_dropped, " image(s) dropped (colour kept exactly)"));
   }
-  for (const auto& note : rig.notes) summary.message += "; " + note;
+  for (const auto& note : rig.notes) message += "; " + note;
+  summary.End(Termination::kSuccess, std::move(message));
   if (report != nullptr) {
     report->plan() = {{"sensors", summary.sensors}, {"frame_sets", summary.frame_sets}, {"frames", frames}};
     report->metrics() = summary.metrics;

@@ -8,7 +8,7 @@
 #include <Eigen/SVD>
 #include <cmath>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 
 namespace holocap {

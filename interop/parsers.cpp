@@ -9,7 +9,7 @@
 #include <set>
 #include <sstream>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "core/error.h"
 
 namespace holocap {

@@ -9,7 +9,7 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
-#include "capture/interop/interop.h"
+#include "interop/interop.h"
 #include "capture/replay/replay_driver.h"
 #include "core/error.h"
 #include "core/fs.h"
