@@ -4,6 +4,7 @@
 #include <iostream>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "calibration/calibration.h"
 #include "core/error.h"
 #include "core/fs.h"
@@ -90,9 +91,7 @@ void AddCalibrateCommand(CLI::App& app) {
     PrintSummary(summary);
     std::printf("report: %s\n", (std::filesystem::path(args->take) / "calib" / "report.json").c_str());
     // The state line is printed above; an unusable state ends in one error line and exit 1.
-    if (ExitStatus(summary.termination) != 0) {
-      Fail("calibration ", ToString(summary.termination), ": ", summary.message);
-    }
+    FailUnlessUsable(summary, "calibration");
   });
 }
 

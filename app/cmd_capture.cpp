@@ -7,6 +7,7 @@
 #include <sstream>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "capture/recorder.h"
 #include "core/error.h"
 #include "core/progress.h"
@@ -100,7 +101,7 @@ static void AddCaptureCommand(CLI::App& app) {
               << "written     " << summary.bytes_written / 1e6 << " MB in " << summary.seconds << " s ("
               << summary.write_mb_s << " MB/s)\n"
               << ToString(summary.termination) << ": " << summary.message << std::endl;
-    if (ExitStatus(summary.termination) != 0) Fail("capture ended ", ToString(summary.termination), ": ", summary.message);
+    FailUnlessUsable(summary, "capture");
   });
 }
 

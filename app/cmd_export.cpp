@@ -3,6 +3,7 @@
 #include <memory>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "interop/interop.h"
 #include "core/error.h"
 
@@ -41,7 +42,7 @@ static void AddExportCommand(CLI::App& app) {
     std::printf("%s: %s\n", ToString(summary.termination), summary.message.c_str());
     for (const auto& skipped : summary.skipped) std::printf("  skipped %s\n", skipped.c_str());
     std::fflush(stdout);
-    if (ExitStatus(summary.termination) != 0) Fail("export ended ", ToString(summary.termination), ": ", summary.message);
+    FailUnlessUsable(summary, "export");
   });
 }
 

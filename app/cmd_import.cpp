@@ -3,6 +3,7 @@
 #include <memory>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "interop/interop.h"
 #include "core/error.h"
 
@@ -58,7 +59,7 @@ static void AddImportCommand(CLI::App& app) {
                   points["max_per_point_difference_px"].get<double>());
     }
     std::fflush(stdout);
-    if (ExitStatus(summary.termination) != 0) Fail("import ended ", ToString(summary.termination), ": ", summary.message);
+    FailUnlessUsable(summary, "import");
   });
 }
 

@@ -3,6 +3,7 @@
 #include <iostream>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "core/error.h"
 #include "sim/sim.h"
 
@@ -70,7 +71,7 @@ static void AddSimCommand(CLI::App& app) {
                 static_cast<long long>(summary.frames_written),
                 static_cast<long long>(summary.frames_dropped), summary.seconds,
                 summary.frame_sets_per_minute);
-    if (ExitStatus(summary.termination) != 0) Fail("simulation ended ", ToString(summary.termination), ": ", summary.message);
+    FailUnlessUsable(summary, "simulation");
   });
 }
 

@@ -98,6 +98,10 @@ void CheckNamingFlags(const std::function<void()>& check, const std::map<std::st
 
 void EndCommand(const Summary& summary, const std::string& what) {
   std::printf("%s: %s\n", ToString(summary.termination), summary.message.c_str());
+  FailUnlessUsable(summary, what);
+}
+
+void FailUnlessUsable(const Summary& summary, const std::string& what) {
   std::fflush(stdout);
   if (ExitStatus(summary.termination) != 0) {
     Fail(what, " ended ", ToString(summary.termination), ": ", summary.message);

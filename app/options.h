@@ -42,5 +42,7 @@ void CheckNamingFlags(const std::function<void()>& check, const std::map<std::st
 // The one exit rule (core/report.h): prints "STATE: message", and for a state that is not
 // usable ends the command with one `holocap: error:` line (exit status 1).
 void EndCommand(const Summary& summary, const std::string& what);
+// The same rule for a command that printed its state line itself.
+void FailUnlessUsable(const Summary& summary, const std::string& what);
 
 }  // namespace holocap
