@@ -15,8 +15,8 @@ struct BoardArgs {
 };
 
 void AddBoardCommand(CLI::App& app) {
-  auto* command = app.add_subcommand(
-      "board", "Print a calibration board (YAML layout) to scale as PNG or PDF");
+  auto* command =
+      app.add_subcommand("board", "Print a calibration board (YAML layout) to scale as PNG or PDF");
   auto args = std::make_shared<BoardArgs>();
   command->add_option("board", args->board, "Board layout (YAML: type, family, tags_across, ...)")
       ->required();

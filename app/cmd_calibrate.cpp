@@ -32,14 +32,16 @@ void PrintSummary(const TakeCalibrationSummary& s) {
               static_cast<long long>(s.detection.views), static_cast<long long>(s.detection.frames),
               s.detection.frames_per_second);
   std::printf("%s: %s\n", ToString(c.termination), c.message.c_str());
-  std::printf("lens model %s, reference %s, solve %.2f s, uncertainty %.2f s\n", c.lensmodel.c_str(),
-              c.reference_camera.c_str(), c.solve_seconds, c.uncertainty_seconds);
+  std::printf("lens model %s, reference %s, solve %.2f s, uncertainty %.2f s\n",
+              c.lensmodel.c_str(), c.reference_camera.c_str(), c.solve_seconds,
+              c.uncertainty_seconds);
   for (const auto& stage : c.stages) {
     if (stage.name != "everything") continue;
-    std::printf("mrcal final stage: %s, rms %.3f px, cost %.6g, %d outliers, one more step would "
-                "remove %.2g of the cost\n",
-                ToString(stage.termination), stage.rms_px, stage.cost, stage.outliers,
-                stage.expected_decrease);
+    std::printf(
+        "mrcal final stage: %s, rms %.3f px, cost %.6g, %d outliers, one more step would "
+        "remove %.2g of the cost\n",
+        ToString(stage.termination), stage.rms_px, stage.cost, stage.outliers,
+        stage.expected_decrease);
   }
   std::printf("%-8s %6s %7s %8s %9s %11s  %s\n", "camera", "views", "points", "outliers", "rms_px",
               "sigma_seen", "flag");
@@ -66,16 +68,21 @@ void AddCalibrateCommand(CLI::App& app) {
       "calibrate", "Calibrate a take's cameras from board views (AprilTag/chessboard, mrcal)");
   auto args = std::make_shared<CalibrateArgs>();
   command->add_option("take", args->take, "The take directory")->required();
-  command->add_option("--board", args->board, "Board layout YAML (default: the take's gt/board.json)");
+  command->add_option("--board", args->board,
+                      "Board layout YAML (default: the take's gt/board.json)");
   command->add_option("--lens-model", args->lensmodel,
                       "mrcal lens model for every camera (default: per camera from the rig, "
                       "else LENSMODEL_OPENCV8)");
-  command->add_option("--sensors", args->sensors, "Cameras to calibrate (default: all colour cameras)");
+  command->add_option("--sensors", args->sensors,
+                      "Cameras to calibrate (default: all colour cameras)");
   command->add_option("--reference", args->reference, "Reference camera (default: the first)");
   command->add_flag("--no-uncertainty", args->no_uncertainty, "Skip the projection uncertainty");
-  command->add_flag("--cross-validate", args->cross_validation, "Also solve two halves of the frames");
-  command->add_flag("--no-pictures", args->no_pictures, "Skip the residual/coverage/uncertainty PNGs");
-  command->add_option("--threads", args->threads, "Detection threads (0: all cores)")->capture_default_str();
+  command->add_flag("--cross-validate", args->cross_validation,
+                    "Also solve two halves of the frames");
+  command->add_flag("--no-pictures", args->no_pictures,
+                    "Skip the residual/coverage/uncertainty PNGs");
+  command->add_option("--threads", args->threads, "Detection threads (0: all cores)")
+      ->capture_default_str();
   command->callback([args] {
     TakeCalibrationOptions options;
     options.board_file = args->board;
@@ -89,7 +96,8 @@ void AddCalibrateCommand(CLI::App& app) {
     Report report("calibrate");
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
     PrintSummary(summary);
-    std::printf("report: %s\n", (std::filesystem::path(args->take) / "calib" / "report.json").c_str());
+    std::printf("report: %s\n",
+                (std::filesystem::path(args->take) / "calib" / "report.json").c_str());
     // The state line is printed above; an unusable state ends in one error line and exit 1.
     FailUnlessUsable(summary, "calibration");
   });

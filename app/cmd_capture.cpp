@@ -23,8 +23,8 @@ void OnInterrupt(int) {
 
 std::string StatusLine(const RecorderStatus& status) {
   std::ostringstream line;
-  line << std::fixed << std::setprecision(1) << status.write_mb_s << " MB/s, spread " << status.spread_us_last / 1e3
-       << " ms (max " << status.spread_us_max / 1e3 << ") |";
+  line << std::fixed << std::setprecision(1) << status.write_mb_s << " MB/s, spread "
+       << status.spread_us_last / 1e3 << " ms (max " << status.spread_us_max / 1e3 << ") |";
   for (const auto& sensor : status.sensors) {
     line << " " << sensor.name << " " << std::setprecision(0) << sensor.fps << "fps";
     if (sensor.dropped > 0) line << " -" << sensor.dropped;
@@ -35,30 +35,41 @@ std::string StatusLine(const RecorderStatus& status) {
 }  // namespace
 
 static void AddCaptureCommand(CLI::App& app) {
-  auto* command = app.add_subcommand("capture", "Record a take from a rig's sensors (every frame written or counted)");
+  auto* command = app.add_subcommand(
+      "capture", "Record a take from a rig's sensors (every frame written or counted)");
   struct Args {
     std::string rig, out;
     RecorderOptions options;
   };
   auto args = std::make_shared<Args>();
-  command->add_option("--rig", args->rig, "Rig file (YAML or JSON) naming sensors by driver URI")->required();
+  command->add_option("--rig", args->rig, "Rig file (YAML or JSON) naming sensors by driver URI")
+      ->required();
   command->add_option("--out", args->out, "The take directory to create")->required();
   auto* seconds = command->add_option("--seconds", args->options.seconds, "Record for this long");
-  auto* frames = command->add_option("--frames", args->options.frames, "Record this many frame sets (triggers)");
+  auto* frames = command->add_option("--frames", args->options.frames,
+                                     "Record this many frame sets (triggers)");
   seconds->excludes(frames);
-  command->add_option("--codec", args->options.codec, "Frame files: png or zstd (default: each driver's choice)");
-  command->add_option("--writers", args->options.writer_threads, "Writer threads")->capture_default_str();
-  command->add_option("--queue", args->options.queue_frames, "Frames per sensor queued before drops")
+  command->add_option("--codec", args->options.codec,
+                      "Frame files: png or zstd (default: each driver's choice)");
+  command->add_option("--writers", args->options.writer_threads, "Writer threads")
       ->capture_default_str();
-  command->add_option("--trigger-phase", args->options.trigger_phase_s,
-                      "Software triggers on the CLOCK_REALTIME grid of the frame period plus this phase (s)");
-  command->add_option("--trigger-priority", args->options.trigger_priority,
-                      "SCHED_FIFO priority of the software-trigger threads where permitted (0: normal scheduling)")
+  command
+      ->add_option("--queue", args->options.queue_frames, "Frames per sensor queued before drops")
+      ->capture_default_str();
+  command->add_option(
+      "--trigger-phase", args->options.trigger_phase_s,
+      "Software triggers on the CLOCK_REALTIME grid of the frame period plus this phase (s)");
+  command
+      ->add_option("--trigger-priority", args->options.trigger_priority,
+                   "SCHED_FIFO priority of the software-trigger threads where permitted (0: normal "
+                   "scheduling)")
       ->capture_default_str();
   command->add_flag("--durable", args->options.take.durable, "fsync every frame and index line");
-  command->add_flag("--overwrite", args->options.take.overwrite, "Replace an existing take directory");
+  command->add_flag("--overwrite", args->options.take.overwrite,
+                    "Replace an existing take directory");
   command->callback([args] {
-    if (args->options.seconds <= 0 && args->options.frames <= 0) Fail("capture: give --seconds S or --frames N");
+    if (args->options.seconds <= 0 && args->options.frames <= 0)
+      Fail("capture: give --seconds S or --frames N");
     RigDescription rig = RigDescription::Load(args->rig);
     Recorder recorder(rig, args->out, args->options);
     Report report("capture");
@@ -72,15 +83,20 @@ static void AddCaptureCommand(CLI::App& app) {
                         {"trigger_phase_s", args->options.trigger_phase_s},
                         {"trigger_priority", args->options.trigger_priority},
                         {"durable", args->options.take.durable}};
-    report.plan() = {{"sync", ToString(rig.sync)}, {"fps", rig.fps}, {"sensors", rig.sensors.size()}};
-    const int64_t total = args->options.frames > 0 ? args->options.frames
-                                                   : static_cast<int64_t>(args->options.seconds * rig.fps);
+    report.plan() = {
+        {"sync", ToString(rig.sync)}, {"fps", rig.fps}, {"sensors", rig.sensors.size()}};
+    const int64_t total = args->options.frames > 0
+                              ? args->options.frames
+                              : static_cast<int64_t>(args->options.seconds * rig.fps);
     Progress progress("capture", total);
     g_recorder = &recorder;
     auto previous_int = std::signal(SIGINT, OnInterrupt);
     auto previous_term = std::signal(SIGTERM, OnInterrupt);
     RecorderSummary summary = recorder.Run(
-        [&](const RecorderStatus& status) { progress.Update(status.frame_sets, StatusLine(status)); }, &report);
+        [&](const RecorderStatus& status) {
+          progress.Update(status.frame_sets, StatusLine(status));
+        },
+        &report);
     std::signal(SIGINT, previous_int);
     std::signal(SIGTERM, previous_term);
     g_recorder = nullptr;
@@ -94,12 +110,13 @@ static void AddCaptureCommand(CLI::App& app) {
       std::fprintf(stderr, "holocap: warning: %s\n", e.what());
     }
     std::cout << "take        " << args->out << "\n"
-              << "frame sets  " << summary.frame_sets_complete << " complete, " << summary.frame_sets_incomplete
-              << " incomplete, " << summary.frames_dropped << " frames dropped\n"
-              << "sync spread max " << summary.sync_spread_us_max << " us, mean " << summary.sync_spread_us_mean
-              << " us\n"
-              << "written     " << summary.bytes_written / 1e6 << " MB in " << summary.seconds << " s ("
-              << summary.write_mb_s << " MB/s)\n"
+              << "frame sets  " << summary.frame_sets_complete << " complete, "
+              << summary.frame_sets_incomplete << " incomplete, " << summary.frames_dropped
+              << " frames dropped\n"
+              << "sync spread max " << summary.sync_spread_us_max << " us, mean "
+              << summary.sync_spread_us_mean << " us\n"
+              << "written     " << summary.bytes_written / 1e6 << " MB in " << summary.seconds
+              << " s (" << summary.write_mb_s << " MB/s)\n"
               << ToString(summary.termination) << ": " << summary.message << std::endl;
     FailUnlessUsable(summary, "capture");
   });

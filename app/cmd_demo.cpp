@@ -61,8 +61,11 @@ void AddDemoCommand(CLI::App& app) {
     Report report("demo");
     report.options() = {{"out", args->out}, {"frames", args->frames}, {"seed", args->seed}};
     report.plan()["stages"] = nlohmann::json::array();
-    DemoContext context{.out = args->out, .take = std::filesystem::path(args->out) / "take",
-                        .frames = args->frames, .seed = args->seed, .report = &report};
+    DemoContext context{.out = args->out,
+                        .take = std::filesystem::path(args->out) / "take",
+                        .frames = args->frames,
+                        .seed = args->seed,
+                        .report = &report};
     CreateDirectories(context.out);
     auto stages = DemoStageTable();
     std::stable_sort(stages.begin(), stages.end(),
@@ -85,9 +88,12 @@ void AddDemoCommand(CLI::App& app) {
     if (overall.message.empty()) overall.message = "every stage ran";
     report.SetSummary(overall);
     report.Write(context.out / "report.json");
-    std::printf("[demo] %s: %s\n[demo] report: %s\n[demo] every stage's report and plots: holocap report %s --out %s\n",
-                ToString(overall.termination), overall.message.c_str(), (context.out / "report.json").c_str(),
-                context.out.c_str(), (context.out / "plots").c_str());
+    std::printf(
+        "[demo] %s: %s\n[demo] report: %s\n[demo] every stage's report and plots: holocap report "
+        "%s --out %s\n",
+        ToString(overall.termination), overall.message.c_str(),
+        (context.out / "report.json").c_str(), context.out.c_str(),
+        (context.out / "plots").c_str());
     if (!IsUsable(overall.termination)) Fail("demo stopped: ", overall.message);
   });
 }

@@ -23,15 +23,16 @@ void Probe(const std::string& uri, double timeout_s) {
   sensor->Start();
   if (sensor->supports_software_trigger()) sensor->Trigger();
   Frame frame;
-  bool got = sensor->Grab(&frame, std::chrono::milliseconds(static_cast<int64_t>(timeout_s * 1000)));
+  bool got =
+      sensor->Grab(&frame, std::chrono::milliseconds(static_cast<int64_t>(timeout_s * 1000)));
   sensor->Stop();
   if (!got) Fail("'", uri, "' delivered no frame within ", timeout_s, " s");
   double lo, hi;
   cv::Mat values = frame.image.reshape(1);
   cv::Mat measured = values == values;  // NaN (no depth measurement) compares unequal
   cv::minMaxLoc(values, &lo, &hi, nullptr, nullptr, measured);
-  std::cout << "  frame " << frame.sequence << " at " << frame.timestamp_ns << " ns, values "
-            << lo << ".." << hi << "\n";
+  std::cout << "  frame " << frame.sequence << " at " << frame.timestamp_ns << " ns, values " << lo
+            << ".." << hi << "\n";
 }
 
 }  // namespace
@@ -41,7 +42,8 @@ static void AddDevicesCommand(CLI::App& app) {
   auto probe = std::make_shared<std::string>();
   auto timeout_s = std::make_shared<double>(5.0);
   command->add_option("--probe", *probe, "Open this sensor URI and grab one frame");
-  command->add_option("--timeout", *timeout_s, "Seconds to wait for the probe's frame")->capture_default_str();
+  command->add_option("--timeout", *timeout_s, "Seconds to wait for the probe's frame")
+      ->capture_default_str();
   command->callback([probe, timeout_s] {
     if (!probe->empty()) return Probe(*probe, *timeout_s);
     for (Driver* driver : DriverRegistry::Global().drivers()) {
@@ -61,7 +63,8 @@ static void AddDevicesCommand(CLI::App& app) {
     }
     // A driver line like the others, for each hardware driver this build left out.
     for (const BuiltDriver& built : kHardwareDrivers) {
-      if (!built.compiled) std::cout << built.scheme << ":  not compiled in (" << built.why_not << ")\n";
+      if (!built.compiled)
+        std::cout << built.scheme << ":  not compiled in (" << built.why_not << ")\n";
     }
   });
 }

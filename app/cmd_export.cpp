@@ -4,8 +4,8 @@
 
 #include "app/commands.h"
 #include "app/options.h"
-#include "interop/interop.h"
 #include "core/error.h"
+#include "interop/interop.h"
 
 namespace holocap {
 namespace {
@@ -21,7 +21,8 @@ struct ExportArgs {
 }  // namespace
 
 static void AddExportCommand(CLI::App& app) {
-  auto* command = app.add_subcommand("export", "Export a take's cameras and frames as a COLMAP model or a NeRF transforms.json");
+  auto* command = app.add_subcommand(
+      "export", "Export a take's cameras and frames as a COLMAP model or a NeRF transforms.json");
   auto args = std::make_shared<ExportArgs>();
   command->add_option("FORMAT", args->format, "colmap | nerf")->required();
   command->add_option("TAKE", args->take, "The take directory")->required();
@@ -29,8 +30,9 @@ static void AddExportCommand(CLI::App& app) {
   command->add_flag("--ground-truth", args->options.ground_truth,
                     "Export the true cameras (gt/cameras, simulated takes) instead of calib/");
   command->add_flag("--no-images", args->no_images, "Write the cameras only, not the frames");
-  command->add_flag("--skip-unrepresentable", args->options.skip_unrepresentable,
-                    "Export the cameras the format holds exactly and skip the others (default: refuse)");
+  command->add_flag(
+      "--skip-unrepresentable", args->options.skip_unrepresentable,
+      "Export the cameras the format holds exactly and skip the others (default: refuse)");
   command->add_flag("--overwrite", args->options.overwrite, "Write into a non-empty directory");
   command->callback([args] {
     ExportOptions options = args->options;

@@ -17,7 +17,8 @@ void PrintTakeInfo(const Take& take, std::ostream& out) {
   out << "rig         " << take.rig().name << ", sync " << ToString(take.rig().sync) << ", "
       << take.rig().fps << " fps asked\n";
   out << "frame sets  " << take.size();
-  if (take.skipped_index_lines() > 0) out << "  (" << take.skipped_index_lines() << " incomplete set(s) skipped)";
+  if (take.skipped_index_lines() > 0)
+    out << "  (" << take.skipped_index_lines() << " incomplete set(s) skipped)";
   out << "\n";
   int64_t first = 0, last = 0;
   double spread_sum = 0;
@@ -33,8 +34,8 @@ void PrintTakeInfo(const Take& take, std::ostream& out) {
   }
   if (take.size() > 0) {
     double duration = (last - first) * 1e-9;
-    out << "timestamps  " << first << " .. " << last << " ns (" << std::fixed << std::setprecision(3)
-        << duration << " s)\n";
+    out << "timestamps  " << first << " .. " << last << " ns (" << std::fixed
+        << std::setprecision(3) << duration << " s)\n";
     out << "sync spread mean " << std::setprecision(1) << spread_sum / take.size() / 1e3
         << " us, max " << spread_max / 1e3 << " us\n";
   }
@@ -52,7 +53,8 @@ void PrintTakeInfo(const Take& take, std::ostream& out) {
         << stream.pixel_format << " clock=" << stream.clock << " frames=" << frames
         << " dropped=" << dropped;
     for (bool gt : {false, true}) {
-      auto file = (gt ? take.gt_dir() / "cameras" : take.calib_dir()) / (stream.name + ".cameramodel");
+      auto file =
+          (gt ? take.gt_dir() / "cameras" : take.calib_dir()) / (stream.name + ".cameramodel");
       if (std::filesystem::exists(file)) {
         try {
           out << (gt ? " true-lens=" : " lens=") << CameraModel::Read(file).lensmodel();
@@ -67,7 +69,8 @@ void PrintTakeInfo(const Take& take, std::ostream& out) {
 }
 
 static void AddInfoCommand(CLI::App& app) {
-  auto* command = app.add_subcommand("info", "Describe a take: sensors, lenses, frames, sync, drops");
+  auto* command =
+      app.add_subcommand("info", "Describe a take: sensors, lenses, frames, sync, drops");
   auto take_dir = std::make_shared<std::string>();
   auto verify = std::make_shared<bool>(false);
   command->add_option("TAKE", *take_dir, "The take directory")->required();

@@ -33,9 +33,9 @@ struct ReconstructArgs {
 
 void PrintSummary(const ReconstructionSummary& summary, const Report& report) {
   for (const FrameResult& f : summary.frames) {
-    std::printf("  set %06lld: %-11s %7lld vertices %7lld triangles %6.2f s", static_cast<long long>(f.set),
-                ToString(f.termination), static_cast<long long>(f.vertices), static_cast<long long>(f.faces),
-                f.seconds);
+    std::printf("  set %06lld: %-11s %7lld vertices %7lld triangles %6.2f s",
+                static_cast<long long>(f.set), ToString(f.termination),
+                static_cast<long long>(f.vertices), static_cast<long long>(f.faces), f.seconds);
     if (f.metrics.contains("gt")) {
       std::printf("  chamfer %.2f mm  F@5mm %.3f", f.metrics["gt"]["chamfer_mm"].get<double>(),
                   f.metrics["gt"]["fscore_5mm"].get<double>());
@@ -45,8 +45,9 @@ void PrintSummary(const ReconstructionSummary& summary, const Report& report) {
   const auto& metrics = report.json()["metrics"];
   if (metrics.contains("gt") && metrics["gt"].contains("voxel_sweep")) {
     for (const auto& point : metrics["gt"]["voxel_sweep"]) {
-      std::printf("  voxel %5.1f mm: %6.2f s/frame, chamfer %.2f mm\n", point["voxel_mm"].get<double>(),
-                  point["seconds"].get<double>(), point["chamfer_mm"].get<double>());
+      std::printf("  voxel %5.1f mm: %6.2f s/frame, chamfer %.2f mm\n",
+                  point["voxel_mm"].get<double>(), point["seconds"].get<double>(),
+                  point["chamfer_mm"].get<double>());
     }
   }
   std::printf("reconstructed in %.1f s\n", summary.seconds);
@@ -54,30 +55,39 @@ void PrintSummary(const ReconstructionSummary& summary, const Report& report) {
 
 void AddReconstructCommand(CLI::App& app) {
   auto* command = app.add_subcommand(
-      "reconstruct", "Meshes per frame set from a calibrated take: visual hull, TSDF fusion of depth, or "
-                     "multi-view stereo; PLY and textured glTF into TAKE/recon/");
+      "reconstruct",
+      "Meshes per frame set from a calibrated take: visual hull, TSDF fusion of depth, or "
+      "multi-view stereo; PLY and textured glTF into TAKE/recon/");
   auto args = std::make_shared<ReconstructArgs>();
   command->add_option("take", args->take, "The take directory")->required();
   command->add_option("--out", args->out, "Output directory (default TAKE/recon)");
   AddTakeSelectionFlags(command, &args->selection);
   command->add_option("--method", args->method, "auto (depth -> tsdf, else mvs), hull, tsdf or mvs")
       ->capture_default_str();
-  command->add_option("--voxel", args->voxel, "Voxel size (4mm, 0.5cm, 0.004)")->capture_default_str();
-  command->add_option("--bounds", args->bounds, "Capture volume xmin,ymin,zmin,xmax,ymax,zmax in metres "
-                                                "(default -1.5,-1.5,0,1.5,1.5,2.5)");
-  command->add_option("--silhouettes", args->silhouettes,
-                      "background (subtract the clean plate) or threshold (bright subject, dark background)")
+  command->add_option("--voxel", args->voxel, "Voxel size (4mm, 0.5cm, 0.004)")
       ->capture_default_str();
-  command->add_option("--conservative", args->conservative,
-                      "Silhouettes the hull may ignore per point (1 tolerates one bad camera)")
+  command->add_option("--bounds", args->bounds,
+                      "Capture volume xmin,ymin,zmin,xmax,ymax,zmax in metres "
+                      "(default -1.5,-1.5,0,1.5,1.5,2.5)");
+  command
+      ->add_option(
+          "--silhouettes", args->silhouettes,
+          "background (subtract the clean plate) or threshold (bright subject, dark background)")
       ->capture_default_str();
-  command->add_option("--simplify", args->simplify, "Vertex-clustering cell for simplification (e.g. 8mm)");
+  command
+      ->add_option("--conservative", args->conservative,
+                   "Silhouettes the hull may ignore per point (1 tolerates one bad camera)")
+      ->capture_default_str();
+  command->add_option("--simplify", args->simplify,
+                      "Vertex-clustering cell for simplification (e.g. 8mm)");
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
   command->add_flag("--no-glb", args->no_glb, "Write PLY only");
   command->add_flag("--no-atlas", args->no_atlas, "Vertex colours only, no texture atlas");
-  command->add_flag("--no-sweep", args->no_sweep, "Skip the voxel-size sweep on takes with ground truth");
-  command->add_flag("--no-completion", args->no_completion,
-                    "TSDF: mesh only what the depth sensors saw (no completion from the visual hull)");
+  command->add_flag("--no-sweep", args->no_sweep,
+                    "Skip the voxel-size sweep on takes with ground truth");
+  command->add_flag(
+      "--no-completion", args->no_completion,
+      "TSDF: mesh only what the depth sensors saw (no completion from the visual hull)");
   command->callback([args] {
     ReconstructionOptions options;
     options.method = ReconstructionMethodFromString(args->method);
@@ -89,15 +99,18 @@ void AddReconstructCommand(CLI::App& app) {
       Fail("--silhouettes must be background or threshold, got '", args->silhouettes, "'");
     }
     options.hull.tolerated_bad_views = args->conservative;
-    if (!args->simplify.empty()) options.meshing.simplify_cell_m = ParseLength(args->simplify, "--simplify");
+    if (!args->simplify.empty())
+      options.meshing.simplify_cell_m = ParseLength(args->simplify, "--simplify");
     options.threads = args->threads;
     options.write_glb = !args->no_glb;
     options.texture.atlas = !args->no_atlas;
     if (args->no_sweep) options.sweep_voxels_m.clear();
     options.tsdf_hull_completion = !args->no_completion;
-    std::filesystem::path out = args->out.empty() ? std::filesystem::path(args->take) / "recon" : std::filesystem::path(args->out);
+    std::filesystem::path out = args->out.empty() ? std::filesystem::path(args->take) / "recon"
+                                                  : std::filesystem::path(args->out);
     Report report("reconstruct");
-    ReconstructionSummary summary = ReconstructTake(args->take, args->selection.Parse(), out, options, &report);
+    ReconstructionSummary summary =
+        ReconstructTake(args->take, args->selection.Parse(), out, options, &report);
     PrintSummary(summary, report);
     std::printf("meshes and report: %s\n", out.c_str());
     EndCommand(summary, "reconstruction");
@@ -109,7 +122,8 @@ Summary ReconstructDemoTake(DemoContext& context) {
   options.sweep_voxels_m = {0.008};
   Report report("reconstruct");
   const std::filesystem::path out = context.out / "recon";
-  ReconstructionSummary summary = ReconstructTake(context.take, TakeSelection{}, out, options, &report);
+  ReconstructionSummary summary =
+      ReconstructTake(context.take, TakeSelection{}, out, options, &report);
   PrintSummary(summary, report);
   context.report->metrics()["reconstruct"] = {{"method", summary.plan["method"]},
                                               {"cameras", summary.plan["cameras"]},

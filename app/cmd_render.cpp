@@ -30,23 +30,33 @@ struct RenderArgs {
 };
 
 void AddRenderCommand(CLI::App& app) {
-  auto* command = app.add_subcommand("render", "Render a trained avatar along a camera path to frames or an MP4");
+  auto* command = app.add_subcommand(
+      "render", "Render a trained avatar along a camera path to frames or an MP4");
   auto args = std::make_shared<RenderArgs>();
-  command->add_option("TAKE", args->take, "The take the model was trained on (default model: TAKE/models/nvol)")->required();
+  command
+      ->add_option("TAKE", args->take,
+                   "The take the model was trained on (default model: TAKE/models/nvol)")
+      ->required();
   command->add_option("--model", args->model, "Model directory (holds model.json)");
-  command->add_option("--path", args->path, "orbit, or a camera path JSON file")->capture_default_str();
-  command->add_option("--size", args->size, "Output width and height of the orbit (JSON paths: width)")->capture_default_str();
+  command->add_option("--path", args->path, "orbit, or a camera path JSON file")
+      ->capture_default_str();
+  command
+      ->add_option("--size", args->size, "Output width and height of the orbit (JSON paths: width)")
+      ->capture_default_str();
   command->add_option("--views", args->views, "Views of the orbit")->capture_default_str();
-  command->add_option("--frame", args->frame, "Show only this frame (-1: play the sequence)")->capture_default_str();
+  command->add_option("--frame", args->frame, "Show only this frame (-1: play the sequence)")
+      ->capture_default_str();
   command->add_option("--fps", args->fps, "Video frame rate")->capture_default_str();
   command->add_option("--step", args->step, "Ray-marching step in voxels")->capture_default_str();
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
-  command->add_option("--out", args->out, "A directory (PNG + EXR frames) or a file.mp4")->required();
+  command->add_option("--out", args->out, "A directory (PNG + EXR frames) or a file.mp4")
+      ->required();
   command->add_flag("--no-skip", args->no_skip, "Evaluate every sample (no empty-space skipping)");
   command->add_flag("--no-exr", args->no_exr, "Directory output: PNG frames only");
   command->callback([args] {
-    const std::filesystem::path model_dir = args->model.empty()
-        ? std::filesystem::path(args->take) / "models" / "nvol" : std::filesystem::path(args->model);
+    const std::filesystem::path model_dir =
+        args->model.empty() ? std::filesystem::path(args->take) / "models" / "nvol"
+                            : std::filesystem::path(args->model);
     RegisterRerenderModelKind();
     auto model = OpenModel(model_dir);
     CameraPath path;
@@ -61,9 +71,11 @@ void AddRenderCommand(CLI::App& app) {
       path = OrbitPath(*model, orbit);
     } else {
       const CameraModel& first = model->cameras().front();
-      const int height = 2 * static_cast<int>(std::lround(0.5 * args->size * first.height() / first.width()));
+      const int height =
+          2 * static_cast<int>(std::lround(0.5 * args->size * first.height() / first.width()));
       path = ReadCameraPath(args->path, *model, args->size, height);
-      if (args->frame >= 0) for (auto& f : path.frames) f = args->frame;
+      if (args->frame >= 0)
+        for (auto& f : path.frames) f = args->frame;
     }
     PlaybackOptions options;
     options.out = args->out;
@@ -72,16 +84,19 @@ void AddRenderCommand(CLI::App& app) {
     options.render.step_voxels = args->step;
     options.render.threads = args->threads;
     Report report("render");
-    report.options() = {{"take", args->take}, {"model", model_dir.string()}, {"path", args->path},
-                        {"size", args->size}, {"views", args->views}, {"frame", args->frame},
-                        {"skip_empty", !args->no_skip}, {"step_voxels", args->step}, {"out", args->out}};
-    report.plan() = {{"method", model->method()}, {"model_frames", model->frame_count()},
+    report.options() = {
+        {"take", args->take},           {"model", model_dir.string()}, {"path", args->path},
+        {"size", args->size},           {"views", args->views},        {"frame", args->frame},
+        {"skip_empty", !args->no_skip}, {"step_voxels", args->step},   {"out", args->out}};
+    report.plan() = {{"method", model->method()},
+                     {"model_frames", model->frame_count()},
                      {"views", path.size()}};
     PlaybackSummary summary = RenderPath(*model, path, options, &report);
     report.SetSummary(summary);
     const std::filesystem::path out(args->out);
     const std::filesystem::path report_file =
-        out.extension() == ".mp4" ? std::filesystem::path(out.string() + ".report.json") : out / "report.json";
+        out.extension() == ".mp4" ? std::filesystem::path(out.string() + ".report.json")
+                                  : out / "report.json";
     report.Write(report_file);
     std::printf("%s model, %lld frame(s) -> %s\nreport: %s\n", model->method().c_str(),
                 static_cast<long long>(model->frame_count()), out.c_str(), report_file.c_str());

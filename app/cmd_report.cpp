@@ -52,8 +52,8 @@ Series SeriesOf(const nlohmann::json& report, const std::vector<std::string>& on
     }
     const std::string metric = point["metric"].get<std::string>();
     if (!only.empty() && std::find(only.begin(), only.end(), metric) == only.end()) continue;
-    series[metric].push_back({point.value("t_s", 0.0), point.value("iter", int64_t{0}),
-                              point["value"].get<double>()});
+    series[metric].push_back(
+        {point.value("t_s", 0.0), point.value("iter", int64_t{0}), point["value"].get<double>()});
   }
   return series;
 }
@@ -80,27 +80,29 @@ void FlattenMetrics(const nlohmann::json& json, const std::string& prefix,
   }
 }
 
-void PrintReport(const std::filesystem::path& file, const nlohmann::json& report, const Series& series,
-                 int rows) {
+void PrintReport(const std::filesystem::path& file, const nlohmann::json& report,
+                 const Series& series, int rows) {
   const auto& summary = report["summary"];
   std::printf("%s  (%s, %.1f s)\n", file.c_str(), report["command"].get<std::string>().c_str(),
               report.value("elapsed_s", 0.0));
-  std::printf("  %s: %s\n", summary.value("termination", "?").c_str(), summary.value("message", "").c_str());
+  std::printf("  %s: %s\n", summary.value("termination", "?").c_str(),
+              summary.value("message", "").c_str());
   if (report.contains("metrics")) {
     std::vector<std::pair<std::string, std::string>> metrics;
     FlattenMetrics(report["metrics"], "", &metrics);
     if (!metrics.empty()) std::printf("  metrics\n");
-    for (const auto& [name, value] : metrics) std::printf("    %-40s %s\n", name.c_str(), value.c_str());
+    for (const auto& [name, value] : metrics)
+      std::printf("    %-40s %s\n", name.c_str(), value.c_str());
   }
   for (const auto& [metric, points] : series) {
-    std::printf("  %s against time (%zu points)\n    %10s %10s %14s\n", metric.c_str(), points.size(), "t_s",
-                "iter", "value");
+    std::printf("  %s against time (%zu points)\n    %10s %10s %14s\n", metric.c_str(),
+                points.size(), "t_s", "iter", "value");
     // Evenly spread rows, always the first and the last.
     const size_t shown = std::min<size_t>(points.size(), std::max(rows, 2));
     for (size_t k = 0; k < shown; ++k) {
       const size_t i = shown == 1 ? 0 : k * (points.size() - 1) / (shown - 1);
-      std::printf("    %10.2f %10lld %14.6g\n", points[i].t_s, static_cast<long long>(points[i].iter),
-                  points[i].value);
+      std::printf("    %10.2f %10lld %14.6g\n", points[i].t_s,
+                  static_cast<long long>(points[i].iter), points[i].value);
     }
   }
 }
@@ -114,7 +116,8 @@ std::string Tick(double value) {
 // One panel per metric: value against wall time, log scale where asked or where the values
 // span more than two decades (losses do).
 cv::Mat PlotSeries(const std::string& title, const Series& series, bool log_y) {
-  constexpr int kPanelWidth = 720, kPanelHeight = 260, kLeft = 80, kRight = 20, kTop = 34, kBottom = 40;
+  constexpr int kPanelWidth = 720, kPanelHeight = 260, kLeft = 80, kRight = 20, kTop = 34,
+                kBottom = 40;
   cv::Mat image(kPanelHeight * static_cast<int>(series.size()) + 30, kPanelWidth, CV_8UC3,
                 cv::Scalar(255, 255, 255));
   cv::putText(image, title, {10, 20}, cv::FONT_HERSHEY_SIMPLEX, 0.55, {0, 0, 0}, 1, cv::LINE_AA);
@@ -140,29 +143,32 @@ cv::Mat PlotSeries(const std::string& title, const Series& series, bool log_y) {
     double a_min = to_axis(v_min), a_max = to_axis(v_max);
     if (!std::isfinite(a_min)) a_min = 0, a_max = 1;
     if (a_max - a_min < 1e-12) a_min -= 0.5, a_max += 0.5;
-    const cv::Rect box(kLeft, y0 + kTop, kPanelWidth - kLeft - kRight, kPanelHeight - kTop - kBottom);
+    const cv::Rect box(kLeft, y0 + kTop, kPanelWidth - kLeft - kRight,
+                       kPanelHeight - kTop - kBottom);
     cv::rectangle(image, box, {0, 0, 0}, 1);
     auto to_pixel = [&](const Point& p) {
       return cv::Point(box.x + static_cast<int>(std::lround(p.t_s / t_max * box.width)),
                        box.y + box.height -
-                           static_cast<int>(std::lround((to_axis(p.value) - a_min) / (a_max - a_min) * box.height)));
+                           static_cast<int>(std::lround((to_axis(p.value) - a_min) /
+                                                        (a_max - a_min) * box.height)));
     };
     for (int k = 0; k <= 4; ++k) {
       const double a = a_min + (a_max - a_min) * k / 4;
       const int y = box.y + box.height - box.height * k / 4;
       cv::line(image, {box.x, y}, {box.x + box.width, y}, {225, 225, 225}, 1);
-      cv::putText(image, Tick(log_scale ? std::pow(10, a) : a), {6, y + 4}, cv::FONT_HERSHEY_SIMPLEX, 0.4,
-                  {60, 60, 60}, 1, cv::LINE_AA);
+      cv::putText(image, Tick(log_scale ? std::pow(10, a) : a), {6, y + 4},
+                  cv::FONT_HERSHEY_SIMPLEX, 0.4, {60, 60, 60}, 1, cv::LINE_AA);
       const int x = box.x + box.width * k / 4;
-      cv::putText(image, Tick(t_max * k / 4), {x - 12, box.y + box.height + 16}, cv::FONT_HERSHEY_SIMPLEX, 0.4,
-                  {60, 60, 60}, 1, cv::LINE_AA);
+      cv::putText(image, Tick(t_max * k / 4), {x - 12, box.y + box.height + 16},
+                  cv::FONT_HERSHEY_SIMPLEX, 0.4, {60, 60, 60}, 1, cv::LINE_AA);
     }
-    cv::putText(image, metric + (log_scale ? "  (log scale)" : "") + "  against seconds", {box.x, y0 + 24},
-                cv::FONT_HERSHEY_SIMPLEX, 0.5, {0, 0, 0}, 1, cv::LINE_AA);
+    cv::putText(image, metric + (log_scale ? "  (log scale)" : "") + "  against seconds",
+                {box.x, y0 + 24}, cv::FONT_HERSHEY_SIMPLEX, 0.5, {0, 0, 0}, 1, cv::LINE_AA);
     const Point* previous = nullptr;
     for (const auto& p : points) {
       if (!std::isfinite(p.value) || (log_scale && p.value <= 0)) continue;
-      if (previous != nullptr) cv::line(image, to_pixel(*previous), to_pixel(p), {180, 90, 20}, 2, cv::LINE_AA);
+      if (previous != nullptr)
+        cv::line(image, to_pixel(*previous), to_pixel(p), {180, 90, 20}, 2, cv::LINE_AA);
       cv::circle(image, to_pixel(p), 2, {180, 90, 20}, cv::FILLED, cv::LINE_AA);
       previous = &p;
     }
@@ -175,7 +181,8 @@ std::vector<std::filesystem::path> ReportsUnder(const std::filesystem::path& pat
   if (!std::filesystem::is_directory(path)) return {path};
   std::vector<std::filesystem::path> files;
   for (const auto& entry : std::filesystem::recursive_directory_iterator(path)) {
-    if (entry.is_regular_file() && entry.path().filename() == "report.json") files.push_back(entry.path());
+    if (entry.is_regular_file() && entry.path().filename() == "report.json")
+      files.push_back(entry.path());
   }
   if (files.empty()) Fail("no report.json under '", path.string(), "'");
   std::sort(files.begin(), files.end());
@@ -183,15 +190,20 @@ std::vector<std::filesystem::path> ReportsUnder(const std::filesystem::path& pat
 }
 
 void AddReportCommand(CLI::App& app) {
-  auto* command = app.add_subcommand(
-      "report", "Show a run's report.json (or every one under a directory): outcome, metrics, error against time");
+  auto* command = app.add_subcommand("report",
+                                     "Show a run's report.json (or every one under a directory): "
+                                     "outcome, metrics, error against time");
   auto args = std::make_shared<ReportArgs>();
-  command->add_option("PATH", args->path, "A report.json, or a directory searched for them")->required();
-  command->add_option("--out", args->out,
-                      "Plot the error-against-time series to this PNG (with a directory: one PNG per report, "
-                      "into this directory)");
+  command->add_option("PATH", args->path, "A report.json, or a directory searched for them")
+      ->required();
+  command->add_option(
+      "--out", args->out,
+      "Plot the error-against-time series to this PNG (with a directory: one PNG per report, "
+      "into this directory)");
   command->add_option("--metric", args->metrics, "Only these series (default: all)");
-  command->add_option("--rows", args->rows, "Rows shown per series")->capture_default_str()->check(CLI::Range(2, 1000));
+  command->add_option("--rows", args->rows, "Rows shown per series")
+      ->capture_default_str()
+      ->check(CLI::Range(2, 1000));
   command->add_flag("--log", args->log_y, "Log scale for every positive series");
   command->callback([args] {
     const auto files = ReportsUnder(args->path);
@@ -206,7 +218,8 @@ void AddReportCommand(CLI::App& app) {
       if (many) {
         std::string name = std::filesystem::relative(file.parent_path(), args->path).string();
         std::replace(name.begin(), name.end(), '/', '-');
-        png = std::filesystem::path(args->out) / ((name == "." ? std::string("report") : name) + ".png");
+        png = std::filesystem::path(args->out) /
+              ((name == "." ? std::string("report") : name) + ".png");
       }
       std::vector<uchar> bytes;
       cv::imencode(".png", PlotSeries(file.string(), series, args->log_y), bytes);

@@ -29,7 +29,8 @@ void ParseSize(const std::string& text, int* width, int* height) {
     *height = 0;
     return;
   }
-  if (parsed != 2 || w <= 0 || h <= 0) Fail("--size must be WIDTH or WIDTHxHEIGHT, got '", text, "'");
+  if (parsed != 2 || w <= 0 || h <= 0)
+    Fail("--size must be WIDTH or WIDTHxHEIGHT, got '", text, "'");
   *width = w;
   *height = h;
 }
@@ -45,18 +46,25 @@ static void AddSimCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--frames", o.frames, "Frame sets to record")->capture_default_str();
   command->add_option("--out", args->out, "The take directory to create")->required();
-  command->add_flag("--board", args->board, "Film the calibration board sequence (same as --scene board)");
+  command->add_flag("--board", args->board,
+                    "Film the calibration board sequence (same as --scene board)");
   command->add_option("--scene", o.scene, "subject (walking humanoid), object (static) or board")
       ->capture_default_str();
-  command->add_option("--seed", o.seed, "Seed of board poses, clocks, noise and drops")->capture_default_str();
-  command->add_option("--size", args->size, "Render every sensor at WIDTH or WIDTHxHEIGHT (lenses rescaled)");
-  command->add_option("--fps", o.fps, "Frame sets per second (0: the rig's)")->capture_default_str();
-  command->add_option("--clean-plate", o.clean_plate_frames, "Leading frame sets without the subject")
+  command->add_option("--seed", o.seed, "Seed of board poses, clocks, noise and drops")
       ->capture_default_str();
-  command->add_option("--drop", o.drop_probability, "Chance that a sensor drops a frame")->capture_default_str();
+  command->add_option("--size", args->size,
+                      "Render every sensor at WIDTH or WIDTHxHEIGHT (lenses rescaled)");
+  command->add_option("--fps", o.fps, "Frame sets per second (0: the rig's)")
+      ->capture_default_str();
+  command
+      ->add_option("--clean-plate", o.clean_plate_frames, "Leading frame sets without the subject")
+      ->capture_default_str();
+  command->add_option("--drop", o.drop_probability, "Chance that a sensor drops a frame")
+      ->capture_default_str();
   command->add_flag("--no-noise", args->no_noise, "Noise-free, deterministic frames");
   command->add_flag("--motion-blur", o.motion_blur, "Integrate the motion over each exposure");
-  command->add_option("--threads", o.threads, "Render threads (0: all cores)")->capture_default_str();
+  command->add_option("--threads", o.threads, "Render threads (0: all cores)")
+      ->capture_default_str();
   command->add_flag("--overwrite", o.overwrite, "Replace an existing take directory");
   command->callback([args] {
     SimOptions options = args->options;

@@ -33,7 +33,8 @@ struct SharedTrainArgs {
 
   // The model directory: --out, else TAKE/models/<method>.
   std::filesystem::path Out(const char* method) const {
-    return out.empty() ? std::filesystem::path(take) / "models" / method : std::filesystem::path(out);
+    return out.empty() ? std::filesystem::path(take) / "models" / method
+                       : std::filesystem::path(out);
   }
 };
 
@@ -70,26 +71,38 @@ void AddSharedTrainFlags(CLI::App* command, SharedTrainArgs* args) {
   command->add_option("--out", args->out, "Model directory (default: TAKE/models/<method>)");
   AddTakeSelectionFlags(command, &args->selection);
   command->add_option("--minutes", args->minutes, "Training time budget")->capture_default_str();
-  command->add_option("--iterations", args->iterations, "Stop after this many iterations (0: time only)")->capture_default_str();
-  command->add_option("--width", args->image_width, "Training image width (0: native)")->capture_default_str();
-  command->add_option("--heldout", args->heldout_cameras, "Cameras held out for evaluation, spread around the rig")
+  command
+      ->add_option("--iterations", args->iterations,
+                   "Stop after this many iterations (0: time only)")
       ->capture_default_str();
-  command->add_option("--heldout-names", args->heldout, "Hold out these cameras (names, comma-separated)")->delimiter(',');
+  command->add_option("--width", args->image_width, "Training image width (0: native)")
+      ->capture_default_str();
+  command
+      ->add_option("--heldout", args->heldout_cameras,
+                   "Cameras held out for evaluation, spread around the rig")
+      ->capture_default_str();
+  command
+      ->add_option("--heldout-names", args->heldout,
+                   "Hold out these cameras (names, comma-separated)")
+      ->delimiter(',');
   command->add_option("--lr", args->learning_rate, "Adam learning rate")->capture_default_str();
-  command->add_option("--eval-every", args->eval_every_s, "Held-out evaluation interval, seconds")->capture_default_str();
+  command->add_option("--eval-every", args->eval_every_s, "Held-out evaluation interval, seconds")
+      ->capture_default_str();
   command->add_option("--seed", args->seed, "Random seed")->capture_default_str();
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
 }
 
 // The flags each shared field was typed as, for option errors.
 const std::map<std::string, std::string> kSharedFlags = {
-    {"minutes", "--minutes"},   {"iterations", "--iterations"}, {"image_width", "--width"},
-    {"heldout_cameras", "--heldout"}, {"learning_rate", "--lr"}, {"eval_every_s", "--eval-every"},
+    {"minutes", "--minutes"},   {"iterations", "--iterations"},
+    {"image_width", "--width"}, {"heldout_cameras", "--heldout"},
+    {"learning_rate", "--lr"},  {"eval_every_s", "--eval-every"},
     {"threads", "--threads"}};
 
 void PrintPlan(const nlohmann::json& plan) {
   std::printf("plan:\n");
-  for (const auto& [key, value] : plan.items()) std::printf("  %-18s %s\n", key.c_str(), value.dump().c_str());
+  for (const auto& [key, value] : plan.items())
+    std::printf("  %-18s %s\n", key.c_str(), value.dump().c_str());
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -102,22 +115,32 @@ struct NvolArgs {
 };
 
 void AddNvolCommand(CLI::App* train) {
-  auto* command = train->add_subcommand("nvol", "Neural Volumes: an RGBA voxel grid decoded per frame, ray-marched");
+  auto* command = train->add_subcommand(
+      "nvol", "Neural Volumes: an RGBA voxel grid decoded per frame, ray-marched");
   auto args = std::make_shared<NvolArgs>();
   NeuralVolumeOptions& o = args->options;
   SharedTrainArgs& shared = args->shared;
   TakeSharedDefaults(o, &shared);
   AddSharedTrainFlags(command, &shared);
-  command->add_option("--grid", o.grid, "RGBA voxels per axis (16..128, power of two)")->capture_default_str();
+  command->add_option("--grid", o.grid, "RGBA voxels per axis (16..128, power of two)")
+      ->capture_default_str();
   command->add_option("--rays", o.rays_per_batch, "Rays per iteration")->capture_default_str();
   command->add_option("--scene", o.scene, "auto, static or dynamic")->capture_default_str();
-  command->add_option("--bounds", args->bounds, "Volume bounds: auto, hull, gt or stage")->capture_default_str();
-  command->add_option("--kl-weight", o.kl_weight, "KL weight of the latent (dynamic scenes)")->capture_default_str();
-  command->add_option("--tv-weight", o.tv_weight, "Total-variation weight of the grid")->capture_default_str();
-  command->add_option("--alpha-prior-weight", o.alpha_prior_weight, "Beta prior on ray alpha")->capture_default_str();
-  command->add_option("--silhouette-weight", o.silhouette_weight, "Ray alpha against the training silhouettes (0: off)")
+  command->add_option("--bounds", args->bounds, "Volume bounds: auto, hull, gt or stage")
       ->capture_default_str();
-  command->add_option("--warp-prior-weight", o.warp_prior_weight, "Mean squared warp displacement (dynamic scenes)")
+  command->add_option("--kl-weight", o.kl_weight, "KL weight of the latent (dynamic scenes)")
+      ->capture_default_str();
+  command->add_option("--tv-weight", o.tv_weight, "Total-variation weight of the grid")
+      ->capture_default_str();
+  command->add_option("--alpha-prior-weight", o.alpha_prior_weight, "Beta prior on ray alpha")
+      ->capture_default_str();
+  command
+      ->add_option("--silhouette-weight", o.silhouette_weight,
+                   "Ray alpha against the training silhouettes (0: off)")
+      ->capture_default_str();
+  command
+      ->add_option("--warp-prior-weight", o.warp_prior_weight,
+                   "Mean squared warp displacement (dynamic scenes)")
       ->capture_default_str();
   command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
   command->callback([args] {
@@ -132,8 +155,9 @@ void AddNvolCommand(CLI::App* train) {
     Report report("train nvol");
     NeuralVolumeSummary summary = TrainNeuralVolume(shared.take, out, o, &report);
     PrintPlan(summary.plan);
-    std::printf("iterations   %lld in %.1f s (%.2f it/s)\n", static_cast<long long>(summary.iterations),
-                summary.seconds, summary.iterations / std::max(summary.seconds, 1e-9));
+    std::printf("iterations   %lld in %.1f s (%.2f it/s)\n",
+                static_cast<long long>(summary.iterations), summary.seconds,
+                summary.iterations / std::max(summary.seconds, 1e-9));
     std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
     std::printf("held-out     PSNR %.2f dB (subject %.2f dB), SSIM %.4f\n", summary.heldout_psnr_db,
                 summary.heldout_psnr_fg_db, summary.heldout_ssim);
@@ -155,53 +179,83 @@ struct RerenderArgs {
 };
 
 void AddRerenderWitnessFlags(CLI::App* command, RerenderOptions& r) {
-  command->add_option("--witness", r.witness_cameras, "Witness cameras left out of the reconstruction")->capture_default_str();
-  command->add_option("--witness-names", r.witness, "These witness cameras (names, comma-separated)")->delimiter(',');
-  command->add_option("--witness-folds", r.witness_folds,
-                      "Witness sets, each seen through a reconstruction built without it (1: one set)")
+  command
+      ->add_option("--witness", r.witness_cameras, "Witness cameras left out of the reconstruction")
       ->capture_default_str();
-  command->add_option("--fold-witnesses", r.fold_witness,
-                      "The witnesses of a further fold, comma-separated (once per fold, in order; the last fold's "
-                      "validate; overrides --witness-folds)")
+  command
+      ->add_option("--witness-names", r.witness, "These witness cameras (names, comma-separated)")
       ->delimiter(',');
-  command->add_option("--fold-recon", r.fold_recon_dirs, "Use these reconstructions of the further folds (in order)");
-  command->add_option("--validation-witnesses", r.validation_witnesses,
-                      "Witnesses kept from training to choose the weights where they peak (0: last weights, -1: a "
-                      "fifth of the witnesses, at least one when there are three or more)")
+  command
+      ->add_option("--witness-folds", r.witness_folds,
+                   "Witness sets, each seen through a reconstruction built without it (1: one set)")
       ->capture_default_str();
-  command->add_option("--witness-scales", r.witness_scales,
-                      "The witnesses also train at these fractions of the training width, e.g. 1,0.6 (views with "
-                      "shorter lenses or from farther away see the subject smaller)")
+  command
+      ->add_option("--fold-witnesses", r.fold_witness,
+                   "The witnesses of a further fold, comma-separated (once per fold, in order; the "
+                   "last fold's "
+                   "validate; overrides --witness-folds)")
+      ->delimiter(',');
+  command->add_option("--fold-recon", r.fold_recon_dirs,
+                      "Use these reconstructions of the further folds (in order)");
+  command
+      ->add_option("--validation-witnesses", r.validation_witnesses,
+                   "Witnesses kept from training to choose the weights where they peak (0: last "
+                   "weights, -1: a "
+                   "fifth of the witnesses, at least one when there are three or more)")
+      ->capture_default_str();
+  command
+      ->add_option("--witness-scales", r.witness_scales,
+                   "The witnesses also train at these fractions of the training width, e.g. 1,0.6 "
+                   "(views with "
+                   "shorter lenses or from farther away see the subject smaller)")
       ->delimiter(',')
       ->capture_default_str();
 }
 
 void AddRerenderReconstructionFlags(CLI::App* command, RerenderArgs* args) {
   RerenderOptions& r = args->options;
-  command->add_option("--recon", r.recon_dir, "Use this reconstruction (built without the witnesses)");
-  command->add_option("--recon-voxel", r.reconstruction.voxel_m, "Reconstruction voxel in metres")->capture_default_str();
-  command->add_option("--silhouettes", args->silhouettes, "Reconstruction silhouettes, background or threshold")
+  command->add_option("--recon", r.recon_dir,
+                      "Use this reconstruction (built without the witnesses)");
+  command->add_option("--recon-voxel", r.reconstruction.voxel_m, "Reconstruction voxel in metres")
       ->capture_default_str();
-  command->add_option("--recon-method", args->recon_method, "Reconstruction method of every fold, auto, hull, tsdf or mvs")
+  command
+      ->add_option("--silhouettes", args->silhouettes,
+                   "Reconstruction silhouettes, background or threshold")
+      ->capture_default_str();
+  command
+      ->add_option("--recon-method", args->recon_method,
+                   "Reconstruction method of every fold, auto, hull, tsdf or mvs")
       ->capture_default_str();
   command->add_option("--recon-bounds", args->recon_bounds,
-                      "Reconstruction volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default -1.5,-1.5,0,1.5,1.5,2.5)");
+                      "Reconstruction volume xmin,ymin,zmin,xmax,ymax,zmax in metres (default "
+                      "-1.5,-1.5,0,1.5,1.5,2.5)");
   command->add_flag("--recon-no-completion", args->recon_no_completion,
-                    "TSDF folds mesh only what the depth sensors saw, as a live fusion system does (no completion "
+                    "TSDF folds mesh only what the depth sensors saw, as a live fusion system does "
+                    "(no completion "
                     "from the visual hull)");
 }
 
 void AddRerenderNetworkFlags(CLI::App* command, RerenderOptions& r) {
-  command->add_option("--unet-width", r.net.width, "U-Net channels of the first level")->capture_default_str();
+  command->add_option("--unet-width", r.net.width, "U-Net channels of the first level")
+      ->capture_default_str();
   command->add_option("--unet-depth", r.net.depth, "U-Net levels")->capture_default_str();
-  command->add_option("--supersample", r.supersample, "Raster samples per pixel along each axis (1..4; playback does the same)")
+  command
+      ->add_option("--supersample", r.supersample,
+                   "Raster samples per pixel along each axis (1..4; playback does the same)")
       ->capture_default_str();
-  command->add_option("--crop", r.crop_px, "Training crop size near the subject (0: whole images)")->capture_default_str();
-  command->add_option("--subject-weight", r.subject_weight, "Loss weight of pixels near the subject")->capture_default_str();
-  command->add_option("--alpha-weight", r.alpha_weight, "Weight of alpha against the witnesses' silhouettes (0: off)")
+  command->add_option("--crop", r.crop_px, "Training crop size near the subject (0: whole images)")
       ->capture_default_str();
-  command->add_option("--temporal-weight", r.temporal_weight, "Temporal-consistency loss weight")->capture_default_str();
-  command->add_option("--gan-weight", r.gan_weight, "PatchGAN loss weight (0: none)")->capture_default_str();
+  command
+      ->add_option("--subject-weight", r.subject_weight, "Loss weight of pixels near the subject")
+      ->capture_default_str();
+  command
+      ->add_option("--alpha-weight", r.alpha_weight,
+                   "Weight of alpha against the witnesses' silhouettes (0: off)")
+      ->capture_default_str();
+  command->add_option("--temporal-weight", r.temporal_weight, "Temporal-consistency loss weight")
+      ->capture_default_str();
+  command->add_option("--gan-weight", r.gan_weight, "PatchGAN loss weight (0: none)")
+      ->capture_default_str();
 }
 
 RerenderOptions RerenderOptionsFrom(const RerenderArgs& args) {
@@ -210,24 +264,31 @@ RerenderOptions RerenderOptionsFrom(const RerenderArgs& args) {
   if (args.silhouettes != "background" && args.silhouettes != "threshold") {
     Fail("--silhouettes must be background or threshold (got '", args.silhouettes, "')");
   }
-  o.reconstruction.silhouette.mode =
-      args.silhouettes == "threshold" ? SilhouetteMode::kThreshold : SilhouetteMode::kBackgroundSubtraction;
+  o.reconstruction.silhouette.mode = args.silhouettes == "threshold"
+                                         ? SilhouetteMode::kThreshold
+                                         : SilhouetteMode::kBackgroundSubtraction;
   o.reconstruction.method = ReconstructionMethodFromString(args.recon_method);
-  if (!args.recon_bounds.empty()) o.reconstruction.bounds = ParseBounds(args.recon_bounds, "--recon-bounds");
+  if (!args.recon_bounds.empty())
+    o.reconstruction.bounds = ParseBounds(args.recon_bounds, "--recon-bounds");
   if (args.recon_no_completion) o.reconstruction.tsdf_hull_completion = false;
   std::map<std::string, std::string> flags = kSharedFlags;
-  flags.insert({{"witness_folds", "--witness-folds"}, {"validation_witnesses", "--validation-witnesses"},
-                {"witness_scales", "--witness-scales"}, {"batch_pairs", "--batch-pairs"}, {"crop_px", "--crop"},
-                {"subject_weight", "--subject-weight"}, {"alpha_weight", "--alpha-weight"},
+  flags.insert({{"witness_folds", "--witness-folds"},
+                {"validation_witnesses", "--validation-witnesses"},
+                {"witness_scales", "--witness-scales"},
+                {"batch_pairs", "--batch-pairs"},
+                {"crop_px", "--crop"},
+                {"subject_weight", "--subject-weight"},
+                {"alpha_weight", "--alpha-weight"},
                 {"supersample", "--supersample"}});
   CheckNamingFlags([&] { o.Check(); }, flags);
   return o;
 }
 
 void AddRerenderCommand(CLI::App* train) {
-  auto* command = train->add_subcommand(
-      "rerender", "Neural rerendering (LookinGood): a U-Net that repairs renders of the reconstruction, trained on "
-                  "witness cameras the reconstruction never saw");
+  auto* command = train->add_subcommand("rerender",
+                                        "Neural rerendering (LookinGood): a U-Net that repairs "
+                                        "renders of the reconstruction, trained on "
+                                        "witness cameras the reconstruction never saw");
   auto args = std::make_shared<RerenderArgs>();
   RerenderOptions& r = args->options;
   SharedTrainArgs& shared = args->shared;
@@ -236,25 +297,30 @@ void AddRerenderCommand(CLI::App* train) {
   AddRerenderWitnessFlags(command, r);
   AddRerenderReconstructionFlags(command, args.get());
   AddRerenderNetworkFlags(command, r);
-  command->add_option("--batch-pairs", r.batch_pairs, "Pairs of consecutive frames per iteration")->capture_default_str();
+  command->add_option("--batch-pairs", r.batch_pairs, "Pairs of consecutive frames per iteration")
+      ->capture_default_str();
   command->callback([args] {
     const RerenderOptions o = RerenderOptionsFrom(*args);
     const std::filesystem::path out = args->shared.Out("rerender");
     Report report("train rerender");
     RerenderSummary summary = TrainRerender(args->shared.take, out, o, &report);
     PrintPlan(summary.plan);
-    std::printf("iterations   %lld in %.1f s\n", static_cast<long long>(summary.iterations), summary.seconds);
+    std::printf("iterations   %lld in %.1f s\n", static_cast<long long>(summary.iterations),
+                summary.seconds);
     std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
-    std::printf("held-out     PSNR %.2f dB (raw render %.2f dB), SSIM %.4f (raw %.4f)\n", summary.heldout_psnr_db,
-                summary.raw_render_psnr_db, summary.heldout_ssim, summary.raw_render_ssim);
-    std::printf("flicker      %.3f x truth's (raw render %.3f x)\n", summary.flicker_ratio, summary.raw_flicker_ratio);
+    std::printf("held-out     PSNR %.2f dB (raw render %.2f dB), SSIM %.4f (raw %.4f)\n",
+                summary.heldout_psnr_db, summary.raw_render_psnr_db, summary.heldout_ssim,
+                summary.raw_render_ssim);
+    std::printf("flicker      %.3f x truth's (raw render %.3f x)\n", summary.flicker_ratio,
+                summary.raw_flicker_ratio);
     std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
     EndCommand(summary, "training");
   });
 }
 
 void AddTrainCommand(CLI::App& app) {
-  auto* train = app.add_subcommand("train", "Learn an avatar from a calibrated take: `train nvol` or `train rerender`");
+  auto* train = app.add_subcommand(
+      "train", "Learn an avatar from a calibrated take: `train nvol` or `train rerender`");
   AddNvolCommand(train);
   AddRerenderCommand(train);
   // A word that names no method reaches `train` itself (the methods, added first, keep refusing
@@ -263,7 +329,8 @@ void AddTrainCommand(CLI::App& app) {
   train->parse_complete_callback([train] {
     if (!train->get_subcommands().empty()) return;
     const std::vector<std::string> extras = train->remaining();
-    if (extras.empty()) Fail("train needs a method: holocap train nvol TAKE or holocap train rerender TAKE");
+    if (extras.empty())
+      Fail("train needs a method: holocap train nvol TAKE or holocap train rerender TAKE");
     Fail("unknown training method '", extras.front(), "' (known: nvol, rerender)");
   });
 }

@@ -38,7 +38,7 @@ struct DemoContext {
   std::filesystem::path take;  // the simulated studio8 take of the walking subject
   int64_t frames = 0;
   uint64_t seed = 1;
-  Report* report = nullptr;    // out/demo/report.json: stages add metrics under their name
+  Report* report = nullptr;  // out/demo/report.json: stages add metrics under their name
 };
 struct DemoStage {
   int order;
@@ -51,8 +51,9 @@ struct DemoStageRegistrar {
     DemoStageTable().push_back({order, std::move(name), std::move(run)});
   }
 };
-#define HOLOCAP_DEMO_STAGE(order, name, run_function) \
-  static const ::holocap::DemoStageRegistrar run_function##_demo_registrar(order, name, run_function)
+#define HOLOCAP_DEMO_STAGE(order, name, run_function)                                   \
+  static const ::holocap::DemoStageRegistrar run_function##_demo_registrar(order, name, \
+                                                                           run_function)
 
 // Every driver compiled into this build, registered in DriverRegistry::Global().
 void RegisterBuiltinDrivers();

@@ -19,7 +19,8 @@ TakeSelection TakeSelectionFlags::Parse() const {
 }
 
 void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags) {
-  command->add_option("--frames", flags->frames, "Frame sets A:B (or A:, or A alone) after the clean plate (default: all)");
+  command->add_option("--frames", flags->frames,
+                      "Frame sets A:B (or A:, or A alone) after the clean plate (default: all)");
   command->add_option("--clean-plate", flags->clean_plate,
                       "Leading frame sets without the subject (default: from the take, else 0)");
   command->add_flag("--ground-truth-cameras", flags->ground_truth_cameras,
@@ -76,7 +77,8 @@ Box ParseBounds(const std::string& text, const char* option) {
       Fail(option, " must be six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got '", text, "'");
     }
   }
-  if (v.size() != 6) Fail(option, " must be six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got '", text, "'");
+  if (v.size() != 6)
+    Fail(option, " must be six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got '", text, "'");
   Box box;
   box.min = Eigen::Vector3d(v[0], v[1], v[2]);
   box.max = Eigen::Vector3d(v[3], v[4], v[5]);
@@ -84,7 +86,8 @@ Box ParseBounds(const std::string& text, const char* option) {
   return box;
 }
 
-void CheckNamingFlags(const std::function<void()>& check, const std::map<std::string, std::string>& flag_of_field) {
+void CheckNamingFlags(const std::function<void()>& check,
+                      const std::map<std::string, std::string>& flag_of_field) {
   try {
     check();
   } catch (const Error& e) {

@@ -37,7 +37,8 @@ Box ParseBounds(const std::string& text, const char* option = "--bounds");
 
 // Runs `check` (an Options::Check()); an Error whose message begins with a field name in
 // `flag_of_field` is rethrown beginning with the flag the user typed instead.
-void CheckNamingFlags(const std::function<void()>& check, const std::map<std::string, std::string>& flag_of_field);
+void CheckNamingFlags(const std::function<void()>& check,
+                      const std::map<std::string, std::string>& flag_of_field);
 
 // The one exit rule (core/report.h): prints "STATE: message", and for a state that is not
 // usable ends the command with one `holocap: error:` line (exit status 1).

@@ -3,7 +3,8 @@
 // stereoCalibrate, and mrcal's own mrcal-calibrate-cameras on the same corners (corners.vnl).
 //
 //   calibration_bench [--take DIR | --planned] [--frames 288] [--corner-noise 0.3] [--seed 1]
-//                     [--noise-seed 7] [--tags WxH] [--spacing M] [--true-corners] [--no-mrcal] [--no-peers]
+//                     [--noise-seed 7] [--tags WxH] [--spacing M] [--true-corners] [--no-mrcal]
+//                     [--no-peers]
 //                     [--lens-model CAMERA=MODEL]... [--width W]
 // Each camera is solved in the model its rig entry asks for (calib_lensmodel, else OPENCV8)
 // unless --lens-model names another.
@@ -64,7 +65,8 @@ std::map<int64_t, Pose> TrueBoardPoses(const Take& take) {
 double ProjectionDiffRms(const CameraModel& a, const CameraModel& b, double distance) {
   Eigen::Matrix2Xd pixels(2, 16 * 12);
   for (int k = 0; k < pixels.cols(); ++k) {
-    pixels.col(k) << ((k % 16) + 0.5) * a.width() / 16 - 0.5, ((k / 16) + 0.5) * a.height() / 12 - 0.5;
+    pixels.col(k) << ((k % 16) + 0.5) * a.width() / 16 - 0.5,
+        ((k / 16) + 0.5) * a.height() / 12 - 0.5;
   }
   const Eigen::Matrix3Xd ra = a.UnprojectMany(pixels), rb = b.UnprojectMany(pixels);
   Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
@@ -89,7 +91,8 @@ double ProjectionDiffRms(const CameraModel& a, const CameraModel& b, double dist
 // Observations of the planned board poses: the exact projections of the grid for every camera
 // that sees the whole board in its image, facing it, with grid spacing of at least 12 px (the
 // tags' decoding limit), as the detector would accept them.
-std::vector<BoardObservation> PlannedObservations(const Board& board, const std::vector<std::string>& sensors,
+std::vector<BoardObservation> PlannedObservations(const Board& board,
+                                                  const std::vector<std::string>& sensors,
                                                   const std::map<std::string, CameraModel>& truth,
                                                   const std::map<int64_t, Pose>& world_from_board) {
   std::vector<BoardObservation> observations;
@@ -109,8 +112,9 @@ std::vector<BoardObservation> PlannedObservations(const Board& board, const std:
       for (int r = 0; r < n && ok; ++r) {
         const int i = r % board.width_n(), j = r / board.width_n();
         Eigen::Vector2d q, qn;
-        ok = (view * board.GridPoint(i, j)).z() > 0.05 && cam.Project(view * board.GridPoint(i, j), &q) &&
-             cam.InImage(q, 2) && cam.Project(view * board.GridPoint(i == 0 ? 1 : i - 1, j), &qn);
+        ok = (view * board.GridPoint(i, j)).z() > 0.05 &&
+             cam.Project(view * board.GridPoint(i, j), &q) && cam.InImage(q, 2) &&
+             cam.Project(view * board.GridPoint(i == 0 ? 1 : i - 1, j), &qn);
         if (!ok) break;
         spacing = std::min(spacing, (qn - q).norm());
         obs.points.row(r) << q.x(), q.y(), 1.0;
@@ -134,27 +138,41 @@ int Run(int argc, char** argv) {
   std::map<std::string, std::string> lens_models;  // per camera, over the rig's choice
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
-    if (arg == "--take" && i + 1 < argc) take_dir = argv[++i];
-    else if (arg == "--frames" && i + 1 < argc) frames = std::atoi(argv[++i]);
-    else if (arg == "--seed" && i + 1 < argc) seed = std::strtoull(argv[++i], nullptr, 10);
-    else if (arg == "--noise-seed" && i + 1 < argc) noise_seed = std::strtoull(argv[++i], nullptr, 10);
-    else if (arg == "--corner-noise" && i + 1 < argc) corner_noise = std::atof(argv[++i]);
-    else if (arg == "--no-mrcal") mrcal = false;
-    else if (arg == "--no-peers") peers = mrcal = false;
-    else if (arg == "--planned") planned = true;
-    else if (arg == "--tags" && i + 1 < argc) tags = argv[++i];
-    else if (arg == "--spacing" && i + 1 < argc) spacing = std::atof(argv[++i]);
-    else if (arg == "--true-corners") true_corners = true;
-    else if (arg == "--width" && i + 1 < argc) width = std::atoi(argv[++i]);
+    if (arg == "--take" && i + 1 < argc)
+      take_dir = argv[++i];
+    else if (arg == "--frames" && i + 1 < argc)
+      frames = std::atoi(argv[++i]);
+    else if (arg == "--seed" && i + 1 < argc)
+      seed = std::strtoull(argv[++i], nullptr, 10);
+    else if (arg == "--noise-seed" && i + 1 < argc)
+      noise_seed = std::strtoull(argv[++i], nullptr, 10);
+    else if (arg == "--corner-noise" && i + 1 < argc)
+      corner_noise = std::atof(argv[++i]);
+    else if (arg == "--no-mrcal")
+      mrcal = false;
+    else if (arg == "--no-peers")
+      peers = mrcal = false;
+    else if (arg == "--planned")
+      planned = true;
+    else if (arg == "--tags" && i + 1 < argc)
+      tags = argv[++i];
+    else if (arg == "--spacing" && i + 1 < argc)
+      spacing = std::atof(argv[++i]);
+    else if (arg == "--true-corners")
+      true_corners = true;
+    else if (arg == "--width" && i + 1 < argc)
+      width = std::atoi(argv[++i]);
     else if (arg == "--lens-model" && i + 1 < argc) {
       const std::string value = argv[++i];
       const size_t eq = value.find('=');
       if (eq == std::string::npos) Fail("--lens-model takes CAMERA=MODEL, got '", value, "'");
       lens_models[value.substr(0, eq)] = value.substr(eq + 1);
     } else {
-      Fail("usage: calibration_bench [--take DIR | --planned] [--frames N] [--seed N] [--tags WxH] [--spacing M] "
-           "[--corner-noise PX] [--noise-seed N] [--true-corners] [--width W] "
-           "[--no-mrcal] [--no-peers] [--lens-model CAMERA=MODEL]...");
+      Fail(
+          "usage: calibration_bench [--take DIR | --planned] [--frames N] [--seed N] [--tags WxH] "
+          "[--spacing M] "
+          "[--corner-noise PX] [--noise-seed N] [--true-corners] [--width W] "
+          "[--no-mrcal] [--no-peers] [--lens-model CAMERA=MODEL]...");
     }
   }
   if (planned && !take_dir.empty()) Fail("--planned and --take exclude each other");
@@ -191,26 +209,32 @@ int Run(int argc, char** argv) {
       const auto& sensor = world.sensor(i);
       if (sensor.spec.role != SensorRole::kColor) continue;
       sensors.push_back(sensor.spec.name);
-      std::string model = sensor.spec.options.value("calib_lensmodel", std::string("LENSMODEL_OPENCV8"));
+      std::string model =
+          sensor.spec.options.value("calib_lensmodel", std::string("LENSMODEL_OPENCV8"));
       if (lens_models.count(sensor.spec.name)) model = lens_models.at(sensor.spec.name);
       cameras.push_back({sensor.spec.name, sensor.model.width(), sensor.model.height(), model});
       truth.emplace(sensor.spec.name, sensor.model);
     }
-    for (int64_t set = 0; set < frames; ++set) world_from_board[set] = world.scene().WorldFromBoard(set);
+    for (int64_t set = 0; set < frames; ++set)
+      world_from_board[set] = world.scene().WorldFromBoard(set);
     observations = PlannedObservations(Board(layout), sensors, truth, world_from_board);
     detection.frames = frames * static_cast<int64_t>(sensors.size());
     detection.views = static_cast<int64_t>(observations.size());
     for (const auto& obs : observations) ++detection.views_per_sensor[obs.sensor];
-    std::printf("planned studio8 board sequence (seed %llu): %d frame sets, true corners, nothing rendered\n",
-                static_cast<unsigned long long>(seed), frames);
+    std::printf(
+        "planned studio8 board sequence (seed %llu): %d frame sets, true corners, nothing "
+        "rendered\n",
+        static_cast<unsigned long long>(seed), frames);
   } else {
     const Take take = Take::Open(take_dir);
-    layout = BoardLayout::FromJson(nlohmann::json::parse(std::ifstream(take.gt_dir() / "board.json"))["layout"]);
+    layout = BoardLayout::FromJson(
+        nlohmann::json::parse(std::ifstream(take.gt_dir() / "board.json"))["layout"]);
     for (const auto& s : take.streams()) {
       if (s.role != SensorRole::kColor) continue;
       sensors.push_back(s.name);
-      cameras.push_back({s.name, s.width, s.height,
-                         lens_models.count(s.name) ? lens_models.at(s.name) : RigLensModel(take, s.name)});
+      cameras.push_back(
+          {s.name, s.width, s.height,
+           lens_models.count(s.name) ? lens_models.at(s.name) : RigLensModel(take, s.name)});
       truth.emplace(s.name, take.Camera(s.name, true));
     }
     observations = DetectBoardsInTake(take, layout, sensors, {}, &detection);
@@ -229,7 +253,8 @@ int Run(int argc, char** argv) {
       for (int r = 0; r < obs.points.rows(); ++r) {
         if (obs.points(r, 2) <= 0) continue;
         Eigen::Vector2d q;
-        if (!cam.Project(view * board.GridPoint(r % board.width_n(), r / board.width_n()), &q)) continue;
+        if (!cam.Project(view * board.GridPoint(r % board.width_n(), r / board.width_n()), &q))
+          continue;
         noise2 += (obs.points.row(r).head<2>().transpose() - q).squaredNorm();
         ++noise_n;
         if (replace) obs.points.row(r).head<2>() = q.transpose();
@@ -241,8 +266,10 @@ int Run(int argc, char** argv) {
   // mean radial component (outward +) by distance from the imager's centre, which shows a
   // bias under lens distortion.
   if (!planned) {
-    std::printf("detected corners against the truth, per camera: RMS, 99th percentile, mean radial error (px) "
-                "in 4 rings from the imager centre out\n");
+    std::printf(
+        "detected corners against the truth, per camera: RMS, 99th percentile, mean radial error "
+        "(px) "
+        "in 4 rings from the imager centre out\n");
     for (const auto& name : sensors) {
       const CameraModel& cam = truth.at(name);
       const Eigen::Vector2d centre(0.5 * (cam.width() - 1), 0.5 * (cam.height() - 1));
@@ -272,9 +299,11 @@ int Run(int argc, char** argv) {
       double sum2 = 0;
       for (double e : errors) sum2 += e * e;
       std::sort(errors.begin(), errors.end());
-      std::printf("  %s: %.3f px RMS, 99%% under %.3f px; radial", name.c_str(), std::sqrt(sum2 / errors.size()),
+      std::printf("  %s: %.3f px RMS, 99%% under %.3f px; radial", name.c_str(),
+                  std::sqrt(sum2 / errors.size()),
                   errors[static_cast<size_t>(0.99 * (errors.size() - 1))]);
-      for (int k = 0; k < 4; ++k) std::printf(" %+.3f (%d)", in_ring[k] ? radial[k] / in_ring[k] : NAN, in_ring[k]);
+      for (int k = 0; k < 4; ++k)
+        std::printf(" %+.3f (%d)", in_ring[k] ? radial[k] / in_ring[k] : NAN, in_ring[k]);
       std::printf("\n");
     }
   }
@@ -291,11 +320,15 @@ int Run(int argc, char** argv) {
     }
   }
   const double noise = measure_noise(false);
-  std::printf("detection: %lld views of %lld frames, %.1f frames/s, corners found to %.3f px per coordinate "
-              "against the truth%s; %.3f px added, %.3f px in all\n",
-              static_cast<long long>(detection.views), static_cast<long long>(detection.frames),
-              detection.frames_per_second, found_noise, true_corners ? " (replaced by the truth)" : "", added, noise);
-  for (const auto& [name, n] : detection.views_per_sensor) std::printf("  %s: %lld views\n", name.c_str(), static_cast<long long>(n));
+  std::printf(
+      "detection: %lld views of %lld frames, %.1f frames/s, corners found to %.3f px per "
+      "coordinate "
+      "against the truth%s; %.3f px added, %.3f px in all\n",
+      static_cast<long long>(detection.views), static_cast<long long>(detection.frames),
+      detection.frames_per_second, found_noise, true_corners ? " (replaced by the truth)" : "",
+      added, noise);
+  for (const auto& [name, n] : detection.views_per_sensor)
+    std::printf("  %s: %lld views\n", name.c_str(), static_cast<long long>(n));
 
   const auto start = std::chrono::steady_clock::now();
   const CalibrationSummary s = Calibrate(layout, cameras, observations, {});
@@ -304,35 +337,46 @@ int Run(int argc, char** argv) {
   std::printf("\nholocap: %s: %s\n", ToString(s.termination), s.message.c_str());
   for (const auto& note : s.notes) std::printf("  %s\n", note.c_str());
   for (const auto& stage : s.stages) {
-    std::printf("  stage %s (%s): %.3f px RMS, %d outliers, at %.1f s\n", stage.name.c_str(), stage.lensmodel.c_str(),
-                stage.rms_px, stage.outliers, stage.seconds);
+    std::printf("  stage %s (%s): %.3f px RMS, %d outliers, at %.1f s\n", stage.name.c_str(),
+                stage.lensmodel.c_str(), stage.rms_px, stage.outliers, stage.seconds);
   }
   std::printf("| figure | measured | target |\n|---|---|---|\n");
   std::printf("| RMS reprojection / corner noise | %.3f / %.3f px (%.1f%%) | within 20%% |\n",
               s.rms_reprojection_px, noise, 100 * (s.rms_reprojection_px / noise - 1));
   std::printf("| focal relative error, max | %.4f%% | <= 0.05%% |\n", 100 * g.focal_rel_err_max);
-  std::printf("| principal point error, max | %.3f px | <= 0.5 px |\n", g.principal_point_err_px_max);
-  std::printf("| rotation error, max (solved rig laid onto the true one) | %.4f deg (cam_from_reference: %.4f) | <= 0.02 deg |\n",
-              g.rotation_err_deg_max, g.rotation_err_deg_max_from_reference);
+  std::printf("| principal point error, max | %.3f px | <= 0.5 px |\n",
+              g.principal_point_err_px_max);
+  std::printf(
+      "| rotation error, max (solved rig laid onto the true one) | %.4f deg (cam_from_reference: "
+      "%.4f) | <= 0.02 deg |\n",
+      g.rotation_err_deg_max, g.rotation_err_deg_max_from_reference);
   std::printf("| translation error, max (same) | %.3f mm (cam_from_reference: %.3f) | <= 1 mm |\n",
               g.translation_err_mm_max, g.translation_err_mm_max_from_reference);
   std::printf("| true vs solved projection, RMS | %.3f px (where seen: %.3f px) | <= 0.2 px |\n",
               g.projection_diff_rms_px, g.projection_diff_rms_observed_px);
-  std::printf("| within 3x reported 1-sigma | %.1f%% | >= 90%% |\n", 100 * g.within_3sigma_fraction);
+  std::printf("| within 3x reported 1-sigma | %.1f%% | >= 90%% |\n",
+              100 * g.within_3sigma_fraction);
   std::printf("| solve (+ uncertainty) | %.1f s (+ %.1f s), %.1f s in all | <= 60 s on 2 cores |\n",
               s.solve_seconds, s.uncertainty_seconds, holocap_seconds);
-  for (const auto& [name, j] : g.per_camera) std::printf("  %s %s\n", name.c_str(), j.dump().c_str());
+  for (const auto& [name, j] : g.per_camera)
+    std::printf("  %s %s\n", name.c_str(), j.dump().c_str());
   // The errors against the solve's own 1-sigma (relative to the reference camera, the frame
   // the solve states its poses in): errors of a few sigma are the data's limit.
-  std::printf("\n| camera | focal err (1-sigma) | pp err px (1-sigma cx, cy) | rotation from ref err deg (1-sigma) | centre from ref err mm (1-sigma) |\n|---|---|---|---|---|\n");
+  std::printf(
+      "\n| camera | focal err (1-sigma) | pp err px (1-sigma cx, cy) | rotation from ref err deg "
+      "(1-sigma) | centre from ref err mm (1-sigma) |\n|---|---|---|---|---|\n");
   for (const auto& cam : s.cameras) {
     if (!cam.solved) continue;
-    const nlohmann::json pc = g.per_camera.count(cam.name) ? g.per_camera.at(cam.name) : nlohmann::json::object();
+    const nlohmann::json pc =
+        g.per_camera.count(cam.name) ? g.per_camera.at(cam.name) : nlohmann::json::object();
     const auto& sigma = cam.intrinsics_sigma;
-    const double f_sigma = sigma.size() >= 4 ? std::max(sigma[0] / cam.model.intrinsics()[0], sigma[1] / cam.model.intrinsics()[1]) : NAN;
-    std::printf("| %s | %.4f%% (%.4f%%) | %.3f (%.3f, %.3f) | %.4f (%.4f) | %.3f (%.3f) |\n", cam.name.c_str(),
-                100 * pc.value("focal_rel_err", NAN), 100 * f_sigma, pc.value("principal_point_err_px", NAN),
-                sigma.size() >= 4 ? sigma[2] : NAN, sigma.size() >= 4 ? sigma[3] : NAN,
+    const double f_sigma = sigma.size() >= 4 ? std::max(sigma[0] / cam.model.intrinsics()[0],
+                                                        sigma[1] / cam.model.intrinsics()[1])
+                                             : NAN;
+    std::printf("| %s | %.4f%% (%.4f%%) | %.3f (%.3f, %.3f) | %.4f (%.4f) | %.3f (%.3f) |\n",
+                cam.name.c_str(), 100 * pc.value("focal_rel_err", NAN), 100 * f_sigma,
+                pc.value("principal_point_err_px", NAN), sigma.size() >= 4 ? sigma[2] : NAN,
+                sigma.size() >= 4 ? sigma[3] : NAN,
                 pc.value("rotation_err_deg_from_reference", NAN), cam.rotation_sigma_deg,
                 pc.value("translation_err_mm_from_reference", NAN), cam.center_sigma_mm);
   }
@@ -340,7 +384,9 @@ int Run(int argc, char** argv) {
 
   // OpenCV on the same detections: one calibrateCamera per camera with the rational model
   // (the same 8 distortion terms as OPENCV8).
-  std::printf("\n| camera | holocap focal err | OpenCV focal err | holocap pp err | OpenCV pp err | OpenCV rms px | OpenCV s |\n|---|---|---|---|---|---|---|\n");
+  std::printf(
+      "\n| camera | holocap focal err | OpenCV focal err | holocap pp err | OpenCV pp err | OpenCV "
+      "rms px | OpenCV s |\n|---|---|---|---|---|---|---|\n");
   double opencv_seconds = 0;
   std::map<std::string, cv::Mat> opencv_K, opencv_dist;
   for (const auto& cam : cameras) {
@@ -362,22 +408,26 @@ int Run(int argc, char** argv) {
     cv::Mat K, dist;
     std::vector<cv::Mat> rvecs, tvecs;
     const auto t0 = std::chrono::steady_clock::now();
-    const double rms = cv::calibrateCamera(object, image, cv::Size(cam.width, cam.height), K, dist, rvecs, tvecs,
-                                           cv::CALIB_RATIONAL_MODEL);
+    const double rms = cv::calibrateCamera(object, image, cv::Size(cam.width, cam.height), K, dist,
+                                           rvecs, tvecs, cv::CALIB_RATIONAL_MODEL);
     const double seconds = Seconds(t0);
     opencv_seconds += seconds;
     opencv_K[cam.name] = K;
     opencv_dist[cam.name] = dist;
     const auto& t = truth.at(cam.name).intrinsics();
-    const double focal = std::max(std::abs(K.at<double>(0, 0) - t[0]) / t[0], std::abs(K.at<double>(1, 1) - t[1]) / t[1]);
+    const double focal = std::max(std::abs(K.at<double>(0, 0) - t[0]) / t[0],
+                                  std::abs(K.at<double>(1, 1) - t[1]) / t[1]);
     const double pp = std::hypot(K.at<double>(0, 2) - t[2], K.at<double>(1, 2) - t[3]);
-    const nlohmann::json pc = g.per_camera.count(cam.name) ? g.per_camera.at(cam.name) : nlohmann::json::object();
+    const nlohmann::json pc =
+        g.per_camera.count(cam.name) ? g.per_camera.at(cam.name) : nlohmann::json::object();
     std::printf("| %s | %.4f%% | %.4f%% | %.3f | %.3f | %.3f | %.2f |\n", cam.name.c_str(),
-                100 * pc.value("focal_rel_err", NAN), 100 * focal, pc.value("principal_point_err_px", NAN), pp,
-                rms / std::sqrt(2.0), seconds);
+                100 * pc.value("focal_rel_err", NAN), 100 * focal,
+                pc.value("principal_point_err_px", NAN), pp, rms / std::sqrt(2.0), seconds);
   }
-  std::printf("OpenCV calibrateCamera, 8 cameras one by one (no rig, no uncertainty): %.1f s; holocap joint solve: %.1f s; time ratio holocap/OpenCV %.2f\n",
-              opencv_seconds, holocap_seconds, holocap_seconds / opencv_seconds);
+  std::printf(
+      "OpenCV calibrateCamera, 8 cameras one by one (no rig, no uncertainty): %.1f s; holocap "
+      "joint solve: %.1f s; time ratio holocap/OpenCV %.2f\n",
+      opencv_seconds, holocap_seconds, holocap_seconds / opencv_seconds);
   // stereoCalibrate of the reference camera with its best-connected neighbour.
   {
     const std::string a = cameras[0].name;
@@ -387,7 +437,8 @@ int Run(int argc, char** argv) {
       size_t shared = 0;
       for (const auto& oa : observations) {
         if (oa.sensor != a) continue;
-        for (const auto& ob : observations) shared += ob.sensor == cameras[c].name && ob.frame_set == oa.frame_set;
+        for (const auto& ob : observations)
+          shared += ob.sensor == cameras[c].name && ob.frame_set == oa.frame_set;
       }
       if (shared > best) {
         best = shared;
@@ -419,10 +470,11 @@ int Run(int argc, char** argv) {
     if (object.size() >= 3) {
       cv::Mat R, T, E, F;
       const auto t0 = std::chrono::steady_clock::now();
-      cv::stereoCalibrate(object, ia, ib, opencv_K[a], opencv_dist[a], opencv_K[b], opencv_dist[b],
-                          cv::Size(cameras[0].width, cameras[0].height), R, T, E, F,
-                          // Without the rational flag it drops k4..k6 of the intrinsics it was given.
-                          cv::CALIB_FIX_INTRINSIC | cv::CALIB_RATIONAL_MODEL);
+      cv::stereoCalibrate(
+          object, ia, ib, opencv_K[a], opencv_dist[a], opencv_K[b], opencv_dist[b],
+          cv::Size(cameras[0].width, cameras[0].height), R, T, E, F,
+          // Without the rational flag it drops k4..k6 of the intrinsics it was given.
+          cv::CALIB_FIX_INTRINSIC | cv::CALIB_RATIONAL_MODEL);
       const double seconds = Seconds(t0);
       Pose b_from_a = Pose::Identity();
       for (int r = 0; r < 3; ++r) {
@@ -431,17 +483,23 @@ int Run(int argc, char** argv) {
       }
       const Pose true_b_from_a = truth.at(b).cam_from_world() * truth.at(a).world_from_cam();
       const Pose delta = b_from_a * true_b_from_a.inverse();
-      std::printf("OpenCV stereoCalibrate %s-%s (%zu shared views, %.2f s): rotation err %.4f deg, translation err %.3f mm; holocap %s from %s: %.4f deg, %.3f mm\n",
-                  a.c_str(), b.c_str(), object.size(), seconds, RotationAngleDeg(delta.linear()),
-                  1000 * (b_from_a.inverse().translation() - true_b_from_a.inverse().translation()).norm(), b.c_str(), a.c_str(),
-                  g.per_camera.count(b) ? g.per_camera.at(b).value("rotation_err_deg_from_reference", NAN) : NAN,
-                  g.per_camera.count(b) ? g.per_camera.at(b).value("translation_err_mm_from_reference", NAN) : NAN);
+      std::printf(
+          "OpenCV stereoCalibrate %s-%s (%zu shared views, %.2f s): rotation err %.4f deg, "
+          "translation err %.3f mm; holocap %s from %s: %.4f deg, %.3f mm\n",
+          a.c_str(), b.c_str(), object.size(), seconds, RotationAngleDeg(delta.linear()),
+          1000 * (b_from_a.inverse().translation() - true_b_from_a.inverse().translation()).norm(),
+          b.c_str(), a.c_str(),
+          g.per_camera.count(b) ? g.per_camera.at(b).value("rotation_err_deg_from_reference", NAN)
+                                : NAN,
+          g.per_camera.count(b) ? g.per_camera.at(b).value("translation_err_mm_from_reference", NAN)
+                                : NAN);
     }
   }
 
   if (!mrcal) return 0;
   // mrcal's own tool on the same corners.
-  const std::filesystem::path dir = std::filesystem::temp_directory_path() / "holocap-calibration-bench-mrcal";
+  const std::filesystem::path dir =
+      std::filesystem::temp_directory_path() / "holocap-calibration-bench-mrcal";
   std::filesystem::remove_all(dir);
   std::filesystem::create_directories(dir);
   {
@@ -449,7 +507,8 @@ int Run(int argc, char** argv) {
     vnl << "# filename x y level\n";
     for (const auto& obs : observations) {
       char name[64];
-      std::snprintf(name, sizeof(name), "frame%06lld-%s.png", static_cast<long long>(obs.frame_set), obs.sensor.c_str());
+      std::snprintf(name, sizeof(name), "frame%06lld-%s.png", static_cast<long long>(obs.frame_set),
+                    obs.sensor.c_str());
       for (int r = 0; r < obs.points.rows(); ++r) {
         if (obs.points(r, 2) > 0) {
           vnl << name << " " << obs.points(r, 0) << " " << obs.points(r, 1) << " 0\n";
@@ -468,34 +527,45 @@ int Run(int argc, char** argv) {
     for (const auto& obs : observations) {
       if (obs.sensor != cam.name) continue;
       char name[64];
-      std::snprintf(name, sizeof(name), "frame%06lld-%s.png", static_cast<long long>(obs.frame_set), obs.sensor.c_str());
+      std::snprintf(name, sizeof(name), "frame%06lld-%s.png", static_cast<long long>(obs.frame_set),
+                    obs.sensor.c_str());
       cv::imwrite((dir / name).string(), blank);
     }
-    focals += (focals.empty() ? "" : ",") + std::to_string(truth.at(cam.name).intrinsics()[0] * 0.9);
+    focals +=
+        (focals.empty() ? "" : ",") + std::to_string(truth.at(cam.name).intrinsics()[0] * 0.9);
   }
-  std::string command = "cd " + dir.string() + " && /usr/bin/python3 /usr/bin/mrcal-calibrate-cameras --corners-cache corners.vnl --lensmodel LENSMODEL_OPENCV8 --focal " +
-                        focals + " --object-spacing " + std::to_string(layout.spacing) + " --object-width-n " + std::to_string(board.width_n()) +
-                        " --object-height-n " + std::to_string(board.height_n()) + " --outdir " + dir.string();
+  std::string command = "cd " + dir.string() +
+                        " && /usr/bin/python3 /usr/bin/mrcal-calibrate-cameras --corners-cache "
+                        "corners.vnl --lensmodel LENSMODEL_OPENCV8 --focal " +
+                        focals + " --object-spacing " + std::to_string(layout.spacing) +
+                        " --object-width-n " + std::to_string(board.width_n()) +
+                        " --object-height-n " + std::to_string(board.height_n()) + " --outdir " +
+                        dir.string();
   for (const auto& cam : cameras) command += " 'frame*-" + cam.name + ".png'";
   command += " > mrcal.log 2>&1";
   const auto t0 = std::chrono::steady_clock::now();
   const int rc = std::system(command.c_str());
   const double mrcal_seconds = Seconds(t0);
   if (rc != 0) {
-    std::printf("mrcal-calibrate-cameras failed (exit %d): see %s\n", rc, (dir / "mrcal.log").c_str());
+    std::printf("mrcal-calibrate-cameras failed (exit %d): see %s\n", rc,
+                (dir / "mrcal.log").c_str());
     return 0;
   }
-  std::printf("\nmrcal-calibrate-cameras on the same corners: %.1f s (holocap %.1f s, ratio %.2f)\n",
-              mrcal_seconds, holocap_seconds, holocap_seconds / mrcal_seconds);
-  std::printf("| camera | holocap vs mrcal projection diff (px RMS, implied rotation fitted) | holocap 1-sigma mean / worst where seen (px) | within? |\n|---|---|---|---|\n");
+  std::printf(
+      "\nmrcal-calibrate-cameras on the same corners: %.1f s (holocap %.1f s, ratio %.2f)\n",
+      mrcal_seconds, holocap_seconds, holocap_seconds / mrcal_seconds);
+  std::printf(
+      "| camera | holocap vs mrcal projection diff (px RMS, implied rotation fitted) | holocap "
+      "1-sigma mean / worst where seen (px) | within? |\n|---|---|---|---|\n");
   for (size_t c = 0; c < cameras.size(); ++c) {
     const CalibratedCamera* mine = s.Find(cameras[c].name);
     const std::filesystem::path file = dir / ("camera-" + std::to_string(c) + ".cameramodel");
     if (mine == nullptr || !mine->solved || !std::filesystem::exists(file)) continue;
     const CameraModel theirs = CameraModel::Read(file);
     const double diff = ProjectionDiffRms(mine->model, theirs, mine->uncertainty.distance_m);
-    std::printf("| %s | %.3f | %.3f / %.3f | %s |\n", cameras[c].name.c_str(), diff, mine->uncertainty.mean_px,
-                mine->uncertainty.worst_observed_px, diff <= 3 * mine->uncertainty.mean_px ? "yes" : "no");
+    std::printf("| %s | %.3f | %.3f / %.3f | %s |\n", cameras[c].name.c_str(), diff,
+                mine->uncertainty.mean_px, mine->uncertainty.worst_observed_px,
+                diff <= 3 * mine->uncertainty.mean_px ? "yes" : "no");
   }
   return 0;
 }

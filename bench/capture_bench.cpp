@@ -39,11 +39,13 @@ double DiskWriteMBs(const std::filesystem::path& dir, size_t bytes) {
   int fd = open(file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
   if (fd < 0) Fail("cannot write ", file.string(), ": ", std::strerror(errno));
   for (size_t done = 0; done < bytes; done += block.size()) {
-    if (write(fd, block.data(), block.size()) != static_cast<ssize_t>(block.size())) Fail("disk probe write failed");
+    if (write(fd, block.data(), block.size()) != static_cast<ssize_t>(block.size()))
+      Fail("disk probe write failed");
   }
   fsync(fd);
   close(fd);
-  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   std::filesystem::remove(file);
   return static_cast<double>(bytes) / 1e6 / seconds;
 }
@@ -75,22 +77,27 @@ int main(int argc, char** argv) {
     std::filesystem::remove_all(out);
     std::filesystem::create_directories(out);
     const double disk = DiskWriteMBs(out, size_t{1} << 30);
-    std::printf("disk sequential write (1 GiB, 8 MiB blocks, fsync): %.0f MB/s  [%s]\n\n", disk, out.c_str());
+    std::printf("disk sequential write (1 GiB, 8 MiB blocks, fsync): %.0f MB/s  [%s]\n\n", disk,
+                out.c_str());
 
     DriverRegistry registry;
     RegisterAravisDriver(registry);
-    const std::vector<Config> configs = {
-        {"arv", 0, 0, "ramp", 8, 256, 256, 25, "zstd"},     {"arv", 0, 0, "ramp", 8, 256, 256, 30, "zstd"},
-        {"hc", 100, 0, "ramp", 8, 256, 256, 30, "zstd"},    {"hc", 100, 20, "ramp", 8, 256, 256, 30, "zstd"},
-        {"hc-la", 100, 20, "ramp", 8, 128, 64, 30, "zstd"}, {"hc", 100, 0, "noise", 8, 512, 512, 30, "zstd"},
-        {"hc", 100, 0, "noise", 8, 1024, 768, 30, "zstd"},  {"hc", 100, 0, "noise", 8, 1024, 768, 30, "png"}};
-    std::printf("%-5s %-4s %-5s %-4s %-9s %-4s %-5s %8s %10s %8s %11s %7s %8s %8s %9s %8s\n", "peer", "loss", "frame",
-                "cams", "size", "fps", "codec", "rig MB/s", "write MB/s", "vs disk", "sets/trig", "lost", "resends",
-                "resent", "spread ms", "mean ms");
+    const std::vector<Config> configs = {{"arv", 0, 0, "ramp", 8, 256, 256, 25, "zstd"},
+                                         {"arv", 0, 0, "ramp", 8, 256, 256, 30, "zstd"},
+                                         {"hc", 100, 0, "ramp", 8, 256, 256, 30, "zstd"},
+                                         {"hc", 100, 20, "ramp", 8, 256, 256, 30, "zstd"},
+                                         {"hc-la", 100, 20, "ramp", 8, 128, 64, 30, "zstd"},
+                                         {"hc", 100, 0, "noise", 8, 512, 512, 30, "zstd"},
+                                         {"hc", 100, 0, "noise", 8, 1024, 768, 30, "zstd"},
+                                         {"hc", 100, 0, "noise", 8, 1024, 768, 30, "png"}};
+    std::printf("%-5s %-4s %-5s %-4s %-9s %-4s %-5s %8s %10s %8s %11s %7s %8s %8s %9s %8s\n",
+                "peer", "loss", "frame", "cams", "size", "fps", "codec", "rig MB/s", "write MB/s",
+                "vs disk", "sets/trig", "lost", "resends", "resent", "spread ms", "mean ms");
     double best_zero_drop = 0, best_nearly = 0;
     std::string best_text = "none", best_nearly_text = "none";
     for (const Config& config : configs) {
-      testing::FakeGigeCameras cameras(config.cameras, config.lost_per_thousand, config.tick_hz, config.pattern,
+      testing::FakeGigeCameras cameras(config.cameras, config.lost_per_thousand, config.tick_hz,
+                                       config.pattern,
                                        config.peer == "hc-la" ? "libaravis" : "holocap");
       RigDescription rig;
       rig.name = "fake-booth";
@@ -130,20 +137,22 @@ int main(int argc, char** argv) {
         resent += sensor.driver.value("n_resent_packets", int64_t{0});
       }
       const double rig_mb_s = config.cameras * config.width * config.height * config.fps / 1e6;
-      std::printf("%-5s %-4d %-5s %-4d %4dx%-4d %-4.0f %-5s %8.1f %10.2f %7.2f%% %5lld/%-5lld %7lld %8lld %8lld %9.2f %8.2f%s\n",
-                  config.peer.c_str(), config.lost_per_thousand, config.pattern.c_str(), config.cameras,
-                  config.width,
-                  config.height, config.fps, config.codec.c_str(), rig_mb_s, summary.write_mb_s,
-                  100.0 * summary.write_mb_s / disk, static_cast<long long>(summary.frame_sets_complete),
-                  static_cast<long long>(triggers), static_cast<long long>(summary.frames_dropped),
-                  static_cast<long long>(resends), static_cast<long long>(resent), summary.sync_spread_us_max / 1e3,
-                  summary.sync_spread_us_mean / 1e3,
-                  summary.termination == Termination::kSuccess ? "" : ("  " + summary.message).c_str());
+      std::printf(
+          "%-5s %-4d %-5s %-4d %4dx%-4d %-4.0f %-5s %8.1f %10.2f %7.2f%% %5lld/%-5lld %7lld %8lld "
+          "%8lld %9.2f %8.2f%s\n",
+          config.peer.c_str(), config.lost_per_thousand, config.pattern.c_str(), config.cameras,
+          config.width, config.height, config.fps, config.codec.c_str(), rig_mb_s,
+          summary.write_mb_s, 100.0 * summary.write_mb_s / disk,
+          static_cast<long long>(summary.frame_sets_complete), static_cast<long long>(triggers),
+          static_cast<long long>(summary.frames_dropped), static_cast<long long>(resends),
+          static_cast<long long>(resent), summary.sync_spread_us_max / 1e3,
+          summary.sync_spread_us_mean / 1e3,
+          summary.termination == Termination::kSuccess ? "" : ("  " + summary.message).c_str());
       std::fflush(stdout);
       char text[160];
-      std::snprintf(text, sizeof(text), "%d x %dx%d x %.0f fps = %.1f MB/s (%s, %s, %s frames)", config.cameras,
-                    config.width, config.height, config.fps, rig_mb_s, config.codec.c_str(), config.peer.c_str(),
-                    config.pattern.c_str());
+      std::snprintf(text, sizeof(text), "%d x %dx%d x %.0f fps = %.1f MB/s (%s, %s, %s frames)",
+                    config.cameras, config.width, config.height, config.fps, rig_mb_s,
+                    config.codec.c_str(), config.peer.c_str(), config.pattern.c_str());
       const bool ok = summary.termination == Termination::kSuccess;
       if (ok && summary.frames_dropped == 0 && rig_mb_s > best_zero_drop) {
         best_zero_drop = rig_mb_s;
@@ -151,14 +160,16 @@ int main(int argc, char** argv) {
       }
       // The fake cameras now and then acknowledge a trigger and send nothing for it (a set or a
       // few in 1800 on a loaded two-core host), so the zero-drop line has a companion.
-      if (ok && triggers > 0 && summary.frame_sets_complete * 1000 >= triggers * 995 && rig_mb_s > best_nearly) {
+      if (ok && triggers > 0 && summary.frame_sets_complete * 1000 >= triggers * 995 &&
+          rig_mb_s > best_nearly) {
         best_nearly = rig_mb_s;
         best_nearly_text = text;
       }
       std::filesystem::remove_all(take);
     }
     std::printf("\nlargest rig rate recorded with zero drops: %s\n", best_text.c_str());
-    std::printf("largest rig rate with at least 99.5%% of triggered sets complete: %s\n", best_nearly_text.c_str());
+    std::printf("largest rig rate with at least 99.5%% of triggered sets complete: %s\n",
+                best_nearly_text.c_str());
   } catch (const std::exception& e) {
     std::fprintf(stderr, "capture_bench: %s\n", e.what());
     return 1;

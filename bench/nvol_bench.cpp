@@ -2,9 +2,11 @@
 // (and, with --dino, on Middlebury's dinoSparseRing as a static scene), then playback speed of
 // the trained model at 512² with and without empty-space skipping. Prints tables; never
 // passes or fails on time. Usage:
-//   nvol_bench [--minutes 30] [--grid 64] [--frames 30] [--width 160] [--sim-width 320] [--rays 16384]
+//   nvol_bench [--minutes 30] [--grid 64] [--frames 30] [--width 160] [--sim-width 320] [--rays
+//   16384]
 //              [--work /tmp/nvol-bench] [--dino] [--dino-only] [--dino-minutes 5]
-//   nvol_bench --playback-only --model DIR [--work /tmp/nvol-bench]   (playback table of a trained model)
+//   nvol_bench --playback-only --model DIR [--work /tmp/nvol-bench]   (playback table of a trained
+//   model)
 #include <CLI/CLI.hpp>
 #include <cstdio>
 #include <filesystem>
@@ -12,8 +14,8 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
-#include "interop/interop.h"
 #include "core/report.h"
+#include "interop/interop.h"
 #include "neural/neural.h"
 #include "playback/playback.h"
 #include "sim/sim.h"
@@ -24,7 +26,8 @@ namespace fs = std::filesystem;
 using namespace holocap;
 
 void PrintSeries(const Report& report) {
-  std::printf("%8s %7s %14s %14s %8s %10s\n", "t_s", "iter", "heldout_psnr", "subject_psnr", "ssim", "fog_alpha");
+  std::printf("%8s %7s %14s %14s %8s %10s\n", "t_s", "iter", "heldout_psnr", "subject_psnr", "ssim",
+              "fog_alpha");
   const auto& series = report.json()["series"];
   for (size_t i = 0; i < series.size(); ++i) {
     if (series[i]["metric"] != "heldout_psnr_db") continue;
@@ -42,8 +45,16 @@ void PrintSeries(const Report& report) {
 
 // The loss terms and drifts logged every 10 iterations, at about `rows` iterations.
 void PrintTerms(const Report& report, int rows) {
-  const char* names[] = {"loss", "loss_alpha_prior", "loss_tv", "loss_silhouette", "loss_kl", "warp_voxels",
-                         "train_alpha_inside", "train_alpha_outside", "gain_drift", "bias_drift"};
+  const char* names[] = {"loss",
+                         "loss_alpha_prior",
+                         "loss_tv",
+                         "loss_silhouette",
+                         "loss_kl",
+                         "warp_voxels",
+                         "train_alpha_inside",
+                         "train_alpha_outside",
+                         "gain_drift",
+                         "bias_drift"};
   std::map<std::string, std::map<int64_t, double>> values;
   int64_t last = 0;
   for (const auto& point : report.json()["series"]) {
@@ -56,8 +67,8 @@ void PrintTerms(const Report& report, int rows) {
     }
   }
   if (values["loss"].empty()) return;
-  std::printf("%7s %10s %10s %10s %10s %10s %8s %8s %8s %8s %8s\n", "iter", "photo", "prior", "tv", "silhouette", "kl",
-              "warp_vx", "a_in", "a_out", "gain_d", "bias_d");
+  std::printf("%7s %10s %10s %10s %10s %10s %8s %8s %8s %8s %8s\n", "iter", "photo", "prior", "tv",
+              "silhouette", "kl", "warp_vx", "a_in", "a_out", "gain_d", "bias_d");
   const int64_t stride = std::max<int64_t>(10, (last / rows + 9) / 10 * 10);
   for (const auto& [iter, photo] : values["loss"]) {
     if (iter % stride != 0 && iter != last) continue;
@@ -66,19 +77,23 @@ void PrintTerms(const Report& report, int rows) {
       return it == values[name].end() ? 0.0 : it->second;
     };
     std::printf("%7lld %10.5f %10.5f %10.6f %10.5f %10.3f %8.3f %8.3f %8.3f %8.3f %8.3f\n",
-                static_cast<long long>(iter), photo, at("loss_alpha_prior"), at("loss_tv"), at("loss_silhouette"), at("loss_kl"),
-                at("warp_voxels"), at("train_alpha_inside"), at("train_alpha_outside"), at("gain_drift"),
-                at("bias_drift"));
+                static_cast<long long>(iter), photo, at("loss_alpha_prior"), at("loss_tv"),
+                at("loss_silhouette"), at("loss_kl"), at("warp_voxels"), at("train_alpha_inside"),
+                at("train_alpha_outside"), at("gain_drift"), at("bias_drift"));
   }
 }
 
 void PlaybackTable(const fs::path& model_dir, const fs::path& out) {
   auto model = OpenModel(model_dir);
   const int kViews = 24;
-  std::printf("\nplayback of %s at 512x512, %d-view orbit (PNG writing excluded)\n", model_dir.c_str(), kViews);
-  std::printf("frame 0: decoded once before the orbit; sequence: frame i at view i, decoded (and baked) per view\n");
+  std::printf("\nplayback of %s at 512x512, %d-view orbit (PNG writing excluded)\n",
+              model_dir.c_str(), kViews);
+  std::printf(
+      "frame 0: decoded once before the orbit; sequence: frame i at view i, decoded (and baked) "
+      "per view\n");
   std::printf("baked: bake_scale %.1f (the default)\n", ViewRenderOptions{}.bake_scale);
-  std::printf("%-16s %-9s %-9s %8s %12s %9s\n", "sampling", "frames", "skipping", "fps", "samples/ray", "ms/view");
+  std::printf("%-16s %-9s %-9s %8s %12s %9s\n", "sampling", "frames", "skipping", "fps",
+              "samples/ray", "ms/view");
   struct Row {
     bool bake, sequence, skip;
   };
@@ -115,8 +130,10 @@ void PlaybackTable(const fs::path& model_dir, const fs::path& out) {
   ViewRenderOptions direct_options;
   direct_options.bake = false;
   std::vector<RenderedView> direct;
-  for (size_t i = 0; i < path.size(); ++i) direct.push_back(model->Render(path.cameras[i], 0, direct_options));
-  std::printf("baked against warp+template, 4 views of frame 0 (colour and alpha where either covers):\n");
+  for (size_t i = 0; i < path.size(); ++i)
+    direct.push_back(model->Render(path.cameras[i], 0, direct_options));
+  std::printf(
+      "baked against warp+template, 4 views of frame 0 (colour and alpha where either covers):\n");
   std::printf("%-12s %10s %10s %16s\n", "bake_scale", "min PSNR", "max abs", "1st view ms (*)");
   for (double scale : {1.0, 1.5, 2.0}) {
     ViewRenderOptions options;
@@ -137,7 +154,9 @@ void PlaybackTable(const fs::path& model_dir, const fs::path& out) {
     }
     std::printf("%-12.1f %7.1f dB %10.4f %16.0f\n", scale, worst_psnr, worst_abs, first_ms);
   }
-  std::printf("(*) the first view of frame 0 after another frame: decode, bake at that resolution, render (a one-frame model: render only)\n");
+  std::printf(
+      "(*) the first view of frame 0 after another frame: decode, bake at that resolution, render "
+      "(a one-frame model: render only)\n");
 }
 
 }  // namespace
@@ -147,8 +166,10 @@ int main(int argc, char** argv) {
   double minutes = 30, dino_minutes = 5;
   int grid = 64, frames = 30, width = 160, sim_width = 320, rays = 16384;
   NeuralVolumeOptions defaults;
-  int latent = defaults.latent_dim, channels = defaults.decoder_channels, warp_grid = defaults.warp_grid;
-  double lr = defaults.learning_rate, tv = defaults.tv_weight, template_lr = defaults.template_learning_rate;
+  int latent = defaults.latent_dim, channels = defaults.decoder_channels,
+      warp_grid = defaults.warp_grid;
+  double lr = defaults.learning_rate, tv = defaults.tv_weight,
+         template_lr = defaults.template_learning_rate;
   bool playback = true;
   std::string work = "/tmp/nvol-bench", take_option;
   bool dino = false, dino_only = false;
@@ -157,7 +178,9 @@ int main(int argc, char** argv) {
   app.add_option("--grid", grid, "RGBA grid side");
   app.add_option("--frames", frames, "Frame sets of the simulated take");
   app.add_option("--width", width, "Training image width");
-  app.add_option("--rays", rays, "Rays per batch of the dynamic take (the decoder, not the marcher, sets the step time)");
+  app.add_option(
+      "--rays", rays,
+      "Rays per batch of the dynamic take (the decoder, not the marcher, sets the step time)");
   app.add_option("--sim-width", sim_width, "Simulated image width");
   app.add_option("--work", work, "Working directory (takes and models are kept)");
   app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
@@ -172,11 +195,13 @@ int main(int argc, char** argv) {
   app.add_option("--tv", tv, "Total-variation weight of the grid");
   double kl = defaults.kl_weight;
   app.add_option("--kl", kl, "KL weight of the latent");
-  app.add_option("--template-lr", template_lr, "Adam learning rate of the template's residual grid");
+  app.add_option("--template-lr", template_lr,
+                 "Adam learning rate of the template's residual grid");
   app.add_flag("!--no-playback", playback, "Skip the playback table");
   bool playback_only = false;
   std::string model_option;
-  app.add_flag("--playback-only", playback_only, "Only the playback table of the model given by --model");
+  app.add_flag("--playback-only", playback_only,
+               "Only the playback table of the model given by --model");
   app.add_option("--model", model_option, "Trained model directory (with --playback-only)");
   CLI11_PARSE(app, argc, argv);
   const fs::path root = work;
@@ -198,8 +223,9 @@ int main(int argc, char** argv) {
   if (!dino_only) {
     if (scene == "object") frames = 1;
     const fs::path take = take_option.empty()
-        ? root / ("studio8-" + scene + "-" + std::to_string(frames) + "-" + std::to_string(sim_width))
-        : fs::path(take_option);
+                              ? root / ("studio8-" + scene + "-" + std::to_string(frames) + "-" +
+                                        std::to_string(sim_width))
+                              : fs::path(take_option);
     if (!fs::exists(take / "take.json")) {
       SimOptions sim;
       sim.rig = "studio8";
@@ -235,12 +261,14 @@ int main(int argc, char** argv) {
     PrintTerms(report, 20);
     std::printf("%s: %s\nloss %.5f -> %.5f, %lld iterations, %.1f samples/ray (skipping on)\n",
                 ToString(summary.termination), summary.message.c_str(), summary.first_loss,
-                summary.last_loss, static_cast<long long>(summary.iterations), summary.samples_per_ray);
+                summary.last_loss, static_cast<long long>(summary.iterations),
+                summary.samples_per_ray);
     if (playback) PlaybackTable(model, root / "playback");
   }
 
   if (dino || dino_only) {
-    const fs::path source = fs::path(HOLOCAP_TEST_DATA_DIR) / "middlebury" / "dinoSparseRing" / "dinoSR_par.txt";
+    const fs::path source =
+        fs::path(HOLOCAP_TEST_DATA_DIR) / "middlebury" / "dinoSparseRing" / "dinoSR_par.txt";
     const fs::path take = root / "dino";
     if (!fs::exists(take / "take.json")) {
       ImportOptions import;
@@ -257,7 +285,8 @@ int main(int argc, char** argv) {
     Report report("nvol_bench_dino");
     const fs::path model = root / "model-dino";
     NeuralVolumeSummary summary = TrainNeuralVolume(take, model, options, &report);
-    std::printf("\ndinoSparseRing (static), 15 views trained, 1 held out, grid %d³, 320px wide\n", grid);
+    std::printf("\ndinoSparseRing (static), 15 views trained, 1 held out, grid %d³, 320px wide\n",
+                grid);
     std::printf("plan: %s\n", summary.plan.dump().c_str());
     PrintSeries(report);
     std::printf("%s: %s\n", ToString(summary.termination), summary.message.c_str());

@@ -15,10 +15,10 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
-#include "interop/interop.h"
 #include "core/error.h"
 #include "core/mesh.h"
 #include "core/take.h"
+#include "interop/interop.h"
 #include "reconstruction/reconstruction.h"
 #include "sim/sim.h"
 
@@ -51,8 +51,8 @@ struct DepthInput {
 // The same depth seen through a pinhole with the lens's fx, fy, cx, cy (nearest sample).
 DepthInput ToPinhole(const DepthInput& in) {
   const auto& k = in.camera.intrinsics();
-  CameraModel pinhole("LENSMODEL_PINHOLE", {k[0], k[1], k[2], k[3]}, in.camera.width(), in.camera.height(),
-                      in.camera.cam_from_world());
+  CameraModel pinhole("LENSMODEL_PINHOLE", {k[0], k[1], k[2], k[3]}, in.camera.width(),
+                      in.camera.height(), in.camera.cam_from_world());
   const int w = in.camera.width(), h = in.camera.height();
   Eigen::Matrix3Xd rays(3, w * h);
   for (int y = 0; y < h; ++y)
@@ -60,8 +60,10 @@ DepthInput ToPinhole(const DepthInput& in) {
   Eigen::Matrix2Xd source = in.camera.ProjectMany(rays);
   cv::Mat out(h, w, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
   for (int i = 0; i < w * h; ++i) {
-    int sx = static_cast<int>(std::lround(source(0, i))), sy = static_cast<int>(std::lround(source(1, i)));
-    if (sx >= 0 && sy >= 0 && sx < w && sy < h) out.at<float>(i / w, i % w) = in.depth.at<float>(sy, sx);
+    int sx = static_cast<int>(std::lround(source(0, i))),
+        sy = static_cast<int>(std::lround(source(1, i)));
+    if (sx >= 0 && sy >= 0 && sx < w && sy < h)
+      out.at<float>(i / w, i % w) = in.depth.at<float>(sy, sx);
   }
   return {pinhole, out};
 }
@@ -74,19 +76,21 @@ struct BenchFrame {
   std::function<bool(const Eigen::Vector3d&)> outer;  // the union's surface, not buried faces
 };
 
-void PrintErrors(const char* label, double voxel, double integrate_s, double mesh_s, size_t triangles,
-                 const SurfaceErrors& all, const SurfaceErrors& seen, const std::string& extra = "") {
-  std::printf("%-22s %6.1f %11.4f %8.3f %9zu %9.2f %9.2f %9.2f %9.2f %7.3f %s\n", label, voxel * 1e3, integrate_s,
-              mesh_s, triangles, all.chamfer_mm, all.accuracy_mm, all.completeness_mm, seen.chamfer_mm, seen.fscore,
-              extra.c_str());
+void PrintErrors(const char* label, double voxel, double integrate_s, double mesh_s,
+                 size_t triangles, const SurfaceErrors& all, const SurfaceErrors& seen,
+                 const std::string& extra = "") {
+  std::printf("%-22s %6.1f %11.4f %8.3f %9zu %9.2f %9.2f %9.2f %9.2f %7.3f %s\n", label,
+              voxel * 1e3, integrate_s, mesh_s, triangles, all.chamfer_mm, all.accuracy_mm,
+              all.completeness_mm, seen.chamfer_mm, seen.fscore, extra.c_str());
 }
 
-const char* kHeader =
-    "%-22s %6s %11s %8s %9s %9s %9s %9s %9s %7s %s\n";
+const char* kHeader = "%-22s %6s %11s %8s %9s %9s %9s %9s %9s %7s %s\n";
 
-void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::path& work, bool peer, bool sweep) {
-  auto run_holocap = [&](const std::vector<std::vector<DepthInput>>& inputs, TsdfOptions options, double* integrate_s,
-                         double* mesh_s, std::vector<Mesh>* meshes, size_t* blocks, double* memory_mb) {
+void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::path& work,
+                  bool peer, bool sweep) {
+  auto run_holocap = [&](const std::vector<std::vector<DepthInput>>& inputs, TsdfOptions options,
+                         double* integrate_s, double* mesh_s, std::vector<Mesh>* meshes,
+                         size_t* blocks, double* memory_mb) {
     options.threads = threads;
     *integrate_s = *mesh_s = 0;
     *blocks = 0;
@@ -131,10 +135,12 @@ void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::
     std::printf("one-time projection tables for 4 lenses: %.2f s\n\n", Now() - t0);
   }
   if (peer) {
-    std::printf("== TSDF: holocap vs Open3D ScalableTSDFVolume, %zu frame(s) x %zu depth maps, pinhole, %d threads\n",
-                frames.size(), frames[0].depth.size(), threads);
-    std::printf(kHeader, "method", "voxmm", "integr_s/fr", "mesh_s", "triangles", "chamfer", "accuracy", "complete",
-                "seen_ch", "F@5seen", "");
+    std::printf(
+        "== TSDF: holocap vs Open3D ScalableTSDFVolume, %zu frame(s) x %zu depth maps, pinhole, %d "
+        "threads\n",
+        frames.size(), frames[0].depth.size(), threads);
+    std::printf(kHeader, "method", "voxmm", "integr_s/fr", "mesh_s", "triangles", "chamfer",
+                "accuracy", "complete", "seen_ch", "F@5seen", "");
     for (double voxel : {0.008, 0.004}) {
       TsdfOptions plain;
       plain.voxel_m = voxel;
@@ -143,7 +149,8 @@ void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::
       TsdfOptions full = plain;
       full.smoothing_radius_px = TsdfOptions{}.smoothing_radius_px;
       full.max_incidence_deg = TsdfOptions{}.max_incidence_deg;
-      for (auto [label, options] : {std::pair{"holocap (plain)", plain}, std::pair{"holocap (filtered)", full}}) {
+      for (auto [label, options] :
+           {std::pair{"holocap (plain)", plain}, std::pair{"holocap (filtered)", full}}) {
         double integrate_s, mesh_s, memory;
         size_t blocks;
         std::vector<Mesh> meshes;
@@ -171,18 +178,26 @@ void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::
           for (int r = 0; r < 4; ++r)
             for (int c = 0; c < 4; ++c) rows.push_back(m(r, c));
           const auto& k = d.camera.intrinsics();
-          spec["frames"].push_back({{"file", file}, {"width", d.depth.cols}, {"height", d.depth.rows}, {"fx", k[0]},
-                                    {"fy", k[1]}, {"cx", k[2]}, {"cy", k[3]}, {"cam_from_world", rows}});
+          spec["frames"].push_back({{"file", file},
+                                    {"width", d.depth.cols},
+                                    {"height", d.depth.rows},
+                                    {"fx", k[0]},
+                                    {"fy", k[1]},
+                                    {"cx", k[2]},
+                                    {"cy", k[3]},
+                                    {"cam_from_world", rows}});
         }
         std::ofstream(dir / "frames.json") << spec.dump();
         std::string command = "OMP_NUM_THREADS=" + std::to_string(threads) + " /usr/bin/python3 '" +
-                              std::string(HOLOCAP_BENCH_DIR) + "/open3d_tsdf.py' '" + dir.string() + "' " +
-                              std::to_string(voxel) + " '" + (dir / "mesh.ply").string() + "'";
+                              std::string(HOLOCAP_BENCH_DIR) + "/open3d_tsdf.py' '" + dir.string() +
+                              "' " + std::to_string(voxel) + " '" + (dir / "mesh.ply").string() +
+                              "'";
         FILE* pipe = popen(command.c_str(), "r");
         char line[256] = {};
         double a = 0, b = 0;
         long triangles = 0;
-        while (pipe && std::fgets(line, sizeof(line), pipe)) std::sscanf(line, "open3d %lf %lf %ld", &a, &b, &triangles);
+        while (pipe && std::fgets(line, sizeof(line), pipe))
+          std::sscanf(line, "open3d %lf %lf %ld", &a, &b, &triangles);
         if (pipe) pclose(pipe);
         integrate_s += a / pinhole.size();
         mesh_s += b / pinhole.size();
@@ -195,9 +210,10 @@ void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::
     std::printf("\n");
   }
   if (sweep) {
-    std::printf("== holocap TSDF as the voxel varies (true lenses, filtered; %d threads)\n", threads);
-    std::printf(kHeader, "method", "voxmm", "integr_s/fr", "mesh_s", "triangles", "chamfer", "accuracy", "complete",
-                "seen_ch", "F@5seen", "blocks  MB  peakRSS_MB");
+    std::printf("== holocap TSDF as the voxel varies (true lenses, filtered; %d threads)\n",
+                threads);
+    std::printf(kHeader, "method", "voxmm", "integr_s/fr", "mesh_s", "triangles", "chamfer",
+                "accuracy", "complete", "seen_ch", "F@5seen", "blocks  MB  peakRSS_MB");
     for (double voxel : {0.016, 0.008, 0.004, 0.002, 0.001}) {
       TsdfOptions options;
       options.voxel_m = voxel;
@@ -218,10 +234,13 @@ void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::
 // The figure: the pipeline's TSDF from the depth sensors, with and without the
 // hull-constrained completion of what they did not see, every frame against the whole truth.
 void PipelineTsdf(const fs::path& take_dir, int frame_count, int threads) {
-  std::printf("== studio8 TSDF from the depth sensors through the pipeline (holocap reconstruct --method tsdf), "
-              "%d frame(s), %d threads\n", frame_count, threads);
-  std::printf("%-26s %6s %9s %9s %9s %9s %9s %9s %8s %10s\n", "completion", "voxmm", "frame_s", "hull+fill", "chamfer",
-              "accuracy", "complete", "seen_ch", "F@5mm", "ch_buried");
+  std::printf(
+      "== studio8 TSDF from the depth sensors through the pipeline (holocap reconstruct --method "
+      "tsdf), "
+      "%d frame(s), %d threads\n",
+      frame_count, threads);
+  std::printf("%-26s %6s %9s %9s %9s %9s %9s %9s %8s %10s\n", "completion", "voxmm", "frame_s",
+              "hull+fill", "chamfer", "accuracy", "complete", "seen_ch", "F@5mm", "ch_buried");
   for (double voxel : {0.008, 0.004}) {
     for (bool complete : {false, true}) {
       ReconstructionOptions options;
@@ -235,23 +254,27 @@ void PipelineTsdf(const fs::path& take_dir, int frame_count, int threads) {
       Report report("reconstruct");
       TakeSelection frames;
       frames.last_frame = frame_count;
-      ReconstructTake(take_dir, frames, take_dir / ("bench-tsdf-" + std::to_string(static_cast<int>(voxel * 1e3))), options,
-                      &report);
+      ReconstructTake(take_dir, frames,
+                      take_dir / ("bench-tsdf-" + std::to_string(static_cast<int>(voxel * 1e3))),
+                      options, &report);
       const auto& metrics = report.json()["metrics"];
       double completion_s = 0, seen = 0;
       for (const auto& f : metrics["frames"]) {
         if (f["metrics"].contains("completion")) {
           completion_s += (f["metrics"]["hull"]["seconds"].get<double>() +
-                           f["metrics"]["completion"]["seconds"].get<double>()) / metrics["frames"].size();
+                           f["metrics"]["completion"]["seconds"].get<double>()) /
+                          metrics["frames"].size();
         }
-        seen += f["metrics"]["gt"]["observed"]["chamfer_mm"].get<double>() / metrics["frames"].size();
+        seen +=
+            f["metrics"]["gt"]["observed"]["chamfer_mm"].get<double>() / metrics["frames"].size();
       }
       const auto& gt = metrics["gt"];
       std::printf("%-26s %6.1f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %8.3f %10.2f\n",
                   complete ? "hull carved by free space" : "none (sensors only)", voxel * 1e3,
-                  metrics["timing"]["mean_frame_s"].get<double>(), completion_s, gt["chamfer_mm"].get<double>(),
-                  gt["accuracy_mm"].get<double>(), gt["completeness_mm"].get<double>(), seen,
-                  gt["fscore_5mm"].get<double>(), gt["chamfer_with_buried_faces_mm"].get<double>());
+                  metrics["timing"]["mean_frame_s"].get<double>(), completion_s,
+                  gt["chamfer_mm"].get<double>(), gt["accuracy_mm"].get<double>(),
+                  gt["completeness_mm"].get<double>(), seen, gt["fscore_5mm"].get<double>(),
+                  gt["chamfer_with_buried_faces_mm"].get<double>());
     }
   }
   std::printf("\n");
@@ -259,8 +282,10 @@ void PipelineTsdf(const fs::path& take_dir, int frame_count, int threads) {
 
 void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames, int threads) {
   const Take take = Take::Open(take_dir);
-  std::printf("== studio8 visual hull (background-subtracted silhouettes, 8 cameras, %d threads)\n", threads);
-  std::printf("%6s %8s %12s %12s %10s %9s\n", "voxmm", "hull_s", "contained", "within_vox/2", "litres", "mask_IoU");
+  std::printf("== studio8 visual hull (background-subtracted silhouettes, 8 cameras, %d threads)\n",
+              threads);
+  std::printf("%6s %8s %12s %12s %10s %9s\n", "voxmm", "hull_s", "contained", "within_vox/2",
+              "litres", "mask_IoU");
   for (double voxel : {0.016, 0.008, 0.004}) {
     double seconds = 0, contained = 0, near = 0, litres = 0, iou = 0;
     int masks = 0;
@@ -270,7 +295,8 @@ void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames,
         if (s.role != SensorRole::kColor) continue;
         View view{s.name, take.Camera(s.name, true), take.ReadFrame(frame.set, s.name), {}};
         view.mask = ExtractSilhouette(view.image, take.ReadFrame(0, s.name), SilhouetteOptions{});
-        iou += MaskIoU(view.mask, ReadImage(take.gt_dir() / "masks" / s.name / (SetName(frame.set) + ".png")));
+        iou += MaskIoU(view.mask,
+                       ReadImage(take.gt_dir() / "masks" / s.name / (SetName(frame.set) + ".png")));
         ++masks;
         views.push_back(view);
       }
@@ -283,15 +309,18 @@ void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames,
       litres += summary.volume_m3 * 1e3 / frames.size();
       auto points = frame.truth.SampleSurface(20000, 3);
       int64_t in = 0, in_near = 0;
-      for (const auto& p : points) in += hull.Contains(p, 0), in_near += hull.Contains(p, 0.5 * voxel);
+      for (const auto& p : points)
+        in += hull.Contains(p, 0), in_near += hull.Contains(p, 0.5 * voxel);
       contained += static_cast<double>(in) / points.size() / frames.size();
       near += static_cast<double>(in_near) / points.size() / frames.size();
     }
-    std::printf("%6.1f %8.3f %12.4f %12.4f %10.1f %9.4f\n", voxel * 1e3, seconds, contained, near, litres, iou / masks);
+    std::printf("%6.1f %8.3f %12.4f %12.4f %10.1f %9.4f\n", voxel * 1e3, seconds, contained, near,
+                litres, iou / masks);
   }
-  std::printf("\n== studio8 multi-view stereo from colour alone (pipeline, 1 frame, %d threads)\n", threads);
-  std::printf("%6s %9s %9s %9s %9s %8s %10s %12s\n", "voxmm", "frame_s", "mvs_s", "chamfer", "accuracy", "complete",
-              "F@5mm", "consistent");
+  std::printf("\n== studio8 multi-view stereo from colour alone (pipeline, 1 frame, %d threads)\n",
+              threads);
+  std::printf("%6s %9s %9s %9s %9s %8s %10s %12s\n", "voxmm", "frame_s", "mvs_s", "chamfer",
+              "accuracy", "complete", "F@5mm", "consistent");
   for (double voxel : {0.008, 0.004}) {
     ReconstructionOptions options;
     options.method = ReconstructionMethod::kMvs;
@@ -302,12 +331,15 @@ void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames,
     Report report("reconstruct");
     TakeSelection first_set;
     first_set.last_frame = 1;
-    ReconstructTake(take_dir, first_set, take_dir / ("bench-mvs-" + std::to_string(static_cast<int>(voxel * 1e3))), options, &report);
+    ReconstructTake(take_dir, first_set,
+                    take_dir / ("bench-mvs-" + std::to_string(static_cast<int>(voxel * 1e3))),
+                    options, &report);
     const auto& f = report.json()["metrics"]["frames"][0];
     const auto& gt = f["metrics"]["gt"];
-    std::printf("%6.1f %9.2f %9.2f %9.2f %9.2f %8.2f %10.3f %12lld\n", voxel * 1e3, f["seconds"].get<double>(),
-                f["metrics"]["mvs"]["seconds"].get<double>(), gt["chamfer_mm"].get<double>(),
-                gt["accuracy_mm"].get<double>(), gt["completeness_mm"].get<double>(), gt["fscore_5mm"].get<double>(),
+    std::printf("%6.1f %9.2f %9.2f %9.2f %9.2f %8.2f %10.3f %12lld\n", voxel * 1e3,
+                f["seconds"].get<double>(), f["metrics"]["mvs"]["seconds"].get<double>(),
+                gt["chamfer_mm"].get<double>(), gt["accuracy_mm"].get<double>(),
+                gt["completeness_mm"].get<double>(), gt["fscore_5mm"].get<double>(),
                 f["metrics"]["mvs"]["pixels_consistent"].get<long long>());
   }
   std::printf("\n");
@@ -339,7 +371,10 @@ void Middlebury(const fs::path& work, int threads) {
   Box bounds;
   bounds.min = Eigen::Vector3d(-0.071897, -0.028874, -0.067845);
   bounds.max = Eigen::Vector3d(0.020897, 0.078227, 0.025495);
-  std::printf("== Middlebury dinoSparseRing: hull of 15 views, IoU with the held-out view's silhouette (%d threads)\n", threads);
+  std::printf(
+      "== Middlebury dinoSparseRing: hull of 15 views, IoU with the held-out view's silhouette (%d "
+      "threads)\n",
+      threads);
   for (double voxel : {0.001, 0.0005, 0.00025}) {
     double sum = 0, worst = 1, seconds = 0;
     std::string worst_view;
@@ -356,15 +391,16 @@ void Middlebury(const fs::path& work, int threads) {
       HullSummary summary;
       VisualHull hull = ComputeVisualHull(training, options, &summary);
       seconds += summary.seconds / views.size();
-      double iou = MaskIoU(RenderSilhouette(ExtractMesh(*hull.volume), views[held].camera), views[held].mask);
+      double iou = MaskIoU(RenderSilhouette(ExtractMesh(*hull.volume), views[held].camera),
+                           views[held].mask);
       sum += iou;
       if (iou < worst) worst = iou, worst_view = views[held].name;
       char cell[16];
       std::snprintf(cell, sizeof(cell), " %.3f", iou);
       row += cell;
     }
-    std::printf("voxel %.2f mm: hull %.2f s, IoU mean %.4f, min %.4f (%s); per view:%s\n", voxel * 1e3, seconds,
-                sum / views.size(), worst, worst_view.c_str(), row.c_str());
+    std::printf("voxel %.2f mm: hull %.2f s, IoU mean %.4f, min %.4f (%s); per view:%s\n",
+                voxel * 1e3, seconds, sum / views.size(), worst, worst_view.c_str(), row.c_str());
   }
   std::printf("\n");
 }
@@ -399,24 +435,31 @@ int main(int argc, char** argv) {
         if (s.role != SensorRole::kDepth) continue;
         CameraModel camera = take.Camera(s.name, true);
         cv::Mat depth = take.ReadFrame(set, s.name).clone();
-        cv::Mat foreground = DepthForeground(depth, take.ReadFrame(0, s.name), TsdfOptions{}.depth_noise_k);
+        cv::Mat foreground =
+            DepthForeground(depth, take.ReadFrame(0, s.name), TsdfOptions{}.depth_noise_k);
         depth.setTo(std::numeric_limits<float>::quiet_NaN(), foreground == 0);
         frame.depth.push_back({camera, depth});
-        seen.emplace_back(camera, ReadImage(take.gt_dir() / "depth" / s.name / (SetName(set) + ".exr")));
+        seen.emplace_back(camera,
+                          ReadImage(take.gt_dir() / "depth" / s.name / (SetName(set) + ".exr")));
       }
       frame.seen = SeenInDepthMaps(seen);
       frame.outer = OnOuterSurface(frame.truth);
       frames.push_back(std::move(frame));
     }
-    std::printf("recon_bench: %zu frame(s) of %s, %d threads\n", frames.size(), take_dir.c_str(), threads);
-    std::printf("chamfer/accuracy/complete in mm against gt/meshes, completeness on the subject's outer surface (the "
-                "body parts' faces buried inside other parts left out; ch_buried keeps them); seen_ch and F@5seen only "
-                "on the true surface a depth sensor saw\n\n");
+    std::printf("recon_bench: %zu frame(s) of %s, %d threads\n", frames.size(), take_dir.c_str(),
+                threads);
+    std::printf(
+        "chamfer/accuracy/complete in mm against gt/meshes, completeness on the subject's outer "
+        "surface (the "
+        "body parts' faces buried inside other parts left out; ch_buried keeps them); seen_ch and "
+        "F@5seen only "
+        "on the true surface a depth sensor saw\n\n");
     if (sections.find('1') != std::string::npos || sections.find('2') != std::string::npos) {
       TsdfSections(frames, threads, work, sections.find('1') != std::string::npos,
                    sections.find('2') != std::string::npos);
     }
-    if (sections.find('2') != std::string::npos) PipelineTsdf(take_dir, static_cast<int>(frames.size()), threads);
+    if (sections.find('2') != std::string::npos)
+      PipelineTsdf(take_dir, static_cast<int>(frames.size()), threads);
     if (sections.find('3') != std::string::npos) HullAndMvs(take_dir, frames, threads);
     if (sections.find('4') != std::string::npos) Middlebury(work, threads);
     std::printf("peak RSS %.0f MB\n", PeakRssMb());

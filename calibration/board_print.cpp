@@ -54,7 +54,8 @@ cv::Mat RenderBoardImage(const BoardLayout& layout, double dpi) {
   const double px_per_m = dpi / kMetresPerInch;
   const int width = static_cast<int>(std::lround((board.u_max() - board.u_min()) * px_per_m));
   const int height = static_cast<int>(std::lround((board.v_max() - board.v_min()) * px_per_m));
-  if (static_cast<double>(width) * height > 4e8) Fail("board print of ", width, "x", height, " px is too large: lower the dpi");
+  if (static_cast<double>(width) * height > 4e8)
+    Fail("board print of ", width, "x", height, " px is too large: lower the dpi");
   cv::Mat image(height, width, CV_8UC1);
   for (int y = 0; y < height; ++y) {
     uint8_t* row = image.ptr<uint8_t>(y);
@@ -90,7 +91,8 @@ void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& fil
       if (black && run_start < 0) run_start = cu;
       if (!black && run_start >= 0) {
         const double x = (lattice.origin + run_start * lattice.cell - board.u_min()) * pt_per_m;
-        const double y = page_h - (lattice.origin + (cv + 1) * lattice.cell - board.v_min()) * pt_per_m;
+        const double y =
+            page_h - (lattice.origin + (cv + 1) * lattice.cell - board.v_min()) * pt_per_m;
         content += Number(x) + " " + Number(y) + " " +
                    Number((cu - run_start) * lattice.cell * pt_per_m) + " " +
                    Number(lattice.cell * pt_per_m) + " re\n";
@@ -100,8 +102,7 @@ void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& fil
   }
   content += "f\n";
   std::vector<std::string> objects = {
-      "<< /Type /Catalog /Pages 2 0 R >>",
-      "<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
+      "<< /Type /Catalog /Pages 2 0 R >>", "<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
       "<< /Type /Page /Parent 2 0 R /MediaBox [0 0 " + Number(page_w) + " " + Number(page_h) +
           "] /Contents 4 0 R /Resources << >> >>",
       "<< /Length " + std::to_string(content.size()) + " >>\nstream\n" + content + "endstream"};
@@ -118,8 +119,8 @@ void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& fil
     std::snprintf(line, sizeof(line), "%010zu 00000 n \n", offset);
     pdf += line;
   }
-  pdf += "trailer\n<< /Size " + std::to_string(objects.size() + 1) + " /Root 1 0 R >>\nstartxref\n" +
-         std::to_string(xref) + "\n%%EOF\n";
+  pdf += "trailer\n<< /Size " + std::to_string(objects.size() + 1) +
+         " /Root 1 0 R >>\nstartxref\n" + std::to_string(xref) + "\n%%EOF\n";
   WriteFileAtomic(file, pdf);
 }
 

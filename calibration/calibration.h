@@ -49,7 +49,8 @@ class Take;
 // The board rendered to scale at `dpi` (8-bit grey, white margin included).
 cv::Mat RenderBoardImage(const BoardLayout& layout, double dpi = 300);
 // Writes the board as PNG (rendered at `dpi`) or PDF (vector squares on one page exactly the
-// board's size, so it prints to scale at 100%), by extension. Throws Error for another extension or an unwritable file.
+// board's size, so it prints to scale at 100%), by extension. Throws Error for another extension or
+// an unwritable file.
 void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& file,
                      double dpi = 300);
 
@@ -57,14 +58,14 @@ void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& fil
 // Detection.
 
 struct DetectionOptions {
-  int threads = 0;                  // frames detected in parallel; 0: all cores
-  bool refine_corners = true;       // refine libapriltag's corners on the image edges
-  int refine_half_window_px = 0;    // edge-refinement reach across an edge; 0: automatic
-  int max_hamming = 1;              // reject tags decoded with more corrected bits
-  double min_decision_margin = 30;  // reject weak decodes (libapriltag's decision_margin)
-  int min_tags = 4;                 // AprilTag boards: fewer tags seen = partial, rejected
-  double min_tag_side_px = 12;      // reject tags whose sides are shorter (too far, too blurred)
-  double quad_sigma = 0;            // libapriltag's blur before quad finding
+  int threads = 0;                    // frames detected in parallel; 0: all cores
+  bool refine_corners = true;         // refine libapriltag's corners on the image edges
+  int refine_half_window_px = 0;      // edge-refinement reach across an edge; 0: automatic
+  int max_hamming = 1;                // reject tags decoded with more corrected bits
+  double min_decision_margin = 30;    // reject weak decodes (libapriltag's decision_margin)
+  int min_tags = 4;                   // AprilTag boards: fewer tags seen = partial, rejected
+  double min_tag_side_px = 12;        // reject tags whose sides are shorter (too far, too blurred)
+  double quad_sigma = 0;              // libapriltag's blur before quad finding
   double max_corner_residual_px = 2;  // reject a view whose corners leave a local homography by
                                       // more than this (shifted or swapped corners)
   void Check() const;
@@ -74,12 +75,12 @@ struct DetectionOptions {
 // One camera's view of the board.
 struct BoardObservation {
   std::string sensor;
-  int64_t frame_set = 0;       // the take's frame-set index (shared views share it)
-  int64_t timestamp_ns = 0;    // the frame's timestamp, in its stream's clock
+  int64_t frame_set = 0;     // the take's frame-set index (shared views share it)
+  int64_t timestamp_ns = 0;  // the frame's timestamp, in its stream's clock
   // width_n * height_n rows (row-major, grid index j * width_n + i): x, y pixel, weight
   // (1 = seen, < 0 = not seen or rejected).
   Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor> points;
-  int seen() const;             // points with weight > 0
+  int seen() const;  // points with weight > 0
 };
 
 // Why a view was not used.
@@ -112,8 +113,8 @@ class BoardDetector {
 };
 
 struct DetectionSummary {
-  int64_t frames = 0;             // images looked at
-  int64_t views = 0;              // accepted board views
+  int64_t frames = 0;  // images looked at
+  int64_t views = 0;   // accepted board views
   std::vector<RejectedView> rejected;
   double seconds = 0;
   double frames_per_second = 0;
@@ -141,25 +142,25 @@ struct CalibrationCamera {
 };
 
 struct CalibrationOptions {
-  std::string reference_camera;      // the camera at the rig's origin; empty: the first
-  int min_views_per_camera = 8;      // fewer board views: the camera is flagged, not solved
-  int min_points_per_view = 12;      // fewer seen points: the view is dropped
-  bool regularization = true;        // mrcal's regularisation in the final stage
-  bool outlier_rejection = true;     // mrcal's outlier rejection in the final stage
-  bool solve_board_warp = false;     // solve mrcal's board warp (printed boards that bow)
-  double max_seed_rms_px = 50;       // a seed solve worse than this is reported as failed
+  std::string reference_camera;   // the camera at the rig's origin; empty: the first
+  int min_views_per_camera = 8;   // fewer board views: the camera is flagged, not solved
+  int min_points_per_view = 12;   // fewer seen points: the view is dropped
+  bool regularization = true;     // mrcal's regularisation in the final stage
+  bool outlier_rejection = true;  // mrcal's outlier rejection in the final stage
+  bool solve_board_warp = false;  // solve mrcal's board warp (printed boards that bow)
+  double max_seed_rms_px = 50;    // a seed solve worse than this is reported as failed
   // Uncertainty.
-  bool uncertainty = true;           // propagate the observation noise (the costliest part)
-  int uncertainty_grid_x = 16;       // imager sample points across ...
-  int uncertainty_grid_y = 12;       // ... and down
-  double uncertainty_distance_m = 0; // distance of the projected points; 0: each camera's
-                                     // median board distance
-  double observed_pixel_sigma = 0;   // noise of one corner coordinate; 0: from the residuals
-  double max_uncertainty_px = 1.0;   // worst 1-sigma where the board was seen above this:
-                                     // ill-conditioned (degenerate)
+  bool uncertainty = true;            // propagate the observation noise (the costliest part)
+  int uncertainty_grid_x = 16;        // imager sample points across ...
+  int uncertainty_grid_y = 12;        // ... and down
+  double uncertainty_distance_m = 0;  // distance of the projected points; 0: each camera's
+                                      // median board distance
+  double observed_pixel_sigma = 0;    // noise of one corner coordinate; 0: from the residuals
+  double max_uncertainty_px = 1.0;    // worst 1-sigma where the board was seen above this:
+                                      // ill-conditioned (degenerate)
   // Cross-validation.
-  bool cross_validation = false;     // also solve two disjoint halves of the frames
-  bool verbose = false;              // mrcal's own iteration log on stderr
+  bool cross_validation = false;  // also solve two disjoint halves of the frames
+  bool verbose = false;           // mrcal's own iteration log on stderr
 
   void Check() const;
   nlohmann::json ToJson() const;
@@ -167,29 +168,29 @@ struct CalibrationOptions {
 
 struct CameraUncertainty {
   int grid_x = 0, grid_y = 0;
-  Eigen::MatrixXd worst_sigma_px;    // grid_y x grid_x worst-direction 1-sigma
-  Eigen::Matrix2Xd pixels;           // the sample pixels, row-major over the grid
+  Eigen::MatrixXd worst_sigma_px;           // grid_y x grid_x worst-direction 1-sigma
+  Eigen::Matrix2Xd pixels;                  // the sample pixels, row-major over the grid
   std::vector<Eigen::Matrix2d> covariance;  // per sample pixel
   Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic> observed;  // grid cells holding data
   double distance_m = 0;
-  double worst_px = 0;               // max over the grid
-  double worst_observed_px = 0;      // max over the cells the board was seen in
+  double worst_px = 0;           // max over the grid
+  double worst_observed_px = 0;  // max over the cells the board was seen in
   double mean_px = 0;
 };
 
 struct CalibratedCamera {
   std::string name;
-  bool solved = false;               // false: flagged (see `flag`), no model
-  std::string flag;                  // why it is not trusted (empty when fine)
-  CameraModel model;                 // cam_from_world with world = the reference camera
+  bool solved = false;  // false: flagged (see `flag`), no model
+  std::string flag;     // why it is not trusted (empty when fine)
+  CameraModel model;    // cam_from_world with world = the reference camera
   int views = 0;
-  int points = 0;                    // observed points used
-  int outliers = 0;                  // points mrcal rejected
-  double rms_px = 0;                 // of its inlier residuals
+  int points = 0;     // observed points used
+  int outliers = 0;   // points mrcal rejected
+  double rms_px = 0;  // of its inlier residuals
   double median_board_distance_m = 0;
   CameraUncertainty uncertainty;
-  std::vector<Eigen::Vector2d> observed;  // inlier observed pixels (for pictures)
-  std::vector<Eigen::Vector2d> residuals; // their residuals (observed - projected)
+  std::vector<Eigen::Vector2d> observed;   // inlier observed pixels (for pictures)
+  std::vector<Eigen::Vector2d> residuals;  // their residuals (observed - projected)
   // The solve's own 1-sigma of its parameters, from the same noise propagation as the
   // projection uncertainty (NaN where a parameter was held fixed or the camera is the
   // reference): each intrinsic, and the pose relative to the reference camera.
@@ -205,43 +206,46 @@ struct CalibratedCamera {
 struct SolveStage {
   std::string name;
   std::string lensmodel;
-  double rms_px = 0;                 // mrcal's rms_reproj_error__pixels (negative: mrcal failed)
-  int outliers = 0;                  // mrcal's Noutliers
-  double seconds = 0;                // since the solve began, at the stage's end
+  double rms_px = 0;   // mrcal's rms_reproj_error__pixels (negative: mrcal failed)
+  int outliers = 0;    // mrcal's Noutliers
+  double seconds = 0;  // since the solve began, at the stage's end
   // CONVERGENCE: one more step would remove <= 1e-6 of the cost; NO_CONVERGENCE: more (mrcal
   // spent its iterations while the cost still fell); FAILURE: mrcal failed or gave NaN.
   Termination termination = Termination::kFailure;
   double cost = std::numeric_limits<double>::quiet_NaN();  // |x|^2 of mrcal's residuals at the end
-  double expected_decrease = std::numeric_limits<double>::quiet_NaN();  // share of the cost one
-                                     // more Gauss-Newton step would remove (NaN: not judged)
+  double expected_decrease =
+      std::numeric_limits<double>::quiet_NaN();  // share of the cost one
+                                                 // more Gauss-Newton step would remove (NaN: not
+                                                 // judged)
 };
 
 // How a calibration ends (core/report.h's contract):
-// | state          | when                                                                   | exit |
+// | state          | when                                                                   | exit
+// |
 // |----------------|------------------------------------------------------------------------|------|
-// | CONVERGENCE    | every camera solved and trusted, every mrcal stage converged           | 0    |
-// | NO_CONVERGENCE | every camera trusted, but a stage's cost still fell when mrcal stopped  | 0    |
-// | DEGENERATE     | a camera has too few views, shares none with the reference camera's    | 1    |
-// |                | group, or is ill-conditioned (projection 1-sigma above the limit); the |      |
-// |                | message names each camera and why                                      |      |
-// | FAILURE        | mrcal failed or gave NaN, or the seed does not fit (wrong board/lens)  | 1    |
+// | CONVERGENCE    | every camera solved and trusted, every mrcal stage converged           | 0 |
+// | NO_CONVERGENCE | every camera trusted, but a stage's cost still fell when mrcal stopped  | 0 |
+// | DEGENERATE     | a camera has too few views, shares none with the reference camera's    | 1 |
+// |                | group, or is ill-conditioned (projection 1-sigma above the limit); the | | |
+// | message names each camera and why                                      |      | | FAILURE |
+// mrcal failed or gave NaN, or the seed does not fit (wrong board/lens)  | 1    |
 struct CalibrationSummary : Summary {
-  std::string lensmodel;             // the model solved
+  std::string lensmodel;  // the model solved
   std::string reference_camera;
   std::vector<CalibratedCamera> cameras;
   std::vector<SolveStage> stages;
   std::vector<std::string> warnings;
-  std::vector<std::string> notes;    // how the solve was arranged (e.g. cameras re-solved alone)
-  double rms_reprojection_px = 0;    // all inliers, all cameras
-  double observed_pixel_sigma = 0;   // the noise the uncertainty assumed
-  int frames = 0;                    // board poses solved
-  int observations = 0;              // camera views solved
+  std::vector<std::string> notes;   // how the solve was arranged (e.g. cameras re-solved alone)
+  double rms_reprojection_px = 0;   // all inliers, all cameras
+  double observed_pixel_sigma = 0;  // the noise the uncertainty assumed
+  int frames = 0;                   // board poses solved
+  int observations = 0;             // camera views solved
   int outliers = 0;
   double solve_seconds = 0;
   double uncertainty_seconds = 0;
   // Solved board poses (ref_from_board) per frame set, for comparisons with truth.
   std::map<int64_t, Pose> ref_from_board;
-  nlohmann::json cross_validation;   // empty unless requested
+  nlohmann::json cross_validation;  // empty unless requested
 
   const CalibratedCamera* Find(const std::string& name) const;
   nlohmann::json ToJson() const;
@@ -263,14 +267,14 @@ struct GroundTruthComparison {
   double principal_point_err_px_max = 0;
   // Each camera's pose after the rigid motion that best lays the solved rig onto the true one.
   double rotation_err_deg_max = 0;
-  double translation_err_mm_max = 0;     // of the camera centres
+  double translation_err_mm_max = 0;  // of the camera centres
   // cam_from_reference against the truth (the reference camera's own error in every camera).
   double rotation_err_deg_max_from_reference = 0;
   double translation_err_mm_max_from_reference = 0;
-  double projection_diff_rms_px = 0;     // true vs solved projection over the imagers
+  double projection_diff_rms_px = 0;  // true vs solved projection over the imagers
   double projection_diff_max_px = 0;
   double projection_diff_rms_observed_px = 0;  // only where the board was seen
-  double within_3sigma_fraction = 0;     // of the imager samples with |diff| <= 3 worst sigma
+  double within_3sigma_fraction = 0;           // of the imager samples with |diff| <= 3 worst sigma
   std::map<std::string, nlohmann::json> per_camera;
   nlohmann::json ToJson() const;
 };
@@ -287,10 +291,10 @@ GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
 // Depth sensors.
 
 struct DepthAlignmentOptions {
-  double plane_inlier_m = 0.01;      // RANSAC band around the fitted board plane
-  int min_planes = 3;                // board poses needed (non-parallel normals)
-  double min_normal_spread_deg = 10; // smallest angle between normals that counts as spread
-  double max_time_offset_s = 0.05;   // searched range of the time offset
+  double plane_inlier_m = 0.01;       // RANSAC band around the fitted board plane
+  int min_planes = 3;                 // board poses needed (non-parallel normals)
+  double min_normal_spread_deg = 10;  // smallest angle between normals that counts as spread
+  double max_time_offset_s = 0.05;    // searched range of the time offset
   void Check() const;
 };
 
@@ -301,8 +305,8 @@ struct DepthAlignmentSummary : Summary {
   std::string color_sensor;
   Pose depth_from_color = Pose::Identity();
   int planes = 0;
-  double plane_rms_m = 0;            // board-plane residuals of the fitted transform
-  double time_offset_s = 0;          // depth clock minus colour clock, from board motion
+  double plane_rms_m = 0;    // board-plane residuals of the fitted transform
+  double time_offset_s = 0;  // depth clock minus colour clock, from board motion
   bool time_offset_valid = false;
   nlohmann::json ToJson() const;
 };
@@ -323,12 +327,12 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
 // A whole take.
 
 struct TakeCalibrationOptions {
-  std::filesystem::path board_file;    // board YAML; empty: gt/board.json, then the sim board
-  std::string lensmodel;               // for every camera; empty: per camera from the rig
-                                       // (sensor option calib_lensmodel), else OPENCV8
-  std::vector<std::string> sensors;    // colour sensors to calibrate; empty: all
-  bool pictures = true;                // residual, coverage and uncertainty PNGs
-  bool depth_sensors = true;           // depth_from_color for paired depth sensors
+  std::filesystem::path board_file;  // board YAML; empty: gt/board.json, then the sim board
+  std::string lensmodel;             // for every camera; empty: per camera from the rig
+                                     // (sensor option calib_lensmodel), else OPENCV8
+  std::vector<std::string> sensors;  // colour sensors to calibrate; empty: all
+  bool pictures = true;              // residual, coverage and uncertainty PNGs
+  bool depth_sensors = true;         // depth_from_color for paired depth sensors
   DetectionOptions detection;
   CalibrationOptions solve;
   DepthAlignmentOptions depth;

@@ -34,19 +34,21 @@ namespace {
 bool CoresComparable(const std::string& a, const std::string& b) {
   auto family = [](const std::string& m) {
     if (m.rfind("LENSMODEL_OPENCV", 0) == 0 || m == "LENSMODEL_PINHOLE") return 0;
-    if (m == "LENSMODEL_STEREOGRAPHIC" || m.rfind("LENSMODEL_SPLINED_STEREOGRAPHIC", 0) == 0) return 1;
+    if (m == "LENSMODEL_STEREOGRAPHIC" || m.rfind("LENSMODEL_SPLINED_STEREOGRAPHIC", 0) == 0)
+      return 1;
     return 2;
   };
   return family(a) == family(b) && family(a) != 2;
 }
-
 
 // Robustly: one badly solved camera would otherwise turn the whole rig by its share of its
 // error. The rotation whose difference lies closest to the others' (medoid), then the mean of
 // those within three times the median distance from it.
 Eigen::Matrix3d RobustMeanRotation(const std::vector<Pose>& rotations) {
   const size_t n = rotations.size();
-  auto angle = [](const Pose& a, const Pose& b) { return RotationAngleDeg(a.linear().transpose() * b.linear()); };
+  auto angle = [](const Pose& a, const Pose& b) {
+    return RotationAngleDeg(a.linear().transpose() * b.linear());
+  };
   size_t medoid = 0;
   double best = 1e300;
   for (size_t i = 0; i < n; ++i) {
@@ -133,7 +135,8 @@ void CompareCoreAndPose(const CalibratedCamera& cam, const CameraModel& real,
                         const Pose& true_world_from_ref_cam, const Pose& true_world_from_solved,
                         GroundTruthComparison* result, nlohmann::json* j) {
   const CameraModel& solved = cam.model;
-  if (CoresComparable(solved.lensmodel(), real.lensmodel()) && solved.has_core() && real.has_core()) {
+  if (CoresComparable(solved.lensmodel(), real.lensmodel()) && solved.has_core() &&
+      real.has_core()) {
     const auto& a = solved.intrinsics();
     const auto& b = real.intrinsics();
     const double focal = std::max(std::abs(a[0] - b[0]) / b[0], std::abs(a[1] - b[1]) / b[1]);
@@ -151,17 +154,21 @@ void CompareCoreAndPose(const CalibratedCamera& cam, const CameraModel& real,
   const Pose true_cam_from_ref = real.cam_from_world() * true_world_from_ref_cam;
   const Pose delta = solved_cam_from_ref * true_cam_from_ref.inverse();
   const double rotation = RotationAngleDeg(delta.linear());
-  const double translation =
-      1000 * (solved_cam_from_ref.inverse().translation() - true_cam_from_ref.inverse().translation()).norm();
-  result->rotation_err_deg_max_from_reference = std::max(result->rotation_err_deg_max_from_reference, rotation);
+  const double translation = 1000 * (solved_cam_from_ref.inverse().translation() -
+                                     true_cam_from_ref.inverse().translation())
+                                        .norm();
+  result->rotation_err_deg_max_from_reference =
+      std::max(result->rotation_err_deg_max_from_reference, rotation);
   result->translation_err_mm_max_from_reference =
       std::max(result->translation_err_mm_max_from_reference, translation);
   (*j)["rotation_err_deg_from_reference"] = rotation;
   (*j)["translation_err_mm_from_reference"] = translation;
   // Against the rig alignment.
   const Pose aligned = true_world_from_solved * solved.world_from_cam();
-  const double aligned_rotation = RotationAngleDeg(real.cam_from_world().linear() * aligned.linear());
-  const double aligned_translation = 1000 * (aligned.translation() - real.world_from_cam().translation()).norm();
+  const double aligned_rotation =
+      RotationAngleDeg(real.cam_from_world().linear() * aligned.linear());
+  const double aligned_translation =
+      1000 * (aligned.translation() - real.world_from_cam().translation()).norm();
   result->rotation_err_deg_max = std::max(result->rotation_err_deg_max, aligned_rotation);
   result->translation_err_mm_max = std::max(result->translation_err_mm_max, aligned_translation);
   (*j)["rotation_err_deg"] = aligned_rotation;
@@ -170,8 +177,9 @@ void CompareCoreAndPose(const CalibratedCamera& cam, const CameraModel& real,
 
 // Projection over the imager at the working distance, the solved point placed in the world
 // through the board-anchored frame.
-void CompareProjection(const CalibratedCamera& cam, const CameraModel& real, const Pose& world_from_ref,
-                       GroundTruthComparison* result, ProjectionTally* tally, nlohmann::json* j) {
+void CompareProjection(const CalibratedCamera& cam, const CameraModel& real,
+                       const Pose& world_from_ref, GroundTruthComparison* result,
+                       ProjectionTally* tally, nlohmann::json* j) {
   const CameraModel& solved = cam.model;
   Eigen::Matrix2Xd pixels = cam.uncertainty.pixels;
   int grid_x = cam.uncertainty.grid_x;
@@ -183,14 +191,16 @@ void CompareProjection(const CalibratedCamera& cam, const CameraModel& real, con
           ((k / 16) + 0.5) * solved.height() / 12 - 0.5;
     }
   }
-  const double distance = cam.uncertainty.distance_m > 0 ? cam.uncertainty.distance_m
-                                                         : std::max(0.5, cam.median_board_distance_m);
+  const double distance = cam.uncertainty.distance_m > 0
+                              ? cam.uncertainty.distance_m
+                              : std::max(0.5, cam.median_board_distance_m);
   const Eigen::Matrix3Xd rays = solved.UnprojectMany(pixels);
   double cam_sum2 = 0, cam_max = 0, cam_observed_sum2 = 0;
   int cam_n = 0, cam_within = 0, cam_observed_n = 0;
   for (int k = 0; k < pixels.cols(); ++k) {
     if (!rays.col(k).allFinite()) continue;
-    const Eigen::Vector3d world = world_from_ref * (solved.world_from_cam() * (rays.col(k) * distance));
+    const Eigen::Vector3d world =
+        world_from_ref * (solved.world_from_cam() * (rays.col(k) * distance));
     Eigen::Vector2d q;
     if (!real.ProjectWorld(world, &q)) continue;
     const double diff = (q - pixels.col(k)).norm();
@@ -218,7 +228,8 @@ void CompareProjection(const CalibratedCamera& cam, const CameraModel& real, con
   result->projection_diff_max_px = std::max(result->projection_diff_max_px, cam_max);
   (*j)["projection_diff_rms_px"] = cam_n > 0 ? std::sqrt(cam_sum2 / cam_n) : 0.0;
   (*j)["projection_diff_max_px"] = cam_max;
-  if (cam_observed_n > 0) (*j)["projection_diff_rms_observed_px"] = std::sqrt(cam_observed_sum2 / cam_observed_n);
+  if (cam_observed_n > 0)
+    (*j)["projection_diff_rms_observed_px"] = std::sqrt(cam_observed_sum2 / cam_observed_n);
   if (cam.uncertainty.grid_x > 0 && cam_n > 0) {
     (*j)["within_3sigma_fraction"] = static_cast<double>(cam_within) / cam_n;
   }
@@ -233,7 +244,12 @@ nlohmann::json GroundTruthComparison::ToJson() const {
           {"translation_err_mm_max", translation_err_mm_max},
           {"rotation_err_deg_max_from_reference", rotation_err_deg_max_from_reference},
           {"translation_err_mm_max_from_reference", translation_err_mm_max_from_reference},
-          {"pose_comparison", "each camera's pose after the rigid motion that best lays the solved rig onto the true one (rotations: chordal mean of the cameras within 3x the median distance of the medoid; positions: mean offset of those within 3x the median spread); *_from_reference: cam_from_reference against the truth, which carries the reference camera's own error into every camera"},
+          {"pose_comparison",
+           "each camera's pose after the rigid motion that best lays the solved rig onto the true "
+           "one (rotations: chordal mean of the cameras within 3x the median distance of the "
+           "medoid; positions: mean offset of those within 3x the median spread); "
+           "*_from_reference: cam_from_reference against the truth, which carries the reference "
+           "camera's own error into every camera"},
           {"projection_diff_rms_px", projection_diff_rms_px},
           {"projection_diff_max_px", projection_diff_max_px},
           {"projection_diff_rms_observed_px", projection_diff_rms_observed_px},
@@ -246,9 +262,10 @@ GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
                                        const std::map<int64_t, Pose>& world_from_board,
                                        const BoardLayout& layout) {
   auto ref_truth = truth.find(summary.reference_camera);
-  if (ref_truth == truth.end()) Fail("no true model of reference camera ", summary.reference_camera);
-  const Pose world_from_ref =
-      calibration_internal::WorldFromReference(summary, ref_truth->second, world_from_board, layout);
+  if (ref_truth == truth.end())
+    Fail("no true model of reference camera ", summary.reference_camera);
+  const Pose world_from_ref = calibration_internal::WorldFromReference(summary, ref_truth->second,
+                                                                       world_from_board, layout);
   const Pose true_world_from_ref_cam = ref_truth->second.world_from_cam();
   const Pose true_world_from_solved = TrueWorldFromSolved(summary, truth);
 
@@ -259,7 +276,8 @@ GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
     auto t = truth.find(cam.name);
     if (t == truth.end()) Fail("no true model of camera ", cam.name);
     nlohmann::json j;
-    CompareCoreAndPose(cam, t->second, true_world_from_ref_cam, true_world_from_solved, &result, &j);
+    CompareCoreAndPose(cam, t->second, true_world_from_ref_cam, true_world_from_solved, &result,
+                       &j);
     CompareProjection(cam, t->second, world_from_ref, &result, &tally, &j);
     result.per_camera[cam.name] = j;
   }

@@ -20,8 +20,10 @@ struct Plane {
 std::vector<Eigen::Vector3d> InnerOutline(const Board& board, double inset) {
   const double du = (board.u_max() - board.u_min()) * inset;
   const double dv = (board.v_max() - board.v_min()) * inset;
-  return {{board.u_min() + du, board.v_min() + dv, 0}, {board.u_max() - du, board.v_min() + dv, 0},
-          {board.u_max() - du, board.v_max() - dv, 0}, {board.u_min() + du, board.v_max() - dv, 0}};
+  return {{board.u_min() + du, board.v_min() + dv, 0},
+          {board.u_max() - du, board.v_min() + dv, 0},
+          {board.u_max() - du, board.v_max() - dv, 0},
+          {board.u_min() + du, board.v_max() - dv, 0}};
 }
 
 bool InsidePolygon(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vector2d& q) {
@@ -29,7 +31,8 @@ bool InsidePolygon(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vec
   for (size_t a = 0, b = polygon.size() - 1; a < polygon.size(); b = a++) {
     if ((polygon[a].y() > q.y()) != (polygon[b].y() > q.y()) &&
         q.x() < (polygon[b].x() - polygon[a].x()) * (q.y() - polygon[a].y()) /
-                        (polygon[b].y() - polygon[a].y()) + polygon[a].x()) {
+                        (polygon[b].y() - polygon[a].y()) +
+                    polygon[a].x()) {
       inside = !inside;
     }
   }
@@ -44,7 +47,8 @@ bool FitPlane(const std::vector<Eigen::Vector3d>& points, double band, Plane* pl
   size_t best = 0;
   Plane best_plane;
   for (int iteration = 0; iteration < 200; ++iteration) {
-    const Eigen::Vector3d a = points[pick(*random)], b = points[pick(*random)], c = points[pick(*random)];
+    const Eigen::Vector3d a = points[pick(*random)], b = points[pick(*random)],
+                          c = points[pick(*random)];
     Eigen::Vector3d n = (b - a).cross(c - a);
     if (n.norm() < 1e-9) continue;
     n.normalize();
@@ -91,8 +95,10 @@ Plane BoardPlane(const Pose& cam_from_board) {
 
 void DepthAlignmentOptions::Check() const {
   if (!(plane_inlier_m > 0)) Fail("plane_inlier_m must be > 0");
-  if (min_planes < 3) Fail("min_planes must be >= 3 (three normals fix a rotation and translation)");
-  if (!(min_normal_spread_deg > 0 && min_normal_spread_deg < 90)) Fail("min_normal_spread_deg must be in (0, 90)");
+  if (min_planes < 3)
+    Fail("min_planes must be >= 3 (three normals fix a rotation and translation)");
+  if (!(min_normal_spread_deg > 0 && min_normal_spread_deg < 90))
+    Fail("min_normal_spread_deg must be in (0, 90)");
   if (!(max_time_offset_s >= 0)) Fail("max_time_offset_s must be >= 0");
 }
 
@@ -140,7 +146,8 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
       auto pose = color_from_board.find(entry.index);
       const auto* depth_item = entry.Find(depth_sensor);
       const auto* color_item = entry.Find(color_sensor);
-      if (pose == color_from_board.end() || depth_item == nullptr || color_item == nullptr) continue;
+      if (pose == color_from_board.end() || depth_item == nullptr || color_item == nullptr)
+        continue;
       std::vector<Eigen::Vector2d> outline;
       bool visible = true;
       for (const auto& corner : InnerOutline(board, 0.12)) {
@@ -150,7 +157,8 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
       }
       if (!visible) continue;
       const cv::Mat depth = take.ReadFrame(i, depth_sensor);
-      if (depth.type() != CV_32FC1) Fail("depth sensor '", depth_sensor, "' frames are not metres (CV_32F)");
+      if (depth.type() != CV_32FC1)
+        Fail("depth sensor '", depth_sensor, "' frames are not metres (CV_32F)");
       double x0 = 1e9, x1 = -1e9, y0 = 1e9, y1 = -1e9;
       for (const auto& q : outline) {
         x0 = std::min(x0, q.x());
@@ -160,8 +168,10 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
       }
       Sample sample;
       std::vector<Eigen::Vector2d> pixels;
-      for (int y = std::max(0, static_cast<int>(y0)); y <= std::min(depth.rows - 1, static_cast<int>(y1)); ++y) {
-        for (int x = std::max(0, static_cast<int>(x0)); x <= std::min(depth.cols - 1, static_cast<int>(x1)); ++x) {
+      for (int y = std::max(0, static_cast<int>(y0));
+           y <= std::min(depth.rows - 1, static_cast<int>(y1)); ++y) {
+        for (int x = std::max(0, static_cast<int>(x0));
+             x <= std::min(depth.cols - 1, static_cast<int>(x1)); ++x) {
           const float z = depth.at<float>(y, x);
           if (!std::isfinite(z) || z <= 0) continue;
           if (!InsidePolygon(outline, Eigen::Vector2d(x, y))) continue;
@@ -174,7 +184,8 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
       const Eigen::Matrix3Xd rays = depth_model.UnprojectMany(q);
       for (size_t k = 0; k < pixels.size(); ++k) {
         if (!rays.col(k).allFinite() || rays(2, k) <= 0) continue;
-        const double z = depth.at<float>(static_cast<int>(pixels[k].y()), static_cast<int>(pixels[k].x()));
+        const double z =
+            depth.at<float>(static_cast<int>(pixels[k].y()), static_cast<int>(pixels[k].x()));
         sample.points.push_back(rays.col(k) * (z / rays(2, k)));
       }
       double rms = 0;
@@ -186,8 +197,9 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
     }
     summary.planes = static_cast<int>(samples.size());
     if (summary.planes < options.min_planes) {
-      summary.End(Termination::kDegenerate, Cat("only ", summary.planes, " board planes seen by both ", depth_sensor,
-                            " and ", color_sensor, " (needs ", options.min_planes, ")"));
+      summary.End(Termination::kDegenerate,
+                  Cat("only ", summary.planes, " board planes seen by both ", depth_sensor, " and ",
+                      color_sensor, " (needs ", options.min_planes, ")"));
       return summary;
     }
     // Rotation from the normals (Kabsch), translation from the plane offsets.
@@ -205,10 +217,12 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
       offsets(k) = samples[k].depth.offset - samples[k].color.offset;
     }
     const Eigen::JacobiSVD<Eigen::MatrixXd> spread(normals);
-    const double weakest = spread.singularValues()(2) / std::sqrt(static_cast<double>(samples.size()));
+    const double weakest =
+        spread.singularValues()(2) / std::sqrt(static_cast<double>(samples.size()));
     if (weakest < std::sin(options.min_normal_spread_deg * M_PI / 180) / 2) {
-      summary.End(Termination::kDegenerate, Cat("the board planes are too close to parallel to fix depth_from_color (",
-                            summary.planes, " planes)"));
+      summary.End(Termination::kDegenerate,
+                  Cat("the board planes are too close to parallel to fix depth_from_color (",
+                      summary.planes, " planes)"));
       return summary;
     }
     const Eigen::Vector3d translation = normals.colPivHouseholderQr().solve(offsets);

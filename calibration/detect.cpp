@@ -8,9 +8,9 @@
 #include <cmath>
 #include <map>
 #include <mutex>
-#include <optional>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <set>
 #include <thread>
 
@@ -57,7 +57,7 @@ Detector MakeDetector(const std::string& family_name, const DetectionOptions& op
   apriltag_detector_add_family_bits(d.detector, d.family, std::max(0, options.max_hamming));
   d.detector->quad_decimate = 1;  // 3.3's decimated corners are biased
   d.detector->quad_sigma = static_cast<float>(options.quad_sigma);
-  d.detector->nthreads = 1;       // frames run in parallel instead
+  d.detector->nthreads = 1;  // frames run in parallel instead
   d.detector->refine_edges = true;
   d.detector->decode_sharpening = 0.25;
   return d;
@@ -405,8 +405,8 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
     for (int c = 0; c < 4; ++c) {
       int i = 0, j = 0;
       board_.GridPointOf(kept[k].id, c, &i, &j);
-      observation->points.row(static_cast<Eigen::Index>(j) * width_n + i)
-          << kept[k].corners[c].x(), kept[k].corners[c].y(), 1.0;
+      observation->points.row(static_cast<Eigen::Index>(j) * width_n + i) << kept[k].corners[c].x(),
+          kept[k].corners[c].y(), 1.0;
     }
   }
   if (used < options_.min_tags) {
@@ -422,7 +422,8 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
 nlohmann::json DetectionSummary::ToJson() const {
   nlohmann::json rejected_json = nlohmann::json::array();
   for (const auto& r : rejected) {
-    rejected_json.push_back({{"sensor", r.sensor}, {"frame_set", r.frame_set}, {"reason", r.reason}});
+    rejected_json.push_back(
+        {{"sensor", r.sensor}, {"frame_set", r.frame_set}, {"reason", r.reason}});
   }
   return {{"frames", frames},
           {"views", views},
@@ -485,7 +486,8 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
           results[k] = std::move(observation);
         } else {
           reasons[k] = reason;
-          if (layout.type == BoardType::kAprilGrid && reason.find("not on this board") != std::string::npos) {
+          if (layout.type == BoardType::kAprilGrid &&
+              reason.find("not on this board") != std::string::npos) {
             foreign_ids[k] = detector.DetectTagIds(image);
           }
         }

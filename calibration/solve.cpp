@@ -41,7 +41,8 @@ Pose FitRigid(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen::Ve
 
 void CheckLensmodelName(const std::string& name) {
   mrcal_lensmodel_t model;
-  if (!mrcal_lensmodel_from_name(&model, name.c_str()) || !mrcal_lensmodel_type_is_valid(model.type)) {
+  if (!mrcal_lensmodel_from_name(&model, name.c_str()) ||
+      !mrcal_lensmodel_type_is_valid(model.type)) {
     Fail("unknown or unconfigured lens model '", name, "'");
   }
 }
@@ -138,22 +139,22 @@ std::string MostGeneralModel(const std::vector<std::string>& names) {
 struct Problem {
   BoardLayout layout;
   int width_n = 0, height_n = 0;
-  std::vector<int> camera_index;          // mrcal camera -> index into the caller's cameras
-  std::vector<int> imagersizes;           // 2 per mrcal camera
+  std::vector<int> camera_index;  // mrcal camera -> index into the caller's cameras
+  std::vector<int> imagersizes;   // 2 per mrcal camera
   std::vector<mrcal_observation_board_t> observations;
-  std::vector<mrcal_point3_t> pool;       // Nobservations * height_n * width_n
-  std::vector<int> observation_source;    // mrcal observation -> caller's observation index
-  std::vector<int64_t> frame_sets;        // mrcal frame -> frame-set index
+  std::vector<mrcal_point3_t> pool;     // Nobservations * height_n * width_n
+  std::vector<int> observation_source;  // mrcal observation -> caller's observation index
+  std::vector<int64_t> frame_sets;      // mrcal frame -> frame-set index
   std::string lensmodel;
   mrcal_lensmodel_t parsed{};
-  std::vector<double> intrinsics;         // Ncameras * Nparams
-  std::vector<mrcal_pose_t> extrinsics;   // cam_from_ref of the cameras away from the reference
-  std::vector<int> extrinsics_of;         // mrcal camera -> index into extrinsics, -1: reference
+  std::vector<double> intrinsics;        // Ncameras * Nparams
+  std::vector<mrcal_pose_t> extrinsics;  // cam_from_ref of the cameras away from the reference
+  std::vector<int> extrinsics_of;        // mrcal camera -> index into extrinsics, -1: reference
   std::vector<mrcal_pose_t> frames;
   mrcal_calobject_warp_t warp{};
   mrcal_problem_selections_t selections{};
   mrcal_problem_constants_t constants{};
-  std::vector<double> x;                  // last residuals
+  std::vector<double> x;  // last residuals
 
   int ncams() const { return static_cast<int>(camera_index.size()); }
   int next() const { return static_cast<int>(extrinsics.size()); }
@@ -178,14 +179,13 @@ struct Problem {
 
   mrcal_stats_t Optimize(bool verbose) {
     x.assign(nmeasurements(), 0.0);
-    return mrcal_optimize(nullptr, 0, x.data(), static_cast<int>(x.size() * sizeof(double)),
-                          intrinsics.data(),
-                          extrinsics.empty() ? nullptr : extrinsics.data(), frames.data(),
-                          nullptr, selections.do_optimize_calobject_warp ? &warp : nullptr,
-                          ncams(), next(), static_cast<int>(frames.size()), 0, 0,
-                          observations.data(), nullptr, static_cast<int>(observations.size()), 0,
-                          pool.data(), &parsed, imagersizes.data(), selections, &constants,
-                          layout.spacing, width_n, height_n, verbose, false);
+    return mrcal_optimize(
+        nullptr, 0, x.data(), static_cast<int>(x.size() * sizeof(double)), intrinsics.data(),
+        extrinsics.empty() ? nullptr : extrinsics.data(), frames.data(), nullptr,
+        selections.do_optimize_calobject_warp ? &warp : nullptr, ncams(), next(),
+        static_cast<int>(frames.size()), 0, 0, observations.data(), nullptr,
+        static_cast<int>(observations.size()), 0, pool.data(), &parsed, imagersizes.data(),
+        selections, &constants, layout.spacing, width_n, height_n, verbose, false);
   }
 };
 
@@ -198,14 +198,16 @@ std::string JointModel(const std::vector<std::string>& names) {
     if (!IsSplined(n)) plain.push_back(n);
   }
   return 2 * plain.size() >= names.size() && !plain.empty() ? MostGeneralModel(plain)
-                                                             : MostGeneralModel(names);
+                                                            : MostGeneralModel(names);
 }
 
 // Whether a camera asking for `requested` is served by the joint solve in `joint`: a splined
 // model stands in for any other, an OPENCV model for any less general one.
 bool Represents(const std::string& joint, const std::string& requested) {
   if (IsSplined(joint) || joint == requested) return true;
-  auto opencv = [](const std::string& m) { return m.rfind("LENSMODEL_OPENCV", 0) == 0 || m == "LENSMODEL_PINHOLE"; };
+  auto opencv = [](const std::string& m) {
+    return m.rfind("LENSMODEL_OPENCV", 0) == 0 || m == "LENSMODEL_PINHOLE";
+  };
   return opencv(joint) && opencv(requested) && MostGeneralModel({joint, requested}) == joint;
 }
 
@@ -272,8 +274,8 @@ mrcal_problem_selections_t Selections(bool core, bool distortions, bool regulari
 // A pinhole-free seed of one view: the observed pixels are unprojected through a
 // stereographic lens of focal `focal` (valid beyond 90 degrees, unlike a pinhole), put on the
 // z = 1 plane and handed to solvePnP with an identity camera matrix.
-bool SeedView(const BoardObservation& obs, const Board& board, double focal, double cx,
-              double cy, Pose* cam_from_board) {
+bool SeedView(const BoardObservation& obs, const Board& board, double focal, double cx, double cy,
+              Pose* cam_from_board) {
   std::vector<cv::Point3d> object;
   std::vector<cv::Point2d> normalised;
   const int width_n = board.width_n();
@@ -292,8 +294,8 @@ bool SeedView(const BoardObservation& obs, const Board& board, double focal, dou
   cv::Mat rvec, tvec;
   std::vector<int> inliers;
   const cv::Mat K = cv::Mat::eye(3, 3, CV_64F);
-  if (!cv::solvePnPRansac(object, normalised, K, cv::noArray(), rvec, tvec, false, 200,
-                          8.0 / focal, 0.99, inliers, cv::SOLVEPNP_IPPE) ||
+  if (!cv::solvePnPRansac(object, normalised, K, cv::noArray(), rvec, tvec, false, 200, 8.0 / focal,
+                          0.99, inliers, cv::SOLVEPNP_IPPE) ||
       inliers.size() < 6) {
     return false;
   }
@@ -345,7 +347,8 @@ double SeedViewError(const BoardObservation& obs, const Board& board, double foc
   const double fxycxy[4] = {focal, focal, cx, cy};
   for (int r = 0; r < obs.points.rows(); ++r) {
     if (obs.points(r, 2) <= 0) continue;
-    const Eigen::Vector3d p = cam_from_board * board.GridPoint(r % board.width_n(), r / board.width_n());
+    const Eigen::Vector3d p =
+        cam_from_board * board.GridPoint(r % board.width_n(), r / board.width_n());
     mrcal_point3_t pm{{p.x(), p.y(), p.z()}};
     mrcal_point2_t q;
     mrcal_project_stereographic(&q, nullptr, &pm, 1, fxycxy);
@@ -368,10 +371,10 @@ bool Jacobian(Problem& p, Eigen::SparseMatrix<double>* jt) {
   if (!cholmod_start(&common)) return false;
   const int nstate = p.nstate();
   const int nmeas = p.nmeasurements();
-  const int nnz = _mrcal_num_j_nonzero(static_cast<int>(p.observations.size()), 0, p.width_n,
-                                       p.height_n, p.ncams(), p.next(),
-                                       static_cast<int>(p.frames.size()), 0, 0,
-                                       p.observations.data(), nullptr, p.selections, &p.parsed);
+  const int nnz =
+      _mrcal_num_j_nonzero(static_cast<int>(p.observations.size()), 0, p.width_n, p.height_n,
+                           p.ncams(), p.next(), static_cast<int>(p.frames.size()), 0, 0,
+                           p.observations.data(), nullptr, p.selections, &p.parsed);
   cholmod_sparse* sparse =
       cholmod_allocate_sparse(nstate, nmeas, nnz, 1, 1, 0, CHOLMOD_REAL, &common);
   if (sparse == nullptr) {
@@ -383,8 +386,8 @@ bool Jacobian(Problem& p, Eigen::SparseMatrix<double>* jt) {
       b.data(), static_cast<int>(nstate * sizeof(double)), x.data(),
       static_cast<int>(nmeas * sizeof(double)), reinterpret_cast<cholmod_sparse_struct*>(sparse),
       p.intrinsics.data(), p.extrinsics.empty() ? nullptr : p.extrinsics.data(), p.frames.data(),
-      nullptr, p.selections.do_optimize_calobject_warp ? &p.warp : nullptr, p.ncams(),
-      p.next(), static_cast<int>(p.frames.size()), 0, 0, p.observations.data(), nullptr,
+      nullptr, p.selections.do_optimize_calobject_warp ? &p.warp : nullptr, p.ncams(), p.next(),
+      static_cast<int>(p.frames.size()), 0, 0, p.observations.data(), nullptr,
       static_cast<int>(p.observations.size()), 0, p.pool.data(), &p.parsed, p.imagersizes.data(),
       p.selections, &p.constants, p.layout.spacing, p.width_n, p.height_n, false);
   if (ok) {
@@ -410,7 +413,8 @@ bool Jacobian(Problem& p, Eigen::SparseMatrix<double>* jt) {
 // printed only with verbose, never returned; so the ending is judged at mrcal's result, from
 // mrcal's own residuals and mrcal_optimizer_callback's Jacobian there.
 SolverEnd JudgeEnd(Problem& p, const mrcal_stats_t& stats) {
-  const Eigen::VectorXd x = Eigen::Map<const Eigen::VectorXd>(p.x.data(), static_cast<Eigen::Index>(p.x.size()));
+  const Eigen::VectorXd x =
+      Eigen::Map<const Eigen::VectorXd>(p.x.data(), static_cast<Eigen::Index>(p.x.size()));
   const double rms = stats.rms_reproj_error__pixels;
   Eigen::SparseMatrix<double> jt;
   if (rms >= 0 && std::isfinite(rms) && !Jacobian(p, &jt)) jt.resize(0, 0);
@@ -438,7 +442,7 @@ Eigen::Vector3d InvertTransform(const mrcal_pose_t& pose, const Eigen::Vector3d&
 }
 
 struct Factorization {
-  Eigen::SparseMatrix<double> jt;   // packed
+  Eigen::SparseMatrix<double> jt;  // packed
   Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> ldlt;
   Eigen::SparseMatrix<double> jobs_t_jobs;  // the observations' share of J*tJ*
   int nmeas_observations = 0;
@@ -466,7 +470,7 @@ struct CameraState {
   int intrinsics = -1;
   int first_optimized = 0;  // first intrinsic in the state (4 when the core is held fixed)
   int extrinsics = -1;
-  int frames = -1;          // the first board pose
+  int frames = -1;  // the first board pose
 };
 
 CameraState StateOf(Problem& p, int icam) {
@@ -492,11 +496,13 @@ CameraState StateOf(Problem& p, int icam) {
 
 // Covariance of functions of the state whose gradients (by the unpacked state) are the
 // columns of `gradients`, propagated from the observation noise like the projections.
-Eigen::MatrixXd StateCovariance(Problem& p, Factorization& f, Eigen::MatrixXd gradients, double sigma) {
+Eigen::MatrixXd StateCovariance(Problem& p, Factorization& f, Eigen::MatrixXd gradients,
+                                double sigma) {
   for (int c = 0; c < gradients.cols(); ++c) {
     Eigen::VectorXd column = gradients.col(c);
     mrcal_unpack_solver_state_vector(column.data(), p.ncams(), p.next(),
-                                     static_cast<int>(p.frames.size()), 0, 0, p.selections, &p.parsed);
+                                     static_cast<int>(p.frames.size()), 0, 0, p.selections,
+                                     &p.parsed);
     gradients.col(c) = column;
   }
   const Eigen::MatrixXd a = f.ldlt.solve(gradients);
@@ -516,7 +522,8 @@ void ParameterSigma(Problem& p, Factorization& f, int icam, double sigma, Calibr
     Eigen::MatrixXd gradients = Eigen::MatrixXd::Zero(nstate, k);
     for (int c = 0; c < k; ++c) gradients(state.intrinsics + c, c) = 1;
     const Eigen::MatrixXd cov = StateCovariance(p, f, gradients, sigma);
-    for (int c = 0; c < k; ++c) out->intrinsics_sigma[state.first_optimized + c] = std::sqrt(cov(c, c));
+    for (int c = 0; c < k; ++c)
+      out->intrinsics_sigma[state.first_optimized + c] = std::sqrt(cov(c, c));
   }
   if (state.extrinsics < 0) return;
   // Rotation (the rt's r, radians) and camera centre -R^t t (numeric derivatives by rt).
@@ -528,18 +535,25 @@ void ParameterSigma(Problem& p, Factorization& f, int icam, double sigma, Calibr
     Rt plus = rt, minus = rt;
     plus[d] += 1e-7;
     minus[d] -= 1e-7;
-    const Eigen::Vector3d dc = (PoseFromRt(plus).inverse().translation() - PoseFromRt(minus).inverse().translation()) / 2e-7;
+    const Eigen::Vector3d dc =
+        (PoseFromRt(plus).inverse().translation() - PoseFromRt(minus).inverse().translation()) /
+        2e-7;
     for (int r = 0; r < 3; ++r) gradients(state.extrinsics + d, 3 + r) = dc(r);
   }
   const Eigen::MatrixXd cov = StateCovariance(p, f, gradients, sigma);
-  const Eigen::Matrix3d rotation = cov.topLeftCorner<3, 3>(), center = cov.bottomRightCorner<3, 3>();
-  out->rotation_sigma_deg = std::sqrt(Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(rotation).eigenvalues().maxCoeff()) * 180 / std::numbers::pi;
-  out->center_sigma_mm = 1000 * std::sqrt(Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(center).eigenvalues().maxCoeff());
+  const Eigen::Matrix3d rotation = cov.topLeftCorner<3, 3>(),
+                        center = cov.bottomRightCorner<3, 3>();
+  out->rotation_sigma_deg =
+      std::sqrt(Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(rotation).eigenvalues().maxCoeff()) *
+      180 / std::numbers::pi;
+  out->center_sigma_mm =
+      1000 *
+      std::sqrt(Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(center).eigenvalues().maxCoeff());
 }
 
 // mrcal's projection_uncertainty(): Var(q) for pixels of camera `icam` at `distance`.
-CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double distance,
-                              double sigma, int grid_x, int grid_y) {
+CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double distance, double sigma,
+                              int grid_x, int grid_y) {
   CameraUncertainty u;
   u.grid_x = grid_x;
   u.grid_y = grid_y;
@@ -563,7 +577,8 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
   const int first_optimized = state.first_optimized;
 
   u.covariance.assign(n, Eigen::Matrix2d::Constant(std::numeric_limits<double>::quiet_NaN()));
-  u.worst_sigma_px = Eigen::MatrixXd::Constant(grid_y, grid_x, std::numeric_limits<double>::quiet_NaN());
+  u.worst_sigma_px =
+      Eigen::MatrixXd::Constant(grid_y, grid_x, std::numeric_limits<double>::quiet_NaN());
   const int chunk = 16;
   for (int start = 0; start < n; start += chunk) {
     const int count = std::min(chunk, n - start);
@@ -661,12 +676,15 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
 }  // namespace
 
 void CalibrationOptions::Check() const {
-  if (min_views_per_camera < 3) Fail("min_views_per_camera must be >= 3, got ", min_views_per_camera);
+  if (min_views_per_camera < 3)
+    Fail("min_views_per_camera must be >= 3, got ", min_views_per_camera);
   if (min_points_per_view < 4) Fail("min_points_per_view must be >= 4, got ", min_points_per_view);
   if (!(max_seed_rms_px > 0)) Fail("max_seed_rms_px must be > 0");
-  if (uncertainty_grid_x < 2 || uncertainty_grid_y < 2) Fail("the uncertainty grid needs >= 2x2 points");
+  if (uncertainty_grid_x < 2 || uncertainty_grid_y < 2)
+    Fail("the uncertainty grid needs >= 2x2 points");
   if (!(uncertainty_distance_m >= 0)) Fail("uncertainty_distance_m must be >= 0 (0: automatic)");
-  if (!(observed_pixel_sigma >= 0)) Fail("observed_pixel_sigma must be >= 0 (0: from the residuals)");
+  if (!(observed_pixel_sigma >= 0))
+    Fail("observed_pixel_sigma must be >= 0 (0: from the residuals)");
   if (!(max_uncertainty_px > 0)) Fail("max_uncertainty_px must be > 0");
 }
 
@@ -717,7 +735,8 @@ nlohmann::json CalibrationSummary::ToJson() const {
         std::vector<std::vector<double>> grid;
         for (int y = 0; y < c.uncertainty.grid_y; ++y) {
           std::vector<double> row;
-          for (int x = 0; x < c.uncertainty.grid_x; ++x) row.push_back(c.uncertainty.worst_sigma_px(y, x));
+          for (int x = 0; x < c.uncertainty.grid_x; ++x)
+            row.push_back(c.uncertainty.worst_sigma_px(y, x));
           grid.push_back(row);
         }
         j["uncertainty"] = {{"worst_px", c.uncertainty.worst_px},
@@ -732,30 +751,37 @@ nlohmann::json CalibrationSummary::ToJson() const {
   }
   nlohmann::json stage_json = nlohmann::json::array();
   for (const auto& s : stages) {
-    stage_json.push_back({{"stage", s.name}, {"lensmodel", s.lensmodel}, {"rms_px", s.rms_px},
-                          {"outliers", s.outliers}, {"t_s", s.seconds},
-                          {"termination", ToString(s.termination)}, {"cost", s.cost},
+    stage_json.push_back({{"stage", s.name},
+                          {"lensmodel", s.lensmodel},
+                          {"rms_px", s.rms_px},
+                          {"outliers", s.outliers},
+                          {"t_s", s.seconds},
+                          {"termination", ToString(s.termination)},
+                          {"cost", s.cost},
                           {"expected_decrease", s.expected_decrease}});
   }
-  nlohmann::json j = {{"termination", ToString(termination)},
-                      {"message", message},
-                      {"lensmodel", lensmodel},
-                      {"reference_camera", reference_camera},
-                      {"rms_reprojection_px", rms_reprojection_px},
-                      {"observed_pixel_sigma", observed_pixel_sigma},
-                      {"frames", frames},
-                      {"observations", observations},
-                      {"outliers", outliers},
-                      {"warnings", warnings},
-                      {"notes", notes},
-                      {"cameras", cams},
-                      {"stages", stage_json},
-                      {"timing", {{"solve_s", solve_seconds}, {"uncertainty_s", uncertainty_seconds}}}};
+  nlohmann::json j = {
+      {"termination", ToString(termination)},
+      {"message", message},
+      {"lensmodel", lensmodel},
+      {"reference_camera", reference_camera},
+      {"rms_reprojection_px", rms_reprojection_px},
+      {"observed_pixel_sigma", observed_pixel_sigma},
+      {"frames", frames},
+      {"observations", observations},
+      {"outliers", outliers},
+      {"warnings", warnings},
+      {"notes", notes},
+      {"cameras", cams},
+      {"stages", stage_json},
+      {"timing", {{"solve_s", solve_seconds}, {"uncertainty_s", uncertainty_seconds}}}};
   for (const auto& s : stages) {
     if (s.name != "everything") continue;
     // mrcal's own figures of its final joint solve (mrcal 2.2 reports no iteration count).
-    j["mrcal"] = {{"termination", ToString(s.termination)}, {"rms_px", s.rms_px},
-                  {"outliers", s.outliers}, {"cost", s.cost},
+    j["mrcal"] = {{"termination", ToString(s.termination)},
+                  {"rms_px", s.rms_px},
+                  {"outliers", s.outliers},
+                  {"cost", s.cost},
                   {"expected_decrease", s.expected_decrease}};
   }
   if (!cross_validation.is_null()) j["cross_validation"] = cross_validation;
@@ -858,7 +884,8 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
       if (!cb->model.Project(b_from_a * (rays.col(k).normalized() * distance), &q)) continue;
       const double diff = (q - pixels.col(k)).norm();
       const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
-      const double bound = ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx);
+      const double bound =
+          ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx);
       sum2 += diff * diff;
       worst = std::max(worst, diff);
       within += diff <= bound;
@@ -870,7 +897,8 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
     for (int k = 0; k < pixels.cols(); ++k) {
       const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
       if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy, gx)) continue;
-      sigma_sum += (ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx)) / n;
+      sigma_sum +=
+          (ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx)) / n;
     }
     worst_ratio = std::max(worst_ratio, sigma_sum > 0 ? rms / sigma_sum : 0);
     result[ca.name] = {{"diff_rms_px", rms},
@@ -879,10 +907,20 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
                        {"ratio", sigma_sum > 0 ? rms / sigma_sum : 0},
                        {"within_sigma_sum_fraction", static_cast<double>(within) / n}};
   }
-  return {{"cameras", result}, {"worst_ratio", worst_ratio},
-          {"method", "implied rigid transform fitted to the pixels where the board was seen, then projection differences"},
-          {"halves", {{"a", {{"termination", ToString(a.termination)}, {"rms_px", a.rms_reprojection_px}, {"frames", a.frames}}},
-                      {"b", {{"termination", ToString(b.termination)}, {"rms_px", b.rms_reprojection_px}, {"frames", b.frames}}}}}};
+  return {{"cameras", result},
+          {"worst_ratio", worst_ratio},
+          {"method",
+           "implied rigid transform fitted to the pixels where the board was seen, then projection "
+           "differences"},
+          {"halves",
+           {{"a",
+             {{"termination", ToString(a.termination)},
+              {"rms_px", a.rms_reprojection_px},
+              {"frames", a.frames}}},
+            {"b",
+             {{"termination", ToString(b.termination)},
+              {"rms_px", b.rms_reprojection_px},
+              {"frames", b.frames}}}}}};
 }
 
 }  // namespace
@@ -939,19 +977,19 @@ class Calibrator {
   CalibrationSummary summary_;
   std::map<std::string, int> index_of_;
   int reference_ = 0;
-  std::vector<std::vector<int>> views_;        // usable observations per camera
-  std::vector<double> focal_;                  // stereographic seed focal per camera
-  std::map<int, Pose> cam_from_board_;         // seeded board pose by observation index
-  std::vector<Pose> cam_from_ref_;             // seeded rig geometry
-  std::vector<bool> placed_;                   // joined to the reference camera's group
-  Problem p_;                                  // the joint problem
+  std::vector<std::vector<int>> views_;  // usable observations per camera
+  std::vector<double> focal_;            // stereographic seed focal per camera
+  std::map<int, Pose> cam_from_board_;   // seeded board pose by observation index
+  std::vector<Pose> cam_from_ref_;       // seeded rig geometry
+  std::vector<bool> placed_;             // joined to the reference camera's group
+  Problem p_;                            // the joint problem
   std::map<int64_t, std::vector<std::pair<int, int>>> frame_members_;  // set -> (mrcal cam, obs)
-  std::vector<std::string> requested_;         // lens model asked for, per mrcal camera
-  std::vector<mrcal_point3_t> given_pool_;     // the joint pool before outlier rejection
-  std::vector<double> core_;                   // the stereographic stages' intrinsics
-  std::map<int, Problem> alone_;               // cameras re-solved alone, by mrcal camera
-  std::vector<double> all_residuals_;          // every inlier residual coordinate
-  std::string unconverged_;                    // stages whose cost still fell
+  std::vector<std::string> requested_;      // lens model asked for, per mrcal camera
+  std::vector<mrcal_point3_t> given_pool_;  // the joint pool before outlier rejection
+  std::vector<double> core_;                // the stereographic stages' intrinsics
+  std::map<int, Problem> alone_;            // cameras re-solved alone, by mrcal camera
+  std::vector<double> all_residuals_;       // every inlier residual coordinate
+  std::string unconverged_;                 // stages whose cost still fell
 };
 
 CalibrationSummary Calibrator::Run() {
@@ -1025,7 +1063,8 @@ void Calibrator::SeedCamera(int c) {
   auto& out = summary_.cameras[c];
   out.views = static_cast<int>(views_[c].size());
   if (out.views < options_.min_views_per_camera) {
-    out.flag = Cat("only ", out.views, " usable board views (needs ", options_.min_views_per_camera, ")");
+    out.flag =
+        Cat("only ", out.views, " usable board views (needs ", options_.min_views_per_camera, ")");
     return;
   }
   std::vector<const BoardObservation*> list;
@@ -1127,7 +1166,8 @@ void Calibrator::BuildProblem() {
   p_.height_n = board_.height_n();
   p_.camera_index.push_back(reference_);
   for (size_t c = 0; c < cameras_.size(); ++c) {
-    if (static_cast<int>(c) != reference_ && placed_[c]) p_.camera_index.push_back(static_cast<int>(c));
+    if (static_cast<int>(c) != reference_ && placed_[c])
+      p_.camera_index.push_back(static_cast<int>(c));
   }
   for (int m = 0; m < p_.ncams(); ++m) {
     for (int k : views_[p_.camera_index[m]]) {
@@ -1175,14 +1215,17 @@ void Calibrator::NoteLensModels() {
     std::string alone;
     for (int m = 0; m < p_.ncams(); ++m) {
       if (!Represents(summary_.lensmodel, requested_[m])) {
-        alone += (alone.empty() ? "" : ", ") + cameras_[p_.camera_index[m]].name + " (" + requested_[m] + ")";
+        alone += (alone.empty() ? "" : ", ") + cameras_[p_.camera_index[m]].name + " (" +
+                 requested_[m] + ")";
       }
     }
     summary_.notes.push_back(Cat(
         "cameras ask for ", distinct.size(), " lens models and mrcal 2.2 solves one per problem: ",
         "the rig is solved in ", summary_.lensmodel,
-        alone.empty() ? std::string(", which contains every model asked for")
-                      : ", then re-solved alone in their own models against the rig's board poses: " + alone));
+        alone.empty()
+            ? std::string(", which contains every model asked for")
+            : ", then re-solved alone in their own models against the rig's board poses: " +
+                  alone));
   }
   for (const auto& c : summary_.cameras) {
     if (!c.flag.empty()) summary_.warnings.push_back(c.name + ": " + c.flag);
@@ -1216,7 +1259,8 @@ bool Calibrator::SolveStereographic() {
   for (int m = 0; m < p_.ncams(); ++m) {
     const CalibrationCamera& cam = cameras_[p_.camera_index[m]];
     const double f = focal_[p_.camera_index[m]];
-    for (double v : {f, f, (cam.width - 1) / 2.0, (cam.height - 1) / 2.0}) p_.intrinsics.push_back(v);
+    for (double v : {f, f, (cam.width - 1) / 2.0, (cam.height - 1) / 2.0})
+      p_.intrinsics.push_back(v);
   }
   p_.selections = Selections(false, false, false, false, false);
   if (!Stage("geometry", p_, true).IsUsable()) {
@@ -1249,7 +1293,8 @@ bool Calibrator::SolveFinalModel() {
   const bool splined = IsSplined(summary_.lensmodel);
   const bool has_core = mrcal_lensmodel_metadata(&p_.parsed).has_core;
   // Splined models keep the core fixed: the spline already covers what it would do.
-  p_.selections = Selections(has_core && !splined, nparams > 4, options_.regularization, false, false);
+  p_.selections =
+      Selections(has_core && !splined, nparams > 4, options_.regularization, false, false);
   if (!Stage("intrinsics", p_, true).IsUsable()) {
     End(Termination::kFailure, "the intrinsics stage produced NaN");
     return false;
@@ -1340,7 +1385,8 @@ void Calibrator::Absorb(const Problem& q, int only) {
     auto& d = distances[m];
     std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
     out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
-    std::vector<double> intrinsics(q.intrinsics.begin() + m * np, q.intrinsics.begin() + (m + 1) * np);
+    std::vector<double> intrinsics(q.intrinsics.begin() + m * np,
+                                   q.intrinsics.begin() + (m + 1) * np);
     out.model = CameraModel(q.lensmodel, intrinsics, q.imagersizes[2 * m], q.imagersizes[2 * m + 1],
                             q.CamFromRef(m));
     out.solved = true;
@@ -1388,7 +1434,8 @@ void Calibrator::EstimateUncertainty() {
   for (int m = 0; m < p_.ncams(); ++m) all_ok = CameraUncertaintyOf(m, joint, joint_ok) && all_ok;
   summary_.uncertainty_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - u_start).count();
-  if (!all_ok) summary_.warnings.push_back("the Jacobian could not be factored: the problem is singular");
+  if (!all_ok)
+    summary_.warnings.push_back("the Jacobian could not be factored: the problem is singular");
 }
 
 // Mrcal camera m's projection uncertainty and parameter sigmas; flags it ill-conditioned where
@@ -1420,10 +1467,13 @@ bool Calibrator::CameraUncertaintyOf(int m, Factorization& joint, bool joint_ok)
   CameraUncertainty& u = out.uncertainty;
   if (ok && u.grid_x > 0) {
     const int width = out.model.width(), height = out.model.height();
-    u.observed = Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic>::Constant(u.grid_y, u.grid_x, false);
+    u.observed =
+        Eigen::Matrix<bool, Eigen::Dynamic, Eigen::Dynamic>::Constant(u.grid_y, u.grid_x, false);
     for (const auto& q : out.observed) {
-      const int gx = std::clamp(static_cast<int>((q.x() + 0.5) * u.grid_x / width), 0, u.grid_x - 1);
-      const int gy = std::clamp(static_cast<int>((q.y() + 0.5) * u.grid_y / height), 0, u.grid_y - 1);
+      const int gx =
+          std::clamp(static_cast<int>((q.x() + 0.5) * u.grid_x / width), 0, u.grid_x - 1);
+      const int gy =
+          std::clamp(static_cast<int>((q.y() + 0.5) * u.grid_y / height), 0, u.grid_y - 1);
       u.observed(gy, gx) = true;
     }
     u.worst_observed_px = 0;
@@ -1474,15 +1524,14 @@ void Calibrator::Conclude() {
   for (const auto& c : summary_.cameras) {
     if (!c.flag.empty()) flagged.push_back(c.name + " (" + c.flag + ")");
   }
-  const std::string solved =
-      Cat(cameras_.size(), " cameras, ", summary_.frames, " board poses, ", summary_.observations,
-          " views: ", summary_.rms_reprojection_px, " px RMS per coordinate, ", summary_.outliers,
-          " outliers");
+  const std::string solved = Cat(cameras_.size(), " cameras, ", summary_.frames, " board poses, ",
+                                 summary_.observations, " views: ", summary_.rms_reprojection_px,
+                                 " px RMS per coordinate, ", summary_.outliers, " outliers");
   if (!flagged.empty()) {
     std::string list;
     for (const auto& f : flagged) list += (list.empty() ? "" : "; ") + f;
-    summary_.End(Termination::kDegenerate,
-                 Cat(flagged.size(), " of ", cameras_.size(), " cameras cannot be trusted: ", list));
+    summary_.End(Termination::kDegenerate, Cat(flagged.size(), " of ", cameras_.size(),
+                                               " cameras cannot be trusted: ", list));
   } else if (!unconverged_.empty()) {
     summary_.End(Termination::kNoConvergence,
                  Cat(solved, "; mrcal stopped while the cost still fell in: ", unconverged_));
@@ -1493,7 +1542,8 @@ void Calibrator::Conclude() {
 
 }  // namespace
 
-CalibrationSummary Calibrate(const BoardLayout& layout, const std::vector<CalibrationCamera>& cameras,
+CalibrationSummary Calibrate(const BoardLayout& layout,
+                             const std::vector<CalibrationCamera>& cameras,
                              const std::vector<BoardObservation>& observations,
                              const CalibrationOptions& options, Report* report) {
   return Calibrator(layout, cameras, observations, options, report).Run();

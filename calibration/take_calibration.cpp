@@ -25,7 +25,8 @@ cv::Mat ResidualPicture(const CalibratedCamera& cam) {
     const cv::Scalar colour(255 * (1 - t), 0, 255 * t);
     cv::line(image, cv::Point2d(a.x(), a.y()), cv::Point2d(b.x(), b.y()), colour, 1, cv::LINE_AA);
   }
-  cv::putText(image, Cat(cam.name, " residuals x", static_cast<int>(gain), ", rms ", cam.rms_px, " px"),
+  cv::putText(image,
+              Cat(cam.name, " residuals x", static_cast<int>(gain), ", rms ", cam.rms_px, " px"),
               cv::Point(5, 15), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(0, 0, 0), 1, cv::LINE_AA);
   return image;
 }
@@ -48,9 +49,11 @@ cv::Mat CoveragePicture(const CalibratedCamera& cam) {
   cv::resize(grey, image, cv::Size(gw * cell, gh * cell), 0, 0, cv::INTER_NEAREST);
   image = image(cv::Rect(0, 0, cam.model.width(), cam.model.height())).clone();
   cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
-  for (const auto& q : cam.observed) cv::circle(image, cv::Point2d(q.x(), q.y()), 1, cv::Scalar(0, 128, 0), -1);
+  for (const auto& q : cam.observed)
+    cv::circle(image, cv::Point2d(q.x(), q.y()), 1, cv::Scalar(0, 128, 0), -1);
   cv::putText(image, Cat(cam.name, " coverage: ", cam.views, " views, ", cam.points, " points"),
-              cv::Point(5, 15), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(0, 0, 255), 1, cv::LINE_AA);
+              cv::Point(5, 15), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(0, 0, 255), 1,
+              cv::LINE_AA);
   return image;
 }
 
@@ -70,8 +73,9 @@ cv::Mat UncertaintyPicture(const CalibratedCamera& cam) {
   sigma.convertTo(grey, CV_8U, 255.0 / worst);
   cv::resize(grey, big, cv::Size(cam.model.width(), cam.model.height()), 0, 0, cv::INTER_LINEAR);
   cv::applyColorMap(big, colour, cv::COLORMAP_VIRIDIS);
-  cv::putText(colour, Cat(cam.name, " projection 1-sigma at ", u.distance_m, " m: max ", u.worst_px, " px"),
-              cv::Point(5, 15), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(255, 255, 255), 1, cv::LINE_AA);
+  cv::putText(
+      colour, Cat(cam.name, " projection 1-sigma at ", u.distance_m, " m: max ", u.worst_px, " px"),
+      cv::Point(5, 15), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(255, 255, 255), 1, cv::LINE_AA);
   return colour;
 }
 
@@ -80,7 +84,8 @@ BoardLayout FindBoard(const Take& take, const TakeCalibrationOptions& options) {
   const fs::path gt_board = take.gt_dir() / "board.json";
   if (fs::exists(gt_board)) {
     const nlohmann::json json = nlohmann::json::parse(ReadFileToString(gt_board), nullptr, false);
-    if (json.is_discarded() || !json.contains("layout")) Fail(gt_board.string(), ": no board layout");
+    if (json.is_discarded() || !json.contains("layout"))
+      Fail(gt_board.string(), ": no board layout");
     return BoardLayout::FromJson(json["layout"], gt_board.string());
   }
   Fail("take ", take.dir().string(), " names no board: pass --board BOARD.yaml");
@@ -105,7 +110,8 @@ std::map<int64_t, Pose> TrueBoardPoses(const Take& take) {
 std::string RigLensModel(const Take& take, const std::string& sensor) {
   const int in_rig = take.rig().IndexOf(sensor);
   if (in_rig >= 0 && take.rig().sensors[in_rig].options.contains("calib_lensmodel")) {
-    const std::string model = take.rig().sensors[in_rig].options["calib_lensmodel"].get<std::string>();
+    const std::string model =
+        take.rig().sensors[in_rig].options["calib_lensmodel"].get<std::string>();
     calibration_internal::CheckLensmodelName(model);
     return model;
   }
@@ -122,7 +128,8 @@ void TakeCalibrationOptions::Check() const {
 namespace {
 
 // The colour cameras to calibrate (all when none are named) with their lens models.
-std::vector<CalibrationCamera> CamerasToCalibrate(const Take& take, const TakeCalibrationOptions& options,
+std::vector<CalibrationCamera> CamerasToCalibrate(const Take& take,
+                                                  const TakeCalibrationOptions& options,
                                                   std::vector<std::string>* sensors) {
   *sensors = options.sensors;
   if (sensors->empty()) {
@@ -133,7 +140,8 @@ std::vector<CalibrationCamera> CamerasToCalibrate(const Take& take, const TakeCa
   if (sensors->empty()) Fail("take ", take.dir().string(), " has no colour camera to calibrate");
   std::vector<CalibrationCamera> cameras;
   for (const auto& name : *sensors) {
-    if (!take.has_stream(name)) Fail("camera '", name, "' is not in the take ", take.dir().string());
+    if (!take.has_stream(name))
+      Fail("camera '", name, "' is not in the take ", take.dir().string());
     const StreamInfo& stream = take.stream(name);
     cameras.push_back({name, stream.width, stream.height,
                        options.lensmodel.empty() ? RigLensModel(take, name) : options.lensmodel});
@@ -161,9 +169,11 @@ Pose WorldOfTheModels(const Take& take, const BoardLayout& layout, TakeCalibrati
   bool from_boards = false;
   const Pose world_from_ref = calibration_internal::WorldFromReference(
       cal, truth.at(cal.reference_camera), true_board, layout, &from_boards);
-  *world_frame = from_boards ? "simulated world (rigid fit of the solved board poses to the true ones)"
-                             : "simulated world (the reference camera's true pose)";
-  if (!cal.ref_from_board.empty()) result->ground_truth = CompareWithTruth(cal, truth, true_board, layout);
+  *world_frame = from_boards
+                     ? "simulated world (rigid fit of the solved board poses to the true ones)"
+                     : "simulated world (the reference camera's true pose)";
+  if (!cal.ref_from_board.empty())
+    result->ground_truth = CompareWithTruth(cal, truth, true_board, layout);
   return world_from_ref;
 }
 
@@ -221,12 +231,14 @@ void AlignDepthSensors(const Take& take, const BoardLayout& layout, const Pose& 
       depth_model = depth_model.Scaled(static_cast<double>(stream.width) / depth_model.width());
     }
     std::map<int64_t, Pose> colour_from_board;
-    for (const auto& [set, pose] : cal.ref_from_board) colour_from_board[set] = colour->model.cam_from_world() * pose;
+    for (const auto& [set, pose] : cal.ref_from_board)
+      colour_from_board[set] = colour->model.cam_from_world() * pose;
     depth = AlignDepthToColor(take, stream.name, depth_model, stream.paired_with, colour->model,
                               colour_from_board, layout, options.depth);
     if (IsUsable(depth.termination)) {
       CameraModel model = depth_model;
-      model.set_cam_from_world(depth.depth_from_color * colour->model.cam_from_world() * world_from_ref.inverse());
+      model.set_cam_from_world(depth.depth_from_color * colour->model.cam_from_world() *
+                               world_from_ref.inverse());
       const fs::path file = take.calib_dir() / (stream.name + ".cameramodel");
       model.Write(file);
       result->written.push_back(file);
@@ -244,11 +256,15 @@ void FillReport(const TakeCalibrationOptions& options, const std::vector<std::st
   r.plan()["reference_camera"] = cal.reference_camera;
   r.plan()["world_frame"] = world_frame;
   r.plan()["cameras"] = sensors;
-  r.plan()["stages"] = {"detect", "seed (solvePnP + camera graph)", "geometry (stereographic)",
-                        "core (stereographic)", "intrinsics (" + cal.lensmodel + ")",
-                        "everything (regularised, outliers rejected)",
-                        options.solve.uncertainty ? "uncertainty" : "no uncertainty",
-                        options.solve.cross_validation ? "cross-validation" : "no cross-validation"};
+  r.plan()["stages"] = {
+      "detect",
+      "seed (solvePnP + camera graph)",
+      "geometry (stereographic)",
+      "core (stereographic)",
+      "intrinsics (" + cal.lensmodel + ")",
+      "everything (regularised, outliers rejected)",
+      options.solve.uncertainty ? "uncertainty" : "no uncertainty",
+      options.solve.cross_validation ? "cross-validation" : "no cross-validation"};
   nlohmann::json& m = r.metrics();
   const nlohmann::json cal_json = cal.ToJson();
   m["rms_reprojection_px"] = cal.rms_reprojection_px;
@@ -283,8 +299,8 @@ void FillReport(const TakeCalibrationOptions& options, const std::vector<std::st
 
 }  // namespace
 
-TakeCalibrationSummary CalibrateTake(const fs::path& take_dir, const TakeCalibrationOptions& options,
-                                     Report* report) {
+TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
+                                     const TakeCalibrationOptions& options, Report* report) {
   options.Check();
   const Take take = Take::Open(take_dir);
   const BoardLayout layout = FindBoard(take, options);

@@ -34,9 +34,11 @@ void RecorderOptions::Check() const {
   if (writer_threads < 1 || writer_threads > 64) Fail("capture: writer_threads must be 1..64");
   if (warmup_s < 0 || drain_s < 0) Fail("capture: warmup_s and drain_s must be >= 0");
   if (!(stall_s > 0)) Fail("capture: stall_s must be positive");
-  if (!codec.empty() && codec != "png" && codec != "zstd") Fail("capture: codec must be png or zstd (not '", codec, "')");
+  if (!codec.empty() && codec != "png" && codec != "zstd")
+    Fail("capture: codec must be png or zstd (not '", codec, "')");
   if (sync_tolerance_ns < 0) Fail("capture: sync_tolerance_ns must be >= 0");
-  if (trigger_priority < 0 || trigger_priority > 99) Fail("capture: trigger_priority must be 0..99");
+  if (trigger_priority < 0 || trigger_priority > 99)
+    Fail("capture: trigger_priority must be 0..99");
 }
 
 nlohmann::json RecorderSummary::Metrics() const {
@@ -75,8 +77,10 @@ Recorder::Recorder(const RigDescription& rig, std::filesystem::path out, Recorde
   if (rig_.sensors.empty()) Fail("rig '", rig_.name, "' has no sensors");
   std::error_code ec;
   if (std::filesystem::exists(out_, ec) &&
-      (!std::filesystem::is_directory(out_, ec) || (!std::filesystem::is_empty(out_, ec) && !options_.take.overwrite))) {
-    Fail("'", out_.string(), "' exists and is not an empty directory (refusing to overwrite a take)");
+      (!std::filesystem::is_directory(out_, ec) ||
+       (!std::filesystem::is_empty(out_, ec) && !options_.take.overwrite))) {
+    Fail("'", out_.string(),
+         "' exists and is not an empty directory (refusing to overwrite a take)");
   }
   for (const SensorSpec& rig_spec : rig_.sensors) {
     SensorSpec spec = rig_spec;
@@ -96,12 +100,14 @@ Recorder::Recorder(const RigDescription& rig, std::filesystem::path out, Recorde
     stream.uri = spec.uri;
     stream.role = spec.role;
     if (!spec.paired_with.empty()) stream.paired_with = spec.paired_with;
-    if (options_.codec == "png" && stream.pixel_format != "depth_m") stream.codec = ImageCodec::kPng;
-    if (options_.codec == "zstd" && stream.pixel_format != "depth_m") stream.codec = ImageCodec::kZstd;
+    if (options_.codec == "png" && stream.pixel_format != "depth_m")
+      stream.codec = ImageCodec::kPng;
+    if (options_.codec == "zstd" && stream.pixel_format != "depth_m")
+      stream.codec = ImageCodec::kZstd;
     streams_.push_back(stream);
     if (rig_.sync == SyncMode::kSoftwareTrigger && !sensors_.back()->supports_software_trigger()) {
-      Fail("sensor '", spec.name, "' (", spec.uri, ") cannot be software-triggered; give the rig sync: free-run",
-           " or hardware");
+      Fail("sensor '", spec.name, "' (", spec.uri,
+           ") cannot be software-triggered; give the rig sync: free-run", " or hardware");
     }
   }
 }
@@ -124,18 +130,18 @@ class Recorder::Session {
  private:
   // Written by the sensor's capture and trigger threads, read by the others.
   struct SensorState {
-    std::atomic<int64_t> triggers{0};          // software triggers sent after the warm-up
-    std::atomic<int64_t> captured{0};          // frames delivered after the warm-up
-    std::atomic<int64_t> dropped_queue{0};     // its frame queue was full
-    std::atomic<int64_t> dropped_sets{0};      // in a set dropped because the writers fell behind
+    std::atomic<int64_t> triggers{0};       // software triggers sent after the warm-up
+    std::atomic<int64_t> captured{0};       // frames delivered after the warm-up
+    std::atomic<int64_t> dropped_queue{0};  // its frame queue was full
+    std::atomic<int64_t> dropped_sets{0};   // in a set dropped because the writers fell behind
     std::atomic<int64_t> written{0};
     std::atomic<int64_t> sequence_gaps{0};     // frames its sequence counter skipped
     std::atomic<int64_t> after_end{0};         // free run with a frame limit: after the last set
     std::atomic<int64_t> warmup_frames{0};     // answers to the warm-up triggers (discarded)
     std::atomic<int64_t> warmup_timestamp{0};  // the last of them: ties the clocks together
     std::atomic<int64_t> lost_before_first_trigger{0};  // the driver's lost count by then
-    std::atomic<bool> ended{false};            // a finite source has no more frames
-    int queued = 0;                            // its frames in the frame queue (frame_mutex_)
+    std::atomic<bool> ended{false};                     // a finite source has no more frames
+    int queued = 0;  // its frames in the frame queue (frame_mutex_)
   };
 
   void StartSensorsAndOpenTake();
@@ -150,7 +156,8 @@ class Recorder::Session {
   void WriteLoop();
   void Supervise(const std::function<void(const RecorderStatus&)>& on_status);
   bool AllTriggersAnswered() const;
-  void SendStatus(const std::function<void(const RecorderStatus&)>& on_status, double elapsed, double dt);
+  void SendStatus(const std::function<void(const RecorderStatus&)>& on_status, double elapsed,
+                  double dt);
   void StopAndJoin();
 
   int64_t LostInDriver(size_t s, bool final) const;
@@ -235,7 +242,8 @@ Recorder::Session::Session(Recorder& recorder, Report* report)
       software_(recorder.rig_.sync == SyncMode::kSoftwareTrigger),
       period_s_(1.0 / recorder.rig_.fps),
       trigger_count_(options_.frames > 0 ? options_.frames
-                                         : static_cast<int64_t>(std::llround(options_.seconds * recorder.rig_.fps))),
+                                         : static_cast<int64_t>(
+                                               std::llround(options_.seconds * recorder.rig_.fps))),
       free_run_limit_(!software_ && options_.frames > 0),
       names_(StreamNames(streams_)),
       assembler_(names_, StreamClocks(streams_), AssemblerOptions(recorder.rig_, options_)),
@@ -258,7 +266,8 @@ std::string Recorder::Session::failure_message() {
 }
 
 size_t Recorder::Session::IndexOf(const std::string& name) const {
-  return static_cast<size_t>(std::distance(names_.begin(), std::find(names_.begin(), names_.end(), name)));
+  return static_cast<size_t>(
+      std::distance(names_.begin(), std::find(names_.begin(), names_.end(), name)));
 }
 
 void Recorder::Session::StartSensorsAndOpenTake() {
@@ -286,16 +295,20 @@ void Recorder::Session::StartSensorsAndOpenTake() {
 }
 
 Clock::time_point Recorder::Session::FirstTriggerTick() const {
-  const auto after_warmup =
-      start_ + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(options_.warmup_s));
+  const auto after_warmup = start_ + std::chrono::duration_cast<Clock::duration>(
+                                         std::chrono::duration<double>(options_.warmup_s));
   if (options_.trigger_phase_s < 0) return after_warmup;
   // The first grid instant after the warm-up, carried over to the steady clock.
   const int64_t period_ns = static_cast<int64_t>(std::llround(period_s_ * 1e9));
-  const int64_t phase_ns = static_cast<int64_t>(std::llround(options_.trigger_phase_s * 1e9)) % period_ns;
+  const int64_t phase_ns =
+      static_cast<int64_t>(std::llround(options_.trigger_phase_s * 1e9)) % period_ns;
   const int64_t realtime_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                                  std::chrono::system_clock::now().time_since_epoch()).count();
-  const int64_t steady_now_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now() - start_).count();
-  const int64_t earliest = realtime_ns - steady_now_ns + static_cast<int64_t>(options_.warmup_s * 1e9);
+                                  std::chrono::system_clock::now().time_since_epoch())
+                                  .count();
+  const int64_t steady_now_ns =
+      std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now() - start_).count();
+  const int64_t earliest =
+      realtime_ns - steady_now_ns + static_cast<int64_t>(options_.warmup_s * 1e9);
   const int64_t grid = (earliest - phase_ns + period_ns - 1) / period_ns * period_ns + phase_ns;
   return start_ + std::chrono::nanoseconds(grid - (realtime_ns - steady_now_ns));
 }
@@ -326,8 +339,9 @@ void Recorder::Session::CaptureLoop(size_t s) {
       const bool due = (!software_ || state.triggers > state.captured) && lost == last_lost;
       last_lost = lost;
       if (due && SecondsSince(last_frame) > options_.stall_s) {
-        RecordFailure(Cat("sensor '", streams_[s].name, "' (", streams_[s].uri, ") delivered no frame for ",
-                          options_.stall_s, " s; it was lost mid-take"));
+        RecordFailure(Cat("sensor '", streams_[s].name, "' (", streams_[s].uri,
+                          ") delivered no frame for ", options_.stall_s,
+                          " s; it was lost mid-take"));
         break;
       }
       if (!due) last_frame = Clock::now();
@@ -368,30 +382,34 @@ void Recorder::Session::TriggerLoop(size_t s) {
     param.sched_priority = options_.trigger_priority;
     const int refused = pthread_setschedparam(pthread_self(), SCHED_FIFO, &param);
     if (s == 0) {  // read after the threads are joined
-      trigger_scheduling_ = refused == 0 ? Cat("SCHED_FIFO ", options_.trigger_priority)
-                                         : Cat("normal (SCHED_FIFO refused: ", std::strerror(refused), ")");
+      trigger_scheduling_ = refused == 0
+                                ? Cat("SCHED_FIFO ", options_.trigger_priority)
+                                : Cat("normal (SCHED_FIFO refused: ", std::strerror(refused), ")");
     }
   }
   // Two triggers during the warm-up, their frames discarded: the first wakes up cameras that
   // start streaming late, the second is one instant every camera stamps, which ties their
   // clocks together (FrameSetAssembler::SeedClocks).
   for (double at : {0.0, 0.5}) {
-    std::this_thread::sleep_until(
-        start_ + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(at * options_.warmup_s)));
+    std::this_thread::sleep_until(start_ +
+                                  std::chrono::duration_cast<Clock::duration>(
+                                      std::chrono::duration<double>(at * options_.warmup_s)));
     try {
       sensors_[s]->Trigger();
     } catch (const std::exception& e) {
-      RecordFailure(Cat("sensor '", streams_[s].name, "' did not take a software trigger: ", e.what()));
+      RecordFailure(
+          Cat("sensor '", streams_[s].name, "' did not take a software trigger: ", e.what()));
       return;
     }
   }
   // Incomplete frames of the warm-up triggers are no frames of the take.
   state_[s].lost_before_first_trigger = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
   for (int64_t k = 0; k < trigger_count_ && !stop_triggers_; ++k) {
-    const auto tick =
-        first_tick_ + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(k * period_s_));
+    const auto tick = first_tick_ + std::chrono::duration_cast<Clock::duration>(
+                                        std::chrono::duration<double>(k * period_s_));
     while (Clock::now() < tick && !stop_triggers_) {
-      std::this_thread::sleep_for(std::min<Clock::duration>(tick - Clock::now(), std::chrono::milliseconds(20)));
+      std::this_thread::sleep_for(
+          std::min<Clock::duration>(tick - Clock::now(), std::chrono::milliseconds(20)));
     }
     if (stop_triggers_) break;
     try {
@@ -410,7 +428,8 @@ void Recorder::Session::AssembleLoop() {
     std::deque<std::pair<int, Frame>> batch;
     {
       std::unique_lock lock(frame_mutex_);
-      frame_cv_.wait_for(lock, std::chrono::milliseconds(50), [&] { return !frames_.empty() || capture_done_; });
+      frame_cv_.wait_for(lock, std::chrono::milliseconds(50),
+                         [&] { return !frames_.empty() || capture_done_; });
       batch.swap(frames_);
       for (auto& state : state_) state.queued = 0;
       if (batch.empty() && capture_done_) break;
@@ -447,7 +466,8 @@ void Recorder::Session::EnqueueSet(FrameSet set) {
     return;
   }
   const int64_t spread = set.SpreadNs();
-  if (report_ != nullptr) report_->AddPoint("sync_spread_us", static_cast<double>(spread) / 1e3, set.index);
+  if (report_ != nullptr)
+    report_->AddPoint("sync_spread_us", static_cast<double>(spread) / 1e3, set.index);
   spread_last_ns_ = spread;
   spread_max_ns_ = std::max<int64_t>(spread_max_ns_, spread);
   ++sets_complete_;
@@ -482,8 +502,8 @@ void Recorder::Session::WriteLoop() {
         for (const auto& frame : set.frames) ++state_[IndexOf(frame.sensor)].written;
         continue;
       } catch (const std::exception& e) {
-        RecordFailure(Cat("writing frame set ", set.index, " failed: ", e.what(), "; the take keeps every",
-                          " frame set written before"));
+        RecordFailure(Cat("writing frame set ", set.index, " failed: ", e.what(),
+                          "; the take keeps every", " frame set written before"));
       }
     }
     ++sets_dropped_;
@@ -507,8 +527,9 @@ int64_t Recorder::Session::LostInDriver(size_t s, bool final) const {
 
 void Recorder::Session::UpdateTakeDrops(bool final) {
   for (size_t s = 0; s < n_; ++s) {
-    const int64_t now = LostInDriver(s, final) + state_[s].dropped_queue + state_[s].dropped_sets +
-                        (final ? static_cast<int64_t>(assembler_.stats().unmatched_per_sensor[s]) : 0);
+    const int64_t now =
+        LostInDriver(s, final) + state_[s].dropped_queue + state_[s].dropped_sets +
+        (final ? static_cast<int64_t>(assembler_.stats().unmatched_per_sensor[s]) : 0);
     if (now > counted_drops_[s]) writer_->CountDropped(streams_[s].name, now - counted_drops_[s]);
     counted_drops_[s] = std::max(counted_drops_[s], now);
   }
@@ -517,7 +538,8 @@ void Recorder::Session::UpdateTakeDrops(bool final) {
 // Software trigger: every trigger sent is answered by a frame or by a frame the driver lost.
 bool Recorder::Session::AllTriggersAnswered() const {
   for (size_t s = 0; s < n_; ++s) {
-    const int64_t lost = static_cast<int64_t>(sensors_[s]->stats().frames_lost) - state_[s].lost_before_first_trigger;
+    const int64_t lost = static_cast<int64_t>(sensors_[s]->stats().frames_lost) -
+                         state_[s].lost_before_first_trigger;
     if (state_[s].captured + lost < trigger_count_) return false;
   }
   return true;
@@ -534,7 +556,8 @@ void Recorder::Session::Supervise(const std::function<void(const RecorderStatus&
       stop_triggers_ = true;
       stop_capture_ = true;
     }
-    if (std::all_of(state_.begin(), state_.end(), [](const SensorState& state) { return state.ended.load(); })) {
+    if (std::all_of(state_.begin(), state_.end(),
+                    [](const SensorState& state) { return state.ended.load(); })) {
       stop_capture_ = true;
     }
     if (software_) {
@@ -544,7 +567,8 @@ void Recorder::Session::Supervise(const std::function<void(const RecorderStatus&
         triggers_done_at_set = true;
         triggers_done = Clock::now();
       }
-      if (triggers_done_at_set && (AllTriggersAnswered() || SecondsSince(triggers_done) > options_.drain_s)) {
+      if (triggers_done_at_set &&
+          (AllTriggersAnswered() || SecondsSince(triggers_done) > options_.drain_s)) {
         stop_capture_ = true;
       }
     } else if (options_.seconds > 0 && elapsed >= options_.seconds + options_.warmup_s) {
@@ -559,18 +583,20 @@ void Recorder::Session::Supervise(const std::function<void(const RecorderStatus&
   }
 }
 
-void Recorder::Session::SendStatus(const std::function<void(const RecorderStatus&)>& on_status, double elapsed,
-                                   double dt) {
+void Recorder::Session::SendStatus(const std::function<void(const RecorderStatus&)>& on_status,
+                                   double elapsed, double dt) {
   RecorderStatus status;
   status.elapsed_s = elapsed;
   status.frame_sets = writer_->sets_written();
-  status.write_mb_s = elapsed > 0 ? static_cast<double>(writer_->bytes_written()) / 1e6 / elapsed : 0;
+  status.write_mb_s =
+      elapsed > 0 ? static_cast<double>(writer_->bytes_written()) / 1e6 / elapsed : 0;
   status.spread_us_last = static_cast<double>(spread_last_ns_) / 1e3;
   status.spread_us_max = static_cast<double>(spread_max_ns_) / 1e3;
   for (size_t s = 0; s < n_; ++s) {
     const int64_t captured = state_[s].captured;
-    status.sensors.push_back(
-        {streams_[s].name, static_cast<double>(captured - last_captured_[s]) / dt, counted_drops_[s]});
+    status.sensors.push_back({streams_[s].name,
+                              static_cast<double>(captured - last_captured_[s]) / dt,
+                              counted_drops_[s]});
     last_captured_[s] = captured;
   }
   on_status(status);
@@ -612,7 +638,8 @@ RecorderSummary Recorder::Session::Summarize() const {
   summary.sync_spread_us_max = static_cast<double>(spread_max_ns_) / 1e3;
   summary.sync_spread_us_mean = sync.spread_mean_ns / 1e3;
   summary.bytes_written = writer_->bytes_written();
-  summary.write_mb_s = summary.seconds > 0 ? static_cast<double>(summary.bytes_written) / 1e6 / summary.seconds : 0;
+  summary.write_mb_s =
+      summary.seconds > 0 ? static_cast<double>(summary.bytes_written) / 1e6 / summary.seconds : 0;
   summary.clock_offset_ns = sync.offset_ns;
   summary.trigger_scheduling = trigger_scheduling_;
   for (size_t s = 0; s < n_; ++s) {
@@ -636,7 +663,8 @@ RecorderSummary Recorder::Session::Summarize() const {
   return summary;
 }
 
-RecorderSummary Recorder::Session::Run(const std::function<void(const RecorderStatus&)>& on_status) {
+RecorderSummary Recorder::Session::Run(
+    const std::function<void(const RecorderStatus&)>& on_status) {
   StartSensorsAndOpenTake();
   first_tick_ = FirstTriggerTick();
   for (size_t s = 0; s < n_; ++s) capture_threads_.emplace_back([this, s] { CaptureLoop(s); });
@@ -644,23 +672,25 @@ RecorderSummary Recorder::Session::Run(const std::function<void(const RecorderSt
     for (size_t s = 0; s < n_; ++s) trigger_threads_.emplace_back([this, s] { TriggerLoop(s); });
   }
   assemble_thread_ = std::thread([this] { AssembleLoop(); });
-  for (int w = 0; w < options_.writer_threads; ++w) writer_threads_.emplace_back([this] { WriteLoop(); });
+  for (int w = 0; w < options_.writer_threads; ++w)
+    writer_threads_.emplace_back([this] { WriteLoop(); });
   Supervise(on_status);
   StopAndJoin();
 
   RecorderSummary summary = Summarize();
   if (failed_) {
-    summary.End(Termination::kFailure,
-                failure_message() + Cat(" (", summary.frame_sets_complete, " complete frame sets kept)"));
+    summary.End(Termination::kFailure, failure_message() + Cat(" (", summary.frame_sets_complete,
+                                                               " complete frame sets kept)"));
   } else {
-    summary.End(Termination::kSuccess, Cat(summary.frame_sets_complete, " complete frame sets, ",
-                                           summary.frames_dropped, " frames dropped, sync spread max ",
-                                           summary.sync_spread_us_max, " us"));
+    summary.End(Termination::kSuccess,
+                Cat(summary.frame_sets_complete, " complete frame sets, ", summary.frames_dropped,
+                    " frames dropped, sync spread max ", summary.sync_spread_us_max, " us"));
   }
   return summary;
 }
 
-RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& on_status, Report* report) {
+RecorderSummary Recorder::Run(const std::function<void(const RecorderStatus&)>& on_status,
+                              Report* report) {
   Session session(*this, report);
   return session.Run(on_status);
 }

@@ -1,8 +1,8 @@
 // The recorder: a rig's sensors into a take, every frame either written or counted.
 //
 //   sensor ─► capture thread ─► bounded frame queue ─┐
-//   sensor ─► capture thread ─► bounded frame queue ─┼─► sync thread ─► bounded set queue ─► writer threads ─► take
-//   (software trigger: one trigger thread per sensor, all on the same clock ticks)
+//   sensor ─► capture thread ─► bounded frame queue ─┼─► sync thread ─► bounded set queue ─► writer
+//   threads ─► take (software trigger: one trigger thread per sensor, all on the same clock ticks)
 //
 // Back-pressure never reaches a driver: a full queue drops the newest frame (or set) and
 // counts it against its sensor. A frame is lost in the driver (incomplete, never arrived), in a
@@ -30,26 +30,27 @@
 namespace holocap {
 
 struct RecorderOptions {
-  int64_t frames = 0;          // stop after this many frame sets (triggers when software-triggered); 0: no limit
-  double seconds = 0;          // stop after this long; 0: no limit (one of frames/seconds must be set)
-  int queue_frames = 32;       // per-sensor frames waiting for the sync thread before drops
-  int queue_sets = 16;         // complete sets waiting for a writer before drops
-  int writer_threads = 2;      // threads encoding and writing frames
-  double warmup_s = 0.3;       // after starting the sensors, before the first trigger
+  int64_t frames =
+      0;  // stop after this many frame sets (triggers when software-triggered); 0: no limit
+  double seconds = 0;      // stop after this long; 0: no limit (one of frames/seconds must be set)
+  int queue_frames = 32;   // per-sensor frames waiting for the sync thread before drops
+  int queue_sets = 16;     // complete sets waiting for a writer before drops
+  int writer_threads = 2;  // threads encoding and writing frames
+  double warmup_s = 0.3;   // after starting the sensors, before the first trigger
   // >= 0: software triggers fire when CLOCK_REALTIME is a multiple of the frame period plus
   // this phase, so that hosts sharing a clock (PTP, NTP) trigger their cameras in step, and
   // cameras that sample triggers on a clock grid of their own see them mid-interval.
   // < 0: the first trigger fires warmup_s after start.
   double trigger_phase_s = -1;
-  double drain_s = 1.0;        // after the last trigger, how long late frames may still arrive
-  double stall_s = 5.0;        // a sensor silent this long while frames are due is reported lost
-  std::string codec;           // "png" | "zstd" | "" (each driver's choice)
+  double drain_s = 1.0;           // after the last trigger, how long late frames may still arrive
+  double stall_s = 5.0;           // a sensor silent this long while frames are due is reported lost
+  std::string codec;              // "png" | "zstd" | "" (each driver's choice)
   int64_t sync_tolerance_ns = 0;  // SyncOptions::tolerance_ns (0: 0.4 frame periods)
   // SCHED_FIFO priority of the software-trigger threads, where the process may use it (root,
   // CAP_SYS_NICE or an rtprio limit; refused: normal scheduling, named in the summary).
   // 0: normal scheduling.
   int trigger_priority = 10;
-  TakeWriterOptions take;      // crash-safety and compression of the take
+  TakeWriterOptions take;  // crash-safety and compression of the take
 
   void Check() const;  // throws Error explaining a bad value
 };
@@ -58,12 +59,12 @@ struct RecorderOptions {
 struct SensorRecord {
   std::string name;
   std::string uri;
-  int64_t triggers = 0;          // software triggers sent
-  int64_t frames_captured = 0;   // delivered by the driver
-  int64_t lost_in_driver = 0;    // incomplete, timed out, never arrived (triggers not answered), gaps
-  int64_t dropped_queue = 0;     // frame queue full
-  int64_t dropped_sets = 0;      // its frame was in a set dropped because the writers fell behind
-  int64_t unmatched = 0;         // in no complete set
+  int64_t triggers = 0;         // software triggers sent
+  int64_t frames_captured = 0;  // delivered by the driver
+  int64_t lost_in_driver = 0;  // incomplete, timed out, never arrived (triggers not answered), gaps
+  int64_t dropped_queue = 0;   // frame queue full
+  int64_t dropped_sets = 0;    // its frame was in a set dropped because the writers fell behind
+  int64_t unmatched = 0;       // in no complete set
   int64_t written = 0;
   nlohmann::json driver = nlohmann::json::object();  // the driver's own counters
   int64_t dropped() const { return lost_in_driver + dropped_queue + dropped_sets + unmatched; }
@@ -76,9 +77,9 @@ struct RecorderSummary : Summary {
   int64_t frames_dropped = 0;         // every frame not in the take, all causes
   double sync_spread_us_max = 0;
   double sync_spread_us_mean = 0;
-  double seconds = 0;                 // first sensor start to the take's close
+  double seconds = 0;  // first sensor start to the take's close
   uint64_t bytes_written = 0;
-  double write_mb_s = 0;              // bytes_written / seconds
+  double write_mb_s = 0;                 // bytes_written / seconds
   std::vector<int64_t> clock_offset_ns;  // per sensor, its clock minus the first sensor's
   std::string trigger_scheduling;        // how the software-trigger threads were scheduled
   std::vector<SensorRecord> sensors;
@@ -115,7 +116,8 @@ class Recorder {
   // failed write is reported as Termination::kFailure with one clear message; the take then
   // holds every complete set written before it. `report` (optional) receives a per-set sync
   // spread series.
-  RecorderSummary Run(const std::function<void(const RecorderStatus&)>& on_status = {}, Report* report = nullptr);
+  RecorderSummary Run(const std::function<void(const RecorderStatus&)>& on_status = {},
+                      Report* report = nullptr);
   // Ends the recording early (thread-safe; safe from a signal handler).
   void RequestStop() { stop_requested_ = true; }
 

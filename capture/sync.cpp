@@ -17,7 +17,8 @@ void SyncOptions::Check() const {
   }
   const int64_t period = static_cast<int64_t>(1e9 / fps);
   if (tolerance() * 2 >= period) {
-    Fail("sync: a tolerance of ", tolerance() / 1e3, " us would let one set take two frames of a sensor at ", fps,
+    Fail("sync: a tolerance of ", tolerance() / 1e3,
+         " us would let one set take two frames of a sensor at ", fps,
          " fps (keep it under half the ", period / 1e3, " us period)");
   }
 }
@@ -30,8 +31,8 @@ int64_t SyncOptions::latency() const {
   return max_latency_ns > 0 ? max_latency_ns : static_cast<int64_t>(3e9 / fps);
 }
 
-FrameSetAssembler::FrameSetAssembler(std::vector<std::string> sensors, std::vector<std::string> clocks,
-                                     SyncOptions options)
+FrameSetAssembler::FrameSetAssembler(std::vector<std::string> sensors,
+                                     std::vector<std::string> clocks, SyncOptions options)
     : sensors_(std::move(sensors)), options_(options) {
   options_.Check();
   if (sensors_.empty()) Fail("sync: no sensors");
@@ -80,9 +81,11 @@ void FrameSetAssembler::Add(int stream, Frame frame) {
     // Different clocks: the first frames of two sensors are taken to be near-simultaneous;
     // the running estimate refines that from then on. (By sequence, the first complete set
     // seeds them instead.)
-    const bool by_sequence = options_.mode == SyncMode::kHardwareTrigger || options_.match_by_sequence;
+    const bool by_sequence =
+        options_.mode == SyncMode::kHardwareTrigger || options_.match_by_sequence;
     if (!by_sequence && !offset_seeded_[stream] && seen_[0]) {
-      offsets_[stream] = frame.timestamp_ns - (queues_[0].empty() ? newest_[0] : queues_[0].front().timestamp_ns);
+      offsets_[stream] =
+          frame.timestamp_ns - (queues_[0].empty() ? newest_[0] : queues_[0].front().timestamp_ns);
       offset_seeded_[stream] = true;
     }
     if (!by_sequence && stream == 0) {
@@ -126,9 +129,7 @@ std::vector<FrameSet> FrameSetAssembler::Assemble(bool flushing) {
   for (size_t s = 0; s < queues_.size(); ++s) {
     if (!offset_seeded_[s]) return out;  // no common time base yet
   }
-  {
-    AssembleByTimestamp(flushing, &out);
-  }
+  { AssembleByTimestamp(flushing, &out); }
   return out;
 }
 
@@ -137,9 +138,11 @@ void FrameSetAssembler::AssembleByTriggerIndex(bool flushing, std::vector<FrameS
   auto key = [&](size_t s, const Frame& f) {
     return static_cast<int64_t>(f.sequence) - static_cast<int64_t>(sequence_base_[s]);
   };
-  const int64_t latency_sets = std::max<int64_t>(2, static_cast<int64_t>(options_.latency() * options_.fps / 1e9));
+  const int64_t latency_sets =
+      std::max<int64_t>(2, static_cast<int64_t>(options_.latency() * options_.fps / 1e9));
   while (true) {
-    int64_t lowest = std::numeric_limits<int64_t>::max(), highest = std::numeric_limits<int64_t>::min();
+    int64_t lowest = std::numeric_limits<int64_t>::max(),
+            highest = std::numeric_limits<int64_t>::min();
     for (size_t s = 0; s < n; ++s) {
       if (queues_[s].empty()) continue;
       lowest = std::min(lowest, key(s, queues_[s].front()));
@@ -180,7 +183,8 @@ void FrameSetAssembler::AssembleByTriggerIndex(bool flushing, std::vector<FrameS
           offsets_[s] = values[values.size() / 2];
           offset_seeded_[s] = true;
         }
-        for (size_t s = 0; s < n; ++s) corrected[s] = Corrected(static_cast<int>(s), frames[s].timestamp_ns);
+        for (size_t s = 0; s < n; ++s)
+          corrected[s] = Corrected(static_cast<int>(s), frames[s].timestamp_ns);
       }
       const auto [lo, hi] = std::minmax_element(corrected.begin(), corrected.end());
       if (seeding || *hi - *lo <= options_.tolerance()) {
@@ -211,7 +215,8 @@ void FrameSetAssembler::AssembleByTimestamp(bool flushing, std::vector<FrameSet>
     if (decided_any_) {
       for (size_t s = 0; s < n; ++s) {
         while (!queues_[s].empty() &&
-               Corrected(static_cast<int>(s), queues_[s].front().timestamp_ns) - last_anchor_ <= window) {
+               Corrected(static_cast<int>(s), queues_[s].front().timestamp_ns) - last_anchor_ <=
+                   window) {
           queues_[s].pop_front();
           count_unmatched(s);
         }
@@ -220,7 +225,8 @@ void FrameSetAssembler::AssembleByTimestamp(bool flushing, std::vector<FrameSet>
     int64_t anchor = std::numeric_limits<int64_t>::max();
     int64_t newest = std::numeric_limits<int64_t>::min();
     for (size_t s = 0; s < n; ++s) {
-      if (!queues_[s].empty()) anchor = std::min(anchor, Corrected(static_cast<int>(s), queues_[s].front().timestamp_ns));
+      if (!queues_[s].empty())
+        anchor = std::min(anchor, Corrected(static_cast<int>(s), queues_[s].front().timestamp_ns));
       if (seen_[s]) newest = std::max(newest, Corrected(static_cast<int>(s), newest_[s]));
     }
     if (anchor == std::numeric_limits<int64_t>::max()) return;
@@ -228,7 +234,8 @@ void FrameSetAssembler::AssembleByTimestamp(bool flushing, std::vector<FrameSet>
     for (size_t s = 0; s < n; ++s) {
       if (!queues_[s].empty()) continue;
       // Frames of one sensor arrive in order: once it is past the anchor, it has none for it.
-      const bool passed = seen_[s] && Corrected(static_cast<int>(s), newest_[s]) > anchor + tolerance;
+      const bool passed =
+          seen_[s] && Corrected(static_cast<int>(s), newest_[s]) > anchor + tolerance;
       if (!passed && !flushing && newest - anchor <= options_.latency()) waiting = true;
     }
     if (waiting) return;
@@ -262,16 +269,19 @@ void FrameSetAssembler::AssembleByTimestamp(bool flushing, std::vector<FrameSet>
   }
 }
 
-void FrameSetAssembler::Emit(std::vector<Frame> frames, std::vector<int64_t> corrected, std::vector<FrameSet>* out) {
+void FrameSetAssembler::Emit(std::vector<Frame> frames, std::vector<int64_t> corrected,
+                             std::vector<FrameSet>* out) {
   // Frames arrive here in sensor order with every sensor present.
   const double w = stats_.sets_complete == 0 ? 1.0 : options_.offset_smoothing;
   for (size_t s = 1; s < frames.size(); ++s) {
     const double raw_offset = static_cast<double>(frames[s].timestamp_ns - frames[0].timestamp_ns);
     if (options_.estimate_offsets) {
       if (common_clock_) {
-        stats_.offset_ns[s] = static_cast<int64_t>(std::llround(stats_.offset_ns[s] + w * (raw_offset - stats_.offset_ns[s])));
+        stats_.offset_ns[s] = static_cast<int64_t>(
+            std::llround(stats_.offset_ns[s] + w * (raw_offset - stats_.offset_ns[s])));
       } else {
-        offsets_[s] += static_cast<int64_t>(std::llround(options_.offset_smoothing * (raw_offset - offsets_[s])));
+        offsets_[s] += static_cast<int64_t>(
+            std::llround(options_.offset_smoothing * (raw_offset - offsets_[s])));
       }
     }
     if (!common_clock_) stats_.offset_ns[s] = offsets_[s];

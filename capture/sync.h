@@ -58,7 +58,8 @@ struct SyncStats {
 // Not thread-safe: one thread feeds it (the recorder's sync thread).
 class FrameSetAssembler {
  public:
-  FrameSetAssembler(std::vector<std::string> sensors, std::vector<std::string> clocks, SyncOptions options);
+  FrameSetAssembler(std::vector<std::string> sensors, std::vector<std::string> clocks,
+                    SyncOptions options);
 
   // The sensor's frame counter just before the first trigger of the take (e.g. the frame of a
   // warm-up trigger). Without it, the counter of the sensor's first frame counts as index 0.
@@ -89,9 +90,9 @@ class FrameSetAssembler {
   SyncOptions options_;
   bool common_clock_ = true;
   std::vector<std::deque<Frame>> queues_;
-  std::vector<int64_t> offsets_;         // ns, sensor clock minus sensor 0's clock
+  std::vector<int64_t> offsets_;  // ns, sensor clock minus sensor 0's clock
   std::vector<bool> offset_seeded_;
-  std::vector<int64_t> newest_;          // newest corrected timestamp seen per sensor
+  std::vector<int64_t> newest_;  // newest corrected timestamp seen per sensor
   std::vector<bool> seen_;
   std::vector<uint64_t> sequence_base_;  // by sequence: each sensor's count at trigger index 0
   std::vector<bool> base_set_;

@@ -32,7 +32,8 @@ CameraModel::CameraModel(std::string lensmodel, std::vector<double> intrinsics, 
       height_(height),
       cam_from_world_(cam_from_world) {
   ParseLensmodel();
-  if (width_ <= 0 || height_ <= 0) Fail("camera model: imager size ", width_, "x", height_, " is not positive");
+  if (width_ <= 0 || height_ <= 0)
+    Fail("camera model: imager size ", width_, "x", height_, " is not positive");
   for (double value : intrinsics_) {
     if (!std::isfinite(value)) Fail("camera model: intrinsics contain a non-finite value");
   }
@@ -108,8 +109,8 @@ class LiteralChecker {
   }
   bool Scalar() {
     size_t start = at_;
-    while (at_ < text_.size() &&
-           (std::isalnum(static_cast<unsigned char>(text_[at_])) || std::strchr("+-._", text_[at_]) != nullptr)) {
+    while (at_ < text_.size() && (std::isalnum(static_cast<unsigned char>(text_[at_])) ||
+                                  std::strchr("+-._", text_[at_]) != nullptr)) {
       ++at_;
     }
     if (at_ == start) return Error(std::string("has an unexpected character '") + Peek() + "'");
@@ -261,7 +262,8 @@ bool CameraModel::Project(const Eigen::Vector3d& point_in_cam, Eigen::Vector2d* 
     const int n = static_cast<int>(intrinsics_.size());
     dpixel_dintrinsics->resize(2, n);
     for (int row = 0; row < 2; ++row) {
-      for (int col = 0; col < n; ++col) (*dpixel_dintrinsics)(row, col) = dq_dintrinsics[row * n + col];
+      for (int col = 0; col < n; ++col)
+        (*dpixel_dintrinsics)(row, col) = dq_dintrinsics[row * n + col];
     }
   }
   return true;
@@ -284,7 +286,8 @@ Eigen::Matrix2Xd CameraModel::ProjectMany(const Eigen::Matrix3Xd& points_in_cam)
   if (!ok) Fail("mrcal_project failed for lens model ", lensmodel_);
   if (!can_project_behind_camera()) {
     for (int i = 0; i < n; ++i) {
-      if (!(points_in_cam(2, i) > 0)) pixels.col(i).setConstant(std::numeric_limits<double>::quiet_NaN());
+      if (!(points_in_cam(2, i) > 0))
+        pixels.col(i).setConstant(std::numeric_limits<double>::quiet_NaN());
     }
   }
   return pixels;

@@ -44,7 +44,7 @@ class CameraModel {
   void set_cam_from_world(const Pose& pose) { cam_from_world_ = pose; }
   Pose world_from_cam() const { return cam_from_world_.inverse(); }
   Eigen::Vector3d center_in_world() const { return world_from_cam().translation(); }
-  bool has_core() const;                 // fx, fy, cx, cy lead the intrinsics
+  bool has_core() const;  // fx, fy, cx, cy lead the intrinsics
   bool can_project_behind_camera() const;
 
   // Projects a point in camera coordinates. Returns false when mrcal fails or the point is

@@ -84,8 +84,8 @@ void CreateDirectories(const fs::path& dir) {
   std::error_code ec;
   fs::create_directories(dir, ec);
   if (ec || !fs::is_directory(dir)) {
-    Fail("cannot create directory '", dir.string(), "': ",
-         ec ? ec.message() : std::string("a file is in the way"));
+    Fail("cannot create directory '", dir.string(),
+         "': ", ec ? ec.message() : std::string("a file is in the way"));
   }
   if (::access(dir.c_str(), W_OK) != 0) Fail("directory '", dir.string(), "' is not writable");
 }

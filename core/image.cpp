@@ -31,9 +31,12 @@ struct ZstdHeader {
 
 const char* ExtensionOf(ImageCodec codec) {
   switch (codec) {
-    case ImageCodec::kPng: return ".png";
-    case ImageCodec::kZstd: return ".zst";
-    case ImageCodec::kExr: return ".exr";
+    case ImageCodec::kPng:
+      return ".png";
+    case ImageCodec::kZstd:
+      return ".zst";
+    case ImageCodec::kExr:
+      return ".exr";
   }
   return "";
 }
@@ -55,7 +58,8 @@ void WritePng(const std::filesystem::path& file, const cv::Mat& image, int compr
   if (!cv::imencode(".png", image, bytes, {cv::IMWRITE_PNG_COMPRESSION, compression})) {
     Fail("cannot encode PNG for '", file.string(), "'");
   }
-  WriteFileAtomic(file, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+  WriteFileAtomic(file,
+                  std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
 }
 
 void WriteZstd(const std::filesystem::path& file, const cv::Mat& image, int level) {
@@ -71,7 +75,8 @@ void WriteZstd(const std::filesystem::path& file, const cv::Mat& image, int leve
   std::memcpy(bytes.data(), &header, sizeof(header));
   size_t n = ZSTD_compress(bytes.data() + sizeof(header), bytes.size() - sizeof(header),
                            contiguous.data, raw_size, level);
-  if (ZSTD_isError(n)) Fail("zstd compression failed for '", file.string(), "': ", ZSTD_getErrorName(n));
+  if (ZSTD_isError(n))
+    Fail("zstd compression failed for '", file.string(), "': ", ZSTD_getErrorName(n));
   bytes.resize(sizeof(header) + n);
   WriteFileAtomic(file, bytes);
 }
@@ -142,7 +147,8 @@ cv::Mat ReadZstd(const std::filesystem::path& file) {
   ZstdHeader header;
   if (bytes.size() < sizeof(header)) Fail("'", file.string(), "' is truncated");
   std::memcpy(&header, bytes.data(), sizeof(header));
-  if (std::memcmp(header.magic, kZstdMagic, 4) != 0) Fail("'", file.string(), "' is not a holocap zstd frame");
+  if (std::memcmp(header.magic, kZstdMagic, 4) != 0)
+    Fail("'", file.string(), "' is not a holocap zstd frame");
   if (header.rows <= 0 || header.cols <= 0 || header.rows > 1 << 16 || header.cols > 1 << 16) {
     Fail("'", file.string(), "' has a corrupt header");
   }
@@ -168,7 +174,8 @@ bool PngStructureIsComplete(const std::string& bytes) {
   size_t at = 8;
   while (at + 12 <= bytes.size()) {
     const auto* p = reinterpret_cast<const unsigned char*>(bytes.data() + at);
-    uint64_t length = (uint64_t{p[0]} << 24) | (uint64_t{p[1]} << 16) | (uint64_t{p[2]} << 8) | p[3];
+    uint64_t length =
+        (uint64_t{p[0]} << 24) | (uint64_t{p[1]} << 16) | (uint64_t{p[2]} << 8) | p[3];
     if (length > 0x7fffffffu || at + 12 + length > bytes.size()) return false;
     if (std::memcmp(p + 4, "IEND", 4) == 0) return true;
     at += 12 + length;
@@ -180,12 +187,15 @@ bool PngStructureIsComplete(const std::string& bytes) {
 
 cv::Mat ReadImage(const std::filesystem::path& file) {
   switch (CodecOfFile(file)) {
-    case ImageCodec::kExr: return ReadExr(file);
-    case ImageCodec::kZstd: return ReadZstd(file);
+    case ImageCodec::kExr:
+      return ReadExr(file);
+    case ImageCodec::kZstd:
+      return ReadZstd(file);
     case ImageCodec::kPng: {
       std::string bytes = ReadFileToString(file);
       cv::Mat image;
-      if (!PngStructureIsComplete(bytes)) Fail("'", file.string(), "' is truncated or not a PNG image");
+      if (!PngStructureIsComplete(bytes))
+        Fail("'", file.string(), "' is truncated or not a PNG image");
       try {
         image = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, bytes.data()),
                              cv::IMREAD_UNCHANGED);
@@ -200,9 +210,12 @@ cv::Mat ReadImage(const std::filesystem::path& file) {
 
 void WriteImage(const std::filesystem::path& file, const cv::Mat& image) {
   switch (CodecOfFile(file)) {
-    case ImageCodec::kExr: return WriteExrDepth(file, image);
-    case ImageCodec::kZstd: return WriteZstd(file, image);
-    case ImageCodec::kPng: return WritePng(file, image);
+    case ImageCodec::kExr:
+      return WriteExrDepth(file, image);
+    case ImageCodec::kZstd:
+      return WriteZstd(file, image);
+    case ImageCodec::kPng:
+      return WritePng(file, image);
   }
 }
 

@@ -24,8 +24,10 @@ void Mesh::ComputeNormals() {
 
 void Mesh::Append(const Mesh& other) {
   const int offset = static_cast<int>(vertices.size());
-  const bool keep_normals = normals.size() == vertices.size() && other.normals.size() == other.vertices.size();
-  const bool keep_colors = colors.size() == vertices.size() && other.colors.size() == other.vertices.size();
+  const bool keep_normals =
+      normals.size() == vertices.size() && other.normals.size() == other.vertices.size();
+  const bool keep_colors =
+      colors.size() == vertices.size() && other.colors.size() == other.vertices.size();
   vertices.insert(vertices.end(), other.vertices.begin(), other.vertices.end());
   for (const auto& face : other.faces) faces.push_back(face.array() + offset);
   if (keep_normals) {
@@ -44,7 +46,9 @@ double Mesh::SurfaceArea() const {
   double area = 0;
   for (const auto& face : faces) {
     Eigen::Vector3d a = vertices[face[0]].cast<double>();
-    area += 0.5 * (vertices[face[1]].cast<double>() - a).cross(vertices[face[2]].cast<double>() - a).norm();
+    area +=
+        0.5 *
+        (vertices[face[1]].cast<double>() - a).cross(vertices[face[2]].cast<double>() - a).norm();
   }
   return area;
 }
@@ -56,14 +60,17 @@ std::vector<Eigen::Vector3d> Mesh::SampleSurface(size_t count, uint64_t seed) co
   double total = 0;
   for (size_t i = 0; i < faces.size(); ++i) {
     Eigen::Vector3d a = vertices[faces[i][0]].cast<double>();
-    total += 0.5 * (vertices[faces[i][1]].cast<double>() - a).cross(vertices[faces[i][2]].cast<double>() - a).norm();
+    total += 0.5 * (vertices[faces[i][1]].cast<double>() - a)
+                       .cross(vertices[faces[i][2]].cast<double>() - a)
+                       .norm();
     cumulative[i] = total;
   }
   std::mt19937_64 random(seed);
   std::uniform_real_distribution<double> uniform(0.0, 1.0);
   points.reserve(count);
   for (size_t n = 0; n < count; ++n) {
-    size_t i = std::lower_bound(cumulative.begin(), cumulative.end(), uniform(random) * total) - cumulative.begin();
+    size_t i = std::lower_bound(cumulative.begin(), cumulative.end(), uniform(random) * total) -
+               cumulative.begin();
     i = std::min(i, faces.size() - 1);
     double r1 = std::sqrt(uniform(random)), r2 = uniform(random);
     Eigen::Vector3d a = vertices[faces[i][0]].cast<double>();
@@ -106,8 +113,8 @@ namespace {
 
 struct PlyProperty {
   std::string name;
-  std::string type;       // scalar type, or the index type of a list
-  std::string count_type; // non-empty for lists
+  std::string type;        // scalar type, or the index type of a list
+  std::string count_type;  // non-empty for lists
 };
 
 struct PlyElement {
@@ -120,13 +127,17 @@ size_t SizeOfPlyType(const std::string& type, const std::string& origin) {
   if (type == "char" || type == "uchar" || type == "int8" || type == "uint8") return 1;
   if (type == "short" || type == "ushort" || type == "int16" || type == "uint16") return 2;
   if (type == "int" || type == "uint" || type == "float" || type == "int32" || type == "uint32" ||
-      type == "float32") return 4;
+      type == "float32")
+    return 4;
   if (type == "double" || type == "float64") return 8;
   Fail("'", origin, "': unknown PLY type '", type, "'");
 }
 
 double ReadBinary(const char* p, const std::string& type) {
-  auto get = [p](auto value) { std::memcpy(&value, p, sizeof(value)); return static_cast<double>(value); };
+  auto get = [p](auto value) {
+    std::memcpy(&value, p, sizeof(value));
+    return static_cast<double>(value);
+  };
   if (type == "char" || type == "int8") return get(int8_t{});
   if (type == "uchar" || type == "uint8") return get(uint8_t{});
   if (type == "short" || type == "int16") return get(int16_t{});
@@ -143,7 +154,8 @@ Mesh ReadPly(const std::filesystem::path& file) {
   const std::string origin = file.string();
   std::string bytes = ReadFileToString(file);
   size_t header_end = bytes.find("end_header");
-  if (bytes.rfind("ply", 0) != 0 || header_end == std::string::npos) Fail("'", origin, "' is not a PLY file");
+  if (bytes.rfind("ply", 0) != 0 || header_end == std::string::npos)
+    Fail("'", origin, "' is not a PLY file");
   size_t data_start = bytes.find('\n', header_end);
   if (data_start == std::string::npos) Fail("'", origin, "' is truncated");
   ++data_start;
@@ -174,7 +186,8 @@ Mesh ReadPly(const std::filesystem::path& file) {
       elements.back().properties.push_back(property);
     }
   }
-  if (format != "binary_little_endian" && format != "ascii") Fail("'", origin, "': unsupported PLY format '", format, "'");
+  if (format != "binary_little_endian" && format != "ascii")
+    Fail("'", origin, "': unsupported PLY format '", format, "'");
   const bool ascii = format == "ascii";
   Mesh mesh;
   size_t offset = data_start;
@@ -204,22 +217,34 @@ Mesh ReadPly(const std::filesystem::path& file) {
           std::vector<int> indices(count);
           for (int k = 0; k < count; ++k) indices[k] = static_cast<int>(next(property.type));
           if (is_face && property.name.find("vertex_ind") == 0) {
-            for (int k = 1; k + 1 < count; ++k) mesh.faces.emplace_back(indices[0], indices[k], indices[k + 1]);
+            for (int k = 1; k + 1 < count; ++k)
+              mesh.faces.emplace_back(indices[0], indices[k], indices[k + 1]);
           }
           continue;
         }
         double value = next(property.type);
         if (!is_vertex) continue;
         const std::string& n = property.name;
-        if (n == "x") position.x() = value;
-        else if (n == "y") position.y() = value;
-        else if (n == "z") position.z() = value;
-        else if (n == "nx") { normal.x() = value; has_normal = true; }
-        else if (n == "ny") normal.y() = value;
-        else if (n == "nz") normal.z() = value;
-        else if (n == "red") { color.x() = static_cast<uint8_t>(value); has_color = true; }
-        else if (n == "green") color.y() = static_cast<uint8_t>(value);
-        else if (n == "blue") color.z() = static_cast<uint8_t>(value);
+        if (n == "x")
+          position.x() = value;
+        else if (n == "y")
+          position.y() = value;
+        else if (n == "z")
+          position.z() = value;
+        else if (n == "nx") {
+          normal.x() = value;
+          has_normal = true;
+        } else if (n == "ny")
+          normal.y() = value;
+        else if (n == "nz")
+          normal.z() = value;
+        else if (n == "red") {
+          color.x() = static_cast<uint8_t>(value);
+          has_color = true;
+        } else if (n == "green")
+          color.y() = static_cast<uint8_t>(value);
+        else if (n == "blue")
+          color.z() = static_cast<uint8_t>(value);
       }
       if (is_vertex) {
         mesh.vertices.push_back(position);

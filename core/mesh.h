@@ -11,10 +11,10 @@
 namespace holocap {
 
 struct Mesh {
-  std::vector<Eigen::Vector3f> vertices;               // in world coordinates, metres
-  std::vector<Eigen::Vector3i> faces;                  // counter-clockwise seen from outside
-  std::vector<Eigen::Vector3f> normals;                // per vertex, optional (empty or sized)
-  std::vector<Eigen::Matrix<uint8_t, 3, 1>> colors;    // per vertex RGB, optional
+  std::vector<Eigen::Vector3f> vertices;             // in world coordinates, metres
+  std::vector<Eigen::Vector3i> faces;                // counter-clockwise seen from outside
+  std::vector<Eigen::Vector3f> normals;              // per vertex, optional (empty or sized)
+  std::vector<Eigen::Matrix<uint8_t, 3, 1>> colors;  // per vertex RGB, optional
 
   bool empty() const { return vertices.empty(); }
   // Recomputes area-weighted per-vertex normals.

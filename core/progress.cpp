@@ -12,7 +12,9 @@ bool Progress::IsTerminal() {
 }
 
 Progress::Progress(std::string label, int64_t total)
-    : label_(std::move(label)), total_(total), enabled_(IsTerminal()),
+    : label_(std::move(label)),
+      total_(total),
+      enabled_(IsTerminal()),
       start_(std::chrono::steady_clock::now()) {}
 
 Progress::~Progress() { Finish(); }

@@ -6,11 +6,16 @@ namespace holocap {
 
 const char* ToString(Termination termination) {
   switch (termination) {
-    case Termination::kSuccess: return "SUCCESS";
-    case Termination::kConvergence: return "CONVERGENCE";
-    case Termination::kNoConvergence: return "NO_CONVERGENCE";
-    case Termination::kDegenerate: return "DEGENERATE";
-    case Termination::kFailure: return "FAILURE";
+    case Termination::kSuccess:
+      return "SUCCESS";
+    case Termination::kConvergence:
+      return "CONVERGENCE";
+    case Termination::kNoConvergence:
+      return "NO_CONVERGENCE";
+    case Termination::kDegenerate:
+      return "DEGENERATE";
+    case Termination::kFailure:
+      return "FAILURE";
   }
   return "?";
 }

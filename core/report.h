@@ -15,13 +15,14 @@ namespace holocap {
 
 // How a stage ended: one contract for every stage and every command.
 //
-// | state            | means                                                         | usable | exit |
+// | state            | means                                                         | usable |
+// exit |
 // |------------------|---------------------------------------------------------------|--------|------|
-// | SUCCESS          | the stage reached its goal (did all it set out to do)         | yes    | 0    |
-// | CONVERGENCE      | an iterative stage stopped because its error stopped falling  | yes    | 0    |
-// | NO_CONVERGENCE   | the budget (iterations, time) ran out while the error fell    | yes    | 0    |
-// | DEGENERATE       | the input cannot support the result; the reason is the message| no     | 1    |
-// | FAILURE          | the stage could not run (I/O, NaN, divergence), or never ran  | no     | 1    |
+// | SUCCESS          | the stage reached its goal (did all it set out to do)         | yes    | 0 |
+// | CONVERGENCE      | an iterative stage stopped because its error stopped falling  | yes    | 0 |
+// | NO_CONVERGENCE   | the budget (iterations, time) ran out while the error fell    | yes    | 0 |
+// | DEGENERATE       | the input cannot support the result; the reason is the message| no     | 1 |
+// | FAILURE          | the stage could not run (I/O, NaN, divergence), or never ran  | no     | 1 |
 //
 // A usable result is written and may be used by the next stage; NO_CONVERGENCE says a larger
 // budget would still improve it. Every stage's summary derives from Summary, which starts as
@@ -35,7 +36,7 @@ enum class Termination {
   kFailure,
 };
 const char* ToString(Termination termination);
-bool IsUsable(Termination termination);  // success, convergence or no convergence
+bool IsUsable(Termination termination);   // success, convergence or no convergence
 int ExitStatus(Termination termination);  // 0 when usable, else 1: the CLI's one rule
 
 struct Summary {

@@ -22,7 +22,8 @@ nlohmann::json JsonFromYaml(const YAML::Node& node) {
     }
     case YAML::NodeType::Map: {
       nlohmann::json object = nlohmann::json::object();
-      for (const auto& item : node) object[item.first.as<std::string>()] = JsonFromYaml(item.second);
+      for (const auto& item : node)
+        object[item.first.as<std::string>()] = JsonFromYaml(item.second);
       return object;
     }
     case YAML::NodeType::Scalar: {
@@ -52,7 +53,8 @@ nlohmann::json JsonFromYaml(const YAML::Node& node) {
 }
 
 template <typename T>
-T Field(const nlohmann::json& object, const char* key, const T& fallback, const std::string& where) {
+T Field(const nlohmann::json& object, const char* key, const T& fallback,
+        const std::string& where) {
   if (!object.contains(key) || object[key].is_null()) return fallback;
   try {
     return object[key].get<T>();
@@ -65,18 +67,24 @@ T Field(const nlohmann::json& object, const char* key, const T& fallback, const 
 
 const char* ToString(SensorRole role) {
   switch (role) {
-    case SensorRole::kColor: return "color";
-    case SensorRole::kDepth: return "depth";
-    case SensorRole::kWitness: return "witness";
+    case SensorRole::kColor:
+      return "color";
+    case SensorRole::kDepth:
+      return "depth";
+    case SensorRole::kWitness:
+      return "witness";
   }
   return "?";
 }
 
 const char* ToString(SyncMode mode) {
   switch (mode) {
-    case SyncMode::kHardwareTrigger: return "hardware";
-    case SyncMode::kSoftwareTrigger: return "software";
-    case SyncMode::kFreeRun: return "free-run";
+    case SyncMode::kHardwareTrigger:
+      return "hardware";
+    case SyncMode::kSoftwareTrigger:
+      return "software";
+    case SyncMode::kFreeRun:
+      return "free-run";
   }
   return "?";
 }
@@ -194,11 +202,13 @@ void RigDescription::Check() const {
       Fail("sensor name '", spec.name, "' may not contain '/', '\\', '#' or spaces");
     }
     if (!names.insert(spec.name).second) Fail("sensor name '", spec.name, "' appears twice");
-    if (spec.scheme().empty()) Fail("sensor '", spec.name, "': URI '", spec.uri, "' has no scheme (like sim: or aravis:)");
+    if (spec.scheme().empty())
+      Fail("sensor '", spec.name, "': URI '", spec.uri, "' has no scheme (like sim: or aravis:)");
   }
   for (const auto& spec : sensors) {
     if (!spec.paired_with.empty() && !names.count(spec.paired_with)) {
-      Fail("sensor '", spec.name, "' is paired with '", spec.paired_with, "', which is not in the rig");
+      Fail("sensor '", spec.name, "' is paired with '", spec.paired_with,
+           "', which is not in the rig");
     }
   }
 }

@@ -12,18 +12,18 @@ namespace holocap {
 enum class SensorRole { kColor, kDepth, kWitness };
 enum class SyncMode { kHardwareTrigger, kSoftwareTrigger, kFreeRun };
 
-const char* ToString(SensorRole role);  // "color", "depth", "witness"
-const char* ToString(SyncMode mode);    // "hardware", "software", "free-run"
+const char* ToString(SensorRole role);                     // "color", "depth", "witness"
+const char* ToString(SyncMode mode);                       // "hardware", "software", "free-run"
 SensorRole SensorRoleFromString(const std::string& text);  // throws Error
 SyncMode SyncModeFromString(const std::string& text);      // throws Error
 
 struct SensorSpec {
-  std::string name;                   // unique within the rig, e.g. "cam3"
-  std::string uri;                    // "sim:studio8#cam3", "aravis:Fake_1", "v4l2:/dev/video0"
+  std::string name;  // unique within the rig, e.g. "cam3"
+  std::string uri;   // "sim:studio8#cam3", "aravis:Fake_1", "v4l2:/dev/video0"
   SensorRole role = SensorRole::kColor;
-  double exposure_us = 0;             // 0: the driver's default or automatic exposure
+  double exposure_us = 0;  // 0: the driver's default or automatic exposure
   double gain_db = 0;
-  std::string paired_with;            // a depth sensor's colour sensor (depth_from_color)
+  std::string paired_with;  // a depth sensor's colour sensor (depth_from_color)
   nlohmann::json options = nlohmann::json::object();  // driver-specific settings
 
   // The part of the URI before the first ':' ("sim", "aravis", ...).
@@ -33,7 +33,7 @@ struct SensorSpec {
 struct RigDescription {
   std::string name = "rig";
   SyncMode sync = SyncMode::kSoftwareTrigger;
-  double fps = 30;                    // frame sets per second asked of the sensors
+  double fps = 30;  // frame sets per second asked of the sensors
   std::vector<SensorSpec> sensors;
   nlohmann::json options = nlohmann::json::object();  // rig-wide driver settings (e.g. sim)
 

@@ -29,9 +29,12 @@ std::string FrameFileName(const StreamInfo& stream, int64_t index) {
 
 const char* CodecName(ImageCodec codec) {
   switch (codec) {
-    case ImageCodec::kPng: return "png";
-    case ImageCodec::kZstd: return "zstd";
-    case ImageCodec::kExr: return "exr";
+    case ImageCodec::kPng:
+      return "png";
+    case ImageCodec::kZstd:
+      return "zstd";
+    case ImageCodec::kExr:
+      return "exr";
   }
   return "?";
 }
@@ -46,10 +49,14 @@ ImageCodec CodecFromName(const std::string& name) {
 }  // namespace
 
 nlohmann::json StreamInfo::ToJson() const {
-  nlohmann::json json{{"name", name},     {"uri", uri},
-                      {"role", ToString(role)}, {"width", width},
-                      {"height", height}, {"pixel_format", pixel_format},
-                      {"codec", CodecName(codec)}, {"clock", clock}};
+  nlohmann::json json{{"name", name},
+                      {"uri", uri},
+                      {"role", ToString(role)},
+                      {"width", width},
+                      {"height", height},
+                      {"pixel_format", pixel_format},
+                      {"codec", CodecName(codec)},
+                      {"clock", clock}};
   if (!paired_with.empty()) json["paired_with"] = paired_with;
   return json;
 }
@@ -106,7 +113,10 @@ const FrameSetEntry::Item* FrameSetEntry::Find(const std::string& sensor) const 
 TakeWriter::TakeWriter(const std::filesystem::path& dir, const RigDescription& rig,
                        std::vector<StreamInfo> streams, nlohmann::json metadata,
                        TakeWriterOptions options)
-    : dir_(dir), rig_(rig), streams_(std::move(streams)), metadata_(std::move(metadata)),
+    : dir_(dir),
+      rig_(rig),
+      streams_(std::move(streams)),
+      metadata_(std::move(metadata)),
       options_(options) {
   if (streams_.empty()) Fail("a take needs at least one stream");
   for (auto& stream : streams_) {
@@ -119,9 +129,11 @@ TakeWriter::TakeWriter(const std::filesystem::path& dir, const RigDescription& r
   }
   std::error_code ec;
   if (std::filesystem::exists(dir_, ec)) {
-    if (!std::filesystem::is_directory(dir_)) Fail("'", dir_.string(), "' exists and is not a directory");
+    if (!std::filesystem::is_directory(dir_))
+      Fail("'", dir_.string(), "' exists and is not a directory");
     if (!std::filesystem::is_empty(dir_)) {
-      if (!options_.overwrite) Fail("'", dir_.string(), "' is not empty (refusing to overwrite a take)");
+      if (!options_.overwrite)
+        Fail("'", dir_.string(), "' is not empty (refusing to overwrite a take)");
       std::filesystem::remove_all(dir_, ec);
       if (ec) Fail("cannot clear '", dir_.string(), "': ", ec.message());
     }
@@ -172,20 +184,27 @@ void TakeWriter::Append(const FrameSet& set) {
   for (const auto& frame : set.frames) {
     auto it = std::find_if(streams_.begin(), streams_.end(),
                            [&](const StreamInfo& s) { return s.name == frame.sensor; });
-    if (it == streams_.end()) Fail("frame from '", frame.sensor, "', which is not a stream of this take");
+    if (it == streams_.end())
+      Fail("frame from '", frame.sensor, "', which is not a stream of this take");
     const StreamInfo& stream = *it;
     if (frame.image.type() != stream.cv_type() || frame.image.cols != stream.width ||
         frame.image.rows != stream.height) {
-      Fail("frame from '", frame.sensor, "' is ", frame.image.cols, "x", frame.image.rows,
-           " type ", frame.image.type(), ", the stream is ", stream.width, "x", stream.height, " ",
+      Fail("frame from '", frame.sensor, "' is ", frame.image.cols, "x", frame.image.rows, " type ",
+           frame.image.type(), ", the stream is ", stream.width, "x", stream.height, " ",
            stream.pixel_format);
     }
     std::string relative = FrameFileName(stream, set.index);
     std::filesystem::path file = dir_ / relative;
     switch (stream.codec) {
-      case ImageCodec::kPng: WritePng(file, frame.image, options_.png_compression); break;
-      case ImageCodec::kZstd: WriteZstd(file, frame.image); break;
-      case ImageCodec::kExr: WriteExrDepth(file, frame.image); break;
+      case ImageCodec::kPng:
+        WritePng(file, frame.image, options_.png_compression);
+        break;
+      case ImageCodec::kZstd:
+        WriteZstd(file, frame.image);
+        break;
+      case ImageCodec::kExr:
+        WriteExrDepth(file, frame.image);
+        break;
     }
     std::error_code ec;
     bytes += std::filesystem::file_size(file, ec);
@@ -199,10 +218,12 @@ void TakeWriter::Append(const FrameSet& set) {
   ++sets_written_;
   bytes_written_ += bytes;
   for (const auto& frame : set.frames) {
-    if (first_timestamp_ns_ == 0 || frame.timestamp_ns < first_timestamp_ns_) first_timestamp_ns_ = frame.timestamp_ns;
+    if (first_timestamp_ns_ == 0 || frame.timestamp_ns < first_timestamp_ns_)
+      first_timestamp_ns_ = frame.timestamp_ns;
     last_timestamp_ns_ = std::max(last_timestamp_ns_, frame.timestamp_ns);
   }
-  if (options_.manifest_every > 0 && sets_written_ % options_.manifest_every == 0) WriteManifest("recording");
+  if (options_.manifest_every > 0 && sets_written_ % options_.manifest_every == 0)
+    WriteManifest("recording");
 }
 
 void TakeWriter::CountDropped(const std::string& sensor, int64_t count) {
@@ -251,9 +272,11 @@ Take Take::Open(const std::filesystem::path& dir) {
     }
     take.state_ = manifest.value("state", "recording");
     take.rig_ = RigDescription::FromJson(manifest.at("rig"), "take.json rig");
-    for (const auto& stream : manifest.at("streams")) take.streams_.push_back(StreamInfo::FromJson(stream));
+    for (const auto& stream : manifest.at("streams"))
+      take.streams_.push_back(StreamInfo::FromJson(stream));
     take.metadata_ = manifest.value("metadata", nlohmann::json::object());
-    if (manifest.contains("dropped")) take.dropped_ = manifest["dropped"].get<std::map<std::string, int64_t>>();
+    if (manifest.contains("dropped"))
+      take.dropped_ = manifest["dropped"].get<std::map<std::string, int64_t>>();
   } catch (const nlohmann::json::exception& e) {
     Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
   } catch (const Error& e) {
@@ -281,7 +304,8 @@ Take Take::Open(const std::filesystem::path& dir) {
           item.file = frame.at("file").get<std::string>();
           item.timestamp_ns = frame.at("t_ns").get<int64_t>();
           item.sequence = frame.value("seq", uint64_t{0});
-          if (!take.has_stream(item.sensor) || !std::filesystem::exists(dir / item.file)) valid = false;
+          if (!take.has_stream(item.sensor) || !std::filesystem::exists(dir / item.file))
+            valid = false;
           entry.items.push_back(std::move(item));
         }
       } catch (const nlohmann::json::exception&) {
@@ -294,8 +318,9 @@ Take Take::Open(const std::filesystem::path& dir) {
       ++take.skipped_index_lines_;
     }
   }
-  std::stable_sort(take.entries_.begin(), take.entries_.end(),
-                   [](const FrameSetEntry& a, const FrameSetEntry& b) { return a.index < b.index; });
+  std::stable_sort(
+      take.entries_.begin(), take.entries_.end(),
+      [](const FrameSetEntry& a, const FrameSetEntry& b) { return a.index < b.index; });
   return take;
 }
 
@@ -307,26 +332,30 @@ const StreamInfo& Take::stream(const std::string& name) const {
 }
 
 bool Take::has_stream(const std::string& name) const {
-  return std::any_of(streams_.begin(), streams_.end(), [&](const StreamInfo& s) { return s.name == name; });
+  return std::any_of(streams_.begin(), streams_.end(),
+                     [&](const StreamInfo& s) { return s.name == name; });
 }
 
 FrameSet Take::Read(size_t i, const std::vector<std::string>& sensors) const {
-  if (i >= entries_.size()) Fail("take '", dir_.string(), "' has ", entries_.size(), " frame sets; asked for set ", i);
+  if (i >= entries_.size())
+    Fail("take '", dir_.string(), "' has ", entries_.size(), " frame sets; asked for set ", i);
   for (const auto& name : sensors) stream(name);
   const FrameSetEntry& entry = entries_[i];
   FrameSet set;
   set.index = entry.index;
   for (const auto& item : entry.items) {
-    if (!sensors.empty() && std::find(sensors.begin(), sensors.end(), item.sensor) == sensors.end()) continue;
+    if (!sensors.empty() && std::find(sensors.begin(), sensors.end(), item.sensor) == sensors.end())
+      continue;
     Frame frame;
     frame.sensor = item.sensor;
     frame.timestamp_ns = item.timestamp_ns;
     frame.sequence = item.sequence;
     frame.image = ReadImage(dir_ / item.file);
     const StreamInfo& info = stream(item.sensor);
-    if (frame.image.type() != info.cv_type() || frame.image.cols != info.width || frame.image.rows != info.height) {
-      Fail("'", (dir_ / item.file).string(), "' does not match its stream (", info.width, "x", info.height, " ",
-           info.pixel_format, ")");
+    if (frame.image.type() != info.cv_type() || frame.image.cols != info.width ||
+        frame.image.rows != info.height) {
+      Fail("'", (dir_ / item.file).string(), "' does not match its stream (", info.width, "x",
+           info.height, " ", info.pixel_format, ")");
     }
     set.frames.push_back(std::move(frame));
   }
@@ -335,13 +364,16 @@ FrameSet Take::Read(size_t i, const std::vector<std::string>& sensors) const {
 
 cv::Mat Take::ReadFrame(size_t i, const std::string& sensor) const {
   FrameSet set = Read(i, {sensor});
-  if (set.frames.empty()) Fail("frame set ", i, " of '", dir_.string(), "' has no frame from '", sensor, "' (dropped)");
+  if (set.frames.empty())
+    Fail("frame set ", i, " of '", dir_.string(), "' has no frame from '", sensor, "' (dropped)");
   return set.frames.front().image;
 }
 
 bool Take::has_calibration() const {
   for (const auto& s : streams_) {
-    if (s.role != SensorRole::kWitness && !std::filesystem::exists(calib_dir() / (s.name + ".cameramodel"))) return false;
+    if (s.role != SensorRole::kWitness &&
+        !std::filesystem::exists(calib_dir() / (s.name + ".cameramodel")))
+      return false;
   }
   return !streams_.empty();
 }
@@ -354,7 +386,8 @@ CameraModel Take::Camera(const std::string& sensor, bool ground_truth) const {
       (ground_truth ? gt_dir() / "cameras" : calib_dir()) / (sensor + ".cameramodel");
   if (!std::filesystem::exists(file)) {
     Fail("take '", dir_.string(), "' has no ", ground_truth ? "ground-truth model" : "calibration",
-         " for '", sensor, "' (", file.string(), " is missing)", ground_truth ? "" : ": run holocap calibrate");
+         " for '", sensor, "' (", file.string(), " is missing)",
+         ground_truth ? "" : ": run holocap calibrate");
   }
   return CameraModel::Read(file);
 }

@@ -59,8 +59,8 @@ struct Frame {
 };
 
 struct FrameSet {
-  int64_t index = 0;           // frame-set number within the take
-  std::vector<Frame> frames;   // one per sensor present
+  int64_t index = 0;          // frame-set number within the take
+  std::vector<Frame> frames;  // one per sensor present
   // Largest minus smallest timestamp of its frames (0 for fewer than two).
   int64_t SpreadNs() const;
   const Frame* Find(const std::string& sensor) const;
@@ -81,10 +81,10 @@ struct FrameSetEntry {
 };
 
 struct TakeWriterOptions {
-  bool durable = false;       // fsync frames and index lines (power-loss safety, slower)
-  int png_compression = 1;    // 0..9
-  int manifest_every = 30;    // rewrite take.json every N sets (drop counts stay current)
-  bool overwrite = false;     // allow an existing non-empty directory to be replaced
+  bool durable = false;     // fsync frames and index lines (power-loss safety, slower)
+  int png_compression = 1;  // 0..9
+  int manifest_every = 30;  // rewrite take.json every N sets (drop counts stay current)
+  bool overwrite = false;   // allow an existing non-empty directory to be replaced
 };
 
 class TakeWriter {

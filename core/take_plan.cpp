@@ -12,7 +12,8 @@ void TakeSelection::Check() const {
   if (last_frame >= 0 && last_frame <= first_frame) {
     Fail("--frames: the range ", first_frame, ":", last_frame, " is empty");
   }
-  if (clean_plate_frames < -1) Fail("--clean-plate must be -1 (from the take) or more, not ", clean_plate_frames);
+  if (clean_plate_frames < -1)
+    Fail("--clean-plate must be -1 (from the take) or more, not ", clean_plate_frames);
 }
 
 nlohmann::json TakeSelection::ToJson() const {
@@ -31,11 +32,13 @@ std::vector<CameraModel> TakePlan::Cameras(const std::vector<std::string>& names
 
 int TakePlan::ColorIndex(const std::string& name, const char* what) const {
   auto it = std::find(color_sensors.begin(), color_sensors.end(), name);
-  if (it == color_sensors.end()) Fail("the ", what, " camera '", name, "' is not a colour camera of the take");
+  if (it == color_sensors.end())
+    Fail("the ", what, " camera '", name, "' is not a colour camera of the take");
   return static_cast<int>(it - color_sensors.begin());
 }
 
-std::vector<int> TakePlan::ColorIndices(const std::vector<std::string>& names, const char* what) const {
+std::vector<int> TakePlan::ColorIndices(const std::vector<std::string>& names,
+                                        const char* what) const {
   std::vector<int> out;
   for (const auto& name : names) out.push_back(ColorIndex(name, what));
   return out;
@@ -45,8 +48,8 @@ void TakePlan::RequireFrames(const Take& take, const std::vector<std::string>& n
   for (int64_t set : sets) {
     for (const auto& name : names) {
       if (take.entry(static_cast<size_t>(set)).Find(name) == nullptr) {
-        Fail("frame set ", set, " of take '", take_dir.string(), "' has no frame from '", name, "' (dropped); ",
-             "choose another range with --frames");
+        Fail("frame set ", set, " of take '", take_dir.string(), "' has no frame from '", name,
+             "' (dropped); ", "choose another range with --frames");
       }
     }
   }
@@ -59,18 +62,24 @@ void TakePlan::RequireFrames(const Take& take, const std::vector<std::string>& n
 }
 
 nlohmann::json TakePlan::ToJson() const {
-  return {{"cameras", cameras_source},     {"color_sensors", color_sensors},
-          {"depth_sensors", depth_sensors}, {"clean_plate_frames", clean_plate_frames},
-          {"frame_sets", sets},             {"heldout", heldout},
-          {"witness", witness},             {"left_out", left_out}};
+  return {{"cameras", cameras_source},
+          {"color_sensors", color_sensors},
+          {"depth_sensors", depth_sensors},
+          {"clean_plate_frames", clean_plate_frames},
+          {"frame_sets", sets},
+          {"heldout", heldout},
+          {"witness", witness},
+          {"left_out", left_out}};
 }
 
 namespace {
 
 void ChooseCameraSource(const Take& take, const TakeSelection& selection, TakePlan& plan) {
-  const bool has_truth = take.has_ground_truth() && std::filesystem::is_directory(take.gt_dir() / "cameras");
+  const bool has_truth =
+      take.has_ground_truth() && std::filesystem::is_directory(take.gt_dir() / "cameras");
   if (selection.ground_truth_cameras) {
-    if (!has_truth) Fail("take '", take.dir().string(), "' has no gt/cameras (only simulated takes do)");
+    if (!has_truth)
+      Fail("take '", take.dir().string(), "' has no gt/cameras (only simulated takes do)");
     plan.ground_truth_cameras = true;
     plan.cameras_source = "gt/cameras (asked for)";
   } else if (take.has_calibration()) {
@@ -80,7 +89,8 @@ void ChooseCameraSource(const Take& take, const TakeSelection& selection, TakePl
     plan.cameras_source = "gt/cameras (the take has no calib/: true models of the simulation)";
   } else {
     Fail("take '", take.dir().string(),
-         "' is not calibrated (no calib/<sensor>.cameramodel for every sensor): run holocap calibrate first");
+         "' is not calibrated (no calib/<sensor>.cameramodel for every sensor): run holocap "
+         "calibrate first");
   }
 }
 
@@ -90,10 +100,12 @@ void ChooseFrameSets(const Take& take, const TakeSelection& selection, TakePlan&
                                 : take.metadata().value("clean_plate_frames", int64_t{0});
   const int64_t available = static_cast<int64_t>(take.size()) - plan.clean_plate_frames;
   if (available <= 0) {
-    Fail("take '", take.dir().string(), "' has ", take.size(), " frame sets, all of them clean plate");
+    Fail("take '", take.dir().string(), "' has ", take.size(),
+         " frame sets, all of them clean plate");
   }
   const int64_t first = selection.first_frame;
-  const int64_t last = selection.last_frame < 0 ? available : std::min(selection.last_frame, available);
+  const int64_t last =
+      selection.last_frame < 0 ? available : std::min(selection.last_frame, available);
   if (first >= last) {
     Fail("frame range ", first, ":", last, " selects nothing (the take has ", available,
          " frame sets after its clean plate)");
@@ -116,13 +128,16 @@ TakePlan PlanTake(const Take& take, const TakeSelection& selection) {
     Fail("take '", take.dir().string(), "' has no colour or depth sensor");
   }
   ChooseCameraSource(take, selection, plan);
-  for (const auto& name : plan.color_sensors) plan.cameras.emplace(name, take.Camera(name, plan.ground_truth_cameras));
-  for (const auto& name : plan.depth_sensors) plan.cameras.emplace(name, take.Camera(name, plan.ground_truth_cameras));
+  for (const auto& name : plan.color_sensors)
+    plan.cameras.emplace(name, take.Camera(name, plan.ground_truth_cameras));
+  for (const auto& name : plan.depth_sensors)
+    plan.cameras.emplace(name, take.Camera(name, plan.ground_truth_cameras));
   ChooseFrameSets(take, selection, plan);
   return plan;
 }
 
-std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras, const std::vector<int>& candidates, int count,
+std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras,
+                              const std::vector<int>& candidates, int count,
                               const Eigen::Vector3d& center) {
   std::vector<int> picked;
   if (count <= 0 || candidates.empty()) return picked;

@@ -36,16 +36,16 @@ struct TakeSelection {
 
 struct TakePlan {
   std::filesystem::path take_dir;
-  bool ground_truth_cameras = false;         // gt/cameras (true models) rather than calib/
-  std::string cameras_source;                // "calib/" or "gt/cameras (...why...)"
-  std::vector<std::string> color_sensors;    // in the take's order
+  bool ground_truth_cameras = false;       // gt/cameras (true models) rather than calib/
+  std::string cameras_source;              // "calib/" or "gt/cameras (...why...)"
+  std::vector<std::string> color_sensors;  // in the take's order
   std::vector<std::string> depth_sensors;
-  std::set<std::string> paired_color;        // colour sensors a depth sensor is paired with
+  std::set<std::string> paired_color;          // colour sensors a depth sensor is paired with
   std::map<std::string, CameraModel> cameras;  // every colour and depth sensor's model
-  int64_t clean_plate_frames = 0;            // the plate is the last of these sets
-  std::vector<int64_t> sets;                 // frame sets to work on (indices into the take)
-  std::vector<std::string> heldout;          // never trained on nor reconstructed from
-  std::vector<std::string> witness;          // trained on, never reconstructed from
+  int64_t clean_plate_frames = 0;              // the plate is the last of these sets
+  std::vector<int64_t> sets;                   // frame sets to work on (indices into the take)
+  std::vector<std::string> heldout;            // never trained on nor reconstructed from
+  std::vector<std::string> witness;            // trained on, never reconstructed from
   nlohmann::json left_out = nlohmann::json::object();  // {what: why} for skipped work
 
   bool has_clean_plate() const { return clean_plate_frames > 0; }
@@ -70,7 +70,8 @@ TakePlan PlanTake(const Take& take, const TakeSelection& selection);
 
 // `count` indices out of `candidates` whose directions seen from `center` are spread as far
 // apart as possible (farthest-point sampling, whatever the world's up axis), sorted.
-std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras, const std::vector<int>& candidates,
-                              int count, const Eigen::Vector3d& center);
+std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras,
+                              const std::vector<int>& candidates, int count,
+                              const Eigen::Vector3d& center);
 
 }  // namespace holocap

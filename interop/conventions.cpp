@@ -8,8 +8,8 @@
 #include <Eigen/SVD>
 #include <cmath>
 
-#include "interop/interop.h"
 #include "core/error.h"
+#include "interop/interop.h"
 
 namespace holocap {
 namespace {
@@ -44,19 +44,26 @@ const Eigen::Matrix4d& FlipYZ() {
 
 const char* ToString(InteropFormat format) {
   switch (format) {
-    case InteropFormat::kMiddlebury: return "middlebury";
-    case InteropFormat::kKrt: return "krt";
-    case InteropFormat::kColmap: return "colmap";
-    case InteropFormat::kNerf: return "nerf";
-    case InteropFormat::kPanoptic: return "panoptic";
-    case InteropFormat::kMrcal: return "mrcal";
+    case InteropFormat::kMiddlebury:
+      return "middlebury";
+    case InteropFormat::kKrt:
+      return "krt";
+    case InteropFormat::kColmap:
+      return "colmap";
+    case InteropFormat::kNerf:
+      return "nerf";
+    case InteropFormat::kPanoptic:
+      return "panoptic";
+    case InteropFormat::kMrcal:
+      return "mrcal";
   }
   return "?";
 }
 
 InteropFormat InteropFormatFromString(const std::string& text) {
-  for (InteropFormat format : {InteropFormat::kMiddlebury, InteropFormat::kKrt, InteropFormat::kColmap,
-                               InteropFormat::kNerf, InteropFormat::kPanoptic, InteropFormat::kMrcal}) {
+  for (InteropFormat format :
+       {InteropFormat::kMiddlebury, InteropFormat::kKrt, InteropFormat::kColmap,
+        InteropFormat::kNerf, InteropFormat::kPanoptic, InteropFormat::kMrcal}) {
     if (text == ToString(format)) return format;
   }
   Fail("unknown format '", text, "' (middlebury, krt, colmap, nerf, panoptic or mrcal)");
@@ -66,13 +73,16 @@ CameraModel CameraFromKrt(const KrtCamera& camera, const Pose& cam_from_world) {
   const std::string who = "camera '" + camera.name + "'";
   const Eigen::Matrix3d& K = camera.K;
   if (K(1, 0) != 0 || K(2, 0) != 0 || K(2, 1) != 0 || !(K(2, 2) != 0)) {
-    Fail(who, ": K must be upper triangular with K33 != 0, got [", K.row(0), "; ", K.row(1), "; ", K.row(2), "]");
+    Fail(who, ": K must be upper triangular with K33 != 0, got [", K.row(0), "; ", K.row(1), "; ",
+         K.row(2), "]");
   }
   Eigen::Matrix3d k = K / K(2, 2);
   if (k(0, 1) != 0) {
-    Fail(who, ": K has skew ", k(0, 1), "; no mrcal lens model has a skew term, so it cannot be imported exactly");
+    Fail(who, ": K has skew ", k(0, 1),
+         "; no mrcal lens model has a skew term, so it cannot be imported exactly");
   }
-  if (!(k(0, 0) > 0) || !(k(1, 1) > 0)) Fail(who, ": K's focal lengths must be positive, got ", k(0, 0), ", ", k(1, 1));
+  if (!(k(0, 0) > 0) || !(k(1, 1) > 0))
+    Fail(who, ": K's focal lengths must be positive, got ", k(0, 0), ", ", k(1, 1));
   if (camera.width <= 0 || camera.height <= 0) Fail(who, ": image size unknown");
   std::vector<double> intrinsics = {k(0, 0), k(1, 1), k(0, 2), k(1, 2)};
   const std::vector<double>& d = camera.distortion;
@@ -84,7 +94,8 @@ CameraModel CameraFromKrt(const KrtCamera& camera, const Pose& cam_from_world) {
     lensmodel = "LENSMODEL_OPENCV" + std::to_string(d.size());
     intrinsics.insert(intrinsics.end(), d.begin(), d.end());
   } else {
-    Fail(who, ": ", d.size(), " distortion coefficients; mrcal holds OpenCV's 4, 5, 8 or 12 (no tilted-sensor 14)");
+    Fail(who, ": ", d.size(),
+         " distortion coefficients; mrcal holds OpenCV's 4, 5, 8 or 12 (no tilted-sensor 14)");
   }
   return CameraModel(lensmodel, intrinsics, camera.width, camera.height, cam_from_world);
 }
@@ -92,7 +103,9 @@ CameraModel CameraFromKrt(const KrtCamera& camera, const Pose& cam_from_world) {
 CameraModel CameraFromColmap(const ColmapCamera& camera, const Pose& cam_from_world) {
   const std::vector<double>& p = camera.params;
   auto expect = [&](size_t count) {
-    if (p.size() != count) Fail("COLMAP camera ", camera.id, " (", camera.model, ") needs ", count, " parameters, has ", p.size());
+    if (p.size() != count)
+      Fail("COLMAP camera ", camera.id, " (", camera.model, ") needs ", count, " parameters, has ",
+           p.size());
   };
   std::string lensmodel;
   std::vector<double> intrinsics;
@@ -126,9 +139,11 @@ CameraModel CameraFromColmap(const ColmapCamera& camera, const Pose& cam_from_wo
   } else {
     Fail("COLMAP camera ", camera.id, " uses model ", camera.model,
          ", which no mrcal 2.2 lens model represents exactly (mrcal has no Kannala-Brandt or FOV "
-         "fisheye); undistort the images with COLMAP's image_undistorter and import that PINHOLE model");
+         "fisheye); undistort the images with COLMAP's image_undistorter and import that PINHOLE "
+         "model");
   }
-  if (!(intrinsics[0] > 0) || !(intrinsics[1] > 0)) Fail("COLMAP camera ", camera.id, ": focal length must be positive");
+  if (!(intrinsics[0] > 0) || !(intrinsics[1] > 0))
+    Fail("COLMAP camera ", camera.id, ": focal length must be positive");
   return CameraModel(lensmodel, intrinsics, camera.width, camera.height, cam_from_world);
 }
 
@@ -153,7 +168,8 @@ ColmapCamera ColmapFromCamera(const CameraModel& camera, int64_t id) {
     out.params.insert(out.params.end(), in.begin() + 4, in.end());
     out.params.resize(12, 0.0);
   } else {
-    Fail("lens model ", lens, " has no exact COLMAP camera model (COLMAP holds PINHOLE, OPENCV4, "
+    Fail("lens model ", lens,
+         " has no exact COLMAP camera model (COLMAP holds PINHOLE, OPENCV4, "
          "OPENCV5 and OPENCV8 exactly)");
   }
   return out;
@@ -165,11 +181,13 @@ CameraModel CameraFromNerf(const NerfIntrinsics& in, const Eigen::Matrix4d& worl
   const int height = in.h.value_or(image_height);
   if (width <= 0 || height <= 0) Fail(origin, ": image size unknown (no w/h and no image)");
   if (image_width > 0 && (image_width != width || image_height != height)) {
-    Fail(origin, ": w x h = ", width, "x", height, " but the image is ", image_width, "x", image_height);
+    Fail(origin, ": w x h = ", width, "x", height, " but the image is ", image_width, "x",
+         image_height);
   }
   const std::string model = in.camera_model.value_or("OPENCV");
   if (model != "OPENCV" && model != "PINHOLE" && model != "SIMPLE_PINHOLE") {
-    Fail(origin, ": camera_model ", model, " has no exact mrcal 2.2 lens model (only OPENCV and PINHOLE import)");
+    Fail(origin, ": camera_model ", model,
+         " has no exact mrcal 2.2 lens model (only OPENCV and PINHOLE import)");
   }
   double fx = 0;
   if (in.fl_x) {
@@ -202,7 +220,8 @@ CameraModel CameraFromNerf(const NerfIntrinsics& in, const Eigen::Matrix4d& worl
   }
   std::string lensmodel = "LENSMODEL_PINHOLE";
   std::vector<double> intrinsics = {fx, fy, cx, cy};
-  const std::vector<double> distortion = {term("k1"), term("k2"), term("p1"), term("p2"), term("k3")};
+  const std::vector<double> distortion = {term("k1"), term("k2"), term("p1"), term("p2"),
+                                          term("k3")};
   if (!AllZero(distortion)) {
     const bool k3 = distortion[4] != 0;
     lensmodel = k3 ? "LENSMODEL_OPENCV5" : "LENSMODEL_OPENCV4";
@@ -210,7 +229,8 @@ CameraModel CameraFromNerf(const NerfIntrinsics& in, const Eigen::Matrix4d& worl
   }
   Eigen::Matrix4d world_from_cam_cv = world_from_cam_gl * FlipYZ();
   Eigen::Matrix3d rotation = world_from_cam_cv.topLeftCorner<3, 3>();
-  const double deviation = (rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
+  const double deviation =
+      (rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
   if (deviation > 1e-5 || rotation.determinant() < 0) {
     Fail(origin, ": transform_matrix's rotation is not a rotation (|R^T R - I| = ", deviation,
          "); scaled or mirrored poses cannot be imported");
@@ -230,8 +250,10 @@ NerfIntrinsics NerfFromCamera(const CameraModel& camera) {
       lens == "LENSMODEL_OPENCV8" && in[9] == 0 && in[10] == 0 && in[11] == 0;
   if (lens != "LENSMODEL_PINHOLE" && lens != "LENSMODEL_OPENCV4" && lens != "LENSMODEL_OPENCV5" &&
       !opencv8_without_rational) {
-    Fail("lens model ", lens, " has no exact transforms.json form (nerfstudio's OPENCV holds k1 k2 k3 "
-         "p1 p2: mrcal's PINHOLE, OPENCV4 and OPENCV5; OPENCV8's rational terms k4..k6 are not representable)");
+    Fail("lens model ", lens,
+         " has no exact transforms.json form (nerfstudio's OPENCV holds k1 k2 k3 "
+         "p1 p2: mrcal's PINHOLE, OPENCV4 and OPENCV5; OPENCV8's rational terms k4..k6 are not "
+         "representable)");
   }
   NerfIntrinsics out;
   out.fl_x = in[0];
@@ -257,14 +279,16 @@ RigidWorld SplitRigidWorld(const std::vector<Eigen::Matrix3d>& rotations) {
   Eigen::Matrix3d mean = Eigen::Matrix3d::Zero();
   for (const auto& r : rotations) {
     Eigen::Matrix3d gram = r.transpose() * r;
-    out.non_orthonormality = std::max(out.non_orthonormality, (gram - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff());
+    out.non_orthonormality = std::max(out.non_orthonormality,
+                                      (gram - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff());
     // R = Q S with S = sqrt(R^T R) symmetric positive definite (the polar decomposition).
     Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver(gram);
     parts.push_back(solver.operatorSqrt());
     mean += parts.back();
   }
   mean /= static_cast<double>(rotations.size());
-  for (const auto& part : parts) out.residual = std::max(out.residual, (part - mean).cwiseAbs().maxCoeff());
+  for (const auto& part : parts)
+    out.residual = std::max(out.residual, (part - mean).cwiseAbs().maxCoeff());
   // Rotations orthonormal to rounding need no world change at all.
   const bool rigid = (mean - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff() < 1e-14;
   out.world_from_source = rigid ? Eigen::Matrix3d::Identity() : mean;

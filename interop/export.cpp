@@ -1,11 +1,11 @@
 // Writing a take's cameras (and colour frames) as a COLMAP text model or a transforms.json.
 #include <cstdio>
 
-#include "interop/interop.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/take.h"
+#include "interop/interop.h"
 
 namespace holocap {
 namespace {
@@ -24,13 +24,15 @@ void ExportOptions::Check() const {
   }
 }
 
-ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, const ExportOptions& options,
-                         Report* report) {
+ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir,
+                         const ExportOptions& options, Report* report) {
   options.Check();
   Take take = Take::Open(take_dir);
   if (report != nullptr) {
-    report->options() = {{"format", ToString(options.format)}, {"take", take_dir.string()},
-                         {"ground_truth", options.ground_truth}, {"copy_images", options.copy_images}};
+    report->options() = {{"format", ToString(options.format)},
+                         {"take", take_dir.string()},
+                         {"ground_truth", options.ground_truth},
+                         {"copy_images", options.copy_images}};
   }
   ExportSummary summary;
   // Cameras first: a model the format cannot hold stops the export before anything is written.
@@ -38,7 +40,8 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, cons
   std::vector<std::string> unrepresentable;
   for (const auto& stream : take.streams()) {
     if (stream.role != SensorRole::kColor) {
-      summary.skipped.push_back(Cat(stream.name, " (", ToString(stream.role), ": the format holds colour cameras)"));
+      summary.skipped.push_back(
+          Cat(stream.name, " (", ToString(stream.role), ": the format holds colour cameras)"));
       continue;
     }
     CameraModel camera = take.Camera(stream.name, options.ground_truth);
@@ -61,12 +64,14 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, cons
         if (!names.empty()) names += "; ";
         names += item;
       }
-      Fail(unrepresentable.size(), " camera(s) cannot be exported exactly to ", ToString(options.format), ": ",
-           names, " (--skip-unrepresentable exports the others)");
+      Fail(unrepresentable.size(), " camera(s) cannot be exported exactly to ",
+           ToString(options.format), ": ", names, " (--skip-unrepresentable exports the others)");
     }
     summary.skipped.insert(summary.skipped.end(), unrepresentable.begin(), unrepresentable.end());
   }
-  if (cameras.empty()) Fail("take '", take_dir.string(), "' has no colour camera to export to ", ToString(options.format));
+  if (cameras.empty())
+    Fail("take '", take_dir.string(), "' has no colour camera to export to ",
+         ToString(options.format));
   std::error_code ec;
   if (fs::exists(out_dir, ec) && !fs::is_empty(out_dir, ec) && !options.overwrite) {
     Fail("'", out_dir.string(), "' is not empty (pass --overwrite to write into it)");
@@ -95,7 +100,8 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, cons
   if (options.format == InteropFormat::kColmap) {
     std::map<int64_t, ColmapCamera> colmap_cameras;
     for (size_t c = 0; c < cameras.size(); ++c) {
-      colmap_cameras.emplace(c + 1, ColmapFromCamera(cameras[c].second, static_cast<int64_t>(c + 1)));
+      colmap_cameras.emplace(c + 1,
+                             ColmapFromCamera(cameras[c].second, static_cast<int64_t>(c + 1)));
     }
     std::vector<ColmapImage> colmap_images;
     for (const auto& image : images) {
@@ -124,7 +130,8 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, cons
       frame["file_path"] = "images/" + image.name;
       Eigen::Matrix4d matrix = NerfWorldFromCamGl(camera.cam_from_world());
       for (int r = 0; r < 4; ++r) {
-        frame["transform_matrix"].push_back({matrix(r, 0), matrix(r, 1), matrix(r, 2), matrix(r, 3)});
+        frame["transform_matrix"].push_back(
+            {matrix(r, 0), matrix(r, 1), matrix(r, 2), matrix(r, 3)});
       }
       frame["fl_x"] = *intrinsics.fl_x;
       frame["fl_y"] = *intrinsics.fl_y;
@@ -140,12 +147,13 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir, cons
   }
   summary.cameras = static_cast<int>(cameras.size());
   summary.images = static_cast<int64_t>(images.size());
-  std::string message = Cat("exported ", summary.cameras, " camera(s) and ", summary.images, " image(s) as ",
-                            ToString(options.format));
+  std::string message = Cat("exported ", summary.cameras, " camera(s) and ", summary.images,
+                            " image(s) as ", ToString(options.format));
   if (!summary.skipped.empty()) message += Cat("; ", summary.skipped.size(), " stream(s) skipped");
   summary.End(Termination::kSuccess, std::move(message));
   if (report != nullptr) {
-    report->plan() = {{"cameras", summary.cameras}, {"images", summary.images}, {"skipped", summary.skipped}};
+    report->plan() = {
+        {"cameras", summary.cameras}, {"images", summary.images}, {"skipped", summary.skipped}};
     report->SetSummary(summary);
   }
   return summary;

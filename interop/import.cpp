@@ -6,11 +6,11 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
-#include "interop/interop.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/take.h"
+#include "interop/interop.h"
 
 namespace holocap {
 namespace {
@@ -24,8 +24,10 @@ struct SourceView {
 
 bool IsImageFile(const fs::path& file) {
   std::string ext = file.extension().string();
-  std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
-  static const std::set<std::string> known = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm"};
+  std::transform(ext.begin(), ext.end(), ext.begin(),
+                 [](unsigned char c) { return std::tolower(c); });
+  static const std::set<std::string> known = {".png", ".jpg",  ".jpeg", ".bmp",
+                                              ".tif", ".tiff", ".ppm",  ".pgm"};
   return known.count(ext) > 0;
 }
 
@@ -74,7 +76,8 @@ cv::Size ImageSize(const fs::path& file) { return ReadSourceImage(file).size(); 
 
 std::string SanitizedName(const std::string& text) {
   std::string name;
-  for (unsigned char c : text) name += (std::isalnum(c) || c == '_' || c == '-' || c == '.') ? c : '_';
+  for (unsigned char c : text)
+    name += (std::isalnum(c) || c == '_' || c == '-' || c == '.') ? c : '_';
   if (name.empty()) name = "cam";
   return name;
 }
@@ -88,7 +91,8 @@ std::vector<std::string> ChooseSensorNames(const std::vector<SourceView>& views)
   for (const auto& view : views) {
     std::set<fs::path> parents;
     for (const auto& [number, file] : view.frames) parents.insert(file.parent_path());
-    if (parents.size() != 1 || !folders.insert(parents.begin()->filename().string()).second) by_folder = false;
+    if (parents.size() != 1 || !folders.insert(parents.begin()->filename().string()).second)
+      by_folder = false;
   }
   std::set<std::string> taken;
   for (const auto& view : views) {
@@ -102,7 +106,8 @@ std::vector<std::string> ChooseSensorNames(const std::vector<SourceView>& views)
     }
     base = SanitizedName(base);
     std::string name = base;
-    for (int suffix = 2; !taken.insert(name).second; ++suffix) name = base + "_" + std::to_string(suffix);
+    for (int suffix = 2; !taken.insert(name).second; ++suffix)
+      name = base + "_" + std::to_string(suffix);
     names.push_back(name);
   }
   return names;
@@ -145,12 +150,14 @@ std::vector<double> RowMajor(const Eigen::Matrix3d& matrix) {
 
 // K[R|t] cameras (Middlebury, Neural Volumes, Panoptic) into mrcal models. The rotations'
 // shared non-orthonormal part, if any, becomes the world map (see interop.h).
-std::vector<CameraModel> KrtCamerasToModels(const std::vector<KrtCamera>& cameras, double metres_per_unit,
-                                            const ImportOptions& options, ImportedRig* rig) {
+std::vector<CameraModel> KrtCamerasToModels(const std::vector<KrtCamera>& cameras,
+                                            double metres_per_unit, const ImportOptions& options,
+                                            ImportedRig* rig) {
   std::vector<Eigen::Matrix3d> rotations;
   for (const auto& camera : cameras) {
     if (!(camera.R.determinant() > 0)) {
-      Fail("camera '", camera.name, "': R has determinant ", camera.R.determinant(), " (a mirror, not a rotation)");
+      Fail("camera '", camera.name, "': R has determinant ", camera.R.determinant(),
+           " (a mirror, not a rotation)");
     }
     rotations.push_back(camera.R);
   }
@@ -158,13 +165,16 @@ std::vector<CameraModel> KrtCamerasToModels(const std::vector<KrtCamera>& camera
   rig->metrics["rotation_non_orthonormality"] = world.non_orthonormality;
   rig->metrics["rotation_residual"] = world.residual;
   if (world.residual > options.max_rotation_residual) {
-    Fail("the cameras' rotations are non-orthonormal in different ways (max |S_i - S| = ", world.residual,
-         " > ", options.max_rotation_residual, "), so their K[R|t] cannot all be represented exactly; "
-         "allow the nearest rotations with --max-rotation-residual ", world.residual);
+    Fail("the cameras' rotations are non-orthonormal in different ways (max |S_i - S| = ",
+         world.residual, " > ", options.max_rotation_residual,
+         "), so their K[R|t] cannot all be represented exactly; "
+         "allow the nearest rotations with --max-rotation-residual ",
+         world.residual);
   }
   if (world.world_from_source != Eigen::Matrix3d::Identity()) {
     rig->notes.push_back(Cat("the rotations share a non-orthonormal part S (max |R^T R - I| = ",
-                             world.non_orthonormality, "); the take's world is S times the source's"));
+                             world.non_orthonormality,
+                             "); the take's world is S times the source's"));
   }
   rig->world_from_source = metres_per_unit * world.world_from_source;
   std::vector<CameraModel> models;
@@ -187,7 +197,8 @@ void ReadMiddlebury(const fs::path& source, const ImportOptions& options, Import
     camera.width = size.width;
     camera.height = size.height;
   }
-  std::vector<CameraModel> models = KrtCamerasToModels(cameras, options.metres_per_unit > 0 ? options.metres_per_unit : 1, options, rig);
+  std::vector<CameraModel> models = KrtCamerasToModels(
+      cameras, options.metres_per_unit > 0 ? options.metres_per_unit : 1, options, rig);
   for (size_t i = 0; i < cameras.size(); ++i) {
     views->push_back({cameras[i].name, models[i], {{0, root / cameras[i].name}}});
   }
@@ -195,8 +206,10 @@ void ReadMiddlebury(const fs::path& source, const ImportOptions& options, Import
 
 // Cameras of a calibration that lists more cameras than were recorded keep only those with an
 // image folder.
-void KeepRecorded(std::vector<KrtCamera>* cameras, const std::vector<std::vector<fs::path>>& folder_candidates,
-                  std::vector<std::map<int64_t, fs::path>>* frames, ImportedRig* rig, const std::string& where) {
+void KeepRecorded(std::vector<KrtCamera>* cameras,
+                  const std::vector<std::vector<fs::path>>& folder_candidates,
+                  std::vector<std::map<int64_t, fs::path>>* frames, ImportedRig* rig,
+                  const std::string& where) {
   std::vector<KrtCamera> kept;
   std::vector<std::string> skipped;
   for (size_t i = 0; i < cameras->size(); ++i) {
@@ -214,9 +227,11 @@ void KeepRecorded(std::vector<KrtCamera>* cameras, const std::vector<std::vector
     kept.push_back((*cameras)[i]);
     frames->push_back(std::move(found));
   }
-  if (kept.empty()) Fail("none of the ", cameras->size(), " cameras has an image folder under ", where);
+  if (kept.empty())
+    Fail("none of the ", cameras->size(), " cameras has an image folder under ", where);
   if (!skipped.empty()) {
-    rig->notes.push_back(Cat(skipped.size(), " camera(s) without images skipped (first: ", skipped.front(), ")"));
+    rig->notes.push_back(
+        Cat(skipped.size(), " camera(s) without images skipped (first: ", skipped.front(), ")"));
   }
   rig->metrics["cameras_skipped_without_images"] = skipped.size();
   *cameras = std::move(kept);
@@ -227,29 +242,33 @@ void ReadKrtCameras(std::vector<KrtCamera> cameras, std::vector<std::map<int64_t
                     std::vector<SourceView>* views) {
   for (size_t i = 0; i < cameras.size(); ++i) {
     cv::Size size = ImageSize(frames[i].begin()->second);
-    if (cameras[i].width > 0 && (cameras[i].width != size.width || cameras[i].height != size.height)) {
-      Fail("camera '", cameras[i].name, "' is calibrated for ", cameras[i].width, "x", cameras[i].height,
-           " but its images are ", size.width, "x", size.height);
+    if (cameras[i].width > 0 &&
+        (cameras[i].width != size.width || cameras[i].height != size.height)) {
+      Fail("camera '", cameras[i].name, "' is calibrated for ", cameras[i].width, "x",
+           cameras[i].height, " but its images are ", size.width, "x", size.height);
     }
     cameras[i].width = size.width;
     cameras[i].height = size.height;
   }
   std::vector<CameraModel> models = KrtCamerasToModels(cameras, metres_per_unit, options, rig);
-  for (size_t i = 0; i < cameras.size(); ++i) views->push_back({cameras[i].name, models[i], std::move(frames[i])});
+  for (size_t i = 0; i < cameras.size(); ++i)
+    views->push_back({cameras[i].name, models[i], std::move(frames[i])});
 }
 
 void ReadNeuralVolumes(const fs::path& source, const ImportOptions& options, ImportedRig* rig,
                        std::vector<SourceView>* views) {
   fs::path file = fs::is_directory(source) ? source / "KRT" : source;
-  if (!fs::is_regular_file(file)) Fail("'", file.string(), "' does not exist (a Neural Volumes KRT file)");
+  if (!fs::is_regular_file(file))
+    Fail("'", file.string(), "' does not exist (a Neural Volumes KRT file)");
   std::vector<KrtCamera> cameras = ParseNeuralVolumesKrt(ReadFileToString(file), file.string());
   fs::path root = ImageRoot(options, file.parent_path());
   std::vector<std::vector<fs::path>> candidates;
-  for (const auto& camera : cameras) candidates.push_back({root / ("cam" + camera.name), root / camera.name});
+  for (const auto& camera : cameras)
+    candidates.push_back({root / ("cam" + camera.name), root / camera.name});
   std::vector<std::map<int64_t, fs::path>> frames;
   KeepRecorded(&cameras, candidates, &frames, rig, root.string());
-  ReadKrtCameras(std::move(cameras), std::move(frames), options.metres_per_unit > 0 ? options.metres_per_unit : 1,
-                 options, rig, views);
+  ReadKrtCameras(std::move(cameras), std::move(frames),
+                 options.metres_per_unit > 0 ? options.metres_per_unit : 1, options, rig, views);
 }
 
 void ReadPanoptic(const fs::path& source, const ImportOptions& options, ImportedRig* rig,
@@ -265,16 +284,18 @@ void ReadPanoptic(const fs::path& source, const ImportOptions& options, Imported
   std::vector<std::map<int64_t, fs::path>> frames;
   KeepRecorded(&cameras, candidates, &frames, rig, root.string());
   // Panoptic's calibration is in centimetres.
-  ReadKrtCameras(std::move(cameras), std::move(frames), options.metres_per_unit > 0 ? options.metres_per_unit : 0.01,
-                 options, rig, views);
+  ReadKrtCameras(std::move(cameras), std::move(frames),
+                 options.metres_per_unit > 0 ? options.metres_per_unit : 0.01, options, rig, views);
 }
 
 void ReadMrcalFolders(const fs::path& source, const ImportOptions& options, ImportedRig* rig,
                       std::vector<SourceView>* views) {
-  if (!fs::is_directory(source)) Fail("'", source.string(), "' is not a directory of .cameramodel files");
+  if (!fs::is_directory(source))
+    Fail("'", source.string(), "' is not a directory of .cameramodel files");
   std::vector<fs::path> models;
   for (const auto& entry : fs::directory_iterator(source)) {
-    if (entry.is_regular_file() && entry.path().extension() == ".cameramodel") models.push_back(entry.path());
+    if (entry.is_regular_file() && entry.path().extension() == ".cameramodel")
+      models.push_back(entry.path());
   }
   std::sort(models.begin(), models.end());
   if (models.empty()) Fail("'", source.string(), "' holds no .cameramodel files");
@@ -283,7 +304,8 @@ void ReadMrcalFolders(const fs::path& source, const ImportOptions& options, Impo
   std::vector<std::string> skipped;
   for (const auto& file : models) {
     std::string name = file.stem().string();
-    std::map<int64_t, fs::path> frames = fs::is_directory(root / name) ? NumberedImages(root / name) : std::map<int64_t, fs::path>{};
+    std::map<int64_t, fs::path> frames =
+        fs::is_directory(root / name) ? NumberedImages(root / name) : std::map<int64_t, fs::path>{};
     if (frames.empty()) {
       skipped.push_back(name);
       continue;
@@ -294,15 +316,20 @@ void ReadMrcalFolders(const fs::path& source, const ImportOptions& options, Impo
     camera.set_cam_from_world(pose);
     views->push_back({name, camera, std::move(frames)});
   }
-  if (views->empty()) Fail("no .cameramodel in '", source.string(), "' has an image folder of its name under ", root.string());
-  if (!skipped.empty()) rig->notes.push_back(Cat(skipped.size(), " model(s) without an image folder skipped (first: ", skipped.front(), ")"));
+  if (views->empty())
+    Fail("no .cameramodel in '", source.string(), "' has an image folder of its name under ",
+         root.string());
+  if (!skipped.empty())
+    rig->notes.push_back(Cat(skipped.size(), " model(s) without an image folder skipped (first: ",
+                             skipped.front(), ")"));
   rig->world_from_source = scale * Eigen::Matrix3d::Identity();
 }
 
 // Views with identical camera models are one camera filmed several times. When every camera
 // has one image they all form frame set 0; otherwise a camera's images are numbered as
 // NumberedImages does, so numbered files of different cameras line up.
-void GroupViews(std::vector<std::pair<std::string, SourceView>> items, std::vector<SourceView>* views) {
+void GroupViews(std::vector<std::pair<std::string, SourceView>> items,
+                std::vector<SourceView>* views) {
   std::map<std::string, size_t> group_of;
   std::vector<std::vector<fs::path>> files;
   const size_t first = views->size();
@@ -326,7 +353,8 @@ void GroupViews(std::vector<std::pair<std::string, SourceView>> items, std::vect
     }
     if (!numbered) {
       frames.clear();
-      for (size_t i = 0; i < files[g].size(); ++i) frames.emplace(static_cast<int64_t>(i), files[g][i]);
+      for (size_t i = 0; i < files[g].size(); ++i)
+        frames.emplace(static_cast<int64_t>(i), files[g][i]);
     }
   }
 }
@@ -337,8 +365,10 @@ fs::path FindColmapModel(const fs::path& source) {
   for (const fs::path& dir : {source, source / "sparse" / "0", source / "sparse"}) {
     if (fs::is_regular_file(dir / "cameras.txt")) return dir;
   }
-  if (fs::is_regular_file(source / "sparse" / "0" / "cameras.bin") || fs::is_regular_file(source / "cameras.bin")) {
-    Fail("'", source.string(), "' holds a binary COLMAP model; convert it with "
+  if (fs::is_regular_file(source / "sparse" / "0" / "cameras.bin") ||
+      fs::is_regular_file(source / "cameras.bin")) {
+    Fail("'", source.string(),
+         "' holds a binary COLMAP model; convert it with "
          "'colmap model_converter --output_type TXT' first");
   }
   Fail("no COLMAP text model (cameras.txt) in '", source.string(), "', its sparse/0 or sparse");
@@ -348,25 +378,31 @@ void ReadColmap(const fs::path& source, const ImportOptions& options, ImportedRi
                 std::vector<SourceView>* views) {
   fs::path model_dir = FindColmapModel(source);
   for (const char* name : {"images.txt", "points3D.txt"}) {
-    if (!fs::is_regular_file(model_dir / name)) Fail("'", (model_dir / name).string(), "' is missing");
+    if (!fs::is_regular_file(model_dir / name))
+      Fail("'", (model_dir / name).string(), "' is missing");
   }
   ColmapModel model;
-  model.cameras = ParseColmapCameras(ReadFileToString(model_dir / "cameras.txt"), (model_dir / "cameras.txt").string());
-  model.images = ParseColmapImages(ReadFileToString(model_dir / "images.txt"), (model_dir / "images.txt").string());
-  model.points = ParseColmapPoints(ReadFileToString(model_dir / "points3D.txt"), (model_dir / "points3D.txt").string());
+  model.cameras = ParseColmapCameras(ReadFileToString(model_dir / "cameras.txt"),
+                                     (model_dir / "cameras.txt").string());
+  model.images = ParseColmapImages(ReadFileToString(model_dir / "images.txt"),
+                                   (model_dir / "images.txt").string());
+  model.points = ParseColmapPoints(ReadFileToString(model_dir / "points3D.txt"),
+                                   (model_dir / "points3D.txt").string());
   if (model.images.empty()) Fail("'", (model_dir / "images.txt").string(), "' lists no images");
   fs::path root;
   if (!options.images.empty()) {
     root = options.images;
   } else {
-    for (const fs::path& candidate : {source / "images", model_dir / ".." / ".." / "images", model_dir / "images", model_dir / ".."}) {
+    for (const fs::path& candidate : {source / "images", model_dir / ".." / ".." / "images",
+                                      model_dir / "images", model_dir / ".."}) {
       if (fs::is_regular_file(candidate / model.images.front().name)) {
         root = candidate.lexically_normal();
         break;
       }
     }
     if (root.empty()) {
-      Fail("cannot find image '", model.images.front().name, "' under ", (source / "images").string(),
+      Fail("cannot find image '", model.images.front().name, "' under ",
+           (source / "images").string(),
            " or beside the model; name the image folder with --images");
     }
   }
@@ -374,16 +410,20 @@ void ReadColmap(const fs::path& source, const ImportOptions& options, ImportedRi
   std::map<int64_t, CameraModel> by_image;
   std::vector<std::pair<std::string, SourceView>> items;
   std::vector<ColmapImage> sorted = model.images;
-  std::sort(sorted.begin(), sorted.end(), [](const ColmapImage& a, const ColmapImage& b) { return a.name < b.name; });
+  std::sort(sorted.begin(), sorted.end(),
+            [](const ColmapImage& a, const ColmapImage& b) { return a.name < b.name; });
   for (const auto& image : sorted) {
     auto camera = model.cameras.find(image.camera_id);
-    if (camera == model.cameras.end()) Fail("image ", image.id, " (", image.name, ") names camera ", image.camera_id, ", which cameras.txt lacks");
+    if (camera == model.cameras.end())
+      Fail("image ", image.id, " (", image.name, ") names camera ", image.camera_id,
+           ", which cameras.txt lacks");
     Pose cam_from_world = Pose::Identity();
     cam_from_world.linear() = image.cam_from_world_rotation.toRotationMatrix();
     cam_from_world.translation() = scale * image.cam_from_world_translation;
     CameraModel converted = CameraFromColmap(camera->second, cam_from_world);
     by_image.emplace(image.id, converted);
-    items.push_back({ModelKey(converted), SourceView{image.name, converted, {{0, root / image.name}}}});
+    items.push_back(
+        {ModelKey(converted), SourceView{image.name, converted, {{0, root / image.name}}}});
   }
   GroupViews(std::move(items), views);
   rig->world_from_source = scale * Eigen::Matrix3d::Identity();
@@ -398,8 +438,10 @@ void ReadColmap(const fs::path& source, const ImportOptions& options, ImportedRi
     int64_t point_count = 0;
     for (const auto& [image_id, index] : point.track) {
       auto image = image_by_id.find(image_id);
-      if (image == image_by_id.end() || index < 0 || index >= static_cast<int64_t>(image->second->points2d.size())) {
-        Fail("point ", point.id, " names observation (", image_id, ", ", index, "), which images.txt lacks");
+      if (image == image_by_id.end() || index < 0 ||
+          index >= static_cast<int64_t>(image->second->points2d.size())) {
+        Fail("point ", point.id, " names observation (", image_id, ", ", index,
+             "), which images.txt lacks");
       }
       Eigen::Vector2d pixel;
       if (!by_image.at(image_id).ProjectWorld(scale * point.xyz, &pixel)) {
@@ -431,7 +473,8 @@ void ReadColmap(const fs::path& source, const ImportOptions& options, ImportedRi
 void ReadNerf(const fs::path& source, const ImportOptions& options, ImportedRig* rig,
               std::vector<SourceView>* views) {
   fs::path file = fs::is_directory(source) ? source / "transforms.json" : source;
-  if (!fs::is_regular_file(file)) Fail("'", file.string(), "' does not exist (a NeRF transforms.json)");
+  if (!fs::is_regular_file(file))
+    Fail("'", file.string(), "' does not exist (a NeRF transforms.json)");
   std::vector<NerfFrame> frames = ParseNerfTransforms(ReadFileToString(file), file.string());
   fs::path root = ImageRoot(options, file.parent_path());
   const double scale = options.metres_per_unit > 0 ? options.metres_per_unit : 1;
@@ -450,8 +493,8 @@ void ReadNerf(const fs::path& source, const ImportOptions& options, ImportedRig*
     cv::Size size = ImageSize(image);
     Eigen::Matrix4d world_from_cam = frames[i].world_from_cam_gl;
     world_from_cam.topRightCorner<3, 1>() *= scale;
-    CameraModel camera = CameraFromNerf(frames[i].intrinsics, world_from_cam, size.width, size.height,
-                                        Cat(file.string(), ": frames[", i, "]"));
+    CameraModel camera = CameraFromNerf(frames[i].intrinsics, world_from_cam, size.width,
+                                        size.height, Cat(file.string(), ": frames[", i, "]"));
     items.push_back({ModelKey(camera), SourceView{frames[i].file_path, camera, {{0, image}}}});
   }
   GroupViews(std::move(items), views);
@@ -465,12 +508,18 @@ struct PixelFormat {
 
 PixelFormat PixelFormatOf(const cv::Mat& image, const fs::path& file) {
   switch (image.type()) {
-    case CV_8UC1: return {"mono8"};
-    case CV_8UC3: return {"bgr8"};
-    case CV_8UC4: return {"bgr8", true};
-    case CV_16UC1: return {"mono16"};
-    case CV_16UC3: return {"bgr16"};
-    case CV_16UC4: return {"bgr16", true};
+    case CV_8UC1:
+      return {"mono8"};
+    case CV_8UC3:
+      return {"bgr8"};
+    case CV_8UC4:
+      return {"bgr8", true};
+    case CV_16UC1:
+      return {"mono16"};
+    case CV_16UC3:
+      return {"bgr16"};
+    case CV_16UC4:
+      return {"bgr16", true};
   }
   Fail("image '", file.string(), "' has ", image.channels(), " channel(s) of depth ", image.depth(),
        "; takes hold 8/16-bit mono or colour");
@@ -479,10 +528,13 @@ PixelFormat PixelFormatOf(const cv::Mat& image, const fs::path& file) {
 }  // namespace
 
 void ImportOptions::Check() const {
-  if (!(metres_per_unit >= 0) || !std::isfinite(metres_per_unit)) Fail("metres_per_unit must be >= 0 (0: the format's unit), got ", metres_per_unit);
-  if (!(max_rotation_residual >= 0)) Fail("max_rotation_residual must be >= 0, got ", max_rotation_residual);
+  if (!(metres_per_unit >= 0) || !std::isfinite(metres_per_unit))
+    Fail("metres_per_unit must be >= 0 (0: the format's unit), got ", metres_per_unit);
+  if (!(max_rotation_residual >= 0))
+    Fail("max_rotation_residual must be >= 0, got ", max_rotation_residual);
   if (!(fps > 0) || fps > 10000) Fail("fps must be in (0, 10000], got ", fps);
-  if (png_compression < 0 || png_compression > 9) Fail("png_compression must be 0..9, got ", png_compression);
+  if (png_compression < 0 || png_compression > 9)
+    Fail("png_compression must be 0..9, got ", png_compression);
 }
 
 ImportedRig ReadForeignRig(const fs::path& source, const ImportOptions& options) {
@@ -493,12 +545,24 @@ ImportedRig ReadForeignRig(const fs::path& source, const ImportOptions& options)
   rig.source = fs::absolute(source).lexically_normal();
   std::vector<SourceView> views;
   switch (options.format) {
-    case InteropFormat::kMiddlebury: ReadMiddlebury(source, options, &rig, &views); break;
-    case InteropFormat::kKrt: ReadNeuralVolumes(source, options, &rig, &views); break;
-    case InteropFormat::kColmap: ReadColmap(source, options, &rig, &views); break;
-    case InteropFormat::kNerf: ReadNerf(source, options, &rig, &views); break;
-    case InteropFormat::kPanoptic: ReadPanoptic(source, options, &rig, &views); break;
-    case InteropFormat::kMrcal: ReadMrcalFolders(source, options, &rig, &views); break;
+    case InteropFormat::kMiddlebury:
+      ReadMiddlebury(source, options, &rig, &views);
+      break;
+    case InteropFormat::kKrt:
+      ReadNeuralVolumes(source, options, &rig, &views);
+      break;
+    case InteropFormat::kColmap:
+      ReadColmap(source, options, &rig, &views);
+      break;
+    case InteropFormat::kNerf:
+      ReadNerf(source, options, &rig, &views);
+      break;
+    case InteropFormat::kPanoptic:
+      ReadPanoptic(source, options, &rig, &views);
+      break;
+    case InteropFormat::kMrcal:
+      ReadMrcalFolders(source, options, &rig, &views);
+      break;
   }
   std::vector<std::string> names = ChooseSensorNames(views);
   for (size_t i = 0; i < views.size(); ++i) {
@@ -507,14 +571,18 @@ ImportedRig ReadForeignRig(const fs::path& source, const ImportOptions& options)
   return rig;
 }
 
-ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir, const ImportOptions& options,
-                         Report* report) {
+ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
+                         const ImportOptions& options, Report* report) {
   ImportedRig rig = ReadForeignRig(source, options);
   if (report != nullptr) {
-    report->options() = {{"format", ToString(options.format)}, {"source", rig.source.string()},
-                         {"images", options.images.string()}, {"metres_per_unit", options.metres_per_unit},
-                         {"max_rotation_residual", options.max_rotation_residual}, {"fps", options.fps},
-                         {"png_compression", options.png_compression}, {"overwrite", options.overwrite}};
+    report->options() = {{"format", ToString(options.format)},
+                         {"source", rig.source.string()},
+                         {"images", options.images.string()},
+                         {"metres_per_unit", options.metres_per_unit},
+                         {"max_rotation_residual", options.max_rotation_residual},
+                         {"fps", options.fps},
+                         {"png_compression", options.png_compression},
+                         {"overwrite", options.overwrite}};
   }
   // Frame sets: the union of the cameras' frame numbers, in order.
   std::set<int64_t> numbers;
@@ -557,7 +625,8 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir, const
   writer_options.overwrite = options.overwrite;
   TakeWriter writer(take_dir, description, streams, metadata, writer_options);
   CreateDirectories(take_dir / "calib");
-  for (const auto& view : rig.views) view.camera.Write(take_dir / "calib" / (view.sensor + ".cameramodel"));
+  for (const auto& view : rig.views)
+    view.camera.Write(take_dir / "calib" / (view.sensor + ".cameramodel"));
   const int64_t period_ns = static_cast<int64_t>(std::llround(1e9 / options.fps));
   int64_t set_index = 0, frames = 0;
   for (int64_t number : numbers) {
@@ -580,7 +649,8 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir, const
         cv::cvtColor(image, image, cv::COLOR_BGRA2BGR);
         ++alpha_dropped;
       }
-      set.frames.push_back({rig.views[v].sensor, image, set_index * period_ns, static_cast<uint64_t>(number)});
+      set.frames.push_back(
+          {rig.views[v].sensor, image, set_index * period_ns, static_cast<uint64_t>(number)});
     }
     writer.Append(set);
     frames += static_cast<int64_t>(set.frames.size());
@@ -593,15 +663,17 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir, const
   summary.frames = frames;
   summary.metrics = rig.metrics;
   summary.metrics["alpha_channels_dropped"] = alpha_dropped;
-  std::string message = Cat("imported ", summary.sensors, " camera(s), ", frames, " frame(s) in ", set_index,
-                            " frame set(s) from ", ToString(rig.format));
+  std::string message = Cat("imported ", summary.sensors, " camera(s), ", frames, " frame(s) in ",
+                            set_index, " frame set(s) from ", ToString(rig.format));
   if (alpha_dropped > 0) {
-    rig.notes.push_back(Cat("alpha channel of ", alpha_dropped, " image(s) dropped (colour kept exactly)"));
+    rig.notes.push_back(
+        Cat("alpha channel of ", alpha_dropped, " image(s) dropped (colour kept exactly)"));
   }
   for (const auto& note : rig.notes) message += "; " + note;
   summary.End(Termination::kSuccess, std::move(message));
   if (report != nullptr) {
-    report->plan() = {{"sensors", summary.sensors}, {"frame_sets", summary.frame_sets}, {"frames", frames}};
+    report->plan() = {
+        {"sensors", summary.sensors}, {"frame_sets", summary.frame_sets}, {"frames", frames}};
     report->metrics() = summary.metrics;
     report->SetSummary(summary);
   }

@@ -48,7 +48,7 @@
 namespace holocap {
 
 enum class InteropFormat { kMiddlebury, kKrt, kColmap, kNerf, kPanoptic, kMrcal };
-const char* ToString(InteropFormat format);               // "middlebury", "krt", ...
+const char* ToString(InteropFormat format);                      // "middlebury", "krt", ...
 InteropFormat InteropFormatFromString(const std::string& text);  // throws Error naming the choices
 
 // ---------------------------------------------------------------------------------------------
@@ -103,7 +103,8 @@ struct ColmapModel {
   std::vector<ColmapImage> images;
   std::vector<ColmapPoint> points;
 };
-std::map<int64_t, ColmapCamera> ParseColmapCameras(const std::string& text, const std::string& origin);
+std::map<int64_t, ColmapCamera> ParseColmapCameras(const std::string& text,
+                                                   const std::string& origin);
 std::vector<ColmapImage> ParseColmapImages(const std::string& text, const std::string& origin);
 std::vector<ColmapPoint> ParseColmapPoints(const std::string& text, const std::string& origin);
 std::string FormatColmapCameras(const std::map<int64_t, ColmapCamera>& cameras);
@@ -112,10 +113,10 @@ std::string FormatColmapPoints(const std::vector<ColmapPoint>& points);
 
 // transforms.json: intrinsics at the top level and/or per frame (per frame wins).
 struct NerfIntrinsics {
-  std::optional<double> fl_x, fl_y, cx, cy;  // pixels; cx, cy with the corner origin
+  std::optional<double> fl_x, fl_y, cx, cy;              // pixels; cx, cy with the corner origin
   std::optional<double> camera_angle_x, camera_angle_y;  // radians (Blender synthetic)
   std::optional<int> w, h;
-  std::optional<std::string> camera_model;  // "OPENCV", "OPENCV_FISHEYE", ...
+  std::optional<std::string> camera_model;   // "OPENCV", "OPENCV_FISHEYE", ...
   std::map<std::string, double> distortion;  // k1 k2 k3 k4 p1 p2 as given
 };
 struct NerfFrame {
@@ -135,8 +136,9 @@ CameraModel CameraFromKrt(const KrtCamera& camera, const Pose& cam_from_world);
 CameraModel CameraFromColmap(const ColmapCamera& camera, const Pose& cam_from_world);
 ColmapCamera ColmapFromCamera(const CameraModel& camera, int64_t id);
 // mrcal lens model <-> transforms.json intrinsics; world_from_cam_gl <-> cam_from_world.
-CameraModel CameraFromNerf(const NerfIntrinsics& intrinsics, const Eigen::Matrix4d& world_from_cam_gl,
-                           int image_width, int image_height, const std::string& origin);
+CameraModel CameraFromNerf(const NerfIntrinsics& intrinsics,
+                           const Eigen::Matrix4d& world_from_cam_gl, int image_width,
+                           int image_height, const std::string& origin);
 NerfIntrinsics NerfFromCamera(const CameraModel& camera);
 Eigen::Matrix4d NerfWorldFromCamGl(const Pose& cam_from_world);
 
@@ -145,7 +147,7 @@ Eigen::Matrix4d NerfWorldFromCamGl(const Pose& cam_from_world);
 struct RigidWorld {
   Eigen::Matrix3d world_from_source = Eigen::Matrix3d::Identity();  // S
   std::vector<Eigen::Matrix3d> rotations;                           // Q_i, orthonormal, det +1
-  double non_orthonormality = 0;  // max |R_i^T R_i - I|
+  double non_orthonormality = 0;                                    // max |R_i^T R_i - I|
   double residual = 0;
 };
 RigidWorld SplitRigidWorld(const std::vector<Eigen::Matrix3d>& rotations);
@@ -160,16 +162,16 @@ struct ImportOptions {
   // Largest max_i |S_i - S| (see RigidWorld) accepted as one shared non-rigid world part; a
   // larger one means the cameras' K[R|t] cannot all be represented exactly and is refused.
   double max_rotation_residual = 1e-12;
-  double fps = 30;               // sources carry no timestamps: set i is stamped i / fps
-  int png_compression = 1;       // 0..9, lossless at every level
-  bool overwrite = false;        // replace an existing take directory
+  double fps = 30;          // sources carry no timestamps: set i is stamped i / fps
+  int png_compression = 1;  // 0..9, lossless at every level
+  bool overwrite = false;   // replace an existing take directory
   void Check() const;
 };
 
 // A source read and converted, before anything is written.
 struct ImportedView {
-  std::string sensor;        // the take's sensor name
-  std::string source_name;   // what the source calls it
+  std::string sensor;       // the take's sensor name
+  std::string source_name;  // what the source calls it
   CameraModel camera;
   std::map<int64_t, std::filesystem::path> frames;  // frame number -> image file
 };
@@ -202,7 +204,7 @@ struct ExportOptions {
   // Export the cameras the format can hold and list the others in `skipped`; false: refuse the
   // whole export, naming every camera the format cannot hold exactly.
   bool skip_unrepresentable = false;
-  bool overwrite = false;     // allow a non-empty output directory
+  bool overwrite = false;  // allow a non-empty output directory
   void Check() const;
 };
 struct ExportSummary : Summary {
@@ -212,7 +214,8 @@ struct ExportSummary : Summary {
 };
 // COLMAP: DIR/sparse/0/{cameras,images,points3D}.txt and DIR/images/; NeRF: DIR/transforms.json
 // and DIR/images/. Throws Error for a model the format cannot hold exactly.
-ExportSummary ExportTake(const std::filesystem::path& take_dir, const std::filesystem::path& out_dir,
-                         const ExportOptions& options, Report* report = nullptr);
+ExportSummary ExportTake(const std::filesystem::path& take_dir,
+                         const std::filesystem::path& out_dir, const ExportOptions& options,
+                         Report* report = nullptr);
 
 }  // namespace holocap

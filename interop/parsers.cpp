@@ -9,8 +9,8 @@
 #include <set>
 #include <sstream>
 
-#include "interop/interop.h"
 #include "core/error.h"
+#include "interop/interop.h"
 
 namespace holocap {
 namespace {
@@ -34,7 +34,9 @@ std::vector<std::string> Tokens(const std::string& line) {
   return tokens;
 }
 
-bool IsBlank(const std::string& line) { return line.find_first_not_of(" \t\r") == std::string::npos; }
+bool IsBlank(const std::string& line) {
+  return line.find_first_not_of(" \t\r") == std::string::npos;
+}
 
 double Number(const std::string& token, const std::string& where) {
   errno = 0;
@@ -80,7 +82,8 @@ std::vector<KrtCamera> ParseMiddleburyPar(const std::string& text, const std::st
   while (first < lines.size() && IsBlank(lines[first])) ++first;
   if (first == lines.size()) Fail(origin, ": empty camera-parameter file");
   std::vector<std::string> count_tokens = Tokens(lines[first]);
-  if (count_tokens.size() != 1) Fail(At(origin, first), ": the first line must hold the number of images");
+  if (count_tokens.size() != 1)
+    Fail(At(origin, first), ": the first line must hold the number of images");
   int64_t count = Integer(count_tokens[0], At(origin, first));
   if (count <= 0) Fail(At(origin, first), ": the image count must be positive, got ", count);
   std::vector<KrtCamera> cameras;
@@ -112,11 +115,13 @@ std::vector<KrtCamera> ParseNeuralVolumesKrt(const std::string& text, const std:
   std::set<std::string> names;
   size_t i = 0;
   auto numbers_line = [&](size_t expected_min, size_t expected_max, const char* what) {
-    if (i >= lines.size()) Fail(origin, ": camera '", cameras.back().name, "' ends early (", what, " missing)");
+    if (i >= lines.size())
+      Fail(origin, ": camera '", cameras.back().name, "' ends early (", what, " missing)");
     std::vector<std::string> tokens = Tokens(lines[i]);
     const std::string where = At(origin, i);
     if (tokens.size() < expected_min || tokens.size() > expected_max) {
-      Fail(where, ": ", what, " needs ", expected_min == expected_max ? Cat(expected_min) : Cat(expected_min, "..", expected_max),
+      Fail(where, ": ", what, " needs ",
+           expected_min == expected_max ? Cat(expected_min) : Cat(expected_min, "..", expected_max),
            " numbers, got ", tokens.size());
     }
     std::vector<double> values;
@@ -131,7 +136,8 @@ std::vector<KrtCamera> ParseNeuralVolumesKrt(const std::string& text, const std:
     if (name_tokens.size() != 1) Fail(At(origin, i), ": expected a camera name alone on its line");
     KrtCamera camera;
     camera.name = name_tokens[0];
-    if (!names.insert(camera.name).second) Fail(At(origin, i), ": camera '", camera.name, "' appears twice");
+    if (!names.insert(camera.name).second)
+      Fail(At(origin, i), ": camera '", camera.name, "' appears twice");
     ++i;
     cameras.push_back(camera);
     KrtCamera& c = cameras.back();
@@ -145,7 +151,8 @@ std::vector<KrtCamera> ParseNeuralVolumesKrt(const std::string& text, const std:
       for (int col = 0; col < 3; ++col) c.R(row, col) = values[col];
       c.t(row) = values[3];
     }
-    if (i < lines.size() && !IsBlank(lines[i])) Fail(At(origin, i), ": expected a blank line after camera '", c.name, "'");
+    if (i < lines.size() && !IsBlank(lines[i]))
+      Fail(At(origin, i), ": expected a blank line after camera '", c.name, "'");
   }
   if (cameras.empty()) Fail(origin, ": no cameras in the KRT file");
   return cameras;
@@ -156,7 +163,8 @@ std::string FormatNeuralVolumesKrt(const std::vector<KrtCamera>& cameras) {
   for (const auto& camera : cameras) {
     out += camera.name + "\n";
     for (int row = 0; row < 3; ++row) {
-      out += Number17(camera.K(row, 0)) + " " + Number17(camera.K(row, 1)) + " " + Number17(camera.K(row, 2)) + "\n";
+      out += Number17(camera.K(row, 0)) + " " + Number17(camera.K(row, 1)) + " " +
+             Number17(camera.K(row, 2)) + "\n";
     }
     for (size_t k = 0; k < camera.distortion.size(); ++k) {
       if (k > 0) out += ' ';
@@ -190,7 +198,8 @@ double JsonNumber(const nlohmann::json& value, const std::string& where) {
 }
 
 // A rows x cols matrix given as nested lists, or (cols == 1) as a flat list.
-Eigen::MatrixXd JsonMatrix(const nlohmann::json& value, int rows, int cols, const std::string& where) {
+Eigen::MatrixXd JsonMatrix(const nlohmann::json& value, int rows, int cols,
+                           const std::string& where) {
   if (!value.is_array() || static_cast<int>(value.size()) != rows) {
     Fail(where, " must be a list of ", rows, " rows");
   }
@@ -201,7 +210,8 @@ Eigen::MatrixXd JsonMatrix(const nlohmann::json& value, int rows, int cols, cons
       matrix(r, 0) = JsonNumber(row, where);
       continue;
     }
-    if (!row.is_array() || static_cast<int>(row.size()) != cols) Fail(where, " row ", r, " must hold ", cols, " numbers");
+    if (!row.is_array() || static_cast<int>(row.size()) != cols)
+      Fail(where, " row ", r, " must hold ", cols, " numbers");
     for (int c = 0; c < cols; ++c) matrix(r, c) = JsonNumber(row[c], where);
   }
   return matrix;
@@ -209,7 +219,8 @@ Eigen::MatrixXd JsonMatrix(const nlohmann::json& value, int rows, int cols, cons
 
 }  // namespace
 
-std::vector<KrtCamera> ParsePanopticCalibration(const std::string& text, const std::string& origin) {
+std::vector<KrtCamera> ParsePanopticCalibration(const std::string& text,
+                                                const std::string& origin) {
   nlohmann::json json = ParseJson(text, origin);
   if (!json.is_object() || !json.contains("cameras") || !json["cameras"].is_array()) {
     Fail(origin, ": expected an object with a 'cameras' list");
@@ -226,18 +237,22 @@ std::vector<KrtCamera> ParsePanopticCalibration(const std::string& text, const s
     KrtCamera camera;
     if (!item["name"].is_string()) Fail(where, ".name must be a string");
     camera.name = item["name"].get<std::string>();
-    if (!names.insert(camera.name).second) Fail(where, ": camera '", camera.name, "' appears twice");
+    if (!names.insert(camera.name).second)
+      Fail(where, ": camera '", camera.name, "' appears twice");
     camera.K = JsonMatrix(item["K"], 3, 3, where + ".K");
     camera.R = JsonMatrix(item["R"], 3, 3, where + ".R");
     camera.t = JsonMatrix(item["t"], 3, 1, where + ".t");
     if (item.contains("distCoef")) {
       const nlohmann::json& dist = item["distCoef"];
-      if (!dist.is_array() || dist.size() > 14) Fail(where, ".distCoef must be a list of at most 14 numbers");
-      for (const auto& value : dist) camera.distortion.push_back(JsonNumber(value, where + ".distCoef"));
+      if (!dist.is_array() || dist.size() > 14)
+        Fail(where, ".distCoef must be a list of at most 14 numbers");
+      for (const auto& value : dist)
+        camera.distortion.push_back(JsonNumber(value, where + ".distCoef"));
     }
     if (item.contains("resolution")) {
       const nlohmann::json& size = item["resolution"];
-      if (!size.is_array() || size.size() != 2 || !size[0].is_number_integer() || !size[1].is_number_integer()) {
+      if (!size.is_array() || size.size() != 2 || !size[0].is_number_integer() ||
+          !size[1].is_number_integer()) {
         Fail(where, ".resolution must be [width, height]");
       }
       camera.width = Dimension(Cat(size[0].get<int64_t>()), where + ".resolution");
@@ -253,11 +268,18 @@ namespace {
 
 // COLMAP's camera models and their parameter counts (colmap/sensor/models.h).
 const std::map<std::string, size_t>& ColmapModelParamCounts() {
-  static const std::map<std::string, size_t> counts = {
-      {"SIMPLE_PINHOLE", 3}, {"PINHOLE", 4},          {"SIMPLE_RADIAL", 4},
-      {"RADIAL", 5},         {"OPENCV", 8},           {"OPENCV_FISHEYE", 8},
-      {"FULL_OPENCV", 12},   {"FOV", 5},              {"SIMPLE_RADIAL_FISHEYE", 4},
-      {"RADIAL_FISHEYE", 5}, {"THIN_PRISM_FISHEYE", 12}, {"RAD_TAN_THIN_PRISM_FISHEYE", 16}};
+  static const std::map<std::string, size_t> counts = {{"SIMPLE_PINHOLE", 3},
+                                                       {"PINHOLE", 4},
+                                                       {"SIMPLE_RADIAL", 4},
+                                                       {"RADIAL", 5},
+                                                       {"OPENCV", 8},
+                                                       {"OPENCV_FISHEYE", 8},
+                                                       {"FULL_OPENCV", 12},
+                                                       {"FOV", 5},
+                                                       {"SIMPLE_RADIAL_FISHEYE", 4},
+                                                       {"RADIAL_FISHEYE", 5},
+                                                       {"THIN_PRISM_FISHEYE", 12},
+                                                       {"RAD_TAN_THIN_PRISM_FISHEYE", 16}};
   return counts;
 }
 
@@ -276,7 +298,8 @@ std::vector<std::pair<size_t, std::string>> ColmapLines(const std::string& text)
 
 }  // namespace
 
-std::map<int64_t, ColmapCamera> ParseColmapCameras(const std::string& text, const std::string& origin) {
+std::map<int64_t, ColmapCamera> ParseColmapCameras(const std::string& text,
+                                                   const std::string& origin) {
   std::map<int64_t, ColmapCamera> cameras;
   for (const auto& [index, line] : ColmapLines(text)) {
     if (IsBlank(line)) continue;
@@ -289,12 +312,15 @@ std::map<int64_t, ColmapCamera> ParseColmapCameras(const std::string& text, cons
     camera.width = Dimension(tokens[2], where);
     camera.height = Dimension(tokens[3], where);
     auto known = ColmapModelParamCounts().find(camera.model);
-    if (known == ColmapModelParamCounts().end()) Fail(where, ": unknown COLMAP camera model '", camera.model, "'");
+    if (known == ColmapModelParamCounts().end())
+      Fail(where, ": unknown COLMAP camera model '", camera.model, "'");
     if (tokens.size() - 4 != known->second) {
-      Fail(where, ": COLMAP model ", camera.model, " takes ", known->second, " parameters, got ", tokens.size() - 4);
+      Fail(where, ": COLMAP model ", camera.model, " takes ", known->second, " parameters, got ",
+           tokens.size() - 4);
     }
     for (size_t k = 4; k < tokens.size(); ++k) camera.params.push_back(Number(tokens[k], where));
-    if (!cameras.emplace(camera.id, camera).second) Fail(where, ": camera id ", camera.id, " appears twice");
+    if (!cameras.emplace(camera.id, camera).second)
+      Fail(where, ": camera id ", camera.id, " appears twice");
   }
   return cameras;
 }
@@ -309,7 +335,8 @@ std::vector<ColmapImage> ParseColmapImages(const std::string& text, const std::s
     const std::string where = At(origin, lines[i].first);
     std::vector<std::string> tokens = Tokens(lines[i].second);
     if (tokens.size() < 10) {
-      Fail(where, ": expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', got ", tokens.size(), " fields");
+      Fail(where, ": expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', got ", tokens.size(),
+           " fields");
     }
     ColmapImage image;
     image.id = Integer(tokens[0], where);
@@ -317,7 +344,8 @@ std::vector<ColmapImage> ParseColmapImages(const std::string& text, const std::s
     Eigen::Vector4d q(Number(tokens[1], where), Number(tokens[2], where), Number(tokens[3], where),
                       Number(tokens[4], where));
     // COLMAP normalises on reading too; a quaternion far from unit length is a damaged file.
-    if (std::abs(q.norm() - 1) > 1e-3) Fail(where, ": quaternion (", q.transpose(), ") is not of unit length");
+    if (std::abs(q.norm() - 1) > 1e-3)
+      Fail(where, ": quaternion (", q.transpose(), ") is not of unit length");
     image.cam_from_world_rotation = Eigen::Quaterniond(q(0), q(1), q(2), q(3)).normalized();
     for (int k = 0; k < 3; ++k) image.cam_from_world_translation(k) = Number(tokens[5 + k], where);
     image.camera_id = Integer(tokens[8], where);
@@ -336,7 +364,8 @@ std::vector<ColmapImage> ParseColmapImages(const std::string& text, const std::s
       std::vector<std::string> points = Tokens(lines[i + 1].second);
       if (points.size() % 3 != 0) Fail(points_where, ": POINTS2D must be triples 'X Y POINT3D_ID'");
       for (size_t k = 0; k < points.size(); k += 3) {
-        image.points2d.emplace_back(Number(points[k], points_where), Number(points[k + 1], points_where));
+        image.points2d.emplace_back(Number(points[k], points_where),
+                                    Number(points[k + 1], points_where));
         image.point3d_ids.push_back(Integer(points[k + 2], points_where));
       }
     }
@@ -396,11 +425,11 @@ std::string FormatColmapImages(const std::vector<ColmapImage>& images) {
     const Eigen::Quaterniond& q = image.cam_from_world_rotation;
     const Eigen::Vector3d& t = image.cam_from_world_translation;
     out += Cat(image.id, " ", Number17(q.w()), " ", Number17(q.x()), " ", Number17(q.y()), " ",
-               Number17(q.z()), " ", Number17(t.x()), " ", Number17(t.y()), " ", Number17(t.z()), " ",
-               image.camera_id, " ", image.name, "\n");
+               Number17(q.z()), " ", Number17(t.x()), " ", Number17(t.y()), " ", Number17(t.z()),
+               " ", image.camera_id, " ", image.name, "\n");
     for (size_t k = 0; k < image.points2d.size(); ++k) {
-      out += Cat(k ? " " : "", Number17(image.points2d[k].x()), " ", Number17(image.points2d[k].y()), " ",
-                 image.point3d_ids[k]);
+      out += Cat(k ? " " : "", Number17(image.points2d[k].x()), " ",
+                 Number17(image.points2d[k].y()), " ", image.point3d_ids[k]);
     }
     out += "\n";
   }
@@ -415,8 +444,8 @@ std::string FormatColmapPoints(const std::vector<ColmapPoint>& points) {
       std::to_string(points.size()) + "\n";
   for (const auto& point : points) {
     out += Cat(point.id, " ", Number17(point.xyz.x()), " ", Number17(point.xyz.y()), " ",
-               Number17(point.xyz.z()), " ", point.rgb[0], " ", point.rgb[1], " ", point.rgb[2], " ",
-               Number17(point.error));
+               Number17(point.xyz.z()), " ", point.rgb[0], " ", point.rgb[1], " ", point.rgb[2],
+               " ", Number17(point.error));
     for (const auto& [image, index] : point.track) out += Cat(" ", image, " ", index);
     out += "\n";
   }
@@ -425,7 +454,8 @@ std::string FormatColmapPoints(const std::vector<ColmapPoint>& points) {
 
 namespace {
 
-void ReadNerfIntrinsics(const nlohmann::json& object, const std::string& where, NerfIntrinsics* intrinsics) {
+void ReadNerfIntrinsics(const nlohmann::json& object, const std::string& where,
+                        NerfIntrinsics* intrinsics) {
   auto number = [&](const char* key, std::optional<double>* field) {
     if (object.contains(key)) *field = JsonNumber(object[key], Cat(where, ".", key));
   };
@@ -438,7 +468,8 @@ void ReadNerfIntrinsics(const nlohmann::json& object, const std::string& where, 
   for (const char* key : {"w", "h"}) {
     if (!object.contains(key)) continue;
     double value = JsonNumber(object[key], Cat(where, ".", key));
-    if (value != std::floor(value) || value <= 0 || value > 1000000) Fail(where, ".", key, " must be a positive integer");
+    if (value != std::floor(value) || value <= 0 || value > 1000000)
+      Fail(where, ".", key, " must be a positive integer");
     (key[0] == 'w' ? intrinsics->w : intrinsics->h) = static_cast<int>(value);
   }
   if (object.contains("camera_model")) {
@@ -446,7 +477,8 @@ void ReadNerfIntrinsics(const nlohmann::json& object, const std::string& where, 
     intrinsics->camera_model = object["camera_model"].get<std::string>();
   }
   for (const char* key : {"k1", "k2", "k3", "k4", "p1", "p2"}) {
-    if (object.contains(key)) intrinsics->distortion[key] = JsonNumber(object[key], Cat(where, ".", key));
+    if (object.contains(key))
+      intrinsics->distortion[key] = JsonNumber(object[key], Cat(where, ".", key));
   }
 }
 
@@ -463,7 +495,8 @@ std::vector<NerfFrame> ParseNerfTransforms(const std::string& text, const std::s
     const nlohmann::json& item = json["frames"][i];
     const std::string where = Cat(origin, ": frames[", i, "]");
     if (!item.is_object()) Fail(where, " must be an object");
-    if (!item.contains("file_path") || !item["file_path"].is_string()) Fail(where, " has no 'file_path' string");
+    if (!item.contains("file_path") || !item["file_path"].is_string())
+      Fail(where, " has no 'file_path' string");
     if (!item.contains("transform_matrix")) Fail(where, " has no 'transform_matrix'");
     NerfFrame frame;
     frame.file_path = item["file_path"].get<std::string>();
@@ -471,7 +504,8 @@ std::vector<NerfFrame> ParseNerfTransforms(const std::string& text, const std::s
     const nlohmann::json& matrix = item["transform_matrix"];
     // Some writers drop the constant last row.
     int rows = matrix.is_array() && matrix.size() == 3 ? 3 : 4;
-    frame.world_from_cam_gl.topRows(rows) = JsonMatrix(matrix, rows, 4, where + ".transform_matrix");
+    frame.world_from_cam_gl.topRows(rows) =
+        JsonMatrix(matrix, rows, 4, where + ".transform_matrix");
     if (frame.world_from_cam_gl.row(3) != Eigen::RowVector4d(0, 0, 0, 1)) {
       Fail(where, ".transform_matrix: last row must be 0 0 0 1");
     }

@@ -29,7 +29,8 @@ cv::Mat ToTrainingSize(const cv::Mat& image, const CameraModel& camera) {
   cv::Mat bgr = image;
   if (bgr.type() == CV_8UC1) cv::cvtColor(bgr, bgr, cv::COLOR_GRAY2BGR);
   if (bgr.depth() == CV_16U) bgr.convertTo(bgr, CV_8U, 1.0 / 257.0);
-  if (bgr.type() != CV_8UC3) Fail("neural volumes train on 8-bit colour frames, got cv type ", bgr.type());
+  if (bgr.type() != CV_8UC3)
+    Fail("neural volumes train on 8-bit colour frames, got cv type ", bgr.type());
   if (bgr.cols == camera.width() && bgr.rows == camera.height()) return bgr.clone();
   cv::Mat resized;
   cv::resize(bgr, resized, cv::Size(camera.width(), camera.height()), 0, 0, cv::INTER_AREA);
@@ -43,7 +44,8 @@ cv::Mat MedianOverFrames(const std::vector<std::vector<cv::Mat>>& images, size_t
   for (int y = 0; y < first.rows; ++y) {
     for (int x = 0; x < first.cols; ++x) {
       for (int c = 0; c < 3; ++c) {
-        for (size_t f = 0; f < images.size(); ++f) values[f] = images[f][view].at<cv::Vec3b>(y, x)[c];
+        for (size_t f = 0; f < images.size(); ++f)
+          values[f] = images[f][view].at<cv::Vec3b>(y, x)[c];
         std::nth_element(values.begin(), values.begin() + values.size() / 2, values.end());
         median.at<cv::Vec3b>(y, x)[c] = values[values.size() / 2];
       }
@@ -68,7 +70,8 @@ cv::Mat BorderColourBackground(const cv::Mat& image) {
   }
   cv::Vec3b colour;
   for (int c = 0; c < 3; ++c) {
-    std::nth_element(channel[c].begin(), channel[c].begin() + channel[c].size() / 2, channel[c].end());
+    std::nth_element(channel[c].begin(), channel[c].begin() + channel[c].size() / 2,
+                     channel[c].end());
     colour[c] = channel[c][channel[c].size() / 2];
   }
   return cv::Mat(image.size(), CV_8UC3, cv::Scalar(colour[0], colour[1], colour[2]));
@@ -89,7 +92,8 @@ Box RigOverlapBox(const std::vector<CameraModel>& cameras) {
   Eigen::Vector3d center = a.ldlt().solve(b);
   if (!center.allFinite()) center.setZero();
   double nearest = std::numeric_limits<double>::infinity();
-  for (const auto& camera : cameras) nearest = std::min(nearest, (camera.center_in_world() - center).norm());
+  for (const auto& camera : cameras)
+    nearest = std::min(nearest, (camera.center_in_world() - center).norm());
   Box box;
   box.min = center.array() - 0.6 * nearest;
   box.max = center.array() + 0.6 * nearest;
@@ -100,13 +104,15 @@ Box RigOverlapBox(const std::vector<CameraModel>& cameras) {
 
 std::vector<int> TrainingData::TrainingViews() const {
   std::vector<int> out;
-  for (size_t i = 0; i < views.size(); ++i) if (!views[i].heldout) out.push_back(static_cast<int>(i));
+  for (size_t i = 0; i < views.size(); ++i)
+    if (!views[i].heldout) out.push_back(static_cast<int>(i));
   return out;
 }
 
 std::vector<int> TrainingData::HeldoutViews() const {
   std::vector<int> out;
-  for (size_t i = 0; i < views.size(); ++i) if (views[i].heldout) out.push_back(static_cast<int>(i));
+  for (size_t i = 0; i < views.size(); ++i)
+    if (views[i].heldout) out.push_back(static_cast<int>(i));
   return out;
 }
 
@@ -145,7 +151,8 @@ class TrainingDataLoader {
     take_plan_ = PlanTake(take_, options_.take);
     names_ = take_plan_.color_sensors;
     if (names_.size() < 2) {
-      Fail("take ", take_.dir().string(), " has ", names_.size(), " colour camera(s); neural volumes need at least 2");
+      Fail("take ", take_.dir().string(), " has ", names_.size(),
+           " colour camera(s); neural volumes need at least 2");
     }
     const std::vector<CameraModel> full_cameras = take_plan_.Cameras(names_);
     data_.sets = take_plan_.sets;
@@ -164,20 +171,24 @@ class TrainingDataLoader {
       heldout = SpreadAround(full_cameras, rotated, options_.heldout_cameras, rig_center_);
     }
     if (heldout.size() + 1 > names_.size()) {
-      Fail("holding out ", heldout.size(), " of ", names_.size(), " cameras leaves none to train on");
+      Fail("holding out ", heldout.size(), " of ", names_.size(),
+           " cameras leaves none to train on");
     }
     for (size_t i = 0; i < names_.size(); ++i) {
       TrainingView view;
       view.name = names_[i];
       const CameraModel& full = full_cameras[i];
       const double scale = (options_.image_width > 0 && options_.image_width < full.width())
-                               ? static_cast<double>(options_.image_width) / full.width() : 1.0;
+                               ? static_cast<double>(options_.image_width) / full.width()
+                               : 1.0;
       view.camera = scale == 1.0 ? full : full.Scaled(scale);
-      view.heldout = std::find(heldout.begin(), heldout.end(), static_cast<int>(i)) != heldout.end();
+      view.heldout =
+          std::find(heldout.begin(), heldout.end(), static_cast<int>(i)) != heldout.end();
       if (view.heldout) take_plan_.heldout.push_back(view.name);
       data_.views.push_back(std::move(view));
     }
-    if (!take_plan_.depth_sensors.empty()) take_plan_.LeaveOut("depth sensors", "Neural Volumes learn from colour alone");
+    if (!take_plan_.depth_sensors.empty())
+      take_plan_.LeaveOut("depth sensors", "Neural Volumes learn from colour alone");
     plan_ = take_plan_.ToJson();
     plan_["scene"] = data_.dynamic ? "dynamic" : "static";
     plan_["training_cameras"] = nlohmann::json::array();
@@ -193,7 +204,8 @@ class TrainingDataLoader {
     for (size_t f = 0; f < data_.sets.size(); ++f) {
       FrameSet set = take_.Read(data_.sets[f], names_);
       for (size_t v = 0; v < names_.size(); ++v) {
-        data_.images[f].push_back(ToTrainingSize(set.Find(names_[v])->image, data_.views[v].camera));
+        data_.images[f].push_back(
+            ToTrainingSize(set.Find(names_[v])->image, data_.views[v].camera));
       }
     }
   }
@@ -202,15 +214,19 @@ class TrainingDataLoader {
     if (take_plan_.has_clean_plate()) {
       FrameSet plate = take_.Read(take_plan_.plate_set(), names_);
       for (size_t v = 0; v < names_.size(); ++v) {
-        data_.views[v].background = ToTrainingSize(plate.Find(names_[v])->image, data_.views[v].camera);
+        data_.views[v].background =
+            ToTrainingSize(plate.Find(names_[v])->image, data_.views[v].camera);
       }
       plan_["background"] = Cat("clean plate (frame set ", take_plan_.plate_set(), ")");
     } else if (data_.dynamic && data_.sets.size() >= 3) {
-      for (size_t v = 0; v < names_.size(); ++v) data_.views[v].background = MedianOverFrames(data_.images, v);
+      for (size_t v = 0; v < names_.size(); ++v)
+        data_.views[v].background = MedianOverFrames(data_.images, v);
       plan_["background"] = "per-pixel temporal median of each camera's frames (no clean plate)";
     } else {
-      for (size_t v = 0; v < names_.size(); ++v) data_.views[v].background = BorderColourBackground(data_.images[0][v]);
-      plan_["background"] = "uniform, the median colour of each image's border (static, no clean plate)";
+      for (size_t v = 0; v < names_.size(); ++v)
+        data_.views[v].background = BorderColourBackground(data_.images[0][v]);
+      plan_["background"] =
+          "uniform, the median colour of each image's border (static, no clean plate)";
     }
   }
 
@@ -223,7 +239,8 @@ class TrainingDataLoader {
       silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
       return ExtractSilhouette(data_.images[f][v], data_.views[v].background, silhouette);
     }
-    fs::path gt_mask = take_.gt_dir() / "masks" / data_.views[v].name / SetFileName(data_.sets[f], ".png");
+    fs::path gt_mask =
+        take_.gt_dir() / "masks" / data_.views[v].name / SetFileName(data_.sets[f], ".png");
     if (fs::exists(gt_mask)) {
       cv::Mat mask = ReadImage(gt_mask), resized;
       cv::resize(mask, resized, cv::Size(camera.width(), camera.height()), 0, 0, cv::INTER_NEAREST);
@@ -234,12 +251,16 @@ class TrainingDataLoader {
   }
 
   void ReadSilhouettes() {
-    if (take_plan_.has_clean_plate()) silhouette_source_ = "background subtraction against the clean plate";
-    else if (fs::is_directory(take_.gt_dir() / "masks")) silhouette_source_ = "gt/masks (no clean plate)";
-    else silhouette_source_ = "threshold on a dark background (no clean plate)";
+    if (take_plan_.has_clean_plate())
+      silhouette_source_ = "background subtraction against the clean plate";
+    else if (fs::is_directory(take_.gt_dir() / "masks"))
+      silhouette_source_ = "gt/masks (no clean plate)";
+    else
+      silhouette_source_ = "threshold on a dark background (no clean plate)";
     data_.masks.resize(data_.sets.size());
     for (size_t f = 0; f < data_.sets.size(); ++f) {
-      for (size_t v = 0; v < data_.views.size(); ++v) data_.masks[f].push_back(SilhouetteOf(f, static_cast<int>(v)));
+      for (size_t v = 0; v < data_.views.size(); ++v)
+        data_.masks[f].push_back(SilhouetteOf(f, static_cast<int>(v)));
     }
   }
 
@@ -277,11 +298,13 @@ class TrainingDataLoader {
   void GrowToHull(const VisualHull& hull) {
     for (const auto& block : hull.volume->BlockCoordinates()) {
       const Eigen::Vector3d a = hull.volume->CenterOf(block * kBlockSide);
-      const Eigen::Vector3d b = hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1));
+      const Eigen::Vector3d b =
+          hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1));
       for (int i = 0; i < kBlockSide; ++i) {
         for (int j = 0; j < kBlockSide; ++j) {
           for (int k = 0; k < kBlockSide; ++k) {
-            const Eigen::Vector3d p = a + (b - a).cwiseProduct(Eigen::Vector3d(i, j, k) / (kBlockSide - 1));
+            const Eigen::Vector3d p =
+                a + (b - a).cwiseProduct(Eigen::Vector3d(i, j, k) / (kBlockSide - 1));
             if (!hull.Contains(p)) continue;
             lo_ = lo_.cwiseMin(p);
             hi_ = hi_.cwiseMax(p);
@@ -292,7 +315,8 @@ class TrainingDataLoader {
     for (uint64_t key : hull.inside_blocks) {
       const Eigen::Vector3i block = SparseVolume::Unkey(key);
       lo_ = lo_.cwiseMin(hull.volume->CenterOf(block * kBlockSide));
-      hi_ = hi_.cwiseMax(hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1)));
+      hi_ = hi_.cwiseMax(
+          hull.volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1)));
     }
   }
 
@@ -321,7 +345,8 @@ class TrainingDataLoader {
         source = VolumeBoundsSource::kHull;
         plan_["silhouettes"] = silhouette_source_;
       } else {
-        if (options_.bounds == VolumeBoundsSource::kHull) Fail("the visual hull of the training views is empty: no volume to bound");
+        if (options_.bounds == VolumeBoundsSource::kHull)
+          Fail("the visual hull of the training views is empty: no volume to bound");
         hulls_.clear();
         source = VolumeBoundsSource::kGroundTruth;
       }
@@ -362,8 +387,10 @@ class TrainingDataLoader {
       for (int z = 0; z < n; ++z) {
         for (int y = 0; y < n; ++y) {
           for (int x = 0; x < n; ++x) {
-            const Eigen::Vector3d center = data_.box_min + cell.cwiseProduct(Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5));
-            grid.occupied[(static_cast<int64_t>(z) * n + y) * n + x] = hulls_[f].Contains(center, tolerance);
+            const Eigen::Vector3d center =
+                data_.box_min + cell.cwiseProduct(Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5));
+            grid.occupied[(static_cast<int64_t>(z) * n + y) * n + x] =
+                hulls_[f].Contains(center, tolerance);
           }
         }
       }
@@ -379,7 +406,8 @@ class TrainingDataLoader {
     if (!data_.dynamic) return;
     std::vector<CameraModel> cameras;
     for (const auto& view : data_.views) cameras.push_back(view.camera);
-    data_.encoder_views = SpreadAround(cameras, data_.TrainingViews(), options_.encoder_views, rig_center_);
+    data_.encoder_views =
+        SpreadAround(cameras, data_.TrainingViews(), options_.encoder_views, rig_center_);
     plan_["encoder_views"] = nlohmann::json::array();
     for (int v : data_.encoder_views) plan_["encoder_views"].push_back(data_.views[v].name);
   }

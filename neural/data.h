@@ -18,23 +18,23 @@ namespace holocap::neural {
 
 struct TrainingView {
   std::string name;
-  CameraModel camera;   // at the training resolution
+  CameraModel camera;  // at the training resolution
   bool heldout = false;
-  cv::Mat background;   // CV_8UC3 BGR at the training resolution
+  cv::Mat background;  // CV_8UC3 BGR at the training resolution
 };
 
 struct TrainingData {
   std::vector<TrainingView> views;
-  std::vector<int64_t> sets;                  // the take's frame-set numbers used
-  std::vector<std::vector<cv::Mat>> images;   // [frame][view], CV_8UC3 BGR
+  std::vector<int64_t> sets;                 // the take's frame-set numbers used
+  std::vector<std::vector<cv::Mat>> images;  // [frame][view], CV_8UC3 BGR
   // [frame][view] CV_8UC1 silhouettes (255 = subject). Those of training views carve the hull;
   // those of held-out views only select the pixels of the subject-only PSNR.
   std::vector<std::vector<cv::Mat>> masks;
   Eigen::Vector3d box_min = Eigen::Vector3d::Zero();
   Eigen::Vector3d box_max = Eigen::Vector3d::Ones();
-  std::vector<OccupancyGrid> occupancy;       // per frame (empty grids: no skipping)
+  std::vector<OccupancyGrid> occupancy;  // per frame (empty grids: no skipping)
   bool dynamic = false;
-  std::vector<int> encoder_views;             // indices into views (dynamic scenes)
+  std::vector<int> encoder_views;  // indices into views (dynamic scenes)
   nlohmann::json plan = nlohmann::json::object();
 
   std::vector<int> TrainingViews() const;

@@ -39,76 +39,76 @@ namespace holocap {
 
 // The source of the box that bounds the volume, in order of preference for kAuto.
 enum class VolumeBoundsSource {
-  kAuto,        // hull, then ground-truth meshes, then the stage
-  kHull,        // the visual hull of the training views (reconstruction/), per frame
-  kGroundTruth, // the take's gt/meshes (simulated takes)
-  kStage,       // the fixed stage box [-1.5, 1.5]² x [0, 2.5] m
+  kAuto,         // hull, then ground-truth meshes, then the stage
+  kHull,         // the visual hull of the training views (reconstruction/), per frame
+  kGroundTruth,  // the take's gt/meshes (simulated takes)
+  kStage,        // the fixed stage box [-1.5, 1.5]² x [0, 2.5] m
 };
 const char* ToString(VolumeBoundsSource source);
 VolumeBoundsSource VolumeBoundsSourceFromString(const std::string& text);  // throws Error
 
 struct NeuralVolumeOptions {
   // Model.
-  int grid = 64;                 // RGBA voxels per axis: a power of two in [16, 128]
-  int latent_dim = 256;          // latent code of a frame (dynamic scenes)
-  int warp_count = 16;           // affine warps in the mixture (dynamic scenes)
-  int warp_grid = 32;            // warp field voxels per axis, power of two in [8, 64]
-  int encoder_views = 3;         // training cameras the encoder sees (spread around the rig)
-  int encoder_width = 64;        // encoder input width in pixels (height keeps the aspect)
-  int decoder_channels = 128;    // channels after the first decoder layer (halved per layer)
-  std::string scene = "auto";    // "auto" (static iff one frame set), "static", "dynamic"
+  int grid = 64;               // RGBA voxels per axis: a power of two in [16, 128]
+  int latent_dim = 256;        // latent code of a frame (dynamic scenes)
+  int warp_count = 16;         // affine warps in the mixture (dynamic scenes)
+  int warp_grid = 32;          // warp field voxels per axis, power of two in [8, 64]
+  int encoder_views = 3;       // training cameras the encoder sees (spread around the rig)
+  int encoder_width = 64;      // encoder input width in pixels (height keeps the aspect)
+  int decoder_channels = 128;  // channels after the first decoder layer (halved per layer)
+  std::string scene = "auto";  // "auto" (static iff one frame set), "static", "dynamic"
 
   // Data.
-  int image_width = 160;         // training/evaluation width (cameras rescaled); 0: native
-  int heldout_cameras = 2;       // cameras never trained on, spread around the rig
+  int image_width = 160;             // training/evaluation width (cameras rescaled); 0: native
+  int heldout_cameras = 2;           // cameras never trained on, spread around the rig
   std::vector<std::string> heldout;  // or these by name (overrides heldout_cameras)
-  TakeSelection take;            // frame sets, clean plate and cameras (core/take_plan.h)
+  TakeSelection take;                // frame sets, clean plate and cameras (core/take_plan.h)
   VolumeBoundsSource bounds = VolumeBoundsSource::kAuto;
   double bounds_margin_m = 0.08;  // the box grows by this on every side
-  int occupancy_cells = 32;      // cells per axis of the skipping grid (0: no skipping)
+  int occupancy_cells = 32;       // cells per axis of the skipping grid (0: no skipping)
 
   // Optimisation.
-  double minutes = 5;            // wall-clock budget of training
-  int64_t iterations = 0;        // > 0: stop after this many iterations (whichever first)
-  int rays_per_batch = 4096;     // random pixels per iteration, across cameras and frames
-  int frames_per_batch = 1;      // frames decoded per iteration (dynamic scenes)
-  double learning_rate = 2e-3;   // Adam
-  double static_learning_rate = 3e-2;  // Adam on the grid itself (static scenes)
+  double minutes = 5;                    // wall-clock budget of training
+  int64_t iterations = 0;                // > 0: stop after this many iterations (whichever first)
+  int rays_per_batch = 4096;             // random pixels per iteration, across cameras and frames
+  int frames_per_batch = 1;              // frames decoded per iteration (dynamic scenes)
+  double learning_rate = 2e-3;           // Adam
+  double static_learning_rate = 3e-2;    // Adam on the grid itself (static scenes)
   double template_learning_rate = 3e-2;  // Adam on the template's directly optimised residual
                                          // grid (dynamic scenes)
-  double kl_weight = 1.5e-8;     // KL of the latent (dynamic scenes): the paper's 1e-3 against
-                                 // 0..255 pixel errors. Much more and the posterior collapses to
-                                 // the prior: each sampled latent is mostly noise, the decoder
-                                 // learns to ignore it and renders every frame as the take's
-                                 // average, a fog filling each frame's hull.
+  double kl_weight = 1.5e-8;  // KL of the latent (dynamic scenes): the paper's 1e-3 against
+                              // 0..255 pixel errors. Much more and the posterior collapses to
+                              // the prior: each sampled latent is mostly noise, the decoder
+                              // learns to ignore it and renders every frame as the take's
+                              // average, a fog filling each frame's hull.
   double alpha_prior_weight = 1e-4;  // beta prior pushing ray alpha towards 0 or 1 (colours in
                                      // [0, 1]: the paper weighs it against 0..255 pixel errors)
-  double tv_weight = 1e-2;       // total variation of the grid
-  double silhouette_weight = 0.05;  // ray alpha of training pixels against their silhouettes
-                                    // (where the take gives them): the six views' hull holds a
-                                    // faint subject as well as an opaque one, and only the
-                                    // opaque one is right from cameras between them
-  double warp_prior_weight = 0.1;   // mean squared displacement of the warp field (template
-                                    // units, dynamic scenes): unchecked, the affine warps move
-                                    // every sample out of the template within tens of steps
-                                    // and the volume renders empty with no gradient left
-  bool learn_background = true;  // refine the training cameras' backgrounds where no frame
-                                 // shows the subject
-  double step_voxels = 1.0;      // ray-marching step in voxels
-  bool jitter = true;            // random offset of the first sample of each training ray
-  double min_transmittance = 1e-3;  // training rays stop once this little light is left
+  double tv_weight = 1e-2;           // total variation of the grid
+  double silhouette_weight = 0.05;   // ray alpha of training pixels against their silhouettes
+                                     // (where the take gives them): the six views' hull holds a
+                                     // faint subject as well as an opaque one, and only the
+                                     // opaque one is right from cameras between them
+  double warp_prior_weight = 0.1;    // mean squared displacement of the warp field (template
+                                     // units, dynamic scenes): unchecked, the affine warps move
+                                     // every sample out of the template within tens of steps
+                                     // and the volume renders empty with no gradient left
+  bool learn_background = true;      // refine the training cameras' backgrounds where no frame
+                                     // shows the subject
+  double step_voxels = 1.0;          // ray-marching step in voxels
+  bool jitter = true;                // random offset of the first sample of each training ray
+  double min_transmittance = 1e-3;   // training rays stop once this little light is left
   uint64_t seed = 1;
 
   // Bookkeeping.
-  double eval_every_s = 20;      // held-out PSNR/SSIM every this many seconds
+  double eval_every_s = 20;           // held-out PSNR/SSIM every this many seconds
   int64_t eval_every_iterations = 0;  // > 0: every this many iterations instead (runs that
                                       // must not depend on the host's speed)
-  int eval_frames = 3;           // held-out frames evaluated (spread over the take)
-  double checkpoint_every_s = 60;  // checkpoint interval
-  bool resume = false;           // continue from the model directory's checkpoint
-  double divergence_factor = 20;  // a loss above this x its running mean is a divergence
-  int max_divergences = 5;       // then training stops with kFailure
-  int threads = 0;               // 0: all cores
+  int eval_frames = 3;                // held-out frames evaluated (spread over the take)
+  double checkpoint_every_s = 60;     // checkpoint interval
+  bool resume = false;                // continue from the model directory's checkpoint
+  double divergence_factor = 20;      // a loss above this x its running mean is a divergence
+  int max_divergences = 5;            // then training stops with kFailure
+  int threads = 0;                    // 0: all cores
 
   void Check() const;  // throws Error naming the bad field and why
   nlohmann::json ToJson() const;
@@ -117,20 +117,20 @@ struct NeuralVolumeOptions {
 // NO_CONVERGENCE when the budget is spent (training has no stopping criterion of its own),
 // FAILURE on repeated divergence or a non-finite result.
 struct NeuralVolumeSummary : Summary {
-  nlohmann::json plan;                // what was built and why (also in report.json)
+  nlohmann::json plan;  // what was built and why (also in report.json)
   int64_t iterations = 0;
-  double seconds = 0;                 // training wall time (data loading excluded)
-  double first_loss = 0;              // mean photometric loss over the first iterations
-  double last_loss = 0;               // and over the last ones
-  double heldout_psnr_db = 0;         // held-out cameras, whole image (background included)
-  double heldout_psnr_fg_db = 0;      // held-out cameras, inside the subject's silhouette only
-  double background_psnr_fg_db = 0;   // the same pixels rendered as background alone (the
-                                      // score of an empty volume: what training must beat)
+  double seconds = 0;                // training wall time (data loading excluded)
+  double first_loss = 0;             // mean photometric loss over the first iterations
+  double last_loss = 0;              // and over the last ones
+  double heldout_psnr_db = 0;        // held-out cameras, whole image (background included)
+  double heldout_psnr_fg_db = 0;     // held-out cameras, inside the subject's silhouette only
+  double background_psnr_fg_db = 0;  // the same pixels rendered as background alone (the
+                                     // score of an empty volume: what training must beat)
   double heldout_ssim = 0;
-  int divergences = 0;                // restored checkpoints
+  int divergences = 0;  // restored checkpoints
   bool built_encoder = false;
   bool built_warp = false;
-  double samples_per_ray = 0;         // mean over the last training batch
+  double samples_per_ray = 0;  // mean over the last training batch
 };
 
 // Trains a Neural Volume on a take into `model_dir` (model.json, weights, per-frame latents,
@@ -164,7 +164,7 @@ struct RenderedView {
                   // below ViewRenderOptions::depth_min_alpha
   double samples_per_ray = 0;  // mean over the rays that enter the volume
   int64_t rays_in_volume = 0;
-  double seconds = 0;          // marching (and decoding, when the frame was not cached)
+  double seconds = 0;  // marching (and decoding, when the frame was not cached)
 };
 
 class AvatarModel {

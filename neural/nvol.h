@@ -96,13 +96,14 @@ class NvolModelImpl : public torch::nn::Module {
   Encoder encoder{nullptr};
   TemplateDecoder decoder{nullptr};
   WarpDecoder warp{nullptr};
-  torch::Tensor grid;   // raw [1, 4, D, D, D]: the volume (static), the template's residual (dynamic)
+  torch::Tensor
+      grid;  // raw [1, 4, D, D, D]: the volume (static), the template's residual (dynamic)
   // Dynamic: a learnt code per frame [frames, L], added to the encoder's mean. The encoder
   // sees the subject small in a few low-resolution views, so its means barely tell frames
   // apart at first; the codes let each frame's volume separate from the others early.
   torch::Tensor frame_codes;
-  torch::Tensor gain;   // [cameras, 3], around 1
-  torch::Tensor bias;   // [cameras, 3], around 0
+  torch::Tensor gain;  // [cameras, 3], around 1
+  torch::Tensor bias;  // [cameras, 3], around 0
 
  private:
   NvolConfig config_;

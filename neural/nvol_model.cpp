@@ -21,7 +21,8 @@ int Log2(int value) {
 }
 
 Eigen::Vector3d VectorFromJson(const nlohmann::json& json) {
-  return Eigen::Vector3d(json.at(0).get<double>(), json.at(1).get<double>(), json.at(2).get<double>());
+  return Eigen::Vector3d(json.at(0).get<double>(), json.at(1).get<double>(),
+                         json.at(2).get<double>());
 }
 
 // Transposed 3D convolutions doubling the side from 4 to `side`, channels halving (at least
@@ -35,7 +36,8 @@ torch::nn::Sequential UpsamplingStack(int channels, int side, int out_channels) 
     const int out = last ? out_channels : std::max(in / 2, 16);
     stack->push_back(torch::nn::ConvTranspose3d(
         torch::nn::ConvTranspose3dOptions(in, out, 4).stride(2).padding(1)));
-    if (!last) stack->push_back(torch::nn::LeakyReLU(torch::nn::LeakyReLUOptions().negative_slope(0.2)));
+    if (!last)
+      stack->push_back(torch::nn::LeakyReLU(torch::nn::LeakyReLUOptions().negative_slope(0.2)));
     in = out;
   }
   return stack;
@@ -108,13 +110,15 @@ std::pair<torch::Tensor, torch::Tensor> EncoderImpl::forward(const torch::Tensor
   return {halves[0], halves[1] - 3.0};
 }
 
-TemplateDecoderImpl::TemplateDecoderImpl(int latent_dim, int grid, int channels) : channels_(channels) {
+TemplateDecoderImpl::TemplateDecoderImpl(int latent_dim, int grid, int channels)
+    : channels_(channels) {
   input_ = register_module("input", torch::nn::Linear(latent_dim, channels * 64));
   layers_ = register_module("layers", UpsamplingStack(channels, grid, 4));
 }
 
 torch::Tensor TemplateDecoderImpl::forward(const torch::Tensor& latent) {
-  torch::Tensor x = F::leaky_relu(input_->forward(latent), F::LeakyReLUFuncOptions().negative_slope(0.2));
+  torch::Tensor x =
+      F::leaky_relu(input_->forward(latent), F::LeakyReLUFuncOptions().negative_slope(0.2));
   return layers_->forward(x.view({latent.size(0), channels_, 4, 4, 4}));
 }
 
@@ -122,23 +126,26 @@ WarpDecoderImpl::WarpDecoderImpl(int latent_dim, int warp_grid, int warp_count, 
     : warp_grid_(warp_grid), warp_count_(warp_count), channels_(channels) {
   affine_ = register_module("affine", torch::nn::Linear(latent_dim, warp_count * 10));
   weight_input_ = register_module("weight_input", torch::nn::Linear(latent_dim, channels * 64));
-  weight_layers_ = register_module("weight_layers", UpsamplingStack(channels, warp_grid, warp_count));
+  weight_layers_ =
+      register_module("weight_layers", UpsamplingStack(channels, warp_grid, warp_count));
   // Start at the identity warp: every affine is the identity and the blend is uniform.
   torch::NoGradGuard no_grad;
   affine_->weight.mul_(0.01);
   affine_->bias.zero_();
 }
 
-torch::Tensor WarpDecoderImpl::BlendAffineWarps(const torch::Tensor& params, const torch::Tensor& weights) {
+torch::Tensor WarpDecoderImpl::BlendAffineWarps(const torch::Tensor& params,
+                                                const torch::Tensor& weights) {
   const int64_t batch = params.size(0), count = params.size(1), side = weights.size(-1);
   torch::Tensor q = params.narrow(2, 0, 4);
   q = q / (q.norm(2, -1, true) + 1e-8);
   torch::Tensor w = q.select(2, 0), x = q.select(2, 1), y = q.select(2, 2), z = q.select(2, 3);
-  torch::Tensor rotation = torch::stack(
-      {1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-       2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-       2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)}, -1)
-      .view({batch, count, 3, 3});
+  torch::Tensor rotation =
+      torch::stack({1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                    2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                    2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)},
+                   -1)
+          .view({batch, count, 3, 3});
   torch::Tensor translation = params.narrow(2, 4, 3);
   torch::Tensor scale = params.narrow(2, 7, 3).exp();
   // Voxel centres in grid_sample's [-1, 1] convention (align_corners = false), (x, y, z) for
@@ -146,12 +153,15 @@ torch::Tensor WarpDecoderImpl::BlendAffineWarps(const torch::Tensor& params, con
   torch::Tensor axis = (torch::arange(side, params.options()) + 0.5) * (2.0 / side) - 1.0;
   auto mesh = torch::meshgrid({axis, axis, axis}, "ij");
   torch::Tensor points = torch::stack({mesh[2], mesh[1], mesh[0]}, -1).view({1, 1, -1, 3});
-  torch::Tensor local = torch::matmul(points - translation.unsqueeze(2), rotation.transpose(-1, -2)) *
-                        scale.unsqueeze(2);  // [B, K, W³, 3]
-  torch::Tensor sampled = F::grid_sample(
-      weights.reshape({batch * count, 1, side, side, side}),
-      local.reshape({batch * count, side, side, side, 3}),
-      F::GridSampleFuncOptions().mode(torch::kBilinear).padding_mode(torch::kZeros).align_corners(false));
+  torch::Tensor local =
+      torch::matmul(points - translation.unsqueeze(2), rotation.transpose(-1, -2)) *
+      scale.unsqueeze(2);  // [B, K, W³, 3]
+  torch::Tensor sampled = F::grid_sample(weights.reshape({batch * count, 1, side, side, side}),
+                                         local.reshape({batch * count, side, side, side, 3}),
+                                         F::GridSampleFuncOptions()
+                                             .mode(torch::kBilinear)
+                                             .padding_mode(torch::kZeros)
+                                             .align_corners(false));
   sampled = sampled.view({batch, count, -1, 1});
   torch::Tensor field = (sampled * local).sum(1) / (sampled.sum(1) + 1e-6);  // [B, W³, 3]
   return ((field + 1.0) * 0.5).view({batch, side, side, side, 3});
@@ -163,7 +173,8 @@ torch::Tensor WarpDecoderImpl::forward(const torch::Tensor& latent) {
   torch::Tensor identity = torch::zeros({10}, latent.options());
   identity[0] = 1.0;
   params = params + identity;
-  torch::Tensor x = F::leaky_relu(weight_input_->forward(latent), F::LeakyReLUFuncOptions().negative_slope(0.2));
+  torch::Tensor x =
+      F::leaky_relu(weight_input_->forward(latent), F::LeakyReLUFuncOptions().negative_slope(0.2));
   torch::Tensor weights = weight_layers_->forward(x.view({batch, channels_, 4, 4, 4}));
   weights = torch::exp(weights.clamp(-10.0, 10.0));
   return BlendAffineWarps(params, weights);
@@ -173,9 +184,11 @@ NvolModelImpl::NvolModelImpl(const NvolConfig& config) : config_(config) {
   if (config.dynamic) {
     encoder = register_module("encoder", Encoder(config.encoder_views, config.encoder_width,
                                                  config.encoder_height, config.latent_dim));
-    decoder = register_module("decoder", TemplateDecoder(config.latent_dim, config.grid, config.decoder_channels));
-    warp = register_module("warp", WarpDecoder(config.latent_dim, config.warp_grid, config.warp_count,
-                                               std::max(config.decoder_channels / 2, 16)));
+    decoder = register_module(
+        "decoder", TemplateDecoder(config.latent_dim, config.grid, config.decoder_channels));
+    warp =
+        register_module("warp", WarpDecoder(config.latent_dim, config.warp_grid, config.warp_count,
+                                            std::max(config.decoder_channels / 2, 16)));
     // The template's fine detail, optimised directly (as a static grid is) and added to the
     // decoder's output: a per-voxel parameter follows the images within tens of steps, while
     // the decoder and the warp learn what changes from frame to frame.
@@ -185,7 +198,9 @@ NvolModelImpl::NvolModelImpl(const NvolConfig& config) : config_(config) {
     torch::Tensor initial = torch::zeros({1, 4, config.grid, config.grid, config.grid});
     initial.narrow(1, 3, 1).fill_(-3.0);
     grid = register_parameter("grid", initial);
-    if (config.frames > 0) frame_codes = register_parameter("frame_codes", torch::zeros({config.frames, config.latent_dim}));
+    if (config.frames > 0)
+      frame_codes =
+          register_parameter("frame_codes", torch::zeros({config.frames, config.latent_dim}));
   } else {
     // Grey and nearly empty (optical depth softplus(-5) = 0.007 per voxel): Adam moves each
     // voxel by about the learning rate per step, so density appears within tens of steps
@@ -221,7 +236,8 @@ torch::Tensor NvolModelImpl::DecodeWarp(const torch::Tensor& latent) {
 
 namespace {
 
-MarchVolume VolumeOf(const torch::Tensor& rgba, const torch::Tensor& warp, const MarchContext& context) {
+MarchVolume VolumeOf(const torch::Tensor& rgba, const torch::Tensor& warp,
+                     const MarchContext& context) {
   MarchVolume volume;
   volume.box_min = context.box_min;
   volume.box_max = context.box_max;
@@ -238,16 +254,20 @@ MarchVolume VolumeOf(const torch::Tensor& rgba, const torch::Tensor& warp, const
 class MarchFunction : public torch::autograd::Function<MarchFunction> {
  public:
   static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx,
-                                                const torch::Tensor& rgba, const torch::Tensor& warp,
+                                                const torch::Tensor& rgba,
+                                                const torch::Tensor& warp,
                                                 int64_t context_address) {
     auto* context = reinterpret_cast<MarchContext*>(context_address);
     const bool has_warp = warp.numel() > 0;
     torch::Tensor rgba_c = rgba.contiguous();
     torch::Tensor warp_c = has_warp ? warp.contiguous() : torch::Tensor();
-    MarchForward(VolumeOf(rgba_c, warp_c, *context), context->rays, context->options, &context->outputs);
+    MarchForward(VolumeOf(rgba_c, warp_c, *context), context->rays, context->options,
+                 &context->outputs);
     const int64_t n = context->rays.size();
-    torch::Tensor rgb = torch::from_blob(context->outputs.rgb.data(), {n, 3}, torch::kFloat32).clone();
-    torch::Tensor alpha = torch::from_blob(context->outputs.alpha.data(), {n}, torch::kFloat32).clone();
+    torch::Tensor rgb =
+        torch::from_blob(context->outputs.rgb.data(), {n, 3}, torch::kFloat32).clone();
+    torch::Tensor alpha =
+        torch::from_blob(context->outputs.alpha.data(), {n}, torch::kFloat32).clone();
     ctx->saved_data["context"] = context_address;
     ctx->saved_data["has_warp"] = has_warp;
     ctx->save_for_backward({rgba_c, has_warp ? warp_c : warp});
@@ -275,9 +295,11 @@ class MarchFunction : public torch::autograd::Function<MarchFunction> {
 
 }  // namespace
 
-std::vector<torch::Tensor> MarchRays(const torch::Tensor& rgba, const torch::Tensor& warp, MarchContext* context) {
+std::vector<torch::Tensor> MarchRays(const torch::Tensor& rgba, const torch::Tensor& warp,
+                                     MarchContext* context) {
   // Autograd functions take no undefined input: an empty tensor stands for "no warp".
-  return MarchFunction::apply(rgba, warp.defined() ? warp : torch::zeros({0}), reinterpret_cast<int64_t>(context));
+  return MarchFunction::apply(rgba, warp.defined() ? warp : torch::zeros({0}),
+                              reinterpret_cast<int64_t>(context));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -293,10 +315,12 @@ class NeuralVolumeAvatar : public AvatarModel {
     model_->eval();
     if (config_.dynamic) torch::load(latents_, (dir / "latents.pt").string());
     for (const auto& name : json.at("cameras")) {
-      cameras_.push_back(CameraModel::Read(dir / "cameras" / (name.get<std::string>() + ".cameramodel")));
+      cameras_.push_back(
+          CameraModel::Read(dir / "cameras" / (name.get<std::string>() + ".cameramodel")));
     }
     frames_ = config_.dynamic ? latents_.size(0) : 1;
-    if (std::filesystem::exists(dir / "occupancy.pt")) torch::load(hull_occupancy_, (dir / "occupancy.pt").string());
+    if (std::filesystem::exists(dir / "occupancy.pt"))
+      torch::load(hull_occupancy_, (dir / "occupancy.pt").string());
   }
 
   std::string method() const override { return "nvol"; }
@@ -305,7 +329,8 @@ class NeuralVolumeAvatar : public AvatarModel {
   Eigen::Vector3d box_max() const override { return config_.box_max; }
   std::vector<CameraModel> cameras() const override { return cameras_; }
 
-  RenderedView Render(const CameraModel& camera, int64_t frame, const ViewRenderOptions& options) override {
+  RenderedView Render(const CameraModel& camera, int64_t frame,
+                      const ViewRenderOptions& options) override {
     if (options.threads > 0) omp_set_num_threads(options.threads);
     const auto start = std::chrono::steady_clock::now();
     frame = std::clamp<int64_t>(frame, 0, frames_ - 1);
@@ -320,8 +345,8 @@ class NeuralVolumeAvatar : public AvatarModel {
     context.options.step_m = static_cast<float>(StepMetres(options.step_voxels));
     context.options.min_transmittance = static_cast<float>(options.min_transmittance);
     context.rays = CameraRaysAllPixels(camera, context.box_min, context.box_max);
-    MarchPlayback(options.bake ? baked_.View(context.occupancy) : VolumeOf(rgba_, warp_, context), context.rays,
-                  context.options, &context.outputs);
+    MarchPlayback(options.bake ? baked_.View(context.occupancy) : VolumeOf(rgba_, warp_, context),
+                  context.rays, context.options, &context.outputs);
 
     RenderedView view;
     const int w = camera.width(), h = camera.height();
@@ -335,7 +360,8 @@ class NeuralVolumeAvatar : public AvatarModel {
     for (int y = 0; y < h; ++y) {
       for (int x = 0, i = y * w; x < w; ++x, ++i) {
         const float alpha = context.outputs.alpha[i];
-        for (int c = 0; c < 3; ++c) view.color.at<cv::Vec3f>(y, x)[c] = context.outputs.rgb[3 * i + c];
+        for (int c = 0; c < 3; ++c)
+          view.color.at<cv::Vec3f>(y, x)[c] = context.outputs.rgb[3 * i + c];
         view.alpha.at<float>(y, x) = alpha;
         float depth = std::numeric_limits<float>::quiet_NaN();
         if (alpha >= options.depth_min_alpha && alpha > 0) {
@@ -365,7 +391,8 @@ class NeuralVolumeAvatar : public AvatarModel {
   void Decode(int64_t frame, double bake_scale) {
     if (!(bake_scale >= 1)) Fail("bake_scale must be at least 1, got ", bake_scale);
     // A static volume has no warp: its grid is sampled as it is.
-    const int bake_grid = config_.dynamic ? static_cast<int>(std::lround(bake_scale * config_.grid)) : config_.grid;
+    const int bake_grid =
+        config_.dynamic ? static_cast<int>(std::lround(bake_scale * config_.grid)) : config_.grid;
     if (frame == decoded_frame_ && bake_grid == baked_.grid) return;
     torch::NoGradGuard no_grad;
     torch::Tensor latent = config_.dynamic ? latents_.narrow(0, frame, 1) : torch::Tensor();
@@ -377,14 +404,17 @@ class NeuralVolumeAvatar : public AvatarModel {
     // A cell matters once a step through it absorbs 0.1% of the light.
     const float min_density = static_cast<float>(1e-3 / StepMetres(1.0));
     const bool has_hull = hull_occupancy_.defined();
-    const int cells = has_hull ? static_cast<int>(std::lround(std::cbrt(static_cast<double>(hull_occupancy_.size(1)))))
-                               : std::max(config_.grid / 4, 4);
+    const int cells =
+        has_hull
+            ? static_cast<int>(std::lround(std::cbrt(static_cast<double>(hull_occupancy_.size(1)))))
+            : std::max(config_.grid / 4, 4);
     baked_ = BakeVolume(VolumeOf(rgba_, warp_, context), bake_grid);
     occupancy_ = OccupancyFromVolume(baked_.View(), cells, min_density);
     occupancy_.Dilate(1);
     if (has_hull) {
       // Training sampled only the hull's cells; density elsewhere was never fitted.
-      const uint8_t* hull = hull_occupancy_[std::min<int64_t>(frame, hull_occupancy_.size(0) - 1)].data_ptr<uint8_t>();
+      const uint8_t* hull = hull_occupancy_[std::min<int64_t>(frame, hull_occupancy_.size(0) - 1)]
+                                .data_ptr<uint8_t>();
       for (size_t i = 0; i < occupancy_.occupied.size(); ++i) occupancy_.occupied[i] &= hull[i];
     }
     decoded_frame_ = frame;
@@ -404,7 +434,8 @@ class NeuralVolumeAvatar : public AvatarModel {
 
 }  // namespace
 
-std::unique_ptr<AvatarModel> OpenNeuralVolume(const std::filesystem::path& dir, const nlohmann::json& model_json) {
+std::unique_ptr<AvatarModel> OpenNeuralVolume(const std::filesystem::path& dir,
+                                              const nlohmann::json& model_json) {
   try {
     return std::make_unique<NeuralVolumeAvatar>(dir, model_json);
   } catch (const c10::Error& e) {

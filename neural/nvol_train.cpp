@@ -82,8 +82,9 @@ class Trainer {
     config_.encoder_views = static_cast<int>(data.encoder_views.size());
     config_.encoder_width = options.encoder_width;
     const auto& first = data.views.front().camera;
-    config_.encoder_height = std::max(16, static_cast<int>(std::lround(
-        options.encoder_width * static_cast<double>(first.height()) / first.width())));
+    config_.encoder_height = std::max(
+        16, static_cast<int>(std::lround(options.encoder_width *
+                                         static_cast<double>(first.height()) / first.width())));
     config_.decoder_channels = options.decoder_channels;
     config_.cameras = static_cast<int>(data.views.size());
     config_.frames = data.dynamic ? static_cast<int>(data.sets.size()) : 0;
@@ -102,15 +103,18 @@ class Trainer {
     }
     // Backgrounds [P, 3] BGR in [0, 1].
     std::vector<torch::Tensor> backgrounds;
-    for (const auto& view : data.views) backgrounds.push_back(ImageTensor(view.background).view({-1, 3}));
+    for (const auto& view : data.views)
+      backgrounds.push_back(ImageTensor(view.background).view({-1, 3}));
     backgrounds_ = torch::cat(backgrounds).contiguous();
     if (options.learn_background) backgrounds_.set_requires_grad(true);
     // Rays of every pixel of every view, and the pixels whose rays meet the box.
     for (const auto& view : data.views) {
-      all_rays_.push_back(neural::CameraRaysAllPixels(view.camera, data.box_min_f(), data.box_max_f()));
+      all_rays_.push_back(
+          neural::CameraRaysAllPixels(view.camera, data.box_min_f(), data.box_max_f()));
       std::vector<int32_t> pixels;
       for (int64_t i = 0; i < all_rays_.back().size(); ++i) {
-        if (all_rays_.back().t_far[i] > all_rays_.back().t_near[i]) pixels.push_back(static_cast<int32_t>(i));
+        if (all_rays_.back().t_far[i] > all_rays_.back().t_near[i])
+          pixels.push_back(static_cast<int32_t>(i));
       }
       box_pixels_.push_back(std::move(pixels));
     }
@@ -126,7 +130,8 @@ class Trainer {
         cv::Mat free;
         cv::compare(subject_anywhere, 0, free, cv::CmpTypes::CMP_EQ);
         free.convertTo(free, CV_32FC1, 1.0 / 255.0);
-        learnable.push_back(torch::from_blob(free.data, {free.rows * free.cols, 1}, torch::kFloat32).clone());
+        learnable.push_back(
+            torch::from_blob(free.data, {free.rows * free.cols, 1}, torch::kFloat32).clone());
       }
       background_learnable_ = torch::cat(learnable).contiguous();
     }
@@ -144,7 +149,8 @@ class Trainer {
       }
     }
     for (int v : training_) {
-      if (box_pixels_[v].empty()) Fail("training camera ", data.views[v].name, " does not see the volume's box");
+      if (box_pixels_[v].empty())
+        Fail("training camera ", data.views[v].name, " does not see the volume's box");
     }
     // Frame images as float tensors [F, V, H, W, 3] and encoder inputs [F, 3E, eh, ew].
     std::vector<torch::Tensor> frames, encoder_inputs;
@@ -155,7 +161,8 @@ class Trainer {
       if (data.dynamic) {
         for (int v : data.encoder_views) {
           cv::Mat small;
-          cv::resize(data.images[f][v], small, cv::Size(config_.encoder_width, config_.encoder_height), 0, 0, cv::INTER_AREA);
+          cv::resize(data.images[f][v], small,
+                     cv::Size(config_.encoder_width, config_.encoder_height), 0, 0, cv::INTER_AREA);
           encoder_views.push_back(ImageTensor(small).permute({2, 0, 1}) - 0.5);
         }
         encoder_inputs.push_back(torch::cat(encoder_views, 0));
@@ -165,7 +172,8 @@ class Trainer {
     if (data.dynamic) encoder_inputs_ = torch::stack(encoder_inputs).contiguous();
     // Evaluation frames, spread over the take.
     const int64_t count = std::min<int64_t>(options.eval_frames, data.sets.size());
-    for (int64_t i = 0; i < count; ++i) eval_frames_.push_back(i * static_cast<int64_t>(data.sets.size()) / count);
+    for (int64_t i = 0; i < count; ++i)
+      eval_frames_.push_back(i * static_cast<int64_t>(data.sets.size()) / count);
     MakeOptimizer(1.0);
   }
 
@@ -194,23 +202,31 @@ class Trainer {
   // Rates scaled by `scale` (the divergence guard lowers it).
   void MakeOptimizer(double scale) {
     const double network_lr = options_.learning_rate * scale;
-    const double grid_lr = (data_.dynamic ? options_.template_learning_rate : options_.static_learning_rate) * scale;
+    const double grid_lr =
+        (data_.dynamic ? options_.template_learning_rate : options_.static_learning_rate) * scale;
     std::vector<torch::Tensor> network, grid, calibration;
     for (const auto& p : model_->named_parameters()) {
-      if (p.key() == "gain" || p.key() == "bias") calibration.push_back(p.value());
-      else if (p.key() == "grid") grid.push_back(p.value());
-      else network.push_back(p.value());
+      if (p.key() == "gain" || p.key() == "bias")
+        calibration.push_back(p.value());
+      else if (p.key() == "grid")
+        grid.push_back(p.value());
+      else
+        network.push_back(p.value());
     }
     std::vector<torch::optim::OptimizerParamGroup> groups;
     groups.emplace_back(grid, std::make_unique<torch::optim::AdamOptions>(grid_lr));
-    if (!network.empty()) groups.emplace_back(network, std::make_unique<torch::optim::AdamOptions>(network_lr));
+    if (!network.empty())
+      groups.emplace_back(network, std::make_unique<torch::optim::AdamOptions>(network_lr));
     groups.emplace_back(calibration, std::make_unique<torch::optim::AdamOptions>(network_lr));
     if (backgrounds_.requires_grad()) {
-      groups.emplace_back(std::vector<torch::Tensor>{backgrounds_}, std::make_unique<torch::optim::AdamOptions>(network_lr));
+      groups.emplace_back(std::vector<torch::Tensor>{backgrounds_},
+                          std::make_unique<torch::optim::AdamOptions>(network_lr));
     }
     base_lrs_.clear();
-    for (auto& group : groups) base_lrs_.push_back(static_cast<torch::optim::AdamOptions&>(group.options()).lr());
-    optimizer_ = std::make_unique<torch::optim::Adam>(std::move(groups), torch::optim::AdamOptions(network_lr));
+    for (auto& group : groups)
+      base_lrs_.push_back(static_cast<torch::optim::AdamOptions&>(group.options()).lr());
+    optimizer_ = std::make_unique<torch::optim::Adam>(std::move(groups),
+                                                      torch::optim::AdamOptions(network_lr));
   }
 
   // Cosine decay of every group's rate to a tenth over the run (`progress` in [0, 1]): the
@@ -219,8 +235,10 @@ class Trainer {
   // move every weight of the decoder's transposed convolutions by the full rate at once, and
   // their product threw the density out by orders of magnitude within three steps.
   void ScheduleLearningRate(double progress, int64_t steps) {
-    double factor = 0.1 + 0.45 * (1.0 + std::cos(std::numbers::pi * std::clamp(progress, 0.0, 1.0)));
-    if (data_.dynamic && steps < kWarmupIterations) factor *= static_cast<double>(steps + 1) / (kWarmupIterations + 1);
+    double factor =
+        0.1 + 0.45 * (1.0 + std::cos(std::numbers::pi * std::clamp(progress, 0.0, 1.0)));
+    if (data_.dynamic && steps < kWarmupIterations)
+      factor *= static_cast<double>(steps + 1) / (kWarmupIterations + 1);
     auto& groups = optimizer_->param_groups();
     for (size_t i = 0; i < groups.size() && i < base_lrs_.size(); ++i) {
       static_cast<torch::optim::AdamOptions&>(groups[i].options()).lr(base_lrs_[i] * factor);
@@ -303,7 +321,8 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
       int v = training_.front();
       int32_t p = 0;
       if (i % 2 == 0 && !subject.empty()) {
-        const auto& pick = subject[std::uniform_int_distribution<size_t>(0, subject.size() - 1)(rng_)];
+        const auto& pick =
+            subject[std::uniform_int_distribution<size_t>(0, subject.size() - 1)(rng_)];
         v = pick.first;
         p = pick.second;
       } else {
@@ -340,16 +359,28 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
     torch::Tensor target = images_.view({-1, 3}).index_select(0, pixels);
     torch::Tensor background = backgrounds_.index_select(0, pixels.remainder(total_pixels_));
     torch::Tensor prediction = model_->gain.index_select(0, cameras) * rgb +
-                               model_->bias.index_select(0, cameras) * alpha + (1 - alpha) * background;
+                               model_->bias.index_select(0, cameras) * alpha +
+                               (1 - alpha) * background;
     torch::Tensor photo = (prediction - target).pow(2).mean();
     // The beta prior of the paper on ray alpha, zero at alpha 0 and 1.
-    torch::Tensor prior = (torch::log(0.1 + alpha) + torch::log(0.1 + 1 - alpha) - std::log(0.1) - std::log(1.1)).mean();
+    torch::Tensor prior =
+        (torch::log(0.1 + alpha) + torch::log(0.1 + 1 - alpha) - std::log(0.1) - std::log(1.1))
+            .mean();
     // Total variation of colour and of density in optical depth per voxel.
-    torch::Tensor normalised = rgba / torch::tensor({1.0f, 1.0f, 1.0f, static_cast<float>(config_.density_scale())});
-    torch::Tensor tv = (normalised.narrow(0, 1, config_.grid - 1) - normalised.narrow(0, 0, config_.grid - 1)).pow(2).mean() +
-                       (normalised.narrow(1, 1, config_.grid - 1) - normalised.narrow(1, 0, config_.grid - 1)).pow(2).mean() +
-                       (normalised.narrow(2, 1, config_.grid - 1) - normalised.narrow(2, 0, config_.grid - 1)).pow(2).mean();
-    torch::Tensor frame_loss = photo + options_.alpha_prior_weight * prior + options_.tv_weight * tv;
+    torch::Tensor normalised =
+        rgba / torch::tensor({1.0f, 1.0f, 1.0f, static_cast<float>(config_.density_scale())});
+    torch::Tensor tv =
+        (normalised.narrow(0, 1, config_.grid - 1) - normalised.narrow(0, 0, config_.grid - 1))
+            .pow(2)
+            .mean() +
+        (normalised.narrow(1, 1, config_.grid - 1) - normalised.narrow(1, 0, config_.grid - 1))
+            .pow(2)
+            .mean() +
+        (normalised.narrow(2, 1, config_.grid - 1) - normalised.narrow(2, 0, config_.grid - 1))
+            .pow(2)
+            .mean();
+    torch::Tensor frame_loss =
+        photo + options_.alpha_prior_weight * prior + options_.tv_weight * tv;
     torch::Tensor silhouette_term, warp_term;
     if (data_.dynamic) frame_loss = frame_loss + options_.kl_weight * kl;
     if (options_.silhouette_weight > 0) {
@@ -357,10 +388,12 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
       // threshold: the plan names the source): opaque inside, empty outside.
       std::vector<float> inside(per_frame);
       for (int i = 0; i < per_frame; ++i) {
-        const int32_t p = static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
+        const int32_t p =
+            static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
         inside[i] = data_.masks[f][camera[i]].data[p] != 0 ? 1.0f : 0.0f;
       }
-      torch::Tensor silhouette = torch::from_blob(inside.data(), {per_frame, 1}, torch::kFloat32).clone();
+      torch::Tensor silhouette =
+          torch::from_blob(inside.data(), {per_frame, 1}, torch::kFloat32).clone();
       silhouette_term = (alpha - silhouette).pow(2).mean();
       frame_loss = frame_loss + options_.silhouette_weight * silhouette_term;
     }
@@ -381,7 +414,8 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
       double in_sum = 0, out_sum = 0;
       int64_t in_count = 0, out_count = 0;
       for (int i = 0; i < per_frame; ++i) {
-        const int32_t p = static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
+        const int32_t p =
+            static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
         if (data_.masks[f][camera[i]].data[p] != 0) {
           in_sum += a[i];
           ++in_count;
@@ -392,7 +426,10 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
       }
       terms.alpha_inside += share * (in_count > 0 ? in_sum / in_count : 0.0);
       terms.alpha_outside += share * (out_count > 0 ? out_sum / out_count : 0.0);
-      if (warp.defined()) terms.warp_voxels += share * (warp - IdentityWarp(warp.size(0))).norm(2, -1).mean().item<double>() * config_.grid;
+      if (warp.defined())
+        terms.warp_voxels += share *
+                             (warp - IdentityWarp(warp.size(0))).norm(2, -1).mean().item<double>() *
+                             config_.grid;
     }
     samples += context->outputs.MeanSamples();
     contexts.push_back(std::move(context));
@@ -400,7 +437,8 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
   const double value = loss.item<double>();
   if (std::isfinite(value)) {
     loss.backward();
-    if (backgrounds_.requires_grad() && backgrounds_.grad().defined()) backgrounds_.mutable_grad().mul_(background_learnable_);
+    if (backgrounds_.requires_grad() && backgrounds_.grad().defined())
+      backgrounds_.mutable_grad().mul_(background_learnable_);
     optimizer_->step();
     // The first training camera is the colour reference: its calibration stays the identity
     // (gain and bias are otherwise ambiguous with the volume's colours). Held-out cameras
@@ -443,9 +481,12 @@ Evaluation Trainer::Evaluate(bool write_images) {
       context.rays = all_rays_[v];
       auto out = neural::MarchRays(rgba, warp, &context);
       torch::Tensor alpha = out[1].unsqueeze(1);
-      torch::Tensor prediction = (out[0] + (1 - alpha) * backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w)).clamp(0, 1);
+      torch::Tensor prediction =
+          (out[0] + (1 - alpha) * backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w))
+              .clamp(0, 1);
       cv::Mat predicted(h, w, CV_32FC3), truth;
-      std::memcpy(predicted.data, prediction.contiguous().data_ptr<float>(), sizeof(float) * h * w * 3);
+      std::memcpy(predicted.data, prediction.contiguous().data_ptr<float>(),
+                  sizeof(float) * h * w * 3);
       data_.images[f][v].convertTo(truth, CV_32FC3, 1.0 / 255.0);
       // The subject's silhouette in the held-out view, grown by 3 pixels.
       cv::Mat mask;
@@ -473,7 +514,8 @@ Evaluation Trainer::Evaluate(bool write_images) {
         cv::hconcat(predicted, truth, side_by_side);
         side_by_side.convertTo(image8, CV_8UC3, 255.0);
         CreateDirectories(model_dir_ / "heldout");
-        WritePng(model_dir_ / "heldout" / Cat(data_.views[v].name, "_frame", data_.sets[f], ".png"), image8);
+        WritePng(model_dir_ / "heldout" / Cat(data_.views[v].name, "_frame", data_.sets[f], ".png"),
+                 image8);
       }
     }
   }
@@ -525,7 +567,8 @@ bool Trainer::LoadCheckpoint(int64_t* iteration) {
     optimizer_->load(optimizer_archive);
     *iteration = it.item<int64_t>();
   } catch (const c10::Error& e) {
-    Fail("cannot resume from ", file.string(), " (a checkpoint of another configuration?): ", e.what_without_backtrace());
+    Fail("cannot resume from ", file.string(),
+         " (a checkpoint of another configuration?): ", e.what_without_backtrace());
   }
   return true;
 }
@@ -538,15 +581,18 @@ void Trainer::SaveModel(const nlohmann::json& plan) {
   if (!data_.occupancy.empty() && !data_.occupancy.front().empty()) {
     // Training never sampled outside these cells: playback must skip them too.
     const int64_t cells = data_.occupancy.front().size;
-    torch::Tensor occupancy = torch::zeros({static_cast<int64_t>(data_.occupancy.size()), cells * cells * cells}, torch::kUInt8);
+    torch::Tensor occupancy = torch::zeros(
+        {static_cast<int64_t>(data_.occupancy.size()), cells * cells * cells}, torch::kUInt8);
     for (size_t f = 0; f < data_.occupancy.size(); ++f) {
-      std::memcpy(occupancy[f].data_ptr<uint8_t>(), data_.occupancy[f].occupied.data(), cells * cells * cells);
+      std::memcpy(occupancy[f].data_ptr<uint8_t>(), data_.occupancy[f].occupied.data(),
+                  cells * cells * cells);
     }
     torch::save(occupancy, (model_dir_ / "occupancy.pt").string());
   }
   if (data_.dynamic) {
     std::vector<torch::Tensor> latents;
-    for (int64_t f = 0; f < static_cast<int64_t>(data_.sets.size()); ++f) latents.push_back(Latent(f, false, nullptr));
+    for (int64_t f = 0; f < static_cast<int64_t>(data_.sets.size()); ++f)
+      latents.push_back(Latent(f, false, nullptr));
     torch::save(torch::cat(latents, 0), (model_dir_ / "latents.pt").string());
   }
   nlohmann::json cameras = nlohmann::json::array();
@@ -555,17 +601,17 @@ void Trainer::SaveModel(const nlohmann::json& plan) {
     view.camera.Write(model_dir_ / "cameras" / (view.name + ".cameramodel"));
     cameras.push_back(view.name);
     const int h = view.camera.height(), w = view.camera.width();
-    torch::Tensor bg = (backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w).clamp(0, 1) * 255)
-                           .round().to(torch::kUInt8).contiguous();
+    torch::Tensor bg =
+        (backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w).clamp(0, 1) * 255)
+            .round()
+            .to(torch::kUInt8)
+            .contiguous();
     cv::Mat image(h, w, CV_8UC3, bg.data_ptr<uint8_t>());
     WritePng(model_dir_ / "backgrounds" / (view.name + ".png"), image.clone());
   }
-  nlohmann::json json = {{"method", "nvol"},
-                         {"config", config_.ToJson()},
-                         {"cameras", cameras},
-                         {"frame_sets", data_.sets},
-                         {"modules", Modules()},
-                         {"plan", plan}};
+  nlohmann::json json = {{"method", "nvol"},     {"config", config_.ToJson()},
+                         {"cameras", cameras},   {"frame_sets", data_.sets},
+                         {"modules", Modules()}, {"plan", plan}};
   WriteFileAtomic(model_dir_ / "model.json", json.dump(2) + "\n");
 }
 
@@ -575,13 +621,15 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   summary.built_encoder = Has("encoder");
   summary.built_warp = Has("warp");
   summary.plan["modules"] = Modules();
-  summary.plan["left_out"] = data_.dynamic
-      ? nlohmann::json::array()
-      : nlohmann::json::array({"encoder (one static frame: no latent to infer)",
-                               "warp field (nothing moves)",
-                               "template decoder (the RGBA grid itself is optimised)"});
+  summary.plan["left_out"] =
+      data_.dynamic
+          ? nlohmann::json::array()
+          : nlohmann::json::array({"encoder (one static frame: no latent to infer)",
+                                   "warp field (nothing moves)",
+                                   "template decoder (the RGBA grid itself is optimised)"});
   summary.plan["device"] = "cpu (the ray marcher is CPU code)";
-  nlohmann::json losses = {{"photometric", 1.0}, {"alpha_prior", options_.alpha_prior_weight},
+  nlohmann::json losses = {{"photometric", 1.0},
+                           {"alpha_prior", options_.alpha_prior_weight},
                            {"total_variation", options_.tv_weight}};
   if (options_.silhouette_weight > 0) losses["silhouette"] = options_.silhouette_weight;
   if (data_.dynamic) {
@@ -601,10 +649,13 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   }
   Snapshot snapshot = TakeSnapshot(model_, backgrounds_, iteration);
   const auto start = std::chrono::steady_clock::now();
-  auto elapsed = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(); };
+  auto elapsed = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  };
   const double budget_s = options_.minutes * 60.0;
   const int64_t first_iteration = iteration;
-  Progress progress("nvol train", options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
+  Progress progress("nvol train",
+                    options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
   std::deque<double> recent;
   std::vector<double> photo_history;
   double running = 0, first_finite_loss = -1;
@@ -634,7 +685,8 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
     double photo = 0, samples = 0;
     // Training ends at whichever budget runs out first, and so does the schedule.
     double progress_fraction = 0;
-    if (options_.iterations > 0) progress_fraction = static_cast<double>(iteration - first_iteration) / options_.iterations;
+    if (options_.iterations > 0)
+      progress_fraction = static_cast<double>(iteration - first_iteration) / options_.iterations;
     if (options_.minutes > 0) progress_fraction = std::max(progress_fraction, t / budget_s);
     ScheduleLearningRate(progress_fraction, iteration);
     const double loss = TrainStep(iteration, &photo, &samples);
@@ -648,14 +700,18 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
       RestoreSnapshot(snapshot, model_, backgrounds_);
       lr_scale_ *= 0.5;
       MakeOptimizer(lr_scale_);
-      std::fprintf(stderr, "nvol: iteration %lld: loss %g %s; restored the checkpoint of iteration %lld, learning rate x%.3g\n",
-                   static_cast<long long>(iteration), loss, std::isfinite(loss) ? "exploded" : "is not finite",
+      std::fprintf(stderr,
+                   "nvol: iteration %lld: loss %g %s; restored the checkpoint of iteration %lld, "
+                   "learning rate x%.3g\n",
+                   static_cast<long long>(iteration), loss,
+                   std::isfinite(loss) ? "exploded" : "is not finite",
                    static_cast<long long>(snapshot.iteration), lr_scale_);
       if (report != nullptr) report->AddPoint("divergence_lr_scale", lr_scale_, iteration);
       iteration = snapshot.iteration;
       recent.clear();
       if (summary.divergences > options_.max_divergences) {
-        summary.End(Termination::kFailure, Cat("training diverged ", summary.divergences, " times; stopped"));
+        summary.End(Termination::kFailure,
+                    Cat("training diverged ", summary.divergences, " times; stopped"));
         break;
       }
       continue;
@@ -696,22 +752,28 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   log_eval(iteration, /*write_images=*/true);
   const size_t window = std::max<size_t>(1, std::min<size_t>(10, photo_history.size() / 4));
   if (!photo_history.empty()) {
-    summary.first_loss = std::accumulate(photo_history.begin(), photo_history.begin() + window, 0.0) / window;
-    summary.last_loss = std::accumulate(photo_history.end() - window, photo_history.end(), 0.0) / window;
+    summary.first_loss =
+        std::accumulate(photo_history.begin(), photo_history.begin() + window, 0.0) / window;
+    summary.last_loss =
+        std::accumulate(photo_history.end() - window, photo_history.end(), 0.0) / window;
   }
   summary.heldout_psnr_db = last_eval.psnr_db;
   summary.heldout_psnr_fg_db = last_eval.psnr_fg_db;
   summary.background_psnr_fg_db = last_eval.background_psnr_fg_db;
   summary.heldout_ssim = last_eval.ssim;
   if (summary.divergences <= options_.max_divergences) {
-    if (!std::isfinite(summary.last_loss) || (!heldout_.empty() && !std::isfinite(summary.heldout_psnr_db))) {
+    if (!std::isfinite(summary.last_loss) ||
+        (!heldout_.empty() && !std::isfinite(summary.heldout_psnr_db))) {
       summary.End(Termination::kFailure, "the loss or the held-out PSNR is not finite");
     } else {
-      summary.End(Termination::kNoConvergence, heldout_.empty()
-          ? Cat("trained ", iteration, " iterations in ", summary.seconds, " s (no held-out camera)")
-          : Cat("trained ", iteration, " iterations in ", summary.seconds, " s; held-out PSNR ",
-                summary.heldout_psnr_db, " dB (subject ", summary.heldout_psnr_fg_db, " dB, background alone ",
-                summary.background_psnr_fg_db, " dB)"));
+      summary.End(
+          Termination::kNoConvergence,
+          heldout_.empty()
+              ? Cat("trained ", iteration, " iterations in ", summary.seconds,
+                    " s (no held-out camera)")
+              : Cat("trained ", iteration, " iterations in ", summary.seconds, " s; held-out PSNR ",
+                    summary.heldout_psnr_db, " dB (subject ", summary.heldout_psnr_fg_db,
+                    " dB, background alone ", summary.background_psnr_fg_db, " dB)"));
     }
   }
   SaveModel(summary.plan);

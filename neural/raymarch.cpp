@@ -50,11 +50,11 @@ inline void TrilinearCorners(const Eigen::Vector3f& u, int n, bool clamp, Corner
 
 // Where a sample reads the template, and what it reads there.
 struct Sample {
-  Eigen::Vector3f u;       // normalised box coordinate
-  Eigen::Vector3f y;       // template coordinate (u without a warp)
-  Corners warp_corners;    // valid with a warp
-  Corners corners;         // template corners at y
-  float value[4];          // r, g, b, sigma
+  Eigen::Vector3f u;     // normalised box coordinate
+  Eigen::Vector3f y;     // template coordinate (u without a warp)
+  Corners warp_corners;  // valid with a warp
+  Corners corners;       // template corners at y
+  float value[4];        // r, g, b, sigma
 };
 
 inline void EvaluateSample(const MarchVolume& volume, const Eigen::Vector3f& u, Sample* s) {
@@ -85,7 +85,8 @@ inline void EvaluateSample(const MarchVolume& volume, const Eigen::Vector3f& u, 
 // n³ grid: the same corners and weights as TrilinearCorners, with one bounds test for the
 // common case of a sample whose 8 corners all lie inside.
 template <int kChannels>
-inline void Interpolate(const float* grid, int n, bool clamp, const Eigen::Vector3f& u, float* out) {
+inline void Interpolate(const float* grid, int n, bool clamp, const Eigen::Vector3f& u,
+                        float* out) {
   int base[3];
   float frac[3];
   for (int a = 0; a < 3; ++a) {
@@ -113,14 +114,16 @@ inline void Interpolate(const float* grid, int n, bool clamp, const Eigen::Vecto
 // r, g, b, sigma of a sample, as EvaluateSample computes them.
 inline void EvaluateValue(const MarchVolume& volume, const Eigen::Vector3f& u, float value[4]) {
   Eigen::Vector3f y = u;
-  if (volume.warp != nullptr) Interpolate<3>(volume.warp, volume.warp_grid, /*clamp=*/true, u, y.data());
+  if (volume.warp != nullptr)
+    Interpolate<3>(volume.warp, volume.warp_grid, /*clamp=*/true, u, y.data());
   Interpolate<4>(volume.rgba, volume.grid, volume.rgba_clamped, y, value);
   value[3] = std::max(value[3], 0.0f);
 }
 
 // Interpolate<4> without a border test where all 8 corners lie inside, as 4-wide lerps of
 // the interleaved RGBA voxels (playback: a sample is this one lookup).
-inline void InterpolateRgba(const float* grid, int n, bool clamp, const Eigen::Vector3f& u, float out[4]) {
+inline void InterpolateRgba(const float* grid, int n, bool clamp, const Eigen::Vector3f& u,
+                            float out[4]) {
   const float gx = u[0] * n - 0.5f, gy = u[1] * n - 0.5f, gz = u[2] * n - 0.5f;
   const int bx = static_cast<int>(std::floor(gx)), by = static_cast<int>(std::floor(gy)),
             bz = static_cast<int>(std::floor(gz));
@@ -209,7 +212,8 @@ int64_t ForEachSample(const MarchVolume& volume, const OccupiedBox& occupied, co
   if (occ != nullptr && !options.evaluate_empty_cells) {
     float t0 = 0, t1 = 0;
     if (!ClipToBox(o, d, occupied.min, occupied.max, t_near, &t0, &t1)) return 0;
-    k_first = std::max<int64_t>(0, static_cast<int64_t>(std::floor((t0 - t_near) / step - jitter)) - 1);
+    k_first =
+        std::max<int64_t>(0, static_cast<int64_t>(std::floor((t0 - t_near) / step - jitter)) - 1);
     t_last = std::min<double>(t_far, t1 + step);
   }
   int64_t visited = 0;
@@ -224,7 +228,8 @@ int64_t ForEachSample(const MarchVolume& volume, const OccupiedBox& occupied, co
       for (int a = 0; a < 3; ++a) {
         cell[a] = std::clamp(static_cast<int>(std::floor(u[a] * n)), 0, n - 1);
       }
-      const bool empty = !occ->occupied[(static_cast<int64_t>(cell[2]) * n + cell[1]) * n + cell[0]];
+      const bool empty =
+          !occ->occupied[(static_cast<int64_t>(cell[2]) * n + cell[1]) * n + cell[0]];
       if (empty && options.evaluate_empty_cells) {
         if (visited >= options.max_samples_per_ray) {
           *truncated = true;
@@ -241,8 +246,7 @@ int64_t ForEachSample(const MarchVolume& volume, const OccupiedBox& occupied, co
         for (int a = 0; a < 3; ++a) {
           if (std::abs(d[a]) < 1e-12f) continue;
           const double cell_size = extent[a] / n;
-          const double plane =
-              volume.box_min[a] + (d[a] > 0 ? cell[a] + 1 : cell[a]) * cell_size;
+          const double plane = volume.box_min[a] + (d[a] > 0 ? cell[a] + 1 : cell[a]) * cell_size;
           exit = std::min(exit, (plane - p[a]) / d[a]);
         }
         const double t_exit = t + std::max(exit, 0.0);
@@ -332,8 +336,7 @@ bool ClipToBox(const Eigen::Vector3f& origin, const Eigen::Vector3f& direction,
 }
 
 RayBatch CameraRays(const CameraModel& camera, const Eigen::Matrix2Xd& pixels,
-                    const Eigen::Vector3f& box_min, const Eigen::Vector3f& box_max,
-                    float near_m) {
+                    const Eigen::Vector3f& box_min, const Eigen::Vector3f& box_max, float near_m) {
   RayBatch rays;
   const int64_t count = pixels.cols();
   rays.Resize(count);
@@ -390,19 +393,21 @@ void MarchForward(const MarchVolume& volume, const RayBatch& rays, const MarchOp
     double transmittance = 1, rgb[3] = {0, 0, 0}, depth = 0;
     float value[4];
     bool truncated = false;
-    out->samples[r] = static_cast<int32_t>(ForEachSample(
-        volume, occupied, rays, r, options, &truncated, [&](float t, const Eigen::Vector3f& u, bool masked) {
-          EvaluateValue(volume, u, value);
-          if (masked) return true;
-          // One exponential per sample; in double, 1 - decay keeps its precision for the
-          // faintest samples and the product underflows to 0, never to NaN.
-          const double decay = std::exp(-value[3] * step);
-          const double w = transmittance * (1.0 - decay);
-          for (int c = 0; c < 3; ++c) rgb[c] += w * value[c];
-          depth += w * t;
-          transmittance *= decay;
-          return !(transmittance < options.min_transmittance);
-        }));
+    out->samples[r] =
+        static_cast<int32_t>(ForEachSample(volume, occupied, rays, r, options, &truncated,
+                                           [&](float t, const Eigen::Vector3f& u, bool masked) {
+                                             EvaluateValue(volume, u, value);
+                                             if (masked) return true;
+                                             // One exponential per sample; in double, 1 - decay
+                                             // keeps its precision for the faintest samples and the
+                                             // product underflows to 0, never to NaN.
+                                             const double decay = std::exp(-value[3] * step);
+                                             const double w = transmittance * (1.0 - decay);
+                                             for (int c = 0; c < 3; ++c) rgb[c] += w * value[c];
+                                             depth += w * t;
+                                             transmittance *= decay;
+                                             return !(transmittance < options.min_transmittance);
+                                           }));
     truncated_rays += truncated;
     for (int c = 0; c < 3; ++c) out->rgb[3 * r + c] = static_cast<float>(rgb[c]);
     out->alpha[r] = static_cast<float>(1.0 - transmittance);
@@ -449,64 +454,68 @@ void MarchBackward(const MarchVolume& volume, const RayBatch& rays, const MarchO
       double tau = 0, transmittance = 1, total[3] = {0, 0, 0};
       Sample s;
       bool truncated = false;
-      ForEachSample(volume, occupied, rays, r, options, &truncated, [&](float, const Eigen::Vector3f& u, bool masked) {
-        if (masked) return true;
-        float value[4];
-        EvaluateValue(volume, u, value);
-        const double optical = value[3] * step;
-        const double w = transmittance * -std::expm1(-optical);
-        for (int c = 0; c < 3; ++c) total[c] += w * value[c];
-        tau += optical;
-        transmittance = std::exp(-tau);
-        return !(transmittance < options.min_transmittance);
-      });
+      ForEachSample(volume, occupied, rays, r, options, &truncated,
+                    [&](float, const Eigen::Vector3f& u, bool masked) {
+                      if (masked) return true;
+                      float value[4];
+                      EvaluateValue(volume, u, value);
+                      const double optical = value[3] * step;
+                      const double w = transmittance * -std::expm1(-optical);
+                      for (int c = 0; c < 3; ++c) total[c] += w * value[c];
+                      tau += optical;
+                      transmittance = std::exp(-tau);
+                      return !(transmittance < options.min_transmittance);
+                    });
       const double t_end = transmittance;
       // Second pass: d/dc_k = g w_k; d/dsigma_k = step (T_{k+1} g.c_k - g.(C - P_k)) +
       // g_alpha step T_end, with P_k the colour accumulated up to and including sample k.
       tau = 0;
       transmittance = 1;
       double prefix[3] = {0, 0, 0};
-      ForEachSample(volume, occupied, rays, r, options, &truncated, [&](float, const Eigen::Vector3f& u, bool masked) {
-        if (masked) return true;
-        EvaluateSample(volume, u, &s);
-        const double optical = s.value[3] * step;
-        const double w = transmittance * -std::expm1(-optical);
-        for (int c = 0; c < 3; ++c) prefix[c] += w * s.value[c];
-        tau += optical;
-        const double t_next = std::exp(-tau);
-        double g_dot_c = 0, g_dot_rest = 0;
-        for (int c = 0; c < 3; ++c) {
-          g_dot_c += g_rgb[c] * s.value[c];
-          g_dot_rest += g_rgb[c] * (total[c] - prefix[c]);
-        }
-        float g_value[4];
-        for (int c = 0; c < 3; ++c) g_value[c] = static_cast<float>(g_rgb[c] * w);
-        // The clamp of a rounding-negative density has zero gradient there.
-        g_value[3] = static_cast<float>(step * (t_next * g_dot_c - g_dot_rest) +
-                                        g_alpha * step * t_end);
-        transmittance = t_next;
-        Eigen::Vector3f g_y = Eigen::Vector3f::Zero();
-        for (int c = 0; c < 8; ++c) {
-          const int64_t index = s.corners.index[c];
-          if (index < 0) continue;
-          float* g = my_rgba + index * 4;
-          const float* v = volume.rgba + index * 4;
-          for (int ch = 0; ch < 4; ++ch) {
-            g[ch] += s.corners.weight[c] * g_value[ch];
-            if (has_warp) {
-              for (int a = 0; a < 3; ++a) g_y[a] += g_value[ch] * s.corners.dweight[c][a] * v[ch];
-            }
-          }
-        }
-        if (has_warp && my_warp != nullptr) {
-          for (int c = 0; c < 8; ++c) {
-            const int64_t index = s.warp_corners.index[c];
-            if (index < 0) continue;
-            for (int a = 0; a < 3; ++a) my_warp[index * 3 + a] += s.warp_corners.weight[c] * g_y[a];
-          }
-        }
-        return !(transmittance < options.min_transmittance);
-      });
+      ForEachSample(volume, occupied, rays, r, options, &truncated,
+                    [&](float, const Eigen::Vector3f& u, bool masked) {
+                      if (masked) return true;
+                      EvaluateSample(volume, u, &s);
+                      const double optical = s.value[3] * step;
+                      const double w = transmittance * -std::expm1(-optical);
+                      for (int c = 0; c < 3; ++c) prefix[c] += w * s.value[c];
+                      tau += optical;
+                      const double t_next = std::exp(-tau);
+                      double g_dot_c = 0, g_dot_rest = 0;
+                      for (int c = 0; c < 3; ++c) {
+                        g_dot_c += g_rgb[c] * s.value[c];
+                        g_dot_rest += g_rgb[c] * (total[c] - prefix[c]);
+                      }
+                      float g_value[4];
+                      for (int c = 0; c < 3; ++c) g_value[c] = static_cast<float>(g_rgb[c] * w);
+                      // The clamp of a rounding-negative density has zero gradient there.
+                      g_value[3] = static_cast<float>(step * (t_next * g_dot_c - g_dot_rest) +
+                                                      g_alpha * step * t_end);
+                      transmittance = t_next;
+                      Eigen::Vector3f g_y = Eigen::Vector3f::Zero();
+                      for (int c = 0; c < 8; ++c) {
+                        const int64_t index = s.corners.index[c];
+                        if (index < 0) continue;
+                        float* g = my_rgba + index * 4;
+                        const float* v = volume.rgba + index * 4;
+                        for (int ch = 0; ch < 4; ++ch) {
+                          g[ch] += s.corners.weight[c] * g_value[ch];
+                          if (has_warp) {
+                            for (int a = 0; a < 3; ++a)
+                              g_y[a] += g_value[ch] * s.corners.dweight[c][a] * v[ch];
+                          }
+                        }
+                      }
+                      if (has_warp && my_warp != nullptr) {
+                        for (int c = 0; c < 8; ++c) {
+                          const int64_t index = s.warp_corners.index[c];
+                          if (index < 0) continue;
+                          for (int a = 0; a < 3; ++a)
+                            my_warp[index * 3 + a] += s.warp_corners.weight[c] * g_y[a];
+                        }
+                      }
+                      return !(transmittance < options.min_transmittance);
+                    });
     }
   }
   for (const auto& part : rgba_parts) {
@@ -544,7 +553,6 @@ OccupancyGrid OccupancyFromVolume(const MarchVolume& volume, int cells, float mi
   return occupancy;
 }
 
-
 MarchVolume BakedVolume::View(const OccupancyGrid* occupancy) const {
   MarchVolume volume;
   volume.box_min = box_min;
@@ -573,7 +581,8 @@ BakedVolume BakeVolume(const MarchVolume& volume, int grid) {
     for (int y = 0; y < grid; ++y) {
       for (int x = 0; x < grid; ++x) {
         const Eigen::Vector3f u((x + 0.5f) / grid, (y + 0.5f) / grid, (z + 0.5f) / grid);
-        EvaluateValue(volume, u, &baked.rgba[4 * ((static_cast<int64_t>(z) * grid + y) * grid + x)]);
+        EvaluateValue(volume, u,
+                      &baked.rgba[4 * ((static_cast<int64_t>(z) * grid + y) * grid + x)]);
       }
     }
   }
@@ -601,7 +610,8 @@ CoarseOccupancy CoarseOf(const OccupancyGrid& occ) {
     for (int y = 0; y < n; ++y) {
       for (int x = 0; x < n; ++x) {
         if (!occ.occupied[(static_cast<int64_t>(z) * n + y) * n + x]) continue;
-        coarse.occupied[(static_cast<int64_t>(z / kCoarse) * m + y / kCoarse) * m + x / kCoarse] = 1;
+        coarse.occupied[(static_cast<int64_t>(z / kCoarse) * m + y / kCoarse) * m + x / kCoarse] =
+            1;
       }
     }
   }
@@ -626,7 +636,8 @@ void MarchPlaybackRays(const MarchVolume& volume, const RayBatch& rays, const Ma
     int64_t visited = 0;
     const float t_near = rays.t_near[r], t_far = rays.t_far[r];
     const Eigen::Vector3f o(rays.origin[3 * r], rays.origin[3 * r + 1], rays.origin[3 * r + 2]);
-    const Eigen::Vector3f d(rays.direction[3 * r], rays.direction[3 * r + 1], rays.direction[3 * r + 2]);
+    const Eigen::Vector3f d(rays.direction[3 * r], rays.direction[3 * r + 1],
+                            rays.direction[3 * r + 2]);
     const double jitter = rays.jitter.empty() ? 0.0 : rays.jitter[r];
     int64_t k_first = 0;
     double t_last = t_far;
@@ -634,7 +645,8 @@ void MarchPlaybackRays(const MarchVolume& volume, const RayBatch& rays, const Ma
     if (live && occ != nullptr && !options.evaluate_empty_cells) {
       float t0 = 0, t1 = 0;
       live = ClipToBox(o, d, occupied.min, occupied.max, t_near, &t0, &t1);
-      k_first = std::max<int64_t>(0, static_cast<int64_t>(std::floor((t0 - t_near) / step - jitter)) - 1);
+      k_first =
+          std::max<int64_t>(0, static_cast<int64_t>(std::floor((t0 - t_near) / step - jitter)) - 1);
       t_last = std::min<double>(t_far, t1 + step);
     }
     for (int64_t k = k_first; live;) {
@@ -646,7 +658,8 @@ void MarchPlaybackRays(const MarchVolume& volume, const RayBatch& rays, const Ma
       if (occ != nullptr) {
         const int n = occ->size;
         int cell[3];
-        for (int a = 0; a < 3; ++a) cell[a] = std::clamp(static_cast<int>(std::floor(u[a] * n)), 0, n - 1);
+        for (int a = 0; a < 3; ++a)
+          cell[a] = std::clamp(static_cast<int>(std::floor(u[a] * n)), 0, n - 1);
         if (!occ->occupied[(static_cast<int64_t>(cell[2]) * n + cell[1]) * n + cell[0]]) {
           if (options.evaluate_empty_cells) {
             masked = true;
@@ -654,7 +667,8 @@ void MarchPlaybackRays(const MarchVolume& volume, const RayBatch& rays, const Ma
             // Leave the empty coarse cell when the whole of it is empty, else the fine cell.
             const int m = coarse.size;
             const bool coarse_empty =
-                !coarse.occupied[(static_cast<int64_t>(cell[2] / kCoarse) * m + cell[1] / kCoarse) * m +
+                !coarse.occupied[(static_cast<int64_t>(cell[2] / kCoarse) * m + cell[1] / kCoarse) *
+                                     m +
                                  cell[0] / kCoarse];
             double exit = std::numeric_limits<double>::infinity();
             for (int a = 0; a < 3; ++a) {
@@ -669,7 +683,8 @@ void MarchPlaybackRays(const MarchVolume& volume, const RayBatch& rays, const Ma
               exit = std::min(exit, (plane - p[a]) / d[a]);
             }
             const double t_exit = t + std::max(exit, 0.0);
-            const int64_t next = static_cast<int64_t>(std::ceil((t_exit - t_near) / step - jitter + 1e-6));
+            const int64_t next =
+                static_cast<int64_t>(std::ceil((t_exit - t_near) / step - jitter + 1e-6));
             k = std::max(k + 1, next);
             continue;
           }

@@ -32,7 +32,7 @@ struct RayBatch {
   std::vector<float> direction;  // 3 per ray, unit length
   std::vector<float> t_near;     // metres along the ray; t_far <= t_near: misses the box
   std::vector<float> t_far;
-  std::vector<float> jitter;     // in [0, 1): offset of the first sample, in steps
+  std::vector<float> jitter;  // in [0, 1): offset of the first sample, in steps
   int64_t size() const { return static_cast<int64_t>(t_near.size()); }
   void Resize(int64_t count);
 };
@@ -61,8 +61,8 @@ struct MarchVolume {
 };
 
 struct MarchOptions {
-  float step_m = 0.01f;             // spacing of samples along a ray
-  float min_transmittance = 0.0f;   // stop a ray once T falls below this (0: never)
+  float step_m = 0.01f;                   // spacing of samples along a ray
+  float min_transmittance = 0.0f;         // stop a ray once T falls below this (0: never)
   int64_t max_samples_per_ray = 1 << 20;  // guard against a step far too small for the box
   // Evaluate samples in empty cells too (they still add nothing): the cost of marching
   // without skipping, with the same image.

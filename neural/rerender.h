@@ -32,26 +32,26 @@ struct RasterOptions {
   // space, where a wide lens bends its straight edges: triangles whose projected edge exceeds
   // this are split in 3D (midpoints projected through the lens) until it holds.
   double max_edge_px = 16;
-  int max_subdivisions = 5;     // splitting depth limit (4^5 pieces per triangle at most)
-  double point_radius_px = 1.5; // a mesh without faces (fused points) is splatted as squares
-  int supersample = 1;          // samples per pixel along each axis (1..4): the buffers average
-                                // the covered samples and the mask holds the covered fraction,
-                                // as a camera integrates its pixel, instead of one sample at
-                                // the pixel centre (edge lengths and radii stay in output pixels)
-  int threads = 0;              // 0: all cores
-  void Check() const;           // throws Error naming the bad field
+  int max_subdivisions = 5;      // splitting depth limit (4^5 pieces per triangle at most)
+  double point_radius_px = 1.5;  // a mesh without faces (fused points) is splatted as squares
+  int supersample = 1;           // samples per pixel along each axis (1..4): the buffers average
+                                 // the covered samples and the mask holds the covered fraction,
+                                 // as a camera integrates its pixel, instead of one sample at
+                                 // the pixel centre (edge lengths and radii stay in output pixels)
+  int threads = 0;               // 0: all cores
+  void Check() const;            // throws Error naming the bad field
 };
 
 // What the network sees of a reconstruction through one camera.
 struct GBuffer {
-  cv::Mat color;   // CV_32FC3 BGR in [0, 1] (the reconstruction's vertex colours), 0 where empty
-  cv::Mat depth;   // CV_32F z-depth in metres, NaN where empty
-  cv::Mat normal;  // CV_32FC3 unit normal in camera coordinates (OpenCV axes), 0 where empty
+  cv::Mat color;     // CV_32FC3 BGR in [0, 1] (the reconstruction's vertex colours), 0 where empty
+  cv::Mat depth;     // CV_32F z-depth in metres, NaN where empty
+  cv::Mat normal;    // CV_32FC3 unit normal in camera coordinates (OpenCV axes), 0 where empty
   cv::Mat position;  // CV_32FC3 surface point in world coordinates (metres), 0 where empty:
                      // where on the body a pixel lies, whichever camera looks
-  cv::Mat mask;    // CV_8U, 255 where a surface covers the pixel centre (supersampled: 255 x the
-                   // covered fraction of the pixel's samples; colour, depth, normal and position
-                   // then average the covered samples)
+  cv::Mat mask;      // CV_8U, 255 where a surface covers the pixel centre (supersampled: 255 x the
+                     // covered fraction of the pixel's samples; colour, depth, normal and position
+                     // then average the covered samples)
   int64_t triangles_drawn = 0;  // after splitting
   int64_t triangles_split = 0;  // triangles of the mesh that needed splitting
 };
@@ -59,7 +59,8 @@ struct GBuffer {
 // Z-buffered rasterisation of a mesh (per-vertex colours and normals; normals are computed
 // when the mesh has none) or, without faces, of its points. Parallel over bands of rows.
 // Throws Error for a mesh with faces indexing missing vertices.
-GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterOptions& options = {});
+GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera,
+                      const RasterOptions& options = {});
 
 // The raw textured-mesh render composited over a background (CV_32FC3 BGR in [0, 1], or empty
 // for black) by the mask's coverage: what the reconstruction alone shows a camera.
@@ -69,8 +70,8 @@ cv::Mat CompositeRawRender(const GBuffer& buffers, const cv::Mat& background);
 // The network
 
 struct UNetConfig {
-  int width = 24;        // channels of the first level (doubled per level, capped at 8x)
-  int depth = 4;         // levels (each halves the resolution; inputs are padded to 2^depth)
+  int width = 24;  // channels of the first level (doubled per level, capped at 8x)
+  int depth = 4;   // levels (each halves the resolution; inputs are padded to 2^depth)
   nlohmann::json ToJson() const;
   static UNetConfig FromJson(const nlohmann::json& json);
   void Check() const;
@@ -111,12 +112,12 @@ struct RerenderOptions {
 
   // Cameras. The colour cameras are split three ways: the reconstruction's, the witnesses
   // (the network trains on them) and the held-out ones (measurement only).
-  int witness_cameras = 2;              // spread around the rig
-  int heldout_cameras = 1;              // spread around the rig
-  std::vector<std::string> witness;     // by name (overrides witness_cameras)
-  std::vector<std::string> heldout;     // by name (overrides heldout_cameras)
-  TakeSelection take;                   // frame sets, clean plate and cameras (core/take_plan.h);
-                                        // the folds' reconstructions use the same
+  int witness_cameras = 2;           // spread around the rig
+  int heldout_cameras = 1;           // spread around the rig
+  std::vector<std::string> witness;  // by name (overrides witness_cameras)
+  std::vector<std::string> heldout;  // by name (overrides heldout_cameras)
+  TakeSelection take;                // frame sets, clean plate and cameras (core/take_plan.h);
+                                     // the folds' reconstructions use the same
 
   // The reconstruction, built from the other cameras into MODEL/recon (or taken from
   // `recon_dir` when given: it must then not have used the witnesses).
@@ -126,9 +127,9 @@ struct RerenderOptions {
   // The network trains on the witnesses of every fold, each through the reconstruction that
   // never saw it, so it sees more viewpoints of what a reconstruction gets wrong. Held-out
   // measurement and playback use the first fold's reconstruction.
-  int witness_folds = 3;                // folds in all (fewer when the cameras run out); further
-                                        // witnesses are picked spread around among the cameras
-                                        // not yet a witness; 1: the first set only
+  int witness_folds = 3;  // folds in all (fewer when the cameras run out); further
+                          // witnesses are picked spread around among the cameras
+                          // not yet a witness; 1: the first set only
   std::vector<std::vector<std::string>> fold_witness;  // by name, the folds after the first
                                                        // (overrides witness_folds)
   std::vector<std::filesystem::path> fold_recon_dirs;  // their reconstructions, when given
@@ -141,47 +142,48 @@ struct RerenderOptions {
   ReconstructionOptions reconstruction;
 
   // Data.
-  int image_width = 160;                // training/evaluation width (cameras rescaled); 0: native
-  int supersample = 2;                  // raster samples per pixel along each axis, averaged
-                                        // (the raw render too; the model keeps it and playback
-                                        // rasterises alike): 1 samples pixel centres only,
-                                        // whose aliased edges the network would learn to smooth
-  std::vector<double> witness_scales = {1.0};  // the witnesses are also trained on at these
-                                        // fractions of the training width (rasterised anew,
-                                        // their images area-averaged): a view asked for with
-                                        // a shorter lens or from farther away sees the subject
-                                        // smaller than any witness did; must include 1;
-                                        // training crops are at most the smallest such image
+  int image_width = 160;  // training/evaluation width (cameras rescaled); 0: native
+  int supersample = 2;    // raster samples per pixel along each axis, averaged
+                          // (the raw render too; the model keeps it and playback
+                          // rasterises alike): 1 samples pixel centres only,
+                          // whose aliased edges the network would learn to smooth
+  std::vector<double> witness_scales = {
+      1.0};  // the witnesses are also trained on at these
+             // fractions of the training width (rasterised anew,
+             // their images area-averaged): a view asked for with
+             // a shorter lens or from farther away sees the subject
+             // smaller than any witness did; must include 1;
+             // training crops are at most the smallest such image
 
   // Optimisation.
-  double minutes = 3;                   // wall-clock budget
-  int64_t iterations = 0;               // > 0: stop after this many (whichever first)
-  int batch_pairs = 2;                  // pairs of consecutive frames (same camera, same crop)
-  int crop_px = 64;                     // square training crops centred on a pixel near the
-                                        // subject (rounded up to a multiple of 2^depth, at
-                                        // most the image): the network learns where the
-                                        // reconstruction is, not on empty background; 0:
-                                        // whole images
-  double learning_rate = 3e-4;          // Adam, decayed to a tenth over the budget (cosine)
+  double minutes = 3;           // wall-clock budget
+  int64_t iterations = 0;       // > 0: stop after this many (whichever first)
+  int batch_pairs = 2;          // pairs of consecutive frames (same camera, same crop)
+  int crop_px = 64;             // square training crops centred on a pixel near the
+                                // subject (rounded up to a multiple of 2^depth, at
+                                // most the image): the network learns where the
+                                // reconstruction is, not on empty background; 0:
+                                // whole images
+  double learning_rate = 3e-4;  // Adam, decayed to a tenth over the budget (cosine)
   double l1_weight = 1;
-  double ssim_weight = 0.5;             // 1 - SSIM averaged over three scales
-  double subject_weight = 4;            // loss weight of pixels near the rendered subject (the
-                                        // rest, mostly background, weighs 1)
-  double alpha_weight = 1;              // L1 of alpha against the witness's own silhouette
-                                        // (the reconstruction's silhouette options on the
-                                        // witness image; background subtraction needs a clean
-                                        // plate): the subject is drawn opaque where the
-                                        // witness saw it, and only there; 0: off
-  double temporal_weight = 8;           // L1 of (output change - truth change) between frames (8-32 beat
-                                        // 0.5-2 on held-out cameras of a holed reconstruction)
-  double gan_weight = 0;                // > 0: adds a PatchGAN discriminator (LSGAN)
+  double ssim_weight = 0.5;    // 1 - SSIM averaged over three scales
+  double subject_weight = 4;   // loss weight of pixels near the rendered subject (the
+                               // rest, mostly background, weighs 1)
+  double alpha_weight = 1;     // L1 of alpha against the witness's own silhouette
+                               // (the reconstruction's silhouette options on the
+                               // witness image; background subtraction needs a clean
+                               // plate): the subject is drawn opaque where the
+                               // witness saw it, and only there; 0: off
+  double temporal_weight = 8;  // L1 of (output change - truth change) between frames (8-32 beat
+                               // 0.5-2 on held-out cameras of a holed reconstruction)
+  double gan_weight = 0;       // > 0: adds a PatchGAN discriminator (LSGAN)
   uint64_t seed = 1;
 
   // Bookkeeping.
-  double eval_every_s = 15;             // held-out PSNR/SSIM every this many seconds
-  int threads = 0;                      // 0: all cores
+  double eval_every_s = 15;  // held-out PSNR/SSIM every this many seconds
+  int threads = 0;           // 0: all cores
 
-  void Check() const;                   // throws Error naming the bad field and why
+  void Check() const;  // throws Error naming the bad field and why
   nlohmann::json ToJson() const;
 };
 
@@ -191,14 +193,14 @@ struct RerenderOptions {
 struct RerenderSummary : Summary {
   nlohmann::json plan;
   int64_t iterations = 0;
-  double seconds = 0;                   // training wall time
-  double first_loss = 0, last_loss = 0; // means over the first and last iterations
+  double seconds = 0;                    // training wall time
+  double first_loss = 0, last_loss = 0;  // means over the first and last iterations
   // Held-out cameras over every trained frame, whole images over the clean plate.
   double heldout_psnr_db = 0, raw_render_psnr_db = 0;
   double heldout_ssim = 0, raw_render_ssim = 0;
   // Early stopping: the validation witnesses' best PSNR, its iteration, and their raw render's.
   double validation_psnr_db = 0, validation_raw_psnr_db = 0;
-  int64_t kept_iteration = -1;          // the weights kept (-1: the last ones)
+  int64_t kept_iteration = -1;  // the weights kept (-1: the last ones)
   // The same, on the pixels near the subject only.
   double heldout_psnr_subject_db = 0, raw_render_psnr_subject_db = 0;
   // The background alone (clean plate, or black) on the same frames: what an output that
@@ -212,12 +214,13 @@ struct RerenderSummary : Summary {
 
 // Trains a rerendering model on a take into `model_dir` (model.json, unet.pt, cameras/,
 // recon/, report.json, and heldout.png: truth, raw render and rerendered view side by side
-// for the first held-out camera's middle frame). `report` receives options, plan, metrics (heldout_psnr_db,
-// raw_render_psnr_db, background_psnr_db, heldout_ssim, raw_render_ssim, flicker) and the series heldout_psnr_db,
-// heldout_ssim and loss. Throws Error for bad options or a take that cannot be used (no
-// cameras, too few colour cameras for the split, no frames); numerical trouble (a diverging
-// loss, a reconstruction that failed) is reported in the summary.
-RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::filesystem::path& model_dir,
+// for the first held-out camera's middle frame). `report` receives options, plan, metrics
+// (heldout_psnr_db, raw_render_psnr_db, background_psnr_db, heldout_ssim, raw_render_ssim, flicker)
+// and the series heldout_psnr_db, heldout_ssim and loss. Throws Error for bad options or a take
+// that cannot be used (no cameras, too few colour cameras for the split, no frames); numerical
+// trouble (a diverging loss, a reconstruction that failed) is reported in the summary.
+RerenderSummary TrainRerender(const std::filesystem::path& take_dir,
+                              const std::filesystem::path& model_dir,
                               const RerenderOptions& options, Report* report = nullptr);
 
 // Adds the "rerender" kind to OpenModel() (idempotent).

@@ -3,8 +3,8 @@
 
 #include <algorithm>
 #include <chrono>
-#include <cstring>
 #include <cmath>
+#include <cstring>
 #include <limits>
 #include <map>
 #include <mutex>
@@ -19,7 +19,9 @@ namespace neural {
 
 namespace {
 
-int LevelChannels(const UNetConfig& config, int level) { return config.width << std::min(level, 3); }
+int LevelChannels(const UNetConfig& config, int level) {
+  return config.width << std::min(level, 3);
+}
 
 // Alpha of an uncovered pixel at the start, and 1 minus that of a fully covered one: sigmoid(-6).
 const double kAlphaFloor = 1 / (1 + std::exp(6.0));
@@ -37,13 +39,16 @@ torch::nn::Sequential DoubleConv(int in, int out) {
 UNetImpl::UNetImpl(const UNetConfig& config) {
   for (int level = 0; level <= config.depth; ++level) {
     const int in = level == 0 ? kRerenderInputChannels : LevelChannels(config, level - 1);
-    down_.push_back(register_module("down" + std::to_string(level), DoubleConv(in, LevelChannels(config, level))));
+    down_.push_back(register_module("down" + std::to_string(level),
+                                    DoubleConv(in, LevelChannels(config, level))));
   }
   for (int level = config.depth - 1; level >= 0; --level) {
     const int in = LevelChannels(config, level + 1) + LevelChannels(config, level);
-    up_.push_back(register_module("up" + std::to_string(level), DoubleConv(in, LevelChannels(config, level))));
+    up_.push_back(register_module("up" + std::to_string(level),
+                                  DoubleConv(in, LevelChannels(config, level))));
   }
-  head_ = register_module("head", torch::nn::Conv2d(torch::nn::Conv2dOptions(LevelChannels(config, 0), 4, 1)));
+  head_ = register_module(
+      "head", torch::nn::Conv2d(torch::nn::Conv2dOptions(LevelChannels(config, 0), 4, 1)));
   // The untrained network passes the raw render through (see DecodeRerender).
   torch::NoGradGuard no_grad;
   head_->weight.zero_();
@@ -68,7 +73,9 @@ torch::Tensor UNetImpl::forward(const torch::Tensor& features) {
 
 torch::Tensor ImageToTensor(const cv::Mat& image) {
   cv::Mat contiguous = image.isContinuous() ? image : image.clone();
-  return torch::from_blob(contiguous.data, {contiguous.rows, contiguous.cols, contiguous.channels()}, torch::kFloat32)
+  return torch::from_blob(contiguous.data,
+                          {contiguous.rows, contiguous.cols, contiguous.channels()},
+                          torch::kFloat32)
       .permute({2, 0, 1})
       .clone();
 }
@@ -105,10 +112,12 @@ torch::Tensor RerenderFeatures(const GBuffer& buffers) {
   }
   cv::Mat relative(height, width, CV_32F, cv::Scalar(0));
   cv::Mat coverage(height, width, CV_32F, cv::Scalar(0));
-  cv::Mat color(height, width, CV_32FC3, cv::Scalar::all(0)), normal(height, width, CV_32FC3, cv::Scalar::all(0));
+  cv::Mat color(height, width, CV_32FC3, cv::Scalar::all(0)),
+      normal(height, width, CV_32FC3, cv::Scalar::all(0));
   // World position about the per-axis median of the covered pixels: the body's layout
   // (legs below, head above) without the subject's place on the stage.
-  const bool has_position = buffers.position.size() == buffers.color.size() && buffers.position.type() == CV_32FC3;
+  const bool has_position =
+      buffers.position.size() == buffers.color.size() && buffers.position.type() == CV_32FC3;
   cv::Mat position(height, width, CV_32FC3, cv::Scalar::all(0));
   cv::Vec3f position_median(0, 0, 0);
   if (has_position) {
@@ -130,7 +139,8 @@ torch::Tensor RerenderFeatures(const GBuffer& buffers) {
     for (int x = 0; x < width; ++x) {
       if (!valid.at<uint8_t>(y, x)) continue;
       relative.at<float>(y, x) = std::clamp(depth.at<float>(y, x) - median, -1.0f, 1.0f);
-      coverage.at<float>(y, x) = valid.at<uint8_t>(y, x) / 255.0f;  // the covered fraction when supersampled
+      coverage.at<float>(y, x) =
+          valid.at<uint8_t>(y, x) / 255.0f;  // the covered fraction when supersampled
       cv::Vec3f c = buffers.color.at<cv::Vec3f>(y, x), n = buffers.normal.at<cv::Vec3f>(y, x);
       for (int k = 0; k < 3; ++k) {
         c[k] = std::isfinite(c[k]) ? std::clamp(c[k], 0.0f, 1.0f) : 0.0f;
@@ -140,33 +150,38 @@ torch::Tensor RerenderFeatures(const GBuffer& buffers) {
       normal.at<cv::Vec3f>(y, x) = n;
       if (has_position) {
         cv::Vec3f p = buffers.position.at<cv::Vec3f>(y, x) - position_median;
-        for (int k = 0; k < 3; ++k) p[k] = std::isfinite(p[k]) ? std::clamp(p[k], -1.5f, 1.5f) : 0.0f;
+        for (int k = 0; k < 3; ++k)
+          p[k] = std::isfinite(p[k]) ? std::clamp(p[k], -1.5f, 1.5f) : 0.0f;
         position.at<cv::Vec3f>(y, x) = p;
       }
     }
   }
-  return torch::cat({ImageToTensor(color), ImageToTensor(coverage), ImageToTensor(normal), ImageToTensor(relative),
-                     ImageToTensor(position)},
+  return torch::cat({ImageToTensor(color), ImageToTensor(coverage), ImageToTensor(normal),
+                     ImageToTensor(relative), ImageToTensor(position)},
                     0);
 }
 
 torch::Tensor PadToMultiple(const torch::Tensor& x, int multiple) {
   const int64_t h = x.size(-2), w = x.size(-1);
-  const int64_t pad_h = (multiple - h % multiple) % multiple, pad_w = (multiple - w % multiple) % multiple;
+  const int64_t pad_h = (multiple - h % multiple) % multiple,
+                pad_w = (multiple - w % multiple) % multiple;
   if (pad_h == 0 && pad_w == 0) return x;
   return torch::constant_pad_nd(x, {0, pad_w, 0, pad_h}, 0);
 }
 
-std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw, const torch::Tensor& features) {
+std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw,
+                                                       const torch::Tensor& features) {
   using torch::indexing::Slice;
   const torch::Tensor color = features.index({Slice(), Slice(0, 3)}).clamp(0.02, 0.98);
   const torch::Tensor coverage = features.index({Slice(), Slice(3, 4)});
-  torch::Tensor rgb = torch::sigmoid(raw.index({Slice(), Slice(0, 3)}) + torch::log(color / (1 - color)));
+  torch::Tensor rgb =
+      torch::sigmoid(raw.index({Slice(), Slice(0, 3)}) + torch::log(color / (1 - color)));
   // Alpha starts as the coverage (the covered fraction of a supersampled pixel, as the raw render
   // composites it; kept off 0 and 1 by sigmoid(+-6)). The correction is bounded (tanh): alpha can
   // be overruled, but never pushed so far into the sigmoid's flat tails that its gradient vanishes.
   const torch::Tensor start = coverage.clamp(kAlphaFloor, 1 - kAlphaFloor);
-  torch::Tensor alpha = torch::sigmoid(10 * torch::tanh(raw.index({Slice(), Slice(3, 4)}) / 10) + torch::log(start / (1 - start)));
+  torch::Tensor alpha = torch::sigmoid(10 * torch::tanh(raw.index({Slice(), Slice(3, 4)}) / 10) +
+                                       torch::log(start / (1 - start)));
   return {rgb, alpha};
 }
 
@@ -187,7 +202,9 @@ class RerenderModel : public AvatarModel {
       meshes_.push_back(file.is_absolute() ? file : dir / file);
     }
     if (meshes_.empty()) Fail(dir.string(), "/model.json lists no meshes");
-    for (const auto& name : json.at("cameras")) cameras_.push_back(CameraModel::Read(dir / "cameras" / (name.get<std::string>() + ".cameramodel")));
+    for (const auto& name : json.at("cameras"))
+      cameras_.push_back(
+          CameraModel::Read(dir / "cameras" / (name.get<std::string>() + ".cameramodel")));
     box_min_ = Eigen::Vector3d(json.at("box_min")[0], json.at("box_min")[1], json.at("box_min")[2]);
     box_max_ = Eigen::Vector3d(json.at("box_max")[0], json.at("box_max")[1], json.at("box_max")[2]);
   }
@@ -197,7 +214,8 @@ class RerenderModel : public AvatarModel {
   Eigen::Vector3d box_max() const override { return box_max_; }
   std::vector<CameraModel> cameras() const override { return cameras_; }
 
-  RenderedView Render(const CameraModel& camera, int64_t frame, const ViewRenderOptions& options) override {
+  RenderedView Render(const CameraModel& camera, int64_t frame,
+                      const ViewRenderOptions& options) override {
     const auto start = std::chrono::steady_clock::now();
     frame = std::clamp<int64_t>(frame, 0, frame_count() - 1);
     if (frame != cached_frame_) {
@@ -243,7 +261,8 @@ void UNetConfig::Check() const {
 
 RerenderNetwork::RerenderNetwork(std::unique_ptr<State> state) : state_(std::move(state)) {}
 
-RerenderNetwork::RerenderNetwork(const UNetConfig& config, uint64_t seed) : state_(std::make_unique<State>()) {
+RerenderNetwork::RerenderNetwork(const UNetConfig& config, uint64_t seed)
+    : state_(std::make_unique<State>()) {
   config.Check();
   torch::manual_seed(seed);
   state_->config = config;
@@ -262,8 +281,10 @@ int64_t RerenderNetwork::parameter_count() const {
   return count;
 }
 
-RerenderNetwork RerenderNetwork::Load(const std::filesystem::path& weights, const UNetConfig& config) {
-  if (!std::filesystem::exists(weights)) Fail("rerender weights ", weights.string(), " are missing");
+RerenderNetwork RerenderNetwork::Load(const std::filesystem::path& weights,
+                                      const UNetConfig& config) {
+  if (!std::filesystem::exists(weights))
+    Fail("rerender weights ", weights.string(), " are missing");
   RerenderNetwork network(config, 0);
   try {
     torch::serialize::InputArchive archive;
@@ -288,7 +309,8 @@ RenderedView RerenderNetwork::Apply(const GBuffer& buffers, int threads) const {
   torch::set_num_threads(recon::ResolveThreads(threads));
   state_->net->eval();
   const int height = buffers.color.rows, width = buffers.color.cols;
-  const torch::Tensor features = neural::PadToMultiple(neural::RerenderFeatures(buffers).unsqueeze(0), 1 << config().depth);
+  const torch::Tensor features =
+      neural::PadToMultiple(neural::RerenderFeatures(buffers).unsqueeze(0), 1 << config().depth);
   auto [rgb, alpha] = neural::DecodeRerender(state_->net->forward(features), features);
   using torch::indexing::Slice;
   rgb = rgb.index({0, Slice(), Slice(0, height), Slice(0, width)});

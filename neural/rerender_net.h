@@ -34,7 +34,8 @@ torch::Tensor RerenderFeatures(const GBuffer& buffers);
 torch::Tensor PadToMultiple(const torch::Tensor& x, int multiple);
 // Raw network output and the inputs -> {rgb [B, 3, H, W] in (0, 1), alpha [B, 1, H, W]}:
 // corrections on top of the raw render's colour and coverage.
-std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw, const torch::Tensor& features);
+std::pair<torch::Tensor, torch::Tensor> DecodeRerender(const torch::Tensor& raw,
+                                                       const torch::Tensor& features);
 // A penalty that keeps the raw output where DecodeRerender's sigmoids and bound still pass a
 // gradient (|raw| <= kRawOutputRange): without it, a loss that pushes every pixel one way (a
 // reconstruction mostly phantom volume asks for alpha 0 nearly everywhere) lets Adam's momentum

@@ -20,7 +20,7 @@ namespace {
 struct ScreenTriangle {
   Eigen::Vector2f pixel[3];
   float inv_z[3];
-  Eigen::Vector3f color[3];   // BGR in [0, 1]
+  Eigen::Vector3f color[3];  // BGR in [0, 1]
   Eigen::Vector3f world[3];
   Eigen::Vector3f normal[3];  // camera coordinates
 };
@@ -34,13 +34,16 @@ struct SurfacePoint {
 SurfacePoint Midpoint(const SurfacePoint& a, const SurfacePoint& b) {
   Eigen::Vector3f n = a.normal + b.normal;
   const float norm = n.norm();
-  return {0.5f * (a.world + b.world), 0.5f * (a.color + b.color), norm > 0 ? Eigen::Vector3f(n / norm) : a.normal};
+  return {0.5f * (a.world + b.world), 0.5f * (a.color + b.color),
+          norm > 0 ? Eigen::Vector3f(n / norm) : a.normal};
 }
 
 class TriangleSplitter {
  public:
   TriangleSplitter(const recon::FastProjector& projector, const RasterOptions& options)
-      : projector_(projector), options_(options), rotation_(projector.camera().cam_from_world().rotation().cast<float>()) {}
+      : projector_(projector),
+        options_(options),
+        rotation_(projector.camera().cam_from_world().rotation().cast<float>()) {}
 
   // Emits the pieces of a triangle that are small enough in the image; returns whether the
   // triangle had to be split.
@@ -60,7 +63,8 @@ class TriangleSplitter {
     if (in_front == 0) return false;
     if (valid == 3) {
       float longest = 0;
-      for (int i = 0; i < 3; ++i) longest = std::max(longest, (pixel[i] - pixel[(i + 1) % 3]).norm());
+      for (int i = 0; i < 3; ++i)
+        longest = std::max(longest, (pixel[i] - pixel[(i + 1) % 3]).norm());
       if (longest <= options_.max_edge_px || level >= options_.max_subdivisions) {
         if (!Overlaps(pixel)) return false;
         ScreenTriangle t;
@@ -87,16 +91,20 @@ class TriangleSplitter {
     }
     const SurfacePoint ab = Midpoint(corner[0], corner[1]), bc = Midpoint(corner[1], corner[2]),
                        ca = Midpoint(corner[2], corner[0]);
-    const SurfacePoint pieces[4][3] = {{corner[0], ab, ca}, {ab, corner[1], bc}, {ca, bc, corner[2]}, {ab, bc, ca}};
+    const SurfacePoint pieces[4][3] = {
+        {corner[0], ab, ca}, {ab, corner[1], bc}, {ca, bc, corner[2]}, {ab, bc, ca}};
     for (const auto& piece : pieces) Split(piece, level + 1, out);
     return true;
   }
 
  private:
   bool Overlaps(const Eigen::Vector2f (&p)[3]) const {
-    const float x0 = std::min({p[0].x(), p[1].x(), p[2].x()}), x1 = std::max({p[0].x(), p[1].x(), p[2].x()});
-    const float y0 = std::min({p[0].y(), p[1].y(), p[2].y()}), y1 = std::max({p[0].y(), p[1].y(), p[2].y()});
-    return x1 >= -0.5f && y1 >= -0.5f && x0 <= projector_.width() - 0.5f && y0 <= projector_.height() - 0.5f;
+    const float x0 = std::min({p[0].x(), p[1].x(), p[2].x()}),
+                x1 = std::max({p[0].x(), p[1].x(), p[2].x()});
+    const float y0 = std::min({p[0].y(), p[1].y(), p[2].y()}),
+                y1 = std::max({p[0].y(), p[1].y(), p[2].y()});
+    return x1 >= -0.5f && y1 >= -0.5f && x0 <= projector_.width() - 0.5f &&
+           y0 <= projector_.height() - 0.5f;
   }
 
   const recon::FastProjector& projector_;
@@ -105,13 +113,15 @@ class TriangleSplitter {
 };
 
 // A square splat of `radius` pixels as two triangles at the point's depth.
-void SplatPoint(const recon::FastProjector& projector, const SurfacePoint& point, const Eigen::Matrix3f& rotation,
-                float radius, std::vector<ScreenTriangle>* out) {
+void SplatPoint(const recon::FastProjector& projector, const SurfacePoint& point,
+                const Eigen::Matrix3f& rotation, float radius, std::vector<ScreenTriangle>* out) {
   const Eigen::Vector3f cam = projector.ToCamera(point.world);
   float u, v;
   if (!projector.Project(cam, &u, &v)) return;
-  const Eigen::Vector2f corner[4] = {{u - radius, v - radius}, {u + radius, v - radius},
-                                     {u + radius, v + radius}, {u - radius, v + radius}};
+  const Eigen::Vector2f corner[4] = {{u - radius, v - radius},
+                                     {u + radius, v - radius},
+                                     {u + radius, v + radius},
+                                     {u - radius, v + radius}};
   const Eigen::Vector3f normal = rotation * point.normal;
   for (const auto& [a, b, c] : {std::array<int, 3>{0, 1, 2}, std::array<int, 3>{0, 2, 3}}) {
     ScreenTriangle t;
@@ -171,11 +181,15 @@ GBuffer AverageBlocks(const GBuffer& fine, int s, int width, int height, int thr
 }  // namespace
 
 void RasterOptions::Check() const {
-  if (!(max_edge_px >= 1 && max_edge_px <= 4096)) Fail("raster max_edge_px must be in [1, 4096] (got ", max_edge_px, ")");
-  if (max_subdivisions < 0 || max_subdivisions > 8) Fail("raster max_subdivisions must be in [0, 8] (got ", max_subdivisions, ")");
-  if (!(point_radius_px > 0 && point_radius_px <= 32)) Fail("raster point_radius_px must be in (0, 32] (got ", point_radius_px, ")");
+  if (!(max_edge_px >= 1 && max_edge_px <= 4096))
+    Fail("raster max_edge_px must be in [1, 4096] (got ", max_edge_px, ")");
+  if (max_subdivisions < 0 || max_subdivisions > 8)
+    Fail("raster max_subdivisions must be in [0, 8] (got ", max_subdivisions, ")");
+  if (!(point_radius_px > 0 && point_radius_px <= 32))
+    Fail("raster point_radius_px must be in (0, 32] (got ", point_radius_px, ")");
   if (threads < 0) Fail("raster threads must be >= 0 (0: all cores)");
-  if (supersample < 1 || supersample > 4) Fail("raster supersample must be in [1, 4] (got ", supersample, ")");
+  if (supersample < 1 || supersample > 4)
+    Fail("raster supersample must be in [1, 4] (got ", supersample, ")");
 }
 
 GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterOptions& options) {
@@ -188,14 +202,18 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
     fine.supersample = 1;
     fine.max_edge_px = options.max_edge_px * s;
     fine.point_radius_px = options.point_radius_px * s;
-    return AverageBlocks(RasteriseMesh(mesh, camera.Scaled(s), fine), s, width, height, recon::ResolveThreads(options.threads));
+    return AverageBlocks(RasteriseMesh(mesh, camera.Scaled(s), fine), s, width, height,
+                         recon::ResolveThreads(options.threads));
   }
   const int64_t vertex_count = static_cast<int64_t>(mesh.vertices.size());
   for (const auto& f : mesh.faces) {
-    if (f.minCoeff() < 0 || f.maxCoeff() >= vertex_count) Fail("rasterise: a face indexes a vertex the mesh does not have");
+    if (f.minCoeff() < 0 || f.maxCoeff() >= vertex_count)
+      Fail("rasterise: a face indexes a vertex the mesh does not have");
   }
-  if (!mesh.colors.empty() && mesh.colors.size() != mesh.vertices.size()) Fail("rasterise: colours do not match vertices");
-  if (!mesh.normals.empty() && mesh.normals.size() != mesh.vertices.size()) Fail("rasterise: normals do not match vertices");
+  if (!mesh.colors.empty() && mesh.colors.size() != mesh.vertices.size())
+    Fail("rasterise: colours do not match vertices");
+  if (!mesh.normals.empty() && mesh.normals.size() != mesh.vertices.size())
+    Fail("rasterise: normals do not match vertices");
 
   Mesh with_normals;
   const Mesh* source = &mesh;
@@ -211,10 +229,13 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
     SurfacePoint p;
     p.world = source->vertices[i];
     p.color = source->colors.empty() ? Eigen::Vector3f(0.5f, 0.5f, 0.5f)
-                                     : Eigen::Vector3f(source->colors[i][2], source->colors[i][1], source->colors[i][0]) / 255.0f;
+                                     : Eigen::Vector3f(source->colors[i][2], source->colors[i][1],
+                                                       source->colors[i][0]) /
+                                           255.0f;
     // Points without normals face the camera.
-    p.normal = source->normals.empty() ? Eigen::Vector3f(rotation.transpose() * Eigen::Vector3f(0, 0, -1))
-                                       : source->normals[i];
+    p.normal = source->normals.empty()
+                   ? Eigen::Vector3f(rotation.transpose() * Eigen::Vector3f(0, 0, -1))
+                   : source->normals[i];
     return p;
   };
 
@@ -222,15 +243,18 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
   // order, so equal depths resolve the same way on every run.
   std::vector<std::vector<ScreenTriangle>> per_thread(threads);
   int64_t split = 0;
-  const int64_t primitives = mesh.faces.empty() ? vertex_count : static_cast<int64_t>(mesh.faces.size());
+  const int64_t primitives =
+      mesh.faces.empty() ? vertex_count : static_cast<int64_t>(mesh.faces.size());
 #pragma omp parallel for num_threads(threads) schedule(static) reduction(+ : split)
   for (int64_t i = 0; i < primitives; ++i) {
     auto& out = per_thread[omp_get_thread_num()];
     if (mesh.faces.empty()) {
-      SplatPoint(projector, surface_point(static_cast<int>(i)), rotation, static_cast<float>(options.point_radius_px), &out);
+      SplatPoint(projector, surface_point(static_cast<int>(i)), rotation,
+                 static_cast<float>(options.point_radius_px), &out);
     } else {
       const auto& f = mesh.faces[i];
-      const SurfacePoint corner[3] = {surface_point(f.x()), surface_point(f.y()), surface_point(f.z())};
+      const SurfacePoint corner[3] = {surface_point(f.x()), surface_point(f.y()),
+                                      surface_point(f.z())};
       if (TriangleSplitter(projector, options).Split(corner, 0, &out)) ++split;
     }
   }
@@ -253,9 +277,11 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
   std::vector<std::vector<int32_t>> binned(bands);
   for (size_t i = 0; i < triangles.size(); ++i) {
     const auto& p = triangles[i].pixel;
-    const float y0 = std::min({p[0].y(), p[1].y(), p[2].y()}), y1 = std::max({p[0].y(), p[1].y(), p[2].y()});
+    const float y0 = std::min({p[0].y(), p[1].y(), p[2].y()}),
+                y1 = std::max({p[0].y(), p[1].y(), p[2].y()});
     const int first = std::max(0, static_cast<int>(std::ceil(y0)) / band_rows);
-    const int last = std::min(bands - 1, static_cast<int>(std::floor(std::min(y1, height - 1.0f))) / band_rows);
+    const int last =
+        std::min(bands - 1, static_cast<int>(std::floor(std::min(y1, height - 1.0f))) / band_rows);
     for (int b = first; b <= last; ++b) binned[b].push_back(static_cast<int32_t>(i));
   }
 
@@ -269,9 +295,11 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
       const float area = (b - a).x() * (c - a).y() - (b - a).y() * (c - a).x();
       if (std::abs(area) < 1e-12f) continue;
       const int x0 = std::max(0, static_cast<int>(std::ceil(std::min({a.x(), b.x(), c.x()}))));
-      const int x1 = std::min(width - 1, static_cast<int>(std::floor(std::max({a.x(), b.x(), c.x()}))));
+      const int x1 =
+          std::min(width - 1, static_cast<int>(std::floor(std::max({a.x(), b.x(), c.x()}))));
       const int y0 = std::max(row0, static_cast<int>(std::ceil(std::min({a.y(), b.y(), c.y()}))));
-      const int y1 = std::min(row1 - 1, static_cast<int>(std::floor(std::max({a.y(), b.y(), c.y()}))));
+      const int y1 =
+          std::min(row1 - 1, static_cast<int>(std::floor(std::max({a.y(), b.y(), c.y()}))));
       for (int y = y0; y <= y1; ++y) {
         float* best = &inv_z_best[static_cast<size_t>(y - row0) * width];
         for (int x = x0; x <= x1; ++x) {
@@ -284,7 +312,8 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
           const float inv_z = w0 * t.inv_z[0] + w1 * t.inv_z[1] + w2 * t.inv_z[2];
           if (!(inv_z > best[x])) continue;
           best[x] = inv_z;
-          const float p0 = w0 * t.inv_z[0] / inv_z, p1 = w1 * t.inv_z[1] / inv_z, p2 = w2 * t.inv_z[2] / inv_z;
+          const float p0 = w0 * t.inv_z[0] / inv_z, p1 = w1 * t.inv_z[1] / inv_z,
+                      p2 = w2 * t.inv_z[2] / inv_z;
           const Eigen::Vector3f color = p0 * t.color[0] + p1 * t.color[1] + p2 * t.color[2];
           const Eigen::Vector3f world = p0 * t.world[0] + p1 * t.world[1] + p2 * t.world[2];
           Eigen::Vector3f normal = p0 * t.normal[0] + p1 * t.normal[1] + p2 * t.normal[2];
@@ -303,17 +332,19 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
 }
 
 cv::Mat CompositeRawRender(const GBuffer& buffers, const cv::Mat& background) {
-  cv::Mat out = background.empty() ? cv::Mat(buffers.color.size(), CV_32FC3, cv::Scalar::all(0)) : background.clone();
+  cv::Mat out = background.empty() ? cv::Mat(buffers.color.size(), CV_32FC3, cv::Scalar::all(0))
+                                   : background.clone();
   if (out.size() != buffers.color.size() || out.type() != CV_32FC3) {
-    Fail("raw render: the background is ", out.cols, "x", out.rows, " but the buffers are ", buffers.color.cols, "x",
-         buffers.color.rows, " (both must be CV_32FC3)");
+    Fail("raw render: the background is ", out.cols, "x", out.rows, " but the buffers are ",
+         buffers.color.cols, "x", buffers.color.rows, " (both must be CV_32FC3)");
   }
   for (int y = 0; y < out.rows; ++y) {
     for (int x = 0; x < out.cols; ++x) {
       const uint8_t m = buffers.mask.at<uint8_t>(y, x);
       if (m == 0) continue;
       const float a = m / 255.0f;
-      out.at<cv::Vec3f>(y, x) = a * buffers.color.at<cv::Vec3f>(y, x) + (1 - a) * out.at<cv::Vec3f>(y, x);
+      out.at<cv::Vec3f>(y, x) =
+          a * buffers.color.at<cv::Vec3f>(y, x) + (1 - a) * out.at<cv::Vec3f>(y, x);
     }
   }
   return out;

@@ -35,20 +35,24 @@ double Seconds(std::chrono::steady_clock::time_point since) {
 
 // A copy of the take's manifest in which the named cameras are witnesses (reconstruction uses
 // colour and depth sensors only); frames, index, calibration and ground truth are linked.
-void WriteWitnessView(const Take& take, const std::set<std::string>& witnesses, const std::filesystem::path& dir) {
+void WriteWitnessView(const Take& take, const std::set<std::string>& witnesses,
+                      const std::filesystem::path& dir) {
   std::filesystem::remove_all(dir);
   std::filesystem::create_directories(dir);
   nlohmann::json manifest = nlohmann::json::parse(ReadFileToString(take.dir() / "take.json"));
   auto mark = [&](nlohmann::json& list) {
     for (auto& sensor : list) {
-      if (sensor.contains("name") && witnesses.count(sensor["name"].get<std::string>())) sensor["role"] = "witness";
+      if (sensor.contains("name") && witnesses.count(sensor["name"].get<std::string>()))
+        sensor["role"] = "witness";
     }
   };
   if (manifest.contains("streams")) mark(manifest["streams"]);
-  if (manifest.contains("rig") && manifest["rig"].contains("sensors")) mark(manifest["rig"]["sensors"]);
+  if (manifest.contains("rig") && manifest["rig"].contains("sensors"))
+    mark(manifest["rig"]["sensors"]);
   WriteFileAtomic(dir / "take.json", manifest.dump(2));
   const std::string index = manifest.value("index", std::string("index.jsonl"));
-  for (const std::string& entry : {std::string("frames"), std::string("calib"), std::string("gt"), index}) {
+  for (const std::string& entry :
+       {std::string("frames"), std::string("calib"), std::string("gt"), index}) {
     const auto target = std::filesystem::absolute(take.dir() / entry);
     if (std::filesystem::exists(target)) std::filesystem::create_symlink(target, dir / entry);
   }
@@ -77,10 +81,13 @@ torch::Tensor MultiScaleSsim(torch::Tensor a, torch::Tensor b) {
 
 // A PatchGAN discriminator (Isola et al. 2017): real/fake per 16x16 patch.
 torch::nn::Sequential PatchDiscriminator() {
-  auto lrelu = [] { return torch::nn::LeakyReLU(torch::nn::LeakyReLUOptions().negative_slope(0.2)); };
-  return torch::nn::Sequential(torch::nn::Conv2d(torch::nn::Conv2dOptions(3, 32, 4).stride(2).padding(1)), lrelu(),
-                               torch::nn::Conv2d(torch::nn::Conv2dOptions(32, 64, 4).stride(2).padding(1)), lrelu(),
-                               torch::nn::Conv2d(torch::nn::Conv2dOptions(64, 1, 3).padding(1)));
+  auto lrelu = [] {
+    return torch::nn::LeakyReLU(torch::nn::LeakyReLUOptions().negative_slope(0.2));
+  };
+  return torch::nn::Sequential(
+      torch::nn::Conv2d(torch::nn::Conv2dOptions(3, 32, 4).stride(2).padding(1)), lrelu(),
+      torch::nn::Conv2d(torch::nn::Conv2dOptions(32, 64, 4).stride(2).padding(1)), lrelu(),
+      torch::nn::Conv2d(torch::nn::Conv2dOptions(64, 1, 3).padding(1)));
 }
 
 // Weight of neural::RawOutputPenalty: small, so that it is felt only once the output leaves its
@@ -96,11 +103,15 @@ struct SubjectScores {
   bool near = false;
   double shown = 0, background = 0, raw = 0;
   // Within kErasedMarginDb of the background alone: no more of the subject than no subject.
-  bool shows_none() const { return std::isfinite(shown) && std::isfinite(background) && shown <= background + kErasedMarginDb; }
+  bool shows_none() const {
+    return std::isfinite(shown) && std::isfinite(background) &&
+           shown <= background + kErasedMarginDb;
+  }
 };
 SubjectScores ScoresNearSubject(const RerenderSummary& s) {
   SubjectScores scores;
-  scores.near = std::isfinite(s.heldout_psnr_subject_db) && std::isfinite(s.background_psnr_subject_db);
+  scores.near =
+      std::isfinite(s.heldout_psnr_subject_db) && std::isfinite(s.background_psnr_subject_db);
   scores.shown = scores.near ? s.heldout_psnr_subject_db : s.heldout_psnr_db;
   scores.background = scores.near ? s.background_psnr_subject_db : s.background_psnr_db;
   scores.raw = scores.near ? s.raw_render_psnr_subject_db : s.raw_render_psnr_db;
@@ -110,19 +121,19 @@ SubjectScores ScoresNearSubject(const RerenderSummary& s) {
 // One camera at the training resolution, over every frame.
 struct CameraData {
   std::string name;
-  CameraModel camera;             // native
-  CameraModel scaled;             // training resolution
-  torch::Tensor features;         // [F, 8, Hp, Wp] padded
-  torch::Tensor truth;            // [F, 3, Hp, Wp] BGR in [0, 1]
-  torch::Tensor background;       // [1, 3, Hp, Wp]
-  torch::Tensor weight;           // [F, 1, Hp, Wp] loss weights (subject favoured)
-  torch::Tensor alpha_target;     // [F, 1, Hp, Wp] the camera's own silhouette (witnesses), or
-                                  // undefined without one
+  CameraModel camera;          // native
+  CameraModel scaled;          // training resolution
+  torch::Tensor features;      // [F, 8, Hp, Wp] padded
+  torch::Tensor truth;         // [F, 3, Hp, Wp] BGR in [0, 1]
+  torch::Tensor background;    // [1, 3, Hp, Wp]
+  torch::Tensor weight;        // [F, 1, Hp, Wp] loss weights (subject favoured)
+  torch::Tensor alpha_target;  // [F, 1, Hp, Wp] the camera's own silhouette (witnesses), or
+                               // undefined without one
   std::vector<cv::Mat> truth_images, raw_images, subject_masks;  // unpadded
-  cv::Mat background_image;                                       // unpadded
+  cv::Mat background_image;                                      // unpadded
   std::vector<std::vector<int32_t>> subject_pixels;  // per frame, y * width + x near the subject
   int height = 0, width = 0;
-  bool witness = false;           // trained on (else held out for measurement)
+  bool witness = false;  // trained on (else held out for measurement)
 };
 
 cv::Mat ToFloatImage(const cv::Mat& image, const cv::Size& size) {
@@ -148,7 +159,8 @@ cv::Mat ToEightBitColor(const cv::Mat& image) {
 }
 
 // The composite over the background [B, 3, H, W].
-torch::Tensor Composite(const torch::Tensor& rgb, const torch::Tensor& alpha, const torch::Tensor& background) {
+torch::Tensor Composite(const torch::Tensor& rgb, const torch::Tensor& alpha,
+                        const torch::Tensor& background) {
   return rgb * alpha + background * (1 - alpha);
 }
 
@@ -158,7 +170,8 @@ struct Evaluation {
 };
 
 // Mean |frame-to-frame change| relative to the truth's, and mean |change - truth's change|.
-void Flicker(const std::vector<cv::Mat>& images, const std::vector<cv::Mat>& truth, Evaluation* evaluation) {
+void Flicker(const std::vector<cv::Mat>& images, const std::vector<cv::Mat>& truth,
+             Evaluation* evaluation) {
   double change = 0, truth_change = 0, excess = 0;
   for (size_t f = 1; f < images.size(); ++f) {
     const cv::Mat d = images[f] - images[f - 1], t = truth[f] - truth[f - 1];
@@ -166,12 +179,17 @@ void Flicker(const std::vector<cv::Mat>& images, const std::vector<cv::Mat>& tru
     truth_change += cv::norm(t, cv::NORM_L1);
     excess += cv::norm(d - t, cv::NORM_L1);
   }
-  const double pixels = images.empty() ? 1.0 : static_cast<double>(images[0].total() * 3 * std::max<size_t>(1, images.size() - 1));
-  evaluation->flicker_ratio = truth_change > 0 ? change / truth_change : std::numeric_limits<double>::quiet_NaN();
+  const double pixels =
+      images.empty()
+          ? 1.0
+          : static_cast<double>(images[0].total() * 3 * std::max<size_t>(1, images.size() - 1));
+  evaluation->flicker_ratio =
+      truth_change > 0 ? change / truth_change : std::numeric_limits<double>::quiet_NaN();
   evaluation->flicker_excess = excess / pixels;
 }
 
-Evaluation Score(const std::vector<std::vector<cv::Mat>>& images, const std::vector<CameraData*>& cameras) {
+Evaluation Score(const std::vector<std::vector<cv::Mat>>& images,
+                 const std::vector<CameraData*>& cameras) {
   Evaluation e;
   double mse = 0, mse_subject = 0;
   int64_t count = 0, count_subject = 0, views = 0;
@@ -181,7 +199,8 @@ Evaluation Score(const std::vector<std::vector<cv::Mat>>& images, const std::vec
       diff = diff.mul(diff);
       mse += cv::sum(diff).dot(cv::Scalar::all(1));
       count += static_cast<int64_t>(diff.total()) * 3;
-      mse_subject += cv::sum(diff.setTo(0, cameras[c]->subject_masks[f] == 0)).dot(cv::Scalar::all(1));
+      mse_subject +=
+          cv::sum(diff.setTo(0, cameras[c]->subject_masks[f] == 0)).dot(cv::Scalar::all(1));
       count_subject += cv::countNonZero(cameras[c]->subject_masks[f]) * 3;
       e.ssim += Ssim(images[c][f], cameras[c]->truth_images[f]);
       ++views;
@@ -210,42 +229,78 @@ void RerenderOptions::Check() const {
     if (!(s >= 0.25 && s <= 2)) Fail("witness scales must be in [0.25, 2] (got ", s, ")");
   }
   if (std::find(witness_scales.begin(), witness_scales.end(), 1.0) == witness_scales.end()) {
-    Fail("witness_scales must include 1 (the training width, where validation and held-out cameras are scored)");
+    Fail(
+        "witness_scales must include 1 (the training width, where validation and held-out cameras "
+        "are scored)");
   }
-  if (witness_folds < 1 || witness_folds > 16) Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
-  for (const auto& fold : fold_witness) if (fold.empty()) Fail("a fold of witnesses cannot be empty");
+  if (witness_folds < 1 || witness_folds > 16)
+    Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
+  for (const auto& fold : fold_witness)
+    if (fold.empty()) Fail("a fold of witnesses cannot be empty");
   if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {
-    Fail(fold_recon_dirs.size(), " fold reconstructions given for ", witness_folds - 1, " further fold(s)");
+    Fail(fold_recon_dirs.size(), " fold reconstructions given for ", witness_folds - 1,
+         " further fold(s)");
   }
-  if (image_width < 0 || (image_width > 0 && image_width < 32)) Fail("image_width must be 0 (native) or >= 32 px (got ", image_width, ")");
+  if (image_width < 0 || (image_width > 0 && image_width < 32))
+    Fail("image_width must be 0 (native) or >= 32 px (got ", image_width, ")");
   take.Check();
-  if (!(minutes > 0) && iterations <= 0) Fail("give a positive time budget (minutes) or an iteration count");
+  if (!(minutes > 0) && iterations <= 0)
+    Fail("give a positive time budget (minutes) or an iteration count");
   if (iterations < 0) Fail("iterations must be >= 0");
-  if (batch_pairs < 1 || batch_pairs > 64) Fail("batch_pairs must be in [1, 64] (got ", batch_pairs, ")");
-  if (crop_px < 0 || (crop_px > 0 && crop_px < 16)) Fail("crop_px must be 0 (whole images) or >= 16 (got ", crop_px, ")");
-  if (!(learning_rate > 0 && learning_rate < 1)) Fail("learning_rate must be in (0, 1) (got ", learning_rate, ")");
+  if (batch_pairs < 1 || batch_pairs > 64)
+    Fail("batch_pairs must be in [1, 64] (got ", batch_pairs, ")");
+  if (crop_px < 0 || (crop_px > 0 && crop_px < 16))
+    Fail("crop_px must be 0 (whole images) or >= 16 (got ", crop_px, ")");
+  if (!(learning_rate > 0 && learning_rate < 1))
+    Fail("learning_rate must be in (0, 1) (got ", learning_rate, ")");
   for (double w : {l1_weight, ssim_weight, temporal_weight, gan_weight}) {
     if (!(w >= 0 && std::isfinite(w))) Fail("loss weights must be finite and >= 0");
   }
   if (!(l1_weight + ssim_weight > 0)) Fail("l1_weight and ssim_weight cannot both be 0");
-  if (!(subject_weight >= 1 && subject_weight <= 100)) Fail("subject_weight must be in [1, 100] (got ", subject_weight, ")");
-  if (!(alpha_weight >= 0 && alpha_weight <= 100)) Fail("alpha_weight must be in [0, 100] (got ", alpha_weight, ")");
+  if (!(subject_weight >= 1 && subject_weight <= 100))
+    Fail("subject_weight must be in [1, 100] (got ", subject_weight, ")");
+  if (!(alpha_weight >= 0 && alpha_weight <= 100))
+    Fail("alpha_weight must be in [0, 100] (got ", alpha_weight, ")");
   if (!(eval_every_s > 0)) Fail("eval_every_s must be > 0");
   if (threads < 0) Fail("threads must be >= 0 (0: all cores)");
   reconstruction.Check();
 }
 
 nlohmann::json RerenderOptions::ToJson() const {
-  return {{"net", net.ToJson()}, {"witness_cameras", witness_cameras}, {"heldout_cameras", heldout_cameras},
-          {"witness", witness}, {"heldout", heldout}, {"take", take.ToJson()},
-          {"recon_dir", recon_dir.string()}, {"witness_folds", witness_folds}, {"validation_witnesses", validation_witnesses}, {"fold_witness", fold_witness},
-          {"fold_recon_dirs", [&] { std::vector<std::string> d; for (const auto& p : fold_recon_dirs) d.push_back(p.string()); return d; }()},
+  return {{"net", net.ToJson()},
+          {"witness_cameras", witness_cameras},
+          {"heldout_cameras", heldout_cameras},
+          {"witness", witness},
+          {"heldout", heldout},
+          {"take", take.ToJson()},
+          {"recon_dir", recon_dir.string()},
+          {"witness_folds", witness_folds},
+          {"validation_witnesses", validation_witnesses},
+          {"fold_witness", fold_witness},
+          {"fold_recon_dirs",
+           [&] {
+             std::vector<std::string> d;
+             for (const auto& p : fold_recon_dirs) d.push_back(p.string());
+             return d;
+           }()},
           {"reconstruction", reconstruction.ToJson()},
-          {"image_width", image_width}, {"supersample", supersample}, {"witness_scales", witness_scales},
-          {"minutes", minutes}, {"iterations", iterations}, {"batch_pairs", batch_pairs},
-          {"crop_px", crop_px},           {"learning_rate", learning_rate}, {"l1_weight", l1_weight}, {"ssim_weight", ssim_weight},
-          {"subject_weight", subject_weight}, {"alpha_weight", alpha_weight}, {"temporal_weight", temporal_weight}, {"gan_weight", gan_weight},
-          {"seed", seed}, {"eval_every_s", eval_every_s}, {"threads", threads}};
+          {"image_width", image_width},
+          {"supersample", supersample},
+          {"witness_scales", witness_scales},
+          {"minutes", minutes},
+          {"iterations", iterations},
+          {"batch_pairs", batch_pairs},
+          {"crop_px", crop_px},
+          {"learning_rate", learning_rate},
+          {"l1_weight", l1_weight},
+          {"ssim_weight", ssim_weight},
+          {"subject_weight", subject_weight},
+          {"alpha_weight", alpha_weight},
+          {"temporal_weight", temporal_weight},
+          {"gan_weight", gan_weight},
+          {"seed", seed},
+          {"eval_every_s", eval_every_s},
+          {"threads", threads}};
 }
 
 namespace {
@@ -258,8 +313,12 @@ class RerenderTrainer {
  public:
   RerenderTrainer(const std::filesystem::path& take_dir, const std::filesystem::path& model_dir,
                   const RerenderOptions& options, Report* report)
-      : take_(Take::Open(take_dir)), model_dir_(model_dir), options_(options), report_(report),
-        plan_(summary_.plan), network_(options.net, options.seed) {}
+      : take_(Take::Open(take_dir)),
+        model_dir_(model_dir),
+        options_(options),
+        report_(report),
+        plan_(summary_.plan),
+        network_(options.net, options.seed) {}
 
   RerenderSummary Run() {
     PlanCameras();
@@ -279,7 +338,9 @@ class RerenderTrainer {
  private:
   enum class Output { kNetwork, kRaw, kBackground };
 
-  bool is_heldout(int c) const { return std::find(heldout_.begin(), heldout_.end(), c) != heldout_.end(); }
+  bool is_heldout(int c) const {
+    return std::find(heldout_.begin(), heldout_.end(), c) != heldout_.end();
+  }
   bool is_witness_yet(int c) const {
     for (const auto& fold : folds_) {
       if (std::find(fold.begin(), fold.end(), c) != fold.end()) return true;
@@ -293,32 +354,37 @@ class RerenderTrainer {
     names_ = take_plan_.color_sensors;
     cameras_ = take_plan_.Cameras(names_);
     Eigen::Vector3d center = Eigen::Vector3d::Zero();
-    for (const auto& c : cameras_) center += c.center_in_world() / static_cast<double>(cameras_.size());
+    for (const auto& c : cameras_)
+      center += c.center_in_world() / static_cast<double>(cameras_.size());
     center_ = center;
     // Cameras that colour the depth sensors' fusion stay with the reconstruction when possible.
     std::vector<int> candidates, fallback;
     for (int i = 0; i < static_cast<int>(names_.size()); ++i) {
       (take_plan_.paired_color.count(names_[i]) ? fallback : candidates).push_back(i);
     }
-    const int wanted_out =
-        (options_.heldout.empty() ? options_.heldout_cameras : static_cast<int>(options_.heldout.size())) +
-        (options_.witness.empty() ? options_.witness_cameras : static_cast<int>(options_.witness.size()));
-    if (static_cast<int>(candidates.size()) < wanted_out) candidates.insert(candidates.end(), fallback.begin(), fallback.end());
-    heldout_ = options_.heldout.empty() ? SpreadAround(cameras_, candidates, options_.heldout_cameras, center_)
-                                        : take_plan_.ColorIndices(options_.heldout, "held-out");
+    const int wanted_out = (options_.heldout.empty() ? options_.heldout_cameras
+                                                     : static_cast<int>(options_.heldout.size())) +
+                           (options_.witness.empty() ? options_.witness_cameras
+                                                     : static_cast<int>(options_.witness.size()));
+    if (static_cast<int>(candidates.size()) < wanted_out)
+      candidates.insert(candidates.end(), fallback.begin(), fallback.end());
+    heldout_ = options_.heldout.empty()
+                   ? SpreadAround(cameras_, candidates, options_.heldout_cameras, center_)
+                   : take_plan_.ColorIndices(options_.heldout, "held-out");
     for (int c : candidates) {
       if (!is_heldout(c)) rest_.push_back(c);
     }
-    const std::vector<int> witness = options_.witness.empty()
-                                         ? SpreadAround(cameras_, rest_, options_.witness_cameras, center_)
-                                         : take_plan_.ColorIndices(options_.witness, "witness");
+    const std::vector<int> witness =
+        options_.witness.empty() ? SpreadAround(cameras_, rest_, options_.witness_cameras, center_)
+                                 : take_plan_.ColorIndices(options_.witness, "witness");
     for (int w : witness) {
       if (is_heldout(w)) Fail("camera '", names_[w], "' cannot be both witness and held out");
     }
     recon_count_ = static_cast<int>(names_.size() - witness.size() - heldout_.size());
     if (witness.empty() || recon_count_ < 2) {
-      Fail("take '", take_.dir().string(), "' has ", names_.size(), " colour cameras: ", witness.size(), " witness and ",
-           heldout_.size(), " held-out ones leave ", recon_count_, " for the reconstruction (it needs 2)");
+      Fail("take '", take_.dir().string(), "' has ", names_.size(),
+           " colour cameras: ", witness.size(), " witness and ", heldout_.size(),
+           " held-out ones leave ", recon_count_, " for the reconstruction (it needs 2)");
     }
     folds_ = {witness};
   }
@@ -342,15 +408,19 @@ class RerenderTrainer {
           if (!is_witness_yet(c)) pool.push_back(c);
         }
         if (pool.empty()) break;
-        folds_.push_back(SpreadAround(cameras_, pool, std::min<int>(fold_size, static_cast<int>(pool.size())), center_));
+        folds_.push_back(SpreadAround(
+            cameras_, pool, std::min<int>(fold_size, static_cast<int>(pool.size())), center_));
       }
     }
     for (const auto& fold : folds_) {
       const int left = static_cast<int>(names_.size() - fold.size() - heldout_.size());
-      if (fold.empty() || left < 2) Fail("a fold of ", fold.size(), " witnesses leaves ", left, " cameras for its reconstruction (it needs 2)");
+      if (fold.empty() || left < 2)
+        Fail("a fold of ", fold.size(), " witnesses leaves ", left,
+             " cameras for its reconstruction (it needs 2)");
     }
     if (options_.fold_recon_dirs.size() > folds_.size() - 1) {
-      Fail(options_.fold_recon_dirs.size(), " fold reconstructions given for ", folds_.size() - 1, " further fold(s)");
+      Fail(options_.fold_recon_dirs.size(), " fold reconstructions given for ", folds_.size() - 1,
+           " further fold(s)");
     }
     for (const auto& fold : folds_) {
       for (int w : fold) witness_names_.push_back(names_[w]);
@@ -358,13 +428,15 @@ class RerenderTrainer {
     for (int h : heldout_) take_plan_.heldout.push_back(names_[h]);
     take_plan_.witness = witness_names_;
     validation_count_ = options_.validation_witnesses >= 0 ? options_.validation_witnesses
-                        : witness_names_.size() >= 3 ? std::max(1, static_cast<int>(witness_names_.size()) / 5)
-                                                     : 0;
+                        : witness_names_.size() >= 3
+                            ? std::max(1, static_cast<int>(witness_names_.size()) / 5)
+                            : 0;
     if (validation_count_ >= static_cast<int>(witness_names_.size())) {
-      Fail(validation_count_, " validation witness(es) leave no witness to train on (", witness_names_.size(),
-           " in all): ask for more witnesses or folds");
+      Fail(validation_count_, " validation witness(es) leave no witness to train on (",
+           witness_names_.size(), " in all): ask for more witnesses or folds");
     }
-    if (!take_plan_.depth_sensors.empty() && options_.reconstruction.method == ReconstructionMethod::kHull) {
+    if (!take_plan_.depth_sensors.empty() &&
+        options_.reconstruction.method == ReconstructionMethod::kHull) {
       take_plan_.LeaveOut("depth sensors", "the folds' reconstruction is a visual hull");
     }
     plan_ = take_plan_.ToJson();
@@ -372,10 +444,11 @@ class RerenderTrainer {
   }
 
   // Builds fold k's reconstruction from the cameras that are neither its witnesses nor held out.
-  std::map<int64_t, std::filesystem::path> BuildReconstruction(size_t k, const std::set<std::string>& left_out,
-                                                               nlohmann::json& fold_plan) {
+  std::map<int64_t, std::filesystem::path> BuildReconstruction(
+      size_t k, const std::set<std::string>& left_out, nlohmann::json& fold_plan) {
     std::map<int64_t, std::filesystem::path> meshes;
-    const std::filesystem::path recon_dir = k == 0 ? model_dir_ / "recon" : model_dir_ / Cat("recon-", k);
+    const std::filesystem::path recon_dir =
+        k == 0 ? model_dir_ / "recon" : model_dir_ / Cat("recon-", k);
     const std::filesystem::path view = model_dir_ / "witness_take";
     WriteWitnessView(take_, left_out, view);
     ReconstructionOptions recon = options_.reconstruction;
@@ -383,7 +456,8 @@ class RerenderTrainer {
     recon.sweep_voxels_m.clear();
     recon.threads = options_.threads;
     Report recon_report("reconstruct");
-    ReconstructionSummary built = ReconstructTake(view, options_.take, recon_dir, recon, &recon_report);
+    ReconstructionSummary built =
+        ReconstructTake(view, options_.take, recon_dir, recon, &recon_report);
     for (const auto& f : built.frames) {
       char file[32];
       std::snprintf(file, sizeof(file), "%06lld.ply", static_cast<long long>(f.set));
@@ -396,10 +470,11 @@ class RerenderTrainer {
 
   // A given reconstruction; refused when its report says it saw a witness or held-out camera
   // (it would score the network on views it was coloured from).
-  std::map<int64_t, std::filesystem::path> GivenReconstruction(const std::filesystem::path& recon_dir,
-                                                               const std::set<std::string>& left_out,
-                                                               nlohmann::json& fold_plan) {
-    if (!std::filesystem::is_directory(recon_dir)) Fail("reconstruction directory ", recon_dir.string(), " does not exist");
+  std::map<int64_t, std::filesystem::path> GivenReconstruction(
+      const std::filesystem::path& recon_dir, const std::set<std::string>& left_out,
+      nlohmann::json& fold_plan) {
+    if (!std::filesystem::is_directory(recon_dir))
+      Fail("reconstruction directory ", recon_dir.string(), " does not exist");
     const std::filesystem::path built_report = recon_dir / "report.json";
     std::string cameras_used = "cameras not recorded";
     if (std::filesystem::exists(built_report)) {
@@ -409,16 +484,21 @@ class RerenderTrainer {
       } catch (const std::exception& e) {
         Fail("reconstruction report ", built_report.string(), " is unreadable: ", e.what());
       }
-      const nlohmann::json used = built.contains("plan") ? built["plan"].value("color_sensors", nlohmann::json()) : nlohmann::json();
+      const nlohmann::json used = built.contains("plan")
+                                      ? built["plan"].value("color_sensors", nlohmann::json())
+                                      : nlohmann::json();
       if (used.is_array()) {
         for (const auto& name : used) {
           const std::string camera = name.get<std::string>();
           if (!left_out.count(camera)) continue;
-          const bool was_heldout = std::any_of(heldout_.begin(), heldout_.end(), [&](int h) { return names_[h] == camera; });
+          const bool was_heldout = std::any_of(heldout_.begin(), heldout_.end(),
+                                               [&](int h) { return names_[h] == camera; });
           Fail("reconstruction ", recon_dir.string(), " was built with camera '", camera, "', ",
-               was_heldout ? "held out" : "a witness of its fold", ": build it without that camera");
+               was_heldout ? "held out" : "a witness of its fold",
+               ": build it without that camera");
         }
-        cameras_used = Cat(used.size(), " colour cameras, none of this fold's witnesses or held-out");
+        cameras_used =
+            Cat(used.size(), " colour cameras, none of this fold's witnesses or held-out");
       }
     }
     std::map<int64_t, std::filesystem::path> meshes;
@@ -442,13 +522,15 @@ class RerenderTrainer {
       std::vector<std::string> fold_names;
       for (int w : folds_[k]) fold_names.push_back(names_[w]);
       fold_plan["witness"] = fold_names;
-      fold_plan["reconstruction_cameras"] = static_cast<int>(names_.size() - folds_[k].size() - heldout_.size());
+      fold_plan["reconstruction_cameras"] =
+          static_cast<int>(names_.size() - folds_[k].size() - heldout_.size());
       std::set<std::string> left_out;
       for (int w : folds_[k]) left_out.insert(names_[w]);
       for (int h : heldout_) left_out.insert(names_[h]);
-      const std::filesystem::path given = k == 0                                      ? options_.recon_dir
-                                          : k - 1 < options_.fold_recon_dirs.size() ? options_.fold_recon_dirs[k - 1]
-                                                                                    : std::filesystem::path();
+      const std::filesystem::path given = k == 0 ? options_.recon_dir
+                                          : k - 1 < options_.fold_recon_dirs.size()
+                                              ? options_.fold_recon_dirs[k - 1]
+                                              : std::filesystem::path();
       const auto start_fold = std::chrono::steady_clock::now();
       fold_meshes_.push_back(given.empty() ? BuildReconstruction(k, left_out, fold_plan)
                                            : GivenReconstruction(given, left_out, fold_plan));
@@ -458,8 +540,9 @@ class RerenderTrainer {
     }
     if (folds_.size() > 1) plan_["folds"] = fold_plans;
     if (options_.fold_witness.empty() && static_cast<int>(folds_.size()) < options_.witness_folds) {
-      plan_["witness_folds"] = Cat(options_.witness_folds, " asked, ", folds_.size(),
-                                   " possible: every other camera is a witness, held out or colours a depth sensor");
+      plan_["witness_folds"] =
+          Cat(options_.witness_folds, " asked, ", folds_.size(),
+              " possible: every other camera is a witness, held out or colours a depth sensor");
     }
     plan_["reconstruction_seconds"] = Seconds(start_all);
   }
@@ -484,13 +567,16 @@ class RerenderTrainer {
   }
 
   // One camera at the training resolution (times `extra_scale`), over every frame set.
-  void LoadCamera(int index, const std::vector<Mesh>& mesh_cache, bool is_witness, double extra_scale) {
+  void LoadCamera(int index, const std::vector<Mesh>& mesh_cache, bool is_witness,
+                  double extra_scale) {
     CameraData d;
     d.name = names_[index];
     d.witness = is_witness;
     d.camera = cameras_[index];
     const double scale =
-        (options_.image_width > 0 ? static_cast<double>(options_.image_width) / d.camera.width() : 1.0) * extra_scale;
+        (options_.image_width > 0 ? static_cast<double>(options_.image_width) / d.camera.width()
+                                  : 1.0) *
+        extra_scale;
     d.scaled = scale == 1.0 ? d.camera : d.camera.Scaled(scale);
     d.width = d.scaled.width();
     d.height = d.scaled.height();
@@ -501,21 +587,26 @@ class RerenderTrainer {
                                    : cv::Mat(size, CV_32FC3, cv::Scalar::all(0));
     d.background = neural::PadToMultiple(neural::ImageToTensor(background).unsqueeze(0), multiple_);
     d.background_image = background;
-    const bool silhouettes = is_witness && options_.alpha_weight > 0 &&
-                             (options_.reconstruction.silhouette.mode == SilhouetteMode::kThreshold || has_plate);
+    const bool silhouettes =
+        is_witness && options_.alpha_weight > 0 &&
+        (options_.reconstruction.silhouette.mode == SilhouetteMode::kThreshold || has_plate);
     cv::Mat plate;
     if (silhouettes && has_plate) plate = ToEightBitColor(take_.ReadFrame(plate_set, d.name));
     std::vector<torch::Tensor> features, truth, weight, alpha_target;
     const int dilate = std::max(2, d.width / 40);
-    const cv::Mat kernel = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * dilate + 1, 2 * dilate + 1));
+    const cv::Mat kernel =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * dilate + 1, 2 * dilate + 1));
     for (size_t f = 0; f < sets_.size(); ++f) {
       GBuffer buffers =
-          RasteriseMesh(mesh_cache[f], d.scaled, RasterOptions{.supersample = options_.supersample, .threads = threads_});
+          RasteriseMesh(mesh_cache[f], d.scaled,
+                        RasterOptions{.supersample = options_.supersample, .threads = threads_});
       const cv::Mat native = take_.ReadFrame(entry_of_set_[sets_[f]], d.name);
       cv::Mat image = ToFloatImage(native, size);
       if (silhouettes) {
         // The witness's silhouette at the training resolution (area-averaged: soft edges).
-        cv::Mat mask = ExtractSilhouette(ToEightBitColor(native), plate, options_.reconstruction.silhouette), soft;
+        cv::Mat mask = ExtractSilhouette(ToEightBitColor(native), plate,
+                                         options_.reconstruction.silhouette),
+                soft;
         mask.convertTo(mask, CV_32F, 1.0 / 255);
         cv::resize(mask, soft, size, 0, 0, cv::INTER_AREA);
         alpha_target.push_back(neural::ImageToTensor(soft));
@@ -538,7 +629,8 @@ class RerenderTrainer {
     d.features = neural::PadToMultiple(torch::stack(features), multiple_);
     d.truth = neural::PadToMultiple(torch::stack(truth), multiple_);
     d.weight = neural::PadToMultiple(torch::stack(weight), multiple_);
-    if (!alpha_target.empty()) d.alpha_target = neural::PadToMultiple(torch::stack(alpha_target), multiple_);
+    if (!alpha_target.empty())
+      d.alpha_target = neural::PadToMultiple(torch::stack(alpha_target), multiple_);
     data_.push_back(std::move(d));
   }
 
@@ -546,7 +638,8 @@ class RerenderTrainer {
   // one fold's meshes in memory at a time; then the split into trained, validation and
   // held-out cameras.
   void LoadData() {
-    validation_names_ = std::set<std::string>(witness_names_.end() - validation_count_, witness_names_.end());
+    validation_names_ =
+        std::set<std::string>(witness_names_.end() - validation_count_, witness_names_.end());
     threads_ = recon::ResolveThreads(options_.threads);
     torch::set_num_threads(threads_);
     multiple_ = 1 << options_.net.depth;
@@ -573,9 +666,12 @@ class RerenderTrainer {
       }
     }
     for (CameraData& d : data_) {
-      if (!d.witness) eval_cameras_.push_back(&d);
-      else if (validation_names_.count(d.name)) validation_cameras_.push_back(&d);
-      else train_cameras_.push_back(&d);
+      if (!d.witness)
+        eval_cameras_.push_back(&d);
+      else if (validation_names_.count(d.name))
+        validation_cameras_.push_back(&d);
+      else
+        train_cameras_.push_back(&d);
     }
     temporal_ = sets_.size() >= 2 && options_.temporal_weight > 0;
   }
@@ -586,19 +682,22 @@ class RerenderTrainer {
       for (const CameraData* d : validation_cameras_) validation_list.push_back(d->name);
       plan_["validation"] = validation_list;
     }
-    plan_["temporal_term"] = temporal_ ? "on" : (sets_.size() < 2 ? "off: one frame" : "off: weight 0");
+    plan_["temporal_term"] =
+        temporal_ ? "on" : (sets_.size() < 2 ? "off: one frame" : "off: weight 0");
     plan_["patch_gan"] = options_.gan_weight > 0 ? "on" : "off";
     plan_["alpha_target"] = options_.alpha_weight <= 0 ? std::string("off: weight 0")
                             : train_cameras_[0]->alpha_target.defined()
                                 ? std::string("the witnesses' silhouettes")
                                 : std::string("off: background subtraction without a clean plate");
-    if (options_.witness_scales.size() > 1 || options_.witness_scales[0] != 1.0) plan_["witness_scales"] = options_.witness_scales;
+    if (options_.witness_scales.size() > 1 || options_.witness_scales[0] != 1.0)
+      plan_["witness_scales"] = options_.witness_scales;
     plan_["trained_views"] = train_cameras_.size();  // witness cameras trained on, once per scale
-    plan_["train_resolution"] =
-        Cat(train_cameras_[0]->width, "x", train_cameras_[0]->height, " (", train_cameras_[0]->name, ")");
+    plan_["train_resolution"] = Cat(train_cameras_[0]->width, "x", train_cameras_[0]->height, " (",
+                                    train_cameras_[0]->name, ")");
     plan_["raster_samples"] = options_.supersample == 1
                                   ? std::string("1 per pixel (its centre)")
-                                  : Cat(options_.supersample, "x", options_.supersample, " per pixel, averaged (the raw render too)");
+                                  : Cat(options_.supersample, "x", options_.supersample,
+                                        " per pixel, averaged (the raw render too)");
     // Crops share one size across the witnesses: the requested one rounded up to the network's
     // multiple, at most the smallest padded image.
     crop_w_ = crop_h_ = std::numeric_limits<int64_t>::max();
@@ -611,7 +710,8 @@ class RerenderTrainer {
       crop_w_ = std::min(crop_w_, crop);
       crop_h_ = std::min(crop_h_, crop);
     }
-    plan_["train_crop"] = options_.crop_px > 0 ? Cat(crop_w_, "x", crop_h_, " near the subject") : std::string("whole images");
+    plan_["train_crop"] = options_.crop_px > 0 ? Cat(crop_w_, "x", crop_h_, " near the subject")
+                                               : std::string("whole images");
     plan_["parameters"] = network_.parameter_count();
     if (report_) {
       report_->options() = options_.ToJson();
@@ -619,7 +719,8 @@ class RerenderTrainer {
     }
   }
 
-  std::pair<Evaluation, std::vector<std::vector<cv::Mat>>> Evaluate(Output what, const std::vector<CameraData*>& on) {
+  std::pair<Evaluation, std::vector<std::vector<cv::Mat>>> Evaluate(
+      Output what, const std::vector<CameraData*>& on) {
     neural::UNet& net = network_.state().net;
     std::vector<std::vector<cv::Mat>> images(on.size());
     torch::NoGradGuard no_grad;
@@ -634,7 +735,8 @@ class RerenderTrainer {
         const torch::Tensor x = d.features.index({Slice(f, f + 1)});
         auto [rgb, alpha] = neural::DecodeRerender(net->forward(x), x);
         const torch::Tensor out = Composite(rgb, alpha, d.background).clamp(0, 1);
-        images[c].push_back(neural::TensorToImage(out[0].index({Slice(), Slice(0, d.height), Slice(0, d.width)})));
+        images[c].push_back(
+            neural::TensorToImage(out[0].index({Slice(), Slice(0, d.height), Slice(0, d.width)})));
       }
     }
     net->train();
@@ -645,7 +747,8 @@ class RerenderTrainer {
   void MeasureBaselines() {
     const Evaluation raw = Evaluate(Output::kRaw, eval_cameras_).first;
     const Evaluation background_only = Evaluate(Output::kBackground, eval_cameras_).first;
-    if (!validation_cameras_.empty()) summary_.validation_raw_psnr_db = Evaluate(Output::kRaw, validation_cameras_).first.psnr_db;
+    if (!validation_cameras_.empty())
+      summary_.validation_raw_psnr_db = Evaluate(Output::kRaw, validation_cameras_).first.psnr_db;
     summary_.background_psnr_db = background_only.psnr_db;
     summary_.background_psnr_subject_db = background_only.psnr_subject_db;
     summary_.background_ssim = background_only.ssim;
@@ -680,25 +783,31 @@ class RerenderTrainer {
 
   // A batch: pairs of consecutive frames of a witness camera, each pair cropped alike around a
   // pixel near the subject (whole images when crops are off). Returns the loss before the step.
-  double TrainStep(torch::optim::Adam& optimizer, torch::nn::Sequential& discriminator, torch::optim::Adam* d_optimizer) {
+  double TrainStep(torch::optim::Adam& optimizer, torch::nn::Sequential& discriminator,
+                   torch::optim::Adam* d_optimizer) {
     neural::UNet& net = network_.state().net;
     std::vector<torch::Tensor> xs, truths, weights, backgrounds, alpha_targets;
     int64_t samples = 0;
     for (int p = 0; p < options_.batch_pairs; ++p) {
-      const CameraData& d = *train_cameras_[std::uniform_int_distribution<size_t>(0, train_cameras_.size() - 1)(rng_)];
+      const CameraData& d = *train_cameras_[std::uniform_int_distribution<size_t>(
+          0, train_cameras_.size() - 1)(rng_)];
       const int64_t frames = d.features.size(0);
-      const int64_t t = std::uniform_int_distribution<int64_t>(0, std::max<int64_t>(0, frames - (temporal_ ? 2 : 1)))(rng_);
+      const int64_t t = std::uniform_int_distribution<int64_t>(
+          0, std::max<int64_t>(0, frames - (temporal_ ? 2 : 1)))(rng_);
       const int64_t count = temporal_ ? 2 : 1;
       int64_t x0 = 0, y0 = 0;
       if (options_.crop_px > 0) {
         const std::vector<int32_t>& near = d.subject_pixels[t];
-        const int64_t pixel = near.empty() ? std::uniform_int_distribution<int64_t>(0, int64_t{d.width} * d.height - 1)(rng_)
-                                           : near[std::uniform_int_distribution<size_t>(0, near.size() - 1)(rng_)];
+        const int64_t pixel =
+            near.empty()
+                ? std::uniform_int_distribution<int64_t>(0, int64_t{d.width} * d.height - 1)(rng_)
+                : near[std::uniform_int_distribution<size_t>(0, near.size() - 1)(rng_)];
         x0 = std::clamp<int64_t>(pixel % d.width - crop_w_ / 2, 0, d.features.size(3) - crop_w_);
         y0 = std::clamp<int64_t>(pixel / d.width - crop_h_ / 2, 0, d.features.size(2) - crop_h_);
       }
       const auto window = [&](const torch::Tensor& all, int64_t first, int64_t n) {
-        return all.index({Slice(first, first + n), Slice(), Slice(y0, y0 + crop_h_), Slice(x0, x0 + crop_w_)});
+        return all.index(
+            {Slice(first, first + n), Slice(), Slice(y0, y0 + crop_h_), Slice(x0, x0 + crop_w_)});
       };
       xs.push_back(window(d.features, t, count));
       truths.push_back(window(d.truth, t, count));
@@ -707,16 +816,19 @@ class RerenderTrainer {
       if (d.alpha_target.defined()) alpha_targets.push_back(window(d.alpha_target, t, count));
       samples += count;
     }
-    const torch::Tensor x = torch::cat(xs), truth = torch::cat(truths), weight = torch::cat(weights);
+    const torch::Tensor x = torch::cat(xs), truth = torch::cat(truths),
+                        weight = torch::cat(weights);
     const torch::Tensor background = torch::cat(backgrounds);
     const torch::Tensor raw_output = net->forward(x);
     auto [rgb, alpha] = neural::DecodeRerender(raw_output, x);
     const torch::Tensor out = Composite(rgb, alpha, background);
     torch::Tensor loss = options_.l1_weight * (weight * (out - truth).abs()).mean() / weight.mean();
     loss = loss + kRawOutputPenaltyWeight * neural::RawOutputPenalty(raw_output);
-    if (options_.ssim_weight > 0) loss = loss + options_.ssim_weight * (1 - MultiScaleSsim(out, truth));
+    if (options_.ssim_weight > 0)
+      loss = loss + options_.ssim_weight * (1 - MultiScaleSsim(out, truth));
     if (alpha_targets.size() == xs.size()) {
-      loss = loss + options_.alpha_weight * (weight * (alpha - torch::cat(alpha_targets)).abs()).mean() / weight.mean();
+      loss = loss + options_.alpha_weight *
+                        (weight * (alpha - torch::cat(alpha_targets)).abs()).mean() / weight.mean();
     }
     if (temporal_) {
       const torch::Tensor even = torch::arange(0, samples, 2), odd = even + 1;
@@ -735,8 +847,8 @@ class RerenderTrainer {
     optimizer.step();
     if (discriminator) {
       d_optimizer->zero_grad();
-      const torch::Tensor d_loss =
-          (discriminator->forward(truth) - 1).pow(2).mean() + discriminator->forward(out.detach()).pow(2).mean();
+      const torch::Tensor d_loss = (discriminator->forward(truth) - 1).pow(2).mean() +
+                                   discriminator->forward(out.detach()).pow(2).mean();
       d_loss.backward();
       d_optimizer->step();
     }
@@ -745,34 +857,41 @@ class RerenderTrainer {
 
   void Train() {
     neural::UNet& net = network_.state().net;
-    torch::optim::Adam optimizer(net->parameters(), torch::optim::AdamOptions(options_.learning_rate));
+    torch::optim::Adam optimizer(net->parameters(),
+                                 torch::optim::AdamOptions(options_.learning_rate));
     torch::nn::Sequential discriminator{nullptr};
     std::unique_ptr<torch::optim::Adam> d_optimizer;
     if (options_.gan_weight > 0) {
       discriminator = PatchDiscriminator();
       d_optimizer = std::make_unique<torch::optim::Adam>(
-          discriminator->parameters(), torch::optim::AdamOptions(options_.learning_rate).betas({0.5, 0.999}));
+          discriminator->parameters(),
+          torch::optim::AdamOptions(options_.learning_rate).betas({0.5, 0.999}));
     }
     rng_.seed(options_.seed);
     const auto start = std::chrono::steady_clock::now();
     double next_eval = 0;
-    Progress progress("rerender", options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(options_.minutes * 60));
+    Progress progress("rerender", options_.iterations > 0
+                                      ? options_.iterations
+                                      : static_cast<int64_t>(options_.minutes * 60));
     int64_t iteration = 0;
     for (;; ++iteration) {
       const double elapsed = Seconds(start);
       const bool done = (options_.iterations > 0 && iteration >= options_.iterations) ||
                         (options_.minutes > 0 && elapsed >= options_.minutes * 60);
-      if ((!eval_cameras_.empty() || !validation_cameras_.empty()) && (elapsed >= next_eval || done)) {
+      if ((!eval_cameras_.empty() || !validation_cameras_.empty()) &&
+          (elapsed >= next_eval || done)) {
         EvaluateAndKeep(iteration);
         next_eval = elapsed + options_.eval_every_s;
       }
       if (done) break;
       // Cosine decay of the rate to a tenth over the budget: large steps first, then refinement
       // without their noise.
-      const double spent = std::max(options_.minutes > 0 ? elapsed / (options_.minutes * 60) : 0.0,
-                                    options_.iterations > 0 ? static_cast<double>(iteration) / options_.iterations : 0.0);
+      const double spent = std::max(
+          options_.minutes > 0 ? elapsed / (options_.minutes * 60) : 0.0,
+          options_.iterations > 0 ? static_cast<double>(iteration) / options_.iterations : 0.0);
       static_cast<torch::optim::AdamOptions&>(optimizer.param_groups()[0].options())
-          .lr(options_.learning_rate * (0.1 + 0.45 * (1 + std::cos(std::numbers::pi * std::min(spent, 1.0)))));
+          .lr(options_.learning_rate *
+              (0.1 + 0.45 * (1 + std::cos(std::numbers::pi * std::min(spent, 1.0)))));
       const double value = TrainStep(optimizer, discriminator, d_optimizer.get());
       if (!std::isfinite(value)) {
         diverged_ = true;
@@ -780,7 +899,8 @@ class RerenderTrainer {
       }
       losses_.push_back(value);
       if (report_ && iteration % 10 == 0) report_->AddPoint("loss", value, iteration);
-      progress.Update(options_.iterations > 0 ? iteration : static_cast<int64_t>(elapsed), Cat(last_.psnr_db, " dB"));
+      progress.Update(options_.iterations > 0 ? iteration : static_cast<int64_t>(elapsed),
+                      Cat(last_.psnr_db, " dB"));
     }
     progress.Finish();
     summary_.iterations = iteration;
@@ -792,7 +912,8 @@ class RerenderTrainer {
   void KeepWeights() {
     const size_t window = std::max<size_t>(1, std::min<size_t>(20, losses_.size() / 4));
     if (!losses_.empty()) {
-      summary_.first_loss = std::accumulate(losses_.begin(), losses_.begin() + window, 0.0) / window;
+      summary_.first_loss =
+          std::accumulate(losses_.begin(), losses_.begin() + window, 0.0) / window;
       summary_.last_loss = std::accumulate(losses_.end() - window, losses_.end(), 0.0) / window;
     }
     summary_.validation_psnr_db = validation_cameras_.empty() ? 0 : best_validation_;
@@ -813,16 +934,22 @@ class RerenderTrainer {
     if (!eval_cameras_.empty() && !last_images_[0].empty()) {
       const size_t f = last_images_[0].size() / 2;
       cv::Mat strip, eight_bit;
-      cv::hconcat(std::vector<cv::Mat>{eval_cameras_[0]->truth_images[f], eval_cameras_[0]->raw_images[f], last_images_[0][f]}, strip);
+      cv::hconcat(std::vector<cv::Mat>{eval_cameras_[0]->truth_images[f],
+                                       eval_cameras_[0]->raw_images[f], last_images_[0][f]},
+                  strip);
       strip.convertTo(eight_bit, CV_8UC3, 255);
       WritePng(model_dir_ / "heldout.png", eight_bit);
     }
     std::filesystem::create_directories(model_dir_ / "cameras");
-    nlohmann::json model = {{"method", "rerender"}, {"net", options_.net.ToJson()}, {"cameras", nlohmann::json::array()},
-                            {"meshes", nlohmann::json::array()}, {"image_width", options_.image_width},
+    nlohmann::json model = {{"method", "rerender"},
+                            {"net", options_.net.ToJson()},
+                            {"cameras", nlohmann::json::array()},
+                            {"meshes", nlohmann::json::array()},
+                            {"image_width", options_.image_width},
                             {"supersample", options_.supersample},
                             {"box_min", {box_min_.x(), box_min_.y(), box_min_.z()}},
-                            {"box_max", {box_max_.x(), box_max_.y(), box_max_.z()}}, {"frame_sets", sets_}};
+                            {"box_max", {box_max_.x(), box_max_.y(), box_max_.z()}},
+                            {"frame_sets", sets_}};
     for (size_t i = 0; i < names_.size(); ++i) {
       cameras_[i].Write(model_dir_ / "cameras" / (names_[i] + ".cameramodel"));
       model["cameras"].push_back(names_[i]);
@@ -830,8 +957,9 @@ class RerenderTrainer {
     for (int64_t set : sets_) {
       const auto file = fold_meshes_[0][set];
       const auto relative = std::filesystem::relative(file, model_dir_);
-      model["meshes"].push_back(!relative.empty() && *relative.begin() != ".." ? relative.string()
-                                                                               : std::filesystem::absolute(file).string());
+      model["meshes"].push_back(!relative.empty() && *relative.begin() != ".."
+                                    ? relative.string()
+                                    : std::filesystem::absolute(file).string());
     }
     WriteFileAtomic(model_dir_ / "model.json", model.dump(2));
   }
@@ -843,32 +971,39 @@ class RerenderTrainer {
     const int64_t iteration = summary_.iterations;
     const SubjectScores scores = ScoresNearSubject(summary_);
     if (diverged_) {
-      summary_.End(Termination::kFailure,
-                   Cat("the loss became non-finite at iteration ", iteration, "; kept the weights of the last evaluation"));
+      summary_.End(Termination::kFailure, Cat("the loss became non-finite at iteration ", iteration,
+                                              "; kept the weights of the last evaluation"));
     } else if (!eval_cameras_.empty() && scores.shows_none()) {
       // It erased the subject, or the raw render it started from shows no more: a better PSNR
       // than a poor raw render is no model of the subject.
-      summary_.End(Termination::kDegenerate,
-                   Cat("the network's output shows the held-out cameras no more of the subject than the background alone: ",
-                       scores.near ? "near the subject" : "over the whole image (the reconstruction draws nothing there)",
-                       " they score ", scores.shown, " dB, the background alone ", scores.background,
-                       " dB and the raw render ", scores.raw, " dB",
-                       scores.raw < scores.background - kErasedMarginDb
-                           ? Cat(" (the reconstruction, built from ", recon_count_,
-                                 " colour cameras, renders worse than no subject at all: give it more cameras or depth)")
-                           : std::string()));
+      summary_.End(
+          Termination::kDegenerate,
+          Cat("the network's output shows the held-out cameras no more of the subject than the "
+              "background alone: ",
+              scores.near ? "near the subject"
+                          : "over the whole image (the reconstruction draws nothing there)",
+              " they score ", scores.shown, " dB, the background alone ", scores.background,
+              " dB and the raw render ", scores.raw, " dB",
+              scores.raw < scores.background - kErasedMarginDb
+                  ? Cat(" (the reconstruction, built from ", recon_count_,
+                        " colour cameras, renders worse than no subject at all: give it more "
+                        "cameras or depth)")
+                  : std::string()));
     } else {
       const bool peaked_early = !validation_cameras_.empty() && summary_.kept_iteration < iteration;
       summary_.End(peaked_early ? Termination::kConvergence : Termination::kNoConvergence,
                    eval_cameras_.empty()
-                       ? Cat("trained ", iteration, " iterations in ", summary_.seconds, " s; no held-out camera to measure on")
-                       : Cat("trained ", iteration, " iterations in ", summary_.seconds, " s (budget spent); held-out PSNR ",
-                             summary_.heldout_psnr_db, " dB against the raw render's ", summary_.raw_render_psnr_db, " dB"));
+                       ? Cat("trained ", iteration, " iterations in ", summary_.seconds,
+                             " s; no held-out camera to measure on")
+                       : Cat("trained ", iteration, " iterations in ", summary_.seconds,
+                             " s (budget spent); held-out PSNR ", summary_.heldout_psnr_db,
+                             " dB against the raw render's ", summary_.raw_render_psnr_db, " dB"));
     }
     if (!validation_cameras_.empty() && !diverged_) {
-      summary_.message += Cat("; kept the weights of iteration ", summary_.kept_iteration,
-                              ", where the validation witnesses peaked at ", summary_.validation_psnr_db, " dB (raw render ",
-                              summary_.validation_raw_psnr_db, " dB)");
+      summary_.message +=
+          Cat("; kept the weights of iteration ", summary_.kept_iteration,
+              ", where the validation witnesses peaked at ", summary_.validation_psnr_db,
+              " dB (raw render ", summary_.validation_raw_psnr_db, " dB)");
     }
     if (report_) WriteReport();
   }
@@ -928,7 +1063,8 @@ class RerenderTrainer {
   int multiple_ = 1;
   std::vector<CameraData> data_;
   std::vector<CameraData*> train_cameras_, eval_cameras_, validation_cameras_;
-  Eigen::Vector3d box_min_ = Eigen::Vector3d::Constant(1e30), box_max_ = Eigen::Vector3d::Constant(-1e30);
+  Eigen::Vector3d box_min_ = Eigen::Vector3d::Constant(1e30),
+                  box_max_ = Eigen::Vector3d::Constant(-1e30);
   bool temporal_ = false;
   int64_t crop_w_ = 0, crop_h_ = 0;
   // Training.
@@ -943,7 +1079,8 @@ class RerenderTrainer {
 
 }  // namespace
 
-RerenderSummary TrainRerender(const std::filesystem::path& take_dir, const std::filesystem::path& model_dir,
+RerenderSummary TrainRerender(const std::filesystem::path& take_dir,
+                              const std::filesystem::path& model_dir,
                               const RerenderOptions& options, Report* report) {
   options.Check();
   return RerenderTrainer(take_dir, model_dir, options, report).Run();

@@ -25,7 +25,9 @@ namespace {
 
 namespace fs = std::filesystem;
 
-Eigen::Vector3d BoxCenter(const AvatarModel& model) { return 0.5 * (model.box_min() + model.box_max()); }
+Eigen::Vector3d BoxCenter(const AvatarModel& model) {
+  return 0.5 * (model.box_min() + model.box_max());
+}
 
 // Horizontal field of view that keeps the whole box in view from `distance`.
 double FitFovDeg(const AvatarModel& model, double distance, int width, int height) {
@@ -37,8 +39,8 @@ double FitFovDeg(const AvatarModel& model, double distance, int width, int heigh
   return 2 * half_h * 180 / std::numbers::pi;
 }
 
-CameraModel LookAtCamera(const Eigen::Vector3d& eye, const Eigen::Vector3d& target, const Eigen::Vector3d& up,
-                         double fov_deg, int width, int height) {
+CameraModel LookAtCamera(const Eigen::Vector3d& eye, const Eigen::Vector3d& target,
+                         const Eigen::Vector3d& up, double fov_deg, int width, int height) {
   const double focal = 0.5 * width / std::tan(0.5 * fov_deg * std::numbers::pi / 180);
   return CameraModel::Pinhole(focal, width, height, CamFromWorldLookAt(eye, target, up));
 }
@@ -49,11 +51,13 @@ std::string ViewName(int64_t index, const char* extension) {
   return name;
 }
 
-Eigen::Vector3d JsonVector(const nlohmann::json& json, const std::string& field, const fs::path& file) {
+Eigen::Vector3d JsonVector(const nlohmann::json& json, const std::string& field,
+                           const fs::path& file) {
   if (!json.contains(field) || !json[field].is_array() || json[field].size() != 3) {
     Fail(file.string(), ": \"", field, "\" must be an array of 3 numbers");
   }
-  return Eigen::Vector3d(json[field][0].get<double>(), json[field][1].get<double>(), json[field][2].get<double>());
+  return Eigen::Vector3d(json[field][0].get<double>(), json[field][1].get<double>(),
+                         json[field][2].get<double>());
 }
 
 // Straight-alpha BGRA 8-bit from premultiplied colour.
@@ -81,7 +85,8 @@ cv::Mat OverBackground(const RenderedView& view, const Eigen::Vector3d& backgrou
       const cv::Vec3f c = view.color.at<cv::Vec3f>(y, x);
       const float a = view.alpha.at<float>(y, x);
       for (int k = 0; k < 3; ++k) {
-        out.at<cv::Vec3b>(y, x)[k] = cv::saturate_cast<uint8_t>(std::lround(255 * std::clamp(c[k] + (1 - a) * background[k], 0.0, 1.0)));
+        out.at<cv::Vec3b>(y, x)[k] = cv::saturate_cast<uint8_t>(
+            std::lround(255 * std::clamp(c[k] + (1 - a) * background[k], 0.0, 1.0)));
       }
     }
   }
@@ -95,10 +100,10 @@ class VideoWriter {
   VideoWriter(const fs::path& file, int width, int height, double fps, int crf) : file_(file) {
     temp_ = file;
     temp_ += ".partial.mp4";
-    const std::string command = Cat(
-        "ffmpeg -hide_banner -loglevel error -y -f rawvideo -pix_fmt bgr24 -s ", width, "x", height,
-        " -r ", fps, " -i - -c:v libx264 -preset veryfast -crf ", crf, " -pix_fmt yuv420p -movflags +faststart '",
-        temp_.string(), "'");
+    const std::string command =
+        Cat("ffmpeg -hide_banner -loglevel error -y -f rawvideo -pix_fmt bgr24 -s ", width, "x",
+            height, " -r ", fps, " -i - -c:v libx264 -preset veryfast -crf ", crf,
+            " -pix_fmt yuv420p -movflags +faststart '", temp_.string(), "'");
     pipe_ = popen(command.c_str(), "w");
     if (pipe_ == nullptr) Fail("cannot start ffmpeg for ", file.string());
   }
@@ -112,7 +117,8 @@ class VideoWriter {
   void Write(const cv::Mat& bgr) {
     const cv::Mat contiguous = bgr.isContinuous() ? bgr : bgr.clone();
     const size_t bytes = contiguous.total() * contiguous.elemSize();
-    if (std::fwrite(contiguous.data, 1, bytes, pipe_) != bytes) Fail("ffmpeg stopped reading frames for ", file_.string());
+    if (std::fwrite(contiguous.data, 1, bytes, pipe_) != bytes)
+      Fail("ffmpeg stopped reading frames for ", file_.string());
   }
   void Close() {
     const int status = pclose(pipe_);
@@ -120,7 +126,8 @@ class VideoWriter {
     if (status != 0) {
       std::error_code ec;
       fs::remove(temp_, ec);
-      Fail("ffmpeg failed writing ", file_.string(), " (exit status ", WIFEXITED(status) ? WEXITSTATUS(status) : status, ")");
+      Fail("ffmpeg failed writing ", file_.string(), " (exit status ",
+           WIFEXITED(status) ? WEXITSTATUS(status) : status, ")");
     }
     fs::rename(temp_, file_);
   }
@@ -134,7 +141,8 @@ class VideoWriter {
 
 void OrbitOptions::Check() const {
   if (views < 1) Fail("an orbit needs at least one view, got ", views);
-  if (width < 2 || height < 2 || width % 2 || height % 2) Fail("output size must be even and at least 2x2 (H.264), got ", width, "x", height);
+  if (width < 2 || height < 2 || width % 2 || height % 2)
+    Fail("output size must be even and at least 2x2 (H.264), got ", width, "x", height);
   if (!(fov_deg >= 0 && fov_deg < 179)) Fail("fov_deg must be in [0, 179), got ", fov_deg);
   if (!(radius_m >= 0)) Fail("radius_m must be >= 0, got ", radius_m);
   if (frame < 0) Fail("frame must be >= 0, got ", frame);
@@ -145,7 +153,8 @@ void PlaybackOptions::Check() const {
   if (out.empty()) Fail("playback needs an output (a directory or a .mp4 file)");
   if (crf < 0 || crf > 51) Fail("crf must be in [0, 51], got ", crf);
   if (!(render.step_voxels > 0)) Fail("step_voxels must be positive, got ", render.step_voxels);
-  if (out.extension() != ".mp4" && !png && !exr && write_frames) Fail("a frame directory needs PNG or EXR output");
+  if (out.extension() != ".mp4" && !png && !exr && write_frames)
+    Fail("a frame directory needs PNG or EXR output");
 }
 
 Eigen::Vector3d ModelUp(const AvatarModel& model) {
@@ -176,28 +185,34 @@ CameraPath OrbitPath(const AvatarModel& model, const OrbitOptions& options) {
   if (std::abs(start.dot(up)) > 0.99) start = up.unitOrthogonal();
   const Eigen::Vector3d side = up.cross(start).normalized();
   const double distance = std::hypot(radius, height);
-  const double fov = options.fov_deg > 0 ? options.fov_deg : FitFovDeg(model, distance, options.width, options.height);
+  const double fov = options.fov_deg > 0
+                         ? options.fov_deg
+                         : FitFovDeg(model, distance, options.width, options.height);
   CameraPath path;
   path.fps = options.fps;
   for (int i = 0; i < options.views; ++i) {
     const double angle = 2 * std::numbers::pi * i / options.views;
-    const Eigen::Vector3d eye = center + radius * (std::cos(angle) * start + std::sin(angle) * side) + height * up;
+    const Eigen::Vector3d eye =
+        center + radius * (std::cos(angle) * start + std::sin(angle) * side) + height * up;
     path.cameras.push_back(LookAtCamera(eye, center, up, fov, options.width, options.height));
-    path.frames.push_back(options.advance_frames ? i % std::max<int64_t>(model.frame_count(), 1)
-                                                 : std::min(options.frame, model.frame_count() - 1));
+    path.frames.push_back(options.advance_frames
+                              ? i % std::max<int64_t>(model.frame_count(), 1)
+                              : std::min(options.frame, model.frame_count() - 1));
   }
   return path;
 }
 
 CameraPath ReadCameraPath(const fs::path& file, const AvatarModel& model, int width, int height) {
-  if (width < 2 || height < 2 || width % 2 || height % 2) Fail("output size must be even and at least 2x2, got ", width, "x", height);
+  if (width < 2 || height < 2 || width % 2 || height % 2)
+    Fail("output size must be even and at least 2x2, got ", width, "x", height);
   nlohmann::json json;
   try {
     json = nlohmann::json::parse(ReadFileToString(file));
   } catch (const nlohmann::json::exception& e) {
     Fail(file.string(), " is not valid JSON: ", e.what());
   }
-  if (!json.contains("keys") || !json["keys"].is_array() || json["keys"].empty()) Fail(file.string(), ": \"keys\" must be a non-empty array");
+  if (!json.contains("keys") || !json["keys"].is_array() || json["keys"].empty())
+    Fail(file.string(), ": \"keys\" must be a non-empty array");
   CameraPath path;
   path.fps = json.value("fps", 30.0);
   if (!(path.fps > 0)) Fail(file.string(), ": \"fps\" must be positive");
@@ -207,9 +222,12 @@ CameraPath ReadCameraPath(const fs::path& file, const AvatarModel& model, int wi
   try {
     if (model_keys) {
       for (const auto& key : keys) {
-        if (!key.contains("cameramodel")) Fail(file.string(), ": every key must name a cameramodel when the first does");
-        CameraModel camera = CameraModel::Read(file.parent_path() / key["cameramodel"].get<std::string>());
-        if (camera.width() != width) camera = camera.Scaled(static_cast<double>(width) / camera.width());
+        if (!key.contains("cameramodel"))
+          Fail(file.string(), ": every key must name a cameramodel when the first does");
+        CameraModel camera =
+            CameraModel::Read(file.parent_path() / key["cameramodel"].get<std::string>());
+        if (camera.width() != width)
+          camera = camera.Scaled(static_cast<double>(width) / camera.width());
         path.cameras.push_back(camera);
         path.frames.push_back(key.value("frame", int64_t{0}));
       }
@@ -240,9 +258,10 @@ CameraPath ReadCameraPath(const fs::path& file, const AvatarModel& model, int wi
       const double t = s - a;
       const Key& ka = parsed[a];
       const Key& kb = parsed[b];
-      path.cameras.push_back(LookAtCamera((1 - t) * ka.eye + t * kb.eye, (1 - t) * ka.look_at + t * kb.look_at,
-                                          ((1 - t) * ka.up + t * kb.up).normalized(), (1 - t) * ka.fov + t * kb.fov,
-                                          width, height));
+      path.cameras.push_back(LookAtCamera((1 - t) * ka.eye + t * kb.eye,
+                                          (1 - t) * ka.look_at + t * kb.look_at,
+                                          ((1 - t) * ka.up + t * kb.up).normalized(),
+                                          (1 - t) * ka.fov + t * kb.fov, width, height));
       path.frames.push_back(std::lround((1 - t) * ka.frame + t * kb.frame));
     }
   } catch (const nlohmann::json::exception& e) {
@@ -270,16 +289,19 @@ void WriteViewExr(const fs::path& file, const RenderedView& view) {
   temp += ".partial";
   try {
     Imf::Header header(w, h);
-    for (const char* name : {"R", "G", "B", "A"}) header.channels().insert(name, Imf::Channel(Imf::HALF));
+    for (const char* name : {"R", "G", "B", "A"})
+      header.channels().insert(name, Imf::Channel(Imf::HALF));
     header.channels().insert("Z", Imf::Channel(Imf::FLOAT));
     header.compression() = Imf::ZIP_COMPRESSION;
     Imf::OutputFile out(temp.c_str(), header);
     Imf::FrameBuffer buffer;
     const char* names[4] = {"R", "G", "B", "A"};
     for (int c = 0; c < 4; ++c) {
-      buffer.insert(names[c], Imf::Slice(Imf::HALF, reinterpret_cast<char*>(channels[c].data()), sizeof(half), sizeof(half) * w));
+      buffer.insert(names[c], Imf::Slice(Imf::HALF, reinterpret_cast<char*>(channels[c].data()),
+                                         sizeof(half), sizeof(half) * w));
     }
-    buffer.insert("Z", Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(depth.ptr<float>()), sizeof(float), sizeof(float) * w));
+    buffer.insert("Z", Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>(depth.ptr<float>()),
+                                  sizeof(float), sizeof(float) * w));
     out.setFrameBuffer(buffer);
     out.writePixels(h);
   } catch (const std::exception& e) {
@@ -290,7 +312,8 @@ void WriteViewExr(const fs::path& file, const RenderedView& view) {
   fs::rename(temp, file);
 }
 
-PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path, const PlaybackOptions& options, Report* report) {
+PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path,
+                           const PlaybackOptions& options, Report* report) {
   options.Check();
   if (path.size() == 0) Fail("the camera path has no view");
   const auto start = std::chrono::steady_clock::now();
@@ -301,9 +324,11 @@ PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path, const Pla
       if (options.out.has_parent_path()) CreateDirectories(options.out.parent_path());
       const auto& first = path.cameras.front();
       for (const auto& camera : path.cameras) {
-        if (camera.width() != first.width() || camera.height() != first.height()) Fail("every view of a video must have one size");
+        if (camera.width() != first.width() || camera.height() != first.height())
+          Fail("every view of a video must have one size");
       }
-      writer = std::make_unique<VideoWriter>(options.out, first.width(), first.height(), path.fps, options.crf);
+      writer = std::make_unique<VideoWriter>(options.out, first.width(), first.height(), path.fps,
+                                             options.crf);
     } else {
       CreateDirectories(options.out);
     }
@@ -334,8 +359,11 @@ PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path, const Pla
   summary.overall_fps = summary.views / std::max(summary.seconds, 1e-9);
   summary.samples_per_ray = samples / summary.views;
   // Models that march no rays (rerendering rasterises) report no samples per ray.
-  summary.End(Termination::kSuccess, Cat(summary.views, " views rendered at ", summary.render_fps, " fps (", summary.overall_fps,
-                        " fps with writing)", summary.samples_per_ray > 0 ? Cat(", ", summary.samples_per_ray, " samples/ray") : ""));
+  summary.End(
+      Termination::kSuccess,
+      Cat(summary.views, " views rendered at ", summary.render_fps, " fps (", summary.overall_fps,
+          " fps with writing)",
+          summary.samples_per_ray > 0 ? Cat(", ", summary.samples_per_ray, " samples/ray") : ""));
   if (report != nullptr) {
     report->metrics()["playback"] = {{"views", summary.views},
                                      {"render_fps", summary.render_fps},

@@ -34,8 +34,8 @@ struct CameraPath {
 };
 
 struct OrbitOptions {
-  int views = 60;              // views in the full circle
-  int width = 512;             // output size in pixels
+  int views = 60;   // views in the full circle
+  int width = 512;  // output size in pixels
   int height = 512;
   double fov_deg = 0;          // horizontal field of view; 0: fit the avatar's box
   double radius_m = 0;         // 0: the training cameras' mean distance from the box's axis
@@ -44,7 +44,7 @@ struct OrbitOptions {
   bool advance_frames = true;  // play the sequence while turning (else frame `frame` only)
   int64_t frame = 0;           // the frame shown when not advancing
   double fps = 30;
-  void Check() const;          // throws Error naming the bad field
+  void Check() const;  // throws Error naming the bad field
 };
 
 // The orbit for a model (its box and training cameras). Throws Error for bad options.
@@ -64,11 +64,11 @@ struct PlaybackOptions {
   // float Z, z-depth in metres, NaN where empty) or a file ending in .mp4 (H.264 through
   // ffmpeg, colour over `background`).
   std::filesystem::path out;
-  bool png = true;                 // directory output: write PNG colour+alpha
-  bool exr = true;                 // directory output: write EXR colour+alpha+depth
+  bool png = true;  // directory output: write PNG colour+alpha
+  bool exr = true;  // directory output: write EXR colour+alpha+depth
   Eigen::Vector3d background = Eigen::Vector3d::Zero();  // BGR in [0, 1] behind the avatar (MP4)
-  int crf = 18;                    // H.264 quality (0..51, lower is better)
-  bool write_frames = true;        // false: render only (benchmarks)
+  int crf = 18;                                          // H.264 quality (0..51, lower is better)
+  bool write_frames = true;                              // false: render only (benchmarks)
   ViewRenderOptions render;
   void Check() const;
 };
@@ -86,8 +86,8 @@ struct PlaybackSummary : Summary {
 
 // Renders every view of the path and writes it. Throws Error for bad options, an unwritable
 // output or a failing ffmpeg.
-PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path, const PlaybackOptions& options,
-                           Report* report = nullptr);
+PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path,
+                           const PlaybackOptions& options, Report* report = nullptr);
 
 // Writes one view as EXR with channels R, G, B, A (half) and Z (float). Atomic.
 void WriteViewExr(const std::filesystem::path& file, const RenderedView& view);

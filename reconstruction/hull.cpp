@@ -23,7 +23,8 @@ void HullOptions::Check() const {
   if (!bounds.valid()) Fail("hull bounds are empty");
   if (tolerated_bad_views < 0) Fail("hull tolerated_bad_views must be >= 0");
   if (min_views < 1) Fail("hull min_views must be >= 1 (got ", min_views, ")");
-  if (!(margin_px > -10 && margin_px < 100)) Fail("hull margin_px must be in (-10, 100) px (got ", margin_px, ")");
+  if (!(margin_px > -10 && margin_px < 100))
+    Fail("hull margin_px must be in (-10, 100) px (got ", margin_px, ")");
   if (threads < 0) Fail("hull threads must be >= 0");
 }
 
@@ -55,8 +56,8 @@ cv::Mat SignedDistance(const cv::Mat& mask, double margin_px) {
   cv::Mat inside = mask != 0;
   cv::Mat outside = mask == 0;
   cv::Mat to_inside, to_outside;
-  cv::distanceTransform(outside, to_inside, cv::DIST_L2, cv::DIST_MASK_PRECISE);   // outside px
-  cv::distanceTransform(inside, to_outside, cv::DIST_L2, cv::DIST_MASK_PRECISE);   // inside px
+  cv::distanceTransform(outside, to_inside, cv::DIST_L2, cv::DIST_MASK_PRECISE);  // outside px
+  cv::distanceTransform(inside, to_outside, cv::DIST_L2, cv::DIST_MASK_PRECISE);  // inside px
   cv::Mat out(mask.size(), CV_32F);
   for (int y = 0; y < mask.rows; ++y) {
     const uint8_t* m = mask.ptr<uint8_t>(y);
@@ -109,7 +110,8 @@ int ClassifyCell(const std::vector<HullView>& views, const Eigen::Vector3f& cent
     float reach = 1.3f * radius * view.projector.focal() / (p.z() - radius) + 1;
     if (!view.projector.InImage(u, v, -reach)) continue;  // the view cannot see any of the cell
     float d = 0;
-    if (!view.projector.InImage(u, v, reach) || !recon::SampleBilinear(view.signed_distance, u, v, &d)) {
+    if (!view.projector.InImage(u, v, reach) ||
+        !recon::SampleBilinear(view.signed_distance, u, v, &d)) {
       ++partial;
       continue;
     }
@@ -138,23 +140,26 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
     if (view.mask.empty()) Fail("visual hull: view '", view.name, "' has no silhouette");
     if (view.mask.type() != CV_8UC1 || view.mask.cols != view.camera.width() ||
         view.mask.rows != view.camera.height()) {
-      Fail("visual hull: silhouette of '", view.name, "' is ", view.mask.cols, "x",
-           view.mask.rows, " CV_8U expected ", view.camera.width(), "x", view.camera.height());
+      Fail("visual hull: silhouette of '", view.name, "' is ", view.mask.cols, "x", view.mask.rows,
+           " CV_8U expected ", view.camera.width(), "x", view.camera.height());
     }
-    hull_views.push_back({recon::FastProjector(view.camera), SignedDistance(view.mask, options.margin_px)});
+    hull_views.push_back(
+        {recon::FastProjector(view.camera), SignedDistance(view.mask, options.margin_px)});
   }
   const int threads = recon::ResolveThreads(options.threads);
   const int tolerated = options.tolerated_bad_views;
   const int min_views = options.min_views;
   VisualHull hull;
   hull.volume = std::make_unique<SparseVolume>(options.voxel_m, options.bounds,
-                                                std::numeric_limits<double>::infinity());
+                                               std::numeric_limits<double>::infinity());
   SparseVolume& volume = *hull.volume;
   const double voxel = options.voxel_m;
 
   // Block range covering the bounds.
-  Eigen::Vector3i lo = SparseVolume::BlockOf((options.bounds.min / voxel).array().floor().cast<int>());
-  Eigen::Vector3i hi = SparseVolume::BlockOf((options.bounds.max / voxel).array().ceil().cast<int>());
+  Eigen::Vector3i lo =
+      SparseVolume::BlockOf((options.bounds.min / voxel).array().floor().cast<int>());
+  Eigen::Vector3i hi =
+      SparseVolume::BlockOf((options.bounds.max / voxel).array().ceil().cast<int>());
   int span = (hi - lo).maxCoeff() + 1;
   int size = 1;
   while (size < span) size *= 2;
@@ -179,10 +184,13 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
       for (size_t i = 0; i < level.size(); ++i) {
         const Cell cell = level[i];
         Eigen::Vector3i cell_hi = cell.origin + Eigen::Vector3i::Constant(cell.size - 1);
-        if ((cell_hi.array() < lo.array()).any() || (cell.origin.array() > hi.array()).any()) continue;
+        if ((cell_hi.array() < lo.array()).any() || (cell.origin.array() > hi.array()).any())
+          continue;
         Eigen::Vector3d first = (cell.origin * kBlockSide).cast<double>() * voxel;
-        Eigen::Vector3d last = ((cell_hi + Eigen::Vector3i::Ones()) * kBlockSide -
-                                Eigen::Vector3i::Ones()).cast<double>() * voxel;
+        Eigen::Vector3d last =
+            ((cell_hi + Eigen::Vector3i::Ones()) * kBlockSide - Eigen::Vector3i::Ones())
+                .cast<double>() *
+            voxel;
         Eigen::Vector3f centre = (0.5 * (first + last)).cast<float>();
         float radius = static_cast<float>(0.5 * (last - first).norm()) + 1e-6f;
         int state = ClassifyCell(hull_views, centre, radius, min_views, tolerated, scratch.data());
@@ -200,7 +208,8 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
         }
         int half = cell.size / 2;
         for (int c = 0; c < 8; ++c) {
-          next[t].push_back({cell.origin + half * Eigen::Vector3i(c & 1, (c >> 1) & 1, (c >> 2) & 1), half});
+          next[t].push_back(
+              {cell.origin + half * Eigen::Vector3i(c & 1, (c >> 1) & 1, (c >> 2) & 1), half});
         }
       }
     }
@@ -219,7 +228,8 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
     Eigen::Vector3i block = SparseVolume::Unkey(key);
     for (int dz = -1; dz <= 1; ++dz)
       for (int dy = -1; dy <= 1; ++dy)
-        for (int dx = -1; dx <= 1; ++dx) evaluate.insert(SparseVolume::Key(block + Eigen::Vector3i(dx, dy, dz)));
+        for (int dx = -1; dx <= 1; ++dx)
+          evaluate.insert(SparseVolume::Key(block + Eigen::Vector3i(dx, dy, dz)));
   }
   hull.inside_blocks.insert(inside.begin(), inside.end());
   std::vector<Eigen::Vector3i> coordinates;
@@ -247,7 +257,8 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
               out.sdf = static_cast<float>(voxel);
               continue;
             }
-            out.sdf = FieldAt(hull_views, world.cast<float>(), min_views, tolerated, scratch.data());
+            out.sdf =
+                FieldAt(hull_views, world.cast<float>(), min_views, tolerated, scratch.data());
             if (out.sdf < 0 && !block_inside) ++inside_voxels;
           }
         }
@@ -263,11 +274,13 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
                       voxel * voxel * voxel;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (summary.volume_m3 <= 0) {
-    summary.End(Termination::kDegenerate, Cat("the hull is empty: no point in the bounds lies inside ",
-                          tolerated > 0 ? "all but " + std::to_string(tolerated) + " of " : "all ",
-                          views.size(), " silhouettes"));
+    summary.End(Termination::kDegenerate,
+                Cat("the hull is empty: no point in the bounds lies inside ",
+                    tolerated > 0 ? "all but " + std::to_string(tolerated) + " of " : "all ",
+                    views.size(), " silhouettes"));
   } else {
-    summary.End(Termination::kSuccess, Cat("hull of ", summary.volume_m3 * 1e3, " litres from ", views.size(), " views"));
+    summary.End(Termination::kSuccess,
+                Cat("hull of ", summary.volume_m3 * 1e3, " litres from ", views.size(), " views"));
   }
   if (summary_out != nullptr) *summary_out = summary;
   return hull;

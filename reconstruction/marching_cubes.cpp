@@ -98,7 +98,8 @@ CubeTables BuildTables() {
   // Returns a vector, not an Eigen expression: an expression would refer to the corner
   // temporaries after they are gone (and read whatever the stack then holds).
   auto midpoint = [&](int e) -> Eigen::Vector3d {
-    return 0.5 * (CornerOffset(tables.edges[e].c0) + CornerOffset(tables.edges[e].c1)).cast<double>();
+    return 0.5 *
+           (CornerOffset(tables.edges[e].c0) + CornerOffset(tables.edges[e].c1)).cast<double>();
   };
   // Orientation is fixed once, from the case with only corner 0 inside, to the winding whose
   // triangles face away from the inside corner in extracted meshes (the tests check every face
@@ -106,8 +107,8 @@ CubeTables BuildTables() {
   bool flip = false;
   {
     auto loop = loops_of(1).at(0);
-    Eigen::Vector3d normal = (midpoint(loop[1]) - midpoint(loop[0]))
-                                 .cross(midpoint(loop[2]) - midpoint(loop[0]));
+    Eigen::Vector3d normal =
+        (midpoint(loop[1]) - midpoint(loop[0])).cross(midpoint(loop[2]) - midpoint(loop[0]));
     flip = normal.dot(Eigen::Vector3d(1, 1, 1)) < 0;
   }
   for (int mask = 0; mask < 256; ++mask) {
@@ -148,7 +149,8 @@ struct BlockMesh {
 
 void MeshingOptions::Check() const {
   if (!(min_weight >= 0)) Fail("meshing min_weight must be >= 0 (got ", min_weight, ")");
-  if (!(simplify_cell_m >= 0)) Fail("meshing simplify_cell_m must be >= 0 (got ", simplify_cell_m, ")");
+  if (!(simplify_cell_m >= 0))
+    Fail("meshing simplify_cell_m must be >= 0 (got ", simplify_cell_m, ")");
 }
 
 Mesh ExtractMesh(const SparseVolume& volume, const MeshingOptions& options) {
@@ -247,7 +249,8 @@ Mesh ExtractMesh(const SparseVolume& volume, const MeshingOptions& options) {
   for (const BlockMesh& part : parts) {
     std::vector<int> remap(part.positions.size());
     for (size_t i = 0; i < part.positions.size(); ++i) {
-      auto [it, inserted] = global.try_emplace(part.vertex_keys[i], static_cast<int>(mesh.vertices.size()));
+      auto [it, inserted] =
+          global.try_emplace(part.vertex_keys[i], static_cast<int>(mesh.vertices.size()));
       if (inserted) {
         mesh.vertices.push_back(part.positions[i]);
         if (any_color) {
@@ -257,7 +260,8 @@ Mesh ExtractMesh(const SparseVolume& volume, const MeshingOptions& options) {
       }
       remap[i] = it->second;
     }
-    for (const auto& f : part.faces) mesh.faces.emplace_back(remap[f.x()], remap[f.y()], remap[f.z()]);
+    for (const auto& f : part.faces)
+      mesh.faces.emplace_back(remap[f.x()], remap[f.y()], remap[f.z()]);
   }
   if (options.simplify_cell_m > 0) mesh = SimplifyMesh(mesh, options.simplify_cell_m);
   if (options.normals && !mesh.empty()) mesh.ComputeNormals();

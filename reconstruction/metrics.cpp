@@ -29,8 +29,8 @@ PointTree::PointTree(std::vector<Eigen::Vector3d> points) : points_(std::move(po
   if (!points_.empty()) Build(0, static_cast<int>(points_.size()), 0);
 }
 
-double PointTriangleDistance(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b,
-                             const Eigen::Vector3d& c) {
+double PointTriangleDistance(const Eigen::Vector3d& p, const Eigen::Vector3d& a,
+                             const Eigen::Vector3d& b, const Eigen::Vector3d& c) {
   const Eigen::Vector3d ab = b - a, ac = c - a, ap = p - a;
   const double d1 = ab.dot(ap), d2 = ac.dot(ap);
   if (d1 <= 0 && d2 <= 0) return ap.norm();
@@ -96,7 +96,8 @@ SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
                               double fscore_threshold_m, size_t samples,
                               const std::function<bool(const Eigen::Vector3d&)>& truth_filter) {
   if (truth.empty() || truth.faces.empty()) Fail("CompareSurfaces: the true mesh is empty");
-  if (!(fscore_threshold_m > 0) || samples == 0) Fail("CompareSurfaces: bad threshold or sample count");
+  if (!(fscore_threshold_m > 0) || samples == 0)
+    Fail("CompareSurfaces: bad threshold or sample count");
   SurfaceErrors errors;
   if (reconstruction.faces.empty()) {
     errors.accuracy_mm = errors.completeness_mm = errors.chamfer_mm =
@@ -136,7 +137,8 @@ SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
       Eigen::Vector3d b = mesh.vertices[mesh.faces[f][1]].cast<double>();
       Eigen::Vector3d c = mesh.vertices[mesh.faces[f][2]].cast<double>();
       centres[f] = (a + b + c) / 3;
-      s.slack = std::max({s.slack, (a - centres[f]).norm(), (b - centres[f]).norm(), (c - centres[f]).norm()});
+      s.slack = std::max(
+          {s.slack, (a - centres[f]).norm(), (b - centres[f]).norm(), (c - centres[f]).norm()});
     }
     s.centroids = std::make_unique<recon::PointTree>(std::move(centres));
     return s;
@@ -201,7 +203,8 @@ std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, do
   std::vector<int> id(truth.vertices.size());
   for (size_t i = 0; i < truth.vertices.size(); ++i) {
     const Eigen::Vector3d v = truth.vertices[i].cast<double>() * 1e6;
-    const std::array<int64_t, 3> cell = {std::llround(v.x()), std::llround(v.y()), std::llround(v.z())};
+    const std::array<int64_t, 3> cell = {std::llround(v.x()), std::llround(v.y()),
+                                         std::llround(v.z())};
     id[i] = welded.emplace(cell, static_cast<int>(welded.size())).first->second;
   }
   std::vector<int> parent(welded.size());
@@ -229,7 +232,8 @@ std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, do
       part.box.extend(t[k]);
     }
     if (w[0] == w[1] || w[1] == w[2] || w[0] == w[2]) continue;
-    for (int k = 0; k < 3; ++k) ++part.edge_uses[{std::min(w[k], w[(k + 1) % 3]), std::max(w[k], w[(k + 1) % 3])}];
+    for (int k = 0; k < 3; ++k)
+      ++part.edge_uses[{std::min(w[k], w[(k + 1) % 3]), std::max(w[k], w[(k + 1) % 3])}];
     part.triangles.push_back(t);
   }
   // Only closed parts enclose a solid.
@@ -261,7 +265,8 @@ std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, do
       if (crossings % 2 == 0) continue;
       // Inside this part, and not on its surface: buried in the solid.
       double nearest = std::numeric_limits<double>::infinity();
-      for (const auto& t : part.triangles) nearest = std::min(nearest, recon::PointTriangleDistance(p, t[0], t[1], t[2]));
+      for (const auto& t : part.triangles)
+        nearest = std::min(nearest, recon::PointTriangleDistance(p, t[0], t[1], t[2]));
       if (nearest > tolerance_m) return false;
     }
     return true;
@@ -289,7 +294,8 @@ cv::Mat DepthForeground(const cv::Mat& depth, const cv::Mat& plate, double noise
           if (std::isfinite(v)) nearest = std::min(nearest, v);
         }
       }
-      filled.at<float>(y, x) = std::isfinite(nearest) ? nearest : std::numeric_limits<float>::quiet_NaN();
+      filled.at<float>(y, x) =
+          std::isfinite(nearest) ? nearest : std::numeric_limits<float>::quiet_NaN();
     }
   }
   cv::Mat mask(depth.size(), CV_8U, cv::Scalar(0));
@@ -304,7 +310,8 @@ cv::Mat DepthForeground(const cv::Mat& depth, const cv::Mat& plate, double noise
     }
   }
   // Isolated pixels are noise, not a subject.
-  cv::morphologyEx(mask, mask, cv::MORPH_OPEN, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(3, 3)));
+  cv::morphologyEx(mask, mask, cv::MORPH_OPEN,
+                   cv::getStructuringElement(cv::MORPH_RECT, cv::Size(3, 3)));
   return mask;
 }
 

@@ -19,16 +19,19 @@
 namespace holocap {
 
 void MvsOptions::Check() const {
-  if (neighbors < 1 || neighbors > 16) Fail("mvs neighbors must be in [1, 16] (got ", neighbors, ")");
+  if (neighbors < 1 || neighbors > 16)
+    Fail("mvs neighbors must be in [1, 16] (got ", neighbors, ")");
   if (window_radius < 1 || window_radius > 10) Fail("mvs window_radius must be in [1, 10]");
   if (!(depth_step_px > 0 && depth_step_px <= 4)) Fail("mvs depth_step_px must be in (0, 4]");
-  if (!(hull_margin_m >= 0) || !(search_depth_m > 0)) Fail("mvs hull margin must be >= 0 and search depth > 0");
+  if (!(hull_margin_m >= 0) || !(search_depth_m > 0))
+    Fail("mvs hull margin must be >= 0 and search depth > 0");
   if (!(min_ncc > -1 && min_ncc < 1)) Fail("mvs min_ncc must be in (-1, 1)");
   if (best_k < 1 || best_k > neighbors) Fail("mvs best_k must be in [1, neighbors]");
   if (min_consistent_views < 0 || min_consistent_views > neighbors) {
     Fail("mvs min_consistent_views must be in [0, neighbors]");
   }
-  if (!(max_reprojection_px > 0 && max_relative_depth > 0)) Fail("mvs consistency tolerances must be > 0");
+  if (!(max_reprojection_px > 0 && max_relative_depth > 0))
+    Fail("mvs consistency tolerances must be > 0");
   if (threads < 0) Fail("mvs threads must be >= 0");
 }
 
@@ -48,7 +51,8 @@ std::vector<int> NearestViews(const std::vector<View>& views, size_t ref, int co
   }
   std::sort(order.begin(), order.end());
   std::vector<int> out;
-  for (size_t i = 0; i < order.size() && static_cast<int>(i) < count; ++i) out.push_back(order[i].second);
+  for (size_t i = 0; i < order.size() && static_cast<int>(i) < count; ++i)
+    out.push_back(order[i].second);
   return out;
 }
 
@@ -65,7 +69,8 @@ struct SweepResult {
 };
 
 SweepResult SweepView(const std::vector<View>& views, const std::vector<cv::Mat>& grays, size_t ref,
-                      const std::vector<int>& sources, const cv::Mat& near, const MvsOptions& options) {
+                      const std::vector<int>& sources, const cv::Mat& near,
+                      const MvsOptions& options) {
   SweepResult result;
   const View& view = views[ref];
   const int w = view.camera.width(), h = view.camera.height();
@@ -89,7 +94,8 @@ SweepResult SweepView(const std::vector<View>& views, const std::vector<cv::Mat>
   }
   cv::Rect roi = cv::boundingRect(active_pixels);
   if (roi.area() == 0) return result;
-  roi = cv::Rect(roi.x - r - 1, roi.y - r - 1, roi.width + 2 * r + 2, roi.height + 2 * r + 2) & cv::Rect(0, 0, w, h);
+  roi = cv::Rect(roi.x - r - 1, roi.y - r - 1, roi.width + 2 * r + 2, roi.height + 2 * r + 2) &
+        cv::Rect(0, 0, w, h);
   // Window pixels of active pixels need warps too: widen each pixel's range to its window's.
   cv::Mat lo_win, hi_win;
   {
@@ -107,7 +113,9 @@ SweepResult SweepView(const std::vector<View>& views, const std::vector<cv::Mat>
   // Plane spacing: the depth change that moves a point depth_step_px in the nearest source.
   recon::FastProjector ref_projector(view.camera);
   double baseline = 1e9;
-  for (int s : sources) baseline = std::min(baseline, (views[s].camera.center_in_world() - view.camera.center_in_world()).norm());
+  for (int s : sources)
+    baseline = std::min(baseline,
+                        (views[s].camera.center_in_world() - view.camera.center_in_world()).norm());
   const double focal = ref_projector.focal();
   std::vector<float> planes;
   for (double z = zmin; z <= zmax;) {
@@ -129,8 +137,10 @@ SweepResult SweepView(const std::vector<View>& views, const std::vector<cv::Mat>
   }
   const cv::Mat ref_gray = grays[ref](roi);
   cv::Mat sum_r, sum_rr;
-  cv::boxFilter(ref_gray, sum_r, CV_32F, cv::Size(win, win), cv::Point(-1, -1), false, cv::BORDER_CONSTANT);
-  cv::boxFilter(ref_gray.mul(ref_gray), sum_rr, CV_32F, cv::Size(win, win), cv::Point(-1, -1), false, cv::BORDER_CONSTANT);
+  cv::boxFilter(ref_gray, sum_r, CV_32F, cv::Size(win, win), cv::Point(-1, -1), false,
+                cv::BORDER_CONSTANT);
+  cv::boxFilter(ref_gray.mul(ref_gray), sum_rr, CV_32F, cv::Size(win, win), cv::Point(-1, -1),
+                false, cv::BORDER_CONSTANT);
 
   const int rw = roi.width, rh = roi.height;
   const int ns = static_cast<int>(sources.size());
@@ -158,9 +168,11 @@ SweepResult SweepView(const std::vector<View>& views, const std::vector<cv::Mat>
           wrow[x] = 0;
           vrow[x] = 0;
           if (z < lrow[x] || z > hrow[x] || !std::isfinite(ray[x][0])) continue;
-          Eigen::Vector3f p = rotation[s] * Eigen::Vector3f(ray[x][0] * z, ray[x][1] * z, z) + translation[s];
+          Eigen::Vector3f p =
+              rotation[s] * Eigen::Vector3f(ray[x][0] * z, ray[x][1] * z, z) + translation[s];
           float u, v, value;
-          if (!projectors[s].Project(p, &u, &v) || !recon::SampleBilinear(src, u, v, &value)) continue;
+          if (!projectors[s].Project(p, &u, &v) || !recon::SampleBilinear(src, u, v, &value))
+            continue;
           wrow[x] = value;
           vrow[x] = 1;
         }
@@ -168,8 +180,10 @@ SweepResult SweepView(const std::vector<View>& views, const std::vector<cv::Mat>
       cv::Mat sum_w, sum_ww, sum_rw, count;
       const cv::Size size(win, win);
       cv::boxFilter(warped[s], sum_w, CV_32F, size, cv::Point(-1, -1), false, cv::BORDER_CONSTANT);
-      cv::boxFilter(warped[s].mul(warped[s]), sum_ww, CV_32F, size, cv::Point(-1, -1), false, cv::BORDER_CONSTANT);
-      cv::boxFilter(warped[s].mul(ref_gray), sum_rw, CV_32F, size, cv::Point(-1, -1), false, cv::BORDER_CONSTANT);
+      cv::boxFilter(warped[s].mul(warped[s]), sum_ww, CV_32F, size, cv::Point(-1, -1), false,
+                    cv::BORDER_CONSTANT);
+      cv::boxFilter(warped[s].mul(ref_gray), sum_rw, CV_32F, size, cv::Point(-1, -1), false,
+                    cv::BORDER_CONSTANT);
       cv::boxFilter(valid[s], count, CV_32F, size, cv::Point(-1, -1), false, cv::BORDER_CONSTANT);
       for (int y = 0; y < rh; ++y) {
         float* out = ncc[s].ptr<float>(y);
@@ -251,7 +265,8 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
     if (view.image.type() != CV_8UC3 || view.mask.type() != CV_8UC1 ||
         view.image.cols != view.camera.width() || view.image.rows != view.camera.height() ||
         view.mask.size() != view.image.size()) {
-      Fail("multi-view stereo: view '", view.name, "' needs a CV_8UC3 image and a CV_8U mask of its camera's size");
+      Fail("multi-view stereo: view '", view.name,
+           "' needs a CV_8UC3 image and a CV_8U mask of its camera's size");
     }
   }
   if (hull.volume == nullptr) Fail("multi-view stereo needs a visual hull");
@@ -295,13 +310,15 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
       other_rays.push_back(recon::NormalisedRays(views[s].camera));
     }
     const Eigen::Matrix3f world_from_cam_r = view.camera.world_from_cam().rotation().cast<float>();
-    const Eigen::Vector3f world_from_cam_t = view.camera.world_from_cam().translation().cast<float>();
+    const Eigen::Vector3f world_from_cam_t =
+        view.camera.world_from_cam().translation().cast<float>();
     for (int y = 0; y < depth.rows; ++y) {
       for (int x = 0; x < depth.cols; ++x) {
         float d = depth.at<float>(y, x);
         cv::Vec2f ray = rays.at<cv::Vec2f>(y, x);
         if (!std::isfinite(d) || !std::isfinite(ray[0])) continue;
-        Eigen::Vector3f world = world_from_cam_r * Eigen::Vector3f(ray[0] * d, ray[1] * d, d) + world_from_cam_t;
+        Eigen::Vector3f world =
+            world_from_cam_r * Eigen::Vector3f(ray[0] * d, ray[1] * d, d) + world_from_cam_t;
         int agree = 0;
         for (size_t s = 0; s < others.size(); ++s) {
           float u, v, z;
@@ -312,12 +329,15 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
           float d_other = other.at<float>(py, px);
           cv::Vec2f r_other = other_rays[s].at<cv::Vec2f>(py, px);
           if (!std::isfinite(d_other) || !std::isfinite(r_other[0])) continue;
-          Eigen::Vector3f back = others[s].camera().world_from_cam().cast<float>() *
-                                 Eigen::Vector3f(r_other[0] * d_other, r_other[1] * d_other, d_other);
+          Eigen::Vector3f back =
+              others[s].camera().world_from_cam().cast<float>() *
+              Eigen::Vector3f(r_other[0] * d_other, r_other[1] * d_other, d_other);
           float bu, bv, bz;
           if (!self.ProjectWorld(back, &bu, &bv, &bz)) continue;
           float reprojection = std::hypot(bu - x, bv - y);
-          if (reprojection <= options.max_reprojection_px && std::abs(bz - d) <= options.max_relative_depth * d) ++agree;
+          if (reprojection <= options.max_reprojection_px &&
+              std::abs(bz - d) <= options.max_relative_depth * d)
+            ++agree;
         }
         if (agree >= options.min_consistent_views) {
           filtered[i].at<float>(y, x) = d;
@@ -329,11 +349,12 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
   summary.pixels_consistent = consistent_total;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (summary.pixels_consistent == 0) {
-    summary.End(Termination::kDegenerate, Cat("no depth survived: ", summary.pixels_matched, " of ",
-                                              summary.pixels_searched, " pixels matched, none consistent across views"));
+    summary.End(Termination::kDegenerate,
+                Cat("no depth survived: ", summary.pixels_matched, " of ", summary.pixels_searched,
+                    " pixels matched, none consistent across views"));
   } else {
-    summary.End(Termination::kSuccess,
-                Cat(summary.pixels_consistent, " consistent depths of ", summary.pixels_searched, " pixels searched"));
+    summary.End(Termination::kSuccess, Cat(summary.pixels_consistent, " consistent depths of ",
+                                           summary.pixels_searched, " pixels searched"));
   }
   if (summary_out != nullptr) *summary_out = summary;
   return filtered;

@@ -61,7 +61,7 @@ double PointTree::Nearest(const Eigen::Vector3d& query, double slack, Distance d
 }
 
 // Distance from a point to a triangle (Ericson, Real-Time Collision Detection, 5.1.5).
-double PointTriangleDistance(const Eigen::Vector3d& p, const Eigen::Vector3d& a, const Eigen::Vector3d& b,
-                             const Eigen::Vector3d& c);
+double PointTriangleDistance(const Eigen::Vector3d& p, const Eigen::Vector3d& a,
+                             const Eigen::Vector3d& b, const Eigen::Vector3d& c);
 
 }  // namespace holocap::recon

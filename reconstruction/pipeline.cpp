@@ -1,8 +1,8 @@
 // The per-take pipeline: plan the methods from the rig, reconstruct frame sets in parallel,
 // write meshes and report.json, measure against ground truth where the take has it.
 #include <omp.h>
-#include <opencv2/imgproc.hpp>
 #include <sys/resource.h>
+#include <opencv2/imgproc.hpp>
 
 #include <atomic>
 #include <chrono>
@@ -25,17 +25,21 @@ namespace holocap {
 
 const char* ToString(ReconstructionMethod method) {
   switch (method) {
-    case ReconstructionMethod::kAuto: return "auto";
-    case ReconstructionMethod::kHull: return "hull";
-    case ReconstructionMethod::kTsdf: return "tsdf";
-    case ReconstructionMethod::kMvs: return "mvs";
+    case ReconstructionMethod::kAuto:
+      return "auto";
+    case ReconstructionMethod::kHull:
+      return "hull";
+    case ReconstructionMethod::kTsdf:
+      return "tsdf";
+    case ReconstructionMethod::kMvs:
+      return "mvs";
   }
   return "?";
 }
 
 ReconstructionMethod ReconstructionMethodFromString(const std::string& text) {
-  for (auto m : {ReconstructionMethod::kAuto, ReconstructionMethod::kHull, ReconstructionMethod::kTsdf,
-                 ReconstructionMethod::kMvs}) {
+  for (auto m : {ReconstructionMethod::kAuto, ReconstructionMethod::kHull,
+                 ReconstructionMethod::kTsdf, ReconstructionMethod::kMvs}) {
     if (text == ToString(m)) return m;
   }
   Fail("unknown reconstruction method '", text, "' (known: auto, hull, tsdf, mvs)");
@@ -59,7 +63,8 @@ void ReconstructionOptions::Check() const {
 
 nlohmann::json ReconstructionOptions::ToJson() const {
   auto box = [](const Box& b) {
-    return nlohmann::json{{"min", {b.min.x(), b.min.y(), b.min.z()}}, {"max", {b.max.x(), b.max.y(), b.max.z()}}};
+    return nlohmann::json{{"min", {b.min.x(), b.min.y(), b.min.z()}},
+                          {"max", {b.max.x(), b.max.y(), b.max.z()}}};
   };
   return {{"method", ToString(method)},
           {"voxel_m", voxel_m},
@@ -74,21 +79,34 @@ nlohmann::json ReconstructionOptions::ToJson() const {
             {"open_px", silhouette.open_px},
             {"dilate_px", silhouette.dilate_px},
             {"erode_px", silhouette.erode_px}}},
-          {"hull", {{"tolerated_bad_views", hull.tolerated_bad_views}, {"min_views", hull.min_views},
-                    {"margin_px", hull.margin_px}}},
-          {"tsdf", {{"truncation_voxels", tsdf.truncation_voxels}, {"max_weight", tsdf.max_weight},
-                    {"depth_noise_k", tsdf.depth_noise_k}, {"smoothing_radius_px", tsdf.smoothing_radius_px},
-                    {"max_incidence_deg", tsdf.max_incidence_deg}}},
-          {"mvs", {{"neighbors", mvs.neighbors}, {"window_radius", mvs.window_radius},
-                   {"depth_step_px", mvs.depth_step_px}, {"min_ncc", mvs.min_ncc},
-                   {"min_consistent_views", mvs.min_consistent_views}}},
+          {"hull",
+           {{"tolerated_bad_views", hull.tolerated_bad_views},
+            {"min_views", hull.min_views},
+            {"margin_px", hull.margin_px}}},
+          {"tsdf",
+           {{"truncation_voxels", tsdf.truncation_voxels},
+            {"max_weight", tsdf.max_weight},
+            {"depth_noise_k", tsdf.depth_noise_k},
+            {"smoothing_radius_px", tsdf.smoothing_radius_px},
+            {"max_incidence_deg", tsdf.max_incidence_deg}}},
+          {"mvs",
+           {{"neighbors", mvs.neighbors},
+            {"window_radius", mvs.window_radius},
+            {"depth_step_px", mvs.depth_step_px},
+            {"min_ncc", mvs.min_ncc},
+            {"min_consistent_views", mvs.min_consistent_views}}},
           {"tsdf_hull_completion", tsdf_hull_completion},
           {"completion_margin_px", completion_margin_px},
           {"meshing", {{"simplify_cell_m", meshing.simplify_cell_m}}},
-          {"texture", {{"texels_per_cell", texture.texels_per_cell}, {"max_views", texture.max_views},
-                       {"min_cos_incidence", texture.min_cos_incidence}, {"depth_tolerance_m", texture.depth_tolerance_m},
-                       {"occlusion_scale", texture.occlusion_scale}, {"fill_unseen", texture.fill_unseen},
-                       {"fill_smoothing_iterations", texture.fill_smoothing_iterations}, {"atlas", texture.atlas}}},
+          {"texture",
+           {{"texels_per_cell", texture.texels_per_cell},
+            {"max_views", texture.max_views},
+            {"min_cos_incidence", texture.min_cos_incidence},
+            {"depth_tolerance_m", texture.depth_tolerance_m},
+            {"occlusion_scale", texture.occlusion_scale},
+            {"fill_unseen", texture.fill_unseen},
+            {"fill_smoothing_iterations", texture.fill_smoothing_iterations},
+            {"atlas", texture.atlas}}},
           {"write_glb", write_glb},
           {"sweep_voxels_m", sweep_voxels_m},
           {"threads", threads}};
@@ -130,8 +148,8 @@ struct FrameOutput : Summary {
 
 // Reconstructs one frame set at one voxel size.
 FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const Plates& plates,
-                             const MethodPlan& plan, const ReconstructionOptions& options, int64_t set,
-                             double voxel, int threads) {
+                             const MethodPlan& plan, const ReconstructionOptions& options,
+                             int64_t set, double voxel, int threads) {
   FrameOutput out;
   out.End(Termination::kSuccess, "");  // until a step finds the frame cannot give a surface
   std::vector<std::string> needed = take_plan.color_sensors;
@@ -148,8 +166,8 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
     if (view.image.type() != CV_8UC3) Fail("colour frames of '", name, "' must be 8-bit");
     if (need_masks) {
       auto plate = plates.color.find(name);  // none in threshold mode
-      view.mask = ExtractSilhouette(view.image, plate == plates.color.end() ? cv::Mat() : plate->second,
-                                    options.silhouette);
+      view.mask = ExtractSilhouette(
+          view.image, plate == plates.color.end() ? cv::Mat() : plate->second, options.silhouette);
     }
     views.push_back(std::move(view));
   }
@@ -161,8 +179,10 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
     hull_options.threads = threads;
     HullSummary summary;
     VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
-    out.metrics["hull"] = {{"seconds", summary.seconds}, {"volume_m3", summary.volume_m3},
-                           {"surface_blocks", summary.surface_blocks}, {"octree_cells", summary.octree_cells}};
+    out.metrics["hull"] = {{"seconds", summary.seconds},
+                           {"volume_m3", summary.volume_m3},
+                           {"surface_blocks", summary.surface_blocks},
+                           {"octree_cells", summary.octree_cells}};
     out.termination = summary.termination;
     out.message = summary.message;
     if (IsUsable(summary.termination)) out.mesh = ExtractMesh(*hull.volume, options.meshing);
@@ -181,18 +201,22 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
         const Frame* frame = frames.Find(name);
         const std::string& paired = take.stream(name).paired_with;
         cv::Mat foreground;
-        if (plan.depth_background) foreground = DepthForeground(frame->image, plates.depth.at(name), options.tsdf.depth_noise_k);
+        if (plan.depth_background)
+          foreground =
+              DepthForeground(frame->image, plates.depth.at(name), options.tsdf.depth_noise_k);
         const View* color_view = nullptr;
         for (const View& v : views) color_view = v.name == paired ? &v : color_view;
-        TsdfFrameStats stats = color_view != nullptr
-                                   ? tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground,
-                                                     color_view->image, &color_view->camera)
-                                   : tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground);
+        TsdfFrameStats stats =
+            color_view != nullptr
+                ? tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground,
+                                  color_view->image, &color_view->camera)
+                : tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground);
         seconds += stats.seconds;
         valid += stats.valid_pixels;
         depth_maps.emplace_back(take_plan.cameras.at(name), frame->image);
       }
-      out.metrics["tsdf"] = {{"integrate_seconds", seconds}, {"valid_pixels", valid},
+      out.metrics["tsdf"] = {{"integrate_seconds", seconds},
+                             {"valid_pixels", valid},
                              {"blocks", tsdf->volume().block_count()},
                              {"memory_mb", tsdf->volume().memory_bytes() / 1048576.0}};
       if (plan.hull_completion) {
@@ -203,7 +227,8 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
         hull_options.threads = threads;
         HullSummary hull_summary;
         VisualHull hull = ComputeVisualHull(views, hull_options, &hull_summary);
-        out.metrics["hull"] = {{"seconds", hull_summary.seconds}, {"volume_m3", hull_summary.volume_m3}};
+        out.metrics["hull"] = {{"seconds", hull_summary.seconds},
+                               {"volume_m3", hull_summary.volume_m3}};
         if (IsUsable(hull_summary.termination)) {
           CompletionStats completion = tsdf->CompleteFromHull(hull, depth_maps);
           out.metrics["completion"] = {{"seconds", completion.seconds},
@@ -223,7 +248,8 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
       hull_options.threads = threads;
       HullSummary hull_summary;
       VisualHull hull = ComputeVisualHull(views, hull_options, &hull_summary);
-      out.metrics["hull"] = {{"seconds", hull_summary.seconds}, {"volume_m3", hull_summary.volume_m3}};
+      out.metrics["hull"] = {{"seconds", hull_summary.seconds},
+                             {"volume_m3", hull_summary.volume_m3}};
       if (!IsUsable(hull_summary.termination)) {
         out.termination = hull_summary.termination;
         out.message = "hull: " + hull_summary.message;
@@ -233,8 +259,10 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
       mvs_options.threads = threads;
       MvsSummary mvs_summary;
       std::vector<cv::Mat> depths = ComputeMvsDepth(views, hull, mvs_options, &mvs_summary);
-      out.metrics["mvs"] = {{"seconds", mvs_summary.seconds}, {"pixels_matched", mvs_summary.pixels_matched},
-                            {"pixels_consistent", mvs_summary.pixels_consistent}, {"planes", mvs_summary.planes}};
+      out.metrics["mvs"] = {{"seconds", mvs_summary.seconds},
+                            {"pixels_matched", mvs_summary.pixels_matched},
+                            {"pixels_consistent", mvs_summary.pixels_consistent},
+                            {"planes", mvs_summary.planes}};
       if (!IsUsable(mvs_summary.termination)) {
         out.termination = mvs_summary.termination;
         out.message = "mvs: " + mvs_summary.message;
@@ -245,9 +273,12 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
       tsdf.emplace(tsdf_options);
       double seconds = 0;
       for (size_t i = 0; i < views.size(); ++i) {
-        seconds += tsdf->Integrate(depths[i], views[i].camera, views[i].mask, views[i].image, &views[i].camera).seconds;
+        seconds += tsdf->Integrate(depths[i], views[i].camera, views[i].mask, views[i].image,
+                                   &views[i].camera)
+                       .seconds;
       }
-      out.metrics["tsdf"] = {{"integrate_seconds", seconds}, {"blocks", tsdf->volume().block_count()}};
+      out.metrics["tsdf"] = {{"integrate_seconds", seconds},
+                             {"blocks", tsdf->volume().block_count()}};
     }
     out.mesh = ExtractMesh(tsdf->volume(), options.meshing);
   }
@@ -261,8 +292,9 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
   return out;
 }
 
-void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, const TakePlan& take_plan,
-                           const MethodPlan& plan, nlohmann::json* metrics) {
+void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh,
+                           const TakePlan& take_plan, const MethodPlan& plan,
+                           nlohmann::json* metrics) {
   std::filesystem::path file = take.gt_dir() / "meshes" / (SetName(set) + ".ply");
   if (!std::filesystem::exists(file)) file = take.gt_dir() / "meshes" / "static.ply";
   if (!std::filesystem::exists(file)) return;
@@ -272,9 +304,12 @@ void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, cons
   const auto outer = OnOuterSurface(truth);
   SurfaceErrors e = CompareSurfaces(mesh, truth, 0.005, 40000, outer);
   SurfaceErrors all = CompareSurfaces(mesh, truth, 0.005);
-  nlohmann::json gt = {{"chamfer_mm", e.chamfer_mm}, {"accuracy_mm", e.accuracy_mm},
-                       {"completeness_mm", e.completeness_mm}, {"fscore_5mm", e.fscore},
-                       {"precision_5mm", e.precision}, {"recall_5mm", e.recall},
+  nlohmann::json gt = {{"chamfer_mm", e.chamfer_mm},
+                       {"accuracy_mm", e.accuracy_mm},
+                       {"completeness_mm", e.completeness_mm},
+                       {"fscore_5mm", e.fscore},
+                       {"precision_5mm", e.precision},
+                       {"recall_5mm", e.recall},
                        {"chamfer_with_buried_faces_mm", all.chamfer_mm},
                        {"completeness_with_buried_faces_mm", all.completeness_mm}};
   if (plan.method == ReconstructionMethod::kTsdf) {
@@ -282,12 +317,15 @@ void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh, cons
     std::vector<std::pair<CameraModel, cv::Mat>> seen;
     for (const auto& name : take_plan.depth_sensors) {
       auto depth_file = take.gt_dir() / "depth" / name / (SetName(set) + ".exr");
-      if (std::filesystem::exists(depth_file)) seen.emplace_back(take.Camera(name, true), ReadImage(depth_file));
+      if (std::filesystem::exists(depth_file))
+        seen.emplace_back(take.Camera(name, true), ReadImage(depth_file));
     }
     if (!seen.empty()) {
       SurfaceErrors o = CompareSurfaces(mesh, truth, 0.005, 40000, SeenInDepthMaps(seen));
-      gt["observed"] = {{"chamfer_mm", o.chamfer_mm}, {"accuracy_mm", o.accuracy_mm},
-                        {"completeness_mm", o.completeness_mm}, {"fscore_5mm", o.fscore}};
+      gt["observed"] = {{"chamfer_mm", o.chamfer_mm},
+                        {"accuracy_mm", o.accuracy_mm},
+                        {"completeness_mm", o.completeness_mm},
+                        {"fscore_5mm", o.fscore}};
     }
   }
   (*metrics)["gt"] = gt;
@@ -320,7 +358,8 @@ class TakeReconstructor {
   // The sensors a method reads, every frame set holding each of them.
   std::vector<std::string> NeededSensors() const {
     std::vector<std::string> needed = take_plan_.color_sensors;
-    if (is_tsdf()) needed.insert(needed.end(), take_plan_.depth_sensors.begin(), take_plan_.depth_sensors.end());
+    if (is_tsdf())
+      needed.insert(needed.end(), take_plan_.depth_sensors.begin(), take_plan_.depth_sensors.end());
     return needed;
   }
 
@@ -331,25 +370,31 @@ class TakeReconstructor {
     if (plan_.method == ReconstructionMethod::kAuto) {
       plan_.method = depth.empty() ? ReconstructionMethod::kMvs : ReconstructionMethod::kTsdf;
     }
-    if (is_tsdf() && depth.empty()) Fail("method tsdf needs depth sensors; ", Where(), " has none (use hull or mvs)");
+    if (is_tsdf() && depth.empty())
+      Fail("method tsdf needs depth sensors; ", Where(), " has none (use hull or mvs)");
     if (!is_tsdf() && color.size() < 2) {
-      Fail("method ", ToString(plan_.method), " needs at least two colour cameras; the take has ", color.size());
+      Fail("method ", ToString(plan_.method), " needs at least two colour cameras; the take has ",
+           color.size());
     }
     if (needs_plate() && !take_plan_.has_clean_plate() &&
         options_.silhouette.mode == SilhouetteMode::kBackgroundSubtraction) {
-      Fail("method ", ToString(plan_.method), " needs silhouettes, and background subtraction needs a clean plate: ",
-           Where(), " has none (record leading frames without the subject and pass --clean-plate N)");
+      Fail("method ", ToString(plan_.method),
+           " needs silhouettes, and background subtraction needs a clean plate: ", Where(),
+           " has none (record leading frames without the subject and pass --clean-plate N)");
     }
     take_plan_.RequireFrames(take_, NeededSensors());
     completion_ = "not a TSDF run";
     if (is_tsdf()) {
-      const bool silhouettes = options_.silhouette.mode == SilhouetteMode::kThreshold || take_plan_.has_clean_plate();
+      const bool silhouettes =
+          options_.silhouette.mode == SilhouetteMode::kThreshold || take_plan_.has_clean_plate();
       plan_.hull_completion = options_.tsdf_hull_completion && color.size() >= 2 && silhouettes;
-      completion_ = plan_.hull_completion ? "visual hull of the colour cameras, carved by the depth sensors' free space, "
-                                            "fills what the depth sensors did not see"
-                    : !options_.tsdf_hull_completion ? "off (asked for)"
-                    : color.size() < 2              ? "off: fewer than two colour cameras"
-                                                    : "off: no clean plate for the colour cameras' silhouettes";
+      completion_ =
+          plan_.hull_completion
+              ? "visual hull of the colour cameras, carved by the depth sensors' free space, "
+                "fills what the depth sensors did not see"
+          : !options_.tsdf_hull_completion ? "off (asked for)"
+          : color.size() < 2               ? "off: fewer than two colour cameras"
+                             : "off: no clean plate for the colour cameras' silhouettes";
     }
     threads_ = recon::ResolveThreads(options_.threads);
     frame_count_ = static_cast<int>(take_plan_.sets.size());
@@ -369,32 +414,40 @@ class TakeReconstructor {
   }
 
   void DescribePlan() {
-    const std::string skipped = is_tsdf() ? (plan_.hull_completion ? "stereo" : "silhouettes, hull, stereo")
-                                : plan_.method == ReconstructionMethod::kHull ? "depth fusion, stereo"
-                                                                              : "depth sensors";
+    const std::string skipped =
+        is_tsdf() ? (plan_.hull_completion ? "stereo" : "silhouettes, hull, stereo")
+        : plan_.method == ReconstructionMethod::kHull ? "depth fusion, stereo"
+                                                      : "depth sensors";
     TakePlan described = take_plan_;
     if (!is_tsdf()) {
-      if (!described.depth_sensors.empty()) described.LeaveOut("depth sensors", "the method reads colour cameras only");
+      if (!described.depth_sensors.empty())
+        described.LeaveOut("depth sensors", "the method reads colour cameras only");
       described.depth_sensors.clear();
     }
     nlohmann::json plan = described.ToJson();
     plan["method"] = ToString(plan_.method);
     plan["method_reason"] = options_.method != ReconstructionMethod::kAuto ? "asked for"
-                            : take_plan_.depth_sensors.empty() ? "no depth sensor: multi-view stereo inside the visual hull"
-                                                               : "depth sensors present: TSDF fusion of their depth";
-    plan["silhouettes"] = needs_plate() || plan_.hull_completion
-                              ? (options_.silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background subtraction")
-                              : "not needed";
+                            : take_plan_.depth_sensors.empty()
+                                ? "no depth sensor: multi-view stereo inside the visual hull"
+                                : "depth sensors present: TSDF fusion of their depth";
+    plan["silhouettes"] =
+        needs_plate() || plan_.hull_completion
+            ? (options_.silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
+                                                                      : "background subtraction")
+            : "not needed";
     plan["completion"] = completion_;
-    plan["depth_background"] = plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
+    plan["depth_background"] =
+        plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
     plan["voxel_m"] = options_.voxel_m;
-    plan["parallel"] = plan_.outer_threads > 1 ? Cat(plan_.outer_threads, " frames at once, 1 thread each")
-                                               : Cat("one frame at a time, ", plan_.inner_threads, " threads each");
+    plan["parallel"] = plan_.outer_threads > 1
+                           ? Cat(plan_.outer_threads, " frames at once, 1 thread each")
+                           : Cat("one frame at a time, ", plan_.inner_threads, " threads each");
     plan["texture"] = options_.texture.atlas ? "per-vertex colour and atlas" : "per-vertex colour";
     plan["skipped"] = skipped;
     summary_.plan = plan;
-    std::printf("reconstruct: %s on %d frame set(s), voxel %.1f mm, cameras from %s\n", ToString(plan_.method),
-                frame_count_, options_.voxel_m * 1e3, take_plan_.ground_truth_cameras ? "gt/ (not calibrated)" : "calib/");
+    std::printf("reconstruct: %s on %d frame set(s), voxel %.1f mm, cameras from %s\n",
+                ToString(plan_.method), frame_count_, options_.voxel_m * 1e3,
+                take_plan_.ground_truth_cameras ? "gt/ (not calibrated)" : "calib/");
     std::printf("  %s\n", plan["method_reason"].get<std::string>().c_str());
     if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
     std::printf("  %s\n", plan["parallel"].get<std::string>().c_str());
@@ -411,8 +464,8 @@ class TakeReconstructor {
   void ReconstructOne(int i) {
     const int64_t set = take_plan_.sets[i];
     auto frame_start = std::chrono::steady_clock::now();
-    FrameOutput frame =
-        ReconstructFrame(take_, take_plan_, plates_, plan_, options_, set, options_.voxel_m, plan_.inner_threads);
+    FrameOutput frame = ReconstructFrame(take_, take_plan_, plates_, plan_, options_, set,
+                                         options_.voxel_m, plan_.inner_threads);
     FrameResult& result = summary_.frames[i];
     result.set = set;
     result.End(frame.termination, frame.message);
@@ -432,7 +485,8 @@ class TakeReconstructor {
       if (options_.write_glb) WriteGlb(out_ / (SetName(set) + ".glb"), textured);
       result.metrics["texture"] = textured.Metrics();
     }
-    result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - frame_start).count();
+    result.seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - frame_start).count();
     result.vertices = static_cast<int64_t>(frame.mesh.vertices.size());
     result.faces = static_cast<int64_t>(frame.mesh.faces.size());
     if (frame.IsUsable() && take_.has_ground_truth()) {
@@ -462,7 +516,8 @@ class TakeReconstructor {
   // Error against time as the voxel size varies, on the first frame (simulated takes).
   nlohmann::json SweepVoxels() {
     nlohmann::json sweep = nlohmann::json::array();
-    if (!take_.has_ground_truth() || options_.sweep_voxels_m.empty() || !summary_.frames[0].metrics.contains("gt")) {
+    if (!take_.has_ground_truth() || options_.sweep_voxels_m.empty() ||
+        !summary_.frames[0].metrics.contains("gt")) {
       return sweep;
     }
     std::vector<double> voxels = options_.sweep_voxels_m;
@@ -478,15 +533,17 @@ class TakeReconstructor {
         metrics = summary_.frames[0].metrics;
       } else {
         auto t0 = std::chrono::steady_clock::now();
-        FrameOutput frame =
-            ReconstructFrame(take_, take_plan_, plates_, plan_, options_, take_plan_.sets[0], voxel, threads_);
+        FrameOutput frame = ReconstructFrame(take_, take_plan_, plates_, plan_, options_,
+                                             take_plan_.sets[0], voxel, threads_);
         seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (!frame.IsUsable()) continue;
         AddGroundTruthMetrics(take_, take_plan_.sets[0], frame.mesh, take_plan_, plan_, &metrics);
       }
       if (!metrics.contains("gt")) continue;
       double chamfer = metrics["gt"]["chamfer_mm"].get<double>();
-      sweep.push_back({{"voxel_mm", voxel * 1e3}, {"seconds", seconds}, {"chamfer_mm", chamfer},
+      sweep.push_back({{"voxel_mm", voxel * 1e3},
+                       {"seconds", seconds},
+                       {"chamfer_mm", chamfer},
                        {"fscore_5mm", metrics["gt"]["fscore_5mm"]}});
       if (report_ != nullptr) {
         report_->AddPoint("gt.chamfer_mm", chamfer, iter);
@@ -511,8 +568,13 @@ class TakeReconstructor {
       per_frame.push_back(f.seconds);
       total_seconds += f.seconds;
       usable += f.IsUsable();
-      frames_json.push_back({{"set", f.set}, {"seconds", f.seconds}, {"vertices", f.vertices}, {"faces", f.faces},
-                             {"termination", ToString(f.termination)}, {"message", f.message}, {"metrics", f.metrics}});
+      frames_json.push_back({{"set", f.set},
+                             {"seconds", f.seconds},
+                             {"vertices", f.vertices},
+                             {"faces", f.faces},
+                             {"termination", ToString(f.termination)},
+                             {"message", f.message},
+                             {"metrics", f.metrics}});
       if (f.metrics.contains("gt")) {
         ++gt_count;
         for (auto& [key, value] : f.metrics["gt"].items()) {
@@ -520,11 +582,14 @@ class TakeReconstructor {
         }
       }
     }
-    summary_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+    summary_.seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
     if (usable == frame_count_) {
-      summary_.End(Termination::kSuccess, Cat(frame_count_, " frame set(s) reconstructed by ", ToString(plan_.method)));
+      summary_.End(Termination::kSuccess,
+                   Cat(frame_count_, " frame set(s) reconstructed by ", ToString(plan_.method)));
     } else {
-      std::string message = Cat(usable, " of ", frame_count_, " frame sets gave a surface; first failure: ");
+      std::string message =
+          Cat(usable, " of ", frame_count_, " frame sets gave a surface; first failure: ");
       for (const FrameResult& f : summary_.frames) {
         if (!f.IsUsable()) {
           message += Cat("set ", f.set, ": ", f.message);
@@ -566,15 +631,17 @@ class TakeReconstructor {
 
 }  // namespace
 
-ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan, const std::filesystem::path& out,
+ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan,
+                                      const std::filesystem::path& out,
                                       const ReconstructionOptions& options, Report* report) {
   options.Check();
   return TakeReconstructor(take, plan, out, options, report).Run();
 }
 
-ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, const TakeSelection& selection,
-                                      const std::filesystem::path& out, const ReconstructionOptions& options,
-                                      Report* report) {
+ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir,
+                                      const TakeSelection& selection,
+                                      const std::filesystem::path& out,
+                                      const ReconstructionOptions& options, Report* report) {
   options.Check();
   const Take take = Take::Open(take_dir);
   const TakePlan plan = PlanTake(take, selection);

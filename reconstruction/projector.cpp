@@ -122,8 +122,7 @@ FastProjector::FastProjector(const CameraModel& camera)
   translation_ = camera.cam_from_world().translation().cast<float>();
   CameraModel lens = camera;
   lens.set_cam_from_world(Pose::Identity());
-  table_ = Cached<ProjectionTable>(LensKey(camera),
-                                   [&] { return BuildTable(lens, kTableCells); });
+  table_ = Cached<ProjectionTable>(LensKey(camera), [&] { return BuildTable(lens, kTableCells); });
 }
 
 static cv::Mat BuildRays(const CameraModel& camera) {
@@ -140,7 +139,7 @@ static cv::Mat BuildRays(const CameraModel& camera) {
     for (int x = 0; x < w; ++x) {
       Eigen::Vector3d ray = rays.col(static_cast<Eigen::Index>(y) * w + x);
       row[x] = (ray.allFinite() && ray.z() > 1e-6) ? cv::Vec2f(ray.x() / ray.z(), ray.y() / ray.z())
-                                                    : cv::Vec2f(nan, nan);
+                                                   : cv::Vec2f(nan, nan);
     }
   }
   return out;

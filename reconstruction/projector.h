@@ -51,8 +51,8 @@ class FastProjector {
     float fb = gb - ib;
     const Eigen::Vector2f* row0 = &t.nodes[ib * (t.cells_a + 1) + ia];
     const Eigen::Vector2f* row1 = row0 + (t.cells_a + 1);
-    Eigen::Vector2f p = (1 - fb) * ((1 - fa) * row0[0] + fa * row0[1]) +
-                        fb * ((1 - fa) * row1[0] + fa * row1[1]);
+    Eigen::Vector2f p =
+        (1 - fb) * ((1 - fa) * row0[0] + fa * row0[1]) + fb * ((1 - fa) * row1[0] + fa * row1[1]);
     *u = p.x();
     *v = p.y();
     return true;

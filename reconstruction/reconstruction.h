@@ -156,23 +156,23 @@ class SparseVolume {
 // Visual hull
 
 struct HullOptions {
-  double voxel_m = 0.004;      // leaf voxel edge
-  Box bounds;                  // the capture volume; nothing outside is carved in
+  double voxel_m = 0.004;  // leaf voxel edge
+  Box bounds;              // the capture volume; nothing outside is carved in
   // Conservative mode: a point survives when at most this many views put it outside their
   // silhouette (1 tolerates one bad silhouette, such as an empty or truncated mask).
   int tolerated_bad_views = 0;
-  int min_views = 2;           // a point seen (inside the image) by fewer views is outside
-  double margin_px = 1.0;      // silhouettes grown by this much before carving (edge pixels);
-                               // negative shrinks them
-  int threads = 0;             // 0: all cores
+  int min_views = 2;       // a point seen (inside the image) by fewer views is outside
+  double margin_px = 1.0;  // silhouettes grown by this much before carving (edge pixels);
+                           // negative shrinks them
+  int threads = 0;         // 0: all cores
 
   void Check() const;
 };
 
 struct HullSummary : Summary {
-  int64_t octree_cells = 0;     // cells tested before reaching blocks
-  int64_t surface_blocks = 0;   // blocks evaluated voxel by voxel
-  int64_t inside_blocks = 0;    // blocks wholly inside, never evaluated voxel by voxel
+  int64_t octree_cells = 0;    // cells tested before reaching blocks
+  int64_t surface_blocks = 0;  // blocks evaluated voxel by voxel
+  int64_t inside_blocks = 0;   // blocks wholly inside, never evaluated voxel by voxel
   double volume_m3 = 0;
   double seconds = 0;
 };
@@ -200,11 +200,11 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
 // Depth fusion
 
 struct TsdfOptions {
-  double voxel_m = 0.004;            // voxel edge
-  double truncation_voxels = 4;      // truncation distance in voxels
-  float max_weight = 64;             // weights are capped so that the volume can follow change
-  Box bounds;                        // nothing outside is allocated
-  double depth_min_m = 0.2;          // measurements outside [min, max] are ignored
+  double voxel_m = 0.004;        // voxel edge
+  double truncation_voxels = 4;  // truncation distance in voxels
+  float max_weight = 64;         // weights are capped so that the volume can follow change
+  Box bounds;                    // nothing outside is allocated
+  double depth_min_m = 0.2;      // measurements outside [min, max] are ignored
   double depth_max_m = 8.0;
   // Sensor noise sigma(z) = depth_noise_k * z^2 (the simulated sensors' model; structured
   // light and ToF sensors follow it closely). It sets each measurement's weight
@@ -216,7 +216,7 @@ struct TsdfOptions {
   // Measurements whose surface is seen more obliquely than this (from the depth map's own
   // normals) are dropped: at grazing incidence depth is unreliable and smears surfaces.
   double max_incidence_deg = 80;
-  int threads = 0;                   // 0: all cores
+  int threads = 0;  // 0: all cores
 
   void Check() const;
 };
@@ -305,7 +305,7 @@ struct MvsOptions {
   int min_consistent_views = 1;
   double max_reprojection_px = 1.0;
   double max_relative_depth = 0.01;
-  int threads = 0;              // 0: all cores
+  int threads = 0;  // 0: all cores
 
   void Check() const;
 };
@@ -328,30 +328,30 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
 // Texturing and export
 
 struct TextureOptions {
-  int texels_per_cell = 8;          // atlas: two triangles share one square cell of this side
-  double min_cos_incidence = 0.1;   // views seeing a surface more obliquely do not contribute
-  double depth_tolerance_m = 0.01;  // visibility: the view's own rendered depth under the image
-                                    // pixels a lookup reads is within this (plus what the
-                                    // surface's slope spans over them) of the point's: no
-                                    // occluder, no silhouette edge
-  int occlusion_scale = 2;          // occlusion buffers at this multiple of each image's size
-  int max_views = 3;                // blend the best views (highest incidence cosine)
-  bool fill_unseen = true;          // vertices no view sees take their seen neighbours' colour,
-                                    // diffused over the mesh's edges
+  int texels_per_cell = 8;             // atlas: two triangles share one square cell of this side
+  double min_cos_incidence = 0.1;      // views seeing a surface more obliquely do not contribute
+  double depth_tolerance_m = 0.01;     // visibility: the view's own rendered depth under the image
+                                       // pixels a lookup reads is within this (plus what the
+                                       // surface's slope spans over them) of the point's: no
+                                       // occluder, no silhouette edge
+  int occlusion_scale = 2;             // occlusion buffers at this multiple of each image's size
+  int max_views = 3;                   // blend the best views (highest incidence cosine)
+  bool fill_unseen = true;             // vertices no view sees take their seen neighbours' colour,
+                                       // diffused over the mesh's edges
   int fill_smoothing_iterations = 20;  // Jacobi smoothing of the filled colours afterwards
-  bool atlas = true;                // also build the atlas (vertex colour is always set)
+  bool atlas = true;                   // also build the atlas (vertex colour is always set)
   void Check() const;
 };
 
 struct TexturedMesh {
-  Mesh mesh;                            // with per-vertex colour
+  Mesh mesh;                               // with per-vertex colour
   std::vector<Eigen::Vector2f> corner_uv;  // 3 per face, glTF convention (v down)
-  cv::Mat atlas;                        // CV_8UC3 BGR; empty without an atlas
-  int64_t seen_vertices = 0;            // coloured from the views
-  int64_t filled_vertices = 0;          // seen by no view, coloured from seen neighbours
-  int64_t uncoloured_vertices = 0;      // neither (no seen vertex in their part of the mesh,
-                                        // or filling off): mid grey
-  nlohmann::json Metrics() const;       // counts and fractions for reports
+  cv::Mat atlas;                           // CV_8UC3 BGR; empty without an atlas
+  int64_t seen_vertices = 0;               // coloured from the views
+  int64_t filled_vertices = 0;             // seen by no view, coloured from seen neighbours
+  int64_t uncoloured_vertices = 0;         // neither (no seen vertex in their part of the mesh,
+                                           // or filling off): mid grey
+  nlohmann::json Metrics() const;          // counts and fractions for reports
 };
 
 // Colours every vertex (and every atlas texel) by blending the views that see it, weighted by
@@ -398,7 +398,8 @@ SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
 // parts that overlap (the simulated subject is a union of body parts, each a closed mesh): a
 // point more than `tolerance_m` inside another closed part is buried in the solid, surface no
 // sensor can see and no reconstruction of the subject has. Open parts are kept as they are.
-std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, double tolerance_m = 1e-4);
+std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth,
+                                                           double tolerance_m = 1e-4);
 
 // A truth filter for CompareSurfaces: points that one of the (camera, true z-depth map) pairs
 // sees, i.e. whose depth there matches the map within `tolerance_m`.
@@ -414,12 +415,12 @@ ReconstructionMethod ReconstructionMethodFromString(const std::string& text);  /
 
 struct ReconstructionOptions {
   ReconstructionMethod method = ReconstructionMethod::kAuto;  // auto: depth -> tsdf, else mvs
-  double voxel_m = 0.004;           // TSDF and hull voxel (the hull for MVS uses 2x)
+  double voxel_m = 0.004;  // TSDF and hull voxel (the hull for MVS uses 2x)
   // Which frame sets, cameras and clean plates: the TakePlan given beside these options.
-  Box bounds;                       // the capture volume
+  Box bounds;  // the capture volume
   SilhouetteOptions silhouette;
-  HullOptions hull;                 // voxel and bounds are set from the fields above
-  TsdfOptions tsdf;                 // voxel and bounds likewise
+  HullOptions hull;  // voxel and bounds are set from the fields above
+  TsdfOptions tsdf;  // voxel and bounds likewise
   // TSDF: what the depth sensors did not see is completed from the colour cameras' visual hull
   // carved by the sensors' free space (TsdfVolume::CompleteFromHull). Needs silhouettes, so a
   // clean plate or threshold silhouettes, and two colour cameras; the plan says when it is off.
@@ -432,12 +433,12 @@ struct ReconstructionOptions {
   MvsOptions mvs;
   MeshingOptions meshing;
   TextureOptions texture;
-  bool write_glb = true;            // recon/<set>.glb beside recon/<set>.ply
+  bool write_glb = true;  // recon/<set>.glb beside recon/<set>.ply
   // On takes with ground truth, the first frame is also reconstructed at these voxel sizes to
   // record error against time (empty: none).
   std::vector<double> sweep_voxels_m = {0.016, 0.008};
-  int threads = 0;                  // 0: all cores; frames run in parallel when there are
-                                    // at least as many frames as threads
+  int threads = 0;  // 0: all cores; frames run in parallel when there are
+                    // at least as many frames as threads
 
   void Check() const;
   nlohmann::json ToJson() const;
@@ -462,11 +463,15 @@ struct ReconstructionSummary : Summary {
 // SUCCESS when at least one frame set gave a surface (failed sets are named in the message and
 // metrics), DEGENERATE when none did. Throws Error for bad options, a method the take's sensors
 // cannot support, or a planned frame set missing a frame the method reads.
-ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan, const std::filesystem::path& out,
-                                      const ReconstructionOptions& options, Report* report = nullptr);
+ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan,
+                                      const std::filesystem::path& out,
+                                      const ReconstructionOptions& options,
+                                      Report* report = nullptr);
 // The same, opening and planning the take first.
-ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir, const TakeSelection& selection,
-                                      const std::filesystem::path& out, const ReconstructionOptions& options,
+ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir,
+                                      const TakeSelection& selection,
+                                      const std::filesystem::path& out,
+                                      const ReconstructionOptions& options,
                                       Report* report = nullptr);
 
 }  // namespace holocap

@@ -19,10 +19,13 @@ void SilhouetteOptions::Check() const {
     Fail("silhouette hysteresis_sigmas must be in [0, 100) (got ", hysteresis_sigmas, ")");
   }
   if (!(hysteresis_min_difference >= 0 && hysteresis_min_difference < 255)) {
-    Fail("silhouette hysteresis_min_difference must be in [0, 255) DN (got ", hysteresis_min_difference, ")");
+    Fail("silhouette hysteresis_min_difference must be in [0, 255) DN (got ",
+         hysteresis_min_difference, ")");
   }
-  if (!(threshold > 0 && threshold < 1)) Fail("silhouette threshold must be in (0, 1) (got ", threshold, ")");
-  if (open_px < 0 || dilate_px < 0 || erode_px < 0 || open_px > 50 || dilate_px > 50 || erode_px > 50) {
+  if (!(threshold > 0 && threshold < 1))
+    Fail("silhouette threshold must be in (0, 1) (got ", threshold, ")");
+  if (open_px < 0 || dilate_px < 0 || erode_px < 0 || open_px > 50 || dilate_px > 50 ||
+      erode_px > 50) {
     Fail("silhouette morphology radii must be in [0, 50] px");
   }
   if (!(min_component_fraction >= 0 && min_component_fraction < 1)) {
@@ -82,7 +85,8 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
     std::vector<int64_t> histogram(kBins, 0);
     for (int y = 0; y < difference.rows; ++y) {
       const float* row = difference.ptr<float>(y);
-      for (int x = 0; x < difference.cols; ++x) ++histogram[std::min(kBins - 1, static_cast<int>(row[x] * kBinsPerDn))];
+      for (int x = 0; x < difference.cols; ++x)
+        ++histogram[std::min(kBins - 1, static_cast<int>(row[x] * kBinsPerDn))];
     }
     int64_t half = static_cast<int64_t>(difference.total()) / 2, seen = 0;
     int median = 0;
@@ -100,8 +104,8 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
       // Specks are opened away before they can seed a region; weak pixels join only through a
       // connected path to what remains.
       if (options.open_px > 0) cv::morphologyEx(mask, mask, cv::MORPH_OPEN, Disk(options.open_px));
-      const double weak_threshold =
-          std::min(strong, std::max(options.hysteresis_min_difference, options.hysteresis_sigmas * sigma));
+      const double weak_threshold = std::min(
+          strong, std::max(options.hysteresis_min_difference, options.hysteresis_sigmas * sigma));
       cv::Mat weak;
       cv::threshold(difference, weak, weak_threshold, 255, cv::THRESH_BINARY);
       weak.convertTo(weak, CV_8U);

@@ -81,16 +81,17 @@ cv::Mat Rasterise(const Mesh& mesh, const Projected& p, int width, int height, i
 struct ViewSampler {
   const View* view;
   recon::FastProjector projector;
-  cv::Mat depth;               // occlusion buffer at `scale` times the image's resolution
+  cv::Mat depth;  // occlusion buffer at `scale` times the image's resolution
   int scale = 1;
   Eigen::Vector3f centre;
-  float radians_per_pixel = 0; // of the occlusion buffer, near the image centre
+  float radians_per_pixel = 0;  // of the occlusion buffer, near the image centre
 };
 
 // The angle one pixel spans near the image's centre (any lens model).
 float RadiansPerPixel(const CameraModel& camera) {
   const Eigen::Vector2d c(0.5 * (camera.width() - 1), 0.5 * (camera.height() - 1));
-  const Eigen::Vector3d a = camera.Unproject(c).normalized(), b = camera.Unproject(c + Eigen::Vector2d(1, 0)).normalized();
+  const Eigen::Vector3d a = camera.Unproject(c).normalized(),
+                        b = camera.Unproject(c + Eigen::Vector2d(1, 0)).normalized();
   const double angle = std::acos(std::clamp(a.dot(b), -1.0, 1.0));
   return std::isfinite(angle) && angle > 0 ? static_cast<float>(angle) : 1e-3f;
 }
@@ -110,7 +111,8 @@ cv::Vec3f SampleColor(const cv::Mat& image, float u, float v) {
 // empty or farther one a silhouette edge where the image mixes in what lies behind. The taps
 // lie up to 1.5 image pixels from the point, over which a surface at incidence angle t changes
 // depth by that footprint * tan t, so the tolerance grows with it (cosines below 0.1 are cut).
-bool Visible(const ViewSampler& s, float u, float v, float z, float cos_incidence, double tolerance) {
+bool Visible(const ViewSampler& s, float u, float v, float z, float cos_incidence,
+             double tolerance) {
   if (!s.view->camera.InImage(Eigen::Vector2d(u, v), 0.5)) return false;
   const float cos_t = std::max(cos_incidence, 0.1f);
   const float slope = std::sqrt(std::max(0.0f, 1 - cos_t * cos_t)) / cos_t;
@@ -118,8 +120,10 @@ bool Visible(const ViewSampler& s, float u, float v, float z, float cos_incidenc
   const float allowed = static_cast<float>(tolerance) + 1.5f * image_footprint * slope;
   const int x0 = static_cast<int>(std::floor(u)), y0 = static_cast<int>(std::floor(v));
   // Every occlusion-buffer pixel inside the four image pixels.
-  const int xs = std::clamp(x0 * s.scale, 0, s.depth.cols - 1), xe = std::clamp((x0 + 2) * s.scale - 1, 0, s.depth.cols - 1);
-  const int ys = std::clamp(y0 * s.scale, 0, s.depth.rows - 1), ye = std::clamp((y0 + 2) * s.scale - 1, 0, s.depth.rows - 1);
+  const int xs = std::clamp(x0 * s.scale, 0, s.depth.cols - 1),
+            xe = std::clamp((x0 + 2) * s.scale - 1, 0, s.depth.cols - 1);
+  const int ys = std::clamp(y0 * s.scale, 0, s.depth.rows - 1),
+            ye = std::clamp((y0 + 2) * s.scale - 1, 0, s.depth.rows - 1);
   for (int y = ys; y <= ye; ++y) {
     const float* row = s.depth.ptr<float>(y);
     for (int x = xs; x <= xe; ++x) {
@@ -150,7 +154,8 @@ bool BlendColor(const std::vector<ViewSampler>& samplers, const Eigen::Vector3f&
     if (count < keep) {
       best[count++] = c;
     } else {
-      auto worst = std::min_element(best, best + count, [](auto& a, auto& b) { return a.weight < b.weight; });
+      auto worst = std::min_element(best, best + count,
+                                    [](auto& a, auto& b) { return a.weight < b.weight; });
       if (worst->weight < c.weight) *worst = c;
     }
   }
@@ -242,7 +247,8 @@ int64_t FillUnseen(const Mesh& mesh, const std::vector<uint8_t>& seen, int smoot
 
 cv::Mat RenderDepth(const Mesh& mesh, const CameraModel& camera) {
   cv::Mat depth = Rasterise(mesh, ProjectVertices(mesh, camera), camera.width(), camera.height());
-  depth.setTo(std::numeric_limits<float>::quiet_NaN(), depth == std::numeric_limits<float>::infinity());
+  depth.setTo(std::numeric_limits<float>::quiet_NaN(),
+              depth == std::numeric_limits<float>::infinity());
   return depth;
 }
 
@@ -252,8 +258,10 @@ cv::Mat RenderSilhouette(const Mesh& mesh, const CameraModel& camera) {
 }
 
 void TextureOptions::Check() const {
-  if (texels_per_cell < 4 || texels_per_cell > 64) Fail("texture texels_per_cell must be in [4, 64]");
-  if (!(min_cos_incidence >= 0 && min_cos_incidence < 1)) Fail("texture min_cos_incidence must be in [0, 1)");
+  if (texels_per_cell < 4 || texels_per_cell > 64)
+    Fail("texture texels_per_cell must be in [4, 64]");
+  if (!(min_cos_incidence >= 0 && min_cos_incidence < 1))
+    Fail("texture min_cos_incidence must be in [0, 1)");
   if (!(depth_tolerance_m > 0)) Fail("texture depth_tolerance_m must be > 0");
   if (max_views < 1 || max_views > 8) Fail("texture max_views must be in [1, 8]");
   if (occlusion_scale < 1 || occlusion_scale > 4) Fail("texture occlusion_scale must be in [1, 4]");
@@ -273,7 +281,8 @@ nlohmann::json TexturedMesh::Metrics() const {
           {"atlas_px", atlas.cols}};
 }
 
-TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views, const TextureOptions& options) {
+TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views,
+                         const TextureOptions& options) {
   options.Check();
   TexturedMesh out;
   out.mesh = mesh;
@@ -286,9 +295,13 @@ TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views, const
       Fail("texturing: image of '", view.name, "' does not match its camera model");
     }
     const int scale = options.occlusion_scale;
-    ViewSampler s{&view, recon::FastProjector(view.camera),
-                  Rasterise(out.mesh, ProjectVertices(out.mesh, view.camera), view.camera.width(), view.camera.height(), scale),
-                  scale, view.camera.center_in_world().cast<float>(), RadiansPerPixel(view.camera) / scale};
+    ViewSampler s{&view,
+                  recon::FastProjector(view.camera),
+                  Rasterise(out.mesh, ProjectVertices(out.mesh, view.camera), view.camera.width(),
+                            view.camera.height(), scale),
+                  scale,
+                  view.camera.center_in_world().cast<float>(),
+                  RadiansPerPixel(view.camera) / scale};
     samplers.push_back(std::move(s));
   }
   if (samplers.empty()) Fail("texturing needs at least one view with an image");
@@ -305,7 +318,8 @@ TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views, const
     }
   }
   out.seen_vertices = std::count(seen.begin(), seen.end(), uint8_t{1});
-  if (options.fill_unseen) out.filled_vertices = FillUnseen(out.mesh, seen, options.fill_smoothing_iterations, &rgb);
+  if (options.fill_unseen)
+    out.filled_vertices = FillUnseen(out.mesh, seen, options.fill_smoothing_iterations, &rgb);
   out.uncoloured_vertices = static_cast<int64_t>(n) - out.seen_vertices - out.filled_vertices;
   for (size_t i = 0; i < n; ++i) {
     if (seen[i] == 0 && !options.fill_unseen) continue;
@@ -338,7 +352,8 @@ TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views, const
         Eigen::Vector2f t = origin + corners[half][k];
         out.corner_uv[3 * face + k] = Eigen::Vector2f(t.x() / side, t.y() / side);
       }
-      const Eigen::Vector3f p[3] = {out.mesh.vertices[f.x()], out.mesh.vertices[f.y()], out.mesh.vertices[f.z()]};
+      const Eigen::Vector3f p[3] = {out.mesh.vertices[f.x()], out.mesh.vertices[f.y()],
+                                    out.mesh.vertices[f.z()]};
       Eigen::Vector3f normal = (p[1] - p[0]).cross(p[2] - p[0]);
       if (normal.norm() > 0) normal.normalize();
       const Eigen::Vector2f a = corners[half][0], b = corners[half][1], c = corners[half][2];
@@ -387,7 +402,8 @@ void AppendRaw(std::string* bytes, const T* data, size_t count) {
 
 void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured) {
   const Mesh& mesh = textured.mesh;
-  if (mesh.vertices.empty() || mesh.faces.empty()) Fail("cannot write an empty mesh to ", file.string());
+  if (mesh.vertices.empty() || mesh.faces.empty())
+    Fail("cannot write an empty mesh to ", file.string());
   const bool atlas = !textured.atlas.empty() && textured.corner_uv.size() == mesh.faces.size() * 3;
   const bool colors = !atlas && mesh.colors.size() == mesh.vertices.size();
   const bool normals = mesh.normals.size() == mesh.vertices.size();
@@ -432,8 +448,10 @@ void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured) {
     json["bufferViews"].push_back(view);
     return static_cast<int>(json["bufferViews"].size() - 1);
   };
-  auto add_accessor = [&](int view, int component, size_t count, const char* type, bool normalized) {
-    nlohmann::json accessor = {{"bufferView", view}, {"componentType", component}, {"count", count}, {"type", type}};
+  auto add_accessor = [&](int view, int component, size_t count, const char* type,
+                          bool normalized) {
+    nlohmann::json accessor = {
+        {"bufferView", view}, {"componentType", component}, {"count", count}, {"type", type}};
     if (normalized) accessor["normalized"] = true;
     json["accessors"].push_back(accessor);
     return static_cast<int>(json["accessors"].size() - 1);
@@ -441,40 +459,45 @@ void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured) {
   constexpr int kArrayBuffer = 34962, kElementArrayBuffer = 34963;
   constexpr int kFloat = 5126, kUnsignedInt = 5125, kUnsignedByte = 5121;
   nlohmann::json attributes;
-  int position = add_accessor(add_view(positions.data(), positions.size() * 12, kArrayBuffer), kFloat,
-                              positions.size(), "VEC3", false);
+  int position = add_accessor(add_view(positions.data(), positions.size() * 12, kArrayBuffer),
+                              kFloat, positions.size(), "VEC3", false);
   Eigen::Vector3f lo = positions[0], hi = positions[0];
   for (const auto& p : positions) lo = lo.cwiseMin(p), hi = hi.cwiseMax(p);
   json["accessors"][position]["min"] = {lo.x(), lo.y(), lo.z()};
   json["accessors"][position]["max"] = {hi.x(), hi.y(), hi.z()};
   attributes["POSITION"] = position;
   if (normals) {
-    attributes["NORMAL"] = add_accessor(add_view(vertex_normals.data(), vertex_normals.size() * 12, kArrayBuffer),
-                                        kFloat, vertex_normals.size(), "VEC3", false);
+    attributes["NORMAL"] =
+        add_accessor(add_view(vertex_normals.data(), vertex_normals.size() * 12, kArrayBuffer),
+                     kFloat, vertex_normals.size(), "VEC3", false);
   }
   if (colors) {
     // RGBA bytes: a 4-byte stride keeps the attribute aligned as glTF requires.
     std::vector<uint8_t> rgba;
     for (const auto& c : mesh.colors) rgba.insert(rgba.end(), {c[0], c[1], c[2], 255});
-    attributes["COLOR_0"] = add_accessor(add_view(rgba.data(), rgba.size(), kArrayBuffer), kUnsignedByte,
-                                         mesh.colors.size(), "VEC4", true);
+    attributes["COLOR_0"] = add_accessor(add_view(rgba.data(), rgba.size(), kArrayBuffer),
+                                         kUnsignedByte, mesh.colors.size(), "VEC4", true);
   }
   if (atlas) {
-    attributes["TEXCOORD_0"] = add_accessor(add_view(uvs.data(), uvs.size() * 8, kArrayBuffer), kFloat,
-                                            uvs.size(), "VEC2", false);
+    attributes["TEXCOORD_0"] = add_accessor(add_view(uvs.data(), uvs.size() * 8, kArrayBuffer),
+                                            kFloat, uvs.size(), "VEC2", false);
   }
-  int index_accessor = add_accessor(add_view(indices.data(), indices.size() * 4, kElementArrayBuffer),
-                                    kUnsignedInt, indices.size(), "SCALAR", false);
-  nlohmann::json primitive = {{"attributes", attributes}, {"indices", index_accessor}, {"mode", 4}, {"material", 0}};
+  int index_accessor =
+      add_accessor(add_view(indices.data(), indices.size() * 4, kElementArrayBuffer), kUnsignedInt,
+                   indices.size(), "SCALAR", false);
+  nlohmann::json primitive = {
+      {"attributes", attributes}, {"indices", index_accessor}, {"mode", 4}, {"material", 0}};
   json["meshes"] = {{{"primitives", {primitive}}}};
-  nlohmann::json material = {{"pbrMetallicRoughness", {{"metallicFactor", 0.0}, {"roughnessFactor", 1.0}}},
-                             {"doubleSided", false}};
+  nlohmann::json material = {
+      {"pbrMetallicRoughness", {{"metallicFactor", 0.0}, {"roughnessFactor", 1.0}}},
+      {"doubleSided", false}};
   if (atlas) {
     std::vector<uint8_t> png;
     if (!cv::imencode(".png", textured.atlas, png)) Fail("cannot encode the texture atlas");
     int image_view = add_view(png.data(), png.size(), 0);
     json["images"] = {{{"bufferView", image_view}, {"mimeType", "image/png"}}};
-    json["samplers"] = {{{"magFilter", 9729}, {"minFilter", 9729}, {"wrapS", 33071}, {"wrapT", 33071}}};
+    json["samplers"] = {
+        {{"magFilter", 9729}, {"minFilter", 9729}, {"wrapS", 33071}, {"wrapT", 33071}}};
     json["textures"] = {{{"source", 0}, {"sampler", 0}}};
     material["pbrMetallicRoughness"]["baseColorTexture"] = {{"index", 0}};
   }
@@ -484,7 +507,8 @@ void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured) {
   std::string text = json.dump();
   Pad(&text, ' ');
   std::string out;
-  const uint32_t header[3] = {0x46546C67u, 2u, static_cast<uint32_t>(12 + 8 + text.size() + 8 + bin.size())};
+  const uint32_t header[3] = {0x46546C67u, 2u,
+                              static_cast<uint32_t>(12 + 8 + text.size() + 8 + bin.size())};
   AppendRaw(&out, header, 3);
   const uint32_t json_chunk[2] = {static_cast<uint32_t>(text.size()), 0x4E4F534Au};
   AppendRaw(&out, json_chunk, 2);

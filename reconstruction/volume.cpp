@@ -130,7 +130,8 @@ bool SparseVolume::Sample(const Eigen::Vector3d& point_in_world, double* sdf) co
 
 void TsdfOptions::Check() const {
   if (!(voxel_m > 0 && voxel_m < 1)) Fail("tsdf voxel must be in (0, 1) m (got ", voxel_m, ")");
-  if (!(truncation_voxels >= 1)) Fail("tsdf truncation must be >= 1 voxel (got ", truncation_voxels, ")");
+  if (!(truncation_voxels >= 1))
+    Fail("tsdf truncation must be >= 1 voxel (got ", truncation_voxels, ")");
   if (!(max_weight > 0)) Fail("tsdf max_weight must be > 0 (got ", max_weight, ")");
   if (!bounds.valid()) Fail("tsdf bounds are empty");
   if (!(depth_min_m >= 0 && depth_max_m > depth_min_m)) {
@@ -165,8 +166,8 @@ bool ValidDepth(float d, const TsdfOptions& options) {
 // Valid measurements (within `foreground` when given), each replaced by the mean of the valid
 // depths within options.smoothing_radius_px that lie within 3 sigma(z) of it (edge-preserving);
 // NaN elsewhere. Counts the error codes (0, negative, infinite, out of range) in `rejected`.
-cv::Mat SmoothedDepth(const cv::Mat& depth_in, const cv::Mat& foreground, const TsdfOptions& options,
-                      int threads, int64_t* rejected_out) {
+cv::Mat SmoothedDepth(const cv::Mat& depth_in, const cv::Mat& foreground,
+                      const TsdfOptions& options, int threads, int64_t* rejected_out) {
   const int w = depth_in.cols, h = depth_in.rows;
   const float k = static_cast<float>(options.depth_noise_k);
   cv::Mat depth(h, w, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
@@ -224,7 +225,8 @@ TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel&
     Fail("depth map is ", depth_in.cols, "x", depth_in.rows, " but its camera model is ",
          depth_camera.width(), "x", depth_camera.height());
   }
-  if (!foreground.empty() && (foreground.size() != depth_in.size() || foreground.type() != CV_8UC1)) {
+  if (!foreground.empty() &&
+      (foreground.size() != depth_in.size() || foreground.type() != CV_8UC1)) {
     Fail("foreground mask must be CV_8U and the depth map's size");
   }
   const bool use_color = !color.empty() && color_camera != nullptr;
@@ -370,9 +372,12 @@ TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel&
               cv::Vec3b bgr = color.at<cv::Vec3b>(static_cast<int>(std::lround(cv_)),
                                                   static_cast<int>(std::lround(cu)));
               float old = voxel_data.weight;
-              voxel_data.r = static_cast<uint8_t>((voxel_data.r * old + bgr[2] * weight) / total + 0.5f);
-              voxel_data.g = static_cast<uint8_t>((voxel_data.g * old + bgr[1] * weight) / total + 0.5f);
-              voxel_data.b = static_cast<uint8_t>((voxel_data.b * old + bgr[0] * weight) / total + 0.5f);
+              voxel_data.r =
+                  static_cast<uint8_t>((voxel_data.r * old + bgr[2] * weight) / total + 0.5f);
+              voxel_data.g =
+                  static_cast<uint8_t>((voxel_data.g * old + bgr[1] * weight) / total + 0.5f);
+              voxel_data.b =
+                  static_cast<uint8_t>((voxel_data.b * old + bgr[0] * weight) / total + 0.5f);
             }
           }
           voxel_data.weight = std::min(total, max_weight);
@@ -386,9 +391,9 @@ TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel&
   return stats;
 }
 
-CompletionStats TsdfVolume::CompleteFromHull(const VisualHull& hull,
-                                             const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
-                                             float weight) {
+CompletionStats TsdfVolume::CompleteFromHull(
+    const VisualHull& hull, const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
+    float weight) {
   auto start = std::chrono::steady_clock::now();
   if (hull.volume == nullptr) Fail("completion needs a computed visual hull");
   if (!(weight > 0)) Fail("completion weight must be > 0 (got ", weight, ")");
@@ -400,11 +405,12 @@ CompletionStats TsdfVolume::CompleteFromHull(const VisualHull& hull,
   std::vector<FreeSpace> free_space;
   for (const auto& [camera, depth] : depth_maps) {
     if (depth.type() != CV_32FC1 || depth.cols != camera.width() || depth.rows != camera.height()) {
-      Fail("completion: depth map must be CV_32F metres of its camera's size (", camera.width(), "x",
-           camera.height(), ")");
+      Fail("completion: depth map must be CV_32F metres of its camera's size (", camera.width(),
+           "x", camera.height(), ")");
     }
     // Background included: a point in front of the wall a sensor measured is outside too.
-    free_space.push_back({TablesFor(camera), SmoothedDepth(depth, cv::Mat(), options_, threads, nullptr)});
+    free_space.push_back(
+        {TablesFor(camera), SmoothedDepth(depth, cv::Mat(), options_, threads, nullptr)});
   }
 
   // The blocks around the hull's surface, on this volume's grid, and the volume's own.
@@ -458,7 +464,7 @@ CompletionStats TsdfVolume::CompleteFromHull(const VisualHull& hull,
             float d = sensor.depth.at<float>(py, px);
             if (!std::isfinite(d)) continue;
             float sdf = (d - p.z()) * (p.norm() / p.z());  // as Integrate measures it
-            if (sdf < -truncation) continue;                // behind the surface: not seen
+            if (sdf < -truncation) continue;               // behind the surface: not seen
             field = std::max(field, sdf);
           }
           carved += field > 0 && hull_field <= 0;

@@ -264,7 +264,8 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
       // Fraction of the image the board spans, across or down, whichever binds first.
       const double fill = 0.45 + 0.4 * unit(rng);
       const double board_height = board.v_max() - board.v_min();
-      const double span_px = std::min<double>(camera.width(), camera.height() * board_width / board_height);
+      const double span_px =
+          std::min<double>(camera.width(), camera.height() * board_width / board_height);
       const double distance = board_width / (fill * span_px * AnglePerPixel(camera));
       // The board's centre goes where the whole board still fits: the 3x3 cells divide the
       // range of centres, so the outer cells put the board against the imager's edges.

@@ -90,7 +90,8 @@ class Simulation {
                            {"scene", options_.scene},
                            {"seed", options_.seed},
                            {"clean_plate_frames", options_.clean_plate_frames}};
-    writer_ = std::make_unique<TakeWriter>(out, world_.rig(), world_.streams(), metadata, writer_options);
+    writer_ =
+        std::make_unique<TakeWriter>(out, world_.rig(), world_.streams(), metadata, writer_options);
   }
 
   SimSummary Run(Clock::time_point start) {
@@ -102,17 +103,20 @@ class Simulation {
     try {
       for (int64_t set = 0; set < options_.frames; ++set) {
         SimulateSet(set);
-        const double rate = 60.0 * summary_.frame_sets / std::max(1e-9, Seconds(start_) - setup_seconds_);
+        const double rate =
+            60.0 * summary_.frame_sets / std::max(1e-9, Seconds(start_) - setup_seconds_);
         if (report_ != nullptr) report_->AddPoint("frame_sets_per_minute", rate, set);
         char status[64];
         std::snprintf(status, sizeof(status), "%.1f sets/min", rate);
         progress.Increment(status);
       }
       writer_->Close();
-      summary_.End(Termination::kSuccess, Cat(summary_.frame_sets, " frame sets of ", world_.size(), " sensors, ",
-                                              summary_.frames_dropped, " frames dropped"));
+      summary_.End(Termination::kSuccess,
+                   Cat(summary_.frame_sets, " frame sets of ", world_.size(), " sensors, ",
+                       summary_.frames_dropped, " frames dropped"));
     } catch (const Error& e) {
-      summary_.End(Termination::kFailure, Cat("stopped after ", summary_.frame_sets, " frame sets: ", e.what()));
+      summary_.End(Termination::kFailure,
+                   Cat("stopped after ", summary_.frame_sets, " frame sets: ", e.what()));
     }
     progress.Finish();
     WriteBoardAndSimJson();
@@ -128,7 +132,8 @@ class Simulation {
       const sim::SimSensorState& sensor = world_.sensor(i);
       sensor.model.Write(gt_ / "cameras" / (sensor.spec.name + ".cameramodel"));
       CreateDirectories(gt_ / "masks" / sensor.spec.name);
-      if (sensor.spec.role == SensorRole::kDepth) CreateDirectories(gt_ / "depth" / sensor.spec.name);
+      if (sensor.spec.role == SensorRole::kDepth)
+        CreateDirectories(gt_ / "depth" / sensor.spec.name);
       Json entry = {{"role", ToString(sensor.spec.role)},
                     {"lensmodel", sensor.model.lensmodel()},
                     {"width", sensor.model.width()},
@@ -148,7 +153,8 @@ class Simulation {
     }
     if (scene_.kind() != sim::SceneKind::kBoard) CreateDirectories(gt_ / "meshes");
     if (scene_.kind() == sim::SceneKind::kObject) {
-      WritePly(gt_ / "meshes" / "static.ply", scene_.At(0, options_.clean_plate_frames)->subject_mesh());
+      WritePly(gt_ / "meshes" / "static.ply",
+               scene_.At(0, options_.clean_plate_frames)->subject_mesh());
     }
   }
 
@@ -171,7 +177,8 @@ class Simulation {
     const Clock::time_point render_start = Clock::now();
     const std::vector<int> present = PresentSensors(set);
     std::vector<sim::SensorFrame> rendered(present.size());
-    for (size_t k = 0; k < present.size(); ++k) rendered[k] = world_.Render(present[k], set, threads_);
+    for (size_t k = 0; k < present.size(); ++k)
+      rendered[k] = world_.Render(present[k], set, threads_);
     render_seconds_ += Seconds(render_start);
 
     FrameSet frame_set = WriteFrameGroundTruth(set, present, rendered);
@@ -260,7 +267,8 @@ class Simulation {
   void Conclude() {
     summary_.seconds = Seconds(start_);
     summary_.render_seconds = render_seconds_;
-    summary_.frame_sets_per_minute = summary_.seconds > 0 ? 60.0 * summary_.frame_sets / summary_.seconds : 0;
+    summary_.frame_sets_per_minute =
+        summary_.seconds > 0 ? 60.0 * summary_.frame_sets / summary_.seconds : 0;
     if (report_ == nullptr) return;
     report_->metrics() = {{"frame_sets", summary_.frame_sets},
                           {"frames_written", summary_.frames_written},
@@ -292,7 +300,8 @@ class Simulation {
 
 }  // namespace
 
-SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& out, Report* report) {
+SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& out,
+                        Report* report) {
   const Clock::time_point start = Clock::now();
   options.Check();
   Simulation simulation(options, out, report);

@@ -6,9 +6,9 @@
 #include <cstdint>
 #include <string>
 
-#include "interop/interop.h"
 #include "core/camera.h"
 #include "core/error.h"
+#include "interop/interop.h"
 
 namespace holocap {
 namespace {
@@ -46,13 +46,20 @@ void Run(const std::string& text) {
         }
       }
       break;
-    case 1: ParseColmapImages(FormatColmapImages(ParseColmapImages(body, "images.txt")), "images.txt (rewritten)"); break;
-    case 2: ParseColmapPoints(FormatColmapPoints(ParseColmapPoints(body, "points3D.txt")), "points3D.txt (rewritten)"); break;
+    case 1:
+      ParseColmapImages(FormatColmapImages(ParseColmapImages(body, "images.txt")),
+                        "images.txt (rewritten)");
+      break;
+    case 2:
+      ParseColmapPoints(FormatColmapPoints(ParseColmapPoints(body, "points3D.txt")),
+                        "points3D.txt (rewritten)");
+      break;
   }
 #elif HOLOCAP_FUZZ_TARGET == 5
   for (const auto& frame : ParseNerfTransforms(text, "transforms.json")) {
     try {
-      NerfFromCamera(CameraFromNerf(frame.intrinsics, frame.world_from_cam_gl, 0, 0, "transforms.json"));
+      NerfFromCamera(
+          CameraFromNerf(frame.intrinsics, frame.world_from_cam_gl, 0, 0, "transforms.json"));
     } catch (const Error&) {
     }
   }

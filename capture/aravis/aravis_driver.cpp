@@ -17,7 +17,8 @@ namespace {
 constexpr uint64_t kGvBlockIdPeriod = 65535;
 
 std::string TakeMessage(GError* error) {
-  std::string message = error != nullptr && error->message != nullptr ? error->message : "unknown error";
+  std::string message =
+      error != nullptr && error->message != nullptr ? error->message : "unknown error";
   g_clear_error(&error);
   return message;
 }
@@ -66,13 +67,16 @@ class AravisSensor : public Sensor {
       Fail("'", spec.uri, "': no such camera (aravis sees: ", seen.empty() ? "none" : seen, ")");
     }
     device_ = arv_camera_get_device(camera_);
-    lost_handler_ = g_signal_connect(device_, "control-lost", G_CALLBACK(&AravisSensor::OnControlLost), this);
+    lost_handler_ =
+        g_signal_connect(device_, "control-lost", G_CALLBACK(&AravisSensor::OnControlLost), this);
 
     ConfigurePixelFormat(options.value("pixel_format", ""), options.value("debayer", true));
     if (options.contains("roi")) ConfigureRoi(options["roi"]);
-    if (spec.exposure_us > 0) ConfigureFloat("exposure", spec.exposure_us, &arv_camera_get_exposure_time_bounds,
-                                             &arv_camera_set_exposure_time);
-    if (spec.gain_db > 0) ConfigureFloat("gain", spec.gain_db, &arv_camera_get_gain_bounds, &arv_camera_set_gain);
+    if (spec.exposure_us > 0)
+      ConfigureFloat("exposure", spec.exposure_us, &arv_camera_get_exposure_time_bounds,
+                     &arv_camera_set_exposure_time);
+    if (spec.gain_db > 0)
+      ConfigureFloat("gain", spec.gain_db, &arv_camera_get_gain_bounds, &arv_camera_set_gain);
     ConfigureTrigger(options.value("sync", "free-run"), options.value("trigger_source", "Line0"),
                      options.value("fps", 0.0));
     ConfigurePtp(options.value("ptp", false));
@@ -93,7 +97,9 @@ class AravisSensor : public Sensor {
     stream_info_.height = height;
     stream_info_.pixel_format = layout_.stored;
     stream_info_.codec = ImageCodec::kZstd;
-    stream_info_.clock = !device_clock_ || map_device_to_host_ ? "CLOCK_REALTIME" : (ptp_enabled_ ? "PTP" : "device:" + id);
+    stream_info_.clock = !device_clock_ || map_device_to_host_
+                             ? "CLOCK_REALTIME"
+                             : (ptp_enabled_ ? "PTP" : "device:" + id);
 
     is_gige_ = arv_camera_is_gv_device(camera_);
     if (is_gige_ && !options.value("packet_socket", false)) {
@@ -107,23 +113,26 @@ class AravisSensor : public Sensor {
       // A few frames of kernel buffer absorb scheduling hiccups of the stream thread; one frame
       // (aravis' automatic size) loses packets when many cameras share two cores.
       const int64_t socket_buffer = std::max<int64_t>(int64_t{payload} * 4, 1 << 20);
-      g_object_set(stream_, "socket-buffer", ARV_GV_STREAM_SOCKET_BUFFER_FIXED, "socket-buffer-size",
-                   static_cast<gint>(socket_buffer), "packet-resend",
+      g_object_set(stream_, "socket-buffer", ARV_GV_STREAM_SOCKET_BUFFER_FIXED,
+                   "socket-buffer-size", static_cast<gint>(socket_buffer), "packet-resend",
                    options.value("packet_resend", true) ? ARV_GV_STREAM_PACKET_RESEND_ALWAYS
                                                         : ARV_GV_STREAM_PACKET_RESEND_NEVER,
                    nullptr);
       if (options.contains("packet_timeout_ms")) {
-        g_object_set(stream_, "packet-timeout", static_cast<guint>(options["packet_timeout_ms"].get<double>() * 1000),
+        g_object_set(stream_, "packet-timeout",
+                     static_cast<guint>(options["packet_timeout_ms"].get<double>() * 1000),
                      nullptr);
       }
       if (options.contains("frame_retention_ms")) {
         g_object_set(stream_, "frame-retention",
-                     static_cast<guint>(options["frame_retention_ms"].get<double>() * 1000), nullptr);
+                     static_cast<guint>(options["frame_retention_ms"].get<double>() * 1000),
+                     nullptr);
       }
     }
     const int buffers = options.value("buffers", 16);
     if (buffers < 2) Fail("'", uri_, "': option buffers must be at least 2");
-    for (int i = 0; i < buffers; ++i) arv_stream_push_buffer(stream_, arv_buffer_new(payload, nullptr));
+    for (int i = 0; i < buffers; ++i)
+      arv_stream_push_buffer(stream_, arv_buffer_new(payload, nullptr));
   }
 
   ~AravisSensor() override {
@@ -154,8 +163,10 @@ class AravisSensor : public Sensor {
   bool Grab(Frame* frame, std::chrono::milliseconds timeout) override {
     const auto deadline = std::chrono::steady_clock::now() + timeout;
     while (true) {
-      if (control_lost_) Fail(uri_, ": the camera stopped answering (control lost; unplugged or powered off?)");
-      auto left = std::chrono::duration_cast<std::chrono::microseconds>(deadline - std::chrono::steady_clock::now());
+      if (control_lost_)
+        Fail(uri_, ": the camera stopped answering (control lost; unplugged or powered off?)");
+      auto left = std::chrono::duration_cast<std::chrono::microseconds>(
+          deadline - std::chrono::steady_clock::now());
       if (left.count() <= 0) return false;
       // Short waits so that a lost camera is noticed while no frames come.
       const guint64 wait_us = std::min<int64_t>(left.count(), 100000);
@@ -173,7 +184,8 @@ class AravisSensor : public Sensor {
       const int width = arv_buffer_get_image_width(buffer);
       const int height = arv_buffer_get_image_height(buffer);
       const size_t expected = static_cast<size_t>(width) * height * CV_ELEM_SIZE(layout_.raw_type);
-      if (data == nullptr || size < expected || width != stream_info_.width || height != stream_info_.height) {
+      if (data == nullptr || size < expected || width != stream_info_.width ||
+          height != stream_info_.height) {
         ++frames_incomplete_;
         arv_stream_push_buffer(stream_, buffer);
         continue;
@@ -184,7 +196,9 @@ class AravisSensor : public Sensor {
       frame->sensor = stream_info_.name;
       const int64_t device_ns = static_cast<int64_t>(arv_buffer_get_timestamp(buffer));
       const int64_t host_ns = static_cast<int64_t>(arv_buffer_get_system_timestamp(buffer));
-      frame->timestamp_ns = !device_clock_ ? host_ns : map_device_to_host_ ? MapToHost(device_ns, host_ns) : device_ns;
+      frame->timestamp_ns = !device_clock_        ? host_ns
+                            : map_device_to_host_ ? MapToHost(device_ns, host_ns)
+                                                  : device_ns;
       frame->sequence = UnwrapFrameId(arv_buffer_get_frame_id(buffer));
       // The buffer goes back before the frame leaves, so the driver's queue never waits on us.
       arv_stream_push_buffer(stream_, buffer);
@@ -231,13 +245,15 @@ class AravisSensor : public Sensor {
     GError* error = nullptr;
     if (!wanted.empty()) {
       guint n = 0;
-      const char** available = arv_camera_dup_available_pixel_formats_as_strings(camera_, &n, &error);
+      const char** available =
+          arv_camera_dup_available_pixel_formats_as_strings(camera_, &n, &error);
       ThrowIf(error, uri_, "listing pixel formats");
       bool offered = false;
       for (guint i = 0; i < n; ++i) offered |= wanted == available[i];
       std::string list = JoinStrings(available, n);
       g_free(available);
-      if (!offered) Fail("'", uri_, "': the camera has no pixel format '", wanted, "' (it offers ", list, ")");
+      if (!offered)
+        Fail("'", uri_, "': the camera has no pixel format '", wanted, "' (it offers ", list, ")");
       layout_ = AravisLayoutFor(wanted, debayer);
       arv_camera_set_pixel_format_from_string(camera_, wanted.c_str(), &error);
       ThrowIf(error, uri_, "setting pixel format " + wanted);
@@ -249,7 +265,8 @@ class AravisSensor : public Sensor {
   }
 
   void ConfigureRoi(const nlohmann::json& roi) {
-    if (!roi.is_array() || roi.size() != 4) Fail("'", uri_, "': option roi must be [x, y, width, height]");
+    if (!roi.is_array() || roi.size() != 4)
+      Fail("'", uri_, "': option roi must be [x, y, width, height]");
     const int x = roi[0], y = roi[1], width = roi[2], height = roi[3];
     GError* error = nullptr;
     gint xmin, xmax, ymin, ymax, wmin, wmax, hmin, hmax;
@@ -260,8 +277,8 @@ class AravisSensor : public Sensor {
     ThrowIf(error, uri_, "reading region bounds");
     if (width < wmin || width > wmax || height < hmin || height > hmax || x < 0 || y < 0 ||
         x + width > wmax || y + height > hmax) {
-      Fail("'", uri_, "': roi [", x, ", ", y, ", ", width, ", ", height, "] is outside the sensor (width ", wmin,
-           "..", wmax, ", height ", hmin, "..", hmax, ")");
+      Fail("'", uri_, "': roi [", x, ", ", y, ", ", width, ", ", height,
+           "] is outside the sensor (width ", wmin, "..", wmax, ", height ", hmin, "..", hmax, ")");
     }
     arv_camera_set_region(camera_, x, y, width, height, &error);
     ThrowIf(error, uri_, "setting the region");
@@ -274,20 +291,23 @@ class AravisSensor : public Sensor {
     double lo = 0, hi = 0;
     bounds(camera_, &lo, &hi, &error);
     ThrowIf(error, uri_, std::string("reading ") + what + " bounds");
-    if (value < lo || value > hi) Fail("'", uri_, "': ", what, " ", value, " is outside ", lo, "..", hi);
+    if (value < lo || value > hi)
+      Fail("'", uri_, "': ", what, " ", value, " is outside ", lo, "..", hi);
     set(camera_, value, &error);
     ThrowIf(error, uri_, std::string("setting ") + what);
   }
 
   void ConfigureTrigger(const std::string& sync, const std::string& source, double fps) {
     GError* error = nullptr;
-    if ((sync == "software" || sync == "hardware") && arv_camera_is_frame_rate_available(camera_, nullptr)) {
+    if ((sync == "software" || sync == "hardware") &&
+        arv_camera_is_frame_rate_available(camera_, nullptr)) {
       // A triggered camera still paces itself by AcquisitionFrameRate and folds triggers that
       // come faster into one frame; its fastest rate makes the trigger alone decide. Set
       // before the trigger, since aravis turns triggering off when it sets a rate.
       double lo = 0, hi = 0;
       arv_camera_get_frame_rate_bounds(camera_, &lo, &hi, &error);
-      if (error == nullptr && hi > 0) arv_camera_set_frame_rate(camera_, std::min(hi, 1000.0), &error);
+      if (error == nullptr && hi > 0)
+        arv_camera_set_frame_rate(camera_, std::min(hi, 1000.0), &error);
       ThrowIf(error, uri_, "setting the frame-rate limit");
     }
     if (sync == "software") {
@@ -309,7 +329,8 @@ class AravisSensor : public Sensor {
       arv_camera_clear_triggers(camera_, &error);
       ThrowIf(error, uri_, "free-run mode");
       if (fps > 0 && arv_camera_is_frame_rate_available(camera_, nullptr)) {
-        ConfigureFloat("frame rate", fps, &arv_camera_get_frame_rate_bounds, &arv_camera_set_frame_rate);
+        ConfigureFloat("frame rate", fps, &arv_camera_get_frame_rate_bounds,
+                       &arv_camera_set_frame_rate);
       }
     } else {
       Fail("'", uri_, "': option sync must be software, hardware or free-run (not '", sync, "')");
@@ -394,8 +415,9 @@ class AravisDriver : public Driver {
  public:
   std::string scheme() const override { return "aravis"; }
   std::string description() const override {
-    return "GigE Vision and USB3 Vision cameras (libaravis " + std::to_string(arv_get_major_version()) + "." +
-           std::to_string(arv_get_minor_version()) + "." + std::to_string(arv_get_micro_version()) + ")";
+    return "GigE Vision and USB3 Vision cameras (libaravis " +
+           std::to_string(arv_get_major_version()) + "." + std::to_string(arv_get_minor_version()) +
+           "." + std::to_string(arv_get_micro_version()) + ")";
   }
   std::vector<DeviceInfo> Enumerate() override {
     std::lock_guard lock(AravisListMutex());
@@ -405,14 +427,16 @@ class AravisDriver : public Driver {
       auto text = [](const char* s) { return std::string(s != nullptr ? s : "?"); };
       DeviceInfo info;
       info.uri = "aravis:" + text(arv_get_device_id(i));
-      info.description = text(arv_get_device_vendor(i)) + " " + text(arv_get_device_model(i)) + ", serial " +
-                         text(arv_get_device_serial_nbr(i)) + ", " + text(arv_get_device_protocol(i)) + " " +
-                         text(arv_get_device_address(i));
+      info.description = text(arv_get_device_vendor(i)) + " " + text(arv_get_device_model(i)) +
+                         ", serial " + text(arv_get_device_serial_nbr(i)) + ", " +
+                         text(arv_get_device_protocol(i)) + " " + text(arv_get_device_address(i));
       devices.push_back(std::move(info));
     }
     return devices;
   }
-  std::unique_ptr<Sensor> Open(const SensorSpec& spec) override { return std::make_unique<AravisSensor>(spec); }
+  std::unique_ptr<Sensor> Open(const SensorSpec& spec) override {
+    return std::make_unique<AravisSensor>(spec);
+  }
 };
 
 }  // namespace
@@ -422,9 +446,10 @@ AravisPixelLayout AravisLayoutFor(const std::string& genicam, bool debayer) {
   layout.genicam = genicam;
   // OpenCV names a Bayer pattern by its second row, so GenICam's RG (red at the origin) is
   // OpenCV's BG.
-  static const std::vector<std::pair<std::string, int>> kBayer = {
-      {"RG", cv::COLOR_BayerBG2BGR}, {"GR", cv::COLOR_BayerGB2BGR},
-      {"GB", cv::COLOR_BayerGR2BGR}, {"BG", cv::COLOR_BayerRG2BGR}};
+  static const std::vector<std::pair<std::string, int>> kBayer = {{"RG", cv::COLOR_BayerBG2BGR},
+                                                                  {"GR", cv::COLOR_BayerGB2BGR},
+                                                                  {"GB", cv::COLOR_BayerGR2BGR},
+                                                                  {"BG", cv::COLOR_BayerRG2BGR}};
   if (genicam == "Mono8") {
     layout = {genicam, "mono8", CV_8UC1};
   } else if (genicam == "Mono16") {
@@ -436,11 +461,12 @@ AravisPixelLayout AravisLayoutFor(const std::string& genicam, bool debayer) {
   } else if (genicam.rfind("Bayer", 0) == 0 && genicam.size() >= 8) {
     const std::string pattern = genicam.substr(5, 2);
     const std::string bits = genicam.substr(7);
-    auto it = std::find_if(kBayer.begin(), kBayer.end(), [&](const auto& p) { return p.first == pattern; });
+    auto it = std::find_if(kBayer.begin(), kBayer.end(),
+                           [&](const auto& p) { return p.first == pattern; });
     if (it != kBayer.end() && (bits == "8" || bits == "16")) {
       const bool wide = bits == "16";
-      layout = {genicam, debayer ? (wide ? "bgr16" : "bgr8") : (wide ? "mono16" : "mono8"), wide ? CV_16UC1 : CV_8UC1,
-                debayer ? it->second : -1};
+      layout = {genicam, debayer ? (wide ? "bgr16" : "bgr8") : (wide ? "mono16" : "mono8"),
+                wide ? CV_16UC1 : CV_8UC1, debayer ? it->second : -1};
       return layout;
     }
     Fail("unsupported pixel format '", genicam,
@@ -453,7 +479,8 @@ AravisPixelLayout AravisLayoutFor(const std::string& genicam, bool debayer) {
 }
 
 cv::Mat ConvertAravisImage(const cv::Mat& wire, const AravisPixelLayout& layout) {
-  if (wire.type() != layout.raw_type) Fail("a ", layout.genicam, " frame has the wrong element type");
+  if (wire.type() != layout.raw_type)
+    Fail("a ", layout.genicam, " frame has the wrong element type");
   cv::Mat out;
   if (layout.bayer_to_bgr >= 0) {
     cv::cvtColor(wire, out, layout.bayer_to_bgr);
@@ -465,6 +492,8 @@ cv::Mat ConvertAravisImage(const cv::Mat& wire, const AravisPixelLayout& layout)
   return out;
 }
 
-void RegisterAravisDriver(DriverRegistry& registry) { registry.Register(std::make_unique<AravisDriver>()); }
+void RegisterAravisDriver(DriverRegistry& registry) {
+  registry.Register(std::make_unique<AravisDriver>());
+}
 
 }  // namespace holocap

@@ -36,11 +36,11 @@ void RegisterAravisDriver(DriverRegistry& registry);
 
 // How a GenICam pixel format is stored in a take, or an Error listing the supported ones.
 struct AravisPixelLayout {
-  std::string genicam;       // "BayerRG8"
-  std::string stored;        // StreamInfo::pixel_format: "bgr8", "mono8", ...
-  int raw_type = 0;          // cv type of the wire image (CV_8UC1 for Bayer8, CV_8UC3 for RGB8)
-  int bayer_to_bgr = -1;     // OpenCV conversion code when debayering, else -1
-  bool rgb_to_bgr = false;   // RGB8/RGB16 on the wire
+  std::string genicam;      // "BayerRG8"
+  std::string stored;       // StreamInfo::pixel_format: "bgr8", "mono8", ...
+  int raw_type = 0;         // cv type of the wire image (CV_8UC1 for Bayer8, CV_8UC3 for RGB8)
+  int bayer_to_bgr = -1;    // OpenCV conversion code when debayering, else -1
+  bool rgb_to_bgr = false;  // RGB8/RGB16 on the wire
 };
 AravisPixelLayout AravisLayoutFor(const std::string& genicam_format, bool debayer);
 

@@ -28,14 +28,18 @@ namespace holocap {
 void FakeGigeCameraSpec::Check() const {
   if (address.empty()) Fail("fake GigE camera: no address");
   // The GigE Vision bootstrap registers hold the serial in 16 bytes, NUL included.
-  if (serial.empty() || serial.size() > 15) Fail("fake GigE camera: serial must have 1..15 characters");
+  if (serial.empty() || serial.size() > 15)
+    Fail("fake GigE camera: serial must have 1..15 characters");
   if (!(lost_per_thousand >= 0 && lost_per_thousand <= 1000)) {
     Fail("fake GigE camera: lost_per_thousand must be 0..1000");
   }
   // The camera sleeps whole microseconds between ticks.
-  if (!(trigger_tick_hz > 0 && trigger_tick_hz <= 1e5)) Fail("fake GigE camera: trigger_tick_hz must be in (0, 1e5]");
-  if (pattern != "ramp" && pattern != "noise") Fail("fake GigE camera: pattern must be ramp or noise (not '", pattern, "')");
-  if (peer != "holocap" && peer != "libaravis") Fail("fake GigE camera: peer must be holocap or libaravis (not '", peer, "')");
+  if (!(trigger_tick_hz > 0 && trigger_tick_hz <= 1e5))
+    Fail("fake GigE camera: trigger_tick_hz must be in (0, 1e5]");
+  if (pattern != "ramp" && pattern != "noise")
+    Fail("fake GigE camera: pattern must be ramp or noise (not '", pattern, "')");
+  if (peer != "holocap" && peer != "libaravis")
+    Fail("fake GigE camera: peer must be holocap or libaravis (not '", peer, "')");
 }
 
 namespace {
@@ -44,7 +48,8 @@ namespace {
 // from frame to frame.
 void FillNoise(ArvBuffer* buffer, void* state, guint32, guint32, ArvPixelFormat pixel_format) {
   // The buffer's received size is still 0 here: the image's own size says what to fill.
-  const size_t size = static_cast<size_t>(arv_buffer_get_image_width(buffer)) * arv_buffer_get_image_height(buffer) *
+  const size_t size = static_cast<size_t>(arv_buffer_get_image_width(buffer)) *
+                      arv_buffer_get_image_height(buffer) *
                       ARV_PIXEL_FORMAT_BIT_PER_PIXEL(pixel_format) / 8;
   auto* data = static_cast<uint8_t*>(const_cast<void*>(arv_buffer_get_data(buffer, nullptr)));
   uint64_t& x = *static_cast<uint64_t*>(state);
@@ -92,7 +97,8 @@ enum : uint16_t {
   kStatusAccessDenied = 0x8006,
 };
 // Bootstrap registers (GigE Vision 1.2, table 28).
-constexpr uint32_t kBootstrapDiscoverySize = 0xf8;  // version .. user-defined name: the discovery answer
+constexpr uint32_t kBootstrapDiscoverySize =
+    0xf8;  // version .. user-defined name: the discovery answer
 constexpr uint32_t kRegTimestampTickHigh = 0x093c;
 constexpr uint32_t kRegTimestampTickLow = 0x0940;
 constexpr uint32_t kRegControlChannelPrivilege = 0x0a00;
@@ -130,7 +136,9 @@ struct SentFrame {
   size_t packet_data = 0;  // image bytes per payload packet
   std::vector<uint8_t> image;
 
-  uint32_t payload_packets() const { return static_cast<uint32_t>((image.size() + packet_data - 1) / packet_data); }
+  uint32_t payload_packets() const {
+    return static_cast<uint32_t>((image.size() + packet_data - 1) / packet_data);
+  }
   uint32_t packets() const { return payload_packets() + 2; }  // leader, payload..., trailer
 
   // Writes packet `id` (0 leader, 1..n payload, n + 1 trailer) into `out`; returns its size.
@@ -191,7 +199,9 @@ int BindUdp(in_addr_t address, uint16_t port, bool shared) {
 class GigePeer {
  public:
   GigePeer(const FakeGigeCameraSpec& spec, ArvFakeCamera* camera)
-      : spec_(spec), camera_(camera), drop_(spec.lost_per_thousand / 1000.0),
+      : spec_(spec),
+        camera_(camera),
+        drop_(spec.lost_per_thousand / 1000.0),
         rng_(std::hash<std::string>{}(spec.serial)) {}
   ~GigePeer() {
     for (int fd : fds_) close(fd);
@@ -208,7 +218,9 @@ class GigePeer {
     bool found = false;
     in_addr_t broadcast = INADDR_NONE;
     for (ifaddrs* i = interfaces; i != nullptr; i = i->ifa_next) {
-      if (i->ifa_addr == nullptr || i->ifa_addr->sa_family != AF_INET || (i->ifa_flags & IFF_UP) == 0) continue;
+      if (i->ifa_addr == nullptr || i->ifa_addr->sa_family != AF_INET ||
+          (i->ifa_flags & IFF_UP) == 0)
+        continue;
       if (reinterpret_cast<sockaddr_in*>(i->ifa_addr)->sin_addr.s_addr != address.s_addr) continue;
       found = true;
       if ((i->ifa_flags & IFF_BROADCAST) != 0 && i->ifa_broadaddr != nullptr) {
@@ -218,8 +230,8 @@ class GigePeer {
     }
     freeifaddrs(interfaces);
     if (!found) return false;
-    GInetAddress* inet = g_inet_address_new_from_bytes(reinterpret_cast<const guint8*>(&address.s_addr),
-                                                       G_SOCKET_FAMILY_IPV4);
+    GInetAddress* inet = g_inet_address_new_from_bytes(
+        reinterpret_cast<const guint8*>(&address.s_addr), G_SOCKET_FAMILY_IPV4);
     arv_fake_camera_set_inet_address(camera_, inet);
     g_object_unref(inet);
     const int control = BindUdp(address.s_addr, kGvcpPort, false);
@@ -259,7 +271,8 @@ class GigePeer {
           tick = true;
           break;
         }
-        const timespec timeout{static_cast<time_t>(left_us / 1000000), static_cast<long>(left_us % 1000000) * 1000};
+        const timespec timeout{static_cast<time_t>(left_us / 1000000),
+                               static_cast<long>(left_us % 1000000) * 1000};
         for (auto& p : polled) p.revents = 0;
         if (ppoll(polled.data(), polled.size(), &timeout, nullptr) < 0 && errno != EINTR) return;
         if (polled.back().revents != 0) return;  // SIGTERM or SIGINT
@@ -313,8 +326,10 @@ class GigePeer {
         image_size_ = payload;
       }
       // The last frames' packets stay available: more frames for small images, at most 64 MB.
-      history_frames_ = std::clamp<size_t>((size_t{64} << 20) / std::max<size_t>(payload, 1), 2, 16);
-      const uint64_t tick_hz = static_cast<uint64_t>(Register(kRegTimestampTickHigh)) << 32 | Register(kRegTimestampTickLow);
+      history_frames_ =
+          std::clamp<size_t>((size_t{64} << 20) / std::max<size_t>(payload, 1), 2, 16);
+      const uint64_t tick_hz = static_cast<uint64_t>(Register(kRegTimestampTickHigh)) << 32 |
+                               Register(kRegTimestampTickLow);
       tick_hz_ = tick_hz > 0 ? tick_hz : 1000000000;
       streaming_ = true;
     }
@@ -346,9 +361,11 @@ class GigePeer {
   }
 
   void Send(const SentFrame& frame, uint32_t id) {
-    if (scratch_.size() < kGvspHeader + frame.packet_data + 64) scratch_.resize(kGvspHeader + frame.packet_data + 64);
+    if (scratch_.size() < kGvspHeader + frame.packet_data + 64)
+      scratch_.resize(kGvspHeader + frame.packet_data + 64);
     const size_t size = frame.Packet(id, scratch_.data());
-    sendto(gvsp_, scratch_.data(), size, 0, reinterpret_cast<const sockaddr*>(&stream_to_), sizeof(stream_to_));
+    sendto(gvsp_, scratch_.data(), size, 0, reinterpret_cast<const sockaddr*>(&stream_to_),
+           sizeof(stream_to_));
   }
 
   void Receive(int fd) {
@@ -356,7 +373,8 @@ class GigePeer {
     while (true) {
       sockaddr_in from{};
       socklen_t from_size = sizeof(from);
-      const ssize_t got = recvfrom(fd, in, sizeof(in), 0, reinterpret_cast<sockaddr*>(&from), &from_size);
+      const ssize_t got =
+          recvfrom(fd, in, sizeof(in), 0, reinterpret_cast<sockaddr*>(&from), &from_size);
       if (got < 0) return;
       if (got >= static_cast<ssize_t>(kGvcpHeader)) Handle(fd, from, in, static_cast<size_t>(got));
     }
@@ -365,13 +383,15 @@ class GigePeer {
   bool IsController(const sockaddr_in& from) {
     if (!has_controller_) return true;
     const auto now = std::chrono::steady_clock::now();
-    if (now - controller_seen_ > std::chrono::milliseconds(arv_fake_camera_get_heartbeat_timeout(camera_))) {
+    if (now - controller_seen_ >
+        std::chrono::milliseconds(arv_fake_camera_get_heartbeat_timeout(camera_))) {
       // The controller's heartbeat stopped: the camera is free again.
       has_controller_ = false;
       arv_fake_camera_set_control_channel_privilege(camera_, 0);
       return true;
     }
-    return from.sin_addr.s_addr == controller_.sin_addr.s_addr && from.sin_port == controller_.sin_port;
+    return from.sin_addr.s_addr == controller_.sin_addr.s_addr &&
+           from.sin_port == controller_.sin_port;
   }
 
   void Handle(int fd, const sockaddr_in& from, const uint8_t* in, size_t size) {
@@ -398,7 +418,8 @@ class GigePeer {
           Put32(out + kGvcpHeader + answer, value);
           answer += 4;
           if (address == kRegControlChannelPrivilege && has_controller_ &&
-              from.sin_addr.s_addr == controller_.sin_addr.s_addr && from.sin_port == controller_.sin_port) {
+              from.sin_addr.s_addr == controller_.sin_addr.s_addr &&
+              from.sin_port == controller_.sin_port) {
             controller_seen_ = std::chrono::steady_clock::now();  // the controller's heartbeat
           }
         }
@@ -443,7 +464,8 @@ class GigePeer {
         const size_t count = length >= 4 ? length - 4 : 0;
         if (!may_write) {
           status = kStatusAccessDenied;
-        } else if (length < 4 || !arv_fake_camera_write_memory(camera_, address, static_cast<guint32>(count), data + 4)) {
+        } else if (length < 4 || !arv_fake_camera_write_memory(
+                                     camera_, address, static_cast<guint32>(count), data + 4)) {
           status = kStatusInvalidAddress;
         }
         Put16(out + kGvcpHeader, 0);
@@ -463,7 +485,8 @@ class GigePeer {
     Put16(out + 2, static_cast<uint16_t>(command + 1));
     Put16(out + 4, static_cast<uint16_t>(answer));
     Put16(out + 6, request);
-    sendto(fd, out, kGvcpHeader + answer, 0, reinterpret_cast<const sockaddr*>(&from), sizeof(from));
+    sendto(fd, out, kGvcpHeader + answer, 0, reinterpret_cast<const sockaddr*>(&from),
+           sizeof(from));
     // Taking or giving up the control channel privilege makes (or unmakes) the controller.
     const bool privileged = arv_fake_camera_get_control_channel_privilege(camera_) != 0;
     if (!has_controller_ && privileged) {
@@ -514,7 +537,8 @@ class GigePeer {
   std::vector<uint8_t> scratch_;
 };
 
-int ServeHolocapPeer(const FakeGigeCameraSpec& spec, const sigset_t& stop_signals, uint64_t* noise_state) {
+int ServeHolocapPeer(const FakeGigeCameraSpec& spec, const sigset_t& stop_signals,
+                     uint64_t* noise_state) {
   const int signal_fd = signalfd(-1, &stop_signals, SFD_CLOEXEC);
   if (signal_fd < 0) return 2;
   ArvFakeCamera* camera = arv_fake_camera_new(spec.serial.c_str());
@@ -533,8 +557,10 @@ int ServeHolocapPeer(const FakeGigeCameraSpec& spec, const sigset_t& stop_signal
   return status;
 }
 
-int ServeLibaravisPeer(const FakeGigeCameraSpec& spec, const sigset_t& stop_signals, uint64_t* noise_state) {
-  ArvGvFakeCamera* camera = arv_gv_fake_camera_new_full(spec.address.c_str(), spec.serial.c_str(), nullptr);
+int ServeLibaravisPeer(const FakeGigeCameraSpec& spec, const sigset_t& stop_signals,
+                       uint64_t* noise_state) {
+  ArvGvFakeCamera* camera =
+      arv_gv_fake_camera_new_full(spec.address.c_str(), spec.serial.c_str(), nullptr);
   if (camera == nullptr) return 2;
   g_object_set(camera, "gvsp-lost-ratio", spec.lost_per_thousand / 1000.0, nullptr);
   ArvFakeCamera* fake = arv_gv_fake_camera_get_fake_camera(camera);

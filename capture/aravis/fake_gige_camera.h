@@ -1,7 +1,7 @@
-// A GigE Vision camera for tests and benchmarks of the `aravis:` driver without hardware: libaravis'
-// register and image model of a camera (ArvFakeCamera) behind a GVCP/GVSP peer written here,
-// which answers packet resend requests. Apart from aravis this needs only the standard library,
-// so that the holocap-fake-gige-camera program stays small and starts quickly.
+// A GigE Vision camera for tests and benchmarks of the `aravis:` driver without hardware:
+// libaravis' register and image model of a camera (ArvFakeCamera) behind a GVCP/GVSP peer written
+// here, which answers packet resend requests. Apart from aravis this needs only the standard
+// library, so that the holocap-fake-gige-camera program stays small and starts quickly.
 #pragma once
 
 #include <string>
@@ -18,7 +18,7 @@ namespace holocap {
 //     so every frame that lost a packet stays incomplete.
 struct FakeGigeCameraSpec {
   std::string address = "127.0.0.1";  // IPv4 address of an interface it listens on
-  std::string serial = "GV01";         // its device id becomes "Aravis-Fake-<serial>"
+  std::string serial = "GV01";        // its device id becomes "Aravis-Fake-<serial>"
   // GVSP packets it leaves unsent on their first sending, per thousand (a resent packet is
   // always sent).
   double lost_per_thousand = 0;

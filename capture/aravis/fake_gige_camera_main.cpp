@@ -31,12 +31,14 @@ int main(int argc, char** argv) {
       } else if (flag == "-m") {
         spec.peer = value;
       } else {
-        holocap::Fail("unknown option ", flag, " (expected -i ADDRESS -s SERIAL [-r LOST] [-t TICK_HZ] [-p ramp|noise]",
+        holocap::Fail("unknown option ", flag,
+                      " (expected -i ADDRESS -s SERIAL [-r LOST] [-t TICK_HZ] [-p ramp|noise]",
                       " [-m holocap|libaravis])");
       }
     }
     const int status = holocap::ServeFakeGigeCamera(spec);
-    if (status != 0) std::fprintf(stderr, "holocap-fake-gige-camera: cannot serve on %s\n", spec.address.c_str());
+    if (status != 0)
+      std::fprintf(stderr, "holocap-fake-gige-camera: cannot serve on %s\n", spec.address.c_str());
     return status;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "holocap-fake-gige-camera: %s\n", e.what());

@@ -2,10 +2,10 @@
 
 #include <sys/mman.h>
 
+#include <libcamera/libcamera.h>
 #include <condition_variable>
 #include <cstdlib>
 #include <deque>
-#include <libcamera/libcamera.h>
 #include <mutex>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
@@ -29,11 +29,13 @@ std::shared_ptr<lc::CameraManager> Manager() {
   // it, and logSetLevel() reaches only the log categories that exist already, so the default
   // goes in through the variable, before the first manager.
   setenv("LIBCAMERA_LOG_LEVELS", "*:ERROR", /*overwrite=*/0);
-  auto manager = std::shared_ptr<lc::CameraManager>(new lc::CameraManager(), [](lc::CameraManager* m) {
-    m->stop();
-    delete m;
-  });
-  if (int ret = manager->start(); ret < 0) Fail("libcamera: the camera manager did not start (error ", ret, ")");
+  auto manager =
+      std::shared_ptr<lc::CameraManager>(new lc::CameraManager(), [](lc::CameraManager* m) {
+        m->stop();
+        delete m;
+      });
+  if (int ret = manager->start(); ret < 0)
+    Fail("libcamera: the camera manager did not start (error ", ret, ")");
   shared = manager;
   return manager;
 }
@@ -41,7 +43,9 @@ std::shared_ptr<lc::CameraManager> Manager() {
 std::string CameraList(const lc::CameraManager& manager) {
   std::string list;
   for (const auto& camera : manager.cameras()) list += (list.empty() ? "" : ", ") + camera->id();
-  return list.empty() ? "none; libcamera " + lc::CameraManager::version() + " found no camera on this machine" : list;
+  return list.empty() ? "none; libcamera " + lc::CameraManager::version() +
+                            " found no camera on this machine"
+                      : list;
 }
 
 class LibcameraSensor : public Sensor {
@@ -49,7 +53,8 @@ class LibcameraSensor : public Sensor {
   explicit LibcameraSensor(const SensorSpec& spec) : uri_(spec.uri), manager_(Manager()) {
     const std::string id = ParseSensorUri(spec.uri).path;
     camera_ = manager_->get(id);
-    if (!camera_) Fail("'", uri_, "': no camera '", id, "' (libcamera sees: ", CameraList(*manager_), ")");
+    if (!camera_)
+      Fail("'", uri_, "': no camera '", id, "' (libcamera sees: ", CameraList(*manager_), ")");
     if (camera_->acquire() < 0) Fail("'", uri_, "': the camera is in use by another process");
     acquired_ = true;
     try {
@@ -68,7 +73,8 @@ class LibcameraSensor : public Sensor {
     if (camera_->start() < 0) Fail("'", uri_, "': the camera did not start");
     started_ = true;
     for (auto& request : requests_) {
-      if (camera_->queueRequest(request.get()) < 0) Fail("'", uri_, "': a capture request was refused");
+      if (camera_->queueRequest(request.get()) < 0)
+        Fail("'", uri_, "': a capture request was refused");
     }
   }
 
@@ -84,7 +90,8 @@ class LibcameraSensor : public Sensor {
     lc::Request* request = nullptr;
     {
       std::unique_lock lock(mutex_);
-      if (!cv_.wait_for(lock, timeout, [&] { return !completed_.empty() || disconnected_; })) return false;
+      if (!cv_.wait_for(lock, timeout, [&] { return !completed_.empty() || disconnected_; }))
+        return false;
       if (disconnected_) Fail("'", uri_, "': the camera was unplugged");
       request = completed_.front();
       completed_.pop_front();
@@ -94,7 +101,8 @@ class LibcameraSensor : public Sensor {
     bool ok = metadata.status == lc::FrameMetadata::FrameSuccess;
     if (ok) {
       const auto& mapping = mappings_.at(buffer);
-      const size_t used = metadata.planes().empty() ? mapping.second : metadata.planes()[0].bytesused;
+      const size_t used =
+          metadata.planes().empty() ? mapping.second : metadata.planes()[0].bytesused;
       try {
         frame->image = Convert(static_cast<const uint8_t*>(mapping.first), used);
       } catch (const Error&) {
@@ -126,11 +134,13 @@ class LibcameraSensor : public Sensor {
  private:
   void Configure(const SensorSpec& spec) {
     config_ = camera_->generateConfiguration({lc::StreamRole::VideoRecording});
-    if (!config_ || config_->empty()) Fail("'", uri_, "': the camera offers no video configuration");
+    if (!config_ || config_->empty())
+      Fail("'", uri_, "': the camera offers no video configuration");
     lc::StreamConfiguration& stream_config = config_->at(0);
     // Formats OpenCV takes without an ISP-specific conversion, best first.
-    const std::vector<lc::PixelFormat> preferred = {lc::formats::RGB888, lc::formats::BGR888, lc::formats::YUYV,
-                                                    lc::formats::MJPEG, lc::formats::R8};
+    const std::vector<lc::PixelFormat> preferred = {lc::formats::RGB888, lc::formats::BGR888,
+                                                    lc::formats::YUYV, lc::formats::MJPEG,
+                                                    lc::formats::R8};
     const auto offered = stream_config.formats().pixelformats();
     bool found = false;
     for (const auto& format : preferred) {
@@ -147,9 +157,12 @@ class LibcameraSensor : public Sensor {
     }
     const int width = spec.options.value("width", 0), height = spec.options.value("height", 0);
     if (width > 0 && height > 0) stream_config.size = lc::Size(width, height);
-    if (spec.options.contains("buffers")) stream_config.bufferCount = spec.options["buffers"].get<unsigned>();
-    if (config_->validate() == lc::CameraConfiguration::Invalid) Fail("'", uri_, "': the configuration is invalid");
-    if (camera_->configure(config_.get()) < 0) Fail("'", uri_, "': the camera refused its configuration");
+    if (spec.options.contains("buffers"))
+      stream_config.bufferCount = spec.options["buffers"].get<unsigned>();
+    if (config_->validate() == lc::CameraConfiguration::Invalid)
+      Fail("'", uri_, "': the configuration is invalid");
+    if (camera_->configure(config_.get()) < 0)
+      Fail("'", uri_, "': the camera refused its configuration");
     stream_ = stream_config.stream();
     pixel_format_ = stream_config.pixelFormat;
     stride_ = static_cast<int>(stream_config.stride);
@@ -162,7 +175,8 @@ class LibcameraSensor : public Sensor {
       if (data == MAP_FAILED) Fail("'", uri_, "': cannot map a frame buffer");
       mappings_[buffer.get()] = {data, plane.length};
       std::unique_ptr<lc::Request> request = camera_->createRequest();
-      if (!request || request->addBuffer(stream_, buffer.get()) < 0) Fail("'", uri_, "': cannot create a request");
+      if (!request || request->addBuffer(stream_, buffer.get()) < 0)
+        Fail("'", uri_, "': cannot create a request");
       requests_.push_back(std::move(request));
     }
     camera_->requestCompleted.connect(this, &LibcameraSensor::OnRequestCompleted);
@@ -187,11 +201,17 @@ class LibcameraSensor : public Sensor {
       if (out.empty() || out.cols != w || out.rows != h) Fail("undecodable MJPEG frame");
       return out;
     }
-    const int bytes = pixel_format_ == lc::formats::R8 ? 1 : pixel_format_ == lc::formats::YUYV ? 2 : 3;
-    if (used < static_cast<size_t>(stride_) * (h - 1) + static_cast<size_t>(w) * bytes) Fail("truncated frame");
-    if (pixel_format_ == lc::formats::RGB888) return cv::Mat(h, w, CV_8UC3, pixels, stride_).clone();  // B,G,R bytes
-    if (pixel_format_ == lc::formats::BGR888) cv::cvtColor(cv::Mat(h, w, CV_8UC3, pixels, stride_), out, cv::COLOR_RGB2BGR);
-    if (pixel_format_ == lc::formats::YUYV) cv::cvtColor(cv::Mat(h, w, CV_8UC2, pixels, stride_), out, cv::COLOR_YUV2BGR_YUYV);
+    const int bytes = pixel_format_ == lc::formats::R8     ? 1
+                      : pixel_format_ == lc::formats::YUYV ? 2
+                                                           : 3;
+    if (used < static_cast<size_t>(stride_) * (h - 1) + static_cast<size_t>(w) * bytes)
+      Fail("truncated frame");
+    if (pixel_format_ == lc::formats::RGB888)
+      return cv::Mat(h, w, CV_8UC3, pixels, stride_).clone();  // B,G,R bytes
+    if (pixel_format_ == lc::formats::BGR888)
+      cv::cvtColor(cv::Mat(h, w, CV_8UC3, pixels, stride_), out, cv::COLOR_RGB2BGR);
+    if (pixel_format_ == lc::formats::YUYV)
+      cv::cvtColor(cv::Mat(h, w, CV_8UC2, pixels, stride_), out, cv::COLOR_YUV2BGR_YUYV);
     if (pixel_format_ == lc::formats::R8) out = cv::Mat(h, w, CV_8UC1, pixels, stride_).clone();
     return out;
   }
@@ -259,15 +279,20 @@ class LibcameraDriver : public Driver {
     std::vector<DeviceInfo> devices;
     for (const auto& camera : manager->cameras()) {
       const auto model = camera->properties().get(lc::properties::Model);
-      devices.push_back({"libcamera:" + camera->id(), model ? *model : "camera", SensorRole::kColor});
+      devices.push_back(
+          {"libcamera:" + camera->id(), model ? *model : "camera", SensorRole::kColor});
     }
     return devices;
   }
-  std::unique_ptr<Sensor> Open(const SensorSpec& spec) override { return std::make_unique<LibcameraSensor>(spec); }
+  std::unique_ptr<Sensor> Open(const SensorSpec& spec) override {
+    return std::make_unique<LibcameraSensor>(spec);
+  }
 };
 
 }  // namespace
 
-void RegisterLibcameraDriver(DriverRegistry& registry) { registry.Register(std::make_unique<LibcameraDriver>()); }
+void RegisterLibcameraDriver(DriverRegistry& registry) {
+  registry.Register(std::make_unique<LibcameraDriver>());
+}
 
 }  // namespace holocap

@@ -20,7 +20,8 @@ class ReplaySensor : public Sensor {
     // Pace against the take's first timestamp, so sensors of one take stay aligned.
     if (take_.size() > 0) {
       first_timestamp_ns_ = take_.entry(0).items.front().timestamp_ns;
-      for (const auto& item : take_.entry(0).items) first_timestamp_ns_ = std::min(first_timestamp_ns_, item.timestamp_ns);
+      for (const auto& item : take_.entry(0).items)
+        first_timestamp_ns_ = std::min(first_timestamp_ns_, item.timestamp_ns);
     }
   }
 
@@ -96,7 +97,8 @@ class ReplayDriver : public Driver {
       Fail("replay URI '", spec.uri, "' must name a take and a sensor: replay:<take>#<sensor>");
     }
     std::string pace = spec.options.value("pace", "fast");
-    if (pace != "fast" && pace != "recorded") Fail("replay pace must be 'fast' or 'recorded', got '", pace, "'");
+    if (pace != "fast" && pace != "recorded")
+      Fail("replay pace must be 'fast' or 'recorded', got '", pace, "'");
     Take take = Take::Open(uri.path);
     take.stream(uri.fragment);  // a clear error if the take lacks that sensor
     return std::make_unique<ReplaySensor>(std::move(take), uri.fragment, pace == "recorded",

@@ -24,14 +24,15 @@ namespace {
 
 // Colour preference when the rig does not name a format: uncompressed first (no decode cost,
 // no compression artefacts), MJPEG when that is all a USB 2 camera can do at full size.
-const std::vector<uint32_t> kColorPreference = {V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_GREY,
-                                                V4L2_PIX_FMT_Y16};
+const std::vector<uint32_t> kColorPreference = {V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_MJPEG,
+                                                V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16};
 const std::vector<uint32_t> kDepthPreference = {V4L2_PIX_FMT_Z16};
 
 }  // namespace
 
 uint32_t FourccFromString(const std::string& text) {
-  if (text.size() != 4) Fail("a fourcc has four characters ('", text, "'; pad with spaces: \"Z16 \")");
+  if (text.size() != 4)
+    Fail("a fourcc has four characters ('", text, "'; pad with spaces: \"Z16 \")");
   return v4l2_fourcc(text[0], text[1], text[2], text[3]);
 }
 
@@ -42,19 +43,24 @@ std::string FourccToString(uint32_t fourcc) {
 }
 
 bool IsSupportedFourcc(uint32_t fourcc) {
-  return fourcc == V4L2_PIX_FMT_YUYV || fourcc == V4L2_PIX_FMT_MJPEG || fourcc == V4L2_PIX_FMT_GREY ||
-         fourcc == V4L2_PIX_FMT_Y16 || fourcc == V4L2_PIX_FMT_Z16;
+  return fourcc == V4L2_PIX_FMT_YUYV || fourcc == V4L2_PIX_FMT_MJPEG ||
+         fourcc == V4L2_PIX_FMT_GREY || fourcc == V4L2_PIX_FMT_Y16 || fourcc == V4L2_PIX_FMT_Z16;
 }
 
 std::string StoredPixelFormat(uint32_t fourcc) {
   switch (fourcc) {
     case V4L2_PIX_FMT_YUYV:
-    case V4L2_PIX_FMT_MJPEG: return "bgr8";
-    case V4L2_PIX_FMT_GREY: return "mono8";
-    case V4L2_PIX_FMT_Y16: return "mono16";
-    case V4L2_PIX_FMT_Z16: return "depth_m";
+    case V4L2_PIX_FMT_MJPEG:
+      return "bgr8";
+    case V4L2_PIX_FMT_GREY:
+      return "mono8";
+    case V4L2_PIX_FMT_Y16:
+      return "mono16";
+    case V4L2_PIX_FMT_Z16:
+      return "depth_m";
   }
-  Fail("unsupported V4L2 pixel format '", FourccToString(fourcc), "' (supported: YUYV, MJPG, GREY, Y16, Z16)");
+  Fail("unsupported V4L2 pixel format '", FourccToString(fourcc),
+       "' (supported: YUYV, MJPG, GREY, Y16, Z16)");
 }
 
 NegotiatedFormat Negotiate(const std::vector<FormatOption>& offered, const FormatRequest& request) {
@@ -67,20 +73,26 @@ NegotiatedFormat Negotiate(const std::vector<FormatOption>& offered, const Forma
   uint32_t fourcc = request.fourcc;
   if (fourcc != 0) {
     if (!IsSupportedFourcc(fourcc)) StoredPixelFormat(fourcc);
-    if (std::none_of(offered.begin(), offered.end(), [&](const auto& o) { return o.fourcc == fourcc; })) {
-      Fail("the device has no '", FourccToString(fourcc), "' format (it offers ", offered_text, ")");
+    if (std::none_of(offered.begin(), offered.end(),
+                     [&](const auto& o) { return o.fourcc == fourcc; })) {
+      Fail("the device has no '", FourccToString(fourcc), "' format (it offers ", offered_text,
+           ")");
     }
   } else {
-    const auto& preference = request.role == SensorRole::kDepth ? kDepthPreference : kColorPreference;
+    const auto& preference =
+        request.role == SensorRole::kDepth ? kDepthPreference : kColorPreference;
     for (uint32_t candidate : preference) {
-      if (std::any_of(offered.begin(), offered.end(), [&](const auto& o) { return o.fourcc == candidate; })) {
+      if (std::any_of(offered.begin(), offered.end(),
+                      [&](const auto& o) { return o.fourcc == candidate; })) {
         fourcc = candidate;
         break;
       }
     }
     if (fourcc == 0) {
-      Fail("the device offers no format holocap can store as ", ToString(request.role), " (it offers ",
-           offered_text, "; supported: ", request.role == SensorRole::kDepth ? "Z16" : "YUYV, MJPG, GREY, Y16", ")");
+      Fail("the device offers no format holocap can store as ", ToString(request.role),
+           " (it offers ", offered_text,
+           "; supported: ", request.role == SensorRole::kDepth ? "Z16" : "YUYV, MJPG, GREY, Y16",
+           ")");
     }
   }
   // Size: the exact one asked for, else the nearest in pixel count; with none asked, the largest.
@@ -126,11 +138,13 @@ cv::Mat ConvertFrame(uint32_t fourcc, const uint8_t* data, size_t bytesused, int
   if (width <= 0 || height <= 0) Fail("V4L2 frame without a size");
   auto need = [&](int bytes_per_pixel) {
     const int stride = bytes_per_line > 0 ? bytes_per_line : width * bytes_per_pixel;
-    if (stride < width * bytes_per_pixel) Fail("V4L2 frame: bytes per line ", stride, " < ", width * bytes_per_pixel);
-    const size_t bytes = static_cast<size_t>(stride) * (height - 1) + static_cast<size_t>(width) * bytes_per_pixel;
+    if (stride < width * bytes_per_pixel)
+      Fail("V4L2 frame: bytes per line ", stride, " < ", width * bytes_per_pixel);
+    const size_t bytes =
+        static_cast<size_t>(stride) * (height - 1) + static_cast<size_t>(width) * bytes_per_pixel;
     if (bytesused < bytes) {
-      Fail("truncated V4L2 ", FourccToString(fourcc), " frame: ", bytesused, " bytes, ", width, "x", height,
-           " needs ", bytes);
+      Fail("truncated V4L2 ", FourccToString(fourcc), " frame: ", bytesused, " bytes, ", width, "x",
+           height, " needs ", bytes);
     }
     return static_cast<size_t>(stride);
   };
@@ -144,17 +158,21 @@ cv::Mat ConvertFrame(uint32_t fourcc, const uint8_t* data, size_t bytesused, int
       return bgr;
     }
     case V4L2_PIX_FMT_MJPEG: {
-      if (bytesused < 4 || data[0] != 0xff || data[1] != 0xd8) Fail("MJPEG frame does not start with a JPEG marker");
+      if (bytesused < 4 || data[0] != 0xff || data[1] != 0xd8)
+        Fail("MJPEG frame does not start with a JPEG marker");
       cv::Mat bytes(1, static_cast<int>(bytesused), CV_8UC1, pixels);
       cv::Mat bgr = cv::imdecode(bytes, cv::IMREAD_COLOR);
       if (bgr.empty()) Fail("MJPEG frame of ", bytesused, " bytes does not decode");
       if (bgr.cols != width || bgr.rows != height) {
-        Fail("MJPEG frame decodes to ", bgr.cols, "x", bgr.rows, ", the format says ", width, "x", height);
+        Fail("MJPEG frame decodes to ", bgr.cols, "x", bgr.rows, ", the format says ", width, "x",
+             height);
       }
       return bgr;
     }
-    case V4L2_PIX_FMT_GREY: return cv::Mat(height, width, CV_8UC1, pixels, need(1)).clone();
-    case V4L2_PIX_FMT_Y16: return cv::Mat(height, width, CV_16UC1, pixels, need(2)).clone();
+    case V4L2_PIX_FMT_GREY:
+      return cv::Mat(height, width, CV_8UC1, pixels, need(1)).clone();
+    case V4L2_PIX_FMT_Y16:
+      return cv::Mat(height, width, CV_16UC1, pixels, need(2)).clone();
     case V4L2_PIX_FMT_Z16: {
       cv::Mat millimetres(height, width, CV_16UC1, pixels, need(2));
       cv::Mat metres(height, width, CV_32FC1);
@@ -162,7 +180,8 @@ cv::Mat ConvertFrame(uint32_t fourcc, const uint8_t* data, size_t bytesused, int
         const uint16_t* in = millimetres.ptr<uint16_t>(y);
         float* out = metres.ptr<float>(y);
         for (int x = 0; x < width; ++x) {
-          out[x] = in[x] == 0 ? std::numeric_limits<float>::quiet_NaN() : static_cast<float>(in[x]) * 1e-3f;
+          out[x] = in[x] == 0 ? std::numeric_limits<float>::quiet_NaN()
+                              : static_cast<float>(in[x]) * 1e-3f;
         }
       }
       return metres;
@@ -176,9 +195,15 @@ BufferTime MapTimestamp(int64_t tv_sec, int64_t tv_usec, uint32_t flags) {
   BufferTime time;
   time.ns = tv_sec * 1000000000LL + tv_usec * 1000LL;
   switch (flags & V4L2_BUF_FLAG_TIMESTAMP_MASK) {
-    case V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC: time.clock = "CLOCK_MONOTONIC"; break;
-    case V4L2_BUF_FLAG_TIMESTAMP_COPY: time.clock = "unknown (copied from output)"; break;
-    default: time.clock = "unknown"; break;
+    case V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC:
+      time.clock = "CLOCK_MONOTONIC";
+      break;
+    case V4L2_BUF_FLAG_TIMESTAMP_COPY:
+      time.clock = "unknown (copied from output)";
+      break;
+    default:
+      time.clock = "unknown";
+      break;
   }
   return time;
 }
@@ -192,7 +217,8 @@ void BufferQueue::Reset(int count) {
 }
 
 BufferQueue::State BufferQueue::state(int index) const {
-  if (index < 0 || index >= size()) Fail("V4L2 buffer ", index, " does not exist (", size(), " buffers)");
+  if (index < 0 || index >= size())
+    Fail("V4L2 buffer ", index, " does not exist (", size(), " buffers)");
   return states_[index];
 }
 
@@ -202,7 +228,8 @@ void BufferQueue::Queued(int index) {
 }
 
 void BufferQueue::Dequeued(int index) {
-  if (state(index) != State::kQueued) Fail("the driver returned V4L2 buffer ", index, ", which was not queued");
+  if (state(index) != State::kQueued)
+    Fail("the driver returned V4L2 buffer ", index, ", which was not queued");
   states_[index] = State::kDequeued;
 }
 
@@ -278,7 +305,8 @@ class V4l2Sensor : public Sensor {
   bool Grab(Frame* frame, std::chrono::milliseconds timeout) override {
     const auto deadline = std::chrono::steady_clock::now() + timeout;
     while (true) {
-      const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+      const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+          deadline - std::chrono::steady_clock::now());
       if (left.count() < 0) return false;
       pollfd pfd{fd_, POLLIN, 0};
       int ready = poll(&pfd, 1, static_cast<int>(left.count()));
@@ -308,14 +336,16 @@ class V4l2Sensor : public Sensor {
       }
       cv::Mat image;
       try {
-        image = v4l2::ConvertFrame(format_.fourcc, static_cast<const uint8_t*>(mappings_[buffer.index].first),
-                                   buffer.bytesused, format_.width, format_.height, bytes_per_line_);
+        image = v4l2::ConvertFrame(
+            format_.fourcc, static_cast<const uint8_t*>(mappings_[buffer.index].first),
+            buffer.bytesused, format_.width, format_.height, bytes_per_line_);
       } catch (const Error&) {
         ++lost_;  // a corrupt MJPEG frame is a lost frame, not the end of the take
         QueueBuffer(static_cast<int>(buffer.index));
         continue;
       }
-      v4l2::BufferTime time = v4l2::MapTimestamp(buffer.timestamp.tv_sec, buffer.timestamp.tv_usec, buffer.flags);
+      v4l2::BufferTime time =
+          v4l2::MapTimestamp(buffer.timestamp.tv_sec, buffer.timestamp.tv_usec, buffer.flags);
       QueueBuffer(static_cast<int>(buffer.index));
       frame->sensor = info_.name;
       frame->image = std::move(image);
@@ -353,12 +383,16 @@ class V4l2Sensor : public Sensor {
   void Configure(const SensorSpec& spec) {
     v4l2_capability caps{};
     if (Ioctl(fd_, VIDIOC_QUERYCAP, &caps) < 0) {
-      if (errno == ENOTTY || errno == EINVAL) Fail("'", uri_, "': ", path_, " is not a V4L2 device");
+      if (errno == ENOTTY || errno == EINVAL)
+        Fail("'", uri_, "': ", path_, " is not a V4L2 device");
       ThrowErrno("VIDIOC_QUERYCAP");
     }
-    const uint32_t device_caps = (caps.capabilities & V4L2_CAP_DEVICE_CAPS) ? caps.device_caps : caps.capabilities;
-    if (!(device_caps & V4L2_CAP_VIDEO_CAPTURE)) Fail("'", uri_, "': ", path_, " cannot capture video");
-    if (!(device_caps & V4L2_CAP_STREAMING)) Fail("'", uri_, "': ", path_, " cannot stream (no MMAP I/O)");
+    const uint32_t device_caps =
+        (caps.capabilities & V4L2_CAP_DEVICE_CAPS) ? caps.device_caps : caps.capabilities;
+    if (!(device_caps & V4L2_CAP_VIDEO_CAPTURE))
+      Fail("'", uri_, "': ", path_, " cannot capture video");
+    if (!(device_caps & V4L2_CAP_STREAMING))
+      Fail("'", uri_, "': ", path_, " cannot stream (no MMAP I/O)");
 
     std::vector<v4l2::FormatOption> offered;
     v4l2_fmtdesc desc{};
@@ -380,9 +414,11 @@ class V4l2Sensor : public Sensor {
         interval.pixel_format = desc.pixelformat;
         interval.width = static_cast<uint32_t>(option.width);
         interval.height = static_cast<uint32_t>(option.height);
-        for (interval.index = 0; Ioctl(fd_, VIDIOC_ENUM_FRAMEINTERVALS, &interval) == 0; ++interval.index) {
+        for (interval.index = 0; Ioctl(fd_, VIDIOC_ENUM_FRAMEINTERVALS, &interval) == 0;
+             ++interval.index) {
           if (interval.type == V4L2_FRMIVAL_TYPE_DISCRETE && interval.discrete.numerator > 0) {
-            option.fps.push_back(static_cast<double>(interval.discrete.denominator) / interval.discrete.numerator);
+            option.fps.push_back(static_cast<double>(interval.discrete.denominator) /
+                                 interval.discrete.numerator);
           }
           if (interval.type != V4L2_FRMIVAL_TYPE_DISCRETE) break;
         }
@@ -392,7 +428,8 @@ class V4l2Sensor : public Sensor {
     }
     v4l2::FormatRequest request;
     const nlohmann::json& options = spec.options;
-    if (options.contains("fourcc")) request.fourcc = v4l2::FourccFromString(options["fourcc"].get<std::string>());
+    if (options.contains("fourcc"))
+      request.fourcc = v4l2::FourccFromString(options["fourcc"].get<std::string>());
     request.width = options.value("width", 0);
     request.height = options.value("height", 0);
     request.fps = options.value("fps", 30.0);
@@ -421,7 +458,8 @@ class V4l2Sensor : public Sensor {
       v4l2_streamparm parm{};
       parm.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
       parm.parm.capture.timeperframe.numerator = 1000;
-      parm.parm.capture.timeperframe.denominator = static_cast<uint32_t>(std::lround(format_.fps * 1000));
+      parm.parm.capture.timeperframe.denominator =
+          static_cast<uint32_t>(std::lround(format_.fps * 1000));
       Ioctl(fd_, VIDIOC_S_PARM, &parm);  // not every driver lets the rate be set; keep its own
     }
 
@@ -432,7 +470,8 @@ class V4l2Sensor : public Sensor {
     request_buffers.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
     request_buffers.memory = V4L2_MEMORY_MMAP;
     if (Ioctl(fd_, VIDIOC_REQBUFS, &request_buffers) < 0) ThrowErrno("VIDIOC_REQBUFS");
-    if (request_buffers.count < 2) Fail("'", uri_, "': the driver granted only ", request_buffers.count, " buffer(s)");
+    if (request_buffers.count < 2)
+      Fail("'", uri_, "': the driver granted only ", request_buffers.count, " buffer(s)");
     queue_.Reset(static_cast<int>(request_buffers.count));
     for (uint32_t i = 0; i < request_buffers.count; ++i) {
       v4l2_buffer buffer{};
@@ -440,7 +479,8 @@ class V4l2Sensor : public Sensor {
       buffer.memory = V4L2_MEMORY_MMAP;
       buffer.index = i;
       if (Ioctl(fd_, VIDIOC_QUERYBUF, &buffer) < 0) ThrowErrno("VIDIOC_QUERYBUF");
-      void* data = v4l2_mmap(nullptr, buffer.length, PROT_READ | PROT_WRITE, MAP_SHARED, fd_, buffer.m.offset);
+      void* data = v4l2_mmap(nullptr, buffer.length, PROT_READ | PROT_WRITE, MAP_SHARED, fd_,
+                             buffer.m.offset);
       if (data == MAP_FAILED) ThrowErrno("mmap");
       mappings_.emplace_back(data, buffer.length);
     }
@@ -473,7 +513,9 @@ class V4l2Sensor : public Sensor {
 class V4l2Driver : public Driver {
  public:
   std::string scheme() const override { return "v4l2"; }
-  std::string description() const override { return "Video4Linux2 cameras and depth sensors (MMAP streaming)"; }
+  std::string description() const override {
+    return "Video4Linux2 cameras and depth sensors (MMAP streaming)";
+  }
   std::vector<DeviceInfo> Enumerate() override {
     std::vector<DeviceInfo> devices;
     std::error_code ec;
@@ -484,7 +526,8 @@ class V4l2Driver : public Driver {
       if (fd < 0) continue;
       v4l2_capability caps{};
       if (Ioctl(fd, VIDIOC_QUERYCAP, &caps) == 0) {
-        const uint32_t device_caps = (caps.capabilities & V4L2_CAP_DEVICE_CAPS) ? caps.device_caps : caps.capabilities;
+        const uint32_t device_caps =
+            (caps.capabilities & V4L2_CAP_DEVICE_CAPS) ? caps.device_caps : caps.capabilities;
         if (device_caps & V4L2_CAP_VIDEO_CAPTURE) {
           devices.push_back({"v4l2:" + entry.path().string(),
                              std::string(reinterpret_cast<const char*>(caps.card)) + " (" +
@@ -494,14 +537,19 @@ class V4l2Driver : public Driver {
       }
       v4l2_close(fd);
     }
-    std::sort(devices.begin(), devices.end(), [](const auto& a, const auto& b) { return a.uri < b.uri; });
+    std::sort(devices.begin(), devices.end(),
+              [](const auto& a, const auto& b) { return a.uri < b.uri; });
     return devices;
   }
-  std::unique_ptr<Sensor> Open(const SensorSpec& spec) override { return std::make_unique<V4l2Sensor>(spec); }
+  std::unique_ptr<Sensor> Open(const SensorSpec& spec) override {
+    return std::make_unique<V4l2Sensor>(spec);
+  }
 };
 
 }  // namespace
 
-void RegisterV4l2Driver(DriverRegistry& registry) { registry.Register(std::make_unique<V4l2Driver>()); }
+void RegisterV4l2Driver(DriverRegistry& registry) {
+  registry.Register(std::make_unique<V4l2Driver>());
+}
 
 }  // namespace holocap

@@ -30,8 +30,9 @@ void RegisterV4l2Driver(DriverRegistry& registry);
 // The pure parts of the driver, testable without a device.
 namespace v4l2 {
 
-uint32_t FourccFromString(const std::string& text);  // "YUYV" -> V4L2_PIX_FMT_YUYV; Error if not 4 chars
-std::string FourccToString(uint32_t fourcc);         // "Z16 "
+uint32_t FourccFromString(
+    const std::string& text);                 // "YUYV" -> V4L2_PIX_FMT_YUYV; Error if not 4 chars
+std::string FourccToString(uint32_t fourcc);  // "Z16 "
 
 // One size and its frame rates as the device enumerates them for a format.
 struct FormatOption {

@@ -60,7 +60,8 @@ TEST_F(SimulatedTake, ReplayReproducesEveryFrameBitExactly) {
   DriverRegistry registry;
   RegisterReplayDriver(registry);
   for (const auto& stream : recorded.streams()) {
-    auto sensor = registry.Open({.name = stream.name, .uri = "replay:" + take().string() + "#" + stream.name});
+    auto sensor = registry.Open(
+        {.name = stream.name, .uri = "replay:" + take().string() + "#" + stream.name});
     sensor->Start();
     Frame frame;
     size_t count = 0;
@@ -68,7 +69,8 @@ TEST_F(SimulatedTake, ReplayReproducesEveryFrameBitExactly) {
       cv::Mat original = recorded.ReadFrame(count, stream.name);
       cv::Mat a = frame.image.reshape(1), b = original.reshape(1);
       ASSERT_EQ(a.size(), b.size());
-      EXPECT_EQ(std::memcmp(a.data, b.data, a.total() * a.elemSize()), 0) << stream.name << " " << count;
+      EXPECT_EQ(std::memcmp(a.data, b.data, a.total() * a.elemSize()), 0)
+          << stream.name << " " << count;
       EXPECT_EQ(frame.timestamp_ns, recorded.entry(count).Find(stream.name)->timestamp_ns);
       ++count;
     }
@@ -96,8 +98,10 @@ TEST(DevicesCli, NamesEveryHardwareDriverCompiledInOrLeftOut) {
     const size_t at = ("\n" + list.output).find(line);
     ASSERT_NE(at, std::string::npos) << driver.scheme << "\n" << list.output;
     const std::string left_out = Cat("not compiled in (", driver.why_not, ")\n");
-    EXPECT_EQ(list.output.compare(at + line.size() - 1, left_out.size(), left_out) == 0, !driver.compiled)
-        << driver.scheme << "\n" << list.output;
+    EXPECT_EQ(list.output.compare(at + line.size() - 1, left_out.size(), left_out) == 0,
+              !driver.compiled)
+        << driver.scheme << "\n"
+        << list.output;
   }
 }
 
@@ -119,15 +123,19 @@ TEST(Cli, BadInputGivesOneClearError) {
   ExpectOneLineError(RunCli("devices --probe gopro:cam1"), "unknown URI scheme 'gopro'");
   ExpectOneLineError(RunCli("devices --probe nocolon"), "malformed sensor URI");
   std::ofstream(dir / "bad.yaml") << "name: x\nsensors: [ {name: cam0, uri: 'sim:x#cam0' ";
-  ExpectOneLineError(RunCli("sim --frames 1 --rig " + (dir / "bad.yaml").string() + " --out " + (dir / "t").string()),
+  ExpectOneLineError(RunCli("sim --frames 1 --rig " + (dir / "bad.yaml").string() + " --out " +
+                            (dir / "t").string()),
                      "not valid YAML");
-  ExpectOneLineError(RunCli("sim --rig studio9 --frames 1 --out " + (dir / "t2").string()), "studio9");
-  ExpectOneLineError(RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out /proc/holocap-denied/take"),
-                     "/proc/holocap-denied");
+  ExpectOneLineError(RunCli("sim --rig studio9 --frames 1 --out " + (dir / "t2").string()),
+                     "studio9");
+  ExpectOneLineError(
+      RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out /proc/holocap-denied/take"),
+      "/proc/holocap-denied");
   std::filesystem::create_directories(dir / "full");
   std::ofstream(dir / "full/keep.txt") << "recorded";
-  ExpectOneLineError(RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out " + (dir / "full").string()),
-                     "not empty");
+  ExpectOneLineError(
+      RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out " + (dir / "full").string()),
+      "not empty");
   EXPECT_TRUE(std::filesystem::exists(dir / "full/keep.txt"));  // nothing already there is lost
 }
 
@@ -143,10 +151,12 @@ TEST(Cli, ReportShowsOutcomeMetricsAndTheErrorAgainstTime) {
   auto shown = RunCli("report " + (dir / "run/a/report.json").string() + " --rows 3 --out " +
                       (dir / "loss.png").string());
   ASSERT_EQ(shown.exit_code, 0) << shown.output;
-  EXPECT_NE(shown.output.find("NO_CONVERGENCE: ran out of time"), std::string::npos) << shown.output;
+  EXPECT_NE(shown.output.find("NO_CONVERGENCE: ran out of time"), std::string::npos)
+      << shown.output;
   EXPECT_NE(shown.output.find("heldout_psnr_db"), std::string::npos) << shown.output;
   EXPECT_NE(shown.output.find("loss against time (20 points)"), std::string::npos) << shown.output;
-  EXPECT_NE(shown.output.find("1.90735e-06"), std::string::npos) << "the last point is always shown";
+  EXPECT_NE(shown.output.find("1.90735e-06"), std::string::npos)
+      << "the last point is always shown";
   cv::Mat plot = cv::imread((dir / "loss.png").string());
   ASSERT_FALSE(plot.empty());
   EXPECT_GT(plot.rows, 200);

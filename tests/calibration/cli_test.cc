@@ -17,7 +17,8 @@ using testing::TempDir;
 const std::filesystem::path& BoardTake() {
   static TempDir dir("holocap-calib-cli");
   static const bool made = [] {
-    const auto result = RunCli("sim --rig studio8 --board --frames 48 --size 640 --out " + (dir / "take").string());
+    const auto result =
+        RunCli("sim --rig studio8 --board --frames 48 --size 640 --out " + (dir / "take").string());
     EXPECT_EQ(result.exit_code, 0) << result.output;
     return true;
   }();
@@ -30,9 +31,12 @@ TEST(CalibrateCli, CalibratesASimulatedBoardTake) {
   const auto result = RunCli("calibrate " + BoardTake().string() + " --no-pictures");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   for (int i = 0; i < 8; ++i) {
-    EXPECT_TRUE(std::filesystem::exists(BoardTake() / "calib" / ("cam" + std::to_string(i) + ".cameramodel"))) << i;
+    EXPECT_TRUE(std::filesystem::exists(BoardTake() / "calib" /
+                                        ("cam" + std::to_string(i) + ".cameramodel")))
+        << i;
   }
-  const auto report = nlohmann::json::parse(ReadFileToString(BoardTake() / "calib" / "report.json"));
+  const auto report =
+      nlohmann::json::parse(ReadFileToString(BoardTake() / "calib" / "report.json"));
   const auto& m = report["metrics"];
   EXPECT_LT(m["rms_reprojection_px"].get<double>(), 0.6);
   EXPECT_GT(m["timing"]["solve_s"].get<double>(), 0);
@@ -52,13 +56,16 @@ TEST(CalibrateCli, BadInputGivesOneClearError) {
   // A camera absent from the take.
   auto r = RunCli("calibrate " + take + " --sensors cam9 --no-pictures");
   EXPECT_NE(r.exit_code, 0);
-  EXPECT_NE(r.output.find("holocap: error: camera 'cam9' is not in the take"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("holocap: error: camera 'cam9' is not in the take"), std::string::npos)
+      << r.output;
   // A board file that does not match the prints.
   {
-    std::ofstream(dir / "other.yaml") << "type: apriltag\nfamily: tag36h11\ntags_across: 5\ntags_down: 4\n"
-                                         "spacing: 0.08\nmargin: 0.08\nfirst_id: 200\n";
+    std::ofstream(dir / "other.yaml")
+        << "type: apriltag\nfamily: tag36h11\ntags_across: 5\ntags_down: 4\n"
+           "spacing: 0.08\nmargin: 0.08\nfirst_id: 200\n";
   }
-  r = RunCli("calibrate " + take + " --board " + (dir / "other.yaml").string() + " --sensors cam0 --no-pictures");
+  r = RunCli("calibrate " + take + " --board " + (dir / "other.yaml").string() +
+             " --sensors cam0 --no-pictures");
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(r.output.find("does not match the prints"), std::string::npos) << r.output;
   // Missing frames: a copy of the take whose frame files are gone.
@@ -69,22 +76,27 @@ TEST(CalibrateCli, BadInputGivesOneClearError) {
   EXPECT_NE(r.output.find("holocap: error:"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("no complete frame sets"), std::string::npos) << r.output;
   // No board visible: a take of the static object.
-  r = RunCli("sim --rig single-rgbd --scene object --frames 2 --size 160 --out " + (dir / "object").string());
+  r = RunCli("sim --rig single-rgbd --scene object --frames 2 --size 160 --out " +
+             (dir / "object").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   std::filesystem::copy_file(BoardTake() / "gt" / "board.json", dir / "board.json");
-  r = RunCli("calibrate " + (dir / "object").string() + " --board " + (dir / "board.json").string());
+  r = RunCli("calibrate " + (dir / "object").string() + " --board " +
+             (dir / "board.json").string());
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(r.output.find("no board visible"), std::string::npos) << r.output;
 }
 
 TEST(BoardCli, PrintsABoardToScale) {
   TempDir dir;
-  std::ofstream(dir / "board.yaml") << "type: apriltag\nfamily: tagStandard41h12\ntags_across: 4\ntags_down: 3\n"
-                                       "spacing: 0.05\nmargin: 0.05\n";
-  auto r = RunCli("board " + (dir / "board.yaml").string() + " --out " + (dir / "board.pdf").string());
+  std::ofstream(dir / "board.yaml")
+      << "type: apriltag\nfamily: tagStandard41h12\ntags_across: 4\ntags_down: 3\n"
+         "spacing: 0.05\nmargin: 0.05\n";
+  auto r =
+      RunCli("board " + (dir / "board.yaml").string() + " --out " + (dir / "board.pdf").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
   EXPECT_GT(std::filesystem::file_size(dir / "board.pdf"), 500u);
-  r = RunCli("board " + (dir / "board.yaml").string() + " --out " + (dir / "board.png").string() + " --dpi 150");
+  r = RunCli("board " + (dir / "board.yaml").string() + " --out " + (dir / "board.png").string() +
+             " --dpi 150");
   ASSERT_EQ(r.exit_code, 0) << r.output;
   r = RunCli("board " + (dir / "missing.yaml").string() + " --out " + (dir / "x.png").string());
   EXPECT_NE(r.exit_code, 0);

@@ -17,15 +17,16 @@ using testing::TempDir;
 
 // A slightly distorted 640x480 lens looking at the board from 1.1 m, tilted.
 struct Scene {
-  CameraModel camera{"LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004},
-                     640, 480};
+  CameraModel camera{
+      "LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004}, 640, 480};
   Pose cam_from_board = Pose::Identity();
   explicit Scene(const Board& board, double tilt_deg = 25, double distance = 1.1) {
     const Eigen::Vector3d centre((board.width_n() - 1) * board.layout().spacing / 2,
                                  (board.height_n() - 1) * board.layout().spacing / 2, 0);
     cam_from_board.linear() =
         Eigen::AngleAxisd(tilt_deg * M_PI / 180, Eigen::Vector3d(0.6, 0.8, 0)).toRotationMatrix();
-    cam_from_board.translation() = Eigen::Vector3d(0.03, -0.02, distance) - cam_from_board.linear() * centre;
+    cam_from_board.translation() =
+        Eigen::Vector3d(0.03, -0.02, distance) - cam_from_board.linear() * centre;
   }
 };
 
@@ -93,9 +94,9 @@ INSTANTIATE_TEST_SUITE_P(Families, AprilTagFamilies,
 // projection, for tag L corners and chessboard X junctions, through a mildly distorted lens
 // and through the real wide OPENCV8 lens (tests/data/lenses, scaled to 640 px across).
 TEST(CornerRefiner, NoiseFreeCornersLieWithinFiveHundredthsOfAPixel) {
-  const CameraModel wide = CameraModel::Read(testing::TestDataDir() / "lenses" /
-                                             "wide-4000x2200.opencv8.cameramodel")
-                               .Scaled(640.0 / 4000);
+  const CameraModel wide =
+      CameraModel::Read(testing::TestDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel")
+          .Scaled(640.0 / 4000);
   for (const BoardLayout& layout : {testing::TestBoard(), NineBySixChessboard()}) {
     const Board board(layout);
     for (bool real_lens : {false, true}) {
@@ -123,9 +124,11 @@ TEST(BoardDetector, FindsChessboardCornersInHolocapOrder) {
   for (double tilt : {20.0, 160.0}) {  // 160: seen upside down, OpenCV starts at the other end
     Scene scene(board, 20);
     scene.cam_from_board.linear() =
-        scene.cam_from_board.linear() * Eigen::AngleAxisd(tilt > 90 ? M_PI : 0, Eigen::Vector3d::UnitZ());
+        scene.cam_from_board.linear() *
+        Eigen::AngleAxisd(tilt > 90 ? M_PI : 0, Eigen::Vector3d::UnitZ());
     const Eigen::Vector3d centre(4 * 0.05, 2.5 * 0.05, 0);
-    scene.cam_from_board.translation() = Eigen::Vector3d(0, 0, 1.0) - scene.cam_from_board.linear() * centre;
+    scene.cam_from_board.translation() =
+        Eigen::Vector3d(0, 0, 1.0) - scene.cam_from_board.linear() * centre;
     const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board, 2.0);
     BoardObservation obs;
     std::string reason;

@@ -18,14 +18,17 @@ using testing::SyntheticRig;
 
 std::vector<CameraModel> StudioLenses(int count) {
   const std::vector<CameraModel> lenses = {
-      CameraModel("LENSMODEL_OPENCV8",
-                  {498.6, 499.4, 321.0, 238.2, 0.35, -0.05, 0.0004, 0.0002, 0.01, 0.42, -0.02, 0.015},
+      CameraModel(
+          "LENSMODEL_OPENCV8",
+          {498.6, 499.4, 321.0, 238.2, 0.35, -0.05, 0.0004, 0.0002, 0.01, 0.42, -0.02, 0.015}, 640,
+          480),
+      CameraModel("LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004},
                   640, 480),
-      CameraModel("LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004}, 640, 480),
-      CameraModel("LENSMODEL_OPENCV5", {561.7, 560.2, 316.8, 243.5, -0.121, 0.094, -0.0003, 0.0007, -0.021},
-                  640, 480),
+      CameraModel("LENSMODEL_OPENCV5",
+                  {561.7, 560.2, 316.8, 243.5, -0.121, 0.094, -0.0003, 0.0007, -0.021}, 640, 480),
       CameraModel("LENSMODEL_OPENCV8",
-                  {541.2, 540.5, 317.5, 242.8, -0.2, 0.05, -0.0003, 0.0004, 0.0, 0.1, 0.02, 0.0}, 640, 480),
+                  {541.2, 540.5, 317.5, 242.8, -0.2, 0.05, -0.0003, 0.0004, 0.0, 0.1, 0.02, 0.0},
+                  640, 480),
   };
   std::vector<CameraModel> out;
   for (int i = 0; i < count; ++i) out.push_back(lenses[i % lenses.size()]);
@@ -49,14 +52,15 @@ GroundTruthComparison Compare(const SyntheticRig& rig, const CalibrationSummary&
 }
 
 void Print(const char* name, const CalibrationSummary& s, const GroundTruthComparison& g) {
-  std::printf("[%s] %s: %s\n  rms %.4f px, focal %.5f%%, pp %.3f px, rot %.5f deg, trans %.3f mm, "
-              "proj %.4f px rms (max %.4f, where seen %.4f), within 3 sigma %.3f, solve %.2f s, "
-              "uncertainty %.2f s\n",
-              name, ToString(s.termination), s.message.c_str(), s.rms_reprojection_px,
-              100 * g.focal_rel_err_max, g.principal_point_err_px_max, g.rotation_err_deg_max,
-              g.translation_err_mm_max, g.projection_diff_rms_px, g.projection_diff_max_px,
-              g.projection_diff_rms_observed_px, g.within_3sigma_fraction, s.solve_seconds,
-              s.uncertainty_seconds);
+  std::printf(
+      "[%s] %s: %s\n  rms %.4f px, focal %.5f%%, pp %.3f px, rot %.5f deg, trans %.3f mm, "
+      "proj %.4f px rms (max %.4f, where seen %.4f), within 3 sigma %.3f, solve %.2f s, "
+      "uncertainty %.2f s\n",
+      name, ToString(s.termination), s.message.c_str(), s.rms_reprojection_px,
+      100 * g.focal_rel_err_max, g.principal_point_err_px_max, g.rotation_err_deg_max,
+      g.translation_err_mm_max, g.projection_diff_rms_px, g.projection_diff_max_px,
+      g.projection_diff_rms_observed_px, g.within_3sigma_fraction, s.solve_seconds,
+      s.uncertainty_seconds);
 }
 
 // The figures on a reduced problem (3 cameras, ~75 views each, 0.3 px noise). The
@@ -106,7 +110,8 @@ TEST(Calibrate, UncertaintyMatchesTheSpreadOfRepeatedSolves) {
       const double rms = g.per_camera.at(cam.name).at("projection_diff_rms_px").get<double>();
       diff2 += rms * rms;
       double trace = 0;
-      for (const auto& cov : cam.uncertainty.covariance) trace += cov.trace() / cam.uncertainty.covariance.size();
+      for (const auto& cov : cam.uncertainty.covariance)
+        trace += cov.trace() / cam.uncertainty.covariance.size();
       predicted2 += trace;
       ++n;
       ASSERT_EQ(cam.intrinsics_sigma.size(), cam.model.intrinsics().size());
@@ -131,8 +136,10 @@ TEST(Calibrate, UncertaintyMatchesTheSpreadOfRepeatedSolves) {
   }
   const double ratio = std::sqrt(diff2 / predicted2);
   const double core_ratio = std::sqrt(core_error2 / core_sigma2);
-  std::printf("[monte carlo] observed / predicted projection error: %.3f over %d solves; "
-              "focal and principal point errors / their 1-sigma: %.3f\n", ratio, n, core_ratio);
+  std::printf(
+      "[monte carlo] observed / predicted projection error: %.3f over %d solves; "
+      "focal and principal point errors / their 1-sigma: %.3f\n",
+      ratio, n, core_ratio);
   EXPECT_GT(ratio, 0.5);
   EXPECT_LT(ratio, 1.8);
   EXPECT_GT(core_ratio, 0.5);
@@ -185,7 +192,8 @@ TEST(Calibrate, RejectsCorruptedDetections) {
   const GroundTruthComparison g = Compare(rig, s);
   const GroundTruthComparison g_clean = Compare(rig, clean);
   Print("corrupted", s, g);
-  std::printf("  %d corrupted points, %d outliers (clean solve: %d)\n", corrupted_points, s.outliers, clean.outliers);
+  std::printf("  %d corrupted points, %d outliers (clean solve: %d)\n", corrupted_points,
+              s.outliers, clean.outliers);
   ASSERT_TRUE(IsUsable(s.termination)) << s.message;
   EXPECT_GE(s.outliers, corrupted_points * 8 / 10);
   EXPECT_NEAR(s.rms_reprojection_px, options.noise_px, 0.2 * options.noise_px);
@@ -315,8 +323,11 @@ TEST(Calibrate, ReSolvesACameraThatAsksForAnotherModelAlone) {
 
 TEST(Calibrate, SolvesAnEightKImager) {
   SyntheticOptions options;
-  options.lenses = {CameraModel("LENSMODEL_OPENCV4", {5600, 5605, 3841.2, 2158.7, -0.06, 0.02, 0.0003, -0.0002}, 7680, 4320),
-                    CameraModel("LENSMODEL_OPENCV4", {5800, 5795, 3838.9, 2161.4, -0.05, 0.015, -0.0002, 0.0001}, 7680, 4320)};
+  options.lenses = {
+      CameraModel("LENSMODEL_OPENCV4", {5600, 5605, 3841.2, 2158.7, -0.06, 0.02, 0.0003, -0.0002},
+                  7680, 4320),
+      CameraModel("LENSMODEL_OPENCV4", {5800, 5795, 3838.9, 2161.4, -0.05, 0.015, -0.0002, 0.0001},
+                  7680, 4320)};
   options.arc_deg = 30;
   options.frames = 60;
   options.min_distance = 1.5;
@@ -362,22 +373,26 @@ TEST(SolverEnd, EachStateFromTheResidualsAndTheJacobian) {
   }
   const Eigen::SparseMatrix<double> jt = Eigen::MatrixXd(j.transpose()).sparseView();
   const Eigen::VectorXd at_seed = -b;  // p = 0: the cost still falls
-  const calibration_internal::SolverEnd seed = calibration_internal::JudgeSolverEnd(jt, at_seed, 1.0);
+  const calibration_internal::SolverEnd seed =
+      calibration_internal::JudgeSolverEnd(jt, at_seed, 1.0);
   EXPECT_EQ(seed.termination, Termination::kNoConvergence);
   EXPECT_GT(seed.expected_decrease, 0.5);
   const Eigen::Vector3d best = j.colPivHouseholderQr().solve(b);
   const Eigen::VectorXd at_minimum = j * best - b;
-  const calibration_internal::SolverEnd done = calibration_internal::JudgeSolverEnd(jt, at_minimum, 1.0);
+  const calibration_internal::SolverEnd done =
+      calibration_internal::JudgeSolverEnd(jt, at_minimum, 1.0);
   EXPECT_EQ(done.termination, Termination::kConvergence);
   EXPECT_LE(done.expected_decrease, calibration_internal::kCostTolerance);
   EXPECT_NEAR(done.cost, at_minimum.squaredNorm(), 1e-12);
   // mrcal_optimize's failure: a negative RMS; NaN anywhere.
-  EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, at_minimum, -1.0).termination, Termination::kFailure);
+  EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, at_minimum, -1.0).termination,
+            Termination::kFailure);
   EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, at_minimum, std::nan("")).termination,
             Termination::kFailure);
   Eigen::VectorXd with_nan = at_minimum;
   with_nan(3) = std::nan("");
-  EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, with_nan, 1.0).termination, Termination::kFailure);
+  EXPECT_EQ(calibration_internal::JudgeSolverEnd(jt, with_nan, 1.0).termination,
+            Termination::kFailure);
 }
 
 SyntheticRig SmallRig() {

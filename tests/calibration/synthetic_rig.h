@@ -26,17 +26,17 @@ struct SyntheticRig {
 };
 
 struct SyntheticOptions {
-  std::vector<CameraModel> lenses;       // one per camera; poses are set here
-  double ring_radius = 2.0;              // cameras on an arc of this radius ...
-  double arc_deg = 100;                  // ... spanning this angle
+  std::vector<CameraModel> lenses;                   // one per camera; poses are set here
+  double ring_radius = 2.0;                          // cameras on an arc of this radius ...
+  double arc_deg = 100;                              // ... spanning this angle
   Eigen::Vector3d origin = Eigen::Vector3d::Zero();  // shifts the whole rig and board
-  int frames = 60;                       // board poses
-  double noise_px = 0.3;                 // Gaussian, per coordinate
-  double min_distance = 0.9, max_distance = 1.8;  // board distance from the camera it faces
-  double max_tilt_deg = 40;              // board tilt away from facing that camera
-  bool fronto_parallel = false;          // every pose square-on to its camera, same distance
-  double min_visible_fraction = 0.5;     // a camera observes a pose seeing this much of it
-  double pixel_margin = 0.2;             // board centres avoid this fraction of each image edge
+  int frames = 60;                                   // board poses
+  double noise_px = 0.3;                             // Gaussian, per coordinate
+  double min_distance = 0.9, max_distance = 1.8;     // board distance from the camera it faces
+  double max_tilt_deg = 40;                          // board tilt away from facing that camera
+  bool fronto_parallel = false;       // every pose square-on to its camera, same distance
+  double min_visible_fraction = 0.5;  // a camera observes a pose seeing this much of it
+  double pixel_margin = 0.2;          // board centres avoid this fraction of each image edge
   uint64_t seed = 1;
 };
 
@@ -66,9 +66,10 @@ inline SyntheticRig MakeSyntheticRig(const SyntheticOptions& options,
   for (int i = 0; i < n; ++i) {
     const double azimuth =
         (n == 1 ? 0.0 : (-0.5 + static_cast<double>(i) / (n - 1)) * options.arc_deg) * M_PI / 180;
-    const Eigen::Vector3d eye = options.origin + Eigen::Vector3d(options.ring_radius * std::cos(azimuth),
-                                                                 options.ring_radius * std::sin(azimuth),
-                                                                 1.4 + 0.2 * (i % 2));
+    const Eigen::Vector3d eye =
+        options.origin + Eigen::Vector3d(options.ring_radius * std::cos(azimuth),
+                                         options.ring_radius * std::sin(azimuth),
+                                         1.4 + 0.2 * (i % 2));
     const Eigen::Vector3d target = options.origin + Eigen::Vector3d(0, 0, 1.2);
     CameraModel cam = options.lenses[i];
     cam.set_cam_from_world(CamFromWorldLookAt(eye, target));
@@ -97,8 +98,9 @@ inline SyntheticRig MakeSyntheticRig(const SyntheticOptions& options,
       const double axis_angle = 2 * M_PI * unit(random);
       const Eigen::Vector3d axis(std::cos(axis_angle), std::sin(axis_angle), 0);
       const double spin = (unit(random) - 0.5) * 0.6;
-      cam_from_board_rotation = Eigen::AngleAxisd(tilt, axis).toRotationMatrix() *
-                                Eigen::AngleAxisd(spin, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+      cam_from_board_rotation =
+          Eigen::AngleAxisd(tilt, axis).toRotationMatrix() *
+          Eigen::AngleAxisd(spin, Eigen::Vector3d::UnitZ()).toRotationMatrix();
     }
     Pose cam_from_board = Pose::Identity();
     cam_from_board.linear() = cam_from_board_rotation;
@@ -119,7 +121,8 @@ inline SyntheticRig MakeSyntheticRig(const SyntheticOptions& options,
         Eigen::Vector2d q;
         const Eigen::Vector3d p = view * grid[k];
         if (cams[i].Project(p, &q) && p.z() > 0.1 && cams[i].InImage(q, 2)) {
-          obs.points.row(static_cast<Eigen::Index>(k)) << q.x() + noise(random), q.y() + noise(random), 1.0;
+          obs.points.row(static_cast<Eigen::Index>(k)) << q.x() + noise(random),
+              q.y() + noise(random), 1.0;
           ++seen;
         } else {
           obs.points.row(static_cast<Eigen::Index>(k)) << 0, 0, -1.0;
@@ -133,12 +136,13 @@ inline SyntheticRig MakeSyntheticRig(const SyntheticOptions& options,
 
 // The board as `camera` sees it at cam_from_board: every pixel the exact mean reflectance of
 // its footprint (black 20, white 230 DN), background 128, plus Gaussian noise.
-inline cv::Mat RenderBoard(const CameraModel& camera, const Board& board, const Pose& cam_from_board,
-                           double noise_dn = 0, uint64_t seed = 1) {
+inline cv::Mat RenderBoard(const CameraModel& camera, const Board& board,
+                           const Pose& cam_from_board, double noise_dn = 0, uint64_t seed = 1) {
   const int w = camera.width(), h = camera.height();
   Eigen::Matrix2Xd corners(2, static_cast<Eigen::Index>(w + 1) * (h + 1));
   for (int y = 0; y <= h; ++y) {
-    for (int x = 0; x <= w; ++x) corners.col(static_cast<Eigen::Index>(y) * (w + 1) + x) << x - 0.5, y - 0.5;
+    for (int x = 0; x <= w; ++x)
+      corners.col(static_cast<Eigen::Index>(y) * (w + 1) + x) << x - 0.5, y - 0.5;
   }
   const Eigen::Matrix3Xd rays = camera.UnprojectMany(corners);
   const Pose board_from_cam = cam_from_board.inverse();

@@ -34,7 +34,8 @@ RigDescription FakeRig(const FakeGigeCameras& cameras, int count, SyncMode sync,
   rig.sync = sync;
   rig.fps = fps;
   for (int i = 0; i < count; ++i) {
-    rig.sensors.push_back({.name = "cam" + std::to_string(i), .uri = "aravis:" + cameras.id(i), .options = options});
+    rig.sensors.push_back(
+        {.name = "cam" + std::to_string(i), .uri = "aravis:" + cameras.id(i), .options = options});
   }
   return rig;
 }
@@ -46,12 +47,13 @@ DriverRegistry& AravisOnly() {
 }
 
 // Records `frames` software triggers at `fps` from the first `count` cameras into `take`.
-RecorderSummary RecordTriggered(const FakeGigeCameras& cameras, int count, double fps, RecorderOptions options,
-                                int64_t frames, const nlohmann::json& sensor_options,
+RecorderSummary RecordTriggered(const FakeGigeCameras& cameras, int count, double fps,
+                                RecorderOptions options, int64_t frames,
+                                const nlohmann::json& sensor_options,
                                 const std::filesystem::path& take) {
   options.frames = frames;
-  Recorder recorder(FakeRig(cameras, count, SyncMode::kSoftwareTrigger, fps, sensor_options), take, options,
-                    AravisOnly());
+  Recorder recorder(FakeRig(cameras, count, SyncMode::kSoftwareTrigger, fps, sensor_options), take,
+                    options, AravisOnly());
   return recorder.Run();
 }
 
@@ -66,7 +68,8 @@ TEST(AravisPixels, LayoutsAndUnsupportedFormats) {
     AravisLayoutFor("YUV422_8", true);
     FAIL() << "YUV422_8 accepted";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("unsupported pixel format 'YUV422_8'"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("unsupported pixel format 'YUV422_8'"), std::string::npos)
+        << e.what();
   }
   EXPECT_THROW(AravisLayoutFor("BayerXY8", true), Error);
   EXPECT_THROW(AravisLayoutFor("", true), Error);
@@ -91,7 +94,8 @@ TEST(AravisPixels, DebayeringRecoversAFlatColourForEveryPattern) {
     for (int k = 0; k < 3; ++k) EXPECT_NEAR(centre[k], bgr[k], 1) << name << " channel " << k;
   }
   cv::Mat rgb(2, 2, CV_8UC3, cv::Scalar(10, 20, 30));
-  EXPECT_EQ(ConvertAravisImage(rgb, AravisLayoutFor("RGB8", true)).at<cv::Vec3b>(1, 1), cv::Vec3b(30, 20, 10));
+  EXPECT_EQ(ConvertAravisImage(rgb, AravisLayoutFor("RGB8", true)).at<cv::Vec3b>(1, 1),
+            cv::Vec3b(30, 20, 10));
 }
 
 TEST(AravisDriver, UnknownDeviceIsOneClearError) {
@@ -102,17 +106,20 @@ TEST(AravisDriver, UnknownDeviceIsOneClearError) {
     registry.Open({.name = "cam0", .uri = "aravis:No-Such-Camera"});
     FAIL() << "opened a camera that does not exist";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("aravis:No-Such-Camera': no such camera"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("aravis:No-Such-Camera': no such camera"),
+              std::string::npos)
+        << e.what();
   }
 }
 
 TEST(AravisDriver, InProcessFakeCameraStreamsFreeRunning) {
   DriverRegistry registry;
   RegisterAravisDriver(registry);
-  auto sensor = registry.Open({.name = "fake",
-                               .uri = "aravis:Fake_1",
-                               .options = {{"sync", "free-run"}, {"fps", 50}, {"pixel_format", "Mono8"},
-                                           {"timestamp", "host"}}});
+  auto sensor = registry.Open(
+      {.name = "fake",
+       .uri = "aravis:Fake_1",
+       .options = {
+           {"sync", "free-run"}, {"fps", 50}, {"pixel_format", "Mono8"}, {"timestamp", "host"}}});
   EXPECT_EQ(sensor->stream().pixel_format, "mono8");
   EXPECT_EQ(sensor->stream().clock, "CLOCK_REALTIME");
   sensor->Start();
@@ -133,16 +140,19 @@ TEST(AravisDriver, InProcessFakeCameraStreamsFreeRunning) {
   EXPECT_EQ(frames[0].image.cols, sensor->stream().width);
   EXPECT_EQ(sensor->stats().frames_delivered, 10u);
   try {
-    registry.Open({.name = "fake", .uri = "aravis:Fake_1", .options = {{"pixel_format", "YUV411"}}});
+    registry.Open(
+        {.name = "fake", .uri = "aravis:Fake_1", .options = {{"pixel_format", "YUV411"}}});
     FAIL() << "an unsupported pixel format was accepted";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("no pixel format 'YUV411' (it offers"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("no pixel format 'YUV411' (it offers"), std::string::npos)
+        << e.what();
   }
 }
 
 // Every set in the take has all of its sensors, each frame an unbroken ramp; the take's drop
 // counts are the summary's.
-void ExpectTakeMatchesSummary(const std::filesystem::path& dir, const RecorderSummary& summary, size_t sensors) {
+void ExpectTakeMatchesSummary(const std::filesystem::path& dir, const RecorderSummary& summary,
+                              size_t sensors) {
   Take take = Take::Open(dir);
   EXPECT_EQ(take.state(), "complete");
   ASSERT_EQ(static_cast<int64_t>(take.size()), summary.frame_sets_complete);
@@ -153,7 +163,8 @@ void ExpectTakeMatchesSummary(const std::filesystem::path& dir, const RecorderSu
     FrameSet set = take.Read(i);
     ASSERT_EQ(set.frames.size(), sensors);
     for (const auto& frame : set.frames) {
-      ASSERT_EQ(BrokenRampPixels(frame.image), 0) << "torn frame from " << frame.sensor << " in set " << i;
+      ASSERT_EQ(BrokenRampPixels(frame.image), 0)
+          << "torn frame from " << frame.sensor << " in set " << i;
     }
   }
 }
@@ -172,7 +183,8 @@ TEST(FakeGige, EightCamerasSoftwareTriggeredAt30HzEverySetCompleteNothingLost) {
   TempDir dir;
   RecorderOptions options;
   options.sync_tolerance_ns = 16'666'666;
-  RecorderSummary summary = RecordTriggered(cameras, 8, 30, options, 60, {{"roi", {0, 0, 256, 256}}}, dir / "take");
+  RecorderSummary summary =
+      RecordTriggered(cameras, 8, 30, options, 60, {{"roi", {0, 0, 256, 256}}}, dir / "take");
   ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
   EXPECT_EQ(summary.trigger_scheduling, "SCHED_FIFO 10");
   RecordProperty("frame_sets_complete", static_cast<int>(summary.frame_sets_complete));
@@ -206,7 +218,8 @@ TEST(FakeGige, EightCamerasSoftwareTriggeredAt30HzEverySetCompleteNothingLost) {
 TEST(FakeGige, PackagedFakeCameraAt30HzFoldsTriggersAndCountsEachOne) {
   FakeGigeCameras cameras(3);
   TempDir dir;
-  RecorderSummary summary = RecordTriggered(cameras, 3, 30, {}, 30, {{"roi", {0, 0, 128, 128}}}, dir / "take");
+  RecorderSummary summary =
+      RecordTriggered(cameras, 3, 30, {}, 30, {{"roi", {0, 0, 128, 128}}}, dir / "take");
   ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
   int64_t missed = 0;
   for (const auto& sensor : summary.sensors) {
@@ -236,7 +249,8 @@ TEST(FakeGige, PackagedFakeCamerasTriggeredMidTickAt25HzWriteEverySetOrCountIt) 
   TempDir dir;
   RecorderOptions options;
   options.trigger_phase_s = 0.020;
-  RecorderSummary summary = RecordTriggered(cameras, 8, 25, options, 30, {{"roi", {0, 0, 256, 256}}}, dir / "take");
+  RecorderSummary summary =
+      RecordTriggered(cameras, 8, 25, options, 30, {{"roi", {0, 0, 256, 256}}}, dir / "take");
   ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
   EXPECT_GT(summary.frame_sets_complete, 0) << summary.Metrics().dump(1);
   int64_t dropped = 0;
@@ -262,7 +276,8 @@ int64_t DriverTotal(const RecorderSummary& summary, const char* name) {
 // Every trigger is written, lost in the driver, or in an incomplete set; every sensor wrote
 // each complete set.
 void ExpectEveryTriggerAccountedFor(const RecorderSummary& summary, int64_t triggers) {
-  EXPECT_EQ(summary.frame_sets_complete + summary.frame_sets_incomplete, triggers) << summary.Metrics().dump(1);
+  EXPECT_EQ(summary.frame_sets_complete + summary.frame_sets_incomplete, triggers)
+      << summary.Metrics().dump(1);
   for (const auto& sensor : summary.sensors) {
     EXPECT_EQ(sensor.triggers, triggers) << sensor.name;
     EXPECT_EQ(sensor.written + sensor.dropped(), sensor.triggers) << sensor.name;
@@ -291,7 +306,8 @@ TEST(FakeGige, UnderPacketLossLostPacketsAreResentAndNoTornFrameIsWritten) {
   RecordProperty("n_resend_requests", static_cast<int>(DriverTotal(summary, "n_resend_requests")));
   RecordProperty("n_resent_packets", static_cast<int>(DriverTotal(summary, "n_resent_packets")));
   RecordProperty("n_missing_packets", static_cast<int>(DriverTotal(summary, "n_missing_packets")));
-  EXPECT_GT(DriverTotal(summary, "n_resend_requests"), 0) << "lost packets were never asked for again";
+  EXPECT_GT(DriverTotal(summary, "n_resend_requests"), 0)
+      << "lost packets were never asked for again";
   EXPECT_GT(DriverTotal(summary, "n_resent_packets"), 0) << summary.Metrics().dump(1);
   // With every lost packet sent again, frames are lost no more often than without loss (the
   // 0 per thousand test's bound).
@@ -304,19 +320,23 @@ TEST(FakeGige, UnderPacketLossLostPacketsAreResentAndNoTornFrameIsWritten) {
 // frame may reach the take. Small frames (a handful of packets each) so that a fair share
 // arrives whole; a frame still missing packets 20 ms on is given up.
 TEST(FakeGige, UnderPacketLossWithoutResendEveryFrameIsCompleteOrCountedLost) {
-  FakeGigeCameras cameras(8, /*lost_per_thousand=*/20, /*trigger_tick_hz=*/100, "ramp", "libaravis");
+  FakeGigeCameras cameras(8, /*lost_per_thousand=*/20, /*trigger_tick_hz=*/100, "ramp",
+                          "libaravis");
   TempDir dir;
   RecorderOptions options;
   options.sync_tolerance_ns = 16'666'666;
   RecorderSummary summary = RecordTriggered(
-      cameras, 8, 30, options, 60, {{"roi", {0, 0, 128, 64}}, {"frame_retention_ms", 20}, {"packet_timeout_ms", 5}},
+      cameras, 8, 30, options, 60,
+      {{"roi", {0, 0, 128, 64}}, {"frame_retention_ms", 20}, {"packet_timeout_ms", 5}},
       dir / "take");
   ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
   ExpectEveryTriggerAccountedFor(summary, 60);
   int64_t lost = 0;
   for (const auto& sensor : summary.sensors) lost += sensor.lost_in_driver;
-  EXPECT_GT(DriverTotal(summary, "n_missing_packets"), 0) << "2% packet loss reached the host without a gap";
-  EXPECT_GT(DriverTotal(summary, "n_resend_requests"), 0) << "lost packets were never asked for again";
+  EXPECT_GT(DriverTotal(summary, "n_missing_packets"), 0)
+      << "2% packet loss reached the host without a gap";
+  EXPECT_GT(DriverTotal(summary, "n_resend_requests"), 0)
+      << "lost packets were never asked for again";
   EXPECT_EQ(DriverTotal(summary, "n_resent_packets"), 0) << "libaravis' peer resent a packet";
   EXPECT_GT(lost, 0) << "2% packet loss lost no frame at all";
   EXPECT_GT(summary.frame_sets_complete, 0);
@@ -329,8 +349,9 @@ TEST(FakeGige, CameraVanishingMidTakeEndsItCleanly) {
   RecorderOptions options;
   options.seconds = 20;
   options.stall_s = 1.0;
-  Recorder recorder(FakeRig(cameras, 3, SyncMode::kSoftwareTrigger, 30, {{"roi", {0, 0, 128, 128}}}), dir / "take",
-                    options, AravisOnly());
+  Recorder recorder(
+      FakeRig(cameras, 3, SyncMode::kSoftwareTrigger, 30, {{"roi", {0, 0, 128, 128}}}),
+      dir / "take", options, AravisOnly());
   std::thread killer([&] {
     std::this_thread::sleep_for(std::chrono::milliseconds(1500));
     cameras.Kill(1);

@@ -24,11 +24,13 @@ using testing::RunCli;
 using testing::RunShell;
 using testing::TempDir;
 
-std::filesystem::path WriteRig(const TempDir& dir, const FakeGigeCameras& cameras, int count, double fps) {
+std::filesystem::path WriteRig(const TempDir& dir, const FakeGigeCameras& cameras, int count,
+                               double fps) {
   std::ofstream rig(dir / "rig.yaml");
   rig << "name: fake-booth\nsync: software\nfps: " << fps << "\nsensors:\n";
   for (int i = 0; i < count; ++i) {
-    rig << "  - {name: cam" << i << ", uri: \"aravis:" << cameras.id(i) << "\", options: {roi: [0, 0, 128, 96]}}\n";
+    rig << "  - {name: cam" << i << ", uri: \"aravis:" << cameras.id(i)
+        << "\", options: {roi: [0, 0, 128, 96]}}\n";
   }
   return dir / "rig.yaml";
 }
@@ -38,7 +40,8 @@ TEST(CaptureCli, RecordsATakeThatInfoAndReplayRead) {
   TempDir dir;
   auto rig = WriteRig(dir, cameras, 3, 20);
   auto take = dir / "take";
-  auto result = RunCli("capture --rig '" + rig.string() + "' --out '" + take.string() + "' --frames 20");
+  auto result =
+      RunCli("capture --rig '" + rig.string() + "' --out '" + take.string() + "' --frames 20");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   auto report = nlohmann::json::parse(ReadFileToString(take / "report.json"));
   const auto& metrics = report.at("metrics");
@@ -55,7 +58,9 @@ TEST(CaptureCli, RecordsATakeThatInfoAndReplayRead) {
   for (const auto& [name, sensor] : metrics.at("sensors").items()) {
     EXPECT_EQ(sensor.at("triggers").get<int64_t>(), 20) << name;
     EXPECT_EQ(sensor.at("frames_written").get<int64_t>(), complete) << name;
-    EXPECT_EQ(sensor.at("frames_written").get<int64_t>() + sensor.at("frames_dropped").get<int64_t>(), 20) << name;
+    EXPECT_EQ(
+        sensor.at("frames_written").get<int64_t>() + sensor.at("frames_dropped").get<int64_t>(), 20)
+        << name;
     dropped += sensor.at("frames_dropped").get<int64_t>();
   }
   EXPECT_EQ(metrics.at("frames_dropped").get<int64_t>(), dropped);
@@ -73,13 +78,15 @@ TEST(CaptureCli, UnknownDeviceIsOneLineAndNoTake) {
   TempDir dir;
   {
     std::ofstream rig(dir / "rig.yaml");
-    rig << "name: x\nsync: software\nfps: 10\nsensors:\n  - {name: cam0, uri: \"aravis:Nobody-Home\"}\n";
+    rig << "name: x\nsync: software\nfps: 10\nsensors:\n  - {name: cam0, uri: "
+           "\"aravis:Nobody-Home\"}\n";
   }
-  auto result = RunCli("capture --rig '" + (dir / "rig.yaml").string() + "' --out '" + (dir / "take").string() +
-                       "' --frames 5");
+  auto result = RunCli("capture --rig '" + (dir / "rig.yaml").string() + "' --out '" +
+                       (dir / "take").string() + "' --frames 5");
   EXPECT_NE(result.exit_code, 0);
-  EXPECT_NE(result.output.find("holocap: error: sensor 'cam0': 'aravis:Nobody-Home': no such camera"),
-            std::string::npos)
+  EXPECT_NE(
+      result.output.find("holocap: error: sensor 'cam0': 'aravis:Nobody-Home': no such camera"),
+      std::string::npos)
       << result.output;
   EXPECT_FALSE(std::filesystem::exists(dir / "take"));
 }
@@ -89,11 +96,11 @@ TEST(CaptureCli, UnsupportedPixelFormatIsOneLineAndNoTake) {
   TempDir dir;
   {
     std::ofstream rig(dir / "rig.yaml");
-    rig << "name: x\nsync: software\nfps: 10\nsensors:\n  - {name: cam0, uri: \"aravis:" << cameras.id(0)
-        << "\", options: {pixel_format: YUV422_8}}\n";
+    rig << "name: x\nsync: software\nfps: 10\nsensors:\n  - {name: cam0, uri: \"aravis:"
+        << cameras.id(0) << "\", options: {pixel_format: YUV422_8}}\n";
   }
-  auto result = RunCli("capture --rig '" + (dir / "rig.yaml").string() + "' --out '" + (dir / "take").string() +
-                       "' --frames 5");
+  auto result = RunCli("capture --rig '" + (dir / "rig.yaml").string() + "' --out '" +
+                       (dir / "take").string() + "' --frames 5");
   EXPECT_NE(result.exit_code, 0);
   EXPECT_NE(result.output.find("holocap: error: sensor 'cam0': 'aravis:" + cameras.id(0) +
                                "': the camera has no pixel format 'YUV422_8' (it offers "),
@@ -108,11 +115,14 @@ TEST(CaptureFaults, KilledRecorderLeavesATakeWithEveryCompleteSet) {
   TempDir dir;
   auto rig = WriteRig(dir, cameras, 2, 20);
   auto take = dir / "take";
-  auto result = RunShell("HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() + "' capture --rig '" + rig.string() +
-                         "' --out '" + take.string() + "' --seconds 60 > /dev/null 2>&1 & pid=$!; "
-                         "while kill -0 $pid 2>/dev/null && [ $(cat '" + (take / "index.jsonl").string() +
-                         "' 2>/dev/null | wc -l) -lt 12 ]; do sleep 0.05; done; kill -9 $pid; wait $pid; "
-                         "echo exit=$?");
+  auto result =
+      RunShell("HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() + "' capture --rig '" + rig.string() +
+               "' --out '" + take.string() +
+               "' --seconds 60 > /dev/null 2>&1 & pid=$!; "
+               "while kill -0 $pid 2>/dev/null && [ $(cat '" +
+               (take / "index.jsonl").string() +
+               "' 2>/dev/null | wc -l) -lt 12 ]; do sleep 0.05; done; kill -9 $pid; wait $pid; "
+               "echo exit=$?");
   EXPECT_NE(result.output.find("exit=137"), std::string::npos) << result.output;
   Take opened = Take::Open(take);
   EXPECT_EQ(opened.state(), "recording");
@@ -127,7 +137,8 @@ TEST(CaptureFaults, KilledRecorderLeavesATakeWithEveryCompleteSet) {
 class SmallDisk {
  public:
   SmallDisk(const std::filesystem::path& dir, const std::string& size) : dir_(dir) {
-    if (unshare(CLONE_NEWNS) != 0 || mount(nullptr, "/", nullptr, MS_REC | MS_PRIVATE, nullptr) != 0) {
+    if (unshare(CLONE_NEWNS) != 0 ||
+        mount(nullptr, "/", nullptr, MS_REC | MS_PRIVATE, nullptr) != 0) {
       Refused("cannot make a private mount namespace");
       return;
     }

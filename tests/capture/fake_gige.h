@@ -10,15 +10,15 @@
 #pragma once
 
 #include <fcntl.h>
-#include <signal.h>
 #include <sched.h>
+#include <signal.h>
 #include <sys/prctl.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <chrono>
-#include <cstdlib>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <string>
 #include <thread>
@@ -36,7 +36,8 @@ namespace holocap::testing {
 // Returns an empty string on success, else why it could not.
 inline std::string EnterPrivateNetwork() {
   static std::string result = [] {
-    if (unshare(CLONE_NEWNET) != 0) return std::string("unshare(CLONE_NEWNET) failed: ") + strerror(errno);
+    if (unshare(CLONE_NEWNET) != 0)
+      return std::string("unshare(CLONE_NEWNET) failed: ") + strerror(errno);
     if (std::system("ip link set lo up") != 0) return std::string("cannot bring lo up");
     return std::string();
   }();
@@ -56,7 +57,8 @@ class FakeGigeCameras {
   // holocap-fake-gige-camera's protocol peer ("holocap" resends lost packets, "libaravis" not).
   FakeGigeCameras(int count, int lost_per_thousand = 0, double trigger_tick_hz = 0,
                   const std::string& pattern = "ramp", const std::string& peer = "holocap") {
-    if (pattern != "ramp" && trigger_tick_hz <= 0) Fail("fake GigE cameras: arv-fake-gv-camera-0.8 has only the ramp");
+    if (pattern != "ramp" && trigger_tick_hz <= 0)
+      Fail("fake GigE cameras: arv-fake-gv-camera-0.8 has only the ramp");
     std::string error = EnterPrivateNetwork();
     if (!error.empty()) Fail("fake GigE cameras: ", error);
     for (int i = 1; i <= count; ++i) {
@@ -80,11 +82,12 @@ class FakeGigeCameras {
         sched_setscheduler(0, SCHED_FIFO, &param);
         if (null_output >= 0) dup2(null_output, STDOUT_FILENO);
         if (trigger_tick_hz > 0) {
-          execl(program.c_str(), program.c_str(), "-i", address.c_str(), "-s", serial.c_str(), "-r", ratio.c_str(),
-                "-t", tick.c_str(), "-p", pattern.c_str(), "-m", peer.c_str(), static_cast<char*>(nullptr));
+          execl(program.c_str(), program.c_str(), "-i", address.c_str(), "-s", serial.c_str(), "-r",
+                ratio.c_str(), "-t", tick.c_str(), "-p", pattern.c_str(), "-m", peer.c_str(),
+                static_cast<char*>(nullptr));
         } else {
-          execlp("arv-fake-gv-camera-0.8", "arv-fake-gv-camera-0.8", "-i", address.c_str(), "-s", serial.c_str(),
-                 "-r", ratio.c_str(), static_cast<char*>(nullptr));
+          execlp("arv-fake-gv-camera-0.8", "arv-fake-gv-camera-0.8", "-i", address.c_str(), "-s",
+                 serial.c_str(), "-r", ratio.c_str(), static_cast<char*>(nullptr));
         }
         _exit(127);
       }

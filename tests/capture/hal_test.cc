@@ -34,7 +34,8 @@ TEST(ReplayDriver, ReplaysATakeBitExactlyAtEitherPace) {
   TempDir dir;
   RigDescription rig;
   rig.sensors = {{.name = "cam0", .uri = "sim:x#cam0"}};
-  StreamInfo stream{.name = "cam0", .width = 16, .height = 8, .pixel_format = "mono16", .clock = "sim"};
+  StreamInfo stream{
+      .name = "cam0", .width = 16, .height = 8, .pixel_format = "mono16", .clock = "sim"};
   std::vector<cv::Mat> images;
   {
     TakeWriter writer(dir / "take", rig, {stream});
@@ -42,7 +43,8 @@ TEST(ReplayDriver, ReplaysATakeBitExactlyAtEitherPace) {
       cv::Mat image(8, 16, CV_16UC1);
       cv::randu(image, 0, 65535);
       images.push_back(image);
-      writer.Append({.index = i, .frames = {{"cam0", image, 20'000'000LL * i, static_cast<uint64_t>(i)}}});
+      writer.Append(
+          {.index = i, .frames = {{"cam0", image, 20'000'000LL * i, static_cast<uint64_t>(i)}}});
     }
   }
   DriverRegistry registry;
@@ -62,7 +64,8 @@ TEST(ReplayDriver, ReplaysATakeBitExactlyAtEitherPace) {
       EXPECT_EQ(frame.timestamp_ns, 20'000'000LL * count);
       ++count;
     }
-    double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     EXPECT_EQ(count, 6);
     EXPECT_TRUE(sensor->ended());
     if (pace == "recorded") EXPECT_GE(seconds, 0.095);  // 5 intervals of 20 ms

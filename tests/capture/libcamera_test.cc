@@ -22,7 +22,8 @@ TEST(LibcameraDriver, WithoutACameraSaysSoClearly) {
     FAIL() << "opened a camera that is not there";
   } catch (const Error& e) {
     const std::string message = e.what();
-    EXPECT_NE(message.find("no camera '/base/soc/i2c0mux/i2c@1/imx477@1a'"), std::string::npos) << message;
+    EXPECT_NE(message.find("no camera '/base/soc/i2c0mux/i2c@1/imx477@1a'"), std::string::npos)
+        << message;
     if (devices.empty()) {
       EXPECT_NE(message.find("found no camera on this machine"), std::string::npos) << message;
     }
@@ -34,7 +35,8 @@ TEST(LibcameraDriver, WithoutACameraSaysSoClearly) {
 // starts; `holocap devices` must print only its own lines: one per driver ("scheme:  what it
 // drives"), each followed by its sensors or "(none found)", indented.
 TEST(DevicesCli, PrintsCleanLinesWithoutLibcameraLogging) {
-  const std::string cli = "env -u LIBCAMERA_LOG_LEVELS HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() + "' devices";
+  const std::string cli =
+      "env -u LIBCAMERA_LOG_LEVELS HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() + "' devices";
   const auto stderr_only = testing::RunShell(cli + " 2>&1 >/dev/null; echo exit=$?");
   EXPECT_EQ(stderr_only.output, "exit=0\n");
   const auto listing = testing::RunShell(cli + " 2>&1");
@@ -49,11 +51,13 @@ TEST(DevicesCli, PrintsCleanLinesWithoutLibcameraLogging) {
     if (line.rfind("    ", 0) == 0) continue;
     ++drivers;
     const size_t colon = line.find(":  ");
-    ASSERT_NE(colon, std::string::npos) << "not a driver line: '" << line << "'\n" << listing.output;
+    ASSERT_NE(colon, std::string::npos) << "not a driver line: '" << line << "'\n"
+                                        << listing.output;
     EXPECT_EQ(line.find_first_not_of("abcdefghijklmnopqrstuvwxyz0123456789"), colon) << line;
   }
   EXPECT_GE(drivers, 4) << listing.output;  // aravis, v4l2, libcamera, replay at least
-  EXPECT_TRUE(libcamera_next == "    (none found)" || libcamera_next.rfind("    libcamera:", 0) == 0)
+  EXPECT_TRUE(libcamera_next == "    (none found)" ||
+              libcamera_next.rfind("    libcamera:", 0) == 0)
       << listing.output;
 }
 

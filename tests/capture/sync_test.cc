@@ -20,7 +20,8 @@ TEST(FrameSetAssembler, NearestTimestampWithJitterAndALostFrame) {
   SyncOptions options;
   options.mode = SyncMode::kSoftwareTrigger;
   options.fps = 30;
-  FrameSetAssembler assembler({"a", "b", "c"}, {"CLOCK_REALTIME", "CLOCK_REALTIME", "CLOCK_REALTIME"}, options);
+  FrameSetAssembler assembler({"a", "b", "c"},
+                              {"CLOCK_REALTIME", "CLOCK_REALTIME", "CLOCK_REALTIME"}, options);
   std::mt19937 rng(3);
   std::normal_distribution<double> jitter(0, 300e3);  // 0.3 ms
   const int64_t period = 33333333;
@@ -68,8 +69,10 @@ TEST(FrameSetAssembler, DifferentClocksAreAlignedAndSpreadIsMeasuredInTheFirst) 
   for (auto& set : assembler.Flush()) sets.push_back(std::move(set));
   ASSERT_EQ(sets.size(), 50u);
   // Timestamps come out in a's clock, within the drift the running estimate lags by.
-  for (const auto& set : sets) EXPECT_LT(std::abs(set.frames[1].timestamp_ns - set.frames[0].timestamp_ns), 200000);
-  EXPECT_NEAR(static_cast<double>(assembler.stats().offset_ns[1] - offset_b), 500000 + 49 * 10000, 150000);
+  for (const auto& set : sets)
+    EXPECT_LT(std::abs(set.frames[1].timestamp_ns - set.frames[0].timestamp_ns), 200000);
+  EXPECT_NEAR(static_cast<double>(assembler.stats().offset_ns[1] - offset_b), 500000 + 49 * 10000,
+              150000);
 }
 
 TEST(FrameSetAssembler, HardwareTriggerGroupsByTriggerIndexAndCountsGaps) {
@@ -80,14 +83,16 @@ TEST(FrameSetAssembler, HardwareTriggerGroupsByTriggerIndexAndCountsGaps) {
   std::vector<FrameSet> sets;
   for (uint64_t k = 0; k < 20; ++k) {
     assembler.Add(0, MakeFrame(static_cast<int64_t>(k) * 33333333, 500 + k));
-    if (k != 7 && k != 8) assembler.Add(1, MakeFrame(static_cast<int64_t>(k) * 33333333 + 2000, 9000 + k));
+    if (k != 7 && k != 8)
+      assembler.Add(1, MakeFrame(static_cast<int64_t>(k) * 33333333 + 2000, 9000 + k));
     for (auto& set : assembler.Pop()) sets.push_back(std::move(set));
   }
   for (auto& set : assembler.Flush()) sets.push_back(std::move(set));
   EXPECT_EQ(sets.size(), 18u);
   EXPECT_EQ(assembler.stats().sets_incomplete, 2);
   EXPECT_EQ(assembler.stats().spread_max_ns, 2000);
-  for (const auto& set : sets) EXPECT_EQ(set.frames[0].sequence - 500, set.frames[1].sequence - 9000);
+  for (const auto& set : sets)
+    EXPECT_EQ(set.frames[0].sequence - 500, set.frames[1].sequence - 9000);
 }
 
 // Software trigger, one clock: sensor c's capture falls behind and delivers its frames of
@@ -100,7 +105,8 @@ TEST(FrameSetAssembler, FrameArrivingAfterItsSetWasGivenUpOpensNoSecondSet) {
   options.mode = SyncMode::kSoftwareTrigger;
   options.fps = 30;
   options.tolerance_ns = 16'666'666;
-  FrameSetAssembler assembler({"a", "b", "c"}, {"CLOCK_REALTIME", "CLOCK_REALTIME", "CLOCK_REALTIME"}, options);
+  FrameSetAssembler assembler({"a", "b", "c"},
+                              {"CLOCK_REALTIME", "CLOCK_REALTIME", "CLOCK_REALTIME"}, options);
   const int64_t period = 33'333'333;
   const int64_t delay[3] = {0, 4'000'000, 9'000'000};  // each camera's answer to a trigger
   auto stamp = [&](int k, int s) { return 1'000'000'000 + k * period + delay[s]; };

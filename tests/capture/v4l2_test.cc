@@ -16,14 +16,17 @@ using namespace v4l2;
 
 TEST(V4l2Negotiation, PicksByRoleSizeAndRate) {
   const uint32_t yuyv = V4L2_PIX_FMT_YUYV, mjpg = V4L2_PIX_FMT_MJPEG, z16 = V4L2_PIX_FMT_Z16;
-  std::vector<FormatOption> offered = {{mjpg, 1920, 1080, {30, 60}}, {yuyv, 640, 480, {30, 15}},
-                                       {yuyv, 1280, 720, {10}},      {z16, 848, 480, {30, 90}},
+  std::vector<FormatOption> offered = {{mjpg, 1920, 1080, {30, 60}},
+                                       {yuyv, 640, 480, {30, 15}},
+                                       {yuyv, 1280, 720, {10}},
+                                       {z16, 848, 480, {30, 90}},
                                        {V4L2_PIX_FMT_NV12, 1920, 1080, {30}}};
   NegotiatedFormat colour = Negotiate(offered, {.fps = 30});
   EXPECT_EQ(FourccToString(colour.fourcc), "YUYV");
   EXPECT_EQ(colour.width, 1280);
   EXPECT_EQ(colour.fps, 10);
-  NegotiatedFormat small = Negotiate(offered, {.fourcc = yuyv, .width = 600, .height = 460, .fps = 25});
+  NegotiatedFormat small =
+      Negotiate(offered, {.fourcc = yuyv, .width = 600, .height = 460, .fps = 25});
   EXPECT_EQ(small.width, 640);
   EXPECT_EQ(small.fps, 30);
   NegotiatedFormat depth = Negotiate(offered, {.fps = 60, .role = SensorRole::kDepth});
@@ -34,7 +37,8 @@ TEST(V4l2Negotiation, PicksByRoleSizeAndRate) {
     Negotiate(offered, {.fourcc = V4L2_PIX_FMT_GREY});
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("no 'GREY' format (it offers MJPG 1920x1080"), std::string::npos)
+    EXPECT_NE(std::string(e.what()).find("no 'GREY' format (it offers MJPG 1920x1080"),
+              std::string::npos)
         << e.what();
   }
   EXPECT_THROW(Negotiate(offered, {.fourcc = V4L2_PIX_FMT_NV12}), Error);  // offered, not storable
@@ -60,13 +64,15 @@ TEST(V4l2Conversion, YuyvGreyY16Z16AndMjpeg) {
   EXPECT_EQ(cv::sum(mono)[0], 21);
 
   std::vector<uint16_t> z16 = {0, 1000, 2500, 65535};
-  cv::Mat depth = ConvertFrame(V4L2_PIX_FMT_Z16, reinterpret_cast<const uint8_t*>(z16.data()), 8, 2, 2, 4);
+  cv::Mat depth =
+      ConvertFrame(V4L2_PIX_FMT_Z16, reinterpret_cast<const uint8_t*>(z16.data()), 8, 2, 2, 4);
   ASSERT_EQ(depth.type(), CV_32FC1);
   EXPECT_TRUE(std::isnan(depth.at<float>(0, 0)));
   EXPECT_FLOAT_EQ(depth.at<float>(0, 1), 1.0f);
   EXPECT_FLOAT_EQ(depth.at<float>(1, 0), 2.5f);
   EXPECT_FLOAT_EQ(depth.at<float>(1, 1), 65.535f);
-  cv::Mat y16 = ConvertFrame(V4L2_PIX_FMT_Y16, reinterpret_cast<const uint8_t*>(z16.data()), 8, 2, 2, 0);
+  cv::Mat y16 =
+      ConvertFrame(V4L2_PIX_FMT_Y16, reinterpret_cast<const uint8_t*>(z16.data()), 8, 2, 2, 0);
   EXPECT_EQ(y16.at<uint16_t>(1, 1), 65535);
 
   cv::Mat picture(16, 32, CV_8UC3, cv::Scalar(10, 200, 60));
@@ -80,7 +86,8 @@ TEST(V4l2Conversion, YuyvGreyY16Z16AndMjpeg) {
 }
 
 TEST(V4l2Timestamps, ClockFollowsTheBufferFlags) {
-  BufferTime mono = MapTimestamp(12, 345678, V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC | V4L2_BUF_FLAG_TSTAMP_SRC_SOE);
+  BufferTime mono =
+      MapTimestamp(12, 345678, V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC | V4L2_BUF_FLAG_TSTAMP_SRC_SOE);
   EXPECT_EQ(mono.ns, 12345678000);
   EXPECT_EQ(mono.clock, "CLOCK_MONOTONIC");
   EXPECT_EQ(MapTimestamp(0, 1, V4L2_BUF_FLAG_TIMESTAMP_COPY).clock.rfind("unknown", 0), 0u);
@@ -113,17 +120,20 @@ TEST(V4l2Driver, MissingAndNonVideoDevicesAreClearErrors) {
     registry.Open({.name = "cam", .uri = "v4l2:/dev/video97"});
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("cannot open /dev/video97"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("cannot open /dev/video97"), std::string::npos)
+        << e.what();
   }
   try {
     registry.Open({.name = "cam", .uri = "v4l2:/dev/null"});
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("/dev/null is not a V4L2 device"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("/dev/null is not a V4L2 device"), std::string::npos)
+        << e.what();
   }
   EXPECT_THROW(registry.Open({.name = "cam", .uri = "v4l2:"}), Error);
   // No /dev/video* here; on a machine with cameras this lists them.
-  for (const auto& device : registry.ForUri("v4l2:x").Enumerate()) EXPECT_EQ(device.uri.rfind("v4l2:/dev/video", 0), 0u);
+  for (const auto& device : registry.ForUri("v4l2:x").Enumerate())
+    EXPECT_EQ(device.uri.rfind("v4l2:/dev/video", 0), 0u);
 }
 
 }  // namespace

@@ -46,12 +46,15 @@ TEST(CameraModel, OpenCvModelsProjectAsOpenCvDoes) {
   CameraModel lens = RealWideLens();
   for (int n : {4, 5, 8}) {
     std::vector<double> intrinsics(lens.intrinsics().begin(), lens.intrinsics().begin() + 4 + n);
-    CameraModel camera("LENSMODEL_OPENCV" + std::to_string(n), intrinsics, lens.width(), lens.height());
+    CameraModel camera("LENSMODEL_OPENCV" + std::to_string(n), intrinsics, lens.width(),
+                       lens.height());
     Eigen::Matrix3Xd points = PointsInView(camera, 500, n);
-    cv::Mat K = (cv::Mat_<double>(3, 3) << intrinsics[0], 0, intrinsics[2], 0, intrinsics[1], intrinsics[3], 0, 0, 1);
+    cv::Mat K = (cv::Mat_<double>(3, 3) << intrinsics[0], 0, intrinsics[2], 0, intrinsics[1],
+                 intrinsics[3], 0, 0, 1);
     cv::Mat distortion(1, n, CV_64F, intrinsics.data() + 4);
     std::vector<cv::Point3d> cv_points;
-    for (int i = 0; i < points.cols(); ++i) cv_points.emplace_back(points(0, i), points(1, i), points(2, i));
+    for (int i = 0; i < points.cols(); ++i)
+      cv_points.emplace_back(points(0, i), points(1, i), points(2, i));
     std::vector<cv::Point2d> expected;
     cv::projectPoints(cv_points, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K, distortion, expected);
     Eigen::Matrix2Xd pixels = camera.ProjectMany(points);
@@ -72,17 +75,17 @@ TEST(CameraModel, MatchesMrcalPythonThroughCameramodelFiles) {
       << "python3-mrcal is missing: scripts/setup.sh --tests installs it";
   TempDir dir;
   std::vector<CameraModel> cameras = {
-      RealWideLens(),
-      CameraModel("LENSMODEL_PINHOLE", {800, 805, 319.5, 239.5}, 640, 480),
-      CameraModel("LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=8_Ny=6_fov_x_deg=150",
-                  [] {
-                    std::vector<double> v = {300, 300, 320, 240};
-                    std::mt19937_64 random(3);
-                    std::normal_distribution<double> knot(0, 0.02);
-                    for (int i = 0; i < 2 * 8 * 6; ++i) v.push_back(knot(random));
-                    return v;
-                  }(),
-                  640, 480)};
+      RealWideLens(), CameraModel("LENSMODEL_PINHOLE", {800, 805, 319.5, 239.5}, 640, 480),
+      CameraModel(
+          "LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=8_Ny=6_fov_x_deg=150",
+          [] {
+            std::vector<double> v = {300, 300, 320, 240};
+            std::mt19937_64 random(3);
+            std::normal_distribution<double> knot(0, 0.02);
+            for (int i = 0; i < 2 * 8 * 6; ++i) v.push_back(knot(random));
+            return v;
+          }(),
+          640, 480)};
   for (size_t c = 0; c < cameras.size(); ++c) {
     const CameraModel& camera = cameras[c];
     auto model_file = dir / ("camera" + std::to_string(c) + ".cameramodel");
@@ -92,13 +95,14 @@ TEST(CameraModel, MatchesMrcalPythonThroughCameramodelFiles) {
     {
       std::ofstream out(points_file);
       out.precision(17);
-      for (int i = 0; i < points.cols(); ++i) out << points(0, i) << " " << points(1, i) << " " << points(2, i) << "\n";
+      for (int i = 0; i < points.cols(); ++i)
+        out << points(0, i) << " " << points(1, i) << " " << points(2, i) << "\n";
     }
-    auto result = testing::RunShell(
-        "/usr/bin/python3 -c \"import mrcal, numpy; m = mrcal.cameramodel('" + model_file.string() +
-        "'); p = numpy.loadtxt('" + points_file.string() +
-        "'); q = mrcal.project(p, *m.intrinsics()); numpy.savetxt('" + (dir / "q.txt").string() +
-        "', q, fmt='%.17g')\"");
+    auto result =
+        testing::RunShell("/usr/bin/python3 -c \"import mrcal, numpy; m = mrcal.cameramodel('" +
+                          model_file.string() + "'); p = numpy.loadtxt('" + points_file.string() +
+                          "'); q = mrcal.project(p, *m.intrinsics()); numpy.savetxt('" +
+                          (dir / "q.txt").string() + "', q, fmt='%.17g')\"");
     ASSERT_EQ(result.exit_code, 0) << result.output;
     std::ifstream in(dir / "q.txt");
     Eigen::Matrix2Xd ours = camera.ProjectMany(points);
@@ -211,11 +215,13 @@ TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
   for (size_t size = 0; size < last_brace; size += 7) {
     EXPECT_THROW(CameraModel::Parse(text.substr(0, size), "cut"), Error) << size;
   }
-  for (const char* file : {"mrcal-parser-oob-1.cameramodel", "mrcal-parser-oob-truncated.cameramodel"}) {
+  for (const char* file :
+       {"mrcal-parser-oob-1.cameramodel", "mrcal-parser-oob-truncated.cameramodel"}) {
     EXPECT_THROW(CameraModel::Read(SourceDir() / "bench/fuzz/crashes" / file), Error) << file;
   }
-  for (const char* bad : {"{ 'lensmodel': 'LENSMODEL_PINHOLE' # x", "{ 'el': 'LEN{P# INHd", "{ 'a': [1, 2 }",
-                          "{ 'a': 1 } trailing", "{ 'a' 1 }", "[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[["}) {
+  for (const char* bad :
+       {"{ 'lensmodel': 'LENSMODEL_PINHOLE' # x", "{ 'el': 'LEN{P# INHd", "{ 'a': [1, 2 }",
+        "{ 'a': 1 } trailing", "{ 'a' 1 }", "[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[["}) {
     EXPECT_THROW(CameraModel::Parse(bad, "bad"), Error) << bad;
   }
 }
@@ -232,7 +238,8 @@ TEST(Pose, LookAtUsesOpenCvAxesInAZUpWorld) {
   Rt rt = {0.1, 0.2, -0.3, 1, 2, 3};
   Rt back = RtFromPose(PoseFromRt(rt));
   for (int i = 0; i < 6; ++i) EXPECT_NEAR(back[i], rt[i], 1e-14);
-  EXPECT_NEAR(RotationAngleDeg(PoseFromRt({1e-9, 0, 0, 0, 0, 0}).linear()), 1e-9 * 180 / M_PI, 1e-20);
+  EXPECT_NEAR(RotationAngleDeg(PoseFromRt({1e-9, 0, 0, 0, 0, 0}).linear()), 1e-9 * 180 / M_PI,
+              1e-20);
 }
 
 }  // namespace

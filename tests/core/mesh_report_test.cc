@@ -63,7 +63,8 @@ TEST(Report, TerminationContract) {
   EXPECT_EQ(never_ran.termination, Termination::kFailure);
   EXPECT_EQ(never_ran.message, "not run");
   EXPECT_FALSE(never_ran.IsUsable());
-  for (Termination usable : {Termination::kSuccess, Termination::kConvergence, Termination::kNoConvergence}) {
+  for (Termination usable :
+       {Termination::kSuccess, Termination::kConvergence, Termination::kNoConvergence}) {
     EXPECT_TRUE(IsUsable(usable)) << ToString(usable);
     EXPECT_EQ(ExitStatus(usable), 0) << ToString(usable);
   }

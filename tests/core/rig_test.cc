@@ -12,7 +12,8 @@ namespace {
 
 using testing::TempDir;
 
-std::filesystem::path WriteText(const TempDir& dir, const std::string& name, const std::string& text) {
+std::filesystem::path WriteText(const TempDir& dir, const std::string& name,
+                                const std::string& text) {
   auto file = dir / name;
   std::ofstream(file) << text;
   return file;
@@ -57,16 +58,31 @@ sensors:
 
 TEST(RigDescription, MalformedFilesNameTheProblem) {
   TempDir dir;
-  EXPECT_NE(ErrorOf(WriteText(dir, "a.yaml", "sensors: [ {name: a, uri: sim:x#a ")).find("not valid YAML"), std::string::npos);
+  EXPECT_NE(ErrorOf(WriteText(dir, "a.yaml", "sensors: [ {name: a, uri: sim:x#a "))
+                .find("not valid YAML"),
+            std::string::npos);
   EXPECT_NE(ErrorOf(WriteText(dir, "b.yaml", "name: x\n")).find("'sensors'"), std::string::npos);
-  EXPECT_NE(ErrorOf(WriteText(dir, "c.yaml", "sensors: [{name: a}]")).find("'uri' is missing"), std::string::npos);
-  EXPECT_NE(ErrorOf(WriteText(dir, "d.yaml", "sensors: [{name: a, uri: 'sim:x'}, {name: a, uri: 'sim:y'}]")).find("twice"), std::string::npos);
-  EXPECT_NE(ErrorOf(WriteText(dir, "e.yaml", "sensors: [{name: a, uri: 'sim:x', role: infrared}]")).find("unknown sensor role"), std::string::npos);
-  EXPECT_NE(ErrorOf(WriteText(dir, "f.yaml", "sensors: [{name: a, uri: nocolon}]")).find("no scheme"), std::string::npos);
-  EXPECT_NE(ErrorOf(WriteText(dir, "g.yaml", "fps: fast\nsensors: [{name: a, uri: 'sim:x'}]")).find("'fps'"), std::string::npos);
-  EXPECT_NE(ErrorOf(WriteText(dir, "h.json", "{\"sensors\": [")).find("not valid JSON"), std::string::npos);
+  EXPECT_NE(ErrorOf(WriteText(dir, "c.yaml", "sensors: [{name: a}]")).find("'uri' is missing"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf(WriteText(dir, "d.yaml",
+                              "sensors: [{name: a, uri: 'sim:x'}, {name: a, uri: 'sim:y'}]"))
+                .find("twice"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf(WriteText(dir, "e.yaml", "sensors: [{name: a, uri: 'sim:x', role: infrared}]"))
+                .find("unknown sensor role"),
+            std::string::npos);
+  EXPECT_NE(
+      ErrorOf(WriteText(dir, "f.yaml", "sensors: [{name: a, uri: nocolon}]")).find("no scheme"),
+      std::string::npos);
+  EXPECT_NE(ErrorOf(WriteText(dir, "g.yaml", "fps: fast\nsensors: [{name: a, uri: 'sim:x'}]"))
+                .find("'fps'"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf(WriteText(dir, "h.json", "{\"sensors\": [")).find("not valid JSON"),
+            std::string::npos);
   EXPECT_NE(ErrorOf(dir / "missing.yaml").find("does not exist"), std::string::npos);
-  EXPECT_NE(ErrorOf(WriteText(dir, "i.yaml", "sensors: [{name: a, uri: 'sim:x', paired_with: b}]")).find("not in the rig"), std::string::npos);
+  EXPECT_NE(ErrorOf(WriteText(dir, "i.yaml", "sensors: [{name: a, uri: 'sim:x', paired_with: b}]"))
+                .find("not in the rig"),
+            std::string::npos);
 }
 
 }  // namespace

@@ -20,12 +20,26 @@ std::filesystem::path WriteTake(const std::filesystem::path& dir, int sets, int 
   std::vector<StreamInfo> streams;
   for (const char* name : {"cam0", "cam1", "cam2"}) {
     rig.sensors.push_back({.name = name, .uri = std::string("sim:plan#") + name});
-    streams.push_back({.name = name, .uri = std::string("sim:plan#") + name, .width = 32, .height = 24,
-                       .pixel_format = "bgr8", .clock = "sim"});
+    streams.push_back({.name = name,
+                       .uri = std::string("sim:plan#") + name,
+                       .width = 32,
+                       .height = 24,
+                       .pixel_format = "bgr8",
+                       .clock = "sim"});
   }
-  rig.sensors.push_back({.name = "depth0", .uri = "sim:plan#depth0", .role = SensorRole::kDepth, .paired_with = "cam1"});
-  streams.push_back({.name = "depth0", .uri = "sim:plan#depth0", .role = SensorRole::kDepth, .width = 16, .height = 12,
-                     .pixel_format = "depth_m", .codec = ImageCodec::kExr, .clock = "sim", .paired_with = "cam1"});
+  rig.sensors.push_back({.name = "depth0",
+                         .uri = "sim:plan#depth0",
+                         .role = SensorRole::kDepth,
+                         .paired_with = "cam1"});
+  streams.push_back({.name = "depth0",
+                     .uri = "sim:plan#depth0",
+                     .role = SensorRole::kDepth,
+                     .width = 16,
+                     .height = 12,
+                     .pixel_format = "depth_m",
+                     .codec = ImageCodec::kExr,
+                     .clock = "sim",
+                     .paired_with = "cam1"});
   {
     TakeWriter writer(dir, rig, streams, {{"clean_plate_frames", plate}});
     for (int i = 0; i < sets; ++i) {
@@ -33,9 +47,11 @@ std::filesystem::path WriteTake(const std::filesystem::path& dir, int sets, int 
       set.index = i;
       for (const char* name : {"cam0", "cam1", "cam2"}) {
         if (i == 3 && std::string(name) == "cam2") continue;
-        set.frames.push_back({name, cv::Mat(24, 32, CV_8UC3, cv::Scalar::all(10 * i)), 1000 * i, static_cast<uint64_t>(i)});
+        set.frames.push_back({name, cv::Mat(24, 32, CV_8UC3, cv::Scalar::all(10 * i)), 1000 * i,
+                              static_cast<uint64_t>(i)});
       }
-      set.frames.push_back({"depth0", cv::Mat(12, 16, CV_32FC1, cv::Scalar(1.5f)), 1000 * i, static_cast<uint64_t>(i)});
+      set.frames.push_back({"depth0", cv::Mat(12, 16, CV_32FC1, cv::Scalar(1.5f)), 1000 * i,
+                            static_cast<uint64_t>(i)});
       writer.Append(set);
     }
     writer.Close();
@@ -49,7 +65,8 @@ void WriteModels(const std::filesystem::path& folder) {
     const double angle = 2 * 3.14159265358979 * i / 4;
     Pose cam_from_world = Pose::Identity();
     cam_from_world.translation() = Eigen::Vector3d(std::cos(angle), std::sin(angle), 3.0);
-    CameraModel::Pinhole(30, i < 3 ? 32 : 16, i < 3 ? 24 : 12, cam_from_world).Write(folder / (std::string(names[i]) + ".cameramodel"));
+    CameraModel::Pinhole(30, i < 3 ? 32 : 16, i < 3 ? 24 : 12, cam_from_world)
+        .Write(folder / (std::string(names[i]) + ".cameramodel"));
   }
 }
 
@@ -99,7 +116,8 @@ TEST(TakePlan, ChoosesSensorsPlateAndFrameSetsOnce) {
   plan = PlanTake(take, range);
   EXPECT_EQ(plan.clean_plate_frames, 2);
   EXPECT_EQ(plan.sets, (std::vector<int64_t>{3, 4}));
-  // Set 3 lacks cam2: a stage that reads cam2 is told which set and sensor, one that does not is not.
+  // Set 3 lacks cam2: a stage that reads cam2 is told which set and sensor, one that does not is
+  // not.
   try {
     plan.RequireFrames(take, {"cam0", "cam2"});
     FAIL() << "a dropped frame went unnoticed";

@@ -21,15 +21,29 @@ RigDescription TwoSensorRig() {
   RigDescription rig;
   rig.name = "test";
   rig.sensors = {{.name = "cam0", .uri = "sim:test#cam0"},
-                 {.name = "depth0", .uri = "sim:test#depth0", .role = SensorRole::kDepth, .paired_with = "cam0"}};
+                 {.name = "depth0",
+                  .uri = "sim:test#depth0",
+                  .role = SensorRole::kDepth,
+                  .paired_with = "cam0"}};
   return rig;
 }
 
 std::vector<StreamInfo> TwoStreams(ImageCodec color_codec = ImageCodec::kPng) {
-  StreamInfo color{.name = "cam0", .uri = "sim:test#cam0", .width = 64, .height = 48,
-                   .pixel_format = "bgr8", .codec = color_codec, .clock = "sim"};
-  StreamInfo depth{.name = "depth0", .uri = "sim:test#depth0", .role = SensorRole::kDepth, .width = 32,
-                   .height = 24, .pixel_format = "depth_m", .codec = ImageCodec::kExr, .clock = "sim",
+  StreamInfo color{.name = "cam0",
+                   .uri = "sim:test#cam0",
+                   .width = 64,
+                   .height = 48,
+                   .pixel_format = "bgr8",
+                   .codec = color_codec,
+                   .clock = "sim"};
+  StreamInfo depth{.name = "depth0",
+                   .uri = "sim:test#depth0",
+                   .role = SensorRole::kDepth,
+                   .width = 32,
+                   .height = 24,
+                   .pixel_format = "depth_m",
+                   .codec = ImageCodec::kExr,
+                   .clock = "sim",
                    .paired_with = "cam0"};
   return {color, depth};
 }

@@ -9,11 +9,11 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
-#include "interop/interop.h"
 #include "capture/replay/replay_driver.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/take.h"
+#include "interop/interop.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
@@ -34,14 +34,17 @@ cv::Mat RandomImage(int width, int height, int type, uint64_t seed) {
 }
 
 bool SameImage(const cv::Mat& a, const cv::Mat& b) {
-  return a.size() == b.size() && a.type() == b.type() && cv::countNonZero(a.reshape(1) != b.reshape(1)) == 0;
+  return a.size() == b.size() && a.type() == b.type() &&
+         cv::countNonZero(a.reshape(1) != b.reshape(1)) == 0;
 }
 
 // The pixel OpenCV's projectPoints gives for a world point, with the given principal-point
 // shift (COLMAP's corner origin: -0.5 to holocap's).
 Eigen::Vector2d OpenCvProject(const Eigen::Matrix3d& K, const std::vector<double>& distortion,
-                              const Eigen::Matrix3d& R, const Eigen::Vector3d& t, const Eigen::Vector3d& point) {
-  cv::Mat k(3, 3, CV_64F), r(3, 3, CV_64F), rvec, tvec = (cv::Mat_<double>(3, 1) << t.x(), t.y(), t.z());
+                              const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
+                              const Eigen::Vector3d& point) {
+  cv::Mat k(3, 3, CV_64F), r(3, 3, CV_64F), rvec,
+      tvec = (cv::Mat_<double>(3, 1) << t.x(), t.y(), t.z());
   for (int i = 0; i < 9; ++i) {
     k.at<double>(i / 3, i % 3) = K(i / 3, i % 3);
     r.at<double>(i / 3, i % 3) = R(i / 3, i % 3);
@@ -72,9 +75,12 @@ TEST(InteropImport, MiddleburyProjectsExactlyAsItsKRtAndReplaysItsPixels) {
   EXPECT_LT(summary.metrics["rotation_residual"].get<double>(), 1e-12);
 
   Take take = Take::Open(dir / "take");
-  std::vector<double> s = take.metadata()["interop"]["world_from_source"].get<std::vector<double>>();
-  Eigen::Matrix3d world_from_source = Eigen::Map<Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(s.data());
-  std::vector<KrtCamera> cameras = ParseMiddleburyPar(ReadFileToString(source / "dinoSR_par.txt"), "par");
+  std::vector<double> s =
+      take.metadata()["interop"]["world_from_source"].get<std::vector<double>>();
+  Eigen::Matrix3d world_from_source =
+      Eigen::Map<Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(s.data());
+  std::vector<KrtCamera> cameras =
+      ParseMiddleburyPar(ReadFileToString(source / "dinoSR_par.txt"), "par");
   ASSERT_EQ(cameras.size(), 16u);
   // Points spread over the README's bounding box, corners included.
   const Eigen::Vector3d lo(-0.061897, -0.018874, -0.057845), hi(0.010897, 0.068227, 0.015495);
@@ -95,7 +101,8 @@ TEST(InteropImport, MiddleburyProjectsExactlyAsItsKRtAndReplaysItsPixels) {
   }
   EXPECT_EQ(points, 16 * 125);
   EXPECT_LT(worst, 1e-9) << "largest projection difference " << worst << " px";
-  std::printf("middlebury: %d points x cameras, largest difference to K[R|t] %.3g px\n", points, worst);
+  std::printf("middlebury: %d points x cameras, largest difference to K[R|t] %.3g px\n", points,
+              worst);
 
   // Without the shared non-orthonormal part the same cameras would be off by far more than that.
   double without = 0;
@@ -127,8 +134,8 @@ struct ColmapFixture {
   struct Camera {
     std::string model;
     std::vector<double> params;
-    Eigen::Matrix3d K;                // holocap convention
-    std::vector<double> distortion;   // OpenCV order
+    Eigen::Matrix3d K;               // holocap convention
+    std::vector<double> distortion;  // OpenCV order
   };
   std::vector<Camera> cameras;
   std::vector<Eigen::Matrix3d> rotations;
@@ -145,9 +152,13 @@ ColmapFixture MakeColmapFixture() {
   };
   f.cameras.push_back({"SIMPLE_PINHOLE", {300, 80.25, 60.5}, k(300, 300, 80.25, 60.5), {}});
   f.cameras.push_back({"PINHOLE", {310, 305, 79.5, 61}, k(310, 305, 79.5, 61), {}});
-  f.cameras.push_back({"SIMPLE_RADIAL", {290, 81, 59, -0.12}, k(290, 290, 81, 59), {-0.12, 0, 0, 0}});
-  f.cameras.push_back({"RADIAL", {295, 80, 60, -0.1, 0.03}, k(295, 295, 80, 60), {-0.1, 0.03, 0, 0}});
-  f.cameras.push_back({"OPENCV", {300, 302, 80.7, 59.2, -0.2, 0.05, 0.001, -0.002}, k(300, 302, 80.7, 59.2),
+  f.cameras.push_back(
+      {"SIMPLE_RADIAL", {290, 81, 59, -0.12}, k(290, 290, 81, 59), {-0.12, 0, 0, 0}});
+  f.cameras.push_back(
+      {"RADIAL", {295, 80, 60, -0.1, 0.03}, k(295, 295, 80, 60), {-0.1, 0.03, 0, 0}});
+  f.cameras.push_back({"OPENCV",
+                       {300, 302, 80.7, 59.2, -0.2, 0.05, 0.001, -0.002},
+                       k(300, 302, 80.7, 59.2),
                        {-0.2, 0.05, 0.001, -0.002}});
   f.cameras.push_back({"FULL_OPENCV",
                        {298, 299, 80.1, 60.3, -0.2, 0.05, 0.0005, -0.001, 0.01, 0.02, -0.01, 0.003},
@@ -157,19 +168,21 @@ ColmapFixture MakeColmapFixture() {
   std::uniform_real_distribution<double> unit(-1, 1);
   for (size_t i = 0; i < f.cameras.size(); ++i) {
     Eigen::Vector3d eye(3 * std::cos(i), 3 * std::sin(i), 0.5 * unit(rng));
-    Pose cam_from_world = CamFromWorldLookAt(eye, Eigen::Vector3d(0.1 * unit(rng), 0.1 * unit(rng), 0));
+    Pose cam_from_world =
+        CamFromWorldLookAt(eye, Eigen::Vector3d(0.1 * unit(rng), 0.1 * unit(rng), 0));
     f.rotations.push_back(cam_from_world.linear());
     f.translations.push_back(cam_from_world.translation());
   }
-  for (int i = 0; i < 40; ++i) f.points.emplace_back(0.4 * unit(rng), 0.4 * unit(rng), 0.4 * unit(rng));
+  for (int i = 0; i < 40; ++i)
+    f.points.emplace_back(0.4 * unit(rng), 0.4 * unit(rng), 0.4 * unit(rng));
   return f;
 }
 
 std::string QuaternionLine(const Eigen::Matrix3d& rotation, const Eigen::Vector3d& t) {
   Eigen::Quaterniond q(rotation);
   char line[512];
-  std::snprintf(line, sizeof(line), "%.17g %.17g %.17g %.17g %.17g %.17g %.17g", q.w(), q.x(), q.y(), q.z(),
-                t.x(), t.y(), t.z());
+  std::snprintf(line, sizeof(line), "%.17g %.17g %.17g %.17g %.17g %.17g %.17g", q.w(), q.x(),
+                q.y(), q.z(), t.x(), t.y(), t.z());
   return line;
 }
 
@@ -186,7 +199,8 @@ void WriteColmapModel(const ColmapFixture& f, const std::filesystem::path& dir) 
   std::vector<std::vector<std::pair<int64_t, int64_t>>> tracks(f.points.size());
   std::vector<double> errors(f.points.size(), 0);
   for (size_t c = 0; c < f.cameras.size(); ++c) {
-    images += Cat(c + 1, " ", QuaternionLine(f.rotations[c], f.translations[c]), " ", c + 1, " view", c, ".png\n");
+    images += Cat(c + 1, " ", QuaternionLine(f.rotations[c], f.translations[c]), " ", c + 1,
+                  " view", c, ".png\n");
     std::string line;
     for (size_t p = 0; p < f.points.size(); ++p) {
       Eigen::Vector2d pixel = OpenCvProject(f.cameras[c].K, f.cameras[c].distortion, f.rotations[c],
@@ -195,8 +209,8 @@ void WriteColmapModel(const ColmapFixture& f, const std::filesystem::path& dir) 
       Eigen::Vector2d offset(0.01 * ((p + c) % 5), -0.02 * ((p * c) % 3));
       Eigen::Vector2d observed = pixel + offset + Eigen::Vector2d::Constant(0.5);
       char observation[100];
-      std::snprintf(observation, sizeof(observation), "%s%.17g %.17g %zu", line.empty() ? "" : " ", observed.x(),
-                    observed.y(), p + 1);
+      std::snprintf(observation, sizeof(observation), "%s%.17g %.17g %zu", line.empty() ? "" : " ",
+                    observed.x(), observed.y(), p + 1);
       line += observation;
       tracks[p].emplace_back(c + 1, p);
       errors[p] += offset.norm() / f.cameras.size();
@@ -206,7 +220,8 @@ void WriteColmapModel(const ColmapFixture& f, const std::filesystem::path& dir) 
   std::string points = "# 3D point list with one line of data per point:\n";
   for (size_t p = 0; p < f.points.size(); ++p) {
     char xyz[200];
-    std::snprintf(xyz, sizeof(xyz), "%.17g %.17g %.17g", f.points[p].x(), f.points[p].y(), f.points[p].z());
+    std::snprintf(xyz, sizeof(xyz), "%.17g %.17g %.17g", f.points[p].x(), f.points[p].y(),
+                  f.points[p].z());
     char error[40];
     std::snprintf(error, sizeof(error), "%.17g", errors[p]);
     points += Cat(p + 1, " ", xyz, " 128 64 32 ", error);
@@ -218,7 +233,8 @@ void WriteColmapModel(const ColmapFixture& f, const std::filesystem::path& dir) 
   WriteText(dir / "sparse" / "0" / "points3D.txt", points);
   std::filesystem::create_directories(dir / "images");
   for (size_t c = 0; c < f.cameras.size(); ++c) {
-    cv::imwrite((dir / "images" / Cat("view", c, ".png")).string(), RandomImage(160, 120, CV_8UC3, c));
+    cv::imwrite((dir / "images" / Cat("view", c, ".png")).string(),
+                RandomImage(160, 120, CV_8UC3, c));
   }
 }
 
@@ -241,8 +257,8 @@ TEST(InteropImport, ColmapCamerasMatchOpenCvAndPointErrorsMatchTheFile) {
     for (const auto& point : f.points) {
       Eigen::Vector2d pixel;
       ASSERT_TRUE(model.ProjectWorld(point, &pixel));
-      Eigen::Vector2d reference = OpenCvProject(f.cameras[c].K, f.cameras[c].distortion, f.rotations[c],
-                                                f.translations[c], point);
+      Eigen::Vector2d reference = OpenCvProject(f.cameras[c].K, f.cameras[c].distortion,
+                                                f.rotations[c], f.translations[c], point);
       worst = std::max(worst, (pixel - reference).norm());
     }
     EXPECT_TRUE(SameImage(take.ReadFrame(0, Cat("view", c)), RandomImage(160, 120, CV_8UC3, c)));
@@ -255,8 +271,9 @@ TEST(InteropImport, ColmapCamerasMatchOpenCvAndPointErrorsMatchTheFile) {
   EXPECT_NEAR(points["mean_reprojection_error_px"].get<double>(),
               points["file_mean_reprojection_error_px"].get<double>(), 1e-9);
   EXPECT_LT(points["max_per_point_difference_px"].get<double>(), 1e-9);
-  std::printf("colmap: cameras vs OpenCV %.3g px; points3D mean error %.9f px, file %.9f px\n", worst,
-              points["mean_reprojection_error_px"].get<double>(), points["file_mean_reprojection_error_px"].get<double>());
+  std::printf("colmap: cameras vs OpenCV %.3g px; points3D mean error %.9f px, file %.9f px\n",
+              worst, points["mean_reprojection_error_px"].get<double>(),
+              points["file_mean_reprojection_error_px"].get<double>());
 }
 
 TEST(InteropImport, ColmapFisheyeIsRefusedByName) {
@@ -282,7 +299,8 @@ TEST(InteropImport, BlenderTransformsUseOpenGlAxesAndTheImageCentre) {
   const double angle = 0.6911112070083618;
   Eigen::Matrix4d c2w = Eigen::Matrix4d::Identity();
   c2w.topLeftCorner<3, 3>() = (Eigen::AngleAxisd(3.1, Eigen::Vector3d::UnitZ()) *
-                               Eigen::AngleAxisd(1.27, Eigen::Vector3d::UnitX())).toRotationMatrix();
+                               Eigen::AngleAxisd(1.27, Eigen::Vector3d::UnitX()))
+                                  .toRotationMatrix();
   c2w.topRightCorner<3, 1>() = Eigen::Vector3d(-0.05, 3.85, 1.21);
   nlohmann::json json;
   json["camera_angle_x"] = angle;
@@ -291,7 +309,8 @@ TEST(InteropImport, BlenderTransformsUseOpenGlAxesAndTheImageCentre) {
     frame["file_path"] = Cat("./train/r_", i);
     Eigen::Matrix4d m = c2w;
     m(2, 3) += i;  // the second camera one unit higher
-    for (int r = 0; r < 4; ++r) frame["transform_matrix"].push_back({m(r, 0), m(r, 1), m(r, 2), m(r, 3)});
+    for (int r = 0; r < 4; ++r)
+      frame["transform_matrix"].push_back({m(r, 0), m(r, 1), m(r, 2), m(r, 3)});
     json["frames"].push_back(frame);
     cv::Mat rgba = RandomImage(40, 40, CV_8UC4, 10 + i);
     std::filesystem::create_directories(dir / "train");
@@ -342,8 +361,11 @@ TEST(InteropImport, NeuralVolumesKrtAlignsNumberedFramesAcrossCameras) {
   for (int frame : {0, 1, 2}) {
     std::filesystem::create_directories(dir / "cam400001");
     std::filesystem::create_directories(dir / "cam400002");
-    cv::imwrite((dir / "cam400001" / Cat("image000", frame, ".png")).string(), RandomImage(64, 48, CV_8UC3, frame));
-    if (frame != 1) cv::imwrite((dir / "cam400002" / Cat("image000", frame, ".png")).string(), RandomImage(64, 48, CV_8UC3, 50 + frame));
+    cv::imwrite((dir / "cam400001" / Cat("image000", frame, ".png")).string(),
+                RandomImage(64, 48, CV_8UC3, frame));
+    if (frame != 1)
+      cv::imwrite((dir / "cam400002" / Cat("image000", frame, ".png")).string(),
+                  RandomImage(64, 48, CV_8UC3, 50 + frame));
   }
   ImportOptions options;
   options.format = InteropFormat::kKrt;
@@ -363,8 +385,9 @@ TEST(InteropImport, NeuralVolumesKrtAlignsNumberedFramesAcrossCameras) {
         Eigen::Vector3d point(x, 0.1 * x, z);
         Eigen::Vector2d pixel;
         ASSERT_TRUE(model.ProjectWorld(point, &pixel));
-        worst = std::max(worst, (pixel - OpenCvProject(cameras[c].K, cameras[c].distortion, cameras[c].R,
-                                                        cameras[c].t, point)).norm());
+        worst = std::max(worst, (pixel - OpenCvProject(cameras[c].K, cameras[c].distortion,
+                                                       cameras[c].R, cameras[c].t, point))
+                                    .norm());
       }
   }
   EXPECT_LT(worst, 1e-9);
@@ -381,13 +404,15 @@ TEST(InteropImport, PanopticCentimetresBecomeMetresAndUnrecordedCamerasAreSkippe
     camera["resolution"] = {32, 24};
     camera["K"] = {{1400.5, 0, 15.2}, {0, 1401.25, 11.9}, {0, 0, 1}};
     camera["distCoef"] = {-0.21, 0.15, 0.0004, -0.0003, -0.02};
-    for (int r = 0; r < 3; ++r) camera["R"].push_back({pose.linear()(r, 0), pose.linear()(r, 1), pose.linear()(r, 2)});
+    for (int r = 0; r < 3; ++r)
+      camera["R"].push_back({pose.linear()(r, 0), pose.linear()(r, 1), pose.linear()(r, 2)});
     for (int r = 0; r < 3; ++r) camera["t"].push_back({pose.translation()(r)});
     json["cameras"].push_back(camera);
   }
   WriteText(dir / "calibration_171026_pose1.json", json.dump());
   std::filesystem::create_directories(dir / "hdImgs" / "00_00");
-  cv::imwrite((dir / "hdImgs" / "00_00" / "00_00_00000123.jpg").string(), RandomImage(32, 24, CV_8UC3, 3));
+  cv::imwrite((dir / "hdImgs" / "00_00" / "00_00_00000123.jpg").string(),
+              RandomImage(32, 24, CV_8UC3, 3));
   ImportOptions options;
   options.format = InteropFormat::kPanoptic;
   ImportSummary summary = ImportTake(dir.path(), dir / "take", options);
@@ -397,7 +422,8 @@ TEST(InteropImport, PanopticCentimetresBecomeMetresAndUnrecordedCamerasAreSkippe
   CameraModel model = take.Camera("00_00");
   EXPECT_NEAR(model.center_in_world().x(), 1.5, 1e-12);  // 150 cm
   // The JPEG's decoded pixels are what the take holds.
-  cv::Mat decoded = cv::imread((dir / "hdImgs" / "00_00" / "00_00_00000123.jpg").string(), cv::IMREAD_UNCHANGED);
+  cv::Mat decoded =
+      cv::imread((dir / "hdImgs" / "00_00" / "00_00_00000123.jpg").string(), cv::IMREAD_UNCHANGED);
   EXPECT_TRUE(SameImage(take.ReadFrame(0, "00_00"), decoded));
   Eigen::Matrix3d K;
   K << 1400.5, 0, 15.2, 0, 1401.25, 11.9, 0, 0, 1;
@@ -411,12 +437,15 @@ TEST(InteropImport, PanopticCentimetresBecomeMetresAndUnrecordedCamerasAreSkippe
 
 TEST(InteropImport, MrcalFoldersKeepTheModels) {
   TempDir dir;
-  CameraModel lens = CameraModel::Read(testing::TestDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel").Scaled(0.02);
+  CameraModel lens =
+      CameraModel::Read(testing::TestDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel")
+          .Scaled(0.02);
   lens.set_cam_from_world(CamFromWorldLookAt({1, 2, 1.5}, {0, 0, 1}));
   lens.Write(dir / "left.cameramodel");
   std::filesystem::create_directories(dir / "left");
   for (int i = 0; i < 2; ++i) {
-    cv::imwrite((dir / "left" / Cat("frame", i, ".png")).string(), RandomImage(lens.width(), lens.height(), CV_16UC3, i));
+    cv::imwrite((dir / "left" / Cat("frame", i, ".png")).string(),
+                RandomImage(lens.width(), lens.height(), CV_16UC3, i));
   }
   ImportOptions options;
   options.format = InteropFormat::kMrcal;
@@ -427,8 +456,10 @@ TEST(InteropImport, MrcalFoldersKeepTheModels) {
   CameraModel back = take.Camera("left");
   EXPECT_EQ(back.lensmodel(), lens.lensmodel());
   EXPECT_EQ(back.intrinsics(), lens.intrinsics());
-  EXPECT_LT((back.cam_from_world().matrix() - lens.cam_from_world().matrix()).cwiseAbs().maxCoeff(), 1e-15);
-  EXPECT_TRUE(SameImage(take.ReadFrame(1, "left"), RandomImage(lens.width(), lens.height(), CV_16UC3, 1)));
+  EXPECT_LT((back.cam_from_world().matrix() - lens.cam_from_world().matrix()).cwiseAbs().maxCoeff(),
+            1e-15);
+  EXPECT_TRUE(
+      SameImage(take.ReadFrame(1, "left"), RandomImage(lens.width(), lens.height(), CV_16UC3, 1)));
 }
 
 // Each malformed file gives one Error naming the file; none crashes or imports something.
@@ -439,40 +470,73 @@ TEST(InteropImport, MalformedFilesGiveOneClearError) {
     const char* expected;
   };
   std::vector<Case> cases = {
-      {"par count", [] { ParseMiddleburyPar("3\na.png 1 0 0 0 1 0 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\n", "x_par.txt"); }, "announces 3"},
-      {"par field", [] { ParseMiddleburyPar("1\na.png 1 0 0 0 1 0 0 0 1 1 0 0 0 1 0 0 0 1 0 0 nan\n", "x_par.txt"); }, "not a finite"},
+      {"par count",
+       [] {
+         ParseMiddleburyPar("3\na.png 1 0 0 0 1 0 0 0 1 1 0 0 0 1 0 0 0 1 0 0 1\n", "x_par.txt");
+       },
+       "announces 3"},
+      {"par field",
+       [] {
+         ParseMiddleburyPar("1\na.png 1 0 0 0 1 0 0 0 1 1 0 0 0 1 0 0 0 1 0 0 nan\n", "x_par.txt");
+       },
+       "not a finite"},
       {"par short", [] { ParseMiddleburyPar("1\na.png 1 0 0\n", "x_par.txt"); }, "22 fields"},
       {"krt short", [] { ParseNeuralVolumesKrt("cam\n1 0 0\n0 1 0\n", "KRT"); }, "ends early"},
-      {"krt row", [] { ParseNeuralVolumesKrt("cam\n1 0 0\n0 1 0\n0 0 1\n0 0 0 0 0\n1 0 0\n", "KRT"); }, "[R|t]"},
-      {"colmap model", [] { ParseColmapCameras("1 WEIRD 10 10 1 2 3\n", "cameras.txt"); }, "unknown COLMAP camera model"},
-      {"colmap params", [] { ParseColmapCameras("1 PINHOLE 10 10 1 2 3\n", "cameras.txt"); }, "takes 4 parameters"},
-      {"colmap size", [] { ParseColmapCameras("1 PINHOLE -10 10 1 2 3 4\n", "cameras.txt"); }, "out of range"},
-      {"colmap quaternion", [] { ParseColmapImages("1 2 0 0 0 0 0 0 1 a.png\n\n", "images.txt"); }, "unit length"},
-      {"colmap points2d", [] { ParseColmapImages("1 1 0 0 0 0 0 0 1 a.png\n1 2\n", "images.txt"); }, "triples"},
-      {"colmap point", [] { ParseColmapPoints("1 0 0 0 300 0 0 0.5\n", "points3D.txt"); }, "outside 0..255"},
-      {"nerf json", [] { ParseNerfTransforms("{\"frames\": [", "transforms.json"); }, "not valid JSON"},
-      {"nerf matrix", [] { ParseNerfTransforms(R"({"frames": [{"file_path": "a", "transform_matrix": [[1,0]]}]})", "transforms.json"); }, "transform_matrix"},
-      {"nerf k4", [] {
+      {"krt row",
+       [] { ParseNeuralVolumesKrt("cam\n1 0 0\n0 1 0\n0 0 1\n0 0 0 0 0\n1 0 0\n", "KRT"); },
+       "[R|t]"},
+      {"colmap model", [] { ParseColmapCameras("1 WEIRD 10 10 1 2 3\n", "cameras.txt"); },
+       "unknown COLMAP camera model"},
+      {"colmap params", [] { ParseColmapCameras("1 PINHOLE 10 10 1 2 3\n", "cameras.txt"); },
+       "takes 4 parameters"},
+      {"colmap size", [] { ParseColmapCameras("1 PINHOLE -10 10 1 2 3 4\n", "cameras.txt"); },
+       "out of range"},
+      {"colmap quaternion", [] { ParseColmapImages("1 2 0 0 0 0 0 0 1 a.png\n\n", "images.txt"); },
+       "unit length"},
+      {"colmap points2d", [] { ParseColmapImages("1 1 0 0 0 0 0 0 1 a.png\n1 2\n", "images.txt"); },
+       "triples"},
+      {"colmap point", [] { ParseColmapPoints("1 0 0 0 300 0 0 0.5\n", "points3D.txt"); },
+       "outside 0..255"},
+      {"nerf json", [] { ParseNerfTransforms("{\"frames\": [", "transforms.json"); },
+       "not valid JSON"},
+      {"nerf matrix",
+       [] {
+         ParseNerfTransforms(R"({"frames": [{"file_path": "a", "transform_matrix": [[1,0]]}]})",
+                             "transforms.json");
+       },
+       "transform_matrix"},
+      {"nerf k4",
+       [] {
          NerfIntrinsics intrinsics;
          intrinsics.fl_x = 10;
          intrinsics.distortion["k4"] = 0.1;
          CameraFromNerf(intrinsics, Eigen::Matrix4d::Identity(), 8, 8, "t");
-       }, "k4"},
-      {"panoptic", [] { ParsePanopticCalibration(R"({"cameras": [{"name": "a", "K": [[1]], "R": [], "t": []}]})", "calibration_x.json"); }, "K must be"},
-      {"skew", [] {
+       },
+       "k4"},
+      {"panoptic",
+       [] {
+         ParsePanopticCalibration(R"({"cameras": [{"name": "a", "K": [[1]], "R": [], "t": []}]})",
+                                  "calibration_x.json");
+       },
+       "K must be"},
+      {"skew",
+       [] {
          KrtCamera camera;
          camera.K << 100, 1, 5, 0, 100, 5, 0, 0, 1;
          camera.width = camera.height = 10;
          CameraFromKrt(camera, Pose::Identity());
-       }, "skew"},
+       },
+       "skew"},
   };
   for (const auto& test : cases) {
     try {
       test.parse();
       ADD_FAILURE() << test.what << ": accepted";
     } catch (const Error& e) {
-      EXPECT_NE(std::string(e.what()).find(test.expected), std::string::npos) << test.what << ": " << e.what();
-      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos) << test.what << ": " << e.what();
+      EXPECT_NE(std::string(e.what()).find(test.expected), std::string::npos)
+          << test.what << ": " << e.what();
+      EXPECT_EQ(std::string(e.what()).find('\n'), std::string::npos)
+          << test.what << ": " << e.what();
     }
   }
 }

@@ -76,7 +76,8 @@ std::vector<float> WarpField(int w) {
 }
 
 CameraModel LookingAtBox(const Eigen::Vector3d& eye, int size = 24, double focal = 30) {
-  return CameraModel::Pinhole(focal, size, size, CamFromWorldLookAt(eye, Eigen::Vector3d(0, 0, 0.5)));
+  return CameraModel::Pinhole(focal, size, size,
+                              CamFromWorldLookAt(eye, Eigen::Vector3d(0, 0, 0.5)));
 }
 
 RayBatch SomeRays(const CameraModel& camera, float near_m = 0.0f) {
@@ -99,21 +100,24 @@ struct Functional {
   double operator()(const MarchOutputs& out) const {
     double sum = 0;
     for (size_t i = 0; i < g_rgb.size(); ++i) sum += static_cast<double>(g_rgb[i]) * out.rgb[i];
-    for (size_t i = 0; i < g_alpha.size(); ++i) sum += static_cast<double>(g_alpha[i]) * out.alpha[i];
+    for (size_t i = 0; i < g_alpha.size(); ++i)
+      sum += static_cast<double>(g_alpha[i]) * out.alpha[i];
     return sum;
   }
 };
 
-double Evaluate(const MarchVolume& volume, const RayBatch& rays, const MarchOptions& options, const Functional& f) {
+double Evaluate(const MarchVolume& volume, const RayBatch& rays, const MarchOptions& options,
+                const Functional& f) {
   MarchOutputs out;
   MarchForward(volume, rays, options, &out);
   return f(out);
 }
 
 // Relative error of analytic against central differences on `count` random entries.
-double WorstRelativeError(std::vector<float>& values, const std::vector<float>& analytic, const MarchVolume& volume,
-                          const RayBatch& rays, const MarchOptions& options, const Functional& f, int count,
-                          float h, uint64_t seed) {
+double WorstRelativeError(std::vector<float>& values, const std::vector<float>& analytic,
+                          const MarchVolume& volume, const RayBatch& rays,
+                          const MarchOptions& options, const Functional& f, int count, float h,
+                          uint64_t seed) {
   std::mt19937_64 rng(seed);
   std::vector<size_t> candidates;
   for (size_t i = 0; i < analytic.size(); ++i) {
@@ -122,7 +126,8 @@ double WorstRelativeError(std::vector<float>& values, const std::vector<float>& 
   EXPECT_GT(candidates.size(), static_cast<size_t>(count)) << "too few entries carry gradient";
   double worst = 0;
   for (int k = 0; k < count && !candidates.empty(); ++k) {
-    const size_t i = candidates[std::uniform_int_distribution<size_t>(0, candidates.size() - 1)(rng)];
+    const size_t i =
+        candidates[std::uniform_int_distribution<size_t>(0, candidates.size() - 1)(rng)];
     const float saved = values[i];
     values[i] = saved + h;
     const double plus = Evaluate(volume, rays, options, f);
@@ -161,7 +166,8 @@ TEST(RayMarchTest, WarpGradientMatchesFiniteDifferences) {
   options.step_m = 0.05f;
   const Functional f(rays.size(), 4);
   std::vector<float> grad_grid(grid.size(), 0.0f), grad_warp(warp.size(), 0.0f);
-  MarchBackward(volume, rays, options, f.g_rgb.data(), f.g_alpha.data(), grad_grid.data(), grad_warp.data());
+  MarchBackward(volume, rays, options, f.g_rgb.data(), f.g_alpha.data(), grad_grid.data(),
+                grad_warp.data());
   EXPECT_LT(WorstRelativeError(grid, grad_grid, volume, rays, options, f, 30, 1e-2f, 6), 2e-2);
   EXPECT_LT(WorstRelativeError(warp, grad_warp, volume, rays, options, f, 30, 1e-3f, 7), 2e-2)
       << "analytic warp gradient disagrees with central differences";
@@ -201,7 +207,8 @@ TEST(RayMarchTest, DensityOfAMillionStaysFiniteAndOpaque) {
   MarchBackward(volume, rays, options, f.g_rgb.data(), f.g_alpha.data(), grad.data(), nullptr);
   int64_t hits = 0;
   for (int64_t r = 0; r < rays.size(); ++r) {
-    ASSERT_TRUE(std::isfinite(out.alpha[r]) && std::isfinite(out.rgb[3 * r]) && std::isfinite(out.depth[r]));
+    ASSERT_TRUE(std::isfinite(out.alpha[r]) && std::isfinite(out.rgb[3 * r]) &&
+                std::isfinite(out.depth[r]));
     if (rays.t_far[r] <= rays.t_near[r]) continue;
     // The first sample inside already absorbs everything. The grid is zero-padded, so that
     // sample's colour is the voxels' scaled by its interpolation weight: the ratios hold.
@@ -235,7 +242,7 @@ TEST(RayMarchTest, EmptyVolumeIsTransparentWithZeroGradientOnColour) {
   MarchBackward(volume, rays, options, f.g_rgb.data(), f.g_alpha.data(), grad.data(), nullptr);
   double colour = 0, density = 0;
   for (size_t i = 0; i < grad.size(); ++i) (i % 4 == 3 ? density : colour) += std::abs(grad[i]);
-  EXPECT_EQ(colour, 0.0);  // no light is absorbed, so colour cannot matter
+  EXPECT_EQ(colour, 0.0);   // no light is absorbed, so colour cannot matter
   EXPECT_GT(density, 0.0);  // but adding density would change the image
 }
 
@@ -243,7 +250,8 @@ TEST(RayMarchTest, CameraInsideTheVolumeStartsAtItsCentre) {
   const int d = 8;
   std::vector<float> grid = BlobGrid(d, 4.0f, 13);
   MarchVolume volume{kBoxMin, kBoxMax, grid.data(), d};
-  const CameraModel camera = CameraModel::Pinhole(10, 16, 16, CamFromWorldLookAt({0.1, 0.1, 0.5}, {1, 0.2, 0.5}));
+  const CameraModel camera =
+      CameraModel::Pinhole(10, 16, 16, CamFromWorldLookAt({0.1, 0.1, 0.5}, {1, 0.2, 0.5}));
   const RayBatch rays = SomeRays(camera);
   for (int64_t r = 0; r < rays.size(); ++r) {
     EXPECT_FLOAT_EQ(rays.t_near[r], 0.0f);  // clipped to the camera centre, not behind it
@@ -270,7 +278,8 @@ TEST(RayMarchTest, FarAwayCameraSeesTheVolumeAsFromNearby) {
   const Eigen::Vector3d direction = Eigen::Vector3d(1, 0.2, 0.1).normalized();
   MarchOutputs near_out, far_out;
   for (double distance : {3.0, 3000.0}) {
-    const CameraModel camera = LookingAtBox(Eigen::Vector3d(0, 0, 0.5) + distance * direction, 2, 1e3 * distance);
+    const CameraModel camera =
+        LookingAtBox(Eigen::Vector3d(0, 0, 0.5) + distance * direction, 2, 1e3 * distance);
     Eigen::Matrix2Xd pixel(2, 1);
     pixel << 0.5, 0.5;
     RayBatch rays = CameraRays(camera, pixel, kBoxMin, kBoxMax);
@@ -311,7 +320,8 @@ TEST(RayMarchTest, SkippingChangesNoPixelAndSavesSamples) {
   const int d = 16;
   std::vector<float> grid = BlobGrid(d, 30.0f, 16);
   // Empty outside a ball: the noise floor removed where the blob is faint.
-  for (size_t i = 3; i < grid.size(); i += 4) if (grid[i] < 15.0f) grid[i] = 0.0f;
+  for (size_t i = 3; i < grid.size(); i += 4)
+    if (grid[i] < 15.0f) grid[i] = 0.0f;
   MarchVolume volume{kBoxMin, kBoxMax, grid.data(), d};
   OccupancyGrid occupancy = OccupancyFromVolume(volume, 8, 0.0f);
   occupancy.Dilate(1);
@@ -341,7 +351,8 @@ TEST(RayMarchTest, SkippingChangesNoPixelAndSavesSamples) {
 TEST(RayMarchTest, PlaybackMarchMatchesTheTrainingMarcher) {
   const int d = 16;
   std::vector<float> grid = BlobGrid(d, 30.0f, 21);
-  for (size_t i = 3; i < grid.size(); i += 4) if (grid[i] < 12.0f) grid[i] = 0.0f;
+  for (size_t i = 3; i < grid.size(); i += 4)
+    if (grid[i] < 12.0f) grid[i] = 0.0f;
   std::vector<float> warp = WarpField(8);
   for (bool with_warp : {false, true}) {
     MarchVolume volume{kBoxMin, kBoxMax, grid.data(), d};
@@ -357,8 +368,8 @@ TEST(RayMarchTest, PlaybackMarchMatchesTheTrainingMarcher) {
     const RayBatch rays = SomeRays(LookingAtBox({2.0, -1.0, 1.3}, 40, 45));
     for (bool evaluate_empty : {false, true}) {
       for (float min_transmittance : {0.0f, 1e-3f}) {
-        SCOPED_TRACE(testing::Message() << "warp " << with_warp << ", evaluate empty " << evaluate_empty
-                                        << ", min T " << min_transmittance);
+        SCOPED_TRACE(testing::Message() << "warp " << with_warp << ", evaluate empty "
+                                        << evaluate_empty << ", min T " << min_transmittance);
         MarchOptions options;
         options.step_m = 0.7f / d;
         options.evaluate_empty_cells = evaluate_empty;
@@ -371,7 +382,9 @@ TEST(RayMarchTest, PlaybackMarchMatchesTheTrainingMarcher) {
         for (int64_t r = 0; r < rays.size(); ++r) {
           differing_counts += training.samples[r] != playback.samples[r];
           worst = std::max<double>(worst, std::abs(training.alpha[r] - playback.alpha[r]));
-          for (int c = 0; c < 3; ++c) worst = std::max<double>(worst, std::abs(training.rgb[3 * r + c] - playback.rgb[3 * r + c]));
+          for (int c = 0; c < 3; ++c)
+            worst = std::max<double>(worst,
+                                     std::abs(training.rgb[3 * r + c] - playback.rgb[3 * r + c]));
           worst = std::max<double>(worst, std::abs(training.depth[r] - playback.depth[r]));
         }
         EXPECT_EQ(differing_counts, 0);
@@ -399,7 +412,8 @@ TEST(RayMarchTest, BakedVolumeRendersLikeTheWarpedTemplate) {
   ASSERT_EQ(baked.grid, d);
   ASSERT_EQ(baked.rgba.size(), smooth.size());
   // At a baked voxel centre the baked value is the warped template's.
-  for (const auto& [x, y, z] : {std::array<int, 3>{3, 7, 11}, std::array<int, 3>{12, 12, 12}, std::array<int, 3>{20, 1, 17}}) {
+  for (const auto& [x, y, z] : {std::array<int, 3>{3, 7, 11}, std::array<int, 3>{12, 12, 12},
+                                std::array<int, 3>{20, 1, 17}}) {
     RayBatch ray;
     ray.Resize(1);
     const Eigen::Vector3f u((x + 0.5f) / d, (y + 0.5f) / d, (z + 0.5f) / d);
@@ -420,7 +434,8 @@ TEST(RayMarchTest, BakedVolumeRendersLikeTheWarpedTemplate) {
     EXPECT_NEAR(from_baked.alpha[0], 1.0f - std::exp(-sigma), 1e-5);
     EXPECT_NEAR(direct.alpha[0], from_baked.alpha[0], 1e-5);
   }
-  const RayBatch rays = CameraRaysAllPixels(LookingAtBox({1.8, -1.2, 1.2}, 64, 70), kBoxMin, kBoxMax);
+  const RayBatch rays =
+      CameraRaysAllPixels(LookingAtBox({1.8, -1.2, 1.2}, 64, 70), kBoxMin, kBoxMax);
   MarchOptions options;
   options.step_m = 1.0f / d;
   options.min_transmittance = 1e-3f;
@@ -435,7 +450,8 @@ TEST(RayMarchTest, BakedVolumeRendersLikeTheWarpedTemplate) {
     for (int64_t r = 0; r < rays.size(); ++r) {
       if (direct.alpha[r] < 1.0f / 255 && from_baked.alpha[r] < 1.0f / 255) continue;
       ++covered;
-      for (int c = 0; c < 3; ++c) squared += std::pow(direct.rgb[3 * r + c] - from_baked.rgb[3 * r + c], 2);
+      for (int c = 0; c < 3; ++c)
+        squared += std::pow(direct.rgb[3 * r + c] - from_baked.rgb[3 * r + c], 2);
       squared += std::pow(direct.alpha[r] - from_baked.alpha[r], 2);
     }
     EXPECT_GT(covered, rays.size() / 5);  // the blob fills a good part of the view
@@ -448,8 +464,9 @@ TEST(RayMarchTest, BakedVolumeRendersLikeTheWarpedTemplate) {
   MarchVolume rough = volume;
   rough.rgba = noisy.data();
   EXPECT_GT(psnr_db(rough, d), 40.0);
-  std::printf("baked against warp + template: smooth %.1f dB (1.5x: %.1f dB), voxel noise %.1f dB\n", at_grid, finer,
-              psnr_db(rough, d));
+  std::printf(
+      "baked against warp + template: smooth %.1f dB (1.5x: %.1f dB), voxel noise %.1f dB\n",
+      at_grid, finer, psnr_db(rough, d));
   // Without a warp, baking at the grid's own resolution is a copy.
   MarchVolume plain{kBoxMin, kBoxMax, noisy.data(), d};
   EXPECT_EQ(BakeVolume(plain, d).rgba, noisy);
@@ -458,14 +475,16 @@ TEST(RayMarchTest, BakedVolumeRendersLikeTheWarpedTemplate) {
 TEST(RayMarchTest, DistortedLensRaysReprojectToTheirPixels) {
   // Rays go through the mrcal model, distortion included: a point along each ray projects
   // back to the pixel it came from.
-  const CameraModel camera("LENSMODEL_OPENCV8", {300, 300, 63.5, 47.5, -0.3, 0.1, 0.001, -0.001, 0.02, 0, 0, 0},
-                           128, 96, CamFromWorldLookAt({2.5, 0.3, 0.8}, {0, 0, 0.5}));
+  const CameraModel camera("LENSMODEL_OPENCV8",
+                           {300, 300, 63.5, 47.5, -0.3, 0.1, 0.001, -0.001, 0.02, 0, 0, 0}, 128, 96,
+                           CamFromWorldLookAt({2.5, 0.3, 0.8}, {0, 0, 0.5}));
   Eigen::Matrix2Xd pixels(2, 4);
   pixels << 0, 127, 5, 64, 0, 95, 90, 40;
   const RayBatch rays = CameraRays(camera, pixels, kBoxMin, kBoxMax);
   for (int i = 0; i < 4; ++i) {
     const Eigen::Vector3d o(rays.origin[3 * i], rays.origin[3 * i + 1], rays.origin[3 * i + 2]);
-    const Eigen::Vector3d dir(rays.direction[3 * i], rays.direction[3 * i + 1], rays.direction[3 * i + 2]);
+    const Eigen::Vector3d dir(rays.direction[3 * i], rays.direction[3 * i + 1],
+                              rays.direction[3 * i + 2]);
     Eigen::Vector2d back;
     ASSERT_TRUE(camera.ProjectWorld(o + 2.0 * dir, &back));
     EXPECT_LT((back - pixels.col(i)).norm(), 2e-3);

@@ -6,11 +6,11 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
-#include <limits>
-#include <set>
 #include <iostream>
+#include <limits>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
+#include <set>
 
 #include "core/camera.h"
 #include "core/error.h"
@@ -35,7 +35,8 @@ int CountMismatch(const cv::Mat& a, const cv::Mat& b) {
 TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
   const Sphere sphere;
   const Mesh mesh = testing::SphereMesh(sphere, 64, 128);
-  for (const CameraModel& camera : testing::RingCameras(4, sphere, 1.4, 160, 120, /*distorted=*/true)) {
+  for (const CameraModel& camera :
+       testing::RingCameras(4, sphere, 1.4, 160, 120, /*distorted=*/true)) {
     const GBuffer buffers = RasteriseMesh(mesh, camera);
     cv::Mat depth, mask;
     testing::RenderSphere(camera, sphere, &depth, &mask);
@@ -55,7 +56,8 @@ TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
         const Eigen::Vector3d point = ray * (depth.at<float>(y, x) / ray.z());
         const Eigen::Vector3d truth = (point - centre_in_cam).normalized();
         const cv::Vec3f p = buffers.position.at<cv::Vec3f>(y, x);
-        position_error += (camera.cam_from_world().inverse() * point - Eigen::Vector3d(p[0], p[1], p[2])).norm();
+        position_error +=
+            (camera.cam_from_world().inverse() * point - Eigen::Vector3d(p[0], p[1], p[2])).norm();
         const cv::Vec3f n = buffers.normal.at<cv::Vec3f>(y, x);
         const double cosine = std::clamp(truth.dot(Eigen::Vector3d(n[0], n[1], n[2])), -1.0, 1.0);
         normal_error_deg += std::acos(cosine) * 180 / M_PI;
@@ -74,13 +76,17 @@ TEST(RerenderRaster, SphereMatchesRayCastingThroughDistortedLenses) {
 // A slanted wall filling most of a real wide lens's view: its straight edges and its depth
 // bend in the image, so big triangles must be split.
 TEST(RerenderRaster, WideLensNeedsSplitTriangles) {
-  CameraModel camera = CameraModel::Read(testing::TestDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel").Scaled(0.1);
+  CameraModel camera =
+      CameraModel::Read(testing::TestDataDir() / "lenses" / "wide-4000x2200.opencv8.cameramodel")
+          .Scaled(0.1);
   camera.set_cam_from_world(Pose::Identity());
   // The plane z = 2.2 + 0.6 x (camera coordinates): depth along a ray of direction d.
   auto plane_depth = [](const Eigen::Vector3d& d) { return 2.2 * d.z() / (d.z() - 0.6 * d.x()); };
   Mesh wall;
-  for (const auto& [u, v] : {std::pair{0.1, 0.1}, std::pair{0.9, 0.1}, std::pair{0.9, 0.9}, std::pair{0.1, 0.9}}) {
-    const Eigen::Vector3d ray = camera.Unproject(Eigen::Vector2d(u * camera.width(), v * camera.height()));
+  for (const auto& [u, v] :
+       {std::pair{0.1, 0.1}, std::pair{0.9, 0.1}, std::pair{0.9, 0.9}, std::pair{0.1, 0.9}}) {
+    const Eigen::Vector3d ray =
+        camera.Unproject(Eigen::Vector2d(u * camera.width(), v * camera.height()));
     wall.vertices.push_back((ray * (plane_depth(ray) / ray.z())).cast<float>());
   }
   wall.faces = {{0, 1, 2}, {0, 2, 3}};
@@ -89,7 +95,9 @@ TEST(RerenderRaster, WideLensNeedsSplitTriangles) {
     for (int y = 0; y < buffers.depth.rows; ++y) {
       for (int x = 0; x < buffers.depth.cols; ++x) {
         const float z = buffers.depth.at<float>(y, x);
-        if (std::isfinite(z)) worst = std::max(worst, std::abs(z - plane_depth(camera.Unproject(Eigen::Vector2d(x, y)))));
+        if (std::isfinite(z))
+          worst =
+              std::max(worst, std::abs(z - plane_depth(camera.Unproject(Eigen::Vector2d(x, y)))));
       }
     }
     return worst;
@@ -101,8 +109,8 @@ TEST(RerenderRaster, WideLensNeedsSplitTriangles) {
   EXPECT_EQ(split.triangles_split, 2);
   EXPECT_GT(split.triangles_drawn, 100);
   EXPECT_EQ(unsplit.triangles_drawn, 2);
-  std::cout << "wide lens wall: worst depth error " << worst_depth_error(split) * 1e3 << " mm split, "
-            << worst_depth_error(unsplit) * 1e3 << " mm unsplit\n";
+  std::cout << "wide lens wall: worst depth error " << worst_depth_error(split) * 1e3
+            << " mm split, " << worst_depth_error(unsplit) * 1e3 << " mm unsplit\n";
   EXPECT_LT(worst_depth_error(split), 0.01);
   EXPECT_GT(worst_depth_error(unsplit), 3 * worst_depth_error(split));
 }
@@ -110,8 +118,10 @@ TEST(RerenderRaster, WideLensNeedsSplitTriangles) {
 TEST(RerenderRaster, CameraLookingAwaySeesNothing) {
   const Sphere sphere;
   const Mesh mesh = testing::SphereMesh(sphere, 16, 32);
-  const CameraModel camera = CameraModel::Pinhole(
-      80, 96, 64, CamFromWorldLookAt(sphere.centre + Eigen::Vector3d(2, 0, 0), sphere.centre + Eigen::Vector3d(4, 0, 0)));
+  const CameraModel camera =
+      CameraModel::Pinhole(80, 96, 64,
+                           CamFromWorldLookAt(sphere.centre + Eigen::Vector3d(2, 0, 0),
+                                              sphere.centre + Eigen::Vector3d(4, 0, 0)));
   const GBuffer buffers = RasteriseMesh(mesh, camera);
   EXPECT_EQ(buffers.triangles_drawn, 0);
   EXPECT_EQ(cv::countNonZero(buffers.mask), 0);
@@ -192,7 +202,8 @@ TEST(RerenderRaster, RejectsBadInput) {
 TEST(RerenderNet, StartsAsTheRawRender) {
   const Sphere sphere;
   Mesh mesh = testing::SphereMesh(sphere, 32, 64);
-  for (size_t i = 0; i < mesh.vertices.size(); ++i) mesh.colors.push_back({static_cast<uint8_t>(i % 200 + 20), 90, 160});
+  for (size_t i = 0; i < mesh.vertices.size(); ++i)
+    mesh.colors.push_back({static_cast<uint8_t>(i % 200 + 20), 90, 160});
   const CameraModel camera = testing::RingCameras(1, sphere, 1.4, 100, 70, false)[0];
   const GBuffer buffers = RasteriseMesh(mesh, camera);
   const RerenderNetwork network(UNetConfig{.width = 8, .depth = 3}, 3);
@@ -210,7 +221,8 @@ TEST(RerenderNet, StartsAsTheRawRender) {
       }
       EXPECT_GT(view.alpha.at<float>(y, x), 0.99f);
       const cv::Vec3f d = straight.at<cv::Vec3f>(y, x) - raw.at<cv::Vec3f>(y, x);
-      worst = std::max({worst, std::abs<double>(d[0]), std::abs<double>(d[1]), std::abs<double>(d[2])});
+      worst =
+          std::max({worst, std::abs<double>(d[0]), std::abs<double>(d[1]), std::abs<double>(d[2])});
     }
   }
   EXPECT_LT(worst, 0.021);  // colours are clamped to [0.02, 0.98] before the logit
@@ -223,8 +235,10 @@ TEST(RerenderNet, StartsAsTheSupersampledRawRenderAtPartlyCoveredEdges) {
   Mesh mesh = testing::SphereMesh(sphere, 32, 64);
   mesh.colors.assign(mesh.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(200, 90, 40));
   const CameraModel camera = testing::RingCameras(1, sphere, 1.4, 100, 70, false)[0];
-  const GBuffer buffers = RasteriseMesh(mesh, camera, RasterOptions{.supersample = 4, .threads = 1});
-  const RenderedView view = RerenderNetwork(UNetConfig{.width = 8, .depth = 3}, 3).Apply(buffers, 1);
+  const GBuffer buffers =
+      RasteriseMesh(mesh, camera, RasterOptions{.supersample = 4, .threads = 1});
+  const RenderedView view =
+      RerenderNetwork(UNetConfig{.width = 8, .depth = 3}, 3).Apply(buffers, 1);
   const cv::Mat background(buffers.color.size(), CV_32FC3, cv::Scalar(0.1, 0.8, 0.5));
   const cv::Mat raw = CompositeRawRender(buffers, background);
   int partial = 0;
@@ -235,9 +249,11 @@ TEST(RerenderNet, StartsAsTheSupersampledRawRenderAtPartlyCoveredEdges) {
       const float a = view.alpha.at<float>(y, x);
       if (m > 0 && m < 255) ++partial;
       EXPECT_NEAR(a, std::clamp(m / 255.0, 0.0025, 0.9975), 1e-3) << x << "," << y;
-      const cv::Vec3f composited = view.color.at<cv::Vec3f>(y, x) + (1 - a) * background.at<cv::Vec3f>(y, x);
+      const cv::Vec3f composited =
+          view.color.at<cv::Vec3f>(y, x) + (1 - a) * background.at<cv::Vec3f>(y, x);
       const cv::Vec3f d = composited - raw.at<cv::Vec3f>(y, x);
-      worst = std::max({worst, std::abs<double>(d[0]), std::abs<double>(d[1]), std::abs<double>(d[2])});
+      worst =
+          std::max({worst, std::abs<double>(d[0]), std::abs<double>(d[1]), std::abs<double>(d[2])});
     }
   }
   EXPECT_GT(partial, 50);   // the sphere's outline
@@ -254,7 +270,8 @@ TEST(RerenderNet, HolesAndNanBuffersGiveFiniteOutput) {
   buffers.depth(cv::Rect(40, 20, 10, 10)).setTo(nan);
   buffers.depth(cv::Rect(30, 30, 6, 6)).setTo(nan);  // covered, but no depth
   buffers.color(cv::Rect(50, 30, 4, 4)).setTo(cv::Scalar::all(nan));
-  buffers.normal(cv::Rect(50, 30, 4, 4)).setTo(cv::Scalar::all(std::numeric_limits<float>::infinity()));
+  buffers.normal(cv::Rect(50, 30, 4, 4))
+      .setTo(cv::Scalar::all(std::numeric_limits<float>::infinity()));
   const RenderedView view = RerenderNetwork(UNetConfig{.width = 8, .depth = 2}, 5).Apply(buffers);
   EXPECT_TRUE(cv::checkRange(view.color));
   EXPECT_TRUE(cv::checkRange(view.alpha));
@@ -311,21 +328,28 @@ TEST(RerenderOptions, ChecksExplainBadValues) {
 TEST(RerenderCli, TrainsAndRendersATinyTake) {
   testing::TempDir dir("rerender-cli");
   const auto take = dir / "take";
-  auto sim = testing::RunCli("sim --rig studio8 --frames 4 --clean-plate 1 --size 128 --no-noise --out " + take.string());
+  auto sim = testing::RunCli(
+      "sim --rig studio8 --frames 4 --clean-plate 1 --size 128 --no-noise --out " + take.string());
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   const auto model = dir / "model";
-  auto too_many = testing::RunCli("train rerender " + take.string() + " --out " + model.string() + " --witness 6");
+  auto too_many = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
+                                  " --witness 6");
   EXPECT_NE(too_many.exit_code, 0);
   EXPECT_NE(too_many.output.find("for the reconstruction"), std::string::npos) << too_many.output;
-  auto bad_bounds = testing::RunCli("train rerender " + take.string() + " --out " + model.string() + " --recon-bounds 1,2,3");
+  auto bad_bounds = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
+                                    " --recon-bounds 1,2,3");
   EXPECT_NE(bad_bounds.exit_code, 0);
-  EXPECT_NE(bad_bounds.output.find("--recon-bounds must be six numbers"), std::string::npos) << bad_bounds.output;
-  auto bad_method = testing::RunCli("train rerender " + take.string() + " --out " + model.string() + " --recon-method sculpt");
+  EXPECT_NE(bad_bounds.output.find("--recon-bounds must be six numbers"), std::string::npos)
+      << bad_bounds.output;
+  auto bad_method = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
+                                    " --recon-method sculpt");
   EXPECT_NE(bad_method.exit_code, 0);
   EXPECT_NE(bad_method.output.find("sculpt"), std::string::npos) << bad_method.output;
 
-  auto train = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                               " --witness-folds 1 --iterations 60 --width 64 --crop 0 --unet-width 8 --unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
+  auto train =
+      testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
+                      " --witness-folds 1 --iterations 60 --width 64 --crop 0 --unet-width 8 "
+                      "--unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   std::ifstream file(model / "report.json");
   const nlohmann::json report = nlohmann::json::parse(file);
@@ -359,15 +383,20 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
     }
   }
   const auto nothing = dir / "nothing";
-  auto degenerate = testing::RunCli("train rerender " + take.string() + " --out " + nothing.string() + " --recon " +
-                                    empty.string() + " --witness-folds 1 --iterations 10 --width 64 --crop 0 --unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
+  auto degenerate = testing::RunCli("train rerender " + take.string() + " --out " +
+                                    nothing.string() + " --recon " + empty.string() +
+                                    " --witness-folds 1 --iterations 10 --width 64 --crop 0 "
+                                    "--unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
   EXPECT_NE(degenerate.exit_code, 0);
   EXPECT_NE(degenerate.output.find("DEGENERATE"), std::string::npos) << degenerate.output;
-  EXPECT_NE(degenerate.output.find("no more of the subject than the background alone"), std::string::npos) << degenerate.output;
+  EXPECT_NE(degenerate.output.find("no more of the subject than the background alone"),
+            std::string::npos)
+      << degenerate.output;
   EXPECT_TRUE(std::filesystem::exists(nothing / "report.json")) << degenerate.output;
 
   const auto frames = dir / "frames";
-  auto render = testing::RunCli("render " + take.string() + " --model " + model.string() + " --views 3 --size 64 --no-exr --out " + frames.string());
+  auto render = testing::RunCli("render " + take.string() + " --model " + model.string() +
+                                " --views 3 --size 64 --no-exr --out " + frames.string());
   ASSERT_EQ(render.exit_code, 0) << render.output;
   EXPECT_TRUE(std::filesystem::exists(frames / "000002.png")) << render.output;
   const cv::Mat first = ReadImage(frames / "000000.png");
@@ -381,22 +410,28 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
 TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   testing::TempDir dir("rerender-folds");
   const auto take = dir / "take";
-  auto sim = testing::RunCli("sim --rig studio8 --frames 3 --clean-plate 1 --size 96 --no-noise --out " + take.string());
+  auto sim = testing::RunCli(
+      "sim --rig studio8 --frames 3 --clean-plate 1 --size 96 --no-noise --out " + take.string());
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   const auto model = dir / "model";
-  auto no_trainer = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                                    " --witness 1 --witness-folds 1 --validation-witnesses 1 --iterations 1");
+  auto no_trainer =
+      testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
+                      " --witness 1 --witness-folds 1 --validation-witnesses 1 --iterations 1");
   EXPECT_NE(no_trainer.exit_code, 0);
-  EXPECT_NE(no_trainer.output.find("leave no witness to train on"), std::string::npos) << no_trainer.output;
-  auto train = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                               " --heldout 1 --witness-folds 3 --validation-witnesses 1 --supersample 3 --iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
-                               " --recon-voxel 0.016 --eval-every 1000 --threads 1");
+  EXPECT_NE(no_trainer.output.find("leave no witness to train on"), std::string::npos)
+      << no_trainer.output;
+  auto train =
+      testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
+                      " --heldout 1 --witness-folds 3 --validation-witnesses 1 --supersample 3 "
+                      "--iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+                      " --recon-voxel 0.016 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   const nlohmann::json report = nlohmann::json::parse(std::ifstream(model / "report.json"));
   const auto& plan = report.at("plan");
   ASSERT_TRUE(plan.contains("folds")) << plan.dump();
   const auto& folds = plan.at("folds");
-  ASSERT_EQ(folds.size(), 3u);  // cam0 held out; {cam1, cam5}, then two of cam3, cam4, cam7, then the last
+  ASSERT_EQ(folds.size(),
+            3u);  // cam0 held out; {cam1, cam5}, then two of cam3, cam4, cam7, then the last
   const std::string heldout = plan.at("heldout").at(0);
   std::set<std::string> all_witnesses;
   size_t witnesses = 0;
@@ -405,11 +440,13 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
     ASSERT_TRUE(std::filesystem::exists(recon / "report.json")) << recon;
     const nlohmann::json built = nlohmann::json::parse(std::ifstream(recon / "report.json"));
     std::set<std::string> used;
-    for (const auto& name : built.at("plan").at("color_sensors")) used.insert(name.get<std::string>());
+    for (const auto& name : built.at("plan").at("color_sensors"))
+      used.insert(name.get<std::string>());
     EXPECT_EQ(used.count(heldout), 0u) << "fold " << k;
     EXPECT_GE(used.size(), 2u);
     for (const auto& w : folds[k].at("witness")) {
-      EXPECT_EQ(used.count(w.get<std::string>()), 0u) << "fold " << k << " reconstruction used its witness " << w;
+      EXPECT_EQ(used.count(w.get<std::string>()), 0u)
+          << "fold " << k << " reconstruction used its witness " << w;
       EXPECT_NE(w.get<std::string>(), heldout);
       all_witnesses.insert(w.get<std::string>());
       ++witnesses;
@@ -427,30 +464,39 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   const auto& metrics = report.at("metrics");
   const int kept = metrics.at("kept_iteration").get<int>();
   EXPECT_TRUE(kept == 0 || kept == 10) << kept;
-  EXPECT_GT(metrics.at("validation_psnr_db").get<double>(), metrics.at("validation_raw_psnr_db").get<double>() - 0.1);
+  EXPECT_GT(metrics.at("validation_psnr_db").get<double>(),
+            metrics.at("validation_raw_psnr_db").get<double>() - 0.1);
   // More folds than cameras to spare: as many as there are, and the plan says so.
   const auto fewer = dir / "fewer";
-  auto again = testing::RunCli("train rerender " + take.string() + " --out " + fewer.string() +
-                               " --heldout 1 --witness-folds 5 --recon " + (model / "recon").string() +
-                               " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
-                               " --recon-voxel 0.016 --eval-every 1000 --threads 1");
+  auto again =
+      testing::RunCli("train rerender " + take.string() + " --out " + fewer.string() +
+                      " --heldout 1 --witness-folds 5 --recon " + (model / "recon").string() +
+                      " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+                      " --recon-voxel 0.016 --eval-every 1000 --threads 1");
   ASSERT_EQ(again.exit_code, 0) << again.output;
   const nlohmann::json fewer_report = nlohmann::json::parse(std::ifstream(fewer / "report.json"));
   EXPECT_EQ(fewer_report.at("plan").at("folds").size(), 3u);
-  EXPECT_NE(fewer_report.at("plan").at("witness_folds").get<std::string>().find("5 asked, 3 possible"), std::string::npos)
+  EXPECT_NE(
+      fewer_report.at("plan").at("witness_folds").get<std::string>().find("5 asked, 3 possible"),
+      std::string::npos)
       << fewer_report.at("plan").dump();
   // By default a fifth of the witnesses validate, at least one once there are three.
   const size_t fewer_witnesses = fewer_report.at("plan").at("witness").size();
   ASSERT_GE(fewer_witnesses, 3u);
-  EXPECT_EQ(fewer_report.at("plan").at("validation").size(), std::max<size_t>(1, fewer_witnesses / 5)) << fewer_report.at("plan").dump();
+  EXPECT_EQ(fewer_report.at("plan").at("validation").size(),
+            std::max<size_t>(1, fewer_witnesses / 5))
+      << fewer_report.at("plan").dump();
   // Playback uses the first fold's reconstruction.
   const nlohmann::json model_json = nlohmann::json::parse(std::ifstream(model / "model.json"));
-  EXPECT_EQ(model_json.at("meshes").at(0).get<std::string>().rfind("recon/", 0), 0u) << model_json.at("meshes").dump();
+  EXPECT_EQ(model_json.at("meshes").at(0).get<std::string>().rfind("recon/", 0), 0u)
+      << model_json.at("meshes").dump();
   // The model keeps its raster sampling, and playback rasterises alike.
   EXPECT_EQ(model_json.at("supersample").get<int>(), 3);
-  EXPECT_EQ(report.at("plan").at("raster_samples").get<std::string>().rfind("3x3 per pixel", 0), 0u) << report.at("plan").dump();
+  EXPECT_EQ(report.at("plan").at("raster_samples").get<std::string>().rfind("3x3 per pixel", 0), 0u)
+      << report.at("plan").dump();
   const auto frames = dir / "frames";
-  auto render = testing::RunCli("render " + take.string() + " --model " + model.string() + " --views 1 --size 48 --no-exr --out " + frames.string());
+  auto render = testing::RunCli("render " + take.string() + " --model " + model.string() +
+                                " --views 1 --size 48 --no-exr --out " + frames.string());
   ASSERT_EQ(render.exit_code, 0) << render.output;
   EXPECT_TRUE(std::filesystem::exists(frames / "000000.png")) << render.output;
 
@@ -463,25 +509,31 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   };
   const auto named = dir / "named";
   // The first fold's reconstruction saw the second fold's witnesses: refused for that fold.
-  auto leaked = testing::RunCli("train rerender " + take.string() + " --out " + named.string() +
-                                " --heldout-names " + heldout + " --witness-names " + names(folds[0].at("witness")) +
-                                " --fold-witnesses " + names(folds[1].at("witness")) + " --recon " + (model / "recon").string() +
-                                " --fold-recon " + (model / "recon").string() + " --iterations 1 --width 48 --threads 1");
+  auto leaked = testing::RunCli(
+      "train rerender " + take.string() + " --out " + named.string() + " --heldout-names " +
+      heldout + " --witness-names " + names(folds[0].at("witness")) + " --fold-witnesses " +
+      names(folds[1].at("witness")) + " --recon " + (model / "recon").string() + " --fold-recon " +
+      (model / "recon").string() + " --iterations 1 --width 48 --threads 1");
   EXPECT_NE(leaked.exit_code, 0);
   EXPECT_NE(leaked.output.find("was built with camera"), std::string::npos) << leaked.output;
-  auto by_name = testing::RunCli("train rerender " + take.string() + " --out " + named.string() +
-                                 " --heldout-names " + heldout + " --witness-names " + names(folds[0].at("witness")) +
-                                 " --fold-witnesses " + names(folds[1].at("witness")) + " --recon " + (model / "recon").string() +
-                                 " --fold-recon " + (model / "recon-1").string() + " --witness-scales 1,0.5 --validation-witnesses 1"
-                                 " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
+  auto by_name = testing::RunCli(
+      "train rerender " + take.string() + " --out " + named.string() + " --heldout-names " +
+      heldout + " --witness-names " + names(folds[0].at("witness")) + " --fold-witnesses " +
+      names(folds[1].at("witness")) + " --recon " + (model / "recon").string() + " --fold-recon " +
+      (model / "recon-1").string() +
+      " --witness-scales 1,0.5 --validation-witnesses 1"
+      " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3 --eval-every 1000 "
+      "--threads 1");
   ASSERT_EQ(by_name.exit_code, 0) << by_name.output;
-  const nlohmann::json named_plan = nlohmann::json::parse(std::ifstream(named / "report.json")).at("plan");
+  const nlohmann::json named_plan =
+      nlohmann::json::parse(std::ifstream(named / "report.json")).at("plan");
   ASSERT_EQ(named_plan.at("folds").size(), 2u) << named_plan.dump();
   EXPECT_EQ(named_plan.at("folds").at(1).at("witness"), folds[1].at("witness"));
   EXPECT_EQ(named_plan.at("validation").at(0), folds[1].at("witness").back());
   EXPECT_EQ(named_plan.at("witness_scales"), nlohmann::json({1.0, 0.5}));
   const size_t named_witnesses = named_plan.at("witness").size();
-  EXPECT_EQ(named_plan.at("trained_views").get<size_t>(), 2 * (named_witnesses - 1)) << named_plan.dump();
+  EXPECT_EQ(named_plan.at("trained_views").get<size_t>(), 2 * (named_witnesses - 1))
+      << named_plan.dump();
 }
 
 }  // namespace

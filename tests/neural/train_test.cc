@@ -24,11 +24,13 @@ class NeuralTrainTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = new TempDir("holocap-nvol");
-    auto dynamic = RunCli("sim --rig studio8 --frames 5 --clean-plate 1 --size 192 --seed 4 --out '" +
-                          (dir_->path() / "walk").string() + "'");
+    auto dynamic =
+        RunCli("sim --rig studio8 --frames 5 --clean-plate 1 --size 192 --seed 4 --out '" +
+               (dir_->path() / "walk").string() + "'");
     ASSERT_EQ(dynamic.exit_code, 0) << dynamic.output;
-    auto still = RunCli("sim --rig studio8 --scene object --frames 2 --clean-plate 1 --size 192 --seed 5 --out '" +
-                        (dir_->path() / "object").string() + "'");
+    auto still = RunCli(
+        "sim --rig studio8 --scene object --frames 2 --clean-plate 1 --size 192 --seed 5 --out '" +
+        (dir_->path() / "object").string() + "'");
     ASSERT_EQ(still.exit_code, 0) << still.output;
   }
   static void TearDownTestSuite() {
@@ -44,7 +46,7 @@ class NeuralTrainTest : public ::testing::Test {
     options.grid = 32;
     options.image_width = 96;
     options.iterations = 500;
-    options.minutes = 0;                  // iterations alone, whatever the host's speed
+    options.minutes = 0;                   // iterations alone, whatever the host's speed
     options.eval_every_iterations = 1000;  // only at the start and the end
     return options;
   }
@@ -79,10 +81,12 @@ TEST_F(NeuralTrainTest, DynamicCiConfigurationLearnsTheSubject) {
   EXPECT_EQ(summary.plan["heldout"].size(), 2u);
   EXPECT_EQ(summary.plan["bounds"]["source"], "hull");
   EXPECT_GT(summary.iterations, 20);
-  std::printf("dynamic CI configuration: %lld iterations, loss %.5f -> %.5f, held-out PSNR %.2f dB whole image, "
-              "%.2f dB subject (background alone %.2f dB)\n",
-              static_cast<long long>(summary.iterations), summary.first_loss, summary.last_loss,
-              summary.heldout_psnr_db, summary.heldout_psnr_fg_db, summary.background_psnr_fg_db);
+  std::printf(
+      "dynamic CI configuration: %lld iterations, loss %.5f -> %.5f, held-out PSNR %.2f dB whole "
+      "image, "
+      "%.2f dB subject (background alone %.2f dB)\n",
+      static_cast<long long>(summary.iterations), summary.first_loss, summary.last_loss,
+      summary.heldout_psnr_db, summary.heldout_psnr_fg_db, summary.background_psnr_fg_db);
   // The loss falls and held-out cameras (never trained on) reach 20 dB where it is hard: inside
   // the subject's silhouette (the whole image, mostly clean-plate background, scores >30 dB
   // with an empty volume). The subject must also beat an empty volume, whose background alone
@@ -92,7 +96,8 @@ TEST_F(NeuralTrainTest, DynamicCiConfigurationLearnsTheSubject) {
   EXPECT_GE(summary.heldout_psnr_db, 20.0);
   EXPECT_GE(summary.heldout_psnr_fg_db, 20.0);
   EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db + 0.5)
-      << "subject " << summary.heldout_psnr_fg_db << " dB vs background alone " << summary.background_psnr_fg_db;
+      << "subject " << summary.heldout_psnr_fg_db << " dB vs background alone "
+      << summary.background_psnr_fg_db;
   const auto json = nlohmann::json::parse(ReadFileToString(model / "report.json"));
   EXPECT_NEAR(json["metrics"]["heldout_psnr_db"].get<double>(), summary.heldout_psnr_db, 1e-9);
   int points = 0;
@@ -121,7 +126,8 @@ TEST_F(NeuralTrainTest, StaticSceneLeavesOutEncoderAndWarp) {
   EXPECT_LT(summary.last_loss, 0.2 * summary.first_loss);
   EXPECT_GE(summary.heldout_psnr_db, 25.0);
   EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db + 1.0)
-      << "subject " << summary.heldout_psnr_fg_db << " dB vs background alone " << summary.background_psnr_fg_db;
+      << "subject " << summary.heldout_psnr_fg_db << " dB vs background alone "
+      << summary.background_psnr_fg_db;
 
   // The model renders a training camera with depth (where opaque) between camera and box.
   auto avatar = OpenModel(model);
@@ -135,8 +141,9 @@ TEST_F(NeuralTrainTest, StaticSceneLeavesOutEncoderAndWarp) {
   RenderedView view = avatar->Render(camera, 0, render);
   ASSERT_EQ(view.color.cols, camera.width());
   int64_t opaque = 0;
-  const double far = (camera.center_in_world() - 0.5 * (avatar->box_min() + avatar->box_max())).norm() +
-                     (avatar->box_max() - avatar->box_min()).norm();
+  const double far =
+      (camera.center_in_world() - 0.5 * (avatar->box_min() + avatar->box_max())).norm() +
+      (avatar->box_max() - avatar->box_min()).norm();
   for (int y = 0; y < view.depth.rows; ++y) {
     for (int x = 0; x < view.depth.cols; ++x) {
       const float d = view.depth.at<float>(y, x);
@@ -169,7 +176,8 @@ TEST_F(NeuralTrainTest, DivergenceRestoresTheCheckpointAndLowersTheRate) {
   NeuralVolumeSummary summary = TrainNeuralVolume(Object(), Dir() / "diverging", options, &report);
   EXPECT_GE(summary.divergences, 1);
   int logged = 0;
-  for (const auto& point : report.json()["series"]) logged += point["metric"] == "divergence_lr_scale";
+  for (const auto& point : report.json()["series"])
+    logged += point["metric"] == "divergence_lr_scale";
   EXPECT_EQ(logged, summary.divergences);
   if (summary.termination == Termination::kFailure) {
     EXPECT_NE(summary.message.find("diverged"), std::string::npos);
@@ -199,23 +207,27 @@ TEST_F(NeuralTrainTest, BadInputGivesOneClearError) {
 
 TEST_F(NeuralTrainTest, CliTrainsAndRejectsUnknownMethods) {
   const auto out = Dir() / "cli-model";
-  auto result = RunCli("train nvol '" + Object().string() + "' --grid 16 --width 64 --iterations 30 --out '" +
-                       out.string() + "'");
+  auto result = RunCli("train nvol '" + Object().string() +
+                       "' --grid 16 --width 64 --iterations 30 --out '" + out.string() + "'");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   EXPECT_NE(result.output.find("held-out"), std::string::npos) << result.output;
   EXPECT_NE(result.output.find("left_out"), std::string::npos) << result.output;
   EXPECT_TRUE(std::filesystem::exists(out / "model.json"));
   auto bad = RunCli("train nerf '" + Object().string() + "' --out '" + out.string() + "'");
   EXPECT_NE(bad.exit_code, 0);
-  EXPECT_NE(bad.output.find("holocap: error: unknown training method 'nerf'"), std::string::npos) << bad.output;
+  EXPECT_NE(bad.output.find("holocap: error: unknown training method 'nerf'"), std::string::npos)
+      << bad.output;
   // Each method takes only its own flags: a rerendering flag is refused under nvol, by name.
-  auto foreign = RunCli("train nvol '" + Object().string() + "' --witness 2 --out '" + out.string() + "'");
+  auto foreign =
+      RunCli("train nvol '" + Object().string() + "' --witness 2 --out '" + out.string() + "'");
   EXPECT_NE(foreign.exit_code, 0);
   EXPECT_NE(foreign.output.find("--witness"), std::string::npos) << foreign.output;
   // Option errors name the flag the user typed, not the field behind it.
-  auto bad_rays = RunCli("train nvol '" + Object().string() + "' --rays 3 --out '" + out.string() + "'");
+  auto bad_rays =
+      RunCli("train nvol '" + Object().string() + "' --rays 3 --out '" + out.string() + "'");
   EXPECT_NE(bad_rays.exit_code, 0);
-  EXPECT_NE(bad_rays.output.find("holocap: error: --rays must be at least 16"), std::string::npos) << bad_rays.output;
+  EXPECT_NE(bad_rays.output.find("holocap: error: --rays must be at least 16"), std::string::npos)
+      << bad_rays.output;
 }
 
 }  // namespace

@@ -22,15 +22,17 @@ class PlaybackTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     dir_ = new TempDir("holocap-playback");
-    auto sim = RunCli("sim --rig studio8 --scene object --frames 2 --clean-plate 1 --size 160 --seed 6 --out '" +
-                      (dir_->path() / "take").string() + "'");
+    auto sim = RunCli(
+        "sim --rig studio8 --scene object --frames 2 --clean-plate 1 --size 160 --seed 6 --out '" +
+        (dir_->path() / "take").string() + "'");
     ASSERT_EQ(sim.exit_code, 0) << sim.output;
     NeuralVolumeOptions options;
     options.grid = 32;
     options.image_width = 96;
     options.iterations = 250;
     options.eval_every_s = 1000;
-    NeuralVolumeSummary summary = TrainNeuralVolume(dir_->path() / "take", dir_->path() / "model", options);
+    NeuralVolumeSummary summary =
+        TrainNeuralVolume(dir_->path() / "take", dir_->path() / "model", options);
     ASSERT_TRUE(IsUsable(summary.termination)) << summary.message;
   }
   static void TearDownTestSuite() {
@@ -65,7 +67,8 @@ TEST_F(PlaybackTest, OrbitCirclesTheBoxAndLooksAtItsCentre) {
     EXPECT_NEAR(radius, radius0, 1e-9);
   }
   // Consecutive views are 30 degrees apart.
-  const Eigen::Vector3d a = path.cameras[0].center_in_world() - center, b = path.cameras[1].center_in_world() - center;
+  const Eigen::Vector3d a = path.cameras[0].center_in_world() - center,
+                        b = path.cameras[1].center_in_world() - center;
   const Eigen::Vector3d fa = a - a.dot(up) * up, fb = b - b.dot(up) * up;
   EXPECT_NEAR(std::acos(fa.normalized().dot(fb.normalized())) * 180 / M_PI, 30.0, 1e-6);
   orbit.width = 63;
@@ -90,7 +93,8 @@ TEST_F(PlaybackTest, JsonPathInterpolatesKeysAndReadsCameraModels) {
   // Keys through real lens models (distortion kept), rescaled to the output width.
   const CameraModel lens = model->cameras().front();
   lens.Write(Dir() / "lens.cameramodel");
-  std::ofstream(Dir() / "lens.json") << R"({"keys": [{"cameramodel": "lens.cameramodel", "frame": 0}]})";
+  std::ofstream(Dir() / "lens.json")
+      << R"({"keys": [{"cameramodel": "lens.cameramodel", "frame": 0}]})";
   CameraPath through = ReadCameraPath(Dir() / "lens.json", *model, 48, 36);
   ASSERT_EQ(through.size(), 1u);
   EXPECT_EQ(through.cameras[0].lensmodel(), lens.lensmodel());
@@ -121,7 +125,8 @@ TEST_F(PlaybackTest, FramesHoldColourAlphaAndDepthAndSkippingChangesNoPixel) {
   cv::Mat png = ReadImage(options.out / "000002.png");
   ASSERT_EQ(png.type(), CV_8UC4);
   double alpha_sum = 0;
-  for (int y = 0; y < png.rows; ++y) for (int x = 0; x < png.cols; ++x) alpha_sum += png.at<cv::Vec4b>(y, x)[3];
+  for (int y = 0; y < png.rows; ++y)
+    for (int x = 0; x < png.cols; ++x) alpha_sum += png.at<cv::Vec4b>(y, x)[3];
   EXPECT_GT(alpha_sum / (255.0 * png.total()), 0.01);  // the object covers part of the view
   EXPECT_LT(alpha_sum / (255.0 * png.total()), 0.9);
   ASSERT_TRUE(std::filesystem::exists(options.out / "000002.exr"));
@@ -134,7 +139,8 @@ TEST_F(PlaybackTest, FramesHoldColourAlphaAndDepthAndSkippingChangesNoPixel) {
   double worst = 0;
   for (int y = 0; y < full.alpha.rows; ++y) {
     for (int x = 0; x < full.alpha.cols; ++x) {
-      worst = std::max(worst, static_cast<double>(std::abs(full.alpha.at<float>(y, x) - skipped.alpha.at<float>(y, x))));
+      worst = std::max(worst, static_cast<double>(std::abs(full.alpha.at<float>(y, x) -
+                                                           skipped.alpha.at<float>(y, x))));
     }
   }
   EXPECT_LT(worst, 1e-5);
@@ -142,16 +148,20 @@ TEST_F(PlaybackTest, FramesHoldColourAlphaAndDepthAndSkippingChangesNoPixel) {
 
 TEST_F(PlaybackTest, CliRendersAnOrbitVideo) {
   const auto video = Dir() / "orbit.mp4";
-  auto result = RunCli("render '" + (Dir() / "take").string() + "' --model '" + (Dir() / "model").string() +
-                       "' --path orbit --size 64 --views 8 --out '" + video.string() + "'");
+  auto result =
+      RunCli("render '" + (Dir() / "take").string() + "' --model '" + (Dir() / "model").string() +
+             "' --path orbit --size 64 --views 8 --out '" + video.string() + "'");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   EXPECT_NE(result.output.find("fps"), std::string::npos);
   ASSERT_TRUE(std::filesystem::exists(video));
-  auto probe = RunShell("ffprobe -v error -count_frames -select_streams v:0 -show_entries stream=nb_read_frames,width "
-                        "-of csv=p=0 '" + video.string() + "'");
+  auto probe = RunShell(
+      "ffprobe -v error -count_frames -select_streams v:0 -show_entries "
+      "stream=nb_read_frames,width "
+      "-of csv=p=0 '" +
+      video.string() + "'");
   EXPECT_NE(probe.output.find("64,8"), std::string::npos) << probe.output;
-  auto missing = RunCli("render '" + (Dir() / "take").string() + "' --model '" + (Dir() / "nope").string() +
-                        "' --out '" + (Dir() / "x").string() + "'");
+  auto missing = RunCli("render '" + (Dir() / "take").string() + "' --model '" +
+                        (Dir() / "nope").string() + "' --out '" + (Dir() / "x").string() + "'");
   EXPECT_NE(missing.exit_code, 0);
   EXPECT_NE(missing.output.find("holocap: error: no model"), std::string::npos) << missing.output;
 }
@@ -173,7 +183,8 @@ TEST(PlaybackDynamicTest, BakedFramesRenderLikeWarpAndTemplate) {
   options.rays_per_batch = 1024;
   options.iterations = 60;
   options.eval_every_s = 1000;
-  NeuralVolumeSummary summary = TrainNeuralVolume(dir.path() / "take", dir.path() / "model", options);
+  NeuralVolumeSummary summary =
+      TrainNeuralVolume(dir.path() / "take", dir.path() / "model", options);
   ASSERT_TRUE(IsUsable(summary.termination)) << summary.message;
   ASSERT_TRUE(summary.built_warp);
   auto model = OpenModel(dir.path() / "model");
@@ -196,15 +207,19 @@ TEST(PlaybackDynamicTest, BakedFramesRenderLikeWarpAndTemplate) {
         if (a < 1.0f / 255 && b < 1.0f / 255) continue;
         ++covered;
         squared += (a - b) * (a - b);
-        for (int c = 0; c < 3; ++c) squared += std::pow(baked.color.at<cv::Vec3f>(y, x)[c] - direct.color.at<cv::Vec3f>(y, x)[c], 2);
+        for (int c = 0; c < 3; ++c)
+          squared +=
+              std::pow(baked.color.at<cv::Vec3f>(y, x)[c] - direct.color.at<cv::Vec3f>(y, x)[c], 2);
       }
     }
-    EXPECT_GT(alpha_sum / baked.alpha.total(), 0.01) << "view " << i << " shows too little of the volume to compare";
+    EXPECT_GT(alpha_sum / baked.alpha.total(), 0.01)
+        << "view " << i << " shows too little of the volume to compare";
     ASSERT_GT(covered, 0);
     const double psnr = 10 * std::log10(1.0 / (squared / (4.0 * covered)));
     EXPECT_GT(psnr, 40.0) << "view " << i;
-    std::printf("view %zu (frame %lld): baked against warp + template %.1f dB over %lld covered pixels\n", i,
-                static_cast<long long>(path.frames[i]), psnr, static_cast<long long>(covered));
+    std::printf(
+        "view %zu (frame %lld): baked against warp + template %.1f dB over %lld covered pixels\n",
+        i, static_cast<long long>(path.frames[i]), psnr, static_cast<long long>(covered));
     ViewRenderOptions no_skip;
     no_skip.skip_empty = false;
     const RenderedView full = model->Render(path.cameras[i], path.frames[i], no_skip);

@@ -21,11 +21,13 @@ using testing::Sphere;
 using testing::SphereError;
 
 // Ring cameras plus one above and one below, so every part of the sphere is seen.
-std::vector<CameraModel> SurroundingCameras(const Sphere& sphere, int width = 320, int height = 240) {
+std::vector<CameraModel> SurroundingCameras(const Sphere& sphere, int width = 320,
+                                            int height = 240) {
   std::vector<CameraModel> cameras = RingCameras(6, sphere, 1.5, width, height);
   for (double side : {1.0, -1.0}) {
     Eigen::Vector3d eye = sphere.centre + Eigen::Vector3d(0.05, 0.02, side * 1.5);
-    cameras.push_back(CameraModel::Pinhole(0.9 * width, width, height, CamFromWorldLookAt(eye, sphere.centre)));
+    cameras.push_back(
+        CameraModel::Pinhole(0.9 * width, width, height, CamFromWorldLookAt(eye, sphere.centre)));
   }
   return cameras;
 }
@@ -55,16 +57,20 @@ EdgeCheck CheckEdges(const Mesh& mesh) {
 
 TEST(ProjectorTest, TableMatchesMrcalToAHundredthOfAPixel) {
   std::vector<CameraModel> lenses = {
-      CameraModel("LENSMODEL_OPENCV8",
-                  {498.6, 499.4, 321.0, 238.2, 0.35, -0.05, 0.0004, 0.0002, 0.01, 0.42, -0.02, 0.015}, 640, 480),
+      CameraModel(
+          "LENSMODEL_OPENCV8",
+          {498.6, 499.4, 321.0, 238.2, 0.35, -0.05, 0.0004, 0.0002, 0.01, 0.42, -0.02, 0.015}, 640,
+          480),
       CameraModel("LENSMODEL_STEREOGRAPHIC", {300.0, 300.0, 318.2, 241.1}, 640, 480),
-      CameraModel("LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004}, 640, 480)};
+      CameraModel("LENSMODEL_OPENCV4", {520.3, 519.1, 322.4, 236.9, -0.082, 0.031, 0.0006, -0.0004},
+                  640, 480)};
   std::mt19937 rng(3);
   for (const CameraModel& lens : lenses) {
     recon::FastProjector projector(lens);
     double worst = 0;
     for (int i = 0; i < 2000; ++i) {
-      Eigen::Vector2d pixel(std::uniform_real_distribution<>(0, 639)(rng), std::uniform_real_distribution<>(0, 479)(rng));
+      Eigen::Vector2d pixel(std::uniform_real_distribution<>(0, 639)(rng),
+                            std::uniform_real_distribution<>(0, 479)(rng));
       Eigen::Vector3d ray = lens.Unproject(pixel) * std::uniform_real_distribution<>(0.5, 5)(rng);
       float u, v;
       ASSERT_TRUE(projector.Project(ray.cast<float>(), &u, &v)) << lens.lensmodel();
@@ -121,8 +127,9 @@ TEST(TsdfTest, InvalidDepthPixelsAreRejectedNotFused) {
   TsdfVolume tsdf(options);
   std::mt19937 rng(5);
   int64_t error_codes = 0, rejected = 0;
-  const float bad[] = {std::numeric_limits<float>::quiet_NaN(), 0.0f, std::numeric_limits<float>::infinity(),
-                       -std::numeric_limits<float>::infinity(), -1.0f, 100.0f};
+  const float bad[] = {
+      std::numeric_limits<float>::quiet_NaN(), 0.0f,  std::numeric_limits<float>::infinity(),
+      -std::numeric_limits<float>::infinity(), -1.0f, 100.0f};
   for (const CameraModel& camera : SurroundingCameras(sphere)) {
     cv::Mat depth;
     RenderSphere(camera, sphere, &depth, nullptr);
@@ -197,8 +204,8 @@ TEST(TsdfTest, MillimetreVoxelsOnATwoMetreStageStayBoundedBySurface) {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   std::printf("1 mm voxels: %zu blocks, %.1f MB volume, peak RSS %.1f MB, %zu triangles\n",
-              tsdf.volume().block_count(), tsdf.volume().memory_bytes() / 1048576.0, usage.ru_maxrss / 1024.0,
-              mesh.faces.size());
+              tsdf.volume().block_count(), tsdf.volume().memory_bytes() / 1048576.0,
+              usage.ru_maxrss / 1024.0, mesh.faces.size());
   EXPECT_LT(usage.ru_maxrss / 1024.0, 1024.0) << "peak RSS, MB";
 }
 
@@ -236,7 +243,8 @@ TEST(TsdfTest, HullCompletionClosesWhatTheDepthSensorDidNotSee) {
   }
   // The sensor sits between two ring cameras, so the hull's facets facing it are its to carve.
   const CameraModel sensor = CameraModel::Pinhole(
-      300, 320, 240, CamFromWorldLookAt(sphere.centre + Eigen::Vector3d(1.2, 0.5, 0.1), sphere.centre));
+      300, 320, 240,
+      CamFromWorldLookAt(sphere.centre + Eigen::Vector3d(1.2, 0.5, 0.1), sphere.centre));
   cv::Mat depth;
   RenderSphere(sensor, sphere, &depth, nullptr);
   TsdfOptions options;
@@ -260,8 +268,9 @@ TEST(TsdfTest, HullCompletionClosesWhatTheDepthSensorDidNotSee) {
   const Mesh truth = testing::SphereMesh(sphere);
   SurfaceErrors before = CompareSurfaces(seen_only, truth, 0.005, 20000);
   SurfaceErrors after = CompareSurfaces(completed, truth, 0.005, 20000);
-  std::printf("sensor only: completeness %.1f mm; completed: completeness %.2f mm, accuracy %.2f mm\n",
-              before.completeness_mm, after.completeness_mm, after.accuracy_mm);
+  std::printf(
+      "sensor only: completeness %.1f mm; completed: completeness %.2f mm, accuracy %.2f mm\n",
+      before.completeness_mm, after.completeness_mm, after.accuracy_mm);
   EXPECT_LT(after.completeness_mm, 3.0);
   EXPECT_GT(before.completeness_mm, 50.0);
   // Where the sensor saw the sphere the surface is the sensor's: vertices facing it are as
@@ -282,7 +291,8 @@ TEST(TsdfTest, HullCompletionClosesWhatTheDepthSensorDidNotSee) {
   EXPECT_NEAR(facing_error(completed), facing_error(seen_only), 1e-4);
   // Every completed vertex lies in the hull (the fill only ever removes from it).
   int64_t outside = 0;
-  for (const auto& v : completed.vertices) outside += !hull.Contains(v.cast<double>(), options.voxel_m);
+  for (const auto& v : completed.vertices)
+    outside += !hull.Contains(v.cast<double>(), options.voxel_m);
   EXPECT_EQ(outside, 0);
 }
 
@@ -394,26 +404,31 @@ TEST(SurfaceErrorsTest, OuterSurfaceLeavesOutFacesBuriedInOtherParts) {
   const Mesh second = testing::SphereMesh(b, 48, 96);
   const int offset = static_cast<int>(truth.vertices.size());
   truth.vertices.insert(truth.vertices.end(), second.vertices.begin(), second.vertices.end());
-  for (const auto& f : second.faces) truth.faces.emplace_back(f + Eigen::Vector3i::Constant(offset));
+  for (const auto& f : second.faces)
+    truth.faces.emplace_back(f + Eigen::Vector3i::Constant(offset));
   const auto outer = OnOuterSurface(truth);
   int64_t wrong = 0, buried = 0;
   const auto points = truth.SampleSurface(4000, 2);
   for (const auto& p : points) {
-    const bool inside_other = (p - a.centre).norm() < a.radius - 1e-3 || (p - b.centre).norm() < b.radius - 1e-3;
+    const bool inside_other =
+        (p - a.centre).norm() < a.radius - 1e-3 || (p - b.centre).norm() < b.radius - 1e-3;
     buried += !outer(p);
     wrong += outer(p) == inside_other;
   }
   // Each sphere has a cap of height 0.1 m inside the other: 1/6 of its area.
   EXPECT_NEAR(static_cast<double>(buried) / points.size(), 1.0 / 6, 0.02);
-  EXPECT_LT(wrong, 20) << "of " << points.size() << " (the facets stand off the true spheres by < 1 mm)";
+  EXPECT_LT(wrong, 20) << "of " << points.size()
+                       << " (the facets stand off the true spheres by < 1 mm)";
   // Open parts enclose nothing: half of the second sphere buries none of the first.
   Mesh open = testing::SphereMesh(a, 48, 96);
   const int open_offset = static_cast<int>(open.vertices.size());
   open.vertices.insert(open.vertices.end(), second.vertices.begin(), second.vertices.end());
-  for (size_t f = 0; f < second.faces.size() / 2; ++f) open.faces.emplace_back(second.faces[f] + Eigen::Vector3i::Constant(open_offset));
+  for (size_t f = 0; f < second.faces.size() / 2; ++f)
+    open.faces.emplace_back(second.faces[f] + Eigen::Vector3i::Constant(open_offset));
   const auto open_outer = OnOuterSurface(open);
   int64_t dropped = 0;
-  for (const auto& p : testing::SphereMesh(a, 48, 96).SampleSurface(2000, 3)) dropped += !open_outer(p);
+  for (const auto& p : testing::SphereMesh(a, 48, 96).SampleSurface(2000, 3))
+    dropped += !open_outer(p);
   EXPECT_EQ(dropped, 0);
 }
 

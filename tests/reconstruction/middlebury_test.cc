@@ -69,16 +69,17 @@ TEST_F(MiddleburyTest, HullOfFifteenViewsPredictsTheSixteenth) {
   Mesh mesh = ExtractMesh(*hull.volume);
   cv::Mat predicted = RenderSilhouette(mesh, views_[held_out].camera);
   double iou = MaskIoU(predicted, views_[held_out].mask);
-  std::printf("dinoSparseRing: hull of 15 views (%.1f s, %zu triangles), IoU in held-out %s = %.4f\n",
-              summary.seconds, mesh.faces.size(), views_[held_out].name.c_str(), iou);
+  std::printf(
+      "dinoSparseRing: hull of 15 views (%.1f s, %zu triangles), IoU in held-out %s = %.4f\n",
+      summary.seconds, mesh.faces.size(), views_[held_out].name.c_str(), iou);
   EXPECT_GE(iou, 0.95);
 }
 
 TEST_F(MiddleburyTest, CliReconstructsTheImportedTakeWithThresholdSilhouettes) {
   const std::string bounds = "-0.072,-0.029,-0.068,0.021,0.079,0.026";
   auto result = testing::RunCli("reconstruct '" + (dir_ / "dino").string() +
-                                "' --method hull --silhouettes threshold --voxel 1mm --bounds " + bounds +
-                                " --out '" + (dir_ / "recon").string() + "'");
+                                "' --method hull --silhouettes threshold --voxel 1mm --bounds " +
+                                bounds + " --out '" + (dir_ / "recon").string() + "'");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   EXPECT_TRUE(fs::exists(dir_ / "recon" / "000000.glb"));
   Mesh mesh = ReadPly(dir_ / "recon" / "000000.ply");

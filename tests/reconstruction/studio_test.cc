@@ -26,10 +26,12 @@ using testing::TempDir;
 const fs::path& StudioTake() {
   static const fs::path take = [] {
     fs::path dir = fs::temp_directory_path() / "holocap-recon-test-studio8-v1";
-    if (fs::exists(dir / "take.json") && fs::exists(dir / "gt" / "meshes" / "000001.ply")) return dir;
+    if (fs::exists(dir / "take.json") && fs::exists(dir / "gt" / "meshes" / "000001.ply"))
+      return dir;
     fs::path staging = dir.string() + ".staging-" + std::to_string(::getpid());
-    auto result = RunCli("sim --rig studio8 --frames 2 --clean-plate 1 --seed 3 --overwrite --out '" +
-                         staging.string() + "'");
+    auto result =
+        RunCli("sim --rig studio8 --frames 2 --clean-plate 1 --seed 3 --overwrite --out '" +
+               staging.string() + "'");
     if (result.exit_code != 0) throw Error("cannot simulate the studio take: " + result.output);
     std::error_code ignored;
     fs::rename(staging, dir, ignored);
@@ -47,7 +49,8 @@ nlohmann::json RunPipeline(ReconstructionMethod method, double voxel, const fs::
   options.texture.atlas = false;
   options.sweep_voxels_m.clear();
   Report report("reconstruct");
-  ReconstructionSummary summary = ReconstructTake(StudioTake(), TakeSelection{}, out, options, &report);
+  ReconstructionSummary summary =
+      ReconstructTake(StudioTake(), TakeSelection{}, out, options, &report);
   EXPECT_EQ(summary.termination, Termination::kSuccess) << summary.message;
   EXPECT_EQ(summary.plan["cameras"].get<std::string>().rfind("gt/cameras", 0), 0u)
       << "the simulated take is not calibrated: true models are used";
@@ -87,7 +90,8 @@ TEST(StudioTest, TsdfFromTheDepthSensorsIsWithinFourMillimetres) {
   TempDir plain_out;
   TakeSelection first_set;
   first_set.last_frame = 1;
-  ReconstructionSummary plain = ReconstructTake(StudioTake(), first_set, plain_out.path(), options, nullptr);
+  ReconstructionSummary plain =
+      ReconstructTake(StudioTake(), first_set, plain_out.path(), options, nullptr);
   const auto& plain_gt = plain.frames[0].metrics["gt"];
   std::printf("tsdf 4 mm without completion: %s\n", plain_gt.dump().c_str());
   EXPECT_LE(plain_gt["accuracy_mm"].get<double>(), 3.0);
@@ -142,15 +146,16 @@ TEST(StudioTest, HullContainsTheTrueSurface) {
   for (const View& view : views) {
     cv::Mat truth_mask = ReadImage(StudioTake() / "gt" / "masks" / view.name / "000001.png");
     EXPECT_GT(MaskIoU(view.mask, truth_mask), 0.9) << view.name;
-    const double lost = cv::countNonZero(truth_mask & ~view.mask) / static_cast<double>(cv::countNonZero(truth_mask));
+    const double lost = cv::countNonZero(truth_mask & ~view.mask) /
+                        static_cast<double>(cv::countNonZero(truth_mask));
     EXPECT_LT(lost, 0.02) << view.name;  // 6% in cam6 without hysteresis
   }
 }
 
 TEST(StudioTest, CliWritesMeshesThatOpen3dReads) {
   TempDir out;
-  auto result = RunCli("reconstruct '" + StudioTake().string() + "' --frames 0:1 --voxel 8mm --no-sweep --out '" +
-                       out.path().string() + "'");
+  auto result = RunCli("reconstruct '" + StudioTake().string() +
+                       "' --frames 0:1 --voxel 8mm --no-sweep --out '" + out.path().string() + "'");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   EXPECT_NE(result.output.find("gt/ (not calibrated)"), std::string::npos) << result.output;
   ASSERT_TRUE(fs::exists(out / "000001.ply"));
@@ -160,15 +165,19 @@ TEST(StudioTest, CliWritesMeshesThatOpen3dReads) {
   EXPECT_GT(report["metrics"]["gt"]["fscore_5mm"].get<double>(), 0.3);
   EXPECT_EQ(report["plan"]["method"], "tsdf");
   Mesh ply = ReadPly(out / "000001.ply");
-  auto open3d = RunShell("/usr/bin/python3 -c \"import open3d as o3d; m = o3d.io.read_triangle_mesh('" +
-                         (out / "000001.glb").string() +
-                         "', enable_post_processing=True); print('glb', len(m.vertices), len(m.triangles), m.has_textures())\"");
+  auto open3d =
+      RunShell("/usr/bin/python3 -c \"import open3d as o3d; m = o3d.io.read_triangle_mesh('" +
+               (out / "000001.glb").string() +
+               "', enable_post_processing=True); print('glb', len(m.vertices), len(m.triangles), "
+               "m.has_textures())\"");
   ASSERT_EQ(open3d.exit_code, 0) << open3d.output;
   long vertices = 0, triangles = 0;
   char textured[16] = {};
   auto at = open3d.output.find("glb ");
   ASSERT_NE(at, std::string::npos) << open3d.output;
-  ASSERT_EQ(std::sscanf(open3d.output.c_str() + at, "glb %ld %ld %15s", &vertices, &triangles, textured), 3);
+  ASSERT_EQ(
+      std::sscanf(open3d.output.c_str() + at, "glb %ld %ld %15s", &vertices, &triangles, textured),
+      3);
   EXPECT_EQ(static_cast<size_t>(triangles), ply.faces.size());
   EXPECT_GT(vertices, 0);
   EXPECT_STREQ(textured, "True");
@@ -206,18 +215,21 @@ TEST(StudioTest, CalibratedTakePrefersCalib) {
   TakeSelection first_set;
   first_set.last_frame = 1;
   TempDir calibrated_out, truth_out;
-  ReconstructionSummary calibrated = ReconstructTake(take_dir, first_set, calibrated_out.path(), options, nullptr);
+  ReconstructionSummary calibrated =
+      ReconstructTake(take_dir, first_set, calibrated_out.path(), options, nullptr);
   EXPECT_EQ(calibrated.plan["cameras"], "calib/");
-  ReconstructionSummary truth = ReconstructTake(StudioTake(), first_set, truth_out.path(), options, nullptr);
+  ReconstructionSummary truth =
+      ReconstructTake(StudioTake(), first_set, truth_out.path(), options, nullptr);
   EXPECT_EQ(truth.plan["cameras"].get<std::string>().rfind("gt/cameras", 0), 0u);
-  const Eigen::Vector3d moved = centroid(calibrated_out / "000001.ply") - centroid(truth_out / "000001.ply");
+  const Eigen::Vector3d moved =
+      centroid(calibrated_out / "000001.ply") - centroid(truth_out / "000001.ply");
   EXPECT_LT((moved - shift).norm(), 0.005) << moved.transpose();
 }
 
 TEST(StudioTest, TakeWithoutCalibrationIsAClearError) {
   TempDir dir;
-  auto copy = RunShell("cp -r '" + StudioTake().string() + "' '" + (dir / "take").string() + "' && rm -rf '" +
-                       (dir / "take" / "gt").string() + "'");
+  auto copy = RunShell("cp -r '" + StudioTake().string() + "' '" + (dir / "take").string() +
+                       "' && rm -rf '" + (dir / "take" / "gt").string() + "'");
   ASSERT_EQ(copy.exit_code, 0) << copy.output;
   auto result = RunCli("reconstruct '" + (dir / "take").string() + "'");
   EXPECT_NE(result.exit_code, 0);
@@ -228,8 +240,9 @@ TEST(StudioTest, TakeWithoutCalibrationIsAClearError) {
 TEST(StudioTest, MissingFramesAreAClearError) {
   TempDir dir;
   // Small frames and frequent drops: some set after the clean plate lacks a camera.
-  auto sim = RunCli("sim --rig studio8 --frames 4 --clean-plate 1 --size 160 --drop 0.3 --seed 2 --out '" +
-                    (dir / "take").string() + "'");
+  auto sim =
+      RunCli("sim --rig studio8 --frames 4 --clean-plate 1 --size 160 --drop 0.3 --seed 2 --out '" +
+             (dir / "take").string() + "'");
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   auto result = RunCli("reconstruct '" + (dir / "take").string() + "' --method hull --no-sweep");
   EXPECT_NE(result.exit_code, 0);

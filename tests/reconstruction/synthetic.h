@@ -21,18 +21,21 @@ struct Sphere {
 };
 
 // Cameras on a ring of `radius` around the sphere's centre, at heights alternating around it.
-inline std::vector<CameraModel> RingCameras(int count, const Sphere& sphere, double radius, int width = 320,
-                                            int height = 240, bool distorted = true) {
+inline std::vector<CameraModel> RingCameras(int count, const Sphere& sphere, double radius,
+                                            int width = 320, int height = 240,
+                                            bool distorted = true) {
   std::vector<CameraModel> cameras;
   for (int i = 0; i < count; ++i) {
     double azimuth = 2 * M_PI * i / count;
-    Eigen::Vector3d eye = sphere.centre + Eigen::Vector3d(radius * std::cos(azimuth), radius * std::sin(azimuth),
-                                                          (i % 2 ? 0.4 : -0.2) * radius);
+    Eigen::Vector3d eye =
+        sphere.centre + Eigen::Vector3d(radius * std::cos(azimuth), radius * std::sin(azimuth),
+                                        (i % 2 ? 0.4 : -0.2) * radius);
     Pose pose = CamFromWorldLookAt(eye, sphere.centre);
     double f = 0.9 * width;
     if (distorted && i % 2 == 1) {
       cameras.emplace_back("LENSMODEL_OPENCV4",
-                           std::vector<double>{f, f, 0.5 * (width - 1) + 3, 0.5 * (height - 1) - 2, -0.12, 0.04, 0.001, -0.0005},
+                           std::vector<double>{f, f, 0.5 * (width - 1) + 3, 0.5 * (height - 1) - 2,
+                                               -0.12, 0.04, 0.001, -0.0005},
                            width, height, pose);
     } else {
       cameras.push_back(CameraModel::Pinhole(f, width, height, pose));
@@ -42,7 +45,8 @@ inline std::vector<CameraModel> RingCameras(int count, const Sphere& sphere, dou
 }
 
 // Distance along a unit ray to the sphere (infinity when missed).
-inline double RaySphere(const Eigen::Vector3d& origin, const Eigen::Vector3d& direction, const Sphere& s) {
+inline double RaySphere(const Eigen::Vector3d& origin, const Eigen::Vector3d& direction,
+                        const Sphere& s) {
   Eigen::Vector3d oc = origin - s.centre;
   double b = oc.dot(direction);
   double c = oc.squaredNorm() - s.radius * s.radius;
@@ -53,7 +57,8 @@ inline double RaySphere(const Eigen::Vector3d& origin, const Eigen::Vector3d& di
 }
 
 // z-depth (metres, NaN off the sphere) and silhouette of a sphere through a camera.
-inline void RenderSphere(const CameraModel& camera, const Sphere& sphere, cv::Mat* depth, cv::Mat* mask) {
+inline void RenderSphere(const CameraModel& camera, const Sphere& sphere, cv::Mat* depth,
+                         cv::Mat* mask) {
   const int w = camera.width(), h = camera.height();
   Eigen::Matrix2Xd pixels(2, w * h);
   for (int y = 0; y < h; ++y)
@@ -79,9 +84,10 @@ inline Mesh SphereMesh(const Sphere& s, int rings = 96, int segments = 192) {
     double theta = M_PI * r / rings;
     for (int k = 0; k < segments; ++k) {
       double phi = 2 * M_PI * k / segments;
-      mesh.vertices.push_back((s.centre + s.radius * Eigen::Vector3d(std::sin(theta) * std::cos(phi),
-                                                                     std::sin(theta) * std::sin(phi), std::cos(theta)))
-                                  .cast<float>());
+      mesh.vertices.push_back(
+          (s.centre + s.radius * Eigen::Vector3d(std::sin(theta) * std::cos(phi),
+                                                 std::sin(theta) * std::sin(phi), std::cos(theta)))
+              .cast<float>());
     }
   }
   for (int r = 0; r < rings; ++r) {

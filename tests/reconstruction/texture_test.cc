@@ -19,7 +19,8 @@ using testing::Sphere;
 
 // A smooth colour over the unit sphere of directions (RGB, 0..255).
 Eigen::Vector3f SurfaceColour(const Eigen::Vector3d& direction) {
-  return Eigen::Vector3f(128 + 100 * direction.x(), 128 + 100 * direction.y(), 128 + 100 * direction.z());
+  return Eigen::Vector3f(128 + 100 * direction.x(), 128 + 100 * direction.y(),
+                         128 + 100 * direction.z());
 }
 
 struct ColouredSphere {
@@ -50,15 +51,18 @@ cv::Mat RayCast(const CameraModel& camera, const std::vector<ColouredSphere>& sp
     }
     if (hit == nullptr) continue;
     const Eigen::Vector3f rgb = hit->ColourAt(origin + best * ray);
-    image.at<cv::Vec3b>(i / w, i % w) = cv::Vec3b(cv::saturate_cast<uint8_t>(rgb.z()), cv::saturate_cast<uint8_t>(rgb.y()),
-                                                  cv::saturate_cast<uint8_t>(rgb.x()));
+    image.at<cv::Vec3b>(i / w, i % w) =
+        cv::Vec3b(cv::saturate_cast<uint8_t>(rgb.z()), cv::saturate_cast<uint8_t>(rgb.y()),
+                  cv::saturate_cast<uint8_t>(rgb.x()));
   }
   return image;
 }
 
-std::vector<View> Views(const std::vector<CameraModel>& cameras, const std::vector<ColouredSphere>& spheres) {
+std::vector<View> Views(const std::vector<CameraModel>& cameras,
+                        const std::vector<ColouredSphere>& spheres) {
   std::vector<View> views;
-  for (size_t i = 0; i < cameras.size(); ++i) views.push_back({"cam" + std::to_string(i), cameras[i], RayCast(cameras[i], spheres), {}});
+  for (size_t i = 0; i < cameras.size(); ++i)
+    views.push_back({"cam" + std::to_string(i), cameras[i], RayCast(cameras[i], spheres), {}});
   return views;
 }
 
@@ -91,7 +95,8 @@ TEST(TextureTest, SeenVerticesTakeTheirColourAndThePolesAreFilledFromTheirNeighb
     // A vertex is seen when some camera views it within the incidence threshold.
     for (const auto& camera : cameras) {
       const Eigen::Vector3d to_camera = (camera.center_in_world() - p).normalized();
-      if (to_camera.dot((p - sphere.centre).normalized()) >= options.min_cos_incidence) seen[i] = true;
+      if (to_camera.dot((p - sphere.centre).normalized()) >= options.min_cos_incidence)
+        seen[i] = true;
     }
     const double error = ColourError(textured.mesh.colors[i], truth);
     if (seen[i]) {
@@ -106,7 +111,8 @@ TEST(TextureTest, SeenVerticesTakeTheirColourAndThePolesAreFilledFromTheirNeighb
     }
   }
   const int64_t seen_count = std::count(seen.begin(), seen.end(), true);
-  EXPECT_NEAR(static_cast<double>(textured.seen_vertices), static_cast<double>(seen_count), 0.02 * n);
+  EXPECT_NEAR(static_cast<double>(textured.seen_vertices), static_cast<double>(seen_count),
+              0.02 * n);
   EXPECT_LT(seen_error / seen_count, 4.0);  // bilinear sampling of a smooth colour
   // The caps' truth varies by ~20 DN across them; the fill comes from their rims.
   // Left grey (128), the lower cap would be ~100 DN off in blue.
@@ -118,7 +124,8 @@ TEST(TextureTest, SeenVerticesTakeTheirColourAndThePolesAreFilledFromTheirNeighb
     EXPECT_TRUE((c.array() >= low.array() - 1).all() && (c.array() <= high.array() + 1).all()) << i;
   }
   const nlohmann::json metrics = textured.Metrics();
-  EXPECT_NEAR(metrics["seen_fraction"].get<double>() + metrics["filled_fraction"].get<double>(), 1.0, 1e-9);
+  EXPECT_NEAR(metrics["seen_fraction"].get<double>() + metrics["filled_fraction"].get<double>(),
+              1.0, 1e-9);
 }
 
 TEST(TextureTest, OccludedViewsGiveNoColourAndUnreachablePartsStayUncoloured) {
@@ -137,7 +144,8 @@ TEST(TextureTest, OccludedViewsGiveNoColourAndUnreachablePartsStayUncoloured) {
   options.atlas = false;
   const TexturedMesh textured = TextureMesh(mesh, views, options);
   EXPECT_EQ(textured.uncoloured_vertices, static_cast<int64_t>(hidden.vertices.size()));
-  for (int64_t i = main_vertices; i < main_vertices + static_cast<int64_t>(hidden.vertices.size()); ++i) {
+  for (int64_t i = main_vertices; i < main_vertices + static_cast<int64_t>(hidden.vertices.size());
+       ++i) {
     EXPECT_EQ(textured.mesh.colors[i].cast<int>(), Eigen::Vector3i(128, 128, 128));
   }
   // No vertex of the sphere may take the occluder's red (camera 0 sees it where it hides them).

@@ -1,5 +1,5 @@
-// Helpers shared by the test suites: temporary directories, paths to the CLI and the repository's test data,
-// running the CLI as a child process.
+// Helpers shared by the test suites: temporary directories, paths to the CLI and the repository's
+// test data, running the CLI as a child process.
 #pragma once
 
 #include <filesystem>
@@ -23,7 +23,7 @@ class TempDir {
 
 std::filesystem::path TestDataDir();  // tests/data: real data sets kept in the repository
 std::filesystem::path SourceDir();
-std::string CliPath();                  // the built holocap executable
+std::string CliPath();  // the built holocap executable
 
 struct CommandResult {
   int exit_code = -1;
