@@ -209,17 +209,10 @@ cv::Mat SmoothedDepth(const cv::Mat& depth_in, const cv::Mat& foreground,
   return depth;
 }
 
-}  // namespace
-
-TsdfVolume::TsdfVolume(const TsdfOptions& options)
-    : options_((options.Check(), options)),
-      volume_(options.voxel_m, options.bounds, options.voxel_m * options.truncation_voxels) {}
-
-TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel& depth_camera,
-                                     const cv::Mat& foreground, const cv::Mat& color,
-                                     const CameraModel* color_camera) {
-  auto start = std::chrono::steady_clock::now();
-  TsdfFrameStats stats;
+// Integrate's checks: sizes and types of the depth map, the mask and the colour image.
+// Returns whether colour is fused.
+bool CheckFrame(const cv::Mat& depth_in, const CameraModel& depth_camera, const cv::Mat& foreground,
+                const cv::Mat& color, const CameraModel* color_camera) {
   if (depth_in.type() != CV_32FC1) Fail("depth map must be CV_32F metres");
   if (depth_in.cols != depth_camera.width() || depth_in.rows != depth_camera.height()) {
     Fail("depth map is ", depth_in.cols, "x", depth_in.rows, " but its camera model is ",
@@ -236,27 +229,69 @@ TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel&
       Fail("colour image size does not match its camera model");
     }
   }
-  const int threads = recon::ResolveThreads(options_.threads);
-  auto tables = TablesFor(depth_camera);
-  std::shared_ptr<const CameraTables> color_tables;
-  if (use_color) color_tables = TablesFor(*color_camera);
-  const int w = depth_in.cols, h = depth_in.rows;
-  const float k = static_cast<float>(options_.depth_noise_k);
+  return use_color;
+}
 
+// One depth map fused into a volume: its valid, smoothed, non-grazing depths; the blocks
+// within the truncation band of them; then every voxel of those blocks updated.
+class FrameIntegrator {
+ public:
+  FrameIntegrator(const TsdfOptions& options, SparseVolume& volume, const cv::Mat& depth_in,
+                  const CameraModel& depth_camera, const cv::Mat& foreground, const cv::Mat& color,
+                  const CameraModel* color_camera)
+      : options_(options),
+        volume_(volume),
+        depth_in_(depth_in),
+        depth_camera_(depth_camera),
+        foreground_(foreground),
+        color_(color),
+        use_color_(CheckFrame(depth_in, depth_camera, foreground, color, color_camera)),
+        threads_(recon::ResolveThreads(options.threads)),
+        tables_(TablesFor(depth_camera)),
+        color_tables_(use_color_ ? TablesFor(*color_camera) : nullptr),
+        w_(depth_in.cols),
+        h_(depth_in.rows),
+        k_(static_cast<float>(options.depth_noise_k)),
+        voxel_(static_cast<float>(volume.voxel_m())),
+        truncation_(static_cast<float>(volume.truncation_m())) {}
+
+  TsdfFrameStats Run() {
+    PrepareDepth();
+    AllocateBlocks(TouchedBlocks());
+    FuseBlocks();
+    return stats_;
+  }
+
+ private:
   // 1. Valid, foreground, smoothed depth; grazing measurements removed.
-  int64_t valid = 0, rejected = 0;
-  cv::Mat depth = SmoothedDepth(depth_in, foreground, options_, threads, &rejected);
-  const float cos_max = static_cast<float>(std::cos(options_.max_incidence_deg * M_PI / 180));
-  cv::Mat kept = depth.clone();
-  if (options_.max_incidence_deg < 90) {
-#pragma omp parallel for num_threads(threads) reduction(+ : rejected) schedule(static)
-    for (int y = 1; y < h - 1; ++y) {
-      for (int x = 1; x < w - 1; ++x) {
+  void PrepareDepth() {
+    int64_t rejected = 0;
+    depth_ = SmoothedDepth(depth_in_, foreground_, options_, threads_, &rejected);
+    if (options_.max_incidence_deg < 90) depth_ = WithoutGrazing(&rejected);
+    int64_t valid = 0;
+    for (int y = 0; y < h_; ++y) {
+      for (int x = 0; x < w_; ++x) valid += std::isfinite(depth_.at<float>(y, x));
+    }
+    stats_.valid_pixels = valid;
+    stats_.rejected_pixels = rejected;
+  }
+
+  // depth_ less the measurements whose surface normal (from the neighbours' points) is more
+  // than max_incidence_deg from the ray; counts them in `rejected`.
+  cv::Mat WithoutGrazing(int64_t* rejected_out) const {
+    const float cos_max = static_cast<float>(std::cos(options_.max_incidence_deg * M_PI / 180));
+    const cv::Mat& depth = depth_;
+    const cv::Mat& rays = tables_->rays;
+    cv::Mat kept = depth.clone();
+    int64_t rejected = *rejected_out;
+#pragma omp parallel for num_threads(threads_) reduction(+ : rejected) schedule(static)
+    for (int y = 1; y < h_ - 1; ++y) {
+      for (int x = 1; x < w_ - 1; ++x) {
         float d = depth.at<float>(y, x);
         if (!std::isfinite(d)) continue;
         auto point = [&](int xx, int yy, Eigen::Vector3f* p) {
           float e = depth.at<float>(yy, xx);
-          cv::Vec2f ray = tables->rays.at<cv::Vec2f>(yy, xx);
+          cv::Vec2f ray = rays.at<cv::Vec2f>(yy, xx);
           if (!std::isfinite(e) || !std::isfinite(ray[0])) return false;
           *p = Eigen::Vector3f(ray[0] * e, ray[1] * e, e);
           return true;
@@ -278,115 +313,158 @@ TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel&
         }
       }
     }
+    *rejected_out = rejected;
+    return kept;
   }
-  depth = kept;
-  for (int y = 0; y < h; ++y) {
-    for (int x = 0; x < w; ++x) valid += std::isfinite(depth.at<float>(y, x));
-  }
-  stats.valid_pixels = valid;
-  stats.rejected_pixels = rejected;
 
-  // 2. Blocks within the truncation band of every measurement.
-  const Pose world_from_cam = depth_camera.world_from_cam();
-  const Eigen::Matrix3f rotation = world_from_cam.rotation().cast<float>();
-  const Eigen::Vector3f translation = world_from_cam.translation().cast<float>();
-  const float voxel = static_cast<float>(volume_.voxel_m());
-  const float truncation = static_cast<float>(volume_.truncation_m());
-  const float block_m = voxel * kBlockSide;
-  const int band_steps = std::max(1, static_cast<int>(std::ceil(truncation / (0.5f * block_m))));
-  std::vector<std::vector<uint64_t>> per_thread(threads);
-#pragma omp parallel num_threads(threads)
-  {
-    auto& keys = per_thread[omp_get_thread_num()];
-    uint64_t last = ~uint64_t{0};
+  // 2. Blocks within the truncation band of every measurement, sorted and unique.
+  std::vector<uint64_t> TouchedBlocks() const {
+    const Pose world_from_cam = depth_camera_.world_from_cam();
+    const Eigen::Matrix3f rotation = world_from_cam.rotation().cast<float>();
+    const Eigen::Vector3f translation = world_from_cam.translation().cast<float>();
+    const float block_m = voxel_ * kBlockSide;
+    const int band_steps = std::max(1, static_cast<int>(std::ceil(truncation_ / (0.5f * block_m))));
+    std::vector<std::vector<uint64_t>> per_thread(threads_);
+#pragma omp parallel num_threads(threads_)
+    {
+      auto& keys = per_thread[omp_get_thread_num()];
+      uint64_t last = ~uint64_t{0};
 #pragma omp for schedule(static)
-    for (int y = 0; y < h; ++y) {
-      for (int x = 0; x < w; ++x) {
-        float d = depth.at<float>(y, x);
-        if (!std::isfinite(d)) continue;
-        cv::Vec2f ray = tables->rays.at<cv::Vec2f>(y, x);
-        Eigen::Vector3f direction(ray[0], ray[1], 1);
-        float length = direction.norm();
-        for (int s = -band_steps; s <= band_steps; ++s) {
-          float along = d * length + s * truncation / band_steps;
-          Eigen::Vector3f p = rotation * (direction * (along / length)) + translation;
-          Eigen::Vector3d pd = p.cast<double>();
-          if (!volume_.bounds().Contains(pd)) continue;
-          Eigen::Vector3i v = (p / voxel).array().round().cast<int>();
-          uint64_t key = SparseVolume::Key(SparseVolume::BlockOf(v));
-          if (key != last) keys.push_back(key), last = key;
+      for (int y = 0; y < h_; ++y) {
+        for (int x = 0; x < w_; ++x) {
+          float d = depth_.at<float>(y, x);
+          if (!std::isfinite(d)) continue;
+          cv::Vec2f ray = tables_->rays.at<cv::Vec2f>(y, x);
+          Eigen::Vector3f direction(ray[0], ray[1], 1);
+          float length = direction.norm();
+          for (int s = -band_steps; s <= band_steps; ++s) {
+            float along = d * length + s * truncation_ / band_steps;
+            Eigen::Vector3f p = rotation * (direction * (along / length)) + translation;
+            Eigen::Vector3d pd = p.cast<double>();
+            if (!volume_.bounds().Contains(pd)) continue;
+            Eigen::Vector3i v = (p / voxel_).array().round().cast<int>();
+            uint64_t key = SparseVolume::Key(SparseVolume::BlockOf(v));
+            if (key != last) keys.push_back(key), last = key;
+          }
         }
       }
+      std::sort(keys.begin(), keys.end());
+      keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
     }
-    std::sort(keys.begin(), keys.end());
-    keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
+    std::vector<uint64_t> touched;
+    for (auto& keys : per_thread) touched.insert(touched.end(), keys.begin(), keys.end());
+    std::sort(touched.begin(), touched.end());
+    touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
+    return touched;
   }
-  std::vector<uint64_t> touched;
-  for (auto& keys : per_thread) touched.insert(touched.end(), keys.begin(), keys.end());
-  std::sort(touched.begin(), touched.end());
-  touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
-  std::vector<VoxelBlock*> blocks(touched.size());
-  std::vector<Eigen::Vector3i> coordinates(touched.size());
-  for (size_t i = 0; i < touched.size(); ++i) {
-    coordinates[i] = SparseVolume::Unkey(touched[i]);
-    blocks[i] = &volume_.Allocate(coordinates[i]);
+
+  void AllocateBlocks(const std::vector<uint64_t>& touched) {
+    blocks_.resize(touched.size());
+    coordinates_.resize(touched.size());
+    for (size_t i = 0; i < touched.size(); ++i) {
+      coordinates_[i] = SparseVolume::Unkey(touched[i]);
+      blocks_[i] = &volume_.Allocate(coordinates_[i]);
+    }
+    stats_.blocks_touched = static_cast<int64_t>(touched.size());
   }
-  stats.blocks_touched = static_cast<int64_t>(touched.size());
 
   // 3. Projective signed distances, noise-weighted running averages with capped weights.
-  const auto& projector = tables->projector;
-  const float max_weight = options_.max_weight;
-  const Box& bounds = volume_.bounds();
-  int64_t updated = 0;
-#pragma omp parallel for num_threads(threads) reduction(+ : updated) schedule(dynamic, 16)
-  for (size_t b = 0; b < blocks.size(); ++b) {
-    VoxelBlock& block = *blocks[b];
-    const Eigen::Vector3i base = coordinates[b] * kBlockSide;
+  void FuseBlocks() {
+    int64_t updated = 0;
+#pragma omp parallel for num_threads(threads_) reduction(+ : updated) schedule(dynamic, 16)
+    for (size_t b = 0; b < blocks_.size(); ++b) updated += FuseBlock(b);
+    stats_.voxels_updated = updated;
+  }
+
+  // Block b's voxels that project onto a measurement; returns how many were updated.
+  int64_t FuseBlock(size_t b) const {
+    const auto& projector = tables_->projector;
+    const Box& bounds = volume_.bounds();
+    VoxelBlock& block = *blocks_[b];
+    const Eigen::Vector3i base = coordinates_[b] * kBlockSide;
+    int64_t updated = 0;
     for (int z = 0; z < kBlockSide; ++z) {
       for (int y = 0; y < kBlockSide; ++y) {
         for (int x = 0; x < kBlockSide; ++x) {
-          Eigen::Vector3f world = (base + Eigen::Vector3i(x, y, z)).cast<float>() * voxel;
+          Eigen::Vector3f world = (base + Eigen::Vector3i(x, y, z)).cast<float>() * voxel_;
           if (!bounds.Contains(world.cast<double>())) continue;
           Eigen::Vector3f p = projector.ToCamera(world);
           float u, v;
           if (!projector.Project(p, &u, &v)) continue;
           int px = static_cast<int>(std::lround(u)), py = static_cast<int>(std::lround(v));
-          if (px < 0 || py < 0 || px >= w || py >= h) continue;
-          float d = depth.at<float>(py, px);
+          if (px < 0 || py < 0 || px >= w_ || py >= h_) continue;
+          float d = depth_.at<float>(py, px);
           if (!std::isfinite(d)) continue;
           // Distance along the ray rather than along z: projective, but not stretched at the
           // image border.
           float sdf = (d - p.z()) * (p.norm() / p.z());
-          if (sdf < -truncation) continue;
-          sdf = std::min(sdf, truncation);
-          float sigma_ratio = k > 0 ? 1.0f / (d * d) : 1.0f;  // sigma(1 m) / sigma(d)
+          if (sdf < -truncation_) continue;
+          sdf = std::min(sdf, truncation_);
+          float sigma_ratio = k_ > 0 ? 1.0f / (d * d) : 1.0f;  // sigma(1 m) / sigma(d)
           float weight = std::clamp(sigma_ratio * sigma_ratio, 1e-3f, 1.0f);
           Voxel& voxel_data = block.at(x, y, z);
           float total = voxel_data.weight + weight;
           voxel_data.sdf = (voxel_data.sdf * voxel_data.weight + sdf * weight) / total;
-          if (use_color && std::abs(sdf) < 0.5f * truncation) {
-            float cu, cv_;
-            Eigen::Vector3f pc = color_tables->projector.ToCamera(world);
-            if (color_tables->projector.Project(pc, &cu, &cv_) &&
-                color_tables->projector.InImage(cu, cv_, 0.5f)) {
-              cv::Vec3b bgr = color.at<cv::Vec3b>(static_cast<int>(std::lround(cv_)),
-                                                  static_cast<int>(std::lround(cu)));
-              float old = voxel_data.weight;
-              voxel_data.r =
-                  static_cast<uint8_t>((voxel_data.r * old + bgr[2] * weight) / total + 0.5f);
-              voxel_data.g =
-                  static_cast<uint8_t>((voxel_data.g * old + bgr[1] * weight) / total + 0.5f);
-              voxel_data.b =
-                  static_cast<uint8_t>((voxel_data.b * old + bgr[0] * weight) / total + 0.5f);
-            }
-          }
-          voxel_data.weight = std::min(total, max_weight);
+          if (use_color_ && std::abs(sdf) < 0.5f * truncation_)
+            BlendColor(world, weight, total, &voxel_data);
+          voxel_data.weight = std::min(total, options_.max_weight);
           ++updated;
         }
       }
     }
+    return updated;
   }
-  stats.voxels_updated = updated;
+
+  // The colour image's pixel at `world`, averaged into the voxel with the measurement's
+  // weight (the voxel's weight not yet updated).
+  void BlendColor(const Eigen::Vector3f& world, float weight, float total,
+                  Voxel* voxel_data) const {
+    float cu, cv_;
+    Eigen::Vector3f pc = color_tables_->projector.ToCamera(world);
+    if (!color_tables_->projector.Project(pc, &cu, &cv_) ||
+        !color_tables_->projector.InImage(cu, cv_, 0.5f)) {
+      return;
+    }
+    cv::Vec3b bgr =
+        color_.at<cv::Vec3b>(static_cast<int>(std::lround(cv_)), static_cast<int>(std::lround(cu)));
+    float old = voxel_data->weight;
+    voxel_data->r = static_cast<uint8_t>((voxel_data->r * old + bgr[2] * weight) / total + 0.5f);
+    voxel_data->g = static_cast<uint8_t>((voxel_data->g * old + bgr[1] * weight) / total + 0.5f);
+    voxel_data->b = static_cast<uint8_t>((voxel_data->b * old + bgr[0] * weight) / total + 0.5f);
+  }
+
+  const TsdfOptions& options_;
+  SparseVolume& volume_;
+  const cv::Mat& depth_in_;
+  const CameraModel& depth_camera_;
+  const cv::Mat& foreground_;
+  const cv::Mat& color_;
+  const bool use_color_;
+  const int threads_;
+  const std::shared_ptr<const CameraTables> tables_, color_tables_;
+  const int w_, h_;
+  const float k_;  // depth_noise_k
+  const float voxel_, truncation_;
+
+  cv::Mat depth_;  // the depths fused: valid, smoothed, not grazing; NaN elsewhere
+  std::vector<VoxelBlock*> blocks_;  // the blocks touched, and their coordinates
+  std::vector<Eigen::Vector3i> coordinates_;
+  TsdfFrameStats stats_;
+};
+
+}  // namespace
+
+TsdfVolume::TsdfVolume(const TsdfOptions& options)
+    : options_((options.Check(), options)),
+      volume_(options.voxel_m, options.bounds, options.voxel_m * options.truncation_voxels) {}
+
+TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel& depth_camera,
+                                     const cv::Mat& foreground, const cv::Mat& color,
+                                     const CameraModel* color_camera) {
+  auto start = std::chrono::steady_clock::now();
+  TsdfFrameStats stats =
+      FrameIntegrator(options_, volume_, depth_in, depth_camera, foreground, color, color_camera)
+          .Run();
   stats.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   return stats;
 }
