@@ -193,6 +193,8 @@ class Trainer {
   NeuralVolumeSummary Run(Report* report);
 
  private:
+  // What the model is built of and trained with, into the summary's plan (the take's plan first).
+  void DescribePlan(NeuralVolumeSummary* summary) const;
   static torch::Tensor ImageTensor(const cv::Mat& bgr8) {
     cv::Mat f;
     bgr8.convertTo(f, CV_32FC3, 1.0 / 255.0);
@@ -615,18 +617,18 @@ void Trainer::SaveModel(const nlohmann::json& plan) {
   WriteFileAtomic(model_dir_ / "model.json", json.dump(2) + "\n");
 }
 
-NeuralVolumeSummary Trainer::Run(Report* report) {
-  NeuralVolumeSummary summary;
+void Trainer::DescribePlan(NeuralVolumeSummary* out) const {
+  NeuralVolumeSummary& summary = *out;
   summary.plan = data_.plan;
   summary.built_encoder = Has("encoder");
   summary.built_warp = Has("warp");
   summary.plan["modules"] = Modules();
-  summary.plan["left_out"] =
-      data_.dynamic
-          ? nlohmann::json::array()
-          : nlohmann::json::array({"encoder (one static frame: no latent to infer)",
-                                   "warp field (nothing moves)",
-                                   "template decoder (the RGBA grid itself is optimised)"});
+  if (!data_.dynamic) {
+    nlohmann::json& left_out = summary.plan["left_out"];
+    left_out["encoder"] = "one static frame: no latent to infer";
+    left_out["warp field"] = "nothing moves";
+    left_out["template decoder"] = "the RGBA grid itself is optimised";
+  }
   summary.plan["device"] = "cpu (the ray marcher is CPU code)";
   nlohmann::json losses = {{"photometric", 1.0},
                            {"alpha_prior", options_.alpha_prior_weight},
@@ -638,6 +640,11 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   }
   summary.plan["losses"] = losses;
   summary.plan["step_m"] = step_m_;
+}
+
+NeuralVolumeSummary Trainer::Run(Report* report) {
+  NeuralVolumeSummary summary;
+  DescribePlan(&summary);
   if (report != nullptr) {
     report->plan() = summary.plan;
     report->Write(model_dir_ / "report.json");

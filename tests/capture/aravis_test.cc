@@ -179,6 +179,7 @@ void ExpectTakeMatchesSummary(const std::filesystem::path& dir, const RecorderSu
 // real-time, so the two cores' other work does not delay them (60/60 in ten runs at a load of
 // 10). The accounting is asserted as well, so that a failure says where a frame went.
 TEST(FakeGige, EightCamerasSoftwareTriggeredAt30HzEverySetCompleteNothingLost) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(8, /*lost_per_thousand=*/0, /*trigger_tick_hz=*/100);
   TempDir dir;
   RecorderOptions options;
@@ -216,6 +217,7 @@ TEST(FakeGige, EightCamerasSoftwareTriggeredAt30HzEverySetCompleteNothingLost) {
 // trigger in six into a neighbour's frame: each fold is counted lost, and no set may mix frames
 // of two ticks.
 TEST(FakeGige, PackagedFakeCameraAt30HzFoldsTriggersAndCountsEachOne) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(3);
   TempDir dir;
   RecorderSummary summary =
@@ -245,6 +247,7 @@ TEST(FakeGige, PackagedFakeCameraAt30HzFoldsTriggersAndCountsEachOne) {
 // a frame of a complete set or counted lost, a set is written only with all eight frames, and no
 // set is wider than the assembler's tolerance.
 TEST(FakeGige, PackagedFakeCamerasTriggeredMidTickAt25HzWriteEverySetOrCountIt) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(8);
   TempDir dir;
   RecorderOptions options;
@@ -293,6 +296,7 @@ void ExpectEveryTriggerAccountedFor(const RecorderSummary& summary, int64_t trig
 // frame's packets breaks the ramp). 256x256 Mono8 frames are 48 packets: about 60% of them lose
 // at least one packet on first sending.
 TEST(FakeGige, UnderPacketLossLostPacketsAreResentAndNoTornFrameIsWritten) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(8, /*lost_per_thousand=*/20, /*trigger_tick_hz=*/100);
   TempDir dir;
   RecorderOptions options;
@@ -320,6 +324,7 @@ TEST(FakeGige, UnderPacketLossLostPacketsAreResentAndNoTornFrameIsWritten) {
 // frame may reach the take. Small frames (a handful of packets each) so that a fair share
 // arrives whole; a frame still missing packets 20 ms on is given up.
 TEST(FakeGige, UnderPacketLossWithoutResendEveryFrameIsCompleteOrCountedLost) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(8, /*lost_per_thousand=*/20, /*trigger_tick_hz=*/100, "ramp",
                           "libaravis");
   TempDir dir;
@@ -344,6 +349,7 @@ TEST(FakeGige, UnderPacketLossWithoutResendEveryFrameIsCompleteOrCountedLost) {
 }
 
 TEST(FakeGige, CameraVanishingMidTakeEndsItCleanly) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(3);
   TempDir dir;
   RecorderOptions options;

@@ -36,6 +36,7 @@ std::filesystem::path WriteRig(const TempDir& dir, const FakeGigeCameras& camera
 }
 
 TEST(CaptureCli, RecordsATakeThatInfoAndReplayRead) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(3);
   TempDir dir;
   auto rig = WriteRig(dir, cameras, 3, 20);
@@ -92,6 +93,7 @@ TEST(CaptureCli, UnknownDeviceIsOneLineAndNoTake) {
 }
 
 TEST(CaptureCli, UnsupportedPixelFormatIsOneLineAndNoTake) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(1);
   TempDir dir;
   {
@@ -111,6 +113,7 @@ TEST(CaptureCli, UnsupportedPixelFormatIsOneLineAndNoTake) {
 }
 
 TEST(CaptureFaults, KilledRecorderLeavesATakeWithEveryCompleteSet) {
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(2);
   TempDir dir;
   auto rig = WriteRig(dir, cameras, 2, 20);
@@ -175,6 +178,7 @@ TEST(CaptureFaults, FullDiskStopsTheTakeCleanly) {
   SmallDisk disk(dir / "disk", "320k");
   if (!disk.lacks_privilege().empty()) GTEST_SKIP() << disk.lacks_privilege();
   ASSERT_FALSE(::testing::Test::HasFailure());
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
   FakeGigeCameras cameras(2);
   RigDescription rig;
   rig.name = "fake";

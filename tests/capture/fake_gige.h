@@ -16,6 +16,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -43,6 +44,20 @@ inline std::string EnterPrivateNetwork() {
   }();
   return result;
 }
+
+// Why this process cannot start fake cameras for lack of privilege (a network namespace of its
+// own needs CAP_SYS_ADMIN, e.g. root), or an empty string when it can.
+inline std::string LacksNetworkPrivilege() {
+  const std::string error = EnterPrivateNetwork();
+  return error.find(strerror(EPERM)) != std::string::npos
+             ? error + " (needs CAP_SYS_ADMIN, e.g. root)"
+             : "";
+}
+
+// For a test that starts fake cameras: skips, with the reason, without the privilege.
+#define HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE()                                         \
+  if (const std::string why = ::holocap::testing::LacksNetworkPrivilege(); !why.empty()) \
+  GTEST_SKIP() << "fake GigE cameras: " << why
 
 class FakeGigeCameras {
  public:

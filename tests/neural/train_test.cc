@@ -78,6 +78,9 @@ TEST_F(NeuralTrainTest, DynamicCiConfigurationLearnsTheSubject) {
   EXPECT_TRUE(summary.built_encoder);
   EXPECT_TRUE(summary.built_warp);
   EXPECT_EQ(summary.plan["scene"], "dynamic");
+  EXPECT_FALSE(summary.plan["left_out"].contains("encoder"));
+  EXPECT_EQ(summary.plan["left_out"].value("depth sensors", ""),
+            "Neural Volumes learn from colour alone");
   EXPECT_EQ(summary.plan["heldout"].size(), 2u);
   EXPECT_EQ(summary.plan["bounds"]["source"], "hull");
   EXPECT_GT(summary.iterations, 20);
@@ -115,6 +118,9 @@ TEST_F(NeuralTrainTest, StaticSceneLeavesOutEncoderAndWarp) {
   EXPECT_EQ(summary.plan["scene"], "static");
   EXPECT_FALSE(summary.built_encoder);
   EXPECT_FALSE(summary.built_warp);
+  // The plan says what was left out and why, beside what the take's plan left out.
+  EXPECT_TRUE(summary.plan["left_out"].contains("encoder")) << summary.plan["left_out"].dump();
+  EXPECT_TRUE(summary.plan["left_out"].contains("warp field")) << summary.plan["left_out"].dump();
   const auto json = nlohmann::json::parse(ReadFileToString(model / "model.json"));
   EXPECT_EQ(json["method"], "nvol");
   for (const auto& module : json["modules"]) {
