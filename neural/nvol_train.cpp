@@ -195,6 +195,10 @@ class Trainer {
  private:
   // What the model is built of and trained with, into the summary's plan (the take's plan first).
   void DescribePlan(NeuralVolumeSummary* summary) const;
+  torch::Tensor TotalVariation(const torch::Tensor& rgba) const;
+  std::pair<double, double> MeanAlphaInsideOutside(const torch::Tensor& alpha, int64_t f,
+                                                   const std::vector<int64_t>& camera,
+                                                   const std::vector<int64_t>& pixel_index) const;
   static torch::Tensor ImageTensor(const cv::Mat& bgr8) {
     cv::Mat f;
     bgr8.convertTo(f, CV_32FC3, 1.0 / 255.0);
@@ -295,6 +299,40 @@ class Trainer {
   StepTerms last_terms_;
 };
 
+// Total variation of colour and of density in optical depth per voxel.
+torch::Tensor Trainer::TotalVariation(const torch::Tensor& rgba) const {
+  const torch::Tensor normalised =
+      rgba / torch::tensor({1.0f, 1.0f, 1.0f, static_cast<float>(config_.density_scale())});
+  const auto along = [&](int axis) {
+    return (normalised.narrow(axis, 1, config_.grid - 1) -
+            normalised.narrow(axis, 0, config_.grid - 1))
+        .pow(2)
+        .mean();
+  };
+  // One expression, as the autograd graph's shape sets the order gradients are summed in.
+  return along(0) + along(1) + along(2);
+}
+
+// Mean ray alpha of a batch's pixels inside and outside their training silhouettes.
+std::pair<double, double> Trainer::MeanAlphaInsideOutside(
+    const torch::Tensor& alpha, int64_t f, const std::vector<int64_t>& camera,
+    const std::vector<int64_t>& pixel_index) const {
+  const float* a = alpha.contiguous().data_ptr<float>();
+  double in_sum = 0, out_sum = 0;
+  int64_t in_count = 0, out_count = 0;
+  for (size_t i = 0; i < camera.size(); ++i) {
+    const int32_t p = static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
+    if (data_.masks[f][camera[i]].data[p] != 0) {
+      in_sum += a[i];
+      ++in_count;
+    } else {
+      out_sum += a[i];
+      ++out_count;
+    }
+  }
+  return {in_count > 0 ? in_sum / in_count : 0.0, out_count > 0 ? out_sum / out_count : 0.0};
+}
+
 double Trainer::TrainStep(int64_t iteration, double* photometric, double* samples_per_ray) {
   optimizer_->zero_grad();
   const int64_t frames = static_cast<int64_t>(data_.sets.size());
@@ -368,19 +406,7 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
     torch::Tensor prior =
         (torch::log(0.1 + alpha) + torch::log(0.1 + 1 - alpha) - std::log(0.1) - std::log(1.1))
             .mean();
-    // Total variation of colour and of density in optical depth per voxel.
-    torch::Tensor normalised =
-        rgba / torch::tensor({1.0f, 1.0f, 1.0f, static_cast<float>(config_.density_scale())});
-    torch::Tensor tv =
-        (normalised.narrow(0, 1, config_.grid - 1) - normalised.narrow(0, 0, config_.grid - 1))
-            .pow(2)
-            .mean() +
-        (normalised.narrow(1, 1, config_.grid - 1) - normalised.narrow(1, 0, config_.grid - 1))
-            .pow(2)
-            .mean() +
-        (normalised.narrow(2, 1, config_.grid - 1) - normalised.narrow(2, 0, config_.grid - 1))
-            .pow(2)
-            .mean();
+    torch::Tensor tv = TotalVariation(rgba);
     torch::Tensor frame_loss =
         photo + options_.alpha_prior_weight * prior + options_.tv_weight * tv;
     torch::Tensor silhouette_term, warp_term;
@@ -412,22 +438,9 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
       terms.tv += share * tv.item<double>();
       if (kl.defined()) terms.kl += share * kl.item<double>();
       if (silhouette_term.defined()) terms.silhouette += share * silhouette_term.item<double>();
-      const float* a = alpha.contiguous().data_ptr<float>();
-      double in_sum = 0, out_sum = 0;
-      int64_t in_count = 0, out_count = 0;
-      for (int i = 0; i < per_frame; ++i) {
-        const int32_t p =
-            static_cast<int32_t>(pixel_index[i] - f * total_pixels_ - offset_[camera[i]]);
-        if (data_.masks[f][camera[i]].data[p] != 0) {
-          in_sum += a[i];
-          ++in_count;
-        } else {
-          out_sum += a[i];
-          ++out_count;
-        }
-      }
-      terms.alpha_inside += share * (in_count > 0 ? in_sum / in_count : 0.0);
-      terms.alpha_outside += share * (out_count > 0 ? out_sum / out_count : 0.0);
+      const auto [inside, outside] = MeanAlphaInsideOutside(alpha, f, camera, pixel_index);
+      terms.alpha_inside += share * inside;
+      terms.alpha_outside += share * outside;
       if (warp.defined())
         terms.warp_voxels += share *
                              (warp - IdentityWarp(warp.size(0))).norm(2, -1).mean().item<double>() *

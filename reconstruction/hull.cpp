@@ -128,12 +128,9 @@ int ClassifyCell(const std::vector<HullView>& views, const Eigen::Vector3f& cent
   return scratch[k] < -1.25f * radius ? -1 : 0;
 }
 
-}  // namespace
-
-VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
-                             HullSummary* summary_out) {
-  options.Check();
-  auto start = std::chrono::steady_clock::now();
+// Each view's projector and silhouette distance; throws Error for a missing or mis-sized
+// silhouette.
+std::vector<HullView> PrepareViews(const std::vector<View>& views, double margin_px) {
   if (views.empty()) Fail("visual hull needs at least one view");
   std::vector<HullView> hull_views;
   for (const View& view : views) {
@@ -143,9 +140,18 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
       Fail("visual hull: silhouette of '", view.name, "' is ", view.mask.cols, "x", view.mask.rows,
            " CV_8U expected ", view.camera.width(), "x", view.camera.height());
     }
-    hull_views.push_back(
-        {recon::FastProjector(view.camera), SignedDistance(view.mask, options.margin_px)});
+    hull_views.push_back({recon::FastProjector(view.camera), SignedDistance(view.mask, margin_px)});
   }
+  return hull_views;
+}
+
+}  // namespace
+
+VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
+                             HullSummary* summary_out) {
+  options.Check();
+  auto start = std::chrono::steady_clock::now();
+  std::vector<HullView> hull_views = PrepareViews(views, options.margin_px);
   const int threads = recon::ResolveThreads(options.threads);
   const int tolerated = options.tolerated_bad_views;
   const int min_views = options.min_views;
