@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
+#include "bench/bench_data.h"
 #include "core/report.h"
 #include "interop/interop.h"
 #include "neural/neural.h"
@@ -267,15 +268,7 @@ int main(int argc, char** argv) {
   }
 
   if (dino || dino_only) {
-    const fs::path source =
-        fs::path(HOLOCAP_TEST_DATA_DIR) / "middlebury" / "dinoSparseRing" / "dinoSR_par.txt";
-    const fs::path take = root / "dino";
-    if (!fs::exists(take / "take.json")) {
-      ImportOptions import;
-      import.format = InteropFormat::kMiddlebury;
-      import.overwrite = true;
-      ImportTake(source, take, import);
-    }
+    const fs::path take = bench::ImportDinoOnce(root);
     NeuralVolumeOptions options;
     options.grid = grid;
     options.minutes = dino_minutes;

@@ -23,6 +23,7 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
+#include "bench/bench_data.h"
 #include "core/mesh.h"
 #include "core/report.h"
 #include "interop/interop.h"
@@ -138,163 +139,168 @@ void InferenceTable(const fs::path& model_dir, int threads) {
   }
 }
 
+// The command line: the training options shared by both cases, and which cases to run.
+struct BenchArgs {
+  double minutes = 10, dino_minutes = 5;
+  int frames = 30, width = 160, sim_width = 320, threads = 2, train_threads = 0;
+  RerenderOptions base;
+  std::string work = "/tmp/rerender-bench", model_name = "model-studio8";
+  std::string recon_method = "auto", inference_only;
+  bool dino = false, dino_only = false, no_completion = false;
+  double eval_every = 0;
+};
+
+void AddFlags(CLI::App* app, BenchArgs& args) {
+  app->add_option("--minutes", args.minutes, "Training budget on studio8");
+  app->add_option("--frames", args.frames, "Frame sets of the simulated take");
+  app->add_option("--width", args.width, "Training image width");
+  app->add_option("--sim-width", args.sim_width, "Simulated image width");
+  app->add_option("--unet-width", args.base.net.width, "U-Net channels of the first level");
+  app->add_option("--unet-depth", args.base.net.depth, "U-Net levels");
+  app->add_option("--gan-weight", args.base.gan_weight, "PatchGAN weight (0: none)");
+  app->add_option("--temporal-weight", args.base.temporal_weight, "Temporal-consistency weight");
+  app->add_option("--crop", args.base.crop_px,
+                  "Training crop size near the subject (0: whole images)");
+  app->add_option("--batch-pairs", args.base.batch_pairs, "Pairs of consecutive frames per step");
+  app->add_option("--subject-weight", args.base.subject_weight,
+                  "Loss weight of pixels near the subject");
+  app->add_option("--alpha-weight", args.base.alpha_weight,
+                  "Weight of alpha against the witnesses' silhouettes (0: off)");
+  app->add_option("--seed", args.base.seed,
+                  "Seed of the network's initial weights and of the batches");
+  app->add_option("--lr", args.base.learning_rate,
+                  "Adam learning rate (decayed to a tenth over the budget)");
+  app->add_option("--threads", args.threads,
+                  "Threads for inference (and training unless --train-threads)");
+  app->add_option("--train-threads", args.train_threads,
+                  "Threads for reconstruction and training (0: --threads)");
+  app->add_option("--work", args.work, "Working directory (takes and models are kept)");
+  app->add_option("--model-name", args.model_name, "Model directory under --work for studio8");
+  app->add_option("--recon", args.base.recon_dir,
+                  "studio8: reuse this reconstruction (built without the same witnesses)");
+  app->add_option("--supersample", args.base.supersample,
+                  "Raster samples per pixel along each axis");
+  app->add_option("--witness-scales", args.base.witness_scales,
+                  "Fractions of the training width the witnesses also train at")
+      ->delimiter(',');
+  app->add_option("--recon-voxel", args.base.reconstruction.voxel_m,
+                  "studio8: reconstruction voxel in metres");
+  app->add_option("--recon-method", args.recon_method,
+                  "studio8: reconstruction method (auto, hull, tsdf, mvs)");
+  app->add_flag("--recon-no-completion", args.no_completion,
+                "studio8: fuse the depth sensors alone (holes where they saw nothing), as a live "
+                "fusion system does");
+  app->add_option("--witness-folds", args.base.witness_folds,
+                  "Witness sets, each with a reconstruction built without them");
+  app->add_option("--witness-names", args.base.witness,
+                  "studio8: the first fold's witnesses (names)")
+      ->delimiter(',');
+  app->add_option("--heldout-names", args.base.heldout,
+                  "studio8: the held-out cameras (names; default: one spread around the rig)")
+      ->delimiter(',');
+  app->add_option("--fold-witnesses", args.base.fold_witness,
+                  "studio8: a further fold's witnesses, comma-separated (once per fold)")
+      ->delimiter(',');
+  app->add_option("--fold-recon", args.base.fold_recon_dirs,
+                  "studio8: reuse these reconstructions of the further folds");
+  app->add_option("--validation-witnesses", args.base.validation_witnesses,
+                  "Witnesses that choose the weights (early stopping)");
+  app->add_option("--eval-every", args.eval_every,
+                  "Seconds between evaluations (0: a fifth of the budget, at least 10)");
+  app->add_flag("--dino", args.dino, "Also train on Middlebury dinoSparseRing");
+  app->add_flag("--dino-only", args.dino_only, "Only the dinoSparseRing case");
+  app->add_option("--dino-minutes", args.dino_minutes, "Training budget on dinoSparseRing");
+  app->add_option("--inference-only", args.inference_only,
+                  "Only time playback of this trained rerendering model at 512x512");
+}
+
+// studio8: a simulated walking subject (simulated once and kept under --work).
+void RunStudio8(const BenchArgs& args, const fs::path& root) {
+  const fs::path take =
+      root / ("studio8-" + std::to_string(args.frames) + "-" + std::to_string(args.sim_width));
+  if (!fs::exists(take / "take.json")) {
+    SimOptions sim;
+    sim.rig = "studio8";
+    sim.frames = args.frames + 1;
+    sim.scene = "subject";
+    sim.clean_plate_frames = 1;
+    sim.image_width = args.sim_width;
+    sim.overwrite = true;
+    SimSummary s = SimulateTake(sim, take);
+    std::printf("simulated %s: %lld frame sets in %.1f s\n", take.c_str(),
+                static_cast<long long>(s.frame_sets), s.seconds);
+  }
+  RerenderOptions options = args.base;
+  options.minutes = args.minutes;
+  options.image_width = args.width;
+  options.eval_every_s =
+      args.eval_every > 0
+          ? args.eval_every
+          : std::max(10.0, args.minutes * 60 / 5);  // an evaluation costs many steps
+  Report report("rerender_bench");
+  const fs::path model = root / args.model_name;
+  RerenderSummary summary = TrainRerender(take, model, options, &report);
+  std::printf("\nstudio8 walking subject, %d frame(s), %dpx wide, U-Net width %d depth %d\n",
+              args.frames, args.width, options.net.width, options.net.depth);
+  std::printf("plan: %s\n", summary.plan.dump().c_str());
+  PrintSeries(report);
+  PrintComparison(summary);
+  InferenceTable(model, args.threads);
+}
+
+// Middlebury dinoSparseRing: one frame of 16 views, the hull recipe of the README.
+void RunDino(const BenchArgs& args, const fs::path& root) {
+  const fs::path take = bench::ImportDinoOnce(root);
+  RerenderOptions options = args.base;
+  options.minutes = args.dino_minutes;
+  options.recon_dir.clear();
+  options.fold_recon_dirs.clear();
+  options.image_width = 320;
+  options.witness_cameras = 4;
+  options.heldout_cameras = 1;
+  options.eval_every_s =
+      args.eval_every > 0 ? args.eval_every : std::max(10.0, args.dino_minutes * 60 / 4);
+  // The Middlebury recipe: a hull from thresholded silhouettes inside the README's box.
+  ReconstructionOptions& r = options.reconstruction;
+  r.method = ReconstructionMethod::kHull;
+  r.voxel_m = 0.001;
+  r.bounds.min = Eigen::Vector3d(-0.072, -0.029, -0.068);
+  r.bounds.max = Eigen::Vector3d(0.021, 0.079, 0.026);
+  r.silhouette.mode = SilhouetteMode::kThreshold;
+  r.silhouette.open_px = 0;
+  r.silhouette.dilate_px = 10;
+  r.silhouette.erode_px = 7;
+  r.hull.min_views = 3;
+  Report report("rerender_bench_dino");
+  RerenderSummary summary = TrainRerender(take, root / "model-dino", options, &report);
+  std::printf("\ndinoSparseRing (one frame), 320px wide, %s\n", summary.plan.dump().c_str());
+  PrintSeries(report);
+  PrintComparison(summary);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"Neural rerendering benchmark"};
-  double minutes = 10, dino_minutes = 5;
-  int frames = 30, width = 160, sim_width = 320, threads = 2;
-  RerenderOptions base;
-  std::string work = "/tmp/rerender-bench";
-  bool dino = false, dino_only = false;
-  app.add_option("--minutes", minutes, "Training budget on studio8");
-  app.add_option("--frames", frames, "Frame sets of the simulated take");
-  app.add_option("--width", width, "Training image width");
-  app.add_option("--sim-width", sim_width, "Simulated image width");
-  app.add_option("--unet-width", base.net.width, "U-Net channels of the first level");
-  app.add_option("--unet-depth", base.net.depth, "U-Net levels");
-  app.add_option("--gan-weight", base.gan_weight, "PatchGAN weight (0: none)");
-  app.add_option("--temporal-weight", base.temporal_weight, "Temporal-consistency weight");
-  app.add_option("--crop", base.crop_px, "Training crop size near the subject (0: whole images)");
-  app.add_option("--batch-pairs", base.batch_pairs, "Pairs of consecutive frames per step");
-  app.add_option("--subject-weight", base.subject_weight, "Loss weight of pixels near the subject");
-  app.add_option("--alpha-weight", base.alpha_weight,
-                 "Weight of alpha against the witnesses' silhouettes (0: off)");
-  app.add_option("--seed", base.seed, "Seed of the network's initial weights and of the batches");
-  app.add_option("--lr", base.learning_rate,
-                 "Adam learning rate (decayed to a tenth over the budget)");
-  int train_threads = 0;
-  app.add_option("--threads", threads,
-                 "Threads for inference (and training unless --train-threads)");
-  app.add_option("--train-threads", train_threads,
-                 "Threads for reconstruction and training (0: --threads)");
-  app.add_option("--work", work, "Working directory (takes and models are kept)");
-  std::string model_name = "model-studio8";
-  app.add_option("--model-name", model_name, "Model directory under --work for studio8");
-  app.add_option("--recon", base.recon_dir,
-                 "studio8: reuse this reconstruction (built without the same witnesses)");
-  app.add_option("--supersample", base.supersample, "Raster samples per pixel along each axis");
-  app.add_option("--witness-scales", base.witness_scales,
-                 "Fractions of the training width the witnesses also train at")
-      ->delimiter(',');
-  app.add_option("--recon-voxel", base.reconstruction.voxel_m,
-                 "studio8: reconstruction voxel in metres");
-  std::string recon_method = "auto";
-  app.add_option("--recon-method", recon_method,
-                 "studio8: reconstruction method (auto, hull, tsdf, mvs)");
-  bool no_completion = false;
-  app.add_flag("--recon-no-completion", no_completion,
-               "studio8: fuse the depth sensors alone (holes where they saw nothing), as a live "
-               "fusion system does");
-  app.add_option("--witness-folds", base.witness_folds,
-                 "Witness sets, each with a reconstruction built without them");
-  app.add_option("--witness-names", base.witness, "studio8: the first fold's witnesses (names)")
-      ->delimiter(',');
-  app.add_option("--heldout-names", base.heldout,
-                 "studio8: the held-out cameras (names; default: one spread around the rig)")
-      ->delimiter(',');
-  app.add_option("--fold-witnesses", base.fold_witness,
-                 "studio8: a further fold's witnesses, comma-separated (once per fold)")
-      ->delimiter(',');
-  app.add_option("--fold-recon", base.fold_recon_dirs,
-                 "studio8: reuse these reconstructions of the further folds");
-  app.add_option("--validation-witnesses", base.validation_witnesses,
-                 "Witnesses that choose the weights (early stopping)");
-  double eval_every = 0;
-  app.add_option("--eval-every", eval_every,
-                 "Seconds between evaluations (0: a fifth of the budget, at least 10)");
-  app.add_flag("--dino", dino, "Also train on Middlebury dinoSparseRing");
-  app.add_flag("--dino-only", dino_only, "Only the dinoSparseRing case");
-  app.add_option("--dino-minutes", dino_minutes, "Training budget on dinoSparseRing");
-  std::string inference_only;
-  app.add_option("--inference-only", inference_only,
-                 "Only time playback of this trained rerendering model at 512x512");
+  BenchArgs args;
+  AddFlags(&app, args);
   CLI11_PARSE(app, argc, argv);
   std::setvbuf(stdout, nullptr, _IOLBF, 0);  // tables reach a redirected log as they are printed
-  if (!inference_only.empty()) {
-    try {
-      InferenceTable(inference_only, threads);
-    } catch (const std::exception& e) {
-      std::fprintf(stderr, "error: %s\n", e.what());
-      return 1;
-    }
-    return 0;
-  }
-  const fs::path root = work;
-  fs::create_directories(root);
-  base.threads = train_threads > 0 ? train_threads : threads;
-  if (no_completion) base.reconstruction.tsdf_hull_completion = false;
   try {
-    base.reconstruction.method = ReconstructionMethodFromString(recon_method);
+    if (!args.inference_only.empty()) {
+      InferenceTable(args.inference_only, args.threads);
+      return 0;
+    }
+    args.base.threads = args.train_threads > 0 ? args.train_threads : args.threads;
+    if (args.no_completion) args.base.reconstruction.tsdf_hull_completion = false;
+    args.base.reconstruction.method = ReconstructionMethodFromString(args.recon_method);
+    const fs::path root = args.work;
+    fs::create_directories(root);
+    if (!args.dino_only) RunStudio8(args, root);
+    if (args.dino || args.dino_only) RunDino(args, root);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "error: %s\n", e.what());
     return 1;
-  }
-  if (!dino_only) {
-    const fs::path take =
-        root / ("studio8-" + std::to_string(frames) + "-" + std::to_string(sim_width));
-    if (!fs::exists(take / "take.json")) {
-      SimOptions sim;
-      sim.rig = "studio8";
-      sim.frames = frames + 1;
-      sim.scene = "subject";
-      sim.clean_plate_frames = 1;
-      sim.image_width = sim_width;
-      sim.overwrite = true;
-      SimSummary s = SimulateTake(sim, take);
-      std::printf("simulated %s: %lld frame sets in %.1f s\n", take.c_str(),
-                  static_cast<long long>(s.frame_sets), s.seconds);
-    }
-    RerenderOptions options = base;
-    options.minutes = minutes;
-    options.image_width = width;
-    options.eval_every_s =
-        eval_every > 0 ? eval_every
-                       : std::max(10.0, minutes * 60 / 5);  // an evaluation costs many steps
-    Report report("rerender_bench");
-    const fs::path model = root / model_name;
-    RerenderSummary summary = TrainRerender(take, model, options, &report);
-    std::printf("\nstudio8 walking subject, %d frame(s), %dpx wide, U-Net width %d depth %d\n",
-                frames, width, options.net.width, options.net.depth);
-    std::printf("plan: %s\n", summary.plan.dump().c_str());
-    PrintSeries(report);
-    PrintComparison(summary);
-    InferenceTable(model, threads);
-  }
-  if (dino || dino_only) {
-    const fs::path source =
-        fs::path(HOLOCAP_TEST_DATA_DIR) / "middlebury" / "dinoSparseRing" / "dinoSR_par.txt";
-    const fs::path take = root / "dino";
-    if (!fs::exists(take / "take.json")) {
-      ImportOptions import;
-      import.format = InteropFormat::kMiddlebury;
-      import.overwrite = true;
-      ImportTake(source, take, import);
-    }
-    RerenderOptions options = base;
-    options.minutes = dino_minutes;
-    options.recon_dir.clear();
-    options.fold_recon_dirs.clear();
-    options.image_width = 320;
-    options.witness_cameras = 4;
-    options.heldout_cameras = 1;
-    options.eval_every_s = eval_every > 0 ? eval_every : std::max(10.0, dino_minutes * 60 / 4);
-    // The Middlebury recipe: a hull from thresholded silhouettes inside the README's box.
-    ReconstructionOptions& r = options.reconstruction;
-    r.method = ReconstructionMethod::kHull;
-    r.voxel_m = 0.001;
-    r.bounds.min = Eigen::Vector3d(-0.072, -0.029, -0.068);
-    r.bounds.max = Eigen::Vector3d(0.021, 0.079, 0.026);
-    r.silhouette.mode = SilhouetteMode::kThreshold;
-    r.silhouette.open_px = 0;
-    r.silhouette.dilate_px = 10;
-    r.silhouette.erode_px = 7;
-    r.hull.min_views = 3;
-    Report report("rerender_bench_dino");
-    RerenderSummary summary = TrainRerender(take, root / "model-dino", options, &report);
-    std::printf("\ndinoSparseRing (one frame), 320px wide, %s\n", summary.plan.dump().c_str());
-    PrintSeries(report);
-    PrintComparison(summary);
   }
   return 0;
 }

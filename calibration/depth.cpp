@@ -114,6 +114,110 @@ nlohmann::json DepthAlignmentSummary::ToJson() const {
           {"time_offset_valid", time_offset_valid}};
 }
 
+namespace {
+
+// A board plane seen at one frame set: as the colour camera's pose puts it, as the depth
+// sensor measured it (fitted to the depth points inside the board's outline), and when.
+struct PlaneSample {
+  Plane color, depth;
+  double color_time_s = 0, depth_time_s = 0;
+  std::vector<Eigen::Vector3d> points;
+};
+
+// The frame sets where both sensors saw the board: the outline is carried into the depth image
+// through the current depth_from_color guess, and a plane is fitted to the depth inside it.
+std::vector<PlaneSample> PlaneSamples(const Take& take, const std::string& depth_sensor,
+                                      const CameraModel& depth_model,
+                                      const std::string& color_sensor,
+                                      const std::map<int64_t, Pose>& color_from_board,
+                                      const Board& board, const Pose& depth_from_color,
+                                      const DepthAlignmentOptions& options,
+                                      std::mt19937_64* random) {
+  std::vector<PlaneSample> samples;
+  for (size_t i = 0; i < take.size(); ++i) {
+    const FrameSetEntry& entry = take.entry(i);
+    auto pose = color_from_board.find(entry.index);
+    const auto* depth_item = entry.Find(depth_sensor);
+    const auto* color_item = entry.Find(color_sensor);
+    if (pose == color_from_board.end() || depth_item == nullptr || color_item == nullptr) continue;
+    std::vector<Eigen::Vector2d> outline;
+    bool visible = true;
+    for (const auto& corner : InnerOutline(board, 0.12)) {
+      Eigen::Vector2d q;
+      if (!depth_model.Project(depth_from_color * (pose->second * corner), &q)) visible = false;
+      outline.push_back(q);
+    }
+    if (!visible) continue;
+    const cv::Mat depth = take.ReadFrame(i, depth_sensor);
+    if (depth.type() != CV_32FC1)
+      Fail("depth sensor '", depth_sensor, "' frames are not metres (CV_32F)");
+    double x0 = 1e9, x1 = -1e9, y0 = 1e9, y1 = -1e9;
+    for (const auto& q : outline) {
+      x0 = std::min(x0, q.x());
+      x1 = std::max(x1, q.x());
+      y0 = std::min(y0, q.y());
+      y1 = std::max(y1, q.y());
+    }
+    PlaneSample sample;
+    std::vector<Eigen::Vector2d> pixels;
+    for (int y = std::max(0, static_cast<int>(y0));
+         y <= std::min(depth.rows - 1, static_cast<int>(y1)); ++y) {
+      for (int x = std::max(0, static_cast<int>(x0));
+           x <= std::min(depth.cols - 1, static_cast<int>(x1)); ++x) {
+        const float z = depth.at<float>(y, x);
+        if (!std::isfinite(z) || z <= 0) continue;
+        if (!InsidePolygon(outline, Eigen::Vector2d(x, y))) continue;
+        pixels.emplace_back(x, y);
+      }
+    }
+    if (pixels.size() < 50) continue;
+    Eigen::Matrix2Xd q(2, pixels.size());
+    for (size_t k = 0; k < pixels.size(); ++k) q.col(k) = pixels[k];
+    const Eigen::Matrix3Xd rays = depth_model.UnprojectMany(q);
+    for (size_t k = 0; k < pixels.size(); ++k) {
+      if (!rays.col(k).allFinite() || rays(2, k) <= 0) continue;
+      const double z =
+          depth.at<float>(static_cast<int>(pixels[k].y()), static_cast<int>(pixels[k].x()));
+      sample.points.push_back(rays.col(k) * (z / rays(2, k)));
+    }
+    double rms = 0;
+    if (!FitPlane(sample.points, options.plane_inlier_m, &sample.depth, &rms, random)) continue;
+    sample.color = BoardPlane(pose->second);
+    sample.color_time_s = color_item->timestamp_ns * 1e-9;
+    sample.depth_time_s = depth_item->timestamp_ns * 1e-9;
+    samples.push_back(std::move(sample));
+  }
+  return samples;
+}
+
+// The time offset: the board's distance from the depth sensor as measured, against the same
+// distance predicted from the colour camera's board poses, differentiated in time. Sets
+// time_offset_s/time_offset_valid when the board moved enough to tell.
+void EstimateTimeOffset(const std::vector<PlaneSample>& samples, const Pose& depth_from_color,
+                        const DepthAlignmentOptions& options, DepthAlignmentSummary* summary) {
+  std::vector<double> t, predicted, measured;
+  for (const auto& s : samples) {
+    const Eigen::Vector3d normal = depth_from_color.linear() * s.color.normal;
+    t.push_back(s.color_time_s);
+    predicted.push_back(s.color.offset + normal.dot(depth_from_color.translation()));
+    measured.push_back(s.depth.offset);
+  }
+  double num = 0, den = 0;
+  for (size_t k = 1; k + 1 < t.size(); ++k) {
+    const double dt = t[k + 1] - t[k - 1];
+    if (!(dt > 0)) continue;
+    const double rate = (predicted[k + 1] - predicted[k - 1]) / dt;
+    num += (measured[k] - predicted[k]) * rate;
+    den += rate * rate;
+  }
+  if (den > 1e-6) {
+    summary->time_offset_s = num / den;
+    summary->time_offset_valid = std::abs(summary->time_offset_s) <= options.max_time_offset_s;
+  }
+}
+
+}  // namespace
+
 DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& depth_sensor,
                                         const CameraModel& depth_model,
                                         const std::string& color_sensor,
@@ -130,71 +234,13 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
   summary.color_sensor = color_sensor;
   std::mt19937_64 random(7);
 
-  struct Sample {
-    Plane color, depth;
-    double color_time_s = 0, depth_time_s = 0;
-    std::vector<Eigen::Vector3d> points;
-  };
   // Two passes: the board outline first through an identity guess (the sensors sit
   // centimetres apart), then through the first estimate.
   Pose depth_from_color = Pose::Identity();
-  std::vector<Sample> samples;
+  std::vector<PlaneSample> samples;
   for (int pass = 0; pass < 2; ++pass) {
-    samples.clear();
-    for (size_t i = 0; i < take.size(); ++i) {
-      const FrameSetEntry& entry = take.entry(i);
-      auto pose = color_from_board.find(entry.index);
-      const auto* depth_item = entry.Find(depth_sensor);
-      const auto* color_item = entry.Find(color_sensor);
-      if (pose == color_from_board.end() || depth_item == nullptr || color_item == nullptr)
-        continue;
-      std::vector<Eigen::Vector2d> outline;
-      bool visible = true;
-      for (const auto& corner : InnerOutline(board, 0.12)) {
-        Eigen::Vector2d q;
-        if (!depth_model.Project(depth_from_color * (pose->second * corner), &q)) visible = false;
-        outline.push_back(q);
-      }
-      if (!visible) continue;
-      const cv::Mat depth = take.ReadFrame(i, depth_sensor);
-      if (depth.type() != CV_32FC1)
-        Fail("depth sensor '", depth_sensor, "' frames are not metres (CV_32F)");
-      double x0 = 1e9, x1 = -1e9, y0 = 1e9, y1 = -1e9;
-      for (const auto& q : outline) {
-        x0 = std::min(x0, q.x());
-        x1 = std::max(x1, q.x());
-        y0 = std::min(y0, q.y());
-        y1 = std::max(y1, q.y());
-      }
-      Sample sample;
-      std::vector<Eigen::Vector2d> pixels;
-      for (int y = std::max(0, static_cast<int>(y0));
-           y <= std::min(depth.rows - 1, static_cast<int>(y1)); ++y) {
-        for (int x = std::max(0, static_cast<int>(x0));
-             x <= std::min(depth.cols - 1, static_cast<int>(x1)); ++x) {
-          const float z = depth.at<float>(y, x);
-          if (!std::isfinite(z) || z <= 0) continue;
-          if (!InsidePolygon(outline, Eigen::Vector2d(x, y))) continue;
-          pixels.emplace_back(x, y);
-        }
-      }
-      if (pixels.size() < 50) continue;
-      Eigen::Matrix2Xd q(2, pixels.size());
-      for (size_t k = 0; k < pixels.size(); ++k) q.col(k) = pixels[k];
-      const Eigen::Matrix3Xd rays = depth_model.UnprojectMany(q);
-      for (size_t k = 0; k < pixels.size(); ++k) {
-        if (!rays.col(k).allFinite() || rays(2, k) <= 0) continue;
-        const double z =
-            depth.at<float>(static_cast<int>(pixels[k].y()), static_cast<int>(pixels[k].x()));
-        sample.points.push_back(rays.col(k) * (z / rays(2, k)));
-      }
-      double rms = 0;
-      if (!FitPlane(sample.points, options.plane_inlier_m, &sample.depth, &rms, &random)) continue;
-      sample.color = BoardPlane(pose->second);
-      sample.color_time_s = color_item->timestamp_ns * 1e-9;
-      sample.depth_time_s = depth_item->timestamp_ns * 1e-9;
-      samples.push_back(std::move(sample));
-    }
+    samples = PlaneSamples(take, depth_sensor, depth_model, color_sensor, color_from_board, board,
+                           depth_from_color, options, &random);
     summary.planes = static_cast<int>(samples.size());
     if (summary.planes < options.min_planes) {
       summary.End(Termination::kDegenerate,
@@ -247,27 +293,7 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
   }
   summary.plane_rms_m = n > 0 ? std::sqrt(sum2 / n) : 0;
 
-  // Time offset: the board's distance from the depth sensor as measured, against the same
-  // distance predicted from the colour camera's board poses, differentiated in time.
-  std::vector<double> t, predicted, measured;
-  for (const auto& s : samples) {
-    const Eigen::Vector3d normal = depth_from_color.linear() * s.color.normal;
-    t.push_back(s.color_time_s);
-    predicted.push_back(s.color.offset + normal.dot(depth_from_color.translation()));
-    measured.push_back(s.depth.offset);
-  }
-  double num = 0, den = 0;
-  for (size_t k = 1; k + 1 < t.size(); ++k) {
-    const double dt = t[k + 1] - t[k - 1];
-    if (!(dt > 0)) continue;
-    const double rate = (predicted[k + 1] - predicted[k - 1]) / dt;
-    num += (measured[k] - predicted[k]) * rate;
-    den += rate * rate;
-  }
-  if (den > 1e-6) {
-    summary.time_offset_s = num / den;
-    summary.time_offset_valid = std::abs(summary.time_offset_s) <= options.max_time_offset_s;
-  }
+  EstimateTimeOffset(samples, depth_from_color, options, &summary);
   summary.End(Termination::kSuccess, Cat(summary.planes, " board planes, plane residual ",
                                          1000 * summary.plane_rms_m, " mm RMS"));
   return summary;

@@ -19,6 +19,7 @@
 #include "core/error.h"
 #include "core/progress.h"
 #include "core/take.h"
+#include "core/take_plan.h"
 
 extern "C" {
 #include <apriltag/apriltag.h>
@@ -439,18 +440,7 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
                                                  const DetectionOptions& options,
                                                  DetectionSummary* summary) {
   options.Check();
-  std::vector<std::string> sensors = sensors_in;
-  if (sensors.empty()) {
-    for (const auto& s : take.streams()) {
-      if (s.role == SensorRole::kColor) sensors.push_back(s.name);
-    }
-  }
-  for (const auto& s : sensors) {
-    if (!take.has_stream(s)) Fail("camera '", s, "' is not in the take ", take.dir().string());
-    if (take.stream(s).role != SensorRole::kColor) {
-      Fail("sensor '", s, "' is not a colour camera (role ", ToString(take.stream(s).role), ")");
-    }
-  }
+  const std::vector<std::string> sensors = ChooseColorSensors(take, sensors_in);
   if (take.size() == 0) Fail("take ", take.dir().string(), " has no complete frame sets");
 
   struct Job {

@@ -9,6 +9,7 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/take.h"
+#include "core/take_plan.h"
 
 namespace holocap {
 namespace {
@@ -131,17 +132,9 @@ namespace {
 std::vector<CalibrationCamera> CamerasToCalibrate(const Take& take,
                                                   const TakeCalibrationOptions& options,
                                                   std::vector<std::string>* sensors) {
-  *sensors = options.sensors;
-  if (sensors->empty()) {
-    for (const auto& s : take.streams()) {
-      if (s.role == SensorRole::kColor) sensors->push_back(s.name);
-    }
-  }
-  if (sensors->empty()) Fail("take ", take.dir().string(), " has no colour camera to calibrate");
+  *sensors = ChooseColorSensors(take, options.sensors);
   std::vector<CalibrationCamera> cameras;
   for (const auto& name : *sensors) {
-    if (!take.has_stream(name))
-      Fail("camera '", name, "' is not in the take ", take.dir().string());
     const StreamInfo& stream = take.stream(name);
     cameras.push_back({name, stream.width, stream.height,
                        options.lensmodel.empty() ? RigLensModel(take, name) : options.lensmodel});

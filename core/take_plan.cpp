@@ -136,6 +136,26 @@ TakePlan PlanTake(const Take& take, const TakeSelection& selection) {
   return plan;
 }
 
+std::vector<std::string> ChooseColorSensors(const Take& take,
+                                            const std::vector<std::string>& names) {
+  std::vector<std::string> sensors = names;
+  if (sensors.empty()) {
+    for (const StreamInfo& stream : take.streams()) {
+      if (stream.role == SensorRole::kColor) sensors.push_back(stream.name);
+    }
+    if (sensors.empty()) Fail("take ", take.dir().string(), " has no colour camera");
+  }
+  for (const auto& name : sensors) {
+    if (!take.has_stream(name))
+      Fail("camera '", name, "' is not in the take ", take.dir().string());
+    if (take.stream(name).role != SensorRole::kColor) {
+      Fail("sensor '", name, "' is not a colour camera (role ", ToString(take.stream(name).role),
+           ")");
+    }
+  }
+  return sensors;
+}
+
 std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras,
                               const std::vector<int>& candidates, int count,
                               const Eigen::Vector3d& center) {

@@ -68,6 +68,12 @@ struct TakePlan {
 // range that selects nothing.
 TakePlan PlanTake(const Take& take, const TakeSelection& selection);
 
+// The colour cameras a stage works on: `names`, each checked to be a colour sensor of the take,
+// or, when none are named, every colour sensor in the take's order. Throws Error naming the
+// camera (or the take, when it has no colour camera).
+std::vector<std::string> ChooseColorSensors(const Take& take,
+                                            const std::vector<std::string>& names);
+
 // `count` indices out of `candidates` whose directions seen from `center` are spread as far
 // apart as possible (farthest-point sampling, whatever the world's up axis), sorted.
 std::vector<int> SpreadAround(const std::vector<CameraModel>& cameras,
