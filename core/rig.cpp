@@ -155,21 +155,28 @@ RigDescription RigDescription::FromJson(const nlohmann::json& json, const std::s
 
 RigDescription RigDescription::Load(const std::filesystem::path& file) {
   std::string text = ReadFileToString(file);
+  if (file.extension() == ".json") return ParseJson(text, file.string());
+  return ParseYaml(text, file.string());
+}
+
+RigDescription RigDescription::ParseYaml(const std::string& text, const std::string& origin) {
   nlohmann::json json;
-  if (file.extension() == ".json") {
-    try {
-      json = nlohmann::json::parse(text);
-    } catch (const nlohmann::json::parse_error& e) {
-      Fail("'", file.string(), "' is not valid JSON: ", e.what());
-    }
-  } else {
-    try {
-      json = JsonFromYaml(YAML::Load(text));
-    } catch (const YAML::Exception& e) {
-      Fail("'", file.string(), "' is not valid YAML: line ", e.mark.line + 1, ": ", e.msg);
-    }
+  try {
+    json = JsonFromYaml(YAML::Load(text));
+  } catch (const YAML::Exception& e) {
+    Fail("'", origin, "' is not valid YAML: line ", e.mark.line + 1, ": ", e.msg);
   }
-  return FromJson(json, file.string());
+  return FromJson(json, origin);
+}
+
+RigDescription RigDescription::ParseJson(const std::string& text, const std::string& origin) {
+  nlohmann::json json;
+  try {
+    json = nlohmann::json::parse(text);
+  } catch (const nlohmann::json::parse_error& e) {
+    Fail("'", origin, "' is not valid JSON: ", e.what());
+  }
+  return FromJson(json, origin);
 }
 
 nlohmann::json RigDescription::ToJson() const {

@@ -255,11 +255,20 @@ Take Take::Open(const std::filesystem::path& dir) {
   if (!std::filesystem::exists(dir / kManifest)) {
     Fail("'", dir.string(), "' is not a holocap take: ", kManifest, " is missing");
   }
+  std::string index_text;
+  if (std::filesystem::exists(dir / kIndex)) index_text = ReadFileToString(dir / kIndex);
+  return Parse(dir, ReadFileToString(dir / kManifest), index_text,
+               [&](const std::string& file) { return std::filesystem::exists(dir / file); });
+}
+
+Take Take::Parse(const std::filesystem::path& dir, const std::string& manifest_text,
+                 const std::string& index_text,
+                 const std::function<bool(const std::string& file)>& frame_exists) {
   Take take;
   take.dir_ = dir;
   nlohmann::json manifest;
   try {
-    manifest = nlohmann::json::parse(ReadFileToString(dir / kManifest));
+    manifest = nlohmann::json::parse(manifest_text);
   } catch (const nlohmann::json::parse_error& e) {
     Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
   }
@@ -282,8 +291,6 @@ Take Take::Open(const std::filesystem::path& dir) {
   } catch (const Error& e) {
     Fail("'", (dir / kManifest).string(), "': ", e.what());
   }
-  std::string index_text;
-  if (std::filesystem::exists(dir / kIndex)) index_text = ReadFileToString(dir / kIndex);
   size_t start = 0;
   while (start < index_text.size()) {
     size_t end = index_text.find('\n', start);
@@ -304,8 +311,7 @@ Take Take::Open(const std::filesystem::path& dir) {
           item.file = frame.at("file").get<std::string>();
           item.timestamp_ns = frame.at("t_ns").get<int64_t>();
           item.sequence = frame.value("seq", uint64_t{0});
-          if (!take.has_stream(item.sensor) || !std::filesystem::exists(dir / item.file))
-            valid = false;
+          if (!take.has_stream(item.sensor) || !frame_exists(item.file)) valid = false;
           entry.items.push_back(std::move(item));
         }
       } catch (const nlohmann::json::exception&) {
