@@ -217,7 +217,8 @@ TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
   }
   for (const char* file :
        {"mrcal-parser-oob-1.cameramodel", "mrcal-parser-oob-truncated.cameramodel"}) {
-    EXPECT_THROW(CameraModel::Read(SourceDir() / "bench/fuzz/corpus/cameramodel" / file), Error) << file;
+    EXPECT_THROW(CameraModel::Read(SourceDir() / "bench/fuzz/corpus/cameramodel" / file), Error)
+        << file;
   }
   for (const char* bad :
        {"{ 'lensmodel': 'LENSMODEL_PINHOLE' # x", "{ 'el': 'LEN{P# INHd", "{ 'a': [1, 2 }",
