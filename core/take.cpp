@@ -257,8 +257,10 @@ Take Take::Open(const std::filesystem::path& dir) {
   }
   std::string index_text;
   if (std::filesystem::exists(dir / kIndex)) index_text = ReadFileToString(dir / kIndex);
-  return Parse(dir, ReadFileToString(dir / kManifest), index_text,
-               [&](const std::string& file) { return std::filesystem::exists(dir / file); });
+  return Parse(dir, ReadFileToString(dir / kManifest), index_text, [&](const std::string& file) {
+    std::error_code ec;  // a name the file system refuses (too long) is a missing frame
+    return std::filesystem::exists(dir / file, ec);
+  });
 }
 
 Take Take::Parse(const std::filesystem::path& dir, const std::string& manifest_text,
@@ -269,7 +271,7 @@ Take Take::Parse(const std::filesystem::path& dir, const std::string& manifest_t
   nlohmann::json manifest;
   try {
     manifest = nlohmann::json::parse(manifest_text);
-  } catch (const nlohmann::json::parse_error& e) {
+  } catch (const nlohmann::json::exception& e) {
     Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
   }
   try {

@@ -198,5 +198,37 @@ TEST(Take, BadInputGivesOneClearError) {
   EXPECT_THROW(TakeWriter("/proc/holocap-cannot-write", TwoSensorRig(), TwoStreams()), Error);
 }
 
+// Found by fuzz_take_json: a number JSON cannot hold escaped Open as nlohmann's out_of_range.
+TEST(Take, ManifestNumbersJsonCannotHoldGiveOneClearError) {
+  const auto exists = [](const std::string&) { return true; };
+  try {
+    Take::Parse("T", "6E12644", "", exists);
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("T/take.json' is corrupt"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(
+      Take::Parse("T", R"({"format": "holocap-take", "format_version": 1e999})", "", exists),
+      Error);
+}
+
+// An index line naming a file the file system refuses (a name too long) is skipped like a line
+// naming a missing frame, not a std::filesystem error.
+TEST(Take, IndexLineWithAnImpossibleFileNameIsSkipped) {
+  TempDir dir;
+  {
+    TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams());
+    writer.Append(RandomSet(0, 0));
+  }
+  {
+    std::ofstream index(dir / "take/index.jsonl", std::ios::app);
+    index << R"({"set": 1, "frames": [{"sensor": "cam0", "t_ns": 1, "file": ")"
+          << std::string(5000, 'x') << "\"}]}\n";
+  }
+  Take take = Take::Open(dir / "take");
+  EXPECT_EQ(take.size(), 1u);
+  EXPECT_EQ(take.skipped_index_lines(), 1);
+}
+
 }  // namespace
 }  // namespace holocap
