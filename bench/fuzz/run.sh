@@ -27,10 +27,15 @@ clang++ -fsanitize=fuzzer,address,undefined "$probe/probe.cpp" -o "$probe/probe"
 
 launcher=()
 command -v ccache >/dev/null && launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
-cmake -S "$root/bench/fuzz" -B "$build" -G Ninja -DCMAKE_CXX_COMPILER=clang++ "${launcher[@]}" \
-  >/dev/null
-cmake --build "$build" -j "$(nproc)" | grep -v '^\[' || true
-[ -f "$build/fuzz_middlebury" ] || { echo "run.sh: the build failed" >&2; exit 1; }
+mkdir -p "$build"
+started=$SECONDS
+if ! { cmake -S "$root/bench/fuzz" -B "$build" -G Ninja -DCMAKE_CXX_COMPILER=clang++ \
+  "${launcher[@]}" && cmake --build "$build" -j "$(nproc)"; } >"$build/build.log" 2>&1; then
+  tail -n 40 "$build/build.log"
+  echo "run.sh: building the fuzzers failed (the whole log: $build/build.log)" >&2
+  exit 1
+fi
+echo "run.sh: fuzzers built in $((SECONDS - started)) s ($build)"
 if [ $# -gt 0 ]; then
   targets=("$@")
 else
