@@ -10,6 +10,39 @@
 namespace holocap {
 namespace {
 
+// Whether `text` is UTF-8 as RFC 3629 defines it (no overlong forms, no surrogates).
+bool IsUtf8(const std::string& text) {
+  for (size_t i = 0; i < text.size();) {
+    const auto byte = [&](size_t k) { return static_cast<unsigned char>(text[k]); };
+    unsigned char lead = byte(i);
+    size_t length = lead < 0x80   ? 1
+                    : lead < 0xC2 ? 0
+                    : lead < 0xE0 ? 2
+                    : lead < 0xF0 ? 3
+                    : lead < 0xF5 ? 4
+                                  : 0;
+    if (length == 0 || i + length > text.size()) return false;
+    unsigned char low = 0x80, high = 0xBF;  // the second byte's range
+    if (lead == 0xE0) low = 0xA0;
+    if (lead == 0xED) high = 0x9F;
+    if (lead == 0xF0) low = 0x90;
+    if (lead == 0xF4) high = 0x8F;
+    if (length > 1 && (byte(i + 1) < low || byte(i + 1) > high)) return false;
+    for (size_t k = 2; k < length; ++k) {
+      if (byte(i + k) < 0x80 || byte(i + k) > 0xBF) return false;
+    }
+    i += length;
+  }
+  return true;
+}
+
+// yaml-cpp passes any bytes through, but a rig's strings go into take.json, which is UTF-8.
+const std::string& Utf8Scalar(const YAML::Node& node) {
+  if (!IsUtf8(node.Scalar()))
+    throw YAML::ParserException(node.Mark(), "a string that is not UTF-8 (take.json needs UTF-8)");
+  return node.Scalar();
+}
+
 nlohmann::json JsonFromYaml(const YAML::Node& node) {
   switch (node.Type()) {
     case YAML::NodeType::Null:
@@ -23,11 +56,12 @@ nlohmann::json JsonFromYaml(const YAML::Node& node) {
     case YAML::NodeType::Map: {
       nlohmann::json object = nlohmann::json::object();
       for (const auto& item : node)
-        object[item.first.as<std::string>()] = JsonFromYaml(item.second);
+        object[item.first.IsScalar() ? Utf8Scalar(item.first) : item.first.as<std::string>()] =
+            JsonFromYaml(item.second);
       return object;
     }
     case YAML::NodeType::Scalar: {
-      const std::string& text = node.Scalar();
+      const std::string& text = Utf8Scalar(node);
       if (node.Tag() == "!") return text;  // quoted in the file: keep as a string
       bool boolean;
       if (YAML::convert<bool>::decode(node, boolean) &&
@@ -155,21 +189,28 @@ RigDescription RigDescription::FromJson(const nlohmann::json& json, const std::s
 
 RigDescription RigDescription::Load(const std::filesystem::path& file) {
   std::string text = ReadFileToString(file);
+  if (file.extension() == ".json") return ParseJson(text, file.string());
+  return ParseYaml(text, file.string());
+}
+
+RigDescription RigDescription::ParseYaml(const std::string& text, const std::string& origin) {
   nlohmann::json json;
-  if (file.extension() == ".json") {
-    try {
-      json = nlohmann::json::parse(text);
-    } catch (const nlohmann::json::parse_error& e) {
-      Fail("'", file.string(), "' is not valid JSON: ", e.what());
-    }
-  } else {
-    try {
-      json = JsonFromYaml(YAML::Load(text));
-    } catch (const YAML::Exception& e) {
-      Fail("'", file.string(), "' is not valid YAML: line ", e.mark.line + 1, ": ", e.msg);
-    }
+  try {
+    json = JsonFromYaml(YAML::Load(text));
+  } catch (const YAML::Exception& e) {
+    Fail("'", origin, "' is not valid YAML: line ", e.mark.line + 1, ": ", e.msg);
   }
-  return FromJson(json, file.string());
+  return FromJson(json, origin);
+}
+
+RigDescription RigDescription::ParseJson(const std::string& text, const std::string& origin) {
+  nlohmann::json json;
+  try {
+    json = nlohmann::json::parse(text);
+  } catch (const nlohmann::json::exception& e) {
+    Fail("'", origin, "' is not valid JSON: ", e.what());
+  }
+  return FromJson(json, origin);
 }
 
 nlohmann::json RigDescription::ToJson() const {

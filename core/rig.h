@@ -39,6 +39,9 @@ struct RigDescription {
 
   // Throws Error (file, field and reason) for a malformed or inconsistent description.
   static RigDescription Load(const std::filesystem::path& file);
+  // Load's parsers on text; `origin` names the text in errors (Load gives the file's path).
+  static RigDescription ParseYaml(const std::string& text, const std::string& origin);
+  static RigDescription ParseJson(const std::string& text, const std::string& origin);
   static RigDescription FromJson(const nlohmann::json& json, const std::string& origin = "rig");
   nlohmann::json ToJson() const;
   void Check() const;  // unique names, known roles, pairings that exist, fps > 0

@@ -2,9 +2,11 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <ctime>
 #include <limits>
+#include <type_traits>
 
 #include "core/error.h"
 
@@ -46,6 +48,30 @@ ImageCodec CodecFromName(const std::string& name) {
   Fail("unknown frame codec '", name, "'");
 }
 
+// An integer field in T's range. nlohmann's get<T>() casts a float such as 1e100 to T, which
+// is undefined, and wraps an integer out of range; an integral float (64.0) is taken.
+template <typename T>
+T JsonInteger(const nlohmann::json& value, const char* field) {
+  constexpr T lo = std::numeric_limits<T>::min(), hi = std::numeric_limits<T>::max();
+  if (value.is_number_unsigned()) {
+    uint64_t integer = value.get<uint64_t>();
+    if (integer <= static_cast<uint64_t>(hi)) return static_cast<T>(integer);
+  } else if (value.is_number_integer()) {
+    int64_t integer = value.get<int64_t>();
+    bool in_range = integer >= 0 ? static_cast<uint64_t>(integer) <= static_cast<uint64_t>(hi)
+                                 : std::is_signed_v<T> && integer >= static_cast<int64_t>(lo);
+    if (in_range) return static_cast<T>(integer);
+  } else if (value.is_number_float()) {
+    double number = value.get<double>();
+    // hi + 1 is 2^31, 2^63 or 2^64, all exact as doubles (hi itself rounds up for 64 bits).
+    if (number == std::floor(number) && number >= static_cast<double>(lo) &&
+        number < static_cast<double>(hi) + 1)
+      return static_cast<T>(number);
+  }
+  Fail("'", field, "' must be an integer in [", lo, ", ", hi, "], got ",
+       value.is_number() ? value.dump() : value.type_name());
+}
+
 }  // namespace
 
 nlohmann::json StreamInfo::ToJson() const {
@@ -66,8 +92,8 @@ StreamInfo StreamInfo::FromJson(const nlohmann::json& json) {
   stream.name = json.at("name").get<std::string>();
   stream.uri = json.value("uri", "");
   stream.role = SensorRoleFromString(json.value("role", "color"));
-  stream.width = json.at("width").get<int>();
-  stream.height = json.at("height").get<int>();
+  stream.width = JsonInteger<int>(json.at("width"), "width");
+  stream.height = JsonInteger<int>(json.at("height"), "height");
   stream.pixel_format = json.at("pixel_format").get<std::string>();
   stream.codec = CodecFromName(json.value("codec", "png"));
   stream.clock = json.value("clock", "unknown");
@@ -255,17 +281,28 @@ Take Take::Open(const std::filesystem::path& dir) {
   if (!std::filesystem::exists(dir / kManifest)) {
     Fail("'", dir.string(), "' is not a holocap take: ", kManifest, " is missing");
   }
+  std::string index_text;
+  if (std::filesystem::exists(dir / kIndex)) index_text = ReadFileToString(dir / kIndex);
+  return Parse(dir, ReadFileToString(dir / kManifest), index_text, [&](const std::string& file) {
+    std::error_code ec;  // a name the file system refuses (too long) is a missing frame
+    return std::filesystem::exists(dir / file, ec);
+  });
+}
+
+Take Take::Parse(const std::filesystem::path& dir, const std::string& manifest_text,
+                 const std::string& index_text,
+                 const std::function<bool(const std::string& file)>& frame_exists) {
   Take take;
   take.dir_ = dir;
   nlohmann::json manifest;
   try {
-    manifest = nlohmann::json::parse(ReadFileToString(dir / kManifest));
-  } catch (const nlohmann::json::parse_error& e) {
+    manifest = nlohmann::json::parse(manifest_text);
+  } catch (const nlohmann::json::exception& e) {
     Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
   }
   try {
     if (manifest.value("format", "") != "holocap-take") Fail("not a holocap take manifest");
-    take.format_version_ = manifest.at("format_version").get<int>();
+    take.format_version_ = JsonInteger<int>(manifest.at("format_version"), "format_version");
     if (take.format_version_ < 1 || take.format_version_ > kTakeFormatVersion) {
       Fail("format version ", take.format_version_, " is not supported (this holocap reads 1..",
            kTakeFormatVersion, ")");
@@ -275,15 +312,16 @@ Take Take::Open(const std::filesystem::path& dir) {
     for (const auto& stream : manifest.at("streams"))
       take.streams_.push_back(StreamInfo::FromJson(stream));
     take.metadata_ = manifest.value("metadata", nlohmann::json::object());
-    if (manifest.contains("dropped"))
-      take.dropped_ = manifest["dropped"].get<std::map<std::string, int64_t>>();
+    if (manifest.contains("dropped")) {
+      if (!manifest["dropped"].is_object()) Fail("'dropped' must be an object of counts");
+      for (const auto& [sensor, count] : manifest["dropped"].items())
+        take.dropped_[sensor] = JsonInteger<int64_t>(count, "dropped");
+    }
   } catch (const nlohmann::json::exception& e) {
     Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
   } catch (const Error& e) {
     Fail("'", (dir / kManifest).string(), "': ", e.what());
   }
-  std::string index_text;
-  if (std::filesystem::exists(dir / kIndex)) index_text = ReadFileToString(dir / kIndex);
   size_t start = 0;
   while (start < index_text.size()) {
     size_t end = index_text.find('\n', start);
@@ -296,19 +334,21 @@ Take Take::Open(const std::filesystem::path& dir) {
     if (valid) {
       try {
         auto json = nlohmann::json::parse(line);
-        entry.index = json.at("set").get<int64_t>();
-        entry.spread_ns = json.value("spread_ns", int64_t{0});
+        entry.index = JsonInteger<int64_t>(json.at("set"), "set");
+        if (json.contains("spread_ns"))
+          entry.spread_ns = JsonInteger<int64_t>(json["spread_ns"], "spread_ns");
         for (const auto& frame : json.at("frames")) {
           FrameSetEntry::Item item;
           item.sensor = frame.at("sensor").get<std::string>();
           item.file = frame.at("file").get<std::string>();
-          item.timestamp_ns = frame.at("t_ns").get<int64_t>();
-          item.sequence = frame.value("seq", uint64_t{0});
-          if (!take.has_stream(item.sensor) || !std::filesystem::exists(dir / item.file))
-            valid = false;
+          item.timestamp_ns = JsonInteger<int64_t>(frame.at("t_ns"), "t_ns");
+          if (frame.contains("seq")) item.sequence = JsonInteger<uint64_t>(frame["seq"], "seq");
+          if (!take.has_stream(item.sensor) || !frame_exists(item.file)) valid = false;
           entry.items.push_back(std::move(item));
         }
       } catch (const nlohmann::json::exception&) {
+        valid = false;
+      } catch (const Error&) {  // a number out of range
         valid = false;
       }
     }

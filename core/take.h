@@ -14,6 +14,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -135,6 +136,12 @@ class Take {
   // Opens a take; throws Error for a missing/corrupt manifest or unknown format version.
   // Index lines that are truncated or name missing frame files are skipped and counted.
   static Take Open(const std::filesystem::path& dir);
+  // Open's parser on the text of take.json and index.jsonl (empty: no index). `dir` names the
+  // take in errors; `frame_exists` says whether a file an index line names (relative to the
+  // take) is there.
+  static Take Parse(const std::filesystem::path& dir, const std::string& manifest_text,
+                    const std::string& index_text,
+                    const std::function<bool(const std::string& file)>& frame_exists);
 
   const std::filesystem::path& dir() const { return dir_; }
   int format_version() const { return format_version_; }

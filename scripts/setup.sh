@@ -2,7 +2,8 @@
 # Installs the Debian packages holocap needs (only the missing ones), then configures and
 # builds it with every core. Idempotent; works as root or through sudo.
 #   scripts/setup.sh            build dependencies + the holocap CLI alone
-#   scripts/setup.sh --tests    also the packages the tests and peer checks use, and every
+#   scripts/setup.sh --tests    also the packages the tests and peer checks use (clang and
+#                               its libFuzzer for the fuzz.parsers test included), and every
 #                               test suite and benchmark
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -25,7 +26,7 @@ packages=(
   ffmpeg
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev clang-format python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2)
+  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2)
 fi
 
 missing=()

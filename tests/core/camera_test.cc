@@ -201,7 +201,7 @@ TEST(CameraModel, RejectsBadInput) {
 }
 
 // Every truncation of a valid file, and the inputs on which libmrcal's own parser reads out of
-// bounds (bench/fuzz/crashes/), give an Error, never a crash.
+// bounds (in the fuzz corpus, bench/fuzz/corpus/cameramodel/), give an Error, never a crash.
 TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
   TempDir dir;
   RealWideLens().Write(dir / "a.cameramodel");
@@ -217,7 +217,8 @@ TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
   }
   for (const char* file :
        {"mrcal-parser-oob-1.cameramodel", "mrcal-parser-oob-truncated.cameramodel"}) {
-    EXPECT_THROW(CameraModel::Read(SourceDir() / "bench/fuzz/crashes" / file), Error) << file;
+    EXPECT_THROW(CameraModel::Read(SourceDir() / "bench/fuzz/corpus/cameramodel" / file), Error)
+        << file;
   }
   for (const char* bad :
        {"{ 'lensmodel': 'LENSMODEL_PINHOLE' # x", "{ 'el': 'LEN{P# INHd", "{ 'a': [1, 2 }",

@@ -85,5 +85,31 @@ TEST(RigDescription, MalformedFilesNameTheProblem) {
             std::string::npos);
 }
 
+// yaml-cpp passes any bytes through; a rig's strings go into take.json, which must be UTF-8
+// (found by fuzz_rig_yaml: `holocap capture` died in nlohmann's dump otherwise).
+TEST(RigDescription, YamlStringsMustBeUtf8) {
+  const std::string sensors = "\nsensors: [{name: cam0, uri: 'sim:x#cam0'}]\n";
+  RigDescription rig = RigDescription::ParseYaml("name: caf\xc3\xa9" + sensors, "ok.yaml");
+  EXPECT_EQ(rig.name, "caf\xc3\xa9");
+  EXPECT_NO_THROW(rig.ToJson().dump());
+  for (const std::string& bad : {"name: caf\xe9" + sensors, "\n\nname: \xed\xa0\x80" + sensors,
+                                 "options: {\xff: 1}" + sensors}) {
+    try {
+      RigDescription::ParseYaml(bad, "bad.yaml");
+      ADD_FAILURE() << bad;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("'bad.yaml' is not valid YAML: line "),
+                std::string::npos)
+          << e.what();
+      EXPECT_NE(std::string(e.what()).find("not UTF-8"), std::string::npos) << e.what();
+    }
+  }
+}
+
+TEST(RigDescription, JsonNumbersItCannotHoldGiveAnError) {
+  EXPECT_THROW(RigDescription::ParseJson("6E12644", "big.json"), Error);
+  EXPECT_THROW(RigDescription::ParseJson("{\"fps\": 1e999, \"sensors\": []}", "big.json"), Error);
+}
+
 }  // namespace
 }  // namespace holocap

@@ -198,5 +198,68 @@ TEST(Take, BadInputGivesOneClearError) {
   EXPECT_THROW(TakeWriter("/proc/holocap-cannot-write", TwoSensorRig(), TwoStreams()), Error);
 }
 
+// Found by fuzz_take_json: a number JSON cannot hold escaped Open as nlohmann's out_of_range.
+TEST(Take, ManifestNumbersJsonCannotHoldGiveOneClearError) {
+  const auto exists = [](const std::string&) { return true; };
+  try {
+    Take::Parse("T", "6E12644", "", exists);
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("T/take.json' is corrupt"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(
+      Take::Parse("T", R"({"format": "holocap-take", "format_version": 1e999})", "", exists),
+      Error);
+}
+
+// nlohmann's get<int>() cast 1e100 to int (undefined behaviour: UBSan in fuzz_take_json stops
+// on it) and wrapped -4294967295 to 1; integers out of range are refused in take.json and make
+// an index line skipped.
+TEST(Take, IntegersOutOfRangeAreRefused) {
+  const auto exists = [](const std::string&) { return true; };
+  const std::string head = R"({"format": "holocap-take", "rig": {"sensors": [{"name": "c",
+    "uri": "sim:x#c"}]}, "streams": [{"name": "c", "pixel_format": "mono8", "height": 4, )";
+  EXPECT_NO_THROW(Take::Parse("T", head + R"("width": 6.0}], "format_version": 1})", "", exists));
+  for (const char* tail : {R"("width": 1e100}], "format_version": 1})",
+                           R"("width": 6}], "format_version": -4294967295})",
+                           R"("width": 6}], "format_version": 1.5})",
+                           R"("width": 6}], "format_version": 1, "dropped": {"c": 1e300}})"}) {
+    try {
+      Take::Parse("T", head + tail, "", exists);
+      ADD_FAILURE() << tail;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("must be an integer in"), std::string::npos) << e.what();
+    }
+  }
+  const std::string manifest = head + R"("width": 6}], "format_version": 1})";
+  Take take = Take::Parse("T", manifest,
+                          R"({"set": 0, "frames": [{"sensor": "c", "file": "a", "t_ns": 1}]}
+{"set": 1e100, "frames": []}
+{"set": 2, "frames": [{"sensor": "c", "file": "b", "t_ns": 1e300}]}
+{"set": 3, "frames": [{"sensor": "c", "file": "d", "t_ns": 1, "seq": -1}]}
+)",
+                          exists);
+  EXPECT_EQ(take.size(), 1u);
+  EXPECT_EQ(take.skipped_index_lines(), 3);
+}
+
+// An index line naming a file the file system refuses (a name too long) is skipped like a line
+// naming a missing frame, not a std::filesystem error.
+TEST(Take, IndexLineWithAnImpossibleFileNameIsSkipped) {
+  TempDir dir;
+  {
+    TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams());
+    writer.Append(RandomSet(0, 0));
+  }
+  {
+    std::ofstream index(dir / "take/index.jsonl", std::ios::app);
+    index << R"({"set": 1, "frames": [{"sensor": "cam0", "t_ns": 1, "file": ")"
+          << std::string(5000, 'x') << "\"}]}\n";
+  }
+  Take take = Take::Open(dir / "take");
+  EXPECT_EQ(take.size(), 1u);
+  EXPECT_EQ(take.skipped_index_lines(), 1);
+}
+
 }  // namespace
 }  // namespace holocap
