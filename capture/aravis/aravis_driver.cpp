@@ -7,6 +7,7 @@
 #include <deque>
 #include <mutex>
 #include <opencv2/imgproc.hpp>
+#include <thread>
 
 #include "core/error.h"
 
@@ -136,9 +137,19 @@ class AravisSensor : public Sensor {
   }
 
   ~AravisSensor() override {
+    if (lost_handler_ != 0) g_signal_handler_disconnect(device_, lost_handler_);
+    if (abandoned_) {
+      // Releasing a GigE camera talks to it (closing its stream channel, leaving control), and
+      // each unanswered GVCP request waits out aravis' retries (2.5 s in 0.8): let a thread of
+      // its own wait for a camera that is gone.
+      std::thread([camera = camera_, stream = stream_] {
+        if (stream != nullptr) g_object_unref(stream);
+        g_object_unref(camera);
+      }).detach();
+      return;
+    }
     if (started_) arv_camera_stop_acquisition(camera_, nullptr);
     if (stream_ != nullptr) g_object_unref(stream_);
-    if (lost_handler_ != 0) g_signal_handler_disconnect(device_, lost_handler_);
     g_object_unref(camera_);
   }
 
@@ -158,6 +169,12 @@ class AravisSensor : public Sensor {
     arv_camera_stop_acquisition(camera_, &error);
     if (error != nullptr && !control_lost_) ThrowIf(error, uri_, "stopping acquisition");
     g_clear_error(&error);
+  }
+
+  // The camera stopped answering: stop nothing on it, and release it in the background.
+  void Abandon() override {
+    started_ = false;
+    abandoned_ = true;
   }
 
   bool Grab(Frame* frame, std::chrono::milliseconds timeout) override {
@@ -402,6 +419,7 @@ class AravisSensor : public Sensor {
   std::deque<int64_t> host_minus_device_;
   bool ptp_enabled_ = false;
   bool started_ = false;
+  bool abandoned_ = false;
   std::string ptp_status_;
   std::atomic<bool> control_lost_{false};
   std::atomic<uint64_t> frames_delivered_{0};

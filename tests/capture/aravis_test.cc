@@ -354,7 +354,6 @@ TEST(FakeGige, CameraVanishingMidTakeEndsItCleanly) {
   TempDir dir;
   RecorderOptions options;
   options.seconds = 20;
-  options.stall_s = 1.0;
   Recorder recorder(
       FakeRig(cameras, 3, SyncMode::kSoftwareTrigger, 30, {{"roi", {0, 0, 128, 128}}}),
       dir / "take", options, AravisOnly());
