@@ -64,12 +64,23 @@ static void AddCaptureCommand(CLI::App& app) {
                    "SCHED_FIFO priority of the software-trigger threads where permitted (0: normal "
                    "scheduling)")
       ->capture_default_str();
+  command
+      ->add_option("--lost-after-periods", args->options.lost_after_periods,
+                   "Declare a sensor lost, ending the take, when it delivers nothing for this many "
+                   "frame periods while frames are due")
+      ->capture_default_str();
   command->add_flag("--durable", args->options.take.durable, "fsync every frame and index line");
   command->add_flag("--overwrite", args->options.take.overwrite,
                     "Replace an existing take directory");
   command->callback([args] {
     if (args->options.seconds <= 0 && args->options.frames <= 0)
       Fail("capture: give --seconds S or --frames N");
+    CheckNamingFlags([&] { args->options.Check(); },
+                     {{"capture: lost_after_periods", "--lost-after-periods"},
+                      {"capture: writer_threads", "--writers"},
+                      {"capture: queue_frames", "--queue"},
+                      {"capture: trigger_priority", "--trigger-priority"},
+                      {"capture: codec", "--codec"}});
     RigDescription rig = RigDescription::Load(args->rig);
     Recorder recorder(rig, args->out, args->options);
     Report report("capture");
@@ -82,6 +93,7 @@ static void AddCaptureCommand(CLI::App& app) {
                         {"queue_frames", args->options.queue_frames},
                         {"trigger_phase_s", args->options.trigger_phase_s},
                         {"trigger_priority", args->options.trigger_priority},
+                        {"lost_after_periods", args->options.lost_after_periods},
                         {"durable", args->options.take.durable}};
     report.plan() = {
         {"sync", ToString(rig.sync)}, {"fps", rig.fps}, {"sensors", rig.sensors.size()}};
