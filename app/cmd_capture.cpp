@@ -1,7 +1,6 @@
 // holocap capture --rig RIG --out TAKE --seconds S | --frames N: record a take from a rig's
 // sensors, showing live per-sensor fps, drops, sync spread and MB/s on a terminal.
 #include <csignal>
-#include <cstdio>
 #include <iomanip>
 #include <iostream>
 #include <sstream>
@@ -115,11 +114,13 @@ static void AddCaptureCommand(CLI::App& app) {
     progress.Finish();
     report.metrics() = summary.Metrics();
     report.SetSummary(summary);
+    std::string report_failure;
     try {
       report.Write(std::filesystem::path(args->out) / "report.json");
     } catch (const Error& e) {
-      // A full disk may refuse the report too; the take itself is already closed.
-      std::fprintf(stderr, "holocap: warning: %s\n", e.what());
+      // A full disk may refuse the report too; the take itself is already closed. Said in the
+      // one error line, not a line of its own.
+      report_failure = e.what();
     }
     std::cout << "take        " << args->out << "\n"
               << "frame sets  " << summary.frame_sets_complete << " complete, "
@@ -130,6 +131,10 @@ static void AddCaptureCommand(CLI::App& app) {
               << "written     " << summary.bytes_written / 1e6 << " MB in " << summary.seconds
               << " s (" << summary.write_mb_s << " MB/s)\n"
               << ToString(summary.termination) << ": " << summary.message << std::endl;
+    if (!report_failure.empty()) {
+      summary.message += Cat("; and ", report_failure);
+      if (summary.IsUsable()) Fail("capture: ", summary.message);
+    }
     FailUnlessUsable(summary, "capture");
   });
 }

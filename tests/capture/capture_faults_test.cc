@@ -294,5 +294,28 @@ TEST(CaptureFaults, FullDiskStopsTheTakeCleanly) {
   for (size_t i = 0; i < take.size(); ++i) EXPECT_EQ(take.Read(i).frames.size(), 2u);
 }
 
+// Case 7 of issue 18 (capture): a full disk refused the report too, which added a warning
+// line before the error. Now it is said in the one error line.
+TEST(CaptureFaults, FullDiskIsOneErrorLine) {
+  TempDir dir;
+  SmallDisk disk(dir / "disk", "320k");
+  if (!disk.lacks_privilege().empty()) GTEST_SKIP() << disk.lacks_privilege();
+  ASSERT_FALSE(::testing::Test::HasFailure());
+  HOLOCAP_SKIP_WITHOUT_NETWORK_PRIVILEGE();
+  FakeGigeCameras cameras(2);
+  auto rig = WriteRig(dir, cameras, 2, 20);
+  auto take = dir / "disk" / "take";
+  auto result = RunShell("HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() + "' capture --rig '" +
+                         rig.string() + "' --out '" + take.string() + "' --seconds 30 2> '" +
+                         (dir / "stderr").string() + "' > /dev/null; echo exit=$?");
+  EXPECT_NE(result.output.find("exit=1"), std::string::npos) << result.output;
+  const std::string errors = ReadFileToString(dir / "stderr");
+  EXPECT_EQ(std::count(errors.begin(), errors.end(), '\n'), 1) << errors;
+  EXPECT_EQ(errors.rfind("holocap: error: capture ended FAILURE: writing frame set ", 0), 0u)
+      << errors;
+  EXPECT_NE(errors.find("No space left on device"), std::string::npos) << errors;
+  EXPECT_GT(Take::Open(take).size(), 5u);
+}
+
 }  // namespace
 }  // namespace holocap
