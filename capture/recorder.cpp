@@ -184,6 +184,18 @@ class Recorder::Session {
   std::string SilenceReason(size_t s) const;
   std::string failure_message();
 
+  // A trigger thread's call into its sensor. A sensor that vanished may hold Trigger() for the
+  // driver's whole timeout; once the sensor is declared lost, StopAndJoin lets go of a thread
+  // still in that call instead of waiting, and the thread, on its return, touches nothing of
+  // the session (it shares the sensor, so the sensor outlives the call).
+  struct TriggerCall {
+    std::mutex mutex;
+    bool in_call = false;
+    bool released = false;  // the session no longer waits for this thread
+  };
+  enum class TriggerOutcome { kSent, kFailed, kReleased };
+  static TriggerOutcome CallTrigger(Sensor& sensor, TriggerCall& call, std::string* error);
+
   void CaptureLoop(size_t s);
   void TriggerLoop(size_t s);
   void AssembleLoop();
@@ -205,7 +217,7 @@ class Recorder::Session {
 
   Recorder& recorder_;
   const RecorderOptions& options_;
-  const std::vector<std::unique_ptr<Sensor>>& sensors_;
+  const std::vector<std::shared_ptr<Sensor>>& sensors_;
   const std::vector<StreamInfo>& streams_;
   Report* report_;
   const size_t n_;
@@ -225,6 +237,7 @@ class Recorder::Session {
   int64_t realtime_at_start_ns_ = 0;  // CLOCK_REALTIME at start_
   std::unique_ptr<TakeWriter> writer_;
   std::vector<std::thread> capture_threads_, trigger_threads_, writer_threads_;
+  std::vector<std::shared_ptr<TriggerCall>> trigger_calls_;  // one per trigger thread
   std::thread assemble_thread_;
   std::string trigger_scheduling_;
   std::vector<int64_t> counted_drops_;  // per sensor, already passed to TakeWriter::CountDropped
@@ -530,10 +543,30 @@ void Recorder::Session::CaptureLoop(size_t s) {
   }
 }
 
+Recorder::Session::TriggerOutcome Recorder::Session::CallTrigger(Sensor& sensor, TriggerCall& call,
+                                                                 std::string* error) {
+  {
+    std::lock_guard lock(call.mutex);
+    call.in_call = true;
+  }
+  try {
+    sensor.Trigger();
+  } catch (const std::exception& e) {
+    *error = e.what();
+  }
+  std::lock_guard lock(call.mutex);
+  call.in_call = false;
+  if (call.released) return TriggerOutcome::kReleased;
+  return error->empty() ? TriggerOutcome::kSent : TriggerOutcome::kFailed;
+}
+
 // One thread per sensor, all firing on the same ticks, so that a slow or dead camera delays
 // only itself. A trigger sent late exposes its camera late, so the threads ask for real-time
 // scheduling: other work on the host cannot hold them back.
 void Recorder::Session::TriggerLoop(size_t s) {
+  // Owned with the thread: after a released call it may outlive the session.
+  const std::shared_ptr<Sensor> sensor = sensors_[s];
+  const std::shared_ptr<TriggerCall> call = trigger_calls_[s];
   if (options_.trigger_priority > 0) {
     sched_param param{};
     param.sched_priority = options_.trigger_priority;
@@ -544,6 +577,7 @@ void Recorder::Session::TriggerLoop(size_t s) {
                                 : Cat("normal (SCHED_FIFO refused: ", std::strerror(refused), ")");
     }
   }
+  std::string error;
   // Two triggers during the warm-up, their frames discarded: the first wakes up cameras that
   // start streaming late, the second is one instant every camera stamps, which ties their
   // clocks together (FrameSetAssembler::SeedClocks).
@@ -551,15 +585,15 @@ void Recorder::Session::TriggerLoop(size_t s) {
     std::this_thread::sleep_until(start_ +
                                   std::chrono::duration_cast<Clock::duration>(
                                       std::chrono::duration<double>(at * options_.warmup_s)));
-    try {
-      sensors_[s]->Trigger();
-    } catch (const std::exception& e) {
-      DeclareLost(s, Cat("it did not take a software trigger: ", e.what()));
+    const TriggerOutcome outcome = CallTrigger(*sensor, *call, &error);
+    if (outcome == TriggerOutcome::kReleased) return;
+    if (outcome == TriggerOutcome::kFailed) {
+      DeclareLost(s, Cat("it did not take a software trigger: ", error));
       return;
     }
   }
   // Incomplete frames of the warm-up triggers are no frames of the take.
-  state_[s].lost_before_first_trigger = static_cast<int64_t>(sensors_[s]->stats().frames_lost);
+  state_[s].lost_before_first_trigger = static_cast<int64_t>(sensor->stats().frames_lost);
   for (int64_t k = 0; k < trigger_count_ && !stop_triggers_; ++k) {
     const auto tick = start_ + std::chrono::nanoseconds(TickNs(k));
     while (Clock::now() < tick && !stop_triggers_) {
@@ -575,10 +609,10 @@ void Recorder::Session::TriggerLoop(size_t s) {
     }
     // Counted before it goes out: a trigger the camera never acknowledges was still sent.
     ++state_[s].triggers;
-    try {
-      sensors_[s]->Trigger();
-    } catch (const std::exception& e) {
-      DeclareLost(s, Cat("it did not take a software trigger: ", e.what()));
+    const TriggerOutcome outcome = CallTrigger(*sensor, *call, &error);
+    if (outcome == TriggerOutcome::kReleased) return;
+    if (outcome == TriggerOutcome::kFailed) {
+      DeclareLost(s, Cat("it did not take a software trigger: ", error));
       break;
     }
   }
@@ -824,7 +858,22 @@ void Recorder::Session::SendStatus(const std::function<void(const RecorderStatus
 
 void Recorder::Session::StopAndJoin() {
   stop_triggers_ = true;
-  for (auto& thread : trigger_threads_) thread.join();
+  std::optional<size_t> lost;
+  {
+    std::lock_guard lock(failure_mutex_);
+    if (loss_) lost = lost_index_;
+  }
+  for (size_t s = 0; s < trigger_threads_.size(); ++s) {
+    if (lost == s) {
+      std::lock_guard lock(trigger_calls_[s]->mutex);
+      if (trigger_calls_[s]->in_call) {
+        trigger_calls_[s]->released = true;
+        trigger_threads_[s].detach();
+        continue;
+      }
+    }
+    trigger_threads_[s].join();
+  }
   for (auto& thread : capture_threads_) thread.join();
   {
     std::lock_guard lock(frame_mutex_);
@@ -889,7 +938,10 @@ RecorderSummary Recorder::Session::Run(
   for (SensorState& state : state_) state.last_activity_ns = take_start_ns_;
   for (size_t s = 0; s < n_; ++s) capture_threads_.emplace_back([this, s] { CaptureLoop(s); });
   if (software_) {
-    for (size_t s = 0; s < n_; ++s) trigger_threads_.emplace_back([this, s] { TriggerLoop(s); });
+    for (size_t s = 0; s < n_; ++s) {
+      trigger_calls_.push_back(std::make_shared<TriggerCall>());
+      trigger_threads_.emplace_back([this, s] { TriggerLoop(s); });
+    }
   }
   assemble_thread_ = std::thread([this] { AssembleLoop(); });
   for (int w = 0; w < options_.writer_threads; ++w)

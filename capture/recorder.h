@@ -173,7 +173,8 @@ class Recorder {
   RigDescription rig_;
   std::filesystem::path out_;
   RecorderOptions options_;
-  std::vector<std::unique_ptr<Sensor>> sensors_;
+  // Shared with a trigger thread that is left waiting on a lost sensor (recorder.cpp).
+  std::vector<std::shared_ptr<Sensor>> sensors_;
   std::vector<StreamInfo> streams_;
   std::atomic<bool> stop_requested_{false};
 };

@@ -419,7 +419,7 @@ class AravisSensor : public Sensor {
   std::deque<int64_t> host_minus_device_;
   bool ptp_enabled_ = false;
   bool started_ = false;
-  bool abandoned_ = false;
+  std::atomic<bool> abandoned_{false};  // Abandon() may come while a Trigger() still waits
   std::string ptp_status_;
   std::atomic<bool> control_lost_{false};
   std::atomic<uint64_t> frames_delivered_{0};
