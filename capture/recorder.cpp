@@ -356,14 +356,16 @@ void Recorder::Session::NoteDriverLosses() {
 
 // How long sensor s may be silent. Software trigger: lost_after_periods of the trigger period.
 // Otherwise as many of its own frame periods (the rig's, or its mean frame interval where that
-// is longer), or first_frame_s before its first frame.
+// is longer), or first_frame_s before its second frame.
 int64_t Recorder::Session::SilenceBoundNs(size_t s) const {
   if (software_) return lost_after_ns_;
   const SensorState& state = state_[s];
   const int64_t first = state.first_frame_ns, last = state.last_frame_ns;
   const int64_t frames = state.captured;
-  if (first < 0) return static_cast<int64_t>(std::llround(options_.first_frame_s * 1e9));
-  const int64_t mean_interval = frames > 1 ? (last - first) / (frames - 1) : 0;
+  // Its own rate is known from its second frame on.
+  if (first < 0 || frames < 2)
+    return static_cast<int64_t>(std::llround(options_.first_frame_s * 1e9));
+  const int64_t mean_interval = (last - first) / (frames - 1);
   return std::max(period_ns_, mean_interval) * options_.lost_after_periods;
 }
 
@@ -393,8 +395,10 @@ std::optional<size_t> Recorder::Session::SilentSensor(int64_t at_ns) const {
 }
 
 std::string Recorder::Session::SilenceReason(size_t s) const {
-  if (!software_ && state_[s].first_frame_ns < 0)
-    return Cat("no first frame within ", options_.first_frame_s, " s");
+  if (!software_ && state_[s].captured == 0)
+    return Cat("no frame within ", options_.first_frame_s, " s of the warm-up");
+  if (!software_ && state_[s].captured == 1)
+    return Cat("no second frame within ", options_.first_frame_s, " s of its first");
   return Cat("no frame for ", options_.lost_after_periods, " frame periods (",
              std::round(static_cast<double>(SilenceBoundNs(s)) / 1e5) / 10, " ms)");
 }

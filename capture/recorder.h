@@ -59,8 +59,8 @@ struct RecorderOptions {
   // above). Before its first frame a sensor is silent from the first trigger (software) or the
   // end of the warm-up.
   int lost_after_periods = 3;
-  // Free run and hardware trigger: how long after the warm-up a sensor may take to deliver its
-  // first frame (cameras that start streaming late, renderers).
+  // Free run and hardware trigger: how long a sensor may take to deliver its first frame after
+  // the warm-up, and its second after that (cameras that start streaming late, renderers).
   double first_frame_s = 5.0;
   std::string codec;              // "png" | "zstd" | "" (each driver's choice)
   int64_t sync_tolerance_ns = 0;  // SyncOptions::tolerance_ns (0: 0.4 frame periods)
