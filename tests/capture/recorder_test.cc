@@ -22,10 +22,10 @@ using testing::TempDir;
 
 // What a test tells one scripted sensor and reads back from it.
 struct Script {
-  int64_t answers = -1;       // frames it delivers (software trigger: triggers it answers,
-                              // warm-up ones included); -1: no end
-  bool hang = false;          // after the last answer, Trigger() blocks until released
-  double interval_s = 0.05;   // free run: its own frame interval
+  int64_t answers = -1;      // frames it delivers (software trigger: triggers it answers,
+                             // warm-up ones included); -1: no end
+  bool hang = false;         // after the last answer, Trigger() blocks until released
+  double interval_s = 0.05;  // free run: its own frame interval
   std::mutex mutex;
   std::condition_variable released_cv;
   bool released = false;                // lets a hung Trigger() return
@@ -143,7 +143,10 @@ struct ScriptedRig {
     for (int i = 0; i < sensors; ++i) {
       const std::string name = "cam" + std::to_string(i);
       scripts[name] = std::make_shared<Script>();
-      rig.sensors.push_back({.name = name, .uri = "script:" + name});
+      SensorSpec spec;
+      spec.name = name;
+      spec.uri = "script:" + name;
+      rig.sensors.push_back(spec);
     }
   }
   Script& operator[](const std::string& name) { return *scripts.at(name); }
