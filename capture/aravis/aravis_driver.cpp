@@ -41,6 +41,51 @@ std::mutex& AravisListMutex() {
   return mutex;
 }
 
+// What libaravis logs through GLib (domain "Aravis": warnings of lost control, timeouts) goes to
+// the report (each open sensor's driver details, "aravis_log") instead of stderr, where it would
+// come between holocap's own lines. ARV_DEBUG's debug output, asked for by name, is left alone.
+class AravisLog {
+ public:
+  static AravisLog& Get() {
+    static AravisLog* log = new AravisLog;  // never destroyed: GLib may call it at exit
+    return *log;
+  }
+  // Messages logged since the n-th (0: all kept).
+  std::vector<std::string> Since(uint64_t n) const {
+    std::lock_guard lock(mutex_);
+    std::vector<std::string> messages;
+    const uint64_t first = count_ - messages_.size();
+    for (uint64_t i = std::max(n, first); i < count_; ++i) messages.push_back(messages_[i - first]);
+    return messages;
+  }
+  uint64_t count() const {
+    std::lock_guard lock(mutex_);
+    return count_;
+  }
+
+ private:
+  static constexpr size_t kKept = 32;
+  AravisLog() {
+    g_log_set_handler("Aravis",
+                      static_cast<GLogLevelFlags>(G_LOG_LEVEL_MASK | G_LOG_FLAG_RECURSION),
+                      &AravisLog::Handle, this);
+  }
+  static void Handle(const gchar*, GLogLevelFlags level, const gchar* message, gpointer self) {
+    const char* name = (level & G_LOG_LEVEL_ERROR)      ? "error"
+                       : (level & G_LOG_LEVEL_CRITICAL) ? "critical"
+                       : (level & G_LOG_LEVEL_WARNING)  ? "warning"
+                                                        : "message";
+    auto& log = *static_cast<AravisLog*>(self);
+    std::lock_guard lock(log.mutex_);
+    log.messages_.push_back(Cat(name, ": ", message != nullptr ? message : ""));
+    if (log.messages_.size() > kKept) log.messages_.pop_front();
+    ++log.count_;
+  }
+  mutable std::mutex mutex_;
+  std::deque<std::string> messages_;
+  uint64_t count_ = 0;
+};
+
 std::vector<std::string> KnownDeviceIds() {
   std::lock_guard lock(AravisListMutex());
   arv_update_device_list();
@@ -51,7 +96,8 @@ std::vector<std::string> KnownDeviceIds() {
 
 class AravisSensor : public Sensor {
  public:
-  explicit AravisSensor(const SensorSpec& spec) : uri_(spec.uri) {
+  explicit AravisSensor(const SensorSpec& spec)
+      : uri_(spec.uri), log_from_(AravisLog::Get().count()) {
     const std::string id = ParseSensorUri(spec.uri).path;
     if (id.empty()) Fail("'", spec.uri, "': no device id (expected aravis:<device-id>)");
     if (id.rfind("Fake_", 0) == 0) arv_enable_interface("Fake");
@@ -250,6 +296,8 @@ class AravisSensor : public Sensor {
     }
     stats.details["ptp"] = ptp_status_;
     stats.details["control_lost"] = control_lost_.load();
+    if (auto messages = AravisLog::Get().Since(log_from_); !messages.empty())
+      stats.details["aravis_log"] = messages;
     return stats;
   }
 
@@ -406,6 +454,7 @@ class AravisSensor : public Sensor {
   }
 
   std::string uri_;
+  uint64_t log_from_;  // AravisLog messages before this sensor opened are not its own
   ArvCamera* camera_ = nullptr;
   ArvDevice* device_ = nullptr;
   ArvStream* stream_ = nullptr;
@@ -511,6 +560,7 @@ cv::Mat ConvertAravisImage(const cv::Mat& wire, const AravisPixelLayout& layout)
 }
 
 void RegisterAravisDriver(DriverRegistry& registry) {
+  AravisLog::Get();
   registry.Register(std::make_unique<AravisDriver>());
 }
 
