@@ -1,7 +1,6 @@
 // holocap capture --rig RIG --out TAKE --seconds S | --frames N: record a take from a rig's
 // sensors, showing live per-sensor fps, drops, sync spread and MB/s on a terminal.
 #include <csignal>
-#include <cstdio>
 #include <iomanip>
 #include <iostream>
 #include <sstream>
@@ -64,12 +63,23 @@ static void AddCaptureCommand(CLI::App& app) {
                    "SCHED_FIFO priority of the software-trigger threads where permitted (0: normal "
                    "scheduling)")
       ->capture_default_str();
+  command
+      ->add_option("--lost-after-periods", args->options.lost_after_periods,
+                   "Declare a sensor lost, ending the take, when it delivers nothing for this many "
+                   "frame periods while frames are due")
+      ->capture_default_str();
   command->add_flag("--durable", args->options.take.durable, "fsync every frame and index line");
   command->add_flag("--overwrite", args->options.take.overwrite,
                     "Replace an existing take directory");
   command->callback([args] {
     if (args->options.seconds <= 0 && args->options.frames <= 0)
       Fail("capture: give --seconds S or --frames N");
+    CheckNamingFlags([&] { args->options.Check(); },
+                     {{"capture: lost_after_periods", "--lost-after-periods"},
+                      {"capture: writer_threads", "--writers"},
+                      {"capture: queue_frames", "--queue"},
+                      {"capture: trigger_priority", "--trigger-priority"},
+                      {"capture: codec", "--codec"}});
     RigDescription rig = RigDescription::Load(args->rig);
     Recorder recorder(rig, args->out, args->options);
     Report report("capture");
@@ -82,6 +92,7 @@ static void AddCaptureCommand(CLI::App& app) {
                         {"queue_frames", args->options.queue_frames},
                         {"trigger_phase_s", args->options.trigger_phase_s},
                         {"trigger_priority", args->options.trigger_priority},
+                        {"lost_after_periods", args->options.lost_after_periods},
                         {"durable", args->options.take.durable}};
     report.plan() = {
         {"sync", ToString(rig.sync)}, {"fps", rig.fps}, {"sensors", rig.sensors.size()}};
@@ -103,11 +114,13 @@ static void AddCaptureCommand(CLI::App& app) {
     progress.Finish();
     report.metrics() = summary.Metrics();
     report.SetSummary(summary);
+    std::string report_failure;
     try {
       report.Write(std::filesystem::path(args->out) / "report.json");
     } catch (const Error& e) {
-      // A full disk may refuse the report too; the take itself is already closed.
-      std::fprintf(stderr, "holocap: warning: %s\n", e.what());
+      // A full disk may refuse the report too; the take itself is already closed. Said in the
+      // one error line, not a line of its own.
+      report_failure = e.what();
     }
     std::cout << "take        " << args->out << "\n"
               << "frame sets  " << summary.frame_sets_complete << " complete, "
@@ -118,6 +131,10 @@ static void AddCaptureCommand(CLI::App& app) {
               << "written     " << summary.bytes_written / 1e6 << " MB in " << summary.seconds
               << " s (" << summary.write_mb_s << " MB/s)\n"
               << ToString(summary.termination) << ": " << summary.message << std::endl;
+    if (!report_failure.empty()) {
+      summary.message += Cat("; and ", report_failure);
+      if (summary.IsUsable()) Fail("capture: ", summary.message);
+    }
     FailUnlessUsable(summary, "capture");
   });
 }

@@ -39,6 +39,10 @@ class Sensor {
   virtual const StreamInfo& stream() const = 0;
   virtual void Start() = 0;
   virtual void Stop() = 0;
+  // Called instead of Stop() once the recorder has declared the sensor lost: let go of the
+  // device without waiting for answers it may never give (a camera that was unplugged). The
+  // default stops it.
+  virtual void Abandon() { Stop(); }
   // Waits up to `timeout` for the next frame. Returns false on timeout or when the stream
   // has ended (see ended()). Throws Error when the device is lost.
   virtual bool Grab(Frame* frame, std::chrono::milliseconds timeout) = 0;

@@ -9,6 +9,17 @@
 // queue, in an incomplete set, or written. A write failure (full disk) ends the take cleanly:
 // the sets already in the index stay readable and the failure is the summary's message.
 //
+// A sensor that delivers nothing (no frame, not even an incomplete one) for lost_after_periods
+// frame periods while frames are due is declared lost, and so is one whose driver reports it
+// gone; the take then ends as a failure that names it (RecorderSummary::lost). Frames are due
+// from a software-triggered sensor once a trigger went out after its last frame, from a free-
+// running one always, and from a hardware-triggered one while another sensor still delivers.
+// Without triggers of its own, a sensor's frame period is the rig's or, where it delivers
+// slower (a renderer), its own mean frame interval. A software trigger goes out only while no
+// sensor has been silent that long, so a lost sensor misses at most lost_after_periods
+// triggers after its last frame. What the lost sensor did not deliver is counted against it;
+// the frames the others delivered after it fell silent are "discarded", not their drops.
+//
 // Each sensor is opened with the rig's sync mode and rate as SensorSpec::options "sync"
 // ("software" | "hardware" | "free-run") and "fps", unless its own options set them.
 #pragma once
@@ -19,6 +30,7 @@
 #include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -42,8 +54,14 @@ struct RecorderOptions {
   // cameras that sample triggers on a clock grid of their own see them mid-interval.
   // < 0: the first trigger fires warmup_s after start.
   double trigger_phase_s = -1;
-  double drain_s = 1.0;           // after the last trigger, how long late frames may still arrive
-  double stall_s = 5.0;           // a sensor silent this long while frames are due is reported lost
+  double drain_s = 1.0;  // after the last trigger, how long late frames may still arrive
+  // A sensor silent for this many frame periods while frames are due is declared lost (see
+  // above). Before its first frame a sensor is silent from the first trigger (software) or the
+  // end of the warm-up.
+  int lost_after_periods = 3;
+  // Free run and hardware trigger: how long a sensor may take to deliver its first frame after
+  // the warm-up, and its second after that (cameras that start streaming late, renderers).
+  double first_frame_s = 5.0;
   std::string codec;              // "png" | "zstd" | "" (each driver's choice)
   int64_t sync_tolerance_ns = 0;  // SyncOptions::tolerance_ns (0: 0.4 frame periods)
   // SCHED_FIFO priority of the software-trigger threads, where the process may use it (root,
@@ -59,22 +77,47 @@ struct RecorderOptions {
 struct SensorRecord {
   std::string name;
   std::string uri;
-  int64_t triggers = 0;         // software triggers sent
+  // Software triggers sent to it, or for a lost sensor every trigger of the take (those it
+  // could no longer be sent included: driver["triggers_not_sent"]).
+  int64_t triggers = 0;
   int64_t frames_captured = 0;  // delivered by the driver
   int64_t lost_in_driver = 0;  // incomplete, timed out, never arrived (triggers not answered), gaps
   int64_t dropped_queue = 0;   // frame queue full
   int64_t dropped_sets = 0;    // its frame was in a set dropped because the writers fell behind
   int64_t unmatched = 0;       // in no complete set
+  // Delivered after another sensor fell silent and was declared lost: no complete set could
+  // hold them. Not this sensor's drops, but not in the take either.
+  int64_t discarded = 0;
   int64_t written = 0;
+  bool lost = false;                                 // this is RecorderSummary::lost's sensor
   nlohmann::json driver = nlohmann::json::object();  // the driver's own counters
+  // Frames not in the take that this sensor is to blame for (or shares, for dropped_sets).
   int64_t dropped() const { return lost_in_driver + dropped_queue + dropped_sets + unmatched; }
+};
+
+// Which sensor was lost mid-take, and when. Times are seconds after the take's first trigger
+// (software trigger) or the end of the warm-up (free run, hardware trigger).
+struct SensorLoss {
+  std::string sensor;  // its name in the rig
+  std::string uri;
+  // The first frame set it did not deliver: the first trigger after its last frame (software
+  // trigger), else the count of frames it delivered or lost in the driver.
+  int64_t frame_set = 0;
+  double due_s = 0;                     // when that frame was due
+  double declared_s = 0;                // when the recorder gave up on it
+  double last_frame_s = -1;             // when its last frame arrived (-1: none after start)
+  int64_t last_frame_timestamp_ns = 0;  // that frame's own timestamp, in its stream's clock
+  int64_t due_timestamp_ns = 0;         // due_s as CLOCK_REALTIME
+  std::string reason;                   // "no frame for 3 frame periods (150 ms)", a driver error
+
+  nlohmann::json ToJson() const;
 };
 
 struct RecorderSummary : Summary {
   int64_t frame_sets_complete = 0;    // written to the take
   int64_t frame_sets_incomplete = 0;  // a sensor had no frame for it
   int64_t frame_sets_dropped = 0;     // complete but dropped because the writers fell behind
-  int64_t frames_dropped = 0;         // every frame not in the take, all causes
+  int64_t frames_dropped = 0;         // every frame not in the take, all causes (discarded too)
   double sync_spread_us_max = 0;
   double sync_spread_us_mean = 0;
   double seconds = 0;  // first sensor start to the take's close
@@ -83,6 +126,7 @@ struct RecorderSummary : Summary {
   std::vector<int64_t> clock_offset_ns;  // per sensor, its clock minus the first sensor's
   std::string trigger_scheduling;        // how the software-trigger threads were scheduled
   std::vector<SensorRecord> sensors;
+  std::optional<SensorLoss> lost;  // the sensor that ended the take by falling silent or away
 
   nlohmann::json Metrics() const;  // the report's "metrics" object
 };
@@ -113,7 +157,8 @@ class Recorder {
   Recorder& operator=(const Recorder&) = delete;
 
   // Records until the frame/time limit, RequestStop() or a failure. A lost sensor or a
-  // failed write is reported as Termination::kFailure with one clear message; the take then
+  // failed write is reported as Termination::kFailure with one clear message (a lost sensor's
+  // names it, the frame set and the time); the take then
   // holds every complete set written before it. `report` (optional) receives a per-set sync
   // spread series.
   RecorderSummary Run(const std::function<void(const RecorderStatus&)>& on_status = {},
@@ -128,7 +173,8 @@ class Recorder {
   RigDescription rig_;
   std::filesystem::path out_;
   RecorderOptions options_;
-  std::vector<std::unique_ptr<Sensor>> sensors_;
+  // Shared with a trigger thread that is left waiting on a lost sensor (recorder.cpp).
+  std::vector<std::shared_ptr<Sensor>> sensors_;
   std::vector<StreamInfo> streams_;
   std::atomic<bool> stop_requested_{false};
 };

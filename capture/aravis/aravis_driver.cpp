@@ -7,6 +7,7 @@
 #include <deque>
 #include <mutex>
 #include <opencv2/imgproc.hpp>
+#include <thread>
 
 #include "core/error.h"
 
@@ -40,6 +41,51 @@ std::mutex& AravisListMutex() {
   return mutex;
 }
 
+// What libaravis logs through GLib (domain "Aravis": warnings of lost control, timeouts) goes to
+// the report (each open sensor's driver details, "aravis_log") instead of stderr, where it would
+// come between holocap's own lines. ARV_DEBUG's debug output, asked for by name, is left alone.
+class AravisLog {
+ public:
+  static AravisLog& Get() {
+    static AravisLog* log = new AravisLog;  // never destroyed: GLib may call it at exit
+    return *log;
+  }
+  // Messages logged since the n-th (0: all kept).
+  std::vector<std::string> Since(uint64_t n) const {
+    std::lock_guard lock(mutex_);
+    std::vector<std::string> messages;
+    const uint64_t first = count_ - messages_.size();
+    for (uint64_t i = std::max(n, first); i < count_; ++i) messages.push_back(messages_[i - first]);
+    return messages;
+  }
+  uint64_t count() const {
+    std::lock_guard lock(mutex_);
+    return count_;
+  }
+
+ private:
+  static constexpr size_t kKept = 32;
+  AravisLog() {
+    g_log_set_handler("Aravis",
+                      static_cast<GLogLevelFlags>(G_LOG_LEVEL_MASK | G_LOG_FLAG_RECURSION),
+                      &AravisLog::Handle, this);
+  }
+  static void Handle(const gchar*, GLogLevelFlags level, const gchar* message, gpointer self) {
+    const char* name = (level & G_LOG_LEVEL_ERROR)      ? "error"
+                       : (level & G_LOG_LEVEL_CRITICAL) ? "critical"
+                       : (level & G_LOG_LEVEL_WARNING)  ? "warning"
+                                                        : "message";
+    auto& log = *static_cast<AravisLog*>(self);
+    std::lock_guard lock(log.mutex_);
+    log.messages_.push_back(Cat(name, ": ", message != nullptr ? message : ""));
+    if (log.messages_.size() > kKept) log.messages_.pop_front();
+    ++log.count_;
+  }
+  mutable std::mutex mutex_;
+  std::deque<std::string> messages_;
+  uint64_t count_ = 0;
+};
+
 std::vector<std::string> KnownDeviceIds() {
   std::lock_guard lock(AravisListMutex());
   arv_update_device_list();
@@ -50,7 +96,8 @@ std::vector<std::string> KnownDeviceIds() {
 
 class AravisSensor : public Sensor {
  public:
-  explicit AravisSensor(const SensorSpec& spec) : uri_(spec.uri) {
+  explicit AravisSensor(const SensorSpec& spec)
+      : uri_(spec.uri), log_from_(AravisLog::Get().count()) {
     const std::string id = ParseSensorUri(spec.uri).path;
     if (id.empty()) Fail("'", spec.uri, "': no device id (expected aravis:<device-id>)");
     if (id.rfind("Fake_", 0) == 0) arv_enable_interface("Fake");
@@ -136,9 +183,19 @@ class AravisSensor : public Sensor {
   }
 
   ~AravisSensor() override {
+    if (lost_handler_ != 0) g_signal_handler_disconnect(device_, lost_handler_);
+    if (abandoned_) {
+      // Releasing a GigE camera talks to it (closing its stream channel, leaving control), and
+      // each unanswered GVCP request waits out aravis' retries (2.5 s in 0.8): let a thread of
+      // its own wait for a camera that is gone.
+      std::thread([camera = camera_, stream = stream_] {
+        if (stream != nullptr) g_object_unref(stream);
+        g_object_unref(camera);
+      }).detach();
+      return;
+    }
     if (started_) arv_camera_stop_acquisition(camera_, nullptr);
     if (stream_ != nullptr) g_object_unref(stream_);
-    if (lost_handler_ != 0) g_signal_handler_disconnect(device_, lost_handler_);
     g_object_unref(camera_);
   }
 
@@ -158,6 +215,12 @@ class AravisSensor : public Sensor {
     arv_camera_stop_acquisition(camera_, &error);
     if (error != nullptr && !control_lost_) ThrowIf(error, uri_, "stopping acquisition");
     g_clear_error(&error);
+  }
+
+  // The camera stopped answering: stop nothing on it, and release it in the background.
+  void Abandon() override {
+    started_ = false;
+    abandoned_ = true;
   }
 
   bool Grab(Frame* frame, std::chrono::milliseconds timeout) override {
@@ -233,6 +296,8 @@ class AravisSensor : public Sensor {
     }
     stats.details["ptp"] = ptp_status_;
     stats.details["control_lost"] = control_lost_.load();
+    if (auto messages = AravisLog::Get().Since(log_from_); !messages.empty())
+      stats.details["aravis_log"] = messages;
     return stats;
   }
 
@@ -389,6 +454,7 @@ class AravisSensor : public Sensor {
   }
 
   std::string uri_;
+  uint64_t log_from_;  // AravisLog messages before this sensor opened are not its own
   ArvCamera* camera_ = nullptr;
   ArvDevice* device_ = nullptr;
   ArvStream* stream_ = nullptr;
@@ -402,6 +468,7 @@ class AravisSensor : public Sensor {
   std::deque<int64_t> host_minus_device_;
   bool ptp_enabled_ = false;
   bool started_ = false;
+  std::atomic<bool> abandoned_{false};  // Abandon() may come while a Trigger() still waits
   std::string ptp_status_;
   std::atomic<bool> control_lost_{false};
   std::atomic<uint64_t> frames_delivered_{0};
@@ -493,6 +560,7 @@ cv::Mat ConvertAravisImage(const cv::Mat& wire, const AravisPixelLayout& layout)
 }
 
 void RegisterAravisDriver(DriverRegistry& registry) {
+  AravisLog::Get();
   registry.Register(std::make_unique<AravisDriver>());
 }
 

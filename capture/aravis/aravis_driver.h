@@ -22,6 +22,9 @@
 //   "packet_resend"  true (default): ask GigE cameras to resend lost packets
 //   "packet_socket"  false (default): use plain UDP sockets; packet sockets fail in containers
 //   "packet_timeout_ms", "frame_retention_ms": how long a GigE frame waits for lost packets
+//
+// What libaravis logs through GLib goes to each open sensor's SensorStats::details
+// ("aravis_log", the last 32 messages), not to stderr.
 #pragma once
 
 #include <string>

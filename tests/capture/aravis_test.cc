@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <glib.h>
+
 #include <opencv2/imgproc.hpp>
 #include <thread>
 
@@ -110,6 +112,24 @@ TEST(AravisDriver, UnknownDeviceIsOneClearError) {
               std::string::npos)
         << e.what();
   }
+}
+
+// Third-party lines never come between holocap's own: a message libaravis logs goes to the
+// sensor's driver details (report.json), not to stderr.
+TEST(AravisDriver, AravisLogMessagesGoToTheReportNotStderr) {
+  DriverRegistry registry;
+  RegisterAravisDriver(registry);
+  auto sensor = registry.Open({.name = "fake", .uri = "aravis:Fake_1"});
+  ::testing::internal::CaptureStderr();
+  g_log("Aravis", G_LOG_LEVEL_WARNING, "%s", "[GvDevice::Heartbeat] Control access lost");
+  const std::string stderr_text = ::testing::internal::GetCapturedStderr();
+  EXPECT_EQ(stderr_text, "");
+  const nlohmann::json details = sensor->stats().details;
+  ASSERT_TRUE(details.contains("aravis_log")) << details.dump(1);
+  EXPECT_EQ(details.at("aravis_log").back(), "warning: [GvDevice::Heartbeat] Control access lost");
+  // Opened after it: not this sensor's.
+  auto later = registry.Open({.name = "fake", .uri = "aravis:Fake_1"});
+  EXPECT_FALSE(later->stats().details.contains("aravis_log"));
 }
 
 TEST(AravisDriver, InProcessFakeCameraStreamsFreeRunning) {
@@ -354,7 +374,6 @@ TEST(FakeGige, CameraVanishingMidTakeEndsItCleanly) {
   TempDir dir;
   RecorderOptions options;
   options.seconds = 20;
-  options.stall_s = 1.0;
   Recorder recorder(
       FakeRig(cameras, 3, SyncMode::kSoftwareTrigger, 30, {{"roi", {0, 0, 128, 128}}}),
       dir / "take", options, AravisOnly());
