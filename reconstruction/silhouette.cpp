@@ -1,5 +1,5 @@
 // Silhouettes by background subtraction against a clean plate, or by thresholding a bright
-// subject on a dark background.
+// subject on a dark background (at a given level or one chosen per image by Otsu's method).
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -59,6 +59,10 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
   cv::Mat mask;
   if (options.mode == SilhouetteMode::kThreshold) {
     cv::threshold(MaxChannel(image), mask, options.threshold * 255, 255, cv::THRESH_BINARY);
+  } else if (options.mode == SilhouetteMode::kOtsu) {
+    cv::Mat brightest = MaxChannel(image);
+    if (brightest.isContinuous() == false) brightest = brightest.clone();
+    cv::threshold(brightest, mask, 0, 255, cv::THRESH_BINARY | cv::THRESH_OTSU);
   } else {
     if (clean_plate.empty()) Fail("silhouette: background subtraction needs a clean plate");
     if (clean_plate.size() != image.size() || clean_plate.type() != image.type()) {
