@@ -136,20 +136,97 @@ Eigen::Vector3d UpFromCameras(const std::vector<CameraModel>& cameras, std::stri
     return Eigen::Vector3d::UnitZ();
   }
   up.normalize();
+  *why = Cat("cameras: the median up (-y) of ", cameras.size(), " cameras");
+  return SnapToAxis(up, 10, why);
+}
+
+Eigen::Vector3d SnapToAxis(const Eigen::Vector3d& up, double degrees, std::string* why) {
   Eigen::Index axis = 0;
   up.cwiseAbs().maxCoeff(&axis);
   Eigen::Vector3d snapped = Eigen::Vector3d::Zero();
   snapped(axis) = up(axis) > 0 ? 1 : -1;
-  const double degrees = std::acos(std::clamp(up.dot(snapped), -1.0, 1.0)) * 180 / std::numbers::pi;
+  const double off =
+      std::acos(std::clamp(up.normalized().dot(snapped), -1.0, 1.0)) * 180 / std::numbers::pi;
   const std::string name = std::string(up(axis) > 0 ? "+" : "-") + "xyz"[axis];
-  if (degrees <= 10) {
-    *why = Cat("cameras: the median up (-y) of ", cameras.size(), " cameras is ",
-               Format("%.1f", degrees), " degrees from ", name);
+  if (off <= degrees) {
+    *why += Cat(" is ", Format("%.1f", off), " degrees from ", name);
     return snapped;
   }
-  *why = Cat("cameras: the median up (-y) of ", cameras.size(), " cameras (",
-             Format("%.1f", degrees), " degrees from ", name, ", no world axis)");
-  return up;
+  *why += Cat(" (", Format("%.1f", off), " degrees from ", name, ", no world axis)");
+  return up.normalized();
+}
+
+bool FloorFromDepth(const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
+                    const Eigen::Vector3d& up, Eigen::Vector3d* normal, double* offset,
+                    std::string* why) {
+  std::vector<Eigen::Vector3d> points;
+  Eigen::Vector3d sensors = Eigen::Vector3d::Zero();
+  double distance = 0;
+  constexpr int kStride = 6;
+  for (const auto& [camera, depth] : depth_maps) {
+    sensors += camera.center_in_world() / depth_maps.size();
+    const Pose world_from_cam = camera.world_from_cam();
+    for (int y = kStride / 2; y < depth.rows; y += kStride) {
+      for (int x = kStride / 2; x < depth.cols; x += kStride) {
+        const float z = depth.at<float>(y, x);
+        if (!(z > 0) || !std::isfinite(z)) continue;
+        const Eigen::Vector3d ray = camera.Unproject(Eigen::Vector2d(x, y));
+        if (!(ray.z() > 0)) continue;
+        points.push_back(world_from_cam * (ray * (z / ray.z())));
+        distance += z;
+      }
+    }
+  }
+  if (points.size() < 100) {
+    *why = Cat("too few depth points (", points.size(), ")");
+    return false;
+  }
+  distance /= points.size();
+  const double tolerance = 0.01 * distance;
+  const double cos_limit = std::cos(30 * std::numbers::pi / 180);
+  uint64_t state = 0x9e3779b97f4a7c15ULL;  // a fixed sequence: the same take, the same floor
+  auto next = [&]() {
+    state ^= state << 13;
+    state ^= state >> 7;
+    state ^= state << 17;
+    return static_cast<size_t>(state % points.size());
+  };
+  size_t best = 0;
+  Eigen::Vector3d best_normal = up;
+  double best_offset = 0;
+  for (int iteration = 0; iteration < 400; ++iteration) {
+    const Eigen::Vector3d &a = points[next()], &b = points[next()], &c = points[next()];
+    Eigen::Vector3d n = (b - a).cross(c - a);
+    if (!(n.norm() > 1e-12)) continue;
+    n.normalize();
+    if (n.dot(up) < 0) n = -n;
+    if (n.dot(up) < cos_limit) continue;
+    const double d = n.dot(a);
+    size_t inliers = 0;
+    for (const auto& p : points) inliers += std::abs(n.dot(p) - d) < tolerance;
+    if (inliers > best) best = inliers, best_normal = n, best_offset = d;
+  }
+  if (best < points.size() / 5) {
+    *why =
+        Cat("no plane within 30 degrees of up holds a fifth of ", points.size(), " depth points");
+    return false;
+  }
+  // Least squares over the inliers.
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  std::vector<Eigen::Vector3d> inliers;
+  for (const auto& p : points) {
+    if (std::abs(best_normal.dot(p) - best_offset) < tolerance) inliers.push_back(p);
+  }
+  for (const auto& p : inliers) mean += p / inliers.size();
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  for (const auto& p : inliers) scatter += (p - mean) * (p - mean).transpose();
+  Eigen::Vector3d n = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(scatter).eigenvectors().col(0);
+  if (n.dot(sensors - mean) < 0) n = -n;
+  *normal = n;
+  *offset = n.dot(mean);
+  *why = Cat("depth: a plane holds ", inliers.size(), " of ", points.size(), " points of ",
+             depth_maps.size(), " sensor(s)");
+  return true;
 }
 
 double ImpliedVoxel(const Eigen::AlignedBox3d& box, const std::vector<CameraModel>& cameras,

@@ -100,11 +100,23 @@ std::vector<std::string> TakePlan::ReconstructionSensors() const {
   return out;
 }
 
-void TakePlan::SetBounds(const Eigen::AlignedBox3d& box, std::string why) {
-  bounds = box;
+void TakePlan::SetBounds(const Eigen::AlignedBox3d& box, std::string why, bool cut_at_floor) {
+  bounds = cut_at_floor ? AboveFloor(box) : box;
   bounds_source = std::move(why);
+  if (!bounds.isApprox(box)) bounds_source += Cat("; cut at the floor (", floor_m, " m along up)");
   voxel_m = ImpliedVoxel(bounds, Cameras(color_sensors.empty() ? depth_sensors : color_sensors),
                          &voxel_source);
+}
+
+Eigen::AlignedBox3d TakePlan::AboveFloor(Eigen::AlignedBox3d box) const {
+  if (!std::isfinite(floor_m)) return box;
+  for (int axis = 0; axis < 3; ++axis) {
+    if (up(axis) == 1 && box.max()(axis) > floor_m)
+      box.min()(axis) = std::max(box.min()(axis), floor_m);
+    if (up(axis) == -1 && box.min()(axis) < -floor_m)
+      box.max()(axis) = std::min(box.max()(axis), -floor_m);
+  }
+  return box;
 }
 
 nlohmann::json TakePlan::ToJson() const {
@@ -125,6 +137,7 @@ nlohmann::json TakePlan::ToJson() const {
           {"bounds", {{"box", box(bounds)}, {"source", bounds_source}}},
           {"view_bounds", box(view_bounds)},
           {"up", {{"axis", {up.x(), up.y(), up.z()}}, {"source", up_source}}},
+          {"floor_m", std::isfinite(floor_m) ? nlohmann::json(floor_m) : nlohmann::json(nullptr)},
           {"voxel", {{"m", voxel_m}, {"source", voxel_source}}},
           {"silhouettes", silhouette}};
 }
@@ -170,8 +183,33 @@ void ChooseFrameSets(const Take& take, const TakeSelection& selection, TakePlan&
   for (int64_t f = first; f < last; ++f) plan.sets.push_back(plan.clean_plate_frames + f);
 }
 
+// The floor seen by the depth sensors (the clean plate, else the first set), along `plan.up`:
+// the up axis becomes its normal unless the user gave one.
+void FindFloor(const Take& take, const TakeSelection& selection, TakePlan& plan) {
+  if (plan.depth_sensors.empty()) return;
+  const size_t set = static_cast<size_t>(plan.has_clean_plate() ? plan.plate_set() : plan.sets[0]);
+  std::vector<std::pair<CameraModel, cv::Mat>> maps;
+  for (const auto& name : plan.depth_sensors) {
+    if (take.entry(set).Find(name) == nullptr) continue;
+    maps.emplace_back(plan.cameras.at(name), take.ReadFrame(set, name));
+  }
+  Eigen::Vector3d normal;
+  double offset = 0;
+  std::string why;
+  if (!FloorFromDepth(maps, plan.up, &normal, &offset, &why)) {
+    plan.up_source += "; no floor in depth: " + why;
+    return;
+  }
+  if (!selection.up) {
+    why = "floor plane (" + why + ")";
+    plan.up = SnapToAxis(normal, 5, &why);
+    plan.up_source = why;
+  }
+  if ((plan.up.array() != 0).count() == 1) plan.floor_m = plan.up.dot(normal) * offset;
+}
+
 // Bounds, the box the cameras share and the up axis: the user's, else the rig's own.
-void ChooseScene(const TakeSelection& selection, TakePlan& plan) {
+void ChooseScene(const Take& take, const TakeSelection& selection, TakePlan& plan) {
   const std::vector<CameraModel> cameras =
       plan.Cameras(plan.color_sensors.size() >= 2 ? plan.color_sensors : plan.depth_sensors);
   const RigView view = ViewOfRig(cameras);
@@ -181,16 +219,18 @@ void ChooseScene(const TakeSelection& selection, TakePlan& plan) {
   } else {
     plan.up = UpFromCameras(cameras, &plan.up_source);
   }
+  FindFloor(take, selection, plan);
   if (selection.bounds) {
     plan.view_bounds = view.converges ? view.shared : *selection.bounds;
-    plan.SetBounds(*selection.bounds, "user (--bounds)");
+    plan.SetBounds(*selection.bounds, "user (--bounds)", false);
     return;
   }
   if (!view.converges) {
     // No convergent rig (one sensor, parallel axes): the stage volume of a metre-scale studio.
     const Eigen::AlignedBox3d stage(Eigen::Vector3d(-1.5, -1.5, 0), Eigen::Vector3d(1.5, 1.5, 2.5));
     plan.view_bounds = stage;
-    plan.SetBounds(stage, "default stage box: " + view.why + "; give --bounds for another scene");
+    plan.SetBounds(stage, "default stage box: " + view.why + "; give --bounds for another scene",
+                   false);
     return;
   }
   plan.view_bounds = view.shared;
@@ -261,7 +301,7 @@ TakePlan PlanTake(const Take& take, const TakeSelection& selection) {
     plan.cameras.emplace(name, take.Camera(name, plan.ground_truth_cameras));
   ChooseFrameSets(take, selection, plan);
   ChooseHeldout(selection, plan);
-  ChooseScene(selection, plan);
+  ChooseScene(take, selection, plan);
   ChooseSilhouettes(take, selection, plan);
   return plan;
 }

@@ -13,12 +13,16 @@
 #include <Eigen/Geometry>
 #include <cstdint>
 #include <filesystem>
+#include <limits>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <set>
 #include <string>
 #include <vector>
+
+#include <opencv2/core.hpp>
+#include <utility>
 
 #include "core/camera.h"
 #include "core/take.h"
@@ -75,6 +79,9 @@ struct TakePlan {
   Eigen::AlignedBox3d view_bounds;  // seen by most colour cameras (the user's box if none)
   Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
   std::string up_source;
+  // The floor's height along `up` when depth saw one and `up` is a world axis (NaN: none);
+  // nothing below it is part of the scene.
+  double floor_m = std::numeric_limits<double>::quiet_NaN();
   double voxel_m = 0;
   std::string voxel_source;
   SilhouetteSource silhouettes = SilhouetteSource::kNone;
@@ -93,8 +100,11 @@ struct TakePlan {
   void RequireFrames(const Take& take, const std::vector<std::string>& names) const;
   // The colour sensors that are not held out (the ones a reconstruction reads).
   std::vector<std::string> ReconstructionSensors() const;
-  // Sets bounds and the voxel size they imply (ImpliedVoxel), with the reason for both.
-  void SetBounds(const Eigen::AlignedBox3d& box, std::string why);
+  // Sets bounds (cut at the floor, if any) and the voxel size they imply (ImpliedVoxel), with
+  // the reason for both.
+  void SetBounds(const Eigen::AlignedBox3d& box, std::string why, bool cut_at_floor = true);
+  // `box` without what lies below the floor (unchanged when there is none).
+  Eigen::AlignedBox3d AboveFloor(Eigen::AlignedBox3d box) const;
   // The plan's keys of every report: cameras, color_sensors, depth_sensors, clean_plate_frames,
   // frame_sets, heldout, witness, left_out, bounds, up, voxel, silhouettes.
   nlohmann::json ToJson() const;
@@ -115,6 +125,15 @@ RigView ViewOfRig(const std::vector<CameraModel>& cameras);
 // The median of the cameras' "up" (their -y axis in the world), normalised; snapped to the
 // nearest world axis within 10 degrees. `why` says which.
 Eigen::Vector3d UpFromCameras(const std::vector<CameraModel>& cameras, std::string* why);
+// The floor: the plane most depth points lie on (RANSAC, within 1% of the sensors' distance to
+// it) whose normal is within 30 degrees of `up`, among points back-projected from `depth_maps`
+// (CV_32F z-depth, metres) of their sensors; false when no plane holds a fifth of the points.
+// `normal` points to the sensors' side; the plane is {x : normal . x = offset}.
+bool FloorFromDepth(const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
+                    const Eigen::Vector3d& up, Eigen::Vector3d* normal, double* offset,
+                    std::string* why);
+// `up` snapped to the nearest world axis when within `degrees` of it; `why` gains which.
+Eigen::Vector3d SnapToAxis(const Eigen::Vector3d& up, double degrees, std::string* why);
 // The voxel a box and its cameras imply: 2/3 of a pixel's footprint at the cameras' median
 // distance to the box's centre (finer adds no detail), no finer than 1/512 of the box's largest
 // side (memory), rounded to a power of two in millimetres. `why` says which bound chose it.

@@ -80,6 +80,7 @@ nlohmann::json ReconstructionOptions::ToJson() const {
           {"max_touched_faces", max_touched_faces},
           {"max_fill_fraction", max_fill_fraction},
           {"max_view_ratio", max_view_ratio},
+          {"threshold_morphology", threshold_morphology},
           {"silhouette",
            {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
                      : silhouette.mode == SilhouetteMode::kOtsu    ? "otsu"
@@ -433,7 +434,10 @@ class TakeReconstructor {
     const auto& depth = take_plan_.depth_sensors;
     plan_.method = options_.method;
     if (plan_.method == ReconstructionMethod::kAuto) {
-      plan_.method = depth.empty() ? ReconstructionMethod::kMvs : ReconstructionMethod::kTsdf;
+      plan_.method = !depth.empty() ? ReconstructionMethod::kTsdf
+                     : take_plan_.silhouettes == SilhouetteSource::kCleanPlate
+                         ? ReconstructionMethod::kMvs
+                         : ReconstructionMethod::kHull;
     }
     if (is_tsdf() && depth.empty())
       Fail("method tsdf needs depth sensors; ", Where(), " has none (use hull or mvs)");
@@ -469,8 +473,8 @@ class TakeReconstructor {
   // still ask for a fixed threshold (rerendering's --silhouettes threshold).
   void ChooseSilhouettes() {
     plan_.silhouette = options_.silhouette;
-    if (options_.silhouette.mode == SilhouetteMode::kThreshold &&
-        take_plan_.silhouettes != SilhouetteSource::kThreshold) {
+    const bool stage_threshold = options_.silhouette.mode == SilhouetteMode::kThreshold;
+    if (stage_threshold && take_plan_.silhouettes != SilhouetteSource::kThreshold) {
       take_plan_.silhouettes = SilhouetteSource::kThreshold;
       take_plan_.silhouette_threshold = options_.silhouette.threshold;
       take_plan_.silhouette_reason = "a fixed threshold, asked for in the stage's options";
@@ -486,6 +490,14 @@ class TakeReconstructor {
       default:
         plan_.silhouette.mode = SilhouetteMode::kOtsu;
         break;
+    }
+    if (plan_.silhouette.mode != SilhouetteMode::kBackgroundSubtraction && !stage_threshold &&
+        options_.threshold_morphology) {
+      // A subject on a dark background loses its darkest edge pixels to any threshold: close
+      // and grow its silhouette as the Middlebury recipe does.
+      plan_.silhouette.open_px = 0;
+      plan_.silhouette.dilate_px = 10;
+      plan_.silhouette.erode_px = 7;
     }
   }
 
@@ -518,8 +530,8 @@ class TakeReconstructor {
     if (!from_rig || !masks || options_.tighten_sets == 0) return;
     const Eigen::AlignedBox3d& view = take_plan_.view_bounds;
     // Cameras that see the subject whole may see past the box most of them share.
-    const Eigen::AlignedBox3d search(view.min() - 0.25 * view.sizes(),
-                                     view.max() + 0.25 * view.sizes());
+    const Eigen::AlignedBox3d search = take_plan_.AboveFloor(
+        Eigen::AlignedBox3d(view.min() - 0.25 * view.sizes(), view.max() + 0.25 * view.sizes()));
     HullOptions hull_options = options_.hull;
     hull_options.voxel_m = search.sizes().maxCoeff() / 64;
     hull_options.bounds = Box::From(search);
@@ -647,10 +659,13 @@ class TakeReconstructor {
     }
     nlohmann::json plan = described.ToJson();
     plan["method"] = ToString(plan_.method);
-    plan["method_reason"] = options_.method != ReconstructionMethod::kAuto ? "asked for"
-                            : take_plan_.depth_sensors.empty()
-                                ? "no depth sensor: multi-view stereo inside the visual hull"
-                                : "depth sensors present: TSDF fusion of their depth";
+    plan["method_reason"] =
+        options_.method != ReconstructionMethod::kAuto ? "asked for"
+        : is_tsdf() ? "depth sensors present: TSDF fusion of their depth"
+        : plan_.method == ReconstructionMethod::kMvs
+            ? "no depth sensor: multi-view stereo inside the visual hull"
+            : "no depth sensor and no clean plate: the visual hull of thresholded silhouettes (a "
+              "subject on a plain dark background gives stereo nothing to match around it)";
     if (!needs_plate() && !plan_.hull_completion)
       plan["silhouettes"] = {{"source", "not needed"}, {"why", "the method reads depth alone"}};
     plan["completion"] = completion_;

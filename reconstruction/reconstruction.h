@@ -74,7 +74,8 @@ struct SilhouetteOptions {
   double hysteresis_sigmas = 1.8;
   double hysteresis_min_difference = 6;
   // Threshold mode: foreground where the largest channel exceeds threshold (0..1 of full
-  // scale). 0.19 is the Middlebury recipe. Otsu mode chooses it per image.
+  // scale). 0.19 is the Middlebury recipe. Otsu mode chooses it per image and, with hysteresis
+  // on (hysteresis_sigmas > 0), joins pixels above half of it connected to those above it.
   double threshold = 0.19;
   // Morphology, in pixels: open (removes specks), then close as dilate/erode (fills holes and
   // thin gaps). The Middlebury recipe is dilate 10, erode 7.
@@ -437,6 +438,9 @@ struct ReconstructionOptions {
   // ... and a mesh wider than this multiple of the cameras' shared view on any axis.
   double max_view_ratio = 1.5;
   SilhouetteOptions silhouette;
+  // Thresholded silhouettes (Otsu or a given level) close and grow by the Middlebury recipe
+  // (dilate 10 px, erode 7 px, no opening) instead of `silhouette`'s morphology.
+  bool threshold_morphology = true;
   HullOptions hull;  // voxel and bounds are set from the fields above
   TsdfOptions tsdf;  // voxel and bounds likewise
   // TSDF: what the depth sensors did not see is completed from the colour cameras' visual hull
