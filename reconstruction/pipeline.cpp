@@ -156,6 +156,7 @@ struct MethodPlan {
   SilhouetteOptions silhouette;  // the plan's source applied to the options' parameters
   MvsOptions mvs;                // the options' search scaled to the scene
   bool check_fill = true;        // the bounds are not the hull's own extent
+  int hull_min_views = 2;        // the hull method's: points fewer cameras see are outside
 };
 
 // Which faces of `bounds` a hull reaches (within 1.5 voxels) and the fraction of the bounds'
@@ -224,6 +225,7 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
     hull_options.voxel_m = voxel;
     hull_options.bounds = bounds;
     hull_options.threads = threads;
+    hull_options.min_views = plan.hull_min_views;
     HullSummary summary;
     VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
     out.metrics["hull"] = {{"seconds", summary.seconds},
@@ -451,6 +453,10 @@ class TakeReconstructor {
            " has no colour camera to take them from");
     }
     take_plan_.RequireFrames(take_, NeededSensors());
+    // A point that fewer than half the cameras see is carved by too few of them: on a sparse
+    // ring those points grow the hull's ghost wedges (the shared box counts the same half).
+    plan_.hull_min_views =
+        std::max(options_.hull.min_views, static_cast<int>(reconstructed + 1) / 2);
     completion_ = "not a TSDF run";
     if (is_tsdf()) {
       const bool silhouettes = take_plan_.silhouettes != SilhouetteSource::kNone;
@@ -547,11 +553,13 @@ class TakeReconstructor {
       HullSummary summary;
       VisualHull hull = ComputeVisualHull(SilhouetteViews(set), hull_options, &summary);
       if (!summary.IsUsable()) continue;
+      // Measured against the box the cameras share: silhouettes that cover every image give
+      // a hull that is that box.
       const std::string implausible =
-          ImplausibleHull(hull, summary, hull_options.bounds, options_, true);
+          ImplausibleHull(hull, summary, Box::From(take_plan_.AboveFloor(view)), options_, true);
       if (!implausible.empty()) {
-        implausible_ = Cat("set ", set, ": a coarse ", implausible.substr(4),
-                           " (the box the cameras share, grown by a quarter)");
+        implausible_ =
+            Cat("set ", set, ": a coarse ", implausible.substr(4), " (the box the cameras share)");
         return;
       }
       extent.extend(hull.Extent());
@@ -669,6 +677,9 @@ class TakeReconstructor {
     if (!needs_plate() && !plan_.hull_completion)
       plan["silhouettes"] = {{"source", "not needed"}, {"why", "the method reads depth alone"}};
     plan["completion"] = completion_;
+    if (plan_.method == ReconstructionMethod::kHull)
+      plan["hull_min_views"] = {{"views", plan_.hull_min_views},
+                                {"why", "half the cameras reconstructed from, as the shared box"}};
     plan["depth_background"] =
         plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
     plan["voxel_m"] = voxel_;
