@@ -454,7 +454,8 @@ class TakeReconstructor {
     }
     take_plan_.RequireFrames(take_, NeededSensors());
     // A point that fewer than half the cameras see is carved by too few of them: on a sparse
-    // ring those points grow the hull's ghost wedges (the shared box counts the same half).
+    // ring those points grow the hull's ghost wedges, which reach the bounds (a quarter or two
+    // fifths leave them on dinoSparseRing; half also keeps what leaves a few cameras' frames).
     plan_.hull_min_views =
         std::max(options_.hull.min_views, static_cast<int>(reconstructed + 1) / 2);
     completion_ = "not a TSDF run";
@@ -679,7 +680,7 @@ class TakeReconstructor {
     plan["completion"] = completion_;
     if (plan_.method == ReconstructionMethod::kHull)
       plan["hull_min_views"] = {{"views", plan_.hull_min_views},
-                                {"why", "half the cameras reconstructed from, as the shared box"}};
+                                {"why", "half the cameras reconstructed from"}};
     plan["depth_background"] =
         plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
     plan["voxel_m"] = voxel_;
