@@ -158,7 +158,7 @@ Eigen::Vector3d SnapToAxis(const Eigen::Vector3d& up, double degrees, std::strin
 
 bool FloorFromDepth(const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
                     const Eigen::Vector3d& up, Eigen::Vector3d* normal, double* offset,
-                    std::string* why) {
+                    double* tolerance_out, std::string* why) {
   std::vector<Eigen::Vector3d> points;
   Eigen::Vector3d sensors = Eigen::Vector3d::Zero();
   double distance = 0;
@@ -224,6 +224,7 @@ bool FloorFromDepth(const std::vector<std::pair<CameraModel, cv::Mat>>& depth_ma
   if (n.dot(sensors - mean) < 0) n = -n;
   *normal = n;
   *offset = n.dot(mean);
+  *tolerance_out = tolerance;
   *why = Cat("depth: a plane holds ", inliers.size(), " of ", points.size(), " points of ",
              depth_maps.size(), " sensor(s)");
   return true;

@@ -194,9 +194,9 @@ void FindFloor(const Take& take, const TakeSelection& selection, TakePlan& plan)
     maps.emplace_back(plan.cameras.at(name), take.ReadFrame(set, name));
   }
   Eigen::Vector3d normal;
-  double offset = 0;
+  double offset = 0, tolerance = 0;
   std::string why;
-  if (!FloorFromDepth(maps, plan.up, &normal, &offset, &why)) {
+  if (!FloorFromDepth(maps, plan.up, &normal, &offset, &tolerance, &why)) {
     plan.up_source += "; no floor in depth: " + why;
     return;
   }
@@ -205,7 +205,7 @@ void FindFloor(const Take& take, const TakeSelection& selection, TakePlan& plan)
     plan.up = SnapToAxis(normal, 5, &why);
     plan.up_source = why;
   }
-  if ((plan.up.array() != 0).count() == 1) plan.floor_m = plan.up.dot(normal) * offset;
+  if ((plan.up.array() != 0).count() == 1) plan.floor_m = plan.up.dot(normal) * offset - tolerance;
 }
 
 // Bounds, the box the cameras share and the up axis: the user's, else the rig's own.

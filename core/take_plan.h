@@ -79,8 +79,9 @@ struct TakePlan {
   Eigen::AlignedBox3d view_bounds;  // seen by most colour cameras (the user's box if none)
   Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
   std::string up_source;
-  // The floor's height along `up` when depth saw one and `up` is a world axis (NaN: none);
-  // nothing below it is part of the scene.
+  // The floor's height along `up` when depth saw one and `up` is a world axis, less the fit's
+  // tolerance (a floor seen a little high must not cut the subject's feet); NaN: none. Nothing
+  // below it is part of the scene.
   double floor_m = std::numeric_limits<double>::quiet_NaN();
   double voxel_m = 0;
   std::string voxel_source;
@@ -128,10 +129,11 @@ Eigen::Vector3d UpFromCameras(const std::vector<CameraModel>& cameras, std::stri
 // The floor: the plane most depth points lie on (RANSAC, within 1% of the sensors' distance to
 // it) whose normal is within 30 degrees of `up`, among points back-projected from `depth_maps`
 // (CV_32F z-depth, metres) of their sensors; false when no plane holds a fifth of the points.
-// `normal` points to the sensors' side; the plane is {x : normal . x = offset}.
+// `normal` points to the sensors' side; the plane is {x : normal . x = offset}; `tolerance`
+// is the inlier distance used.
 bool FloorFromDepth(const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
                     const Eigen::Vector3d& up, Eigen::Vector3d* normal, double* offset,
-                    std::string* why);
+                    double* tolerance, std::string* why);
 // `up` snapped to the nearest world axis when within `degrees` of it; `why` gains which.
 Eigen::Vector3d SnapToAxis(const Eigen::Vector3d& up, double degrees, std::string* why);
 // The voxel a box and its cameras imply: 2/3 of a pixel's footprint at the cameras' median
