@@ -286,7 +286,7 @@ TEST(SceneFromRig, ThePlanRecordsTheUsersSceneAndSilhouettesOrTheTakes) {
   EXPECT_EQ(plan.bounds_source, "user (--bounds)");
   EXPECT_EQ(plan.bounds.max(), Eigen::Vector3d(1, 2, 3));
   EXPECT_EQ(plan.up, -Eigen::Vector3d::UnitY());
-  EXPECT_EQ(plan.up_source, "user (--up)");
+  EXPECT_EQ(plan.up_source.rfind("user (--up)", 0), 0u) << plan.up_source;
   EXPECT_EQ(plan.silhouettes, SilhouetteSource::kThreshold);
   EXPECT_DOUBLE_EQ(plan.silhouette_threshold, 0.3);
   EXPECT_EQ(plan.ReconstructionSensors(), (std::vector<std::string>{"cam0", "cam1"}));
