@@ -198,6 +198,28 @@ cv::Mat Silhouette(const cv::Mat& image, const std::string& name, const Plates& 
   return ExtractSilhouette(image, plate == plates.color.end() ? cv::Mat() : plate->second, options);
 }
 
+// The hull method's frame: the visual hull, checked for plausibility, and its surface.
+void HullFrame(const std::vector<View>& views, const MethodPlan& plan,
+               const ReconstructionOptions& options, const Box& bounds, double voxel, int threads,
+               FrameOutput* out) {
+  HullOptions hull_options = options.hull;
+  hull_options.voxel_m = voxel;
+  hull_options.bounds = bounds;
+  hull_options.threads = threads;
+  hull_options.min_views = plan.hull_min_views;
+  HullSummary summary;
+  VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
+  out->metrics["hull"] = {{"seconds", summary.seconds},
+                          {"volume_m3", summary.volume_m3},
+                          {"surface_blocks", summary.surface_blocks},
+                          {"octree_cells", summary.octree_cells}};
+  out->End(summary.termination, summary.message);
+  const std::string implausible =
+      summary.IsUsable() ? ImplausibleHull(hull, summary, bounds, options, plan.check_fill) : "";
+  if (!implausible.empty()) out->End(Termination::kDegenerate, implausible);
+  if (out->IsUsable()) out->mesh = ExtractMesh(*hull.volume, options.meshing);
+}
+
 // Reconstructs one frame set at one voxel size.
 FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const Plates& plates,
                              const MethodPlan& plan, const ReconstructionOptions& options,
@@ -221,22 +243,7 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
   }
   const Box bounds = Box::From(take_plan.bounds);
   if (plan.method == ReconstructionMethod::kHull) {
-    HullOptions hull_options = options.hull;
-    hull_options.voxel_m = voxel;
-    hull_options.bounds = bounds;
-    hull_options.threads = threads;
-    hull_options.min_views = plan.hull_min_views;
-    HullSummary summary;
-    VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
-    out.metrics["hull"] = {{"seconds", summary.seconds},
-                           {"volume_m3", summary.volume_m3},
-                           {"surface_blocks", summary.surface_blocks},
-                           {"octree_cells", summary.octree_cells}};
-    out.End(summary.termination, summary.message);
-    const std::string implausible =
-        summary.IsUsable() ? ImplausibleHull(hull, summary, bounds, options, plan.check_fill) : "";
-    if (!implausible.empty()) out.End(Termination::kDegenerate, implausible);
-    if (out.IsUsable()) out.mesh = ExtractMesh(*hull.volume, options.meshing);
+    HullFrame(views, plan, options, bounds, voxel, threads, &out);
   } else {
     TsdfOptions tsdf_options = options.tsdf;
     tsdf_options.voxel_m = voxel;
