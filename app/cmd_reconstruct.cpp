@@ -18,11 +18,11 @@ struct ReconstructArgs {
   std::string take;
   std::string out;
   TakeSelectionFlags selection;
+  SceneFlags scene;
+  std::vector<std::string> heldout;
   std::string method = "auto";
-  std::string voxel = "4mm";
-  std::string bounds;
+  std::string voxel;
   std::string simplify;
-  std::string silhouettes = "background";
   int conservative = 0;
   int threads = 0;
   bool no_glb = false;
@@ -41,6 +41,10 @@ void PrintSummary(const ReconstructionSummary& summary, const Report& report) {
                   f.metrics["gt"]["fscore_5mm"].get<double>());
     }
     std::printf("\n");
+    if (f.metrics.contains("heldout_iou")) {
+      for (auto& [name, iou] : f.metrics["heldout_iou"].items())
+        std::printf("    held-out %s: IoU %.4f\n", name.c_str(), iou.get<double>());
+    }
   }
   const auto& metrics = report.json()["metrics"];
   if (metrics.contains("gt") && metrics["gt"].contains("voxel_sweep")) {
@@ -64,16 +68,14 @@ void AddReconstructCommand(CLI::App& app) {
   AddTakeSelectionFlags(command, &args->selection);
   command->add_option("--method", args->method, "auto (depth -> tsdf, else mvs), hull, tsdf or mvs")
       ->capture_default_str();
-  command->add_option("--voxel", args->voxel, "Voxel size (4mm, 0.5cm, 0.004)")
-      ->capture_default_str();
-  command->add_option("--bounds", args->bounds,
-                      "Capture volume xmin,ymin,zmin,xmax,ymax,zmax in metres "
-                      "(default -1.5,-1.5,0,1.5,1.5,2.5)");
+  command->add_option("--voxel", args->voxel,
+                      "Voxel size (4mm, 0.5cm, 0.004; default: implied by the bounds and lenses)");
+  AddSceneFlags(command, &args->scene);
   command
-      ->add_option(
-          "--silhouettes", args->silhouettes,
-          "background (subtract the clean plate) or threshold (bright subject, dark background)")
-      ->capture_default_str();
+      ->add_option("--heldout-names", args->heldout,
+                   "Colour cameras never reconstructed from; the mesh's silhouette in each is "
+                   "scored against its own (IoU)")
+      ->delimiter(',');
   command
       ->add_option("--conservative", args->conservative,
                    "Silhouettes the hull may ignore per point (1 tolerates one bad camera)")
@@ -91,13 +93,10 @@ void AddReconstructCommand(CLI::App& app) {
   command->callback([args] {
     ReconstructionOptions options;
     options.method = ReconstructionMethodFromString(args->method);
-    options.voxel_m = ParseLength(args->voxel, "--voxel");
-    if (!args->bounds.empty()) options.bounds = ParseBounds(args->bounds);
-    if (args->silhouettes == "threshold") {
-      options.silhouette.mode = SilhouetteMode::kThreshold;
-    } else if (args->silhouettes != "background") {
-      Fail("--silhouettes must be background or threshold, got '", args->silhouettes, "'");
-    }
+    if (!args->voxel.empty()) options.voxel_m = ParseLength(args->voxel, "--voxel");
+    TakeSelection selection = args->selection.Parse();
+    args->scene.Apply(&selection);
+    selection.heldout = args->heldout;
     options.hull.tolerated_bad_views = args->conservative;
     if (!args->simplify.empty())
       options.meshing.simplify_cell_m = ParseLength(args->simplify, "--simplify");
@@ -109,8 +108,7 @@ void AddReconstructCommand(CLI::App& app) {
     std::filesystem::path out = args->out.empty() ? std::filesystem::path(args->take) / "recon"
                                                   : std::filesystem::path(args->out);
     Report report("reconstruct");
-    ReconstructionSummary summary =
-        ReconstructTake(args->take, args->selection.Parse(), out, options, &report);
+    ReconstructionSummary summary = ReconstructTake(args->take, selection, out, options, &report);
     PrintSummary(summary, report);
     std::printf("meshes and report: %s\n", out.c_str());
     EndCommand(summary, "reconstruction");

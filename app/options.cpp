@@ -27,6 +27,61 @@ void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags) {
                     "Use the simulation's true cameras (gt/cameras) even when calib/ exists");
 }
 
+void SceneFlags::Apply(TakeSelection* selection) const {
+  if (!bounds.empty()) selection->bounds = ParseBounds(bounds).aligned();
+  if (!up.empty()) selection->up = ParseUp(up);
+  // "background" is the name of the clean plate's silhouettes before other sources existed.
+  selection->silhouettes = silhouettes == "background" ? "plate" : silhouettes;
+  selection->silhouette_threshold = silhouette_threshold;
+  selection->Check();
+}
+
+void AddSceneFlags(CLI::App* command, SceneFlags* flags) {
+  command->add_option("--bounds", flags->bounds,
+                      "Scene box xmin,ymin,zmin,xmax,ymax,zmax in metres (default: from the "
+                      "cameras, tightened to a coarse hull)");
+  command->add_option(
+      "--up", flags->up,
+      "The world's up axis: +z, -y, ... or x,y,z (default: the cameras' median up)");
+  command
+      ->add_option("--silhouettes", flags->silhouettes,
+                   "auto (clean plate, else a threshold chosen per image), plate, otsu, or "
+                   "threshold (--silhouette-threshold, else 0.19)")
+      ->capture_default_str();
+  command->add_option("--silhouette-threshold", flags->silhouette_threshold,
+                      "Subject where the brightest channel exceeds this (0..1 of full scale)");
+}
+
+Eigen::Vector3d ParseUp(const std::string& text, const char* option) {
+  const std::string axes = "xyz";
+  std::string name = text;
+  double sign = 1;
+  if (!name.empty() && (name[0] == '+' || name[0] == '-')) {
+    sign = name[0] == '-' ? -1 : 1;
+    name = name.substr(1);
+  }
+  if (name.size() == 1 && axes.find(name[0]) != std::string::npos) {
+    Eigen::Vector3d up = Eigen::Vector3d::Zero();
+    up(static_cast<int>(axes.find(name[0]))) = sign;
+    return up;
+  }
+  std::stringstream in(text);
+  std::vector<double> v;
+  std::string item;
+  while (std::getline(in, item, ',')) {
+    try {
+      v.push_back(std::stod(item));
+    } catch (const std::exception&) {
+      v.clear();
+      break;
+    }
+  }
+  const Eigen::Vector3d up = v.size() == 3 ? Eigen::Vector3d(v[0], v[1], v[2]) : Eigen::Vector3d();
+  if (v.size() != 3 || !up.allFinite() || !(up.norm() > 0))
+    Fail(option, " must be +x, -x, +y, -y, +z, -z or a direction x,y,z, got '", text, "'");
+  return up.normalized();
+}
+
 void ParseFrames(const std::string& text, int64_t* first, int64_t* last) {
   if (text.empty()) return;
   auto colon = text.find(':');

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <Eigen/Core>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -26,6 +27,21 @@ struct TakeSelectionFlags {
   TakeSelection Parse() const;  // throws Error naming the flag
 };
 void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags);
+
+// --bounds, --up, --silhouettes, --silhouette-threshold: the scene a command works in, where
+// the take's own (from the rig) is not wanted. Recorded in the plan as the user's.
+struct SceneFlags {
+  std::string bounds;
+  std::string up;
+  std::string silhouettes = "auto";
+  double silhouette_threshold = 0;
+
+  void Apply(TakeSelection* selection) const;  // throws Error naming the flag
+};
+void AddSceneFlags(CLI::App* command, SceneFlags* flags);
+
+// "+z", "-y", "z" or "x,y,z" (any non-zero direction); throws Error naming `option`.
+Eigen::Vector3d ParseUp(const std::string& text, const char* option = "--up");
 
 // "a:b", "a:" or "a" (one frame set), counted after the clean plate.
 void ParseFrames(const std::string& text, int64_t* first, int64_t* last);

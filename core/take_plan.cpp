@@ -1,11 +1,30 @@
 #include "core/take_plan.h"
 
 #include <algorithm>
+#include <cmath>
 #include <limits>
 
 #include "core/error.h"
 
 namespace holocap {
+
+const char* ToString(SilhouetteSource source) {
+  switch (source) {
+    case SilhouetteSource::kNone:
+      return "none";
+    case SilhouetteSource::kAlpha:
+      return "alpha";
+    case SilhouetteSource::kCleanPlate:
+      return "clean plate";
+    case SilhouetteSource::kBackgroundModel:
+      return "background model";
+    case SilhouetteSource::kOtsu:
+      return "otsu";
+    case SilhouetteSource::kThreshold:
+      return "threshold";
+  }
+  return "?";
+}
 
 void TakeSelection::Check() const {
   if (first_frame < 0) Fail("--frames: the first frame set must be 0 or more, not ", first_frame);
@@ -14,13 +33,25 @@ void TakeSelection::Check() const {
   }
   if (clean_plate_frames < -1)
     Fail("--clean-plate must be -1 (from the take) or more, not ", clean_plate_frames);
+  if (bounds && !(bounds->max().array() > bounds->min().array()).all())
+    Fail("--bounds: max must exceed min on every axis");
+  if (up && !(up->norm() > 0 && up->allFinite())) Fail("--up must be a non-zero direction");
+  if (silhouettes != "auto" && silhouettes != "plate" && silhouettes != "otsu" &&
+      silhouettes != "threshold") {
+    Fail("--silhouettes must be auto, plate, otsu or threshold, not '", silhouettes, "'");
+  }
+  if (!(silhouette_threshold >= 0 && silhouette_threshold < 1))
+    Fail("--silhouette-threshold must be in (0, 1) of full scale, not ", silhouette_threshold);
 }
 
 nlohmann::json TakeSelection::ToJson() const {
   return {{"first_frame", first_frame},
           {"last_frame", last_frame},
           {"clean_plate_frames", clean_plate_frames},
-          {"ground_truth_cameras", ground_truth_cameras}};
+          {"ground_truth_cameras", ground_truth_cameras},
+          {"heldout", heldout},
+          {"silhouettes", silhouettes},
+          {"silhouette_threshold", silhouette_threshold}};
 }
 
 std::vector<CameraModel> TakePlan::Cameras(const std::vector<std::string>& names) const {
@@ -61,7 +92,40 @@ void TakePlan::RequireFrames(const Take& take, const std::vector<std::string>& n
   }
 }
 
+std::vector<std::string> TakePlan::ReconstructionSensors() const {
+  std::vector<std::string> out;
+  for (const auto& name : color_sensors) {
+    if (std::find(heldout.begin(), heldout.end(), name) == heldout.end()) out.push_back(name);
+  }
+  return out;
+}
+
+void TakePlan::SetBounds(const Eigen::AlignedBox3d& box, std::string why, bool cut_at_floor) {
+  bounds = cut_at_floor ? AboveFloor(box) : box;
+  bounds_source = std::move(why);
+  if (!bounds.isApprox(box)) bounds_source += Cat("; cut at the floor (", floor_m, " m along up)");
+  voxel_m = ImpliedVoxel(bounds, Cameras(color_sensors.empty() ? depth_sensors : color_sensors),
+                         &voxel_source);
+}
+
+Eigen::AlignedBox3d TakePlan::AboveFloor(Eigen::AlignedBox3d box) const {
+  if (!std::isfinite(floor_m)) return box;
+  for (int axis = 0; axis < 3; ++axis) {
+    if (up(axis) == 1 && box.max()(axis) > floor_m)
+      box.min()(axis) = std::max(box.min()(axis), floor_m);
+    if (up(axis) == -1 && box.min()(axis) < -floor_m)
+      box.max()(axis) = std::min(box.max()(axis), -floor_m);
+  }
+  return box;
+}
+
 nlohmann::json TakePlan::ToJson() const {
+  auto box = [](const Eigen::AlignedBox3d& b) {
+    return nlohmann::json{{"min", {b.min().x(), b.min().y(), b.min().z()}},
+                          {"max", {b.max().x(), b.max().y(), b.max().z()}}};
+  };
+  nlohmann::json silhouette = {{"source", ToString(silhouettes)}, {"why", silhouette_reason}};
+  if (silhouettes == SilhouetteSource::kThreshold) silhouette["threshold"] = silhouette_threshold;
   return {{"cameras", cameras_source},
           {"color_sensors", color_sensors},
           {"depth_sensors", depth_sensors},
@@ -69,7 +133,13 @@ nlohmann::json TakePlan::ToJson() const {
           {"frame_sets", sets},
           {"heldout", heldout},
           {"witness", witness},
-          {"left_out", left_out}};
+          {"left_out", left_out},
+          {"bounds", {{"box", box(bounds)}, {"source", bounds_source}}},
+          {"view_bounds", box(view_bounds)},
+          {"up", {{"axis", {up.x(), up.y(), up.z()}}, {"source", up_source}}},
+          {"floor_m", std::isfinite(floor_m) ? nlohmann::json(floor_m) : nlohmann::json(nullptr)},
+          {"voxel", {{"m", voxel_m}, {"source", voxel_source}}},
+          {"silhouettes", silhouette}};
 }
 
 namespace {
@@ -113,6 +183,103 @@ void ChooseFrameSets(const Take& take, const TakeSelection& selection, TakePlan&
   for (int64_t f = first; f < last; ++f) plan.sets.push_back(plan.clean_plate_frames + f);
 }
 
+// The floor seen by the depth sensors (the clean plate, else the first set), along `plan.up`:
+// the up axis becomes its normal unless the user gave one.
+void FindFloor(const Take& take, const TakeSelection& selection, TakePlan& plan) {
+  if (plan.depth_sensors.empty()) return;
+  const size_t set = static_cast<size_t>(plan.has_clean_plate() ? plan.plate_set() : plan.sets[0]);
+  std::vector<std::pair<CameraModel, cv::Mat>> maps;
+  for (const auto& name : plan.depth_sensors) {
+    if (take.entry(set).Find(name) == nullptr) continue;
+    maps.emplace_back(plan.cameras.at(name), take.ReadFrame(set, name));
+  }
+  Eigen::Vector3d normal;
+  double offset = 0, tolerance = 0;
+  std::string why;
+  if (!FloorFromDepth(maps, plan.up, &normal, &offset, &tolerance, &why)) {
+    plan.up_source += "; no floor in depth: " + why;
+    return;
+  }
+  if (!selection.up) {
+    why = "floor plane (" + why + ")";
+    plan.up = SnapToAxis(normal, 5, &why);
+    plan.up_source = why;
+  }
+  if ((plan.up.array() != 0).count() == 1) plan.floor_m = plan.up.dot(normal) * offset - tolerance;
+}
+
+// Bounds, the box the cameras share and the up axis: the user's, else the rig's own.
+void ChooseScene(const Take& take, const TakeSelection& selection, TakePlan& plan) {
+  const std::vector<CameraModel> cameras =
+      plan.Cameras(plan.color_sensors.size() >= 2 ? plan.color_sensors : plan.depth_sensors);
+  const RigView view = ViewOfRig(cameras);
+  if (selection.up) {
+    plan.up = selection.up->normalized();
+    plan.up_source = "user (--up)";
+  } else {
+    plan.up = UpFromCameras(cameras, &plan.up_source);
+  }
+  FindFloor(take, selection, plan);
+  if (selection.bounds) {
+    plan.view_bounds = view.converges ? view.shared : *selection.bounds;
+    plan.SetBounds(*selection.bounds, "user (--bounds)", false);
+    return;
+  }
+  if (!view.converges) {
+    // No convergent rig (one sensor, parallel axes): the stage volume of a metre-scale studio.
+    const Eigen::AlignedBox3d stage(Eigen::Vector3d(-1.5, -1.5, 0), Eigen::Vector3d(1.5, 1.5, 2.5));
+    plan.view_bounds = stage;
+    plan.SetBounds(stage, "default stage box: " + view.why + "; give --bounds for another scene",
+                   false);
+    return;
+  }
+  plan.view_bounds = view.shared;
+  plan.SetBounds(view.shared, "cameras: " + view.why);
+}
+
+// The first silhouette source the take has, or the one asked for.
+void ChooseSilhouettes(const Take& take, const TakeSelection& selection, TakePlan& plan) {
+  if (plan.color_sensors.empty()) {
+    plan.silhouettes = SilhouetteSource::kNone;
+    plan.silhouette_reason = "no colour camera";
+    return;
+  }
+  const std::string& asked = selection.silhouettes;
+  if (asked == "plate" ||
+      (asked == "auto" && plan.has_clean_plate() && selection.silhouette_threshold == 0)) {
+    if (!plan.has_clean_plate()) {
+      Fail("silhouettes from a clean plate: take '", take.dir().string(),
+           "' has none. Silhouettes can come from: a clean plate (record leading frame sets "
+           "without the subject and pass --clean-plate N), a threshold chosen per image "
+           "(--silhouettes otsu, or auto), or a given threshold on a dark background "
+           "(--silhouette-threshold T, 0..1 of full scale); alpha masks of imports and a "
+           "background model of a moving subject are not available yet");
+    }
+    plan.silhouettes = SilhouetteSource::kCleanPlate;
+    plan.silhouette_reason = Cat("background subtraction against the clean plate (frame set ",
+                                 plan.plate_set(), ")", asked == "plate" ? ", asked for" : "");
+  } else if (asked == "threshold" || selection.silhouette_threshold > 0) {
+    plan.silhouettes = SilhouetteSource::kThreshold;
+    plan.silhouette_threshold =
+        selection.silhouette_threshold > 0 ? selection.silhouette_threshold : 0.19;
+    plan.silhouette_reason =
+        Cat("brightest channel above ", plan.silhouette_threshold, " of full scale, asked for");
+  } else {
+    plan.silhouettes = SilhouetteSource::kOtsu;
+    plan.silhouette_reason =
+        asked == "otsu" ? "brightest channel above a threshold chosen per image (Otsu), asked for"
+                        : "no clean plate: brightest channel above a threshold chosen per image "
+                          "(Otsu), for a subject brighter than its background";
+  }
+}
+
+void ChooseHeldout(const TakeSelection& selection, TakePlan& plan) {
+  for (const auto& name : selection.heldout) {
+    plan.ColorIndex(name, "held-out");
+    plan.heldout.push_back(name);
+  }
+}
+
 }  // namespace
 
 TakePlan PlanTake(const Take& take, const TakeSelection& selection) {
@@ -133,6 +300,9 @@ TakePlan PlanTake(const Take& take, const TakeSelection& selection) {
   for (const auto& name : plan.depth_sensors)
     plan.cameras.emplace(name, take.Camera(name, plan.ground_truth_cameras));
   ChooseFrameSets(take, selection, plan);
+  ChooseHeldout(selection, plan);
+  ChooseScene(take, selection, plan);
+  ChooseSilhouettes(take, selection, plan);
   return plan;
 }
 

@@ -3,24 +3,42 @@
 // Every stage that reads a take (reconstruction, Neural Volumes, rerendering, playback) starts
 // from a TakePlan: which camera models (calib/ or the simulation's gt/), which colour and depth
 // sensors, how many leading clean-plate sets, which frame sets, which cameras are held out or
-// serve as witnesses, and what the stage leaves out and why. The plan is written into every
+// serve as witnesses, the scene's bounds, up axis and voxel size, where silhouettes come from,
+// and what the stage leaves out and why. The plan is written into every
 // report's "plan" (TakePlan::ToJson, to which a stage adds its own keys), so a reader sees what
 // a run was given, and no stage interprets the take on its own.
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <cstdint>
 #include <filesystem>
+#include <limits>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <set>
 #include <string>
 #include <vector>
+
+#include <opencv2/core.hpp>
+#include <utility>
 
 #include "core/camera.h"
 #include "core/take.h"
 
 namespace holocap {
+
+// Where a take's silhouettes come from, in the order a plan prefers them.
+enum class SilhouetteSource {
+  kNone,             // nothing to separate the subject from (no colour camera)
+  kAlpha,            // the frames' own alpha masks (imports that keep RGBA; not chosen yet)
+  kCleanPlate,       // background subtraction against the clean plate
+  kBackgroundModel,  // a background learned over a dynamic take's frames (not chosen yet)
+  kOtsu,             // a threshold chosen per image (Otsu) on the brightest channel
+  kThreshold,        // a threshold the user gave (--silhouette-threshold)
+};
+const char* ToString(SilhouetteSource source);
 
 // What the user asks of a take. The flags of every command that reads a take map onto these.
 struct TakeSelection {
@@ -29,6 +47,13 @@ struct TakeSelection {
   int64_t clean_plate_frames = -1;    // leading sets without the subject; -1: the take's own
                                       // metadata (the simulator writes it), else 0
   bool ground_truth_cameras = false;  // gt/cameras even when calib/ exists (simulated takes)
+  std::vector<std::string> heldout;   // colour cameras never reconstructed from (--heldout-names)
+  std::optional<Eigen::AlignedBox3d> bounds;  // the scene's box (--bounds); else from the rig
+  std::optional<Eigen::Vector3d> up;          // the world's up axis (--up); else from the rig
+  // Silhouettes: "auto" (the first of the take's sources that can run), "plate", "otsu" or
+  // "threshold" (silhouette_threshold, else 0.19 of full scale).
+  std::string silhouettes = "auto";
+  double silhouette_threshold = 0;  // (0, 1) of full scale; 0: none given
 
   void Check() const;  // throws Error naming the flag
   nlohmann::json ToJson() const;
@@ -47,6 +72,22 @@ struct TakePlan {
   std::vector<std::string> heldout;            // never trained on nor reconstructed from
   std::vector<std::string> witness;            // trained on, never reconstructed from
   nlohmann::json left_out = nlohmann::json::object();  // {what: why} for skipped work
+  // The scene: the box every stage works in, the box the cameras share (what a result may
+  // fill at most), the up axis and the voxel size the bounds imply, each with its reason.
+  Eigen::AlignedBox3d bounds;
+  std::string bounds_source;  // "user (--bounds)", "cameras (...)", "cameras + coarse hull ..."
+  Eigen::AlignedBox3d view_bounds;  // seen by most colour cameras (the user's box if none)
+  Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
+  std::string up_source;
+  // The floor's height along `up` when depth saw one and `up` is a world axis, less the fit's
+  // tolerance (a floor seen a little high must not cut the subject's feet); NaN: none. Nothing
+  // below it is part of the scene.
+  double floor_m = std::numeric_limits<double>::quiet_NaN();
+  double voxel_m = 0;
+  std::string voxel_source;
+  SilhouetteSource silhouettes = SilhouetteSource::kNone;
+  std::string silhouette_reason;
+  double silhouette_threshold = 0;  // kThreshold: the level, (0, 1) of full scale
 
   bool has_clean_plate() const { return clean_plate_frames > 0; }
   int64_t plate_set() const { return clean_plate_frames - 1; }  // the set holding the plate
@@ -58,10 +99,50 @@ struct TakePlan {
   void LeaveOut(const std::string& what, const std::string& why) { left_out[what] = why; }
   // Throws Error naming the first set and sensor of `names` that the take lacks.
   void RequireFrames(const Take& take, const std::vector<std::string>& names) const;
+  // The colour sensors that are not held out (the ones a reconstruction reads).
+  std::vector<std::string> ReconstructionSensors() const;
+  // Sets bounds (cut at the floor, if any) and the voxel size they imply (ImpliedVoxel), with
+  // the reason for both.
+  void SetBounds(const Eigen::AlignedBox3d& box, std::string why, bool cut_at_floor = true);
+  // `box` without what lies below the floor (unchanged when there is none).
+  Eigen::AlignedBox3d AboveFloor(Eigen::AlignedBox3d box) const;
   // The plan's keys of every report: cameras, color_sensors, depth_sensors, clean_plate_frames,
-  // frame_sets, heldout, witness, left_out.
+  // frame_sets, heldout, witness, left_out, bounds, up, voxel, silhouettes.
   nlohmann::json ToJson() const;
 };
+
+// The scene as the rig sees it, for takes whose user gave no bounds.
+struct RigView {
+  Eigen::Vector3d center = Eigen::Vector3d::Zero();  // least squares nearest the optical axes
+  double median_distance_m = 0;                      // from the cameras to `center`
+  Eigen::AlignedBox3d shared;  // points seen by at least `min_cameras` (in front, in image)
+  int min_cameras = 0;
+  bool converges = false;  // optical axes meet (else `shared` is empty)
+  std::string why;         // one line for the plan
+};
+// Where the cameras' optical axes pass closest (least squares) and the box, within a cube of
+// 1.5 median camera distances around it, that at least half the cameras (two at least) see.
+RigView ViewOfRig(const std::vector<CameraModel>& cameras);
+// The median of the cameras' "up" (their -y axis in the world), normalised; snapped to the
+// nearest world axis within 10 degrees. `why` says which.
+Eigen::Vector3d UpFromCameras(const std::vector<CameraModel>& cameras, std::string* why);
+// The floor: the plane most depth points lie on (RANSAC, within 1% of the sensors' distance to
+// it) whose normal is within 30 degrees of `up`, among points back-projected from `depth_maps`
+// (CV_32F z-depth, metres) of their sensors; false when no plane holds a fifth of the points.
+// `normal` points to the sensors' side; the plane is {x : normal . x = offset}; `tolerance`
+// is the inlier distance used.
+bool FloorFromDepth(const std::vector<std::pair<CameraModel, cv::Mat>>& depth_maps,
+                    const Eigen::Vector3d& up, Eigen::Vector3d* normal, double* offset,
+                    double* tolerance, std::string* why);
+// `up` snapped to the nearest world axis when within `degrees` of it; `why` gains which.
+Eigen::Vector3d SnapToAxis(const Eigen::Vector3d& up, double degrees, std::string* why);
+// The voxel a box and its cameras imply: 2/3 of a pixel's footprint at the cameras' median
+// distance to the box's centre (finer adds no detail), no finer than 1/512 of the box's largest
+// side (memory), rounded to a power of two in millimetres. `why` says which bound chose it.
+double ImpliedVoxel(const Eigen::AlignedBox3d& box, const std::vector<CameraModel>& cameras,
+                    std::string* why);
+// How many of the cameras see a point (in front, inside the image).
+int CamerasSeeing(const std::vector<CameraModel>& cameras, const Eigen::Vector3d& point_in_world);
 
 // Chooses camera models, sensors, the clean plate and the frame sets. Throws Error for a take
 // without colour or depth sensors, without camera models (calib/ or gt/cameras), or a frame

@@ -335,7 +335,7 @@ class TrainingDataLoader {
     return (hi_.array() > lo_.array()).all();
   }
 
-  // The hull of every frame, else the ground-truth meshes, else the stage.
+  // The hull of every frame, else the ground-truth meshes, else the take plan's bounds.
   void ChooseBounds() {
     VolumeBoundsSource source = options_.bounds;
     lo_ = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
@@ -358,9 +358,10 @@ class TrainingDataLoader {
       source = VolumeBoundsSource::kStage;
     }
     if (source == VolumeBoundsSource::kStage) {
-      const Box stage;
-      lo_ = stage.min;
-      hi_ = stage.max;
+      // The take plan's scene bounds: the user's, else the rig's own (never a fixed studio).
+      lo_ = take_plan_.bounds.min();
+      hi_ = take_plan_.bounds.max();
+      plan_["bounds_plan"] = take_plan_.bounds_source;
     }
     data_.box_min = lo_.array() - options_.bounds_margin_m;
     data_.box_max = hi_.array() + options_.bounds_margin_m;

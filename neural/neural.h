@@ -42,7 +42,7 @@ enum class VolumeBoundsSource {
   kAuto,         // hull, then ground-truth meshes, then the stage
   kHull,         // the visual hull of the training views (reconstruction/), per frame
   kGroundTruth,  // the take's gt/meshes (simulated takes)
-  kStage,        // the fixed stage box [-1.5, 1.5]² x [0, 2.5] m
+  kStage,        // the take plan's bounds (--bounds, else from the rig; see core/take_plan.h)
 };
 const char* ToString(VolumeBoundsSource source);
 VolumeBoundsSource VolumeBoundsSourceFromString(const std::string& text);  // throws Error

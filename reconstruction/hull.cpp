@@ -44,6 +44,26 @@ bool VisualHull::Contains(const Eigen::Vector3d& point_in_world, double toleranc
   return Field(point_in_world) <= tolerance_m;
 }
 
+Eigen::AlignedBox3d VisualHull::Extent() const {
+  Eigen::AlignedBox3d extent;
+  if (volume == nullptr) return extent;
+  volume->ForEachBlock([&](const Eigen::Vector3i& block, const VoxelBlock& data) {
+    for (int z = 0; z < kBlockSide; ++z)
+      for (int y = 0; y < kBlockSide; ++y)
+        for (int x = 0; x < kBlockSide; ++x) {
+          const Voxel& voxel = data.at(x, y, z);
+          if (voxel.weight > 0 && voxel.sdf < 0)
+            extent.extend(volume->CenterOf(block * kBlockSide + Eigen::Vector3i(x, y, z)));
+        }
+  });
+  for (uint64_t key : inside_blocks) {
+    const Eigen::Vector3i block = SparseVolume::Unkey(key);
+    extent.extend(volume->CenterOf(block * kBlockSide));
+    extent.extend(volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1)));
+  }
+  return extent;
+}
+
 namespace {
 
 struct HullView {

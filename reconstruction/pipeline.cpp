@@ -46,8 +46,15 @@ ReconstructionMethod ReconstructionMethodFromString(const std::string& text) {
 }
 
 void ReconstructionOptions::Check() const {
-  if (!(voxel_m > 0 && voxel_m < 1)) Fail("voxel must be in (0, 1) m (got ", voxel_m, ")");
-  if (!bounds.valid()) Fail("reconstruction bounds are empty");
+  if (!(voxel_m >= 0 && voxel_m < 1))
+    Fail("voxel must be in (0, 1) m, or 0 for the plan's (got ", voxel_m, ")");
+  if (bounds && !bounds->valid()) Fail("reconstruction bounds are empty");
+  if (tighten_sets < 0) Fail("tighten_sets must be >= 0 (got ", tighten_sets, ")");
+  if (max_touched_faces < 1 || max_touched_faces > 7)
+    Fail("max_touched_faces must be in [1, 7] (7: never) (got ", max_touched_faces, ")");
+  if (!(max_fill_fraction > 0 && max_fill_fraction <= 1))
+    Fail("max_fill_fraction must be in (0, 1] (got ", max_fill_fraction, ")");
+  if (!(max_view_ratio >= 1)) Fail("max_view_ratio must be >= 1 (got ", max_view_ratio, ")");
   for (double v : sweep_voxels_m) {
     if (!(v > 0 && v < 1)) Fail("sweep voxel sizes must be in (0, 1) m (got ", v, ")");
   }
@@ -68,9 +75,16 @@ nlohmann::json ReconstructionOptions::ToJson() const {
   };
   return {{"method", ToString(method)},
           {"voxel_m", voxel_m},
-          {"bounds", box(bounds)},
+          {"bounds", bounds ? box(*bounds) : nlohmann::json("the plan's")},
+          {"tighten_sets", tighten_sets},
+          {"max_touched_faces", max_touched_faces},
+          {"max_fill_fraction", max_fill_fraction},
+          {"max_view_ratio", max_view_ratio},
+          {"threshold_morphology", threshold_morphology},
           {"silhouette",
-           {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold" : "background"},
+           {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
+                     : silhouette.mode == SilhouetteMode::kOtsu    ? "otsu"
+                                                                   : "background"},
             {"noise_sigmas", silhouette.noise_sigmas},
             {"min_difference", silhouette.min_difference},
             {"hysteresis_sigmas", silhouette.hysteresis_sigmas},
@@ -120,6 +134,12 @@ std::string SetName(int64_t set) {
   return name;
 }
 
+std::string Fixed(double value, int digits) {
+  char text[64];
+  std::snprintf(text, sizeof(text), "%.*f", digits, value);
+  return text;
+}
+
 double PeakRssMb() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
@@ -133,7 +153,32 @@ struct MethodPlan {
   int inner_threads = 1;
   bool depth_background = false;
   bool hull_completion = false;  // TSDF: completed from the visual hull
+  SilhouetteOptions silhouette;  // the plan's source applied to the options' parameters
+  MvsOptions mvs;                // the options' search scaled to the scene
+  bool check_fill = true;        // the bounds are not the hull's own extent
+  int hull_min_views = 2;        // the hull method's: points fewer cameras see are outside
 };
+
+// Which faces of `bounds` a hull reaches (within 1.5 voxels) and the fraction of the bounds'
+// volume it fills; a reason when that is implausible for a subject inside them, else empty.
+std::string ImplausibleHull(const VisualHull& hull, const HullSummary& summary, const Box& bounds,
+                            const ReconstructionOptions& options, bool check_fill) {
+  const Eigen::AlignedBox3d extent = hull.Extent();
+  if (extent.isEmpty()) return "";
+  const double reach = 1.5 * hull.volume->voxel_m();
+  int touched = 0;
+  for (int axis = 0; axis < 3; ++axis) {
+    touched += extent.min()(axis) <= bounds.min(axis) + reach;
+    touched += extent.max()(axis) >= bounds.max(axis) - reach;
+  }
+  const double fill = summary.volume_m3 / bounds.aligned().volume();
+  if (touched < options.max_touched_faces && !(check_fill && fill > options.max_fill_fraction))
+    return "";
+  return Cat("the hull fills ", static_cast<int>(std::round(100 * fill)), "% of its bounds and ",
+             "touches ", touched,
+             " of their 6 faces: the silhouettes do not separate a subject from its background "
+             "(try --clean-plate N, --silhouette-threshold T or --bounds)");
+}
 
 // Everything one frame needs, read once (the clean plates are shared by all frames).
 struct Plates {
@@ -145,6 +190,35 @@ struct FrameOutput : Summary {
   Mesh mesh;
   nlohmann::json metrics = nlohmann::json::object();
 };
+
+// A camera's silhouette from the plan's source (its clean plate when that is the source).
+cv::Mat Silhouette(const cv::Mat& image, const std::string& name, const Plates& plates,
+                   const SilhouetteOptions& options) {
+  auto plate = plates.color.find(name);  // none without a clean plate
+  return ExtractSilhouette(image, plate == plates.color.end() ? cv::Mat() : plate->second, options);
+}
+
+// The hull method's frame: the visual hull, checked for plausibility, and its surface.
+void HullFrame(const std::vector<View>& views, const MethodPlan& plan,
+               const ReconstructionOptions& options, const Box& bounds, double voxel, int threads,
+               FrameOutput* out) {
+  HullOptions hull_options = options.hull;
+  hull_options.voxel_m = voxel;
+  hull_options.bounds = bounds;
+  hull_options.threads = threads;
+  hull_options.min_views = plan.hull_min_views;
+  HullSummary summary;
+  VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
+  out->metrics["hull"] = {{"seconds", summary.seconds},
+                          {"volume_m3", summary.volume_m3},
+                          {"surface_blocks", summary.surface_blocks},
+                          {"octree_cells", summary.octree_cells}};
+  out->End(summary.termination, summary.message);
+  const std::string implausible =
+      summary.IsUsable() ? ImplausibleHull(hull, summary, bounds, options, plan.check_fill) : "";
+  if (!implausible.empty()) out->End(Termination::kDegenerate, implausible);
+  if (out->IsUsable()) out->mesh = ExtractMesh(*hull.volume, options.meshing);
+}
 
 // Reconstructs one frame set at one voxel size.
 FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const Plates& plates,
@@ -159,33 +233,17 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
   FrameSet frames = take.Read(static_cast<size_t>(set), needed);
   std::vector<View> views;
   const bool need_masks = plan.method != ReconstructionMethod::kTsdf || plan.hull_completion;
-  for (const std::string& name : take_plan.color_sensors) {
+  for (const std::string& name : take_plan.ReconstructionSensors()) {
     const Frame* frame = frames.Find(name);
     View view{name, take_plan.cameras.at(name), frame->image, {}};
     if (view.image.type() == CV_8UC1) cv::cvtColor(view.image, view.image, cv::COLOR_GRAY2BGR);
     if (view.image.type() != CV_8UC3) Fail("colour frames of '", name, "' must be 8-bit");
-    if (need_masks) {
-      auto plate = plates.color.find(name);  // none in threshold mode
-      view.mask = ExtractSilhouette(
-          view.image, plate == plates.color.end() ? cv::Mat() : plate->second, options.silhouette);
-    }
+    if (need_masks) view.mask = Silhouette(view.image, name, plates, plan.silhouette);
     views.push_back(std::move(view));
   }
-  Box bounds = options.bounds;
+  const Box bounds = Box::From(take_plan.bounds);
   if (plan.method == ReconstructionMethod::kHull) {
-    HullOptions hull_options = options.hull;
-    hull_options.voxel_m = voxel;
-    hull_options.bounds = bounds;
-    hull_options.threads = threads;
-    HullSummary summary;
-    VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
-    out.metrics["hull"] = {{"seconds", summary.seconds},
-                           {"volume_m3", summary.volume_m3},
-                           {"surface_blocks", summary.surface_blocks},
-                           {"octree_cells", summary.octree_cells}};
-    out.termination = summary.termination;
-    out.message = summary.message;
-    if (IsUsable(summary.termination)) out.mesh = ExtractMesh(*hull.volume, options.meshing);
+    HullFrame(views, plan, options, bounds, voxel, threads, &out);
   } else {
     TsdfOptions tsdf_options = options.tsdf;
     tsdf_options.voxel_m = voxel;
@@ -229,6 +287,11 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
         VisualHull hull = ComputeVisualHull(views, hull_options, &hull_summary);
         out.metrics["hull"] = {{"seconds", hull_summary.seconds},
                                {"volume_m3", hull_summary.volume_m3}};
+        const std::string implausible =
+            hull_summary.IsUsable()
+                ? ImplausibleHull(hull, hull_summary, bounds, options, plan.check_fill)
+                : "";
+        if (!implausible.empty()) hull_summary.End(Termination::kDegenerate, implausible);
         if (IsUsable(hull_summary.termination)) {
           CompletionStats completion = tsdf->CompleteFromHull(hull, depth_maps);
           out.metrics["completion"] = {{"seconds", completion.seconds},
@@ -250,12 +313,16 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
       VisualHull hull = ComputeVisualHull(views, hull_options, &hull_summary);
       out.metrics["hull"] = {{"seconds", hull_summary.seconds},
                              {"volume_m3", hull_summary.volume_m3}};
+      const std::string implausible =
+          hull_summary.IsUsable()
+              ? ImplausibleHull(hull, hull_summary, bounds, options, plan.check_fill)
+              : "";
+      if (!implausible.empty()) hull_summary.End(Termination::kDegenerate, implausible);
       if (!IsUsable(hull_summary.termination)) {
-        out.termination = hull_summary.termination;
-        out.message = "hull: " + hull_summary.message;
+        out.End(hull_summary.termination, "hull: " + hull_summary.message);
         return out;
       }
-      MvsOptions mvs_options = options.mvs;
+      MvsOptions mvs_options = plan.mvs;
       mvs_options.threads = threads;
       MvsSummary mvs_summary;
       std::vector<cv::Mat> depths = ComputeMvsDepth(views, hull, mvs_options, &mvs_summary);
@@ -341,9 +408,17 @@ class TakeReconstructor {
 
   ReconstructionSummary Run() {
     ChooseMethod();
+    ChooseSilhouettes();
     ReadPlates();
+    TightenBounds();
+    ChooseVoxel();
+    CheckBoundsSeen();
     DescribePlan();
     CreateDirectories(out_);
+    if (!implausible_.empty()) {
+      EndImplausible();
+      return summary_;
+    }
     ReconstructFrames();
     const nlohmann::json sweep = SweepVoxels();
     Summarise(sweep);
@@ -368,38 +443,212 @@ class TakeReconstructor {
     const auto& depth = take_plan_.depth_sensors;
     plan_.method = options_.method;
     if (plan_.method == ReconstructionMethod::kAuto) {
-      plan_.method = depth.empty() ? ReconstructionMethod::kMvs : ReconstructionMethod::kTsdf;
+      plan_.method = !depth.empty() ? ReconstructionMethod::kTsdf
+                     : take_plan_.silhouettes == SilhouetteSource::kCleanPlate
+                         ? ReconstructionMethod::kMvs
+                         : ReconstructionMethod::kHull;
     }
     if (is_tsdf() && depth.empty())
       Fail("method tsdf needs depth sensors; ", Where(), " has none (use hull or mvs)");
-    if (!is_tsdf() && color.size() < 2) {
+    const size_t reconstructed = take_plan_.ReconstructionSensors().size();
+    if (!is_tsdf() && reconstructed < 2) {
       Fail("method ", ToString(plan_.method), " needs at least two colour cameras; the take has ",
-           color.size());
+           color.size(), " and ", take_plan_.heldout.size(), " of them are held out");
     }
-    if (needs_plate() && !take_plan_.has_clean_plate() &&
-        options_.silhouette.mode == SilhouetteMode::kBackgroundSubtraction) {
-      Fail("method ", ToString(plan_.method),
-           " needs silhouettes, and background subtraction needs a clean plate: ", Where(),
-           " has none (record leading frames without the subject and pass --clean-plate N)");
+    if (needs_plate() && take_plan_.silhouettes == SilhouetteSource::kNone) {
+      Fail("method ", ToString(plan_.method), " needs silhouettes: ", Where(),
+           " has no colour camera to take them from");
     }
     take_plan_.RequireFrames(take_, NeededSensors());
+    // A point that fewer than half the cameras see is carved by too few of them: on a sparse
+    // ring those points grow the hull's ghost wedges, which reach the bounds (a quarter or two
+    // fifths leave them on dinoSparseRing; half also keeps what leaves a few cameras' frames).
+    plan_.hull_min_views =
+        std::max(options_.hull.min_views, static_cast<int>(reconstructed + 1) / 2);
     completion_ = "not a TSDF run";
     if (is_tsdf()) {
-      const bool silhouettes =
-          options_.silhouette.mode == SilhouetteMode::kThreshold || take_plan_.has_clean_plate();
-      plan_.hull_completion = options_.tsdf_hull_completion && color.size() >= 2 && silhouettes;
+      const bool silhouettes = take_plan_.silhouettes != SilhouetteSource::kNone;
+      plan_.hull_completion = options_.tsdf_hull_completion && reconstructed >= 2 && silhouettes;
       completion_ =
           plan_.hull_completion
               ? "visual hull of the colour cameras, carved by the depth sensors' free space, "
                 "fills what the depth sensors did not see"
           : !options_.tsdf_hull_completion ? "off (asked for)"
-          : color.size() < 2               ? "off: fewer than two colour cameras"
-                             : "off: no clean plate for the colour cameras' silhouettes";
+          : reconstructed < 2              ? "off: fewer than two colour cameras"
+                                           : "off: no silhouettes for the colour cameras";
     }
     threads_ = recon::ResolveThreads(options_.threads);
     frame_count_ = static_cast<int>(take_plan_.sets.size());
     plan_.outer_threads = frame_count_ >= threads_ ? threads_ : 1;
     plan_.inner_threads = frame_count_ >= threads_ ? 1 : threads_;
+  }
+
+  // The plan's silhouette source applied to the options' parameters; the stage's options may
+  // still ask for a fixed threshold (rerendering's --silhouettes threshold).
+  void ChooseSilhouettes() {
+    plan_.silhouette = options_.silhouette;
+    const bool stage_threshold = options_.silhouette.mode == SilhouetteMode::kThreshold;
+    if (stage_threshold && take_plan_.silhouettes != SilhouetteSource::kThreshold) {
+      take_plan_.silhouettes = SilhouetteSource::kThreshold;
+      take_plan_.silhouette_threshold = options_.silhouette.threshold;
+      take_plan_.silhouette_reason = "a fixed threshold, asked for in the stage's options";
+    }
+    switch (take_plan_.silhouettes) {
+      case SilhouetteSource::kCleanPlate:
+        plan_.silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
+        break;
+      case SilhouetteSource::kThreshold:
+        plan_.silhouette.mode = SilhouetteMode::kThreshold;
+        plan_.silhouette.threshold = take_plan_.silhouette_threshold;
+        break;
+      default:
+        plan_.silhouette.mode = SilhouetteMode::kOtsu;
+        break;
+    }
+    if (plan_.silhouette.mode != SilhouetteMode::kBackgroundSubtraction && !stage_threshold &&
+        options_.threshold_morphology) {
+      // A subject on a dark background loses its darkest edge pixels to any threshold: close
+      // and grow its silhouette as the Middlebury recipe does.
+      plan_.silhouette.open_px = 0;
+      plan_.silhouette.dilate_px = 10;
+      plan_.silhouette.erode_px = 7;
+    }
+  }
+
+  // Colour silhouettes of one frame set from the cameras the run reconstructs from.
+  std::vector<View> SilhouetteViews(int64_t set) const {
+    const std::vector<std::string> names = take_plan_.ReconstructionSensors();
+    FrameSet frames = take_.Read(static_cast<size_t>(set), names);
+    std::vector<View> views;
+    for (const auto& name : names) {
+      cv::Mat image = frames.Find(name)->image;
+      if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
+      views.push_back({name, take_plan_.cameras.at(name), {}, {}});
+      views.back().mask = Silhouette(image, name, plates_, plan_.silhouette);
+    }
+    return views;
+  }
+
+  // Bounds from the rig (not the user's) shrink to a coarse hull of frame sets spread over the
+  // take, grown by a margin; a coarse hull that fills the cameras' shared view instead ends the
+  // run DEGENERATE (the silhouettes do not separate a subject).
+  void TightenBounds() {
+    if (options_.bounds) {
+      take_plan_.SetBounds(options_.bounds->aligned(), "the stage's options");
+      plan_.check_fill = true;
+      return;
+    }
+    const bool from_rig = take_plan_.bounds_source.rfind("cameras", 0) == 0;
+    const bool masks = needs_plate() || plan_.hull_completion;
+    plan_.check_fill = true;
+    if (!from_rig || !masks || options_.tighten_sets == 0) return;
+    const Eigen::AlignedBox3d& view = take_plan_.view_bounds;
+    // Cameras that see the subject whole may see past the box most of them share.
+    const Eigen::AlignedBox3d search = take_plan_.AboveFloor(
+        Eigen::AlignedBox3d(view.min() - 0.25 * view.sizes(), view.max() + 0.25 * view.sizes()));
+    HullOptions hull_options = options_.hull;
+    hull_options.voxel_m = search.sizes().maxCoeff() / 64;
+    hull_options.bounds = Box::From(search);
+    hull_options.threads = threads_;
+    // Outside the box most cameras share, points seen by a few cameras grow the hull's ghost
+    // wedges: the coarse hull counts what half of them see, as the shared box does.
+    const int cameras = static_cast<int>(take_plan_.ReconstructionSensors().size());
+    hull_options.min_views = std::max(hull_options.min_views, (cameras + 1) / 2);
+    const int count = std::min<int>(options_.tighten_sets, frame_count_);
+    Eigen::AlignedBox3d extent;
+    for (int i = 0; i < count; ++i) {
+      const int64_t set = take_plan_.sets[count > 1 ? i * (frame_count_ - 1) / (count - 1) : 0];
+      HullSummary summary;
+      VisualHull hull = ComputeVisualHull(SilhouetteViews(set), hull_options, &summary);
+      if (!summary.IsUsable()) continue;
+      // Measured against the box the cameras share: silhouettes that cover every image give
+      // a hull that is that box.
+      const std::string implausible =
+          ImplausibleHull(hull, summary, Box::From(take_plan_.AboveFloor(view)), options_, true);
+      if (!implausible.empty()) {
+        implausible_ =
+            Cat("set ", set, ": a coarse ", implausible.substr(4), " (the box the cameras share)");
+        return;
+      }
+      extent.extend(hull.Extent());
+    }
+    if (extent.isEmpty()) return;  // the frames say why
+    const double margin = 2 * hull_options.voxel_m + 0.1 * extent.sizes().maxCoeff();
+    take_plan_.SetBounds(
+        Eigen::AlignedBox3d(extent.min().array() - margin, extent.max().array() + margin),
+        Cat("cameras + coarse hull: the visual hull of ", count, " frame set(s) at ",
+            Fixed(hull_options.voxel_m * 1e3, 1), " mm, grown by ", Fixed(margin * 1e3, 1),
+            " mm; before it, ", take_plan_.bounds_source));
+    plan_.check_fill = false;
+  }
+
+  // The voxel the plan's bounds imply, unless the options give one; MVS searches a depth range
+  // scaled to the scene.
+  void ChooseVoxel() {
+    if (options_.voxel_m > 0) {
+      take_plan_.voxel_m = options_.voxel_m;
+      take_plan_.voxel_source = "asked for (--voxel)";
+    }
+    voxel_ = take_plan_.voxel_m;
+    plan_.mvs = options_.mvs;
+    // A surface more than half the scene's smallest side behind the hull's is its far side,
+    // which other views see; the margin in front stays a few voxels.
+    plan_.mvs.search_depth_m =
+        std::min(options_.mvs.search_depth_m, 0.5 * take_plan_.bounds.sizes().minCoeff());
+    plan_.mvs.hull_margin_m = std::min(options_.mvs.hull_margin_m, 10 * voxel_);
+  }
+
+  // Cameras that do not see the bounds cannot reconstruct anything in them.
+  void CheckBoundsSeen() {
+    if (!implausible_.empty()) return;
+    const std::vector<std::string> names = take_plan_.ReconstructionSensors().empty()
+                                               ? take_plan_.depth_sensors
+                                               : take_plan_.ReconstructionSensors();
+    const int seeing = CamerasSeeing(take_plan_.Cameras(names), take_plan_.bounds.center());
+    const int needed = std::min<int>(names.size(), std::max<int>(2, (names.size() + 1) / 2));
+    if (seeing >= needed) return;
+    implausible_ =
+        Cat("the cameras do not see the bounds: ", seeing, " of ", names.size(),
+            " see their centre (", take_plan_.bounds_source, "; at least ", needed, " must)");
+  }
+
+  // A run that cannot give a plausible result: DEGENERATE with the reason, and the report.
+  void EndImplausible() {
+    summary_.End(Termination::kDegenerate, implausible_);
+    summary_.seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+    if (report_ == nullptr) return;
+    report_->SetSummary(summary_);
+    report_->Write(out_ / "report.json");
+  }
+
+  // A mesh wider than the cameras' shared view on some axis is not a subject they all see.
+  std::string MeshLargerThanView(const FrameOutput& frame) const {
+    if (!frame.IsUsable() || frame.mesh.vertices.empty()) return "";
+    Eigen::AlignedBox3d extent;
+    for (const auto& v : frame.mesh.vertices) extent.extend(v.cast<double>());
+    const Eigen::Vector3d view = take_plan_.view_bounds.sizes();
+    const Eigen::Vector3d size = extent.sizes();
+    for (int axis = 0; axis < 3; ++axis) {
+      if (size(axis) > options_.max_view_ratio * view(axis)) {
+        return Cat("the mesh is ", Fixed(size(axis), 3), " m across along ", "xyz"[axis],
+                   ", more than ", options_.max_view_ratio, "x the ", Fixed(view(axis), 3),
+                   " m the cameras share: it is not a subject they see");
+      }
+    }
+    return "";
+  }
+
+  // The mesh's silhouette in each held-out camera against the plan's silhouette of its image.
+  nlohmann::json HeldoutIoU(const Mesh& mesh, const FrameSet& colour) const {
+    nlohmann::json out = nlohmann::json::object();
+    for (const auto& name : take_plan_.heldout) {
+      cv::Mat image = colour.Find(name)->image;
+      if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
+      const cv::Mat observed = Silhouette(image, name, plates_, plan_.silhouette);
+      out[name] = MaskIoU(RenderSilhouette(mesh, take_plan_.cameras.at(name)), observed);
+    }
+    return out;
   }
 
   void ReadPlates() {
@@ -426,29 +675,45 @@ class TakeReconstructor {
     }
     nlohmann::json plan = described.ToJson();
     plan["method"] = ToString(plan_.method);
-    plan["method_reason"] = options_.method != ReconstructionMethod::kAuto ? "asked for"
-                            : take_plan_.depth_sensors.empty()
-                                ? "no depth sensor: multi-view stereo inside the visual hull"
-                                : "depth sensors present: TSDF fusion of their depth";
-    plan["silhouettes"] =
-        needs_plate() || plan_.hull_completion
-            ? (options_.silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
-                                                                      : "background subtraction")
-            : "not needed";
+    plan["method_reason"] =
+        options_.method != ReconstructionMethod::kAuto ? "asked for"
+        : is_tsdf() ? "depth sensors present: TSDF fusion of their depth"
+        : plan_.method == ReconstructionMethod::kMvs
+            ? "no depth sensor: multi-view stereo inside the visual hull"
+            : "no depth sensor and no clean plate: the visual hull of thresholded silhouettes (a "
+              "subject on a plain dark background gives stereo nothing to match around it)";
+    if (!needs_plate() && !plan_.hull_completion)
+      plan["silhouettes"] = {{"source", "not needed"}, {"why", "the method reads depth alone"}};
     plan["completion"] = completion_;
+    if (plan_.method == ReconstructionMethod::kHull)
+      plan["hull_min_views"] = {{"views", plan_.hull_min_views},
+                                {"why", "half the cameras reconstructed from"}};
     plan["depth_background"] =
         plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
-    plan["voxel_m"] = options_.voxel_m;
+    plan["voxel_m"] = voxel_;
+    plan["mvs_search"] = {{"hull_margin_m", plan_.mvs.hull_margin_m},
+                          {"search_depth_m", plan_.mvs.search_depth_m}};
     plan["parallel"] = plan_.outer_threads > 1
                            ? Cat(plan_.outer_threads, " frames at once, 1 thread each")
                            : Cat("one frame at a time, ", plan_.inner_threads, " threads each");
     plan["texture"] = options_.texture.atlas ? "per-vertex colour and atlas" : "per-vertex colour";
     plan["skipped"] = skipped;
     summary_.plan = plan;
-    std::printf("reconstruct: %s on %d frame set(s), voxel %.1f mm, cameras from %s\n",
-                ToString(plan_.method), frame_count_, options_.voxel_m * 1e3,
+    std::printf("reconstruct: %s on %d frame set(s), voxel %.3g mm, cameras from %s\n",
+                ToString(plan_.method), frame_count_, voxel_ * 1e3,
                 take_plan_.ground_truth_cameras ? "gt/ (not calibrated)" : "calib/");
     std::printf("  %s\n", plan["method_reason"].get<std::string>().c_str());
+    const Eigen::AlignedBox3d& b = take_plan_.bounds;
+    std::printf("  bounds (%.3f, %.3f, %.3f) to (%.3f, %.3f, %.3f) m: %s\n", b.min().x(),
+                b.min().y(), b.min().z(), b.max().x(), b.max().y(), b.max().z(),
+                take_plan_.bounds_source.c_str());
+    std::printf("  voxel: %s\n", take_plan_.voxel_source.c_str());
+    std::printf("  up (%.3f, %.3f, %.3f): %s\n", take_plan_.up.x(), take_plan_.up.y(),
+                take_plan_.up.z(), take_plan_.up_source.c_str());
+    if (needs_plate() || plan_.hull_completion) {
+      std::printf("  silhouettes: %s (%s)\n", ToString(take_plan_.silhouettes),
+                  take_plan_.silhouette_reason.c_str());
+    }
     if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
     std::printf("  %s\n", plan["parallel"].get<std::string>().c_str());
     std::fflush(stdout);
@@ -464,8 +729,10 @@ class TakeReconstructor {
   void ReconstructOne(int i) {
     const int64_t set = take_plan_.sets[i];
     auto frame_start = std::chrono::steady_clock::now();
-    FrameOutput frame = ReconstructFrame(take_, take_plan_, plates_, plan_, options_, set,
-                                         options_.voxel_m, plan_.inner_threads);
+    FrameOutput frame = ReconstructFrame(take_, take_plan_, plates_, plan_, options_, set, voxel_,
+                                         plan_.inner_threads);
+    const std::string too_large = MeshLargerThanView(frame);
+    if (!too_large.empty()) frame.End(Termination::kDegenerate, too_large);
     FrameResult& result = summary_.frames[i];
     result.set = set;
     result.End(frame.termination, frame.message);
@@ -473,11 +740,13 @@ class TakeReconstructor {
     if (frame.IsUsable()) {
       std::vector<View> views;
       FrameSet colour = take_.Read(static_cast<size_t>(set), take_plan_.color_sensors);
-      for (const auto& name : take_plan_.color_sensors) {
+      for (const auto& name : take_plan_.ReconstructionSensors()) {
         cv::Mat image = colour.Find(name)->image;
         if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
         views.push_back({name, take_plan_.cameras.at(name), image, {}});
       }
+      if (!take_plan_.heldout.empty())
+        result.metrics["heldout_iou"] = HeldoutIoU(frame.mesh, colour);
       TextureOptions texture = options_.texture;
       texture.atlas = texture.atlas && options_.write_glb;
       TexturedMesh textured = TextureMesh(frame.mesh, views, texture);
@@ -521,14 +790,14 @@ class TakeReconstructor {
       return sweep;
     }
     std::vector<double> voxels = options_.sweep_voxels_m;
-    voxels.push_back(options_.voxel_m);
+    voxels.push_back(voxel_);
     std::sort(voxels.begin(), voxels.end(), std::greater<double>());
     voxels.erase(std::unique(voxels.begin(), voxels.end()), voxels.end());
     int64_t iter = 0;
     for (double voxel : voxels) {
       double seconds;
       nlohmann::json metrics;
-      if (voxel == options_.voxel_m) {
+      if (voxel == voxel_) {
         seconds = summary_.frames[0].seconds;
         metrics = summary_.frames[0].metrics;
       } else {
@@ -606,6 +875,16 @@ class TakeReconstructor {
                          {"frames_per_minute", 60.0 * frame_count_ / summary_.seconds}};
     metrics["peak_rss_mb"] = PeakRssMb();
     metrics["frames"] = frames_json;
+    double iou_sum = 0;
+    int iou_count = 0;
+    for (const FrameResult& f : summary_.frames) {
+      if (!f.metrics.contains("heldout_iou")) continue;
+      for (auto& [name, iou] : f.metrics["heldout_iou"].items()) {
+        iou_sum += iou.get<double>();
+        ++iou_count;
+      }
+    }
+    if (iou_count > 0) metrics["heldout_iou_mean"] = iou_sum / iou_count;
     if (gt_count > 0) {
       for (auto& [key, sum] : gt_sums) metrics["gt"][key] = sum / gt_count;
       metrics["gt"]["frames"] = gt_count;
@@ -616,7 +895,7 @@ class TakeReconstructor {
   }
 
   const Take& take_;
-  const TakePlan& take_plan_;
+  TakePlan take_plan_;  // the caller's, with the bounds this run tightens
   const std::filesystem::path out_;
   const ReconstructionOptions& options_;
   Report* report_;
@@ -624,6 +903,8 @@ class TakeReconstructor {
   MethodPlan plan_;
   Plates plates_;
   std::string completion_;
+  std::string implausible_;  // why the run cannot give a plausible result, before any frame
+  double voxel_ = 0;
   int threads_ = 1;
   int frame_count_ = 0;
   ReconstructionSummary summary_;

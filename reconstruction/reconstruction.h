@@ -20,6 +20,7 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
+#include <optional>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
@@ -38,6 +39,8 @@ struct Box {
   Eigen::Vector3d max = Eigen::Vector3d(1.5, 1.5, 2.5);
   bool Contains(const Eigen::Vector3d& point) const;
   bool valid() const { return (max.array() > min.array()).all(); }
+  static Box From(const Eigen::AlignedBox3d& box) { return {box.min(), box.max()}; }
+  Eigen::AlignedBox3d aligned() const { return {min, max}; }
 };
 
 // One calibrated view of a frame set.
@@ -54,6 +57,7 @@ struct View {
 enum class SilhouetteMode {
   kBackgroundSubtraction,  // against a clean plate of the same camera
   kThreshold,              // bright subject on a dark background (no clean plate)
+  kOtsu,                   // the same, the threshold chosen per image (Otsu's method)
 };
 
 struct SilhouetteOptions {
@@ -70,7 +74,8 @@ struct SilhouetteOptions {
   double hysteresis_sigmas = 1.8;
   double hysteresis_min_difference = 6;
   // Threshold mode: foreground where the largest channel exceeds threshold (0..1 of full
-  // scale). 0.19 is the Middlebury recipe.
+  // scale). 0.19 is the Middlebury recipe. Otsu mode chooses it per image and, with hysteresis
+  // on (hysteresis_sigmas > 0), joins pixels above half of it connected to those above it.
   double threshold = 0.19;
   // Morphology, in pixels: open (removes specks), then close as dilate/erode (fills holes and
   // thin gaps). The Middlebury recipe is dilate 10, erode 7.
@@ -188,6 +193,8 @@ struct VisualHull {
   double Field(const Eigen::Vector3d& point_in_world) const;
   // Whether a point lies in the hull, allowing `tolerance_m` outside its surface.
   bool Contains(const Eigen::Vector3d& point_in_world, double tolerance_m = 0) const;
+  // The box of the voxel centres inside the hull; empty for an empty hull.
+  Eigen::AlignedBox3d Extent() const;
 };
 
 // Carves through an octree of cells down to 8³-voxel blocks, evaluating voxels only in blocks
@@ -415,10 +422,25 @@ ReconstructionMethod ReconstructionMethodFromString(const std::string& text);  /
 
 struct ReconstructionOptions {
   ReconstructionMethod method = ReconstructionMethod::kAuto;  // auto: depth -> tsdf, else mvs
-  double voxel_m = 0.004;  // TSDF and hull voxel (the hull for MVS uses 2x)
-  // Which frame sets, cameras and clean plates: the TakePlan given beside these options.
-  Box bounds;  // the capture volume
+  // TSDF and hull voxel (the hull for MVS uses 2x); 0: the plan's (implied by its bounds).
+  double voxel_m = 0;
+  // Which frame sets, cameras, clean plates, bounds and silhouette source: the TakePlan given
+  // beside these options. `bounds`, when set, replaces the plan's (a stage's own box).
+  std::optional<Box> bounds;
+  // Bounds from the rig (not the user's) are tightened to a coarse hull of up to this many
+  // frame sets, spread over the take, grown by a margin (0: the rig's box as it is).
+  int tighten_sets = 8;
+  // Plausibility: a frame's hull touching this many faces of its bounds, or filling more than
+  // this fraction of bounds it was not tightened to, cannot be a subject inside them
+  // (silhouettes that do not separate one); DEGENERATE.
+  int max_touched_faces = 4;
+  double max_fill_fraction = 0.6;
+  // ... and a mesh wider than this multiple of the cameras' shared view on any axis.
+  double max_view_ratio = 1.5;
   SilhouetteOptions silhouette;
+  // Thresholded silhouettes (Otsu or a given level) close and grow by the Middlebury recipe
+  // (dilate 10 px, erode 7 px, no opening) instead of `silhouette`'s morphology.
+  bool threshold_morphology = true;
   HullOptions hull;  // voxel and bounds are set from the fields above
   TsdfOptions tsdf;  // voxel and bounds likewise
   // TSDF: what the depth sensors did not see is completed from the colour cameras' visual hull
@@ -461,8 +483,12 @@ struct ReconstructionSummary : Summary {
 // Reconstructs the plan's frame sets of a take into `out` (recon/<set:06d>.ply and .glb,
 // report.json) with the plan's cameras (calib/, or gt/ on an uncalibrated simulated take).
 // SUCCESS when at least one frame set gave a surface (failed sets are named in the message and
-// metrics), DEGENERATE when none did. Throws Error for bad options, a method the take's sensors
-// cannot support, or a planned frame set missing a frame the method reads.
+// metrics), DEGENERATE when none did, when the cameras do not see the bounds, or when the
+// result is implausible (a hull filling its bounds, a mesh larger than the cameras' shared
+// view). Held-out cameras of the plan are never reconstructed from; the mesh's silhouette in
+// each is compared with the plan's silhouette of its image (metrics "heldout_iou"). Throws Error
+// for bad options, a method the take's sensors cannot support, or a planned frame set missing a
+// frame the method reads.
 ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan,
                                       const std::filesystem::path& out,
                                       const ReconstructionOptions& options,

@@ -1,5 +1,5 @@
 // Silhouettes by background subtraction against a clean plate, or by thresholding a bright
-// subject on a dark background.
+// subject on a dark background (at a given level or one chosen per image by Otsu's method).
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -49,6 +49,25 @@ cv::Mat MaxChannel(const cv::Mat& image) {
   return out;
 }
 
+// Weak pixels join `mask` where a connected path of weak pixels reaches it.
+void JoinConnected(cv::Mat weak, cv::Mat* mask) {
+  weak |= *mask;
+  cv::Mat labels;
+  const int count = cv::connectedComponents(weak, labels, 8, CV_32S);
+  std::vector<uint8_t> seeded(count, 0);
+  for (int y = 0; y < mask->rows; ++y) {
+    const uint8_t* m = mask->ptr<uint8_t>(y);
+    const int* label = labels.ptr<int>(y);
+    for (int x = 0; x < mask->cols; ++x) seeded[label[x]] |= m[x] != 0;
+  }
+  seeded[0] = 0;
+  for (int y = 0; y < mask->rows; ++y) {
+    uint8_t* m = mask->ptr<uint8_t>(y);
+    const int* label = labels.ptr<int>(y);
+    for (int x = 0; x < mask->cols; ++x) m[x] = seeded[label[x]] ? 255 : 0;
+  }
+}
+
 }  // namespace
 
 cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
@@ -59,6 +78,17 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
   cv::Mat mask;
   if (options.mode == SilhouetteMode::kThreshold) {
     cv::threshold(MaxChannel(image), mask, options.threshold * 255, 255, cv::THRESH_BINARY);
+  } else if (options.mode == SilhouetteMode::kOtsu) {
+    // Otsu's level splits the subject's lit side from its shaded side as readily as the subject
+    // from the background: pixels above half of it join where connected to pixels above it.
+    const cv::Mat brightest = MaxChannel(image).clone();
+    const double level =
+        cv::threshold(brightest, mask, 0, 255, cv::THRESH_BINARY | cv::THRESH_OTSU);
+    if (options.hysteresis_sigmas > 0) {
+      cv::Mat weak;
+      cv::threshold(brightest, weak, 0.5 * level, 255, cv::THRESH_BINARY);
+      JoinConnected(weak, &mask);
+    }
   } else {
     if (clean_plate.empty()) Fail("silhouette: background subtraction needs a clean plate");
     if (clean_plate.size() != image.size() || clean_plate.type() != image.type()) {
@@ -109,21 +139,7 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
       cv::Mat weak;
       cv::threshold(difference, weak, weak_threshold, 255, cv::THRESH_BINARY);
       weak.convertTo(weak, CV_8U);
-      weak |= mask;
-      cv::Mat labels;
-      const int count = cv::connectedComponents(weak, labels, 8, CV_32S);
-      std::vector<uint8_t> seeded(count, 0);
-      for (int y = 0; y < mask.rows; ++y) {
-        const uint8_t* m = mask.ptr<uint8_t>(y);
-        const int* label = labels.ptr<int>(y);
-        for (int x = 0; x < mask.cols; ++x) seeded[label[x]] |= m[x] != 0;
-      }
-      seeded[0] = 0;
-      for (int y = 0; y < mask.rows; ++y) {
-        uint8_t* m = mask.ptr<uint8_t>(y);
-        const int* label = labels.ptr<int>(y);
-        for (int x = 0; x < mask.cols; ++x) m[x] = seeded[label[x]] ? 255 : 0;
-      }
+      JoinConnected(weak, &mask);
     }
   }
   if (options.open_px > 0) cv::morphologyEx(mask, mask, cv::MORPH_OPEN, Disk(options.open_px));

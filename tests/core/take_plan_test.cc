@@ -177,3 +177,139 @@ TEST(TakePlan, SpreadsPicksAroundTheCentre) {
 
 }  // namespace
 }  // namespace holocap
+
+namespace holocap {
+namespace {
+
+// A pinhole camera at `center` looking at `target`, its image "up" (-y) as close to `up` as the
+// view allows.
+CameraModel LookAt(const Eigen::Vector3d& center, const Eigen::Vector3d& target,
+                   const Eigen::Vector3d& up, double focal_px = 1000) {
+  const Eigen::Vector3d z = (target - center).normalized();
+  const Eigen::Vector3d x = z.cross(up).normalized();
+  const Eigen::Vector3d y = z.cross(x);
+  Eigen::Matrix3d world_from_cam_rotation;
+  world_from_cam_rotation << x, y, z;
+  Pose world_from_cam = Pose::Identity();
+  world_from_cam.linear() = world_from_cam_rotation;
+  world_from_cam.translation() = center;
+  return CameraModel::Pinhole(focal_px, 640, 480, world_from_cam.inverse());
+}
+
+// `count` cameras on a ring of `radius` around `target`, `height` above it along `up` (y-up
+// here: no world axis but y is vertical), each aimed at the target.
+std::vector<CameraModel> Ring(int count, double radius, double height,
+                              const Eigen::Vector3d& target) {
+  std::vector<CameraModel> cameras;
+  const Eigen::Vector3d up = Eigen::Vector3d::UnitY();
+  for (int i = 0; i < count; ++i) {
+    const double angle = 2 * M_PI * i / count;
+    const Eigen::Vector3d center =
+        target + Eigen::Vector3d(radius * std::cos(angle), height, radius * std::sin(angle));
+    cameras.push_back(LookAt(center, target, up));
+  }
+  return cameras;
+}
+
+TEST(SceneFromRig, BoundsUpAndVoxelFollowTheCamerasAtAnyScale) {
+  const Eigen::Vector3d target(0.3, -0.2, 1.0);
+  for (double scale : {1.0, 0.05}) {
+    SCOPED_TRACE(scale);
+    const auto cameras = Ring(12, 3.0 * scale, 1.0 * scale, target * scale);
+    const RigView view = ViewOfRig(cameras);
+    ASSERT_TRUE(view.converges) << view.why;
+    EXPECT_LT((view.center - target * scale).norm(), 1e-6 * scale) << view.why;
+    EXPECT_NEAR(view.median_distance_m, std::hypot(3.0, 1.0) * scale, 1e-9);
+    EXPECT_EQ(view.min_cameras, 6);
+    EXPECT_TRUE(view.shared.contains(target * scale));
+    // f = 1000 px over 640 px sees 2 x 0.32 x 3.16 m = 2.0 m across at the target: the box that
+    // half the ring sees is about that wide, never the ring itself.
+    const Eigen::Vector3d size = view.shared.sizes() / scale;
+    EXPECT_GT(size.minCoeff(), 1.0) << size.transpose();
+    EXPECT_LT(size.maxCoeff(), 4.0) << size.transpose();
+    std::string why;
+    EXPECT_EQ(UpFromCameras(cameras, &why), Eigen::Vector3d::UnitY()) << why;
+    // A pixel at 3.16 m is 3.16 mm (2/3 of it 2.1 mm) at scale 1; whichever rule wins, the
+    // voxel is a power of two in millimetres and shrinks with the scene.
+    const double voxel = ImpliedVoxel(view.shared, cameras, &why);
+    const double log2_mm = std::log2(voxel * 1e3);
+    EXPECT_NEAR(log2_mm, std::round(log2_mm), 1e-9) << why;
+    EXPECT_GE(voxel / scale, 0.002) << why;
+    EXPECT_LE(voxel / scale, 0.008) << why;
+  }
+}
+
+TEST(SceneFromRig, OneCameraOrParallelAxesDoNotConverge) {
+  const auto ring = Ring(4, 3.0, 1.0, Eigen::Vector3d::Zero());
+  EXPECT_FALSE(ViewOfRig({ring[0]}).converges);
+  std::vector<CameraModel> parallel;
+  for (int i = 0; i < 3; ++i) {
+    parallel.push_back(
+        LookAt(Eigen::Vector3d(i, 0, 0), Eigen::Vector3d(i, 0, 5), -Eigen::Vector3d::UnitY()));
+  }
+  const RigView view = ViewOfRig(parallel);
+  EXPECT_FALSE(view.converges);
+  EXPECT_NE(view.why.find("do not meet"), std::string::npos) << view.why;
+  // Cameras rolled 30 degrees about their axes give an up axis no world axis is close to.
+  std::vector<CameraModel> tilted;
+  for (const auto& camera : ring) {
+    Pose cam_from_world = camera.cam_from_world();
+    cam_from_world.linear() =
+        Eigen::AngleAxisd(M_PI / 6, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
+        cam_from_world.linear();
+    tilted.push_back(CameraModel::Pinhole(1000, 640, 480, cam_from_world));
+  }
+  std::string why;
+  const Eigen::Vector3d up = UpFromCameras(tilted, &why);
+  EXPECT_GT(std::acos(up.dot(Eigen::Vector3d::UnitY())), 10 * M_PI / 180) << why;
+  EXPECT_NE(why.find("no world axis"), std::string::npos) << why;
+}
+
+TEST(SceneFromRig, ThePlanRecordsTheUsersSceneAndSilhouettesOrTheTakes) {
+  TempDir dir;
+  WriteTake(dir.path() / "take", 4, 0);
+  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
+  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  const Take take = Take::Open(dir.path() / "take");
+  TakePlan plan = PlanTake(take, TakeSelection{});
+  EXPECT_EQ(plan.silhouettes, SilhouetteSource::kOtsu) << plan.silhouette_reason;
+  EXPECT_FALSE(plan.bounds_source.empty());
+  EXPECT_GT(plan.voxel_m, 0);
+  EXPECT_TRUE(plan.bounds.contains(plan.bounds.center()));
+
+  TakeSelection selection;
+  selection.bounds = Eigen::AlignedBox3d(Eigen::Vector3d(-1, -2, -3), Eigen::Vector3d(1, 2, 3));
+  selection.up = Eigen::Vector3d(0, -2, 0);
+  selection.silhouette_threshold = 0.3;
+  selection.heldout = {"cam2"};
+  plan = PlanTake(take, selection);
+  EXPECT_EQ(plan.bounds_source, "user (--bounds)");
+  EXPECT_EQ(plan.bounds.max(), Eigen::Vector3d(1, 2, 3));
+  EXPECT_EQ(plan.up, -Eigen::Vector3d::UnitY());
+  EXPECT_EQ(plan.up_source.rfind("user (--up)", 0), 0u) << plan.up_source;
+  EXPECT_EQ(plan.silhouettes, SilhouetteSource::kThreshold);
+  EXPECT_DOUBLE_EQ(plan.silhouette_threshold, 0.3);
+  EXPECT_EQ(plan.ReconstructionSensors(), (std::vector<std::string>{"cam0", "cam1"}));
+  const nlohmann::json json = plan.ToJson();
+  EXPECT_EQ(json.at("bounds").at("source"), "user (--bounds)");
+  EXPECT_EQ(json.at("silhouettes").at("source"), "threshold");
+  EXPECT_EQ(json.at("voxel").at("m"), plan.voxel_m);
+
+  // A clean plate asked for where there is none: the error names every source.
+  TakeSelection plate;
+  plate.silhouettes = "plate";
+  try {
+    PlanTake(take, plate);
+    FAIL() << "silhouettes from a plate the take lacks";
+  } catch (const Error& e) {
+    for (const char* option : {"--clean-plate", "--silhouettes otsu", "--silhouette-threshold",
+                               "alpha", "background model"}) {
+      EXPECT_NE(std::string(e.what()).find(option), std::string::npos) << e.what();
+    }
+  }
+  selection.heldout = {"depth0"};
+  EXPECT_THROW(PlanTake(take, selection), Error);
+}
+
+}  // namespace
+}  // namespace holocap

@@ -386,6 +386,26 @@ TEST(SilhouetteTest, BackgroundSubtractionRecoversANoisyDisk) {
   EXPECT_THROW(bad.Check(), Error);
 }
 
+// A lit subject on a dark background whose shaded side is darker than Otsu's level: the
+// level alone loses the shaded side, the hysteresis (half the level, where connected) keeps it
+// and leaves a dim patch of background that touches nothing bright.
+TEST(SilhouetteTest, OtsuWithHysteresisKeepsTheShadedSide) {
+  cv::Mat image(240, 320, CV_8UC3, cv::Scalar::all(6)), truth = cv::Mat::zeros(240, 320, CV_8U);
+  cv::circle(truth, {160, 120}, 60, 255, -1);
+  image.setTo(cv::Scalar::all(200), truth);
+  cv::Mat shaded = truth.clone();
+  shaded(cv::Rect(0, 0, 160, 240)).setTo(0);
+  image.setTo(cv::Scalar::all(70), shaded);
+  cv::rectangle(image, {10, 10}, {40, 40}, cv::Scalar::all(60), -1);  // dim, apart
+  SilhouetteOptions otsu;
+  otsu.mode = SilhouetteMode::kOtsu;
+  const double with_hysteresis = MaskIoU(ExtractSilhouette(image, cv::Mat(), otsu), truth);
+  otsu.hysteresis_sigmas = 0;
+  const double level_alone = MaskIoU(ExtractSilhouette(image, cv::Mat(), otsu), truth);
+  EXPECT_GT(with_hysteresis, 0.98);
+  EXPECT_LT(level_alone, 0.6);
+}
+
 TEST(SurfaceErrorsTest, ScaledSphereGivesItsOffset) {
   Sphere a, b = a;
   b.radius = a.radius + 0.004;

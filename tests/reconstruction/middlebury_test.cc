@@ -3,6 +3,9 @@
 // of the held-out 16th.
 #include <gtest/gtest.h>
 
+#include <fstream>
+#include <nlohmann/json.hpp>
+
 #include "core/take.h"
 #include "reconstruction/reconstruction.h"
 #include "tests/support/test_support.h"
@@ -85,6 +88,45 @@ TEST_F(MiddleburyTest, CliReconstructsTheImportedTakeWithThresholdSilhouettes) {
   Mesh mesh = ReadPly(dir_ / "recon" / "000000.ply");
   EXPECT_GT(mesh.faces.size(), 1000u);
   EXPECT_EQ(mesh.colors.size(), mesh.vertices.size());
+}
+
+// With no flags but the held-out camera, the plan finds the dinosaur itself: bounds from the
+// cameras tightened by a coarse hull (the README's box is inside them, and they are not much
+// larger), silhouettes by a threshold chosen per image (no clean plate), the visual hull; its
+// silhouette predicts the held-out view's (recon_bench section 5 runs all 16 views).
+TEST_F(MiddleburyTest, CliWithNoFlagsFindsTheObjectAndPredictsAHeldOutView) {
+  const size_t held_out = 15;
+  auto result =
+      testing::RunCli("reconstruct '" + (dir_ / "dino").string() + "' --heldout-names " +
+                      views_[held_out].name + " --no-glb --out '" + (dir_ / "auto").string() + "'");
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  std::ifstream file(dir_ / "auto" / "report.json");
+  const nlohmann::json report = nlohmann::json::parse(file);
+  const nlohmann::json& plan = report["plan"];
+  EXPECT_EQ(plan["method"], "hull") << plan["method_reason"];
+  EXPECT_EQ(plan["silhouettes"]["source"], "otsu");
+  EXPECT_EQ(plan["bounds"]["source"].get<std::string>().rfind("cameras + coarse hull", 0), 0u)
+      << plan["bounds"];
+  Box readme = DinoBounds();  // grown by 1 cm: back to the README's own box
+  readme.min += Eigen::Vector3d::Constant(0.01);
+  readme.max -= Eigen::Vector3d::Constant(0.01);
+  for (int axis = 0; axis < 3; ++axis) {
+    const double lo = plan["bounds"]["box"]["min"][axis].get<double>();
+    const double hi = plan["bounds"]["box"]["max"][axis].get<double>();
+    EXPECT_LE(lo, readme.min(axis) + 0.002) << "axis " << axis;
+    EXPECT_GE(hi, readme.max(axis) - 0.002) << "axis " << axis;
+    EXPECT_LT(hi - lo, 2 * (readme.max(axis) - readme.min(axis))) << "axis " << axis;
+  }
+  const double own = report["metrics"]["heldout_iou_mean"].get<double>();
+  const Mesh mesh = ReadPly(dir_ / "auto" / "000000.ply");
+  const double recipe =
+      MaskIoU(RenderSilhouette(mesh, views_[held_out].camera), views_[held_out].mask);
+  std::printf(
+      "dinoSparseRing, no flags: held-out %s IoU %.4f (its Otsu silhouette), %.4f (the "
+      "README's recipe)\n",
+      views_[held_out].name.c_str(), own, recipe);
+  EXPECT_GE(own, 0.9);
+  EXPECT_GE(recipe, 0.9);
 }
 
 }  // namespace

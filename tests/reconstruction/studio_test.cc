@@ -6,6 +6,7 @@
 
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <optional>
 
 #include "core/error.h"
 #include "core/mesh.h"
@@ -250,6 +251,84 @@ TEST(StudioTest, MissingFramesAreAClearError) {
   EXPECT_TRUE(result.output.find("has no frame from") != std::string::npos ||
               result.output.find("clean plate") != std::string::npos)
       << result.output;
+}
+
+// With no bounds given, the plan takes them from the rig: the box the cameras share, cut at the
+// floor the depth sensors see and tightened to a coarse hull. The hull in it is the hull in the
+// old hand-set stage box: the same Chamfer against the truth.
+TEST(StudioTest, BoundsFromTheRigGiveTheSameHullAsTheStageBox) {
+  TempDir dir;
+  auto run = [&](const std::optional<Eigen::AlignedBox3d>& bounds, const std::string& name) {
+    ReconstructionOptions options;
+    options.method = ReconstructionMethod::kHull;
+    options.voxel_m = 0.008;
+    options.write_glb = false;
+    options.texture.atlas = false;
+    options.sweep_voxels_m.clear();
+    TakeSelection selection;
+    selection.bounds = bounds;
+    Report report("reconstruct");
+    ReconstructionSummary summary =
+        ReconstructTake(StudioTake(), selection, dir / name, options, &report);
+    EXPECT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+    return report.json();
+  };
+  const nlohmann::json stage = run(
+      Eigen::AlignedBox3d(Eigen::Vector3d(-1.5, -1.5, 0), Eigen::Vector3d(1.5, 1.5, 2.5)), "stage");
+  const nlohmann::json rig = run(std::nullopt, "rig");
+  const nlohmann::json& plan = rig["plan"];
+  EXPECT_EQ(plan["bounds"]["source"].get<std::string>().rfind("cameras + coarse hull", 0), 0u)
+      << plan["bounds"];
+  EXPECT_EQ(plan["up"]["axis"], nlohmann::json({0.0, 0.0, 1.0})) << plan["up"];
+  ASSERT_TRUE(plan["floor_m"].is_number()) << plan["up"];
+  EXPECT_NEAR(plan["floor_m"].get<double>(), -0.032, 0.01);  // the floor less 1% of 3.2 m
+  EXPECT_EQ(stage["plan"]["bounds"]["source"], "user (--bounds)");
+  // The subject (1.8 m tall, walking) fits; the stage box around it is not kept.
+  const Mesh truth = ReadPly(StudioTake() / "gt" / "meshes" / "000001.ply");
+  Eigen::AlignedBox3d box(Eigen::Vector3d(plan["bounds"]["box"]["min"][0].get<double>(),
+                                          plan["bounds"]["box"]["min"][1].get<double>(),
+                                          plan["bounds"]["box"]["min"][2].get<double>()),
+                          Eigen::Vector3d(plan["bounds"]["box"]["max"][0].get<double>(),
+                                          plan["bounds"]["box"]["max"][1].get<double>(),
+                                          plan["bounds"]["box"]["max"][2].get<double>()));
+  int outside = 0;
+  for (const auto& v : truth.vertices) outside += !box.contains(v.cast<double>());
+  EXPECT_EQ(outside, 0);
+  EXPECT_LT(box.volume(), 0.5 * 3 * 3 * 2.5);
+  const double chamfer_stage = stage["metrics"]["gt"]["chamfer_mm"].get<double>();
+  const double chamfer_rig = rig["metrics"]["gt"]["chamfer_mm"].get<double>();
+  std::printf("hull at 8 mm: chamfer %.3f mm in the stage box, %.3f mm in the rig's bounds\n",
+              chamfer_stage, chamfer_rig);
+  EXPECT_NEAR(chamfer_rig, chamfer_stage, 0.02 * chamfer_stage);
+}
+
+// Silhouettes that do not separate a subject (a threshold below the lit studio's walls) give a
+// hull that fills the cameras' shared view: DEGENERATE with the reason, never a "success"; so
+// do bounds that no camera looks at.
+TEST(StudioTest, AHullFillingItsBoundsOrUnseenBoundsAreDegenerate) {
+  TempDir dir;
+  const std::string take = "'" + StudioTake().string() + "'";
+  auto filled = RunCli("reconstruct " + take +
+                       " --method hull --silhouette-threshold 0.01 --voxel 16mm --no-sweep "
+                       "--no-glb --out '" +
+                       (dir / "filled").string() + "'");
+  EXPECT_EQ(filled.exit_code, 1) << filled.output;
+  EXPECT_NE(filled.output.find("holocap: error: reconstruction ended DEGENERATE"),
+            std::string::npos)
+      << filled.output;
+  EXPECT_NE(filled.output.find("the silhouettes do not separate a subject"), std::string::npos)
+      << filled.output;
+  std::ifstream file(dir / "filled" / "report.json");
+  const nlohmann::json report = nlohmann::json::parse(file);
+  EXPECT_EQ(report["summary"]["termination"], "DEGENERATE") << report["summary"];
+  EXPECT_EQ(report["plan"]["silhouettes"]["source"], "threshold");
+
+  auto unseen = RunCli("reconstruct " + take +
+                       " --method hull --bounds 40,40,40,41,41,41 --no-sweep --no-glb --out '" +
+                       (dir / "unseen").string() + "'");
+  EXPECT_EQ(unseen.exit_code, 1) << unseen.output;
+  EXPECT_NE(unseen.output.find("the cameras do not see the bounds: 0 of 8"), std::string::npos)
+      << unseen.output;
 }
 
 }  // namespace
