@@ -2,6 +2,7 @@
 #include <cstdio>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "calibration/calibration.h"
 #include "core/board.h"
 
@@ -12,6 +13,7 @@ struct BoardArgs {
   std::string board;
   std::string out;
   double dpi = 300;
+  bool overwrite = false;
 };
 
 void AddBoardCommand(CLI::App& app) {
@@ -22,8 +24,10 @@ void AddBoardCommand(CLI::App& app) {
       ->required();
   command->add_option("--out", args->out, "board.png or board.pdf")->required();
   command->add_option("--dpi", args->dpi, "PNG resolution")->capture_default_str();
+  AddOverwriteFlag(command, &args->overwrite);
   command->callback([args] {
     const BoardLayout layout = BoardLayout::Load(args->board);
+    const TakeLock lock = ClaimOutputFile(args->out, {"board", args->overwrite, {args->board}});
     WriteBoardPrint(layout, args->out, args->dpi);
     const Board board(layout);
     std::printf("%s board %dx%d points at %.1f mm spacing, %.1f x %.1f mm: %s\n",

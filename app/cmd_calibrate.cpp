@@ -84,6 +84,8 @@ void AddCalibrateCommand(CLI::App& app) {
   command->add_option("--threads", args->threads, "Detection threads (0: all cores)")
       ->capture_default_str();
   command->callback([args] {
+    // Calibration writes the take's calib/: one writer at a time.
+    const TakeLock lock = TakeLock::Acquire(args->take, "calibrate");
     TakeCalibrationOptions options;
     options.board_file = args->board;
     options.lensmodel = args->lensmodel;

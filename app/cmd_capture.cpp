@@ -81,6 +81,8 @@ static void AddCaptureCommand(CLI::App& app) {
                       {"capture: trigger_priority", "--trigger-priority"},
                       {"capture: codec", "--codec"}});
     RigDescription rig = RigDescription::Load(args->rig);
+    args->options.take.command = "capture";
+    args->options.take.inputs = {args->rig};
     Recorder recorder(rig, args->out, args->options);
     Report report("capture");
     report.options() = {{"rig", args->rig},

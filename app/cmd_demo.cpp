@@ -6,6 +6,7 @@
 #include <iostream>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/report.h"
@@ -25,6 +26,7 @@ struct DemoArgs {
   std::string out = "out/demo";
   int64_t frames = 6;
   uint64_t seed = 1;
+  bool overwrite = false;
 };
 
 // The first stage: a small studio8 take of the walking subject, its clean plate first.
@@ -57,6 +59,7 @@ void AddDemoCommand(CLI::App& app) {
   command->add_option("--out", args->out, "Output directory")->capture_default_str();
   command->add_option("--frames", args->frames, "Frame sets to simulate")->capture_default_str();
   command->add_option("--seed", args->seed, "Simulation seed")->capture_default_str();
+  AddOverwriteFlag(command, &args->overwrite);
   command->callback([args] {
     Report report("demo");
     report.options() = {{"out", args->out}, {"frames", args->frames}, {"seed", args->seed}};
@@ -66,7 +69,8 @@ void AddDemoCommand(CLI::App& app) {
                         .frames = args->frames,
                         .seed = args->seed,
                         .report = &report};
-    CreateDirectories(context.out);
+    const OutputDirectory claimed =
+        OutputDirectory::Claim(context.out, {"demo", args->overwrite, {}});
     auto stages = DemoStageTable();
     std::stable_sort(stages.begin(), stages.end(),
                      [](const auto& a, const auto& b) { return a.order < b.order; });

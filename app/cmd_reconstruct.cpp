@@ -17,6 +17,7 @@ namespace {
 struct ReconstructArgs {
   std::string take;
   std::string out;
+  bool overwrite = false;
   TakeSelectionFlags selection;
   SceneFlags scene;
   std::vector<std::string> heldout;
@@ -65,6 +66,7 @@ void AddReconstructCommand(CLI::App& app) {
   auto args = std::make_shared<ReconstructArgs>();
   command->add_option("take", args->take, "The take directory")->required();
   command->add_option("--out", args->out, "Output directory (default TAKE/recon)");
+  AddOverwriteFlag(command, &args->overwrite);
   AddTakeSelectionFlags(command, &args->selection);
   command->add_option("--method", args->method, "auto (depth -> tsdf, else mvs), hull, tsdf or mvs")
       ->capture_default_str();
@@ -105,8 +107,11 @@ void AddReconstructCommand(CLI::App& app) {
     options.texture.atlas = !args->no_atlas;
     if (args->no_sweep) options.sweep_voxels_m.clear();
     options.tsdf_hull_completion = !args->no_completion;
-    std::filesystem::path out = args->out.empty() ? std::filesystem::path(args->take) / "recon"
-                                                  : std::filesystem::path(args->out);
+    const OutputDirectory claimed =
+        OutputDirectory::Claim(args->out.empty() ? std::filesystem::path(args->take) / "recon"
+                                                 : std::filesystem::path(args->out),
+                               {"reconstruct", args->overwrite, {}});
+    const std::filesystem::path& out = claimed.path();
     Report report("reconstruct");
     ReconstructionSummary summary = ReconstructTake(args->take, selection, out, options, &report);
     PrintSummary(summary, report);

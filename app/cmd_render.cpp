@@ -2,6 +2,7 @@
 // playback of any trained model (model.json names its kind).
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 
 #include "app/commands.h"
 #include "app/options.h"
@@ -24,6 +25,7 @@ struct RenderArgs {
   int64_t frame = -1;
   bool no_skip = false;
   bool no_exr = false;
+  bool overwrite = false;
   double fps = 30;
   double step = 1.0;
   int threads = 0;
@@ -51,12 +53,26 @@ void AddRenderCommand(CLI::App& app) {
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
   command->add_option("--out", args->out, "A directory (PNG + EXR frames) or a file.mp4")
       ->required();
+  AddOverwriteFlag(command, &args->overwrite);
   command->add_flag("--no-skip", args->no_skip, "Evaluate every sample (no empty-space skipping)");
   command->add_flag("--no-exr", args->no_exr, "Directory output: PNG frames only");
   command->callback([args] {
     const std::filesystem::path model_dir =
         args->model.empty() ? std::filesystem::path(args->take) / "models" / "nvol"
                             : std::filesystem::path(args->model);
+    // Claimed before the model is read: a refused output costs nothing.
+    const std::filesystem::path out(args->out);
+    const bool to_video = out.extension() == ".mp4";
+    OutputRequest request{"render", args->overwrite, {model_dir}};
+    if (args->path != "orbit") request.inputs.push_back(args->path);
+    TakeLock file_lock;
+    std::optional<OutputDirectory> claimed;
+    if (to_video) {
+      file_lock = ClaimOutputFile(out, request);
+      ClaimOutputFile(out.string() + ".report.json", request);
+    } else {
+      claimed = OutputDirectory::Claim(out, request);
+    }
     RegisterRerenderModelKind();
     auto model = OpenModel(model_dir);
     CameraPath path;
@@ -93,10 +109,8 @@ void AddRenderCommand(CLI::App& app) {
                      {"views", path.size()}};
     PlaybackSummary summary = RenderPath(*model, path, options, &report);
     report.SetSummary(summary);
-    const std::filesystem::path out(args->out);
     const std::filesystem::path report_file =
-        out.extension() == ".mp4" ? std::filesystem::path(out.string() + ".report.json")
-                                  : out / "report.json";
+        to_video ? std::filesystem::path(out.string() + ".report.json") : out / "report.json";
     report.Write(report_file);
     std::printf("%s model, %lld frame(s) -> %s\nreport: %s\n", model->method().c_str(),
                 static_cast<long long>(model->frame_count()), out.c_str(), report_file.c_str());

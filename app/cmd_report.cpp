@@ -7,10 +7,12 @@
 #include <map>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "app/commands.h"
+#include "app/options.h"
 #include "core/error.h"
 #include "core/fs.h"
 
@@ -30,6 +32,7 @@ struct ReportArgs {
   std::vector<std::string> metrics;
   int rows = 8;
   bool log_y = false;
+  bool overwrite = false;
 };
 
 nlohmann::json LoadReport(const std::filesystem::path& file) {
@@ -205,10 +208,15 @@ void AddReportCommand(CLI::App& app) {
       ->capture_default_str()
       ->check(CLI::Range(2, 1000));
   command->add_flag("--log", args->log_y, "Log scale for every positive series");
+  AddOverwriteFlag(command, &args->overwrite);
   command->callback([args] {
     const auto files = ReportsUnder(args->path);
     const bool many = files.size() > 1 || std::filesystem::is_directory(args->path);
-    if (many && !args->out.empty()) CreateDirectories(args->out);
+    const OutputRequest request{"report", args->overwrite, {}};
+    std::optional<OutputDirectory> claimed;
+    TakeLock file_lock;
+    if (many && !args->out.empty()) claimed = OutputDirectory::Claim(args->out, request);
+    if (!many && !args->out.empty()) file_lock = ClaimOutputFile(args->out, request);
     for (const auto& file : files) {
       const nlohmann::json report = LoadReport(file);
       const Series series = SeriesOf(report, args->metrics);

@@ -20,6 +20,7 @@ namespace {
 struct SharedTrainArgs {
   std::string take;
   std::string out;
+  bool overwrite = false;
   TakeSelectionFlags selection;
   double minutes = 0;
   int64_t iterations = 0;
@@ -35,6 +36,11 @@ struct SharedTrainArgs {
   std::filesystem::path Out(const char* method) const {
     return out.empty() ? std::filesystem::path(take) / "models" / method
                        : std::filesystem::path(out);
+  }
+  // The model directory, claimed for `train <method>` (core/output.h): the take is locked
+  // while the returned object lives.
+  OutputDirectory Claim(const char* method) const {
+    return OutputDirectory::Claim(Out(method), {std::string("train ") + method, overwrite, {}});
   }
 };
 
@@ -69,6 +75,7 @@ void ApplyShared(const SharedTrainArgs& shared, Options* o) {
 void AddSharedTrainFlags(CLI::App* command, SharedTrainArgs* args) {
   command->add_option("TAKE", args->take, "The take directory")->required();
   command->add_option("--out", args->out, "Model directory (default: TAKE/models/<method>)");
+  AddOverwriteFlag(command, &args->overwrite);
   AddTakeSelectionFlags(command, &args->selection);
   command->add_option("--minutes", args->minutes, "Training time budget")->capture_default_str();
   command
@@ -151,7 +158,8 @@ void AddNvolCommand(CLI::App* train) {
     std::map<std::string, std::string> flags = kSharedFlags;
     flags.insert({{"grid", "--grid"}, {"rays_per_batch", "--rays"}, {"scene", "--scene"}});
     CheckNamingFlags([&] { o.Check(); }, flags);
-    const std::filesystem::path out = shared.Out("nvol");
+    const OutputDirectory claimed = shared.Claim("nvol");
+    const std::filesystem::path& out = claimed.path();
     Report report("train nvol");
     NeuralVolumeSummary summary = TrainNeuralVolume(shared.take, out, o, &report);
     PrintPlan(summary.plan);
@@ -301,7 +309,8 @@ void AddRerenderCommand(CLI::App* train) {
       ->capture_default_str();
   command->callback([args] {
     const RerenderOptions o = RerenderOptionsFrom(*args);
-    const std::filesystem::path out = args->shared.Out("rerender");
+    const OutputDirectory claimed = args->shared.Claim("rerender");
+    const std::filesystem::path& out = claimed.path();
     Report report("train rerender");
     RerenderSummary summary = TrainRerender(args->shared.take, out, o, &report);
     PrintPlan(summary.plan);

@@ -166,4 +166,10 @@ void FailUnlessUsable(const Summary& summary, const std::string& what) {
   }
 }
 
+void AddOverwriteFlag(CLI::App* command, bool* overwrite) {
+  command->add_flag("--overwrite", *overwrite,
+                    "Write into a non-empty output another command made, or replace an output "
+                    "file (nothing is removed; a take's recording is never an output)");
+}
+
 }  // namespace holocap

@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "core/output.h"
 #include "core/report.h"
 #include "core/take_plan.h"
 
@@ -55,6 +56,10 @@ Box ParseBounds(const std::string& text, const char* option = "--bounds");
 // `flag_of_field` is rethrown beginning with the flag the user typed instead.
 void CheckNamingFlags(const std::function<void()>& check,
                       const std::map<std::string, std::string>& flag_of_field);
+
+// --overwrite on a command that writes results: write into a non-empty output another command
+// made, or replace an output file (core/output.h; nothing is removed, no input is written).
+void AddOverwriteFlag(CLI::App* command, bool* overwrite);
 
 // The one exit rule (core/report.h): prints "STATE: message", and for a state that is not
 // usable ends the command with one `holocap: error:` line (exit status 1).

@@ -264,8 +264,9 @@ void RunDino(const BenchArgs& args, const fs::path& root) {
   ReconstructionOptions& r = options.reconstruction;
   r.method = ReconstructionMethod::kHull;
   r.voxel_m = 0.001;
-  r.bounds.min = Eigen::Vector3d(-0.072, -0.029, -0.068);
-  r.bounds.max = Eigen::Vector3d(0.021, 0.079, 0.026);
+  r.bounds = Box{};
+  r.bounds->min = Eigen::Vector3d(-0.072, -0.029, -0.068);
+  r.bounds->max = Eigen::Vector3d(0.021, 0.079, 0.026);
   r.silhouette.mode = SilhouetteMode::kThreshold;
   r.silhouette.open_px = 0;
   r.silhouette.dilate_px = 10;

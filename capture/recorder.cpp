@@ -92,13 +92,8 @@ Recorder::Recorder(const RigDescription& rig, std::filesystem::path out, Recorde
   options_.Check();
   rig_.Check();
   if (rig_.sensors.empty()) Fail("rig '", rig_.name, "' has no sensors");
-  std::error_code ec;
-  if (std::filesystem::exists(out_, ec) &&
-      (!std::filesystem::is_directory(out_, ec) ||
-       (!std::filesystem::is_empty(out_, ec) && !options_.take.overwrite))) {
-    Fail("'", out_.string(),
-         "' exists and is not an empty directory (refusing to overwrite a take)");
-  }
+  // Refused before any sensor opens; the take's writer claims it again when it starts.
+  ClaimTakeDirectory(out_, {options_.take.command, options_.take.overwrite, options_.take.inputs});
   for (const SensorSpec& rig_spec : rig_.sensors) {
     SensorSpec spec = rig_spec;
     if (!spec.options.is_object()) spec.options = nlohmann::json::object();

@@ -1,5 +1,7 @@
 #include "core/take.h"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -153,16 +155,16 @@ TakeWriter::TakeWriter(const std::filesystem::path& dir, const RigDescription& r
       Fail("stream '", stream.name, "': EXR frames hold depth_m only");
     }
   }
-  std::error_code ec;
-  if (std::filesystem::exists(dir_, ec)) {
-    if (!std::filesystem::is_directory(dir_))
-      Fail("'", dir_.string(), "' exists and is not a directory");
-    if (!std::filesystem::is_empty(dir_)) {
-      if (!options_.overwrite)
-        Fail("'", dir_.string(), "' is not empty (refusing to overwrite a take)");
-      std::filesystem::remove_all(dir_, ec);
-      if (ec) Fail("cannot clear '", dir_.string(), "': ", ec.message());
-    }
+  exceptions_at_start_ = std::uncaught_exceptions();
+  replaced_lock_ =
+      ClaimTakeDirectory(dir_, {options_.command, options_.overwrite, options_.inputs});
+  if (replaced_lock_.held()) {
+    // The old take stays whole, aside, until the new one is complete.
+    replaced_ = dir_;
+    replaced_ += ".replaced-" + std::to_string(::getpid());
+    std::error_code ec;
+    std::filesystem::rename(dir_, replaced_, ec);
+    if (ec) Fail("cannot move the take '", dir_.string(), "' aside: ", ec.message());
   }
   CreateDirectories(dir_);
   for (const auto& stream : streams_) CreateDirectories(dir_ / "frames" / stream.name);
@@ -172,11 +174,25 @@ TakeWriter::TakeWriter(const std::filesystem::path& dir, const RigDescription& r
 }
 
 TakeWriter::~TakeWriter() {
+  if (std::uncaught_exceptions() > exceptions_at_start_) {
+    index_.Close();  // the manifest stays "recording": this take was not finished
+    PutBackReplacedTake();
+    return;
+  }
   try {
     Close();
   } catch (...) {
     // The index already holds every complete set; a manifest left at "recording" is readable.
   }
+}
+
+void TakeWriter::PutBackReplacedTake() {
+  if (replaced_.empty()) return;
+  std::error_code ec;
+  std::filesystem::remove_all(dir_, ec);
+  if (!ec) std::filesystem::rename(replaced_, dir_, ec);
+  // Where either step failed, the old take is still whole at replaced_.
+  replaced_.clear();
 }
 
 void TakeWriter::WriteManifest(const std::string& state) {
@@ -263,6 +279,12 @@ void TakeWriter::Close() {
   closed_ = true;
   index_.Close();
   WriteManifest("complete");
+  if (!replaced_.empty()) {
+    std::error_code ec;
+    std::filesystem::remove_all(replaced_, ec);
+    replaced_.clear();
+    replaced_lock_ = TakeLock();
+  }
 }
 
 int64_t TakeWriter::sets_written() const {

@@ -27,6 +27,7 @@
 #include "core/camera.h"
 #include "core/fs.h"
 #include "core/image.h"
+#include "core/output.h"
 #include "core/rig.h"
 
 namespace holocap {
@@ -85,17 +86,24 @@ struct TakeWriterOptions {
   bool durable = false;     // fsync frames and index lines (power-loss safety, slower)
   int png_compression = 1;  // 0..9
   int manifest_every = 30;  // rewrite take.json every N sets (drop counts stay current)
-  bool overwrite = false;   // allow an existing non-empty directory to be replaced
+  bool overwrite = false;   // replace an existing take made by import or sim (never a capture)
+  std::string command = "write";              // named in messages and the take's lock
+  std::vector<std::filesystem::path> inputs;  // never under the take (core/output.h)
 };
 
 class TakeWriter {
  public:
-  // Creates the take directory and writes the first manifest. Throws Error if the directory
-  // exists and is not empty (unless options.overwrite) or cannot be written.
+  // Creates the take directory and writes the first manifest. Throws Error where
+  // ClaimTakeDirectory (core/output.h) refuses the directory or it cannot be written. A take
+  // being replaced (options.overwrite) is moved aside to DIR.replaced-PID, locked, and removed
+  // only when Close() completes the new take; it is moved back if the new one is abandoned by
+  // an exception.
   TakeWriter(const std::filesystem::path& dir, const RigDescription& rig,
              std::vector<StreamInfo> streams, nlohmann::json metadata = nlohmann::json::object(),
              TakeWriterOptions options = {});
-  ~TakeWriter();  // closes if still open (errors are swallowed there: call Close())
+  // Closes if still open (errors are swallowed there: call Close()); while an exception
+  // unwinds, the take is left "recording" instead, and a replaced take is put back.
+  ~TakeWriter();
   TakeWriter(const TakeWriter&) = delete;
   TakeWriter& operator=(const TakeWriter&) = delete;
 
@@ -116,7 +124,12 @@ class TakeWriter {
  private:
   void WriteManifest(const std::string& state);
 
+  void PutBackReplacedTake();
+
   std::filesystem::path dir_;
+  std::filesystem::path replaced_;  // the take this one replaces, moved aside until Close()
+  TakeLock replaced_lock_;
+  int exceptions_at_start_ = 0;
   RigDescription rig_;
   std::vector<StreamInfo> streams_;
   nlohmann::json metadata_;

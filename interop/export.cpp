@@ -28,6 +28,9 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir,
                          const ExportOptions& options, Report* report) {
   options.Check();
   Take take = Take::Open(take_dir);
+  // Claimed first: a refused output costs nothing (the folder is made empty if it is new).
+  const OutputDirectory claimed =
+      OutputDirectory::Claim(out_dir, {"export", options.overwrite, {take_dir}});
   if (report != nullptr) {
     report->options() = {{"format", ToString(options.format)},
                          {"take", take_dir.string()},
@@ -35,7 +38,7 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir,
                          {"copy_images", options.copy_images}};
   }
   ExportSummary summary;
-  // Cameras first: a model the format cannot hold stops the export before anything is written.
+  // Cameras first: a model the format cannot hold stops the export before any file is written.
   std::vector<std::pair<const StreamInfo*, CameraModel>> cameras;
   std::vector<std::string> unrepresentable;
   for (const auto& stream : take.streams()) {
@@ -72,11 +75,6 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir,
   if (cameras.empty())
     Fail("take '", take_dir.string(), "' has no colour camera to export to ",
          ToString(options.format));
-  std::error_code ec;
-  if (fs::exists(out_dir, ec) && !fs::is_empty(out_dir, ec) && !options.overwrite) {
-    Fail("'", out_dir.string(), "' is not empty (pass --overwrite to write into it)");
-  }
-  CreateDirectories(out_dir);
 
   // Every frame of every camera becomes one image named <sensor>/<set>.png.
   struct ExportedImage {

@@ -623,6 +623,12 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
   TakeWriterOptions writer_options;
   writer_options.png_compression = options.png_compression;
   writer_options.overwrite = options.overwrite;
+  writer_options.command = "import";
+  writer_options.inputs = {source, rig.source};
+  if (!options.images.empty()) writer_options.inputs.push_back(options.images);
+  for (const auto& view : rig.views) {
+    for (const auto& [number, file] : view.frames) writer_options.inputs.push_back(file);
+  }
   TakeWriter writer(take_dir, description, streams, metadata, writer_options);
   CreateDirectories(take_dir / "calib");
   for (const auto& view : rig.views)

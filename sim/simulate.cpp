@@ -85,6 +85,9 @@ class Simulation {
     }
     TakeWriterOptions writer_options;
     writer_options.overwrite = options_.overwrite;
+    writer_options.command = "sim";
+    std::error_code ec;
+    if (std::filesystem::exists(options_.rig, ec)) writer_options.inputs = {options_.rig};
     writer_options.manifest_every = 30;
     const Json metadata = {{"simulated", true},
                            {"scene", options_.scene},

@@ -20,15 +20,7 @@ namespace {
 using testing::RunCli;
 using testing::TempDir;
 
-// The error contract: exit status non-zero and exactly one line, starting "holocap: error:".
-void ExpectOneLineError(const testing::CommandResult& result, const std::string& needle) {
-  EXPECT_NE(result.exit_code, 0) << result.output;
-  std::string output = result.output;
-  while (!output.empty() && output.back() == '\n') output.pop_back();
-  EXPECT_EQ(output.find('\n'), std::string::npos) << "more than one line:\n" << result.output;
-  EXPECT_EQ(output.rfind("holocap: error: ", 0), 0u) << result.output;
-  EXPECT_NE(output.find(needle), std::string::npos) << "expected '" << needle << "' in: " << output;
-}
+using testing::ExpectOneLineError;
 
 class SimulatedTake : public ::testing::Test {
  protected:

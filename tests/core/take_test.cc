@@ -116,6 +116,40 @@ TEST(Take, RefusesToOverwriteAndNamesBadFrames) {
   EXPECT_THROW(TakeWriter(dir / "take", TwoSensorRig(), TwoStreams()), Error);
 }
 
+// --overwrite replaces a take only with a complete one: a replacement abandoned by an exception
+// puts the old take back whole; a completed one leaves nothing of the old beside it.
+TEST(Take, AReplacementAbandonedByAnErrorPutsTheOldTakeBack) {
+  TempDir dir;
+  {
+    TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams());
+    writer.Append(RandomSet(0, 1));
+    writer.Append(RandomSet(1, 2));
+  }
+  const std::string manifest = ReadFileToString(dir / "take/take.json");
+  const cv::Mat frame = Take::Open(dir / "take").ReadFrame(1, "cam0");
+  TakeWriterOptions replace;
+  replace.overwrite = true;
+  EXPECT_THROW(
+      {
+        TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams(), {}, replace);
+        writer.Append(RandomSet(0, 7));
+        FrameSet wrong = RandomSet(1, 8);
+        wrong.frames[0].image = cv::Mat(10, 10, CV_8UC3);
+        writer.Append(wrong);  // throws: the writer is abandoned mid-take
+      },
+      Error);
+  EXPECT_EQ(ReadFileToString(dir / "take/take.json"), manifest);
+  EXPECT_TRUE(SameImage(Take::Open(dir / "take").ReadFrame(1, "cam0"), frame));
+  EXPECT_EQ(std::distance(fs::directory_iterator(dir.path()), fs::directory_iterator()), 1);
+  {
+    TakeWriter writer(dir / "take", TwoSensorRig(), TwoStreams(), {}, replace);
+    writer.Append(RandomSet(0, 9));
+    writer.Close();
+  }
+  EXPECT_EQ(Take::Open(dir / "take").size(), 1u);
+  EXPECT_EQ(std::distance(fs::directory_iterator(dir.path()), fs::directory_iterator()), 1);
+}
+
 // A writer killed with SIGKILL mid-take leaves a take that opens with every complete set.
 TEST(Take, SurvivesKillNineMidWrite) {
   TempDir dir;

@@ -1,5 +1,6 @@
 #include "tests/support/test_support.h"
 
+#include <gtest/gtest.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -48,6 +49,15 @@ CommandResult RunShell(const std::string& command) {
 
 CommandResult RunCli(const std::string& args) {
   return RunShell("HOLOCAP_NO_PROGRESS=1 '" + CliPath() + "' " + args);
+}
+
+void ExpectOneLineError(const CommandResult& result, const std::string& needle) {
+  EXPECT_NE(result.exit_code, 0) << result.output;
+  std::string output = result.output;
+  while (!output.empty() && output.back() == '\n') output.pop_back();
+  EXPECT_EQ(output.find('\n'), std::string::npos) << "more than one line:\n" << result.output;
+  EXPECT_EQ(output.rfind("holocap: error: ", 0), 0u) << result.output;
+  EXPECT_NE(output.find(needle), std::string::npos) << "expected '" << needle << "' in: " << output;
 }
 
 }  // namespace holocap::testing

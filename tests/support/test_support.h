@@ -34,4 +34,8 @@ CommandResult RunCli(const std::string& args);
 // Runs any shell command and captures its output.
 CommandResult RunShell(const std::string& command);
 
+// The error contract: exit status non-zero and exactly one line, starting "holocap: error:",
+// that holds `needle` (a GoogleTest expectation).
+void ExpectOneLineError(const CommandResult& result, const std::string& needle);
+
 }  // namespace holocap::testing

@@ -1,0 +1,175 @@
+// Issue cases of "nothing recorded is ever lost", through the CLI: no command writes into a
+// take's recording or over its own input, a non-empty folder another command made is written
+// into only with --overwrite (which removes nothing), a replaced take is put back when its
+// replacement fails, and a take has one writer at a time.
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "core/fs.h"
+#include "core/output.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::ExpectOneLineError;
+using testing::RunCli;
+using testing::TempDir;
+namespace fs = std::filesystem;
+
+// Every file under `dir` (relative name -> hash of its bytes): two calls compare a folder.
+std::map<std::string, size_t> Contents(const fs::path& dir) {
+  std::map<std::string, size_t> files;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    if (!entry.is_regular_file()) continue;
+    const std::string name = fs::relative(entry.path(), dir).string();
+    if (name == kTakeLockFile) continue;  // the lock's note is not part of the recording
+    files[name] = std::hash<std::string>{}(ReadFileToString(entry.path()));
+  }
+  return files;
+}
+
+class OutputSafety : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new TempDir("holocap-output");
+    auto result =
+        RunCli("sim --rig single-rgbd --frames 2 --size 96x72 --no-noise --out " + take().string());
+    ASSERT_EQ(result.exit_code, 0) << result.output;
+  }
+  static void TearDownTestSuite() { delete dir_; }
+  static fs::path take() { return dir_->path() / "take"; }
+  static TempDir* dir_;
+};
+TempDir* OutputSafety::dir_ = nullptr;
+
+// Case 1: render (and every other writer) refuses the take's recorded data and the take itself;
+// the refusal comes before any model is read, and the take's bytes do not change.
+TEST_F(OutputSafety, NoCommandWritesIntoATakesRecording) {
+  const auto before = Contents(take());
+  const std::string t = take().string();
+  ExpectOneLineError(RunCli("render " + t + " --model " + t + "/models/nvol --size 64 --views 2" +
+                            " --out " + t + "/frames/cam0"),
+                     "is part of the recorded take");
+  ExpectOneLineError(RunCli("render " + t + " --size 64 --views 2 --out " + t + " --overwrite"),
+                     "is a take's directory");
+  ExpectOneLineError(RunCli("render " + t + " --size 64 --views 2 --out " + t + "/gt/orbit.mp4"),
+                     "(gt)");
+  ExpectOneLineError(RunCli("reconstruct " + t + " --out " + t + "/calib --overwrite"), "(calib)");
+  ExpectOneLineError(RunCli("train nvol " + t + " --iterations 1 --out " + t + "/frames"),
+                     "(frames)");
+  ExpectOneLineError(RunCli("export colmap " + t + " --out " + t + "/frames/depth --overwrite"),
+                     "(frames)");
+  ExpectOneLineError(RunCli("report " + t + "/report.json --out " + t + "/report.json --overwrite"),
+                     "(report.json)");
+  ExpectOneLineError(RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --overwrite --out " + t +
+                            "/frames/cam0"),
+                     "(frames)");
+  EXPECT_EQ(Contents(take()), before);
+}
+
+// A folder another command made (or the user's own) is written into only with --overwrite, and
+// then nothing in it is removed; a command's own output it reuses without the flag.
+TEST_F(OutputSafety, AForeignFolderNeedsOverwriteAndKeepsWhatIsThere) {
+  TempDir dir;
+  fs::create_directories(dir / "mine");
+  std::ofstream(dir / "mine/notes.txt") << "the user's";
+  const std::string export_to =
+      "export colmap " + take().string() + " --ground-truth --no-images --out ";
+  ExpectOneLineError(RunCli(export_to + (dir / "mine").string()), "did not make it");
+  auto result = RunCli(export_to + (dir / "mine").string() + " --overwrite");
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  EXPECT_EQ(ReadFileToString(dir / "mine/notes.txt"), "the user's");
+  result = RunCli(export_to + (dir / "exported").string());
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  result = RunCli(export_to + (dir / "exported").string());  // its own output: no flag needed
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  ExpectOneLineError(
+      RunCli("reconstruct " + take().string() + " --out " + (dir / "exported").string()),
+      "(holocap export)");
+}
+
+// Case 2: import --overwrite never removes its own source, and replaces a take whole.
+TEST(ImportOutput, OverwriteNeverRemovesTheSourceAndAFailedReplacementPutsTheTakeBack) {
+  TempDir dir;
+  const fs::path dino = dir / "dino";
+  fs::copy(testing::TestDataDir() / "middlebury" / "dinoSparseRing", dino);
+  const auto source = Contents(dino);
+  ExpectOneLineError(
+      RunCli("import middlebury " + dino.string() + " --out " + dino.string() + " --overwrite"),
+      "holds the input");
+  ExpectOneLineError(RunCli("import middlebury " + (dino / "dinoSR_par.txt").string() + " --out " +
+                            dino.string() + " --overwrite"),
+                     "holds the input");
+  EXPECT_EQ(Contents(dino), source);
+
+  // A take made by import, replaced by a new import (one image changed): the new take in its
+  // place, nothing of the old one left beside it (core's take test covers a failed one).
+  const fs::path take = dir / "take";
+  auto result = RunCli("import middlebury " + dino.string() + " --out " + take.string());
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  const auto imported = Contents(take);
+  cv::Mat image = cv::imread((dino / "dinoSR0009.png").string(), cv::IMREAD_UNCHANGED);
+  cv::resize(image, image, cv::Size(320, 240));
+  cv::imwrite((dino / "dinoSR0009.png").string(), image);
+  ExpectOneLineError(RunCli("import middlebury " + dino.string() + " --out " + take.string()),
+                     "not empty");
+  EXPECT_EQ(Contents(take), imported);
+  result =
+      RunCli("import middlebury " + dino.string() + " --out " + take.string() + " --overwrite");
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  EXPECT_NE(Contents(take), imported);
+  EXPECT_EQ(std::distance(fs::directory_iterator(dir.path()), fs::directory_iterator()), 2)
+      << "nothing left beside the take";
+
+  // --overwrite replaces a take only: a folder of the user's is not one.
+  fs::create_directories(dir / "photos");
+  std::ofstream(dir / "photos/holiday.jpg") << "jpeg";
+  fs::copy(testing::TestDataDir() / "middlebury" / "dinoSparseRing", dir / "dino2");
+  ExpectOneLineError(RunCli("import middlebury " + (dir / "dino2").string() + " --out " +
+                            (dir / "photos").string() + " --overwrite"),
+                     "holds no take");
+  EXPECT_TRUE(fs::exists(dir / "photos/holiday.jpg"));
+}
+
+// A recording made by holocap capture is never replaced, even with --overwrite.
+TEST_F(OutputSafety, ARecordingIsNeverReplaced) {
+  TempDir dir;
+  fs::copy(take(), dir / "recorded", fs::copy_options::recursive);
+  auto manifest = nlohmann::json::parse(ReadFileToString(dir / "recorded/take.json"));
+  manifest["metadata"]["capture"] = {{"rig", "two cameras"}};
+  WriteFileAtomic(dir / "recorded/take.json", manifest.dump(2));
+  const auto before = Contents(dir / "recorded");
+  ExpectOneLineError(RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --overwrite --out " +
+                            (dir / "recorded").string()),
+                     "recording made by holocap capture");
+  EXPECT_EQ(Contents(dir / "recorded"), before);
+}
+
+// Case 8: a take has one writer at a time; the second gets one line naming the first, and the
+// take is free again once the first has ended.
+TEST_F(OutputSafety, ASecondWriterOfATakeIsRefusedNamingTheFirst) {
+  const auto before = Contents(take());
+  {
+    const TakeLock held = TakeLock::Acquire(take(), "reconstruct");
+    ExpectOneLineError(RunCli("reconstruct " + take().string() + " --method hull"),
+                       "is being written by pid " + std::to_string(::getpid()));
+    ExpectOneLineError(RunCli("export nerf " + take().string() +
+                              " --ground-truth --no-images --out " + (take() / "nerf").string()),
+                       "one command writes into a take at a time");
+    ExpectOneLineError(RunCli("calibrate " + take().string()), "is being written by");
+  }
+  auto result = RunCli("export nerf " + take().string() + " --ground-truth --no-images --out " +
+                       (take() / "nerf").string());
+  EXPECT_EQ(result.exit_code, 0) << result.output;
+  fs::remove_all(take() / "nerf");
+  EXPECT_EQ(Contents(take()), before);
+}
+
+}  // namespace
+}  // namespace holocap
