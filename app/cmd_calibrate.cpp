@@ -73,8 +73,10 @@ void AddCalibrateCommand(CLI::App& app) {
   command->add_option("--lens-model", args->lensmodel,
                       "mrcal lens model for every camera (default: per camera from the rig, "
                       "else LENSMODEL_OPENCV8)");
-  command->add_option("--sensors", args->sensors,
-                      "Cameras to calibrate (default: all colour cameras)");
+  command
+      ->add_option("--sensors", args->sensors,
+                   "Cameras to calibrate, comma-separated (default: all colour cameras)")
+      ->delimiter(',');
   command->add_option("--reference", args->reference, "Reference camera (default: the first)");
   command->add_flag("--no-uncertainty", args->no_uncertainty, "Skip the projection uncertainty");
   command->add_flag("--cross-validate", args->cross_validation,
@@ -96,6 +98,7 @@ void AddCalibrateCommand(CLI::App& app) {
     options.pictures = !args->no_pictures;
     options.detection.threads = args->threads;
     Report report("calibrate");
+    report.SetFailureDestination(std::filesystem::path(args->take) / "calib" / "report.json");
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
     PrintSummary(summary);
     std::printf("report: %s\n",

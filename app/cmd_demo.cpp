@@ -15,11 +15,6 @@
 
 namespace holocap {
 
-std::vector<DemoStage>& DemoStageTable() {
-  static std::vector<DemoStage> table;
-  return table;
-}
-
 namespace {
 
 struct DemoArgs {
@@ -71,6 +66,7 @@ void AddDemoCommand(CLI::App& app) {
                         .report = &report};
     const OutputDirectory claimed =
         OutputDirectory::Claim(context.out, {"demo", args->overwrite, {}});
+    report.SetFailureDestination(context.out / "report.json");
     auto stages = DemoStageTable();
     std::stable_sort(stages.begin(), stages.end(),
                      [](const auto& a, const auto& b) { return a.order < b.order; });

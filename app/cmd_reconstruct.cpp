@@ -75,8 +75,8 @@ void AddReconstructCommand(CLI::App& app) {
   AddSceneFlags(command, &args->scene);
   command
       ->add_option("--heldout-names", args->heldout,
-                   "Colour cameras never reconstructed from; the mesh's silhouette in each is "
-                   "scored against its own (IoU)")
+                   "Colour cameras never reconstructed from (comma-separated); the mesh's "
+                   "silhouette in each is scored against its own (IoU)")
       ->delimiter(',');
   command
       ->add_option("--conservative", args->conservative,
@@ -113,6 +113,7 @@ void AddReconstructCommand(CLI::App& app) {
                                {"reconstruct", args->overwrite, {}});
     const std::filesystem::path& out = claimed.path();
     Report report("reconstruct");
+    report.SetFailureDestination(out / "report.json");
     ReconstructionSummary summary = ReconstructTake(args->take, selection, out, options, &report);
     PrintSummary(summary, report);
     std::printf("meshes and report: %s\n", out.c_str());

@@ -57,6 +57,11 @@ void AddRenderCommand(CLI::App& app) {
   command->add_flag("--no-skip", args->no_skip, "Evaluate every sample (no empty-space skipping)");
   command->add_flag("--no-exr", args->no_exr, "Directory output: PNG frames only");
   command->callback([args] {
+    // Checked before anything is allocated: 8192 px square is 1 GiB of float RGBA per frame.
+    if (args->size < 8 || args->size > 8192)
+      Fail("--size ", args->size, " is outside 8..8192 pixels");
+    if (args->views < 1 || args->views > 100000)
+      Fail("--views ", args->views, " is outside 1..100000");
     const std::filesystem::path model_dir =
         args->model.empty() ? std::filesystem::path(args->take) / "models" / "nvol"
                             : std::filesystem::path(args->model);
@@ -100,6 +105,8 @@ void AddRenderCommand(CLI::App& app) {
     options.render.step_voxels = args->step;
     options.render.threads = args->threads;
     Report report("render");
+    report.SetFailureDestination(to_video ? std::filesystem::path(out.string() + ".report.json")
+                                          : out / "report.json");
     report.options() = {
         {"take", args->take},           {"model", model_dir.string()}, {"path", args->path},
         {"size", args->size},           {"views", args->views},        {"frame", args->frame},

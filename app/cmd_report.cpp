@@ -203,7 +203,9 @@ void AddReportCommand(CLI::App& app) {
       "--out", args->out,
       "Plot the error-against-time series to this PNG (with a directory: one PNG per report, "
       "into this directory)");
-  command->add_option("--metric", args->metrics, "Only these series (default: all)");
+  command
+      ->add_option("--metric", args->metrics, "Only these series, comma-separated (default: all)")
+      ->delimiter(',');
   command->add_option("--rows", args->rows, "Rows shown per series")
       ->capture_default_str()
       ->check(CLI::Range(2, 1000));

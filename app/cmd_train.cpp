@@ -161,6 +161,7 @@ void AddNvolCommand(CLI::App* train) {
     const OutputDirectory claimed = shared.Claim("nvol");
     const std::filesystem::path& out = claimed.path();
     Report report("train nvol");
+    report.SetFailureDestination(out / "report.json");
     NeuralVolumeSummary summary = TrainNeuralVolume(shared.take, out, o, &report);
     PrintPlan(summary.plan);
     std::printf("iterations   %lld in %.1f s (%.2f it/s)\n",
@@ -203,8 +204,10 @@ void AddRerenderWitnessFlags(CLI::App* command, RerenderOptions& r) {
                    "last fold's "
                    "validate; overrides --witness-folds)")
       ->delimiter(',');
-  command->add_option("--fold-recon", r.fold_recon_dirs,
-                      "Use these reconstructions of the further folds (in order)");
+  command
+      ->add_option("--fold-recon", r.fold_recon_dirs,
+                   "Use these reconstructions of the further folds (in order, comma-separated)")
+      ->delimiter(',');
   command
       ->add_option("--validation-witnesses", r.validation_witnesses,
                    "Witnesses kept from training to choose the weights where they peak (0: last "
@@ -312,6 +315,7 @@ void AddRerenderCommand(CLI::App* train) {
     const OutputDirectory claimed = args->shared.Claim("rerender");
     const std::filesystem::path& out = claimed.path();
     Report report("train rerender");
+    report.SetFailureDestination(out / "report.json");
     RerenderSummary summary = TrainRerender(args->shared.take, out, o, &report);
     PrintPlan(summary.plan);
     std::printf("iterations   %lld in %.1f s\n", static_cast<long long>(summary.iterations),

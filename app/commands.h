@@ -22,6 +22,11 @@ struct CommandEntry {
   std::function<void(CLI::App&)> add;
 };
 std::vector<CommandEntry>& CommandTable();
+
+// The commands that learn or play an avatar (demo, train, render) need LibTorch, whose start-up
+// costs every command a second and ~170 MB: they live in holocap-neural, beside holocap, which
+// hands them over (execv, the same arguments) before parsing. holocap-neural runs them itself.
+void HandOverNeuralCommands(int argc, char** argv);
 struct CommandRegistrar {
   CommandRegistrar(int order, std::function<void(CLI::App&)> add) {
     CommandTable().push_back({order, std::move(add)});

@@ -5,6 +5,7 @@
 
 #include "app/commands.h"
 #include "core/error.h"
+#include "core/report.h"
 
 namespace holocap {
 std::vector<CommandEntry>& CommandTable() {
@@ -14,6 +15,7 @@ std::vector<CommandEntry>& CommandTable() {
 }  // namespace holocap
 
 int main(int argc, char** argv) {
+  holocap::HandOverNeuralCommands(argc, argv);
   CLI::App app{
       "holocap: record multi-camera takes, calibrate the rig, reconstruct geometry, learn an "
       "avatar and play it back from any viewpoint"};
@@ -28,10 +30,9 @@ int main(int argc, char** argv) {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e);
-  } catch (const holocap::Error& e) {
-    std::fprintf(stderr, "holocap: error: %s\n", e.what());
-    return 1;
   } catch (const std::exception& e) {
+    // The reports of the stages it stopped hold FAILURE, this line, and what ran before it.
+    holocap::WritePendingFailureReports(e.what());
     std::fprintf(stderr, "holocap: error: %s\n", e.what());
     return 1;
   }

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <sstream>
 
+#include "app/commands.h"
 #include "core/error.h"
 #include "reconstruction/reconstruction.h"
 
@@ -164,6 +165,11 @@ void FailUnlessUsable(const Summary& summary, const std::string& what) {
   if (ExitStatus(summary.termination) != 0) {
     Fail(what, " ended ", ToString(summary.termination), ": ", summary.message);
   }
+}
+
+std::vector<DemoStage>& DemoStageTable() {
+  static std::vector<DemoStage> table;
+  return table;
 }
 
 void AddOverwriteFlag(CLI::App* command, bool* overwrite) {

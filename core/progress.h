@@ -1,5 +1,6 @@
-// Progress for long work: a single updating line on a terminal, nothing when stderr is not a
-// TTY (CI, pipes, files), so logs stay clean.
+// Progress for long work, on stderr: a single updating line on a terminal; where stderr is not
+// a terminal (a pipe, a log file, a batch job), one plain line every kLineEverySeconds and a
+// last one when the work took longer than that; nothing with HOLOCAP_NO_PROGRESS set.
 #pragma once
 
 #include <chrono>
@@ -19,15 +20,19 @@ class Progress {
   void Finish();
 
   static bool IsTerminal();  // stderr is a TTY and HOLOCAP_NO_PROGRESS is unset
+  static constexpr double kLineEverySeconds = 10;
 
  private:
+  enum class Mode { kOff, kTerminal, kLines };
   void Draw();
+  void PrintLine(double elapsed);
   std::string label_;
   int64_t total_;
   int64_t done_ = 0;
   std::string status_;
-  bool enabled_;
+  Mode mode_;
   bool finished_ = false;
+  bool printed_line_ = false;
   std::chrono::steady_clock::time_point start_;
   std::chrono::steady_clock::time_point last_draw_;
   std::mutex mutex_;

@@ -27,7 +27,22 @@ bool IsUsable(Termination termination) {
 
 int ExitStatus(Termination termination) { return IsUsable(termination) ? 0 : 1; }
 
-Report::Report(std::string command) : start_(std::chrono::steady_clock::now()) {
+namespace {
+
+struct PendingReport {
+  std::filesystem::path file;
+  nlohmann::json json;
+};
+std::mutex pending_mutex;
+std::vector<PendingReport>& PendingReports() {
+  static std::vector<PendingReport> pending;
+  return pending;
+}
+
+}  // namespace
+
+Report::Report(std::string command)
+    : exceptions_at_start_(std::uncaught_exceptions()), start_(std::chrono::steady_clock::now()) {
   json_["command"] = std::move(command);
   json_["options"] = nlohmann::json::object();
   json_["plan"] = nlohmann::json::object();
@@ -62,6 +77,41 @@ void Report::Write(const std::filesystem::path& file) const {
   }
   if (file.has_parent_path()) CreateDirectories(file.parent_path());
   WriteFileAtomic(file, text);
+}
+
+Report::~Report() {
+  if (failure_file_.empty() || std::uncaught_exceptions() <= exceptions_at_start_) return;
+  try {
+    std::lock_guard lock(mutex_);
+    nlohmann::json copy = json_;
+    copy["elapsed_s"] = ElapsedSeconds();
+    std::lock_guard pending_lock(pending_mutex);
+    PendingReports().push_back({failure_file_, std::move(copy)});
+  } catch (...) {
+    // Out of memory while unwinding: the error line still says what happened.
+  }
+}
+
+std::vector<std::filesystem::path> WritePendingFailureReports(const std::string& message) {
+  std::vector<PendingReport> pending;
+  {
+    std::lock_guard lock(pending_mutex);
+    pending.swap(PendingReports());
+  }
+  std::vector<std::filesystem::path> written;
+  for (auto& report : pending) {
+    report.json["summary"] = {{"termination", ToString(Termination::kFailure)},
+                              {"message", message}};
+    try {
+      WriteFileAtomic(
+          report.file,
+          report.json.dump(2, ' ', false, nlohmann::json::error_handler_t::replace) + "\n");
+      written.push_back(report.file);
+    } catch (...) {
+      // A full disk or a vanished folder: the error line is all there is.
+    }
+  }
+  return written;
 }
 
 }  // namespace holocap

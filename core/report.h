@@ -10,19 +10,21 @@
 #include <nlohmann/json.hpp>
 #include <string>
 #include <utility>
+#include <vector>
 
 namespace holocap {
 
 // How a stage ended: one contract for every stage and every command.
 //
-// | state            | means                                                         | usable |
-// exit |
-// |------------------|---------------------------------------------------------------|--------|------|
-// | SUCCESS          | the stage reached its goal (did all it set out to do)         | yes    | 0 |
-// | CONVERGENCE      | an iterative stage stopped because its error stopped falling  | yes    | 0 |
-// | NO_CONVERGENCE   | the budget (iterations, time) ran out while the error fell    | yes    | 0 |
-// | DEGENERATE       | the input cannot support the result; the reason is the message| no     | 1 |
-// | FAILURE          | the stage could not run (I/O, NaN, divergence), or never ran  | no     | 1 |
+// clang-format off
+// | state          | means                                                          | usable | exit |
+// |----------------|----------------------------------------------------------------|--------|------|
+// | SUCCESS        | the stage reached its goal (did all it set out to do)          | yes    | 0    |
+// | CONVERGENCE    | an iterative stage stopped because its error stopped falling   | yes    | 0    |
+// | NO_CONVERGENCE | the budget (iterations, time) ran out while the error fell     | yes    | 0    |
+// | DEGENERATE     | the input cannot support the result; the reason is the message | no     | 1    |
+// | FAILURE        | the stage could not run (I/O, NaN, divergence), or never ran   | no     | 1    |
+// clang-format on
 //
 // A usable result is written and may be used by the next stage; NO_CONVERGENCE says a larger
 // budget would still improve it. Every stage's summary derives from Summary, which starts as
@@ -54,6 +56,11 @@ struct Summary {
 class Report {
  public:
   explicit Report(std::string command);
+  // A report that has a failure destination and dies while an exception unwinds (the command
+  // ended by an error before writing it) is kept for WritePendingFailureReports.
+  ~Report();
+  Report(const Report&) = delete;
+  Report& operator=(const Report&) = delete;
 
   nlohmann::json& options() { return json_["options"]; }
   nlohmann::json& plan() { return json_["plan"]; }
@@ -67,11 +74,21 @@ class Report {
 
   // Writes atomically (report.json stays readable if the process dies mid-write).
   void Write(const std::filesystem::path& file) const;
+  // Where this report goes if the command ends by an error first: set once the command has
+  // claimed its output (core/output.h), so a refused output never receives a report.
+  void SetFailureDestination(const std::filesystem::path& file) { failure_file_ = file; }
 
  private:
+  std::filesystem::path failure_file_;
+  int exceptions_at_start_ = 0;
   std::chrono::steady_clock::time_point start_;
   mutable std::mutex mutex_;
   nlohmann::json json_;
 };
+
+// Writes each report that died with an exception (see ~Report) to its failure destination with
+// FAILURE and `message` (the error line's text): options, plan, metrics and series so far are
+// kept. Returns the files written; errors while writing are swallowed (the error line stands).
+std::vector<std::filesystem::path> WritePendingFailureReports(const std::string& message);
 
 }  // namespace holocap

@@ -117,6 +117,7 @@ class TakeWriter {
   void Close();
 
   const std::filesystem::path& dir() const { return dir_; }
+  bool replacing() const { return !replaced_.empty(); }  // an older take waits aside
   int64_t sets_written() const;
   uint64_t bytes_written() const;
   const std::vector<StreamInfo>& streams() const { return streams_; }

@@ -31,6 +31,7 @@ ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir,
   // Claimed first: a refused output costs nothing (the folder is made empty if it is new).
   const OutputDirectory claimed =
       OutputDirectory::Claim(out_dir, {"export", options.overwrite, {take_dir}});
+  if (report != nullptr) report->SetFailureDestination(out_dir / "report.json");
   if (report != nullptr) {
     report->options() = {{"format", ToString(options.format)},
                          {"take", take_dir.string()},

@@ -630,6 +630,9 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
     for (const auto& [number, file] : view.frames) writer_options.inputs.push_back(file);
   }
   TakeWriter writer(take_dir, description, streams, metadata, writer_options);
+  // A failed import leaves its report in a new take; a replaced take is put back untouched.
+  if (report != nullptr && !writer.replacing())
+    report->SetFailureDestination(take_dir / "report.json");
   CreateDirectories(take_dir / "calib");
   for (const auto& view : rig.views)
     view.camera.Write(take_dir / "calib" / (view.sensor + ".cameramodel"));

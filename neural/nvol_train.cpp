@@ -785,6 +785,16 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
     if (!std::isfinite(summary.last_loss) ||
         (!heldout_.empty() && !std::isfinite(summary.heldout_psnr_db))) {
       summary.End(Termination::kFailure, "the loss or the held-out PSNR is not finite");
+    } else if (!heldout_.empty() && std::isfinite(summary.background_psnr_fg_db) &&
+               summary.heldout_psnr_fg_db <= summary.background_psnr_fg_db) {
+      // The model's subject is no closer to the held-out views than the empty background is:
+      // it renders fog or nothing where the subject stands, whatever the whole-image PSNR says.
+      summary.End(Termination::kDegenerate,
+                  Cat("the subject in the held-out views (", summary.heldout_psnr_fg_db,
+                      " dB) is no better than the background alone (",
+                      summary.background_psnr_fg_db, " dB) after ", iteration,
+                      " iterations: the volume does not hold the subject (bounds, silhouettes "
+                      "or too short a run)"));
     } else {
       summary.End(
           Termination::kNoConvergence,

@@ -151,6 +151,34 @@ TEST_F(OutputSafety, ARecordingIsNeverReplaced) {
   EXPECT_EQ(Contents(dir / "recorded"), before);
 }
 
+// Case 7's allocation: a render size no frame buffer can hold is refused by name, not bad_alloc.
+TEST_F(OutputSafety, AnImpossibleRenderSizeIsOneLine) {
+  TempDir dir;
+  ExpectOneLineError(
+      RunCli("render " + take().string() + " --size 100000 --out " + (dir / "orbit").string()),
+      "--size 100000 is outside 8..8192 pixels");
+  EXPECT_FALSE(fs::exists(dir / "orbit"));
+}
+
+// A command ended by an error leaves its report where a finished one would be: FAILURE, the
+// error line's text, and the options it ran with; a refused output receives nothing.
+TEST_F(OutputSafety, AFailedRunLeavesItsReport) {
+  TempDir dir;
+  const fs::path out = dir / "recon";
+  ExpectOneLineError(RunCli("reconstruct " + take().string() + " --out " + out.string()),
+                     "no calibration");
+  const auto report = nlohmann::json::parse(ReadFileToString(out / "report.json"));
+  EXPECT_EQ(report["summary"]["termination"], "FAILURE");
+  EXPECT_NE(report["summary"]["message"].get<std::string>().find("no calibration"),
+            std::string::npos);
+  EXPECT_EQ(report["command"], "reconstruct");
+  fs::create_directories(dir / "mine");
+  std::ofstream(dir / "mine/notes.txt") << "the user's";
+  ExpectOneLineError(RunCli("reconstruct " + take().string() + " --out " + (dir / "mine").string()),
+                     "did not make it");
+  EXPECT_FALSE(fs::exists(dir / "mine/report.json"));
+}
+
 // Case 8: a take has one writer at a time; the second gets one line naming the first, and the
 // take is free again once the first has ended.
 TEST_F(OutputSafety, ASecondWriterOfATakeIsRefusedNamingTheFirst) {

@@ -1,0 +1,66 @@
+// In holocap: the commands that need LibTorch are handed to holocap-neural, beside this program;
+// `holocap --help` still lists them. In holocap-neural (HOLOCAP_WITH_NEURAL) nothing is handed
+// over: the commands are its own.
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <string_view>
+
+#include "app/commands.h"
+
+namespace holocap {
+
+#ifdef HOLOCAP_WITH_NEURAL
+
+void HandOverNeuralCommands(int, char**) {}
+
+#else
+
+namespace {
+
+struct NeuralCommand {
+  int order;  // the place the command's own HOLOCAP_COMMAND gives it in --help
+  const char* name;
+  const char* help;
+};
+constexpr NeuralCommand kNeuralCommands[] = {
+    {60, "train", "Learn an avatar from a calibrated take: `train nvol` or `train rerender`"},
+    {70, "render", "Render a trained avatar along a camera path to frames or an MP4"},
+    {100, "demo", "Run every pipeline stage on a small simulated studio8 take into out/demo/"},
+};
+
+// Listed in --help; never parsed here (HandOverNeuralCommands runs first).
+const bool kListed = [] {
+  for (const auto& command : kNeuralCommands) {
+    CommandTable().push_back({command.order, [command](CLI::App& app) {
+                                app.add_subcommand(command.name, command.help)->allow_extras();
+                              }});
+  }
+  return true;
+}();
+
+}  // namespace
+
+void HandOverNeuralCommands(int argc, char** argv) {
+  if (argc < 2) return;
+  const std::string_view word = argv[1];
+  bool neural = false;
+  for (const auto& command : kNeuralCommands) neural = neural || word == command.name;
+  if (!neural) return;
+  std::error_code ec;
+  const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);
+  const std::filesystem::path program =
+      (ec ? std::filesystem::path(argv[0]).parent_path() : self.parent_path()) / "holocap-neural";
+  ::execv(program.c_str(), argv);
+  std::fprintf(stderr, "holocap: error: holocap %s runs in '%s', which cannot be started: %s\n",
+               argv[1], program.c_str(), std::strerror(errno));
+  std::exit(1);
+}
+
+#endif
+
+}  // namespace holocap
