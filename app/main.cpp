@@ -1,7 +1,10 @@
 // holocap: capture-to-avatar pipeline for multi-camera rigs.
 #include <algorithm>
+#include <cctype>
 #include <cstdio>
 #include <exception>
+#include <new>
+#include <string>
 
 #include "app/commands.h"
 #include "core/error.h"
@@ -13,6 +16,23 @@ std::vector<CommandEntry>& CommandTable() {
   return table;
 }
 }  // namespace holocap
+
+namespace {
+
+// The one error line: quoted input is escaped so the message stays one printable line.
+void PrintError(std::string message) {
+  while (!message.empty() && std::isspace(static_cast<unsigned char>(message.back())))
+    message.pop_back();
+  std::fprintf(stderr, "holocap: error: %s\n", holocap::Printable(message).c_str());
+}
+
+std::string CommandLine(int argc, char** argv) {
+  std::string line;
+  for (int i = 1; i < argc && line.size() < 400; ++i) line += std::string(" ") + argv[i];
+  return line;
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   holocap::HandOverNeuralCommands(argc, argv);
@@ -30,10 +50,19 @@ int main(int argc, char** argv) {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e);
+  } catch (const std::bad_alloc&) {
+    // The allocation that failed is not known here; the command line says what was asked.
+    const std::string message =
+        "out of memory: a size or count asked for needs more memory than this machine can give "
+        "(asked: holocap" +
+        CommandLine(argc, argv) + ")";
+    holocap::WritePendingFailureReports(message);
+    PrintError(message);
+    return 1;
   } catch (const std::exception& e) {
     // The reports of the stages it stopped hold FAILURE, this line, and what ran before it.
     holocap::WritePendingFailureReports(e.what());
-    std::fprintf(stderr, "holocap: error: %s\n", e.what());
+    PrintError(e.what());
     return 1;
   }
   return 0;

@@ -32,12 +32,45 @@ CameraModel::CameraModel(std::string lensmodel, std::vector<double> intrinsics, 
       height_(height),
       cam_from_world_(cam_from_world) {
   ParseLensmodel();
+  Validate();
+}
+
+// Every model is checked here, wherever it comes from (a .cameramodel, an importer, a solver),
+// so no stage ever sees a lens that cannot be a camera's:
+//  - the imager size is positive and every intrinsic and pose entry finite;
+//  - with an intrinsics core, fx and fy are positive (a negative focal length mirrors the image
+//    and projects the scene behind the camera onto it);
+//  - the principal point lies within one imager size of the image, cx in [-w, 2w] and cy in
+//    [-h, 2h]: real lenses put it within a few percent of the centre, shifted lenses and crops
+//    of an image still well inside that margin, while a point further out means the axis misses
+//    the imager entirely, i.e. a corrupt or mis-scaled model.
+void CameraModel::Validate() const {
   if (width_ <= 0 || height_ <= 0)
-    Fail("camera model: imager size ", width_, "x", height_, " is not positive");
-  for (double value : intrinsics_) {
-    if (!std::isfinite(value)) Fail("camera model: intrinsics contain a non-finite value");
+    Fail("camera model: imagersize ", width_, "x", height_, " is not positive");
+  const bool core = has_core();
+  static const char* kCoreNames[] = {"fx", "fy", "cx", "cy"};
+  auto field = [&](size_t i) {
+    return core && i < 4 ? Cat("intrinsics[", i, "] (", kCoreNames[i], ")")
+                         : Cat("intrinsics[", i, "]");
+  };
+  for (size_t i = 0; i < intrinsics_.size(); ++i) {
+    if (!std::isfinite(intrinsics_[i]))
+      Fail("camera model: ", field(i), " is ", intrinsics_[i], ", not a finite number");
   }
-  if (!cam_from_world_.matrix().allFinite()) Fail("camera model: pose contains a non-finite value");
+  if (!cam_from_world_.matrix().allFinite())
+    Fail("camera model: extrinsics contain a non-finite value");
+  if (!core) return;
+  for (size_t i : {0, 1}) {
+    if (!(intrinsics_[i] > 0))
+      Fail("camera model: ", field(i), " is ", intrinsics_[i], ": a focal length must be positive");
+  }
+  for (size_t i : {2, 3}) {
+    const double size = i == 2 ? width_ : height_;
+    if (intrinsics_[i] < -size || intrinsics_[i] > 2 * size) {
+      Fail("camera model: ", field(i), " is ", intrinsics_[i], ", outside [", -size, ", ", 2 * size,
+           "] (the ", width_, "x", height_, " image widened by its size on each side)");
+    }
+  }
 }
 
 void CameraModel::ParseLensmodel() {
@@ -179,9 +212,14 @@ CameraModel CameraModel::Parse(const std::string& original_text, const std::stri
   if (!malformed.empty()) Fail("'", origin, "' is not a valid mrcal .cameramodel: it ", malformed);
   // A final newline keeps mrcal's comment skipping inside the buffer.
   text += '\n';
-  mrcal_cameramodel_t* model =
-      mrcal_read_cameramodel_string(text.c_str(), static_cast<int>(text.size()));
-  if (model == nullptr) Fail("'", origin, "' is not a valid mrcal .cameramodel");
+  // libmrcal says why it refuses a file on stderr only: that text becomes part of the error.
+  mrcal_cameramodel_t* model = nullptr;
+  std::string mrcal_says = CaptureStderr(
+      [&] { model = mrcal_read_cameramodel_string(text.c_str(), static_cast<int>(text.size())); });
+  if (model == nullptr) {
+    Fail("'", origin, "' is not a valid mrcal .cameramodel",
+         mrcal_says.empty() ? "" : ": libmrcal says: ", mrcal_says);
+  }
   char name[1024];
   bool named = mrcal_lensmodel_name(name, sizeof(name), &model->lensmodel);
   int count = mrcal_lensmodel_num_params(&model->lensmodel);
@@ -192,7 +230,11 @@ CameraModel CameraModel::Parse(const std::string& original_text, const std::stri
   int height = static_cast<int>(model->imagersize[1]);
   mrcal_free_cameramodel(&model);
   if (!named) Fail("'", origin, "': cannot name its lens model");
-  return CameraModel(name, std::move(intrinsics), width, height, PoseFromRt(rt));
+  try {
+    return CameraModel(name, std::move(intrinsics), width, height, PoseFromRt(rt));
+  } catch (const Error& e) {
+    Fail("'", origin, "': ", e.what());
+  }
 }
 
 CameraModel CameraModel::Read(const std::filesystem::path& file) {

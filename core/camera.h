@@ -21,7 +21,9 @@ class CameraModel {
   CameraModel() = default;
   // `lensmodel` is mrcal's configured name, e.g. "LENSMODEL_OPENCV8" or
   // "LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=16_Ny=12_fov_x_deg=120". Throws Error when the
-  // name is unknown or the intrinsics count does not match it.
+  // name is unknown, the intrinsics count does not match it, or the model cannot be a camera's
+  // (a value not finite, a focal length not positive, the principal point more than an image
+  // size outside the image: see Validate in camera.cpp); the message names the field.
   CameraModel(std::string lensmodel, std::vector<double> intrinsics, int width, int height,
               const Pose& cam_from_world = Pose::Identity());
 
@@ -71,6 +73,7 @@ class CameraModel {
 
  private:
   void ParseLensmodel();
+  void Validate() const;
 
   std::string lensmodel_;
   // mrcal_lensmodel_t, parsed once (kept opaque so this header does not pull in mrcal).

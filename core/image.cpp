@@ -111,13 +111,47 @@ void WriteExrDepth(const std::filesystem::path& file, const cv::Mat& depth_m) {
 
 namespace {
 
-cv::Mat ReadExr(const std::filesystem::path& file) {
+const char* DepthName(int depth) {
+  switch (depth) {
+    case CV_8U:
+      return "8-bit";
+    case CV_16U:
+      return "16-bit";
+    case CV_32F:
+      return "32-bit float";
+  }
+  return "other";
+}
+
+// Refuses, before any pixel is decoded, a header whose size (or depth) is not the declared one,
+// or, with nothing declared, one of more than kMaxUndeclaredImagePixels pixels.
+void CheckHeader(const std::filesystem::path& file, const char* kind, int64_t width, int64_t height,
+                 int depth, const ImageShape* declared) {
+  const std::string what =
+      Cat("'", file.string(), "': its ", kind, " header says ", width, "x", height);
+  if (declared == nullptr) {
+    if (width <= 0 || height <= 0 || width * height > kMaxUndeclaredImagePixels)
+      Fail(what, ", more than the ", kMaxUndeclaredImagePixels, " pixels an image may have");
+    return;
+  }
+  const int declared_depth = CV_MAT_DEPTH(declared->type);
+  if (width != declared->width || height != declared->height ||
+      (declared->type >= 0 && depth != declared_depth)) {
+    Fail(what, " ", DepthName(depth), " but its stream's frames are ", declared->width, "x",
+         declared->height, " ", DepthName(declared_depth));
+  }
+}
+
+cv::Mat ReadExr(const std::filesystem::path& file, const ImageShape* declared) {
   if (!std::filesystem::exists(file)) Fail("'", file.string(), "' does not exist");
   try {
     Imf::InputFile in(file.c_str());
     const Imath::Box2i window = in.header().dataWindow();
-    int width = window.max.x - window.min.x + 1;
-    int height = window.max.y - window.min.y + 1;
+    const int64_t wide = int64_t{window.max.x} - window.min.x + 1;
+    const int64_t high = int64_t{window.max.y} - window.min.y + 1;
+    CheckHeader(file, "OpenEXR", wide, high, CV_32F, declared);
+    int width = static_cast<int>(wide);
+    int height = static_cast<int>(high);
     const char* channel = in.header().channels().findChannel("Z") ? "Z" : nullptr;
     if (channel == nullptr) {
       for (auto it = in.header().channels().begin(); it != in.header().channels().end(); ++it) {
@@ -142,7 +176,7 @@ cv::Mat ReadExr(const std::filesystem::path& file) {
   }
 }
 
-cv::Mat ReadZstd(const std::filesystem::path& file) {
+cv::Mat ReadZstd(const std::filesystem::path& file, const ImageShape* declared) {
   std::string bytes = ReadFileToString(file);
   ZstdHeader header;
   if (bytes.size() < sizeof(header)) Fail("'", file.string(), "' is truncated");
@@ -152,6 +186,7 @@ cv::Mat ReadZstd(const std::filesystem::path& file) {
   if (header.rows <= 0 || header.cols <= 0 || header.rows > 1 << 16 || header.cols > 1 << 16) {
     Fail("'", file.string(), "' has a corrupt header");
   }
+  CheckHeader(file, "zstd frame", header.cols, header.rows, CV_MAT_DEPTH(header.type), declared);
   cv::Mat image;
   try {
     image.create(header.rows, header.cols, header.type);
@@ -183,29 +218,53 @@ bool PngStructureIsComplete(const std::string& bytes) {
   return false;
 }
 
-}  // namespace
+uint32_t BigEndian32(const unsigned char* p) {
+  return (uint32_t{p[0]} << 24) | (uint32_t{p[1]} << 16) | (uint32_t{p[2]} << 8) | p[3];
+}
 
-cv::Mat ReadImage(const std::filesystem::path& file) {
+// The PNG's IHDR (the first chunk, which PngStructureIsComplete has found complete).
+void CheckPngHeader(const std::filesystem::path& file, const std::string& bytes,
+                    const ImageShape* declared) {
+  const auto* p = reinterpret_cast<const unsigned char*>(bytes.data()) + 8;
+  if (bytes.size() < 8 + 8 + 13 || BigEndian32(p) != 13 || std::memcmp(p + 4, "IHDR", 4) != 0)
+    Fail("'", file.string(), "' is not a PNG image: it does not start with its IHDR header");
+  const int bit_depth = p[16];
+  CheckHeader(file, "PNG", BigEndian32(p + 8), BigEndian32(p + 12),
+              bit_depth == 16 ? CV_16U : CV_8U, declared);
+}
+
+cv::Mat ReadPng(const std::filesystem::path& file, const ImageShape* declared) {
+  std::string bytes = ReadFileToString(file);
+  cv::Mat image;
+  if (!PngStructureIsComplete(bytes)) Fail("'", file.string(), "' is truncated or not a PNG image");
+  CheckPngHeader(file, bytes, declared);
+  try {
+    image = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, bytes.data()),
+                         cv::IMREAD_UNCHANGED);
+  } catch (const cv::Exception&) {
+  }
+  if (image.empty()) Fail("'", file.string(), "' is truncated or not a PNG image");
+  return image;
+}
+
+cv::Mat ReadImage(const std::filesystem::path& file, const ImageShape* declared) {
   switch (CodecOfFile(file)) {
     case ImageCodec::kExr:
-      return ReadExr(file);
+      return ReadExr(file, declared);
     case ImageCodec::kZstd:
-      return ReadZstd(file);
-    case ImageCodec::kPng: {
-      std::string bytes = ReadFileToString(file);
-      cv::Mat image;
-      if (!PngStructureIsComplete(bytes))
-        Fail("'", file.string(), "' is truncated or not a PNG image");
-      try {
-        image = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, bytes.data()),
-                             cv::IMREAD_UNCHANGED);
-      } catch (const cv::Exception&) {
-      }
-      if (image.empty()) Fail("'", file.string(), "' is truncated or not a PNG image");
-      return image;
-    }
+      return ReadZstd(file, declared);
+    case ImageCodec::kPng:
+      return ReadPng(file, declared);
   }
   Fail("unreachable");
+}
+
+}  // namespace
+
+cv::Mat ReadImage(const std::filesystem::path& file) { return ReadImage(file, nullptr); }
+
+cv::Mat ReadImage(const std::filesystem::path& file, const ImageShape& declared) {
+  return ReadImage(file, &declared);
 }
 
 void WriteImage(const std::filesystem::path& file, const cv::Mat& image) {

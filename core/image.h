@@ -3,6 +3,7 @@
 // atomic (temporary + rename) so a crash never leaves a half-written frame under its name.
 #pragma once
 
+#include <cstdint>
 #include <filesystem>
 #include <opencv2/core.hpp>
 
@@ -21,9 +22,23 @@ void WriteZstd(const std::filesystem::path& file, const cv::Mat& image, int leve
 // Single-channel CV_32F image (depth in metres; NaN = no measurement) as a FLOAT "Z" channel.
 void WriteExrDepth(const std::filesystem::path& file, const cv::Mat& depth_m);
 
+// What a file is declared to hold (a take stream's frame size and cv::Mat type).
+struct ImageShape {
+  int width = 0;
+  int height = 0;
+  int type = -1;  // CV_8UC3, ...; only its depth is compared before decoding
+};
+
+// The most pixels an image read without a declared shape may have (about 134 megapixels, more
+// than any camera's imager): a header asking for more is refused before anything is decoded.
+inline constexpr int64_t kMaxUndeclaredImagePixels = int64_t{1} << 27;
+
 // Reads any of the three, by extension, with the depth/channels as stored (BGR order for PNG
-// colour, as OpenCV).
+// colour, as OpenCV). The file's header (PNG IHDR, EXR data window, zstd frame header) is
+// checked before decoding: against `declared` where given (size and depth), else against
+// kMaxUndeclaredImagePixels, so a small file that claims a huge image costs no memory.
 cv::Mat ReadImage(const std::filesystem::path& file);
+cv::Mat ReadImage(const std::filesystem::path& file, const ImageShape& declared);
 // Writes by extension.
 void WriteImage(const std::filesystem::path& file, const cv::Mat& image);
 

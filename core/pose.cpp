@@ -1,5 +1,6 @@
 #include "core/pose.h"
 
+#include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
 
@@ -21,6 +22,47 @@ Rt RtFromPose(const Pose& pose) {
   Eigen::Vector3d r = axis_angle.axis() * axis_angle.angle();
   const Eigen::Vector3d& t = pose.translation();
   return {r.x(), r.y(), r.z(), t.x(), t.y(), t.z()};
+}
+
+CheckedRotation CheckRotation(const Eigen::Matrix3d& matrix, const std::string& where,
+                              double tolerance) {
+  for (int row = 0; row < 3; ++row) {
+    for (int col = 0; col < 3; ++col) {
+      const double value = matrix(row, col);
+      if (!std::isfinite(value))
+        Fail(where, ": rotation entry R[", row, "][", col, "] is ", value, ", not finite");
+      if (std::abs(value) > 1 + tolerance) {
+        Fail(where, ": rotation entry R[", row, "][", col, "] is ", value,
+             ", outside [-1, 1] where every entry of a rotation lies");
+      }
+    }
+  }
+  const double determinant = matrix.determinant();
+  if (!(determinant > 0)) {
+    Fail(where, ": the rotation has determinant ", determinant,
+         determinant < 0 ? " (a mirror, not a rotation)" : " (degenerate, not a rotation)");
+  }
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(matrix);
+  CheckedRotation out;
+  out.residual = (svd.singularValues().array() - 1).abs().maxCoeff();
+  if (!(out.residual <= tolerance)) {
+    Fail(where, ": the rotation is not orthonormal: its singular values differ from 1 by ",
+         out.residual, " (at most ", tolerance, " is re-orthonormalised)");
+  }
+  // A matrix orthonormal to rounding is kept bit for bit.
+  out.rotation = out.reorthonormalised() ? NearestRotation(matrix) : matrix;
+  return out;
+}
+
+Eigen::Matrix3d NearestRotation(const Eigen::Matrix3d& matrix) {
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(matrix, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d rotation = svd.matrixU() * svd.matrixV().transpose();
+  if (rotation.determinant() < 0) {
+    Eigen::Matrix3d u = svd.matrixU();
+    u.col(2) *= -1;
+    rotation = u * svd.matrixV().transpose();
+  }
+  return rotation;
 }
 
 double RotationAngleDeg(const Eigen::Matrix3d& rotation) {

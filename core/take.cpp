@@ -74,6 +74,43 @@ T JsonInteger(const nlohmann::json& value, const char* field) {
        value.is_number() ? value.dump() : value.type_name());
 }
 
+// Why `file` (as an index line names it) would lead outside the take, or "" when it stays in.
+std::string OutsideTake(const std::string& file) {
+  if (file.empty()) return "is empty";
+  if (file.find('\0') != std::string::npos) return "holds a NUL byte";
+  const std::filesystem::path path(file);
+  if (path.has_root_directory() || path.has_root_name()) return "is an absolute path";
+  for (const auto& part : path) {
+    if (part == "..") return "climbs out of the take through '..'";
+  }
+  return {};
+}
+
+// One index line into `entry`; `damage` says what no writer leaves (a file outside the take, a
+// sensor twice). Throws nlohmann's exceptions or Error for a line that does not parse.
+void ParseIndexLine(const std::string& line, FrameSetEntry* entry, std::string* damage) {
+  auto json = nlohmann::json::parse(line);
+  entry->index = JsonInteger<int64_t>(json.at("set"), "set");
+  if (json.contains("spread_ns"))
+    entry->spread_ns = JsonInteger<int64_t>(json["spread_ns"], "spread_ns");
+  for (const auto& frame : json.at("frames")) {
+    FrameSetEntry::Item item;
+    item.sensor = frame.at("sensor").get<std::string>();
+    item.file = frame.at("file").get<std::string>();
+    item.timestamp_ns = JsonInteger<int64_t>(frame.at("t_ns"), "t_ns");
+    if (frame.contains("seq")) item.sequence = JsonInteger<uint64_t>(frame["seq"], "seq");
+    if (std::string why = OutsideTake(item.file); !why.empty()) {
+      *damage = Cat("frame file '", item.file, "' ", why, ": frames must lie inside the take");
+      return;
+    }
+    if (entry->Find(item.sensor) != nullptr) {
+      *damage = Cat("frame set ", entry->index, " holds sensor '", item.sensor, "' twice");
+      return;
+    }
+    entry->items.push_back(std::move(item));
+  }
+}
+
 }  // namespace
 
 nlohmann::json StreamInfo::ToJson() const {
@@ -339,51 +376,72 @@ Take Take::Parse(const std::filesystem::path& dir, const std::string& manifest_t
       for (const auto& [sensor, count] : manifest["dropped"].items())
         take.dropped_[sensor] = JsonInteger<int64_t>(count, "dropped");
     }
+    if (manifest.contains("frame_sets"))
+      take.manifest_frame_sets_ = JsonInteger<int64_t>(manifest["frame_sets"], "frame_sets");
   } catch (const nlohmann::json::exception& e) {
     Fail("'", (dir / kManifest).string(), "' is corrupt: ", e.what());
   } catch (const Error& e) {
     Fail("'", (dir / kManifest).string(), "': ", e.what());
   }
+  take.index_present_ = !index_text.empty();
+  take.ParseIndex(index_text, frame_exists);
+  return take;
+}
+
+void Take::ParseIndex(const std::string& index_text,
+                      const std::function<bool(const std::string& file)>& frame_exists) {
+  const std::string index_file = (dir_ / kIndex).string();
+  std::map<int64_t, int64_t> line_of_set;
+  int64_t line_number = 0;
   size_t start = 0;
   while (start < index_text.size()) {
     size_t end = index_text.find('\n', start);
     bool torn = end == std::string::npos;  // the last line of a killed writer
     std::string line = index_text.substr(start, torn ? std::string::npos : end - start);
     start = torn ? index_text.size() : end + 1;
+    ++line_number;
     if (line.empty()) continue;
+    const std::string where = Cat("'", index_file, "' line ", line_number, ": ");
     FrameSetEntry entry;
-    bool valid = !torn;
-    if (valid) {
+    std::string problem = torn ? "torn (it has no end of line)" : "";
+    std::string damage;  // what no writer ever leaves: refused outright
+    if (!torn) {
       try {
-        auto json = nlohmann::json::parse(line);
-        entry.index = JsonInteger<int64_t>(json.at("set"), "set");
-        if (json.contains("spread_ns"))
-          entry.spread_ns = JsonInteger<int64_t>(json["spread_ns"], "spread_ns");
-        for (const auto& frame : json.at("frames")) {
-          FrameSetEntry::Item item;
-          item.sensor = frame.at("sensor").get<std::string>();
-          item.file = frame.at("file").get<std::string>();
-          item.timestamp_ns = JsonInteger<int64_t>(frame.at("t_ns"), "t_ns");
-          if (frame.contains("seq")) item.sequence = JsonInteger<uint64_t>(frame["seq"], "seq");
-          if (!take.has_stream(item.sensor) || !frame_exists(item.file)) valid = false;
-          entry.items.push_back(std::move(item));
+        ParseIndexLine(line, &entry, &damage);
+        if (damage.empty() && problem.empty()) {
+          for (const auto& item : entry.items) {
+            if (!has_stream(item.sensor)) {
+              problem = Cat("sensor '", item.sensor, "' is not a stream of the take");
+            } else if (!frame_exists(item.file)) {
+              problem = Cat("frame file '", item.file, "' is missing");
+            }
+            if (!problem.empty()) break;
+          }
         }
-      } catch (const nlohmann::json::exception&) {
-        valid = false;
-      } catch (const Error&) {  // a number out of range
-        valid = false;
+      } catch (const nlohmann::json::exception& e) {
+        problem = Cat("not a valid index line: ", e.what());
+      } catch (const Error& e) {  // a number out of range
+        problem = e.what();
       }
     }
-    if (valid) {
-      take.entries_.push_back(std::move(entry));
+    if (damage.empty() && problem.empty()) {
+      auto [it, first] = line_of_set.emplace(entry.index, line_number);
+      if (!first)
+        damage =
+            Cat("frame set ", entry.index, " is listed again (first on line ", it->second, ")");
+    }
+    if (!damage.empty()) Fail(where, damage);
+    if (problem.empty()) {
+      entries_.push_back(std::move(entry));
     } else {
-      ++take.skipped_index_lines_;
+      ++skipped_index_lines_;
+      index_problems_.push_back(where + problem);
+      torn_last_line_ = torn;
     }
   }
   std::stable_sort(
-      take.entries_.begin(), take.entries_.end(),
+      entries_.begin(), entries_.end(),
       [](const FrameSetEntry& a, const FrameSetEntry& b) { return a.index < b.index; });
-  return take;
 }
 
 const StreamInfo& Take::stream(const std::string& name) const {
@@ -412,8 +470,8 @@ FrameSet Take::Read(size_t i, const std::vector<std::string>& sensors) const {
     frame.sensor = item.sensor;
     frame.timestamp_ns = item.timestamp_ns;
     frame.sequence = item.sequence;
-    frame.image = ReadImage(dir_ / item.file);
     const StreamInfo& info = stream(item.sensor);
+    frame.image = ReadImage(dir_ / item.file, info.shape());
     if (frame.image.type() != info.cv_type() || frame.image.cols != info.width ||
         frame.image.rows != info.height) {
       Fail("'", (dir_ / item.file).string(), "' does not match its stream (", info.width, "x",
@@ -422,6 +480,28 @@ FrameSet Take::Read(size_t i, const std::vector<std::string>& sensors) const {
     set.frames.push_back(std::move(frame));
   }
   return set;
+}
+
+void Take::Verify() const {
+  const bool cut_short = state_ != "complete";
+  for (size_t i = 0; i < index_problems_.size(); ++i) {
+    const bool tolerated = cut_short && torn_last_line_ && i + 1 == index_problems_.size();
+    if (!tolerated) Fail(index_problems_[i]);
+  }
+  const auto count = static_cast<int64_t>(entries_.size());
+  if (manifest_frame_sets_ >= 0 &&
+      (cut_short ? count < manifest_frame_sets_ : count != manifest_frame_sets_)) {
+    Fail("'", (dir_ / kManifest).string(), "' counts ", manifest_frame_sets_, " frame sets but '",
+         (dir_ / kIndex).string(), "' ",
+         index_present_ ? Cat("lists ", count) : std::string("is missing or empty"));
+  }
+  for (size_t i = 0; i < entries_.size(); ++i) Read(i);  // throws naming a bad frame file
+  for (const auto& s : streams_) {
+    for (const auto& dir : {calib_dir(), gt_dir() / "cameras"}) {
+      const std::filesystem::path file = dir / (s.name + ".cameramodel");
+      if (std::filesystem::exists(file)) CameraModel::Read(file);  // throws naming the file
+    }
+  }
 }
 
 cv::Mat Take::ReadFrame(size_t i, const std::string& sensor) const {

@@ -51,6 +51,8 @@ struct StreamInfo {
   static StreamInfo FromJson(const nlohmann::json& json);
   // The cv::Mat type frames of this stream must have.
   int cv_type() const;
+  // Size and type its frame files must declare in their headers.
+  ImageShape shape() const { return {width, height, cv_type()}; }
 };
 
 struct Frame {
@@ -147,8 +149,10 @@ class TakeWriter {
 
 class Take {
  public:
-  // Opens a take; throws Error for a missing/corrupt manifest or unknown format version.
-  // Index lines that are truncated or name missing frame files are skipped and counted.
+  // Opens a take; throws Error for a missing/corrupt manifest or unknown format version, and for
+  // an index that names a frame file outside the take (an absolute path, a '..' step), a frame
+  // set twice or a sensor twice in one set. Index lines that are truncated or name missing
+  // frame files are skipped and counted (a take cut short still opens): Verify refuses them.
   static Take Open(const std::filesystem::path& dir);
   // Open's parser on the text of take.json and index.jsonl (empty: no index). `dir` names the
   // take in errors; `frame_exists` says whether a file an index line names (relative to the
@@ -167,7 +171,17 @@ class Take {
   const nlohmann::json& metadata() const { return metadata_; }
   const std::map<std::string, int64_t>& dropped() const { return dropped_; }
   int64_t skipped_index_lines() const { return skipped_index_lines_; }
+  // Why each skipped index line was skipped ("line 4: ..."), in file order.
+  const std::vector<std::string>& index_problems() const { return index_problems_; }
+  // The number of frame sets take.json counts (-1 where it does not say).
+  int64_t manifest_frame_sets() const { return manifest_frame_sets_; }
 
+  // Checks that nothing the take recorded is lost: no index line skipped (but the torn last
+  // line a writer cut short leaves), as many frame sets as take.json counts (at least as many
+  // while still "recording", whose manifest lags), every frame present, decodable and of its
+  // stream's size and format, every calibration and ground-truth model readable and valid.
+  // Throws Error naming the first damage: the file and, for the index, the line.
+  void Verify() const;
   size_t size() const { return entries_.size(); }  // complete frame sets
   const FrameSetEntry& entry(size_t i) const { return entries_.at(i); }
   const std::vector<FrameSetEntry>& entries() const { return entries_; }
@@ -184,6 +198,9 @@ class Take {
   CameraModel Camera(const std::string& sensor, bool ground_truth = false) const;
 
  private:
+  void ParseIndex(const std::string& index_text,
+                  const std::function<bool(const std::string& file)>& frame_exists);
+
   std::filesystem::path dir_;
   int format_version_ = 0;
   std::string state_;
@@ -193,6 +210,10 @@ class Take {
   std::map<std::string, int64_t> dropped_;
   std::vector<FrameSetEntry> entries_;
   int64_t skipped_index_lines_ = 0;
+  std::vector<std::string> index_problems_;
+  bool torn_last_line_ = false;
+  int64_t manifest_frame_sets_ = -1;
+  bool index_present_ = false;
 };
 
 }  // namespace holocap

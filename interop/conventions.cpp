@@ -23,17 +23,6 @@ bool AllZero(const std::vector<double>& values, size_t from = 0) {
   return true;
 }
 
-Eigen::Matrix3d NearestRotation(const Eigen::Matrix3d& matrix) {
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(matrix, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d rotation = svd.matrixU() * svd.matrixV().transpose();
-  if (rotation.determinant() < 0) {
-    Eigen::Matrix3d u = svd.matrixU();
-    u.col(2) *= -1;
-    rotation = u * svd.matrixV().transpose();
-  }
-  return rotation;
-}
-
 // cv_from_gl: the same camera with y and z flipped.
 const Eigen::Matrix4d& FlipYZ() {
   static const Eigen::Matrix4d flip = Eigen::Vector4d(1, -1, -1, 1).asDiagonal();
@@ -228,17 +217,12 @@ CameraModel CameraFromNerf(const NerfIntrinsics& in, const Eigen::Matrix4d& worl
     intrinsics.insert(intrinsics.end(), distortion.begin(), distortion.begin() + (k3 ? 5 : 4));
   }
   Eigen::Matrix4d world_from_cam_cv = world_from_cam_gl * FlipYZ();
-  Eigen::Matrix3d rotation = world_from_cam_cv.topLeftCorner<3, 3>();
-  const double deviation =
-      (rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
-  if (deviation > 1e-5 || rotation.determinant() < 0) {
-    Fail(origin, ": transform_matrix's rotation is not a rotation (|R^T R - I| = ", deviation,
-         "); scaled or mirrored poses cannot be imported");
-  }
   Pose world_from_cam = Pose::Identity();
   // Files written in single precision are orthonormal to ~1e-7; the nearest rotation is the
-  // camera they describe.
-  world_from_cam.linear() = deviation > 1e-14 ? NearestRotation(rotation) : rotation;
+  // camera they describe. Scaled or mirrored poses cannot be imported.
+  world_from_cam.linear() =
+      CheckRotation(world_from_cam_cv.topLeftCorner<3, 3>(), origin + ": transform_matrix")
+          .rotation;
   world_from_cam.translation() = world_from_cam_cv.topRightCorner<3, 1>();
   return CameraModel(lensmodel, intrinsics, width, height, world_from_cam.inverse());
 }

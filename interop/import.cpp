@@ -148,6 +148,11 @@ std::vector<double> RowMajor(const Eigen::Matrix3d& matrix) {
           matrix(1, 2), matrix(2, 0), matrix(2, 1), matrix(2, 2)};
 }
 
+std::string RotationWhere(const KrtCamera& camera) {
+  return Cat(camera.rotation_origin.empty() ? std::string("?") : camera.rotation_origin,
+             ": camera '", camera.name, "'");
+}
+
 // K[R|t] cameras (Middlebury, Neural Volumes, Panoptic) into mrcal models. The rotations'
 // shared non-orthonormal part, if any, becomes the world map (see interop.h).
 std::vector<CameraModel> KrtCamerasToModels(const std::vector<KrtCamera>& cameras,
@@ -155,10 +160,7 @@ std::vector<CameraModel> KrtCamerasToModels(const std::vector<KrtCamera>& camera
                                             ImportedRig* rig) {
   std::vector<Eigen::Matrix3d> rotations;
   for (const auto& camera : cameras) {
-    if (!(camera.R.determinant() > 0)) {
-      Fail("camera '", camera.name, "': R has determinant ", camera.R.determinant(),
-           " (a mirror, not a rotation)");
-    }
+    CheckRotation(camera.R, RotationWhere(camera));
     rotations.push_back(camera.R);
   }
   RigidWorld world = SplitRigidWorld(rotations);
@@ -177,6 +179,16 @@ std::vector<CameraModel> KrtCamerasToModels(const std::vector<KrtCamera>& camera
                              "); the take's world is S times the source's"));
   }
   rig->world_from_source = metres_per_unit * world.world_from_source;
+  const Eigen::Matrix3d source_from_world = world.world_from_source.inverse();
+  for (size_t i = 0; i < cameras.size(); ++i) {
+    CheckedRotation rotation =
+        CheckRotation(cameras[i].R * source_from_world, RotationWhere(cameras[i]));
+    world.rotations[i] = rotation.rotation;
+    if (rotation.reorthonormalised()) {
+      rig->notes.push_back(Cat("camera ", cameras[i].name,
+                               ": rotation re-orthonormalised (residual ", rotation.residual, ")"));
+    }
+  }
   std::vector<CameraModel> models;
   for (size_t i = 0; i < cameras.size(); ++i) {
     Pose cam_from_world = Pose::Identity();

@@ -64,6 +64,7 @@ struct KrtCamera {
   Eigen::Vector3d t = Eigen::Vector3d::Zero();
   int width = 0;  // 0 where the file does not say (taken from the images)
   int height = 0;
+  std::string rotation_origin;  // where R was read ("file:line", "file: cameras[3].R")
 };
 
 // "name k11..k33 r11..r33 t1 t2 t3" per line after a first line holding the count.
@@ -159,9 +160,11 @@ struct ImportOptions {
   InteropFormat format = InteropFormat::kColmap;  // the source's format
   std::filesystem::path images;  // image root; empty: where the format keeps them (see .cpp)
   double metres_per_unit = 0;    // source length unit; 0: the format's (Panoptic cm, else m)
-  // Largest max_i |S_i - S| (see RigidWorld) accepted as one shared non-rigid world part; a
-  // larger one means the cameras' K[R|t] cannot all be represented exactly and is refused.
-  double max_rotation_residual = 1e-12;
+  // Largest max_i |S_i - S| (see RigidWorld) accepted as one shared non-rigid world part; up to
+  // it, each camera keeps the nearest rotation (re-orthonormalised, said in the notes), so real
+  // calibrations printed to ~1e-11 import; a larger one is refused. Each rotation is also
+  // checked alone (CheckRotation, core/pose.h).
+  double max_rotation_residual = kRotationTolerance;
   double fps = 30;          // sources carry no timestamps: set i is stamped i / fps
   int png_compression = 1;  // 0..9, lossless at every level
   bool overwrite = false;   // replace an existing take directory

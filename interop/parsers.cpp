@@ -100,6 +100,7 @@ std::vector<KrtCamera> ParseMiddleburyPar(const std::string& text, const std::st
     if (!names.insert(camera.name).second) Fail(where, ": image '", camera.name, "' appears twice");
     for (int k = 0; k < 9; ++k) camera.K(k / 3, k % 3) = Number(tokens[1 + k], where);
     for (int k = 0; k < 9; ++k) camera.R(k / 3, k % 3) = Number(tokens[10 + k], where);
+    camera.rotation_origin = where + " (r11..r33)";
     for (int k = 0; k < 3; ++k) camera.t(k) = Number(tokens[19 + k], where);
     cameras.push_back(std::move(camera));
   }
@@ -146,6 +147,7 @@ std::vector<KrtCamera> ParseNeuralVolumesKrt(const std::string& text, const std:
       for (int col = 0; col < 3; ++col) c.K(row, col) = values[col];
     }
     c.distortion = numbers_line(0, 14, "the distortion line");
+    c.rotation_origin = Cat(At(origin, i), "-", i + 3, " ([R|t])");
     for (int row = 0; row < 3; ++row) {
       std::vector<double> values = numbers_line(4, 4, "a row of [R|t]");
       for (int col = 0; col < 3; ++col) c.R(row, col) = values[col];
@@ -241,6 +243,7 @@ std::vector<KrtCamera> ParsePanopticCalibration(const std::string& text,
       Fail(where, ": camera '", camera.name, "' appears twice");
     camera.K = JsonMatrix(item["K"], 3, 3, where + ".K");
     camera.R = JsonMatrix(item["R"], 3, 3, where + ".R");
+    camera.rotation_origin = where + ".R";
     camera.t = JsonMatrix(item["t"], 3, 1, where + ".t");
     if (item.contains("distCoef")) {
       const nlohmann::json& dist = item["distCoef"];

@@ -54,7 +54,7 @@ class ReplaySensor : public Sensor {
       std::this_thread::sleep_until(due);
     }
     frame->sensor = stream_.name;
-    frame->image = ReadImage(take_.dir() / item->file);
+    frame->image = ReadImage(take_.dir() / item->file, stream_.shape());
     frame->timestamp_ns = item->timestamp_ns;
     frame->sequence = item->sequence;
     ++next_;

@@ -10,6 +10,7 @@
 #include "capture/hal.h"
 #include "capture/replay/replay_driver.h"
 #include "core/error.h"
+#include "core/fs.h"
 #include "core/report.h"
 #include "core/take.h"
 #include "tests/support/test_support.h"
@@ -108,6 +109,79 @@ TEST_F(SimulatedTake, CorruptTakesGiveOneClearError) {
   std::filesystem::remove(dir / "copy/take.json");
   ExpectOneLineError(RunCli("info " + (dir / "copy").string()), "take.json is missing");
   ExpectOneLineError(RunCli("info " + (dir / "nothing-here").string()), "does not exist");
+}
+
+// Issue 18 case 6 through the CLI: info --verify exited 0 on a take marked complete that had
+// lost data; each damage now fails it with one line naming the file and line.
+TEST_F(SimulatedTake, VerifyRefusesATakeThatLostDataInOneLine) {
+  TempDir dir;
+  const auto copy = dir / "copy";
+  std::filesystem::copy(take(), copy, std::filesystem::copy_options::recursive);
+  std::filesystem::remove(copy / "frames/cam0/000001.png");
+  ExpectOneLineError(RunCli("info --verify " + copy.string()),
+                     "index.jsonl' line 2: frame file 'frames/cam0/000001.png' is missing");
+  std::filesystem::remove(copy / "index.jsonl");
+  ExpectOneLineError(RunCli("info --verify " + copy.string()),
+                     "take.json' counts 3 frame sets but '" + (copy / "index.jsonl").string() +
+                         "' is missing or empty");
+  const std::string index = ReadFileToString(take() / "index.jsonl");
+  const size_t second = index.find('\n') + 1;
+  std::ofstream(copy / "index.jsonl")
+      << index << index.substr(second, index.find('\n', second) + 1 - second);
+  std::filesystem::copy(take() / "frames/cam0/000001.png", copy / "frames/cam0/000001.png");
+  ExpectOneLineError(RunCli("info --verify " + copy.string()),
+                     "index.jsonl' line 4: frame set 1 is listed again (first on line 2)");
+}
+
+// Issue 18 case 3 through the CLI: a model with a negative focal length in a take is refused by
+// every command that reads it (info --verify reads them all), naming file and field.
+TEST_F(SimulatedTake, VerifyRefusesANegativeFocalLength) {
+  TempDir dir;
+  const auto copy = dir / "copy";
+  std::filesystem::copy(take(), copy, std::filesystem::copy_options::recursive);
+  const auto model = copy / "gt/cameras/cam0.cameramodel";
+  CameraModel camera = CameraModel::Read(model);
+  std::string text = camera.ToString();
+  text.replace(text.find("'intrinsics': [ "), 16, "'intrinsics': [ -");
+  std::ofstream(model) << text;
+  ExpectOneLineError(RunCli("info --verify " + copy.string()),
+                     "cam0.cameramodel': camera model: intrinsics[0] (fx) is -");
+}
+
+// Issue 18 case 7: third-party stderr, binary bytes and allocation failures all end as the one
+// error line.
+TEST(Cli, ErrorsStayOneEscapedLine) {
+  TempDir dir;
+  // A garbage cameras.txt: its bytes are quoted escaped, never sent raw to the terminal.
+  std::filesystem::create_directories(dir / "colmap/images");
+  std::ofstream(dir / "colmap/cameras.txt", std::ios::binary)
+      << std::string("1 \x1b[2J\xff\xfe\x01PINHOLE 10 10 1 1 5 5\n", 29);
+  std::ofstream(dir / "colmap/images.txt") << "";
+  std::ofstream(dir / "colmap/points3D.txt") << "";
+  auto garbage =
+      RunCli("import colmap " + (dir / "colmap").string() + " --out " + (dir / "t1").string());
+  ExpectOneLineError(garbage, "unknown COLMAP camera model '\\x1b[2J\\xff\\xfe\\x01PINHOLE'");
+  for (size_t i = 0; i + 1 < garbage.output.size(); ++i) {
+    const unsigned char c = garbage.output[i];
+    EXPECT_TRUE(c >= 0x20 && c < 0x7f) << "byte " << int{c} << " at " << i;
+  }
+  // libmrcal's own complaint is part of the line, not a line of its own.
+  std::filesystem::create_directories(dir / "mrcal/left");
+  cv::imwrite((dir / "mrcal/left/0.png").string(), cv::Mat(24, 32, CV_8UC3, cv::Scalar(1, 2, 3)));
+  std::ofstream(dir / "mrcal/left.cameramodel")
+      << "{ 'lensmodel': 'LENSMODEL_PINHOLE', 'intrinsics': [40, 40, 15.5, nan], "
+         "'extrinsics': [0, 0, 0, 0, 0, 0], 'imagersize': [32, 24] }\n";
+  ExpectOneLineError(
+      RunCli("import mrcal " + (dir / "mrcal").string() + " --out " + (dir / "t2").string()),
+      "left.cameramodel' is not a valid mrcal .cameramodel: libmrcal says: ");
+  // An allocation that fails says so and what was asked (address space capped: no host has it).
+  const std::string asked =
+      "sim --rig single-rgbd --frames 1 --size 60000x60000 --no-noise --out " +
+      (dir / "t3").string();
+  auto huge = testing::RunShell("ulimit -v 1000000; HOLOCAP_NO_PROGRESS=1 '" + testing::CliPath() +
+                                "' " + asked + " 2>&1");
+  ExpectOneLineError(huge, "out of memory");
+  EXPECT_NE(huge.output.find("(asked: holocap " + asked + ")"), std::string::npos) << huge.output;
 }
 
 TEST(Cli, BadInputGivesOneClearError) {

@@ -227,6 +227,111 @@ TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
   }
 }
 
+// Issue 18 case 3: a negative focal length in a .cameramodel was accepted, and reconstruct
+// reported SUCCESS on a meaningless surface. Every model is validated where it is made; a file's
+// error names the file and the field.
+TEST(CameraModel, RefusesAModelNoCameraCanHaveNamingFileAndField) {
+  const std::string good = CameraModel::Pinhole(500, 640, 480).ToString();
+  ASSERT_NO_THROW(CameraModel::Parse(good, "good"));
+  auto with_intrinsics = [&](const std::string& intrinsics) {
+    std::string text = good;
+    const size_t from = text.find("'intrinsics': [") + 15;
+    text.replace(from, text.find(']', from) - from, intrinsics);
+    return text;
+  };
+  struct Case {
+    std::string intrinsics;
+    std::string expected;
+  };
+  for (const Case& c :
+       {Case{"-500, 500, 319.5, 239.5", "intrinsics[0] (fx) is -500"},
+        Case{"500, 0, 319.5, 239.5", "intrinsics[1] (fy) is 0"},
+        Case{"500, 500, 1281, 239.5", "intrinsics[2] (cx) is 1281, outside [-640"},
+        Case{"500, 500, 319.5, -481", "intrinsics[3] (cy) is -481, outside [-480"}}) {
+    try {
+      CameraModel::Parse(with_intrinsics(c.intrinsics), "calib/cam0.cameramodel");
+      ADD_FAILURE() << c.intrinsics;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("'calib/cam0.cameramodel'"), std::string::npos)
+          << e.what();
+      EXPECT_NE(std::string(e.what()).find(c.expected), std::string::npos) << e.what();
+    }
+  }
+  // The margin is one image size on each side: its ends are still accepted.
+  EXPECT_NO_THROW(CameraModel("LENSMODEL_PINHOLE", {500, 500, -640, 960}, 640, 480));
+  try {
+    CameraModel("LENSMODEL_OPENCV4", {500, 500, 320, 240, 0.1, INFINITY, 0, 0}, 640, 480);
+    ADD_FAILURE();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("intrinsics[5] is inf, not a finite number"),
+              std::string::npos)
+        << e.what();
+  }
+}
+
+// Issue 18 case 7: libmrcal printed its own line on stderr and holocap's error gave no reason.
+// Its words now are part of the one error, and nothing reaches stderr.
+TEST(CameraModel, LibmrcalsComplaintIsFoldedIntoTheOneError) {
+  const std::string text =
+      "{ 'lensmodel': 'LENSMODEL_PINHOLE', 'intrinsics': [500, 500, 319.5, nan], "
+      "'extrinsics': [0, 0, 0, 0, 0, 0], 'imagersize': [640, 480] }";
+  ::testing::internal::CaptureStderr();
+  std::string message;
+  try {
+    CameraModel::Parse(text, "odd.cameramodel");
+  } catch (const Error& e) {
+    message = e.what();
+  }
+  const std::string printed = ::testing::internal::GetCapturedStderr();
+  ASSERT_FALSE(message.empty()) << "libmrcal accepted a NaN";
+  EXPECT_EQ(printed, "");
+  EXPECT_NE(message.find("'odd.cameramodel' is not a valid mrcal .cameramodel: libmrcal says: "
+                         "cameramodel-parser.re("),
+            std::string::npos)
+      << message;
+  EXPECT_EQ(message.find('\n'), std::string::npos) << message;
+}
+
+// Issue 18 case 4: rotations are checked where they are read (finite, entries in [-1, 1],
+// det +1, orthonormal to 1e-6); a nearly orthonormal one becomes the nearest rotation.
+TEST(Pose, CheckRotationRefusesNonRotationsAndReorthonormalisesNearOnes) {
+  const Eigen::Matrix3d rotation = CamFromWorldLookAt({1, 2, 3}, {0, 0, 0}).linear();
+  CheckedRotation exact = CheckRotation(rotation, "here");
+  EXPECT_FALSE(exact.reorthonormalised());
+  EXPECT_EQ(exact.rotation, rotation);  // kept bit for bit
+  Eigen::Matrix3d near = rotation;
+  near(0, 1) += 5.7e-11;
+  CheckedRotation fixed = CheckRotation(near, "here");
+  EXPECT_TRUE(fixed.reorthonormalised());
+  EXPECT_GT(fixed.residual, 1e-11);
+  EXPECT_LT(fixed.residual, 1e-10);
+  EXPECT_LT((fixed.rotation.transpose() * fixed.rotation - Eigen::Matrix3d::Identity())
+                .cwiseAbs()
+                .maxCoeff(),
+            1e-15);
+  EXPECT_NEAR(fixed.rotation.determinant(), 1, 1e-15);
+  EXPECT_LT((fixed.rotation - rotation).cwiseAbs().maxCoeff(), 1e-10);
+  auto expect_refused = [](const Eigen::Matrix3d& matrix, const std::string& expected) {
+    try {
+      CheckRotation(matrix, "f.txt:3");
+      ADD_FAILURE() << expected;
+    } catch (const Error& e) {
+      EXPECT_EQ(std::string(e.what()).rfind("f.txt:3: ", 0), 0u) << e.what();
+      EXPECT_NE(std::string(e.what()).find(expected), std::string::npos) << e.what();
+    }
+  };
+  Eigen::Matrix3d huge = rotation;
+  huge(1, 2) = 1e308;
+  expect_refused(huge, "R[1][2] is 1e+308, outside [-1, 1]");
+  Eigen::Matrix3d not_finite = rotation;
+  not_finite(2, 0) = NAN;
+  expect_refused(not_finite, "R[2][0] is nan, not finite");
+  expect_refused(-rotation, "determinant -1");
+  Eigen::Matrix3d skewed = rotation;
+  skewed(0, 1) += 1e-4;
+  expect_refused(skewed, "not orthonormal");
+}
+
 TEST(Pose, LookAtUsesOpenCvAxesInAZUpWorld) {
   Pose cam_from_world = CamFromWorldLookAt({3, 0, 1.5}, {0, 0, 1.5});
   Eigen::Vector3d target = cam_from_world * Eigen::Vector3d(0, 0, 1.5);

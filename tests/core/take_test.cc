@@ -10,6 +10,7 @@
 #include <thread>
 
 #include "core/error.h"
+#include "core/fs.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
@@ -293,6 +294,143 @@ TEST(Take, IndexLineWithAnImpossibleFileNameIsSkipped) {
   Take take = Take::Open(dir / "take");
   EXPECT_EQ(take.size(), 1u);
   EXPECT_EQ(take.skipped_index_lines(), 1);
+}
+
+// Issue 18 case 6: info --verify passed a take marked complete that had lost data. Each damage
+// is refused by Take::Verify (what info --verify runs), or by Open where no writer could have
+// left it, with one message naming the file and line.
+class DamagedTake : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    TakeWriter writer(dir_ / "take", TwoSensorRig(), TwoStreams());
+    for (int i = 0; i < 3; ++i) writer.Append(RandomSet(i, i));
+    writer.Close();
+    index_ = ReadFileToString(dir_ / "take/index.jsonl");
+  }
+  std::filesystem::path take() const { return dir_ / "take"; }
+  void WriteIndex(const std::string& text) const { std::ofstream(take() / "index.jsonl") << text; }
+  std::string Line(int n) const {  // 1-based, with its '\n'
+    size_t at = 0;
+    for (int i = 1; i < n; ++i) at = index_.find('\n', at) + 1;
+    return index_.substr(at, index_.find('\n', at) + 1 - at);
+  }
+  // The message of the Error `call` throws ("" when none).
+  static std::string ErrorOf(const std::function<void()>& call) {
+    try {
+      call();
+    } catch (const Error& e) {
+      return e.what();
+    }
+    return "";
+  }
+  TempDir dir_;
+  std::string index_;
+};
+
+TEST_F(DamagedTake, AnIntactTakeVerifies) {
+  Take opened = Take::Open(take());
+  EXPECT_EQ(opened.manifest_frame_sets(), 3);
+  EXPECT_NO_THROW(opened.Verify());
+}
+
+TEST_F(DamagedTake, AMissingFrameFileIsNamedWithItsIndexLine) {
+  std::filesystem::remove(take() / "frames/depth0/000001.exr");
+  Take opened = Take::Open(take());  // a take cut short still opens...
+  EXPECT_EQ(opened.size(), 2u);
+  const std::string error = ErrorOf([&] { opened.Verify(); });  // ...but does not verify
+  EXPECT_NE(error.find("index.jsonl' line 2: frame file 'frames/depth0/000001.exr' is missing"),
+            std::string::npos)
+      << error;
+}
+
+TEST_F(DamagedTake, AnEmptyOrMissingIndexDoesNotHoldWhatTakeJsonCounts) {
+  for (bool remove : {false, true}) {
+    if (remove) {
+      std::filesystem::remove(take() / "index.jsonl");
+    } else {
+      WriteIndex("");
+    }
+    const std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });
+    EXPECT_NE(error.find("take.json' counts 3 frame sets but '"), std::string::npos) << error;
+    EXPECT_NE(error.find("index.jsonl' is missing or empty"), std::string::npos) << error;
+  }
+  WriteIndex(Line(1) + Line(3));
+  const std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });
+  EXPECT_NE(
+      error.find("counts 3 frame sets but '" + (take() / "index.jsonl").string() + "' lists 2"),
+      std::string::npos)
+      << error;
+}
+
+TEST_F(DamagedTake, ADuplicatedIndexLineIsRefused) {
+  WriteIndex(Line(1) + Line(2) + Line(3) + Line(2));
+  const std::string error = ErrorOf([&] { Take::Open(take()); });
+  EXPECT_NE(error.find("index.jsonl' line 4: frame set 1 is listed again (first on line 2)"),
+            std::string::npos)
+      << error;
+}
+
+TEST_F(DamagedTake, AFrameFileOutsideTheTakeIsRefused) {
+  std::filesystem::create_directories(dir_ / "other/frames/cam0");
+  std::filesystem::copy(take() / "frames/cam0/000002.png", dir_ / "other/frames/cam0/000002.png");
+  for (const std::string& file : {std::string("../other/frames/cam0/000002.png"),
+                                  (dir_ / "other/frames/cam0/000002.png").string(),
+                                  std::string("frames/../../other/frames/cam0/000002.png")}) {
+    std::string line = Line(3);
+    const std::string original = "frames/cam0/000002.png";
+    line.replace(line.find(original), original.size(), file);
+    WriteIndex(Line(1) + Line(2) + line);
+    const std::string error = ErrorOf([&] { Take::Open(take()); });
+    EXPECT_NE(error.find("index.jsonl' line 3: frame file '" + file + "'"), std::string::npos)
+        << error;
+    EXPECT_NE(error.find("frames must lie inside the take"), std::string::npos) << error;
+  }
+}
+
+TEST_F(DamagedTake, ACutShortTakeStillVerifiesWithItsTornLastLine) {
+  auto set_state = [&](const std::string& from, const std::string& to) {
+    std::string manifest = ReadFileToString(take() / "take.json");
+    manifest.replace(manifest.find(from), from.size(), to);
+    std::ofstream(take() / "take.json") << manifest;
+  };
+  set_state("\"complete\"", "\"recording\"");
+  WriteIndex(index_ + R"({"set": 3, "frames": [{"sensor": "cam0", "fi)");
+  EXPECT_NO_THROW(Take::Open(take()).Verify());
+  // A torn line in a take marked complete is lost data.
+  set_state("\"recording\"", "\"complete\"");
+  const std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });
+  EXPECT_NE(error.find("index.jsonl' line 4: torn"), std::string::npos) << error;
+}
+
+// Issue 18 case 5: a small PNG whose header claims 20000x20000x16-bit was decoded whole (2.5 GB)
+// before its size was compared with its stream's. The header is now checked first.
+TEST_F(DamagedTake, AFrameWhoseHeaderClaimsAHugeImageIsRefusedBeforeDecoding) {
+  // A valid PNG of a header alone: IHDR 20000x20000, 16-bit RGB, then IEND (CRCs correct).
+  auto chunk = [](const std::string& type, const std::string& data) {
+    auto be32 = [](uint32_t v) {
+      return std::string{static_cast<char>(v >> 24), static_cast<char>(v >> 16),
+                         static_cast<char>(v >> 8), static_cast<char>(v)};
+    };
+    std::string body = type + data;
+    uint32_t crc = 0xffffffffu;
+    for (unsigned char c : body) {
+      crc ^= c;
+      for (int k = 0; k < 8; ++k) crc = (crc >> 1) ^ (0xedb88320u & (0u - (crc & 1)));
+    }
+    return be32(static_cast<uint32_t>(data.size())) + body + be32(~crc);
+  };
+  const std::string ihdr{0, 0, 0x4e, 0x20, 0, 0, 0x4e, 0x20, 16, 2, 0, 0, 0};
+  const std::string png =
+      std::string("\x89PNG\r\n\x1a\n", 8) + chunk("IHDR", ihdr) + chunk("IEND", "");
+  std::ofstream(take() / "frames/cam0/000001.png", std::ios::binary) << png;
+  const std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });
+  EXPECT_NE(error.find("000001.png': its PNG header says 20000x20000 16-bit but its stream's "
+                       "frames are 64x48 8-bit"),
+            std::string::npos)
+      << error;
+  // Read with no declared size, the pixel budget refuses it.
+  const std::string alone = ErrorOf([&] { ReadImage(take() / "frames/cam0/000001.png"); });
+  EXPECT_NE(alone.find("more than the 134217728 pixels"), std::string::npos) << alone;
 }
 
 }  // namespace

@@ -462,6 +462,111 @@ TEST(InteropImport, MrcalFoldersKeepTheModels) {
       SameImage(take.ReadFrame(1, "left"), RandomImage(lens.width(), lens.height(), CV_16UC3, 1)));
 }
 
+// The message of the Error `call` throws ("" when none).
+std::string ErrorOf(const std::function<void()>& call) {
+  try {
+    call();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// Issue 18 case 4: a rotation entry of 1e308 in a Middlebury _par.txt or a KRT file imported as
+// SUCCESS (take.json held nulls, the camera turned by pi). It is refused naming file, line and
+// entry, and nothing is written.
+TEST(InteropImport, RotationEntriesNoRotationHasAreRefusedNamingFileLineAndEntry) {
+  TempDir dir;
+  const auto dino = testing::TestDataDir() / "middlebury" / "dinoSparseRing";
+  std::string par = ReadFileToString(dino / "dinoSR_par.txt");
+  const std::string r12 = "0.96422332027030622000";  // R[0][1] of dinoSR0002.png, line 3
+  ASSERT_NE(par.find(r12), std::string::npos);
+  par.replace(par.find(r12), r12.size(), "1e308");
+  WriteText(dir / "dino/dinoSR_par.txt", par);
+  ImportOptions options;
+  options.format = InteropFormat::kMiddlebury;
+  options.images = dino;
+  std::string error = ErrorOf([&] { ImportTake(dir / "dino", dir / "take", options); });
+  EXPECT_NE(error.find("dinoSR_par.txt:3 (r11..r33): camera 'dinoSR0002.png': rotation entry "
+                       "R[0][1] is 1e+308, outside [-1, 1]"),
+            std::string::npos)
+      << error;
+  EXPECT_FALSE(std::filesystem::exists(dir / "take"));
+
+  std::vector<KrtCamera> cameras(1);
+  cameras[0].name = "400001";
+  cameras[0].K << 500, 0, 31.5, 0, 505, 23.5, 0, 0, 1;
+  cameras[0].R(2, 2) = 1e308;
+  WriteText(dir / "nv/KRT", FormatNeuralVolumesKrt(cameras));
+  std::filesystem::create_directories(dir / "nv/cam400001");
+  cv::imwrite((dir / "nv/cam400001/image0000.png").string(), RandomImage(64, 48, CV_8UC3, 1));
+  options.format = InteropFormat::kKrt;
+  options.images.clear();
+  error = ErrorOf([&] { ImportTake(dir / "nv", dir / "take", options); });
+  EXPECT_NE(error.find("KRT:6-8 ([R|t]): camera '400001': rotation entry R[2][2] is 1e+308"),
+            std::string::npos)
+      << error;
+  EXPECT_FALSE(std::filesystem::exists(dir / "take"));
+}
+
+// Real calibrations print rotations to ~1e-11 (CMU Panoptic's are 5.7e-11 from orthonormal, each
+// in its own way) and were refused at the old 1e-12; they now import with no option, each camera
+// given its nearest rotation and the report saying so.
+TEST(InteropImport, NearlyOrthonormalRotationsAreReorthonormalisedAndSaidSo) {
+  TempDir dir;
+  nlohmann::json json;
+  const std::vector<Eigen::Vector3d> eyes = {{150, -200, 120}, {-180, -150, 110}};
+  for (int c = 0; c < 2; ++c) {
+    Pose pose = CamFromWorldLookAt(eyes[c], {0, 0, 90});
+    Eigen::Matrix3d R = pose.linear();
+    R(c, 1 - c) += 5.7e-11;  // differently in each camera
+    nlohmann::json camera;
+    camera["name"] = Cat("00_0", c);
+    camera["resolution"] = {32, 24};
+    camera["K"] = {{1400.5, 0, 15.2}, {0, 1401.25, 11.9}, {0, 0, 1}};
+    for (int r = 0; r < 3; ++r) camera["R"].push_back({R(r, 0), R(r, 1), R(r, 2)});
+    for (int r = 0; r < 3; ++r) camera["t"].push_back({pose.translation()(r)});
+    json["cameras"].push_back(camera);
+    std::filesystem::create_directories(dir / "hdImgs" / Cat("00_0", c));
+    cv::imwrite((dir / "hdImgs" / Cat("00_0", c) / "00_00000001.png").string(),
+                RandomImage(32, 24, CV_8UC3, c));
+  }
+  WriteText(dir / "calibration_x.json", json.dump());
+  ImportOptions options;
+  options.format = InteropFormat::kPanoptic;
+  ImportSummary summary = ImportTake(dir.path(), dir / "take", options);
+  EXPECT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  EXPECT_GT(summary.metrics["rotation_residual"].get<double>(), 1e-12);
+  for (const char* camera : {"camera 00_00: rotation re-orthonormalised (residual ",
+                             "camera 00_01: rotation re-orthonormalised (residual "}) {
+    EXPECT_NE(summary.message.find(camera), std::string::npos) << summary.message;
+  }
+  Take take = Take::Open(dir / "take");
+  for (int c = 0; c < 2; ++c) {
+    const Eigen::Matrix3d R = take.Camera(Cat("00_0", c)).cam_from_world().linear();
+    EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), 1e-15);
+    EXPECT_LT((R - CamFromWorldLookAt(eyes[c], {0, 0, 90}).linear()).cwiseAbs().maxCoeff(), 1e-10);
+  }
+}
+
+// Issue 18 case 3: import mrcal accepted a negative focal length. Refused, naming file and field.
+TEST(InteropImport, MrcalModelWithANegativeFocalLengthIsRefused) {
+  TempDir dir;
+  std::string model = CameraModel::Pinhole(40, 32, 24).ToString();
+  model.replace(model.find("'intrinsics': [ 40"), 18, "'intrinsics': [ -40");
+  WriteText(dir / "left.cameramodel", model);
+  std::filesystem::create_directories(dir / "left");
+  cv::imwrite((dir / "left/frame0.png").string(), RandomImage(32, 24, CV_8UC3, 0));
+  ImportOptions options;
+  options.format = InteropFormat::kMrcal;
+  const std::string error = ErrorOf([&] { ImportTake(dir.path(), dir / "take", options); });
+  EXPECT_NE(error.find("left.cameramodel': camera model: intrinsics[0] (fx) is -40: a focal "
+                       "length must be positive"),
+            std::string::npos)
+      << error;
+  EXPECT_FALSE(std::filesystem::exists(dir / "take"));
+}
+
 // Each malformed file gives one Error naming the file; none crashes or imports something.
 TEST(InteropImport, MalformedFilesGiveOneClearError) {
   struct Case {
