@@ -15,9 +15,36 @@ struct SimArgs {
   SimOptions options;
   std::string out;
   std::string size;
+  std::string up;
   bool board = false;
   bool no_noise = false;
+  bool dark = false;
 };
+
+// --dark: a dark object (its albedo halved) before a near-black backdrop (a tenth), as a
+// studio's black cloth: a fixed threshold cuts the subject's darker parts.
+constexpr double kDarkSubjectAlbedo = 0.5;
+constexpr double kDarkBackgroundAlbedo = 0.1;
+
+// The variants of a capture a user brings (see sim/sim.h, "Variants").
+void AddVariantFlags(CLI::App* command, SimArgs* args) {
+  SimOptions& o = args->options;
+  command
+      ->add_option("--world-scale", o.world_scale,
+                   "Scale the whole world (rig, subject, room, depth); 0.05: a 9 cm subject")
+      ->capture_default_str();
+  command->add_option("--up", args->up, "The take's up axis: +z, -y, ... or x,y,z (default +z)");
+  command->add_flag("--color-only", o.color_only, "Leave the rig's depth sensors out");
+  command->add_option("--subject-albedo", o.subject_albedo, "Multiplies the subject's albedo")
+      ->capture_default_str();
+  command->add_option("--background-albedo", o.background_albedo, "Multiplies the room's albedo")
+      ->capture_default_str();
+  command->add_flag("--dark", args->dark,
+                    "A dark subject on a near-black backdrop (--subject-albedo 0.5 "
+                    "--background-albedo 0.1)");
+  command->add_flag("--alpha", o.alpha,
+                    "Colour streams as bgra8 with the true silhouette in alpha");
+}
 
 void ParseSize(const std::string& text, int* width, int* height) {
   if (text.empty()) return;
@@ -66,10 +93,16 @@ static void AddSimCommand(CLI::App& app) {
   command->add_option("--threads", o.threads, "Render threads (0: all cores)")
       ->capture_default_str();
   command->add_flag("--overwrite", o.overwrite, "Replace an existing take directory");
+  AddVariantFlags(command, args.get());
   command->callback([args] {
     SimOptions options = args->options;
     if (args->board) options.scene = "board";
     if (args->no_noise) options.noise = false;
+    if (!args->up.empty()) options.up = ParseUp(args->up);
+    if (args->dark) {
+      options.subject_albedo = kDarkSubjectAlbedo;
+      options.background_albedo = kDarkBackgroundAlbedo;
+    }
     ParseSize(args->size, &options.image_width, &options.image_height);
     Report report("sim");
     SimSummary summary = SimulateTake(options, args->out, &report);

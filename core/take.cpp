@@ -144,11 +144,12 @@ StreamInfo StreamInfo::FromJson(const nlohmann::json& json) {
 int StreamInfo::cv_type() const {
   if (pixel_format == "mono8") return CV_8UC1;
   if (pixel_format == "bgr8") return CV_8UC3;
+  if (pixel_format == "bgra8") return CV_8UC4;
   if (pixel_format == "mono16") return CV_16UC1;
   if (pixel_format == "bgr16") return CV_16UC3;
   if (pixel_format == "depth_m") return CV_32FC1;
   Fail("stream '", name, "': unknown pixel format '", pixel_format,
-       "' (mono8, bgr8, mono16, bgr16, depth_m)");
+       "' (mono8, bgr8, bgra8, mono16, bgr16, depth_m)");
 }
 
 int64_t FrameSet::SpreadNs() const {

@@ -379,11 +379,12 @@ std::vector<Part> MakeObject() {
 
 Scene::Scene(SceneKind kind, const BoardLayout& board,
              const std::vector<CameraModel>& board_cameras, int64_t clean_plate_frames,
-             uint64_t seed)
+             uint64_t seed, const Appearance& appearance)
     : kind_(kind),
       board_cameras_(board_cameras),
       clean_plate_frames_(clean_plate_frames),
-      seed_(seed) {
+      seed_(seed),
+      appearance_(appearance) {
   if (kind == SceneKind::kSubject) parts_ = MakeHumanoid();
   if (kind == SceneKind::kObject) parts_ = MakeObject();
   if (kind == SceneKind::kBoard) {
@@ -449,6 +450,7 @@ std::vector<Pose> Scene::PartPoses(double t_s) const {
 
 std::shared_ptr<const Snapshot> Scene::At(double t_s, int64_t set) const {
   auto snapshot = std::make_shared<Snapshot>();
+  snapshot->appearance_ = appearance_;
   if (board_) {
     snapshot->board_ = &*board_;
     snapshot->world_from_board_ = WorldFromBoard(set);
@@ -558,8 +560,23 @@ Eigen::Vector3d Snapshot::Albedo(const SurfaceHit& hit) const {
     const Eigen::Vector3d local = parts_local_[part] * p;
     const double detail = Detail(local, 70, 11 + part);
     const double stripe = 0.5 + 0.5 * std::sin(local.z() * 90 + 4 * ValueNoise(local * 20, 5));
-    return (*parts_)[part].color * (0.35 + 0.45 * detail + 0.2 * stripe);
+    return (*parts_)[part].color * (0.35 + 0.45 * detail + 0.2 * stripe) *
+           appearance_.subject_albedo;
   }
+  if (hit.surface == kBoardFront || hit.surface == kBoardBack) return BoardSideAlbedo(hit);
+  return RoomAlbedo(hit) * appearance_.background_albedo;
+}
+
+Eigen::Vector3d Snapshot::BoardSideAlbedo(const SurfaceHit& hit) const {
+  if (hit.surface == kBoardFront) {
+    return Eigen::Vector3d::Constant(
+        BoardAlbedo(board_->Reflectance(hit.board_uv.x(), hit.board_uv.y())));
+  }
+  return Eigen::Vector3d::Constant(0.35);
+}
+
+Eigen::Vector3d Snapshot::RoomAlbedo(const SurfaceHit& hit) {
+  const Eigen::Vector3d& p = hit.point;
   switch (hit.surface) {
     case kFloor: {
       const int tile = static_cast<int>(std::floor(p.x() / 0.5) + std::floor(p.y() / 0.5));
@@ -569,11 +586,6 @@ Eigen::Vector3d Snapshot::Albedo(const SurfaceHit& hit) const {
     }
     case kCeiling:
       return Eigen::Vector3d::Constant(0.5 + 0.1 * Detail(p, 5, 4));
-    case kBoardFront:
-      return Eigen::Vector3d::Constant(
-          BoardAlbedo(board_->Reflectance(hit.board_uv.x(), hit.board_uv.y())));
-    case kBoardBack:
-      return Eigen::Vector3d::Constant(0.35);
     default: {
       // Walls: a blotchy backdrop with fine detail, a different tint per wall.
       const double tint = 0.08 * (hit.surface - 1);

@@ -52,6 +52,13 @@ struct Part {
   Eigen::Vector3d joint_in_parent = Eigen::Vector3d::Zero();
 };
 
+// How light the subject and the room are: each multiplies that surface's albedo (the board
+// keeps its own, so that it still calibrates).
+struct Appearance {
+  double subject_albedo = 1;
+  double background_albedo = 1;
+};
+
 class Snapshot {
  public:
   // Nearest surface along a unit ray (every ray hits the closed room).
@@ -73,6 +80,8 @@ class Snapshot {
 
  private:
   friend class Scene;
+  Eigen::Vector3d BoardSideAlbedo(const SurfaceHit& hit) const;
+  static Eigen::Vector3d RoomAlbedo(const SurfaceHit& hit);  // floor, walls, ceiling
   const std::vector<Part>* parts_ = nullptr;
   std::vector<Pose> parts_world_;  // world_from_part
   std::vector<Pose> parts_local_;  // part_from_world
@@ -83,6 +92,7 @@ class Snapshot {
   const Board* board_ = nullptr;
   Pose world_from_board_ = Pose::Identity();
   Pose board_from_world_ = Pose::Identity();
+  Appearance appearance_;
 };
 
 class Scene {
@@ -90,7 +100,7 @@ class Scene {
   // `board_cameras` are the rig's colour cameras: the board scene plans its poses so that each
   // of them gets tilted close-ups filling its image and views shared with its neighbour.
   Scene(SceneKind kind, const BoardLayout& board, const std::vector<CameraModel>& board_cameras,
-        int64_t clean_plate_frames, uint64_t seed);
+        int64_t clean_plate_frames, uint64_t seed, const Appearance& appearance = {});
 
   SceneKind kind() const { return kind_; }
   // The world at time `t_s` during frame set `set` (the set decides the board pose and
@@ -110,6 +120,7 @@ class Scene {
   std::vector<CameraModel> board_cameras_;
   int64_t clean_plate_frames_ = 0;
   uint64_t seed_ = 1;
+  Appearance appearance_;
 };
 
 // The humanoid's parts (15 ellipsoidal limbs, each a closed mesh) and the static object's

@@ -42,6 +42,17 @@
 //         size: [640, 480]
 //         depth_from_color: [0, 0, 0, -0.025, 0, 0]   # mrcal rt from the paired colour camera,
 //                                                     # used instead of position/look_at
+//
+// Variants: the same rig and scene as a capture a user brings would record them. The
+// simulation always renders its own world (z up, metres); the take's world is that one scaled
+// by world_scale and turned so that its +z points along `up`. Camera poses, ground-truth meshes,
+// board poses and layout, depth (metres, noise and quantisation scaled alike) are all written
+// in the take's world, so images are identical and only the numbers describing them change:
+// world_scale 0.05 turns the walking 1.8 m person seen from 3 m into a 9 cm object seen from
+// 15 cm; up -y gives a y-down world. rig positions in take.json stay in the simulation's world
+// (they describe the sim rig, not the take). color_only drops the depth sensors (a camera ring);
+// subject_albedo and background_albedo darken the subject and the room (a dark object on a
+// dark backdrop); alpha writes colour as BGRA with the exact silhouette in alpha.
 #pragma once
 
 #include <cstdint>
@@ -70,6 +81,14 @@ struct SimOptions {
   double fps = 0;                  // frame sets per second; 0: the rig's fps
   int64_t clean_plate_frames = 0;  // leading frame sets rendered without the subject/object
   BoardLayout board = DefaultSimBoard();  // the board of the "board" scene
+
+  // The take's world (see "Variants" above). Rendering is the same for every choice.
+  double world_scale = 1;                         // everything scaled by this, > 0
+  Eigen::Vector3d up = Eigen::Vector3d::UnitZ();  // the take's up axis (any direction)
+  bool color_only = false;                        // leave the rig's depth sensors out
+  double subject_albedo = 1;                      // multiplies the subject's albedo, (0, 1]
+  double background_albedo = 1;                   // multiplies the room's albedo, (0, 1]
+  bool alpha = false;  // colour streams "bgra8", the true silhouette (0/255) in alpha
 
   // Colour sensor response.
   bool noise = true;                    // shot and read noise (false: exact, deterministic)
@@ -116,8 +135,9 @@ struct SimSummary : Summary {
   double render_seconds = 0;  // of which rendering (the rest: setup, encoding, writing)
 };
 
-// Simulates a take into `out` (a new directory): frames through TakeWriter (colour "bgr8"
-// PNG, depth "depth_m" EXR in metres, NaN = no measurement, clock "sim") and ground truth:
+// Simulates a take into `out` (a new directory): frames through TakeWriter (colour "bgr8" PNG,
+// or "bgra8" with the silhouette in alpha when options.alpha; depth "depth_m" EXR in metres,
+// NaN = no measurement; clock "sim") and ground truth, all in the take's world (see Variants):
 //   gt/cameras/<sensor>.cameramodel   true lens and cam_from_world of every sensor
 //   gt/meshes/<set:06d>.ply           the subject in world coordinates at the set's nominal
 //                                     time set / fps (clean plates have none)

@@ -156,8 +156,9 @@ class Simulation {
     }
     if (scene_.kind() != sim::SceneKind::kBoard) CreateDirectories(gt_ / "meshes");
     if (scene_.kind() == sim::SceneKind::kObject) {
-      WritePly(gt_ / "meshes" / "static.ply",
-               scene_.At(0, options_.clean_plate_frames)->subject_mesh());
+      WritePly(
+          gt_ / "meshes" / "static.ply",
+          world_.frame().Transformed(scene_.At(0, options_.clean_plate_frames)->subject_mesh()));
     }
   }
 
@@ -194,11 +195,12 @@ class Simulation {
     writer_->Append(frame_set);
     summary_.frames_written += static_cast<int64_t>(present.size());
     if (moving_subject_ && !scene_.IsCleanPlate(set)) {
+      const double t_s = static_cast<double>(set) / world_.fps();
       WritePly(gt_ / "meshes" / (SetName(set) + ".ply"),
-               world_.SnapshotAt(static_cast<double>(set) / world_.fps(), set)->subject_mesh());
+               world_.frame().Transformed(world_.SnapshotAt(t_s, set)->subject_mesh()));
     }
     if (scene_.kind() == sim::SceneKind::kBoard) {
-      Json pose = PoseJson(scene_.WorldFromBoard(set));
+      Json pose = PoseJson(world_.frame().FromSim(scene_.WorldFromBoard(set)));
       pose["set"] = set;
       board_poses_.push_back(pose);
     }
@@ -238,7 +240,11 @@ class Simulation {
 
   void WriteBoardAndSimJson() {
     if (scene_.kind() == sim::SceneKind::kBoard) {
-      Json board = {{"layout", options_.board.ToJson()}, {"world_from_board", board_poses_}};
+      // The board scales with the world: its layout in the take's metres.
+      BoardLayout layout = options_.board;
+      layout.spacing *= world_.frame().scale();
+      layout.margin *= world_.frame().scale();
+      Json board = {{"layout", layout.ToJson()}, {"world_from_board", board_poses_}};
       WriteFileAtomic(gt_ / "board.json", board.dump(1) + "\n");
     }
     const Json sim_json = {

@@ -1,6 +1,7 @@
 #include "sim/world.h"
 
 #include <cmath>
+#include <numbers>
 #include <random>
 
 #include "core/error.h"
@@ -60,6 +61,16 @@ void SimOptions::Check() const {
     Fail("sim: drop_probability must be in [0, 1), got ", drop_probability);
   }
   if (threads < 0) Fail("sim: threads must be >= 0 (0: all cores)");
+  if (!(world_scale > 0) || !std::isfinite(world_scale)) {
+    Fail("sim: world_scale must be > 0, got ", world_scale);
+  }
+  if (!up.allFinite() || !(up.norm() > 0)) Fail("sim: up must be a non-zero direction");
+  if (!(subject_albedo > 0 && subject_albedo <= 1)) {
+    Fail("sim: subject_albedo must be in (0, 1], got ", subject_albedo);
+  }
+  if (!(background_albedo > 0 && background_albedo <= 1)) {
+    Fail("sim: background_albedo must be in (0, 1], got ", background_albedo);
+  }
 }
 
 nlohmann::json SimOptions::ToJson() const {
@@ -91,14 +102,53 @@ nlohmann::json SimOptions::ToJson() const {
           {"timestamp_jitter_ns", timestamp_jitter_ns},
           {"clock_offset_max_ns", clock_offset_max_ns},
           {"drop_probability", drop_probability},
-          {"threads", threads}};
+          {"threads", threads},
+          {"world_scale", world_scale},
+          {"up", {up.x(), up.y(), up.z()}},
+          {"color_only", color_only},
+          {"subject_albedo", subject_albedo},
+          {"background_albedo", background_albedo},
+          {"alpha", alpha}};
 }
 
 namespace sim {
 
-SimWorld::SimWorld(const SimOptions& options) : options_(options) {
+WorldFrame::WorldFrame(const SimOptions& options) : scale_(options.world_scale) {
+  const Eigen::Vector3d up = options.up.normalized();
+  // The shortest turn from +z to `up`; straight down turns about x (the world's -z up).
+  rotation_ = up.z() < -1 + 1e-12
+                  ? Eigen::Matrix3d(Eigen::AngleAxisd(std::numbers::pi, Eigen::Vector3d::UnitX()))
+                  : Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitZ(), up).matrix();
+}
+
+Pose WorldFrame::FromSim(const Pose& sim_from_x) const {
+  Pose world_from_x = Pose::Identity();
+  world_from_x.linear() = rotation_ * sim_from_x.linear();
+  world_from_x.translation() = Point(sim_from_x.translation());
+  return world_from_x;
+}
+
+CameraModel WorldFrame::Camera(const CameraModel& in_sim) const {
+  CameraModel camera = in_sim;
+  camera.set_cam_from_world(FromSim(in_sim.world_from_cam()).inverse());
+  return camera;
+}
+
+Mesh WorldFrame::Transformed(const Mesh& in_sim) const {
+  Mesh mesh = in_sim;
+  const Eigen::Matrix3f linear = (scale_ * rotation_).cast<float>();
+  for (Eigen::Vector3f& v : mesh.vertices) v = linear * v;
+  const Eigen::Matrix3f turn = rotation_.cast<float>();
+  for (Eigen::Vector3f& n : mesh.normals) n = turn * n;
+  return mesh;
+}
+
+SimWorld::SimWorld(const SimOptions& options) : options_(options), frame_(options) {
   options_.Check();
   rig_ = LoadSimRig(options_.rig);
+  if (options_.color_only) {
+    std::erase_if(rig_.sensors, [](const SensorSpec& s) { return s.role == SensorRole::kDepth; });
+  }
   rig_.Check();
   fps_ = options_.fps > 0 ? options_.fps : rig_.fps;
   if (!(fps_ > 0)) Fail("sim: the rig's fps must be > 0");
@@ -110,7 +160,9 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options) {
     const SensorSpec& spec = rig_.sensors[i];
     SimSensorState state;
     state.spec = spec;
-    state.model = SimSensorModel(rig_, spec, options_.image_width, options_.image_height, base_dir);
+    state.sim_model =
+        SimSensorModel(rig_, spec, options_.image_width, options_.image_height, base_dir);
+    state.model = frame_.Camera(state.sim_model);
     state.stream.name = spec.name;
     state.stream.uri = spec.uri;
     state.stream.role = spec.role;
@@ -122,9 +174,9 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options) {
       state.stream.pixel_format = "depth_m";
       state.stream.codec = ImageCodec::kExr;
     } else {
-      state.stream.pixel_format = "bgr8";
+      state.stream.pixel_format = options_.alpha ? "bgra8" : "bgr8";
       state.stream.codec = ImageCodec::kPng;
-      colour_cameras.push_back(state.model);
+      colour_cameras.push_back(state.sim_model);
     }
     std::mt19937_64 rng(MixSeed(options_.seed, 1, i));
     std::uniform_real_distribution<double> unit(0, 1);
@@ -137,7 +189,8 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options) {
   }
   rays_.resize(sensors_.size());
   scene_ = std::make_unique<Scene>(SceneKindFromString(options_.scene), options_.board,
-                                   colour_cameras, options_.clean_plate_frames, options_.seed);
+                                   colour_cameras, options_.clean_plate_frames, options_.seed,
+                                   Appearance{options_.subject_albedo, options_.background_albedo});
 }
 
 int SimWorld::IndexOf(const std::string& name) const {
@@ -155,7 +208,7 @@ std::vector<StreamInfo> SimWorld::streams() const {
 
 void SimWorld::PrepareRayTables(int threads) {
   for (int i = 0; i < size(); ++i) {
-    auto table = std::make_shared<const RayTable>(sensors_[i].model, threads);
+    auto table = std::make_shared<const RayTable>(sensors_[i].sim_model, threads);
     std::lock_guard lock(mutex_);
     if (!rays_[i]) rays_[i] = std::move(table);
   }
@@ -166,7 +219,7 @@ const RayTable& SimWorld::Rays(int index) const {
     std::lock_guard lock(mutex_);
     if (rays_[index]) return *rays_[index];
   }
-  auto table = std::make_shared<const RayTable>(sensors_[index].model, options_.threads);
+  auto table = std::make_shared<const RayTable>(sensors_[index].sim_model, options_.threads);
   std::lock_guard lock(mutex_);
   if (!rays_[index]) rays_[index] = std::move(table);
   return *rays_[index];
@@ -215,7 +268,7 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
       MixSeed(options_.seed, 3, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
 
   if (sensor.spec.role == SensorRole::kDepth) {
-    const DepthRender truth = RenderDepth(*snapshot, sensor.model, rays, threads);
+    const DepthRender truth = RenderDepth(*snapshot, sensor.sim_model, rays, threads);
     DepthSensorModel model;
     model.noise_k = options_.depth_noise_k;
     model.max_incidence_deg = options_.depth_max_incidence_deg;
@@ -224,16 +277,17 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
     model.max_m = options_.depth_max_m;
     model.dropout_probability = options_.depth_dropout_probability;
     model.noise = options_.noise;
-    frame.image = MeasureDepth(truth, model, noise_seed);
+    // Measured in the simulation's metres, then scaled into the take's world like everything.
+    frame.image = MeasureDepth(truth, model, noise_seed) * frame_.scale();
     frame.mask = truth.mask;
-    frame.true_depth = truth.z;
+    frame.true_depth = truth.z * frame_.scale();
     return frame;
   }
 
   const uint64_t jitter_seed =
       MixSeed(options_.seed, 5, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
   ColorRender render =
-      RenderColor(*snapshot, sensor.model, rays, options_.antialias, jitter_seed, threads);
+      RenderColor(*snapshot, sensor.sim_model, rays, options_.antialias, jitter_seed, threads);
   frame.mask = render.mask;
   cv::Mat radiance = render.radiance;
   const int samples = options_.motion_blur ? options_.motion_blur_samples : 1;
@@ -243,7 +297,7 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
     const double exposure_s = sensor.exposure_us * 1e-6;
     for (int s = 0; s < samples; ++s) {
       const double t = frame.time_s + ((s + 0.5) / samples - 0.5) * exposure_s;
-      const ColorRender sub = RenderColor(*SnapshotAt(t, set), sensor.model, rays,
+      const ColorRender sub = RenderColor(*SnapshotAt(t, set), sensor.sim_model, rays,
                                           options_.antialias, jitter_seed + s, threads);
       radiance += sub.radiance;
     }
@@ -256,6 +310,11 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
   model.exposure_ratio = sensor.exposure_us / options_.reference_exposure_us;
   model.gain = std::pow(10.0, sensor.gain_db / 20);
   frame.image = MeasureColor(radiance, model, noise_seed);
+  if (options_.alpha) {
+    cv::Mat bgra;
+    cv::merge(std::vector<cv::Mat>{frame.image, frame.mask}, bgra);
+    frame.image = bgra;
+  }
   return frame;
 }
 

@@ -17,9 +17,31 @@
 
 namespace holocap::sim {
 
+// The take's world from the simulation's own (z up, metres): scaled by SimOptions::world_scale
+// and turned so that the simulation's +z becomes SimOptions::up. A camera's own frame scales
+// with the world, so it sees the same image.
+class WorldFrame {
+ public:
+  explicit WorldFrame(const SimOptions& options);
+  double scale() const { return scale_; }
+  const Eigen::Matrix3d& rotation() const { return rotation_; }
+  Eigen::Vector3d Point(const Eigen::Vector3d& point_in_sim) const {
+    return scale_ * (rotation_ * point_in_sim);
+  }
+  // world_from_x from sim_from_x, for any rigid x (a camera, the board) that scales alike.
+  Pose FromSim(const Pose& sim_from_x) const;
+  CameraModel Camera(const CameraModel& in_sim) const;  // the same lens, posed in the world
+  Mesh Transformed(const Mesh& in_sim) const;
+
+ private:
+  double scale_ = 1;
+  Eigen::Matrix3d rotation_ = Eigen::Matrix3d::Identity();
+};
+
 struct SimSensorState {
   SensorSpec spec;
-  CameraModel model;
+  CameraModel model;      // the true model in the take's world (written to gt/, known_model())
+  CameraModel sim_model;  // the same lens in the simulation's world (rendering)
   StreamInfo stream;
   std::shared_ptr<const RayTable> rays;  // built on first use
   double clock_offset_ns = 0;            // this sensor's clock minus true time
@@ -29,9 +51,9 @@ struct SimSensorState {
 };
 
 struct SensorFrame {
-  cv::Mat image;       // bgr8 or depth_m, as the stream says
+  cv::Mat image;       // bgr8, bgra8 or depth_m (take's metres), as the stream says
   cv::Mat mask;        // subject silhouette at pixel centres, 0/255
-  cv::Mat true_depth;  // depth sensors: exact z-depth, metres
+  cv::Mat true_depth;  // depth sensors: exact z-depth, metres of the take's world
   double time_s = 0;   // true mid-exposure time
   int64_t timestamp_ns = 0;
 };
@@ -45,6 +67,7 @@ class SimWorld {
   const RigDescription& rig() const { return rig_; }
   double fps() const { return fps_; }
   const Scene& scene() const { return *scene_; }
+  const WorldFrame& frame() const { return frame_; }
   int size() const { return static_cast<int>(sensors_.size()); }
   const SimSensorState& sensor(int index) const { return sensors_[index]; }
   int IndexOf(const std::string& name) const;  // -1 if absent
@@ -67,6 +90,7 @@ class SimWorld {
   SimOptions options_;
   RigDescription rig_;
   double fps_ = 30;
+  WorldFrame frame_;
   std::vector<SimSensorState> sensors_;
   std::unique_ptr<Scene> scene_;
   mutable std::mutex mutex_;

@@ -1,0 +1,159 @@
+// Captures a user brings, as simulator variants (issue 19): `holocap reconstruct TAKE` with no
+// bounds, voxel, up axis or silhouette threshold given must end with a correct result or
+// DEGENERATE with its reason, never SUCCESS on a wrong surface. "Correct": the mean symmetric
+// Chamfer to the true mesh (in the take's own units) within two of the voxels the plan chose
+// (a voxel is 2/3 of a pixel's footprint on the subject; on the plain studio depth fusion
+// reaches 0.74 voxel and colour-only stereo 1.1-1.3). Each take: studio8 at 160 px, one frame
+// set to reconstruct.
+//
+// Tests named DISABLED_ reproduce a variant whose default commands end SUCCESS on a wrong
+// surface or with an error today; their comments give the numbers measured and where the fault
+// lies (run them with --gtest_also_run_disabled_tests).
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+
+#include "core/image.h"
+#include "core/take.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::RunCli;
+using testing::TempDir;
+
+struct Outcome {
+  testing::CommandResult cli;
+  nlohmann::json report;  // TAKE/recon/report.json; null when none was written
+};
+
+// Simulates a small studio8 take with `sim_flags` into `dir`/take and reconstructs it with the
+// CLI's defaults (the voxel sweep and glTF left out: neither changes the mesh).
+Outcome SimulateAndReconstruct(const TempDir& dir, const std::string& sim_flags) {
+  const fs::path take = dir / "take";
+  const auto sim = RunCli("sim --rig studio8 --size 160 --seed 3 " + sim_flags + " --out '" +
+                          take.string() + "'");
+  EXPECT_EQ(sim.exit_code, 0) << sim.output;
+  Outcome outcome;
+  outcome.cli = RunCli("reconstruct '" + take.string() + "' --no-sweep --no-glb");
+  std::ifstream file(take / "recon" / "report.json");
+  if (file) outcome.report = nlohmann::json::parse(file);
+  return outcome;
+}
+
+// A correct surface (Chamfer within two of the plan's voxels) or DEGENERATE with its reason.
+void ExpectCorrectOrDegenerate(const Outcome& outcome) {
+  ASSERT_FALSE(outcome.report.is_null()) << "no report.json: " << outcome.cli.output;
+  const nlohmann::json& report = outcome.report;
+  const std::string termination = report["summary"]["termination"];
+  if (termination == "DEGENERATE") {
+    EXPECT_EQ(outcome.cli.exit_code, 1);
+    EXPECT_NE(outcome.cli.output.find("holocap: error: reconstruction ended DEGENERATE: "),
+              std::string::npos)
+        << outcome.cli.output;
+    EXPECT_FALSE(report["summary"]["message"].get<std::string>().empty());
+    return;
+  }
+  ASSERT_EQ(termination, "SUCCESS") << outcome.cli.output;
+  EXPECT_EQ(outcome.cli.exit_code, 0) << outcome.cli.output;
+  const double voxel_mm = 1000 * report["plan"]["voxel"]["m"].get<double>();
+  const double chamfer_mm = report["metrics"]["gt"]["chamfer_mm"].get<double>();
+  std::printf("SUCCESS: chamfer %.3f mm, voxel %.3f mm\n", chamfer_mm, voxel_mm);
+  EXPECT_LE(chamfer_mm, 2 * voxel_mm) << "SUCCESS on a surface " << chamfer_mm
+                                      << " mm (mean) from the truth: " << report["plan"].dump();
+}
+
+// The plain studio: a clean plate, z up, metres. The reference the variants are measured by.
+TEST(VariantsTest, StudioWithCleanPlateIsCorrect) {
+  TempDir dir;
+  const Outcome outcome = SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1");
+  ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
+}
+
+// A 9 cm subject seen from 15 cm (--world-scale 0.05): bounds and voxel follow the rig.
+// Correct today, but only through the colour cameras' hull: every depth measurement (0.15 m)
+// is below TsdfOptions::depth_min_m (0.2 m) and none is fused (Chamfer 0.92 mm, 18 mm at full
+// scale against 12 mm for the same images in metres).
+TEST(VariantsTest, WorldScaleFiveHundredthsIsCorrectOrDegenerate) {
+  TempDir dir;
+  const Outcome outcome =
+      SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --world-scale 0.05");
+  ExpectCorrectOrDegenerate(outcome);
+  const nlohmann::json& plan = outcome.report["plan"];
+  ASSERT_TRUE(plan.contains("bounds")) << outcome.cli.output;
+  for (int axis = 0; axis < 3; ++axis) {
+    const double side = plan["bounds"]["box"]["max"][axis].get<double>() -
+                        plan["bounds"]["box"]["min"][axis].get<double>();
+    EXPECT_LT(side, 0.2) << "bounds of a 9 cm subject seen from 15 cm: " << plan["bounds"];
+  }
+  EXPECT_LE(plan["voxel"]["m"].get<double>(), 0.001);
+}
+
+// The same ring without depth sensors (Middlebury's 16-view object ring): multi-view stereo.
+// Today SUCCESS with 110 vertices and Chamfer 19.07 mm on a 9 cm subject (voxel 1 mm; the same
+// images in metres give 17.9 mm = 0.89 mm at this scale): reconstruction's stereo
+// (reconstruction/mvs.cpp) and its plausibility checks do not follow the world's scale.
+TEST(VariantsTest, DISABLED_WorldScaleColourRingIsCorrectOrDegenerate) {
+  TempDir dir;
+  ExpectCorrectOrDegenerate(
+      SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --color-only --world-scale 0.05"));
+}
+
+// A y-down world (--up -y, CMU Panoptic's): the plan's up axis comes from the rig.
+TEST(VariantsTest, UpMinusYIsCorrectOrDegenerate) {
+  TempDir dir;
+  const Outcome outcome = SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --up -y");
+  ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["up"]["axis"], nlohmann::json({0.0, -1.0, 0.0}))
+      << outcome.report["plan"]["up"];
+}
+
+// A moving subject and no clean plate (sim's default): the per-image threshold cannot separate
+// the subject from the lit studio; the coarse hull fills the cameras' shared view.
+TEST(VariantsTest, NoCleanPlateIsCorrectOrDegenerate) {
+  TempDir dir;
+  const Outcome outcome = SimulateAndReconstruct(dir, "--frames 1");
+  ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["silhouettes"]["source"], "otsu");
+}
+
+// A dark subject on a near-black room, no clean plate (--dark): silhouettes from a threshold
+// chosen per image. Today SUCCESS with Chamfer 111 mm (accuracy 201 mm, F@5mm 0.11; voxel
+// 16 mm): the Otsu silhouettes plus depth fusion keep background, and no plausibility check
+// in reconstruction/pipeline.cpp catches it.
+TEST(VariantsTest, DISABLED_DarkSubjectOnDarkBackgroundIsCorrectOrDegenerate) {
+  TempDir dir;
+  ExpectCorrectOrDegenerate(SimulateAndReconstruct(dir, "--frames 1 --dark"));
+}
+
+// RGBA with the true silhouette in alpha, no clean plate (NeRF-synthetic's): the take holds the
+// exact masks; reconstruction does not use them yet (silhouettes from Otsu) and ends
+// DEGENERATE.
+TEST(VariantsTest, AlphaWithoutCleanPlateIsCorrectOrDegenerate) {
+  TempDir dir;
+  const Outcome outcome = SimulateAndReconstruct(dir, "--frames 1 --alpha");
+  const Take take = Take::Open(dir / "take");
+  EXPECT_EQ(take.stream("cam0").pixel_format, "bgra8");
+  std::vector<cv::Mat> channels;
+  cv::split(take.ReadFrame(0, "cam0"), channels);
+  ASSERT_EQ(channels.size(), 4u);
+  const cv::Mat truth = ReadImage(take.gt_dir() / "masks" / "cam0" / "000000.png");
+  EXPECT_EQ(cv::norm(channels[3], truth, cv::NORM_INF), 0);
+  ExpectCorrectOrDegenerate(outcome);
+}
+
+// The same with a clean plate, so that silhouettes are not what fails. Today an error
+// ("colour frames of 'cam0' must be 8-bit", reconstruction/pipeline.cpp reads only 1- and
+// 3-channel colour) and no report.json.
+TEST(VariantsTest, DISABLED_AlphaWithCleanPlateIsCorrectOrDegenerate) {
+  TempDir dir;
+  ExpectCorrectOrDegenerate(SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --alpha"));
+}
+
+}  // namespace
+}  // namespace holocap
