@@ -20,6 +20,7 @@ struct CalibrateArgs {
   std::string lensmodel;
   std::vector<std::string> sensors;
   std::string reference;
+  int64_t floor_board_set = -1;
   bool no_uncertainty = false;
   bool cross_validation = false;
   bool no_pictures = false;
@@ -43,6 +44,7 @@ void PrintSummary(const TakeCalibrationSummary& s) {
         ToString(stage.termination), stage.rms_px, stage.cost, stage.outliers,
         stage.expected_decrease);
   }
+  std::printf("world: %s (%s)\n", s.world_frame.c_str(), s.world_reason.c_str());
   std::printf("%-8s %6s %7s %8s %9s %11s  %s\n", "camera", "views", "points", "outliers", "rms_px",
               "sigma_seen", "flag");
   for (const auto& cam : c.cameras) {
@@ -57,9 +59,10 @@ void PrintSummary(const TakeCalibrationSummary& s) {
     const auto& g = s.ground_truth;
     std::printf(
         "vs truth: focal %.4f%%, principal point %.3f px, rotation %.4f deg, translation %.3f mm, "
-        "projection %.3f px RMS, within 3 sigma %.1f%%\n",
+        "projection %.3f px RMS, within 3 sigma %.1f%%; world up %.3f deg, floor %.1f mm\n",
         100 * g.focal_rel_err_max, g.principal_point_err_px_max, g.rotation_err_deg_max,
-        g.translation_err_mm_max, g.projection_diff_rms_px, 100 * g.within_3sigma_fraction);
+        g.translation_err_mm_max, g.projection_diff_rms_px, 100 * g.within_3sigma_fraction,
+        g.world_up_err_deg, g.world_floor_err_mm);
   }
 }
 
@@ -78,6 +81,11 @@ void AddCalibrateCommand(CLI::App& app) {
                    "Cameras to calibrate, comma-separated (default: all colour cameras)")
       ->delimiter(',');
   command->add_option("--reference", args->reference, "Reference camera (default: the first)");
+  command->add_option("--floor-board-set", args->floor_board_set,
+                      "Frame set whose board lies flat on the floor, printed side up: the world's "
+                      "floor and origin (default: the take's metadata floor_board_set, else the "
+                      "floor seen by depth sensors, else the cameras' up and the lowest board "
+                      "point)");
   command->add_flag("--no-uncertainty", args->no_uncertainty, "Skip the projection uncertainty");
   command->add_flag("--cross-validate", args->cross_validation,
                     "Also solve two halves of the frames");
@@ -93,6 +101,7 @@ void AddCalibrateCommand(CLI::App& app) {
     options.lensmodel = args->lensmodel;
     options.sensors = args->sensors;
     options.solve.reference_camera = args->reference;
+    options.floor_board_set = args->floor_board_set;
     options.solve.uncertainty = !args->no_uncertainty;
     options.solve.cross_validation = args->cross_validation;
     options.pictures = !args->no_pictures;

@@ -275,17 +275,25 @@ struct GroundTruthComparison {
   double projection_diff_max_px = 0;
   double projection_diff_rms_observed_px = 0;  // only where the board was seen
   double within_3sigma_fraction = 0;           // of the imager samples with |diff| <= 3 worst sigma
+  // The world the models were written in, after the rigid motion above: the angle between its
+  // z axis and the truth's, and the true height of its origin (on its floor).
+  double world_up_err_deg = 0;
+  double world_floor_err_mm = 0;
   std::map<std::string, nlohmann::json> per_camera;
   nlohmann::json ToJson() const;
 };
 
 // `truth` holds each camera's true model (cam_from_world); `world_from_board` the true board
-// pose per frame set. The solved rig is placed in the world by the rigid fit of its board
-// points to the true ones (the same mean-of-frames anchoring the uncertainty assumes).
+// pose per frame set. For the projections, the solved rig is placed in the world by the rigid
+// fit of its board points to the true ones (the same mean-of-frames anchoring the uncertainty
+// assumes); for the poses, by AlignRigs. `written_world_from_ref` is the world the models are
+// written in (relative to the reference camera): its up axis and floor are measured against the
+// truth's. Nothing is moved but for measuring.
 GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
                                        const std::map<std::string, CameraModel>& truth,
                                        const std::map<int64_t, Pose>& world_from_board,
-                                       const BoardLayout& layout);
+                                       const BoardLayout& layout,
+                                       const Pose& written_world_from_ref = Pose::Identity());
 
 // ---------------------------------------------------------------------------------------------
 // Depth sensors.
@@ -331,6 +339,8 @@ struct TakeCalibrationOptions {
   std::string lensmodel;             // for every camera; empty: per camera from the rig
                                      // (sensor option calib_lensmodel), else OPENCV8
   std::vector<std::string> sensors;  // colour sensors to calibrate; empty: all
+  int64_t floor_board_set = -1;      // frame set showing the board lying on the floor; -1: the
+                                     // take's metadata "floor_board_set", else none
   bool pictures = true;              // residual, coverage and uncertainty PNGs
   bool depth_sensors = true;         // depth_from_color for paired depth sensors
   DetectionOptions detection;
@@ -344,6 +354,8 @@ struct TakeCalibrationSummary : Summary {
   DetectionSummary detection;
   CalibrationSummary calibration;
   std::vector<DepthAlignmentSummary> depth;
+  std::string world_frame;  // "floor board", "depth floor", "cameras" or "reference camera"
+  std::string world_reason;
   bool has_ground_truth = false;
   GroundTruthComparison ground_truth;
   std::vector<std::filesystem::path> written;  // models, report and pictures
@@ -353,9 +365,12 @@ struct TakeCalibrationSummary : Summary {
 // Throws Error for a model mrcal does not know.
 std::string RigLensModel(const Take& take, const std::string& sensor);
 
-// Detects, solves, writes calib/<sensor>.cameramodel for every solved camera (cam_from_world
-// with world = the reference camera, or the true world on a simulated take, which the report
-// states), calib/report.json and the pictures. Throws Error for bad input (no board visible, a
+// Detects, solves, writes calib/<sensor>.cameramodel for every trusted camera and aligned depth
+// sensor, calib/report.json and the pictures. The models' world is z up, the floor at z = 0,
+// metres, from what the take shows (calibration_internal::ChooseTakeWorld: a board on the
+// floor, else the floor seen by depth sensors, else the cameras' up and the lowest board point);
+// the report's plan says which (world_frame, world_reason). Simulated takes are calibrated the
+// same way: their truth is used only to measure. Throws Error for bad input (no board visible, a
 // board file that does not match the prints, a sensor absent from the take).
 TakeCalibrationSummary CalibrateTake(const std::filesystem::path& take_dir,
                                      const TakeCalibrationOptions& options,

@@ -41,87 +41,14 @@ bool CoresComparable(const std::string& a, const std::string& b) {
   return family(a) == family(b) && family(a) != 2;
 }
 
-// Robustly: one badly solved camera would otherwise turn the whole rig by its share of its
-// error. The rotation whose difference lies closest to the others' (medoid), then the mean of
-// those within three times the median distance from it.
-Eigen::Matrix3d RobustMeanRotation(const std::vector<Pose>& rotations) {
-  const size_t n = rotations.size();
-  auto angle = [](const Pose& a, const Pose& b) {
-    return RotationAngleDeg(a.linear().transpose() * b.linear());
-  };
-  size_t medoid = 0;
-  double best = 1e300;
-  for (size_t i = 0; i < n; ++i) {
-    double sum = 0;
-    for (size_t k = 0; k < n; ++k) sum += angle(rotations[i], rotations[k]);
-    if (sum < best) {
-      best = sum;
-      medoid = i;
-    }
-  }
-  std::vector<double> distance(n);
-  for (size_t i = 0; i < n; ++i) distance[i] = angle(rotations[medoid], rotations[i]);
-  std::vector<double> sorted = distance;
-  std::nth_element(sorted.begin(), sorted.begin() + n / 2, sorted.end());
-  const double limit = std::max(3 * sorted[n / 2], 1e-9);
-  std::vector<Pose> kept;
-  for (size_t i = 0; i < n; ++i) {
-    if (distance[i] <= limit) kept.push_back(rotations[i]);
-  }
-  return calibration_internal::AveragePoses(kept).linear();
-}
-
-// The mean of the offsets within three times the median spread of their per-axis median.
-Eigen::Vector3d RobustMeanOffset(const std::vector<Eigen::Vector3d>& offsets) {
-  const size_t n = offsets.size();
-  Eigen::Vector3d median;
-  for (int d = 0; d < 3; ++d) {
-    std::vector<double> v;
-    for (const auto& o : offsets) v.push_back(o[d]);
-    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-    median[d] = v[v.size() / 2];
-  }
-  std::vector<double> spread;
-  for (const auto& o : offsets) spread.push_back((o - median).norm());
-  std::vector<double> sorted_spread = spread;
-  std::nth_element(sorted_spread.begin(), sorted_spread.begin() + n / 2, sorted_spread.end());
-  Eigen::Vector3d offset = Eigen::Vector3d::Zero();
-  int used = 0;
-  for (size_t i = 0; i < n; ++i) {
-    if (spread[i] > std::max(3 * sorted_spread[n / 2], 1e-12)) continue;
-    offset += offsets[i];
-    ++used;
-  }
-  return offset / std::max(used, 1);
-}
-
-// The solved rig laid onto the true one: the rotation that best carries the solved cameras'
-// orientations onto the true ones (chordal mean of their differences), then the translation
-// that best carries the camera centres (their mean offset). Which world the solve is anchored
-// to is a choice of gauge; what a rig's calibration promises is where each camera is and how
-// it is turned relative to the others.
+// The solved rig laid onto the true one (AlignRigs).
 Pose TrueWorldFromSolved(const CalibrationSummary& summary,
                          const std::map<std::string, CameraModel>& truth) {
-  Pose true_world_from_solved = Pose::Identity();
-  std::vector<Pose> rotations;
+  std::map<std::string, CameraModel> solved;
   for (const auto& cam : summary.cameras) {
-    auto t = truth.find(cam.name);
-    if (!cam.solved || t == truth.end()) continue;
-    Pose r = Pose::Identity();
-    r.linear() = t->second.world_from_cam().linear() * cam.model.cam_from_world().linear();
-    rotations.push_back(r);
+    if (cam.solved) solved.emplace(cam.name, cam.model);
   }
-  if (rotations.empty()) return true_world_from_solved;
-  true_world_from_solved.linear() = RobustMeanRotation(rotations);
-  std::vector<Eigen::Vector3d> offsets;
-  for (const auto& cam : summary.cameras) {
-    auto t = truth.find(cam.name);
-    if (!cam.solved || t == truth.end()) continue;
-    offsets.push_back(t->second.world_from_cam().translation() -
-                      true_world_from_solved.linear() * cam.model.world_from_cam().translation());
-  }
-  true_world_from_solved.translation() = RobustMeanOffset(offsets);
-  return true_world_from_solved;
+  return AlignRigs(solved, truth);
 }
 
 // Sums over every camera's imager samples.
@@ -250,6 +177,11 @@ nlohmann::json GroundTruthComparison::ToJson() const {
            "medoid; positions: mean offset of those within 3x the median spread); "
            "*_from_reference: cam_from_reference against the truth, which carries the reference "
            "camera's own error into every camera"},
+          {"world_up_err_deg", world_up_err_deg},
+          {"world_floor_err_mm", world_floor_err_mm},
+          {"world_comparison",
+           "the written world's z axis and its floor at its origin, after the same rigid motion, "
+           "against the truth's z and z = 0"},
           {"projection_diff_rms_px", projection_diff_rms_px},
           {"projection_diff_max_px", projection_diff_max_px},
           {"projection_diff_rms_observed_px", projection_diff_rms_observed_px},
@@ -260,7 +192,8 @@ nlohmann::json GroundTruthComparison::ToJson() const {
 GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
                                        const std::map<std::string, CameraModel>& truth,
                                        const std::map<int64_t, Pose>& world_from_board,
-                                       const BoardLayout& layout) {
+                                       const BoardLayout& layout,
+                                       const Pose& written_world_from_ref) {
   auto ref_truth = truth.find(summary.reference_camera);
   if (ref_truth == truth.end())
     Fail("no true model of reference camera ", summary.reference_camera);
@@ -270,6 +203,12 @@ GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
   const Pose true_world_from_solved = TrueWorldFromSolved(summary, truth);
 
   GroundTruthComparison result;
+  const Pose true_from_written = true_world_from_solved * written_world_from_ref.inverse();
+  result.world_up_err_deg =
+      RotationAngleDeg(Eigen::Quaterniond::FromTwoVectors(true_from_written.linear().col(2),
+                                                          Eigen::Vector3d::UnitZ())
+                           .toRotationMatrix());
+  result.world_floor_err_mm = 1000 * true_from_written.translation().z();
   ProjectionTally tally;
   for (const auto& cam : summary.cameras) {
     if (!cam.solved) continue;

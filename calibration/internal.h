@@ -14,6 +14,7 @@
 #include "calibration/calibration.h"
 #include "core/pose.h"
 #include "core/report.h"
+#include "core/rig_alignment.h"
 
 namespace holocap::calibration_internal {
 
@@ -69,8 +70,30 @@ Pose WorldFromReference(const CalibrationSummary& summary, const CameraModel& re
                         const std::map<int64_t, Pose>& world_from_board, const BoardLayout& layout,
                         bool* from_boards = nullptr);
 
-// Mean of rotations (chordal L2 on quaternions) and translations.
-Pose AveragePoses(const std::vector<Pose>& poses);
+// The world the written models live in: world_from_ref carries the reference camera's frame
+// (the solve's) into it.
+struct TakeWorld {
+  Pose world_from_ref = Pose::Identity();
+  std::string frame;  // "floor board", "depth floor", "cameras" or "reference camera"
+  std::string why;    // one line for the report's plan
+};
+
+// The up direction of cameras mounted level (no roll): the direction most nearly orthogonal to
+// all their x axes, signed by their mean image up (-y); that mean itself when the x axes are
+// too close to parallel to fix it. `why` says which.
+Eigen::Vector3d UpOfLevelCameras(const std::vector<CameraModel>& cameras, std::string* why);
+
+// The world of a take's calibration (z up, the floor at z = 0, metres), from the first the take
+// shows of: (1) the board lying on the floor in frame set `floor_board_set` (-1: the take's
+// metadata "floor_board_set", else none); (2) the floor plane the depth sensors `depth_in_ref`
+// (models in the reference camera's frame) see in up to 8 sets spread over the take, within 30
+// degrees of (3)'s up; (3) the level cameras' up (UpOfLevelCameras) with the floor at the
+// lowest board corner seen. The origin lies under where the optical axes meet (the board's
+// centre in (1)). Throws Error when `floor_board_set` shows no solved board pose.
+TakeWorld ChooseTakeWorld(const Take& take, const BoardLayout& layout,
+                          const CalibrationSummary& cal,
+                          const std::map<std::string, CameraModel>& depth_in_ref,
+                          int64_t floor_board_set);
 
 }  // namespace holocap::calibration_internal
 

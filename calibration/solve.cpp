@@ -47,25 +47,6 @@ void CheckLensmodelName(const std::string& name) {
   }
 }
 
-Pose AveragePoses(const std::vector<Pose>& poses) {
-  if (poses.empty()) Fail("AveragePoses of nothing");
-  Eigen::Matrix4d accumulate = Eigen::Matrix4d::Zero();
-  Eigen::Vector3d translation = Eigen::Vector3d::Zero();
-  const Eigen::Quaterniond first(poses[0].linear());
-  for (const Pose& p : poses) {
-    Eigen::Quaterniond q(p.linear());
-    if (q.dot(first) < 0) q.coeffs() = -q.coeffs();
-    accumulate += q.coeffs() * q.coeffs().transpose();
-    translation += p.translation();
-  }
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eigen(accumulate);
-  Eigen::Quaterniond mean(Eigen::Vector4d(eigen.eigenvectors().col(3)));
-  Pose result = Pose::Identity();
-  result.linear() = mean.normalized().toRotationMatrix();
-  result.translation() = translation / static_cast<double>(poses.size());
-  return result;
-}
-
 SolverEnd JudgeSolverEnd(const Eigen::SparseMatrix<double>& jt, const Eigen::VectorXd& x,
                          double rms_px) {
   SolverEnd end;
@@ -87,7 +68,6 @@ SolverEnd JudgeSolverEnd(const Eigen::SparseMatrix<double>& jt, const Eigen::Vec
 
 namespace {
 
-using calibration_internal::AveragePoses;
 using calibration_internal::SolverEnd;
 
 mrcal_pose_t ToMrcal(const Pose& pose) {

@@ -142,12 +142,11 @@ std::vector<CalibrationCamera> CamerasToCalibrate(const Take& take,
   return cameras;
 }
 
-// The world the written models live in: the reference camera's frame, or on a simulated take
-// the true world (`world_frame` says which).
-Pose WorldOfTheModels(const Take& take, const BoardLayout& layout, TakeCalibrationSummary* result,
-                      std::string* world_frame) {
+// The solve against the simulation's truth (gt/cameras), when the take has it: for measuring
+// only, the written models stay in the take's own world.
+void CompareTakeWithTruth(const Take& take, const BoardLayout& layout, const Pose& world_from_ref,
+                          TakeCalibrationSummary* result) {
   const CalibrationSummary& cal = result->calibration;
-  const std::map<int64_t, Pose> true_board = TrueBoardPoses(take);
   result->has_ground_truth = take.has_ground_truth() && fs::exists(take.gt_dir() / "cameras");
   std::map<std::string, CameraModel> truth;
   if (result->has_ground_truth) {
@@ -157,23 +156,25 @@ Pose WorldOfTheModels(const Take& take, const BoardLayout& layout, TakeCalibrati
     }
     result->has_ground_truth = truth.count(cal.reference_camera) > 0;
   }
-  *world_frame = "reference camera " + cal.reference_camera;
-  if (!result->has_ground_truth) return Pose::Identity();
-  bool from_boards = false;
-  const Pose world_from_ref = calibration_internal::WorldFromReference(
-      cal, truth.at(cal.reference_camera), true_board, layout, &from_boards);
-  *world_frame = from_boards
-                     ? "simulated world (rigid fit of the solved board poses to the true ones)"
-                     : "simulated world (the reference camera's true pose)";
-  if (!cal.ref_from_board.empty())
-    result->ground_truth = CompareWithTruth(cal, truth, true_board, layout);
-  return world_from_ref;
+  if (result->has_ground_truth && !cal.ref_from_board.empty()) {
+    result->ground_truth =
+        CompareWithTruth(cal, truth, TrueBoardPoses(take), layout, world_from_ref);
+  }
 }
 
-// calib/<camera>.cameramodel of every trusted camera and the pictures of every solved one.
-void WriteModelsAndPictures(const Take& take, const Pose& world_from_ref, bool pictures,
+// calib/<sensor>.cameramodel of every trusted camera and aligned depth sensor (in the take's
+// world) and the pictures of every solved camera.
+void WriteModelsAndPictures(const Take& take, const Pose& world_from_ref,
+                            const std::map<std::string, CameraModel>& depth_in_ref, bool pictures,
                             TakeCalibrationSummary* result) {
   CreateDirectories(take.calib_dir());
+  for (const auto& [name, in_ref] : depth_in_ref) {
+    CameraModel model = in_ref;
+    model.set_cam_from_world(in_ref.cam_from_world() * world_from_ref.inverse());
+    const fs::path file = take.calib_dir() / (name + ".cameramodel");
+    model.Write(file);
+    result->written.push_back(file);
+  }
   for (const auto& c : result->calibration.cameras) {
     if (!c.solved) continue;
     if (c.flag.empty()) {
@@ -198,10 +199,13 @@ void WriteModelsAndPictures(const Take& take, const Pose& world_from_ref, bool p
   }
 }
 
-// depth_from_color of every depth sensor paired with a trusted camera.
-void AlignDepthSensors(const Take& take, const BoardLayout& layout, const Pose& world_from_ref,
-                       const TakeCalibrationOptions& options, TakeCalibrationSummary* result) {
+// depth_from_color of every depth sensor paired with a trusted camera; the models of those
+// aligned, in the reference camera's frame.
+std::map<std::string, CameraModel> AlignDepthSensors(const Take& take, const BoardLayout& layout,
+                                                     const TakeCalibrationOptions& options,
+                                                     TakeCalibrationSummary* result) {
   const CalibrationSummary& cal = result->calibration;
+  std::map<std::string, CameraModel> depth_in_ref;
   for (const auto& stream : take.streams()) {
     if (stream.role != SensorRole::kDepth || stream.paired_with.empty()) continue;
     const CalibratedCamera* colour = cal.Find(stream.paired_with);
@@ -230,24 +234,23 @@ void AlignDepthSensors(const Take& take, const BoardLayout& layout, const Pose& 
                               colour_from_board, layout, options.depth);
     if (IsUsable(depth.termination)) {
       CameraModel model = depth_model;
-      model.set_cam_from_world(depth.depth_from_color * colour->model.cam_from_world() *
-                               world_from_ref.inverse());
-      const fs::path file = take.calib_dir() / (stream.name + ".cameramodel");
-      model.Write(file);
-      result->written.push_back(file);
+      model.set_cam_from_world(depth.depth_from_color * colour->model.cam_from_world());
+      depth_in_ref.emplace(stream.name, model);
     }
     result->depth.push_back(depth);
   }
+  return depth_in_ref;
 }
 
 // The plan, metrics and summary of calib/report.json.
 void FillReport(const TakeCalibrationOptions& options, const std::vector<std::string>& sensors,
-                const std::string& world_frame, const TakeCalibrationSummary& result, Report& r) {
+                const TakeCalibrationSummary& result, Report& r) {
   const CalibrationSummary& cal = result.calibration;
   r.plan()["lensmodel"] = cal.lensmodel;
   if (!cal.notes.empty()) r.plan()["lens_models"] = cal.notes;
   r.plan()["reference_camera"] = cal.reference_camera;
-  r.plan()["world_frame"] = world_frame;
+  r.plan()["world_frame"] = result.world_frame;
+  r.plan()["world_reason"] = result.world_reason;
   r.plan()["cameras"] = sensors;
   r.plan()["stages"] = {
       "detect",
@@ -313,10 +316,14 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
   result.calibration = Calibrate(layout, cameras, observations, options.solve, report);
   CalibrationSummary& cal = result.calibration;
 
-  std::string world_frame;
-  const Pose world_from_ref = WorldOfTheModels(take, layout, &result, &world_frame);
-  WriteModelsAndPictures(take, world_from_ref, options.pictures, &result);
-  if (options.depth_sensors) AlignDepthSensors(take, layout, world_from_ref, options, &result);
+  std::map<std::string, CameraModel> depth_in_ref;
+  if (options.depth_sensors) depth_in_ref = AlignDepthSensors(take, layout, options, &result);
+  const calibration_internal::TakeWorld world = calibration_internal::ChooseTakeWorld(
+      take, layout, cal, depth_in_ref, options.floor_board_set);
+  result.world_frame = world.frame;
+  result.world_reason = world.why;
+  CompareTakeWithTruth(take, layout, world.world_from_ref, &result);
+  WriteModelsAndPictures(take, world.world_from_ref, depth_in_ref, options.pictures, &result);
 
   result.End(cal.termination, cal.message);
   for (const auto& d : result.depth) {
@@ -325,7 +332,7 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
 
   Report local("calibrate");
   Report& r = report != nullptr ? *report : local;
-  FillReport(options, sensors, world_frame, result, r);
+  FillReport(options, sensors, result, r);
   const fs::path report_file = take.calib_dir() / "report.json";
   r.Write(report_file);
   result.written.push_back(report_file);

@@ -17,6 +17,7 @@
 #include "core/fs.h"
 #include "core/mesh.h"
 #include "core/progress.h"
+#include "core/rig_alignment.h"
 #include "core/take.h"
 #include "reconstruction/projector.h"
 #include "reconstruction/reconstruction.h"
@@ -359,13 +360,30 @@ FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const 
   return out;
 }
 
-void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& mesh,
+// The mesh in the simulation's true world: calibrated models live in the world the calibration
+// chose from the take, laid here onto the true cameras for measuring only.
+Mesh InTrueWorld(const Take& take, const TakePlan& take_plan, const Mesh& mesh) {
+  if (take_plan.ground_truth_cameras) return mesh;
+  std::map<std::string, CameraModel> truth;
+  for (const auto& [name, model] : take_plan.cameras) {
+    if (std::filesystem::exists(take.gt_dir() / "cameras" / (name + ".cameramodel")))
+      truth.emplace(name, take.Camera(name, true));
+  }
+  const Eigen::Isometry3f true_from_plan = AlignRigs(take_plan.cameras, truth).cast<float>();
+  Mesh moved = mesh;
+  for (auto& v : moved.vertices) v = true_from_plan * v;
+  for (auto& n : moved.normals) n = true_from_plan.linear() * n;
+  return moved;
+}
+
+void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& plan_mesh,
                            const TakePlan& take_plan, const MethodPlan& plan,
                            nlohmann::json* metrics) {
   std::filesystem::path file = take.gt_dir() / "meshes" / (SetName(set) + ".ply");
   if (!std::filesystem::exists(file)) file = take.gt_dir() / "meshes" / "static.ply";
   if (!std::filesystem::exists(file)) return;
   Mesh truth = ReadPly(file);
+  const Mesh mesh = InTrueWorld(take, take_plan, plan_mesh);
   // The simulated subject is a union of overlapping closed body parts: what lies inside another
   // part is not its surface, and completeness is measured on the outer surface only.
   const auto outer = OnOuterSurface(truth);

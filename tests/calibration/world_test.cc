@@ -1,0 +1,96 @@
+// The world of a calibration comes from the take, not from a simulation's truth: a studio8
+// board take calibrated with its gt/ removed, then a walk take reconstructed with those models.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <nlohmann/json.hpp>
+
+#include "core/camera.h"
+#include "core/fs.h"
+#include "core/rig_alignment.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+using testing::RunCli;
+using testing::TempDir;
+
+namespace fs = std::filesystem;
+
+std::map<std::string, CameraModel> Models(const fs::path& folder) {
+  std::map<std::string, CameraModel> models;
+  for (const auto& entry : fs::directory_iterator(folder)) {
+    if (entry.path().extension() == ".cameramodel")
+      models.emplace(entry.path().stem().string(), CameraModel::Read(entry.path()));
+  }
+  return models;
+}
+
+double ChamferMm(const fs::path& recon) {
+  const auto report = nlohmann::json::parse(ReadFileToString(recon / "report.json"));
+  return report["metrics"]["gt"]["chamfer_mm"].get<double>();
+}
+
+bool Ran(const std::string& command) {
+  const auto result = RunCli(command);
+  EXPECT_EQ(result.exit_code, 0) << command << "\n" << result.output;
+  return result.exit_code == 0;
+}
+
+TEST(CalibrationWorld, ATakeWithoutTruthComesOutZUpOnTheFloorAndReconstructsAsWell) {
+  TempDir dir("holocap-calib-world");
+  const fs::path cal = dir / "cal", walk = dir / "walk";
+  ASSERT_TRUE(Ran("sim --rig studio8 --board --frames 48 --size 640 --out " + cal.string()));
+  // As a real take: no gt/, the board layout given by the user.
+  const auto board = nlohmann::json::parse(ReadFileToString(cal / "gt" / "board.json"));
+  WriteFileAtomic(dir / "board.json", board["layout"].dump());
+  const std::map<std::string, CameraModel> truth = Models(cal / "gt" / "cameras");
+  fs::remove_all(cal / "gt");
+  ASSERT_TRUE(Ran("calibrate " + cal.string() + " --board " + (dir / "board.json").string() +
+                  " --no-pictures --no-uncertainty"));
+  const auto report = nlohmann::json::parse(ReadFileToString(cal / "calib" / "report.json"));
+  EXPECT_EQ(report["plan"]["world_frame"], "depth floor") << report["plan"]["world_reason"];
+  EXPECT_FALSE(report["metrics"].contains("gt"));
+
+  // The written world against the truth's (z up, floor at z = 0), after laying the rig on it.
+  const std::map<std::string, CameraModel> solved = Models(cal / "calib");
+  ASSERT_EQ(solved.size(), 10u);
+  const Pose true_from_written = AlignRigs(solved, truth);
+  const double up_err_deg =
+      std::acos(std::clamp(true_from_written.linear()(2, 2), -1.0, 1.0)) * 180 / M_PI;
+  const double floor_err_mm = 1000 * true_from_written.translation().z();
+  // A world left in the reference camera's frame would be ~100 degrees and metres off.
+  EXPECT_LT(up_err_deg, 1.5);
+  EXPECT_LT(std::abs(floor_err_mm), 50.0);
+  std::printf("written world: up %.3f deg, floor %.1f mm from the truth's\n", up_err_deg,
+              floor_err_mm);
+
+  // The walk take: with the true cameras, with these models (no flags), and with these models
+  // laid on the true world (what the calibration of a simulated take wrote before).
+  ASSERT_TRUE(Ran("sim --rig studio8 --frames 2 --clean-plate 1 --out " + walk.string()));
+  const std::string walk_args = walk.string() + " --no-sweep --no-glb";
+  ASSERT_TRUE(
+      Ran("reconstruct " + walk_args + " --ground-truth-cameras --out " + (dir / "gt").string()));
+  fs::create_directories(walk / "calib");
+  for (const auto& [name, model] : solved) model.Write(walk / "calib" / (name + ".cameramodel"));
+  ASSERT_TRUE(Ran("reconstruct " + walk_args + " --out " + (dir / "take-world").string()));
+  for (auto [name, model] : solved) {
+    model.set_cam_from_world(model.cam_from_world() * true_from_written.inverse());
+    model.Write(walk / "calib" / (name + ".cameramodel"));
+  }
+  ASSERT_TRUE(Ran("reconstruct " + walk_args + " --out " + (dir / "true-world").string()));
+  const double with_truth = ChamferMm(dir / "gt"), take_world = ChamferMm(dir / "take-world"),
+               true_world = ChamferMm(dir / "true-world");
+  std::printf(
+      "chamfer: true cameras %.3f mm, calibrated in the take's world %.3f mm, the same "
+      "laid on the true world %.3f mm\n",
+      with_truth, take_world, true_world);
+  EXPECT_LT(std::abs(take_world - true_world), 0.1 * true_world);
+  // The calibrated depth sensors' extrinsics (depth_from_color from board planes) cost the
+  // rest: the colour rig with the true depth sensors scores as the true cameras do.
+  EXPECT_LT(take_world, 4 * with_truth);
+}
+
+}  // namespace
+}  // namespace holocap
