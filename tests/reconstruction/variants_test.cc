@@ -132,8 +132,9 @@ TEST(VariantsTest, DISABLED_DarkSubjectOnDarkBackgroundIsCorrectOrDegenerate) {
 }
 
 // RGBA with the true silhouette in alpha, no clean plate (NeRF-synthetic's): the take holds the
-// exact masks; reconstruction does not use them yet (silhouettes from Otsu) and ends
-// DEGENERATE.
+// exact masks and the plan takes silhouettes from them. Without a depth clean plate the depth
+// sensors' foreground is what lies in the colour cameras' hull (before alpha was read:
+// silhouettes from Otsu and DEGENERATE; alpha with every depth pixel fused: 97 mm).
 TEST(VariantsTest, AlphaWithoutCleanPlateIsCorrectOrDegenerate) {
   TempDir dir;
   const Outcome outcome = SimulateAndReconstruct(dir, "--frames 1 --alpha");
@@ -145,14 +146,19 @@ TEST(VariantsTest, AlphaWithoutCleanPlateIsCorrectOrDegenerate) {
   const cv::Mat truth = ReadImage(take.gt_dir() / "masks" / "cam0" / "000000.png");
   EXPECT_EQ(cv::norm(channels[3], truth, cv::NORM_INF), 0);
   ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["silhouettes"]["source"], "alpha");
+  EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
-// The same with a clean plate, so that silhouettes are not what fails. Today an error
-// ("colour frames of 'cam0' must be 8-bit", reconstruction/pipeline.cpp reads only 1- and
-// 3-channel colour) and no report.json.
-TEST(VariantsTest, DISABLED_AlphaWithCleanPlateIsCorrectOrDegenerate) {
+// The same with a clean plate: alpha still comes first (it is exact; the plate's subtraction
+// is not). Colour, texture and fusion read BGR with alpha dropped (before: an error, "colour
+// frames of 'cam0' must be 8-bit", and no report.json).
+TEST(VariantsTest, AlphaWithCleanPlateIsCorrectOrDegenerate) {
   TempDir dir;
-  ExpectCorrectOrDegenerate(SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --alpha"));
+  const Outcome outcome = SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --alpha");
+  ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["silhouettes"]["source"], "alpha");
+  EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
 }  // namespace
