@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdio>
 #include <exception>
+#include <limits>
 #include <map>
 #include <mutex>
 #include <optional>
@@ -156,8 +157,12 @@ struct MethodPlan {
   bool hull_completion = false;  // TSDF: completed from the visual hull
   SilhouetteOptions silhouette;  // the plan's source applied to the options' parameters
   MvsOptions mvs;                // the options' search scaled to the scene
-  bool check_fill = true;        // the bounds are not the hull's own extent
-  int hull_min_views = 2;        // the hull method's: points fewer cameras see are outside
+  // Depths fused (TSDF: the depth sensors'; MVS: the stereo's), from the scene's distances.
+  double depth_min_m = 0;
+  double depth_max_m = 0;
+  std::string depth_range_source;
+  bool check_fill = true;  // the bounds are not the hull's own extent
+  int hull_min_views = 2;  // the hull method's: points fewer cameras see are outside
 };
 
 // Which faces of `bounds` a hull reaches (within 1.5 voxels) and the fraction of the bounds'
@@ -255,6 +260,8 @@ class FrameReconstructor {
     tsdf_options_.voxel_m = voxel;
     tsdf_options_.bounds = bounds_;
     tsdf_options_.threads = threads;
+    tsdf_options_.depth_min_m = plan.depth_min_m;
+    tsdf_options_.depth_max_m = plan.depth_max_m;
   }
 
   FrameOutput Run(int64_t set) {
@@ -337,7 +344,7 @@ class FrameReconstructor {
     }
     tsdf_.emplace(tsdf_options_);
     double seconds = 0;
-    int64_t valid = 0;
+    int64_t valid = 0, measured = 0;
     std::vector<std::pair<CameraModel, cv::Mat>> depth_maps;
     for (const std::string& name : take_plan_.depth_sensors) {
       const cv::Mat& depth = frames_.Find(name)->image;
@@ -357,12 +364,17 @@ class FrameReconstructor {
               : tsdf_->Integrate(depth, camera, foreground);
       seconds += stats.seconds;
       valid += stats.valid_pixels;
+      cv::Mat present = depth > 0;  // NaN compares false: a measurement, in or out of range
+      if (!foreground.empty()) present &= foreground;
+      measured += cv::countNonZero(present);
       depth_maps.emplace_back(camera, depth);
     }
     out_.metrics["tsdf"] = {{"integrate_seconds", seconds},
                             {"valid_pixels", valid},
+                            {"measured_pixels", measured},
                             {"blocks", tsdf_->volume().block_count()},
                             {"memory_mb", tsdf_->volume().memory_bytes() / 1048576.0}};
+    if (!FusedEnough(valid, measured, hull.has_value())) return;
     if (!hull) return;
     CompletionStats completion = tsdf_->CompleteFromHull(*hull, depth_maps);
     out_.metrics["completion"] = {{"seconds", completion.seconds},
@@ -370,6 +382,24 @@ class FrameReconstructor {
                                   {"voxels_filled", completion.voxels_filled},
                                   {"voxels_carved", completion.voxels_carved},
                                   {"memory_mb", tsdf_->volume().memory_bytes() / 1048576.0}};
+  }
+
+  // Whether the depth maps gave a fusion: at least a tenth of their measured (foreground)
+  // pixels within the plan's depth range. When not, the frame is the colour cameras' hull
+  // alone if there is one (said in its message and metrics), else DEGENERATE.
+  bool FusedEnough(int64_t valid, int64_t measured, bool has_hull) {
+    if (10 * valid >= measured && valid > 0) return true;
+    const std::string why =
+        Cat("only ", valid, " of ", measured, " measured depth pixels lie in the depth range [",
+            Fixed(plan_.depth_min_m, 4), ", ", Fixed(plan_.depth_max_m, 4), "] m (",
+            plan_.depth_range_source, ")");
+    if (!has_hull) {
+      out_.End(Termination::kDegenerate, "no depth fusion: " + why);
+      return false;
+    }
+    out_.metrics["tsdf"]["fallback"] = "the colour cameras' visual hull alone: " + why;
+    out_.message = "depth fusion fell back to the colour cameras' visual hull: " + why;
+    return true;
   }
 
   // The MVS method: a conservative hull at twice the voxel, plane-sweep depth inside it, and
@@ -401,13 +431,20 @@ class FrameReconstructor {
     tsdf_options.smoothing_radius_px = 1;
     tsdf_.emplace(tsdf_options);
     double seconds = 0;
+    int64_t valid = 0, measured = 0;
     for (size_t i = 0; i < views_.size(); ++i) {
       const TsdfFrameStats stats = tsdf_->Integrate(depths[i], views_[i].camera, views_[i].mask,
                                                     views_[i].image, &views_[i].camera);
       seconds += stats.seconds;
+      valid += stats.valid_pixels;
+      measured += cv::countNonZero((depths[i] > 0) & views_[i].mask);
     }
+    // Stereo's pixels, not a depth sensor's: named apart from the TSDF method's.
     out_.metrics["tsdf"] = {{"integrate_seconds", seconds},
+                            {"stereo_pixels_fused", valid},
+                            {"stereo_pixels_measured", measured},
                             {"blocks", tsdf_->volume().block_count()}};
+    FusedEnough(valid, measured, false);
   }
 
   const Take& take_;
@@ -478,6 +515,7 @@ class TakeReconstructor {
     ReadPlates();
     TightenBounds();
     ChooseVoxel();
+    ChooseDepthRange();
     CheckBoundsSeen();
     DescribePlan();
     CreateDirectories(out_);
@@ -668,6 +706,36 @@ class TakeReconstructor {
     plan_.mvs.hull_margin_m = std::min(options_.mvs.hull_margin_m, 10 * voxel_);
   }
 
+  // The depths fused: from half the nearest to four times the farthest z-depth of the bounds'
+  // corners in the cameras whose depth is fused (a scene's distances, whatever its scale).
+  void ChooseDepthRange() {
+    const std::vector<std::string> names =
+        is_tsdf() ? take_plan_.depth_sensors : take_plan_.ReconstructionSensors();
+    double nearest = std::numeric_limits<double>::infinity(), farthest = 0;
+    const Eigen::AlignedBox3d& box = take_plan_.bounds;
+    for (const CameraModel& camera : take_plan_.Cameras(names)) {
+      for (int corner = 0; corner < 8; ++corner) {
+        const double z = (camera.cam_from_world() *
+                          box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(corner)))
+                             .z();
+        nearest = std::min(nearest, std::max(z, 0.0));
+        farthest = std::max(farthest, z);
+      }
+    }
+    if (!(farthest > 0)) {  // the bounds lie behind every camera: nothing to fuse anyway
+      plan_.depth_min_m = options_.tsdf.depth_min_m;
+      plan_.depth_max_m = options_.tsdf.depth_max_m;
+      plan_.depth_range_source = "the options' (the bounds lie behind the cameras)";
+      return;
+    }
+    plan_.depth_min_m = 0.5 * nearest;
+    plan_.depth_max_m = 4 * farthest;
+    plan_.depth_range_source =
+        Cat("half the nearest and four times the farthest z-depth of the bounds' corners in the ",
+            is_tsdf() ? "depth sensors" : "colour cameras", " (", Fixed(nearest, 4), " and ",
+            Fixed(farthest, 4), " m)");
+  }
+
   // Cameras that do not see the bounds cannot reconstruct anything in them.
   void CheckBoundsSeen() {
     if (!implausible_.empty()) return;
@@ -763,6 +831,11 @@ class TakeReconstructor {
     plan["depth_background"] =
         plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
     plan["voxel_m"] = voxel_;
+    if (plan_.method != ReconstructionMethod::kHull) {
+      plan["depth_range"] = {{"min_m", plan_.depth_min_m},
+                             {"max_m", plan_.depth_max_m},
+                             {"source", plan_.depth_range_source}};
+    }
     plan["mvs_search"] = {{"hull_margin_m", plan_.mvs.hull_margin_m},
                           {"search_depth_m", plan_.mvs.search_depth_m}};
     plan["parallel"] = plan_.outer_threads > 1
@@ -897,6 +970,26 @@ class TakeReconstructor {
     return sweep;
   }
 
+  // Frames whose depth fusion fell back to the colour cameras' hull: the plan and the summary
+  // say so, with the first one's reason.
+  void NoteFallback() {
+    int count = 0;
+    std::string first;
+    for (const FrameResult& f : summary_.frames) {
+      if (!f.IsUsable() || !f.metrics.contains("tsdf") || !f.metrics["tsdf"].contains("fallback"))
+        continue;
+      if (count++ == 0)
+        first = Cat("set ", f.set, ": ", f.metrics["tsdf"]["fallback"].get<std::string>());
+    }
+    if (count == 0) return;
+    const std::string note =
+        Cat("fell back to the colour cameras' visual hull in ", count, " frame set(s); ", first);
+    summary_.plan["depth_fusion"] = note;
+    if (report_ != nullptr) report_->plan()["depth_fusion"] = note;
+    summary_.message += "; depth fusion " + note;
+    std::printf("reconstruct: depth fusion %s\n", note.c_str());
+  }
+
   // SUCCESS when at least one frame set gave a surface (the others are named); DEGENERATE when
   // none did.
   void Summarise(const nlohmann::json& sweep) {
@@ -940,6 +1033,7 @@ class TakeReconstructor {
       }
       summary_.End(usable == 0 ? Termination::kDegenerate : Termination::kSuccess, message);
     }
+    NoteFallback();
     if (report_ == nullptr) return;
     nlohmann::json& metrics = report_->metrics();
     metrics["timing"] = {{"per_frame_s", per_frame},

@@ -446,7 +446,13 @@ struct ReconstructionOptions {
   // (dilate 10 px, erode 7 px, no opening) instead of `silhouette`'s morphology.
   bool threshold_morphology = true;
   HullOptions hull;  // voxel and bounds are set from the fields above
-  TsdfOptions tsdf;  // voxel and bounds likewise
+  // Voxel and bounds likewise; the depth range fused is the plan's (from half the nearest to
+  // four times the farthest z-depth of the bounds in the sensors whose depth is fused), so
+  // tsdf.depth_min_m and depth_max_m apply only to bounds behind every camera. A frame whose
+  // measured depth lies out of that range (fewer than a tenth of its pixels fused) is the
+  // colour cameras' hull alone, said in its message and the plan's "depth_fusion", or
+  // DEGENERATE without a hull.
+  TsdfOptions tsdf;
   // TSDF: what the depth sensors did not see is completed from the colour cameras' visual hull
   // carved by the sensors' free space (TsdfVolume::CompleteFromHull). Needs silhouettes, so a
   // clean plate or threshold silhouettes, and two colour cameras; the plan says when it is off.

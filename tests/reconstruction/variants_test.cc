@@ -75,16 +75,21 @@ TEST(VariantsTest, StudioWithCleanPlateIsCorrect) {
   EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
-// A 9 cm subject seen from 15 cm (--world-scale 0.05): bounds and voxel follow the rig.
-// Correct today, but only through the colour cameras' hull: every depth measurement (0.15 m)
-// is below TsdfOptions::depth_min_m (0.2 m) and none is fused (Chamfer 0.92 mm, 18 mm at full
-// scale against 12 mm for the same images in metres).
+// A 9 cm subject seen from 15 cm (--world-scale 0.05): bounds, voxel and the depth range
+// fused follow the rig. With the fixed 0.2 m minimum depth every measurement (0.15 m) was
+// dropped and the result was the colour cameras' hull alone (Chamfer 0.92 mm); fused, 0.59 mm.
 TEST(VariantsTest, WorldScaleFiveHundredthsIsCorrectOrDegenerate) {
   TempDir dir;
   const Outcome outcome =
       SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --world-scale 0.05");
   ExpectCorrectOrDegenerate(outcome);
   const nlohmann::json& plan = outcome.report["plan"];
+  EXPECT_LT(plan["depth_range"]["min_m"].get<double>(), 0.1) << plan["depth_range"];
+  EXPECT_FALSE(plan.contains("depth_fusion")) << plan["depth_fusion"];
+  for (const auto& frame : outcome.report["metrics"]["frames"]) {
+    const auto& tsdf = frame["metrics"]["tsdf"];
+    EXPECT_GT(tsdf["valid_pixels"].get<double>(), 0.9 * tsdf["measured_pixels"].get<double>());
+  }
   ASSERT_TRUE(plan.contains("bounds")) << outcome.cli.output;
   for (int axis = 0; axis < 3; ++axis) {
     const double side = plan["bounds"]["box"]["max"][axis].get<double>() -
@@ -92,6 +97,34 @@ TEST(VariantsTest, WorldScaleFiveHundredthsIsCorrectOrDegenerate) {
     EXPECT_LT(side, 0.2) << "bounds of a 9 cm subject seen from 15 cm: " << plan["bounds"];
   }
   EXPECT_LE(plan["voxel"]["m"].get<double>(), 0.001);
+}
+
+// Depth maps that lie wholly out of the scene's range (each measurement moved 100x farther, as a
+// sensor in the wrong unit would give): nothing is fused, and the run says that its surface is
+// the colour cameras' hull, in the plan and the summary, rather than a fusion.
+TEST(VariantsTest, DepthOutOfRangeFallsBackToTheHullAndSaysSo) {
+  TempDir dir;
+  const fs::path take = dir / "take";
+  ASSERT_EQ(RunCli("sim --rig studio8 --size 160 --seed 3 --frames 2 --clean-plate 1 --out '" +
+                   take.string() + "'")
+                .exit_code,
+            0);
+  for (const auto& sensor : {"depth0", "depth1"}) {
+    for (const auto& entry : fs::directory_iterator(take / "frames" / sensor)) {
+      if (entry.path().filename() == "000000.exr") continue;  // the clean plate stays
+      cv::Mat depth = ReadImage(entry.path());
+      WriteExrDepth(entry.path(), depth * 100);
+    }
+  }
+  const auto cli = RunCli("reconstruct '" + take.string() + "' --no-sweep --no-glb");
+  std::ifstream file(take / "recon" / "report.json");
+  ASSERT_TRUE(file) << cli.output;
+  const nlohmann::json report = nlohmann::json::parse(file);
+  ASSERT_TRUE(report["plan"].contains("depth_fusion")) << cli.output;
+  EXPECT_NE(report["plan"]["depth_fusion"].get<std::string>().find("visual hull"),
+            std::string::npos);
+  EXPECT_NE(report["summary"]["message"].get<std::string>().find("fell back"), std::string::npos);
+  EXPECT_EQ(report["metrics"]["frames"][0]["metrics"]["tsdf"]["valid_pixels"], 0);
 }
 
 // The same ring without depth sensors (Middlebury's 16-view object ring): multi-view stereo.
