@@ -894,6 +894,9 @@ class TakeReconstructor {
         result.metrics["heldout_iou"] = HeldoutIoU(frame.mesh, colour);
       TextureOptions texture = options_.texture;
       texture.atlas = texture.atlas && options_.write_glb;
+      // Visibility's depth tolerance follows the scene: at most four voxels (1 cm is 20 of them
+      // on a 9 cm object).
+      texture.depth_tolerance_m = std::min(texture.depth_tolerance_m, 4 * voxel_);
       TexturedMesh textured = TextureMesh(frame.mesh, views, texture);
       WritePly(out_ / (SetName(set) + ".ply"), textured.mesh);
       if (options_.write_glb) WriteGlb(out_ / (SetName(set) + ".glb"), textured);

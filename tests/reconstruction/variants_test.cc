@@ -128,13 +128,16 @@ TEST(VariantsTest, DepthOutOfRangeFallsBackToTheHullAndSaysSo) {
 }
 
 // The same ring without depth sensors (Middlebury's 16-view object ring): multi-view stereo.
-// Today SUCCESS with 110 vertices and Chamfer 19.07 mm on a 9 cm subject (voxel 1 mm; the same
-// images in metres give 17.9 mm = 0.89 mm at this scale): reconstruction's stereo
-// (reconstruction/mvs.cpp) and its plausibility checks do not follow the world's scale.
-TEST(VariantsTest, DISABLED_WorldScaleColourRingIsCorrectOrDegenerate) {
+// The stereo's depth (0.15 m) was fused with the fixed 0.2 m minimum depth, which dropped all of
+// it: SUCCESS with 110 vertices and Chamfer 19.07 mm on a 9 cm subject (voxel 1 mm). With the
+// scene's range, its nearest search depth and plane step relative to depth: 1.03 mm.
+TEST(VariantsTest, WorldScaleColourRingIsCorrectOrDegenerate) {
   TempDir dir;
-  ExpectCorrectOrDegenerate(
-      SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --color-only --world-scale 0.05"));
+  const Outcome outcome =
+      SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --color-only --world-scale 0.05");
+  ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["method"], "mvs");
+  EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
 // A y-down world (--up -y, CMU Panoptic's): the plan's up axis comes from the rig.
