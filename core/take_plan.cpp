@@ -245,15 +245,22 @@ void ChooseSilhouettes(const Take& take, const TakeSelection& selection, TakePla
     return;
   }
   const std::string& asked = selection.silhouettes;
-  if (asked == "plate" ||
-      (asked == "auto" && plan.has_clean_plate() && selection.silhouette_threshold == 0)) {
+  const bool alpha = std::all_of(
+      plan.color_sensors.begin(), plan.color_sensors.end(),
+      [&](const std::string& name) { return take.stream(name).pixel_format == "bgra8"; });
+  if (asked == "auto" && alpha && selection.silhouette_threshold == 0) {
+    plan.silhouettes = SilhouetteSource::kAlpha;
+    plan.silhouette_reason = "the colour frames' own alpha channel (every colour stream is bgra8)";
+  } else if (asked == "plate" ||
+             (asked == "auto" && plan.has_clean_plate() && selection.silhouette_threshold == 0)) {
     if (!plan.has_clean_plate()) {
       Fail("silhouettes from a clean plate: take '", take.dir().string(),
            "' has none. Silhouettes can come from: a clean plate (record leading frame sets "
            "without the subject and pass --clean-plate N), a threshold chosen per image "
            "(--silhouettes otsu, or auto), or a given threshold on a dark background "
-           "(--silhouette-threshold T, 0..1 of full scale); alpha masks of imports and a "
-           "background model of a moving subject are not available yet");
+           "(--silhouette-threshold T, 0..1 of full scale); with --silhouettes auto, the alpha "
+           "channel of bgra8 colour streams is used first; a background model of a moving "
+           "subject is not available yet");
     }
     plan.silhouettes = SilhouetteSource::kCleanPlate;
     plan.silhouette_reason = Cat("background subtraction against the clean plate (frame set ",

@@ -32,7 +32,7 @@ namespace holocap {
 // Where a take's silhouettes come from, in the order a plan prefers them.
 enum class SilhouetteSource {
   kNone,             // nothing to separate the subject from (no colour camera)
-  kAlpha,            // the frames' own alpha masks (imports that keep RGBA; not chosen yet)
+  kAlpha,            // the frames' own alpha channel (every colour stream bgra8)
   kCleanPlate,       // background subtraction against the clean plate
   kBackgroundModel,  // a background learned over a dynamic take's frames (not chosen yet)
   kOtsu,             // a threshold chosen per image (Otsu) on the brightest channel
@@ -50,8 +50,8 @@ struct TakeSelection {
   std::vector<std::string> heldout;   // colour cameras never reconstructed from (--heldout-names)
   std::optional<Eigen::AlignedBox3d> bounds;  // the scene's box (--bounds); else from the rig
   std::optional<Eigen::Vector3d> up;          // the world's up axis (--up); else from the rig
-  // Silhouettes: "auto" (the first of the take's sources that can run), "plate", "otsu" or
-  // "threshold" (silhouette_threshold, else 0.19 of full scale).
+  // Silhouettes: "auto" (the first of the take's sources that can run: alpha, clean plate,
+  // Otsu), "plate", "otsu" or "threshold" (silhouette_threshold, else 0.19 of full scale).
   std::string silhouettes = "auto";
   double silhouette_threshold = 0;  // (0, 1) of full scale; 0: none given
 

@@ -116,7 +116,8 @@ class PlaneSweep {
       for (int x = 0; x < w_; ++x) {
         float z = near.at<float>(y, x);
         if (!std::isfinite(z) || view_.mask.at<uint8_t>(y, x) == 0) continue;
-        lo_.at<float>(y, x) = std::max(0.05f, z - static_cast<float>(options_.hull_margin_m));
+        // Never nearer than half the hull's depth: a scene's own length, whatever its scale.
+        lo_.at<float>(y, x) = std::max(0.5f * z, z - static_cast<float>(options_.hull_margin_m));
         hi_.at<float>(y, x) = z + static_cast<float>(options_.search_depth_m);
         active_pixels.at<uint8_t>(y, x) = 255;
       }
@@ -148,7 +149,7 @@ class PlaneSweep {
     const double focal = ref_projector.focal();
     for (double z = zmin; z <= zmax;) {
       planes_.push_back(static_cast<float>(z));
-      z += std::max(1e-4, options_.depth_step_px * z * z / (focal * baseline));
+      z += std::max(1e-5 * z, options_.depth_step_px * z * z / (focal * baseline));
     }
     result_.planes = static_cast<int64_t>(planes_.size());
   }

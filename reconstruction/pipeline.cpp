@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdio>
 #include <exception>
+#include <limits>
 #include <map>
 #include <mutex>
 #include <optional>
@@ -85,6 +86,7 @@ nlohmann::json ReconstructionOptions::ToJson() const {
           {"silhouette",
            {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
                      : silhouette.mode == SilhouetteMode::kOtsu    ? "otsu"
+                     : silhouette.mode == SilhouetteMode::kAlpha   ? "alpha"
                                                                    : "background"},
             {"noise_sigmas", silhouette.noise_sigmas},
             {"min_difference", silhouette.min_difference},
@@ -156,8 +158,12 @@ struct MethodPlan {
   bool hull_completion = false;  // TSDF: completed from the visual hull
   SilhouetteOptions silhouette;  // the plan's source applied to the options' parameters
   MvsOptions mvs;                // the options' search scaled to the scene
-  bool check_fill = true;        // the bounds are not the hull's own extent
-  int hull_min_views = 2;        // the hull method's: points fewer cameras see are outside
+  // Depths fused (TSDF: the depth sensors'; MVS: the stereo's), from the scene's distances.
+  double depth_min_m = 0;
+  double depth_max_m = 0;
+  std::string depth_range_source;
+  bool check_fill = true;  // the bounds are not the hull's own extent
+  int hull_min_views = 2;  // the hull method's: points fewer cameras see are outside
 };
 
 // Which faces of `bounds` a hull reaches (within 1.5 voxels) and the fraction of the bounds'
@@ -192,173 +198,270 @@ struct FrameOutput : Summary {
   nlohmann::json metrics = nlohmann::json::object();
 };
 
-// A camera's silhouette from the plan's source (its clean plate when that is the source).
-cv::Mat Silhouette(const cv::Mat& image, const std::string& name, const Plates& plates,
+// A colour frame as every step reads it: BGR, grey expanded and alpha dropped. Throws Error
+// naming the camera for frames that are not 8-bit grey, BGR or BGRA.
+cv::Mat ColourOf(const cv::Mat& frame, const std::string& name) {
+  const int channels = frame.channels();
+  if (frame.depth() != CV_8U || (channels != 1 && channels != 3 && channels != 4))
+    Fail("colour frames of '", name, "' must be 8-bit grey, BGR or BGRA");
+  if (channels == 3) return frame;
+  cv::Mat bgr;
+  cv::cvtColor(frame, bgr, channels == 1 ? cv::COLOR_GRAY2BGR : cv::COLOR_BGRA2BGR);
+  return bgr;
+}
+
+// A camera's silhouette of a frame as the take stores it, from the plan's source: its alpha
+// channel, or its colour against the clean plate (when that is the source) or a threshold.
+cv::Mat Silhouette(const cv::Mat& frame, const std::string& name, const Plates& plates,
                    const SilhouetteOptions& options) {
+  if (options.mode == SilhouetteMode::kAlpha) return ExtractSilhouette(frame, {}, options);
   auto plate = plates.color.find(name);  // none without a clean plate
-  return ExtractSilhouette(image, plate == plates.color.end() ? cv::Mat() : plate->second, options);
+  return ExtractSilhouette(ColourOf(frame, name),
+                           plate == plates.color.end() ? cv::Mat() : plate->second, options);
 }
 
-// The hull method's frame: the visual hull, checked for plausibility, and its surface.
-void HullFrame(const std::vector<View>& views, const MethodPlan& plan,
-               const ReconstructionOptions& options, const Box& bounds, double voxel, int threads,
-               FrameOutput* out) {
-  HullOptions hull_options = options.hull;
-  hull_options.voxel_m = voxel;
-  hull_options.bounds = bounds;
-  hull_options.threads = threads;
-  hull_options.min_views = plan.hull_min_views;
-  HullSummary summary;
-  VisualHull hull = ComputeVisualHull(views, hull_options, &summary);
-  out->metrics["hull"] = {{"seconds", summary.seconds},
-                          {"volume_m3", summary.volume_m3},
-                          {"surface_blocks", summary.surface_blocks},
-                          {"octree_cells", summary.octree_cells}};
-  out->End(summary.termination, summary.message);
-  const std::string implausible =
-      summary.IsUsable() ? ImplausibleHull(hull, summary, bounds, options, plan.check_fill) : "";
-  if (!implausible.empty()) out->End(Termination::kDegenerate, implausible);
-  if (out->IsUsable()) out->mesh = ExtractMesh(*hull.volume, options.meshing);
-}
-
-// Reconstructs one frame set at one voxel size.
-FrameOutput ReconstructFrame(const Take& take, const TakePlan& take_plan, const Plates& plates,
-                             const MethodPlan& plan, const ReconstructionOptions& options,
-                             int64_t set, double voxel, int threads) {
-  FrameOutput out;
-  out.End(Termination::kSuccess, "");  // until a step finds the frame cannot give a surface
-  std::vector<std::string> needed = take_plan.color_sensors;
-  if (plan.method == ReconstructionMethod::kTsdf) {
-    needed.insert(needed.end(), take_plan.depth_sensors.begin(), take_plan.depth_sensors.end());
-  }
-  FrameSet frames = take.Read(static_cast<size_t>(set), needed);
-  std::vector<View> views;
-  const bool need_masks = plan.method != ReconstructionMethod::kTsdf || plan.hull_completion;
-  for (const std::string& name : take_plan.ReconstructionSensors()) {
-    const Frame* frame = frames.Find(name);
-    View view{name, take_plan.cameras.at(name), frame->image, {}};
-    if (view.image.type() == CV_8UC1) cv::cvtColor(view.image, view.image, cv::COLOR_GRAY2BGR);
-    if (view.image.type() != CV_8UC3) Fail("colour frames of '", name, "' must be 8-bit");
-    if (need_masks) view.mask = Silhouette(view.image, name, plates, plan.silhouette);
-    views.push_back(std::move(view));
-  }
-  const Box bounds = Box::From(take_plan.bounds);
-  if (plan.method == ReconstructionMethod::kHull) {
-    HullFrame(views, plan, options, bounds, voxel, threads, &out);
-  } else {
-    TsdfOptions tsdf_options = options.tsdf;
-    tsdf_options.voxel_m = voxel;
-    tsdf_options.bounds = bounds;
-    tsdf_options.threads = threads;
-    std::optional<TsdfVolume> tsdf;
-    if (plan.method == ReconstructionMethod::kTsdf) {
-      tsdf.emplace(tsdf_options);
-      double seconds = 0;
-      int64_t valid = 0;
-      std::vector<std::pair<CameraModel, cv::Mat>> depth_maps;
-      for (const std::string& name : take_plan.depth_sensors) {
-        const Frame* frame = frames.Find(name);
-        const std::string& paired = take.stream(name).paired_with;
-        cv::Mat foreground;
-        if (plan.depth_background)
-          foreground =
-              DepthForeground(frame->image, plates.depth.at(name), options.tsdf.depth_noise_k);
-        const View* color_view = nullptr;
-        for (const View& v : views) color_view = v.name == paired ? &v : color_view;
-        TsdfFrameStats stats =
-            color_view != nullptr
-                ? tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground,
-                                  color_view->image, &color_view->camera)
-                : tsdf->Integrate(frame->image, take_plan.cameras.at(name), foreground);
-        seconds += stats.seconds;
-        valid += stats.valid_pixels;
-        depth_maps.emplace_back(take_plan.cameras.at(name), frame->image);
-      }
-      out.metrics["tsdf"] = {{"integrate_seconds", seconds},
-                             {"valid_pixels", valid},
-                             {"blocks", tsdf->volume().block_count()},
-                             {"memory_mb", tsdf->volume().memory_bytes() / 1048576.0}};
-      if (plan.hull_completion) {
-        HullOptions hull_options = options.hull;
-        hull_options.voxel_m = voxel;
-        hull_options.bounds = bounds;
-        hull_options.margin_px = options.completion_margin_px;
-        hull_options.threads = threads;
-        HullSummary hull_summary;
-        VisualHull hull = ComputeVisualHull(views, hull_options, &hull_summary);
-        out.metrics["hull"] = {{"seconds", hull_summary.seconds},
-                               {"volume_m3", hull_summary.volume_m3}};
-        const std::string implausible =
-            hull_summary.IsUsable()
-                ? ImplausibleHull(hull, hull_summary, bounds, options, plan.check_fill)
-                : "";
-        if (!implausible.empty()) hull_summary.End(Termination::kDegenerate, implausible);
-        if (IsUsable(hull_summary.termination)) {
-          CompletionStats completion = tsdf->CompleteFromHull(hull, depth_maps);
-          out.metrics["completion"] = {{"seconds", completion.seconds},
-                                       {"blocks_added", completion.blocks_added},
-                                       {"voxels_filled", completion.voxels_filled},
-                                       {"voxels_carved", completion.voxels_carved},
-                                       {"memory_mb", tsdf->volume().memory_bytes() / 1048576.0}};
-        } else {
-          // The depth sensors' surface stands alone; the frame says why.
-          out.metrics["completion"] = {{"skipped", "hull: " + hull_summary.message}};
-        }
-      }
-    } else {
-      HullOptions hull_options = options.hull;
-      hull_options.voxel_m = 2 * voxel;
-      hull_options.bounds = bounds;
-      hull_options.threads = threads;
-      HullSummary hull_summary;
-      VisualHull hull = ComputeVisualHull(views, hull_options, &hull_summary);
-      out.metrics["hull"] = {{"seconds", hull_summary.seconds},
-                             {"volume_m3", hull_summary.volume_m3}};
-      const std::string implausible =
-          hull_summary.IsUsable()
-              ? ImplausibleHull(hull, hull_summary, bounds, options, plan.check_fill)
-              : "";
-      if (!implausible.empty()) hull_summary.End(Termination::kDegenerate, implausible);
-      if (!IsUsable(hull_summary.termination)) {
-        out.End(hull_summary.termination, "hull: " + hull_summary.message);
-        return out;
-      }
-      MvsOptions mvs_options = plan.mvs;
-      mvs_options.threads = threads;
-      MvsSummary mvs_summary;
-      std::vector<cv::Mat> depths = ComputeMvsDepth(views, hull, mvs_options, &mvs_summary);
-      out.metrics["mvs"] = {{"seconds", mvs_summary.seconds},
-                            {"pixels_matched", mvs_summary.pixels_matched},
-                            {"pixels_consistent", mvs_summary.pixels_consistent},
-                            {"planes", mvs_summary.planes}};
-      if (!IsUsable(mvs_summary.termination)) {
-        out.termination = mvs_summary.termination;
-        out.message = "mvs: " + mvs_summary.message;
-        return out;
-      }
-      // Stereo depth is already consistent between views; its error grows like z^2 too.
-      tsdf_options.smoothing_radius_px = 1;
-      tsdf.emplace(tsdf_options);
-      double seconds = 0;
-      for (size_t i = 0; i < views.size(); ++i) {
-        seconds += tsdf->Integrate(depths[i], views[i].camera, views[i].mask, views[i].image,
-                                   &views[i].camera)
-                       .seconds;
-      }
-      out.metrics["tsdf"] = {{"integrate_seconds", seconds},
-                             {"blocks", tsdf->volume().block_count()}};
+// The depth pixels whose point lies in `hull` or within `margin_m` plus 3 sigma(z) of the
+// depth noise of it: a depth sensor's foreground when the take has no depth clean plate (floor
+// and walls lie outside the colour cameras' hull). CV_8U, 255 = foreground.
+cv::Mat DepthInHull(const cv::Mat& depth_m, const CameraModel& camera, const VisualHull& hull,
+                    double margin_m, double depth_noise_k) {
+  const cv::Mat rays = recon::NormalisedRays(camera);
+  const Pose world_from_cam = camera.world_from_cam();
+  cv::Mat inside = cv::Mat::zeros(depth_m.size(), CV_8U);
+  for (int y = 0; y < depth_m.rows; ++y) {
+    const float* depth = depth_m.ptr<float>(y);
+    const cv::Vec2f* ray = rays.ptr<cv::Vec2f>(y);
+    uint8_t* out = inside.ptr<uint8_t>(y);
+    for (int x = 0; x < depth_m.cols; ++x) {
+      const double z = depth[x];
+      if (!(z > 0 && std::isfinite(z)) || !std::isfinite(ray[x][0])) continue;
+      const Eigen::Vector3d point =
+          world_from_cam * Eigen::Vector3d(ray[x][0] * z, ray[x][1] * z, z);
+      if (hull.Contains(point, margin_m + 3 * depth_noise_k * z * z)) out[x] = 255;
     }
-    out.mesh = ExtractMesh(tsdf->volume(), options.meshing);
   }
-  if (out.mesh.faces.empty() && IsUsable(out.termination)) {
-    out.termination = Termination::kDegenerate;
-    out.message = "no surface was found";
-  }
-  if (IsUsable(out.termination) && out.message.empty()) {
-    out.message = Cat(out.mesh.vertices.size(), " vertices, ", out.mesh.faces.size(), " triangles");
-  }
-  return out;
+  return inside;
 }
+
+// Reconstructs one frame set at one voxel size by the plan's method; each method is a step.
+class FrameReconstructor {
+ public:
+  FrameReconstructor(const Take& take, const TakePlan& take_plan, const Plates& plates,
+                     const MethodPlan& plan, const ReconstructionOptions& options, double voxel,
+                     int threads)
+      : take_(take),
+        take_plan_(take_plan),
+        plates_(plates),
+        plan_(plan),
+        options_(options),
+        bounds_(Box::From(take_plan.bounds)),
+        voxel_(voxel),
+        threads_(threads) {
+    tsdf_options_ = options.tsdf;
+    tsdf_options_.voxel_m = voxel;
+    tsdf_options_.bounds = bounds_;
+    tsdf_options_.threads = threads;
+    tsdf_options_.depth_min_m = plan.depth_min_m;
+    tsdf_options_.depth_max_m = plan.depth_max_m;
+  }
+
+  FrameOutput Run(int64_t set) {
+    out_.End(Termination::kSuccess, "");  // until a step finds the frame cannot give a surface
+    ReadViews(set);
+    if (plan_.method == ReconstructionMethod::kHull) {
+      HullFrame();
+    } else if (plan_.method == ReconstructionMethod::kTsdf) {
+      TsdfFrame();
+    } else {
+      MvsFrame();
+    }
+    if (tsdf_ && out_.IsUsable()) out_.mesh = ExtractMesh(tsdf_->volume(), options_.meshing);
+    if (out_.mesh.faces.empty() && out_.IsUsable())
+      out_.End(Termination::kDegenerate, "no surface was found");
+    if (out_.IsUsable() && out_.message.empty())
+      out_.message =
+          Cat(out_.mesh.vertices.size(), " vertices, ", out_.mesh.faces.size(), " triangles");
+    return std::move(out_);
+  }
+
+ private:
+  // The frame set's colour views (BGR) with their silhouettes where the method needs them.
+  void ReadViews(int64_t set) {
+    std::vector<std::string> needed = take_plan_.color_sensors;
+    if (plan_.method == ReconstructionMethod::kTsdf)
+      needed.insert(needed.end(), take_plan_.depth_sensors.begin(), take_plan_.depth_sensors.end());
+    frames_ = take_.Read(static_cast<size_t>(set), needed);
+    const bool need_masks = plan_.method != ReconstructionMethod::kTsdf || plan_.hull_completion;
+    for (const std::string& name : take_plan_.ReconstructionSensors()) {
+      const Frame* frame = frames_.Find(name);
+      View view{name, take_plan_.cameras.at(name), ColourOf(frame->image, name), {}};
+      if (need_masks) view.mask = Silhouette(frame->image, name, plates_, plan_.silhouette);
+      views_.push_back(std::move(view));
+    }
+  }
+
+  // The views' visual hull at `voxel` grown by `margin_px`, checked for plausibility; the
+  // summary says why when it is not usable.
+  VisualHull Hull(double voxel, double margin_px, int min_views, HullSummary* summary) const {
+    HullOptions hull_options = options_.hull;
+    hull_options.voxel_m = voxel;
+    hull_options.bounds = bounds_;
+    hull_options.margin_px = margin_px;
+    hull_options.min_views = min_views;
+    hull_options.threads = threads_;
+    VisualHull hull = ComputeVisualHull(views_, hull_options, summary);
+    const std::string implausible =
+        summary->IsUsable() ? ImplausibleHull(hull, *summary, bounds_, options_, plan_.check_fill)
+                            : "";
+    if (!implausible.empty()) summary->End(Termination::kDegenerate, implausible);
+    return hull;
+  }
+
+  // The hull method: the visual hull and its surface.
+  void HullFrame() {
+    HullSummary summary;
+    VisualHull hull = Hull(voxel_, options_.hull.margin_px, plan_.hull_min_views, &summary);
+    out_.metrics["hull"] = {{"seconds", summary.seconds},
+                            {"volume_m3", summary.volume_m3},
+                            {"surface_blocks", summary.surface_blocks},
+                            {"octree_cells", summary.octree_cells}};
+    out_.End(summary.termination, summary.message);
+    if (out_.IsUsable()) out_.mesh = ExtractMesh(*hull.volume, options_.meshing);
+  }
+
+  // The TSDF method: the colour cameras' hull (when completing), each depth sensor's
+  // foreground (against its depth clean plate, else inside that hull), fusion, completion.
+  void TsdfFrame() {
+    std::optional<VisualHull> hull;
+    if (plan_.hull_completion) {
+      HullSummary summary;
+      hull.emplace(Hull(voxel_, options_.completion_margin_px, options_.hull.min_views, &summary));
+      out_.metrics["hull"] = {{"seconds", summary.seconds}, {"volume_m3", summary.volume_m3}};
+      // Without a usable hull the depth sensors' surface stands alone; the frame says why.
+      if (!summary.IsUsable()) {
+        hull.reset();
+        out_.metrics["completion"] = {{"skipped", "hull: " + summary.message}};
+      }
+    }
+    tsdf_.emplace(tsdf_options_);
+    double seconds = 0;
+    int64_t valid = 0, measured = 0;
+    std::vector<std::pair<CameraModel, cv::Mat>> depth_maps;
+    for (const std::string& name : take_plan_.depth_sensors) {
+      const cv::Mat& depth = frames_.Find(name)->image;
+      const CameraModel& camera = take_plan_.cameras.at(name);
+      cv::Mat foreground;
+      if (plan_.depth_background) {
+        foreground = DepthForeground(depth, plates_.depth.at(name), options_.tsdf.depth_noise_k);
+      } else if (hull) {
+        foreground = DepthInHull(depth, camera, *hull, 2 * voxel_, options_.tsdf.depth_noise_k);
+      }
+      const std::string& paired = take_.stream(name).paired_with;
+      const View* color_view = nullptr;
+      for (const View& v : views_) color_view = v.name == paired ? &v : color_view;
+      const TsdfFrameStats stats =
+          color_view != nullptr
+              ? tsdf_->Integrate(depth, camera, foreground, color_view->image, &color_view->camera)
+              : tsdf_->Integrate(depth, camera, foreground);
+      seconds += stats.seconds;
+      valid += stats.valid_pixels;
+      cv::Mat present = depth > 0;  // NaN compares false: a measurement, in or out of range
+      if (!foreground.empty()) present &= foreground;
+      measured += cv::countNonZero(present);
+      depth_maps.emplace_back(camera, depth);
+    }
+    out_.metrics["tsdf"] = {{"integrate_seconds", seconds},
+                            {"valid_pixels", valid},
+                            {"measured_pixels", measured},
+                            {"blocks", tsdf_->volume().block_count()},
+                            {"memory_mb", tsdf_->volume().memory_bytes() / 1048576.0}};
+    if (!FusedEnough(valid, measured, hull.has_value())) return;
+    if (!hull) return;
+    CompletionStats completion = tsdf_->CompleteFromHull(*hull, depth_maps);
+    out_.metrics["completion"] = {{"seconds", completion.seconds},
+                                  {"blocks_added", completion.blocks_added},
+                                  {"voxels_filled", completion.voxels_filled},
+                                  {"voxels_carved", completion.voxels_carved},
+                                  {"memory_mb", tsdf_->volume().memory_bytes() / 1048576.0}};
+  }
+
+  // Whether the depth maps gave a fusion: at least a tenth of their measured (foreground)
+  // pixels within the plan's depth range. When not, the frame is the colour cameras' hull
+  // alone if there is one (said in its message and metrics), else DEGENERATE.
+  bool FusedEnough(int64_t valid, int64_t measured, bool has_hull) {
+    if (10 * valid >= measured && valid > 0) return true;
+    const std::string why =
+        Cat("only ", valid, " of ", measured, " measured depth pixels lie in the depth range [",
+            Fixed(plan_.depth_min_m, 4), ", ", Fixed(plan_.depth_max_m, 4), "] m (",
+            plan_.depth_range_source, ")");
+    if (!has_hull) {
+      out_.End(Termination::kDegenerate, "no depth fusion: " + why);
+      return false;
+    }
+    out_.metrics["tsdf"]["fallback"] = "the colour cameras' visual hull alone: " + why;
+    out_.message = "depth fusion fell back to the colour cameras' visual hull: " + why;
+    return true;
+  }
+
+  // The MVS method: a conservative hull at twice the voxel, plane-sweep depth inside it, and
+  // the depths fused.
+  void MvsFrame() {
+    HullSummary hull_summary;
+    VisualHull hull =
+        Hull(2 * voxel_, options_.hull.margin_px, options_.hull.min_views, &hull_summary);
+    out_.metrics["hull"] = {{"seconds", hull_summary.seconds},
+                            {"volume_m3", hull_summary.volume_m3}};
+    if (!hull_summary.IsUsable()) {
+      out_.End(hull_summary.termination, "hull: " + hull_summary.message);
+      return;
+    }
+    MvsOptions mvs_options = plan_.mvs;
+    mvs_options.threads = threads_;
+    MvsSummary mvs_summary;
+    std::vector<cv::Mat> depths = ComputeMvsDepth(views_, hull, mvs_options, &mvs_summary);
+    out_.metrics["mvs"] = {{"seconds", mvs_summary.seconds},
+                           {"pixels_matched", mvs_summary.pixels_matched},
+                           {"pixels_consistent", mvs_summary.pixels_consistent},
+                           {"planes", mvs_summary.planes}};
+    if (!IsUsable(mvs_summary.termination)) {
+      out_.End(mvs_summary.termination, "mvs: " + mvs_summary.message);
+      return;
+    }
+    // Stereo depth is already consistent between views; its error grows like z^2 too.
+    TsdfOptions tsdf_options = tsdf_options_;
+    tsdf_options.smoothing_radius_px = 1;
+    tsdf_.emplace(tsdf_options);
+    double seconds = 0;
+    int64_t valid = 0, measured = 0;
+    for (size_t i = 0; i < views_.size(); ++i) {
+      const TsdfFrameStats stats = tsdf_->Integrate(depths[i], views_[i].camera, views_[i].mask,
+                                                    views_[i].image, &views_[i].camera);
+      seconds += stats.seconds;
+      valid += stats.valid_pixels;
+      measured += cv::countNonZero((depths[i] > 0) & views_[i].mask);
+    }
+    // Stereo's pixels, not a depth sensor's: named apart from the TSDF method's.
+    out_.metrics["tsdf"] = {{"integrate_seconds", seconds},
+                            {"stereo_pixels_fused", valid},
+                            {"stereo_pixels_measured", measured},
+                            {"blocks", tsdf_->volume().block_count()}};
+    FusedEnough(valid, measured, false);
+  }
+
+  const Take& take_;
+  const TakePlan& take_plan_;
+  const Plates& plates_;
+  const MethodPlan& plan_;
+  const ReconstructionOptions& options_;
+  const Box bounds_;
+  const double voxel_;
+  const int threads_;
+  TsdfOptions tsdf_options_;  // the options' with the frame's voxel, bounds and depth range
+  FrameSet frames_;
+  std::vector<View> views_;
+  std::optional<TsdfVolume> tsdf_;  // the fused volume, when the method fuses
+  FrameOutput out_;
+};
 
 // The mesh in the simulation's true world: calibrated models live in the world the calibration
 // chose from the take, laid here onto the true cameras for measuring only.
@@ -430,6 +533,7 @@ class TakeReconstructor {
     ReadPlates();
     TightenBounds();
     ChooseVoxel();
+    ChooseDepthRange();
     CheckBoundsSeen();
     DescribePlan();
     CreateDirectories(out_);
@@ -461,10 +565,12 @@ class TakeReconstructor {
     const auto& depth = take_plan_.depth_sensors;
     plan_.method = options_.method;
     if (plan_.method == ReconstructionMethod::kAuto) {
-      plan_.method = !depth.empty() ? ReconstructionMethod::kTsdf
-                     : take_plan_.silhouettes == SilhouetteSource::kCleanPlate
-                         ? ReconstructionMethod::kMvs
-                         : ReconstructionMethod::kHull;
+      // Stereo needs silhouettes that hold the whole subject (a clean plate's or alpha's).
+      const bool exact_silhouettes = take_plan_.silhouettes == SilhouetteSource::kCleanPlate ||
+                                     take_plan_.silhouettes == SilhouetteSource::kAlpha;
+      plan_.method = !depth.empty()      ? ReconstructionMethod::kTsdf
+                     : exact_silhouettes ? ReconstructionMethod::kMvs
+                                         : ReconstructionMethod::kHull;
     }
     if (is_tsdf() && depth.empty())
       Fail("method tsdf needs depth sensors; ", Where(), " has none (use hull or mvs)");
@@ -512,6 +618,9 @@ class TakeReconstructor {
       take_plan_.silhouette_reason = "a fixed threshold, asked for in the stage's options";
     }
     switch (take_plan_.silhouettes) {
+      case SilhouetteSource::kAlpha:
+        plan_.silhouette.mode = SilhouetteMode::kAlpha;
+        break;
       case SilhouetteSource::kCleanPlate:
         plan_.silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
         break;
@@ -523,8 +632,9 @@ class TakeReconstructor {
         plan_.silhouette.mode = SilhouetteMode::kOtsu;
         break;
     }
-    if (plan_.silhouette.mode != SilhouetteMode::kBackgroundSubtraction && !stage_threshold &&
-        options_.threshold_morphology) {
+    const bool thresholded = plan_.silhouette.mode == SilhouetteMode::kThreshold ||
+                             plan_.silhouette.mode == SilhouetteMode::kOtsu;
+    if (thresholded && !stage_threshold && options_.threshold_morphology) {
       // A subject on a dark background loses its darkest edge pixels to any threshold: close
       // and grow its silhouette as the Middlebury recipe does.
       plan_.silhouette.open_px = 0;
@@ -539,10 +649,8 @@ class TakeReconstructor {
     FrameSet frames = take_.Read(static_cast<size_t>(set), names);
     std::vector<View> views;
     for (const auto& name : names) {
-      cv::Mat image = frames.Find(name)->image;
-      if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
       views.push_back({name, take_plan_.cameras.at(name), {}, {}});
-      views.back().mask = Silhouette(image, name, plates_, plan_.silhouette);
+      views.back().mask = Silhouette(frames.Find(name)->image, name, plates_, plan_.silhouette);
     }
     return views;
   }
@@ -616,6 +724,36 @@ class TakeReconstructor {
     plan_.mvs.hull_margin_m = std::min(options_.mvs.hull_margin_m, 10 * voxel_);
   }
 
+  // The depths fused: from half the nearest to four times the farthest z-depth of the bounds'
+  // corners in the cameras whose depth is fused (a scene's distances, whatever its scale).
+  void ChooseDepthRange() {
+    const std::vector<std::string> names =
+        is_tsdf() ? take_plan_.depth_sensors : take_plan_.ReconstructionSensors();
+    double nearest = std::numeric_limits<double>::infinity(), farthest = 0;
+    const Eigen::AlignedBox3d& box = take_plan_.bounds;
+    for (const CameraModel& camera : take_plan_.Cameras(names)) {
+      for (int corner = 0; corner < 8; ++corner) {
+        const double z = (camera.cam_from_world() *
+                          box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(corner)))
+                             .z();
+        nearest = std::min(nearest, std::max(z, 0.0));
+        farthest = std::max(farthest, z);
+      }
+    }
+    if (!(farthest > 0)) {  // the bounds lie behind every camera: nothing to fuse anyway
+      plan_.depth_min_m = options_.tsdf.depth_min_m;
+      plan_.depth_max_m = options_.tsdf.depth_max_m;
+      plan_.depth_range_source = "the options' (the bounds lie behind the cameras)";
+      return;
+    }
+    plan_.depth_min_m = 0.5 * nearest;
+    plan_.depth_max_m = 4 * farthest;
+    plan_.depth_range_source =
+        Cat("half the nearest and four times the farthest z-depth of the bounds' corners in the ",
+            is_tsdf() ? "depth sensors" : "colour cameras", " (", Fixed(nearest, 4), " and ",
+            Fixed(farthest, 4), " m)");
+  }
+
   // Cameras that do not see the bounds cannot reconstruct anything in them.
   void CheckBoundsSeen() {
     if (!implausible_.empty()) return;
@@ -661,9 +799,8 @@ class TakeReconstructor {
   nlohmann::json HeldoutIoU(const Mesh& mesh, const FrameSet& colour) const {
     nlohmann::json out = nlohmann::json::object();
     for (const auto& name : take_plan_.heldout) {
-      cv::Mat image = colour.Find(name)->image;
-      if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
-      const cv::Mat observed = Silhouette(image, name, plates_, plan_.silhouette);
+      const cv::Mat observed =
+          Silhouette(colour.Find(name)->image, name, plates_, plan_.silhouette);
       out[name] = MaskIoU(RenderSilhouette(mesh, take_plan_.cameras.at(name)), observed);
     }
     return out;
@@ -673,9 +810,11 @@ class TakeReconstructor {
     if (!take_plan_.has_clean_plate()) return;
     const size_t plate_set = static_cast<size_t>(take_plan_.plate_set());
     for (const auto& name : NeededSensors()) {
-      cv::Mat image = take_.ReadFrame(plate_set, name);
-      if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
-      (take_.stream(name).role == SensorRole::kDepth ? plates_.depth : plates_.color)[name] = image;
+      const cv::Mat image = take_.ReadFrame(plate_set, name);
+      if (take_.stream(name).role == SensorRole::kDepth)
+        plates_.depth[name] = image;
+      else
+        plates_.color[name] = ColourOf(image, name);
     }
     plan_.depth_background = is_tsdf();
   }
@@ -698,8 +837,9 @@ class TakeReconstructor {
         : is_tsdf() ? "depth sensors present: TSDF fusion of their depth"
         : plan_.method == ReconstructionMethod::kMvs
             ? "no depth sensor: multi-view stereo inside the visual hull"
-            : "no depth sensor and no clean plate: the visual hull of thresholded silhouettes (a "
-              "subject on a plain dark background gives stereo nothing to match around it)";
+            : "no depth sensor, no clean plate and no alpha: the visual hull of thresholded "
+              "silhouettes (a subject on a plain dark background gives stereo nothing to match "
+              "around it)";
     if (!needs_plate() && !plan_.hull_completion)
       plan["silhouettes"] = {{"source", "not needed"}, {"why", "the method reads depth alone"}};
     plan["completion"] = completion_;
@@ -709,6 +849,11 @@ class TakeReconstructor {
     plan["depth_background"] =
         plan_.depth_background ? "depth clean plate" : "none (everything in the bounds is fused)";
     plan["voxel_m"] = voxel_;
+    if (plan_.method != ReconstructionMethod::kHull) {
+      plan["depth_range"] = {{"min_m", plan_.depth_min_m},
+                             {"max_m", plan_.depth_max_m},
+                             {"source", plan_.depth_range_source}};
+    }
     plan["mvs_search"] = {{"hull_margin_m", plan_.mvs.hull_margin_m},
                           {"search_depth_m", plan_.mvs.search_depth_m}};
     plan["parallel"] = plan_.outer_threads > 1
@@ -747,8 +892,9 @@ class TakeReconstructor {
   void ReconstructOne(int i) {
     const int64_t set = take_plan_.sets[i];
     auto frame_start = std::chrono::steady_clock::now();
-    FrameOutput frame = ReconstructFrame(take_, take_plan_, plates_, plan_, options_, set, voxel_,
-                                         plan_.inner_threads);
+    FrameOutput frame =
+        FrameReconstructor(take_, take_plan_, plates_, plan_, options_, voxel_, plan_.inner_threads)
+            .Run(set);
     const std::string too_large = MeshLargerThanView(frame);
     if (!too_large.empty()) frame.End(Termination::kDegenerate, too_large);
     FrameResult& result = summary_.frames[i];
@@ -759,14 +905,16 @@ class TakeReconstructor {
       std::vector<View> views;
       FrameSet colour = take_.Read(static_cast<size_t>(set), take_plan_.color_sensors);
       for (const auto& name : take_plan_.ReconstructionSensors()) {
-        cv::Mat image = colour.Find(name)->image;
-        if (image.type() == CV_8UC1) cv::cvtColor(image, image, cv::COLOR_GRAY2BGR);
-        views.push_back({name, take_plan_.cameras.at(name), image, {}});
+        views.push_back(
+            {name, take_plan_.cameras.at(name), ColourOf(colour.Find(name)->image, name), {}});
       }
       if (!take_plan_.heldout.empty())
         result.metrics["heldout_iou"] = HeldoutIoU(frame.mesh, colour);
       TextureOptions texture = options_.texture;
       texture.atlas = texture.atlas && options_.write_glb;
+      // Visibility's depth tolerance follows the scene: at most four voxels (1 cm is 20 of them
+      // on a 9 cm object).
+      texture.depth_tolerance_m = std::min(texture.depth_tolerance_m, 4 * voxel_);
       TexturedMesh textured = TextureMesh(frame.mesh, views, texture);
       WritePly(out_ / (SetName(set) + ".ply"), textured.mesh);
       if (options_.write_glb) WriteGlb(out_ / (SetName(set) + ".glb"), textured);
@@ -820,8 +968,9 @@ class TakeReconstructor {
         metrics = summary_.frames[0].metrics;
       } else {
         auto t0 = std::chrono::steady_clock::now();
-        FrameOutput frame = ReconstructFrame(take_, take_plan_, plates_, plan_, options_,
-                                             take_plan_.sets[0], voxel, threads_);
+        FrameOutput frame =
+            FrameReconstructor(take_, take_plan_, plates_, plan_, options_, voxel, threads_)
+                .Run(take_plan_.sets[0]);
         seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (!frame.IsUsable()) continue;
         AddGroundTruthMetrics(take_, take_plan_.sets[0], frame.mesh, take_plan_, plan_, &metrics);
@@ -840,6 +989,26 @@ class TakeReconstructor {
       ++iter;
     }
     return sweep;
+  }
+
+  // Frames whose depth fusion fell back to the colour cameras' hull: the plan and the summary
+  // say so, with the first one's reason.
+  void NoteFallback() {
+    int count = 0;
+    std::string first;
+    for (const FrameResult& f : summary_.frames) {
+      if (!f.IsUsable() || !f.metrics.contains("tsdf") || !f.metrics["tsdf"].contains("fallback"))
+        continue;
+      if (count++ == 0)
+        first = Cat("set ", f.set, ": ", f.metrics["tsdf"]["fallback"].get<std::string>());
+    }
+    if (count == 0) return;
+    const std::string note =
+        Cat("fell back to the colour cameras' visual hull in ", count, " frame set(s); ", first);
+    summary_.plan["depth_fusion"] = note;
+    if (report_ != nullptr) report_->plan()["depth_fusion"] = note;
+    summary_.message += "; depth fusion " + note;
+    std::printf("reconstruct: depth fusion %s\n", note.c_str());
   }
 
   // SUCCESS when at least one frame set gave a surface (the others are named); DEGENERATE when
@@ -885,6 +1054,7 @@ class TakeReconstructor {
       }
       summary_.End(usable == 0 ? Termination::kDegenerate : Termination::kSuccess, message);
     }
+    NoteFallback();
     if (report_ == nullptr) return;
     nlohmann::json& metrics = report_->metrics();
     metrics["timing"] = {{"per_frame_s", per_frame},

@@ -58,6 +58,7 @@ enum class SilhouetteMode {
   kBackgroundSubtraction,  // against a clean plate of the same camera
   kThreshold,              // bright subject on a dark background (no clean plate)
   kOtsu,                   // the same, the threshold chosen per image (Otsu's method)
+  kAlpha,                  // the image's own alpha channel (CV_8UC4), exact: no morphology
 };
 
 struct SilhouetteOptions {
@@ -89,7 +90,10 @@ struct SilhouetteOptions {
 };
 
 // A CV_8UC1 mask (255 = foreground). `clean_plate` is required for background subtraction and
-// must match the image's size and type; ignored in threshold mode. Throws Error on bad input.
+// must match the image's size and type; ignored in the other modes. Alpha mode needs a CV_8UC4
+// image and keeps alpha >= 128 as it is (no morphology, no component filtering); the other
+// modes read the colour channels of 1-, 3- or 4-channel images (alpha ignored). Throws Error on
+// bad input.
 cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
                           const SilhouetteOptions& options);
 // Intersection over union of two masks (non-zero = set); 1 when both are empty.
@@ -442,7 +446,13 @@ struct ReconstructionOptions {
   // (dilate 10 px, erode 7 px, no opening) instead of `silhouette`'s morphology.
   bool threshold_morphology = true;
   HullOptions hull;  // voxel and bounds are set from the fields above
-  TsdfOptions tsdf;  // voxel and bounds likewise
+  // Voxel and bounds likewise; the depth range fused is the plan's (from half the nearest to
+  // four times the farthest z-depth of the bounds in the sensors whose depth is fused), so
+  // tsdf.depth_min_m and depth_max_m apply only to bounds behind every camera. A frame whose
+  // measured depth lies out of that range (fewer than a tenth of its pixels fused) is the
+  // colour cameras' hull alone, said in its message and the plan's "depth_fusion", or
+  // DEGENERATE without a hull.
+  TsdfOptions tsdf;
   // TSDF: what the depth sensors did not see is completed from the colour cameras' visual hull
   // carved by the sensors' free space (TsdfVolume::CompleteFromHull). Needs silhouettes, so a
   // clean plate or threshold silhouettes, and two colour cameras; the plan says when it is off.

@@ -1,5 +1,6 @@
-// Silhouettes by background subtraction against a clean plate, or by thresholding a bright
-// subject on a dark background (at a given level or one chosen per image by Otsu's method).
+// Silhouettes by background subtraction against a clean plate, by thresholding a bright
+// subject on a dark background (at a given level or one chosen per image by Otsu's method), or
+// from the frames' own alpha channel.
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -39,13 +40,14 @@ cv::Mat Disk(int radius) {
   return cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * radius + 1, 2 * radius + 1));
 }
 
-// Largest channel of an 8-bit image, or the image itself when single-channel.
+// Largest colour channel of an 8-bit image (alpha left out), or the image itself when
+// single-channel.
 cv::Mat MaxChannel(const cv::Mat& image) {
   if (image.channels() == 1) return image;
   std::vector<cv::Mat> channels;
   cv::split(image, channels);
   cv::Mat out = channels[0];
-  for (size_t c = 1; c < channels.size(); ++c) cv::max(out, channels[c], out);
+  for (size_t c = 1; c < std::min<size_t>(channels.size(), 3); ++c) cv::max(out, channels[c], out);
   return out;
 }
 
@@ -76,6 +78,12 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
   if (image.empty()) Fail("silhouette: empty image");
   if (image.depth() != CV_8U) Fail("silhouette: image must be 8-bit");
   cv::Mat mask;
+  if (options.mode == SilhouetteMode::kAlpha) {
+    if (image.channels() != 4) Fail("silhouette: alpha mode needs a 4-channel (BGRA) image");
+    cv::extractChannel(image, mask, 3);
+    cv::threshold(mask, mask, 127, 255, cv::THRESH_BINARY);
+    return mask;
+  }
   if (options.mode == SilhouetteMode::kThreshold) {
     cv::threshold(MaxChannel(image), mask, options.threshold * 255, 255, cv::THRESH_BINARY);
   } else if (options.mode == SilhouetteMode::kOtsu) {
@@ -102,6 +110,10 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
       cv::Mat a, b, squared;
       image.convertTo(a, CV_32F);
       clean_plate.convertTo(b, CV_32F);
+      if (image.channels() == 4) {  // colour only: alpha is not what the plate is compared on
+        cv::cvtColor(a, a, cv::COLOR_BGRA2BGR);
+        cv::cvtColor(b, b, cv::COLOR_BGRA2BGR);
+      }
       cv::Mat delta = a - b;
       cv::multiply(delta, delta, squared);
       squared = squared.reshape(1, static_cast<int>(squared.total()));

@@ -406,6 +406,33 @@ TEST(SilhouetteTest, OtsuWithHysteresisKeepsTheShadedSide) {
   EXPECT_LT(level_alone, 0.6);
 }
 
+// BGRA frames: alpha mode keeps the alpha channel exactly (no morphology: a one-pixel speck of
+// alpha stays); the other modes read the colour alone, so a plate whose alpha differs from the
+// image's everywhere still subtracts to the subject.
+TEST(SilhouetteTest, AlphaModeReadsAlphaAndTheOthersIgnoreIt) {
+  cv::Mat truth = cv::Mat::zeros(120, 160, CV_8U);
+  cv::circle(truth, {80, 60}, 30, 255, -1);
+  truth.at<uint8_t>(5, 5) = 255;
+  cv::Mat plate(120, 160, CV_8UC4, cv::Scalar(60, 70, 80, 0)), image = plate.clone();
+  image.setTo(cv::Scalar(200, 40, 90, 0), truth);
+  std::vector<cv::Mat> channels;
+  cv::split(image, channels);
+  channels[3] = truth.clone();
+  cv::merge(channels, image);
+  SilhouetteOptions alpha;
+  alpha.mode = SilhouetteMode::kAlpha;
+  EXPECT_EQ(cv::norm(ExtractSilhouette(image, cv::Mat(), alpha), truth, cv::NORM_INF), 0);
+  cv::Mat bgr;
+  cv::cvtColor(image, bgr, cv::COLOR_BGRA2BGR);
+  EXPECT_THROW(ExtractSilhouette(bgr, cv::Mat(), alpha), Error);
+  cv::Mat opaque_plate = plate.clone();
+  opaque_plate.setTo(cv::Scalar(60, 70, 80, 255));  // alpha differs from the image's everywhere
+  const cv::Mat subtracted = ExtractSilhouette(image, opaque_plate, SilhouetteOptions{});
+  cv::Mat disk = truth.clone();
+  disk.at<uint8_t>(5, 5) = 0;
+  EXPECT_GT(MaskIoU(subtracted, disk), 0.97);
+}
+
 TEST(SurfaceErrorsTest, ScaledSphereGivesItsOffset) {
   Sphere a, b = a;
   b.radius = a.radius + 0.004;

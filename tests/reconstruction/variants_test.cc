@@ -75,16 +75,21 @@ TEST(VariantsTest, StudioWithCleanPlateIsCorrect) {
   EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
-// A 9 cm subject seen from 15 cm (--world-scale 0.05): bounds and voxel follow the rig.
-// Correct today, but only through the colour cameras' hull: every depth measurement (0.15 m)
-// is below TsdfOptions::depth_min_m (0.2 m) and none is fused (Chamfer 0.92 mm, 18 mm at full
-// scale against 12 mm for the same images in metres).
+// A 9 cm subject seen from 15 cm (--world-scale 0.05): bounds, voxel and the depth range
+// fused follow the rig. With the fixed 0.2 m minimum depth every measurement (0.15 m) was
+// dropped and the result was the colour cameras' hull alone (Chamfer 0.92 mm); fused, 0.59 mm.
 TEST(VariantsTest, WorldScaleFiveHundredthsIsCorrectOrDegenerate) {
   TempDir dir;
   const Outcome outcome =
       SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --world-scale 0.05");
   ExpectCorrectOrDegenerate(outcome);
   const nlohmann::json& plan = outcome.report["plan"];
+  EXPECT_LT(plan["depth_range"]["min_m"].get<double>(), 0.1) << plan["depth_range"];
+  EXPECT_FALSE(plan.contains("depth_fusion")) << plan["depth_fusion"];
+  for (const auto& frame : outcome.report["metrics"]["frames"]) {
+    const auto& tsdf = frame["metrics"]["tsdf"];
+    EXPECT_GT(tsdf["valid_pixels"].get<double>(), 0.9 * tsdf["measured_pixels"].get<double>());
+  }
   ASSERT_TRUE(plan.contains("bounds")) << outcome.cli.output;
   for (int axis = 0; axis < 3; ++axis) {
     const double side = plan["bounds"]["box"]["max"][axis].get<double>() -
@@ -94,14 +99,45 @@ TEST(VariantsTest, WorldScaleFiveHundredthsIsCorrectOrDegenerate) {
   EXPECT_LE(plan["voxel"]["m"].get<double>(), 0.001);
 }
 
-// The same ring without depth sensors (Middlebury's 16-view object ring): multi-view stereo.
-// Today SUCCESS with 110 vertices and Chamfer 19.07 mm on a 9 cm subject (voxel 1 mm; the same
-// images in metres give 17.9 mm = 0.89 mm at this scale): reconstruction's stereo
-// (reconstruction/mvs.cpp) and its plausibility checks do not follow the world's scale.
-TEST(VariantsTest, DISABLED_WorldScaleColourRingIsCorrectOrDegenerate) {
+// Depth maps that lie wholly out of the scene's range (each measurement moved 100x farther, as a
+// sensor in the wrong unit would give): nothing is fused, and the run says that its surface is
+// the colour cameras' hull, in the plan and the summary, rather than a fusion.
+TEST(VariantsTest, DepthOutOfRangeFallsBackToTheHullAndSaysSo) {
   TempDir dir;
-  ExpectCorrectOrDegenerate(
-      SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --color-only --world-scale 0.05"));
+  const fs::path take = dir / "take";
+  ASSERT_EQ(RunCli("sim --rig studio8 --size 160 --seed 3 --frames 2 --clean-plate 1 --out '" +
+                   take.string() + "'")
+                .exit_code,
+            0);
+  for (const auto& sensor : {"depth0", "depth1"}) {
+    for (const auto& entry : fs::directory_iterator(take / "frames" / sensor)) {
+      if (entry.path().filename() == "000000.exr") continue;  // the clean plate stays
+      cv::Mat depth = ReadImage(entry.path());
+      WriteExrDepth(entry.path(), depth * 100);
+    }
+  }
+  const auto cli = RunCli("reconstruct '" + take.string() + "' --no-sweep --no-glb");
+  std::ifstream file(take / "recon" / "report.json");
+  ASSERT_TRUE(file) << cli.output;
+  const nlohmann::json report = nlohmann::json::parse(file);
+  ASSERT_TRUE(report["plan"].contains("depth_fusion")) << cli.output;
+  EXPECT_NE(report["plan"]["depth_fusion"].get<std::string>().find("visual hull"),
+            std::string::npos);
+  EXPECT_NE(report["summary"]["message"].get<std::string>().find("fell back"), std::string::npos);
+  EXPECT_EQ(report["metrics"]["frames"][0]["metrics"]["tsdf"]["valid_pixels"], 0);
+}
+
+// The same ring without depth sensors (Middlebury's 16-view object ring): multi-view stereo.
+// The stereo's depth (0.15 m) was fused with the fixed 0.2 m minimum depth, which dropped all of
+// it: SUCCESS with 110 vertices and Chamfer 19.07 mm on a 9 cm subject (voxel 1 mm). With the
+// scene's range, its nearest search depth and plane step relative to depth: 1.03 mm.
+TEST(VariantsTest, WorldScaleColourRingIsCorrectOrDegenerate) {
+  TempDir dir;
+  const Outcome outcome =
+      SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --color-only --world-scale 0.05");
+  ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["method"], "mvs");
+  EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
 // A y-down world (--up -y, CMU Panoptic's): the plan's up axis comes from the rig.
@@ -123,17 +159,20 @@ TEST(VariantsTest, NoCleanPlateIsCorrectOrDegenerate) {
 }
 
 // A dark subject on a near-black room, no clean plate (--dark): silhouettes from a threshold
-// chosen per image. Today SUCCESS with Chamfer 111 mm (accuracy 201 mm, F@5mm 0.11; voxel
-// 16 mm): the Otsu silhouettes plus depth fusion keep background, and no plausibility check
-// in reconstruction/pipeline.cpp catches it.
+// chosen per image. Today SUCCESS with Chamfer 48.6 mm (voxel 16 mm; 22.0 mm = 2.75 voxels at
+// 320 px): the depth sensors now fuse only what lies in the colour cameras' hull (111 mm when
+// every depth pixel was fused), but the Otsu silhouettes keep background, the hull that gates
+// and completes the depth holds it, and no plausibility check in reconstruction/pipeline.cpp
+// catches it.
 TEST(VariantsTest, DISABLED_DarkSubjectOnDarkBackgroundIsCorrectOrDegenerate) {
   TempDir dir;
   ExpectCorrectOrDegenerate(SimulateAndReconstruct(dir, "--frames 1 --dark"));
 }
 
 // RGBA with the true silhouette in alpha, no clean plate (NeRF-synthetic's): the take holds the
-// exact masks; reconstruction does not use them yet (silhouettes from Otsu) and ends
-// DEGENERATE.
+// exact masks and the plan takes silhouettes from them. Without a depth clean plate the depth
+// sensors' foreground is what lies in the colour cameras' hull (before alpha was read:
+// silhouettes from Otsu and DEGENERATE; alpha with every depth pixel fused: 97 mm).
 TEST(VariantsTest, AlphaWithoutCleanPlateIsCorrectOrDegenerate) {
   TempDir dir;
   const Outcome outcome = SimulateAndReconstruct(dir, "--frames 1 --alpha");
@@ -145,14 +184,19 @@ TEST(VariantsTest, AlphaWithoutCleanPlateIsCorrectOrDegenerate) {
   const cv::Mat truth = ReadImage(take.gt_dir() / "masks" / "cam0" / "000000.png");
   EXPECT_EQ(cv::norm(channels[3], truth, cv::NORM_INF), 0);
   ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["silhouettes"]["source"], "alpha");
+  EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
-// The same with a clean plate, so that silhouettes are not what fails. Today an error
-// ("colour frames of 'cam0' must be 8-bit", reconstruction/pipeline.cpp reads only 1- and
-// 3-channel colour) and no report.json.
-TEST(VariantsTest, DISABLED_AlphaWithCleanPlateIsCorrectOrDegenerate) {
+// The same with a clean plate: alpha still comes first (it is exact; the plate's subtraction
+// is not). Colour, texture and fusion read BGR with alpha dropped (before: an error, "colour
+// frames of 'cam0' must be 8-bit", and no report.json).
+TEST(VariantsTest, AlphaWithCleanPlateIsCorrectOrDegenerate) {
   TempDir dir;
-  ExpectCorrectOrDegenerate(SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --alpha"));
+  const Outcome outcome = SimulateAndReconstruct(dir, "--frames 2 --clean-plate 1 --alpha");
+  ExpectCorrectOrDegenerate(outcome);
+  EXPECT_EQ(outcome.report["plan"]["silhouettes"]["source"], "alpha");
+  EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
 }  // namespace
