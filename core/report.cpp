@@ -77,10 +77,12 @@ void Report::Write(const std::filesystem::path& file) const {
   }
   if (file.has_parent_path()) CreateDirectories(file.parent_path());
   WriteFileAtomic(file, text);
+  written_ = true;
 }
 
 Report::~Report() {
-  if (failure_file_.empty() || std::uncaught_exceptions() <= exceptions_at_start_) return;
+  if (failure_file_.empty() || written_ || std::uncaught_exceptions() <= exceptions_at_start_)
+    return;
   try {
     std::lock_guard lock(mutex_);
     nlohmann::json copy = json_;

@@ -56,8 +56,8 @@ struct Summary {
 class Report {
  public:
   explicit Report(std::string command);
-  // A report that has a failure destination and dies while an exception unwinds (the command
-  // ended by an error before writing it) is kept for WritePendingFailureReports.
+  // A report that has a failure destination, was never written, and dies while an exception
+  // unwinds (the command ended by an error first) is kept for WritePendingFailureReports.
   ~Report();
   Report(const Report&) = delete;
   Report& operator=(const Report&) = delete;
@@ -80,6 +80,7 @@ class Report {
 
  private:
   std::filesystem::path failure_file_;
+  mutable bool written_ = false;  // a written report stands (its own summary, e.g. DEGENERATE)
   int exceptions_at_start_ = 0;
   std::chrono::steady_clock::time_point start_;
   mutable std::mutex mutex_;

@@ -191,6 +191,7 @@ class Trainer {
   }
 
   NeuralVolumeSummary Run(Report* report);
+  void Judge(int64_t iteration, NeuralVolumeSummary* summary) const;
 
  private:
   // What the model is built of and trained with, into the summary's plan (the take's plan first).
@@ -655,6 +656,34 @@ void Trainer::DescribePlan(NeuralVolumeSummary* out) const {
   summary.plan["step_m"] = step_m_;
 }
 
+// How a run that did not diverge ended: not finite, a subject no better than the background
+// alone (DEGENERATE), or the budget spent while the loss still fell.
+void Trainer::Judge(int64_t iteration, NeuralVolumeSummary* summary) const {
+  if (!std::isfinite(summary->last_loss) ||
+      (!heldout_.empty() && !std::isfinite(summary->heldout_psnr_db))) {
+    summary->End(Termination::kFailure, "the loss or the held-out PSNR is not finite");
+  } else if (!heldout_.empty() && std::isfinite(summary->background_psnr_fg_db) &&
+             summary->heldout_psnr_fg_db <= summary->background_psnr_fg_db) {
+    // The model's subject is no closer to the held-out views than the empty background is:
+    // it renders fog or nothing where the subject stands, whatever the whole-image PSNR says.
+    summary->End(Termination::kDegenerate,
+                 Cat("the subject in the held-out views (", summary->heldout_psnr_fg_db,
+                     " dB) is no better than the background alone (",
+                     summary->background_psnr_fg_db, " dB) after ", iteration,
+                     " iterations: the volume does not hold the subject (bounds, silhouettes "
+                     "or too short a run)"));
+  } else {
+    summary->End(
+        Termination::kNoConvergence,
+        heldout_.empty()
+            ? Cat("trained ", iteration, " iterations in ", summary->seconds,
+                  " s (no held-out camera)")
+            : Cat("trained ", iteration, " iterations in ", summary->seconds, " s; held-out PSNR ",
+                  summary->heldout_psnr_db, " dB (subject ", summary->heldout_psnr_fg_db,
+                  " dB, background alone ", summary->background_psnr_fg_db, " dB)"));
+  }
+}
+
 NeuralVolumeSummary Trainer::Run(Report* report) {
   NeuralVolumeSummary summary;
   DescribePlan(&summary);
@@ -781,31 +810,7 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   summary.heldout_psnr_fg_db = last_eval.psnr_fg_db;
   summary.background_psnr_fg_db = last_eval.background_psnr_fg_db;
   summary.heldout_ssim = last_eval.ssim;
-  if (summary.divergences <= options_.max_divergences) {
-    if (!std::isfinite(summary.last_loss) ||
-        (!heldout_.empty() && !std::isfinite(summary.heldout_psnr_db))) {
-      summary.End(Termination::kFailure, "the loss or the held-out PSNR is not finite");
-    } else if (!heldout_.empty() && std::isfinite(summary.background_psnr_fg_db) &&
-               summary.heldout_psnr_fg_db <= summary.background_psnr_fg_db) {
-      // The model's subject is no closer to the held-out views than the empty background is:
-      // it renders fog or nothing where the subject stands, whatever the whole-image PSNR says.
-      summary.End(Termination::kDegenerate,
-                  Cat("the subject in the held-out views (", summary.heldout_psnr_fg_db,
-                      " dB) is no better than the background alone (",
-                      summary.background_psnr_fg_db, " dB) after ", iteration,
-                      " iterations: the volume does not hold the subject (bounds, silhouettes "
-                      "or too short a run)"));
-    } else {
-      summary.End(
-          Termination::kNoConvergence,
-          heldout_.empty()
-              ? Cat("trained ", iteration, " iterations in ", summary.seconds,
-                    " s (no held-out camera)")
-              : Cat("trained ", iteration, " iterations in ", summary.seconds, " s; held-out PSNR ",
-                    summary.heldout_psnr_db, " dB (subject ", summary.heldout_psnr_fg_db,
-                    " dB, background alone ", summary.background_psnr_fg_db, " dB)"));
-    }
-  }
+  if (summary.divergences <= options_.max_divergences) Judge(iteration, &summary);
   SaveModel(summary.plan);
   return summary;
 }

@@ -165,11 +165,13 @@ TEST_F(OutputSafety, AnImpossibleRenderSizeIsOneLine) {
 TEST_F(OutputSafety, AFailedRunLeavesItsReport) {
   TempDir dir;
   const fs::path out = dir / "recon";
-  ExpectOneLineError(RunCli("reconstruct " + take().string() + " --out " + out.string()),
-                     "no calibration");
+  // The take has one colour camera: a hull needs two (refused once the output is claimed).
+  ExpectOneLineError(
+      RunCli("reconstruct " + take().string() + " --method hull --out " + out.string()),
+      "at least two colour cameras");
   const auto report = nlohmann::json::parse(ReadFileToString(out / "report.json"));
   EXPECT_EQ(report["summary"]["termination"], "FAILURE");
-  EXPECT_NE(report["summary"]["message"].get<std::string>().find("no calibration"),
+  EXPECT_NE(report["summary"]["message"].get<std::string>().find("at least two colour cameras"),
             std::string::npos);
   EXPECT_EQ(report["command"], "reconstruct");
   fs::create_directories(dir / "mine");

@@ -213,12 +213,21 @@ TEST_F(NeuralTrainTest, BadInputGivesOneClearError) {
 
 TEST_F(NeuralTrainTest, CliTrainsAndRejectsUnknownMethods) {
   const auto out = Dir() / "cli-model";
+  // 100 iterations put the held-out subject above the background alone (26.2 dB against 25.4).
   auto result = RunCli("train nvol '" + Object().string() +
-                       "' --grid 16 --width 64 --iterations 30 --out '" + out.string() + "'");
+                       "' --grid 16 --width 64 --iterations 100 --out '" + out.string() + "'");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   EXPECT_NE(result.output.find("held-out"), std::string::npos) << result.output;
   EXPECT_NE(result.output.find("left_out"), std::string::npos) << result.output;
   EXPECT_TRUE(std::filesystem::exists(out / "model.json"));
+  // 5 do not (the volume still renders fog where the object stands): DEGENERATE, exit 1.
+  auto short_run =
+      RunCli("train nvol '" + Object().string() + "' --grid 16 --width 64 --iterations 5 --out '" +
+             (Dir() / "cli-short").string() + "'");
+  EXPECT_EQ(short_run.exit_code, 1) << short_run.output;
+  EXPECT_NE(short_run.output.find("DEGENERATE: the subject in the held-out views"),
+            std::string::npos)
+      << short_run.output;
   auto bad = RunCli("train nerf '" + Object().string() + "' --out '" + out.string() + "'");
   EXPECT_NE(bad.exit_code, 0);
   EXPECT_NE(bad.output.find("holocap: error: unknown training method 'nerf'"), std::string::npos)
