@@ -139,6 +139,26 @@ fs::path ResolveFile(const fs::path& source, const std::string& prefix, const st
   return source;
 }
 
+// The first of a format's known file names that a folder holds (the file itself when a file is
+// given). `chosen` says which name was taken from a folder.
+fs::path ResolveKnownName(const fs::path& source, const std::vector<std::string>& names,
+                          const std::string& what, std::string* chosen) {
+  if (!fs::is_directory(source)) {
+    if (!fs::is_regular_file(source)) Fail("'", source.string(), "' does not exist");
+    return source;
+  }
+  for (const auto& name : names) {
+    if (fs::is_regular_file(source / name)) {
+      *chosen = name;
+      return source / name;
+    }
+  }
+  std::string listed;
+  for (const auto& name : names) listed += (listed.empty() ? "" : ", ") + name;
+  Fail("'", source.string(), "' holds no ", what, " (looked for ", listed,
+       "); name the file to import");
+}
+
 fs::path ImageRoot(const ImportOptions& options, const fs::path& fallback) {
   return options.images.empty() ? fallback : options.images;
 }
@@ -285,7 +305,24 @@ void ReadNeuralVolumes(const fs::path& source, const ImportOptions& options, Imp
 
 void ReadPanoptic(const fs::path& source, const ImportOptions& options, ImportedRig* rig,
                   std::vector<SourceView>* views) {
-  fs::path file = ResolveFile(source, "calibration_", ".json", "Panoptic calibration");
+  // A Panoptic sequence folder holds calibration_<sequence>.json; some copies name it
+  // camera_parameters.json.
+  fs::path file = source;
+  if (fs::is_directory(source) && fs::is_regular_file(source / "camera_parameters.json")) {
+    bool sequence_file = false;
+    for (const auto& entry : fs::directory_iterator(source)) {
+      const std::string name = entry.path().filename().string();
+      if (name.rfind("calibration_", 0) == 0 && entry.path().extension() == ".json")
+        sequence_file = true;
+    }
+    if (sequence_file) {
+      Fail("'", source.string(), "' holds both camera_parameters.json and a calibration_*.json; ",
+           "name the one to import");
+    }
+    file = source / "camera_parameters.json";
+  } else {
+    file = ResolveFile(source, "calibration_", ".json", "Panoptic calibration");
+  }
   std::vector<KrtCamera> cameras = ParsePanopticCalibration(ReadFileToString(file), file.string());
   fs::path root = ImageRoot(options, file.parent_path());
   std::vector<std::vector<fs::path>> candidates;
@@ -484,9 +521,22 @@ void ReadColmap(const fs::path& source, const ImportOptions& options, ImportedRi
 
 void ReadNerf(const fs::path& source, const ImportOptions& options, ImportedRig* rig,
               std::vector<SourceView>* views) {
-  fs::path file = fs::is_directory(source) ? source / "transforms.json" : source;
-  if (!fs::is_regular_file(file))
-    Fail("'", file.string(), "' does not exist (a NeRF transforms.json)");
+  // A folder's transforms.json, else its training split (NeRF-synthetic's layout): the test
+  // split is the dataset's held-out set and is imported only when named.
+  std::string chosen;
+  fs::path file = ResolveKnownName(source, {"transforms.json", "transforms_train.json"},
+                                   "NeRF transforms file", &chosen);
+  if (chosen == "transforms_train.json") {
+    std::string others;
+    for (const char* split : {"transforms_val.json", "transforms_test.json"}) {
+      if (fs::is_regular_file(source / split)) others += Cat(others.empty() ? "" : ", ", split);
+    }
+    rig->notes.push_back(Cat("read the training split (transforms_train.json)",
+                             others.empty() ? std::string()
+                                            : Cat(" without ", others,
+                                                  " (the dataset's own held-out views: import "
+                                                  "them by naming the file)")));
+  }
   std::vector<NerfFrame> frames = ParseNerfTransforms(ReadFileToString(file), file.string());
   fs::path root = ImageRoot(options, file.parent_path());
   const double scale = options.metres_per_unit > 0 ? options.metres_per_unit : 1;
@@ -525,7 +575,7 @@ PixelFormat PixelFormatOf(const cv::Mat& image, const fs::path& file) {
     case CV_8UC3:
       return {"bgr8"};
     case CV_8UC4:
-      return {"bgr8", true};
+      return {"bgra8"};
     case CV_16UC1:
       return {"mono16"};
     case CV_16UC3:
@@ -606,7 +656,7 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
   description.name = SanitizedName(rig.source.stem().string());
   description.fps = options.fps;
   std::vector<StreamInfo> streams;
-  int64_t alpha_dropped = 0;
+  int64_t alpha_dropped = 0, alpha_kept = 0;
   for (const auto& view : rig.views) {
     const fs::path& first = view.frames.begin()->second;
     cv::Mat image = ReadSourceImage(first);
@@ -669,6 +719,8 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
       if (format.drops_alpha) {
         cv::cvtColor(image, image, cv::COLOR_BGRA2BGR);
         ++alpha_dropped;
+      } else if (image.channels() == 4) {
+        ++alpha_kept;
       }
       set.frames.push_back(
           {rig.views[v].sensor, image, set_index * period_ns, static_cast<uint64_t>(number)});
@@ -684,11 +736,17 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
   summary.frames = frames;
   summary.metrics = rig.metrics;
   summary.metrics["alpha_channels_dropped"] = alpha_dropped;
+  summary.metrics["alpha_channels_kept"] = alpha_kept;
   std::string message = Cat("imported ", summary.sensors, " camera(s), ", frames, " frame(s) in ",
                             set_index, " frame set(s) from ", ToString(rig.format));
+  if (alpha_kept > 0) {
+    rig.notes.push_back(Cat("alpha kept in ", alpha_kept,
+                            " image(s) (bgra8: the silhouettes the reconstruction uses first)"));
+  }
   if (alpha_dropped > 0) {
-    rig.notes.push_back(
-        Cat("alpha channel of ", alpha_dropped, " image(s) dropped (colour kept exactly)"));
+    rig.notes.push_back(Cat("alpha channel of ", alpha_dropped,
+                            " 16-bit image(s) dropped (takes hold alpha at 8 bits; colour kept "
+                            "exactly)"));
   }
   for (const auto& note : rig.notes) message += "; " + note;
   summary.End(Termination::kSuccess, std::move(message));

@@ -25,9 +25,12 @@ std::string SetFileName(int64_t set, const char* extension) {
   return name;
 }
 
+// A frame's colour at the training size, as 8-bit BGR (a bgra8 frame's alpha is its
+// silhouette, read apart by AlphaAtTrainingSize).
 cv::Mat ToTrainingSize(const cv::Mat& image, const CameraModel& camera) {
   cv::Mat bgr = image;
   if (bgr.type() == CV_8UC1) cv::cvtColor(bgr, bgr, cv::COLOR_GRAY2BGR);
+  if (bgr.type() == CV_8UC4) cv::cvtColor(bgr, bgr, cv::COLOR_BGRA2BGR);
   if (bgr.depth() == CV_16U) bgr.convertTo(bgr, CV_8U, 1.0 / 257.0);
   if (bgr.type() != CV_8UC3)
     Fail("neural volumes train on 8-bit colour frames, got cv type ", bgr.type());
@@ -35,6 +38,21 @@ cv::Mat ToTrainingSize(const cv::Mat& image, const CameraModel& camera) {
   cv::Mat resized;
   cv::resize(bgr, resized, cv::Size(camera.width(), camera.height()), 0, 0, cv::INTER_AREA);
   return resized;
+}
+
+// A bgra8 frame's alpha at the training size as a 0/255 silhouette (covered at least half).
+cv::Mat AlphaAtTrainingSize(const cv::Mat& image, const CameraModel& camera) {
+  if (image.type() != CV_8UC4)
+    Fail("the take's plan takes silhouettes from alpha, but a frame is cv type ", image.type());
+  cv::Mat alpha, resized, mask;
+  cv::extractChannel(image, alpha, 3);
+  if (alpha.cols == camera.width() && alpha.rows == camera.height()) {
+    resized = alpha;
+  } else {
+    cv::resize(alpha, resized, cv::Size(camera.width(), camera.height()), 0, 0, cv::INTER_AREA);
+  }
+  cv::threshold(resized, mask, 127, 255, cv::THRESH_BINARY);
+  return mask;
 }
 
 cv::Mat MedianOverFrames(const std::vector<std::vector<cv::Mat>>& images, size_t view) {
@@ -203,9 +221,12 @@ class TrainingDataLoader {
     data_.images.resize(data_.sets.size());
     for (size_t f = 0; f < data_.sets.size(); ++f) {
       FrameSet set = take_.Read(data_.sets[f], names_);
+      const bool alpha = take_plan_.silhouettes == SilhouetteSource::kAlpha;
+      if (alpha) alpha_masks_.emplace_back();
       for (size_t v = 0; v < names_.size(); ++v) {
-        data_.images[f].push_back(
-            ToTrainingSize(set.Find(names_[v])->image, data_.views[v].camera));
+        const cv::Mat& image = set.Find(names_[v])->image;
+        data_.images[f].push_back(ToTrainingSize(image, data_.views[v].camera));
+        if (alpha) alpha_masks_.back().push_back(AlphaAtTrainingSize(image, data_.views[v].camera));
       }
     }
   }
@@ -235,6 +256,7 @@ class TrainingDataLoader {
     silhouette.dilate_px = 2;
     silhouette.erode_px = 1;
     const auto& camera = data_.views[v].camera;
+    if (!alpha_masks_.empty()) return alpha_masks_[f][v];
     if (take_plan_.has_clean_plate()) {
       silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
       return ExtractSilhouette(data_.images[f][v], data_.views[v].background, silhouette);
@@ -251,7 +273,9 @@ class TrainingDataLoader {
   }
 
   void ReadSilhouettes() {
-    if (take_plan_.has_clean_plate())
+    if (!alpha_masks_.empty())
+      silhouette_source_ = "the frames' own alpha channel (bgra8)";
+    else if (take_plan_.has_clean_plate())
       silhouette_source_ = "background subtraction against the clean plate";
     else if (fs::is_directory(take_.gt_dir() / "masks"))
       silhouette_source_ = "gt/masks (no clean plate)";
@@ -422,6 +446,7 @@ class TrainingDataLoader {
   Box overlap_;
   Eigen::Vector3d rig_center_ = Eigen::Vector3d::Zero();
   std::string silhouette_source_;
+  std::vector<std::vector<cv::Mat>> alpha_masks_;  // [frame][view] when the plan reads alpha
   std::vector<VisualHull> hulls_;
   Eigen::Vector3d lo_, hi_;
 };

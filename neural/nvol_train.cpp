@@ -413,7 +413,7 @@ double Trainer::TrainStep(int64_t iteration, double* photometric, double* sample
     torch::Tensor silhouette_term, warp_term;
     if (data_.dynamic) frame_loss = frame_loss + options_.kl_weight * kl;
     if (options_.silhouette_weight > 0) {
-      // The silhouettes of the training views (from the clean plate, else gt/masks, else a
+      // The silhouettes of the training views (alpha, else the clean plate, else gt/masks, else a
       // threshold: the plan names the source): opaque inside, empty outside.
       std::vector<float> inside(per_frame);
       for (int i = 0; i < per_frame; ++i) {

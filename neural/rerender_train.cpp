@@ -139,6 +139,7 @@ struct CameraData {
 cv::Mat ToFloatImage(const cv::Mat& image, const cv::Size& size) {
   cv::Mat color = image;
   if (color.channels() == 1) cv::cvtColor(color, color, cv::COLOR_GRAY2BGR);
+  if (color.channels() == 4) cv::cvtColor(color, color, cv::COLOR_BGRA2BGR);
   cv::Mat scaled;
   if (color.size() != size) {
     cv::resize(color, scaled, size, 0, 0, cv::INTER_AREA);

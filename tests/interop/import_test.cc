@@ -321,7 +321,8 @@ TEST(InteropImport, BlenderTransformsUseOpenGlAxesAndTheImageCentre) {
   options.format = InteropFormat::kNerf;
   ImportSummary summary = ImportTake(dir / "transforms.json", dir / "take", options);
   EXPECT_EQ(summary.sensors, 2);
-  EXPECT_EQ(summary.metrics["alpha_channels_dropped"].get<int>(), 2);
+  EXPECT_EQ(summary.metrics["alpha_channels_dropped"].get<int>(), 0);
+  EXPECT_EQ(summary.metrics["alpha_channels_kept"].get<int>(), 2);
   Take take = Take::Open(dir / "take");
   CameraModel camera = take.Camera("r_0");
   const double f = 20 / std::tan(angle / 2);
@@ -338,9 +339,55 @@ TEST(InteropImport, BlenderTransformsUseOpenGlAxesAndTheImageCentre) {
   ASSERT_TRUE(camera.ProjectWorld(up, &pixel));
   EXPECT_NEAR(pixel.y(), 19.5 - f * 0.05, 1e-9);
   EXPECT_NEAR(pixel.x(), 19.5, 1e-9);
-  cv::Mat bgr;
-  cv::cvtColor(RandomImage(40, 40, CV_8UC4, 11), bgr, cv::COLOR_BGRA2BGR);
-  EXPECT_TRUE(SameImage(take.ReadFrame(0, "r_1"), bgr));
+  // Alpha is kept: the frame is the RGBA image exactly, its stream bgra8.
+  EXPECT_EQ(take.stream("r_1").pixel_format, "bgra8");
+  EXPECT_TRUE(SameImage(take.ReadFrame(0, "r_1"), RandomImage(40, 40, CV_8UC4, 11)));
+}
+
+// NeRF-synthetic's layout: a folder with transforms_{train,val,test}.json and no
+// transforms.json. The folder imports its training split and says what it left out.
+TEST(InteropImport, NerfFolderWithSplitsImportsTheTrainingSplitAndSaysSo) {
+  TempDir dir;
+  auto write_split = [&](const std::string& split, int count) {
+    nlohmann::json json;
+    json["camera_angle_x"] = 0.69;
+    for (int i = 0; i < count; ++i) {
+      nlohmann::json frame;
+      frame["file_path"] = Cat("./", split, "/r_", i);
+      Eigen::Matrix4d m = Eigen::Matrix4d::Identity();
+      m(0, 3) = i;
+      for (int r = 0; r < 4; ++r)
+        frame["transform_matrix"].push_back({m(r, 0), m(r, 1), m(r, 2), m(r, 3)});
+      json["frames"].push_back(frame);
+      std::filesystem::create_directories(dir / split);
+      cv::imwrite((dir / split / Cat("r_", i, ".png")).string(),
+                  RandomImage(24, 24, CV_8UC4, 30 + i));
+    }
+    WriteText(dir / Cat("transforms_", split, ".json"), json.dump());
+  };
+  write_split("train", 3);
+  write_split("test", 2);
+  ImportOptions options;
+  options.format = InteropFormat::kNerf;
+  ImportSummary summary = ImportTake(dir.path(), dir / "take", options);
+  EXPECT_EQ(summary.sensors, 3);
+  EXPECT_NE(summary.message.find("training split (transforms_train.json) without "
+                                 "transforms_test.json"),
+            std::string::npos)
+      << summary.message;
+  // A folder with neither name says which names it looked for.
+  TempDir empty;
+  try {
+    ReadForeignRig(empty.path(), options);
+    FAIL() << "an empty folder imported";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("transforms.json, transforms_train.json"),
+              std::string::npos)
+        << e.what();
+  }
+  // A split named as a file imports that split.
+  ImportSummary test = ImportTake(dir / "transforms_test.json", dir / "test-take", options);
+  EXPECT_EQ(test.sensors, 2);
 }
 
 TEST(InteropImport, NeuralVolumesKrtAlignsNumberedFramesAcrossCameras) {
@@ -433,6 +480,22 @@ TEST(InteropImport, PanopticCentimetresBecomeMetresAndUnrecordedCamerasAreSkippe
   Eigen::Vector2d reference = OpenCvProject(K, {-0.21, 0.15, 0.0004, -0.0003, -0.02}, pose.linear(),
                                             pose.translation(), point_cm);
   EXPECT_LT((pixel - reference).norm(), 1e-9);
+  // The same calibration named camera_parameters.json is found in its folder too; a folder
+  // holding both names asks which one.
+  std::filesystem::rename(dir / "calibration_171026_pose1.json", dir / "camera_parameters.json");
+  ImportSummary renamed = ImportTake(dir.path(), dir / "take2", options);
+  EXPECT_EQ(renamed.sensors, 1);
+  EXPECT_NEAR(Take::Open(dir / "take2").Camera("00_00").center_in_world().x(), 1.5, 1e-12);
+  WriteText(dir / "calibration_other.json", "{}");
+  try {
+    ImportTake(dir.path(), dir / "take3", options);
+    FAIL() << "a folder with two calibrations imported";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("holds both camera_parameters.json and a "
+                                         "calibration_*.json"),
+              std::string::npos)
+        << e.what();
+  }
 }
 
 TEST(InteropImport, MrcalFoldersKeepTheModels) {

@@ -6,10 +6,12 @@
 #include <cmath>
 #include <cstdio>
 #include <nlohmann/json.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/take.h"
+#include "neural/data.h"
 #include "neural/neural.h"
 #include "tests/support/test_support.h"
 
@@ -170,6 +172,45 @@ TEST_F(NeuralTrainTest, StaticSceneLeavesOutEncoderAndWarp) {
   EXPECT_EQ(resumed.plan["resumed_from_iteration"], summary.iterations);
   EXPECT_EQ(resumed.iterations, summary.iterations + 20);
   EXPECT_GE(resumed.heldout_psnr_db, summary.heldout_psnr_db - 1.0);
+}
+
+// A take whose colour carries alpha (an RGBA import, `sim --alpha`): the colour trains as BGR
+// and the silhouettes are the alpha channel, ahead of the clean plate and gt/masks.
+TEST_F(NeuralTrainTest, AlphaFramesTrainAsColourWithAlphaAsTheSilhouettes) {
+  const auto take = Dir() / "alpha";
+  auto sim = RunCli(
+      "sim --rig studio8 --scene object --frames 2 --clean-plate 1 --size 96 --seed 6 "
+      "--alpha --out '" +
+      take.string() + "'");
+  ASSERT_EQ(sim.exit_code, 0) << sim.output;
+  NeuralVolumeOptions options = StaticOptions();
+  neural::TrainingData data = neural::LoadTrainingData(take, options);
+  EXPECT_EQ(data.plan["silhouettes"], "the frames' own alpha channel (bgra8)") << data.plan.dump();
+  ASSERT_FALSE(data.images.empty());
+  Take opened = Take::Open(take);
+  double overlap = 0, either = 0;
+  for (size_t v = 0; v < data.views.size(); ++v) {
+    EXPECT_EQ(data.images[0][v].type(), CV_8UC3);
+    // At the native width (96) the silhouette is the alpha channel exactly.
+    const cv::Mat frame = opened.ReadFrame(data.sets[0], data.views[v].name);
+    ASSERT_EQ(frame.type(), CV_8UC4);
+    std::vector<cv::Mat> channels;
+    cv::split(frame, channels);
+    cv::Mat truth;
+    cv::resize(channels[3], truth, data.masks[0][v].size(), 0, 0, cv::INTER_NEAREST);
+    cv::Mat both, any;
+    cv::bitwise_and(truth, data.masks[0][v], both);
+    cv::bitwise_or(truth, data.masks[0][v], any);
+    overlap += cv::countNonZero(both);
+    either += cv::countNonZero(any);
+    // The colour is the frame's own (alpha dropped, nothing composited).
+    cv::Mat bgr, resized;
+    cv::cvtColor(frame, bgr, cv::COLOR_BGRA2BGR);
+    cv::resize(bgr, resized, data.images[0][v].size(), 0, 0, cv::INTER_AREA);
+    EXPECT_EQ(cv::norm(resized, data.images[0][v], cv::NORM_INF), 0);
+  }
+  ASSERT_GT(either, 0);
+  EXPECT_EQ(overlap, either);
 }
 
 TEST_F(NeuralTrainTest, DivergenceRestoresTheCheckpointAndLowersTheRate) {
