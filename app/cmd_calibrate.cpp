@@ -63,6 +63,10 @@ void PrintSummary(const TakeCalibrationSummary& s) {
         100 * g.focal_rel_err_max, g.principal_point_err_px_max, g.rotation_err_deg_max,
         g.translation_err_mm_max, g.projection_diff_rms_px, 100 * g.within_3sigma_fraction,
         g.world_up_err_deg, g.world_floor_err_mm);
+    if (!s.depth.empty()) {
+      std::printf("depth sensors vs truth: rotation %.4f deg, translation %.2f mm\n",
+                  g.depth_rotation_err_deg_max, g.depth_translation_err_mm_max);
+    }
   }
 }
 

@@ -279,6 +279,10 @@ struct GroundTruthComparison {
   // z axis and the truth's, and the true height of its origin (on its floor).
   double world_up_err_deg = 0;
   double world_floor_err_mm = 0;
+  // The aligned depth sensors' poses after the same rigid motion (depth_from_color composed
+  // with their colour camera's solved pose).
+  double depth_rotation_err_deg_max = 0;
+  double depth_translation_err_mm_max = 0;
   std::map<std::string, nlohmann::json> per_camera;
   nlohmann::json ToJson() const;
 };
@@ -288,18 +292,21 @@ struct GroundTruthComparison {
 // fit of its board points to the true ones (the same mean-of-frames anchoring the uncertainty
 // assumes); for the poses, by AlignRigs. `written_world_from_ref` is the world the models are
 // written in (relative to the reference camera): its up axis and floor are measured against the
-// truth's. Nothing is moved but for measuring.
+// truth's. `depth_in_ref`: aligned depth sensors (in the reference camera's frame), compared
+// when `truth` holds them. Nothing is moved but for measuring.
 GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
                                        const std::map<std::string, CameraModel>& truth,
                                        const std::map<int64_t, Pose>& world_from_board,
                                        const BoardLayout& layout,
-                                       const Pose& written_world_from_ref = Pose::Identity());
+                                       const Pose& written_world_from_ref = Pose::Identity(),
+                                       const std::map<std::string, CameraModel>& depth_in_ref = {});
 
 // ---------------------------------------------------------------------------------------------
 // Depth sensors.
 
 struct DepthAlignmentOptions {
   double plane_inlier_m = 0.01;       // RANSAC band around the fitted board plane
+  double max_plane_band_m = 0.15;     // the band's widest, as it follows the depth noise
   int min_planes = 3;                 // board poses needed (non-parallel normals)
   double min_normal_spread_deg = 10;  // smallest angle between normals that counts as spread
   double max_time_offset_s = 0.05;    // searched range of the time offset
@@ -312,9 +319,10 @@ struct DepthAlignmentSummary : Summary {
   std::string depth_sensor;
   std::string color_sensor;
   Pose depth_from_color = Pose::Identity();
-  int planes = 0;
-  double plane_rms_m = 0;    // board-plane residuals of the fitted transform
-  double time_offset_s = 0;  // depth clock minus colour clock, from board motion
+  int planes = 0;                      // board planes the transform was fitted to
+  std::vector<int64_t> rejected_sets;  // planes left out as not the board (frame sets)
+  double plane_rms_m = 0;  // board-plane residuals of the fitted transform (within 3 sigma)
+  double time_offset_s = 0;            // depth clock minus colour clock, from board motion
   bool time_offset_valid = false;
   nlohmann::json ToJson() const;
 };

@@ -177,6 +177,8 @@ nlohmann::json GroundTruthComparison::ToJson() const {
            "medoid; positions: mean offset of those within 3x the median spread); "
            "*_from_reference: cam_from_reference against the truth, which carries the reference "
            "camera's own error into every camera"},
+          {"depth_rotation_err_deg_max", depth_rotation_err_deg_max},
+          {"depth_translation_err_mm_max", depth_translation_err_mm_max},
           {"world_up_err_deg", world_up_err_deg},
           {"world_floor_err_mm", world_floor_err_mm},
           {"world_comparison",
@@ -193,7 +195,8 @@ GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
                                        const std::map<std::string, CameraModel>& truth,
                                        const std::map<int64_t, Pose>& world_from_board,
                                        const BoardLayout& layout,
-                                       const Pose& written_world_from_ref) {
+                                       const Pose& written_world_from_ref,
+                                       const std::map<std::string, CameraModel>& depth_in_ref) {
   auto ref_truth = truth.find(summary.reference_camera);
   if (ref_truth == truth.end())
     Fail("no true model of reference camera ", summary.reference_camera);
@@ -219,6 +222,19 @@ GroundTruthComparison CompareWithTruth(const CalibrationSummary& summary,
                        &j);
     CompareProjection(cam, t->second, world_from_ref, &result, &tally, &j);
     result.per_camera[cam.name] = j;
+  }
+  for (const auto& [name, model] : depth_in_ref) {
+    auto t = truth.find(name);
+    if (t == truth.end()) continue;
+    const Pose aligned = true_world_from_solved * model.world_from_cam();
+    const double rotation =
+        RotationAngleDeg(t->second.cam_from_world().linear() * aligned.linear());
+    const double translation =
+        1000 * (aligned.translation() - t->second.world_from_cam().translation()).norm();
+    result.depth_rotation_err_deg_max = std::max(result.depth_rotation_err_deg_max, rotation);
+    result.depth_translation_err_mm_max =
+        std::max(result.depth_translation_err_mm_max, translation);
+    result.per_camera[name] = {{"rotation_err_deg", rotation}, {"translation_err_mm", translation}};
   }
   result.projection_diff_rms_px = tally.samples > 0 ? std::sqrt(tally.sum2 / tally.samples) : 0;
   result.projection_diff_rms_observed_px =

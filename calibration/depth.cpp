@@ -1,6 +1,7 @@
 // depth_from_color from board planes seen by a depth sensor and its colour camera, and the
 // time offset between the two from the board's motion.
 #include <Eigen/Dense>
+#include <algorithm>
 #include <cmath>
 #include <random>
 
@@ -39,9 +40,40 @@ bool InsidePolygon(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vec
   return inside;
 }
 
-// RANSAC plane, refined by least squares on its inliers.
-bool FitPlane(const std::vector<Eigen::Vector3d>& points, double band, Plane* plane, double* rms,
-              std::mt19937_64* random) {
+// The least-squares plane of the points within `band` of `plane` (none: false).
+bool RefitPlane(const std::vector<Eigen::Vector3d>& points, double band, Plane* plane,
+                size_t* inliers) {
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  size_t count = 0;
+  for (const auto& p : points) {
+    if (std::abs(plane->normal.dot(p) - plane->offset) < band) {
+      mean += p;
+      ++count;
+    }
+  }
+  if (count < 3) return false;
+  mean /= static_cast<double>(count);
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  for (const auto& p : points) {
+    if (std::abs(plane->normal.dot(p) - plane->offset) < band)
+      scatter += (p - mean) * (p - mean).transpose();
+  }
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(scatter);
+  Eigen::Vector3d n = eigen.eigenvectors().col(0);
+  if (n.dot(mean) < 0) n = -n;
+  plane->normal = n;
+  plane->offset = n.dot(mean);
+  *inliers = count;
+  return true;
+}
+
+// RANSAC plane, then least squares over a band that follows the measured noise: a depth
+// sensor's noise grows as z squared and is skewed (depth is the inverse of a disparity), so a
+// band narrower than the noise picks its mode, nearer the sensor than the surface, and a board
+// 4 m away comes out centimetres too near. The band widens to three robust sigmas of the
+// residuals (never below `band`, never past `max_band`) until it settles.
+bool FitPlane(const std::vector<Eigen::Vector3d>& points, double band, double max_band,
+              Plane* plane, double* sigma, size_t* inliers, std::mt19937_64* random) {
   if (points.size() < 50) return false;
   std::uniform_int_distribution<size_t> pick(0, points.size() - 1);
   size_t best = 0;
@@ -61,23 +93,23 @@ bool FitPlane(const std::vector<Eigen::Vector3d>& points, double band, Plane* pl
     }
   }
   if (best < points.size() / 2) return false;
-  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-  std::vector<Eigen::Vector3d> inliers;
-  for (const auto& p : points) {
-    if (std::abs(best_plane.normal.dot(p) - best_plane.offset) < band) inliers.push_back(p);
+  *plane = best_plane;
+  double width = band;
+  std::vector<double> residuals;
+  for (int round = 0; round < 10; ++round) {
+    if (!RefitPlane(points, width, plane, inliers)) return false;
+    residuals.clear();
+    for (const auto& p : points) {
+      const double r = std::abs(plane->normal.dot(p) - plane->offset);
+      if (r < max_band) residuals.push_back(r);
+    }
+    std::nth_element(residuals.begin(), residuals.begin() + residuals.size() / 2, residuals.end());
+    *sigma = 1.4826 * residuals[residuals.size() / 2];
+    const double next = std::clamp(3 * *sigma, band, max_band);
+    if (std::abs(next - width) < 0.02 * width) break;
+    width = next;
   }
-  for (const auto& p : inliers) mean += p / static_cast<double>(inliers.size());
-  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
-  for (const auto& p : inliers) scatter += (p - mean) * (p - mean).transpose();
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(scatter);
-  Eigen::Vector3d n = eigen.eigenvectors().col(0);
-  if (n.dot(mean) < 0) n = -n;
-  plane->normal = n;
-  plane->offset = n.dot(mean);
-  double sum2 = 0;
-  for (const auto& p : inliers) sum2 += std::pow(n.dot(p) - plane->offset, 2);
-  *rms = std::sqrt(sum2 / inliers.size());
-  return true;
+  return *inliers >= points.size() / 2;
 }
 
 Plane BoardPlane(const Pose& cam_from_board) {
@@ -95,6 +127,7 @@ Plane BoardPlane(const Pose& cam_from_board) {
 
 void DepthAlignmentOptions::Check() const {
   if (!(plane_inlier_m > 0)) Fail("plane_inlier_m must be > 0");
+  if (!(max_plane_band_m >= plane_inlier_m)) Fail("max_plane_band_m must be >= plane_inlier_m");
   if (min_planes < 3)
     Fail("min_planes must be >= 3 (three normals fix a rotation and translation)");
   if (!(min_normal_spread_deg > 0 && min_normal_spread_deg < 90))
@@ -109,6 +142,7 @@ nlohmann::json DepthAlignmentSummary::ToJson() const {
           {"color_sensor", color_sensor},
           {"rt_depth_from_color", RtFromPose(depth_from_color)},
           {"planes", planes},
+          {"rejected_sets", rejected_sets},
           {"plane_rms_m", plane_rms_m},
           {"time_offset_s", time_offset_s},
           {"time_offset_valid", time_offset_valid}};
@@ -119,7 +153,10 @@ namespace {
 // A board plane seen at one frame set: as the colour camera's pose puts it, as the depth
 // sensor measured it (fitted to the depth points inside the board's outline), and when.
 struct PlaneSample {
+  int64_t set = 0;
   Plane color, depth;
+  double sigma = 0;   // the depth points' robust spread about the plane (metres)
+  double weight = 1;  // inliers / sigma^2
   double color_time_s = 0, depth_time_s = 0;
   std::vector<Eigen::Vector3d> points;
 };
@@ -180,8 +217,13 @@ std::vector<PlaneSample> PlaneSamples(const Take& take, const std::string& depth
           depth.at<float>(static_cast<int>(pixels[k].y()), static_cast<int>(pixels[k].x()));
       sample.points.push_back(rays.col(k) * (z / rays(2, k)));
     }
-    double rms = 0;
-    if (!FitPlane(sample.points, options.plane_inlier_m, &sample.depth, &rms, random)) continue;
+    size_t inliers = 0;
+    if (!FitPlane(sample.points, options.plane_inlier_m, options.max_plane_band_m, &sample.depth,
+                  &sample.sigma, &inliers, random))
+      continue;
+    // The information the plane carries: its points over the noise's variance.
+    sample.weight = static_cast<double>(inliers) / (sample.sigma * sample.sigma + 1e-12);
+    sample.set = entry.index;
     sample.color = BoardPlane(pose->second);
     sample.color_time_s = color_item->timestamp_ns * 1e-9;
     sample.depth_time_s = depth_item->timestamp_ns * 1e-9;
@@ -216,6 +258,98 @@ void EstimateTimeOffset(const std::vector<PlaneSample>& samples, const Pose& dep
   }
 }
 
+// depth_from_color from planes: the rotation from the normals (Kabsch), the translation from
+// the plane offsets. False with the reason when the planes cannot fix it.
+bool SolvePlanes(const std::vector<PlaneSample>& samples, const DepthAlignmentOptions& options,
+                 Pose* depth_from_color, std::string* why) {
+  if (static_cast<int>(samples.size()) < options.min_planes) {
+    *why =
+        Cat("only ", samples.size(), " board planes seen by both (needs ", options.min_planes, ")");
+    return false;
+  }
+  // Each plane weighted by its information, relative to the mean (planes near the sensor and
+  // facing it are measured best).
+  double total = 0;
+  for (const auto& s : samples) total += s.weight;
+  std::vector<double> w;
+  for (const auto& s : samples) w.push_back(s.weight * samples.size() / total);
+  Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
+  for (size_t k = 0; k < samples.size(); ++k)
+    h += w[k] * samples[k].color.normal * samples[k].depth.normal.transpose();
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
+  d(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
+  const Eigen::Matrix3d rotation = svd.matrixV() * d * svd.matrixU().transpose();
+  // Normals spread: the smallest singular value of the stacked normals.
+  Eigen::MatrixXd normals(samples.size(), 3);
+  Eigen::VectorXd offsets(samples.size());
+  for (size_t k = 0; k < samples.size(); ++k) {
+    normals.row(k) = samples[k].depth.normal.transpose();
+    offsets(k) = samples[k].depth.offset - samples[k].color.offset;
+  }
+  const Eigen::JacobiSVD<Eigen::MatrixXd> spread(normals);
+  const double weakest =
+      spread.singularValues()(2) / std::sqrt(static_cast<double>(samples.size()));
+  if (weakest < std::sin(options.min_normal_spread_deg * M_PI / 180) / 2) {
+    *why = Cat("the board planes are too close to parallel to fix depth_from_color (",
+               samples.size(), " planes)");
+    return false;
+  }
+  Eigen::MatrixXd weighted = normals;
+  Eigen::VectorXd weighted_offsets = offsets;
+  for (size_t k = 0; k < samples.size(); ++k) {
+    weighted.row(k) *= std::sqrt(w[k]);
+    weighted_offsets(k) *= std::sqrt(w[k]);
+  }
+  *depth_from_color = Pose::Identity();
+  depth_from_color->linear() = rotation;
+  depth_from_color->translation() = weighted.colPivHouseholderQr().solve(weighted_offsets);
+  return true;
+}
+
+// How far a sample's measured plane is from the colour plane carried through the transform:
+// the angle between the normals (degrees) and the offset difference (metres).
+std::pair<double, double> PlaneMisfit(const PlaneSample& s, const Pose& depth_from_color) {
+  const Eigen::Vector3d normal = depth_from_color.linear() * s.color.normal;
+  const double offset = s.color.offset + normal.dot(depth_from_color.translation());
+  const double angle = std::acos(std::clamp(normal.dot(s.depth.normal), -1.0, 1.0)) * 180 / M_PI;
+  return {angle, std::abs(s.depth.offset - offset)};
+}
+
+double Median(std::vector<double> values) {
+  std::nth_element(values.begin(), values.begin() + values.size() / 2, values.end());
+  return values[values.size() / 2];
+}
+
+// Solves, then leaves out the planes whose misfit is far beyond the others' (a wall or the floor
+// inside the outline, a board seen edge-on) and solves again, until none is.
+bool SolveRobustly(std::vector<PlaneSample>* samples, const DepthAlignmentOptions& options,
+                   Pose* depth_from_color, std::vector<int64_t>* rejected, std::string* why) {
+  for (int round = 0; round < 20; ++round) {
+    if (!SolvePlanes(*samples, options, depth_from_color, why)) return false;
+    std::vector<double> angles, offsets;
+    for (const auto& s : *samples) {
+      auto [angle, offset] = PlaneMisfit(s, *depth_from_color);
+      angles.push_back(angle);
+      offsets.push_back(offset);
+    }
+    // Beyond five robust sigmas (1.4826 MAD about zero misfit), and never below what noise and
+    // the board's own pose leave: a tenth of a degree, a millimetre.
+    const double angle_limit = std::max(0.1, 5 * 1.4826 * Median(angles));
+    const double offset_limit = std::max(0.001, 5 * 1.4826 * Median(offsets));
+    std::vector<PlaneSample> kept;
+    for (size_t k = 0; k < samples->size(); ++k) {
+      if (angles[k] > angle_limit || offsets[k] > offset_limit)
+        rejected->push_back((*samples)[k].set);
+      else
+        kept.push_back((*samples)[k]);
+    }
+    if (kept.size() == samples->size()) return true;
+    *samples = std::move(kept);
+  }
+  return true;
+}
+
 }  // namespace
 
 DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& depth_sensor,
@@ -235,47 +369,23 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
   std::mt19937_64 random(7);
 
   // Two passes: the board outline first through an identity guess (the sensors sit
-  // centimetres apart), then through the first estimate.
+  // centimetres apart), then through the first estimate. Each solve drops the planes that are
+  // not the board (another surface inside the outline, a board seen edge-on) before it ends.
   Pose depth_from_color = Pose::Identity();
   std::vector<PlaneSample> samples;
   for (int pass = 0; pass < 2; ++pass) {
     samples = PlaneSamples(take, depth_sensor, depth_model, color_sensor, color_from_board, board,
                            depth_from_color, options, &random);
-    summary.planes = static_cast<int>(samples.size());
-    if (summary.planes < options.min_planes) {
+    summary.rejected_sets.clear();
+    std::string why;
+    if (!SolveRobustly(&samples, options, &depth_from_color, &summary.rejected_sets, &why)) {
+      summary.planes = static_cast<int>(samples.size());
       summary.End(Termination::kDegenerate,
-                  Cat("only ", summary.planes, " board planes seen by both ", depth_sensor, " and ",
-                      color_sensor, " (needs ", options.min_planes, ")"));
+                  Cat(why, " (", depth_sensor, " and ", color_sensor, ")"));
       return summary;
     }
-    // Rotation from the normals (Kabsch), translation from the plane offsets.
-    Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
-    for (const auto& s : samples) h += s.color.normal * s.depth.normal.transpose();
-    Eigen::JacobiSVD<Eigen::Matrix3d> svd(h, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
-    d(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
-    const Eigen::Matrix3d rotation = svd.matrixV() * d * svd.matrixU().transpose();
-    // Normals spread: the smallest singular value of the stacked normals.
-    Eigen::MatrixXd normals(samples.size(), 3);
-    Eigen::VectorXd offsets(samples.size());
-    for (size_t k = 0; k < samples.size(); ++k) {
-      normals.row(k) = samples[k].depth.normal.transpose();
-      offsets(k) = samples[k].depth.offset - samples[k].color.offset;
-    }
-    const Eigen::JacobiSVD<Eigen::MatrixXd> spread(normals);
-    const double weakest =
-        spread.singularValues()(2) / std::sqrt(static_cast<double>(samples.size()));
-    if (weakest < std::sin(options.min_normal_spread_deg * M_PI / 180) / 2) {
-      summary.End(Termination::kDegenerate,
-                  Cat("the board planes are too close to parallel to fix depth_from_color (",
-                      summary.planes, " planes)"));
-      return summary;
-    }
-    const Eigen::Vector3d translation = normals.colPivHouseholderQr().solve(offsets);
-    depth_from_color = Pose::Identity();
-    depth_from_color.linear() = rotation;
-    depth_from_color.translation() = translation;
   }
+  summary.planes = static_cast<int>(samples.size());
   summary.depth_from_color = depth_from_color;
   double sum2 = 0;
   int64_t n = 0;
@@ -285,7 +395,7 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
     const double offset = s.color.offset + normal.dot(depth_from_color.translation());
     for (const auto& p : s.points) {
       const double r = normal.dot(p) - offset;
-      if (std::abs(r) < options.plane_inlier_m) {
+      if (std::abs(r) < std::clamp(3 * s.sigma, options.plane_inlier_m, options.max_plane_band_m)) {
         sum2 += r * r;
         ++n;
       }
@@ -294,8 +404,15 @@ DepthAlignmentSummary AlignDepthToColor(const Take& take, const std::string& dep
   summary.plane_rms_m = n > 0 ? std::sqrt(sum2 / n) : 0;
 
   EstimateTimeOffset(samples, depth_from_color, options, &summary);
+  std::string rejected;
+  if (!summary.rejected_sets.empty()) {
+    rejected =
+        Cat("; ", summary.rejected_sets.size(), " plane(s) left out as not the board (frame sets");
+    for (int64_t set : summary.rejected_sets) rejected += Cat(" ", set);
+    rejected += ")";
+  }
   summary.End(Termination::kSuccess, Cat(summary.planes, " board planes, plane residual ",
-                                         1000 * summary.plane_rms_m, " mm RMS"));
+                                         1000 * summary.plane_rms_m, " mm RMS", rejected));
   return summary;
 }
 

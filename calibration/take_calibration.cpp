@@ -145,6 +145,7 @@ std::vector<CalibrationCamera> CamerasToCalibrate(const Take& take,
 // The solve against the simulation's truth (gt/cameras), when the take has it: for measuring
 // only, the written models stay in the take's own world.
 void CompareTakeWithTruth(const Take& take, const BoardLayout& layout, const Pose& world_from_ref,
+                          const std::map<std::string, CameraModel>& depth_in_ref,
                           TakeCalibrationSummary* result) {
   const CalibrationSummary& cal = result->calibration;
   result->has_ground_truth = take.has_ground_truth() && fs::exists(take.gt_dir() / "cameras");
@@ -155,10 +156,14 @@ void CompareTakeWithTruth(const Take& take, const BoardLayout& layout, const Pos
       if (fs::exists(file)) truth.emplace(c.name, CameraModel::Read(file));
     }
     result->has_ground_truth = truth.count(cal.reference_camera) > 0;
+    for (const auto& [name, model] : depth_in_ref) {
+      const fs::path file = take.gt_dir() / "cameras" / (name + ".cameramodel");
+      if (fs::exists(file)) truth.emplace(name, CameraModel::Read(file));
+    }
   }
   if (result->has_ground_truth && !cal.ref_from_board.empty()) {
     result->ground_truth =
-        CompareWithTruth(cal, truth, TrueBoardPoses(take), layout, world_from_ref);
+        CompareWithTruth(cal, truth, TrueBoardPoses(take), layout, world_from_ref, depth_in_ref);
   }
 }
 
@@ -322,7 +327,7 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
       take, layout, cal, depth_in_ref, options.floor_board_set);
   result.world_frame = world.frame;
   result.world_reason = world.why;
-  CompareTakeWithTruth(take, layout, world.world_from_ref, &result);
+  CompareTakeWithTruth(take, layout, world.world_from_ref, depth_in_ref, &result);
   WriteModelsAndPictures(take, world.world_from_ref, depth_in_ref, options.pictures, &result);
 
   result.End(cal.termination, cal.message);

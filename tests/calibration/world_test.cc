@@ -60,9 +60,11 @@ TEST(CalibrationWorld, ATakeWithoutTruthComesOutZUpOnTheFloorAndReconstructsAsWe
   const double up_err_deg =
       std::acos(std::clamp(true_from_written.linear()(2, 2), -1.0, 1.0)) * 180 / M_PI;
   const double floor_err_mm = 1000 * true_from_written.translation().z();
-  // A world left in the reference camera's frame would be ~100 degrees and metres off.
-  EXPECT_LT(up_err_deg, 1.5);
-  EXPECT_LT(std::abs(floor_err_mm), 50.0);
+  // A world left in the reference camera's frame would be ~100 degrees and metres off; the depth
+  // floor is as good as the depth sensors' extrinsics (0.02 deg and 1 mm here; 0.76 deg and
+  // 30 mm while board planes 4 m away were fitted to the noise's mode).
+  EXPECT_LT(up_err_deg, 0.2);
+  EXPECT_LT(std::abs(floor_err_mm), 10.0);
   std::printf("written world: up %.3f deg, floor %.1f mm from the truth's\n", up_err_deg,
               floor_err_mm);
 
@@ -87,9 +89,9 @@ TEST(CalibrationWorld, ATakeWithoutTruthComesOutZUpOnTheFloorAndReconstructsAsWe
       "laid on the true world %.3f mm\n",
       with_truth, take_world, true_world);
   EXPECT_LT(std::abs(take_world - true_world), 0.1 * true_world);
-  // The calibrated depth sensors' extrinsics (depth_from_color from board planes) cost the
-  // rest: the colour rig with the true depth sensors scores as the true cameras do.
-  EXPECT_LT(take_world, 4 * with_truth);
+  // Calibrated without gt/, the walk reconstructs as with the true cameras, within 10 %
+  // (3.594 against 3.515 mm here).
+  EXPECT_LT(std::abs(take_world - with_truth), 0.1 * with_truth);
 }
 
 }  // namespace
