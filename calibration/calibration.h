@@ -321,8 +321,8 @@ struct DepthAlignmentSummary : Summary {
   Pose depth_from_color = Pose::Identity();
   int planes = 0;                      // board planes the transform was fitted to
   std::vector<int64_t> rejected_sets;  // planes left out as not the board (frame sets)
-  double plane_rms_m = 0;  // board-plane residuals of the fitted transform (within 3 sigma)
-  double time_offset_s = 0;            // depth clock minus colour clock, from board motion
+  double plane_rms_m = 0;    // board-plane residuals of the fitted transform (within 3 sigma)
+  double time_offset_s = 0;  // depth clock minus colour clock, from board motion
   bool time_offset_valid = false;
   nlohmann::json ToJson() const;
 };

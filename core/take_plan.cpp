@@ -36,10 +36,12 @@ void TakeSelection::Check() const {
   if (bounds && !(bounds->max().array() > bounds->min().array()).all())
     Fail("--bounds: max must exceed min on every axis");
   if (up && !(up->norm() > 0 && up->allFinite())) Fail("--up must be a non-zero direction");
-  if (silhouettes != "auto" && silhouettes != "plate" && silhouettes != "otsu" &&
-      silhouettes != "threshold") {
-    Fail("--silhouettes must be auto, plate, otsu or threshold, not '", silhouettes, "'");
+  if (silhouettes != "auto" && silhouettes != "alpha" && silhouettes != "plate" &&
+      silhouettes != "otsu" && silhouettes != "threshold") {
+    Fail("--silhouettes must be auto, alpha, plate, otsu or threshold, not '", silhouettes, "'");
   }
+  if (silhouettes == "alpha" && silhouette_threshold > 0)
+    Fail("--silhouettes alpha takes no --silhouette-threshold");
   if (!(silhouette_threshold >= 0 && silhouette_threshold < 1))
     Fail("--silhouette-threshold must be in (0, 1) of full scale, not ", silhouette_threshold);
 }
@@ -248,9 +250,23 @@ void ChooseSilhouettes(const Take& take, const TakeSelection& selection, TakePla
   const bool alpha = std::all_of(
       plan.color_sensors.begin(), plan.color_sensors.end(),
       [&](const std::string& name) { return take.stream(name).pixel_format == "bgra8"; });
-  if (asked == "auto" && alpha && selection.silhouette_threshold == 0) {
+  if (asked == "alpha" && !alpha) {
+    std::string without;
+    for (const auto& name : plan.color_sensors) {
+      if (take.stream(name).pixel_format != "bgra8")
+        without +=
+            Cat(without.empty() ? "" : ", ", name, " (", take.stream(name).pixel_format, ")");
+    }
+    Fail("silhouettes from alpha: take '", take.dir().string(),
+         "' has colour streams without alpha: ", without,
+         "; alpha comes from bgra8 streams (an RGBA import, sim --alpha); else --silhouettes "
+         "plate, otsu or threshold");
+  }
+  if ((asked == "auto" || asked == "alpha") && alpha && selection.silhouette_threshold == 0) {
     plan.silhouettes = SilhouetteSource::kAlpha;
-    plan.silhouette_reason = "the colour frames' own alpha channel (every colour stream is bgra8)";
+    plan.silhouette_reason =
+        Cat("the colour frames' own alpha channel (every colour stream is bgra8)",
+            asked == "alpha" ? ", asked for" : "");
   } else if (asked == "plate" ||
              (asked == "auto" && plan.has_clean_plate() && selection.silhouette_threshold == 0)) {
     if (!plan.has_clean_plate()) {

@@ -51,7 +51,8 @@ struct TakeSelection {
   std::optional<Eigen::AlignedBox3d> bounds;  // the scene's box (--bounds); else from the rig
   std::optional<Eigen::Vector3d> up;          // the world's up axis (--up); else from the rig
   // Silhouettes: "auto" (the first of the take's sources that can run: alpha, clean plate,
-  // Otsu), "plate", "otsu" or "threshold" (silhouette_threshold, else 0.19 of full scale).
+  // Otsu), "alpha", "plate", "otsu" or "threshold" (silhouette_threshold, else 0.19 of full
+  // scale).
   std::string silhouettes = "auto";
   double silhouette_threshold = 0;  // (0, 1) of full scale; 0: none given
 

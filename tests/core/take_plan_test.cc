@@ -307,6 +307,19 @@ TEST(SceneFromRig, ThePlanRecordsTheUsersSceneAndSilhouettesOrTheTakes) {
       EXPECT_NE(std::string(e.what()).find(option), std::string::npos) << e.what();
     }
   }
+  // Alpha asked for by name on a take without it: the error names the streams that lack it.
+  TakeSelection alpha;
+  alpha.silhouettes = "alpha";
+  try {
+    PlanTake(take, alpha);
+    FAIL() << "silhouettes from alpha the take lacks";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("colour streams without alpha: cam0 (bgr8)"),
+              std::string::npos)
+        << e.what();
+  }
+  alpha.silhouette_threshold = 0.2;
+  EXPECT_THROW(alpha.Check(), Error);
   selection.heldout = {"depth0"};
   EXPECT_THROW(PlanTake(take, selection), Error);
 }

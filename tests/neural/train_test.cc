@@ -184,6 +184,7 @@ TEST_F(NeuralTrainTest, AlphaFramesTrainAsColourWithAlphaAsTheSilhouettes) {
       take.string() + "'");
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   NeuralVolumeOptions options = StaticOptions();
+  options.take.silhouettes = "alpha";  // as auto would choose, asked for by name
   neural::TrainingData data = neural::LoadTrainingData(take, options);
   EXPECT_EQ(data.plan["silhouettes"], "the frames' own alpha channel (bgra8)") << data.plan.dump();
   ASSERT_FALSE(data.images.empty());
