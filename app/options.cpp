@@ -46,8 +46,10 @@ void AddSceneFlags(CLI::App* command, SceneFlags* flags) {
       "The world's up axis: +z, -y, ... or x,y,z (default: the cameras' median up)");
   command
       ->add_option("--silhouettes", flags->silhouettes,
-                   "auto (alpha, else the clean plate, else a threshold chosen per image), "
-                   "alpha, plate, otsu, or threshold (--silhouette-threshold, else 0.19)")
+                   "auto (alpha, else the clean plate, else a background model (median) on a "
+                   "take of 15 frame sets or more, else a threshold chosen per image), alpha, "
+                   "plate, median (each camera's per-pixel median over the take), otsu, or "
+                   "threshold (--silhouette-threshold, else 0.19)")
       ->capture_default_str();
   command->add_option("--silhouette-threshold", flags->silhouette_threshold,
                       "Subject where the brightest channel exceeds this (0..1 of full scale)");

@@ -37,11 +37,12 @@ void TakeSelection::Check() const {
     Fail("--bounds: max must exceed min on every axis");
   if (up && !(up->norm() > 0 && up->allFinite())) Fail("--up must be a non-zero direction");
   if (silhouettes != "auto" && silhouettes != "alpha" && silhouettes != "plate" &&
-      silhouettes != "otsu" && silhouettes != "threshold") {
-    Fail("--silhouettes must be auto, alpha, plate, otsu or threshold, not '", silhouettes, "'");
+      silhouettes != "median" && silhouettes != "otsu" && silhouettes != "threshold") {
+    Fail("--silhouettes must be auto, alpha, plate, median, otsu or threshold, not '", silhouettes,
+         "'");
   }
-  if (silhouettes == "alpha" && silhouette_threshold > 0)
-    Fail("--silhouettes alpha takes no --silhouette-threshold");
+  if ((silhouettes == "alpha" || silhouettes == "median") && silhouette_threshold > 0)
+    Fail("--silhouettes ", silhouettes, " takes no --silhouette-threshold");
   if (!(silhouette_threshold >= 0 && silhouette_threshold < 1))
     Fail("--silhouette-threshold must be in (0, 1) of full scale, not ", silhouette_threshold);
 }
@@ -128,6 +129,7 @@ nlohmann::json TakePlan::ToJson() const {
   };
   nlohmann::json silhouette = {{"source", ToString(silhouettes)}, {"why", silhouette_reason}};
   if (silhouettes == SilhouetteSource::kThreshold) silhouette["threshold"] = silhouette_threshold;
+  if (silhouettes == SilhouetteSource::kBackgroundModel) silhouette["sets"] = background_sets;
   return {{"cameras", cameras_source},
           {"color_sensors", color_sensors},
           {"depth_sensors", depth_sensors},
@@ -240,6 +242,21 @@ void ChooseScene(const Take& take, const TakeSelection& selection, TakePlan& pla
 }
 
 // The first silhouette source the take has, or the one asked for.
+// The frame sets of the background model: up to kMaxBackgroundSets spread evenly over the
+// take after its clean plate (the whole take, not only the sets worked on).
+void ChooseBackgroundSets(const Take& take, TakePlan& plan) {
+  const int64_t first = plan.clean_plate_frames;
+  const int64_t available = static_cast<int64_t>(take.size()) - first;
+  if (available < 3) {
+    Fail("silhouettes from a background model: take '", take.dir().string(), "' has ", available,
+         " frame set(s) after its clean plate; a per-pixel median needs 3 or more "
+         "(and a subject that moves)");
+  }
+  const int64_t count = std::min(available, kMaxBackgroundSets);
+  for (int64_t i = 0; i < count; ++i)
+    plan.background_sets.push_back(first + (count > 1 ? i * (available - 1) / (count - 1) : 0));
+}
+
 void ChooseSilhouettes(const Take& take, const TakeSelection& selection, TakePlan& plan) {
   if (plan.color_sensors.empty()) {
     plan.silhouettes = SilhouetteSource::kNone;
@@ -274,13 +291,24 @@ void ChooseSilhouettes(const Take& take, const TakeSelection& selection, TakePla
            "' has none. Silhouettes can come from: a clean plate (record leading frame sets "
            "without the subject and pass --clean-plate N), a threshold chosen per image "
            "(--silhouettes otsu, or auto), or a given threshold on a dark background "
-           "(--silhouette-threshold T, 0..1 of full scale); with --silhouettes auto, the alpha "
-           "channel of bgra8 colour streams is used first; a background model of a moving "
-           "subject is not available yet");
+           "(--silhouette-threshold T, 0..1 of full scale), a background model of a moving "
+           "subject over the take's frame sets (--silhouettes median), or the alpha channel of "
+           "bgra8 colour streams (--silhouettes alpha, auto's first choice)");
     }
     plan.silhouettes = SilhouetteSource::kCleanPlate;
     plan.silhouette_reason = Cat("background subtraction against the clean plate (frame set ",
                                  plan.plate_set(), ")", asked == "plate" ? ", asked for" : "");
+  } else if (asked == "median" ||
+             (asked == "auto" && selection.silhouette_threshold == 0 &&
+              static_cast<int64_t>(take.size()) - plan.clean_plate_frames >= kMinBackgroundSets)) {
+    ChooseBackgroundSets(take, plan);
+    plan.silhouettes = SilhouetteSource::kBackgroundModel;
+    plan.silhouette_reason =
+        Cat(asked == "median" ? "" : "no clean plate: ",
+            "background subtraction against each camera's per-pixel median over ",
+            plan.background_sets.size(), " frame sets spread over the take (a moving subject",
+            " leaves each pixel to the background most of the time)",
+            asked == "median" ? ", asked for" : "");
   } else if (asked == "threshold" || selection.silhouette_threshold > 0) {
     plan.silhouettes = SilhouetteSource::kThreshold;
     plan.silhouette_threshold =

@@ -34,11 +34,16 @@ enum class SilhouetteSource {
   kNone,             // nothing to separate the subject from (no colour camera)
   kAlpha,            // the frames' own alpha channel (every colour stream bgra8)
   kCleanPlate,       // background subtraction against the clean plate
-  kBackgroundModel,  // a background learned over a dynamic take's frames (not chosen yet)
+  kBackgroundModel,  // a per-pixel temporal median over a dynamic take's frame sets
   kOtsu,             // a threshold chosen per image (Otsu) on the brightest channel
   kThreshold,        // a threshold the user gave (--silhouette-threshold)
 };
 const char* ToString(SilhouetteSource source);
+
+// A take this long (frame sets after its clean plate) gets a background model when it has no
+// clean plate or alpha; the model takes the median of at most kMaxBackgroundSets of them.
+constexpr int64_t kMinBackgroundSets = 15;
+constexpr int64_t kMaxBackgroundSets = 31;
 
 // What the user asks of a take. The flags of every command that reads a take map onto these.
 struct TakeSelection {
@@ -51,8 +56,9 @@ struct TakeSelection {
   std::optional<Eigen::AlignedBox3d> bounds;  // the scene's box (--bounds); else from the rig
   std::optional<Eigen::Vector3d> up;          // the world's up axis (--up); else from the rig
   // Silhouettes: "auto" (the first of the take's sources that can run: alpha, clean plate,
-  // Otsu), "alpha", "plate", "otsu" or "threshold" (silhouette_threshold, else 0.19 of full
-  // scale).
+  // a background model of a take of kMinBackgroundSets frame sets or more, Otsu), "alpha",
+  // "plate", "median" (the background model), "otsu" or "threshold" (silhouette_threshold,
+  // else 0.19 of full scale).
   std::string silhouettes = "auto";
   double silhouette_threshold = 0;  // (0, 1) of full scale; 0: none given
 
@@ -89,6 +95,9 @@ struct TakePlan {
   SilhouetteSource silhouettes = SilhouetteSource::kNone;
   std::string silhouette_reason;
   double silhouette_threshold = 0;  // kThreshold: the level, (0, 1) of full scale
+  // kBackgroundModel: the frame sets (spread over the whole take after its clean plate) whose
+  // per-pixel median is each camera's background.
+  std::vector<int64_t> background_sets;
 
   bool has_clean_plate() const { return clean_plate_frames > 0; }
   int64_t plate_set() const { return clean_plate_frames - 1; }  // the set holding the plate

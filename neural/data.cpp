@@ -239,6 +239,18 @@ class TrainingDataLoader {
             ToTrainingSize(plate.Find(names_[v])->image, data_.views[v].camera);
       }
       plan_["background"] = Cat("clean plate (frame set ", take_plan_.plate_set(), ")");
+    } else if (take_plan_.silhouettes == SilhouetteSource::kBackgroundModel) {
+      for (size_t v = 0; v < names_.size(); ++v) {
+        std::vector<cv::Mat> frames;
+        for (int64_t set : take_plan_.background_sets) {
+          frames.push_back(ToTrainingSize(take_.ReadFrame(static_cast<size_t>(set), names_[v]),
+                                          data_.views[v].camera));
+        }
+        data_.views[v].background = TemporalMedian(frames);
+      }
+      plan_["background"] =
+          Cat("per-pixel temporal median of each camera's frames over ",
+              take_plan_.background_sets.size(), " frame sets of the take (no clean plate)");
     } else if (data_.dynamic && data_.sets.size() >= 3) {
       for (size_t v = 0; v < names_.size(); ++v)
         data_.views[v].background = MedianOverFrames(data_.images, v);
@@ -251,36 +263,42 @@ class TrainingDataLoader {
     }
   }
 
+  // The silhouettes the take plan chose, as reconstruction takes them: alpha, the clean plate
+  // or the background model subtracted, else a threshold (Otsu's per image, or the given one)
+  // closed and grown by the Middlebury recipe for the training image's width.
   cv::Mat SilhouetteOf(size_t f, int v) {
+    if (!alpha_masks_.empty()) return alpha_masks_[f][v];
     SilhouetteOptions silhouette;
     silhouette.dilate_px = 2;
     silhouette.erode_px = 1;
-    const auto& camera = data_.views[v].camera;
-    if (!alpha_masks_.empty()) return alpha_masks_[f][v];
-    if (take_plan_.has_clean_plate()) {
+    const bool subtract = take_plan_.has_clean_plate() ||
+                          take_plan_.silhouettes == SilhouetteSource::kBackgroundModel;
+    if (subtract) {
       silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
       return ExtractSilhouette(data_.images[f][v], data_.views[v].background, silhouette);
     }
-    fs::path gt_mask =
-        take_.gt_dir() / "masks" / data_.views[v].name / SetFileName(data_.sets[f], ".png");
-    if (fs::exists(gt_mask)) {
-      cv::Mat mask = ReadImage(gt_mask), resized;
-      cv::resize(mask, resized, cv::Size(camera.width(), camera.height()), 0, 0, cv::INTER_NEAREST);
-      return resized;
+    silhouette.open_px = 0;
+    silhouette.dilate_px = 10;
+    silhouette.erode_px = 7;
+    silhouette.morphology_width = 640;
+    if (take_plan_.silhouettes == SilhouetteSource::kThreshold) {
+      silhouette.mode = SilhouetteMode::kThreshold;
+      silhouette.threshold = take_plan_.silhouette_threshold;
+    } else {
+      silhouette.mode = SilhouetteMode::kOtsu;
     }
-    silhouette.mode = SilhouetteMode::kThreshold;
     return ExtractSilhouette(data_.images[f][v], cv::Mat(), silhouette);
   }
 
   void ReadSilhouettes() {
+    data_.alpha_masks = !alpha_masks_.empty();
     if (!alpha_masks_.empty())
       silhouette_source_ = "the frames' own alpha channel (bgra8)";
     else if (take_plan_.has_clean_plate())
       silhouette_source_ = "background subtraction against the clean plate";
-    else if (fs::is_directory(take_.gt_dir() / "masks"))
-      silhouette_source_ = "gt/masks (no clean plate)";
     else
-      silhouette_source_ = "threshold on a dark background (no clean plate)";
+      silhouette_source_ =
+          Cat(ToString(take_plan_.silhouettes), " (", take_plan_.silhouette_reason, ")");
     data_.masks.resize(data_.sets.size());
     for (size_t f = 0; f < data_.sets.size(); ++f) {
       for (size_t v = 0; v < data_.views.size(); ++v)

@@ -30,6 +30,7 @@ struct TrainingData {
   // [frame][view] CV_8UC1 silhouettes (255 = subject). Those of training views carve the hull;
   // those of held-out views only select the pixels of the subject-only PSNR.
   std::vector<std::vector<cv::Mat>> masks;
+  bool alpha_masks = false;  // the masks are the frames' own alpha (exact; scored on white too)
   Eigen::Vector3d box_min = Eigen::Vector3d::Zero();
   Eigen::Vector3d box_max = Eigen::Vector3d::Ones();
   std::vector<OccupancyGrid> occupancy;  // per frame (empty grids: no skipping)

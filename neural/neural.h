@@ -25,6 +25,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -119,11 +120,14 @@ struct NeuralVolumeOptions {
 struct NeuralVolumeSummary : Summary {
   nlohmann::json plan;  // what was built and why (also in report.json)
   int64_t iterations = 0;
-  double seconds = 0;                // training wall time (data loading excluded)
-  double first_loss = 0;             // mean photometric loss over the first iterations
-  double last_loss = 0;              // and over the last ones
-  double heldout_psnr_db = 0;        // held-out cameras, whole image (background included)
-  double heldout_psnr_fg_db = 0;     // held-out cameras, inside the subject's silhouette only
+  double seconds = 0;             // training wall time (data loading excluded)
+  double first_loss = 0;          // mean photometric loss over the first iterations
+  double last_loss = 0;           // and over the last ones
+  double heldout_psnr_db = 0;     // held-out cameras, whole image (background included)
+  double heldout_psnr_fg_db = 0;  // held-out cameras, inside the subject's silhouette only
+  // Held-out cameras composited on white (prediction by its alpha, truth by the frames' own
+  // alpha): NeRF-synthetic's published convention; NaN unless the silhouettes are alpha.
+  double heldout_psnr_white_db = std::numeric_limits<double>::quiet_NaN();
   double background_psnr_fg_db = 0;  // the same pixels rendered as background alone (the
                                      // score of an empty volume: what training must beat)
   double heldout_ssim = 0;

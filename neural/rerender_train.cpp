@@ -588,9 +588,14 @@ class RerenderTrainer {
                                    : cv::Mat(size, CV_32FC3, cv::Scalar::all(0));
     d.background = neural::PadToMultiple(neural::ImageToTensor(background).unsqueeze(0), multiple_);
     d.background_image = background;
+    // Alpha first (exact), as the take plan orders the sources; else the plate or a threshold.
+    const bool alpha = take_plan_.silhouettes == SilhouetteSource::kAlpha;
+    SilhouetteOptions witness_silhouette = options_.reconstruction.silhouette;
+    if (alpha) witness_silhouette.mode = SilhouetteMode::kAlpha;
     const bool silhouettes =
         is_witness && options_.alpha_weight > 0 &&
-        (options_.reconstruction.silhouette.mode == SilhouetteMode::kThreshold || has_plate);
+        (alpha || options_.reconstruction.silhouette.mode == SilhouetteMode::kThreshold ||
+         has_plate);
     cv::Mat plate;
     if (silhouettes && has_plate) plate = ToEightBitColor(take_.ReadFrame(plate_set, d.name));
     std::vector<torch::Tensor> features, truth, weight, alpha_target;
@@ -605,8 +610,9 @@ class RerenderTrainer {
       cv::Mat image = ToFloatImage(native, size);
       if (silhouettes) {
         // The witness's silhouette at the training resolution (area-averaged: soft edges).
-        cv::Mat mask = ExtractSilhouette(ToEightBitColor(native), plate,
-                                         options_.reconstruction.silhouette),
+        cv::Mat mask = alpha
+                           ? ExtractSilhouette(native, cv::Mat(), witness_silhouette)
+                           : ExtractSilhouette(ToEightBitColor(native), plate, witness_silhouette),
                 soft;
         mask.convertTo(mask, CV_32F, 1.0 / 255);
         cv::resize(mask, soft, size, 0, 0, cv::INTER_AREA);

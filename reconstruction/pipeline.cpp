@@ -57,6 +57,10 @@ void ReconstructionOptions::Check() const {
   if (!(max_fill_fraction > 0 && max_fill_fraction <= 1))
     Fail("max_fill_fraction must be in (0, 1] (got ", max_fill_fraction, ")");
   if (!(max_view_ratio >= 1)) Fail("max_view_ratio must be >= 1 (got ", max_view_ratio, ")");
+  if (!(min_moving_fraction >= 0 && min_moving_fraction < 1))
+    Fail("min_moving_fraction must be in [0, 1) (got ", min_moving_fraction, ")");
+  if (!(min_silhouette_agreement >= 0 && min_silhouette_agreement < 1))
+    Fail("min_silhouette_agreement must be in [0, 1) (got ", min_silhouette_agreement, ")");
   for (double v : sweep_voxels_m) {
     if (!(v > 0 && v < 1)) Fail("sweep voxel sizes must be in (0, 1) m (got ", v, ")");
   }
@@ -82,6 +86,8 @@ nlohmann::json ReconstructionOptions::ToJson() const {
           {"max_touched_faces", max_touched_faces},
           {"max_fill_fraction", max_fill_fraction},
           {"max_view_ratio", max_view_ratio},
+          {"min_silhouette_agreement", min_silhouette_agreement},
+          {"min_moving_fraction", min_moving_fraction},
           {"threshold_morphology", threshold_morphology},
           {"silhouette",
            {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
@@ -95,7 +101,8 @@ nlohmann::json ReconstructionOptions::ToJson() const {
             {"threshold", silhouette.threshold},
             {"open_px", silhouette.open_px},
             {"dilate_px", silhouette.dilate_px},
-            {"erode_px", silhouette.erode_px}}},
+            {"erode_px", silhouette.erode_px},
+            {"morphology_width", silhouette.morphology_width}}},
           {"hull",
            {{"tolerated_bad_views", hull.tolerated_bad_views},
             {"min_views", hull.min_views},
@@ -275,6 +282,8 @@ class FrameReconstructor {
     } else {
       MvsFrame();
     }
+    if (!silhouette_agreement_.is_null())
+      out_.metrics["silhouette_agreement"] = silhouette_agreement_;
     if (tsdf_ && out_.IsUsable()) out_.mesh = ExtractMesh(tsdf_->volume(), options_.meshing);
     if (out_.mesh.faces.empty() && out_.IsUsable())
       out_.End(Termination::kDegenerate, "no surface was found");
@@ -310,11 +319,44 @@ class FrameReconstructor {
     hull_options.min_views = min_views;
     hull_options.threads = threads_;
     VisualHull hull = ComputeVisualHull(views_, hull_options, summary);
-    const std::string implausible =
+    std::string implausible =
         summary->IsUsable() ? ImplausibleHull(hull, *summary, bounds_, options_, plan_.check_fill)
                             : "";
+    if (implausible.empty() && summary->IsUsable()) implausible = DisagreeingSilhouettes(hull);
     if (!implausible.empty()) summary->End(Termination::kDegenerate, implausible);
     return hull;
+  }
+
+  // How well the hull explains the silhouettes it was carved from: in each view, the IoU of
+  // the hull's silhouette and the view's own. Silhouettes of one subject agree (the hull's
+  // outline is theirs, up to its voxels); silhouettes holding background that differs between
+  // views do not (each view keeps parts that the others carve away). A reason when a quarter
+  // of the views or more agree less than options.min_silhouette_agreement, else empty; in the
+  // frame's metrics.
+  std::string DisagreeingSilhouettes(const VisualHull& hull) const {
+    const Mesh mesh = ExtractMesh(*hull.volume, options_.meshing);
+    if (mesh.faces.empty()) return "";
+    std::vector<double> ious;
+    nlohmann::json per_view = nlohmann::json::object();
+    for (const View& view : views_) {
+      ious.push_back(MaskIoU(RenderSilhouette(mesh, view.camera), view.mask));
+      per_view[view.name] = ious.back();
+    }
+    std::vector<double> sorted = ious;
+    std::sort(sorted.begin(), sorted.end());
+    const double quartile = sorted[(sorted.size() - 1) / 4];
+    silhouette_agreement_ = {{"lower_quartile_iou", quartile},
+                             {"median_iou", sorted[sorted.size() / 2]},
+                             {"min_iou", sorted.front()},
+                             {"views", per_view}};
+    if (quartile >= options_.min_silhouette_agreement) return "";
+    int below = 0;
+    for (double iou : ious) below += iou < options_.min_silhouette_agreement;
+    return Cat("the hull explains its silhouettes poorly: in ", below, " of ", ious.size(),
+               " views the IoU of the view's silhouette and the hull's is below ",
+               options_.min_silhouette_agreement, " (lowest ", Fixed(sorted.front(), 2),
+               "): the silhouettes hold background that differs between views (try "
+               "--clean-plate N, --silhouette-threshold T or --silhouettes alpha)");
   }
 
   // The hull method: the visual hull and its surface.
@@ -338,7 +380,16 @@ class FrameReconstructor {
       hull.emplace(Hull(voxel_, options_.completion_margin_px, options_.hull.min_views, &summary));
       out_.metrics["hull"] = {{"seconds", summary.seconds}, {"volume_m3", summary.volume_m3}};
       // Without a usable hull the depth sensors' surface stands alone; the frame says why.
+      // With no depth clean plate either, the hull was what told the subject from the room
+      // in depth: an implausible one leaves no foreground to trust.
       if (!summary.IsUsable()) {
+        if (!plan_.depth_background && summary.termination == Termination::kDegenerate) {
+          out_.End(Termination::kDegenerate,
+                   "the depth sensors have no clean plate and the colour cameras' hull that "
+                   "would tell the subject from the room is implausible: " +
+                       summary.message);
+          return;
+        }
         hull.reset();
         out_.metrics["completion"] = {{"skipped", "hull: " + summary.message}};
       }
@@ -461,6 +512,7 @@ class FrameReconstructor {
   std::vector<View> views_;
   std::optional<TsdfVolume> tsdf_;  // the fused volume, when the method fuses
   FrameOutput out_;
+  mutable nlohmann::json silhouette_agreement_;  // set by Hull()
 };
 
 // The mesh in the simulation's true world: calibrated models live in the world the calibration
@@ -528,6 +580,7 @@ class TakeReconstructor {
       : take_(take), take_plan_(take_plan), out_(out), options_(options), report_(report) {}
 
   ReconstructionSummary Run() {
+    LearnBackground();
     ChooseMethod();
     ChooseSilhouettes();
     ReadPlates();
@@ -567,6 +620,7 @@ class TakeReconstructor {
     if (plan_.method == ReconstructionMethod::kAuto) {
       // Stereo needs silhouettes that hold the whole subject (a clean plate's or alpha's).
       const bool exact_silhouettes = take_plan_.silhouettes == SilhouetteSource::kCleanPlate ||
+                                     take_plan_.silhouettes == SilhouetteSource::kBackgroundModel ||
                                      take_plan_.silhouettes == SilhouetteSource::kAlpha;
       plan_.method = !depth.empty()      ? ReconstructionMethod::kTsdf
                      : exact_silhouettes ? ReconstructionMethod::kMvs
@@ -622,6 +676,7 @@ class TakeReconstructor {
         plan_.silhouette.mode = SilhouetteMode::kAlpha;
         break;
       case SilhouetteSource::kCleanPlate:
+      case SilhouetteSource::kBackgroundModel:
         plan_.silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
         break;
       case SilhouetteSource::kThreshold:
@@ -636,10 +691,11 @@ class TakeReconstructor {
                              plan_.silhouette.mode == SilhouetteMode::kOtsu;
     if (thresholded && !stage_threshold && options_.threshold_morphology) {
       // A subject on a dark background loses its darkest edge pixels to any threshold: close
-      // and grow its silhouette as the Middlebury recipe does.
+      // and grow its silhouette as the Middlebury recipe does, for its 640-pixel images.
       plan_.silhouette.open_px = 0;
       plan_.silhouette.dilate_px = 10;
       plan_.silhouette.erode_px = 7;
+      plan_.silhouette.morphology_width = 640;
     }
   }
 
@@ -804,6 +860,38 @@ class TakeReconstructor {
       out[name] = MaskIoU(RenderSilhouette(mesh, take_plan_.cameras.at(name)), observed);
     }
     return out;
+  }
+
+  // The background model: each colour camera's per-pixel median over the plan's background
+  // sets stands in for its clean plate. A subject that does not move stays in the median and
+  // would leave no silhouette: the plan then falls back to a threshold chosen per image.
+  void LearnBackground() {
+    if (take_plan_.silhouettes != SilhouetteSource::kBackgroundModel) return;
+    std::vector<double> fractions;
+    for (const auto& name : take_plan_.color_sensors) {
+      std::vector<cv::Mat> frames;
+      for (int64_t set : take_plan_.background_sets)
+        frames.push_back(ColourOf(take_.ReadFrame(static_cast<size_t>(set), name), name));
+      plates_.color[name] = TemporalMedian(frames);
+      SilhouetteOptions subtraction = options_.silhouette;
+      subtraction.mode = SilhouetteMode::kBackgroundSubtraction;
+      const cv::Mat& middle = frames[frames.size() / 2];
+      fractions.push_back(
+          cv::countNonZero(ExtractSilhouette(middle, plates_.color[name], subtraction)) /
+          static_cast<double>(middle.total()));
+    }
+    std::nth_element(fractions.begin(), fractions.begin() + fractions.size() / 2, fractions.end());
+    const double moving = fractions[fractions.size() / 2];
+    if (moving >= options_.min_moving_fraction) return;
+    plates_.color.clear();
+    take_plan_.silhouettes = SilhouetteSource::kOtsu;
+    take_plan_.silhouette_reason =
+        Cat("brightest channel above a threshold chosen per image (Otsu): the background model "
+            "over ",
+            take_plan_.background_sets.size(), " frame sets holds the subject (it differs from ",
+            "the median in ", Fixed(100 * moving, 3), "% of a middle frame's pixels): the ",
+            "subject does not move");
+    take_plan_.background_sets.clear();
   }
 
   void ReadPlates() {

@@ -83,6 +83,10 @@ struct SilhouetteOptions {
   int open_px = 1;
   int dilate_px = 3;
   int erode_px = 3;
+  // When > 0, the morphology's radii above are for images this many pixels wide and scale
+  // with each image's width (the Middlebury recipe is for 640: at 160 px its net 3 px growth
+  // would widen a limb by half).
+  int morphology_width = 0;
   // Connected components smaller than this fraction of the image are dropped.
   double min_component_fraction = 0.0005;
 
@@ -98,6 +102,10 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
                           const SilhouetteOptions& options);
 // Intersection over union of two masks (non-zero = set); 1 when both are empty.
 double MaskIoU(const cv::Mat& a, const cv::Mat& b);
+// The per-pixel, per-channel median of frames of one size and type (8-bit, 1 to 4 channels):
+// the background of a camera whose subject moves (each pixel shows the background in most of
+// them). Throws Error for no frames or frames that differ in size or type.
+cv::Mat TemporalMedian(const std::vector<cv::Mat>& frames);
 
 // ---------------------------------------------------------------------------------------------
 // Sparse voxel volume (hashed 8³ blocks), shared by the hull and the TSDF
@@ -441,6 +449,13 @@ struct ReconstructionOptions {
   double max_fill_fraction = 0.6;
   // ... and a mesh wider than this multiple of the cameras' shared view on any axis.
   double max_view_ratio = 1.5;
+  // ... and a hull whose silhouette agrees with a quarter of the views' own or more (IoU in
+  // each view) less than this: silhouettes that keep background differing from view to view.
+  double min_silhouette_agreement = 0.5;
+  // A background model (the plan's temporal median) whose middle frame differs from it in
+  // less than this fraction of the pixels (the median of the cameras) holds a subject that did
+  // not move: the run falls back to a threshold chosen per image and says so.
+  double min_moving_fraction = 0.001;
   SilhouetteOptions silhouette;
   // Thresholded silhouettes (Otsu or a given level) close and grow by the Middlebury recipe
   // (dilate 10 px, erode 7 px, no opening) instead of `silhouette`'s morphology.

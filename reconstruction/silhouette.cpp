@@ -4,6 +4,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 
 #include "core/error.h"
@@ -29,6 +30,7 @@ void SilhouetteOptions::Check() const {
       erode_px > 50) {
     Fail("silhouette morphology radii must be in [0, 50] px");
   }
+  if (morphology_width < 0) Fail("silhouette morphology_width must be >= 0");
   if (!(min_component_fraction >= 0 && min_component_fraction < 1)) {
     Fail("silhouette min_component_fraction must be in [0, 1) (got ", min_component_fraction, ")");
   }
@@ -42,6 +44,34 @@ cv::Mat Disk(int radius) {
 
 // Largest colour channel of an 8-bit image (alpha left out), or the image itself when
 // single-channel.
+// The median plus four robust deviations (1.4826 median absolute deviations) of the 8-bit
+// pixels at or below `level`: the brightest a background pixel of that class is likely to be.
+double DarkClassCeiling(const cv::Mat& grey, double level) {
+  std::array<int64_t, 256> histogram{};
+  int64_t count = 0;
+  for (int y = 0; y < grey.rows; ++y) {
+    const uint8_t* row = grey.ptr<uint8_t>(y);
+    for (int x = 0; x < grey.cols; ++x) {
+      if (row[x] > level) continue;
+      ++histogram[row[x]];
+      ++count;
+    }
+  }
+  if (count == 0) return 0;
+  const auto median_of = [&](const std::array<int64_t, 256>& h) {
+    int64_t seen = 0;
+    for (int v = 0; v < 256; ++v) {
+      seen += h[v];
+      if (2 * seen > count) return v;
+    }
+    return 255;
+  };
+  const int median = median_of(histogram);
+  std::array<int64_t, 256> deviations{};
+  for (int v = 0; v < 256; ++v) deviations[std::abs(v - median)] += histogram[v];
+  return median + 4 * 1.4826 * median_of(deviations);
+}
+
 cv::Mat MaxChannel(const cv::Mat& image) {
   if (image.channels() == 1) return image;
   std::vector<cv::Mat> channels;
@@ -88,13 +118,18 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
     cv::threshold(MaxChannel(image), mask, options.threshold * 255, 255, cv::THRESH_BINARY);
   } else if (options.mode == SilhouetteMode::kOtsu) {
     // Otsu's level splits the subject's lit side from its shaded side as readily as the subject
-    // from the background: pixels above half of it join where connected to pixels above it.
+    // from the background: pixels above half of it join where connected to pixels above it,
+    // unless they could be background: the weak level stays 4 robust deviations above the
+    // darker class's median (on a dim room the floor a subject stands on would join; on
+    // Middlebury's black cloth the rule never bites).
     const cv::Mat brightest = MaxChannel(image).clone();
     const double level =
         cv::threshold(brightest, mask, 0, 255, cv::THRESH_BINARY | cv::THRESH_OTSU);
     if (options.hysteresis_sigmas > 0) {
+      const double weak_level =
+          std::min(level, std::max(0.5 * level, DarkClassCeiling(brightest, level)));
       cv::Mat weak;
-      cv::threshold(brightest, weak, 0.5 * level, 255, cv::THRESH_BINARY);
+      cv::threshold(brightest, weak, weak_level, 255, cv::THRESH_BINARY);
       JoinConnected(weak, &mask);
     }
   } else {
@@ -154,9 +189,13 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
       JoinConnected(weak, &mask);
     }
   }
-  if (options.open_px > 0) cv::morphologyEx(mask, mask, cv::MORPH_OPEN, Disk(options.open_px));
-  if (options.dilate_px > 0) cv::dilate(mask, mask, Disk(options.dilate_px));
-  if (options.erode_px > 0) cv::erode(mask, mask, Disk(options.erode_px));
+  const double scale =
+      options.morphology_width > 0 ? static_cast<double>(image.cols) / options.morphology_width : 1;
+  const auto radius = [scale](int px) { return static_cast<int>(std::lround(px * scale)); };
+  if (radius(options.open_px) > 0)
+    cv::morphologyEx(mask, mask, cv::MORPH_OPEN, Disk(radius(options.open_px)));
+  if (radius(options.dilate_px) > 0) cv::dilate(mask, mask, Disk(radius(options.dilate_px)));
+  if (radius(options.erode_px) > 0) cv::erode(mask, mask, Disk(radius(options.erode_px)));
   if (options.min_component_fraction > 0) {
     cv::Mat labels, stats, centroids;
     int count = cv::connectedComponentsWithStats(mask, labels, stats, centroids, 8, CV_32S);
@@ -170,6 +209,31 @@ cv::Mat ExtractSilhouette(const cv::Mat& image, const cv::Mat& clean_plate,
     }
   }
   return mask;
+}
+
+cv::Mat TemporalMedian(const std::vector<cv::Mat>& frames) {
+  if (frames.empty()) Fail("temporal median: no frames");
+  const cv::Mat& first = frames.front();
+  if (first.depth() != CV_8U) Fail("temporal median: frames must be 8-bit");
+  for (const cv::Mat& frame : frames) {
+    if (frame.size() != first.size() || frame.type() != first.type())
+      Fail("temporal median: frames differ in size or type");
+  }
+  cv::Mat median(first.size(), first.type());
+  const int values_per_row = first.cols * first.channels();
+  const size_t middle = frames.size() / 2;
+  std::vector<uint8_t> values(frames.size());
+  for (int y = 0; y < first.rows; ++y) {
+    std::vector<const uint8_t*> rows;
+    for (const cv::Mat& frame : frames) rows.push_back(frame.ptr<uint8_t>(y));
+    uint8_t* out = median.ptr<uint8_t>(y);
+    for (int i = 0; i < values_per_row; ++i) {
+      for (size_t f = 0; f < frames.size(); ++f) values[f] = rows[f][i];
+      std::nth_element(values.begin(), values.begin() + middle, values.end());
+      out[i] = values[middle];
+    }
+  }
+  return median;
 }
 
 double MaskIoU(const cv::Mat& a, const cv::Mat& b) {

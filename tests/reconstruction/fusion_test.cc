@@ -406,6 +406,50 @@ TEST(SilhouetteTest, OtsuWithHysteresisKeepsTheShadedSide) {
   EXPECT_LT(level_alone, 0.6);
 }
 
+// A dim subject standing on a dim, noisy floor (a dark room): half of Otsu's level lies inside
+// the floor's noise, so the hysteresis would join the floor it touches; the weak level stays
+// four robust deviations above the darker class's median and keeps the floor out.
+TEST(SilhouetteTest, OtsuHysteresisDoesNotJoinANoisyFloorTheSubjectTouches) {
+  cv::Mat grey(240, 320, CV_8U), truth = cv::Mat::zeros(240, 320, CV_8U);
+  cv::RNG rng(7);
+  rng.fill(grey, cv::RNG::NORMAL, 8, 1.5);  // the room: 8 DN, noise 1.5 DN
+  cv::rectangle(truth, {140, 40}, {180, 200}, 255, -1);
+  grey.setTo(26, truth);  // the subject, standing on the floor's top row
+  cv::Mat image;
+  cv::cvtColor(grey, image, cv::COLOR_GRAY2BGR);
+  SilhouetteOptions otsu;
+  otsu.mode = SilhouetteMode::kOtsu;
+  otsu.open_px = otsu.dilate_px = otsu.erode_px = 0;
+  otsu.min_component_fraction = 0;
+  const cv::Mat mask = ExtractSilhouette(image, cv::Mat(), otsu);
+  EXPECT_GT(MaskIoU(mask, truth), 0.97);
+  EXPECT_LT(cv::countNonZero(mask & ~truth), 0.02 * cv::countNonZero(truth));
+}
+
+// The morphology's radii scale with the image's width when morphology_width is set: a recipe
+// for 640-pixel images grows a 160-pixel image's silhouette by a quarter as many pixels.
+TEST(SilhouetteTest, MorphologyScalesWithTheImagesWidth) {
+  cv::Mat truth = cv::Mat::zeros(120, 160, CV_8U);
+  cv::rectangle(truth, {70, 20}, {89, 99}, 255, -1);
+  cv::Mat image;
+  cv::cvtColor(truth, image, cv::COLOR_GRAY2BGR);
+  SilhouetteOptions recipe;
+  recipe.mode = SilhouetteMode::kThreshold;
+  recipe.open_px = 0;
+  recipe.dilate_px = 8;
+  recipe.erode_px = 4;
+  recipe.min_component_fraction = 0;
+  const int fixed = cv::countNonZero(ExtractSilhouette(image, cv::Mat(), recipe));
+  recipe.morphology_width = 640;
+  const int scaled = cv::countNonZero(ExtractSilhouette(image, cv::Mat(), recipe));
+  // 4 px of net growth on each side of a 20 x 80 px box, then 1 px.
+  EXPECT_GT(fixed, 26 * 86);
+  EXPECT_LT(scaled, 23 * 83);
+  EXPECT_GT(scaled, cv::countNonZero(truth));
+  recipe.morphology_width = -1;
+  EXPECT_THROW(recipe.Check(), Error);
+}
+
 // BGRA frames: alpha mode keeps the alpha channel exactly (no morphology: a one-pixel speck of
 // alpha stays); the other modes read the colour alone, so a plate whose alpha differs from the
 // image's everywhere still subtracts to the subject.
