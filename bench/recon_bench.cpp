@@ -1,21 +1,32 @@
 // Reconstruction: accuracy against time on the simulated studio8 rig and a real capture.
-//   1. TSDF fusion of the two depth sensors, holocap against Open3D's ScalableTSDFVolume on
-//      identical depth maps (resampled to pinhole, Open3D has no lens distortion) and poses,
-//      both on the same number of threads.
-//   2. holocap's TSDF as the voxel size varies (error against time, memory, peak RSS).
+//   1. TSDF fusion, holocap against Open3D's tensor VoxelBlockGrid and legacy
+//      ScalableTSDFVolume (bench/open3d_tsdf.py) on identical depth maps (resampled to pinhole:
+//      Open3D has no lens distortion) and poses, the same voxel, truncation and depth limit,
+//      the same thread count and OMP_WAIT_POLICY=PASSIVE for every side, repeats interleaved
+//      (median and range); then each one's peak memory at 2 mm in a process of its own.
+//   2. holocap's TSDF as the voxel size varies (error against time, memory, peak RSS), and the
+//      pipeline's TSDF with and without hull completion.
 //   3. Visual hull (containment of the true surface) and multi-view stereo from colour alone.
 //   4. Middlebury dinoSparseRing: leave-one-out hull silhouettes, IoU per held-out view.
 //   5. The same leave-one-out through ReconstructTake with no options set (what `holocap
 //      reconstruct TAKE --heldout-names VIEW --no-glb` does): the plan's bounds, voxel,
 //      silhouettes and method; IoU against the plan's own silhouette and the README's recipe.
-// Usage: recon_bench [frames=2] [threads=2] [work_dir=/tmp/holocap-recon-bench] [sections=1234]
+//   6. Larger fusion cases: studio8 with a depth sensor beside each of its 8 cameras at 4 and
+//      2 mm against both peers, and 60 frame sets fused into one growing volume.
+// Usage: recon_bench [frames=2] [threads=2] [work_dir=/tmp/holocap-recon-bench]
+//                    [sections=1234] [repeats=5]
+// (bench/fusion_bench_results.txt: `recon_bench 2 2 /tmp/holocap-recon-bench 16 7`).
 #include <sys/resource.h>
+#include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
+#include <sstream>
 #include <string>
 
 #include "core/error.h"
@@ -48,7 +59,9 @@ std::string SetName(int64_t set) {
 
 struct DepthInput {
   CameraModel camera;
-  cv::Mat depth;  // foreground only, NaN elsewhere
+  cv::Mat depth;       // foreground only, NaN elsewhere
+  cv::Mat raw;         // the whole map, the room included
+  cv::Mat foreground;  // CV_8U, 255 = the subject (DepthForeground against the clean plate)
 };
 
 // The same depth seen through a pinhole with the lens's fx, fy, cx, cy (nearest sample).
@@ -61,14 +74,22 @@ DepthInput ToPinhole(const DepthInput& in) {
   for (int y = 0; y < h; ++y)
     for (int x = 0; x < w; ++x) rays.col(y * w + x) << (x - k[2]) / k[0], (y - k[3]) / k[1], 1;
   Eigen::Matrix2Xd source = in.camera.ProjectMany(rays);
-  cv::Mat out(h, w, CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
-  for (int i = 0; i < w * h; ++i) {
-    int sx = static_cast<int>(std::lround(source(0, i))),
-        sy = static_cast<int>(std::lround(source(1, i)));
-    if (sx >= 0 && sy >= 0 && sx < w && sy < h)
-      out.at<float>(i / w, i % w) = in.depth.at<float>(sy, sx);
-  }
-  return {pinhole, out};
+  auto resample = [&](const cv::Mat& image, cv::Scalar outside) {
+    cv::Mat out(h, w, image.type(), outside);
+    for (int i = 0; i < w * h; ++i) {
+      int sx = static_cast<int>(std::lround(source(0, i))),
+          sy = static_cast<int>(std::lround(source(1, i)));
+      if (sx < 0 || sy < 0 || sx >= w || sy >= h) continue;
+      if (image.type() == CV_32F)
+        out.at<float>(i / w, i % w) = image.at<float>(sy, sx);
+      else
+        out.at<uint8_t>(i / w, i % w) = image.at<uint8_t>(sy, sx);
+    }
+    return out;
+  };
+  const cv::Scalar nan(std::numeric_limits<float>::quiet_NaN());
+  return {pinhole, resample(in.depth, nan), resample(in.raw, nan),
+          resample(in.foreground, cv::Scalar(0))};
 }
 
 struct BenchFrame {
@@ -89,149 +110,470 @@ void PrintErrors(const char* label, double voxel, double integrate_s, double mes
 
 const char* kHeader = "%-22s %6s %11s %8s %9s %9s %9s %9s %9s %7s %s\n";
 
-void TsdfSections(const std::vector<BenchFrame>& frames, int threads, const fs::path& work,
-                  bool peer, bool sweep) {
-  auto run_holocap = [&](const std::vector<std::vector<DepthInput>>& inputs, TsdfOptions options,
-                         double* integrate_s, double* mesh_s, std::vector<Mesh>* meshes,
-                         size_t* blocks, double* memory_mb) {
-    options.threads = threads;
-    *integrate_s = *mesh_s = 0;
-    *blocks = 0;
-    *memory_mb = 0;
-    meshes->clear();
-    for (const auto& frame : inputs) {
-      TsdfVolume tsdf(options);
-      for (const auto& d : frame) *integrate_s += tsdf.Integrate(d.depth, d.camera).seconds;
-      double t0 = Now();
-      meshes->push_back(ExtractMesh(tsdf.volume()));
-      *mesh_s += Now() - t0;
-      *blocks = std::max(*blocks, tsdf.volume().block_count());
-      *memory_mb = std::max(*memory_mb, tsdf.volume().memory_bytes() / 1048576.0);
-    }
-    *integrate_s /= inputs.size();
-    *mesh_s /= inputs.size();
-  };
-  auto errors = [&](const std::vector<Mesh>& meshes, SurfaceErrors* all, SurfaceErrors* seen) {
-    *all = *seen = SurfaceErrors{};
-    for (size_t i = 0; i < meshes.size(); ++i) {
-      SurfaceErrors a = CompareSurfaces(meshes[i], frames[i].truth, 0.005, 40000, frames[i].outer),
-                    s = CompareSurfaces(meshes[i], frames[i].truth, 0.005, 40000, frames[i].seen);
-      all->chamfer_mm += a.chamfer_mm / meshes.size();
-      all->accuracy_mm += a.accuracy_mm / meshes.size();
-      all->completeness_mm += a.completeness_mm / meshes.size();
-      seen->chamfer_mm += s.chamfer_mm / meshes.size();
-      seen->fscore += s.fscore / meshes.size();
-    }
-  };
-  std::vector<std::vector<DepthInput>> original, pinhole;
-  for (const BenchFrame& f : frames) {
-    original.push_back(f.depth);
-    pinhole.emplace_back();
-    for (const auto& d : f.depth) pinhole.back().push_back(ToPinhole(d));
+// Mean errors of frame i's mesh against frame i's truth: on the outer surface, and on what a
+// sensor saw.
+void MeanErrors(const std::vector<Mesh>& meshes, const std::vector<BenchFrame>& frames,
+                SurfaceErrors* all, SurfaceErrors* seen) {
+  *all = *seen = SurfaceErrors{};
+  for (size_t i = 0; i < meshes.size(); ++i) {
+    SurfaceErrors a = CompareSurfaces(meshes[i], frames[i].truth, 0.005, 40000, frames[i].outer),
+                  s = CompareSurfaces(meshes[i], frames[i].truth, 0.005, 40000, frames[i].seen);
+    all->chamfer_mm += a.chamfer_mm / meshes.size();
+    all->accuracy_mm += a.accuracy_mm / meshes.size();
+    all->completeness_mm += a.completeness_mm / meshes.size();
+    all->fscore += a.fscore / meshes.size();
+    seen->chamfer_mm += s.chamfer_mm / meshes.size();
+    seen->fscore += s.fscore / meshes.size();
   }
-  // Warm the per-lens tables (built once per camera, then reused for every frame).
-  {
+}
+
+// One fused volume per frame (every depth map of the frame), meshed: seconds per frame.
+struct HolocapRun {
+  double integrate_s = 0, mesh_s = 0;
+  std::vector<Mesh> meshes;
+  size_t blocks = 0;
+  double memory_mb = 0;
+};
+// With `masked`, each map whole with its foreground mask (the background's measurements carve
+// free space); else the subject's depth alone, as the peers get it.
+HolocapRun RunHolocap(const std::vector<std::vector<DepthInput>>& inputs, TsdfOptions options,
+                      int threads, bool masked = false) {
+  options.threads = threads;
+  HolocapRun run;
+  for (const auto& frame : inputs) {
+    TsdfVolume tsdf(options);
     double t0 = Now();
-    TsdfOptions options;
-    for (const auto& d : pinhole[0]) TsdfVolume(options).Integrate(d.depth, d.camera);
-    for (const auto& d : original[0]) TsdfVolume(options).Integrate(d.depth, d.camera);
-    std::printf("one-time projection tables for 4 lenses: %.2f s\n\n", Now() - t0);
+    for (const auto& d : frame) {
+      if (masked)
+        tsdf.Integrate(d.raw, d.camera, d.foreground);
+      else
+        tsdf.Integrate(d.depth, d.camera);
+    }
+    double t1 = Now();
+    run.meshes.push_back(ExtractMesh(tsdf.volume()));
+    run.integrate_s += (t1 - t0) / inputs.size();
+    run.mesh_s += (Now() - t1) / inputs.size();
+    run.blocks = std::max(run.blocks, tsdf.volume().block_count());
+    run.memory_mb = std::max(run.memory_mb, tsdf.volume().memory_bytes() / 1048576.0);
   }
-  if (peer) {
-    std::printf(
-        "== TSDF: holocap vs Open3D ScalableTSDFVolume, %zu frame(s) x %zu depth maps, pinhole, %d "
-        "threads\n",
-        frames.size(), frames[0].depth.size(), threads);
-    std::printf(kHeader, "method", "voxmm", "integr_s/fr", "mesh_s", "triangles", "chamfer",
-                "accuracy", "complete", "seen_ch", "F@5seen", "");
-    for (double voxel : {0.008, 0.004}) {
-      TsdfOptions plain;
-      plain.voxel_m = voxel;
-      plain.smoothing_radius_px = 0;
-      plain.max_incidence_deg = 90;
-      TsdfOptions full = plain;
-      full.smoothing_radius_px = TsdfOptions{}.smoothing_radius_px;
-      full.max_incidence_deg = TsdfOptions{}.max_incidence_deg;
-      for (auto [label, options] :
-           {std::pair{"holocap (plain)", plain}, std::pair{"holocap (filtered)", full}}) {
-        double integrate_s, mesh_s, memory;
-        size_t blocks;
-        std::vector<Mesh> meshes;
-        run_holocap(pinhole, options, &integrate_s, &mesh_s, &meshes, &blocks, &memory);
-        SurfaceErrors all, seen;
-        errors(meshes, &all, &seen);
-        PrintErrors(label, voxel, integrate_s, mesh_s, meshes[0].faces.size(), all, seen);
+  return run;
+}
+
+// holocap's TSDF as the peers are run: the maps as they are (no smoothing, no grazing filter),
+// 4-voxel truncation, depth up to 8 m.
+TsdfOptions PlainTsdf(double voxel) {
+  TsdfOptions plain;
+  plain.voxel_m = voxel;
+  plain.smoothing_radius_px = 0;
+  plain.max_incidence_deg = 90;
+  return plain;
+}
+
+// Writes the pinhole maps as bench/open3d_tsdf.py reads them (dir/frames.json, raw float32).
+void WriteOpen3dInput(const std::vector<std::vector<DepthInput>>& frames, const fs::path& dir) {
+  fs::create_directories(dir);
+  nlohmann::json spec = {{"frames", nlohmann::json::array()}};
+  for (size_t f = 0; f < frames.size(); ++f) {
+    nlohmann::json maps = nlohmann::json::array();
+    for (size_t i = 0; i < frames[f].size(); ++i) {
+      const DepthInput& d = frames[f][i];
+      cv::Mat zeroed = d.depth.clone();
+      cv::patchNaNs(zeroed, 0);  // 0 = no measurement (a NaN compares unequal to nothing)
+      std::string file = "depth" + std::to_string(f) + "-" + std::to_string(i) + ".f32";
+      std::ofstream(dir / file, std::ios::binary)
+          .write(reinterpret_cast<const char*>(zeroed.data), zeroed.total() * sizeof(float));
+      Eigen::Matrix4d m = d.camera.cam_from_world().matrix();
+      std::vector<double> rows;
+      for (int r = 0; r < 4; ++r)
+        for (int c = 0; c < 4; ++c) rows.push_back(m(r, c));
+      const auto& k = d.camera.intrinsics();
+      maps.push_back({{"file", file},
+                      {"width", d.depth.cols},
+                      {"height", d.depth.rows},
+                      {"fx", k[0]},
+                      {"fy", k[1]},
+                      {"cx", k[2]},
+                      {"cy", k[3]},
+                      {"cam_from_world", rows}});
+    }
+    spec["frames"].push_back(maps);
+  }
+  std::ofstream(dir / "frames.json") << spec.dump();
+}
+
+// The maps WriteOpen3dInput wrote, read back (the peak-memory mode fuses exactly the peers'
+// input).
+std::vector<std::vector<DepthInput>> ReadOpen3dInput(const fs::path& dir) {
+  nlohmann::json spec = nlohmann::json::parse(std::ifstream(dir / "frames.json"));
+  std::vector<std::vector<DepthInput>> frames;
+  for (const auto& maps : spec["frames"]) {
+    frames.emplace_back();
+    for (const auto& m : maps) {
+      const int w = m["width"], h = m["height"];
+      cv::Mat depth(h, w, CV_32F);
+      std::ifstream(dir / m["file"].get<std::string>(), std::ios::binary)
+          .read(reinterpret_cast<char*>(depth.data), depth.total() * sizeof(float));
+      depth.setTo(std::numeric_limits<float>::quiet_NaN(), depth == 0);
+      auto rows = m["cam_from_world"].get<std::vector<double>>();
+      Eigen::Matrix4d matrix =
+          Eigen::Map<Eigen::Matrix<double, 4, 4, Eigen::RowMajor>>(rows.data());
+      Pose cam_from_world(matrix);
+      CameraModel camera("LENSMODEL_PINHOLE", {m["fx"], m["fy"], m["cx"], m["cy"]}, w, h,
+                         cam_from_world);
+      frames.back().push_back({camera, depth, {}, {}});
+    }
+  }
+  return frames;
+}
+
+struct PeerResult {
+  double integrate_s = 0, mesh_s = 0, peak_mb = 0;
+  long triangles = 0;
+};
+
+// Runs bench/open3d_tsdf.py for `peers` ("vbg", "legacy", comma-separated, in that order) on
+// `threads` OpenMP threads that wait passively; meshes go to dir/mesh-PEER-i.ply.
+std::map<std::string, PeerResult> RunOpen3d(const fs::path& dir, double voxel,
+                                            const std::string& peers, int threads) {
+  const TsdfOptions defaults;
+  std::string command =
+      "OMP_NUM_THREADS=" + std::to_string(threads) + " OMP_WAIT_POLICY=PASSIVE /usr/bin/python3 '" +
+      std::string(HOLOCAP_BENCH_DIR) + "/open3d_tsdf.py' '" + dir.string() + "' " +
+      std::to_string(voxel) + " " + std::to_string(defaults.truncation_voxels) + " " +
+      std::to_string(defaults.depth_max_m) + " " + peers + " '" + (dir / "mesh").string() + "'";
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) Fail("cannot run ", command);
+  std::map<std::string, PeerResult> results;
+  char line[512] = {};
+  while (std::fgets(line, sizeof(line), pipe)) {
+    char name[32] = {};
+    PeerResult r;
+    if (std::sscanf(line, "%31s %lf %lf %ld %lf", name, &r.integrate_s, &r.mesh_s, &r.triangles,
+                    &r.peak_mb) == 5)
+      results[name] = r;
+  }
+  if (pclose(pipe) != 0 ||
+      results.size() != static_cast<size_t>(1 + std::count(peers.begin(), peers.end(), ',')))
+    Fail("open3d_tsdf.py failed: ", command);
+  return results;
+}
+
+struct Spread {
+  double median = 0, min = 0, max = 0;
+};
+Spread SpreadOf(std::vector<double> values) {
+  std::sort(values.begin(), values.end());
+  const size_t n = values.size();
+  double median = n % 2 ? values[n / 2] : 0.5 * (values[n / 2 - 1] + values[n / 2]);
+  return {median, values.front(), values.back()};
+}
+
+std::string LoadNow() {
+  double load[3] = {};
+  getloadavg(load, 3);
+  char text[64];
+  std::snprintf(text, sizeof(text), "%.2f %.2f %.2f", load[0], load[1], load[2]);
+  return text;
+}
+
+// holocap (as the peers run, and with its filters), VoxelBlockGrid and ScalableTSDFVolume on the
+// same pinhole maps, `repeats` times interleaved (the order alternating), median and range of
+// the seconds per frame; errors of the last repeat's meshes (every method is deterministic).
+void FusionAgainstOpen3d(const std::string& title, const std::vector<BenchFrame>& frames,
+                         const std::vector<std::vector<DepthInput>>& pinhole,
+                         const std::vector<double>& voxels, int threads, int repeats,
+                         const fs::path& work) {
+  std::printf(
+      "== %s: %zu frame(s) x %zu depth maps, pinhole, %d threads, OMP_WAIT_POLICY=%s, "
+      "%d interleaved repeats (median [min-max]); load %s\n",
+      title.c_str(), pinhole.size(), pinhole[0].size(), threads, std::getenv("OMP_WAIT_POLICY"),
+      repeats, LoadNow().c_str());
+  std::printf("%-20s %5s %23s %23s %9s %8s %8s %8s %8s %7s %8s\n", "method", "voxmm",
+              "integrate_s/frame", "mesh_s/frame", "triangles", "chamfer", "accuracy", "complete",
+              "seen_ch", "F@5", "speed");
+  for (double voxel : voxels) {
+    const fs::path dir = work / ("open3d-" + std::to_string(static_cast<int>(voxel * 1e4)));
+    WriteOpen3dInput(pinhole, dir);
+    // The per-lens projection tables are built once per camera, before any timing.
+    for (const auto& d : pinhole[0]) TsdfVolume(PlainTsdf(voxel)).Integrate(d.depth, d.camera);
+    // holocap on the peers' maps; with each map's foreground mask (the background carves free
+    // space); and as the pipeline runs it (smoothing, grazing filter, mask).
+    const std::vector<std::string> methods = {
+        "holocap",        "holocap +mask",    "holocap filt+mask", "Open3D VBG",
+        "Open3D VBG NaN", "Open3D VBG dense", "Open3D Scalable"};
+    const std::vector<std::pair<std::string, std::string>> peers = {{"vbg", methods[3]},
+                                                                    {"vbg-nan", methods[4]},
+                                                                    {"vbg-dense", methods[5]},
+                                                                    {"legacy", methods[6]}};
+    std::map<std::string, std::vector<double>> integrate, mesh;
+    std::map<std::string, std::vector<Mesh>> meshes;
+    std::map<std::string, long> triangles;
+    auto run_holocap = [&] {
+      for (int variant = 0; variant < 3; ++variant) {
+        TsdfOptions options = variant < 2 ? PlainTsdf(voxel) : TsdfOptions{};
+        options.voxel_m = voxel;
+        HolocapRun run = RunHolocap(pinhole, options, threads, variant > 0);
+        const std::string& label = methods[variant];
+        integrate[label].push_back(run.integrate_s);
+        mesh[label].push_back(run.mesh_s);
+        triangles[label] = static_cast<long>(run.meshes[0].faces.size());
+        meshes[label] = std::move(run.meshes);
       }
-      // Open3D on the same pinhole depth maps, one process per frame.
-      double integrate_s = 0, mesh_s = 0;
-      std::vector<Mesh> meshes;
-      for (size_t f = 0; f < pinhole.size(); ++f) {
-        fs::path dir = work / ("open3d-" + std::to_string(f));
-        fs::create_directories(dir);
-        nlohmann::json spec = {{"frames", nlohmann::json::array()}};
-        for (size_t i = 0; i < pinhole[f].size(); ++i) {
-          const DepthInput& d = pinhole[f][i];
-          cv::Mat zeroed = d.depth.clone();
-          zeroed.setTo(0, zeroed != zeroed);
-          std::string file = "depth" + std::to_string(i) + ".f32";
-          std::ofstream(dir / file, std::ios::binary)
-              .write(reinterpret_cast<const char*>(zeroed.data), zeroed.total() * sizeof(float));
-          Eigen::Matrix4d m = d.camera.cam_from_world().matrix();
-          std::vector<double> rows;
-          for (int r = 0; r < 4; ++r)
-            for (int c = 0; c < 4; ++c) rows.push_back(m(r, c));
-          const auto& k = d.camera.intrinsics();
-          spec["frames"].push_back({{"file", file},
-                                    {"width", d.depth.cols},
-                                    {"height", d.depth.rows},
-                                    {"fx", k[0]},
-                                    {"fy", k[1]},
-                                    {"cx", k[2]},
-                                    {"cy", k[3]},
-                                    {"cam_from_world", rows}});
+    };
+    for (int r = 0; r < repeats; ++r) {
+      if (r % 2 == 0) run_holocap();
+      auto results = RunOpen3d(
+          dir, voxel, r % 2 == 0 ? "vbg,vbg-nan,vbg-dense,legacy" : "legacy,vbg-dense,vbg-nan,vbg",
+          threads);
+      for (const auto& [name, label] : peers) {
+        integrate[label].push_back(results[name].integrate_s);
+        mesh[label].push_back(results[name].mesh_s);
+        triangles[label] = results[name].triangles;
+      }
+      if (r % 2 == 1) run_holocap();
+    }
+    for (const auto& [name, label] : peers) {
+      meshes[label].clear();
+      for (size_t f = 0; f < pinhole.size(); ++f)
+        meshes[label].push_back(ReadPly(dir / ("mesh-" + name + "-" + std::to_string(f) + ".ply")));
+    }
+    const double vbg_s = SpreadOf(integrate[methods[3]]).median;
+    for (const std::string& label : methods) {
+      SurfaceErrors all, seen;
+      MeanErrors(meshes[label], frames, &all, &seen);
+      Spread i = SpreadOf(integrate[label]), m = SpreadOf(mesh[label]);
+      std::printf(
+          "%-20s %5.1f %7.4f [%6.4f-%6.4f] %7.4f [%6.4f-%6.4f] %9ld %8.2f %8.2f %8.2f %8.2f %7.3f "
+          "%7.2fx\n",
+          label.c_str(), voxel * 1e3, i.median, i.min, i.max, m.median, m.min, m.max,
+          triangles[label], all.chamfer_mm, all.accuracy_mm, all.completeness_mm, seen.chamfer_mm,
+          seen.fscore, vbg_s / i.median);
+    }
+    std::fflush(stdout);
+  }
+  std::printf(
+      "(speed: VoxelBlockGrid's median integration time over the method's; load after: "
+      "%s)\n\n",
+      LoadNow().c_str());
+}
+
+// Where holocap's integration spends its time: each stage's seconds per frame (median of
+// `repeats`), the blocks and voxels it touched.
+void IntegrationStages(const std::vector<std::vector<DepthInput>>& pinhole,
+                       const std::vector<double>& voxels, int threads, int repeats) {
+  std::printf("== holocap integration by stage, s per frame, median of %d; load %s\n", repeats,
+              LoadNow().c_str());
+  std::printf("%-14s %5s %9s %9s %9s %9s %8s %10s %10s\n", "input", "voxmm", "prepare", "allocate",
+              "fuse", "total", "blocks", "updated", "carved");
+  const bool has_masks = !pinhole[0][0].foreground.empty();
+  for (double voxel : voxels) {
+    for (bool masked : {false, true}) {
+      if (masked && !has_masks) continue;
+      std::vector<double> prepare, allocate, fuse, total;
+      TsdfFrameStats sum;
+      for (int r = 0; r < repeats; ++r) {
+        TsdfFrameStats frame_sum;
+        for (const auto& frame : pinhole) {
+          TsdfOptions options = PlainTsdf(voxel);
+          options.threads = threads;
+          TsdfVolume tsdf(options);
+          for (const auto& d : frame) {
+            TsdfFrameStats s = masked ? tsdf.Integrate(d.raw, d.camera, d.foreground)
+                                      : tsdf.Integrate(d.depth, d.camera);
+            frame_sum.prepare_seconds += s.prepare_seconds / pinhole.size();
+            frame_sum.allocate_seconds += s.allocate_seconds / pinhole.size();
+            frame_sum.fuse_seconds += s.fuse_seconds / pinhole.size();
+            frame_sum.seconds += s.seconds / pinhole.size();
+            frame_sum.blocks_touched += s.blocks_touched;
+            frame_sum.voxels_updated += s.voxels_updated;
+            frame_sum.voxels_carved += s.voxels_carved;
+          }
         }
-        std::ofstream(dir / "frames.json") << spec.dump();
-        std::string command = "OMP_NUM_THREADS=" + std::to_string(threads) + " /usr/bin/python3 '" +
-                              std::string(HOLOCAP_BENCH_DIR) + "/open3d_tsdf.py' '" + dir.string() +
-                              "' " + std::to_string(voxel) + " '" + (dir / "mesh.ply").string() +
-                              "'";
-        FILE* pipe = popen(command.c_str(), "r");
-        char line[256] = {};
-        double a = 0, b = 0;
-        long triangles = 0;
-        while (pipe && std::fgets(line, sizeof(line), pipe))
-          std::sscanf(line, "open3d %lf %lf %ld", &a, &b, &triangles);
-        if (pipe) pclose(pipe);
-        integrate_s += a / pinhole.size();
-        mesh_s += b / pinhole.size();
-        meshes.push_back(ReadPly(dir / "mesh.ply"));
+        prepare.push_back(frame_sum.prepare_seconds);
+        allocate.push_back(frame_sum.allocate_seconds);
+        fuse.push_back(frame_sum.fuse_seconds);
+        total.push_back(frame_sum.seconds);
+        sum = frame_sum;
       }
-      SurfaceErrors all, seen;
-      errors(meshes, &all, &seen);
-      PrintErrors("Open3D Scalable", voxel, integrate_s, mesh_s, meshes[0].faces.size(), all, seen);
+      const double n = static_cast<double>(pinhole.size());
+      std::printf("%-14s %5.1f %9.4f %9.4f %9.4f %9.4f %8.0f %10.0f %10.0f\n",
+                  masked ? "map + mask" : "peers' maps", voxel * 1e3, SpreadOf(prepare).median,
+                  SpreadOf(allocate).median, SpreadOf(fuse).median, SpreadOf(total).median,
+                  sum.blocks_touched / n, sum.voxels_updated / n, sum.voxels_carved / n);
     }
-    std::printf("\n");
   }
-  if (sweep) {
-    std::printf("== holocap TSDF as the voxel varies (true lenses, filtered; %d threads)\n",
-                threads);
-    std::printf(kHeader, "method", "voxmm", "integr_s/fr", "mesh_s", "triangles", "chamfer",
-                "accuracy", "complete", "seen_ch", "F@5seen", "blocks  MB  peakRSS_MB");
-    for (double voxel : {0.016, 0.008, 0.004, 0.002, 0.001}) {
-      TsdfOptions options;
-      options.voxel_m = voxel;
-      double integrate_s, mesh_s, memory;
-      size_t blocks;
-      std::vector<Mesh> meshes;
-      run_holocap(original, options, &integrate_s, &mesh_s, &meshes, &blocks, &memory);
-      SurfaceErrors all, seen;
-      errors(meshes, &all, &seen);
-      char extra[96];
-      std::snprintf(extra, sizeof(extra), "%6zu %5.0f %8.0f", blocks, memory, PeakRssMb());
-      PrintErrors("holocap", voxel, integrate_s, mesh_s, meshes[0].faces.size(), all, seen, extra);
+  std::printf("\n");
+}
+
+double RssMb() {
+  long pages = 0, resident = 0;
+  std::ifstream("/proc/self/statm") >> pages >> resident;
+  return resident * (sysconf(_SC_PAGESIZE) / 1048576.0);
+}
+
+// The peak-memory mode (a process of its own): fuses and meshes the peers' input at one voxel
+// size and prints "holocap integrate_s mesh_s triangles peak_rss_growth_mb", as open3d_tsdf.py.
+int PeakMemoryMode(const fs::path& dir, double voxel, int threads) {
+  auto inputs = ReadOpen3dInput(dir);
+  const double base = RssMb();
+  HolocapRun run = RunHolocap(inputs, PlainTsdf(voxel), threads);
+  std::printf("holocap %.6f %.6f %zu %.1f\n", run.integrate_s, run.mesh_s,
+              run.meshes[0].faces.size(), PeakRssMb() - base);
+  return 0;
+}
+
+// Peak memory of each method at `voxel`, each in a process of its own (peak RSS less the RSS
+// before the first volume), on the maps FusionAgainstOpen3d wrote for that voxel size.
+void PeakMemory(const std::vector<std::vector<DepthInput>>& pinhole, double voxel, int threads,
+                const fs::path& work, const char* self) {
+  const fs::path dir = work / ("open3d-memory-" + std::to_string(static_cast<int>(voxel * 1e4)));
+  WriteOpen3dInput(pinhole, dir);
+  std::printf(
+      "== peak memory at %.0f mm: %zu frame(s) x %zu depth maps, each method in its own "
+      "process (peak RSS growth while fusing and meshing); load %s\n",
+      voxel * 1e3, pinhole.size(), pinhole[0].size(), LoadNow().c_str());
+  std::printf("%-20s %12s %10s %10s %10s\n", "method", "peak_MB", "integr_s", "mesh_s",
+              "triangles");
+  std::string command = "OMP_WAIT_POLICY=PASSIVE '" + std::string(self) + "' --peak-memory '" +
+                        dir.string() + "' " + std::to_string(voxel) + " " + std::to_string(threads);
+  FILE* pipe = popen(command.c_str(), "r");
+  char line[512] = {};
+  while (pipe && std::fgets(line, sizeof(line), pipe)) {
+    char name[32] = {};
+    PeerResult r;
+    if (std::sscanf(line, "%31s %lf %lf %ld %lf", name, &r.integrate_s, &r.mesh_s, &r.triangles,
+                    &r.peak_mb) == 5)
+      std::printf("%-20s %12.1f %10.3f %10.3f %10ld\n", "holocap", r.peak_mb, r.integrate_s,
+                  r.mesh_s, r.triangles);
+  }
+  if (pipe) pclose(pipe);
+  for (auto [name, label] :
+       {std::pair{"vbg", "Open3D VBG"}, std::pair{"vbg-dense", "Open3D VBG dense"},
+        std::pair{"legacy", "Open3D Scalable"}}) {
+    PeerResult r = RunOpen3d(dir, voxel, name, threads).at(name);
+    std::printf("%-20s %12.1f %10.3f %10.3f %10ld\n", label, r.peak_mb, r.integrate_s, r.mesh_s,
+                r.triangles);
+  }
+  std::printf("\n");
+}
+
+// Fuses a sequence into one volume (the subject walks, the volume grows): seconds per frame
+// set (all its maps) at points along it, holocap against both peers, and the final mesh.
+void FusionSequence(const std::vector<std::vector<DepthInput>>& pinhole, double voxel, int threads,
+                    const fs::path& work) {
+  const fs::path dir = work / "open3d-sequence";
+  WriteOpen3dInput(pinhole, dir);
+  std::printf(
+      "== a sequence fused into one volume: %zu frame sets x %zu depth maps, %.0f mm, %d "
+      "threads, OMP_WAIT_POLICY=%s; load %s\n",
+      pinhole.size(), pinhole[0].size(), voxel * 1e3, threads, std::getenv("OMP_WAIT_POLICY"),
+      LoadNow().c_str());
+  TsdfOptions options = PlainTsdf(voxel);
+  options.threads = threads;
+  TsdfVolume tsdf(options);
+  std::vector<double> holocap_s;
+  std::vector<size_t> blocks;
+  for (const auto& frame : pinhole) {
+    double t0 = Now();
+    for (const auto& d : frame) tsdf.Integrate(d.depth, d.camera);
+    holocap_s.push_back(Now() - t0);
+    blocks.push_back(tsdf.volume().block_count());
+  }
+  double t0 = Now();
+  Mesh mesh = ExtractMesh(tsdf.volume());
+  const double holocap_mesh_s = Now() - t0;
+  std::map<std::string, std::vector<double>> peer_s;
+  std::map<std::string, double> peer_mesh_s;
+  std::string command =
+      "OMP_NUM_THREADS=" + std::to_string(threads) + " OMP_WAIT_POLICY=PASSIVE /usr/bin/python3 '" +
+      std::string(HOLOCAP_BENCH_DIR) + "/open3d_tsdf.py' '" + dir.string() + "' " +
+      std::to_string(voxel) + " " + std::to_string(options.truncation_voxels) + " " +
+      std::to_string(options.depth_max_m) + " vbg-sequence,vbg-dense-sequence,legacy-sequence '" +
+      (dir / "mesh").string() + "'";
+  FILE* pipe = popen(command.c_str(), "r");
+  std::string text;
+  char buffer[4096];
+  size_t n;
+  while (pipe && (n = std::fread(buffer, 1, sizeof(buffer), pipe)) > 0) text.append(buffer, n);
+  if (pipe) pclose(pipe);
+  std::istringstream lines(text);
+  std::string line;
+  while (std::getline(lines, line)) {
+    std::istringstream words(line);
+    std::string name;
+    words >> name;
+    double value;
+    if (name.ends_with("-times")) {
+      while (words >> value) peer_s[name.substr(0, name.size() - 6)].push_back(value);
+    } else if (words >> value >> value) {
+      peer_mesh_s[name] = value;
     }
-    std::printf("\n");
   }
+  std::printf("%12s %12s %8s %16s %16s %16s\n", "frame_sets", "holocap_s", "blocks", "VBG_s",
+              "VBG_dense_s", "Scalable_s");
+  auto mean = [](const std::vector<double>& v, size_t from, size_t to) {
+    double sum = 0;
+    for (size_t i = from; i < to && i < v.size(); ++i) sum += v[i];
+    return to > from && !v.empty() ? sum / (std::min(to, v.size()) - from) : 0.0;
+  };
+  for (size_t end = 10; end <= pinhole.size(); end += 10) {
+    std::printf("%5zu-%-6zu %12.4f %8zu %16.4f %16.4f %16.4f\n", end - 9, end,
+                mean(holocap_s, end - 10, end), blocks[end - 1],
+                mean(peer_s["vbg-sequence"], end - 10, end),
+                mean(peer_s["vbg-dense-sequence"], end - 10, end),
+                mean(peer_s["legacy-sequence"], end - 10, end));
+  }
+  std::printf(
+      "%-12s %12.4f %8s %16.4f %16.4f %16.4f   (s, the final volume; holocap %zu triangles)\n\n",
+      "mesh", holocap_mesh_s, "", peer_mesh_s["vbg-sequence"], peer_mesh_s["vbg-dense-sequence"],
+      peer_mesh_s["legacy-sequence"], mesh.faces.size());
+}
+
+// studio8 with a depth sensor beside every one of its eight colour cameras (depth0's lens and
+// offset), written as a sim rig file.
+fs::path Studio8WithEightDepthSensors(const fs::path& work) {
+  nlohmann::json rig = BuiltinRig("studio8").ToJson();
+  const fs::path file = work / "studio8-depth8.json";
+  nlohmann::json sensors = nlohmann::json::array(), depth;
+  for (const auto& sensor : rig["sensors"]) {
+    if (sensor["role"] == "depth") {
+      if (depth.is_null()) depth = sensor;
+      continue;
+    }
+    sensors.push_back(sensor);
+  }
+  for (int i = 0; i < 8; ++i) {
+    nlohmann::json d = depth;
+    d["name"] = "depth" + std::to_string(i);
+    d["uri"] = "sim:" + file.string() + "#depth" + std::to_string(i);
+    d["paired_with"] = "cam" + std::to_string(i);
+    sensors.push_back(d);
+  }
+  rig["name"] = "studio8-depth8";
+  rig["sensors"] = sensors;
+  std::ofstream(file) << rig.dump(2);
+  return file;
+}
+
+void VoxelSweep(const std::vector<BenchFrame>& frames, int threads) {
+  std::vector<std::vector<DepthInput>> original;
+  for (const BenchFrame& f : frames) original.push_back(f.depth);
+  for (const auto& d : original[0]) TsdfVolume(TsdfOptions{}).Integrate(d.depth, d.camera);
+  std::printf("== holocap TSDF as the voxel varies (true lenses, filtered; %d threads)\n", threads);
+  std::printf(kHeader, "method", "voxmm", "integr_s/fr", "mesh_s", "triangles", "chamfer",
+              "accuracy", "complete", "seen_ch", "F@5seen", "blocks  MB  peakRSS_MB");
+  for (double voxel : {0.016, 0.008, 0.004, 0.002, 0.001}) {
+    TsdfOptions options;
+    options.voxel_m = voxel;
+    HolocapRun run = RunHolocap(original, options, threads);
+    SurfaceErrors all, seen;
+    MeanErrors(run.meshes, frames, &all, &seen);
+    char extra[96];
+    std::snprintf(extra, sizeof(extra), "%6zu %5.0f %8.0f", run.blocks, run.memory_mb, PeakRssMb());
+    PrintErrors("holocap", voxel, run.integrate_s, run.mesh_s, run.meshes[0].faces.size(), all,
+                seen, extra);
+  }
+  std::printf("\n");
 }
 
 // The figure: the pipeline's TSDF from the depth sensors, with and without the
@@ -242,11 +584,16 @@ void PipelineTsdf(const fs::path& take_dir, int frame_count, int threads) {
       "tsdf), "
       "%d frame(s), %d threads\n",
       frame_count, threads);
-  std::printf("%-26s %6s %9s %9s %9s %9s %9s %9s %8s %10s\n", "completion", "voxmm", "frame_s",
+  std::printf(
+      "(bg: the background carves free space in the fusion itself, "
+      "TsdfOptions::carve_background)\n");
+  std::printf("%-30s %6s %9s %9s %9s %9s %9s %9s %8s %10s\n", "completion", "voxmm", "frame_s",
               "hull+fill", "chamfer", "accuracy", "complete", "seen_ch", "F@5mm", "ch_buried");
   for (double voxel : {0.008, 0.004}) {
-    for (bool complete : {false, true}) {
+    for (auto [complete, carve] : {std::pair{false, false}, std::pair{false, true},
+                                   std::pair{true, false}, std::pair{true, true}}) {
       ReconstructionOptions options;
+      options.tsdf.carve_background = carve;
       options.method = ReconstructionMethod::kTsdf;
       options.voxel_m = voxel;
       options.threads = threads;
@@ -272,12 +619,14 @@ void PipelineTsdf(const fs::path& take_dir, int frame_count, int threads) {
             f["metrics"]["gt"]["observed"]["chamfer_mm"].get<double>() / metrics["frames"].size();
       }
       const auto& gt = metrics["gt"];
-      std::printf("%-26s %6.1f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %8.3f %10.2f\n",
-                  complete ? "hull carved by free space" : "none (sensors only)", voxel * 1e3,
-                  metrics["timing"]["mean_frame_s"].get<double>(), completion_s,
-                  gt["chamfer_mm"].get<double>(), gt["accuracy_mm"].get<double>(),
-                  gt["completeness_mm"].get<double>(), seen, gt["fscore_5mm"].get<double>(),
-                  gt["chamfer_with_buried_faces_mm"].get<double>());
+      std::printf(
+          "%-30s %6.1f %9.2f %9.2f %9.2f %9.2f %9.2f %9.2f %8.3f %10.2f\n",
+          Cat(complete ? "hull carved by free space" : "none (sensors only)", carve ? ", bg" : "")
+              .c_str(),
+          voxel * 1e3, metrics["timing"]["mean_frame_s"].get<double>(), completion_s,
+          gt["chamfer_mm"].get<double>(), gt["accuracy_mm"].get<double>(),
+          gt["completeness_mm"].get<double>(), seen, gt["fscore_5mm"].get<double>(),
+          gt["chamfer_with_buried_faces_mm"].get<double>());
     }
   }
   std::printf("\n");
@@ -472,49 +821,101 @@ void MiddleburyNoFlags(const fs::path& work, int threads) {
       own_sum / n, own_worst, recipe_sum / n, recipe_worst, seconds / n);
 }
 
+// Simulates a take once (reused when there).
+void SimulateOnce(const std::string& rig, const fs::path& dir, int frame_sets) {
+  if (fs::exists(dir / "take.json")) return;
+  SimOptions sim;
+  sim.rig = rig;
+  sim.frames = frame_sets + 1;
+  sim.clean_plate_frames = 1;
+  sim.seed = 7;
+  sim.overwrite = true;
+  SimulateTake(sim, dir);
+}
+
+// Frame sets 1..count of a take: each depth map's foreground (against the clean plate of set 0),
+// the true mesh and the truth filters.
+std::vector<BenchFrame> LoadFrames(const fs::path& take_dir, int count) {
+  const Take take = Take::Open(take_dir);
+  std::vector<BenchFrame> frames;
+  for (int64_t set = 1; set <= count && set < static_cast<int64_t>(take.size()); ++set) {
+    BenchFrame frame;
+    frame.set = set;
+    frame.truth = ReadPly(take.gt_dir() / "meshes" / (SetName(set) + ".ply"));
+    std::vector<std::pair<CameraModel, cv::Mat>> seen;
+    for (const StreamInfo& s : take.streams()) {
+      if (s.role != SensorRole::kDepth) continue;
+      CameraModel camera = take.Camera(s.name, true);
+      cv::Mat raw = take.ReadFrame(set, s.name);
+      cv::Mat foreground =
+          DepthForeground(raw, take.ReadFrame(0, s.name), TsdfOptions{}.depth_noise_k);
+      cv::Mat depth = raw.clone();
+      depth.setTo(std::numeric_limits<float>::quiet_NaN(), foreground == 0);
+      frame.depth.push_back({camera, depth, raw, foreground});
+      seen.emplace_back(camera,
+                        ReadImage(take.gt_dir() / "depth" / s.name / (SetName(set) + ".exr")));
+    }
+    frame.seen = SeenInDepthMaps(seen);
+    frame.outer = OnOuterSurface(frame.truth);
+    frames.push_back(std::move(frame));
+  }
+  return frames;
+}
+
+std::vector<std::vector<DepthInput>> Pinhole(const std::vector<BenchFrame>& frames) {
+  std::vector<std::vector<DepthInput>> pinhole;
+  for (const BenchFrame& f : frames) {
+    pinhole.emplace_back();
+    for (const auto& d : f.depth) pinhole.back().push_back(ToPinhole(d));
+  }
+  return pinhole;
+}
+
+// Section 6: studio8 with eight depth sensors at 4 and 2 mm, and a 60-set sequence.
+void LargerFusionCases(const fs::path& work, int threads, int repeats) {
+  const fs::path eight = work / "studio8-depth8";
+  SimulateOnce(Studio8WithEightDepthSensors(work).string(), eight, 1);
+  std::vector<BenchFrame> frames = LoadFrames(eight, 1);
+  FusionAgainstOpen3d("studio8 with a depth sensor beside each of its 8 cameras", frames,
+                      Pinhole(frames), {0.004, 0.002}, threads, repeats, work);
+  const fs::path walk = work / "studio8-60";
+  SimulateOnce("studio8", walk, 60);
+  std::vector<BenchFrame> sequence = LoadFrames(walk, 60);
+  FusionSequence(Pinhole(sequence), 0.004, threads, work);
+}
+
 }  // namespace
 
+// Usage: recon_bench [frames=2] [threads=2] [work_dir] [sections=1234] [repeats=5]
+//        recon_bench --peak-memory DIR VOXEL_M THREADS   (one process per measurement)
+//        recon_bench --stages DIR VOXEL_M THREADS REPEATS  (integration by stage)
 int main(int argc, char** argv) {
+  // Every side of the comparisons waits passively: libgomp's spinning threads on a shared
+  // machine measure the load, not the code. The variable is read when libgomp loads.
+  if (std::getenv("OMP_WAIT_POLICY") == nullptr) {
+    setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
+    execv("/proc/self/exe", argv);
+  }
+  if (argc == 6 && std::string(argv[1]) == "--stages") {
+    IntegrationStages(ReadOpen3dInput(argv[2]), {std::atof(argv[3])}, std::atoi(argv[4]),
+                      std::atoi(argv[5]));
+    return 0;
+  }
+  if (argc == 5 && std::string(argv[1]) == "--peak-memory")
+    return PeakMemoryMode(argv[2], std::atof(argv[3]), std::atoi(argv[4]));
   const int frame_count = argc > 1 ? std::atoi(argv[1]) : 2;
   const int threads = argc > 2 ? std::atoi(argv[2]) : 2;
   const fs::path work = argc > 3 ? argv[3] : "/tmp/holocap-recon-bench";
   const std::string sections = argc > 4 ? argv[4] : "1234";
+  const int repeats = argc > 5 ? std::atoi(argv[5]) : 5;
   try {
     fs::create_directories(work);
     if (sections.find('5') != std::string::npos) MiddleburyNoFlags(work, threads);
+    if (sections.find('6') != std::string::npos) LargerFusionCases(work, threads, repeats);
     if (sections.find_first_of("1234") == std::string::npos) return 0;
     const fs::path take_dir = work / "studio8";
-    if (!fs::exists(take_dir / "take.json")) {
-      SimOptions sim;
-      sim.rig = "studio8";
-      sim.frames = frame_count + 1;
-      sim.clean_plate_frames = 1;
-      sim.seed = 7;
-      sim.overwrite = true;
-      SimulateTake(sim, take_dir);
-    }
-    const Take take = Take::Open(take_dir);
-    std::vector<BenchFrame> frames;
-    for (int64_t set = 1; set <= frame_count && set < static_cast<int64_t>(take.size()); ++set) {
-      BenchFrame frame;
-      frame.set = set;
-      frame.truth = ReadPly(take.gt_dir() / "meshes" / (SetName(set) + ".ply"));
-      std::vector<std::pair<CameraModel, cv::Mat>> seen;
-      for (const StreamInfo& s : take.streams()) {
-        if (s.role != SensorRole::kDepth) continue;
-        CameraModel camera = take.Camera(s.name, true);
-        cv::Mat depth = take.ReadFrame(set, s.name).clone();
-        cv::Mat foreground =
-            DepthForeground(depth, take.ReadFrame(0, s.name), TsdfOptions{}.depth_noise_k);
-        depth.setTo(std::numeric_limits<float>::quiet_NaN(), foreground == 0);
-        frame.depth.push_back({camera, depth});
-        seen.emplace_back(camera,
-                          ReadImage(take.gt_dir() / "depth" / s.name / (SetName(set) + ".exr")));
-      }
-      frame.seen = SeenInDepthMaps(seen);
-      frame.outer = OnOuterSurface(frame.truth);
-      frames.push_back(std::move(frame));
-    }
+    SimulateOnce("studio8", take_dir, frame_count);
+    std::vector<BenchFrame> frames = LoadFrames(take_dir, frame_count);
     std::printf("recon_bench: %zu frame(s) of %s, %d threads\n", frames.size(), take_dir.c_str(),
                 threads);
     std::printf(
@@ -523,10 +924,17 @@ int main(int argc, char** argv) {
         "body parts' faces buried inside other parts left out; ch_buried keeps them); seen_ch and "
         "F@5seen only "
         "on the true surface a depth sensor saw\n\n");
-    if (sections.find('1') != std::string::npos || sections.find('2') != std::string::npos) {
-      TsdfSections(frames, threads, work, sections.find('1') != std::string::npos,
-                   sections.find('2') != std::string::npos);
+    if (sections.find('1') != std::string::npos) {
+      const auto pinhole = Pinhole(frames);
+      if (sections.find('p') == std::string::npos) {
+        FusionAgainstOpen3d("studio8 depth fusion, holocap against Open3D", frames, pinhole,
+                            {0.008, 0.004}, threads, repeats, work);
+      }
+      IntegrationStages(pinhole, {0.008, 0.004}, threads, repeats);
+      if (sections.find('p') == std::string::npos)
+        PeakMemory(pinhole, 0.002, threads, work, argv[0]);
     }
+    if (sections.find('2') != std::string::npos) VoxelSweep(frames, threads);
     if (sections.find('2') != std::string::npos)
       PipelineTsdf(take_dir, static_cast<int>(frames.size()), threads);
     if (sections.find('3') != std::string::npos) HullAndMvs(take_dir, frames, threads);

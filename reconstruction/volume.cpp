@@ -144,10 +144,14 @@ void TsdfOptions::Check() const {
   if (!(max_incidence_deg > 0 && max_incidence_deg <= 90)) {
     Fail("tsdf max_incidence_deg must be in (0, 90] (got ", max_incidence_deg, ")");
   }
+  if (!(carve_weight > 0 && carve_weight <= 1))
+    Fail("tsdf carve_weight must be in (0, 1] (got ", carve_weight, ")");
   if (threads < 0) Fail("tsdf threads must be >= 0");
 }
 
 namespace {
+
+constexpr float kFar = std::numeric_limits<float>::infinity();
 
 struct CameraTables {
   recon::FastProjector projector;
@@ -253,26 +257,54 @@ class FrameIntegrator {
         h_(depth_in.rows),
         k_(static_cast<float>(options.depth_noise_k)),
         voxel_(static_cast<float>(volume.voxel_m())),
-        truncation_(static_cast<float>(volume.truncation_m())) {}
+        truncation_(static_cast<float>(volume.truncation_m())),
+        carve_weight_(static_cast<float>(options.carve_weight)) {}
 
   TsdfFrameStats Run() {
+    auto start = std::chrono::steady_clock::now();
+    auto lap = [&start] {
+      auto now = std::chrono::steady_clock::now();
+      double seconds = std::chrono::duration<double>(now - start).count();
+      start = now;
+      return seconds;
+    };
     PrepareDepth();
+    stats_.prepare_seconds = lap();
     AllocateBlocks(TouchedBlocks());
+    stats_.allocate_seconds = lap();
     FuseBlocks();
+    stats_.fuse_seconds = lap();
     return stats_;
   }
 
  private:
-  // 1. Valid, foreground, smoothed depth; grazing measurements removed.
+  // 1. Valid, foreground, smoothed depth; grazing measurements removed; then, where free space
+  // is carved, the background's pixels negated: its measurement, or -kFar where it has none (the
+  // mask says the subject is not on that ray: free all along it).
   void PrepareDepth() {
     int64_t rejected = 0;
     depth_ = SmoothedDepth(depth_in_, foreground_, options_, threads_, &rejected);
     if (options_.max_incidence_deg < 90) depth_ = WithoutGrazing(&rejected);
-    int64_t valid = 0;
+    const bool carve = options_.carve_background && !foreground_.empty();
+    measured_.clear();
     for (int y = 0; y < h_; ++y) {
-      for (int x = 0; x < w_; ++x) valid += std::isfinite(depth_.at<float>(y, x));
+      const float* row = depth_.ptr<float>(y);
+      for (int x = 0; x < w_; ++x) {
+        if (row[x] > 0) measured_.push_back(y * w_ + x);
+      }
     }
-    stats_.valid_pixels = valid;
+    if (carve) {
+#pragma omp parallel for num_threads(threads_) schedule(static)
+      for (int y = 0; y < h_; ++y) {
+        float* row = depth_.ptr<float>(y);
+        const float* raw = depth_in_.ptr<float>(y);
+        const uint8_t* mask = foreground_.ptr<uint8_t>(y);
+        for (int x = 0; x < w_; ++x) {
+          if (mask[x] == 0) row[x] = ValidDepth(raw[x], options_) ? -raw[x] : -kFar;
+        }
+      }
+    }
+    stats_.valid_pixels = static_cast<int64_t>(measured_.size());
     stats_.rejected_pixels = rejected;
   }
 
@@ -322,30 +354,43 @@ class FrameIntegrator {
     const Pose world_from_cam = depth_camera_.world_from_cam();
     const Eigen::Matrix3f rotation = world_from_cam.rotation().cast<float>();
     const Eigen::Vector3f translation = world_from_cam.translation().cast<float>();
+    const Eigen::Vector3f lo = volume_.bounds().min.cast<float>();
+    const Eigen::Vector3f hi = volume_.bounds().max.cast<float>();
     const float block_m = voxel_ * kBlockSide;
     const int band_steps = std::max(1, static_cast<int>(std::ceil(truncation_ / (0.5f * block_m))));
+    // Voxel i sits at i * voxel, block j holds voxels 8j..8j+7: a point's block is
+    // floor((p / voxel + 0.5) / 8).
+    const float to_block = 1.0f / block_m, half_voxel = 0.5f / kBlockSide;
+    auto floor_int = [](float f) {
+      int i = static_cast<int>(f);
+      return i - (f < static_cast<float>(i));
+    };
     std::vector<std::vector<uint64_t>> per_thread(threads_);
+    const int count = static_cast<int>(measured_.size());
 #pragma omp parallel num_threads(threads_)
     {
       auto& keys = per_thread[omp_get_thread_num()];
-      uint64_t last = ~uint64_t{0};
+      // Neighbouring pixels touch the same blocks: a small cache of recent keys keeps most
+      // repeats out of the list that is sorted.
+      uint64_t recent[64];
+      std::fill(std::begin(recent), std::end(recent), ~uint64_t{0});
 #pragma omp for schedule(static)
-      for (int y = 0; y < h_; ++y) {
-        for (int x = 0; x < w_; ++x) {
-          float d = depth_.at<float>(y, x);
-          if (!std::isfinite(d)) continue;
-          cv::Vec2f ray = tables_->rays.at<cv::Vec2f>(y, x);
-          Eigen::Vector3f direction(ray[0], ray[1], 1);
-          float length = direction.norm();
-          for (int s = -band_steps; s <= band_steps; ++s) {
-            float along = d * length + s * truncation_ / band_steps;
-            Eigen::Vector3f p = rotation * (direction * (along / length)) + translation;
-            Eigen::Vector3d pd = p.cast<double>();
-            if (!volume_.bounds().Contains(pd)) continue;
-            Eigen::Vector3i v = (p / voxel_).array().round().cast<int>();
-            uint64_t key = SparseVolume::Key(SparseVolume::BlockOf(v));
-            if (key != last) keys.push_back(key), last = key;
-          }
+      for (int i = 0; i < count; ++i) {
+        const int pixel = measured_[i];
+        const float d = depth_.ptr<float>()[pixel];
+        const cv::Vec2f ray = tables_->rays.ptr<cv::Vec2f>()[pixel];
+        const Eigen::Vector3f direction(ray[0], ray[1], 1);
+        const float length = direction.norm();
+        for (int s = -band_steps; s <= band_steps; ++s) {
+          const float along = d * length + s * truncation_ / band_steps;
+          const Eigen::Vector3f p = rotation * (direction * (along / length)) + translation;
+          if (!((p.array() >= lo.array()).all() && (p.array() <= hi.array()).all())) continue;
+          const Eigen::Vector3i block(floor_int(p.x() * to_block + half_voxel),
+                                      floor_int(p.y() * to_block + half_voxel),
+                                      floor_int(p.z() * to_block + half_voxel));
+          const uint64_t key = SparseVolume::Key(block);
+          uint64_t& slot = recent[(key ^ (key >> 21) ^ (key >> 42)) & 63];
+          if (slot != key) keys.push_back(key), slot = key;
         }
       }
       std::sort(keys.begin(), keys.end());
@@ -353,8 +398,10 @@ class FrameIntegrator {
     }
     std::vector<uint64_t> touched;
     for (auto& keys : per_thread) touched.insert(touched.end(), keys.begin(), keys.end());
-    std::sort(touched.begin(), touched.end());
-    touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
+    if (threads_ > 1) {
+      std::sort(touched.begin(), touched.end());
+      touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
+    }
     return touched;
   }
 
@@ -368,51 +415,155 @@ class FrameIntegrator {
     stats_.blocks_touched = static_cast<int64_t>(touched.size());
   }
 
-  // 3. Projective signed distances, noise-weighted running averages with capped weights.
+  // 3. Projective signed distances, noise-weighted running averages with capped weights. One
+  // parallel region over the blocks, statically scheduled: blocks cost about the same.
   void FuseBlocks() {
-    int64_t updated = 0;
-#pragma omp parallel for num_threads(threads_) reduction(+ : updated) schedule(dynamic, 16)
-    for (size_t b = 0; b < blocks_.size(); ++b) updated += FuseBlock(b);
+    int64_t updated = 0, carved = 0;
+#pragma omp parallel for num_threads(threads_) reduction(+ : updated, carved) schedule(static)
+    for (size_t b = 0; b < blocks_.size(); ++b) FuseBlock(b, &updated, &carved);
     stats_.voxels_updated = updated;
+    stats_.voxels_carved = carved;
   }
 
-  // Block b's voxels that project onto a measurement; returns how many were updated.
-  int64_t FuseBlock(size_t b) const {
+  // Whether every voxel centre of the block at `base` (voxel coordinates) lies in the bounds.
+  bool BlockInsideBounds(const Eigen::Vector3i& base) const {
+    const Box& bounds = volume_.bounds();
+    Eigen::Vector3d lo = base.cast<double>() * volume_.voxel_m();
+    Eigen::Vector3d hi =
+        (base + Eigen::Vector3i::Constant(kBlockSide - 1)).cast<double>() * volume_.voxel_m();
+    return bounds.Contains(lo) && bounds.Contains(hi);
+  }
+
+  // The lens over one block: the table's projection made affine in the normalised coordinates
+  // (x/z, y/z) around the block's centre (central differences over the block's extent), used
+  // where it agrees with the table at the block's eight corners to kAffineTolerancePx (the
+  // error is quadratic, largest at the corners); elsewhere the table, voxel by voxel.
+  struct BlockLens {
+    bool affine = false;
+    float a0 = 0, b0 = 0, u0 = 0, v0 = 0, du_da = 0, du_db = 0, dv_da = 0, dv_db = 0;
+  };
+  static constexpr float kAffineTolerancePx = 0.02f;
+
+  BlockLens LensOver(const Eigen::Vector3f& origin, const Eigen::Matrix3f& steps) const {
+    const auto& projector = tables_->projector;
+    BlockLens lens;
+    const Eigen::Vector3f centre =
+        origin + steps * Eigen::Vector3f::Constant(0.5f * (kBlockSide - 1));
+    if (!(centre.z() > 1e-6f)) return lens;
+    lens.a0 = centre.x() / centre.z();
+    lens.b0 = centre.y() / centre.z();
+    Eigen::Vector2f corners_ab[8], corners_uv[8];
+    float half_a = 0, half_b = 0;
+    for (int c = 0; c < 8; ++c) {
+      Eigen::Vector3f corner = origin + steps * Eigen::Vector3f(c & 1, (c >> 1) & 1, (c >> 2) & 1) *
+                                            static_cast<float>(kBlockSide - 1);
+      if (!projector.Project(corner, &corners_uv[c].x(), &corners_uv[c].y())) return lens;
+      corners_ab[c] = corner.head<2>() / corner.z();
+      half_a = std::max(half_a, std::abs(corners_ab[c].x() - lens.a0));
+      half_b = std::max(half_b, std::abs(corners_ab[c].y() - lens.b0));
+    }
+    float u[5], v[5];
+    const Eigen::Vector3f samples[5] = {{lens.a0, lens.b0, 1},
+                                        {lens.a0 - half_a, lens.b0, 1},
+                                        {lens.a0 + half_a, lens.b0, 1},
+                                        {lens.a0, lens.b0 - half_b, 1},
+                                        {lens.a0, lens.b0 + half_b, 1}};
+    for (int i = 0; i < 5; ++i) {
+      if (!projector.Project(samples[i], &u[i], &v[i])) return lens;
+    }
+    if (!(half_a > 0 && half_b > 0)) return lens;
+    lens.u0 = u[0];
+    lens.v0 = v[0];
+    lens.du_da = (u[2] - u[1]) / (2 * half_a);
+    lens.dv_da = (v[2] - v[1]) / (2 * half_a);
+    lens.du_db = (u[4] - u[3]) / (2 * half_b);
+    lens.dv_db = (v[4] - v[3]) / (2 * half_b);
+    for (int c = 0; c < 8; ++c) {
+      const float da = corners_ab[c].x() - lens.a0, db = corners_ab[c].y() - lens.b0;
+      if (std::abs(lens.u0 + lens.du_da * da + lens.du_db * db - corners_uv[c].x()) >
+              kAffineTolerancePx ||
+          std::abs(lens.v0 + lens.dv_da * da + lens.dv_db * db - corners_uv[c].y()) >
+              kAffineTolerancePx)
+        return lens;
+    }
+    lens.affine = true;
+    return lens;
+  }
+
+  // Block b's voxels that project onto a measurement (or onto the background, in front of it).
+  // Row by row: first the eight voxels' pixels and ray lengths (camera coordinates stepped
+  // voxel by voxel through the block's lens, branch-free so that the compiler vectorises it),
+  // then the lookups and updates.
+  void FuseBlock(size_t b, int64_t* updated_out, int64_t* carved_out) const {
     const auto& projector = tables_->projector;
     const Box& bounds = volume_.bounds();
     VoxelBlock& block = *blocks_[b];
     const Eigen::Vector3i base = coordinates_[b] * kBlockSide;
-    int64_t updated = 0;
+    const bool inside = BlockInsideBounds(base);
+    const Eigen::Vector3f origin = projector.ToCamera(base.cast<float>() * voxel_);
+    const Eigen::Vector3f zero = projector.ToCamera(Eigen::Vector3f::Zero());
+    Eigen::Matrix3f steps;  // columns: camera coordinates of one voxel along x, y, z
+    for (int axis = 0; axis < 3; ++axis)
+      steps.col(axis) = projector.ToCamera(Eigen::Vector3f::Unit(axis) * voxel_) - zero;
+    const BlockLens lens = LensOver(origin, steps);
+    const float max_u = w_ - 0.5f, max_v = h_ - 0.5f;
+    int64_t updated = 0, carved = 0;
     for (int z = 0; z < kBlockSide; ++z) {
       for (int y = 0; y < kBlockSide; ++y) {
+        const Eigen::Vector3f row =
+            origin + static_cast<float>(z) * steps.col(2) + static_cast<float>(y) * steps.col(1);
+        float us[kBlockSide], vs[kBlockSide], zs[kBlockSide], along_squared[kBlockSide];
         for (int x = 0; x < kBlockSide; ++x) {
-          Eigen::Vector3f world = (base + Eigen::Vector3i(x, y, z)).cast<float>() * voxel_;
-          if (!bounds.Contains(world.cast<double>())) continue;
-          Eigen::Vector3f p = projector.ToCamera(world);
-          float u, v;
-          if (!projector.Project(p, &u, &v)) continue;
-          int px = static_cast<int>(std::lround(u)), py = static_cast<int>(std::lround(v));
-          if (px < 0 || py < 0 || px >= w_ || py >= h_) continue;
-          float d = depth_.at<float>(py, px);
-          if (!std::isfinite(d)) continue;
+          const float px = row.x() + x * steps(0, 0), py = row.y() + x * steps(1, 0),
+                      pz = row.z() + x * steps(2, 0);
+          const float inverse_z = 1.0f / pz;
+          const float da = px * inverse_z - lens.a0, db = py * inverse_z - lens.b0;
+          us[x] = lens.u0 + lens.du_da * da + lens.du_db * db;
+          vs[x] = lens.v0 + lens.dv_da * da + lens.dv_db * db;
+          zs[x] = pz;
+          along_squared[x] = (px * px + py * py) * (inverse_z * inverse_z) + 1;
+        }
+        if (!lens.affine) {
+          for (int x = 0; x < kBlockSide; ++x) {
+            const Eigen::Vector3f p = row + static_cast<float>(x) * steps.col(0);
+            if (!projector.Project(p, &us[x], &vs[x])) us[x] = -1;  // outside: skipped below
+          }
+        }
+        for (int x = 0; x < kBlockSide; ++x) {
+          const float u = us[x], v = vs[x];
+          if (!(u >= -0.5f && v >= -0.5f && u < max_u && v < max_v)) continue;
+          if (!inside && !bounds.Contains((base + Eigen::Vector3i(x, y, z)).cast<double>() *
+                                          volume_.voxel_m()))
+            continue;
+          const float d = depth_.ptr<float>(static_cast<int>(v + 0.5f))[static_cast<int>(u + 0.5f)];
+          if (!(d == d)) continue;  // NaN: no measurement
           // Distance along the ray rather than along z: projective, but not stretched at the
-          // image border.
-          float sdf = (d - p.z()) * (p.norm() / p.z());
+          // image border. A background pixel (negated) is free space up to its measurement.
+          float sdf = (std::abs(d) - zs[x]) * std::sqrt(along_squared[x]);
+          if (d < 0) {
+            if (sdf < truncation_) continue;  // at or behind the room's surface: not the subject
+            ++carved;
+          }
           if (sdf < -truncation_) continue;
           sdf = std::min(sdf, truncation_);
-          float sigma_ratio = k_ > 0 ? 1.0f / (d * d) : 1.0f;  // sigma(1 m) / sigma(d)
+          const float depth = d > 0 ? d : zs[x];
+          float sigma_ratio = k_ > 0 ? 1.0f / (depth * depth) : 1.0f;  // sigma(1 m) / sigma(d)
           float weight = std::clamp(sigma_ratio * sigma_ratio, 1e-3f, 1.0f);
+          if (d < 0) weight *= carve_weight_;
           Voxel& voxel_data = block.at(x, y, z);
           float total = voxel_data.weight + weight;
           voxel_data.sdf = (voxel_data.sdf * voxel_data.weight + sdf * weight) / total;
-          if (use_color_ && std::abs(sdf) < 0.5f * truncation_)
+          if (use_color_ && std::abs(sdf) < 0.5f * truncation_) {
+            const Eigen::Vector3f world = (base + Eigen::Vector3i(x, y, z)).cast<float>() * voxel_;
             BlendColor(world, weight, total, &voxel_data);
+          }
           voxel_data.weight = std::min(total, options_.max_weight);
           ++updated;
         }
       }
     }
-    return updated;
+    *updated_out += updated;
+    *carved_out += carved;
   }
 
   // The colour image's pixel at `world`, averaged into the voxel with the measurement's
@@ -445,8 +596,10 @@ class FrameIntegrator {
   const int w_, h_;
   const float k_;  // depth_noise_k
   const float voxel_, truncation_;
+  const float carve_weight_;  // of free space, relative to a measurement at the voxel's depth
 
-  cv::Mat depth_;  // the depths fused: valid, smoothed, not grazing; NaN elsewhere
+  cv::Mat depth_;              // the depths fused: valid, smoothed, not grazing; NaN elsewhere
+  std::vector<int> measured_;  // the pixels (y * width + x) with a depth fused
   std::vector<VoxelBlock*> blocks_;  // the blocks touched, and their coordinates
   std::vector<Eigen::Vector3i> coordinates_;
   TsdfFrameStats stats_;

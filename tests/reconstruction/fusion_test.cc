@@ -151,6 +151,80 @@ TEST(TsdfTest, InvalidDepthPixelsAreRejectedNotFused) {
   EXPECT_LT(SphereError(mesh, sphere).first, 0.0015);
 }
 
+// Two opposite depth cameras see a sphere before a wall 1.5 m behind it. With the foreground
+// mask, what lies outside the silhouette and in front of the wall is free space: the surface
+// closes at the silhouette, nothing inside the sphere is carved, and a background measured in
+// front of the sphere (an occluder) carves nothing.
+TEST(TsdfTest, BackgroundBeforeTheWallIsFreeSpaceAndClosesTheSurface) {
+  const Sphere sphere;
+  const std::vector<CameraModel> cameras = RingCameras(2, sphere, 1.5);  // pinhole, OPENCV4
+  auto frame = [&](const CameraModel& camera, float background_z, cv::Mat* depth, cv::Mat* mask) {
+    RenderSphere(camera, sphere, depth, mask);
+    depth->setTo(background_z, *mask == 0);
+  };
+  TsdfOptions options;
+  options.voxel_m = 0.01;
+  options.smoothing_radius_px = 0;
+  options.max_incidence_deg = 90;
+  options.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  TsdfOptions open = options;
+  open.carve_background = false;
+  TsdfVolume carved(options), plain(open);
+  int64_t carved_voxels = 0;
+  for (const CameraModel& camera : cameras) {
+    cv::Mat depth, mask;
+    frame(camera, 3.0f, &depth, &mask);
+    TsdfFrameStats stats = carved.Integrate(depth, camera, mask);
+    carved_voxels += stats.voxels_carved;
+    EXPECT_EQ(stats.valid_pixels, cv::countNonZero(mask));
+    EXPECT_EQ(plain.Integrate(depth, camera, mask).voxels_carved, 0);
+  }
+  EXPECT_GT(carved_voxels, 10000);
+  // Carving never reaches into the subject: every observed voxel a voxel inside it is negative.
+  const float truncation = static_cast<float>(carved.volume().truncation_m());
+  int64_t inside = 0, free_outside = 0;
+  carved.volume().ForEachBlock([&](const Eigen::Vector3i& block, const VoxelBlock& data) {
+    for (int z = 0; z < kBlockSide; ++z) {
+      for (int y = 0; y < kBlockSide; ++y) {
+        for (int x = 0; x < kBlockSide; ++x) {
+          const Voxel& v = data.at(x, y, z);
+          if (v.weight <= 0) continue;
+          const Eigen::Vector3d centre =
+              carved.volume().CenterOf(block * kBlockSide + Eigen::Vector3i(x, y, z));
+          const double distance = (centre - sphere.centre).norm() - sphere.radius;
+          if (distance < -options.voxel_m) {
+            ++inside;
+            EXPECT_LT(v.sdf, 0) << "carved inside the sphere at " << centre.transpose();
+          }
+          free_outside += distance > 2 * options.voxel_m && v.sdf >= 0.999f * truncation;
+        }
+      }
+    }
+  });
+  EXPECT_GT(inside, 1000);
+  EXPECT_GT(free_outside, 10000);
+  // The two caps end at the silhouettes without carving; with it they close up: as accurate,
+  // more complete.
+  const Mesh truth = testing::SphereMesh(sphere);
+  const SurfaceErrors with = CompareSurfaces(ExtractMesh(carved.volume()), truth, 0.005, 20000);
+  const SurfaceErrors without = CompareSurfaces(ExtractMesh(plain.volume()), truth, 0.005, 20000);
+  std::printf("background carved: completeness %.2f -> %.2f mm, accuracy %.2f -> %.2f mm\n",
+              without.completeness_mm, with.completeness_mm, without.accuracy_mm, with.accuracy_mm);
+  EXPECT_LT(with.accuracy_mm, 1.5);
+  EXPECT_LT(with.accuracy_mm, without.accuracy_mm + 0.2);
+  EXPECT_LT(with.completeness_mm, without.completeness_mm - 1.0);
+
+  // A background measured in front of the voxels (an occluder) is no evidence about them; one
+  // that measured nothing leaves the mask's word: free all along the ray.
+  for (auto [background_z, expect_carving] : {std::pair{0.5f, false}, std::pair{NAN, true}}) {
+    TsdfVolume one(options);
+    cv::Mat depth, mask;
+    frame(cameras[0], background_z, &depth, &mask);
+    const int64_t count = one.Integrate(depth, cameras[0], mask).voxels_carved;
+    EXPECT_EQ(count > 0, expect_carving) << "background at " << background_z << " m: " << count;
+  }
+}
+
 TEST(TsdfTest, GrazingMeasurementsAreDroppedAndLeaveNoSmear) {
   // A floor seen from 0.3 m height: incidence runs from ~60 to ~89 degrees across the image.
   const CameraModel camera = CameraModel::Pinhole(
