@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <numeric>
 
 namespace holocap::splat {
@@ -74,7 +75,8 @@ Shape<T> ShapeOf(const GaussianArrays<T>& g, int64_t i) {
   QuaternionToMatrix(shape.q, shape.r);
   for (int k = 0; k < 3; ++k) shape.s[k] = std::exp(g.log_scale[3 * i + k]);
   for (int row = 0; row < 3; ++row) {
-    for (int col = 0; col < 3; ++col) shape.m[3 * row + col] = shape.r[3 * row + col] * shape.s[col];
+    for (int col = 0; col < 3; ++col)
+      shape.m[3 * row + col] = shape.r[3 * row + col] * shape.s[col];
   }
   return shape;
 }
@@ -229,14 +231,17 @@ void ProjectGaussians(const GaussianArrays<T>& g, const PinholeCamera& camera,
   out->depth.assign(n, T(0));
   out->color.assign(3 * n, T(0));
   out->opacity.assign(n, T(0));
+  out->extent.assign(2 * n, T(0));
   out->radius.assign(n, 0);
   out->clamped.assign(3 * n, 0);
+  const T smallest_alpha = T(std::max(options.min_alpha, 1e-4f));
   double center[3];
   camera.CenterInWorld(center);
   const int degree = std::min(options.active_sh_degree, g.sh_degree);
   const int k_stored = g.coefficients(), k_used = ShCoefficients(degree);
-  int64_t culled_near = 0, culled_degenerate = 0;
-#pragma omp parallel for schedule(static) reduction(+ : culled_near, culled_degenerate)
+  int64_t culled_near = 0, culled_degenerate = 0, culled_transparent = 0;
+#pragma omp parallel for schedule(static) reduction(+ : culled_near, culled_degenerate, \
+                                                    culled_transparent)
   for (int64_t i = 0; i < n; ++i) {
     const Footprint<T> f = FootprintOf(&g.position[3 * i], camera);
     if (!(f.p[2] > T(camera.near_m))) {
@@ -254,12 +259,20 @@ void ProjectGaussians(const GaussianArrays<T>& g, const PinholeCamera& camera,
     }
     const T mean_u = T(camera.fx) * f.p[0] / f.p[2] + T(camera.cx);
     const T mean_v = T(camera.fy) * f.p[1] / f.p[2] + T(camera.cy);
-    const T mid = T(0.5) * (cov[0] + cov[2]);
-    const T lambda = mid + std::sqrt(std::max(T(0.1), mid * mid - det));
-    const T radius = std::ceil(T(3) * std::sqrt(lambda));
-    if (!std::isfinite(mean_u) || !std::isfinite(mean_v) || mean_u + radius < T(-0.5) ||
-        mean_v + radius < T(-0.5) || mean_u - radius > T(camera.width - 0.5) ||
-        mean_v - radius > T(camera.height - 0.5)) {
+    // The box where opacity x footprint reaches the smallest alpha drawn: the ellipse
+    // d^T cov^-1 d = k^2 with k^2 = 2 log(opacity / min_alpha) has half-sides k sqrt(cov_xx),
+    // k sqrt(cov_yy). Tighter than the paper's 3-sigma square for faint splats, and exact.
+    const T o = Sigmoid(g.opacity[i]);
+    const T k2 = T(2) * std::log(o / smallest_alpha);
+    if (!(k2 > T(0))) {
+      ++culled_transparent;
+      continue;
+    }
+    const T k = std::sqrt(k2);
+    const T extent_u = k * std::sqrt(cov[0]), extent_v = k * std::sqrt(cov[2]);
+    if (!std::isfinite(mean_u) || !std::isfinite(mean_v) || mean_u + extent_u < T(-0.5) ||
+        mean_v + extent_v < T(-0.5) || mean_u - extent_u > T(camera.width - 0.5) ||
+        mean_v - extent_v > T(camera.height - 0.5)) {
       continue;
     }
     const T inv_det = T(1) / det;
@@ -269,11 +282,14 @@ void ProjectGaussians(const GaussianArrays<T>& g, const PinholeCamera& camera,
     out->mean2d[2 * i] = mean_u;
     out->mean2d[2 * i + 1] = mean_v;
     out->depth[i] = f.p[2];
-    // A radius beyond the image's diagonal covers it all: the cap keeps the tile rectangle's
-    // arithmetic in integers for Gaussians that grazed the near plane.
+    // Beyond the image's size a box covers it all: the cap keeps the tile arithmetic in
+    // integers for Gaussians that grazed the near plane.
     const T cap = T(2 * (camera.width + camera.height));
-    out->radius[i] = static_cast<int32_t>(std::min(radius, cap));
-    out->opacity[i] = Sigmoid(g.opacity[i]);
+    out->extent[2 * i] = std::min(extent_u, cap);
+    out->extent[2 * i + 1] = std::min(extent_v, cap);
+    out->radius[i] = std::max(
+        1, static_cast<int32_t>(std::ceil(std::max(out->extent[2 * i], out->extent[2 * i + 1]))));
+    out->opacity[i] = o;
     T direction[3], basis[ShCoefficients(kMaxShDegree)];
     ViewDirection(&g.position[3 * i], center, direction);
     ShBasis(degree, direction[0], direction[1], direction[2], basis);
@@ -286,6 +302,7 @@ void ProjectGaussians(const GaussianArrays<T>& g, const PinholeCamera& camera,
   }
   out->culled_near = culled_near;
   out->culled_degenerate = culled_degenerate;
+  out->culled_transparent = culled_transparent;
 }
 
 namespace {
@@ -293,17 +310,19 @@ namespace {
 // The tiles a drawn Gaussian's square of half-side `radius` touches, [x0, x1) x [y0, y1).
 template <typename T>
 bool TileRect(const ProjectedArrays<T>& p, int64_t i, const PinholeCamera& camera, int rect[4]) {
-  const int32_t r = p.radius[i];
-  if (r <= 0) return false;
-  const double u = static_cast<double>(p.mean2d[2 * i]), v = static_cast<double>(p.mean2d[2 * i + 1]);
+  if (p.radius[i] <= 0) return false;
+  const double u = static_cast<double>(p.mean2d[2 * i]),
+               v = static_cast<double>(p.mean2d[2 * i + 1]);
+  const double ru = static_cast<double>(p.extent[2 * i]),
+               rv = static_cast<double>(p.extent[2 * i + 1]);
   // Clamped as doubles first: a point far off the image must not overflow the int.
   auto tile = [](double coordinate, int tiles) {
     return static_cast<int>(std::clamp(std::floor(coordinate / kTileSide), -1.0, double(tiles)));
   };
-  rect[0] = std::max(0, tile(u - r + 0.5, camera.tiles_x()));
-  rect[1] = std::min(camera.tiles_x(), tile(u + r + 0.5, camera.tiles_x()) + 1);
-  rect[2] = std::max(0, tile(v - r + 0.5, camera.tiles_y()));
-  rect[3] = std::min(camera.tiles_y(), tile(v + r + 0.5, camera.tiles_y()) + 1);
+  rect[0] = std::max(0, tile(u - ru + 0.5, camera.tiles_x()));
+  rect[1] = std::min(camera.tiles_x(), tile(u + ru + 0.5, camera.tiles_x()) + 1);
+  rect[2] = std::max(0, tile(v - rv + 0.5, camera.tiles_y()));
+  rect[3] = std::min(camera.tiles_y(), tile(v + rv + 0.5, camera.tiles_y()) + 1);
   return rect[1] > rect[0] && rect[3] > rect[2];
 }
 
@@ -346,6 +365,30 @@ inline T Power(const T* conic, T dx, T dy) {
   return T(-0.5) * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy;
 }
 
+// The pixels of a tile (local coordinates, inclusive) inside Gaussian i's box; false if none.
+template <typename T>
+inline bool PixelRange(const ProjectedArrays<T>& p, int32_t i, int x0, int y0, int w, int h,
+                       int range[4]) {
+  auto local = [](double coordinate, int origin, int size) {
+    return static_cast<int>(std::clamp(coordinate - origin, -1.0, static_cast<double>(size)));
+  };
+  const double mx = static_cast<double>(p.mean2d[2 * i]),
+               my = static_cast<double>(p.mean2d[2 * i + 1]);
+  const double ex = static_cast<double>(p.extent[2 * i]),
+               ey = static_cast<double>(p.extent[2 * i + 1]);
+  range[0] = std::max(0, local(std::ceil(mx - ex), x0, w));
+  range[1] = std::min(w - 1, local(std::floor(mx + ex), x0, w));
+  range[2] = std::max(0, local(std::ceil(my - ey), y0, h));
+  range[3] = std::min(h - 1, local(std::floor(my + ey), y0, h));
+  return range[1] >= range[0] && range[3] >= range[2];
+}
+
+// Below this exponent, opacity x exp(power) < min_alpha: the pixel is skipped without an exp.
+template <typename T>
+inline T PowerCutoff(T opacity, float min_alpha) {
+  return min_alpha > 0 ? std::log(T(min_alpha) / opacity) : -std::numeric_limits<T>::infinity();
+}
+
 }  // namespace
 
 template <typename T>
@@ -381,26 +424,31 @@ void RasterizeForward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
       const T mx = p.mean2d[2 * i], my = p.mean2d[2 * i + 1], o = p.opacity[i];
       const T cr = p.color[3 * i], cg = p.color[3 * i + 1], cb = p.color[3 * i + 2];
       const T depth_i = p.depth[i];
-      for (int q = 0; q < kPixels; ++q) {
-        if (done[q]) continue;
-        const T dx = T(x0 + q % kTileSide) - mx, dy = T(y0 + q / kTileSide) - my;
-        const T power = Power(conic, dx, dy);
-        if (power > T(0)) continue;
-        const T a = std::min(max_alpha, o * std::exp(power));
-        if (a < min_alpha) continue;
-        const T next = transmittance[q] * (T(1) - a);
-        if (next < min_transmittance) {
-          done[q] = true;
-          --remaining;
-          continue;
+      int range[4];
+      if (!PixelRange(p, i, x0, y0, w, h, range)) continue;
+      const T cutoff = PowerCutoff(o, options.min_alpha);
+      for (int ly = range[2]; ly <= range[3]; ++ly) {
+        for (int q = ly * kTileSide + range[0]; q <= ly * kTileSide + range[1]; ++q) {
+          if (done[q]) continue;
+          const T dx = T(x0 + q % kTileSide) - mx, dy = T(y0 + ly) - my;
+          const T power = Power(conic, dx, dy);
+          if (power > T(0) || power < cutoff) continue;
+          const T a = std::min(max_alpha, o * std::exp(power));
+          if (a < min_alpha) continue;
+          const T next = transmittance[q] * (T(1) - a);
+          if (next < min_transmittance) {
+            done[q] = true;
+            --remaining;
+            continue;
+          }
+          const T weight = a * transmittance[q];
+          rgb[3 * q] += weight * cr;
+          rgb[3 * q + 1] += weight * cg;
+          rgb[3 * q + 2] += weight * cb;
+          z[q] += weight * depth_i;
+          transmittance[q] = next;
+          last[q] = e - begin + 1;
         }
-        const T weight = a * transmittance[q];
-        rgb[3 * q] += weight * cr;
-        rgb[3 * q + 1] += weight * cg;
-        rgb[3 * q + 2] += weight * cb;
-        z[q] += weight * depth_i;
-        transmittance[q] = next;
-        last[q] = e - begin + 1;
       }
     }
     for (int q = 0; q < kPixels; ++q) {
@@ -441,7 +489,8 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   for (int q = 0; q < kPixels; ++q) {
     last[q] = 0;
     if ((q % kTileSide) >= w || (q / kTileSide) >= h) continue;
-    const size_t pixel = static_cast<size_t>(y0 + q / kTileSide) * camera.width + x0 + q % kTileSide;
+    const size_t pixel =
+        static_cast<size_t>(y0 + q / kTileSide) * camera.width + x0 + q % kTileSide;
     transmittance[q] = final_t[q] = T(state.final_transmittance[pixel]);
     for (int c = 0; c < 3; ++c) {
       g_color[3 * q + c] = dloss_dcolor[3 * pixel + c];
@@ -459,33 +508,38 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
     const T mx = p.mean2d[2 * i], my = p.mean2d[2 * i + 1], o = p.opacity[i];
     const T col[3] = {p.color[3 * i], p.color[3 * i + 1], p.color[3 * i + 2]};
     T d_mean[2] = {0, 0}, d_conic[3] = {0, 0, 0}, d_col[3] = {0, 0, 0}, d_opacity = 0;
-    for (int q = 0; q < kPixels; ++q) {
-      if (local >= last[q]) continue;
-      const T dx = T(x0 + q % kTileSide) - mx, dy = T(y0 + q / kTileSide) - my;
-      const T power = Power(conic, dx, dy);
-      if (power > T(0)) continue;
-      const T gauss = std::exp(power);
-      const T raw = o * gauss;
-      const T a = std::min(max_alpha, raw);
-      if (a < min_alpha) continue;
-      const T one_minus = T(1) - a;
-      transmittance[q] /= one_minus;
-      const T weight = a * transmittance[q];
-      T d_a = 0;
-      for (int c = 0; c < 3; ++c) {
-        d_col[c] += weight * g_color[3 * q + c];
-        d_a += g_color[3 * q + c] * (transmittance[q] * col[c] - behind[3 * q + c] / one_minus);
-        behind[3 * q + c] += weight * col[c];
+    int range[4];
+    if (!PixelRange(p, i, x0, y0, w, h, range)) continue;
+    const T cutoff = PowerCutoff(o, options.min_alpha);
+    for (int ly = range[2]; ly <= range[3]; ++ly) {
+      for (int q = ly * kTileSide + range[0]; q <= ly * kTileSide + range[1]; ++q) {
+        if (local >= last[q]) continue;
+        const T dx = T(x0 + q % kTileSide) - mx, dy = T(y0 + ly) - my;
+        const T power = Power(conic, dx, dy);
+        if (power > T(0) || power < cutoff) continue;
+        const T gauss = std::exp(power);
+        const T raw = o * gauss;
+        const T a = std::min(max_alpha, raw);
+        if (a < min_alpha) continue;
+        const T one_minus = T(1) - a;
+        transmittance[q] /= one_minus;
+        const T weight = a * transmittance[q];
+        T d_a = 0;
+        for (int c = 0; c < 3; ++c) {
+          d_col[c] += weight * g_color[3 * q + c];
+          d_a += g_color[3 * q + c] * (transmittance[q] * col[c] - behind[3 * q + c] / one_minus);
+          behind[3 * q + c] += weight * col[c];
+        }
+        d_a += g_alpha[q] * final_t[q] / one_minus;
+        if (raw > max_alpha) continue;  // clamped: no gradient through the footprint
+        d_opacity += d_a * gauss;
+        const T d_power = d_a * raw;
+        d_mean[0] += d_power * (conic[0] * dx + conic[1] * dy);
+        d_mean[1] += d_power * (conic[2] * dy + conic[1] * dx);
+        d_conic[0] += d_power * T(-0.5) * dx * dx;
+        d_conic[1] += d_power * -(dx * dy);
+        d_conic[2] += d_power * T(-0.5) * dy * dy;
       }
-      d_a += g_alpha[q] * final_t[q] / one_minus;
-      if (raw > max_alpha) continue;  // clamped: no gradient through the footprint
-      d_opacity += d_a * gauss;
-      const T d_power = d_a * raw;
-      d_mean[0] += d_power * (conic[0] * dx + conic[1] * dy);
-      d_mean[1] += d_power * (conic[2] * dy + conic[1] * dx);
-      d_conic[0] += d_power * T(-0.5) * dx * dx;
-      d_conic[1] += d_power * -(dx * dy);
-      d_conic[2] += d_power * T(-0.5) * dy * dy;
     }
     grad->mean2d[2 * i] += d_mean[0];
     grad->mean2d[2 * i + 1] += d_mean[1];
@@ -641,7 +695,8 @@ void ProjectBackwardOne(const GaussianArrays<T>& g, const PinholeCamera& camera,
            qy * d_r[5] + qx * d_r[6] + qy * d_r[7])};
   const T dot = qw * d_qn[0] + qx * d_qn[1] + qy * d_qn[2] + qz * d_qn[3];
   if (shape.q_norm > T(0)) {
-    for (int k = 0; k < 4; ++k) out->rotation[4 * i + k] += (d_qn[k] - shape.q[k] * dot) / shape.q_norm;
+    for (int k = 0; k < 4; ++k)
+      out->rotation[4 * i + k] += (d_qn[k] - shape.q[k] * dot) / shape.q_norm;
   }
 
   // opacity = sigmoid(logit).
@@ -784,20 +839,20 @@ double PhotometricLoss(const T* image, const T* target, int width, int height, d
 }
 
 // The two scalars every kernel is built for: float runs, double checks.
-#define HOLOCAP_SPLAT_INSTANTIATE(T)                                                              \
-  template struct GaussianArrays<T>;                                                              \
-  template struct ProjectedGradients<T>;                                                          \
-  template void ShBasis<T>(int, const T&, const T&, const T&, T*);                                \
-  template void ProjectGaussians<T>(const GaussianArrays<T>&, const PinholeCamera&,               \
-                                    const RasterOptions&, ProjectedArrays<T>*);                   \
-  template void RasterizeForward<T>(const ProjectedArrays<T>&, const PinholeCamera&,              \
-                                    const RasterOptions&, const T*, T*, T*, T*, RasterState*);    \
-  template void RasterizeBackward<T>(const ProjectedArrays<T>&, const PinholeCamera&,             \
-                                     const RasterOptions&, const RasterState&, const T*,          \
-                                     const T*, const T*, ProjectedGradients<T>*);                 \
-  template void ProjectBackward<T>(const GaussianArrays<T>&, const PinholeCamera&,                \
-                                   const RasterOptions&, const ProjectedArrays<T>&,               \
-                                   const ProjectedGradients<T>&, GaussianArrays<T>*);             \
+#define HOLOCAP_SPLAT_INSTANTIATE(T)                                                               \
+  template struct GaussianArrays<T>;                                                               \
+  template struct ProjectedGradients<T>;                                                           \
+  template void ShBasis<T>(int, const T&, const T&, const T&, T*);                                 \
+  template void ProjectGaussians<T>(const GaussianArrays<T>&, const PinholeCamera&,                \
+                                    const RasterOptions&, ProjectedArrays<T>*);                    \
+  template void RasterizeForward<T>(const ProjectedArrays<T>&, const PinholeCamera&,               \
+                                    const RasterOptions&, const T*, T*, T*, T*, RasterState*);     \
+  template void RasterizeBackward<T>(const ProjectedArrays<T>&, const PinholeCamera&,              \
+                                     const RasterOptions&, const RasterState&, const T*, const T*, \
+                                     const T*, ProjectedGradients<T>*);                            \
+  template void ProjectBackward<T>(const GaussianArrays<T>&, const PinholeCamera&,                 \
+                                   const RasterOptions&, const ProjectedArrays<T>&,                \
+                                   const ProjectedGradients<T>&, GaussianArrays<T>*);              \
   template double PhotometricLoss<T>(const T*, const T*, int, int, double, T*);
 HOLOCAP_SPLAT_INSTANTIATE(float)
 HOLOCAP_SPLAT_INSTANTIATE(double)

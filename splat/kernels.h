@@ -62,10 +62,13 @@ struct ProjectedArrays {
   std::vector<T> depth;    // [N] z in the camera, metres
   std::vector<T> color;    // [N*3] in [0, inf)
   std::vector<T> opacity;  // [N] in (0, 1)
-  std::vector<int32_t> radius;   // [N] pixels, 0: not drawn
-  std::vector<uint8_t> clamped;  // [N*3] colour channel clamped at 0 (no gradient)
-  int64_t culled_near = 0;       // behind or too near the camera
-  int64_t culled_degenerate = 0;  // 2D covariance not positive definite
+  std::vector<T> extent;   // [N*2] half-width, half-height of the box outside which the splat's
+                           // alpha stays below RasterOptions::min_alpha (pixels)
+  std::vector<int32_t> radius;     // [N] the larger extent rounded up, 0: not drawn
+  std::vector<uint8_t> clamped;    // [N*3] colour channel clamped at 0 (no gradient)
+  int64_t culled_near = 0;         // behind or too near the camera
+  int64_t culled_degenerate = 0;   // 2D covariance not positive definite
+  int64_t culled_transparent = 0;  // opacity below min_alpha: never visible
 };
 
 // Gradients of a loss with respect to ProjectedArrays' differentiable fields.
@@ -84,10 +87,11 @@ struct RasterState {
 };
 
 struct RasterOptions {
-  float min_transmittance = 1e-4f;  // a pixel stops compositing below this much light
-  float min_alpha = 1.0f / 255.0f;  // smaller contributions are skipped
-  float max_alpha = 0.99f;          // a splat never blocks all light (keeps 1 / (1 - alpha))
-  float low_pass_px2 = 0.3f;        // added to the 2D covariance: a splat covers a pixel
+  float min_transmittance = 1e-4f;      // a pixel stops compositing below this much light
+  float min_alpha = 1.0f / 255.0f;      // smaller contributions are skipped (0: none; the box a
+                                        // splat is drawn in then ends at alpha 1e-4)
+  float max_alpha = 0.99f;              // a splat never blocks all light (keeps 1 / (1 - alpha))
+  float low_pass_px2 = 0.3f;            // added to the 2D covariance: a splat covers a pixel
   int active_sh_degree = kMaxShDegree;  // degrees above this are not evaluated
 };
 
