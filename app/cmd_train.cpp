@@ -358,6 +358,8 @@ void AddSplatCommand(CLI::App* train) {
       ->add_option("--seed-points", o.max_seed_points, "Surface samples the Gaussians start from")
       ->capture_default_str();
   command->add_option("--recon", o.recon_dir, "Seed from this reconstruction (recon/<set>.ply)");
+  command->add_option("--initial-opacity", o.initial_opacity, "Opacity of every seeded Gaussian")
+      ->capture_default_str();
   command
       ->add_option("--densify-until", o.densify_until, "Last iteration that densifies and prunes")
       ->capture_default_str();
@@ -371,6 +373,7 @@ void AddSplatCommand(CLI::App* train) {
     flags.insert({{"sh_degree", "--sh-degree"},
                   {"max_gaussians", "--max-gaussians"},
                   {"max_seed_points", "--seed-points"},
+                  {"initial_opacity", "--initial-opacity"},
                   {"ssim_weight", "--ssim-weight"}});
     CheckNamingFlags([&] { o.Check(); }, flags);
     const OutputDirectory claimed = shared.Claim("splat");

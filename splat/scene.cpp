@@ -166,11 +166,11 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
     scene.views.push_back(std::move(view));
   }
   scene.plan["lenses"] =
-      undistorted.empty()
-          ? nlohmann::json("pinhole: trained on the images as they are")
-          : nlohmann::json(Cat(undistorted.size(), " distorting lens(es): images, silhouettes and "
-                                                   "backgrounds resampled to the pinhole of each "
-                                                   "lens's intrinsics core (held-out scored there)"));
+      undistorted.empty() ? nlohmann::json("pinhole: trained on the images as they are")
+                          : nlohmann::json(Cat(undistorted.size(),
+                                               " distorting lens(es): images, silhouettes and "
+                                               "backgrounds resampled to the pinhole of each "
+                                               "lens's intrinsics core (held-out scored there)"));
   scene.plan["frame_set"] = data.sets.front();
   if (data.sets.size() > 1) {
     scene.plan["left_out"]["frames after the first"] =

@@ -38,13 +38,13 @@ namespace holocap {
 
 struct SplatOptions {
   // Model.
-  int sh_degree = 3;                 // spherical-harmonic degree reached (0..3)
-  int sh_degree_every = 1000;        // iterations between raising the active degree by one
-  int64_t max_gaussians = 400000;    // densification stops adding at this count (said in the
-                                     // report when it bit)
-  int64_t max_seed_points = 60000;   // surface samples the model starts from
-  double seed_scale_factor = 1.0;    // initial scale: this x the mean spacing of the seeds
-  double initial_opacity = 0.1;      // of every seeded Gaussian
+  int sh_degree = 3;                // spherical-harmonic degree reached (0..3)
+  int sh_degree_every = 1000;       // iterations between raising the active degree by one
+  int64_t max_gaussians = 400000;   // densification stops adding at this count (said in the
+                                    // report when it bit)
+  int64_t max_seed_points = 20000;  // surface samples the model starts from
+  double seed_scale_factor = 1.0;   // initial scale: this x the mean spacing of the seeds
+  double initial_opacity = 0.1;     // of every seeded Gaussian
 
   // Data (the shared training flags; the same held-out choice as Neural Volumes).
   int image_width = 0;               // training/evaluation width (cameras rescaled); 0: native
@@ -55,38 +55,38 @@ struct SplatOptions {
                                      // of running one
 
   // Optimisation.
-  double minutes = 5;            // wall-clock budget
-  int64_t iterations = 0;        // > 0: stop after this many iterations (whichever first)
-  double learning_rate = 1.0;    // multiplies every parameter group's rate (1: the paper's)
-  double position_lr = 1.6e-4;   // x the scene's extent, decaying to 1/100 over the run
-  double sh_lr = 2.5e-3;         // degree 0; higher degrees / 20
+  double minutes = 5;           // wall-clock budget
+  int64_t iterations = 0;       // > 0: stop after this many iterations (whichever first)
+  double learning_rate = 1.0;   // multiplies every parameter group's rate (1: the paper's)
+  double position_lr = 1.6e-4;  // x the scene's extent, decaying to 1/100 over the run
+  double sh_lr = 2.5e-3;        // degree 0; higher degrees / 20
   double opacity_lr = 0.05;
   double scale_lr = 5e-3;
   double rotation_lr = 1e-3;
-  double ssim_weight = 0.2;      // lambda of (1 - lambda) L1 + lambda D-SSIM
-  double min_scale_px = 0.1;     // scale floor: this many pixels' footprint at the scene's
-                                 // median distance (keeps covariances positive definite)
+  double ssim_weight = 0.2;       // lambda of (1 - lambda) L1 + lambda D-SSIM
+  double min_scale_px = 0.1;      // scale floor: this many pixels' footprint at the scene's
+                                  // median distance (keeps covariances positive definite)
   double max_scale_extent = 0.5;  // scale cap, x the scene's extent
   uint64_t seed = 1;
 
   // Densification and pruning.
-  int64_t densify_from = 100;         // first iteration that densifies
-  int64_t densify_until = 15000;      // last
-  int64_t densify_every = 100;        // iterations between densifications
-  double densify_gradient = 2e-4;     // mean view-space positional gradient (NDC units, as the
-                                      // paper's) above which a Gaussian is cloned or split
-  double percent_dense = 0.01;        // larger than this x the extent: split, else clone
-  double prune_opacity = 0.005;       // more transparent Gaussians are removed
-  double prune_extent = 0.1;          // larger than this x the extent (world): removed
+  int64_t densify_from = 100;          // first iteration that densifies
+  int64_t densify_until = 15000;       // last
+  int64_t densify_every = 100;         // iterations between densifications
+  double densify_gradient = 2e-4;      // mean view-space positional gradient (NDC units, as the
+                                       // paper's) above which a Gaussian is cloned or split
+  double percent_dense = 0.01;         // larger than this x the extent: split, else clone
+  double prune_opacity = 0.005;        // more transparent Gaussians are removed
+  double prune_extent = 0.1;           // larger than this x the extent (world): removed
   int64_t opacity_reset_every = 3000;  // opacities lowered to 0.01 (0: never)
 
   // Bookkeeping.
-  double eval_every_s = 20;            // held-out PSNR/SSIM every this many seconds
-  int64_t eval_every_iterations = 0;   // > 0: every this many iterations instead
-  double divergence_factor = 2.0;      // a loss above this x its running mean is a divergence
-  int max_divergences = 5;             // then training stops with FAILURE
-  int64_t snapshot_every = 50;         // iterations between restore points of the guard
-  int threads = 0;                     // 0: all cores
+  double eval_every_s = 20;           // held-out PSNR/SSIM every this many seconds
+  int64_t eval_every_iterations = 0;  // > 0: every this many iterations instead
+  double divergence_factor = 2.0;     // a loss above this x its running mean is a divergence
+  int max_divergences = 5;            // then training stops with FAILURE
+  int64_t snapshot_every = 50;        // iterations between restore points of the guard
+  int threads = 0;                    // 0: all cores
 
   void Check() const;  // throws Error naming the bad field and why
   nlohmann::json ToJson() const;
@@ -130,16 +130,16 @@ struct SplatSummary : Summary {
   double heldout_psnr_fg_db = 0;     // inside the subject's silhouettes (grown 3 px)
   double background_psnr_fg_db = 0;  // the same pixels as background alone
   double heldout_ssim = 0;
-  double train_psnr_db = 0;          // the training views at the end
+  double train_psnr_db = 0;  // the training views at the end
   int64_t gaussians = 0;
   int64_t seed_points = 0;
-  bool cap_reached = false;          // densification stopped at max_gaussians
+  bool cap_reached = false;  // densification stopped at max_gaussians
   int64_t cloned = 0, split = 0;
   int64_t pruned_transparent = 0, pruned_large = 0, pruned_degenerate = 0, pruned_outside = 0;
-  int64_t floored_scales = 0;        // scale values lifted to the floor (collapsing Gaussians)
+  int64_t floored_scales = 0;  // scale values lifted to the floor (collapsing Gaussians)
   int divergences = 0;
-  double megabytes = 0;              // the stored model
-  double render_fps = 0;             // held-out view at the training size, after training
+  double megabytes = 0;   // the stored model
+  double render_fps = 0;  // held-out view at the training size, after training
 };
 
 // Reads a take into a splat scene: the same views, held-out cameras, silhouettes and
@@ -166,7 +166,7 @@ struct SplatModel {
   Eigen::AlignedBox3d box;
   nlohmann::json plan;
 
-  void Save(const std::filesystem::path& dir) const;  // model.json + gaussians.bin, atomic
+  void Save(const std::filesystem::path& dir) const;         // model.json + gaussians.bin, atomic
   static SplatModel Load(const std::filesystem::path& dir);  // throws Error
 };
 

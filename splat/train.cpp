@@ -98,8 +98,8 @@ class Trainer {
   std::vector<int> training_, heldout_;
   std::vector<splat::PinholeCamera> cameras_;
   std::vector<std::vector<float>> targets_, backgrounds_;
-  double extent_ = 1;          // the paper's "cameras extent": 1.1 x the farthest camera from
-                               // their mean centre
+  double extent_ = 1;  // the paper's "cameras extent": 1.1 x the farthest camera from
+                       // their mean centre
   double min_log_scale_ = -20, max_log_scale_ = 0;
   Gaussians gaussians_, gradient_;
   Moments moments_;
@@ -146,8 +146,8 @@ void Trainer::Seed(SplatSummary* summary) {
   gaussians_.Resize(n);
   const int k = gaussians_.coefficients();
   // Not clamped here: BoundParameters lifts (and counts) seeds below the floor.
-  const float log_scale = static_cast<float>(
-      std::log(options_.seed_scale_factor * std::max(seed.spacing_m, 1e-30)));
+  const float log_scale =
+      static_cast<float>(std::log(options_.seed_scale_factor * std::max(seed.spacing_m, 1e-30)));
   for (int64_t i = 0; i < n; ++i) {
     for (int a = 0; a < 3; ++a) {
       gaussians_.position[3 * i + a] = seed.points[i][a];
@@ -175,9 +175,8 @@ double Trainer::TrainStep(int64_t iteration, int v) {
   dloss_.resize(3 * pixels);
   splat::RasterizeForward(projected_, camera, raster, backgrounds_[v].data(), image_.data(),
                           static_cast<float*>(nullptr), static_cast<float*>(nullptr), &raster_);
-  const double loss =
-      splat::PhotometricLoss(image_.data(), targets_[v].data(), camera.width, camera.height,
-                             options_.ssim_weight, dloss_.data());
+  const double loss = splat::PhotometricLoss(image_.data(), targets_[v].data(), camera.width,
+                                             camera.height, options_.ssim_weight, dloss_.data());
   if (!std::isfinite(loss)) return loss;
   splat::RasterizeBackward(projected_, camera, raster, raster_, backgrounds_[v].data(),
                            dloss_.data(), static_cast<const float*>(nullptr),
@@ -225,8 +224,7 @@ void Trainer::AdamStep(double progress) {
   Gaussians& m = moments_.first;
   Gaussians& s = moments_.second;
   step(gaussians_.position, gradient_.position, m.position, s.position, position_lr, 0, 0);
-  step(gaussians_.rotation, gradient_.rotation, m.rotation, s.rotation, options_.rotation_lr, 0,
-       0);
+  step(gaussians_.rotation, gradient_.rotation, m.rotation, s.rotation, options_.rotation_lr, 0, 0);
   step(gaussians_.log_scale, gradient_.log_scale, m.log_scale, s.log_scale, options_.scale_lr, 0,
        0);
   step(gaussians_.opacity, gradient_.opacity, m.opacity, s.opacity, options_.opacity_lr, 0, 0);
@@ -278,7 +276,6 @@ void Trainer::Keep(const std::vector<int64_t>& indices) {
   grad_count_ = std::move(count);
 }
 
-
 // The paper's densification: Gaussians whose mean view-space positional gradient exceeds the
 // threshold are cloned (small ones: the copy moves apart under the gradient) or split in two
 // (large ones: each sampled from the original, scales / 1.6). Stops at max_gaussians.
@@ -287,8 +284,8 @@ void Trainer::Densify(SplatSummary* summary) {
   const double split_above = options_.percent_dense * extent_;
   std::vector<int64_t> keep, clones, splits;
   for (int64_t i = 0; i < n; ++i) {
-    const bool hot = grad_count_[i] > 0 &&
-                     grad_accum_[i] / grad_count_[i] >= static_cast<float>(options_.densify_gradient);
+    const bool hot = grad_count_[i] > 0 && grad_accum_[i] / grad_count_[i] >=
+                                               static_cast<float>(options_.densify_gradient);
     const float* ls = &gaussians_.log_scale[3 * i];
     const double largest = std::exp(std::max({ls[0], ls[1], ls[2]}));
     if (hot && largest > split_above) {
@@ -437,9 +434,9 @@ double Trainer::TrainingPsnr() {
     cv::Mat background, truth, predicted;
     view.background.convertTo(background, CV_32FC3, 1.0 / 255.0);
     view.image.convertTo(truth, CV_32FC3, 1.0 / 255.0);
-    cv::min(cv::max(RenderSplats(gaussians_, view.camera, background, options_.sh_degree).color,
-                    0.0),
-            1.0, predicted);
+    cv::min(
+        cv::max(RenderSplats(gaussians_, view.camera, background, options_.sh_degree).color, 0.0),
+        1.0, predicted);
     mse += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
   }
   return -10.0 * std::log10(mse / training_.size());
@@ -489,7 +486,6 @@ void Trainer::Judge(int64_t iteration, SplatSummary* summary) const {
   }
 }
 
-
 SplatSummary Trainer::Run(Report* report) {
   SplatSummary summary;
   DescribePlan(&summary);
@@ -509,8 +505,8 @@ SplatSummary Trainer::Run(Report* report) {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   };
   const double budget_s = options_.minutes * 60.0;
-  Progress progress("splat train", options_.iterations > 0 ? options_.iterations
-                                                           : static_cast<int64_t>(budget_s));
+  Progress progress("splat train",
+                    options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
   std::vector<double> reference(scene_.views.size(), -1), losses;
   std::vector<int> order;
   size_t cursor = 0;

@@ -4,14 +4,14 @@
 // leaving the volume). Budgets are in iterations: nothing depends on the machine's speed.
 #include <gtest/gtest.h>
 
+#include <unistd.h>
 #include <cmath>
 #include <filesystem>
 #include <random>
-#include <unistd.h>
 
+#include "core/error.h"
 #include "core/report.h"
 #include "splat/splat.h"
-#include "core/error.h"
 
 namespace holocap {
 namespace {
@@ -62,11 +62,11 @@ splat::Gaussians Truth(int count, double radius = 0.3, bool planar = false, bool
 struct SceneSpec {
   int cameras = 8;
   int heldout = 2;
-  bool empty_frame = false;           // the subject is absent from every image
-  bool camera_inside = false;         // the first training camera sits at the cloud's centre
-  bool planar = false;                // the subject is a flat disc
-  bool detailed = false;              // small Gaussians in sharply changing colours
-  double box_half_m = 0.5;            // the volume
+  bool empty_frame = false;    // the subject is absent from every image
+  bool camera_inside = false;  // the first training camera sits at the cloud's centre
+  bool planar = false;         // the subject is a flat disc
+  bool detailed = false;       // small Gaussians in sharply changing colours
+  double box_half_m = 0.5;     // the volume
   Eigen::Vector3d shift = Eigen::Vector3d::Zero();  // the truth and the seed moved by this
 };
 
