@@ -171,6 +171,10 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
                                                " distorting lens(es): images, silhouettes and "
                                                "backgrounds resampled to the pinhole of each "
                                                "lens's intrinsics core (held-out scored there)"));
+  if (scene.plan["left_out"].contains("depth sensors"))
+    scene.plan["left_out"]["depth sensors"] =
+        "splats learn from colour alone (the seed's "
+        "reconstruction may fuse their depth)";
   scene.plan["frame_set"] = data.sets.front();
   if (data.sets.size() > 1) {
     scene.plan["left_out"]["frames after the first"] =
