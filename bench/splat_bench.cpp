@@ -129,8 +129,8 @@ int main(int argc, char** argv) {
               nvol_fps);
   std::printf("%-16s %10lld %10.2f %10.2f %8.4f %9.2f %10lld %9.2f\n", "splats",
               static_cast<long long>(splat_summary.iterations), splat_summary.heldout_psnr_db,
-              splat_summary.heldout_psnr_fg_db, splat_summary.heldout_ssim,
-              splat_summary.megabytes, static_cast<long long>(splat_summary.gaussians), splat_fps);
+              splat_summary.heldout_psnr_fg_db, splat_summary.heldout_ssim, splat_summary.megabytes,
+              static_cast<long long>(splat_summary.gaussians), splat_fps);
   std::printf("background alone inside the silhouette: %.2f dB (nvol), %.2f dB (splat)\n",
               nvol_summary.background_psnr_fg_db, splat_summary.background_psnr_fg_db);
   std::printf("splat seed: %s, %.1f s before training (reconstruction and colouring)\n",

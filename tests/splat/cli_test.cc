@@ -3,10 +3,10 @@
 // the model played natively; and a frame whose reconstruction is empty ends DEGENERATE.
 #include <gtest/gtest.h>
 
+#include <unistd.h>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
-#include <unistd.h>
 
 #include "tests/support/test_support.h"
 
@@ -65,18 +65,16 @@ TEST_F(SplatCli, TrainsFromItsOwnReconstructionAndRenders) {
 
 TEST_F(SplatCli, EmptyReconstructionIsDegenerate) {
   fs::create_directories(root_ / "empty_recon");
-  const CommandResult result =
-      RunCli("train splat " + (root_ / "dino").string() + " --out " +
-             (root_ / "degenerate").string() + " --iterations 10 --width 160 --recon " +
-             (root_ / "empty_recon").string());
+  const CommandResult result = RunCli(
+      "train splat " + (root_ / "dino").string() + " --out " + (root_ / "degenerate").string() +
+      " --iterations 10 --width 160 --recon " + (root_ / "empty_recon").string());
   // The state line, then the one error line of the exit rule (the plan is printed before).
   EXPECT_EQ(result.exit_code, 1) << result.output;
   EXPECT_NE(result.output.find("holocap: error: training ended DEGENERATE: the reconstruction "
                                "seed is empty"),
             std::string::npos)
       << result.output;
-  EXPECT_EQ(ReadJson(root_ / "degenerate" / "report.json")["summary"]["termination"],
-            "DEGENERATE");
+  EXPECT_EQ(ReadJson(root_ / "degenerate" / "report.json")["summary"]["termination"], "DEGENERATE");
 }
 
 }  // namespace
