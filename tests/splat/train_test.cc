@@ -126,6 +126,14 @@ SplatOptions TestOptions(int64_t iterations) {
 fs::path Path(const std::string& name) {
   return fs::temp_directory_path() / Cat("holocap_splat_test_", ::getpid()) / name;
 }
+// Removes every test's output once the suite is done.
+class RemoveOutputs : public ::testing::Environment {
+ public:
+  void TearDown() override { fs::remove_all(Path("").parent_path()); }
+};
+const ::testing::Environment* const kRemoveOutputs =
+    ::testing::AddGlobalTestEnvironment(new RemoveOutputs);
+
 // A fresh output directory.
 fs::path Dir(const std::string& name) {
   fs::remove_all(Path(name));
