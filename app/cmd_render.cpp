@@ -11,6 +11,7 @@
 #include "neural/neural.h"
 #include "neural/rerender.h"
 #include "playback/playback.h"
+#include "splat/splat.h"
 
 namespace holocap {
 namespace {
@@ -79,6 +80,7 @@ void AddRenderCommand(CLI::App& app) {
       claimed = OutputDirectory::Claim(out, request);
     }
     RegisterRerenderModelKind();
+    RegisterSplatModelKind();
     auto model = OpenModel(model_dir);
     CameraPath path;
     if (args->path == "orbit") {

@@ -12,6 +12,7 @@
 #include "neural/neural.h"
 #include "neural/rerender.h"
 #include "playback/playback.h"
+#include "splat/splat.h"
 
 namespace holocap {
 namespace {
@@ -331,21 +332,116 @@ void AddRerenderCommand(CLI::App* train) {
   });
 }
 
+// ---------------------------------------------------------------------------------------------
+// holocap train splat
+
+struct SplatArgs {
+  SharedTrainArgs shared;
+  SplatOptions options;
+};
+
+void AddSplatCommand(CLI::App* train) {
+  auto* command = train->add_subcommand(
+      "splat", "3D Gaussian splats seeded from the reconstruction, tiled CPU rasteriser");
+  auto args = std::make_shared<SplatArgs>();
+  SplatOptions& o = args->options;
+  SharedTrainArgs& shared = args->shared;
+  TakeSharedDefaults(o, &shared);
+  shared.learning_rate = o.learning_rate;
+  AddSharedTrainFlags(command, &shared);
+  command->get_option("--lr")->description("Multiplies every parameter group's Adam rate");
+  command->add_option("--sh-degree", o.sh_degree, "Spherical-harmonic degree (0..3)")
+      ->capture_default_str();
+  command->add_option("--max-gaussians", o.max_gaussians, "Cap on the Gaussian count")
+      ->capture_default_str();
+  command
+      ->add_option("--seed-points", o.max_seed_points, "Surface samples the Gaussians start from")
+      ->capture_default_str();
+  command->add_option("--recon", o.recon_dir, "Seed from this reconstruction (recon/<set>.ply)");
+  command->add_option("--initial-opacity", o.initial_opacity, "Opacity of every seeded Gaussian")
+      ->capture_default_str();
+  command
+      ->add_option("--densify-until", o.densify_until, "Last iteration that densifies and prunes")
+      ->capture_default_str();
+  command->add_option("--ssim-weight", o.ssim_weight, "Lambda of (1 - lambda) L1 + lambda D-SSIM")
+      ->capture_default_str();
+  command->callback([args] {
+    SplatOptions o = args->options;
+    const SharedTrainArgs& shared = args->shared;
+    ApplyShared(shared, &o);
+    std::map<std::string, std::string> flags = kSharedFlags;
+    flags.insert({{"sh_degree", "--sh-degree"},
+                  {"max_gaussians", "--max-gaussians"},
+                  {"max_seed_points", "--seed-points"},
+                  {"initial_opacity", "--initial-opacity"},
+                  {"ssim_weight", "--ssim-weight"}});
+    CheckNamingFlags([&] { o.Check(); }, flags);
+    const OutputDirectory claimed = shared.Claim("splat");
+    const std::filesystem::path& out = claimed.path();
+    Report report("train splat");
+    report.SetFailureDestination(out / "report.json");
+    SplatSummary summary = TrainSplats(shared.take, out, o, &report);
+    PrintPlan(summary.plan);
+    std::printf("iterations   %lld in %.1f s (%.2f it/s)\n",
+                static_cast<long long>(summary.iterations), summary.seconds,
+                summary.iterations / std::max(summary.seconds, 1e-9));
+    std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
+    std::printf(
+        "held-out     PSNR %.2f dB (subject %.2f dB, background alone %.2f dB), SSIM %.4f\n",
+        summary.heldout_psnr_db, summary.heldout_psnr_fg_db, summary.background_psnr_fg_db,
+        summary.heldout_ssim);
+    std::printf("gaussians    %lld from %lld seeds (%s), %.2f MB, render %.1f fps\n",
+                static_cast<long long>(summary.gaussians),
+                static_cast<long long>(summary.seed_points),
+                summary.cap_reached ? "the cap bit" : "under the cap", summary.megabytes,
+                summary.render_fps);
+    std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+    EndCommand(summary, "training");
+  });
+}
+
 void AddTrainCommand(CLI::App& app) {
   auto* train = app.add_subcommand(
-      "train", "Learn an avatar from a calibrated take: `train nvol` or `train rerender`");
+      "train",
+      "Learn an avatar from a calibrated take: `train nvol`, `train rerender` or `train splat`");
   AddNvolCommand(train);
   AddRerenderCommand(train);
+  AddSplatCommand(train);
   // A word that names no method reaches `train` itself (the methods, added first, keep refusing
   // each other's flags): it ends with one line naming it and the methods there are.
   train->allow_extras();
   train->parse_complete_callback([train] {
     if (!train->get_subcommands().empty()) return;
     const std::vector<std::string> extras = train->remaining();
-    if (extras.empty())
-      Fail("train needs a method: holocap train nvol TAKE or holocap train rerender TAKE");
-    Fail("unknown training method '", extras.front(), "' (known: nvol, rerender)");
+    if (extras.empty()) Fail("train needs a method: holocap train nvol|rerender|splat TAKE");
+    Fail("unknown training method '", extras.front(), "' (known: nvol, rerender, splat)");
   });
+}
+
+// The demo's short orbit of a trained model (context.out/method) into its orbit.mp4, its speed
+// added to `metrics` (stored under the method's name); training's state stands unless playback
+// failed.
+Summary DemoOrbit(const std::string& method, const Summary& trained, nlohmann::json metrics,
+                  DemoContext& context) {
+  const std::filesystem::path model_dir = context.out / method;
+  auto model = OpenModel(model_dir);
+  OrbitOptions orbit;
+  orbit.views = 24;
+  orbit.width = 256;
+  orbit.height = 256;
+  PlaybackOptions playback;
+  playback.out = model_dir / "orbit.mp4";
+  PlaybackSummary rendered = RenderPath(*model, OrbitPath(*model, orbit), playback);
+  metrics["orbit"] = playback.out.string();
+  metrics["render_fps_256"] = rendered.render_fps;
+  metrics["samples_per_ray"] = rendered.samples_per_ray;
+  context.report->metrics()[method] = metrics;
+  std::printf("[demo] %s orbit: %s -> %s\n\n", method.c_str(), rendered.message.c_str(),
+              playback.out.c_str());
+  Summary stage = trained;
+  if (!rendered.IsUsable()) stage = rendered;
+  stage.message = trained.message + "; " + rendered.message;
+  return stage;
 }
 
 // The demo: a tiny dynamic model for a few tens of seconds, then a short orbit video.
@@ -373,29 +469,40 @@ Summary TrainDemoAvatar(DemoContext& context) {
     context.report->metrics()["nvol"] = metrics;
     return summary;
   }
-  auto model = OpenModel(model_dir);
-  OrbitOptions orbit;
-  orbit.views = 24;
-  orbit.width = 256;
-  orbit.height = 256;
-  PlaybackOptions playback;
-  playback.out = context.out / "nvol" / "orbit.mp4";
-  PlaybackSummary rendered = RenderPath(*model, OrbitPath(*model, orbit), playback);
-  metrics["orbit"] = playback.out.string();
-  metrics["render_fps_256"] = rendered.render_fps;
-  metrics["samples_per_ray"] = rendered.samples_per_ray;
-  context.report->metrics()["nvol"] = metrics;
-  std::printf("[demo] nvol orbit: %s -> %s\n\n", rendered.message.c_str(), playback.out.c_str());
-  // Training's state stands unless playback failed.
-  Summary stage = summary;
-  if (!rendered.IsUsable()) stage = rendered;
-  stage.message = summary.message + "; " + rendered.message;
-  return stage;
+  return DemoOrbit("nvol", summary, metrics, context);
+}
+
+// The demo's splats: frame 0 of the demo take, seeded from a reconstruction built without the
+// held-out cameras, half a minute of training, then the same short orbit as Neural Volumes'.
+Summary TrainDemoSplats(DemoContext& context) {
+  SplatOptions options;
+  options.image_width = 160;
+  options.minutes = 0.5;
+  options.eval_every_s = 10;
+  options.take.last_frame = 1;
+  const std::filesystem::path model_dir = context.out / "splat";
+  Report report("train splat");
+  SplatSummary summary = TrainSplats(context.take, model_dir, options, &report);
+  std::printf("[demo] splat: %s\n", summary.message.c_str());
+  nlohmann::json metrics = {{"iterations", summary.iterations},
+                            {"seconds", summary.seconds},
+                            {"gaussians", summary.gaussians},
+                            {"megabytes", summary.megabytes},
+                            {"heldout_psnr_db", summary.heldout_psnr_db},
+                            {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
+                            {"background_psnr_fg_db", summary.background_psnr_fg_db}};
+  if (!summary.IsUsable()) {
+    context.report->metrics()["splat"] = metrics;
+    return summary;
+  }
+  RegisterSplatModelKind();
+  return DemoOrbit("splat", summary, metrics, context);
 }
 
 }  // namespace
 
 HOLOCAP_COMMAND(60, AddTrainCommand);
 HOLOCAP_DEMO_STAGE(40, "nvol", TrainDemoAvatar);
+HOLOCAP_DEMO_STAGE(45, "splat", TrainDemoSplats);
 
 }  // namespace holocap

@@ -1,0 +1,861 @@
+#include "splat/kernels.h"
+
+#include <omp.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+#include <numeric>
+
+namespace holocap::splat {
+namespace {
+
+// A number with its gradient with respect to three inputs: enough to differentiate the
+// spherical-harmonic basis by the direction without writing 48 derivatives out by hand.
+template <typename T>
+struct Dual3 {
+  T v = 0;
+  std::array<T, 3> d = {0, 0, 0};
+  Dual3() = default;
+  Dual3(T value) : v(value) {}  // NOLINT: constants mix into expressions
+  friend Dual3 operator+(const Dual3& a, const Dual3& b) {
+    Dual3 r(a.v + b.v);
+    for (int i = 0; i < 3; ++i) r.d[i] = a.d[i] + b.d[i];
+    return r;
+  }
+  friend Dual3 operator-(const Dual3& a, const Dual3& b) {
+    Dual3 r(a.v - b.v);
+    for (int i = 0; i < 3; ++i) r.d[i] = a.d[i] - b.d[i];
+    return r;
+  }
+  friend Dual3 operator-(const Dual3& a) { return Dual3(0) - a; }
+  friend Dual3 operator*(const Dual3& a, const Dual3& b) {
+    Dual3 r(a.v * b.v);
+    for (int i = 0; i < 3; ++i) r.d[i] = a.d[i] * b.v + a.v * b.d[i];
+    return r;
+  }
+};
+
+template <typename T>
+T Sigmoid(T x) {
+  return T(1) / (T(1) + std::exp(-x));
+}
+
+// Rotation matrix (row-major) of a unit quaternion w, x, y, z.
+template <typename T>
+void QuaternionToMatrix(const T q[4], T r[9]) {
+  const T w = q[0], x = q[1], y = q[2], z = q[3];
+  r[0] = 1 - 2 * (y * y + z * z);
+  r[1] = 2 * (x * y - w * z);
+  r[2] = 2 * (x * z + w * y);
+  r[3] = 2 * (x * y + w * z);
+  r[4] = 1 - 2 * (x * x + z * z);
+  r[5] = 2 * (y * z - w * x);
+  r[6] = 2 * (x * z - w * y);
+  r[7] = 2 * (y * z + w * x);
+  r[8] = 1 - 2 * (x * x + y * y);
+}
+
+// The covariance's pieces every pass needs: the unit quaternion, its rotation, the scales and
+// M = R S (Sigma = M M^T).
+template <typename T>
+struct Shape {
+  T q[4], q_norm = 1, r[9], s[3], m[9];
+};
+
+template <typename T>
+Shape<T> ShapeOf(const GaussianArrays<T>& g, int64_t i) {
+  Shape<T> shape;
+  const T* q = &g.rotation[4 * i];
+  shape.q_norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  const T inv = shape.q_norm > T(0) ? T(1) / shape.q_norm : T(0);
+  for (int k = 0; k < 4; ++k) shape.q[k] = q[k] * inv;
+  if (!(shape.q_norm > T(0))) shape.q[0] = 1;
+  QuaternionToMatrix(shape.q, shape.r);
+  for (int k = 0; k < 3; ++k) shape.s[k] = std::exp(g.log_scale[3 * i + k]);
+  for (int row = 0; row < 3; ++row) {
+    for (int col = 0; col < 3; ++col)
+      shape.m[3 * row + col] = shape.r[3 * row + col] * shape.s[col];
+  }
+  return shape;
+}
+
+// The camera-space pieces of one Gaussian: the point, the EWA Jacobian J (2x3, with the
+// tangent clamped to 1.3 x the field of view as 3DGS does) and T = J W (2x3).
+template <typename T>
+struct Footprint {
+  T p[3];
+  T u_clamped, v_clamped;  // x/z and y/z after the clamp
+  bool clamped_u, clamped_v;
+  T j[6], t[6];
+};
+
+template <typename T>
+Footprint<T> FootprintOf(const T* position, const PinholeCamera& camera) {
+  Footprint<T> f;
+  const double* w = camera.cam_from_world_rotation;
+  for (int row = 0; row < 3; ++row) {
+    f.p[row] = T(w[3 * row]) * position[0] + T(w[3 * row + 1]) * position[1] +
+               T(w[3 * row + 2]) * position[2] + T(camera.cam_from_world_translation[row]);
+  }
+  const T z = f.p[2];
+  const T limit_u = T(1.3 * 0.5 * camera.width / camera.fx);
+  const T limit_v = T(1.3 * 0.5 * camera.height / camera.fy);
+  const T u = f.p[0] / z, v = f.p[1] / z;
+  f.clamped_u = u < -limit_u || u > limit_u;
+  f.clamped_v = v < -limit_v || v > limit_v;
+  f.u_clamped = std::clamp(u, -limit_u, limit_u);
+  f.v_clamped = std::clamp(v, -limit_v, limit_v);
+  const T fx = T(camera.fx), fy = T(camera.fy);
+  f.j[0] = fx / z;
+  f.j[1] = 0;
+  f.j[2] = -fx * f.u_clamped / z;
+  f.j[3] = 0;
+  f.j[4] = fy / z;
+  f.j[5] = -fy * f.v_clamped / z;
+  for (int row = 0; row < 2; ++row) {
+    for (int col = 0; col < 3; ++col) {
+      f.t[3 * row + col] = f.j[3 * row] * T(w[col]) + f.j[3 * row + 1] * T(w[3 + col]) +
+                           f.j[3 * row + 2] * T(w[6 + col]);
+    }
+  }
+  return f;
+}
+
+// Sigma = M M^T (symmetric, row-major 3x3).
+template <typename T>
+void Covariance3(const Shape<T>& shape, T sigma[9]) {
+  for (int a = 0; a < 3; ++a) {
+    for (int b = 0; b < 3; ++b) {
+      sigma[3 * a + b] = shape.m[3 * a] * shape.m[3 * b] + shape.m[3 * a + 1] * shape.m[3 * b + 1] +
+                         shape.m[3 * a + 2] * shape.m[3 * b + 2];
+    }
+  }
+}
+
+// Sigma2 = T Sigma T^T + low_pass I, as (a, b, c).
+template <typename T>
+void Covariance2(const Footprint<T>& f, const T sigma[9], T low_pass, T cov[3]) {
+  T ts[6];  // T Sigma (2x3)
+  for (int row = 0; row < 2; ++row) {
+    for (int col = 0; col < 3; ++col) {
+      ts[3 * row + col] = f.t[3 * row] * sigma[col] + f.t[3 * row + 1] * sigma[3 + col] +
+                          f.t[3 * row + 2] * sigma[6 + col];
+    }
+  }
+  cov[0] = ts[0] * f.t[0] + ts[1] * f.t[1] + ts[2] * f.t[2] + low_pass;
+  cov[1] = ts[0] * f.t[3] + ts[1] * f.t[4] + ts[2] * f.t[5];
+  cov[2] = ts[3] * f.t[3] + ts[4] * f.t[4] + ts[5] * f.t[5] + low_pass;
+}
+
+// The unit direction from the camera's centre to a point, and the distance.
+template <typename T>
+T ViewDirection(const T* position, const double center[3], T direction[3]) {
+  T v[3];
+  for (int k = 0; k < 3; ++k) v[k] = position[k] - T(center[k]);
+  const T length = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+  const T inv = length > T(0) ? T(1) / length : T(0);
+  for (int k = 0; k < 3; ++k) direction[k] = v[k] * inv;
+  return length;
+}
+
+}  // namespace
+
+template <typename T>
+void GaussianArrays<T>::Resize(int64_t count) {
+  position.resize(3 * count, T(0));
+  rotation.resize(4 * count, T(0));
+  log_scale.resize(3 * count, T(0));
+  opacity.resize(count, T(0));
+  sh.resize(3 * coefficients() * count, T(0));
+}
+
+template <typename T>
+void GaussianArrays<T>::AppendFrom(const GaussianArrays& other, int64_t i) {
+  const int k = coefficients();
+  position.insert(position.end(), &other.position[3 * i], &other.position[3 * i + 3]);
+  rotation.insert(rotation.end(), &other.rotation[4 * i], &other.rotation[4 * i + 4]);
+  log_scale.insert(log_scale.end(), &other.log_scale[3 * i], &other.log_scale[3 * i + 3]);
+  opacity.push_back(other.opacity[i]);
+  sh.insert(sh.end(), &other.sh[3 * k * i], &other.sh[3 * k * (i + 1)]);
+}
+
+void PinholeCamera::CenterInWorld(double center[3]) const {
+  // center = -R^T t
+  for (int k = 0; k < 3; ++k) {
+    center[k] = -(cam_from_world_rotation[k] * cam_from_world_translation[0] +
+                  cam_from_world_rotation[3 + k] * cam_from_world_translation[1] +
+                  cam_from_world_rotation[6 + k] * cam_from_world_translation[2]);
+  }
+}
+
+template <typename T>
+void ProjectedGradients<T>::Resize(int64_t count) {
+  mean2d.assign(2 * count, T(0));
+  conic.assign(3 * count, T(0));
+  color.assign(3 * count, T(0));
+  opacity.assign(count, T(0));
+}
+
+template <typename S>
+void ShBasis(int degree, const S& x, const S& y, const S& z, S* out) {
+  out[0] = S(0.28209479177387814);
+  if (degree < 1) return;
+  out[1] = S(-0.4886025119029199) * y;
+  out[2] = S(0.4886025119029199) * z;
+  out[3] = S(-0.4886025119029199) * x;
+  if (degree < 2) return;
+  const S xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+  out[4] = S(1.0925484305920792) * xy;
+  out[5] = S(-1.0925484305920792) * yz;
+  out[6] = S(0.31539156525252005) * (S(2.0) * zz - xx - yy);
+  out[7] = S(-1.0925484305920792) * xz;
+  out[8] = S(0.5462742152960396) * (xx - yy);
+  if (degree < 3) return;
+  out[9] = S(-0.5900435899266435) * y * (S(3.0) * xx - yy);
+  out[10] = S(2.890611442640554) * xy * z;
+  out[11] = S(-0.4570457994644658) * y * (S(4.0) * zz - xx - yy);
+  out[12] = S(0.3731763325901154) * z * (S(2.0) * zz - S(3.0) * xx - S(3.0) * yy);
+  out[13] = S(-0.4570457994644658) * x * (S(4.0) * zz - xx - yy);
+  out[14] = S(1.445305721320277) * z * (xx - yy);
+  out[15] = S(-0.5900435899266435) * x * (xx - S(3.0) * yy);
+}
+
+template <typename T>
+void ProjectGaussians(const GaussianArrays<T>& g, const PinholeCamera& camera,
+                      const RasterOptions& options, ProjectedArrays<T>* out) {
+  const int64_t n = g.size();
+  out->mean2d.assign(2 * n, T(0));
+  out->conic.assign(3 * n, T(0));
+  out->depth.assign(n, T(0));
+  out->color.assign(3 * n, T(0));
+  out->opacity.assign(n, T(0));
+  out->extent.assign(2 * n, T(0));
+  out->radius.assign(n, 0);
+  out->clamped.assign(3 * n, 0);
+  const T smallest_alpha = T(std::max(options.min_alpha, 1e-4f));
+  double center[3];
+  camera.CenterInWorld(center);
+  const int degree = std::min(options.active_sh_degree, g.sh_degree);
+  const int k_stored = g.coefficients(), k_used = ShCoefficients(degree);
+  int64_t culled_near = 0, culled_degenerate = 0, culled_transparent = 0;
+#pragma omp parallel for schedule(static) reduction(+ : culled_near, culled_degenerate, \
+                                                    culled_transparent)
+  for (int64_t i = 0; i < n; ++i) {
+    const Footprint<T> f = FootprintOf(&g.position[3 * i], camera);
+    if (!(f.p[2] > T(camera.near_m))) {
+      ++culled_near;
+      continue;
+    }
+    const Shape<T> shape = ShapeOf(g, i);
+    T sigma[9], cov[3];
+    Covariance3(shape, sigma);
+    Covariance2(f, sigma, T(options.low_pass_px2), cov);
+    const T det = cov[0] * cov[2] - cov[1] * cov[1];
+    if (!(det > T(0)) || !std::isfinite(det)) {
+      ++culled_degenerate;
+      continue;
+    }
+    const T mean_u = T(camera.fx) * f.p[0] / f.p[2] + T(camera.cx);
+    const T mean_v = T(camera.fy) * f.p[1] / f.p[2] + T(camera.cy);
+    // The box where opacity x footprint reaches the smallest alpha drawn: the ellipse
+    // d^T cov^-1 d = k^2 with k^2 = 2 log(opacity / min_alpha) has half-sides k sqrt(cov_xx),
+    // k sqrt(cov_yy). Tighter than the paper's 3-sigma square for faint splats, and exact.
+    const T o = Sigmoid(g.opacity[i]);
+    const T k2 = T(2) * std::log(o / smallest_alpha);
+    if (!(k2 > T(0))) {
+      ++culled_transparent;
+      continue;
+    }
+    const T k = std::sqrt(k2);
+    const T extent_u = k * std::sqrt(cov[0]), extent_v = k * std::sqrt(cov[2]);
+    if (!std::isfinite(mean_u) || !std::isfinite(mean_v) || mean_u + extent_u < T(-0.5) ||
+        mean_v + extent_v < T(-0.5) || mean_u - extent_u > T(camera.width - 0.5) ||
+        mean_v - extent_v > T(camera.height - 0.5)) {
+      continue;
+    }
+    const T inv_det = T(1) / det;
+    out->conic[3 * i] = cov[2] * inv_det;
+    out->conic[3 * i + 1] = -cov[1] * inv_det;
+    out->conic[3 * i + 2] = cov[0] * inv_det;
+    out->mean2d[2 * i] = mean_u;
+    out->mean2d[2 * i + 1] = mean_v;
+    out->depth[i] = f.p[2];
+    // Beyond the image's size a box covers it all: the cap keeps the tile arithmetic in
+    // integers for Gaussians that grazed the near plane.
+    const T cap = T(2 * (camera.width + camera.height));
+    out->extent[2 * i] = std::min(extent_u, cap);
+    out->extent[2 * i + 1] = std::min(extent_v, cap);
+    out->radius[i] = std::max(
+        1, static_cast<int32_t>(std::ceil(std::max(out->extent[2 * i], out->extent[2 * i + 1]))));
+    out->opacity[i] = o;
+    T direction[3], basis[ShCoefficients(kMaxShDegree)];
+    ViewDirection(&g.position[3 * i], center, direction);
+    ShBasis(degree, direction[0], direction[1], direction[2], basis);
+    for (int c = 0; c < 3; ++c) {
+      T value = T(0.5);
+      for (int k = 0; k < k_used; ++k) value += basis[k] * g.sh[(i * k_stored + k) * 3 + c];
+      out->clamped[3 * i + c] = value < T(0);
+      out->color[3 * i + c] = std::max(value, T(0));
+    }
+  }
+  out->culled_near = culled_near;
+  out->culled_degenerate = culled_degenerate;
+  out->culled_transparent = culled_transparent;
+}
+
+namespace {
+
+// The tiles a drawn Gaussian's square of half-side `radius` touches, [x0, x1) x [y0, y1).
+template <typename T>
+bool TileRect(const ProjectedArrays<T>& p, int64_t i, const PinholeCamera& camera, int rect[4]) {
+  if (p.radius[i] <= 0) return false;
+  const double u = static_cast<double>(p.mean2d[2 * i]),
+               v = static_cast<double>(p.mean2d[2 * i + 1]);
+  const double ru = static_cast<double>(p.extent[2 * i]),
+               rv = static_cast<double>(p.extent[2 * i + 1]);
+  // Clamped as doubles first: a point far off the image must not overflow the int.
+  auto tile = [](double coordinate, int tiles) {
+    return static_cast<int>(std::clamp(std::floor(coordinate / kTileSide), -1.0, double(tiles)));
+  };
+  rect[0] = std::max(0, tile(u - ru + 0.5, camera.tiles_x()));
+  rect[1] = std::min(camera.tiles_x(), tile(u + ru + 0.5, camera.tiles_x()) + 1);
+  rect[2] = std::max(0, tile(v - rv + 0.5, camera.tiles_y()));
+  rect[3] = std::min(camera.tiles_y(), tile(v + rv + 0.5, camera.tiles_y()) + 1);
+  return rect[1] > rect[0] && rect[3] > rect[2];
+}
+
+// Per-tile lists, front to back: Gaussians sorted once by depth, then binned in that order, so
+// each tile's list is already sorted.
+template <typename T>
+void BinTiles(const ProjectedArrays<T>& p, const PinholeCamera& camera, RasterState* state) {
+  const int64_t n = static_cast<int64_t>(p.radius.size());
+  std::vector<int32_t> order;
+  order.reserve(n);
+  for (int64_t i = 0; i < n; ++i)
+    if (p.radius[i] > 0) order.push_back(static_cast<int32_t>(i));
+  std::sort(order.begin(), order.end(), [&](int32_t a, int32_t b) {
+    return p.depth[a] < p.depth[b] || (p.depth[a] == p.depth[b] && a < b);
+  });
+  const int tiles = camera.tiles_x() * camera.tiles_y();
+  std::vector<int32_t> count(tiles + 1, 0);
+  int rect[4];
+  for (int32_t i : order) {
+    if (!TileRect(p, i, camera, rect)) continue;
+    for (int ty = rect[2]; ty < rect[3]; ++ty)
+      for (int tx = rect[0]; tx < rect[1]; ++tx) ++count[ty * camera.tiles_x() + tx + 1];
+  }
+  std::partial_sum(count.begin(), count.end(), count.begin());
+  state->tile_start.assign(count.begin(), count.end() - 1);
+  state->tile_end.assign(count.begin(), count.end() - 1);
+  state->entries.assign(count.back(), 0);
+  for (int32_t i : order) {
+    if (!TileRect(p, i, camera, rect)) continue;
+    for (int ty = rect[2]; ty < rect[3]; ++ty) {
+      for (int tx = rect[0]; tx < rect[1]; ++tx)
+        state->entries[state->tile_end[ty * camera.tiles_x() + tx]++] = i;
+    }
+  }
+}
+
+// The exponent of Gaussian i's footprint at (dx, dy) from its mean.
+template <typename T>
+inline T Power(const T* conic, T dx, T dy) {
+  return T(-0.5) * (conic[0] * dx * dx + conic[2] * dy * dy) - conic[1] * dx * dy;
+}
+
+// The pixels of a tile (local coordinates, inclusive) inside Gaussian i's box; false if none.
+template <typename T>
+inline bool PixelRange(const ProjectedArrays<T>& p, int32_t i, int x0, int y0, int w, int h,
+                       int range[4]) {
+  auto local = [](double coordinate, int origin, int size) {
+    return static_cast<int>(std::clamp(coordinate - origin, -1.0, static_cast<double>(size)));
+  };
+  const double mx = static_cast<double>(p.mean2d[2 * i]),
+               my = static_cast<double>(p.mean2d[2 * i + 1]);
+  const double ex = static_cast<double>(p.extent[2 * i]),
+               ey = static_cast<double>(p.extent[2 * i + 1]);
+  range[0] = std::max(0, local(std::ceil(mx - ex), x0, w));
+  range[1] = std::min(w - 1, local(std::floor(mx + ex), x0, w));
+  range[2] = std::max(0, local(std::ceil(my - ey), y0, h));
+  range[3] = std::min(h - 1, local(std::floor(my + ey), y0, h));
+  return range[1] >= range[0] && range[3] >= range[2];
+}
+
+// Below this exponent, opacity x exp(power) < min_alpha: the pixel is skipped without an exp.
+template <typename T>
+inline T PowerCutoff(T opacity, float min_alpha) {
+  return min_alpha > 0 ? std::log(T(min_alpha) / opacity) : -std::numeric_limits<T>::infinity();
+}
+
+}  // namespace
+
+template <typename T>
+void RasterizeForward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
+                      const RasterOptions& options, const T* background, T* color, T* alpha,
+                      T* depth, RasterState* state) {
+  BinTiles(p, camera, state);
+  const int width = camera.width, height = camera.height;
+  state->final_transmittance.assign(static_cast<size_t>(width) * height, 1.0f);
+  state->last_contributor.assign(static_cast<size_t>(width) * height, 0);
+  const int tiles_x = camera.tiles_x(), tiles = tiles_x * camera.tiles_y();
+  const T min_alpha = T(options.min_alpha), max_alpha = T(options.max_alpha);
+  const T min_transmittance = T(options.min_transmittance);
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int tile = 0; tile < tiles; ++tile) {
+    const int x0 = (tile % tiles_x) * kTileSide, y0 = (tile / tiles_x) * kTileSide;
+    const int w = std::min(kTileSide, width - x0), h = std::min(kTileSide, height - y0);
+    constexpr int kPixels = kTileSide * kTileSide;
+    T transmittance[kPixels], rgb[kPixels * 3], z[kPixels];
+    int32_t last[kPixels];
+    bool done[kPixels];
+    for (int q = 0; q < kPixels; ++q) {
+      transmittance[q] = 1;
+      rgb[3 * q] = rgb[3 * q + 1] = rgb[3 * q + 2] = z[q] = 0;
+      last[q] = 0;
+      done[q] = (q % kTileSide) >= w || (q / kTileSide) >= h;
+    }
+    int remaining = w * h;
+    const int32_t begin = state->tile_start[tile], end = state->tile_end[tile];
+    for (int32_t e = begin; e < end && remaining > 0; ++e) {
+      const int32_t i = state->entries[e];
+      const T* conic = &p.conic[3 * i];
+      const T mx = p.mean2d[2 * i], my = p.mean2d[2 * i + 1], o = p.opacity[i];
+      const T cr = p.color[3 * i], cg = p.color[3 * i + 1], cb = p.color[3 * i + 2];
+      const T depth_i = p.depth[i];
+      int range[4];
+      if (!PixelRange(p, i, x0, y0, w, h, range)) continue;
+      const T cutoff = PowerCutoff(o, options.min_alpha);
+      for (int ly = range[2]; ly <= range[3]; ++ly) {
+        for (int q = ly * kTileSide + range[0]; q <= ly * kTileSide + range[1]; ++q) {
+          if (done[q]) continue;
+          const T dx = T(x0 + q % kTileSide) - mx, dy = T(y0 + ly) - my;
+          const T power = Power(conic, dx, dy);
+          if (power > T(0) || power < cutoff) continue;
+          const T a = std::min(max_alpha, o * std::exp(power));
+          if (a < min_alpha) continue;
+          const T next = transmittance[q] * (T(1) - a);
+          if (next < min_transmittance) {
+            done[q] = true;
+            --remaining;
+            continue;
+          }
+          const T weight = a * transmittance[q];
+          rgb[3 * q] += weight * cr;
+          rgb[3 * q + 1] += weight * cg;
+          rgb[3 * q + 2] += weight * cb;
+          z[q] += weight * depth_i;
+          transmittance[q] = next;
+          last[q] = e - begin + 1;
+        }
+      }
+    }
+    for (int q = 0; q < kPixels; ++q) {
+      if ((q % kTileSide) >= w || (q / kTileSide) >= h) continue;
+      const size_t pixel = static_cast<size_t>(y0 + q / kTileSide) * width + x0 + q % kTileSide;
+      for (int c = 0; c < 3; ++c) {
+        color[3 * pixel + c] =
+            rgb[3 * q + c] + transmittance[q] * (background ? background[3 * pixel + c] : T(0));
+      }
+      if (alpha != nullptr) alpha[pixel] = T(1) - transmittance[q];
+      if (depth != nullptr) {
+        const T covered = T(1) - transmittance[q];
+        depth[pixel] = covered > T(0) ? z[q] / covered : T(0);
+      }
+      state->final_transmittance[pixel] = static_cast<float>(transmittance[q]);
+      state->last_contributor[pixel] = last[q];
+    }
+  }
+}
+
+namespace {
+
+// Gradients of one tile's pixels with respect to its Gaussians, back to front, accumulated
+// into `grad` (one thread's buffer).
+template <typename T>
+void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
+                  const RasterOptions& options, const RasterState& state, int tile,
+                  const T* background, const T* dloss_dcolor, const T* dloss_dalpha,
+                  ProjectedGradients<T>* grad) {
+  const int tiles_x = camera.tiles_x();
+  const int x0 = (tile % tiles_x) * kTileSide, y0 = (tile / tiles_x) * kTileSide;
+  const int w = std::min(kTileSide, camera.width - x0), h = std::min(kTileSide, camera.height - y0);
+  constexpr int kPixels = kTileSide * kTileSide;
+  T transmittance[kPixels], behind[kPixels * 3], g_color[kPixels * 3], g_alpha[kPixels],
+      final_t[kPixels];
+  int32_t last[kPixels];
+  int32_t max_last = 0;
+  for (int q = 0; q < kPixels; ++q) {
+    last[q] = 0;
+    if ((q % kTileSide) >= w || (q / kTileSide) >= h) continue;
+    const size_t pixel =
+        static_cast<size_t>(y0 + q / kTileSide) * camera.width + x0 + q % kTileSide;
+    transmittance[q] = final_t[q] = T(state.final_transmittance[pixel]);
+    for (int c = 0; c < 3; ++c) {
+      g_color[3 * q + c] = dloss_dcolor[3 * pixel + c];
+      behind[3 * q + c] = background ? final_t[q] * background[3 * pixel + c] : T(0);
+    }
+    g_alpha[q] = dloss_dalpha ? dloss_dalpha[pixel] : T(0);
+    last[q] = state.last_contributor[pixel];
+    max_last = std::max(max_last, last[q]);
+  }
+  const int32_t begin = state.tile_start[tile];
+  const T min_alpha = T(options.min_alpha), max_alpha = T(options.max_alpha);
+  for (int32_t local = max_last - 1; local >= 0; --local) {
+    const int32_t i = state.entries[begin + local];
+    const T* conic = &p.conic[3 * i];
+    const T mx = p.mean2d[2 * i], my = p.mean2d[2 * i + 1], o = p.opacity[i];
+    const T col[3] = {p.color[3 * i], p.color[3 * i + 1], p.color[3 * i + 2]};
+    T d_mean[2] = {0, 0}, d_conic[3] = {0, 0, 0}, d_col[3] = {0, 0, 0}, d_opacity = 0;
+    int range[4];
+    if (!PixelRange(p, i, x0, y0, w, h, range)) continue;
+    const T cutoff = PowerCutoff(o, options.min_alpha);
+    for (int ly = range[2]; ly <= range[3]; ++ly) {
+      for (int q = ly * kTileSide + range[0]; q <= ly * kTileSide + range[1]; ++q) {
+        if (local >= last[q]) continue;
+        const T dx = T(x0 + q % kTileSide) - mx, dy = T(y0 + ly) - my;
+        const T power = Power(conic, dx, dy);
+        if (power > T(0) || power < cutoff) continue;
+        const T gauss = std::exp(power);
+        const T raw = o * gauss;
+        const T a = std::min(max_alpha, raw);
+        if (a < min_alpha) continue;
+        const T one_minus = T(1) - a;
+        transmittance[q] /= one_minus;
+        const T weight = a * transmittance[q];
+        T d_a = 0;
+        for (int c = 0; c < 3; ++c) {
+          d_col[c] += weight * g_color[3 * q + c];
+          d_a += g_color[3 * q + c] * (transmittance[q] * col[c] - behind[3 * q + c] / one_minus);
+          behind[3 * q + c] += weight * col[c];
+        }
+        d_a += g_alpha[q] * final_t[q] / one_minus;
+        if (raw > max_alpha) continue;  // clamped: no gradient through the footprint
+        d_opacity += d_a * gauss;
+        const T d_power = d_a * raw;
+        d_mean[0] += d_power * (conic[0] * dx + conic[1] * dy);
+        d_mean[1] += d_power * (conic[2] * dy + conic[1] * dx);
+        d_conic[0] += d_power * T(-0.5) * dx * dx;
+        d_conic[1] += d_power * -(dx * dy);
+        d_conic[2] += d_power * T(-0.5) * dy * dy;
+      }
+    }
+    grad->mean2d[2 * i] += d_mean[0];
+    grad->mean2d[2 * i + 1] += d_mean[1];
+    for (int c = 0; c < 3; ++c) {
+      grad->conic[3 * i + c] += d_conic[c];
+      grad->color[3 * i + c] += d_col[c];
+    }
+    grad->opacity[i] += d_opacity;
+  }
+}
+
+}  // namespace
+
+template <typename T>
+void RasterizeBackward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
+                       const RasterOptions& options, const RasterState& state, const T* background,
+                       const T* dloss_dcolor, const T* dloss_dalpha,
+                       ProjectedGradients<T>* gradients) {
+  const int64_t n = static_cast<int64_t>(p.radius.size());
+  const int tiles = camera.tiles_x() * camera.tiles_y();
+  const int threads = omp_get_max_threads();
+  // One buffer per thread (a Gaussian spans several tiles), summed afterwards: no atomics in
+  // the inner loop.
+  std::vector<ProjectedGradients<T>> partial(threads);
+#pragma omp parallel
+  {
+    ProjectedGradients<T>& mine = partial[omp_get_thread_num()];
+    mine.Resize(n);
+#pragma omp for schedule(dynamic, 1)
+    for (int tile = 0; tile < tiles; ++tile) {
+      BackwardTile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha, &mine);
+    }
+  }
+  *gradients = std::move(partial[0]);
+  for (int t = 1; t < threads; ++t) {
+    const ProjectedGradients<T>& other = partial[t];
+    if (other.opacity.empty()) continue;
+    auto add = [](std::vector<T>& into, const std::vector<T>& from) {
+      for (size_t k = 0; k < into.size(); ++k) into[k] += from[k];
+    };
+    add(gradients->mean2d, other.mean2d);
+    add(gradients->conic, other.conic);
+    add(gradients->color, other.color);
+    add(gradients->opacity, other.opacity);
+  }
+  if (gradients->opacity.empty()) gradients->Resize(n);
+}
+
+namespace {
+
+// d loss / d (raw parameters) of Gaussian i, from the projected gradients (accumulated).
+template <typename T>
+void ProjectBackwardOne(const GaussianArrays<T>& g, const PinholeCamera& camera,
+                        const RasterOptions& options, const ProjectedArrays<T>& p,
+                        const ProjectedGradients<T>& pg, const double center[3], int64_t i,
+                        GaussianArrays<T>* out) {
+  const Footprint<T> f = FootprintOf(&g.position[3 * i], camera);
+  const Shape<T> shape = ShapeOf(g, i);
+  T sigma[9], cov[3];
+  Covariance3(shape, sigma);
+  Covariance2(f, sigma, T(options.low_pass_px2), cov);
+  const T fx = T(camera.fx), fy = T(camera.fy), z = f.p[2];
+  T d_p[3] = {0, 0, 0};  // d loss / d point in camera
+
+  // mean2d = (fx x/z + cx, fy y/z + cy).
+  const T gu = pg.mean2d[2 * i], gv = pg.mean2d[2 * i + 1];
+  d_p[0] += gu * fx / z;
+  d_p[1] += gv * fy / z;
+  d_p[2] += -(gu * fx * f.p[0] + gv * fy * f.p[1]) / (z * z);
+
+  // conic = inverse(Sigma2): dL/dSigma2 = -C G C, G the gradient as a symmetric matrix.
+  const T* conic = &p.conic[3 * i];
+  const T ga = pg.conic[3 * i], gb = T(0.5) * pg.conic[3 * i + 1], gc = pg.conic[3 * i + 2];
+  const T c00 = conic[0], c01 = conic[1], c11 = conic[2];
+  // H = -C G C (2x2 symmetric).
+  const T cg00 = c00 * ga + c01 * gb, cg01 = c00 * gb + c01 * gc;
+  const T cg10 = c01 * ga + c11 * gb, cg11 = c01 * gb + c11 * gc;
+  const T h00 = -(cg00 * c00 + cg01 * c01), h01 = -(cg00 * c01 + cg01 * c11);
+  const T h11 = -(cg10 * c01 + cg11 * c11);
+  const T hm[4] = {h00, h01, h01, h11};
+
+  // Sigma2 = T Sigma T^T: dL/dSigma = T^T H T, dL/dT = 2 H T Sigma.
+  T ht[6];  // H T (2x3)
+  for (int row = 0; row < 2; ++row)
+    for (int col = 0; col < 3; ++col)
+      ht[3 * row + col] = hm[2 * row] * f.t[col] + hm[2 * row + 1] * f.t[3 + col];
+  T d_sigma[9];
+  for (int a = 0; a < 3; ++a)
+    for (int b = 0; b < 3; ++b) d_sigma[3 * a + b] = f.t[a] * ht[b] + f.t[3 + a] * ht[3 + b];
+  T d_t[6];
+  for (int row = 0; row < 2; ++row) {
+    for (int col = 0; col < 3; ++col) {
+      d_t[3 * row + col] = 2 * (ht[3 * row] * sigma[col] + ht[3 * row + 1] * sigma[3 + col] +
+                                ht[3 * row + 2] * sigma[6 + col]);
+    }
+  }
+  // T = J W: dL/dJ = dL/dT W^T.
+  const double* w = camera.cam_from_world_rotation;
+  T d_j[6];
+  for (int row = 0; row < 2; ++row) {
+    for (int col = 0; col < 3; ++col) {
+      d_j[3 * row + col] = d_t[3 * row] * T(w[3 * col]) + d_t[3 * row + 1] * T(w[3 * col + 1]) +
+                           d_t[3 * row + 2] * T(w[3 * col + 2]);
+    }
+  }
+  // J00 = fx/z, J02 = -fx u/z (u = x/z unless clamped), J11 = fy/z, J12 = -fy v/z.
+  d_p[2] += -d_j[0] * fx / (z * z) - d_j[4] * fy / (z * z);
+  if (f.clamped_u) {
+    d_p[2] += d_j[2] * fx * f.u_clamped / (z * z);
+  } else {
+    d_p[0] += -d_j[2] * fx / (z * z);
+    d_p[2] += d_j[2] * 2 * fx * f.p[0] / (z * z * z);
+  }
+  if (f.clamped_v) {
+    d_p[2] += d_j[5] * fy * f.v_clamped / (z * z);
+  } else {
+    d_p[1] += -d_j[5] * fy / (z * z);
+    d_p[2] += d_j[5] * 2 * fy * f.p[1] / (z * z * z);
+  }
+  // p = W m + t.
+  T* d_m = &out->position[3 * i];
+  for (int k = 0; k < 3; ++k)
+    d_m[k] += T(w[k]) * d_p[0] + T(w[3 + k]) * d_p[1] + T(w[6 + k]) * d_p[2];
+
+  // Sigma = M M^T: dL/dM = 2 dL/dSigma M (dL/dSigma symmetric).
+  T d_mm[9];
+  for (int a = 0; a < 3; ++a) {
+    for (int b = 0; b < 3; ++b) {
+      d_mm[3 * a + b] = (d_sigma[3 * a] + d_sigma[a]) * shape.m[b] +
+                        (d_sigma[3 * a + 1] + d_sigma[3 + a]) * shape.m[3 + b] +
+                        (d_sigma[3 * a + 2] + d_sigma[6 + a]) * shape.m[6 + b];
+    }
+  }
+  // M = R S: dL/ds_b = sum_a dM_ab R_ab; dL/dR_ab = dM_ab s_b.
+  T d_r[9];
+  for (int b = 0; b < 3; ++b) {
+    T d_s = 0;
+    for (int a = 0; a < 3; ++a) {
+      d_s += d_mm[3 * a + b] * shape.r[3 * a + b];
+      d_r[3 * a + b] = d_mm[3 * a + b] * shape.s[b];
+    }
+    out->log_scale[3 * i + b] += d_s * shape.s[b];
+  }
+  // R(q) for the unit quaternion, then through the normalisation.
+  const T qw = shape.q[0], qx = shape.q[1], qy = shape.q[2], qz = shape.q[3];
+  const T d_qn[4] = {
+      2 * (-qz * d_r[1] + qy * d_r[2] + qz * d_r[3] - qx * d_r[5] - qy * d_r[6] + qx * d_r[7]),
+      2 * (qy * d_r[1] + qz * d_r[2] + qy * d_r[3] - 2 * qx * d_r[4] - qw * d_r[5] + qz * d_r[6] +
+           qw * d_r[7] - 2 * qx * d_r[8]),
+      2 * (-2 * qy * d_r[0] + qx * d_r[1] + qw * d_r[2] + qx * d_r[3] + qz * d_r[5] - qw * d_r[6] +
+           qz * d_r[7] - 2 * qy * d_r[8]),
+      2 * (-2 * qz * d_r[0] - qw * d_r[1] + qx * d_r[2] + qw * d_r[3] - 2 * qz * d_r[4] +
+           qy * d_r[5] + qx * d_r[6] + qy * d_r[7])};
+  const T dot = qw * d_qn[0] + qx * d_qn[1] + qy * d_qn[2] + qz * d_qn[3];
+  if (shape.q_norm > T(0)) {
+    for (int k = 0; k < 4; ++k)
+      out->rotation[4 * i + k] += (d_qn[k] - shape.q[k] * dot) / shape.q_norm;
+  }
+
+  // opacity = sigmoid(logit).
+  const T o = p.opacity[i];
+  out->opacity[i] += pg.opacity[i] * o * (T(1) - o);
+
+  // colour = sum_k sh_k Y_k(direction) + 0.5, per channel unless clamped.
+  const int degree = std::min(options.active_sh_degree, g.sh_degree);
+  const int k_stored = g.coefficients(), k_used = ShCoefficients(degree);
+  T direction[3];
+  const T length = ViewDirection(&g.position[3 * i], center, direction);
+  Dual3<T> dx(direction[0]), dy(direction[1]), dz(direction[2]);
+  dx.d[0] = dy.d[1] = dz.d[2] = T(1);
+  Dual3<T> basis[ShCoefficients(kMaxShDegree)];
+  ShBasis(degree, dx, dy, dz, basis);
+  T d_dir[3] = {0, 0, 0};
+  for (int c = 0; c < 3; ++c) {
+    if (p.clamped[3 * i + c]) continue;
+    const T gcol = pg.color[3 * i + c];
+    for (int k = 0; k < k_used; ++k) {
+      const T coefficient = g.sh[(i * k_stored + k) * 3 + c];
+      out->sh[(i * k_stored + k) * 3 + c] += gcol * basis[k].v;
+      for (int a = 0; a < 3; ++a) d_dir[a] += gcol * coefficient * basis[k].d[a];
+    }
+  }
+  if (length > T(0)) {
+    const T along = d_dir[0] * direction[0] + d_dir[1] * direction[1] + d_dir[2] * direction[2];
+    for (int a = 0; a < 3; ++a) d_m[a] += (d_dir[a] - direction[a] * along) / length;
+  }
+}
+
+}  // namespace
+
+template <typename T>
+void ProjectBackward(const GaussianArrays<T>& g, const PinholeCamera& camera,
+                     const RasterOptions& options, const ProjectedArrays<T>& p,
+                     const ProjectedGradients<T>& pg, GaussianArrays<T>* out) {
+  double center[3];
+  camera.CenterInWorld(center);
+  const int64_t n = g.size();
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) {
+    if (p.radius[i] <= 0) continue;
+    ProjectBackwardOne(g, camera, options, p, pg, center, i, out);
+  }
+}
+
+namespace {
+
+// Separable 11-tap Gaussian blur (sigma 1.5) with zero padding: symmetric, so it is its own
+// adjoint, which the SSIM gradient relies on.
+template <typename T>
+void Blur(const std::vector<T>& in, int width, int height, std::vector<T>* out) {
+  static const std::array<double, 11> kernel = [] {
+    std::array<double, 11> k{};
+    double sum = 0;
+    for (int i = 0; i < 11; ++i) sum += k[i] = std::exp(-(i - 5) * (i - 5) / (2 * 1.5 * 1.5));
+    for (double& v : k) v /= sum;
+    return k;
+  }();
+  std::vector<T> rows(in.size());
+#pragma omp parallel for schedule(static)
+  for (int y = 0; y < height; ++y) {
+    for (int x = 0; x < width; ++x) {
+      T sum = 0;
+      for (int k = std::max(0, 5 - x); k < 11 && x + k - 5 < width; ++k)
+        sum += T(kernel[k]) * in[static_cast<size_t>(y) * width + x + k - 5];
+      rows[static_cast<size_t>(y) * width + x] = sum;
+    }
+  }
+  out->assign(in.size(), T(0));
+#pragma omp parallel for schedule(static)
+  for (int y = 0; y < height; ++y) {
+    for (int k = std::max(0, 5 - y); k < 11 && y + k - 5 < height; ++k) {
+      const T weight = T(kernel[k]);
+      const T* source = &rows[static_cast<size_t>(y + k - 5) * width];
+      T* target = &(*out)[static_cast<size_t>(y) * width];
+      for (int x = 0; x < width; ++x) target[x] += weight * source[x];
+    }
+  }
+}
+
+}  // namespace
+
+template <typename T>
+double PhotometricLoss(const T* image, const T* target, int width, int height, double lambda,
+                       T* dloss_dimage) {
+  const size_t pixels = static_cast<size_t>(width) * height, values = 3 * pixels;
+  double l1 = 0;
+  for (size_t k = 0; k < values; ++k) {
+    const T d = image[k] - target[k];
+    l1 += std::abs(static_cast<double>(d));
+    if (dloss_dimage != nullptr)
+      dloss_dimage[k] = T((1 - lambda) * (d > T(0) ? 1.0 : (d < T(0) ? -1.0 : 0.0)) / values);
+  }
+  l1 /= values;
+  if (lambda <= 0) return l1;
+  const T c1 = T(0.01 * 0.01), c2 = T(0.03 * 0.03);
+  double ssim_sum = 0;
+  std::vector<T> x(pixels), y(pixels), xx(pixels), yy(pixels), xy(pixels);
+  std::vector<T> mx, my, sxx, syy, sxy, g_mu(pixels), g_xx(pixels), g_xy(pixels), b_mu, b_xx, b_xy;
+  for (int c = 0; c < 3; ++c) {
+    for (size_t k = 0; k < pixels; ++k) {
+      x[k] = image[3 * k + c];
+      y[k] = target[3 * k + c];
+      xx[k] = x[k] * x[k];
+      yy[k] = y[k] * y[k];
+      xy[k] = x[k] * y[k];
+    }
+    Blur(x, width, height, &mx);
+    Blur(y, width, height, &my);
+    Blur(xx, width, height, &sxx);
+    Blur(yy, width, height, &syy);
+    Blur(xy, width, height, &sxy);
+    for (size_t k = 0; k < pixels; ++k) {
+      const T var_x = sxx[k] - mx[k] * mx[k], var_y = syy[k] - my[k] * my[k];
+      const T cov = sxy[k] - mx[k] * my[k];
+      const T a1 = 2 * mx[k] * my[k] + c1, a2 = 2 * cov + c2;
+      const T b1 = mx[k] * mx[k] + my[k] * my[k] + c1, b2 = var_x + var_y + c2;
+      const T s = a1 * a2 / (b1 * b2);
+      ssim_sum += s;
+      // dS/dmu_x, dS/dvar_x, dS/dcov; var_x = E[x^2] - mu_x^2 and cov = E[xy] - mu_x mu_y.
+      const T ds_dmu = 2 * my[k] * a2 / (b1 * b2) - 2 * mx[k] * s / b1;
+      const T ds_dvar = -s / b2;
+      const T ds_dcov = 2 * a1 / (b1 * b2);
+      g_mu[k] = ds_dmu - 2 * mx[k] * ds_dvar - my[k] * ds_dcov;
+      g_xx[k] = ds_dvar;
+      g_xy[k] = ds_dcov;
+    }
+    if (dloss_dimage == nullptr) continue;
+    Blur(g_mu, width, height, &b_mu);
+    Blur(g_xx, width, height, &b_xx);
+    Blur(g_xy, width, height, &b_xy);
+    const T scale = T(-lambda / values);
+    for (size_t k = 0; k < pixels; ++k)
+      dloss_dimage[3 * k + c] += scale * (b_mu[k] + 2 * x[k] * b_xx[k] + y[k] * b_xy[k]);
+  }
+  const double ssim = ssim_sum / values;
+  return (1 - lambda) * l1 + lambda * (1 - ssim);
+}
+
+// The two scalars every kernel is built for: float runs, double checks.
+#define HOLOCAP_SPLAT_INSTANTIATE(T)                                                               \
+  template struct GaussianArrays<T>;                                                               \
+  template struct ProjectedGradients<T>;                                                           \
+  template void ShBasis<T>(int, const T&, const T&, const T&, T*);                                 \
+  template void ProjectGaussians<T>(const GaussianArrays<T>&, const PinholeCamera&,                \
+                                    const RasterOptions&, ProjectedArrays<T>*);                    \
+  template void RasterizeForward<T>(const ProjectedArrays<T>&, const PinholeCamera&,               \
+                                    const RasterOptions&, const T*, T*, T*, T*, RasterState*);     \
+  template void RasterizeBackward<T>(const ProjectedArrays<T>&, const PinholeCamera&,              \
+                                     const RasterOptions&, const RasterState&, const T*, const T*, \
+                                     const T*, ProjectedGradients<T>*);                            \
+  template void ProjectBackward<T>(const GaussianArrays<T>&, const PinholeCamera&,                 \
+                                   const RasterOptions&, const ProjectedArrays<T>&,                \
+                                   const ProjectedGradients<T>&, GaussianArrays<T>*);              \
+  template double PhotometricLoss<T>(const T*, const T*, int, int, double, T*);
+HOLOCAP_SPLAT_INSTANTIATE(float)
+HOLOCAP_SPLAT_INSTANTIATE(double)
+#undef HOLOCAP_SPLAT_INSTANTIATE
+
+}  // namespace holocap::splat

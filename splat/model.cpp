@@ -1,0 +1,269 @@
+// Options, rendering through a holocap camera, the model on disk and its playback kind.
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <mutex>
+
+#include "core/error.h"
+#include "core/fs.h"
+#include "neural/neural.h"
+#include "splat/splat.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+
+// gaussians.bin holds these fields one after the other, float32 little-endian.
+struct Field {
+  const char* name;
+  std::vector<float> splat::Gaussians::*member;
+  int per_gaussian;  // 0: 3 x coefficients
+};
+const Field kFields[] = {{"position", &splat::Gaussians::position, 3},
+                         {"rotation", &splat::Gaussians::rotation, 4},
+                         {"log_scale", &splat::Gaussians::log_scale, 3},
+                         {"opacity", &splat::Gaussians::opacity, 1},
+                         {"sh", &splat::Gaussians::sh, 0}};
+
+}  // namespace
+
+void SplatOptions::Check() const {
+  if (sh_degree < 0 || sh_degree > splat::kMaxShDegree)
+    Fail("sh_degree must be in [0, ", splat::kMaxShDegree, "], got ", sh_degree);
+  if (sh_degree_every < 1) Fail("sh_degree_every must be at least 1, got ", sh_degree_every);
+  if (max_gaussians < 1) Fail("max_gaussians must be positive, got ", max_gaussians);
+  if (max_seed_points < 1) Fail("max_seed_points must be positive, got ", max_seed_points);
+  if (!(seed_scale_factor > 0)) Fail("seed_scale_factor must be positive, got ", seed_scale_factor);
+  if (!(initial_opacity > 0 && initial_opacity < 1))
+    Fail("initial_opacity must be in (0, 1), got ", initial_opacity);
+  if (image_width < 0) Fail("image_width must be >= 0 (0: native), got ", image_width);
+  if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0, got ", heldout_cameras);
+  take.Check();
+  if (!(minutes >= 0)) Fail("minutes must be >= 0, got ", minutes);
+  if (!(minutes > 0) && iterations <= 0)
+    Fail("give a positive minutes budget or a number of iterations");
+  if (iterations < 0) Fail("iterations must be >= 0, got ", iterations);
+  if (!(learning_rate > 0)) Fail("learning_rate must be positive, got ", learning_rate);
+  if (!(position_lr > 0) || !(sh_lr > 0) || !(opacity_lr > 0) || !(scale_lr > 0) ||
+      !(rotation_lr > 0)) {
+    Fail("the parameter groups' rates must be positive");
+  }
+  if (!(ssim_weight >= 0 && ssim_weight <= 1))
+    Fail("ssim_weight must be in [0, 1], got ", ssim_weight);
+  if (!(min_scale_px > 0)) Fail("min_scale_px must be positive, got ", min_scale_px);
+  if (!(max_scale_extent > 0)) Fail("max_scale_extent must be positive, got ", max_scale_extent);
+  if (densify_every < 1) Fail("densify_every must be at least 1, got ", densify_every);
+  if (!(densify_gradient > 0)) Fail("densify_gradient must be positive, got ", densify_gradient);
+  if (!(percent_dense > 0)) Fail("percent_dense must be positive, got ", percent_dense);
+  if (!(prune_opacity > 0 && prune_opacity < 1))
+    Fail("prune_opacity must be in (0, 1), got ", prune_opacity);
+  if (!(prune_extent > 0)) Fail("prune_extent must be positive, got ", prune_extent);
+  if (opacity_reset_every < 0) Fail("opacity_reset_every must be >= 0, got ", opacity_reset_every);
+  if (!(eval_every_s > 0)) Fail("eval_every_s must be positive, got ", eval_every_s);
+  if (eval_every_iterations < 0)
+    Fail("eval_every_iterations must be >= 0, got ", eval_every_iterations);
+  if (!(divergence_factor > 1)) Fail("divergence_factor must exceed 1, got ", divergence_factor);
+  if (max_divergences < 0) Fail("max_divergences must be >= 0, got ", max_divergences);
+  if (snapshot_every < 1) Fail("snapshot_every must be at least 1, got ", snapshot_every);
+  if (threads < 0) Fail("threads must be >= 0, got ", threads);
+}
+
+nlohmann::json SplatOptions::ToJson() const {
+  return {{"sh_degree", sh_degree},
+          {"sh_degree_every", sh_degree_every},
+          {"max_gaussians", max_gaussians},
+          {"max_seed_points", max_seed_points},
+          {"seed_scale_factor", seed_scale_factor},
+          {"initial_opacity", initial_opacity},
+          {"image_width", image_width},
+          {"heldout_cameras", heldout_cameras},
+          {"heldout", heldout},
+          {"take", take.ToJson()},
+          {"recon_dir", recon_dir},
+          {"minutes", minutes},
+          {"iterations", iterations},
+          {"learning_rate", learning_rate},
+          {"position_lr", position_lr},
+          {"sh_lr", sh_lr},
+          {"opacity_lr", opacity_lr},
+          {"scale_lr", scale_lr},
+          {"rotation_lr", rotation_lr},
+          {"ssim_weight", ssim_weight},
+          {"min_scale_px", min_scale_px},
+          {"max_scale_extent", max_scale_extent},
+          {"seed", seed},
+          {"densify_from", densify_from},
+          {"densify_until", densify_until},
+          {"densify_every", densify_every},
+          {"densify_gradient", densify_gradient},
+          {"percent_dense", percent_dense},
+          {"prune_opacity", prune_opacity},
+          {"prune_extent", prune_extent},
+          {"opacity_reset_every", opacity_reset_every},
+          {"eval_every_s", eval_every_s},
+          {"eval_every_iterations", eval_every_iterations},
+          {"divergence_factor", divergence_factor},
+          {"max_divergences", max_divergences},
+          {"snapshot_every", snapshot_every},
+          {"threads", threads}};
+}
+
+splat::PinholeCamera ToPinhole(const CameraModel& camera) {
+  if (!camera.has_core())
+    Fail("splats render through a pinhole; lens model ", camera.lensmodel(), " has no core");
+  splat::PinholeCamera pinhole;
+  const auto& k = camera.intrinsics();
+  pinhole.fx = k[0];
+  pinhole.fy = k[1];
+  pinhole.cx = k[2];
+  pinhole.cy = k[3];
+  pinhole.width = camera.width();
+  pinhole.height = camera.height();
+  const Eigen::Matrix3d r = camera.cam_from_world().rotation();
+  for (int row = 0; row < 3; ++row) {
+    for (int col = 0; col < 3; ++col) pinhole.cam_from_world_rotation[3 * row + col] = r(row, col);
+    pinhole.cam_from_world_translation[row] = camera.cam_from_world().translation()[row];
+  }
+  return pinhole;
+}
+
+SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& camera,
+                         const cv::Mat& background, int sh_degree) {
+  const splat::PinholeCamera pinhole = ToPinhole(camera);
+  splat::RasterOptions options;
+  options.active_sh_degree = sh_degree;
+  splat::ProjectedArrays<float> projected;
+  splat::ProjectGaussians(gaussians, pinhole, options, &projected);
+  SplatRender out;
+  out.color.create(camera.height(), camera.width(), CV_32FC3);
+  out.alpha.create(camera.height(), camera.width(), CV_32FC1);
+  out.depth.create(camera.height(), camera.width(), CV_32FC1);
+  cv::Mat bg;
+  if (!background.empty()) {
+    bg = background.isContinuous() ? background : background.clone();
+    if (bg.type() != CV_32FC3 || bg.size() != out.color.size())
+      Fail("a splat render's background must be CV_32FC3 at the camera's size");
+  }
+  splat::RasterState state;
+  splat::RasterizeForward(projected, pinhole, options,
+                          bg.empty() ? static_cast<const float*>(nullptr) : bg.ptr<float>(),
+                          out.color.ptr<float>(), out.alpha.ptr<float>(), out.depth.ptr<float>(),
+                          &state);
+  return out;
+}
+
+void SplatModel::Save(const fs::path& dir) const {
+  CreateDirectories(dir / "cameras");
+  std::string bytes;
+  nlohmann::json fields = nlohmann::json::array();
+  for (const Field& field : kFields) {
+    const std::vector<float>& values = gaussians.*field.member;
+    bytes.append(reinterpret_cast<const char*>(values.data()), values.size() * sizeof(float));
+    fields.push_back(field.name);
+  }
+  WriteFileAtomic(dir / "gaussians.bin", bytes);
+  nlohmann::json names = nlohmann::json::array();
+  for (size_t k = 0; k < cameras.size(); ++k) {
+    const std::string name = Cat("view", k);
+    cameras[k].Write(dir / "cameras" / (name + ".cameramodel"));
+    names.push_back(name);
+  }
+  const Eigen::Vector3d lo = box.min(), hi = box.max();
+  nlohmann::json json = {{"method", "splat"},
+                         {"gaussians", gaussians.size()},
+                         {"sh_degree", gaussians.sh_degree},
+                         {"fields", fields},
+                         {"format", "float32 little-endian, each field for every Gaussian in turn"},
+                         {"cameras", names},
+                         {"box_min", {lo.x(), lo.y(), lo.z()}},
+                         {"box_max", {hi.x(), hi.y(), hi.z()}},
+                         {"plan", plan}};
+  WriteFileAtomic(dir / "model.json", json.dump(2) + "\n");
+}
+
+SplatModel SplatModel::Load(const fs::path& dir) {
+  nlohmann::json json;
+  try {
+    json = nlohmann::json::parse(ReadFileToString(dir / "model.json"));
+  } catch (const nlohmann::json::exception& e) {
+    Fail("cannot read ", (dir / "model.json").string(), ": ", e.what());
+  }
+  SplatModel model;
+  if (json.value("method", "") != "splat") Fail(dir.string(), " does not hold a splat model");
+  const int64_t count = json.at("gaussians").get<int64_t>();
+  model.gaussians.sh_degree = json.at("sh_degree").get<int>();
+  if (count < 0 || model.gaussians.sh_degree < 0 ||
+      model.gaussians.sh_degree > splat::kMaxShDegree) {
+    Fail(dir.string(), "/model.json: bad count or degree");
+  }
+  model.gaussians.Resize(count);
+  const std::string bytes = ReadFileToString(dir / "gaussians.bin");
+  size_t offset = 0;
+  for (const Field& field : kFields) {
+    std::vector<float>& values = model.gaussians.*field.member;
+    const size_t size = values.size() * sizeof(float);
+    if (offset + size > bytes.size())
+      Fail((dir / "gaussians.bin").string(), " is shorter than model.json says");
+    std::memcpy(values.data(), bytes.data() + offset, size);
+    offset += size;
+  }
+  if (offset != bytes.size())
+    Fail((dir / "gaussians.bin").string(), " is longer than model.json says");
+  for (const auto& name : json.at("cameras"))
+    model.cameras.push_back(
+        CameraModel::Read(dir / "cameras" / (name.get<std::string>() + ".cameramodel")));
+  const auto lo = json.at("box_min").get<std::vector<double>>();
+  const auto hi = json.at("box_max").get<std::vector<double>>();
+  model.box = Eigen::AlignedBox3d(Eigen::Vector3d(lo[0], lo[1], lo[2]),
+                                  Eigen::Vector3d(hi[0], hi[1], hi[2]));
+  model.plan = json.value("plan", nlohmann::json::object());
+  return model;
+}
+
+namespace {
+
+// A splat model as playback sees it: one static frame, drawn natively.
+class SplatAvatar : public AvatarModel {
+ public:
+  explicit SplatAvatar(SplatModel model) : model_(std::move(model)) {}
+  std::string method() const override { return "splat"; }
+  int64_t frame_count() const override { return 1; }
+  Eigen::Vector3d box_min() const override { return model_.box.min(); }
+  Eigen::Vector3d box_max() const override { return model_.box.max(); }
+  std::vector<CameraModel> cameras() const override { return model_.cameras; }
+  RenderedView Render(const CameraModel& camera, int64_t frame,
+                      const ViewRenderOptions& options) override {
+    const auto start = std::chrono::steady_clock::now();
+    SplatRender render = RenderSplats(model_.gaussians, camera);
+    RenderedView view;
+    view.color = render.color;
+    view.alpha = render.alpha;
+    view.depth = render.depth.clone();
+    for (int y = 0; y < view.depth.rows; ++y) {
+      float* depth = view.depth.ptr<float>(y);
+      const float* alpha = render.alpha.ptr<float>(y);
+      for (int x = 0; x < view.depth.cols; ++x) {
+        if (alpha[x] < options.depth_min_alpha) depth[x] = std::numeric_limits<float>::quiet_NaN();
+      }
+    }
+    view.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    return view;
+  }
+
+ private:
+  SplatModel model_;
+};
+
+}  // namespace
+
+void RegisterSplatModelKind() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    RegisterModelKind("splat", [](const fs::path& dir, const nlohmann::json&) {
+      return std::unique_ptr<AvatarModel>(new SplatAvatar(SplatModel::Load(dir)));
+    });
+  });
+}
+
+}  // namespace holocap

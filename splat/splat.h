@@ -1,0 +1,188 @@
+// Splat avatars: anisotropic 3D Gaussians (Kerbl et al. 2023) trained on the CPU against a
+// take's calibrated cameras, seeded from holocap's own reconstruction of the frame, and played
+// back natively by `holocap render`. The whole public interface of holocap_splat; the kernels
+// it runs are in splat/kernels.h.
+//
+// The method, after the paper:
+//   Gaussians  position, rotation (quaternion), log-scale, logit-opacity, colour as spherical
+//              harmonics up to degree 3 (the degree an option, raised progressively)
+//   renderer   EWA projection through the camera's pinhole intrinsics, 16x16 tiles with
+//              per-tile depth-sorted lists, front-to-back compositing (splat/kernels.h)
+//   loss       (1 - lambda) L1 + lambda D-SSIM, lambda = 0.2
+//   optimiser  Adam with the paper's per-parameter rates (the position's decaying), densified
+//              by the view-space positional gradient (clone small Gaussians, split large ones)
+//              and pruned (transparent, too large, degenerate, out of the volume)
+//
+// What differs for a calibrated rig: the Gaussians start on the frame's reconstructed surface
+// (reconstruction/: the hull, TSDF or MVS the take's plan chooses), one per surface sample,
+// coloured by the training cameras that see it, not from random or SfM points. Lenses that
+// distort are handled by undistorting the training images to the pinhole of the same
+// intrinsics core (said in the plan). A static take trains one frame and nothing temporal.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <cstdint>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "core/camera.h"
+#include "core/report.h"
+#include "core/take_plan.h"
+#include "splat/kernels.h"
+
+namespace holocap {
+
+struct SplatOptions {
+  // Model.
+  int sh_degree = 3;                // spherical-harmonic degree reached (0..3)
+  int sh_degree_every = 1000;       // iterations between raising the active degree by one
+  int64_t max_gaussians = 400000;   // densification stops adding at this count (said in the
+                                    // report when it bit)
+  int64_t max_seed_points = 20000;  // surface samples the model starts from
+  double seed_scale_factor = 1.0;   // initial scale: this x the mean spacing of the seeds
+  double initial_opacity = 0.1;     // of every seeded Gaussian
+
+  // Data (the shared training flags; the same held-out choice as Neural Volumes).
+  int image_width = 0;               // training/evaluation width (cameras rescaled); 0: native
+  int heldout_cameras = 2;           // cameras never trained on, spread around the rig
+  std::vector<std::string> heldout;  // or these by name (overrides heldout_cameras)
+  TakeSelection take;                // frame sets, clean plate and cameras (core/take_plan.h)
+  std::string recon_dir;             // seed from this reconstruction (recon/<set>.ply) instead
+                                     // of running one
+
+  // Optimisation.
+  double minutes = 5;           // wall-clock budget
+  int64_t iterations = 0;       // > 0: stop after this many iterations (whichever first)
+  double learning_rate = 1.0;   // multiplies every parameter group's rate (1: the paper's)
+  double position_lr = 1.6e-4;  // x the scene's extent, decaying to 1/100 over the run
+  double sh_lr = 2.5e-3;        // degree 0; higher degrees / 20
+  double opacity_lr = 0.05;
+  double scale_lr = 5e-3;
+  double rotation_lr = 1e-3;
+  double ssim_weight = 0.2;       // lambda of (1 - lambda) L1 + lambda D-SSIM
+  double min_scale_px = 0.1;      // scale floor: this many pixels' footprint at the scene's
+                                  // median distance (keeps covariances positive definite)
+  double max_scale_extent = 0.5;  // scale cap, x the scene's extent
+  uint64_t seed = 1;
+
+  // Densification and pruning.
+  int64_t densify_from = 100;          // first iteration that densifies
+  int64_t densify_until = 15000;       // last
+  int64_t densify_every = 100;         // iterations between densifications
+  double densify_gradient = 2e-4;      // mean view-space positional gradient (NDC units, as the
+                                       // paper's) above which a Gaussian is cloned or split
+  double percent_dense = 0.01;         // larger than this x the extent: split, else clone
+  double prune_opacity = 0.005;        // more transparent Gaussians are removed
+  double prune_extent = 0.1;           // larger than this x the extent (world): removed
+  int64_t opacity_reset_every = 3000;  // opacities lowered to 0.01 (0: never)
+
+  // Bookkeeping.
+  double eval_every_s = 20;           // held-out PSNR/SSIM every this many seconds
+  int64_t eval_every_iterations = 0;  // > 0: every this many iterations instead
+  double divergence_factor = 2.0;     // a loss above this x its running mean is a divergence
+  int max_divergences = 5;            // then training stops with FAILURE
+  int64_t snapshot_every = 50;        // iterations between restore points of the guard
+  int threads = 0;                    // 0: all cores
+
+  void Check() const;  // throws Error naming the bad field and why
+  nlohmann::json ToJson() const;
+};
+
+// One view of the scene a splat model trains on: a pinhole camera at the training size, its
+// image, the subject's silhouette and the background the splats are composited over.
+struct SplatView {
+  std::string name;
+  CameraModel camera;  // LENSMODEL_PINHOLE
+  cv::Mat image;       // CV_8UC3 BGR
+  cv::Mat mask;        // CV_8UC1, 255 = subject
+  cv::Mat background;  // CV_8UC3 BGR
+  bool heldout = false;
+};
+
+// Where the Gaussians start: points on the reconstructed surface with their colours.
+struct SplatSeed {
+  std::vector<Eigen::Vector3f> points;  // world, metres
+  std::vector<Eigen::Vector3f> colors;  // BGR in [0, 1]
+  double spacing_m = 0;                 // mean distance between neighbouring points
+  std::string source;                   // for the plan ("hull of set 0, 12345 vertices")
+};
+
+struct SplatScene {
+  std::vector<SplatView> views;
+  SplatSeed seed;
+  Eigen::AlignedBox3d box;  // the volume the subject lives in (Gaussians leaving it are removed)
+  nlohmann::json plan = nlohmann::json::object();
+};
+
+// NO_CONVERGENCE when the budget is spent; DEGENERATE when the seed is empty (an empty frame or
+// reconstruction), when the held-out views show no subject, or when the held-out subject is no
+// better than the background alone; FAILURE on repeated divergence or a non-finite result.
+struct SplatSummary : Summary {
+  nlohmann::json plan;
+  int64_t iterations = 0;
+  double seconds = 0;
+  double first_loss = 0, last_loss = 0;
+  double heldout_psnr_db = 0;        // held-out cameras, whole image
+  double heldout_psnr_fg_db = 0;     // inside the subject's silhouettes (grown 3 px)
+  double background_psnr_fg_db = 0;  // the same pixels as background alone
+  double heldout_ssim = 0;
+  double train_psnr_db = 0;  // the training views at the end
+  int64_t gaussians = 0;
+  int64_t seed_points = 0;
+  bool cap_reached = false;  // densification stopped at max_gaussians
+  int64_t cloned = 0, split = 0;
+  int64_t pruned_transparent = 0, pruned_large = 0, pruned_degenerate = 0, pruned_outside = 0;
+  int64_t floored_scales = 0;  // scale values lifted to the floor (collapsing Gaussians)
+  int divergences = 0;
+  double megabytes = 0;   // the stored model
+  double render_fps = 0;  // held-out view at the training size, after training
+};
+
+// Reads a take into a splat scene: the same views, held-out cameras, silhouettes and
+// backgrounds as Neural Volumes (neural/data.h), distortion removed, and the seed from the
+// reconstruction of the first planned frame set (options.recon_dir, else one run now with the
+// plan's method into model_dir/seed_recon). Throws Error for a take that cannot be trained on.
+SplatScene LoadSplatScene(const std::filesystem::path& take_dir,
+                          const std::filesystem::path& model_dir, const SplatOptions& options);
+
+// Trains on a scene into `model_dir` (model.json, gaussians.bin, cameras/, heldout/,
+// report.json). `report` receives options, plan, metrics and the series heldout_psnr_db,
+// heldout_psnr_fg_db, heldout_ssim, loss and gaussians against time and iteration.
+SplatSummary TrainSplatsOn(const SplatScene& scene, const std::filesystem::path& model_dir,
+                           const SplatOptions& options, Report* report = nullptr);
+// LoadSplatScene then TrainSplatsOn.
+SplatSummary TrainSplats(const std::filesystem::path& take_dir,
+                         const std::filesystem::path& model_dir, const SplatOptions& options,
+                         Report* report = nullptr);
+
+// A trained splat model on disk.
+struct SplatModel {
+  splat::Gaussians gaussians;
+  std::vector<CameraModel> cameras;  // the training views'
+  Eigen::AlignedBox3d box;
+  nlohmann::json plan;
+
+  void Save(const std::filesystem::path& dir) const;         // model.json + gaussians.bin, atomic
+  static SplatModel Load(const std::filesystem::path& dir);  // throws Error
+};
+
+// A pinhole camera in the kernels' terms (the intrinsics core of any lens model).
+splat::PinholeCamera ToPinhole(const CameraModel& camera);
+
+// Renders Gaussians through a camera: colour CV_32FC3 BGR over `background` (empty: black),
+// alpha CV_32FC1 and depth CV_32FC1 (z, metres, 0 where nothing is drawn).
+struct SplatRender {
+  cv::Mat color, alpha, depth;
+};
+SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& camera,
+                         const cv::Mat& background = {}, int sh_degree = splat::kMaxShDegree);
+
+// Lets OpenModel (neural/neural.h) open "splat" model directories, so `holocap render` plays
+// them. Idempotent.
+void RegisterSplatModelKind();
+
+}  // namespace holocap

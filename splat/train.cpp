@@ -1,0 +1,696 @@
+// Training splats: one random training view per iteration, L1 + D-SSIM, Adam with per-group
+// rates, densification and pruning, held-out cameras evaluated against wall time, and the
+// divergence guard (restore the last healthy state, halve the rates).
+#include <omp.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <numeric>
+#include <opencv2/imgproc.hpp>
+#include <random>
+
+#include "core/error.h"
+#include "core/fs.h"
+#include "core/image.h"
+#include "core/progress.h"
+#include "neural/neural.h"
+#include "splat/splat.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+using splat::Gaussians;
+
+constexpr double kShC0 = 0.28209479177387814;
+constexpr float kMaxOpacityLogit = 12.0f;
+
+std::vector<float> ToFloat(const cv::Mat& bgr8) {
+  cv::Mat f;
+  bgr8.convertTo(f, CV_32FC3, 1.0 / 255.0);
+  return std::vector<float>(f.ptr<float>(), f.ptr<float>() + f.total() * 3);
+}
+
+float Logit(double p) { return static_cast<float>(std::log(p / (1 - p))); }
+
+// Adam's moments of every parameter, laid out as the Gaussians are.
+struct Moments {
+  Gaussians first, second;
+};
+
+// Everything the divergence guard restores.
+struct Snapshot {
+  Gaussians gaussians;
+  Moments moments;
+  int64_t iteration = 0;
+  int64_t adam_step = 0;
+};
+
+struct Evaluation {
+  double psnr_db = 0, psnr_fg_db = 0, background_psnr_fg_db = 0, ssim = 0;
+  bool subject_seen = false;  // a held-out silhouette holds any pixel
+};
+
+class Trainer {
+ public:
+  Trainer(const SplatScene& scene, const SplatOptions& options, const fs::path& model_dir)
+      : scene_(scene), options_(options), model_dir_(model_dir), rng_(options.seed) {
+    for (size_t v = 0; v < scene.views.size(); ++v) {
+      const SplatView& view = scene.views[v];
+      (view.heldout ? heldout_ : training_).push_back(static_cast<int>(v));
+      cameras_.push_back(ToPinhole(view.camera));
+      targets_.push_back(ToFloat(view.image));
+      backgrounds_.push_back(ToFloat(view.background));
+    }
+    if (training_.empty()) Fail("no training view: every camera is held out");
+    MeasureScene();
+  }
+
+  SplatSummary Run(Report* report);
+
+ private:
+  void MeasureScene();
+  void Seed(SplatSummary* summary);
+  double TrainStep(int64_t iteration, int view);
+  void AdamStep(double progress);
+  void BoundParameters();
+  void Densify(SplatSummary* summary);
+  void Prune(bool prune_large, SplatSummary* summary);
+  void Keep(const std::vector<int64_t>& indices);
+  void ResetOpacity();
+  Evaluation Evaluate(bool write_images);
+  double TrainingPsnr();
+  bool Finite() const;
+  void DescribePlan(SplatSummary* summary) const;
+  void Judge(int64_t iteration, SplatSummary* summary) const;
+  void Finish(SplatSummary* summary);
+  int ActiveDegree(int64_t iteration) const {
+    return static_cast<int>(
+        std::min<int64_t>(options_.sh_degree, iteration / std::max(1, options_.sh_degree_every)));
+  }
+
+  const SplatScene& scene_;
+  SplatOptions options_;
+  fs::path model_dir_;
+  std::mt19937_64 rng_;
+  std::vector<int> training_, heldout_;
+  std::vector<splat::PinholeCamera> cameras_;
+  std::vector<std::vector<float>> targets_, backgrounds_;
+  double extent_ = 1;  // the paper's "cameras extent": 1.1 x the farthest camera from
+                       // their mean centre
+  double min_log_scale_ = -20, max_log_scale_ = 0;
+  Gaussians gaussians_, gradient_;
+  Moments moments_;
+  int64_t adam_step_ = 0;
+  double lr_scale_ = 1;
+  std::vector<float> grad_accum_;  // densification's statistic, per Gaussian
+  std::vector<int32_t> grad_count_;
+  int64_t floored_ = 0;
+  bool reset_done_ = false;
+  bool subject_seen_ = false;  // by the last evaluation's held-out silhouettes
+  // Scratch of one iteration.
+  splat::ProjectedArrays<float> projected_;
+  splat::ProjectedGradients<float> projected_gradients_;
+  splat::RasterState raster_;
+  std::vector<float> image_, dloss_;
+};
+
+void Trainer::MeasureScene() {
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (const auto& view : scene_.views) mean += view.camera.center_in_world();
+  mean /= scene_.views.size();
+  double farthest = 0;
+  std::vector<double> distances;
+  const Eigen::Vector3d subject = scene_.box.center();
+  for (const auto& view : scene_.views) {
+    farthest = std::max(farthest, (view.camera.center_in_world() - mean).norm());
+    distances.push_back((view.camera.center_in_world() - subject).norm());
+  }
+  // One camera (or cameras at one place) has no spread: the subject's box stands in.
+  extent_ = 1.1 * std::max(farthest, 0.5 * scene_.box.diagonal().norm());
+  std::nth_element(distances.begin(), distances.begin() + distances.size() / 2, distances.end());
+  const double median_distance = distances[distances.size() / 2];
+  const double focal = scene_.views.front().camera.intrinsics()[0];
+  min_log_scale_ = std::log(options_.min_scale_px * median_distance / focal);
+  max_log_scale_ = std::log(options_.max_scale_extent * extent_);
+}
+
+// One Gaussian per seed point: isotropic at the seeds' spacing, the seed's colour as the
+// degree-0 coefficient, the paper's initial opacity.
+void Trainer::Seed(SplatSummary* summary) {
+  const SplatSeed& seed = scene_.seed;
+  gaussians_.sh_degree = options_.sh_degree;
+  const int64_t n = static_cast<int64_t>(seed.points.size());
+  gaussians_.Resize(n);
+  const int k = gaussians_.coefficients();
+  // Not clamped here: BoundParameters lifts (and counts) seeds below the floor.
+  const float log_scale =
+      static_cast<float>(std::log(options_.seed_scale_factor * std::max(seed.spacing_m, 1e-30)));
+  for (int64_t i = 0; i < n; ++i) {
+    for (int a = 0; a < 3; ++a) {
+      gaussians_.position[3 * i + a] = seed.points[i][a];
+      gaussians_.log_scale[3 * i + a] = log_scale;
+      gaussians_.sh[(i * k) * 3 + a] = static_cast<float>((seed.colors[i][a] - 0.5) / kShC0);
+    }
+    gaussians_.rotation[4 * i] = 1;
+    gaussians_.opacity[i] = Logit(options_.initial_opacity);
+  }
+  gradient_.sh_degree = moments_.first.sh_degree = moments_.second.sh_degree = options_.sh_degree;
+  moments_.first.Resize(n);
+  moments_.second.Resize(n);
+  grad_accum_.assign(n, 0);
+  grad_count_.assign(n, 0);
+  summary->seed_points = n;
+}
+
+double Trainer::TrainStep(int64_t iteration, int v) {
+  const splat::PinholeCamera& camera = cameras_[v];
+  splat::RasterOptions raster;
+  raster.active_sh_degree = ActiveDegree(iteration);
+  splat::ProjectGaussians(gaussians_, camera, raster, &projected_);
+  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+  image_.resize(3 * pixels);
+  dloss_.resize(3 * pixels);
+  splat::RasterizeForward(projected_, camera, raster, backgrounds_[v].data(), image_.data(),
+                          static_cast<float*>(nullptr), static_cast<float*>(nullptr), &raster_);
+  const double loss = splat::PhotometricLoss(image_.data(), targets_[v].data(), camera.width,
+                                             camera.height, options_.ssim_weight, dloss_.data());
+  if (!std::isfinite(loss)) return loss;
+  splat::RasterizeBackward(projected_, camera, raster, raster_, backgrounds_[v].data(),
+                           dloss_.data(), static_cast<const float*>(nullptr),
+                           &projected_gradients_);
+  gradient_.Resize(0);
+  gradient_.Resize(gaussians_.size());
+  splat::ProjectBackward(gaussians_, camera, raster, projected_, projected_gradients_, &gradient_);
+  // The paper's statistic: the positional gradient in normalised device coordinates.
+  const float half_w = 0.5f * camera.width, half_h = 0.5f * camera.height;
+  for (int64_t i = 0; i < gaussians_.size(); ++i) {
+    if (projected_.radius[i] <= 0) continue;
+    const float gu = projected_gradients_.mean2d[2 * i] * half_w;
+    const float gv = projected_gradients_.mean2d[2 * i + 1] * half_h;
+    grad_accum_[i] += std::sqrt(gu * gu + gv * gv);
+    ++grad_count_[i];
+  }
+  return loss;
+}
+
+// Adam on every group with its own rate; the position's decays exponentially to 1/100.
+void Trainer::AdamStep(double progress) {
+  ++adam_step_;
+  const double beta1 = 0.9, beta2 = 0.999, epsilon = 1e-15;
+  const double correction1 = 1 - std::pow(beta1, adam_step_);
+  const double correction2 = 1 - std::pow(beta2, adam_step_);
+  const double position_lr = options_.position_lr * extent_ * std::pow(0.01, progress);
+  // Elements whose index within a stride-long block is below 3 move at lr_first, the others at
+  // lr_rest (the spherical harmonics: degree 0 at the full rate, the rest at 1/20).
+  auto step = [&](std::vector<float>& p, const std::vector<float>& g, std::vector<float>& m,
+                  std::vector<float>& s, double lr_first, double lr_rest, size_t stride) {
+    const double scale = lr_scale_ * options_.learning_rate;
+    const float first = static_cast<float>(lr_first * scale);
+    const float rest = static_cast<float>(lr_rest * scale);
+    const float b1 = static_cast<float>(beta1), b2 = static_cast<float>(beta2);
+    const float c1 = static_cast<float>(1 / correction1), c2 = static_cast<float>(1 / correction2);
+    const size_t n = p.size();
+#pragma omp parallel for schedule(static)
+    for (size_t k = 0; k < n; ++k) {
+      const float rate = stride == 0 || k % stride < 3 ? first : rest;
+      m[k] = b1 * m[k] + (1 - b1) * g[k];
+      s[k] = b2 * s[k] + (1 - b2) * g[k] * g[k];
+      p[k] -= rate * (m[k] * c1) / (std::sqrt(s[k] * c2) + static_cast<float>(epsilon));
+    }
+  };
+  Gaussians& m = moments_.first;
+  Gaussians& s = moments_.second;
+  step(gaussians_.position, gradient_.position, m.position, s.position, position_lr, 0, 0);
+  step(gaussians_.rotation, gradient_.rotation, m.rotation, s.rotation, options_.rotation_lr, 0, 0);
+  step(gaussians_.log_scale, gradient_.log_scale, m.log_scale, s.log_scale, options_.scale_lr, 0,
+       0);
+  step(gaussians_.opacity, gradient_.opacity, m.opacity, s.opacity, options_.opacity_lr, 0, 0);
+  step(gaussians_.sh, gradient_.sh, m.sh, s.sh, options_.sh_lr, options_.sh_lr / 20,
+       3 * gaussians_.coefficients());
+}
+
+// Bounded activations: scales between the floor and the cap (the floor keeps every covariance
+// positive definite; a Gaussian collapsing to a plane stops at it and is counted), opacity
+// logits within +-12, quaternions that lost their length reset.
+void Trainer::BoundParameters() {
+  int64_t floored = 0;
+  const float lo = static_cast<float>(min_log_scale_), hi = static_cast<float>(max_log_scale_);
+#pragma omp parallel for schedule(static) reduction(+ : floored)
+  for (int64_t i = 0; i < gaussians_.size(); ++i) {
+    for (int a = 0; a < 3; ++a) {
+      float& s = gaussians_.log_scale[3 * i + a];
+      if (s < lo) ++floored;
+      s = std::clamp(s, lo, hi);
+    }
+    gaussians_.opacity[i] = std::clamp(gaussians_.opacity[i], -kMaxOpacityLogit, kMaxOpacityLogit);
+    float* q = &gaussians_.rotation[4 * i];
+    if (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] < 1e-12f) {
+      q[0] = 1;
+      q[1] = q[2] = q[3] = 0;
+    }
+  }
+  floored_ += floored;
+}
+
+// Keeps the Gaussians at `indices` (in that order, repeats allowed), parameters and moments.
+void Trainer::Keep(const std::vector<int64_t>& indices) {
+  auto select = [&](Gaussians& g) {
+    Gaussians out;
+    out.sh_degree = g.sh_degree;
+    for (int64_t i : indices) out.AppendFrom(g, i);
+    g = std::move(out);
+  };
+  select(gaussians_);
+  select(moments_.first);
+  select(moments_.second);
+  std::vector<float> accum;
+  std::vector<int32_t> count;
+  for (int64_t i : indices) {
+    accum.push_back(grad_accum_[i]);
+    count.push_back(grad_count_[i]);
+  }
+  grad_accum_ = std::move(accum);
+  grad_count_ = std::move(count);
+}
+
+// The paper's densification: Gaussians whose mean view-space positional gradient exceeds the
+// threshold are cloned (small ones: the copy moves apart under the gradient) or split in two
+// (large ones: each sampled from the original, scales / 1.6). Stops at max_gaussians.
+void Trainer::Densify(SplatSummary* summary) {
+  const int64_t n = gaussians_.size();
+  const double split_above = options_.percent_dense * extent_;
+  std::vector<int64_t> keep, clones, splits;
+  for (int64_t i = 0; i < n; ++i) {
+    const bool hot = grad_count_[i] > 0 && grad_accum_[i] / grad_count_[i] >=
+                                               static_cast<float>(options_.densify_gradient);
+    const float* ls = &gaussians_.log_scale[3 * i];
+    const double largest = std::exp(std::max({ls[0], ls[1], ls[2]}));
+    if (hot && largest > split_above) {
+      splits.push_back(i);
+    } else {
+      keep.push_back(i);
+      if (hot) clones.push_back(i);
+    }
+  }
+  // Each clone adds one Gaussian, each split one net: within the cap, the first ones win.
+  const int64_t room = std::max<int64_t>(0, options_.max_gaussians - n);
+  if (static_cast<int64_t>(clones.size() + splits.size()) > room) {
+    summary->cap_reached = true;
+    const int64_t clone_room = std::min<int64_t>(clones.size(), room);
+    for (size_t k = room - clone_room; k < splits.size(); ++k) keep.push_back(splits[k]);
+    splits.resize(room - clone_room);
+    clones.resize(clone_room);
+    std::sort(keep.begin(), keep.end());
+  }
+  std::vector<int64_t> order = keep;
+  order.insert(order.end(), clones.begin(), clones.end());
+  for (int64_t i : splits) {
+    order.push_back(i);
+    order.push_back(i);
+  }
+  const Gaussians before = gaussians_;
+  Keep(order);
+  // The split pairs: positions drawn from the original Gaussian, scales shrunk.
+  std::normal_distribution<float> normal(0.0f, 1.0f);
+  const int64_t first_split = static_cast<int64_t>(keep.size() + clones.size());
+  for (int64_t j = first_split; j < gaussians_.size(); ++j) {
+    const int64_t i = splits[(j - first_split) / 2];
+    const float* q = &before.rotation[4 * i];
+    const Eigen::Quaternionf rotation = Eigen::Quaternionf(q[0], q[1], q[2], q[3]).normalized();
+    Eigen::Vector3f offset;
+    for (int a = 0; a < 3; ++a) offset[a] = normal(rng_) * std::exp(before.log_scale[3 * i + a]);
+    const Eigen::Vector3f moved = rotation * offset;
+    for (int a = 0; a < 3; ++a) {
+      gaussians_.position[3 * j + a] += moved[a];
+      gaussians_.log_scale[3 * j + a] -= std::log(1.6f);
+    }
+  }
+  summary->cloned += clones.size();
+  summary->split += splits.size();
+  std::fill(grad_accum_.begin(), grad_accum_.end(), 0.0f);
+  std::fill(grad_count_.begin(), grad_count_.end(), 0);
+}
+
+// Removes transparent Gaussians, too large ones (after the first opacity reset, as the paper),
+// degenerate ones (a value not finite) and those that left the volume.
+void Trainer::Prune(bool prune_large, SplatSummary* summary) {
+  const float min_logit = Logit(options_.prune_opacity);
+  const float max_log = static_cast<float>(std::log(options_.prune_extent * extent_));
+  const Eigen::Vector3d grow = Eigen::Vector3d::Constant(0.05 * scene_.box.diagonal().norm());
+  const Eigen::AlignedBox3d volume(scene_.box.min() - grow, scene_.box.max() + grow);
+  std::vector<int64_t> keep;
+  for (int64_t i = 0; i < gaussians_.size(); ++i) {
+    bool finite = std::isfinite(gaussians_.opacity[i]);
+    for (int a = 0; a < 3; ++a) {
+      finite = finite && std::isfinite(gaussians_.position[3 * i + a]) &&
+               std::isfinite(gaussians_.log_scale[3 * i + a]);
+    }
+    for (int a = 0; a < 4; ++a) finite = finite && std::isfinite(gaussians_.rotation[4 * i + a]);
+    if (!finite) {
+      ++summary->pruned_degenerate;
+      continue;
+    }
+    const Eigen::Vector3d p(gaussians_.position[3 * i], gaussians_.position[3 * i + 1],
+                            gaussians_.position[3 * i + 2]);
+    const float* ls = &gaussians_.log_scale[3 * i];
+    if (gaussians_.opacity[i] < min_logit) {
+      ++summary->pruned_transparent;
+    } else if (!volume.contains(p)) {
+      ++summary->pruned_outside;
+    } else if (prune_large && std::max({ls[0], ls[1], ls[2]}) > max_log) {
+      ++summary->pruned_large;
+    } else {
+      keep.push_back(i);
+    }
+  }
+  if (static_cast<int64_t>(keep.size()) != gaussians_.size()) Keep(keep);
+}
+
+// The paper's opacity reset: every opacity down to 0.01 (its moments cleared), so that the
+// Gaussians that matter earn their opacity back and the rest are pruned.
+void Trainer::ResetOpacity() {
+  const float reset = Logit(0.01);
+  for (int64_t i = 0; i < gaussians_.size(); ++i) {
+    gaussians_.opacity[i] = std::min(gaussians_.opacity[i], reset);
+    moments_.first.opacity[i] = moments_.second.opacity[i] = 0;
+  }
+  reset_done_ = true;
+}
+
+bool Trainer::Finite() const {
+  for (const std::vector<float>* field :
+       {&gaussians_.position, &gaussians_.log_scale, &gaussians_.opacity, &gaussians_.sh}) {
+    for (float value : *field)
+      if (!std::isfinite(value)) return false;
+  }
+  return true;
+}
+
+Evaluation Trainer::Evaluate(bool write_images) {
+  Evaluation result;
+  if (heldout_.empty()) return result;
+  double mse = 0, mse_fg = 0, mse_background = 0, ssim = 0;
+  for (int v : heldout_) {
+    const SplatView& view = scene_.views[v];
+    cv::Mat background;
+    view.background.convertTo(background, CV_32FC3, 1.0 / 255.0);
+    SplatRender render = RenderSplats(gaussians_, view.camera, background, options_.sh_degree);
+    cv::Mat predicted, truth;
+    cv::min(cv::max(render.color, 0.0), 1.0, predicted);
+    view.image.convertTo(truth, CV_32FC3, 1.0 / 255.0);
+    // The subject's silhouette in the held-out view, grown by 3 pixels (as Neural Volumes').
+    cv::Mat mask;
+    cv::dilate(view.mask, mask, cv::Mat(), cv::Point(-1, -1), 3);
+    result.subject_seen = result.subject_seen || cv::countNonZero(mask) > 0;
+    mse += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
+    if (cv::countNonZero(mask) > 0) {
+      mse_fg += std::pow(10.0, -PsnrDb(predicted, truth, mask) / 10.0);
+      mse_background += std::pow(10.0, -PsnrDb(background, truth, mask) / 10.0);
+    }
+    ssim += Ssim(predicted, truth);
+    if (write_images) {
+      cv::Mat side_by_side, image8;
+      cv::hconcat(predicted, truth, side_by_side);
+      side_by_side.convertTo(image8, CV_8UC3, 255.0);
+      CreateDirectories(model_dir_ / "heldout");
+      WritePng(model_dir_ / "heldout" / (view.name + ".png"), image8);
+    }
+  }
+  const double count = static_cast<double>(heldout_.size());
+  result.psnr_db = -10.0 * std::log10(mse / count);
+  result.psnr_fg_db = -10.0 * std::log10(mse_fg / count);
+  result.background_psnr_fg_db = -10.0 * std::log10(mse_background / count);
+  result.ssim = ssim / count;
+  return result;
+}
+
+double Trainer::TrainingPsnr() {
+  double mse = 0;
+  for (int v : training_) {
+    const SplatView& view = scene_.views[v];
+    cv::Mat background, truth, predicted;
+    view.background.convertTo(background, CV_32FC3, 1.0 / 255.0);
+    view.image.convertTo(truth, CV_32FC3, 1.0 / 255.0);
+    cv::min(
+        cv::max(RenderSplats(gaussians_, view.camera, background, options_.sh_degree).color, 0.0),
+        1.0, predicted);
+    mse += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
+  }
+  return -10.0 * std::log10(mse / training_.size());
+}
+
+void Trainer::DescribePlan(SplatSummary* summary) const {
+  summary->plan = scene_.plan;
+  summary->plan["method"] = "3D Gaussian splatting (Kerbl et al. 2023), CPU kernels";
+  summary->plan["seed"] = {{"source", scene_.seed.source},
+                           {"points", scene_.seed.points.size()},
+                           {"spacing_m", scene_.seed.spacing_m}};
+  summary->plan["training_cameras"] = nlohmann::json::array();
+  for (int v : training_) summary->plan["training_cameras"].push_back(scene_.views[v].name);
+  summary->plan["heldout"] = nlohmann::json::array();
+  for (int v : heldout_) summary->plan["heldout"].push_back(scene_.views[v].name);
+  summary->plan["extent_m"] = extent_;
+  summary->plan["scale_bounds_m"] = {std::exp(min_log_scale_), std::exp(max_log_scale_)};
+  summary->plan["losses"] = {{"l1", 1 - options_.ssim_weight}, {"dssim", options_.ssim_weight}};
+  summary->plan["device"] = "cpu (splat/kernels.h, OpenMP over 16x16 tiles)";
+}
+
+// How a run that did not diverge ended: not finite, no subject to judge, or a subject no better
+// than the background alone (DEGENERATE), or the budget spent.
+void Trainer::Judge(int64_t iteration, SplatSummary* summary) const {
+  if (!heldout_.empty() && !subject_seen_) {
+    summary->End(Termination::kDegenerate,
+                 "the held-out views show no subject (empty silhouettes): nothing to judge the "
+                 "splats by (an empty frame?)");
+  } else if (!std::isfinite(summary->last_loss) ||
+             (!heldout_.empty() && !std::isfinite(summary->heldout_psnr_db))) {
+    summary->End(Termination::kFailure, "the loss or the held-out PSNR is not finite");
+  } else if (!heldout_.empty() && summary->heldout_psnr_fg_db <= summary->background_psnr_fg_db) {
+    summary->End(Termination::kDegenerate,
+                 Cat("the subject in the held-out views (", summary->heldout_psnr_fg_db,
+                     " dB) is no better than the background alone (",
+                     summary->background_psnr_fg_db, " dB) after ", iteration, " iterations"));
+  } else {
+    summary->End(
+        Termination::kNoConvergence,
+        heldout_.empty()
+            ? Cat("trained ", iteration, " iterations in ", summary->seconds,
+                  " s (no held-out camera); training views ", summary->train_psnr_db, " dB")
+            : Cat("trained ", iteration, " iterations in ", summary->seconds, " s; held-out PSNR ",
+                  summary->heldout_psnr_db, " dB (subject ", summary->heldout_psnr_fg_db,
+                  " dB, background alone ", summary->background_psnr_fg_db, " dB), ",
+                  summary->gaussians, " Gaussians"));
+  }
+}
+
+SplatSummary Trainer::Run(Report* report) {
+  SplatSummary summary;
+  DescribePlan(&summary);
+  if (report != nullptr) report->plan() = summary.plan;
+  if (scene_.seed.points.empty()) {
+    summary.End(Termination::kDegenerate,
+                Cat("the reconstruction seed is empty (", scene_.seed.source,
+                    "): no surface to start the Gaussians from (an empty frame, or silhouettes "
+                    "that hold no subject)"));
+    return summary;
+  }
+  Seed(&summary);
+  BoundParameters();
+  Snapshot snapshot{gaussians_, moments_, 0, 0};
+  const auto start = std::chrono::steady_clock::now();
+  auto elapsed = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  };
+  const double budget_s = options_.minutes * 60.0;
+  Progress progress("splat train",
+                    options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
+  std::vector<double> reference(scene_.views.size(), -1), losses;
+  std::vector<int> order;
+  size_t cursor = 0;
+  double next_eval = 0;
+  Evaluation last_eval;
+  auto log_eval = [&](int64_t it, bool write_images) {
+    last_eval = Evaluate(write_images);
+    subject_seen_ = last_eval.subject_seen;
+    if (report == nullptr || heldout_.empty()) return;
+    report->AddPoint("heldout_psnr_db", last_eval.psnr_db, it);
+    report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, it);
+    report->AddPoint("heldout_ssim", last_eval.ssim, it);
+    report->AddPoint("gaussians", static_cast<double>(gaussians_.size()), it);
+    report->Write(model_dir_ / "report.json");
+  };
+  int64_t iteration = 0;
+  while (true) {
+    const double t = elapsed();
+    if (options_.iterations > 0 && iteration >= options_.iterations) break;
+    if (options_.minutes > 0 && t >= budget_s) break;
+    const bool eval_due = options_.eval_every_iterations > 0
+                              ? iteration % options_.eval_every_iterations == 0
+                              : t >= next_eval;
+    if (eval_due) {
+      log_eval(iteration, false);
+      next_eval = elapsed() + options_.eval_every_s;
+    }
+    double fraction = 0;
+    if (options_.iterations > 0) fraction = static_cast<double>(iteration) / options_.iterations;
+    if (options_.minutes > 0) fraction = std::max(fraction, t / budget_s);
+    if (cursor == order.size()) {
+      order = training_;
+      std::shuffle(order.begin(), order.end(), rng_);
+      cursor = 0;
+    }
+    const int v = order[cursor++];
+    const double loss = TrainStep(iteration, v);
+    bool diverged = !std::isfinite(loss) ||
+                    (reference[v] > 0 && loss > options_.divergence_factor * reference[v]);
+    if (!diverged) {
+      AdamStep(std::min(fraction, 1.0));
+      BoundParameters();
+      diverged = !Finite();
+    }
+    if (diverged) {
+      ++summary.divergences;
+      gaussians_ = snapshot.gaussians;
+      moments_ = snapshot.moments;
+      adam_step_ = snapshot.adam_step;
+      grad_accum_.assign(gaussians_.size(), 0);
+      grad_count_.assign(gaussians_.size(), 0);
+      lr_scale_ *= 0.5;
+      std::fprintf(stderr,
+                   "splat: iteration %lld: loss %g (view %s, %g before); restored iteration %lld, "
+                   "learning rates x%.3g\n",
+                   static_cast<long long>(iteration), loss, scene_.views[v].name.c_str(),
+                   reference[v], static_cast<long long>(snapshot.iteration), lr_scale_);
+      if (report != nullptr) report->AddPoint("divergence_lr_scale", lr_scale_, iteration);
+      iteration = snapshot.iteration;
+      std::fill(reference.begin(), reference.end(), -1.0);
+      if (summary.divergences > options_.max_divergences) {
+        summary.End(Termination::kFailure,
+                    Cat("training diverged ", summary.divergences, " times; stopped"));
+        break;
+      }
+      continue;
+    }
+    // The view's best loss since the model last changed shape: a run that drifts away from
+    // it step by step is caught as surely as one that jumps.
+    reference[v] = reference[v] < 0 ? loss : std::min(reference[v], loss);
+    losses.push_back(loss);
+    ++iteration;
+    bool changed = false;
+    if (iteration >= options_.densify_from && iteration <= options_.densify_until &&
+        iteration % options_.densify_every == 0) {
+      Densify(&summary);
+      Prune(reset_done_, &summary);
+      changed = true;
+    }
+    if (options_.opacity_reset_every > 0 && iteration % options_.opacity_reset_every == 0 &&
+        iteration <= options_.densify_until) {
+      ResetOpacity();
+      changed = true;
+    }
+    // A changed model renders differently: each view's reference starts again.
+    if (changed) std::fill(reference.begin(), reference.end(), -1.0);
+    if (iteration % options_.snapshot_every == 0) {
+      snapshot = Snapshot{gaussians_, moments_, iteration, adam_step_};
+    }
+    if (report != nullptr && iteration % 10 == 0) {
+      report->AddPoint("loss", loss, iteration);
+      report->AddPoint("gaussians", static_cast<double>(gaussians_.size()), iteration);
+    }
+    progress.Update(options_.iterations > 0 ? iteration : static_cast<int64_t>(t),
+                    Cat("it ", iteration, " loss ", loss, " held-out ", last_eval.psnr_db, " dB, ",
+                        gaussians_.size(), " Gaussians"));
+  }
+  progress.Finish();
+  summary.seconds = elapsed();
+  summary.iterations = iteration;
+  log_eval(iteration, true);
+  const size_t window = std::max<size_t>(1, std::min<size_t>(10, losses.size() / 4));
+  if (!losses.empty()) {
+    summary.first_loss = std::accumulate(losses.begin(), losses.begin() + window, 0.0) / window;
+    summary.last_loss = std::accumulate(losses.end() - window, losses.end(), 0.0) / window;
+  }
+  summary.heldout_psnr_db = last_eval.psnr_db;
+  summary.heldout_psnr_fg_db = last_eval.psnr_fg_db;
+  summary.background_psnr_fg_db = last_eval.background_psnr_fg_db;
+  summary.heldout_ssim = last_eval.ssim;
+  Finish(&summary);
+  if (summary.divergences <= options_.max_divergences) Judge(iteration, &summary);
+  return summary;
+}
+
+// The model on disk, its size, the training views' PSNR and the playback speed.
+void Trainer::Finish(SplatSummary* summary) {
+  summary->gaussians = gaussians_.size();
+  summary->floored_scales = floored_;
+  summary->train_psnr_db = TrainingPsnr();
+  SplatModel model;
+  model.gaussians = gaussians_;
+  for (const auto& view : scene_.views) model.cameras.push_back(view.camera);
+  model.box = scene_.box;
+  model.plan = summary->plan;
+  model.Save(model_dir_);
+  summary->megabytes = static_cast<double>(fs::file_size(model_dir_ / "gaussians.bin")) / 1e6;
+  const SplatView& view = scene_.views[heldout_.empty() ? training_.front() : heldout_.front()];
+  const auto start = std::chrono::steady_clock::now();
+  const int renders = 3;
+  for (int k = 0; k < renders; ++k) RenderSplats(gaussians_, view.camera, {}, options_.sh_degree);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  summary->render_fps = renders / std::max(seconds, 1e-9);
+}
+
+}  // namespace
+
+SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
+                           const SplatOptions& options, Report* report) {
+  options.Check();
+  if (options.threads > 0) omp_set_num_threads(options.threads);
+  CreateDirectories(model_dir);
+  if (report != nullptr) report->options() = options.ToJson();
+  Trainer trainer(scene, options, model_dir);
+  SplatSummary summary = trainer.Run(report);
+  if (report != nullptr) {
+    report->plan() = summary.plan;
+    report->metrics() = {{"heldout_psnr_db", summary.heldout_psnr_db},
+                         {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
+                         {"heldout_ssim", summary.heldout_ssim},
+                         {"background_psnr_fg_db", summary.background_psnr_fg_db},
+                         {"train_psnr_db", summary.train_psnr_db},
+                         {"iterations", summary.iterations},
+                         {"seconds", summary.seconds},
+                         {"first_loss", summary.first_loss},
+                         {"last_loss", summary.last_loss},
+                         {"gaussians", summary.gaussians},
+                         {"seed_points", summary.seed_points},
+                         {"cap_reached", summary.cap_reached},
+                         {"max_gaussians", options.max_gaussians},
+                         {"cloned", summary.cloned},
+                         {"split", summary.split},
+                         {"pruned_transparent", summary.pruned_transparent},
+                         {"pruned_large", summary.pruned_large},
+                         {"pruned_degenerate", summary.pruned_degenerate},
+                         {"pruned_outside", summary.pruned_outside},
+                         {"floored_scales", summary.floored_scales},
+                         {"divergences", summary.divergences},
+                         {"megabytes", summary.megabytes},
+                         {"render_fps", summary.render_fps}};
+    report->SetSummary(summary);
+    report->Write(model_dir / "report.json");
+  }
+  return summary;
+}
+
+SplatSummary TrainSplats(const fs::path& take_dir, const fs::path& model_dir,
+                         const SplatOptions& options, Report* report) {
+  options.Check();
+  if (options.threads > 0) omp_set_num_threads(options.threads);
+  CreateDirectories(model_dir);
+  const SplatScene scene = LoadSplatScene(take_dir, model_dir, options);
+  return TrainSplatsOn(scene, model_dir, options, report);
+}
+
+}  // namespace holocap

@@ -1,0 +1,258 @@
+// The splatting kernels' backward passes against central finite differences, in double, on
+// small scenes whose every Gaussian lies well inside the smooth part of the functions (no
+// alpha clamp, no threshold, no tile edge crossing within a step).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <functional>
+#include <random>
+#include <vector>
+
+#include "splat/kernels.h"
+
+namespace holocap::splat {
+namespace {
+
+// A camera 2.5 m in front of the origin, looking at it along +z, slightly rotated.
+PinholeCamera TestCamera(int width = 36, int height = 30) {
+  PinholeCamera camera;
+  camera.fx = 45;
+  camera.fy = 43;
+  camera.cx = 0.5 * (width - 1) + 1.3;
+  camera.cy = 0.5 * (height - 1) - 0.7;
+  camera.width = width;
+  camera.height = height;
+  const double angle = 0.2;
+  const double r[9] = {std::cos(angle),  0, std::sin(angle), 0, 1, 0,
+                       -std::sin(angle), 0, std::cos(angle)};
+  for (int k = 0; k < 9; ++k) camera.cam_from_world_rotation[k] = r[k];
+  camera.cam_from_world_translation[0] = 0.05;
+  camera.cam_from_world_translation[1] = -0.03;
+  camera.cam_from_world_translation[2] = 2.5;
+  return camera;
+}
+
+GaussianArrays<double> RandomGaussians(int count, int degree, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> unit(-1, 1);
+  GaussianArrays<double> g;
+  g.sh_degree = degree;
+  g.Resize(count);
+  for (int i = 0; i < count; ++i) {
+    for (int k = 0; k < 3; ++k) g.position[3 * i + k] = 0.35 * unit(rng);
+    for (int k = 0; k < 4; ++k) g.rotation[4 * i + k] = unit(rng) + (k == 0 ? 1.5 : 0);
+    for (int k = 0; k < 3; ++k) g.log_scale[3 * i + k] = std::log(0.06) + 0.4 * unit(rng);
+    g.opacity[i] = 0.8 * unit(rng) - 0.3;
+    for (int k = 0; k < g.coefficients(); ++k)
+      for (int c = 0; c < 3; ++c) g.sh[(i * g.coefficients() + k) * 3 + c] = 0.3 * unit(rng);
+  }
+  return g;
+}
+
+// sum(weights . image) + sum(alpha_weights . alpha): a loss whose gradient is the weights.
+struct LinearLoss {
+  std::vector<double> color_weights, alpha_weights, background;
+};
+
+LinearLoss MakeLoss(const PinholeCamera& camera, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> unit(-1, 1);
+  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+  LinearLoss loss;
+  for (size_t k = 0; k < 3 * pixels; ++k) loss.color_weights.push_back(unit(rng));
+  for (size_t k = 0; k < pixels; ++k) loss.alpha_weights.push_back(unit(rng));
+  for (size_t k = 0; k < 3 * pixels; ++k) loss.background.push_back(0.5 + 0.4 * unit(rng));
+  return loss;
+}
+
+double Evaluate(const GaussianArrays<double>& g, const PinholeCamera& camera,
+                const RasterOptions& options, const LinearLoss& loss) {
+  ProjectedArrays<double> projected;
+  ProjectGaussians(g, camera, options, &projected);
+  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+  std::vector<double> color(3 * pixels), alpha(pixels);
+  RasterState state;
+  RasterizeForward(projected, camera, options, loss.background.data(), color.data(), alpha.data(),
+                   static_cast<double*>(nullptr), &state);
+  double sum = 0;
+  for (size_t k = 0; k < 3 * pixels; ++k) sum += loss.color_weights[k] * color[k];
+  for (size_t k = 0; k < pixels; ++k) sum += loss.alpha_weights[k] * alpha[k];
+  return sum;
+}
+
+// The analytic gradient of the whole chain, raw parameters.
+GaussianArrays<double> Analytic(const GaussianArrays<double>& g, const PinholeCamera& camera,
+                                const RasterOptions& options, const LinearLoss& loss) {
+  ProjectedArrays<double> projected;
+  ProjectGaussians(g, camera, options, &projected);
+  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+  std::vector<double> color(3 * pixels), alpha(pixels);
+  RasterState state;
+  RasterizeForward(projected, camera, options, loss.background.data(), color.data(), alpha.data(),
+                   static_cast<double*>(nullptr), &state);
+  ProjectedGradients<double> pg;
+  RasterizeBackward(projected, camera, options, state, loss.background.data(),
+                    loss.color_weights.data(), loss.alpha_weights.data(), &pg);
+  GaussianArrays<double> gradient;
+  gradient.sh_degree = g.sh_degree;
+  gradient.Resize(g.size());
+  ProjectBackward(g, camera, options, projected, pg, &gradient);
+  return gradient;
+}
+
+// Compares every parameter's analytic derivative with a central difference; returns the worst
+// error relative to max(1, |derivative|) scale of the field.
+void ExpectMatches(GaussianArrays<double> g, const PinholeCamera& camera,
+                   const RasterOptions& options, const LinearLoss& loss) {
+  const GaussianArrays<double> analytic = Analytic(g, camera, options, loss);
+  struct Field {
+    const char* name;
+    std::vector<double> GaussianArrays<double>::*member;
+  };
+  const Field fields[] = {{"position", &GaussianArrays<double>::position},
+                          {"rotation", &GaussianArrays<double>::rotation},
+                          {"log_scale", &GaussianArrays<double>::log_scale},
+                          {"opacity", &GaussianArrays<double>::opacity},
+                          {"sh", &GaussianArrays<double>::sh}};
+  const double h = 1e-6;
+  for (const Field& field : fields) {
+    std::vector<double>& values = g.*field.member;
+    const std::vector<double>& derivative = analytic.*field.member;
+    double scale = 1e-3;
+    for (double d : derivative) scale = std::max(scale, std::abs(d));
+    // A check of Gaussians that draw nothing would compare zeros with zeros.
+    EXPECT_GT(scale, 1e-2) << field.name << ": no gradient at all";
+    int checked = 0;
+    for (size_t k = 0; k < values.size(); ++k) {
+      const double saved = values[k];
+      values[k] = saved + h;
+      const double plus = Evaluate(g, camera, options, loss);
+      values[k] = saved - h;
+      const double minus = Evaluate(g, camera, options, loss);
+      values[k] = saved;
+      const double numeric = (plus - minus) / (2 * h);
+      EXPECT_NEAR(derivative[k], numeric, 2e-5 * scale + 1e-7)
+          << field.name << "[" << k << "] analytic " << derivative[k] << " numeric " << numeric;
+      ++checked;
+    }
+    EXPECT_GT(checked, 0) << field.name;
+  }
+}
+
+// The thresholds (alpha clamp, skip, early stop) are where the composite is not smooth; the
+// checks keep every Gaussian clear of them.
+RasterOptions SmoothOptions(int degree) {
+  RasterOptions options;
+  options.min_alpha = 0;
+  options.max_alpha = 0.999f;
+  options.min_transmittance = 0;
+  options.active_sh_degree = degree;
+  return options;
+}
+
+TEST(SplatGradient, WholeChainDegree0) {
+  const PinholeCamera camera = TestCamera();
+  ExpectMatches(RandomGaussians(6, 0, 1), camera, SmoothOptions(0), MakeLoss(camera, 2));
+}
+
+TEST(SplatGradient, WholeChainDegree3ViewDependentColour) {
+  const PinholeCamera camera = TestCamera();
+  ExpectMatches(RandomGaussians(5, 3, 3), camera, SmoothOptions(3), MakeLoss(camera, 4));
+}
+
+TEST(SplatGradient, DegreeBelowStorage) {
+  const PinholeCamera camera = TestCamera();
+  ExpectMatches(RandomGaussians(5, 3, 5), camera, SmoothOptions(1), MakeLoss(camera, 6));
+}
+
+TEST(SplatGradient, ClampedTangentOutsideTheView) {
+  // A Gaussian beyond 1.3 x the half field of view: its Jacobian uses the clamped tangent.
+  PinholeCamera camera = TestCamera();
+  GaussianArrays<double> g = RandomGaussians(3, 1, 7);
+  g.position[0] = 2.6;  // x/z ~ 1.0, limit 1.3 * 18 / 45 = 0.52
+  g.log_scale[0] = g.log_scale[1] = g.log_scale[2] = std::log(0.9);
+  ProjectedArrays<double> projected;
+  ProjectGaussians(g, camera, SmoothOptions(1), &projected);
+  ASSERT_GT(projected.radius[0], 0) << "the wide Gaussian must still reach the image";
+  ExpectMatches(g, camera, SmoothOptions(1), MakeLoss(camera, 8));
+}
+
+TEST(SplatGradient, DefaultThresholdsAwayFromTheirEdges) {
+  // With the thresholds on, the gradient still matches where no Gaussian sits on one.
+  const PinholeCamera camera = TestCamera();
+  RasterOptions options;
+  options.active_sh_degree = 1;
+  ExpectMatches(RandomGaussians(4, 1, 9), camera, options, MakeLoss(camera, 10));
+}
+
+TEST(SplatGradient, PhotometricLossL1AndSsim) {
+  const int width = 23, height = 17;
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> unit(0, 1);
+  std::vector<double> image(3 * width * height), target(image.size()), gradient(image.size());
+  for (size_t k = 0; k < image.size(); ++k) {
+    target[k] = unit(rng);
+    image[k] = target[k] + (unit(rng) < 0.5 ? -1 : 1) * (0.05 + 0.2 * unit(rng));
+  }
+  PhotometricLoss(image.data(), target.data(), width, height, 0.2, gradient.data());
+  const double h = 1e-6;
+  for (size_t k = 0; k < image.size(); k += 7) {
+    const double saved = image[k];
+    image[k] = saved + h;
+    const double plus = PhotometricLoss(image.data(), target.data(), width, height, 0.2,
+                                        static_cast<double*>(nullptr));
+    image[k] = saved - h;
+    const double minus = PhotometricLoss(image.data(), target.data(), width, height, 0.2,
+                                         static_cast<double*>(nullptr));
+    image[k] = saved;
+    EXPECT_NEAR(gradient[k], (plus - minus) / (2 * h), 1e-8) << "pixel value " << k;
+  }
+  // SSIM of an image with itself is 1 and L1 0: the loss is 0.
+  EXPECT_NEAR(PhotometricLoss(target.data(), target.data(), width, height, 0.2,
+                              static_cast<double*>(nullptr)),
+              0.0, 1e-12);
+}
+
+TEST(SplatGradient, ForwardComposite) {
+  // One opaque, flat-coloured Gaussian in front of another: the pixel under both is the front
+  // one's colour times its alpha, plus what the back one and the background add behind it.
+  PinholeCamera camera = TestCamera(32, 32);
+  for (int k = 0; k < 9; ++k) camera.cam_from_world_rotation[k] = k % 4 == 0 ? 1 : 0;
+  camera.cx = camera.cy = 15.5;
+  camera.cam_from_world_translation[0] = camera.cam_from_world_translation[1] = 0;
+  GaussianArrays<double> g;
+  g.sh_degree = 0;
+  g.Resize(2);
+  for (int i = 0; i < 2; ++i) {
+    g.rotation[4 * i] = 1;
+    for (int k = 0; k < 3; ++k) g.log_scale[3 * i + k] = std::log(0.2);
+    g.position[3 * i + 2] = i == 0 ? -0.5 : 0.5;  // i = 0 nearer
+  }
+  g.opacity[0] = std::log(0.6 / 0.4);  // 0.6 at the centre
+  g.opacity[1] = std::log(0.5 / 0.5);
+  // Colour = 0.28209 sh + 0.5: front red 1 (BGR index 2), back blue 1 (index 0), the rest 0.5.
+  g.sh[2] = 0.5 / 0.28209479177387814;
+  g.sh[3 + 0] = 0.5 / 0.28209479177387814;
+  RasterOptions options;
+  options.active_sh_degree = 0;
+  ProjectedArrays<double> projected;
+  ProjectGaussians(g, camera, options, &projected);
+  std::vector<double> color(3 * 32 * 32), alpha(32 * 32), background(3 * 32 * 32, 0.25);
+  RasterState state;
+  RasterizeForward(projected, camera, options, background.data(), color.data(), alpha.data(),
+                   static_cast<double*>(nullptr), &state);
+  // Both centres project near pixel (15.5, 15.5); sample (15, 15), 0.5 px off in each axis.
+  const size_t p = 15 * 32 + 15;
+  auto footprint = [&](int i) {
+    const double* c = &projected.conic[3 * i];
+    const double dx = 15 - projected.mean2d[2 * i], dy = 15 - projected.mean2d[2 * i + 1];
+    return std::exp(-0.5 * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy);
+  };
+  const double a0 = 0.6 * footprint(0), a1 = 0.5 * footprint(1);
+  EXPECT_NEAR(color[3 * p + 2], a0 * 1.0 + (1 - a0) * a1 * 0.5 + (1 - a0) * (1 - a1) * 0.25, 1e-9);
+  EXPECT_NEAR(color[3 * p + 0], a0 * 0.5 + (1 - a0) * a1 * 1.0 + (1 - a0) * (1 - a1) * 0.25, 1e-9);
+  EXPECT_NEAR(alpha[p], 1 - (1 - a0) * (1 - a1), 1e-9);
+}
+
+}  // namespace
+}  // namespace holocap::splat
