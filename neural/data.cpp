@@ -167,6 +167,9 @@ class TrainingDataLoader {
   // The take's plan, the held-out cameras and the training views at the training width.
   void PlanCameras() {
     take_plan_ = PlanTake(take_, options_.take);
+    // The background model as reconstruction learns it (or the plan's fall back to Otsu).
+    background_model_ = LearnBackgroundModel(take_, take_plan_, SilhouetteOptions{},
+                                             ReconstructionOptions{}.min_moving_fraction);
     names_ = take_plan_.color_sensors;
     if (names_.size() < 2) {
       Fail("take ", take_.dir().string(), " has ", names_.size(),
@@ -239,14 +242,10 @@ class TrainingDataLoader {
             ToTrainingSize(plate.Find(names_[v])->image, data_.views[v].camera);
       }
       plan_["background"] = Cat("clean plate (frame set ", take_plan_.plate_set(), ")");
-    } else if (take_plan_.silhouettes == SilhouetteSource::kBackgroundModel) {
+    } else if (!background_model_.empty()) {
       for (size_t v = 0; v < names_.size(); ++v) {
-        std::vector<cv::Mat> frames;
-        for (int64_t set : take_plan_.background_sets) {
-          frames.push_back(ToTrainingSize(take_.ReadFrame(static_cast<size_t>(set), names_[v]),
-                                          data_.views[v].camera));
-        }
-        data_.views[v].background = TemporalMedian(frames);
+        data_.views[v].background =
+            ToTrainingSize(background_model_.at(names_[v]), data_.views[v].camera);
       }
       plan_["background"] =
           Cat("per-pixel temporal median of each camera's frames over ",
@@ -271,8 +270,7 @@ class TrainingDataLoader {
     SilhouetteOptions silhouette;
     silhouette.dilate_px = 2;
     silhouette.erode_px = 1;
-    const bool subtract = take_plan_.has_clean_plate() ||
-                          take_plan_.silhouettes == SilhouetteSource::kBackgroundModel;
+    const bool subtract = take_plan_.has_clean_plate() || !background_model_.empty();
     if (subtract) {
       silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
       return ExtractSilhouette(data_.images[f][v], data_.views[v].background, silhouette);
@@ -464,7 +462,8 @@ class TrainingDataLoader {
   Box overlap_;
   Eigen::Vector3d rig_center_ = Eigen::Vector3d::Zero();
   std::string silhouette_source_;
-  std::vector<std::vector<cv::Mat>> alpha_masks_;  // [frame][view] when the plan reads alpha
+  std::map<std::string, cv::Mat> background_model_;  // full size, BGR; empty: none
+  std::vector<std::vector<cv::Mat>> alpha_masks_;    // [frame][view] when the plan reads alpha
   std::vector<VisualHull> hulls_;
   Eigen::Vector3d lo_, hi_;
 };

@@ -573,6 +573,41 @@ void AddGroundTruthMetrics(const Take& take, int64_t set, const Mesh& plan_mesh,
   (*metrics)["gt"] = gt;
 }
 
+}  // namespace
+
+std::map<std::string, cv::Mat> LearnBackgroundModel(const Take& take, TakePlan& plan,
+                                                    const SilhouetteOptions& silhouette,
+                                                    double min_moving_fraction) {
+  std::map<std::string, cv::Mat> plates;
+  if (plan.silhouettes != SilhouetteSource::kBackgroundModel) return plates;
+  std::vector<double> fractions;
+  SilhouetteOptions subtraction = silhouette;
+  subtraction.mode = SilhouetteMode::kBackgroundSubtraction;
+  for (const auto& name : plan.color_sensors) {
+    std::vector<cv::Mat> frames;
+    for (int64_t set : plan.background_sets)
+      frames.push_back(ColourOf(take.ReadFrame(static_cast<size_t>(set), name), name));
+    plates[name] = TemporalMedian(frames);
+    const cv::Mat& middle = frames[frames.size() / 2];
+    fractions.push_back(cv::countNonZero(ExtractSilhouette(middle, plates[name], subtraction)) /
+                        static_cast<double>(middle.total()));
+  }
+  std::nth_element(fractions.begin(), fractions.begin() + fractions.size() / 2, fractions.end());
+  const double moving = fractions[fractions.size() / 2];
+  if (moving >= min_moving_fraction) return plates;
+  plan.silhouettes = SilhouetteSource::kOtsu;
+  plan.silhouette_reason =
+      Cat("brightest channel above a threshold chosen per image (Otsu): the background model "
+          "over ",
+          plan.background_sets.size(), " frame sets holds the subject (it differs from ",
+          "the median in ", Fixed(100 * moving, 3), "% of a middle frame's pixels): the ",
+          "subject does not move");
+  plan.background_sets.clear();
+  return {};
+}
+
+namespace {
+
 // Reconstructs a planned take: method, plates and threads chosen once, then every frame set,
 // the voxel sweep on simulated takes, and the summary. Each step is a method.
 class TakeReconstructor {
@@ -864,36 +899,11 @@ class TakeReconstructor {
     return out;
   }
 
-  // The background model: each colour camera's per-pixel median over the plan's background
-  // sets stands in for its clean plate. A subject that does not move stays in the median and
-  // would leave no silhouette: the plan then falls back to a threshold chosen per image.
+  // The background model stands in for the colour cameras' clean plates (or the plan falls
+  // back to Otsu when the subject does not move).
   void LearnBackground() {
-    if (take_plan_.silhouettes != SilhouetteSource::kBackgroundModel) return;
-    std::vector<double> fractions;
-    for (const auto& name : take_plan_.color_sensors) {
-      std::vector<cv::Mat> frames;
-      for (int64_t set : take_plan_.background_sets)
-        frames.push_back(ColourOf(take_.ReadFrame(static_cast<size_t>(set), name), name));
-      plates_.color[name] = TemporalMedian(frames);
-      SilhouetteOptions subtraction = options_.silhouette;
-      subtraction.mode = SilhouetteMode::kBackgroundSubtraction;
-      const cv::Mat& middle = frames[frames.size() / 2];
-      fractions.push_back(
-          cv::countNonZero(ExtractSilhouette(middle, plates_.color[name], subtraction)) /
-          static_cast<double>(middle.total()));
-    }
-    std::nth_element(fractions.begin(), fractions.begin() + fractions.size() / 2, fractions.end());
-    const double moving = fractions[fractions.size() / 2];
-    if (moving >= options_.min_moving_fraction) return;
-    plates_.color.clear();
-    take_plan_.silhouettes = SilhouetteSource::kOtsu;
-    take_plan_.silhouette_reason =
-        Cat("brightest channel above a threshold chosen per image (Otsu): the background model "
-            "over ",
-            take_plan_.background_sets.size(), " frame sets holds the subject (it differs from ",
-            "the median in ", Fixed(100 * moving, 3), "% of a middle frame's pixels): the ",
-            "subject does not move");
-    take_plan_.background_sets.clear();
+    plates_.color =
+        LearnBackgroundModel(take_, take_plan_, options_.silhouette, options_.min_moving_fraction);
   }
 
   void ReadPlates() {

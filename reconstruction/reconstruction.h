@@ -17,6 +17,7 @@
 #include <deque>
 #include <filesystem>
 #include <functional>
+#include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -529,6 +530,15 @@ struct ReconstructionSummary : Summary {
 // each is compared with the plan's silhouette of its image (metrics "heldout_iou"). Throws Error
 // for bad options, a method the take's sensors cannot support, or a planned frame set missing a
 // frame the method reads.
+// The background model of a plan whose silhouettes are kBackgroundModel: each colour camera's
+// TemporalMedian over plan.background_sets (BGR), its clean plate from then on. When the
+// cameras' median middle frame differs from its model in less than `min_moving_fraction` of
+// its pixels (`silhouette`'s subtraction), the subject did not move: the plan falls back to
+// Otsu with the reason, and nothing is returned. Empty for other sources.
+std::map<std::string, cv::Mat> LearnBackgroundModel(const Take& take, TakePlan& plan,
+                                                    const SilhouetteOptions& silhouette,
+                                                    double min_moving_fraction);
+
 ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan,
                                       const std::filesystem::path& out,
                                       const ReconstructionOptions& options,
