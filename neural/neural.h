@@ -137,6 +137,21 @@ struct NeuralVolumeSummary : Summary {
   double samples_per_ray = 0;  // mean over the last training batch
 };
 
+// The metrics every trained model's report.json starts with, by the same names (Neural Volumes,
+// splats): held-out scores, the background alone's, the budget spent and the loss's course.
+template <typename TrainingSummary>
+nlohmann::json TrainingMetrics(const TrainingSummary& summary) {
+  return {{"heldout_psnr_db", summary.heldout_psnr_db},
+          {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
+          {"heldout_ssim", summary.heldout_ssim},
+          {"background_psnr_fg_db", summary.background_psnr_fg_db},
+          {"iterations", summary.iterations},
+          {"seconds", summary.seconds},
+          {"first_loss", summary.first_loss},
+          {"last_loss", summary.last_loss},
+          {"divergences", summary.divergences}};
+}
+
 // Trains a Neural Volume on a take into `model_dir` (model.json, weights, per-frame latents,
 // backgrounds, checkpoint.pt, report.json). Cameras come from calib/, else from gt/cameras
 // (said in the plan). `report` receives options, plan, metrics (metrics.heldout_psnr_db) and

@@ -857,16 +857,8 @@ NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& 
   }
   if (report != nullptr) {
     report->plan() = summary.plan;
-    report->metrics() = {{"heldout_psnr_db", summary.heldout_psnr_db},
-                         {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
-                         {"heldout_ssim", summary.heldout_ssim},
-                         {"background_psnr_fg_db", summary.background_psnr_fg_db},
-                         {"iterations", summary.iterations},
-                         {"seconds", summary.seconds},
-                         {"first_loss", summary.first_loss},
-                         {"last_loss", summary.last_loss},
-                         {"divergences", summary.divergences},
-                         {"samples_per_ray", summary.samples_per_ray}};
+    report->metrics() = TrainingMetrics(summary);
+    report->metrics()["samples_per_ray"] = summary.samples_per_ray;
     if (std::isfinite(summary.heldout_psnr_white_db)) {
       report->metrics()["heldout_psnr_white_db"] = summary.heldout_psnr_white_db;
       report->metrics()["heldout_psnr_white_convention"] =

@@ -655,29 +655,21 @@ SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
   SplatSummary summary = trainer.Run(report);
   if (report != nullptr) {
     report->plan() = summary.plan;
-    report->metrics() = {{"heldout_psnr_db", summary.heldout_psnr_db},
-                         {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
-                         {"heldout_ssim", summary.heldout_ssim},
-                         {"background_psnr_fg_db", summary.background_psnr_fg_db},
-                         {"train_psnr_db", summary.train_psnr_db},
-                         {"iterations", summary.iterations},
-                         {"seconds", summary.seconds},
-                         {"first_loss", summary.first_loss},
-                         {"last_loss", summary.last_loss},
-                         {"gaussians", summary.gaussians},
-                         {"seed_points", summary.seed_points},
-                         {"cap_reached", summary.cap_reached},
-                         {"max_gaussians", options.max_gaussians},
-                         {"cloned", summary.cloned},
-                         {"split", summary.split},
-                         {"pruned_transparent", summary.pruned_transparent},
-                         {"pruned_large", summary.pruned_large},
-                         {"pruned_degenerate", summary.pruned_degenerate},
-                         {"pruned_outside", summary.pruned_outside},
-                         {"floored_scales", summary.floored_scales},
-                         {"divergences", summary.divergences},
-                         {"megabytes", summary.megabytes},
-                         {"render_fps", summary.render_fps}};
+    report->metrics() = TrainingMetrics(summary);
+    report->metrics().update({{"train_psnr_db", summary.train_psnr_db},
+                              {"gaussians", summary.gaussians},
+                              {"seed_points", summary.seed_points},
+                              {"cap_reached", summary.cap_reached},
+                              {"max_gaussians", options.max_gaussians},
+                              {"cloned", summary.cloned},
+                              {"split", summary.split},
+                              {"pruned_transparent", summary.pruned_transparent},
+                              {"pruned_large", summary.pruned_large},
+                              {"pruned_degenerate", summary.pruned_degenerate},
+                              {"pruned_outside", summary.pruned_outside},
+                              {"floored_scales", summary.floored_scales},
+                              {"megabytes", summary.megabytes},
+                              {"render_fps", summary.render_fps}});
     report->SetSummary(summary);
     report->Write(model_dir / "report.json");
   }

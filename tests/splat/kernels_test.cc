@@ -65,31 +65,40 @@ LinearLoss MakeLoss(const PinholeCamera& camera, uint64_t seed) {
   return loss;
 }
 
+// The forward pass of the whole chain over the loss's background.
+struct Forward {
+  ProjectedArrays<double> projected;
+  std::vector<double> color, alpha;
+  RasterState state;
+};
+
+Forward RunForward(const GaussianArrays<double>& g, const PinholeCamera& camera,
+                   const RasterOptions& options, const LinearLoss& loss) {
+  Forward forward;
+  ProjectGaussians(g, camera, options, &forward.projected);
+  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+  forward.color.resize(3 * pixels);
+  forward.alpha.resize(pixels);
+  RasterizeForward(forward.projected, camera, options, loss.background.data(), forward.color.data(),
+                   forward.alpha.data(), static_cast<double*>(nullptr), &forward.state);
+  return forward;
+}
+
 double Evaluate(const GaussianArrays<double>& g, const PinholeCamera& camera,
                 const RasterOptions& options, const LinearLoss& loss) {
-  ProjectedArrays<double> projected;
-  ProjectGaussians(g, camera, options, &projected);
-  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
-  std::vector<double> color(3 * pixels), alpha(pixels);
-  RasterState state;
-  RasterizeForward(projected, camera, options, loss.background.data(), color.data(), alpha.data(),
-                   static_cast<double*>(nullptr), &state);
+  const Forward forward = RunForward(g, camera, options, loss);
   double sum = 0;
-  for (size_t k = 0; k < 3 * pixels; ++k) sum += loss.color_weights[k] * color[k];
-  for (size_t k = 0; k < pixels; ++k) sum += loss.alpha_weights[k] * alpha[k];
+  for (size_t k = 0; k < forward.color.size(); ++k) sum += loss.color_weights[k] * forward.color[k];
+  for (size_t k = 0; k < forward.alpha.size(); ++k) sum += loss.alpha_weights[k] * forward.alpha[k];
   return sum;
 }
 
 // The analytic gradient of the whole chain, raw parameters.
 GaussianArrays<double> Analytic(const GaussianArrays<double>& g, const PinholeCamera& camera,
                                 const RasterOptions& options, const LinearLoss& loss) {
-  ProjectedArrays<double> projected;
-  ProjectGaussians(g, camera, options, &projected);
-  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
-  std::vector<double> color(3 * pixels), alpha(pixels);
-  RasterState state;
-  RasterizeForward(projected, camera, options, loss.background.data(), color.data(), alpha.data(),
-                   static_cast<double*>(nullptr), &state);
+  const Forward forward = RunForward(g, camera, options, loss);
+  const ProjectedArrays<double>& projected = forward.projected;
+  const RasterState& state = forward.state;
   ProjectedGradients<double> pg;
   RasterizeBackward(projected, camera, options, state, loss.background.data(),
                     loss.color_weights.data(), loss.alpha_weights.data(), &pg);
