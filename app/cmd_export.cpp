@@ -1,6 +1,8 @@
-// holocap export colmap|nerf TAKE --out DIR: a take's cameras and colour frames for other tools.
+// holocap export colmap|nerf|web TAKE --out DIR: a take's cameras and colour frames for other
+// tools, or (web) a static site that plays the take's meshes and volumes in a browser.
 #include <cstdio>
 #include <memory>
+#include <sstream>
 
 #include "app/commands.h"
 #include "app/options.h"
@@ -16,15 +18,24 @@ struct ExportArgs {
   std::string out;
   bool no_images = false;
   ExportOptions options;
+  WebExportRequest web;
+  std::string qualities = "medium";
 };
 
 }  // namespace
 
+std::function<void(const WebExportRequest&)>& WebExportCommand() {
+  static std::function<void(const WebExportRequest&)> run;
+  return run;
+}
+
 static void AddExportCommand(CLI::App& app) {
   auto* command = app.add_subcommand(
-      "export", "Export a take's cameras and frames as a COLMAP model or a NeRF transforms.json");
+      "export",
+      "Export a take's cameras and frames as a COLMAP model or a NeRF transforms.json, or a "
+      "static web site that plays its meshes and volumes (web)");
   auto args = std::make_shared<ExportArgs>();
-  command->add_option("FORMAT", args->format, "colmap | nerf")->required();
+  command->add_option("FORMAT", args->format, "colmap | nerf | web")->required();
   command->add_option("TAKE", args->take, "The take directory")->required();
   command->add_option("--out", args->out, "The directory to write")->required();
   command->add_flag("--ground-truth", args->options.ground_truth,
@@ -34,7 +45,34 @@ static void AddExportCommand(CLI::App& app) {
       "--skip-unrepresentable", args->options.skip_unrepresentable,
       "Export the cameras the format holds exactly and skip the others (default: refuse)");
   command->add_flag("--overwrite", args->options.overwrite, "Write into a non-empty directory");
+  command->add_option("--model", args->web.models,
+                      "web: a trained volumetric model to stream (repeatable)");
+  command->add_option("--recon", args->web.recon,
+                      "web: the reconstruction's meshes (default TAKE/recon)");
+  command->add_flag("--no-meshes", args->web.no_meshes, "web: no mesh stream");
+  command
+      ->add_option("--quality", args->qualities,
+                   "web: quality levels, one stream each: low, medium, high, lossless")
+      ->capture_default_str();
+  command->add_option("--fps", args->web.fps, "web: playback rate (default: the take's)");
   command->callback([args] {
+    if (args->format == "web") {
+      WebExportRequest request = args->web;
+      request.take = args->take;
+      request.out = args->out;
+      request.ground_truth_cameras = args->options.ground_truth;
+      request.overwrite = args->options.overwrite;
+      std::stringstream list(args->qualities);
+      for (std::string level; std::getline(list, level, ',');) request.qualities.push_back(level);
+      if (!WebExportCommand())
+        Fail(
+            "export web runs in holocap-neural: write `holocap export web TAKE ...` with web "
+            "first");
+      WebExportCommand()(request);
+      return;
+    }
+    if (!args->web.models.empty() || !args->web.recon.empty() || args->web.no_meshes)
+      Fail("--model, --recon and --no-meshes are options of export web only");
     ExportOptions options = args->options;
     options.format = InteropFormatFromString(args->format);
     options.copy_images = !args->no_images;

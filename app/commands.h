@@ -60,6 +60,21 @@ struct DemoStageRegistrar {
   static const ::holocap::DemoStageRegistrar run_function##_demo_registrar(order, name, \
                                                                            run_function)
 
+// `holocap export web`: parsed in app/cmd_export.cpp beside the other formats, run by
+// app/cmd_view.cpp in holocap-neural (it bakes volumes; holocap hands `export web` over).
+struct WebExportRequest {
+  std::string take;
+  std::string out;
+  std::vector<std::string> models;     // --model, repeatable
+  std::string recon;                   // --recon (default TAKE/recon)
+  std::vector<std::string> qualities;  // --quality low,medium,high,lossless
+  bool no_meshes = false;
+  double fps = 0;
+  bool ground_truth_cameras = false;
+  bool overwrite = false;
+};
+std::function<void(const WebExportRequest&)>& WebExportCommand();
+
 // Every driver compiled into this build, registered in DriverRegistry::Global().
 void RegisterBuiltinDrivers();
 

@@ -30,6 +30,7 @@ struct NeuralCommand {
 constexpr NeuralCommand kNeuralCommands[] = {
     {60, "train", "Learn an avatar from a calibrated take: `train nvol` or `train rerender`"},
     {70, "render", "Render a trained avatar along a camera path to frames or an MP4"},
+    {75, "view", "Serve a site of export web (or a take, exported first) on 127.0.0.1"},
     {100, "demo", "Run every pipeline stage on a small simulated studio8 take into out/demo/"},
 };
 
@@ -50,6 +51,8 @@ void HandOverNeuralCommands(int argc, char** argv) {
   const std::string_view word = argv[1];
   bool neural = false;
   for (const auto& command : kNeuralCommands) neural = neural || word == command.name;
+  // export web bakes volumes; the other formats stay here.
+  neural = neural || (word == "export" && argc > 2 && std::string_view(argv[2]) == "web");
   if (!neural) return;
   std::error_code ec;
   const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);

@@ -186,6 +186,21 @@ struct RenderedView {
   double seconds = 0;  // marching (and decoding, when the frame was not cached)
 };
 
+// One frame of a volumetric avatar exactly as Render marches it: a world-space RGBA grid
+// (channels last, x fastest; colour in [0, 1], density in 1/m; voxel centres at normalised box
+// coordinates (i + 0.5) / grid) and the occupancy whose empty cells add nothing.
+struct BakedFrame {
+  Eigen::Vector3d box_min = Eigen::Vector3d::Zero();
+  Eigen::Vector3d box_max = Eigen::Vector3d::Ones();
+  int grid = 0;
+  std::vector<float> rgba;        // grid³ x 4
+  bool clamped = false;           // outside its voxel centres the grid continues its border
+                                  // (a resampled grid), else it is zero there
+  int occupancy_cells = 0;        // cells per axis; 0: no cell is skipped
+  std::vector<uint8_t> occupied;  // occupancy_cells³, x fastest
+  double step_m = 0;              // Render's sample spacing at the options' step_voxels
+};
+
 class AvatarModel {
  public:
   virtual ~AvatarModel() = default;
@@ -199,6 +214,11 @@ class AvatarModel {
   // Renders frame `frame` (clamped to the model's range) through any camera.
   virtual RenderedView Render(const CameraModel& camera, int64_t frame,
                               const ViewRenderOptions& options) = 0;
+  // The frame as the grid Render marches (the web export streams it); false for a kind that is
+  // not a volume.
+  virtual bool Bake(int64_t /*frame*/, const ViewRenderOptions& /*options*/, BakedFrame* /*out*/) {
+    return false;
+  }
 };
 
 using ModelOpener = std::function<std::unique_ptr<AvatarModel>(const std::filesystem::path& dir,

@@ -383,6 +383,19 @@ class NeuralVolumeAvatar : public AvatarModel {
     return view;
   }
 
+  bool Bake(int64_t frame, const ViewRenderOptions& options, BakedFrame* out) override {
+    Decode(std::clamp<int64_t>(frame, 0, frames_ - 1), options.bake_scale);
+    out->box_min = config_.box_min;
+    out->box_max = config_.box_max;
+    out->grid = baked_.grid;
+    out->rgba = baked_.rgba;
+    out->clamped = baked_.clamped;
+    out->occupancy_cells = occupancy_.size;
+    out->occupied = occupancy_.occupied;
+    out->step_m = StepMetres(options.step_voxels);
+    return true;
+  }
+
  private:
   double StepMetres(double step_voxels) const {
     return step_voxels * (config_.box_max - config_.box_min).minCoeff() / config_.grid;

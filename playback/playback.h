@@ -17,6 +17,8 @@
 #include <Eigen/Core>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
@@ -91,5 +93,95 @@ PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path,
 
 // Writes one view as EXR with channels R, G, B, A (half) and Z (float). Atomic.
 void WriteViewExr(const std::filesystem::path& file, const RenderedView& view);
+
+// ---------------------------------------------------------------------------------------------
+// Textured meshes of a reconstruction (recon/<set>.glb) drawn natively, as the web player's mesh
+// stream draws them: pinhole intrinsics core of the camera, perspective-correct texture
+// coordinates, bilinear texels, a z-buffer, pixel centres at integer coordinates.
+
+struct TexturedMeshFrame {
+  std::vector<Eigen::Vector3f> positions;            // world, metres; one per corner (3 per face)
+  std::vector<Eigen::Vector2f> uvs;                  // one per corner, glTF convention (v down)
+  std::vector<Eigen::Matrix<uint8_t, 3, 1>> colors;  // RGB per corner when there is no atlas
+  cv::Mat atlas;                                     // CV_8UC3 BGR, or empty
+  size_t faces() const { return positions.size() / 3; }
+};
+
+// Reads a binary glTF 2.0 file as reconstruction/ writes it (positions, optional texture
+// coordinates with an embedded PNG/JPEG atlas, or vertex colours; 32-bit indices). Throws Error
+// naming the file for anything else.
+TexturedMeshFrame ReadTexturedGlb(const std::filesystem::path& file);
+
+// Colour (CV_32FC3 BGR in [0, 1], black where empty) and coverage (CV_32FC1, 0 or 1) of the
+// mesh seen through the pinhole core of `camera` (fx, fy, cx, cy; distortion left out).
+RenderedView RenderTexturedMesh(const TexturedMeshFrame& mesh, const CameraModel& camera);
+
+// ---------------------------------------------------------------------------------------------
+// The web player: `holocap export web` writes a static site (index.html, the player's ES
+// modules, manifest.json and per-frame chunks; README "The stream format") that plays a take's
+// textured meshes and baked Neural Volumes in a browser; `holocap view` serves it.
+
+inline constexpr int kWebStreamFormatVersion = 1;
+
+struct WebExportOptions {
+  // Quality levels, one stream per kind and level: "low", "medium", "high" (quantised and
+  // compressed harder to softer) or "lossless" (float geometry and volumes, PNG textures).
+  std::vector<std::string> qualities = {"medium"};
+  std::filesystem::path recon;                // the meshes; empty: TAKE/recon when it exists
+  bool meshes = true;                         // false: no mesh stream even when recon exists
+  std::vector<std::filesystem::path> models;  // volumetric models (model.json), one stream each
+  double fps = 0;                             // playback rate; 0: the take's rig rate (else 30)
+  double step_voxels = 1.0;                   // ray-marching step of the volume streams
+  int error_width_px = 160;                   // width of the views the export's error is
+                                              // measured on (the capture cameras, rescaled)
+  int error_cameras = 2;                      // capture cameras measured per frame
+  TakeSelection take;                         // cameras (calib/ or gt/cameras)
+  bool overwrite = false;                     // write into a non-empty site made by export
+  void Check() const;                         // throws Error naming the flag
+  nlohmann::json ToJson() const;
+};
+
+struct WebStreamMetrics {
+  std::string name;     // "mesh-medium", "nvol-high"
+  std::string kind;     // "mesh" | "volume"
+  std::string quality;  // the level
+  int64_t frames = 0;
+  double mb_per_frame = 0;  // mean chunk size, 10^6 bytes
+  double mbps = 0;          // at the manifest's fps
+  double psnr_db = 0;       // decoded stream against the uncompressed one (capture cameras)
+  double max_position_error_mm = 0;  // meshes: quantisation of the vertices
+  nlohmann::json ToJson() const;
+};
+
+// SUCCESS once every chunk and the player are written; DEGENERATE when the take has nothing to
+// stream (no meshes, no model), with the reason.
+struct WebExportSummary : Summary {
+  int64_t frames = 0;
+  uint64_t bytes = 0;  // the whole site
+  double seconds = 0;
+  std::vector<WebStreamMetrics> streams;
+};
+
+// Writes the site into `site_dir` (claimed with the output-safety rules of core/output.h).
+// `report` receives options, plan, metrics per stream and the series psnr_db against bytes.
+// Throws Error for bad options, an unreadable take, mesh or model, or an unwritable site.
+WebExportSummary ExportWebSite(const std::filesystem::path& take_dir,
+                               const std::filesystem::path& site_dir,
+                               const WebExportOptions& options, Report* report = nullptr);
+
+// Whether `dir` is a site export web wrote (a manifest of a known version); `why` says what is
+// missing or wrong when not.
+bool IsWebSite(const std::filesystem::path& dir, std::string* why);
+
+struct ViewServerOptions {
+  int port = 8080;                 // 0: any free port
+  std::string host = "127.0.0.1";  // loopback only
+  void Check() const;
+};
+
+// Serves `site` over HTTP until the process ends; `listening` gets the URL once the port is
+// bound. Throws Error (one line) for a folder that is not a site or a port that is taken.
+void ServeSite(const std::filesystem::path& site, const ViewServerOptions& options,
+               const std::function<void(const std::string& url)>& listening);
 
 }  // namespace holocap

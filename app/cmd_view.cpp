@@ -1,0 +1,105 @@
+// holocap view SITE|TAKE [--port N]: serves a site of `holocap export web` on 127.0.0.1 (a take
+// is exported to a temporary site first), and runs `holocap export web`.
+#include <unistd.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <optional>
+
+#include "app/commands.h"
+#include "app/options.h"
+#include "core/error.h"
+#include "core/report.h"
+#include "playback/playback.h"
+#include "splat/splat.h"
+#include "neural/rerender.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+
+WebExportSummary ExportWeb(const WebExportRequest& request, Report* report) {
+  RegisterRerenderModelKind();
+  RegisterSplatModelKind();
+  WebExportOptions options;
+  if (!request.qualities.empty()) options.qualities = request.qualities;
+  options.recon = request.recon;
+  options.meshes = !request.no_meshes;
+  for (const auto& model : request.models) options.models.push_back(model);
+  options.fps = request.fps;
+  options.take.ground_truth_cameras = request.ground_truth_cameras;
+  options.overwrite = request.overwrite;
+  return ExportWebSite(request.take, request.out, options, report);
+}
+
+void RunWebExport(const WebExportRequest& request) {
+  Report report("export web");
+  WebExportSummary summary = ExportWeb(request, &report);
+  for (const auto& s : summary.streams) {
+    std::printf("  %-16s %3lld frames  %8.3f MB/frame  %7.2f Mbps  PSNR %5.1f dB against uncompressed\n",
+                s.name.c_str(), static_cast<long long>(s.frames), s.mb_per_frame, s.mbps,
+                s.psnr_db);
+  }
+  std::printf("%s: %s\nsite: %s\nreport: %s\nwatch it: holocap view %s\n",
+              ToString(summary.termination), summary.message.c_str(), request.out.c_str(),
+              (fs::path(request.out) / "report.json").c_str(), request.out.c_str());
+  std::fflush(stdout);
+  FailUnlessUsable(summary, "export web");
+}
+
+const bool kWebExportRegistered = [] {
+  WebExportCommand() = RunWebExport;
+  return true;
+}();
+
+struct ViewArgs {
+  std::string input;
+  int port = 8080;
+  std::vector<std::string> models;
+};
+
+void AddViewCommand(CLI::App& app) {
+  auto* command = app.add_subcommand(
+      "view", "Serve a site of export web (or a take, exported first) on 127.0.0.1");
+  auto args = std::make_shared<ViewArgs>();
+  command->add_option("SITE", args->input, "A site of `holocap export web`, or a take")
+      ->required();
+  command->add_option("--port", args->port, "Port on 127.0.0.1 (0: any free one)")
+      ->capture_default_str();
+  command->add_option("--model", args->models,
+                      "A take: the models to stream (default TAKE/models/nvol when trained)");
+  command->callback([args] {
+    ViewServerOptions options;
+    options.port = args->port;
+    options.Check();
+    fs::path site = args->input;
+    std::optional<fs::path> temporary;
+    if (fs::is_regular_file(site / "take.json")) {
+      temporary = fs::temp_directory_path() / ("holocap-view-" + std::to_string(::getpid()));
+      WebExportRequest request;
+      request.take = args->input;
+      request.out = temporary->string();
+      request.models = args->models;
+      if (request.models.empty() && fs::is_regular_file(site / "models" / "nvol" / "model.json"))
+        request.models.push_back((site / "models" / "nvol").string());
+      request.overwrite = true;
+      Report report("export web");
+      const WebExportSummary summary = ExportWeb(request, &report);
+      FailUnlessUsable(summary, "export web");
+      std::printf("exported %s to %s (%s)\n", args->input.c_str(), temporary->c_str(),
+                  summary.message.c_str());
+      site = *temporary;
+    }
+    ServeSite(site, options, [](const std::string& url) {
+      std::printf("serving on %s (Ctrl-C stops)\n", url.c_str());
+      std::fflush(stdout);
+    });
+  });
+}
+
+}  // namespace
+
+HOLOCAP_COMMAND(75, AddViewCommand);
+
+}  // namespace holocap

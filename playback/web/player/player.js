@@ -1,0 +1,417 @@
+// The holocap player: plays a site written by `holocap export web` (manifest.json + chunks).
+// The URL's hash is the permalink: frame=K, stream=NAME, and either camera=N (look through
+// capture camera N) or eye=x,y,z&target=x,y,z&fov=DEG; play=1, speed=S, loop=0, helpers=0 and
+// ui=0 (no overlays) are optional. window.holocap exposes the state for tests and tools.
+import { captureCamera, cameraCentre, cross, dot, lookAt, multiply, normalize, projectionMatrix,
+         scale, add, sub, norm, viewMatrix } from './math.js';
+import { FormatError, StreamBuffer, decodeMesh, decodeVolume, loadManifest, parseChunk } from './stream.js';
+import { MeshRenderer } from './mesh.js';
+import { VolumeRenderer } from './volume.js';
+import { LineRenderer, floorLines, frustumLines } from './helpers.js';
+
+const $ = (id) => document.getElementById(id);
+const base = new URL('.', window.location.href);
+
+const state = {
+  manifest: null, buffers: [], stream: 0, frame: 0, time: 0, playing: false, loop: true,
+  speed: 1, helpers: true, drawnFrame: -1, drawnStream: null, messages: [],
+  fatal: null, timeToFirstFrameMs: null, decoded: [], drawTimes: [], fly: false,
+  view: null,  // {mode: 'orbit', target, radius, azimuth, elevation, fov} | {mode: 'capture', index}
+               // | {mode: 'fly', eye, yaw, pitch, fov}
+};
+window.holocap = state;
+
+function message(text) {
+  state.messages.push(text);
+  const line = document.createElement('div');
+  line.textContent = text;
+  $('messages').appendChild(line);
+  while ($('messages').childElementCount > 6) $('messages').firstChild.remove();
+}
+
+function fatal(text) {
+  state.fatal = text;
+  $('fatal').textContent = text;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The view
+
+function upAxis() { return normalize(state.manifest.up); }
+function boundsCentre() {
+  const b = state.manifest.bounds;
+  return scale(add(b.min, b.max), 0.5);
+}
+// Two directions spanning the floor, for azimuths.
+function floorAxes() {
+  const up = upAxis();
+  let a = cross(up, [0, 0, 1]);
+  if (norm(a) < 0.1) a = cross(up, [1, 0, 0]);
+  a = normalize(a);
+  return [a, cross(up, a)];
+}
+
+function orbitFromEye(eye, target, fov) {
+  const up = upAxis(), [a, b] = floorAxes();
+  const offset = sub(eye, target);
+  const radius = norm(offset);
+  return { mode: 'orbit', target, radius, fov, azimuth: Math.atan2(dot(offset, b), dot(offset, a)),
+           elevation: Math.asin(Math.max(-1, Math.min(1, dot(offset, up) / radius))) };
+}
+
+function defaultView() {
+  const c = state.manifest.cameras[0];
+  const centre = boundsCentre();
+  if (!c) return { mode: 'orbit', target: centre, radius: 3, azimuth: 0, elevation: 0.2, fov: 50 };
+  const cam = captureCamera(c, c.width, c.height);
+  return orbitFromEye(cameraCentre(cam), centre, 2 * Math.atan(c.width / 2 / c.pinhole[0]) * 180 / Math.PI);
+}
+
+function eyeOf(view) {
+  if (view.mode === 'fly') return view.eye;
+  const up = upAxis(), [a, b] = floorAxes();
+  const horizontal = add(scale(a, Math.cos(view.azimuth)), scale(b, Math.sin(view.azimuth)));
+  const direction = add(scale(horizontal, Math.cos(view.elevation)), scale(up, Math.sin(view.elevation)));
+  return add(view.target, scale(direction, view.radius));
+}
+
+function targetOf(view) {
+  if (view.mode !== 'fly') return view.target;
+  const up = upAxis(), [a, b] = floorAxes();
+  const horizontal = add(scale(a, Math.cos(view.yaw)), scale(b, Math.sin(view.yaw)));
+  return add(view.eye, add(scale(horizontal, Math.cos(view.pitch)), scale(up, Math.sin(view.pitch))));
+}
+
+// The camera drawn this frame, on a W x H canvas.
+function currentCamera(W, H) {
+  const view = state.view;
+  if (view.mode === 'capture') return captureCamera(state.manifest.cameras[view.index], W, H);
+  const pose = lookAt(eyeOf(view), targetOf(view), upAxis());
+  const f = 0.5 * W / Math.tan(0.5 * view.fov * Math.PI / 180);
+  return { ...pose, fx: f, fy: f, cx: (W - 1) / 2, cy: (H - 1) / 2 };
+}
+
+// Leaves "look through camera N" for the orbit around the subject from the same place.
+function toOrbit() {
+  if (state.view.mode === 'orbit') return;
+  const canvas = $('view');
+  const cam = currentCamera(canvas.width, canvas.height);
+  const fov = 2 * Math.atan(canvas.width / 2 / cam.fx) * 180 / Math.PI;
+  const eye = cameraCentre(cam);
+  const forward = cam.R[2];
+  const target = state.view.mode === 'fly' ? targetOf(state.view)
+      : add(eye, scale(forward, Math.max(0.5, dot(sub(boundsCentre(), eye), forward))));
+  state.view = orbitFromEye(eye, target, fov);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The permalink
+
+function writeHash() {
+  const v = state.view, parts = [`frame=${state.frame}`];
+  const stream = state.manifest.streams[state.stream];
+  if (stream) parts.push(`stream=${encodeURIComponent(stream.name)}`);
+  if (v.mode === 'capture') {
+    parts.push(`camera=${v.index}`);
+  } else {
+    const f = (x) => x.map((c) => c.toFixed(4)).join(',');
+    parts.push(`eye=${f(eyeOf(v))}`, `target=${f(targetOf(v))}`, `fov=${v.fov.toFixed(2)}`);
+    if (v.mode === 'fly') parts.push('fly=1');
+  }
+  if (state.playing) parts.push('play=1');
+  if (state.speed !== 1) parts.push(`speed=${state.speed}`);
+  if (!state.loop) parts.push('loop=0');
+  if (!state.helpers) parts.push('helpers=0');
+  if (document.body.classList.contains('bare')) parts.push('ui=0');
+  const hash = '#' + parts.join('&');
+  if (window.location.hash !== hash) history.replaceState(null, '', hash);
+  $('permalink').href = hash;
+}
+
+function readHash() {
+  const p = new URLSearchParams(window.location.hash.slice(1));
+  const numbers = (key) => (p.get(key) || '').split(',').map(Number);
+  const frames = state.manifest.frames.length;
+  if (p.has('frame')) state.frame = Math.max(0, Math.min(frames - 1, parseInt(p.get('frame'), 10) || 0));
+  state.time = state.frame;
+  if (p.has('stream')) {
+    const index = state.manifest.streams.findIndex((s) => s.name === p.get('stream'));
+    if (index >= 0) state.stream = index;
+    else message(`no stream '${p.get('stream')}' in this site`);
+  }
+  const camera = parseInt(p.get('camera'), 10);
+  if (p.has('camera') && camera >= 0 && camera < state.manifest.cameras.length) {
+    state.view = { mode: 'capture', index: camera };
+  } else if (p.has('eye') && p.has('target')) {
+    const eye = numbers('eye'), target = numbers('target');
+    if (eye.length === 3 && target.length === 3 && eye.concat(target).every(Number.isFinite)) {
+      state.view = orbitFromEye(eye, target, Number(p.get('fov')) || 50);
+      if (p.get('fly') === '1') setFly(true);
+    }
+  }
+  state.playing = p.get('play') === '1';
+  state.speed = Number(p.get('speed')) || 1;
+  state.loop = p.get('loop') !== '0';
+  state.helpers = p.get('helpers') !== '0';
+  document.body.classList.toggle('bare', p.get('ui') === '0');
+}
+
+// ---------------------------------------------------------------------------------------------
+// Input: orbit (drag), pan (right drag or shift), zoom (wheel), fly (WASD/QE + drag to look)
+
+function setFly(on) {
+  state.fly = on;
+  $('fly').textContent = on ? 'orbit' : 'fly';
+  if (on) {
+    const canvas = $('view');
+    const cam = currentCamera(canvas.width, canvas.height);
+    const eye = cameraCentre(cam), forward = cam.R[2], up = upAxis(), [a, b] = floorAxes();
+    state.view = { mode: 'fly', eye, fov: 2 * Math.atan(canvas.width / 2 / cam.fx) * 180 / Math.PI,
+                   yaw: Math.atan2(dot(forward, b), dot(forward, a)),
+                   pitch: Math.asin(Math.max(-1, Math.min(1, dot(forward, up)))) };
+  } else {
+    toOrbit();
+  }
+}
+
+function installInput(canvas) {
+  let drag = null;
+  canvas.addEventListener('pointerdown', (e) => {
+    drag = { x: e.clientX, y: e.clientY, pan: e.button === 2 || e.shiftKey };
+    canvas.setPointerCapture(e.pointerId);
+  });
+  canvas.addEventListener('pointerup', () => { drag = null; });
+  canvas.addEventListener('contextmenu', (e) => e.preventDefault());
+  canvas.addEventListener('pointermove', (e) => {
+    if (!drag) return;
+    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+    drag.x = e.clientX;
+    drag.y = e.clientY;
+    if (state.view.mode === 'capture') toOrbit();
+    const v = state.view;
+    if (v.mode === 'fly') {
+      v.yaw -= dx * 0.005;
+      v.pitch = Math.max(-1.5, Math.min(1.5, v.pitch - dy * 0.005));
+    } else if (drag.pan) {
+      const cam = currentCamera(canvas.width, canvas.height);
+      const metresPerPixel = v.radius / cam.fx;
+      v.target = add(v.target, add(scale(cam.R[0], -dx * metresPerPixel), scale(cam.R[1], -dy * metresPerPixel)));
+    } else {
+      v.azimuth -= dx * 0.008;
+      v.elevation = Math.max(-1.5, Math.min(1.5, v.elevation + dy * 0.008));
+    }
+  });
+  canvas.addEventListener('wheel', (e) => {
+    e.preventDefault();
+    if (state.view.mode === 'capture') toOrbit();
+    const v = state.view, factor = Math.exp(e.deltaY * 0.001);
+    if (v.mode === 'fly') v.fov = Math.max(5, Math.min(120, v.fov * factor));
+    else v.radius = Math.max(0.05, v.radius * factor);
+  }, { passive: false });
+  const keys = new Set();
+  window.addEventListener('keydown', (e) => {
+    if (e.target.tagName === 'INPUT' && e.target.type !== 'range') return;
+    if (e.key === ' ') { togglePlay(); e.preventDefault(); }
+    else if (e.key === '.') stepFrame(1);
+    else if (e.key === ',') stepFrame(-1);
+    else if (e.key === 'f') setFly(!state.fly);
+    keys.add(e.key.toLowerCase());
+  });
+  window.addEventListener('keyup', (e) => keys.delete(e.key.toLowerCase()));
+  return (dt) => {
+    const v = state.view;
+    if (v.mode !== 'fly' || keys.size === 0) return;
+    const forward = normalize(sub(targetOf(v), v.eye)), up = upAxis();
+    const right = normalize(cross(forward, up)), speed = 1.0 * dt;
+    const move = { w: forward, s: scale(forward, -1), d: right, a: scale(right, -1), e: up, q: scale(up, -1) };
+    for (const [key, direction] of Object.entries(move))
+      if (keys.has(key)) v.eye = add(v.eye, scale(direction, speed));
+  };
+}
+
+// ---------------------------------------------------------------------------------------------
+// Playback
+
+function frameCount() { return state.manifest.frames.length; }
+
+function setFrame(index) {
+  const n = frameCount();
+  state.frame = state.loop ? ((index % n) + n) % n : Math.max(0, Math.min(n - 1, index));
+  state.time = state.frame;
+}
+
+function stepFrame(delta) {
+  state.playing = false;
+  setFrame(state.frame + delta);
+}
+
+function togglePlay() {
+  state.playing = !state.playing;
+  if (state.playing && !state.loop && state.frame === frameCount() - 1) setFrame(0);
+}
+
+function advance(dt) {
+  if (!state.playing) return;
+  const buffer = state.buffers[state.stream];
+  const next = state.frame + 1 < frameCount() ? state.frame + 1 : (state.loop ? 0 : -1);
+  if (next < 0) {
+    state.playing = false;
+    return;
+  }
+  const entry = buffer.get(next);
+  // Waits for a frame still on its way (buffering); a failed or empty one is passed over.
+  if (!entry || entry.state === 'loading') return;
+  state.time += dt * state.speed * state.manifest.fps;
+  if (state.time >= state.frame + 1) setFrame(next);
+}
+
+function updateStats(now) {
+  const windowMs = 1000;
+  state.drawTimes = state.drawTimes.filter((t) => now - t < windowMs);
+  state.decoded = state.decoded.filter((d) => now - d.t < windowMs);
+  const bytes = state.decoded.reduce((s, d) => s + d.bytes, 0);
+  const buffer = state.buffers[state.stream];
+  const ahead = buffer ? buffer.readyAhead(state.frame) : 0;
+  state.stats = { fps: state.drawTimes.length, decodedMBps: bytes / 1e6, decodedFramesPerSecond: state.decoded.length,
+                  bufferAheadFrames: ahead, bufferAheadS: ahead / state.manifest.fps };
+  $('stats').textContent =
+      `fps        ${state.stats.fps}\n` +
+      `decoded    ${state.stats.decodedMBps.toFixed(2)} MB/s (${state.decoded.length} frames/s)\n` +
+      `buffer     ${ahead} frames (${state.stats.bufferAheadS.toFixed(2)} s ahead)\n` +
+      `stream     ${state.manifest.streams[state.stream]?.name ?? '-'}`;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Drawing
+
+function draw(gl, renderers) {
+  const canvas = $('view');
+  const W = canvas.width, H = canvas.height;
+  gl.viewport(0, 0, W, H);
+  gl.clearColor(0, 0, 0, 1);
+  gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+  const camera = currentCamera(W, H);
+  const centre = boundsCentre(), distance = norm(sub(cameraCentre(camera), centre));
+  const projection = projectionMatrix(camera, W, H, Math.max(0.01, distance * 0.01), distance * 10 + 20);
+  const view = viewMatrix(camera);
+  if (state.helpers) {
+    renderers.floor.draw(view, projection);
+    renderers.frusta.draw(view, projection);
+  }
+  const stream = state.manifest.streams[state.stream];
+  const entry = state.buffers[state.stream]?.get(state.frame);
+  if (!stream || !entry) return;
+  if (entry.state === 'ready') {
+    if (entry.data.kind === 'mesh') renderers.mesh.draw(entry.data, view, projection);
+    else renderers.volume.draw(entry.data, camera, H);
+    if (state.drawnFrame !== state.frame && state.timeToFirstFrameMs === null)
+      state.timeToFirstFrameMs = performance.now();
+  }
+  if (entry.state === 'ready' || entry.state === 'failed' || entry.state === 'empty') {
+    state.drawnFrame = state.frame;
+    state.drawnStream = stream.name;
+    state.drawnState = entry.state;
+  }
+}
+
+function resize(canvas) {
+  const ratio = window.devicePixelRatio || 1;
+  const w = Math.round(canvas.clientWidth * ratio), h = Math.round(canvas.clientHeight * ratio);
+  if (canvas.width !== w || canvas.height !== h) {
+    canvas.width = w;
+    canvas.height = h;
+  }
+}
+
+function buildUi(renderers) {
+  const m = state.manifest;
+  $('timeline').max = String(frameCount() - 1);
+  for (const [i, s] of m.streams.entries())
+    $('stream').add(new Option(`${s.name} (${s.mbps.toFixed(1)} Mbps)`, String(i)));
+  for (const [i, c] of m.cameras.entries()) $('camera').add(new Option(`${i}: ${c.name}`, String(i)));
+  $('stream').value = String(state.stream);
+  $('stream').onchange = () => { state.stream = Number($('stream').value); };
+  $('play').onclick = togglePlay;
+  $('back').onclick = () => stepFrame(-1);
+  $('forward').onclick = () => stepFrame(1);
+  $('timeline').oninput = () => { state.playing = false; setFrame(Number($('timeline').value)); };
+  $('loop').checked = state.loop;
+  $('loop').onchange = () => { state.loop = $('loop').checked; };
+  $('speed').value = String(state.speed);
+  $('speed').onchange = () => { state.speed = Number($('speed').value); };
+  $('helpers').checked = state.helpers;
+  $('helpers').onchange = () => { state.helpers = $('helpers').checked; };
+  $('look').onclick = () => {
+    state.view = { mode: 'capture', index: Number($('camera').value) };
+    if (state.fly) { state.fly = false; $('fly').textContent = 'fly'; }
+  };
+  $('fly').onclick = () => setFly(!state.fly);
+  renderers.floor.set(floorLines(m));
+}
+
+async function main() {
+  const canvas = $('view');
+  const gl = canvas.getContext('webgl2', { antialias: false, preserveDrawingBuffer: true, alpha: false });
+  if (!gl) return fatal('this browser has no WebGL2');
+  try {
+    state.manifest = await loadManifest(base);
+  } catch (error) {
+    return fatal(error instanceof FormatError ? error.message : `cannot load the site: ${error.message}`);
+  }
+  const m = state.manifest;
+  if (m.frames.length === 0 || m.streams.length === 0) return fatal('this site holds no frames');
+  state.buffers = m.streams.map((s) => new StreamBuffer(base, s, (i, text) => message(text),
+      (bytes) => state.decoded.push({ t: performance.now(), bytes })));
+  state.view = defaultView();
+  readHash();
+  const renderers = { mesh: new MeshRenderer(gl), volume: new VolumeRenderer(gl),
+                      floor: new LineRenderer(gl), frusta: new LineRenderer(gl) };
+  buildUi(renderers);
+  const moveFly = installInput(canvas);
+  window.addEventListener('hashchange', () => readHash());
+  let last = performance.now(), selected = null;
+  const tick = (now) => {
+    const dt = Math.min(0.1, (now - last) / 1000);
+    last = now;
+    resize(canvas);
+    moveFly(dt);
+    advance(dt);
+    state.buffers[state.stream].prefetch(state.frame, 8, state.loop);
+    const look = state.view.mode === 'capture' ? state.view.index : -1;
+    if (look !== selected) {
+      renderers.frusta.set(frustumLines(m, look));
+      selected = look;
+    }
+    draw(gl, renderers);
+    state.drawTimes.push(now);
+    updateStats(now);
+    $('timeline').value = String(state.frame);
+    $('frame-label').textContent = `${state.frame + 1} / ${frameCount()}  ${m.frames[state.frame].time_s.toFixed(2)} s`;
+    $('play').textContent = state.playing ? 'pause' : 'play';
+    writeHash();
+    requestAnimationFrame(tick);
+  };
+  requestAnimationFrame(tick);
+}
+
+// Fetches and decodes every chunk of a stream in turn (nothing drawn): the page's decoding rate.
+state.benchDecode = async (name) => {
+  const stream = state.manifest.streams.find((s) => s.name === name);
+  let frames = 0, bytes = 0, decodeMs = 0;
+  const start = performance.now();
+  for (const chunk of stream.chunks) {
+    if (!chunk) continue;
+    const buffer = await (await fetch(new URL(`${stream.path}/${chunk.file}`, base))).arrayBuffer();
+    const t = performance.now();
+    const parsed = parseChunk(buffer);
+    await (parsed.header.kind === 'mesh' ? decodeMesh(parsed) : decodeVolume(parsed));
+    decodeMs += performance.now() - t;
+    bytes += buffer.byteLength;
+    ++frames;
+  }
+  const seconds = (performance.now() - start) / 1000;
+  return { frames, bytes, seconds, decodeSeconds: decodeMs / 1000,
+           framesDecodedPerSecond: frames / (decodeMs / 1000) };
+};
+
+main();

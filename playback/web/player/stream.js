@@ -1,0 +1,219 @@
+// The holocap stream format, version 1 (README "The stream format"): the manifest and the
+// per-frame chunks, fetched ahead of the play head and decoded in the page.
+
+export const FORMAT_VERSION = 1;
+const MAGIC = 'HOLOCAPC';
+
+export class FormatError extends Error {}
+
+export async function loadManifest(base) {
+  const response = await fetch(new URL('manifest.json', base));
+  if (!response.ok) throw new FormatError(`manifest.json: HTTP ${response.status}`);
+  const manifest = await response.json();
+  if (manifest.format !== 'holocap-stream')
+    throw new FormatError('manifest.json is not a holocap stream');
+  if (manifest.version !== FORMAT_VERSION)
+    throw new FormatError(`this site is stream format version ${manifest.version}; ` +
+                          `this player reads version ${FORMAT_VERSION} only`);
+  return manifest;
+}
+
+async function inflate(bytes) {
+  const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream('deflate'));
+  return new Uint8Array(await new Response(stream).arrayBuffer());
+}
+
+// Splits a chunk into its header and section views; throws FormatError when it is cut short.
+export function parseChunk(buffer) {
+  const bytes = new Uint8Array(buffer);
+  if (bytes.length < 16 || new TextDecoder().decode(bytes.subarray(0, 8)) !== MAGIC)
+    throw new FormatError('not a holocap chunk');
+  const view = new DataView(buffer);
+  const version = view.getUint32(8, true), headerBytes = view.getUint32(12, true);
+  if (version !== FORMAT_VERSION)
+    throw new FormatError(`chunk format version ${version} (this player reads ${FORMAT_VERSION})`);
+  if (16 + headerBytes > bytes.length)
+    throw new FormatError(`chunk truncated: ${bytes.length} bytes, header needs ${16 + headerBytes}`);
+  const header = JSON.parse(new TextDecoder().decode(bytes.subarray(16, 16 + headerBytes)));
+  const payload = bytes.subarray(16 + headerBytes);
+  const sections = {};
+  for (const s of header.sections) {
+    if (s.offset + s.bytes > payload.length)
+      throw new FormatError(`chunk truncated: section '${s.name}' needs ${s.offset + s.bytes} ` +
+                            `bytes, ${payload.length} arrived`);
+    sections[s.name] = { ...s, data: payload.subarray(s.offset, s.offset + s.bytes) };
+  }
+  return { header, sections };
+}
+
+async function sectionBytes(chunk, name) {
+  const s = chunk.sections[name];
+  if (!s) throw new FormatError(`chunk has no section '${name}'`);
+  if (s.codec !== 'deflate') return s.data;
+  const raw = await inflate(s.data);
+  if (raw.length !== s.raw_bytes)
+    throw new FormatError(`section '${name}' inflates to ${raw.length} bytes, not ${s.raw_bytes}`);
+  return raw;
+}
+
+function typed(bytes, Type) {
+  const copy = new Uint8Array(bytes);  // aligned
+  return new Type(copy.buffer, 0, copy.length / Type.BYTES_PER_ELEMENT);
+}
+
+function dequantise(code, lo, hi, bits) { return lo + (hi - lo) * (code / (2 ** bits - 1)); }
+
+// A mesh chunk -> per-corner positions (and uvs + an ImageBitmap atlas, or colours).
+export async function decodeMesh(chunk) {
+  const h = chunk.header;
+  const faces = h.face_count, vertices = h.vertex_count;
+  const positionBytes = await sectionBytes(chunk, 'positions');
+  const unique = new Float32Array(3 * vertices);
+  if (h.position_bits > 0) {
+    const codes = typed(positionBytes, Uint16Array);
+    for (let i = 0; i < 3 * vertices; ++i)
+      unique[i] = dequantise(codes[i], h.box_min[i % 3], h.box_max[i % 3], h.position_bits);
+  } else {
+    unique.set(typed(positionBytes, Float32Array));
+  }
+  const indices = typed(await sectionBytes(chunk, 'indices'), Uint32Array);
+  const positions = new Float32Array(9 * faces);
+  for (let c = 0; c < 3 * faces; ++c) {
+    const v = indices[c];
+    if (v >= vertices) throw new FormatError(`index ${v} names a missing vertex`);
+    positions.set(unique.subarray(3 * v, 3 * v + 3), 3 * c);
+  }
+  const mesh = { kind: 'mesh', faces, positions };
+  if (h.texture) {
+    const uvBytes = await sectionBytes(chunk, 'uvs');
+    if (h.uv_bits > 0) {
+      const codes = typed(uvBytes, Uint16Array);
+      mesh.uvs = new Float32Array(codes.length);
+      for (let i = 0; i < codes.length; ++i) mesh.uvs[i] = dequantise(codes[i], 0, 1, h.uv_bits);
+    } else {
+      mesh.uvs = typed(uvBytes, Float32Array);
+    }
+    const type = { webp: 'image/webp', jpeg: 'image/jpeg', png: 'image/png' }[h.texture.codec];
+    mesh.atlas = await createImageBitmap(new Blob([chunk.sections.texture.data], { type }), {
+      colorSpaceConversion: 'none', premultiplyAlpha: 'none', imageOrientation: 'none' });
+  } else {
+    mesh.colors = await sectionBytes(chunk, 'colors');
+  }
+  return mesh;
+}
+
+// A volume chunk -> the dense grid (RGBA float32, x fastest, channels as stored: B, G, R,
+// density) and the occupancy cells.
+export async function decodeVolume(chunk) {
+  const h = chunk.header;
+  const n = h.grid, brick = h.brick, cells = Math.max(h.occupancy_cells, 1);
+  const occupancy = h.occupancy_cells > 0 ? await sectionBytes(chunk, 'occupancy')
+                                          : new Uint8Array([1]);
+  const bricks = typed(await sectionBytes(chunk, 'bricks'), Uint32Array);
+  const voxels = await sectionBytes(chunk, 'voxels');
+  const rgba = new Float32Array(4 * n * n * n);
+  const perPlane = bricks.length * brick * brick * brick;
+  const floats = h.voxel === 'float32' ? typed(voxels, Float32Array) : null;
+  if ((floats ? floats.length : voxels.length) !== 4 * perPlane)
+    throw new FormatError(`volume voxels: ${voxels.length} bytes for ${bricks.length} bricks`);
+  const colourLevels = 2 ** h.color_bits - 1;
+  const d = h.density;
+  const density = new Float32Array(256);
+  for (let c = 1; c < 256; ++c)
+    density[c] = d.min * Math.pow(d.max / d.min, (c - 1) / (d.levels - 2));
+  let k = 0;
+  for (let channel = 0; channel < 4; ++channel) {
+    for (const b of bricks) {
+      const bx = b % cells, by = Math.floor(b / cells) % cells, bz = Math.floor(b / (cells * cells));
+      for (let z = 0; z < brick; ++z)
+        for (let y = 0; y < brick; ++y) {
+          let i = ((bz * brick + z) * n + by * brick + y) * n + bx * brick;
+          for (let x = 0; x < brick; ++x, ++i, ++k) {
+            let value;
+            if (floats) value = floats[k];
+            else value = channel < 3 ? voxels[k] / colourLevels : density[voxels[k]];
+            rgba[4 * i + channel] = value;
+          }
+        }
+    }
+  }
+  return { kind: 'volume', header: h, rgba, occupancy };
+}
+
+// Fetches and decodes chunks of one stream ahead of the play head; remembers failures so that a
+// broken chunk is reported once and skipped.
+export class StreamBuffer {
+  constructor(base, stream, onError, onBytes) {
+    this.base = base;
+    this.stream = stream;
+    this.onError = onError;
+    this.onBytes = onBytes;
+    this.frames = new Map();  // index -> {state: 'loading'|'ready'|'failed', data, error}
+    this.capacity = 24;
+  }
+
+  get(index) { return this.frames.get(index); }
+
+  request(index) {
+    if (index < 0 || index >= this.stream.chunks.length || this.frames.has(index)) return;
+    const entry = { state: 'loading' };
+    this.frames.set(index, entry);
+    const chunk = this.stream.chunks[index];
+    if (!chunk) {
+      entry.state = 'empty';
+      return;
+    }
+    const url = new URL(`${this.stream.path}/${chunk.file}`, this.base);
+    (async () => {
+      const response = await fetch(url);
+      if (!response.ok) throw new FormatError(`HTTP ${response.status}`);
+      const buffer = await response.arrayBuffer();
+      if (buffer.byteLength !== chunk.bytes)
+        throw new FormatError(`chunk truncated: ${buffer.byteLength} of ${chunk.bytes} bytes`);
+      const parsed = parseChunk(buffer);
+      const started = performance.now();
+      const data = parsed.header.kind === 'mesh' ? await decodeMesh(parsed)
+                                                 : await decodeVolume(parsed);
+      this.onBytes(buffer.byteLength, performance.now() - started);
+      return data;
+    })().then((data) => {
+      entry.state = 'ready';
+      entry.data = data;
+    }, (error) => {
+      entry.state = 'failed';
+      entry.error = error;
+      this.onError(index, `${this.stream.name} frame ${index} (${chunk.file}): ${error.message}`);
+    });
+  }
+
+  // Keeps the frames from `index` on (wrapping when looping) and drops the rest.
+  prefetch(index, ahead, loop) {
+    const count = this.stream.chunks.length;
+    const wanted = new Set();
+    for (let k = 0; k < Math.min(ahead, count); ++k) {
+      let i = index + k;
+      if (i >= count) {
+        if (!loop) break;
+        i %= count;
+      }
+      wanted.add(i);
+      this.request(i);
+    }
+    if (this.frames.size > this.capacity) {
+      for (const [i, entry] of this.frames)
+        if (!wanted.has(i) && entry.state !== 'loading' && entry.state !== 'failed')
+          this.frames.delete(i);
+    }
+  }
+
+  // Frames ready from `index` on, before the first that is not.
+  readyAhead(index) {
+    let n = 0;
+    for (let i = index; i < this.stream.chunks.length; ++i) {
+      const e = this.frames.get(i);
+      if (!e || (e.state !== 'ready' && e.state !== 'failed' && e.state !== 'empty')) break;
+      ++n;
+    }
+    return n;
+  }
+}

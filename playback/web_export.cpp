@@ -1,0 +1,389 @@
+// holocap export web: the manifest, one chunk per stream and frame, the player's files, and the
+// export's error against its size measured by decoding every chunk as the player does.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <map>
+#include <set>
+
+#include "core/error.h"
+#include "core/fs.h"
+#include "core/output.h"
+#include "core/progress.h"
+#include "core/take.h"
+#include "core/take_plan.h"
+#include "playback/playback.h"
+#include "playback/web_stream.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string ChunkName(int64_t set) {
+  char name[32];
+  std::snprintf(name, sizeof(name), "%06lld.hcc", static_cast<long long>(set));
+  return name;
+}
+
+nlohmann::json PoseJson(const Pose& pose) {
+  nlohmann::json rows = nlohmann::json::array();
+  for (int r = 0; r < 4; ++r)
+    for (int c = 0; c < 4; ++c) rows.push_back(pose.matrix()(r, c));
+  return rows;
+}
+
+nlohmann::json CameraJson(const std::string& name, const CameraModel& camera) {
+  nlohmann::json json = {{"name", name},
+                         {"width", camera.width()},
+                         {"height", camera.height()},
+                         {"lensmodel", camera.lensmodel()},
+                         {"intrinsics", camera.intrinsics()},
+                         {"cam_from_world", PoseJson(camera.cam_from_world())}};
+  if (camera.has_core()) {
+    const auto& k = camera.intrinsics();
+    json["pinhole"] = {k[0], k[1], k[2], k[3]};
+  }
+  return json;
+}
+
+// The frame sets of the reconstruction's meshes (recon/<set>.glb), in order.
+std::map<int64_t, fs::path> MeshFiles(const fs::path& recon) {
+  std::map<int64_t, fs::path> files;
+  if (recon.empty() || !fs::is_directory(recon)) return files;
+  for (const auto& entry : fs::directory_iterator(recon)) {
+    const fs::path& file = entry.path();
+    const std::string stem = file.stem().string();
+    if (file.extension() != ".glb" || stem.empty() ||
+        !std::all_of(stem.begin(), stem.end(), [](char c) { return c >= '0' && c <= '9'; }))
+      continue;
+    files[std::stoll(stem)] = file;
+  }
+  return files;
+}
+
+double Psnr(double squared_sum, int64_t count) {
+  if (count == 0) return std::numeric_limits<double>::quiet_NaN();
+  const double mse = squared_sum / count;
+  return mse <= 1e-12 ? 99.0 : 10 * std::log10(1.0 / mse);
+}
+
+// Squared colour differences (premultiplied, over black) of two views, and their count.
+void AccumulateError(const RenderedView& a, const RenderedView& b, double* squared,
+                     int64_t* count) {
+  for (int y = 0; y < a.color.rows; ++y) {
+    for (int x = 0; x < a.color.cols; ++x) {
+      const cv::Vec3f d = a.color.at<cv::Vec3f>(y, x) - b.color.at<cv::Vec3f>(y, x);
+      *squared += d.dot(d);
+      *count += 3;
+    }
+  }
+}
+
+class SiteWriter {
+ public:
+  SiteWriter(const fs::path& take_dir, const fs::path& site, const WebExportOptions& options,
+             Report* report)
+      : take_(Take::Open(take_dir)), site_(site), options_(options), report_(report) {}
+
+  WebExportSummary Run();
+
+ private:
+  void PlanCameras();
+  void WriteMeshStreams(const std::map<int64_t, fs::path>& files);
+  void WriteVolumeStream(const fs::path& model_dir, const std::string& name);
+  nlohmann::json StreamJson(const WebStreamMetrics& metrics, const std::string& kind,
+                            const std::string& folder, const nlohmann::json& chunks);
+  std::vector<CameraModel> ErrorCameras(int64_t frame_index) const;
+  void WriteManifest();
+
+  Take take_;
+  fs::path site_;
+  WebExportOptions options_;
+  Report* report_;
+  TakePlan plan_;
+  std::vector<std::string> camera_names_;
+  std::vector<CameraModel> cameras_;
+  std::vector<int64_t> sets_;  // the timeline: frame sets shown, in order
+  nlohmann::json streams_ = nlohmann::json::array();
+  WebExportSummary summary_;
+  Eigen::AlignedBox3d bounds_;
+  double fps_ = 30;
+};
+
+void SiteWriter::PlanCameras() {
+  plan_ = PlanTake(take_, options_.take);
+  camera_names_ = plan_.color_sensors;
+  cameras_ = plan_.Cameras(camera_names_);
+  bounds_ = plan_.bounds;
+  fps_ = options_.fps > 0 ? options_.fps : (take_.rig().fps > 0 ? take_.rig().fps : 30);
+}
+
+std::vector<CameraModel> SiteWriter::ErrorCameras(int64_t frame_index) const {
+  std::vector<CameraModel> chosen;
+  const int n = static_cast<int>(cameras_.size());
+  for (int k = 0; k < std::min(options_.error_cameras, n); ++k) {
+    const CameraModel& camera = cameras_[(frame_index + k * std::max(1, n / 2)) % n];
+    chosen.push_back(camera.Scaled(static_cast<double>(options_.error_width_px) / camera.width()));
+  }
+  return chosen;
+}
+
+nlohmann::json SiteWriter::StreamJson(const WebStreamMetrics& metrics, const std::string& kind,
+                                      const std::string& folder, const nlohmann::json& chunks) {
+  summary_.streams.push_back(metrics);
+  if (report_ != nullptr) report_->metrics()["streams"][metrics.name] = metrics.ToJson();
+  return {{"name", metrics.name},      {"kind", kind},
+          {"quality", metrics.quality}, {"path", folder},
+          {"chunks", chunks},           {"mb_per_frame", metrics.mb_per_frame},
+          {"mbps", metrics.mbps},       {"psnr_db", metrics.psnr_db}};
+}
+
+void SiteWriter::WriteMeshStreams(const std::map<int64_t, fs::path>& files) {
+  for (const std::string& level : options_.qualities) {
+    const web::QualityLevel quality = web::QualityByName(level);
+    WebStreamMetrics metrics{.name = "mesh-" + level, .kind = "mesh", .quality = level};
+    const std::string folder = "streams/" + metrics.name;
+    CreateDirectories(site_ / folder);
+    nlohmann::json chunks = nlohmann::json::array();
+    uint64_t bytes = 0;
+    double squared = 0;
+    int64_t count = 0;
+    for (size_t i = 0; i < sets_.size(); ++i) {
+      auto it = files.find(sets_[i]);
+      if (it == files.end()) {
+        chunks.push_back(nullptr);
+        continue;
+      }
+      const TexturedMeshFrame mesh = ReadTexturedGlb(it->second);
+      TexturedMeshFrame decoded;
+      double max_error_m = 0;
+      const std::string chunk =
+          web::EncodeMesh(mesh, static_cast<int64_t>(i), quality, &decoded, &max_error_m)
+              .Serialise();
+      WriteFileAtomic(site_ / folder / ChunkName(sets_[i]), chunk);
+      chunks.push_back({{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}});
+      bytes += chunk.size();
+      metrics.max_position_error_mm = std::max(metrics.max_position_error_mm, 1e3 * max_error_m);
+      for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
+        AccumulateError(RenderTexturedMesh(decoded, camera), RenderTexturedMesh(mesh, camera),
+                        &squared, &count);
+      ++metrics.frames;
+      if (report_ != nullptr)
+        report_->AddPoint(metrics.name + ".psnr_db", Psnr(squared, count), metrics.frames);
+    }
+    metrics.mb_per_frame = metrics.frames > 0 ? bytes / 1e6 / metrics.frames : 0;
+    metrics.mbps = metrics.mb_per_frame * 8 * fps_;
+    metrics.psnr_db = Psnr(squared, count);
+    summary_.bytes += bytes;
+    streams_.push_back(StreamJson(metrics, "mesh", folder, chunks));
+  }
+}
+
+void SiteWriter::WriteVolumeStream(const fs::path& model_dir, const std::string& name) {
+  auto model = OpenModel(model_dir);
+  const nlohmann::json model_json = nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
+  std::vector<int64_t> model_sets = model_json.value("frame_sets", std::vector<int64_t>{});
+  ViewRenderOptions render;
+  render.step_voxels = options_.step_voxels;
+  for (const std::string& level : options_.qualities) {
+    const web::QualityLevel quality = web::QualityByName(level);
+    WebStreamMetrics metrics{.name = name + "-" + level, .kind = "volume", .quality = level};
+    const std::string folder = "streams/" + metrics.name;
+    CreateDirectories(site_ / folder);
+    nlohmann::json chunks = nlohmann::json::array();
+    uint64_t bytes = 0;
+    double squared = 0;
+    int64_t count = 0;
+    for (size_t i = 0; i < sets_.size(); ++i) {
+      // The model's frame showing this set (a static model shows its one frame throughout).
+      int64_t frame = 0;
+      if (model->frame_count() > 1) {
+        auto it = std::find(model_sets.begin(), model_sets.end(), sets_[i]);
+        if (it == model_sets.end()) {
+          chunks.push_back(nullptr);
+          continue;
+        }
+        frame = it - model_sets.begin();
+      }
+      BakedFrame baked, decoded;
+      if (!model->Bake(frame, render, &baked))
+        Fail("model ", model_dir.string(), " (", model->method(),
+             ") is not a volume: the web stream carries meshes and volumes");
+      const std::string chunk = web::EncodeVolume(baked, static_cast<int64_t>(i), quality,
+                                                  render.min_transmittance, &decoded)
+                                    .Serialise();
+      WriteFileAtomic(site_ / folder / ChunkName(sets_[i]), chunk);
+      chunks.push_back({{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}});
+      bytes += chunk.size();
+      for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
+        AccumulateError(web::RenderBakedFrame(decoded, camera, render.min_transmittance),
+                        web::RenderBakedFrame(baked, camera, render.min_transmittance), &squared,
+                        &count);
+      ++metrics.frames;
+      if (report_ != nullptr)
+        report_->AddPoint(metrics.name + ".psnr_db", Psnr(squared, count), metrics.frames);
+    }
+    metrics.mb_per_frame = metrics.frames > 0 ? bytes / 1e6 / metrics.frames : 0;
+    metrics.mbps = metrics.mb_per_frame * 8 * fps_;
+    metrics.psnr_db = Psnr(squared, count);
+    summary_.bytes += bytes;
+    streams_.push_back(StreamJson(metrics, "volume", folder, chunks));
+  }
+}
+
+void SiteWriter::WriteManifest() {
+  nlohmann::json frames = nlohmann::json::array();
+  const int64_t first_ns = take_.entry(sets_.front()).items.front().timestamp_ns;
+  for (size_t i = 0; i < sets_.size(); ++i) {
+    const auto& entry = take_.entry(sets_[i]);
+    frames.push_back({{"set", sets_[i]},
+                      {"time_s", (entry.items.front().timestamp_ns - first_ns) * 1e-9}});
+  }
+  nlohmann::json cameras = nlohmann::json::array();
+  for (size_t i = 0; i < cameras_.size(); ++i)
+    cameras.push_back(CameraJson(camera_names_[i], cameras_[i]));
+  const nlohmann::json manifest = {
+      {"format", "holocap-stream"},
+      {"version", kWebStreamFormatVersion},
+      {"take", take_.dir().filename().string()},
+      {"fps", fps_},
+      {"frames", frames},
+      {"bounds", {{"min", {bounds_.min().x(), bounds_.min().y(), bounds_.min().z()}},
+                  {"max", {bounds_.max().x(), bounds_.max().y(), bounds_.max().z()}}}},
+      {"up", {plan_.up.x(), plan_.up.y(), plan_.up.z()}},
+      {"cameras", cameras},
+      {"streams", streams_}};
+  WriteFileAtomic(site_ / "manifest.json", manifest.dump(1) + "\n");
+}
+
+WebExportSummary SiteWriter::Run() {
+  const auto start = std::chrono::steady_clock::now();
+  PlanCameras();
+  fs::path recon = options_.recon;
+  if (recon.empty() && options_.meshes && fs::is_directory(take_.dir() / "recon"))
+    recon = take_.dir() / "recon";
+  const auto mesh_files = options_.meshes ? MeshFiles(recon) : std::map<int64_t, fs::path>{};
+  if (!options_.recon.empty() && mesh_files.empty())
+    Fail("--recon ", options_.recon.string(), " holds no meshes (<set>.glb)");
+  std::set<int64_t> sets;
+  for (const auto& [set, file] : mesh_files) sets.insert(set);
+  for (const fs::path& model_dir : options_.models) {
+    const nlohmann::json json = nlohmann::json::parse(ReadFileToString(model_dir / "model.json"),
+                                                      nullptr, false);
+    if (json.is_discarded()) Fail(model_dir.string(), "/model.json does not parse");
+    for (int64_t set : json.value("frame_sets", std::vector<int64_t>{})) sets.insert(set);
+  }
+  for (int64_t set : sets)
+    if (set < 0 || set >= static_cast<int64_t>(take_.size()))
+      Fail("frame set ", set, " of the meshes or models is not in take ", take_.dir().string());
+  sets_.assign(sets.begin(), sets.end());
+  if (sets_.empty()) {
+    summary_.End(Termination::kDegenerate,
+                 "nothing to stream: no reconstruction (" +
+                     (recon.empty() ? (take_.dir() / "recon").string() : recon.string()) +
+                     ") and no --model");
+    return summary_;
+  }
+  if (report_ != nullptr) {
+    report_->plan() = plan_.ToJson();
+    report_->plan()["recon"] = recon.string();
+    report_->plan()["frame_sets"] = sets_;
+  }
+  CreateDirectories(site_ / "streams");
+  if (!mesh_files.empty()) WriteMeshStreams(mesh_files);
+  for (const fs::path& model_dir : options_.models) {
+    const std::string kind = OpenModel(model_dir)->method();
+    const std::string name = options_.models.size() > 1 ? model_dir.filename().string() : kind;
+    WriteVolumeStream(model_dir, name);
+  }
+  WriteManifest();
+  for (const auto& [path, bytes] : web::PlayerFiles()) {
+    CreateDirectories((site_ / path).parent_path());
+    WriteFileAtomic(site_ / path, bytes);
+  }
+  summary_.frames = static_cast<int64_t>(sets_.size());
+  summary_.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::string message = std::to_string(sets_.size()) + " frame(s), " +
+                        std::to_string(summary_.streams.size()) + " stream(s)";
+  summary_.End(Termination::kSuccess, message);
+  return summary_;
+}
+
+}  // namespace
+
+void WebExportOptions::Check() const {
+  if (qualities.empty()) Fail("--quality needs at least one level");
+  for (const auto& q : qualities) web::QualityByName(q);
+  if (!(fps >= 0)) Fail("--fps must be >= 0, got ", fps);
+  if (!(step_voxels > 0)) Fail("--step must be positive, got ", step_voxels);
+  if (error_width_px < 8) Fail("error_width_px must be at least 8, got ", error_width_px);
+  if (error_cameras < 0) Fail("error_cameras must be >= 0, got ", error_cameras);
+  take.Check();
+}
+
+nlohmann::json WebExportOptions::ToJson() const {
+  std::vector<std::string> model_dirs;
+  for (const auto& m : models) model_dirs.push_back(m.string());
+  return {{"qualities", qualities},         {"recon", recon.string()},
+          {"meshes", meshes},               {"models", model_dirs},
+          {"fps", fps},                     {"step_voxels", step_voxels},
+          {"error_width_px", error_width_px}, {"error_cameras", error_cameras},
+          {"take", take.ToJson()},          {"overwrite", overwrite}};
+}
+
+nlohmann::json WebStreamMetrics::ToJson() const {
+  return {{"kind", kind},
+          {"quality", quality},
+          {"frames", frames},
+          {"mb_per_frame", mb_per_frame},
+          {"mbps", mbps},
+          {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
+          {"max_position_error_mm", max_position_error_mm}};
+}
+
+WebExportSummary ExportWebSite(const fs::path& take_dir, const fs::path& site_dir,
+                               const WebExportOptions& options, Report* report) {
+  options.Check();
+  OutputRequest request{"export web", options.overwrite, {take_dir}};
+  for (const auto& model : options.models) request.inputs.push_back(model);
+  if (!options.recon.empty()) request.inputs.push_back(options.recon);
+  const OutputDirectory claimed = OutputDirectory::Claim(site_dir, request);
+  if (report != nullptr) {
+    report->options() = options.ToJson();
+    report->SetFailureDestination(site_dir / "report.json");
+  }
+  SiteWriter writer(take_dir, site_dir, options, report);
+  WebExportSummary summary = writer.Run();
+  if (report != nullptr) {
+    report->metrics()["frames"] = summary.frames;
+    report->metrics()["bytes"] = summary.bytes;
+    report->metrics()["seconds"] = summary.seconds;
+    report->SetSummary(summary);
+    report->Write(site_dir / "report.json");
+  }
+  return summary;
+}
+
+bool IsWebSite(const fs::path& dir, std::string* why) {
+  const fs::path manifest = dir / "manifest.json";
+  if (!fs::is_regular_file(manifest) || !fs::is_regular_file(dir / "index.html")) {
+    *why = "'" + dir.string() + "' is not a site made by holocap export web (no manifest.json " +
+           "and index.html)";
+    return false;
+  }
+  const nlohmann::json json = nlohmann::json::parse(ReadFileToString(manifest), nullptr, false);
+  if (json.is_discarded() || json.value("format", "") != "holocap-stream") {
+    *why = manifest.string() + " is not a holocap stream manifest";
+    return false;
+  }
+  if (json.value("version", -1) != kWebStreamFormatVersion) {
+    *why = manifest.string() + " is stream format version " + json.value("version", nlohmann::json()).dump() +
+           "; this holocap plays version " + std::to_string(kWebStreamFormatVersion);
+    return false;
+  }
+  return true;
+}
+
+}  // namespace holocap

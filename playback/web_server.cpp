@@ -1,0 +1,48 @@
+// holocap view: a site served on loopback (cpp-httplib), static files only.
+#include "core/error.h"
+#include "playback/playback.h"
+
+// Last: <resolv.h>, which httplib.h includes, defines a macro `_res` that Eigen's headers use
+// as a parameter name.
+#include <httplib.h>
+
+namespace holocap {
+
+void ViewServerOptions::Check() const {
+  if (port < 0 || port > 65535) Fail("--port must be in 0..65535, got ", port);
+  if (host != "127.0.0.1" && host != "localhost" && host != "::1")
+    Fail("holocap view serves on loopback only, not '", host, "'");
+}
+
+void ServeSite(const std::filesystem::path& site, const ViewServerOptions& options,
+               const std::function<void(const std::string& url)>& listening) {
+  options.Check();
+  std::string why;
+  if (!IsWebSite(site, &why)) Fail(why);
+  httplib::Server server;
+  const std::pair<const char*, const char*> types[] = {
+      {"js", "text/javascript"},         {"mjs", "text/javascript"},
+      {"json", "application/json"},      {"html", "text/html; charset=utf-8"},
+      {"css", "text/css"},               {"hcc", "application/octet-stream"},
+      {"png", "image/png"},
+  };
+  for (const auto& [extension, type] : types)
+    server.set_file_extension_and_mimetype_mapping(extension, type);
+  if (!server.set_mount_point("/", std::filesystem::absolute(site).string()))
+    Fail("cannot serve '", site.string(), "'");
+  // Chunks change when a site is exported again: the browser asks each time.
+  server.set_post_routing_handler([](const httplib::Request&, httplib::Response& response) {
+    response.set_header("Cache-Control", "no-cache");
+  });
+  int port = options.port;
+  if (port == 0) {
+    port = server.bind_to_any_port(options.host);
+    if (port < 0) Fail("cannot bind any port on ", options.host);
+  } else if (!server.bind_to_port(options.host, port)) {
+    Fail("port ", port, " on ", options.host, " is in use (or not permitted); pick another with --port");
+  }
+  listening("http://" + options.host + ":" + std::to_string(port) + "/");
+  if (!server.listen_after_bind()) Fail("serving on port ", port, " stopped");
+}
+
+}  // namespace holocap

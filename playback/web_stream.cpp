@@ -1,0 +1,491 @@
+#include "playback/web_stream.h"
+
+#include <zlib.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <map>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "core/error.h"
+#include "neural/raymarch.h"
+
+namespace holocap::web {
+namespace {
+
+template <typename T>
+std::string Bytes(const std::vector<T>& values) {
+  return std::string(reinterpret_cast<const char*>(values.data()), values.size() * sizeof(T));
+}
+
+template <typename T>
+std::vector<T> Values(const std::string& bytes, size_t count, const char* what) {
+  if (bytes.size() != count * sizeof(T))
+    Fail("chunk section '", what, "' holds ", bytes.size(), " bytes, not ", count * sizeof(T));
+  std::vector<T> values(count);
+  std::memcpy(values.data(), bytes.data(), bytes.size());
+  return values;
+}
+
+std::string Deflate(const std::string& raw) {
+  uLongf size = compressBound(raw.size());
+  std::string out(size, '\0');
+  if (compress2(reinterpret_cast<Bytef*>(out.data()), &size,
+                reinterpret_cast<const Bytef*>(raw.data()), raw.size(), 9) != Z_OK) {
+    Fail("cannot deflate a chunk section of ", raw.size(), " bytes");
+  }
+  out.resize(size);
+  return out;
+}
+
+std::string Inflate(const std::string& deflated, size_t raw_bytes, const std::string& name) {
+  std::string out(raw_bytes, '\0');
+  uLongf size = raw_bytes;
+  if (uncompress(reinterpret_cast<Bytef*>(out.data()), &size,
+                 reinterpret_cast<const Bytef*>(deflated.data()), deflated.size()) != Z_OK ||
+      size != raw_bytes) {
+    Fail("chunk section '", name, "' does not inflate to its ", raw_bytes, " bytes");
+  }
+  return out;
+}
+
+nlohmann::json Vec(const Eigen::Vector3d& v) { return {v.x(), v.y(), v.z()}; }
+Eigen::Vector3d Vec(const nlohmann::json& j) {
+  return {j.at(0).get<double>(), j.at(1).get<double>(), j.at(2).get<double>()};
+}
+
+uint32_t Quantise(double value, double lo, double hi, int bits) {
+  const double levels = std::ldexp(1.0, bits) - 1;
+  const double t = hi > lo ? (value - lo) / (hi - lo) : 0.0;
+  return static_cast<uint32_t>(std::lround(std::clamp(t, 0.0, 1.0) * levels));
+}
+float Dequantise(uint32_t code, double lo, double hi, int bits) {
+  const double levels = std::ldexp(1.0, bits) - 1;
+  return static_cast<float>(lo + (hi - lo) * (code / levels));
+}
+
+}  // namespace
+
+QualityLevel QualityByName(const std::string& name) {
+  QualityLevel q;
+  q.name = name;
+  if (name == "low") {
+    q.position_bits = 11;
+    q.texture_quality = 50;
+    q.texture_scale = 0.5;
+    q.color_bits = 6;
+    q.density_levels = 64;
+  } else if (name == "medium") {
+    q.position_bits = 13;
+    q.texture_quality = 75;
+    q.color_bits = 7;
+    q.density_levels = 128;
+  } else if (name == "high") {
+    q.position_bits = 16;
+    q.texture_quality = 92;
+    q.color_bits = 8;
+    q.density_levels = 256;
+  } else if (name == "lossless") {
+    q.position_bits = 0;
+    q.uv_bits = 0;
+    q.texture_codec = "png";
+    q.texture_quality = 100;
+    q.color_bits = 0;
+    q.density_levels = 0;
+  } else {
+    Fail("unknown --quality '", name, "' (known: low, medium, high, lossless)");
+  }
+  return q;
+}
+
+void Chunk::AddSection(const std::string& name, const std::string& bytes,
+                       const std::string& codec) {
+  const std::string stored = codec == "deflate" ? Deflate(bytes) : bytes;
+  header["sections"].push_back({{"name", name},
+                                {"offset", payload.size()},
+                                {"bytes", stored.size()},
+                                {"codec", codec},
+                                {"raw_bytes", bytes.size()}});
+  payload += stored;
+}
+
+std::string Chunk::Serialise() const {
+  const std::string text = header.dump();
+  std::string out(kChunkMagic, 8);
+  const uint32_t fields[2] = {static_cast<uint32_t>(kWebStreamFormatVersion),
+                              static_cast<uint32_t>(text.size())};
+  out.append(reinterpret_cast<const char*>(fields), sizeof(fields));
+  return out + text + payload;
+}
+
+Chunk ParseChunk(const std::string& bytes) {
+  if (bytes.size() < 16 || bytes.compare(0, 8, kChunkMagic) != 0) Fail("not a holocap chunk");
+  uint32_t fields[2];
+  std::memcpy(fields, bytes.data() + 8, sizeof(fields));
+  if (fields[0] != kWebStreamFormatVersion)
+    Fail("chunk format version ", fields[0], " is not ", kWebStreamFormatVersion);
+  if (16 + static_cast<size_t>(fields[1]) > bytes.size()) Fail("chunk header is truncated");
+  Chunk chunk;
+  chunk.header = nlohmann::json::parse(bytes.substr(16, fields[1]), nullptr, false);
+  if (chunk.header.is_discarded()) Fail("chunk header does not parse");
+  chunk.payload = bytes.substr(16 + fields[1]);
+  for (const auto& section : chunk.header.at("sections")) {
+    if (section.at("offset").get<size_t>() + section.at("bytes").get<size_t>() >
+        chunk.payload.size())
+      Fail("chunk is truncated (section '", section.at("name").get<std::string>(), "')");
+  }
+  return chunk;
+}
+
+std::string SectionBytes(const Chunk& chunk, const std::string& name) {
+  for (const auto& section : chunk.header.at("sections")) {
+    if (section.at("name") != name) continue;
+    const std::string stored = chunk.payload.substr(section.at("offset").get<size_t>(),
+                                                    section.at("bytes").get<size_t>());
+    if (section.at("codec") != "deflate") return stored;
+    return Inflate(stored, section.at("raw_bytes").get<size_t>(), name);
+  }
+  Fail("chunk has no section '", name, "'");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Meshes: welded positions (quantised over the frame's box), corner indices, per-corner texture
+// coordinates and the atlas as an image (or per-corner colours without one).
+
+Chunk EncodeMesh(const TexturedMeshFrame& mesh, int64_t frame, const QualityLevel& quality,
+                 TexturedMeshFrame* decoded, double* max_position_error_m) {
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+  Eigen::Vector3d hi = -lo;
+  for (const auto& p : mesh.positions) {
+    lo = lo.cwiseMin(p.cast<double>());
+    hi = hi.cwiseMax(p.cast<double>());
+  }
+  if (mesh.positions.empty()) lo = hi = Eigen::Vector3d::Zero();
+  std::map<std::array<uint32_t, 3>, uint32_t> welded;
+  std::vector<uint32_t> indices;
+  std::vector<Eigen::Vector3f> unique;
+  for (const auto& p : mesh.positions) {
+    std::array<uint32_t, 3> key;
+    std::memcpy(key.data(), p.data(), 12);
+    auto [it, added] = welded.emplace(key, static_cast<uint32_t>(unique.size()));
+    if (added) unique.push_back(p);
+    indices.push_back(it->second);
+  }
+  Chunk chunk;
+  chunk.header = {{"kind", "mesh"},
+                  {"frame", frame},
+                  {"face_count", mesh.faces()},
+                  {"vertex_count", unique.size()},
+                  {"box_min", Vec(lo)},
+                  {"box_max", Vec(hi)},
+                  {"position_bits", quality.position_bits},
+                  {"uv_bits", quality.uv_bits},
+                  {"sections", nlohmann::json::array()}};
+  std::vector<Eigen::Vector3f> restored(unique.size());
+  double max_error = 0;
+  if (quality.position_bits > 0) {
+    std::vector<uint16_t> codes;
+    for (size_t v = 0; v < unique.size(); ++v) {
+      for (int a = 0; a < 3; ++a) {
+        const uint32_t code = Quantise(unique[v][a], lo[a], hi[a], quality.position_bits);
+        codes.push_back(static_cast<uint16_t>(code));
+        restored[v][a] = Dequantise(code, lo[a], hi[a], quality.position_bits);
+      }
+      max_error = std::max(max_error, static_cast<double>((restored[v] - unique[v]).norm()));
+    }
+    chunk.AddSection("positions", Bytes(codes), "deflate");
+  } else {
+    restored = unique;
+    std::vector<float> raw;
+    for (const auto& p : unique) raw.insert(raw.end(), {p.x(), p.y(), p.z()});
+    chunk.AddSection("positions", Bytes(raw), "deflate");
+  }
+  chunk.AddSection("indices", Bytes(indices), "deflate");
+  decoded->positions.clear();
+  for (uint32_t i : indices) decoded->positions.push_back(restored[i]);
+  *max_position_error_m = max_error;
+
+  decoded->uvs.clear();
+  decoded->colors.clear();
+  decoded->atlas.release();
+  if (!mesh.atlas.empty()) {
+    if (quality.uv_bits > 0) {
+      std::vector<uint16_t> codes;
+      for (const auto& uv : mesh.uvs) {
+        Eigen::Vector2f r;
+        for (int a = 0; a < 2; ++a) {
+          const uint32_t code = Quantise(uv[a], 0.0, 1.0, quality.uv_bits);
+          codes.push_back(static_cast<uint16_t>(code));
+          r[a] = Dequantise(code, 0.0, 1.0, quality.uv_bits);
+        }
+        decoded->uvs.push_back(r);
+      }
+      chunk.AddSection("uvs", Bytes(codes), "deflate");
+    } else {
+      std::vector<float> raw;
+      for (const auto& uv : mesh.uvs) raw.insert(raw.end(), {uv.x(), uv.y()});
+      decoded->uvs = mesh.uvs;
+      chunk.AddSection("uvs", Bytes(raw), "deflate");
+    }
+    cv::Mat atlas = mesh.atlas;
+    if (quality.texture_scale < 1) {
+      cv::resize(mesh.atlas, atlas, cv::Size(), quality.texture_scale, quality.texture_scale,
+                 cv::INTER_AREA);
+    }
+    std::vector<int> params;
+    const std::string codec = quality.texture_codec;
+    if (codec == "webp") params = {cv::IMWRITE_WEBP_QUALITY, quality.texture_quality};
+    if (codec == "jpeg") params = {cv::IMWRITE_JPEG_QUALITY, quality.texture_quality};
+    std::vector<uint8_t> encoded;
+    if (!cv::imencode(codec == "jpeg" ? ".jpg" : "." + codec, atlas, encoded, params))
+      Fail("cannot encode a texture atlas as ", codec);
+    chunk.header["texture"] = {{"width", atlas.cols}, {"height", atlas.rows}, {"codec", codec}};
+    chunk.AddSection("texture", Bytes(encoded), codec);
+    decoded->atlas = cv::imdecode(encoded, cv::IMREAD_COLOR);
+  } else {
+    std::vector<uint8_t> rgb;
+    for (const auto& c : mesh.colors) rgb.insert(rgb.end(), {c[0], c[1], c[2]});
+    chunk.AddSection("colors", Bytes(rgb), "deflate");
+    decoded->colors = mesh.colors;
+  }
+  return chunk;
+}
+
+TexturedMeshFrame DecodeMesh(const Chunk& chunk) {
+  const auto& h = chunk.header;
+  const size_t faces = h.at("face_count"), vertices = h.at("vertex_count");
+  const int position_bits = h.at("position_bits"), uv_bits = h.at("uv_bits");
+  const Eigen::Vector3d lo = Vec(h.at("box_min")), hi = Vec(h.at("box_max"));
+  std::vector<Eigen::Vector3f> unique(vertices);
+  const std::string positions = SectionBytes(chunk, "positions");
+  if (position_bits > 0) {
+    const auto codes = Values<uint16_t>(positions, 3 * vertices, "positions");
+    for (size_t v = 0; v < vertices; ++v)
+      for (int a = 0; a < 3; ++a)
+        unique[v][a] = Dequantise(codes[3 * v + a], lo[a], hi[a], position_bits);
+  } else {
+    const auto raw = Values<float>(positions, 3 * vertices, "positions");
+    for (size_t v = 0; v < vertices; ++v) unique[v] = Eigen::Vector3f(&raw[3 * v]);
+  }
+  TexturedMeshFrame mesh;
+  for (uint32_t i : Values<uint32_t>(SectionBytes(chunk, "indices"), 3 * faces, "indices")) {
+    if (i >= vertices) Fail("chunk index ", i, " names a missing vertex");
+    mesh.positions.push_back(unique[i]);
+  }
+  if (h.contains("texture")) {
+    const std::string uvs = SectionBytes(chunk, "uvs");
+    if (uv_bits > 0) {
+      const auto codes = Values<uint16_t>(uvs, 6 * faces, "uvs");
+      for (size_t c = 0; c < 3 * faces; ++c)
+        mesh.uvs.emplace_back(Dequantise(codes[2 * c], 0, 1, uv_bits),
+                              Dequantise(codes[2 * c + 1], 0, 1, uv_bits));
+    } else {
+      const auto raw = Values<float>(uvs, 6 * faces, "uvs");
+      for (size_t c = 0; c < 3 * faces; ++c) mesh.uvs.emplace_back(raw[2 * c], raw[2 * c + 1]);
+    }
+    const std::string image = SectionBytes(chunk, "texture");
+    mesh.atlas = cv::imdecode(std::vector<uint8_t>(image.begin(), image.end()), cv::IMREAD_COLOR);
+  } else {
+    const auto rgb = Values<uint8_t>(SectionBytes(chunk, "colors"), 9 * faces, "colors");
+    for (size_t c = 0; c < 3 * faces; ++c)
+      mesh.colors.emplace_back(rgb[3 * c], rgb[3 * c + 1], rgb[3 * c + 2]);
+  }
+  return mesh;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Volumes: the occupancy, the bricks (occupancy cells) a sample in an occupied cell can read,
+// and their voxels as four planes (R, G, B, density), colour on color_bits and density on a
+// log scale of density_levels codes (0: none), or float32 when lossless.
+
+namespace {
+
+struct DensityScale {
+  double min = 0, max = 0;
+  int levels = 0;
+  uint8_t Encode(float sigma) const {
+    if (!(sigma >= 0.5 * min)) return 0;
+    const double t = std::log(std::clamp<double>(sigma, min, max) / min) / std::log(max / min);
+    return static_cast<uint8_t>(1 + std::lround(t * (levels - 2)));
+  }
+  float Decode(uint8_t code) const {
+    if (code == 0) return 0.0f;
+    return static_cast<float>(min * std::pow(max / min, (code - 1.0) / (levels - 2)));
+  }
+};
+
+// The bricks to store: occupied cells grown by one cell (trilinear reads reach into them).
+std::vector<uint32_t> StoredBricks(const BakedFrame& volume) {
+  const int n = volume.occupancy_cells;
+  std::vector<uint32_t> bricks;
+  if (n == 0) return {0};
+  for (int z = 0; z < n; ++z)
+    for (int y = 0; y < n; ++y)
+      for (int x = 0; x < n; ++x) {
+        bool near = false;
+        for (int dz = -1; dz <= 1 && !near; ++dz)
+          for (int dy = -1; dy <= 1 && !near; ++dy)
+            for (int dx = -1; dx <= 1 && !near; ++dx) {
+              const int cx = x + dx, cy = y + dy, cz = z + dz;
+              if (cx < 0 || cy < 0 || cz < 0 || cx >= n || cy >= n || cz >= n) continue;
+              near = volume.occupied[(static_cast<size_t>(cz) * n + cy) * n + cx] != 0;
+            }
+        if (near) bricks.push_back(static_cast<uint32_t>((z * n + y) * n + x));
+      }
+  return bricks;
+}
+
+// Calls visit(voxel index) for each voxel of each brick, brick by brick, x fastest.
+template <typename Visit>
+void ForEachBrickVoxel(int grid, int cells, const std::vector<uint32_t>& bricks, Visit visit) {
+  const int brick = cells > 0 ? grid / cells : grid, n = std::max(cells, 1);
+  for (uint32_t b : bricks) {
+    const int bx = b % n, by = (b / n) % n, bz = b / (n * n);
+    for (int z = 0; z < brick; ++z)
+      for (int y = 0; y < brick; ++y)
+        for (int x = 0; x < brick; ++x)
+          visit((static_cast<size_t>(bz * brick + z) * grid + by * brick + y) * grid + bx * brick +
+                x);
+  }
+}
+
+}  // namespace
+
+Chunk EncodeVolume(const BakedFrame& volume, int64_t frame, const QualityLevel& quality,
+                   double min_transmittance, BakedFrame* decoded) {
+  BakedFrame v = volume;
+  if (v.occupancy_cells > 0 && v.grid % v.occupancy_cells != 0) {
+    v.occupancy_cells = 0;  // bricks must tile the grid: store it whole, skip nothing
+    v.occupied.clear();
+  }
+  const std::vector<uint32_t> bricks = StoredBricks(v);
+  const bool lossless = quality.density_levels == 0;
+  DensityScale density;
+  density.levels = quality.density_levels;
+  // Densities below min absorb less than 1e-5 of the light per step: nothing to see.
+  density.min = 1e-5 / std::max(v.step_m, 1e-12);
+  float max_sigma = 0;
+  ForEachBrickVoxel(v.grid, v.occupancy_cells, bricks,
+                    [&](size_t i) { max_sigma = std::max(max_sigma, v.rgba[4 * i + 3]); });
+  density.max = std::max<double>(max_sigma, 2 * density.min);
+  Chunk chunk;
+  chunk.header = {{"kind", "volume"},
+                  {"frame", frame},
+                  {"grid", v.grid},
+                  {"clamped", v.clamped},
+                  {"box_min", Vec(v.box_min)},
+                  {"box_max", Vec(v.box_max)},
+                  {"occupancy_cells", v.occupancy_cells},
+                  {"brick", v.occupancy_cells > 0 ? v.grid / v.occupancy_cells : v.grid},
+                  {"brick_count", bricks.size()},
+                  {"step_m", v.step_m},
+                  {"min_transmittance", min_transmittance},
+                  {"voxel", lossless ? "float32" : "uint8"},
+                  {"color_bits", quality.color_bits},
+                  {"density", {{"scale", "log"}, {"levels", density.levels}, {"min", density.min},
+                               {"max", density.max}}},
+                  {"sections", nlohmann::json::array()}};
+  chunk.AddSection("occupancy", Bytes(v.occupied), "deflate");
+  chunk.AddSection("bricks", Bytes(bricks), "deflate");
+  *decoded = v;
+  std::fill(decoded->rgba.begin(), decoded->rgba.end(), 0.0f);
+  const double colour_levels = std::ldexp(1.0, quality.color_bits) - 1;
+  std::vector<uint8_t> codes;
+  std::vector<float> raw;
+  for (int c = 0; c < 4; ++c) {
+    ForEachBrickVoxel(v.grid, v.occupancy_cells, bricks, [&](size_t i) {
+      const float value = v.rgba[4 * i + c];
+      if (lossless) {
+        raw.push_back(value);
+        decoded->rgba[4 * i + c] = value;
+      } else if (c < 3) {
+        const auto code = static_cast<uint8_t>(
+            std::lround(std::clamp(value, 0.0f, 1.0f) * colour_levels));
+        codes.push_back(code);
+        decoded->rgba[4 * i + c] = static_cast<float>(code / colour_levels);
+      } else {
+        codes.push_back(density.Encode(value));
+        decoded->rgba[4 * i + c] = density.Decode(codes.back());
+      }
+    });
+  }
+  chunk.AddSection("voxels", lossless ? Bytes(raw) : Bytes(codes), "deflate");
+  return chunk;
+}
+
+BakedFrame DecodeVolume(const Chunk& chunk) {
+  const auto& h = chunk.header;
+  BakedFrame v;
+  v.grid = h.at("grid");
+  v.clamped = h.at("clamped");
+  v.box_min = Vec(h.at("box_min"));
+  v.box_max = Vec(h.at("box_max"));
+  v.occupancy_cells = h.at("occupancy_cells");
+  v.step_m = h.at("step_m");
+  const size_t cells = static_cast<size_t>(v.occupancy_cells) * v.occupancy_cells * v.occupancy_cells;
+  v.occupied = Values<uint8_t>(SectionBytes(chunk, "occupancy"), cells, "occupancy");
+  const size_t brick_count = h.at("brick_count");
+  const auto bricks = Values<uint32_t>(SectionBytes(chunk, "bricks"), brick_count, "bricks");
+  const int brick = h.at("brick");
+  const size_t per_plane = brick_count * brick * brick * brick;
+  v.rgba.assign(4 * static_cast<size_t>(v.grid) * v.grid * v.grid, 0.0f);
+  const std::string voxels = SectionBytes(chunk, "voxels");
+  const bool lossless = h.at("voxel") == "float32";
+  DensityScale density{h.at("density").at("min"), h.at("density").at("max"),
+                       h.at("density").at("levels")};
+  const double colour_levels = std::ldexp(1.0, h.at("color_bits").get<int>()) - 1;
+  const auto codes = lossless ? std::vector<uint8_t>()
+                              : Values<uint8_t>(voxels, 4 * per_plane, "voxels");
+  const auto raw = lossless ? Values<float>(voxels, 4 * per_plane, "voxels") : std::vector<float>();
+  size_t k = 0;
+  for (int c = 0; c < 4; ++c) {
+    ForEachBrickVoxel(v.grid, v.occupancy_cells, bricks, [&](size_t i) {
+      float value = 0;
+      if (lossless) {
+        value = raw[k];
+      } else {
+        value = c < 3 ? static_cast<float>(codes[k] / colour_levels) : density.Decode(codes[k]);
+      }
+      v.rgba[4 * i + c] = value;
+      ++k;
+    });
+  }
+  return v;
+}
+
+RenderedView RenderBakedFrame(const BakedFrame& volume, const CameraModel& camera,
+                              double min_transmittance) {
+  neural::OccupancyGrid occupancy;
+  occupancy.size = volume.occupancy_cells;
+  occupancy.occupied = volume.occupied;
+  neural::MarchVolume march;
+  march.box_min = volume.box_min.cast<float>();
+  march.box_max = volume.box_max.cast<float>();
+  march.rgba = volume.rgba.data();
+  march.grid = volume.grid;
+  march.rgba_clamped = volume.clamped;
+  march.occupancy = &occupancy;
+  neural::MarchOptions options;
+  options.step_m = static_cast<float>(volume.step_m);
+  options.min_transmittance = static_cast<float>(min_transmittance);
+  const neural::RayBatch rays = neural::CameraRaysAllPixels(camera, march.box_min, march.box_max);
+  neural::MarchOutputs outputs;
+  neural::MarchPlayback(march, rays, options, &outputs);
+  RenderedView view;
+  const int w = camera.width(), h = camera.height();
+  view.color.create(h, w, CV_32FC3);
+  view.alpha.create(h, w, CV_32FC1);
+  for (int y = 0, i = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x, ++i) {
+      view.color.at<cv::Vec3f>(y, x) =
+          cv::Vec3f(outputs.rgb[3 * i], outputs.rgb[3 * i + 1], outputs.rgb[3 * i + 2]);
+      view.alpha.at<float>(y, x) = outputs.alpha[i];
+    }
+  }
+  return view;
+}
+
+}  // namespace holocap::web

@@ -1,0 +1,153 @@
+// Drives the holocap player in headless Chromium (Debian's `chromium`, WebGL2 through
+// SwiftShader) through the DevTools protocol, for tests/playback/web_test.cc and bench/web_bench.
+//
+//   node drive.mjs shots URL OUT W H FRAME CAMERA STREAM...   one PNG per stream (OUT/STREAM.png)
+//                                                             of capture camera CAMERA at FRAME
+//   node drive.mjs interact URL OUT BROKEN_FRAME             drag, zoom, play, scrub, a broken
+//                                                             chunk, an unknown version, the
+//                                                             player's picture (OUT/player.png)
+//   node drive.mjs bench URL OUT STREAM...                    time to first frame and frames
+//                                                             decoded per second per stream
+// Each writes OUT/<mode>.json, with every console error and page error seen.
+import fs from 'node:fs';
+import path from 'node:path';
+import puppeteer from 'puppeteer-core';
+
+const [mode, url, out, ...rest] = process.argv.slice(2);
+const consoleErrors = [];
+const browser = await puppeteer.launch({
+  executablePath: process.env.HOLOCAP_CHROMIUM || '/usr/bin/chromium',
+  headless: true,
+  args: ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader',
+         '--ignore-gpu-blocklist', '--disable-dev-shm-usage'],
+});
+
+async function open(hash, width, height, intercept) {
+  const page = await browser.newPage();
+  await page.setViewport({ width, height, deviceScaleFactor: 1 });
+  page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(`${m.text()} (${m.location()?.url ?? ''})`); });
+  page.on('pageerror', (e) => consoleErrors.push(`page error: ${e.message}`));
+  if (intercept) {
+    await page.setRequestInterception(true);
+    page.on('request', intercept);
+  }
+  await page.goto(`${url}#${hash}`, { waitUntil: 'load' });
+  return page;
+}
+
+const state = (page) => page.evaluate(() => {
+  const s = window.holocap;
+  return { frame: s.frame, drawnFrame: s.drawnFrame, drawnStream: s.drawnStream,
+           drawnState: s.drawnState, playing: s.playing, messages: s.messages, fatal: s.fatal,
+           hash: window.location.hash, timeToFirstFrameMs: s.timeToFirstFrameMs, stats: s.stats };
+});
+
+async function waitFor(page, predicate, what, timeoutMs = 60000) {
+  const start = Date.now();
+  for (;;) {
+    const s = await state(page);
+    if (predicate(s)) return s;
+    if (Date.now() - start > timeoutMs) throw new Error(`timed out waiting for ${what}: ${JSON.stringify(s)}`);
+    await new Promise((r) => setTimeout(r, 50));
+  }
+}
+
+async function shots([width, height, frame, camera, ...streams]) {
+  const results = {};
+  for (const stream of streams) {
+    const page = await open(`frame=${frame}&camera=${camera}&stream=${stream}&helpers=0&ui=0`, +width, +height);
+    const s = await waitFor(page, (s) => s.drawnFrame === +frame && s.drawnStream === stream, `${stream} frame ${frame}`);
+    // Two more animation frames: the drawn frame is on the canvas.
+    await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+    const file = path.join(out, `${stream}.png`);
+    await page.screenshot({ path: file, clip: { x: 0, y: 0, width: +width, height: +height } });
+    results[stream] = { file, state: s.drawnState, messages: s.messages };
+    await page.close();
+  }
+  return results;
+}
+
+async function interact([brokenFrame]) {
+  const results = {};
+  const page = await open('frame=0', 640, 480);
+  await waitFor(page, (s) => s.drawnFrame === 0 && s.drawnState === 'ready', 'the first frame');
+  const picture = async () => Buffer.from(await page.screenshot({ encoding: 'binary' }));
+  const before = await state(page);
+  const shot0 = await picture();
+  // Orbit: a drag across the canvas.
+  await page.mouse.move(320, 240);
+  await page.mouse.down();
+  for (let i = 1; i <= 10; ++i) await page.mouse.move(320 + 12 * i, 240 + 3 * i);
+  await page.mouse.up();
+  await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+  const dragged = await state(page);
+  const shot1 = await picture();
+  results.drag = { hashBefore: before.hash, hashAfter: dragged.hash, pictureChanged: !shot0.equals(shot1) };
+  // Zoom: the wheel.
+  await page.mouse.move(320, 240);
+  await page.mouse.wheel({ deltaY: -400 });
+  await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+  const zoomed = await state(page);
+  const shot2 = await picture();
+  results.zoom = { hashBefore: dragged.hash, hashAfter: zoomed.hash, pictureChanged: !shot1.equals(shot2) };
+  await page.screenshot({ path: path.join(out, 'player.png') });
+  // Play: the button, then the frame index moves on.
+  await page.click('#play');
+  const played = await waitFor(page, (s) => s.frame !== 0, 'playback to move', 30000);
+  results.play = { frameAfter: played.frame, playing: played.playing };
+  // Scrub: the timeline set to the last frame.
+  const last = await page.evaluate(() => {
+    const t = document.getElementById('timeline');
+    t.value = t.max;
+    t.dispatchEvent(new Event('input', { bubbles: true }));
+    return Number(t.max);
+  });
+  const scrubbed = await waitFor(page, (s) => s.drawnFrame === last, 'the scrubbed frame');
+  results.scrub = { target: last, frame: scrubbed.frame, drawnFrame: scrubbed.drawnFrame, playing: scrubbed.playing };
+  await page.close();
+  // A broken chunk: playback reports it and goes on to the frames after it.
+  const broken = await open(`frame=0&play=1&loop=0&stream=${rest[1] ?? ''}`, 320, 240);
+  const passed = await waitFor(broken, (s) => s.frame > +brokenFrame && s.drawnFrame > +brokenFrame,
+                               'playback past the broken chunk');
+  results.broken = { messages: passed.messages, frame: passed.frame };
+  await broken.close();
+  // A site of an unknown format version is refused.
+  const refused = await open('', 320, 240, (request) => {
+    if (request.url().endsWith('/manifest.json')) {
+      request.respond({ status: 200, contentType: 'application/json',
+                        body: JSON.stringify({ format: 'holocap-stream', version: 99, frames: [], streams: [] }) });
+    } else {
+      request.continue();
+    }
+  });
+  results.unknownVersion = await waitFor(refused, (s) => s.fatal !== null, 'the refusal').then((s) => s.fatal);
+  await refused.close();
+  return results;
+}
+
+async function bench(streams) {
+  const results = {};
+  for (const stream of streams) {
+    const page = await open(`frame=0&stream=${stream}&helpers=0`, 640, 480);
+    const s = await waitFor(page, (s) => s.drawnStream === stream && s.timeToFirstFrameMs !== null, `${stream} first frame`, 120000);
+    const decode = await page.evaluate((name) => window.holocap.benchDecode(name), stream);
+    results[stream] = { timeToFirstFrameMs: s.timeToFirstFrameMs, ...decode };
+    await page.close();
+  }
+  return results;
+}
+
+let results;
+try {
+  if (mode === 'shots') results = await shots(rest);
+  else if (mode === 'interact') results = await interact(rest);
+  else if (mode === 'bench') results = await bench(rest);
+  else throw new Error(`unknown mode '${mode}'`);
+  results.ok = true;
+} catch (error) {
+  results = { ok: false, error: String(error && error.stack || error) };
+}
+results.consoleErrors = consoleErrors;
+fs.writeFileSync(path.join(out, `${mode}.json`), JSON.stringify(results, null, 1));
+await browser.close();
+console.log(JSON.stringify(results));

@@ -1,0 +1,292 @@
+// The web player: `holocap export web` on a small simulated take (3 frame sets, meshes and a
+// dynamic Neural Volume), its stream decoded natively, `holocap view` serving it, and a real
+// headless Chromium playing it (tests/playback/browser/drive.mjs): the page at a capture
+// camera's pose and frame against the native renders, synthetic input, a truncated chunk, a
+// site of an unknown version, no console error.
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "core/error.h"
+#include "core/fs.h"
+#include "neural/neural.h"
+#include "playback/playback.h"
+#include "playback/web_stream.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::RunCli;
+using testing::RunShell;
+using testing::TempDir;
+
+// `holocap view` as a child process; stopped (SIGTERM to its pid) when the object dies.
+class ViewServer {
+ public:
+  explicit ViewServer(const fs::path& site) {
+    int fds[2];
+    if (pipe(fds) != 0) return;
+    pid_ = fork();
+    if (pid_ == 0) {
+      dup2(fds[1], STDOUT_FILENO);
+      dup2(fds[1], STDERR_FILENO);
+      close(fds[0]);
+      const std::string cli = testing::CliPath();
+      execl(cli.c_str(), cli.c_str(), "view", site.c_str(), "--port", "0", nullptr);
+      _exit(127);
+    }
+    close(fds[1]);
+    output_ = fdopen(fds[0], "r");
+    char line[512];
+    while (output_ != nullptr && fgets(line, sizeof(line), output_) != nullptr) {
+      first_line_ = line;
+      const auto at = first_line_.find("http://");
+      if (at != std::string::npos) {
+        url_ = first_line_.substr(at, first_line_.find(' ', at) - at);
+        break;
+      }
+    }
+  }
+  ~ViewServer() {
+    if (pid_ > 0) {
+      kill(pid_, SIGTERM);
+      waitpid(pid_, nullptr, 0);
+    }
+    if (output_ != nullptr) fclose(output_);
+  }
+  const std::string& url() const { return url_; }
+  const std::string& first_line() const { return first_line_; }
+
+ private:
+  pid_t pid_ = -1;
+  FILE* output_ = nullptr;
+  std::string url_, first_line_;
+};
+
+class WebTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new TempDir("holocap-web");
+    auto sim = RunCli("sim --rig studio8 --frames 4 --clean-plate 1 --size 128 --seed 8 --out '" +
+                      Take().string() + "'");
+    ASSERT_EQ(sim.exit_code, 0) << sim.output;
+    auto recon = RunCli("reconstruct '" + Take().string() + "' --voxel 8mm --no-sweep");
+    ASSERT_EQ(recon.exit_code, 0) << recon.output;
+    NeuralVolumeOptions options;
+    options.grid = 32;
+    options.image_width = 64;
+    options.latent_dim = 32;
+    options.decoder_channels = 32;
+    options.warp_grid = 16;
+    options.rays_per_batch = 1024;
+    options.iterations = 60;
+    options.eval_every_s = 1000;
+    NeuralVolumeSummary summary = TrainNeuralVolume(Take(), Model(), options);
+    ASSERT_TRUE(IsUsable(summary.termination)) << summary.message;
+    auto exported = RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
+                           "' --quality high,lossless --ground-truth --out '" + Site().string() +
+                           "'");
+    ASSERT_EQ(exported.exit_code, 0) << exported.output;
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  static fs::path Take() { return dir_->path() / "take"; }
+  static fs::path Model() { return dir_->path() / "model"; }
+  static fs::path Site() { return dir_->path() / "site"; }
+  static nlohmann::json Manifest() {
+    return nlohmann::json::parse(ReadFileToString(Site() / "manifest.json"));
+  }
+  static TempDir* dir_;
+};
+TempDir* WebTest::dir_ = nullptr;
+
+const nlohmann::json& StreamNamed(const nlohmann::json& manifest, const std::string& name) {
+  for (const auto& s : manifest.at("streams"))
+    if (s.at("name") == name) return s;
+  throw Error("no stream " + name);
+}
+
+// The capture camera as the page shows it: its pinhole core at its own size.
+CameraModel PinholeOf(const nlohmann::json& camera) {
+  const auto& m = camera.at("cam_from_world");
+  Pose pose = Pose::Identity();
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) pose.matrix()(r, c) = m.at(4 * r + c).get<double>();
+    pose.matrix()(r, 3) = m.at(4 * r + 3).get<double>();
+  }
+  return CameraModel("LENSMODEL_PINHOLE", camera.at("pinhole").get<std::vector<double>>(),
+                     camera.at("width"), camera.at("height"), pose);
+}
+
+// PSNR of a screenshot (BGR 8-bit) against a native render (premultiplied over black), inside
+// the projection of the scene's box.
+double PsnrInsideBox(const cv::Mat& shot, const RenderedView& native, const CameraModel& camera,
+                     const nlohmann::json& bounds, int64_t* pixels) {
+  double x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
+  for (int k = 0; k < 8; ++k) {
+    const Eigen::Vector3d corner(bounds.at(k & 1 ? "max" : "min").at(0).get<double>(),
+                                 bounds.at(k & 2 ? "max" : "min").at(1).get<double>(),
+                                 bounds.at(k & 4 ? "max" : "min").at(2).get<double>());
+    Eigen::Vector2d p;
+    camera.ProjectWorld(corner, &p);
+    x0 = std::min(x0, p.x()), y0 = std::min(y0, p.y()), x1 = std::max(x1, p.x()),
+    y1 = std::max(y1, p.y());
+  }
+  double squared = 0;
+  *pixels = 0;
+  for (int y = std::max(0, int(y0)); y <= std::min(shot.rows - 1, int(y1)); ++y) {
+    for (int x = std::max(0, int(x0)); x <= std::min(shot.cols - 1, int(x1)); ++x) {
+      for (int c = 0; c < 3; ++c) {
+        const double a = shot.at<cv::Vec3b>(y, x)[c] / 255.0;
+        const double b = std::clamp(native.color.at<cv::Vec3f>(y, x)[c], 0.0f, 1.0f);
+        squared += (a - b) * (a - b);
+      }
+      ++*pixels;
+    }
+  }
+  return 10 * std::log10(1.0 / std::max(squared / (3.0 * std::max<int64_t>(*pixels, 1)), 1e-12));
+}
+
+TEST_F(WebTest, ExportStreamsEveryFrameAndMeasuresItsLoss) {
+  const nlohmann::json manifest = Manifest();
+  EXPECT_EQ(manifest.at("version"), kWebStreamFormatVersion);
+  ASSERT_EQ(manifest.at("frames").size(), 3u);
+  EXPECT_EQ(manifest.at("cameras").size(), 8u);
+  const nlohmann::json report = nlohmann::json::parse(ReadFileToString(Site() / "report.json"));
+  EXPECT_EQ(report.at("summary").at("termination"), "SUCCESS") << report.dump(1);
+  for (const std::string name : {"mesh-high", "mesh-lossless", "nvol-high", "nvol-lossless"}) {
+    const auto& stream = StreamNamed(manifest, name);
+    ASSERT_EQ(stream.at("chunks").size(), 3u) << name;
+    for (const auto& chunk : stream.at("chunks")) {
+      ASSERT_FALSE(chunk.is_null()) << name;
+      EXPECT_EQ(fs::file_size(Site() / stream.at("path").get<std::string>() /
+                              chunk.at("file").get<std::string>()),
+                chunk.at("bytes").get<uint64_t>());
+    }
+    const auto& metrics = report.at("metrics").at("streams").at(name);
+    std::printf("%-14s %.4f MB/frame %.2f Mbps at %.0f fps, PSNR %.1f dB against uncompressed\n",
+                name.c_str(), metrics.at("mb_per_frame").get<double>(),
+                metrics.at("mbps").get<double>(), manifest.at("fps").get<double>(),
+                metrics.at("psnr_db").get<double>());
+    EXPECT_GT(metrics.at("psnr_db").get<double>(), name.ends_with("lossless") ? 98.0 : 38.0);
+  }
+  // The volume chunk decodes natively to a grid that marches like the model's own render.
+  auto model = OpenModel(Model());
+  const auto& nvol = StreamNamed(manifest, "nvol-high");
+  const BakedFrame decoded = web::DecodeVolume(web::ParseChunk(ReadFileToString(
+      Site() / nvol.at("path").get<std::string>() / nvol.at("chunks").at(1).at("file").get<std::string>())));
+  const CameraModel camera = PinholeOf(manifest.at("cameras").at(2));
+  const RenderedView native = model->Render(camera, 1, {});
+  const RenderedView streamed = web::RenderBakedFrame(decoded, camera, 1e-3);
+  const double psnr = PsnrDb(streamed.color, native.color);
+  EXPECT_GT(psnr, 40.0);
+  EXPECT_GT(cv::mean(native.alpha)[0], 0.01) << "the view shows too little of the volume";
+}
+
+TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
+  if (RunShell("command -v chromium").exit_code != 0)
+    GTEST_SKIP() << "Debian's chromium is not installed (scripts/setup.sh --tests installs it)";
+  const fs::path driver = testing::SourceDir() / "tests/playback/browser";
+  if (!fs::exists(driver / "node_modules/puppeteer-core"))
+    GTEST_SKIP() << "puppeteer-core is not installed (scripts/setup.sh --tests: npm ci in " << driver << ")";
+  const nlohmann::json manifest = Manifest();
+  // A chunk cut short: the page must name it and play on.
+  const auto& broken = StreamNamed(manifest, "mesh-lossless");
+  const fs::path broken_file = Site() / broken.at("path").get<std::string>() /
+                               broken.at("chunks").at(1).at("file").get<std::string>();
+  const std::string bytes = ReadFileToString(broken_file);
+  WriteFileAtomic(broken_file, bytes.substr(0, bytes.size() / 2));
+
+  ViewServer server(Site());
+  ASSERT_FALSE(server.url().empty()) << server.first_line();
+  const fs::path out = dir_->path() / "browser";
+  fs::create_directories(out);
+  const int camera_index = 2, frame = 1;
+  const CameraModel camera = PinholeOf(manifest.at("cameras").at(camera_index));
+  auto shots = RunShell("node '" + (driver / "drive.mjs").string() + "' shots " + server.url() +
+                        " '" + out.string() + "' " + std::to_string(camera.width()) + " " +
+                        std::to_string(camera.height()) + " " + std::to_string(frame) + " " +
+                        std::to_string(camera_index) + " nvol-high mesh-high");
+  const auto shot_results = nlohmann::json::parse(ReadFileToString(out / "shots.json"));
+  ASSERT_TRUE(shot_results.at("ok").get<bool>()) << shots.output;
+  EXPECT_TRUE(shot_results.at("consoleErrors").empty()) << shot_results.dump(1);
+
+  int64_t pixels = 0;
+  auto model = OpenModel(Model());
+  const double nvol_psnr = PsnrInsideBox(cv::imread((out / "nvol-high.png").string()),
+                                         model->Render(camera, frame, {}), camera,
+                                         manifest.at("bounds"), &pixels);
+  std::printf("Neural Volumes stream in the page against holocap render: %.2f dB over %lld px\n",
+              nvol_psnr, static_cast<long long>(pixels));
+  EXPECT_GE(nvol_psnr, 35.0);
+  EXPECT_GT(pixels, 500);
+  const int64_t set = manifest.at("frames").at(frame).at("set");
+  char glb[32];
+  std::snprintf(glb, sizeof(glb), "%06lld.glb", static_cast<long long>(set));
+  const double mesh_psnr = PsnrInsideBox(
+      cv::imread((out / "mesh-high.png").string()),
+      RenderTexturedMesh(ReadTexturedGlb(Take() / "recon" / glb), camera), camera,
+      manifest.at("bounds"), &pixels);
+  std::printf("mesh stream in the page against the native textured render: %.2f dB over %lld px\n",
+              mesh_psnr, static_cast<long long>(pixels));
+  EXPECT_GE(mesh_psnr, 30.0);
+
+  auto interact = RunShell("node '" + (driver / "drive.mjs").string() + "' interact " +
+                           server.url() + " '" + out.string() + "' 1 mesh-lossless");
+  const auto r = nlohmann::json::parse(ReadFileToString(out / "interact.json"));
+  ASSERT_TRUE(r.at("ok").get<bool>()) << interact.output;
+  EXPECT_NE(r.at("drag").at("hashBefore"), r.at("drag").at("hashAfter"));
+  EXPECT_TRUE(r.at("drag").at("pictureChanged").get<bool>());
+  EXPECT_NE(r.at("zoom").at("hashBefore"), r.at("zoom").at("hashAfter"));
+  EXPECT_TRUE(r.at("zoom").at("pictureChanged").get<bool>());
+  EXPECT_NE(r.at("play").at("frameAfter"), 0);
+  EXPECT_EQ(r.at("scrub").at("frame"), 2);
+  EXPECT_EQ(r.at("scrub").at("drawnFrame"), 2);
+  EXPECT_GT(r.at("broken").at("frame").get<int>(), 1);
+  const std::string messages = r.at("broken").at("messages").dump();
+  EXPECT_NE(messages.find("truncated"), std::string::npos) << messages;
+  EXPECT_NE(r.at("unknownVersion").get<std::string>().find("version 99"), std::string::npos)
+      << r.at("unknownVersion");
+  EXPECT_TRUE(r.at("consoleErrors").empty()) << r.at("consoleErrors").dump(1);
+  // The player's picture, kept for the bench folder by whoever wants it.
+  std::printf("player screenshot: %s\n", (out / "player.png").c_str());
+  if (const char* keep = std::getenv("HOLOCAP_KEEP_PLAYER_PNG"))
+    fs::copy_file(out / "player.png", keep, fs::copy_options::overwrite_existing);
+}
+
+TEST(WebViewTest, RefusesAFolderThatIsNotASiteAndAPortInUse) {
+  TempDir dir("holocap-web-view");
+  fs::create_directories(dir.path() / "empty");
+  testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "empty").string() + "'"),
+                              "is not a site made by holocap export web");
+  testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "missing").string() + "'"),
+                              "is not a site");
+  // A site of another version is refused too.
+  WriteFileAtomic(dir.path() / "site" / "index.html", "<!doctype html>");
+  WriteFileAtomic(dir.path() / "site" / "manifest.json",
+                  R"({"format": "holocap-stream", "version": 99})");
+  testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
+                              "version 99");
+  WriteFileAtomic(dir.path() / "site" / "manifest.json",
+                  R"({"format": "holocap-stream", "version": 1})");
+  ViewServer first(dir.path() / "site");
+  ASSERT_FALSE(first.url().empty()) << first.first_line();
+  const std::string port = first.url().substr(first.url().rfind(':') + 1,
+                                              first.url().size() - first.url().rfind(':') - 2);
+  testing::ExpectOneLineError(
+      RunCli("view '" + (dir.path() / "site").string() + "' --port " + port), "is in use");
+}
+
+}  // namespace
+}  // namespace holocap
