@@ -94,6 +94,9 @@ void AddDemoCommand(CLI::App& app) {
         ToString(overall.termination), overall.message.c_str(),
         (context.out / "report.json").c_str(), context.out.c_str(),
         (context.out / "plots").c_str());
+    if (std::filesystem::is_regular_file(context.out / "site" / "manifest.json"))
+      std::printf("[demo] watch it in a browser: holocap view %s\n",
+                  (context.out / "site").c_str());
     if (!IsUsable(overall.termination)) Fail("demo stopped: ", overall.message);
   });
 }

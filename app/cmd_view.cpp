@@ -10,9 +10,9 @@
 #include "app/options.h"
 #include "core/error.h"
 #include "core/report.h"
+#include "neural/rerender.h"
 #include "playback/playback.h"
 #include "splat/splat.h"
-#include "neural/rerender.h"
 
 namespace holocap {
 namespace {
@@ -37,9 +37,9 @@ void RunWebExport(const WebExportRequest& request) {
   Report report("export web");
   WebExportSummary summary = ExportWeb(request, &report);
   for (const auto& s : summary.streams) {
-    std::printf("  %-16s %3lld frames  %8.3f MB/frame  %7.2f Mbps  PSNR %5.1f dB against uncompressed\n",
-                s.name.c_str(), static_cast<long long>(s.frames), s.mb_per_frame, s.mbps,
-                s.psnr_db);
+    std::printf(
+        "  %-16s %3lld frames  %8.3f MB/frame  %7.2f Mbps  PSNR %5.1f dB against uncompressed\n",
+        s.name.c_str(), static_cast<long long>(s.frames), s.mb_per_frame, s.mbps, s.psnr_db);
   }
   std::printf("%s: %s\nsite: %s\nreport: %s\nwatch it: holocap view %s\n",
               ToString(summary.termination), summary.message.c_str(), request.out.c_str(),
@@ -53,6 +53,26 @@ const bool kWebExportRegistered = [] {
   return true;
 }();
 
+// The demo's last stage: its meshes and Neural Volume as a site (out/demo/site).
+Summary ExportDemoSite(DemoContext& context) {
+  WebExportRequest request;
+  request.take = context.take.string();
+  request.out = (context.out / "site").string();
+  request.recon = (context.out / "recon").string();
+  if (fs::is_regular_file(context.out / "nvol" / "model.json"))
+    request.models.push_back((context.out / "nvol").string());
+  request.overwrite = true;
+  Report report("export web");
+  const WebExportSummary summary = ExportWeb(request, &report);
+  nlohmann::json streams = nlohmann::json::object();
+  for (const auto& s : summary.streams) streams[s.name] = s.ToJson();
+  context.report->metrics()["web"] = {
+      {"frames", summary.frames}, {"bytes", summary.bytes}, {"streams", streams}};
+  std::printf("[demo] web: %s -> %s\n\n", summary.message.c_str(), request.out.c_str());
+  return {summary.termination, summary.message};
+}
+HOLOCAP_DEMO_STAGE(60, "web", ExportDemoSite);
+
 struct ViewArgs {
   std::string input;
   int port = 8080;
@@ -63,8 +83,7 @@ void AddViewCommand(CLI::App& app) {
   auto* command = app.add_subcommand(
       "view", "Serve a site of export web (or a take, exported first) on 127.0.0.1");
   auto args = std::make_shared<ViewArgs>();
-  command->add_option("SITE", args->input, "A site of `holocap export web`, or a take")
-      ->required();
+  command->add_option("SITE", args->input, "A site of `holocap export web`, or a take")->required();
   command->add_option("--port", args->port, "Port on 127.0.0.1 (0: any free one)")
       ->capture_default_str();
   command->add_option("--model", args->models,

@@ -133,7 +133,7 @@ nlohmann::json SiteWriter::StreamJson(const WebStreamMetrics& metrics, const std
                                       const std::string& folder, const nlohmann::json& chunks) {
   summary_.streams.push_back(metrics);
   if (report_ != nullptr) report_->metrics()["streams"][metrics.name] = metrics.ToJson();
-  return {{"name", metrics.name},      {"kind", kind},
+  return {{"name", metrics.name},       {"kind", kind},
           {"quality", metrics.quality}, {"path", folder},
           {"chunks", chunks},           {"mb_per_frame", metrics.mb_per_frame},
           {"mbps", metrics.mbps},       {"psnr_db", metrics.psnr_db}};
@@ -182,7 +182,8 @@ void SiteWriter::WriteMeshStreams(const std::map<int64_t, fs::path>& files) {
 
 void SiteWriter::WriteVolumeStream(const fs::path& model_dir, const std::string& name) {
   auto model = OpenModel(model_dir);
-  const nlohmann::json model_json = nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
+  const nlohmann::json model_json =
+      nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
   std::vector<int64_t> model_sets = model_json.value("frame_sets", std::vector<int64_t>{});
   ViewRenderOptions render;
   render.step_voxels = options_.step_voxels;
@@ -237,8 +238,8 @@ void SiteWriter::WriteManifest() {
   const int64_t first_ns = take_.entry(sets_.front()).items.front().timestamp_ns;
   for (size_t i = 0; i < sets_.size(); ++i) {
     const auto& entry = take_.entry(sets_[i]);
-    frames.push_back({{"set", sets_[i]},
-                      {"time_s", (entry.items.front().timestamp_ns - first_ns) * 1e-9}});
+    frames.push_back(
+        {{"set", sets_[i]}, {"time_s", (entry.items.front().timestamp_ns - first_ns) * 1e-9}});
   }
   nlohmann::json cameras = nlohmann::json::array();
   for (size_t i = 0; i < cameras_.size(); ++i)
@@ -249,8 +250,9 @@ void SiteWriter::WriteManifest() {
       {"take", take_.dir().filename().string()},
       {"fps", fps_},
       {"frames", frames},
-      {"bounds", {{"min", {bounds_.min().x(), bounds_.min().y(), bounds_.min().z()}},
-                  {"max", {bounds_.max().x(), bounds_.max().y(), bounds_.max().z()}}}},
+      {"bounds",
+       {{"min", {bounds_.min().x(), bounds_.min().y(), bounds_.min().z()}},
+        {"max", {bounds_.max().x(), bounds_.max().y(), bounds_.max().z()}}}},
       {"up", {plan_.up.x(), plan_.up.y(), plan_.up.z()}},
       {"cameras", cameras},
       {"streams", streams_}};
@@ -269,8 +271,8 @@ WebExportSummary SiteWriter::Run() {
   std::set<int64_t> sets;
   for (const auto& [set, file] : mesh_files) sets.insert(set);
   for (const fs::path& model_dir : options_.models) {
-    const nlohmann::json json = nlohmann::json::parse(ReadFileToString(model_dir / "model.json"),
-                                                      nullptr, false);
+    const nlohmann::json json =
+        nlohmann::json::parse(ReadFileToString(model_dir / "model.json"), nullptr, false);
     if (json.is_discarded()) Fail(model_dir.string(), "/model.json does not parse");
     for (int64_t set : json.value("frame_sets", std::vector<int64_t>{})) sets.insert(set);
   }
@@ -326,11 +328,16 @@ void WebExportOptions::Check() const {
 nlohmann::json WebExportOptions::ToJson() const {
   std::vector<std::string> model_dirs;
   for (const auto& m : models) model_dirs.push_back(m.string());
-  return {{"qualities", qualities},         {"recon", recon.string()},
-          {"meshes", meshes},               {"models", model_dirs},
-          {"fps", fps},                     {"step_voxels", step_voxels},
-          {"error_width_px", error_width_px}, {"error_cameras", error_cameras},
-          {"take", take.ToJson()},          {"overwrite", overwrite}};
+  return {{"qualities", qualities},
+          {"recon", recon.string()},
+          {"meshes", meshes},
+          {"models", model_dirs},
+          {"fps", fps},
+          {"step_voxels", step_voxels},
+          {"error_width_px", error_width_px},
+          {"error_cameras", error_cameras},
+          {"take", take.ToJson()},
+          {"overwrite", overwrite}};
 }
 
 nlohmann::json WebStreamMetrics::ToJson() const {
@@ -379,8 +386,9 @@ bool IsWebSite(const fs::path& dir, std::string* why) {
     return false;
   }
   if (json.value("version", -1) != kWebStreamFormatVersion) {
-    *why = manifest.string() + " is stream format version " + json.value("version", nlohmann::json()).dump() +
-           "; this holocap plays version " + std::to_string(kWebStreamFormatVersion);
+    *why = manifest.string() + " is stream format version " +
+           json.value("version", nlohmann::json()).dump() + "; this holocap plays version " +
+           std::to_string(kWebStreamFormatVersion);
     return false;
   }
   return true;

@@ -78,7 +78,8 @@ cv::Mat ReadAtlas(const GlbReader& glb, const nlohmann::json& primitive) {
   const auto& material = glb.json.at("materials").at(primitive.at("material").get<int>());
   const auto pbr = material.value("pbrMetallicRoughness", nlohmann::json::object());
   if (!pbr.contains("baseColorTexture")) return {};
-  const auto& texture = glb.json.at("textures").at(pbr.at("baseColorTexture").at("index").get<int>());
+  const auto& texture =
+      glb.json.at("textures").at(pbr.at("baseColorTexture").at("index").get<int>());
   const auto& image = glb.json.at("images").at(texture.at("source").get<int>());
   const std::string_view encoded = glb.View(image.at("bufferView").get<int>());
   cv::Mat atlas = cv::imdecode(
@@ -134,8 +135,8 @@ cv::Vec3f SampleBilinear(const cv::Mat& atlas, float u, float v) {
   const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
   const float fx = x - x0, fy = y - y0;
   auto at = [&](int xi, int yi) {
-    const cv::Vec3b& t = atlas.at<cv::Vec3b>(std::clamp(yi, 0, atlas.rows - 1),
-                                             std::clamp(xi, 0, atlas.cols - 1));
+    const cv::Vec3b& t =
+        atlas.at<cv::Vec3b>(std::clamp(yi, 0, atlas.rows - 1), std::clamp(xi, 0, atlas.cols - 1));
     return cv::Vec3f(t[0], t[1], t[2]) * (1.0f / 255);
   };
   return (at(x0, y0) * (1 - fx) + at(x0 + 1, y0) * fx) * (1 - fy) +
@@ -196,10 +197,10 @@ RenderedView RenderTexturedMesh(const TexturedMeshFrame& mesh, const CameraModel
               w0 * mesh.uvs[3 * f] + w1 * mesh.uvs[3 * f + 1] + w2 * mesh.uvs[3 * f + 2];
           color = SampleBilinear(mesh.atlas, uv.x(), uv.y());
         } else if (!mesh.colors.empty()) {
-          const Eigen::Vector3f rgb = (w0 * mesh.colors[3 * f].cast<float>() +
-                                       w1 * mesh.colors[3 * f + 1].cast<float>() +
-                                       w2 * mesh.colors[3 * f + 2].cast<float>()) /
-                                      255.0f;
+          const Eigen::Vector3f rgb =
+              (w0 * mesh.colors[3 * f].cast<float>() + w1 * mesh.colors[3 * f + 1].cast<float>() +
+               w2 * mesh.colors[3 * f + 2].cast<float>()) /
+              255.0f;
           color = cv::Vec3f(rgb.z(), rgb.y(), rgb.x());
         } else {
           color = cv::Vec3f(0.5f, 0.5f, 0.5f);

@@ -21,9 +21,9 @@ void ServeSite(const std::filesystem::path& site, const ViewServerOptions& optio
   if (!IsWebSite(site, &why)) Fail(why);
   httplib::Server server;
   const std::pair<const char*, const char*> types[] = {
-      {"js", "text/javascript"},         {"mjs", "text/javascript"},
-      {"json", "application/json"},      {"html", "text/html; charset=utf-8"},
-      {"css", "text/css"},               {"hcc", "application/octet-stream"},
+      {"js", "text/javascript"},    {"mjs", "text/javascript"},
+      {"json", "application/json"}, {"html", "text/html; charset=utf-8"},
+      {"css", "text/css"},          {"hcc", "application/octet-stream"},
       {"png", "image/png"},
   };
   for (const auto& [extension, type] : types)
@@ -34,12 +34,18 @@ void ServeSite(const std::filesystem::path& site, const ViewServerOptions& optio
   server.set_post_routing_handler([](const httplib::Request&, httplib::Response& response) {
     response.set_header("Cache-Control", "no-cache");
   });
+  // httplib's default also sets SO_REUSEPORT, which lets a second server bind a port in use.
+  server.set_socket_options([](socket_t socket) {
+    int yes = 1;
+    setsockopt(socket, SOL_SOCKET, SO_REUSEADDR, reinterpret_cast<const void*>(&yes), sizeof(yes));
+  });
   int port = options.port;
   if (port == 0) {
     port = server.bind_to_any_port(options.host);
     if (port < 0) Fail("cannot bind any port on ", options.host);
   } else if (!server.bind_to_port(options.host, port)) {
-    Fail("port ", port, " on ", options.host, " is in use (or not permitted); pick another with --port");
+    Fail("port ", port, " on ", options.host,
+         " is in use (or not permitted); pick another with --port");
   }
   listening("http://" + options.host + ":" + std::to_string(port) + "/");
   if (!server.listen_after_bind()) Fail("serving on port ", port, " stopped");

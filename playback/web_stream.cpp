@@ -67,6 +67,41 @@ float Dequantise(uint32_t code, double lo, double hi, int bits) {
   return static_cast<float>(lo + (hi - lo) * (code / levels));
 }
 
+// Each element minus the one `stride` before it, modulo 2^16 (the first ones kept): a mesh's
+// neighbouring vertices and texture cells are near each other, so the differences are small and
+// deflate packs them tightly.
+std::vector<uint16_t> DeltaEncode(std::vector<uint16_t> codes, size_t stride) {
+  for (size_t i = codes.size(); i-- > stride;)
+    codes[i] = static_cast<uint16_t>(codes[i] - codes[i - stride]);
+  return codes;
+}
+std::vector<uint16_t> DeltaDecode(std::vector<uint16_t> codes, size_t stride) {
+  for (size_t i = stride; i < codes.size(); ++i)
+    codes[i] = static_cast<uint16_t>(codes[i] + codes[i - stride]);
+  return codes;
+}
+// Indices as zigzagged differences from the previous index.
+std::vector<uint32_t> ZigzagDeltas(const std::vector<uint32_t>& indices) {
+  std::vector<uint32_t> out(indices.size());
+  int64_t previous = 0;
+  for (size_t i = 0; i < indices.size(); ++i) {
+    const int64_t d = static_cast<int64_t>(indices[i]) - previous;
+    out[i] = static_cast<uint32_t>(d >= 0 ? 2 * d : -2 * d - 1);
+    previous = indices[i];
+  }
+  return out;
+}
+std::vector<uint32_t> UndoZigzagDeltas(const std::vector<uint32_t>& codes) {
+  std::vector<uint32_t> out(codes.size());
+  int64_t previous = 0;
+  for (size_t i = 0; i < codes.size(); ++i) {
+    const int64_t d = codes[i] % 2 == 0 ? codes[i] / 2 : -(static_cast<int64_t>(codes[i]) + 1) / 2;
+    previous += d;
+    out[i] = static_cast<uint32_t>(previous);
+  }
+  return out;
+}
+
 }  // namespace
 
 QualityLevel QualityByName(const std::string& name) {
@@ -143,8 +178,8 @@ Chunk ParseChunk(const std::string& bytes) {
 std::string SectionBytes(const Chunk& chunk, const std::string& name) {
   for (const auto& section : chunk.header.at("sections")) {
     if (section.at("name") != name) continue;
-    const std::string stored = chunk.payload.substr(section.at("offset").get<size_t>(),
-                                                    section.at("bytes").get<size_t>());
+    const std::string stored =
+        chunk.payload.substr(section.at("offset").get<size_t>(), section.at("bytes").get<size_t>());
     if (section.at("codec") != "deflate") return stored;
     return Inflate(stored, section.at("raw_bytes").get<size_t>(), name);
   }
@@ -196,14 +231,14 @@ Chunk EncodeMesh(const TexturedMeshFrame& mesh, int64_t frame, const QualityLeve
       }
       max_error = std::max(max_error, static_cast<double>((restored[v] - unique[v]).norm()));
     }
-    chunk.AddSection("positions", Bytes(codes), "deflate");
+    chunk.AddSection("positions", Bytes(DeltaEncode(codes, 3)), "deflate");
   } else {
     restored = unique;
     std::vector<float> raw;
     for (const auto& p : unique) raw.insert(raw.end(), {p.x(), p.y(), p.z()});
     chunk.AddSection("positions", Bytes(raw), "deflate");
   }
-  chunk.AddSection("indices", Bytes(indices), "deflate");
+  chunk.AddSection("indices", Bytes(ZigzagDeltas(indices)), "deflate");
   decoded->positions.clear();
   for (uint32_t i : indices) decoded->positions.push_back(restored[i]);
   *max_position_error_m = max_error;
@@ -212,18 +247,23 @@ Chunk EncodeMesh(const TexturedMeshFrame& mesh, int64_t frame, const QualityLeve
   decoded->colors.clear();
   decoded->atlas.release();
   if (!mesh.atlas.empty()) {
-    if (quality.uv_bits > 0) {
+    // An eighth of a texel of the full atlas, at most 16 bits.
+    const int atlas_bits =
+        static_cast<int>(std::ceil(std::log2(std::max(mesh.atlas.cols, mesh.atlas.rows))));
+    const int uv_bits = quality.uv_bits > 0 ? std::min(quality.uv_bits, atlas_bits + 3) : 0;
+    chunk.header["uv_bits"] = uv_bits;
+    if (uv_bits > 0) {
       std::vector<uint16_t> codes;
       for (const auto& uv : mesh.uvs) {
         Eigen::Vector2f r;
         for (int a = 0; a < 2; ++a) {
-          const uint32_t code = Quantise(uv[a], 0.0, 1.0, quality.uv_bits);
+          const uint32_t code = Quantise(uv[a], 0.0, 1.0, uv_bits);
           codes.push_back(static_cast<uint16_t>(code));
-          r[a] = Dequantise(code, 0.0, 1.0, quality.uv_bits);
+          r[a] = Dequantise(code, 0.0, 1.0, uv_bits);
         }
         decoded->uvs.push_back(r);
       }
-      chunk.AddSection("uvs", Bytes(codes), "deflate");
+      chunk.AddSection("uvs", Bytes(DeltaEncode(codes, 2)), "deflate");
     } else {
       std::vector<float> raw;
       for (const auto& uv : mesh.uvs) raw.insert(raw.end(), {uv.x(), uv.y()});
@@ -262,7 +302,7 @@ TexturedMeshFrame DecodeMesh(const Chunk& chunk) {
   std::vector<Eigen::Vector3f> unique(vertices);
   const std::string positions = SectionBytes(chunk, "positions");
   if (position_bits > 0) {
-    const auto codes = Values<uint16_t>(positions, 3 * vertices, "positions");
+    const auto codes = DeltaDecode(Values<uint16_t>(positions, 3 * vertices, "positions"), 3);
     for (size_t v = 0; v < vertices; ++v)
       for (int a = 0; a < 3; ++a)
         unique[v][a] = Dequantise(codes[3 * v + a], lo[a], hi[a], position_bits);
@@ -271,14 +311,15 @@ TexturedMeshFrame DecodeMesh(const Chunk& chunk) {
     for (size_t v = 0; v < vertices; ++v) unique[v] = Eigen::Vector3f(&raw[3 * v]);
   }
   TexturedMeshFrame mesh;
-  for (uint32_t i : Values<uint32_t>(SectionBytes(chunk, "indices"), 3 * faces, "indices")) {
+  for (uint32_t i :
+       UndoZigzagDeltas(Values<uint32_t>(SectionBytes(chunk, "indices"), 3 * faces, "indices"))) {
     if (i >= vertices) Fail("chunk index ", i, " names a missing vertex");
     mesh.positions.push_back(unique[i]);
   }
   if (h.contains("texture")) {
     const std::string uvs = SectionBytes(chunk, "uvs");
     if (uv_bits > 0) {
-      const auto codes = Values<uint16_t>(uvs, 6 * faces, "uvs");
+      const auto codes = DeltaDecode(Values<uint16_t>(uvs, 6 * faces, "uvs"), 2);
       for (size_t c = 0; c < 3 * faces; ++c)
         mesh.uvs.emplace_back(Dequantise(codes[2 * c], 0, 1, uv_bits),
                               Dequantise(codes[2 * c + 1], 0, 1, uv_bits));
@@ -372,22 +413,23 @@ Chunk EncodeVolume(const BakedFrame& volume, int64_t frame, const QualityLevel& 
                     [&](size_t i) { max_sigma = std::max(max_sigma, v.rgba[4 * i + 3]); });
   density.max = std::max<double>(max_sigma, 2 * density.min);
   Chunk chunk;
-  chunk.header = {{"kind", "volume"},
-                  {"frame", frame},
-                  {"grid", v.grid},
-                  {"clamped", v.clamped},
-                  {"box_min", Vec(v.box_min)},
-                  {"box_max", Vec(v.box_max)},
-                  {"occupancy_cells", v.occupancy_cells},
-                  {"brick", v.occupancy_cells > 0 ? v.grid / v.occupancy_cells : v.grid},
-                  {"brick_count", bricks.size()},
-                  {"step_m", v.step_m},
-                  {"min_transmittance", min_transmittance},
-                  {"voxel", lossless ? "float32" : "uint8"},
-                  {"color_bits", quality.color_bits},
-                  {"density", {{"scale", "log"}, {"levels", density.levels}, {"min", density.min},
-                               {"max", density.max}}},
-                  {"sections", nlohmann::json::array()}};
+  chunk.header = {
+      {"kind", "volume"},
+      {"frame", frame},
+      {"grid", v.grid},
+      {"clamped", v.clamped},
+      {"box_min", Vec(v.box_min)},
+      {"box_max", Vec(v.box_max)},
+      {"occupancy_cells", v.occupancy_cells},
+      {"brick", v.occupancy_cells > 0 ? v.grid / v.occupancy_cells : v.grid},
+      {"brick_count", bricks.size()},
+      {"step_m", v.step_m},
+      {"min_transmittance", min_transmittance},
+      {"voxel", lossless ? "float32" : "uint8"},
+      {"color_bits", quality.color_bits},
+      {"density",
+       {{"scale", "log"}, {"levels", density.levels}, {"min", density.min}, {"max", density.max}}},
+      {"sections", nlohmann::json::array()}};
   chunk.AddSection("occupancy", Bytes(v.occupied), "deflate");
   chunk.AddSection("bricks", Bytes(bricks), "deflate");
   *decoded = v;
@@ -402,8 +444,8 @@ Chunk EncodeVolume(const BakedFrame& volume, int64_t frame, const QualityLevel& 
         raw.push_back(value);
         decoded->rgba[4 * i + c] = value;
       } else if (c < 3) {
-        const auto code = static_cast<uint8_t>(
-            std::lround(std::clamp(value, 0.0f, 1.0f) * colour_levels));
+        const auto code =
+            static_cast<uint8_t>(std::lround(std::clamp(value, 0.0f, 1.0f) * colour_levels));
         codes.push_back(code);
         decoded->rgba[4 * i + c] = static_cast<float>(code / colour_levels);
       } else {
@@ -425,7 +467,8 @@ BakedFrame DecodeVolume(const Chunk& chunk) {
   v.box_max = Vec(h.at("box_max"));
   v.occupancy_cells = h.at("occupancy_cells");
   v.step_m = h.at("step_m");
-  const size_t cells = static_cast<size_t>(v.occupancy_cells) * v.occupancy_cells * v.occupancy_cells;
+  const size_t cells =
+      static_cast<size_t>(v.occupancy_cells) * v.occupancy_cells * v.occupancy_cells;
   v.occupied = Values<uint8_t>(SectionBytes(chunk, "occupancy"), cells, "occupancy");
   const size_t brick_count = h.at("brick_count");
   const auto bricks = Values<uint32_t>(SectionBytes(chunk, "bricks"), brick_count, "bricks");
@@ -437,8 +480,8 @@ BakedFrame DecodeVolume(const Chunk& chunk) {
   DensityScale density{h.at("density").at("min"), h.at("density").at("max"),
                        h.at("density").at("levels")};
   const double colour_levels = std::ldexp(1.0, h.at("color_bits").get<int>()) - 1;
-  const auto codes = lossless ? std::vector<uint8_t>()
-                              : Values<uint8_t>(voxels, 4 * per_plane, "voxels");
+  const auto codes =
+      lossless ? std::vector<uint8_t>() : Values<uint8_t>(voxels, 4 * per_plane, "voxels");
   const auto raw = lossless ? Values<float>(voxels, 4 * per_plane, "voxels") : std::vector<float>();
   size_t k = 0;
   for (int c = 0; c < 4; ++c) {

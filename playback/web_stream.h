@@ -16,13 +16,13 @@ namespace holocap::web {
 // What each quality level keeps.
 struct QualityLevel {
   std::string name;
-  int position_bits = 16;  // mesh vertices per axis over the frame's box; 0: float32
-  int uv_bits = 16;        // texture coordinates; 0: float32
+  int position_bits = 16;              // mesh vertices per axis over the frame's box; 0: float32
+  int uv_bits = 16;                    // texture coordinates; 0: float32
   const char* texture_codec = "webp";  // "webp" | "jpeg" | "png"
   int texture_quality = 80;            // WebP/JPEG quality (1..100)
   double texture_scale = 1.0;          // atlas size kept
-  int color_bits = 8;                  // volume colour per channel; 0 with density_levels 0: float32
-  int density_levels = 256;            // volume density codes (log scale), 0: float32
+  int color_bits = 8;        // volume colour per channel; 0 with density_levels 0: float32
+  int density_levels = 256;  // volume density codes (log scale), 0: float32
 };
 // Throws Error naming the unknown level and the known ones.
 QualityLevel QualityByName(const std::string& name);

@@ -23,10 +23,10 @@ packages=(
   libcamera-dev libaravis-dev aravis-tools libusb-1.0-0-dev libv4l-dev
   libtorch-dev
   nlohmann-json3-dev libcli11-dev libyaml-cpp-dev
-  ffmpeg
+  ffmpeg libcpp-httplib-dev zlib1g-dev libwebp-dev
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2)
+  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium nodejs npm)
 fi
 
 missing=()
@@ -40,6 +40,11 @@ if [ "${#missing[@]}" -gt 0 ]; then
   export DEBIAN_FRONTEND=noninteractive
   "${sudo_cmd[@]}" apt-get update -qq
   "${sudo_cmd[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+# The browser tests drive chromium through puppeteer-core, pinned in package-lock.json.
+if [ "$want_tests" = 1 ]; then
+  (cd tests/playback/browser && npm ci --no-audit --no-fund >/dev/null)
 fi
 
 build_dir=${HOLOCAP_BUILD_DIR:-build}

@@ -88,13 +88,15 @@ class WebTest : public ::testing::Test {
     options.decoder_channels = 32;
     options.warp_grid = 16;
     options.rays_per_batch = 1024;
-    options.iterations = 60;
+    options.iterations = 100;
     options.eval_every_s = 1000;
-    NeuralVolumeSummary summary = TrainNeuralVolume(Take(), Model(), options);
-    ASSERT_TRUE(IsUsable(summary.termination)) << summary.message;
-    auto exported = RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
-                           "' --quality high,lossless --ground-truth --out '" + Site().string() +
-                           "'");
+    // A short run may end DEGENERATE (the subject no better than the background in held-out
+    // views); the model is kept and is what the page must draw like the native renderer.
+    TrainNeuralVolume(Take(), Model(), options);
+    ASSERT_TRUE(fs::exists(Model() / "model.json"));
+    auto exported =
+        RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
+               "' --quality high,lossless --ground-truth --out '" + Site().string() + "'");
     ASSERT_EQ(exported.exit_code, 0) << exported.output;
   }
   static void TearDownTestSuite() {
@@ -184,8 +186,9 @@ TEST_F(WebTest, ExportStreamsEveryFrameAndMeasuresItsLoss) {
   // The volume chunk decodes natively to a grid that marches like the model's own render.
   auto model = OpenModel(Model());
   const auto& nvol = StreamNamed(manifest, "nvol-high");
-  const BakedFrame decoded = web::DecodeVolume(web::ParseChunk(ReadFileToString(
-      Site() / nvol.at("path").get<std::string>() / nvol.at("chunks").at(1).at("file").get<std::string>())));
+  const BakedFrame decoded = web::DecodeVolume(
+      web::ParseChunk(ReadFileToString(Site() / nvol.at("path").get<std::string>() /
+                                       nvol.at("chunks").at(1).at("file").get<std::string>())));
   const CameraModel camera = PinholeOf(manifest.at("cameras").at(2));
   const RenderedView native = model->Render(camera, 1, {});
   const RenderedView streamed = web::RenderBakedFrame(decoded, camera, 1e-3);
@@ -199,7 +202,8 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
     GTEST_SKIP() << "Debian's chromium is not installed (scripts/setup.sh --tests installs it)";
   const fs::path driver = testing::SourceDir() / "tests/playback/browser";
   if (!fs::exists(driver / "node_modules/puppeteer-core"))
-    GTEST_SKIP() << "puppeteer-core is not installed (scripts/setup.sh --tests: npm ci in " << driver << ")";
+    GTEST_SKIP() << "puppeteer-core is not installed (scripts/setup.sh --tests: npm ci in "
+                 << driver << ")";
   const nlohmann::json manifest = Manifest();
   // A chunk cut short: the page must name it and play on.
   const auto& broken = StreamNamed(manifest, "mesh-lossless");
@@ -224,9 +228,9 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
 
   int64_t pixels = 0;
   auto model = OpenModel(Model());
-  const double nvol_psnr = PsnrInsideBox(cv::imread((out / "nvol-high.png").string()),
-                                         model->Render(camera, frame, {}), camera,
-                                         manifest.at("bounds"), &pixels);
+  const double nvol_psnr =
+      PsnrInsideBox(cv::imread((out / "nvol-high.png").string()), model->Render(camera, frame, {}),
+                    camera, manifest.at("bounds"), &pixels);
   std::printf("Neural Volumes stream in the page against holocap render: %.2f dB over %lld px\n",
               nvol_psnr, static_cast<long long>(pixels));
   EXPECT_GE(nvol_psnr, 35.0);
@@ -234,10 +238,10 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   const int64_t set = manifest.at("frames").at(frame).at("set");
   char glb[32];
   std::snprintf(glb, sizeof(glb), "%06lld.glb", static_cast<long long>(set));
-  const double mesh_psnr = PsnrInsideBox(
-      cv::imread((out / "mesh-high.png").string()),
-      RenderTexturedMesh(ReadTexturedGlb(Take() / "recon" / glb), camera), camera,
-      manifest.at("bounds"), &pixels);
+  const double mesh_psnr =
+      PsnrInsideBox(cv::imread((out / "mesh-high.png").string()),
+                    RenderTexturedMesh(ReadTexturedGlb(Take() / "recon" / glb), camera), camera,
+                    manifest.at("bounds"), &pixels);
   std::printf("mesh stream in the page against the native textured render: %.2f dB over %lld px\n",
               mesh_psnr, static_cast<long long>(pixels));
   EXPECT_GE(mesh_psnr, 30.0);
@@ -268,6 +272,7 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
 TEST(WebViewTest, RefusesAFolderThatIsNotASiteAndAPortInUse) {
   TempDir dir("holocap-web-view");
   fs::create_directories(dir.path() / "empty");
+  fs::create_directories(dir.path() / "site");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "empty").string() + "'"),
                               "is not a site made by holocap export web");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "missing").string() + "'"),

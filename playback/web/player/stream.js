@@ -63,6 +63,22 @@ function typed(bytes, Type) {
 
 function dequantise(code, lo, hi, bits) { return lo + (hi - lo) * (code / (2 ** bits - 1)); }
 
+// Undoes the encoder's differences: u16 elements modulo 2^16 against the one `stride` before,
+// indices as zigzagged differences from the previous one.
+function undoDeltas(codes, stride) {
+  for (let i = stride; i < codes.length; ++i) codes[i] = (codes[i] + codes[i - stride]) & 0xffff;
+  return codes;
+}
+function undoZigzag(codes) {
+  let previous = 0;
+  for (let i = 0; i < codes.length; ++i) {
+    const c = codes[i];
+    previous += c % 2 === 0 ? c / 2 : -(c + 1) / 2;
+    codes[i] = previous;
+  }
+  return codes;
+}
+
 // A mesh chunk -> per-corner positions (and uvs + an ImageBitmap atlas, or colours).
 export async function decodeMesh(chunk) {
   const h = chunk.header;
@@ -70,13 +86,13 @@ export async function decodeMesh(chunk) {
   const positionBytes = await sectionBytes(chunk, 'positions');
   const unique = new Float32Array(3 * vertices);
   if (h.position_bits > 0) {
-    const codes = typed(positionBytes, Uint16Array);
+    const codes = undoDeltas(typed(positionBytes, Uint16Array), 3);
     for (let i = 0; i < 3 * vertices; ++i)
       unique[i] = dequantise(codes[i], h.box_min[i % 3], h.box_max[i % 3], h.position_bits);
   } else {
     unique.set(typed(positionBytes, Float32Array));
   }
-  const indices = typed(await sectionBytes(chunk, 'indices'), Uint32Array);
+  const indices = undoZigzag(typed(await sectionBytes(chunk, 'indices'), Uint32Array));
   const positions = new Float32Array(9 * faces);
   for (let c = 0; c < 3 * faces; ++c) {
     const v = indices[c];
@@ -87,7 +103,7 @@ export async function decodeMesh(chunk) {
   if (h.texture) {
     const uvBytes = await sectionBytes(chunk, 'uvs');
     if (h.uv_bits > 0) {
-      const codes = typed(uvBytes, Uint16Array);
+      const codes = undoDeltas(typed(uvBytes, Uint16Array), 2);
       mesh.uvs = new Float32Array(codes.length);
       for (let i = 0; i < codes.length; ++i) mesh.uvs[i] = dequantise(codes[i], 0, 1, h.uv_bits);
     } else {
