@@ -72,7 +72,8 @@ int main(int argc, char** argv) {
   const std::string voxel = argc > 4 ? argv[4] : "8mm";
   const fs::path cli = HOLOCAP_BENCH_CLI;
   const fs::path driver = fs::path(HOLOCAP_BENCH_SOURCE_DIR) / "tests/playback/browser/drive.mjs";
-  const fs::path dir = fs::temp_directory_path() / ("holocap-web-bench-" + std::to_string(getpid()));
+  const fs::path dir =
+      fs::temp_directory_path() / ("holocap-web-bench-" + std::to_string(getpid()));
   fs::create_directories(dir);
   const std::string q = "HOLOCAP_NO_PROGRESS=1 '" + cli.string() + "' ";
   const auto start = std::chrono::steady_clock::now();
@@ -109,7 +110,8 @@ int main(int argc, char** argv) {
   std::string list;
   for (const auto& n : names) list += " " + n;
   fs::create_directories(dir / "browser");
-  Run("node '" + driver.string() + "' bench " + url + " '" + (dir / "browser").string() + "'" + list);
+  Run("node '" + driver.string() + "' bench " + url + " '" + (dir / "browser").string() + "'" +
+      list);
   const int camera_index = 1, frame = frames / 2;
   const CameraModel camera = PinholeOf(manifest.at("cameras").at(camera_index));
   Run("node '" + driver.string() + "' shots " + url + " '" + (dir / "browser").string() + "' " +

@@ -431,7 +431,7 @@ Chunk EncodeVolume(const BakedFrame& volume, int64_t frame, const QualityLevel& 
        {{"scale", "log"}, {"levels", density.levels}, {"min", density.min}, {"max", density.max}}},
       {"sections", nlohmann::json::array()}};
   chunk.AddSection("occupancy", Bytes(v.occupied), "deflate");
-  chunk.AddSection("bricks", Bytes(bricks), "deflate");
+  chunk.AddSection("bricks", Bytes(ZigzagDeltas(bricks)), "deflate");
   *decoded = v;
   std::fill(decoded->rgba.begin(), decoded->rgba.end(), 0.0f);
   const double colour_levels = std::ldexp(1.0, quality.color_bits) - 1;
@@ -471,7 +471,8 @@ BakedFrame DecodeVolume(const Chunk& chunk) {
       static_cast<size_t>(v.occupancy_cells) * v.occupancy_cells * v.occupancy_cells;
   v.occupied = Values<uint8_t>(SectionBytes(chunk, "occupancy"), cells, "occupancy");
   const size_t brick_count = h.at("brick_count");
-  const auto bricks = Values<uint32_t>(SectionBytes(chunk, "bricks"), brick_count, "bricks");
+  const auto bricks =
+      UndoZigzagDeltas(Values<uint32_t>(SectionBytes(chunk, "bricks"), brick_count, "bricks"));
   const int brick = h.at("brick");
   const size_t per_plane = brick_count * brick * brick * brick;
   v.rgba.assign(4 * static_cast<size_t>(v.grid) * v.grid * v.grid, 0.0f);

@@ -125,7 +125,7 @@ export async function decodeVolume(chunk) {
   const n = h.grid, brick = h.brick, cells = Math.max(h.occupancy_cells, 1);
   const occupancy = h.occupancy_cells > 0 ? await sectionBytes(chunk, 'occupancy')
                                           : new Uint8Array([1]);
-  const bricks = typed(await sectionBytes(chunk, 'bricks'), Uint32Array);
+  const bricks = undoZigzag(typed(await sectionBytes(chunk, 'bricks'), Uint32Array));
   const voxels = await sectionBytes(chunk, 'voxels');
   const rgba = new Float32Array(4 * n * n * n);
   const perPlane = bricks.length * brick * brick * brick;
