@@ -105,8 +105,7 @@ SplatDeltaSteps SplatDeltaSteps::Doubled() const {
 
 std::string EncodeSplatDelta(const splat::Gaussians& previous, const splat::Gaussians& next,
                              const std::vector<int64_t>& origin, const SplatDeltaSteps& steps) {
-  if (static_cast<int64_t>(origin.size()) != next.size() ||
-      previous.sh_degree != next.sh_degree) {
+  if (static_cast<int64_t>(origin.size()) != next.size() || previous.sh_degree != next.sh_degree) {
     Fail("a splat delta needs one origin per Gaussian and one degree");
   }
   const int64_t n = previous.size();
@@ -186,7 +185,8 @@ splat::Gaussians ApplySplatDelta(const splat::Gaussians& previous, const std::st
       if (!Bit(changed, i)) continue;
       for (int j = 0; j < kGroupValues[g]; ++j) {
         const int16_t q = reader.Get<int16_t>();
-        Value(updated, g, i, j) = Value(previous, g, i, j) + static_cast<float>(q) * header.steps[g];
+        Value(updated, g, i, j) =
+            Value(previous, g, i, j) + static_cast<float>(q) * header.steps[g];
       }
     }
   }

@@ -66,6 +66,7 @@ void SplatOptions::Check() const {
   if (eval_every_iterations < 0)
     Fail("eval_every_iterations must be >= 0, got ", eval_every_iterations);
   if (!(divergence_factor > 1)) Fail("divergence_factor must exceed 1, got ", divergence_factor);
+  if (!(max_opacity_step > 0)) Fail("max_opacity_step must be positive, got ", max_opacity_step);
   if (max_divergences < 0) Fail("max_divergences must be >= 0, got ", max_divergences);
   if (snapshot_every < 1) Fail("snapshot_every must be at least 1, got ", snapshot_every);
   if (threads < 0) Fail("threads must be >= 0, got ", threads);
@@ -145,6 +146,7 @@ nlohmann::json SplatOptions::ToJson() const {
           {"eval_every_s", eval_every_s},
           {"eval_every_iterations", eval_every_iterations},
           {"divergence_factor", divergence_factor},
+          {"max_opacity_step", max_opacity_step},
           {"max_divergences", max_divergences},
           {"snapshot_every", snapshot_every},
           {"threads", threads},

@@ -112,6 +112,9 @@ struct SplatOptions {
   double eval_every_s = 20;           // held-out PSNR/SSIM every this many seconds
   int64_t eval_every_iterations = 0;  // > 0: every this many iterations instead
   double divergence_factor = 2.0;     // a loss above this x its running mean is a divergence
+  double max_opacity_step = 1.0;      // a step moving the opacity logits that had a gradient by
+                                      // more than this on average is a divergence too (the
+                                      // paper's rate moves them 0.05)
   int max_divergences = 5;            // then training stops with FAILURE
   int64_t snapshot_every = 50;        // iterations between restore points of the guard
   int threads = 0;                    // 0: all cores

@@ -99,7 +99,7 @@ class Trainer {
   void Seed(SplatSummary* summary);
   void SeedGaussian(int64_t i, const SplatSeed& seed, size_t s, float log_scale);
   double TrainStep(int active_degree, int view);
-  void AdamStep(double progress);
+  void AdamStep(double progress, double* opacity_step);
   void BoundParameters();
   void Densify(SplatSummary* summary);
   void Prune(bool prune_large, SplatSummary* summary);
@@ -233,7 +233,9 @@ double Trainer::TrainStep(int active_degree, int v) {
 }
 
 // Adam on every group with its own rate; the position's decays exponentially to 1/100.
-void Trainer::AdamStep(double progress) {
+// opacity_step receives the mean |change| of the opacity logits that had a gradient.
+void Trainer::AdamStep(double progress, double* opacity_step) {
+  const std::vector<float> opacity_before = gaussians_.opacity;
   ++adam_step_;
   const double beta1 = 0.9, beta2 = 0.999, epsilon = 1e-15;
   const double correction1 = 1 - std::pow(beta1, adam_step_);
@@ -268,6 +270,14 @@ void Trainer::AdamStep(double progress) {
   step(gaussians_.log_scale, gradient_.log_scale, m.log_scale, s.log_scale, options_.scale_lr, 0,
        0);
   step(gaussians_.opacity, gradient_.opacity, m.opacity, s.opacity, options_.opacity_lr, 0, 0);
+  double moved = 0;
+  int64_t moving = 0;
+  for (size_t i = 0; i < opacity_before.size(); ++i) {
+    if (gradient_.opacity[i] == 0) continue;
+    moved += std::abs(gaussians_.opacity[i] - opacity_before[i]);
+    ++moving;
+  }
+  *opacity_step = moving > 0 ? moved / moving : 0;
   // A later frame's delta holds no higher harmonics: they stay as the frame before left them.
   step(gaussians_.sh, gradient_.sh, m.sh, s.sh, options_.sh_lr, temporal_ ? 0 : options_.sh_lr / 20,
        3 * gaussians_.coefficients());
@@ -801,10 +811,13 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
     const double loss = TrainStep(budget.first ? ActiveDegree(iteration) : options_.sh_degree, v);
     bool diverged = !std::isfinite(loss) ||
                     (reference[v] > 0 && loss > options_.divergence_factor * reference[v]);
+    double opacity_step = 0;
     if (!diverged) {
-      AdamStep(std::min(fraction, 1.0));
+      AdamStep(std::min(fraction, 1.0), &opacity_step);
       BoundParameters();
-      diverged = !Finite();
+      // A step that flips opacities (a rate far too high) diverges even while the loss, noisy
+      // from the start, has not yet doubled.
+      diverged = !Finite() || opacity_step > options_.max_opacity_step;
     }
     if (diverged) {
       ++summary->divergences;
@@ -816,10 +829,10 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
       grad_count_.assign(gaussians_.size(), 0);
       lr_scale_ *= 0.5;
       std::fprintf(stderr,
-                   "splat: frame %lld iteration %lld: loss %g (view %s, %g before); restored "
-                   "iteration %lld, learning rates x%.3g\n",
+                   "splat: frame %lld iteration %lld: loss %g (view %s, %g before), opacity "
+                   "step %g; restored iteration %lld, learning rates x%.3g\n",
                    static_cast<long long>(frame), static_cast<long long>(iteration), loss,
-                   scene_.views[v].name.c_str(), reference[v],
+                   scene_.views[v].name.c_str(), reference[v], opacity_step,
                    static_cast<long long>(snapshot.iteration), lr_scale_);
       if (report != nullptr)
         report->AddPoint("divergence_lr_scale", lr_scale_, total_iterations_ + iteration);
