@@ -1,5 +1,6 @@
-// holocap report REPORT.json|DIR: what a run did and how its error fell with time, as text
-// and as a plot a person can look at.
+// holocap report REPORT.json|DIR...: what a run did and how its error fell with time, as text
+// and as a plot a person can look at; several reports given at once share one plot (one line
+// per run in each metric's panel), so that methods trained on one take compare at a glance.
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -26,8 +27,14 @@ struct Point {
 };
 using Series = std::map<std::string, std::vector<Point>>;
 
+// A run's series under the name its line carries on a shared plot.
+struct Run {
+  std::string label;
+  Series series;
+};
+
 struct ReportArgs {
-  std::string path;
+  std::vector<std::string> paths;
   std::string out;
   std::vector<std::string> metrics;
   int rows = 8;
@@ -116,30 +123,53 @@ std::string Tick(double value) {
   return text;
 }
 
-// One panel per metric: value against wall time, log scale where asked or where the values
-// span more than two decades (losses do).
-cv::Mat PlotSeries(const std::string& title, const Series& series, bool log_y) {
+// The line colours of the runs on one plot (BGR), in turn.
+const cv::Scalar kRunColors[] = {{180, 90, 20}, {30, 120, 230}, {60, 160, 40},
+                                 {40, 40, 200}, {160, 60, 160}, {20, 20, 20}};
+
+// One panel per metric: value against wall time, one line per run, log scale where asked or where
+// the values span more than two decades (losses do).
+cv::Mat PlotSeries(const std::string& title, const std::vector<Run>& runs, bool log_y) {
   constexpr int kPanelWidth = 720, kPanelHeight = 260, kLeft = 80, kRight = 20, kTop = 34,
                 kBottom = 40;
-  cv::Mat image(kPanelHeight * static_cast<int>(series.size()) + 30, kPanelWidth, CV_8UC3,
+  std::vector<std::string> metrics;
+  for (const Run& run : runs) {
+    for (const auto& [metric, points] : run.series)
+      if (std::find(metrics.begin(), metrics.end(), metric) == metrics.end())
+        metrics.push_back(metric);
+  }
+  std::sort(metrics.begin(), metrics.end());
+  const int legend = runs.size() > 1 ? 18 * static_cast<int>(runs.size()) : 0;
+  cv::Mat image(kPanelHeight * static_cast<int>(metrics.size()) + 30 + legend, kPanelWidth, CV_8UC3,
                 cv::Scalar(255, 255, 255));
   cv::putText(image, title, {10, 20}, cv::FONT_HERSHEY_SIMPLEX, 0.55, {0, 0, 0}, 1, cv::LINE_AA);
-  // One time axis for every panel, so that the series line up.
+  auto color = [&](size_t r) { return kRunColors[r % std::size(kRunColors)]; };
+  for (size_t r = 0; r < runs.size() && runs.size() > 1; ++r) {
+    const int y = 30 + 18 * static_cast<int>(r) + 9;
+    cv::line(image, {12, y}, {40, y}, color(r), 2, cv::LINE_AA);
+    cv::putText(image, runs[r].label, {48, y + 5}, cv::FONT_HERSHEY_SIMPLEX, 0.45, {0, 0, 0}, 1,
+                cv::LINE_AA);
+  }
+  // One time axis for every panel and run, so that the series line up.
   double t_max = 0;
-  for (const auto& [metric, points] : series) {
-    for (const auto& p : points) t_max = std::max(t_max, p.t_s);
+  for (const Run& run : runs) {
+    for (const auto& [metric, points] : run.series)
+      for (const auto& p : points) t_max = std::max(t_max, p.t_s);
   }
   if (t_max <= 0) t_max = 1;
   int panel = 0;
-  for (const auto& [metric, points] : series) {
-    const int y0 = 30 + panel++ * kPanelHeight;
+  for (const std::string& metric : metrics) {
+    const int y0 = 30 + legend + panel++ * kPanelHeight;
     double v_min = INFINITY, v_max = -INFINITY;
     bool positive = true;
-    for (const auto& p : points) {
-      if (!std::isfinite(p.value)) continue;
-      v_min = std::min(v_min, p.value);
-      v_max = std::max(v_max, p.value);
-      positive = positive && p.value > 0;
+    for (const Run& run : runs) {
+      if (!run.series.count(metric)) continue;
+      for (const auto& p : run.series.at(metric)) {
+        if (!std::isfinite(p.value)) continue;
+        v_min = std::min(v_min, p.value);
+        v_max = std::max(v_max, p.value);
+        positive = positive && p.value > 0;
+      }
     }
     const bool log_scale = positive && (log_y || (v_min > 0 && v_max / v_min > 100));
     auto to_axis = [&](double v) { return log_scale ? std::log10(v) : v; };
@@ -167,16 +197,33 @@ cv::Mat PlotSeries(const std::string& title, const Series& series, bool log_y) {
     }
     cv::putText(image, metric + (log_scale ? "  (log scale)" : "") + "  against seconds",
                 {box.x, y0 + 24}, cv::FONT_HERSHEY_SIMPLEX, 0.5, {0, 0, 0}, 1, cv::LINE_AA);
-    const Point* previous = nullptr;
-    for (const auto& p : points) {
-      if (!std::isfinite(p.value) || (log_scale && p.value <= 0)) continue;
-      if (previous != nullptr)
-        cv::line(image, to_pixel(*previous), to_pixel(p), {180, 90, 20}, 2, cv::LINE_AA);
-      cv::circle(image, to_pixel(p), 2, {180, 90, 20}, cv::FILLED, cv::LINE_AA);
-      previous = &p;
+    for (size_t r = 0; r < runs.size(); ++r) {
+      if (!runs[r].series.count(metric)) continue;
+      const Point* previous = nullptr;
+      for (const auto& p : runs[r].series.at(metric)) {
+        if (!std::isfinite(p.value) || (log_scale && p.value <= 0)) continue;
+        if (previous != nullptr)
+          cv::line(image, to_pixel(*previous), to_pixel(p), color(r), 2, cv::LINE_AA);
+        cv::circle(image, to_pixel(p), 2, color(r), cv::FILLED, cv::LINE_AA);
+        previous = &p;
+      }
     }
   }
   return image;
+}
+
+void WritePlot(const std::filesystem::path& png, const cv::Mat& plot) {
+  std::vector<uchar> bytes;
+  cv::imencode(".png", plot, bytes);
+  WriteFileAtomic(png, std::string(bytes.begin(), bytes.end()));
+  std::printf("  plot: %s\n", png.c_str());
+}
+
+// The metrics every run has (all of them when the runs share none).
+bool Shared(const std::vector<Run>& runs, const std::string& metric) {
+  for (const Run& run : runs)
+    if (!run.series.count(metric)) return false;
+  return true;
 }
 
 std::vector<std::filesystem::path> ReportsUnder(const std::filesystem::path& path) {
@@ -197,11 +244,14 @@ void AddReportCommand(CLI::App& app) {
                                      "Show a run's report.json (or every one under a directory): "
                                      "outcome, metrics, error against time");
   auto args = std::make_shared<ReportArgs>();
-  command->add_option("PATH", args->path, "A report.json, or a directory searched for them")
+  command
+      ->add_option("PATH", args->paths,
+                   "A report.json, or a directory searched for them; several: one plot of all "
+                   "(a line per run, the series they share)")
       ->required();
   command->add_option(
       "--out", args->out,
-      "Plot the error-against-time series to this PNG (with a directory: one PNG per report, "
+      "Plot the error-against-time series to this PNG (with one directory: one PNG per report, "
       "into this directory)");
   command
       ->add_option("--metric", args->metrics, "Only these series, comma-separated (default: all)")
@@ -212,30 +262,48 @@ void AddReportCommand(CLI::App& app) {
   command->add_flag("--log", args->log_y, "Log scale for every positive series");
   AddOverwriteFlag(command, &args->overwrite);
   command->callback([args] {
-    const auto files = ReportsUnder(args->path);
-    const bool many = files.size() > 1 || std::filesystem::is_directory(args->path);
+    std::vector<std::filesystem::path> files;
+    for (const std::string& path : args->paths) {
+      const auto under = ReportsUnder(path);
+      files.insert(files.end(), under.begin(), under.end());
+    }
+    const bool together = args->paths.size() > 1;
+    const bool many =
+        !together && (files.size() > 1 || std::filesystem::is_directory(args->paths.front()));
     const OutputRequest request{"report", args->overwrite, {}};
     std::optional<OutputDirectory> claimed;
     TakeLock file_lock;
     if (many && !args->out.empty()) claimed = OutputDirectory::Claim(args->out, request);
     if (!many && !args->out.empty()) file_lock = ClaimOutputFile(args->out, request);
+    std::vector<Run> runs;
     for (const auto& file : files) {
       const nlohmann::json report = LoadReport(file);
       const Series series = SeriesOf(report, args->metrics);
       PrintReport(file, report, series, args->rows);
-      if (args->out.empty() || series.empty()) continue;
+      runs.push_back(
+          {Cat(report["command"].get<std::string>(), " (", file.parent_path().string(), ")"),
+           series});
+      if (together || args->out.empty() || series.empty()) continue;
       std::filesystem::path png = args->out;
       if (many) {
-        std::string name = std::filesystem::relative(file.parent_path(), args->path).string();
+        std::string name =
+            std::filesystem::relative(file.parent_path(), args->paths.front()).string();
         std::replace(name.begin(), name.end(), '/', '-');
         png = std::filesystem::path(args->out) /
               ((name == "." ? std::string("report") : name) + ".png");
       }
-      std::vector<uchar> bytes;
-      cv::imencode(".png", PlotSeries(file.string(), series, args->log_y), bytes);
-      WriteFileAtomic(png, std::string(bytes.begin(), bytes.end()));
-      std::printf("  plot: %s\n", png.c_str());
+      WritePlot(png, PlotSeries(file.string(), {runs.back()}, args->log_y));
     }
+    if (!together || args->out.empty()) return;
+    // Without --metric, the series every run has: the curves that compare.
+    std::vector<Run> shared = runs;
+    bool any = false;
+    for (const auto& [metric, points] : runs.front().series) any = any || Shared(runs, metric);
+    for (Run& run : shared) {
+      for (auto it = run.series.begin(); any && it != run.series.end();)
+        it = Shared(runs, it->first) ? std::next(it) : run.series.erase(it);
+    }
+    WritePlot(args->out, PlotSeries(Cat(runs.size(), " runs"), shared, args->log_y));
   });
 }
 

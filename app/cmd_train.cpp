@@ -365,6 +365,25 @@ void AddSplatCommand(CLI::App* train) {
       ->capture_default_str();
   command->add_option("--ssim-weight", o.ssim_weight, "Lambda of (1 - lambda) L1 + lambda D-SSIM")
       ->capture_default_str();
+  command
+      ->add_option("--scene", o.scene,
+                   "auto (dynamic iff several frame sets), static (the first frame only) or "
+                   "dynamic (frame to frame, each later frame a delta of the one before)")
+      ->capture_default_str();
+  command->add_option("--frame-minutes", o.frame_minutes, "Budget of each frame after the first")
+      ->capture_default_str();
+  command
+      ->add_option("--frame-iterations", o.frame_iterations,
+                   "Iterations of each frame after the first (0: time only)")
+      ->capture_default_str();
+  command
+      ->add_option("--max-frame-mb", o.max_frame_megabytes,
+                   "A later frame's delta is coarsened until it fits this many MB")
+      ->capture_default_str();
+  command
+      ->add_option("--max-added-per-frame", o.max_added_per_frame,
+                   "Gaussians a later frame may add (densified or on new surface)")
+      ->capture_default_str();
   command->callback([args] {
     SplatOptions o = args->options;
     const SharedTrainArgs& shared = args->shared;
@@ -374,7 +393,12 @@ void AddSplatCommand(CLI::App* train) {
                   {"max_gaussians", "--max-gaussians"},
                   {"max_seed_points", "--seed-points"},
                   {"initial_opacity", "--initial-opacity"},
-                  {"ssim_weight", "--ssim-weight"}});
+                  {"ssim_weight", "--ssim-weight"},
+                  {"scene", "--scene"},
+                  {"frame_minutes", "--frame-minutes"},
+                  {"frame_iterations", "--frame-iterations"},
+                  {"max_frame_megabytes", "--max-frame-mb"},
+                  {"max_added_per_frame", "--max-added-per-frame"}});
     CheckNamingFlags([&] { o.Check(); }, flags);
     const OutputDirectory claimed = shared.Claim("splat");
     const std::filesystem::path& out = claimed.path();
@@ -395,6 +419,19 @@ void AddSplatCommand(CLI::App* train) {
                 static_cast<long long>(summary.seed_points),
                 summary.cap_reached ? "the cap bit" : "under the cap", summary.megabytes,
                 summary.render_fps);
+    if (summary.temporal) {
+      double largest = 0, later_s = 0;
+      for (size_t f = 1; f < summary.frames.size(); ++f) {
+        largest = std::max(largest, summary.frames[f].megabytes);
+        later_s += summary.frames[f].seconds;
+      }
+      const size_t later = std::max<size_t>(1, summary.frames.size() - 1);
+      std::printf(
+          "frames       %zu: after frame 0 %.1f s per frame, largest delta %.3f MB, last "
+          "frame held-out %.2f dB (subject %.2f dB)\n",
+          summary.frames.size(), later_s / later, largest, summary.frames.back().heldout_psnr_db,
+          summary.frames.back().heldout_psnr_fg_db);
+    }
     std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
     EndCommand(summary, "training");
   });

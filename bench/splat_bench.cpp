@@ -1,9 +1,14 @@
 // Splats against Neural Volumes on Middlebury's dinoSparseRing (real, static): both trained in
 // the same run for the same wall-clock budget at the same width with the same held-out camera
 // (both read the take through neural/data.h's loader, which chooses it), their held-out PSNR
-// against time, then native playback speed of each model at 512x512. Prints tables; never
-// passes or fails on time. Usage:
+// against time, then native playback speed of each model at 512x512. With --studio8-frames N:
+// a simulated studio8 walking subject of N frames instead (a clean plate first), Neural Volumes
+// (dynamic) trained for the same total wall time as the splats' frame 0 (--minutes) plus N - 1
+// later frames (--frame-minutes each), both at --width with the same two held-out cameras; the
+// splats' per-frame table (held-out PSNR, seconds, MB) and both models' sequence playback at
+// 512x512 measured in the same run. Prints tables; never passes or fails on time. Usage:
 //   splat_bench [--minutes 3] [--width 320] [--seed-points 20000] [--work /tmp/splat-bench]
+//   splat_bench --studio8-frames 4 --minutes 2 --frame-minutes 0.5 --width 160 [--sim-width 320]
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <cstdio>
@@ -13,9 +18,11 @@
 #include <string>
 
 #include "bench/bench_data.h"
+#include "core/error.h"
 #include "core/report.h"
 #include "neural/neural.h"
 #include "playback/playback.h"
+#include "sim/sim.h"
 #include "splat/splat.h"
 
 namespace {
@@ -48,19 +55,126 @@ void PrintSeries(const char* name, const Report& report) {
   }
 }
 
-// Views per second of a 24-view orbit at 512x512 (frame 0, nothing written), after one view
-// that loads and warms the model.
-double PlaybackFps(const fs::path& model_dir, const fs::path& out) {
+// Views per second of a 24-view orbit at 512x512 (frame 0, or the sequence played while turning
+// with `sequence`; nothing written), after one view that loads and warms the model.
+double PlaybackFps(const fs::path& model_dir, const fs::path& out, bool sequence = false) {
   auto model = OpenModel(model_dir);
   OrbitOptions orbit;
   orbit.views = 24;
-  orbit.advance_frames = false;
+  orbit.advance_frames = sequence;
   const CameraPath path = OrbitPath(*model, orbit);
   PlaybackOptions options;
   options.out = out;
   options.write_frames = false;
   model->Render(path.cameras[0], 0, options.render);
   return RenderPath(*model, path, options).render_fps;
+}
+
+// Both methods trained on one take, one after the other, and what they reported.
+struct BothRuns {
+  Report nvol_report{"train nvol"}, splat_report{"train splat"};
+  NeuralVolumeSummary nvol;
+  SplatSummary splat;
+  SplatScene scene;
+  double seed_s = 0;  // the splats' seed: reconstruction and colouring, before training
+};
+
+// Neural Volumes into root/<prefix>nvol, then splats into root/<prefix>splat (their evaluation
+// as often as Neural Volumes'), the machine's load noted before each and after both.
+void TrainBoth(const fs::path& take, const fs::path& root, const std::string& prefix,
+               const NeuralVolumeOptions& nvol, SplatOptions splat, BothRuns* runs) {
+  std::printf("load before Neural Volumes: %s\n", Load().c_str());
+  fs::remove_all(root / (prefix + "nvol"));
+  runs->nvol = TrainNeuralVolume(take, root / (prefix + "nvol"), nvol, &runs->nvol_report);
+  std::printf("nvol: %s\n", runs->nvol.message.c_str());
+  splat.eval_every_s = nvol.eval_every_s;
+  std::printf("load before splats: %s\n", Load().c_str());
+  fs::remove_all(root / (prefix + "splat"));
+  const auto seed_start = std::chrono::steady_clock::now();
+  runs->scene = LoadSplatScene(take, root / (prefix + "splat"), splat);
+  runs->seed_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - seed_start).count();
+  runs->splat = TrainSplatsOn(runs->scene, root / (prefix + "splat"), splat, &runs->splat_report);
+  std::printf("splat: %s\n", runs->splat.message.c_str());
+  std::printf("load after training: %s\n", Load().c_str());
+}
+
+// Splats frame to frame against dynamic Neural Volumes on a simulated studio8 take.
+int RunStudio8(const fs::path& root, int frames, double minutes, double frame_minutes, int width,
+               int sim_width, int64_t seed_points) {
+  const fs::path take = root / Cat("studio8-", frames, "-", sim_width);
+  if (!fs::exists(take / "take.json")) {
+    SimOptions sim;
+    sim.frames = frames + 1;
+    sim.clean_plate_frames = 1;
+    sim.image_width = sim_width;
+    sim.overwrite = true;
+    const SimSummary simulated = SimulateTake(sim, take);
+    std::printf("simulated %s: %lld frame sets in %.1f s\n", take.c_str(),
+                static_cast<long long>(simulated.frame_sets), simulated.seconds);
+  }
+  const double total_minutes = minutes + (frames - 1) * frame_minutes;
+  std::printf(
+      "studio8 walking subject: %d frames (+ clean plate), %d px wide (simulated at %d), "
+      "2 held-out cameras; splats %.2f min frame 0 + %.2f min per later frame, Neural "
+      "Volumes (dynamic) %.2f min\n",
+      frames, width, sim_width, minutes, frame_minutes, total_minutes);
+  NeuralVolumeOptions nvol;
+  nvol.minutes = total_minutes;
+  nvol.image_width = width;
+  nvol.eval_every_s = std::max(10.0, total_minutes * 60 / 10);
+  SplatOptions splat;
+  splat.minutes = minutes;
+  splat.frame_minutes = frame_minutes;
+  splat.image_width = width;
+  splat.max_seed_points = seed_points;
+  BothRuns runs;
+  TrainBoth(take, root, "studio8-", nvol, splat, &runs);
+  PrintSeries("Neural Volumes", runs.nvol_report);
+  PrintSeries("splats (frames one after another)", runs.splat_report);
+  std::printf("\nsplats per frame (scored on the held-out cameras as soon as trained)\n");
+  std::printf("%6s %6s %7s %9s %10s %10s %10s %9s %8s %9s\n", "frame", "set", "iters", "seconds",
+              "whole_dB", "subject_dB", "background", "MB", "added", "Gaussians");
+  for (const SplatFrameSummary& f : runs.splat.frames) {
+    std::printf("%6lld %6lld %7lld %9.1f %10.2f %10.2f %10.2f %9.3f %8lld %9lld\n",
+                static_cast<long long>(f.frame), static_cast<long long>(f.set),
+                static_cast<long long>(f.iterations), f.seconds, f.heldout_psnr_db,
+                f.heldout_psnr_fg_db, f.background_psnr_fg_db, f.megabytes,
+                static_cast<long long>(f.added), static_cast<long long>(f.gaussians));
+  }
+  // Interleaved, twice each: the machine's load moves between runs.
+  double nvol_fps = 0, splat_fps = 0;
+  for (int round = 0; round < 2; ++round) {
+    nvol_fps = std::max(nvol_fps, PlaybackFps(root / "studio8-nvol", root / "play-nvol", true));
+    splat_fps = std::max(splat_fps, PlaybackFps(root / "studio8-splat", root / "play-splat", true));
+  }
+  std::printf("load after playback: %s\n", Load().c_str());
+  std::printf("\nheld-out cameras: %s (both)\n",
+              runs.nvol.plan.value("heldout", nlohmann::json::array()).dump().c_str());
+  std::printf("%-22s %8s %10s %10s %8s %10s %13s\n", "method", "iters", "whole_dB", "subject_dB",
+              "ssim", "MB/frame", "fps_512_seq");
+  std::printf("%-22s %8lld %10.2f %10.2f %8.4f %10s %13.2f\n", "Neural Volumes (dyn)",
+              static_cast<long long>(runs.nvol.iterations), runs.nvol.heldout_psnr_db,
+              runs.nvol.heldout_psnr_fg_db, runs.nvol.heldout_ssim, "-", nvol_fps);
+  double largest_mb = 0, later_s = 0;
+  for (size_t f = 1; f < runs.splat.frames.size(); ++f) {
+    largest_mb = std::max(largest_mb, runs.splat.frames[f].megabytes);
+    later_s += runs.splat.frames[f].seconds;
+  }
+  std::printf("%-22s %8lld %10.2f %10.2f %8.4f %10.3f %13.2f\n", "splats (last frame)",
+              static_cast<long long>(runs.splat.iterations), runs.splat.heldout_psnr_db,
+              runs.splat.heldout_psnr_fg_db, runs.splat.heldout_ssim, largest_mb, splat_fps);
+  std::printf(
+      "Neural Volumes' scores are over its evaluated frames; the splats' are the last "
+      "frame's (each frame's above). Splats after frame 0: %.1f s per frame, largest delta "
+      "%.3f MB; frame 0 stored %.2f MB.\n",
+      later_s / std::max<size_t>(1, runs.splat.frames.size() - 1), largest_mb,
+      runs.splat.megabytes);
+  std::printf("splat seed: %s, %.1f s before training (reconstruction of every frame, colouring)\n",
+              runs.scene.seed.source.c_str(), runs.seed_s);
+  std::printf("reports: %s, %s\n", (root / "studio8-nvol" / "report.json").c_str(),
+              (root / "studio8-splat" / "report.json").c_str());
+  return 0;
 }
 
 }  // namespace
@@ -76,10 +190,22 @@ int main(int argc, char** argv) {
   app.add_option("--seed-points", seed_points, "Surface samples the splats start from")
       ->capture_default_str();
   app.add_option("--work", work, "Working directory")->capture_default_str();
+  int studio8_frames = 0;
+  double frame_minutes = 0.5;
+  int sim_width = 320;
+  app.add_option("--studio8-frames", studio8_frames,
+                 "A simulated studio8 take of this many frames instead of dinoSparseRing");
+  app.add_option("--frame-minutes", frame_minutes, "Splats' budget of each later frame (studio8)")
+      ->capture_default_str();
+  app.add_option("--sim-width", sim_width, "Simulated image width (studio8)")
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   RegisterSplatModelKind();
   const fs::path root(work);
   fs::create_directories(root);
+  if (studio8_frames > 0) {
+    return RunStudio8(root, studio8_frames, minutes, frame_minutes, width, sim_width, seed_points);
+  }
   const fs::path take = bench::ImportDinoOnce(root);
   std::printf("dinoSparseRing (static): 15 views trained, 1 held out, %d px wide, %.1f min each\n",
               width, minutes);
@@ -89,54 +215,37 @@ int main(int argc, char** argv) {
   nvol.image_width = width;
   nvol.heldout_cameras = 1;
   nvol.eval_every_s = std::max(10.0, minutes * 60 / 10);
-  std::printf("load before Neural Volumes: %s\n", Load().c_str());
-  Report nvol_report("train nvol");
-  fs::remove_all(root / "nvol");
-  const NeuralVolumeSummary nvol_summary =
-      TrainNeuralVolume(take, root / "nvol", nvol, &nvol_report);
-  std::printf("nvol: %s\n", nvol_summary.message.c_str());
-
   SplatOptions splat;
   splat.minutes = minutes;
   splat.image_width = width;
   splat.heldout_cameras = 1;
   splat.max_seed_points = seed_points;
-  splat.eval_every_s = nvol.eval_every_s;
-  std::printf("load before splats: %s\n", Load().c_str());
-  fs::remove_all(root / "splat");
-  const auto seed_start = std::chrono::steady_clock::now();
-  const SplatScene scene = LoadSplatScene(take, root / "splat", splat);
-  const double seed_s =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - seed_start).count();
-  Report splat_report("train splat");
-  const SplatSummary splat_summary = TrainSplatsOn(scene, root / "splat", splat, &splat_report);
-  std::printf("splat: %s\n", splat_summary.message.c_str());
-  std::printf("load after training: %s\n", Load().c_str());
+  BothRuns runs;
+  TrainBoth(take, root, "", nvol, splat, &runs);
 
-  PrintSeries("Neural Volumes", nvol_report);
-  PrintSeries("splats", splat_report);
+  PrintSeries("Neural Volumes", runs.nvol_report);
+  PrintSeries("splats", runs.splat_report);
   const double nvol_fps = PlaybackFps(root / "nvol", root / "play-nvol");
   const double splat_fps = PlaybackFps(root / "splat", root / "play-splat");
   std::printf("load after playback: %s\n", Load().c_str());
 
   std::printf("\nheld-out camera: %s (both)\n",
-              nvol_summary.plan.value("heldout", nlohmann::json::array()).dump().c_str());
+              runs.nvol.plan.value("heldout", nlohmann::json::array()).dump().c_str());
   std::printf("%-16s %10s %10s %10s %8s %9s %10s %9s\n", "method", "iters", "whole_dB",
               "subject_dB", "ssim", "MB", "count", "fps_512");
   std::printf("%-16s %10lld %10.2f %10.2f %8.4f %9s %10s %9.2f\n", "Neural Volumes",
-              static_cast<long long>(nvol_summary.iterations), nvol_summary.heldout_psnr_db,
-              nvol_summary.heldout_psnr_fg_db, nvol_summary.heldout_ssim, "-", "64^3 grid",
-              nvol_fps);
+              static_cast<long long>(runs.nvol.iterations), runs.nvol.heldout_psnr_db,
+              runs.nvol.heldout_psnr_fg_db, runs.nvol.heldout_ssim, "-", "64^3 grid", nvol_fps);
   std::printf("%-16s %10lld %10.2f %10.2f %8.4f %9.2f %10lld %9.2f\n", "splats",
-              static_cast<long long>(splat_summary.iterations), splat_summary.heldout_psnr_db,
-              splat_summary.heldout_psnr_fg_db, splat_summary.heldout_ssim, splat_summary.megabytes,
-              static_cast<long long>(splat_summary.gaussians), splat_fps);
+              static_cast<long long>(runs.splat.iterations), runs.splat.heldout_psnr_db,
+              runs.splat.heldout_psnr_fg_db, runs.splat.heldout_ssim, runs.splat.megabytes,
+              static_cast<long long>(runs.splat.gaussians), splat_fps);
   std::printf("background alone inside the silhouette: %.2f dB (nvol), %.2f dB (splat)\n",
-              nvol_summary.background_psnr_fg_db, splat_summary.background_psnr_fg_db);
+              runs.nvol.background_psnr_fg_db, runs.splat.background_psnr_fg_db);
   std::printf("splat seed: %s, %.1f s before training (reconstruction and colouring)\n",
-              scene.seed.source.c_str(), seed_s);
+              runs.scene.seed.source.c_str(), runs.seed_s);
   std::printf("subject gain of splats over Neural Volumes: %+.2f dB\n",
-              splat_summary.heldout_psnr_fg_db - nvol_summary.heldout_psnr_fg_db);
+              runs.splat.heldout_psnr_fg_db - runs.nvol.heldout_psnr_fg_db);
   std::printf("reports: %s, %s\n", (root / "nvol" / "report.json").c_str(),
               (root / "splat" / "report.json").c_str());
   return 0;

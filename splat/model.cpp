@@ -1,6 +1,8 @@
 // Options, rendering through a holocap camera, the model on disk and its playback kind.
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <mutex>
 
@@ -64,9 +66,49 @@ void SplatOptions::Check() const {
   if (eval_every_iterations < 0)
     Fail("eval_every_iterations must be >= 0, got ", eval_every_iterations);
   if (!(divergence_factor > 1)) Fail("divergence_factor must exceed 1, got ", divergence_factor);
+  if (!(max_opacity_step > 0)) Fail("max_opacity_step must be positive, got ", max_opacity_step);
   if (max_divergences < 0) Fail("max_divergences must be >= 0, got ", max_divergences);
   if (snapshot_every < 1) Fail("snapshot_every must be at least 1, got ", snapshot_every);
   if (threads < 0) Fail("threads must be >= 0, got ", threads);
+  if (scene != "auto" && scene != "static" && scene != "dynamic")
+    Fail("scene must be auto, static or dynamic, got '", scene, "'");
+  if (!(frame_minutes >= 0)) Fail("frame_minutes must be >= 0, got ", frame_minutes);
+  if (!(frame_minutes > 0) && frame_iterations <= 0)
+    Fail("give later frames a positive frame_minutes budget or frame_iterations");
+  if (frame_iterations < 0) Fail("frame_iterations must be >= 0, got ", frame_iterations);
+  if (frame_densify_every < 1)
+    Fail("frame_densify_every must be at least 1, got ", frame_densify_every);
+  if (!(frame_position_lr_scale > 0))
+    Fail("frame_position_lr_scale must be positive, got ", frame_position_lr_scale);
+  if (max_added_per_frame < 0) Fail("max_added_per_frame must be >= 0, got ", max_added_per_frame);
+  if (!(new_surface_spacings > 0))
+    Fail("new_surface_spacings must be positive, got ", new_surface_spacings);
+  if (!(max_frame_megabytes > 0))
+    Fail("max_frame_megabytes must be positive, got ", max_frame_megabytes);
+  if (!(delta_position_step_m > 0) || !(delta_rotation_step > 0) || !(delta_scale_step > 0) ||
+      !(delta_opacity_step > 0) || !(delta_color_step > 0)) {
+    Fail("the delta's quantisation steps must be positive");
+  }
+}
+
+nlohmann::json SplatFrameSummary::ToJson() const {
+  return {{"frame", frame},
+          {"set", set},
+          {"iterations", iterations},
+          {"seconds", seconds},
+          {"elapsed_s", elapsed_s},
+          {"heldout_psnr_db", heldout_psnr_db},
+          {"heldout_psnr_fg_db", heldout_psnr_fg_db},
+          {"background_psnr_fg_db", background_psnr_fg_db},
+          {"heldout_ssim", heldout_ssim},
+          {"gaussians", gaussians},
+          {"added", added},
+          {"added_surface", added_surface},
+          {"removed", removed},
+          {"changed", changed},
+          {"coarsened", coarsened},
+          {"megabytes", megabytes},
+          {"divergences", divergences}};
 }
 
 nlohmann::json SplatOptions::ToJson() const {
@@ -104,9 +146,23 @@ nlohmann::json SplatOptions::ToJson() const {
           {"eval_every_s", eval_every_s},
           {"eval_every_iterations", eval_every_iterations},
           {"divergence_factor", divergence_factor},
+          {"max_opacity_step", max_opacity_step},
           {"max_divergences", max_divergences},
           {"snapshot_every", snapshot_every},
-          {"threads", threads}};
+          {"threads", threads},
+          {"scene", scene},
+          {"frame_minutes", frame_minutes},
+          {"frame_iterations", frame_iterations},
+          {"frame_densify_every", frame_densify_every},
+          {"frame_position_lr_scale", frame_position_lr_scale},
+          {"max_added_per_frame", max_added_per_frame},
+          {"new_surface_spacings", new_surface_spacings},
+          {"max_frame_megabytes", max_frame_megabytes},
+          {"delta_position_step_m", delta_position_step_m},
+          {"delta_rotation_step", delta_rotation_step},
+          {"delta_scale_step", delta_scale_step},
+          {"delta_opacity_step", delta_opacity_step},
+          {"delta_color_step", delta_color_step}};
 }
 
 splat::PinholeCamera ToPinhole(const CameraModel& camera) {
@@ -153,25 +209,28 @@ SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& c
   return out;
 }
 
-void SplatModel::Save(const fs::path& dir) const {
+void SplatModel::Save(const fs::path& dir, bool write_gaussians) const {
   CreateDirectories(dir / "cameras");
   std::string bytes;
   nlohmann::json fields = nlohmann::json::array();
   for (const Field& field : kFields) {
     const std::vector<float>& values = gaussians.*field.member;
-    bytes.append(reinterpret_cast<const char*>(values.data()), values.size() * sizeof(float));
+    if (write_gaussians)
+      bytes.append(reinterpret_cast<const char*>(values.data()), values.size() * sizeof(float));
     fields.push_back(field.name);
   }
-  WriteFileAtomic(dir / "gaussians.bin", bytes);
+  if (write_gaussians) WriteFileAtomic(dir / "gaussians.bin", bytes);
   nlohmann::json names = nlohmann::json::array();
   for (size_t k = 0; k < cameras.size(); ++k) {
     const std::string name = Cat("view", k);
-    cameras[k].Write(dir / "cameras" / (name + ".cameramodel"));
+    if (write_gaussians) cameras[k].Write(dir / "cameras" / (name + ".cameramodel"));
     names.push_back(name);
   }
   const Eigen::Vector3d lo = box.min(), hi = box.max();
   nlohmann::json json = {{"method", "splat"},
                          {"gaussians", gaussians.size()},
+                         {"frames", frames},
+                         {"deltas", "deltas/<frame, 6 digits>.bin (splat/splat.h)"},
                          {"sh_degree", gaussians.sh_degree},
                          {"fields", fields},
                          {"format", "float32 little-endian, each field for every Gaussian in turn"},
@@ -218,7 +277,26 @@ SplatModel SplatModel::Load(const fs::path& dir) {
   model.box = Eigen::AlignedBox3d(Eigen::Vector3d(lo[0], lo[1], lo[2]),
                                   Eigen::Vector3d(hi[0], hi[1], hi[2]));
   model.plan = json.value("plan", nlohmann::json::object());
+  model.frames = json.value("frames", int64_t{1});
+  if (model.frames < 1) Fail(dir.string(), "/model.json: frames must be at least 1");
   return model;
+}
+
+fs::path SplatDeltaFile(const fs::path& dir, int64_t frame) {
+  char name[32];
+  std::snprintf(name, sizeof(name), "%06lld.bin", static_cast<long long>(frame));
+  return dir / "deltas" / name;
+}
+
+splat::Gaussians SplatModel::Frame(const fs::path& dir, int64_t frame,
+                                   const splat::Gaussians* previous, int64_t previous_frame) const {
+  if (frame < 0 || frame >= frames)
+    Fail("frame ", frame, " is outside the splat model's 0..", frames - 1);
+  const bool resume = previous != nullptr && previous_frame >= 0 && previous_frame <= frame;
+  splat::Gaussians current = resume ? *previous : gaussians;
+  for (int64_t k = resume ? previous_frame + 1 : 1; k <= frame; ++k)
+    current = ApplySplatDelta(current, ReadFileToString(SplatDeltaFile(dir, k)));
+  return current;
 }
 
 namespace {
@@ -226,16 +304,23 @@ namespace {
 // A splat model as playback sees it: one static frame, drawn natively.
 class SplatAvatar : public AvatarModel {
  public:
-  explicit SplatAvatar(SplatModel model) : model_(std::move(model)) {}
+  SplatAvatar(SplatModel model, fs::path dir)
+      : model_(std::move(model)), dir_(std::move(dir)), current_(model_.gaussians) {}
   std::string method() const override { return "splat"; }
-  int64_t frame_count() const override { return 1; }
+  int64_t frame_count() const override { return model_.frames; }
   Eigen::Vector3d box_min() const override { return model_.box.min(); }
   Eigen::Vector3d box_max() const override { return model_.box.max(); }
   std::vector<CameraModel> cameras() const override { return model_.cameras; }
   RenderedView Render(const CameraModel& camera, int64_t frame,
                       const ViewRenderOptions& options) override {
     const auto start = std::chrono::steady_clock::now();
-    SplatRender render = RenderSplats(model_.gaussians, camera);
+    // Played in order, each frame applies one delta to the one before.
+    frame = std::clamp<int64_t>(frame, 0, model_.frames - 1);
+    if (frame != current_frame_) {
+      current_ = model_.Frame(dir_, frame, &current_, current_frame_);
+      current_frame_ = frame;
+    }
+    SplatRender render = RenderSplats(current_, camera);
     RenderedView view;
     view.color = render.color;
     view.alpha = render.alpha;
@@ -253,6 +338,9 @@ class SplatAvatar : public AvatarModel {
 
  private:
   SplatModel model_;
+  fs::path dir_;
+  splat::Gaussians current_;
+  int64_t current_frame_ = 0;
 };
 
 }  // namespace
@@ -261,7 +349,7 @@ void RegisterSplatModelKind() {
   static std::once_flag once;
   std::call_once(once, [] {
     RegisterModelKind("splat", [](const fs::path& dir, const nlohmann::json&) {
-      return std::unique_ptr<AvatarModel>(new SplatAvatar(SplatModel::Load(dir)));
+      return std::unique_ptr<AvatarModel>(new SplatAvatar(SplatModel::Load(dir), dir));
     });
   });
 }

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdio>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 
 #include "core/error.h"
 #include "core/fs.h"
@@ -24,48 +25,57 @@ std::string SetName(int64_t set) {
   return name;
 }
 
-// The pinhole of the lens's intrinsics core and the view resampled into it (colour and
-// background bilinear, the silhouette nearest).
-void Undistort(SplatView* view) {
-  const CameraModel& lens = view->camera;
-  const auto& k = lens.intrinsics();
-  CameraModel pinhole("LENSMODEL_PINHOLE", {k[0], k[1], k[2], k[3]}, lens.width(), lens.height(),
-                      lens.cam_from_world());
-  const int w = lens.width(), h = lens.height();
-  Eigen::Matrix3Xd rays(3, static_cast<int64_t>(w) * h);
-  for (int y = 0; y < h; ++y) {
-    for (int x = 0; x < w; ++x)
-      rays.col(static_cast<int64_t>(y) * w + x) << (x - k[2]) / k[0], (y - k[3]) / k[1], 1.0;
-  }
-  const Eigen::Matrix2Xd pixels = lens.ProjectMany(rays);
-  cv::Mat map_x(h, w, CV_32FC1), map_y(h, w, CV_32FC1);
-  for (int y = 0; y < h; ++y) {
-    for (int x = 0; x < w; ++x) {
-      map_x.at<float>(y, x) = static_cast<float>(pixels(0, static_cast<int64_t>(y) * w + x));
-      map_y.at<float>(y, x) = static_cast<float>(pixels(1, static_cast<int64_t>(y) * w + x));
+// The pinhole of a lens's intrinsics core and the maps that resample the lens's images into it.
+struct Undistortion {
+  CameraModel pinhole;
+  cv::Mat map_x, map_y;
+
+  explicit Undistortion(const CameraModel& lens) {
+    const auto& k = lens.intrinsics();
+    pinhole = CameraModel("LENSMODEL_PINHOLE", {k[0], k[1], k[2], k[3]}, lens.width(),
+                          lens.height(), lens.cam_from_world());
+    const int w = lens.width(), h = lens.height();
+    Eigen::Matrix3Xd rays(3, static_cast<int64_t>(w) * h);
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0; x < w; ++x)
+        rays.col(static_cast<int64_t>(y) * w + x) << (x - k[2]) / k[0], (y - k[3]) / k[1], 1.0;
+    }
+    const Eigen::Matrix2Xd pixels = lens.ProjectMany(rays);
+    map_x.create(h, w, CV_32FC1);
+    map_y.create(h, w, CV_32FC1);
+    for (int y = 0; y < h; ++y) {
+      for (int x = 0; x < w; ++x) {
+        map_x.at<float>(y, x) = static_cast<float>(pixels(0, static_cast<int64_t>(y) * w + x));
+        map_y.at<float>(y, x) = static_cast<float>(pixels(1, static_cast<int64_t>(y) * w + x));
+      }
     }
   }
-  cv::Mat image, mask, background;
-  cv::remap(view->image, image, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
-  cv::remap(view->mask, mask, map_x, map_y, cv::INTER_NEAREST, cv::BORDER_CONSTANT);
-  cv::remap(view->background, background, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
-  view->camera = pinhole;
-  view->image = image;
-  view->mask = mask;
-  view->background = background;
-}
+  // Colour bilinear, a silhouette nearest.
+  cv::Mat Color(const cv::Mat& image) const {
+    cv::Mat out;
+    cv::remap(image, out, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+    return out;
+  }
+  cv::Mat Mask(const cv::Mat& mask) const {
+    cv::Mat out;
+    cv::remap(mask, out, map_x, map_y, cv::INTER_NEAREST, cv::BORDER_CONSTANT);
+    return out;
+  }
+};
 
 // The first planned frame set's surface: recon_dir's, else reconstructed now by the plan's
 // method from the training cameras (the held-out ones never). Empty when the reconstruction
 // found none; `source` says what happened.
-Mesh SeedSurface(const fs::path& take_dir, const fs::path& model_dir, const SplatOptions& options,
-                 const neural::TrainingData& data, std::string* source) {
-  const int64_t set = data.sets.front();
+// `frames` of them from the first (a dynamic take's later frames seed where their surface is new).
+std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_dir,
+                               const SplatOptions& options, const neural::TrainingData& data,
+                               size_t frames, std::string* source) {
+  std::vector<Mesh> meshes(frames);
   fs::path recon_dir = options.recon_dir;
   if (recon_dir.empty()) {
     recon_dir = model_dir / "seed_recon";
     TakeSelection selection = options.take;
-    selection.last_frame = selection.first_frame + 1;
+    if (frames == 1) selection.last_frame = selection.first_frame + 1;
     selection.heldout.clear();
     for (const auto& view : data.views)
       if (view.heldout) selection.heldout.push_back(view.name);
@@ -78,18 +88,22 @@ Mesh SeedSurface(const fs::path& take_dir, const fs::path& model_dir, const Spla
     const ReconstructionSummary summary = ReconstructTake(take_dir, selection, recon_dir, recon);
     *source = Cat("reconstructed now (", summary.plan.value("method", std::string("?")), ", voxel ",
                   recon.voxel_m * 1000, " mm): ", summary.message);
-    if (!summary.IsUsable()) return Mesh{};
+    if (!summary.IsUsable()) return meshes;
   } else {
     *source = Cat("reconstruction ", recon_dir.string());
   }
-  const fs::path file = recon_dir / (SetName(set) + ".ply");
-  if (!fs::exists(file)) {
-    *source += Cat("; no surface for frame set ", set, " (", file.string(), ")");
-    return Mesh{};
+  for (size_t f = 0; f < frames; ++f) {
+    const fs::path file = recon_dir / (SetName(data.sets[f]) + ".ply");
+    if (!fs::exists(file)) {
+      if (f == 0)
+        *source += Cat("; no surface for frame set ", data.sets[f], " (", file.string(), ")");
+      continue;
+    }
+    meshes[f] = ReadPly(file);
+    if (f == 0)
+      *source += Cat("; ", file.filename().string(), ": ", meshes[f].vertices.size(), " vertices");
   }
-  Mesh mesh = ReadPly(file);
-  *source += Cat("; ", file.filename().string(), ": ", mesh.vertices.size(), " vertices");
-  return mesh;
+  return meshes;
 }
 
 // Points spread over the surface, each coloured by the mean of the training views that see it
@@ -144,13 +158,18 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
   data_options.take = options.take;
   data_options.threads = options.threads;
   data_options.scene = "static";
+  if (options.scene == "static") data_options.take.last_frame = data_options.take.first_frame + 1;
   const neural::TrainingData data = neural::LoadTrainingData(take_dir, data_options);
+  const bool dynamic = options.scene == "dynamic" || data.sets.size() > 1;
   SplatScene scene;
   scene.plan = data.plan;
   scene.plan.erase("encoder_views");
   scene.plan.erase("occupancy");
   scene.box = Eigen::AlignedBox3d(data.box_min, data.box_max);
   std::vector<std::string> undistorted;
+  scene.later_frames.resize(dynamic ? data.sets.size() - 1 : 0);
+  for (size_t f = 0; f < scene.later_frames.size(); ++f)
+    scene.later_frames[f].set = data.sets[f + 1];
   for (size_t v = 0; v < data.views.size(); ++v) {
     SplatView view;
     view.name = data.views[v].name;
@@ -159,9 +178,20 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
     view.mask = data.masks.front()[v];
     view.background = data.views[v].background;
     view.heldout = data.views[v].heldout;
+    std::optional<Undistortion> undistortion;
     if (view.camera.lensmodel() != "LENSMODEL_PINHOLE") {
-      Undistort(&view);
+      undistortion.emplace(view.camera);
+      view.camera = undistortion->pinhole;
+      view.image = undistortion->Color(view.image);
+      view.mask = undistortion->Mask(view.mask);
+      view.background = undistortion->Color(view.background);
       undistorted.push_back(view.name);
+    }
+    for (size_t f = 0; f < scene.later_frames.size(); ++f) {
+      const cv::Mat& image = data.images[f + 1][v];
+      const cv::Mat& mask = data.masks[f + 1][v];
+      scene.later_frames[f].images.push_back(undistortion ? undistortion->Color(image) : image);
+      scene.later_frames[f].masks.push_back(undistortion ? undistortion->Mask(mask) : mask);
     }
     scene.views.push_back(std::move(view));
   }
@@ -176,15 +206,31 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
         "splats learn from colour alone (the seed's "
         "reconstruction may fuse their depth)";
   scene.plan["frame_set"] = data.sets.front();
-  if (data.sets.size() > 1) {
-    scene.plan["left_out"]["frames after the first"] =
-        Cat(data.sets.size() - 1,
-            " frame set(s): splats train one frame; frame-to-frame training is not built");
+  scene.plan["scene"] = dynamic ? "dynamic" : "static";
+  if (dynamic) {
+    scene.plan["frames"] = data.sets.size();
+    scene.plan["temporal"] =
+        "frame 0 trained fully; each later frame from the one before, stored as a delta";
+  } else {
+    scene.plan["left_out"]["temporal"] =
+        data.sets.size() > 1 || options.scene == "static"
+            ? "a static scene (--scene static): one frame trained, no frame-to-frame deltas"
+            : "one frame set: one frame trained, no frame-to-frame deltas";
   }
   std::string source;
-  const Mesh mesh = SeedSurface(take_dir, model_dir, options, data, &source);
-  scene.seed = SeedFrom(mesh, scene.views, options.max_seed_points, options.seed);
+  const std::vector<Mesh> meshes =
+      SeedSurfaces(take_dir, model_dir, options, data, 1 + scene.later_frames.size(), &source);
+  scene.seed = SeedFrom(meshes.front(), scene.views, options.max_seed_points, options.seed);
   scene.seed.source = source + (scene.seed.source.empty() ? "" : "; " + scene.seed.source);
+  for (size_t f = 0; f < scene.later_frames.size(); ++f) {
+    std::vector<SplatView> views = scene.views;
+    for (size_t v = 0; v < views.size(); ++v) {
+      views[v].image = scene.later_frames[f].images[v];
+      views[v].mask = scene.later_frames[f].masks[v];
+    }
+    scene.later_frames[f].seed =
+        SeedFrom(meshes[f + 1], views, options.max_seed_points, options.seed + f + 1);
+  }
   return scene;
 }
 

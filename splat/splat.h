@@ -17,7 +17,33 @@
 // (reconstruction/: the hull, TSDF or MVS the take's plan chooses), one per surface sample,
 // coloured by the training cameras that see it, not from random or SfM points. Lenses that
 // distort are handled by undistorting the training images to the pinhole of the same
-// intrinsics core (said in the plan). A static take trains one frame and nothing temporal.
+// intrinsics core (said in the plan).
+//
+// Dynamic takes train frame to frame (after 3DGStream and QUEEN): frame 0 trains fully; each
+// later frame starts from the frame before's Gaussians and learns their motion and changes for a
+// short budget, adds Gaussians only where the new frame's positional gradient asks
+// (densification) or where the new frame's reconstructed surface lies far from every Gaussian,
+// and is stored as a compact, quantised delta of the frame before (the format below) and scored
+// on the held-out cameras at once. A static take (one frame set, or scene "static") trains one
+// frame and nothing temporal; the plan says so.
+//
+// The per-frame delta, deltas/<frame, 6 digits>.bin in the model directory: one zstd frame
+// whose content is, little-endian:
+//   char[4]   "HSD1"
+//   uint32    previous      Gaussians of the frame before
+//   uint32    added         Gaussians appended in full at the end
+//   uint32    sh_degree     the model's (coefficients per channel K = (degree + 1)^2)
+//   float32   steps[5]      quantisation steps of the five groups below
+//   uint8     kept[B]       B = ceil(previous / 8); bit i (least significant first) of byte
+//                           i / 8: the frame before's Gaussian i survives (else removed)
+//   then for each group g in order, position (3 values, metres), rotation (4, the quaternion's
+//   raw w x y z), log_scale (3), opacity (1, logit), colour (3, the degree-0 coefficients):
+//     uint8   changed[B]    bit i: Gaussian i (a survivor) changed in this group
+//     int16   q[changed x values]  in order of i: value = previous + q x steps[g] (float32)
+//   then the added Gaussians as gaussians.bin stores a model (each field for every added
+//   Gaussian in turn: position, rotation, log_scale, opacity, sh; float32).
+// The next frame is the survivors in their order, updated, then the added ones. Spherical
+// harmonics above degree 0 are not changed by a delta (an added Gaussian brings its own).
 #pragma once
 
 #include <Eigen/Core>
@@ -53,6 +79,8 @@ struct SplatOptions {
   TakeSelection take;                // frame sets, clean plate and cameras (core/take_plan.h)
   std::string recon_dir;             // seed from this reconstruction (recon/<set>.ply) instead
                                      // of running one
+  std::string scene = "auto";        // "auto" (dynamic iff several frame sets), "static" (the
+                                     // first frame set only), "dynamic"
 
   // Optimisation.
   double minutes = 5;           // wall-clock budget
@@ -84,9 +112,31 @@ struct SplatOptions {
   double eval_every_s = 20;           // held-out PSNR/SSIM every this many seconds
   int64_t eval_every_iterations = 0;  // > 0: every this many iterations instead
   double divergence_factor = 2.0;     // a loss above this x its running mean is a divergence
+  double max_opacity_step = 1.0;      // a step moving the opacity logits that had a gradient by
+                                      // more than this on average is a divergence too (the
+                                      // paper's rate moves them 0.05)
   int max_divergences = 5;            // then training stops with FAILURE
   int64_t snapshot_every = 50;        // iterations between restore points of the guard
   int threads = 0;                    // 0: all cores
+
+  // Frames after the first (dynamic takes). The budget of each is frame_minutes and/or
+  // frame_iterations (whichever first), as minutes/iterations are frame 0's.
+  double frame_minutes = 1;             // wall-clock budget of each later frame
+  int64_t frame_iterations = 0;         // > 0: iterations of each later frame
+  int64_t frame_densify_every = 50;     // iterations between a later frame's densifications
+  double frame_position_lr_scale = 10;  // a later frame's position rate: this x position_lr
+                                        // (the subject moves in few iterations), decaying to
+                                        // 1/10 over the frame
+  int64_t max_added_per_frame = 1000;   // Gaussians a later frame may add (densified or seeded)
+  double new_surface_spacings = 3;      // a later frame's surface sample farther than this x the
+                                        // seed spacing from every Gaussian seeds a new one
+  double max_frame_megabytes = 1.0;     // a delta larger than this is coarsened until it fits
+  // Quantisation steps of a delta (coarsened together, x2 at a time, when over the bound).
+  double delta_position_step_m = 5e-4;
+  double delta_rotation_step = 2e-3;
+  double delta_scale_step = 0.01;
+  double delta_opacity_step = 0.05;
+  double delta_color_step = 1.0 / 128;  // colour units ([0, 1]), of the degree-0 term
 
   void Check() const;  // throws Error naming the bad field and why
   nlohmann::json ToJson() const;
@@ -111,11 +161,40 @@ struct SplatSeed {
   std::string source;                   // for the plan ("hull of set 0, 12345 vertices")
 };
 
+// A frame after the first of a dynamic take: its images and silhouettes per view (the views'
+// order) and its own reconstruction's surface samples (empty: none).
+struct SplatFrame {
+  int64_t set = 0;              // the take's frame-set number
+  std::vector<cv::Mat> images;  // CV_8UC3 BGR
+  std::vector<cv::Mat> masks;   // CV_8UC1
+  SplatSeed seed;
+};
+
 struct SplatScene {
-  std::vector<SplatView> views;
+  std::vector<SplatView> views;          // frame 0's images and silhouettes
+  std::vector<SplatFrame> later_frames;  // dynamic takes: frames 1, 2, ... (else empty)
   SplatSeed seed;
   Eigen::AlignedBox3d box;  // the volume the subject lives in (Gaussians leaving it are removed)
   nlohmann::json plan = nlohmann::json::object();
+};
+
+// One frame of a dynamic take, scored as soon as it is trained.
+struct SplatFrameSummary {
+  int64_t frame = 0, set = 0;
+  int64_t iterations = 0;
+  double seconds = 0;          // this frame's training
+  double elapsed_s = 0;        // since training began, when it was scored
+  double heldout_psnr_db = 0;  // held-out cameras, whole image
+  double heldout_psnr_fg_db = 0;
+  double background_psnr_fg_db = 0;
+  double heldout_ssim = 0;
+  int64_t gaussians = 0;
+  int64_t added = 0, added_surface = 0, removed = 0, changed = 0;  // as the delta stores them
+                                                                   // (added_surface: of added)
+  int coarsened = 0;     // times the delta's steps were doubled to fit max_frame_megabytes
+  double megabytes = 0;  // stored: gaussians.bin for frame 0, the delta for later frames
+  int divergences = 0;
+  nlohmann::json ToJson() const;
 };
 
 // NO_CONVERGENCE when the budget is spent; DEGENERATE when the seed is empty (an empty frame or
@@ -138,8 +217,12 @@ struct SplatSummary : Summary {
   int64_t pruned_transparent = 0, pruned_large = 0, pruned_degenerate = 0, pruned_outside = 0;
   int64_t floored_scales = 0;  // scale values lifted to the floor (collapsing Gaussians)
   int divergences = 0;
-  double megabytes = 0;   // the stored model
+  double megabytes = 0;   // the stored model (frame 0)
   double render_fps = 0;  // held-out view at the training size, after training
+  // Dynamic takes: every frame, frame 0 first (static takes: frame 0 alone). The scores above
+  // are the last frame's.
+  std::vector<SplatFrameSummary> frames;
+  bool temporal = false;  // frames after the first were trained
 };
 
 // Reads a take into a splat scene: the same views, held-out cameras, silhouettes and
@@ -161,14 +244,44 @@ SplatSummary TrainSplats(const std::filesystem::path& take_dir,
 
 // A trained splat model on disk.
 struct SplatModel {
-  splat::Gaussians gaussians;
+  splat::Gaussians gaussians;        // frame 0
+  int64_t frames = 1;                // frames it plays (later ones: deltas/<frame>.bin)
   std::vector<CameraModel> cameras;  // the training views'
   Eigen::AlignedBox3d box;
   nlohmann::json plan;
 
-  void Save(const std::filesystem::path& dir) const;         // model.json + gaussians.bin, atomic
+  // model.json + gaussians.bin (write_gaussians false: model.json alone), atomic.
+  void Save(const std::filesystem::path& dir, bool write_gaussians = true) const;
   static SplatModel Load(const std::filesystem::path& dir);  // throws Error
+  // Frame `frame` (0 .. frames - 1) reconstructed from frame 0 and the deltas of the model in
+  // `dir`; pass the frame before (and its number) to apply one delta only. Throws Error.
+  splat::Gaussians Frame(const std::filesystem::path& dir, int64_t frame,
+                         const splat::Gaussians* previous = nullptr,
+                         int64_t previous_frame = -1) const;
 };
+
+// Where frame `frame`'s delta lies in a model directory.
+std::filesystem::path SplatDeltaFile(const std::filesystem::path& dir, int64_t frame);
+
+// The quantisation steps of a delta, in the format's group order (colour: of the degree-0
+// coefficient, = colour units / 0.2821).
+struct SplatDeltaSteps {
+  float position_m = 5e-4f, rotation = 2e-3f, log_scale = 0.01f, opacity = 0.05f, color = 0.03f;
+  SplatDeltaSteps Doubled() const;
+};
+// Encodes `next` as a delta of `previous` (the format above, compressed). origin[i] is the
+// index in `previous` that next's Gaussian i continues, or -1 for a Gaussian to add; survivors'
+// origins must increase along `next`. Values beyond int16 steps are clamped.
+std::string EncodeSplatDelta(const splat::Gaussians& previous, const splat::Gaussians& next,
+                             const std::vector<int64_t>& origin, const SplatDeltaSteps& steps);
+// The frame a delta encodes, from the frame before. Throws Error for a delta that does not
+// fit `previous` or is corrupt.
+splat::Gaussians ApplySplatDelta(const splat::Gaussians& previous, const std::string& delta);
+// Counts of a delta: survivors changed per group summed, removed, added.
+struct SplatDeltaCounts {
+  int64_t changed = 0, removed = 0, added = 0;
+};
+SplatDeltaCounts CountSplatDelta(const std::string& delta);
 
 // A pinhole camera in the kernels' terms (the intrinsics core of any lens model).
 splat::PinholeCamera ToPinhole(const CameraModel& camera);

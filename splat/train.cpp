@@ -10,6 +10,7 @@
 #include <numeric>
 #include <opencv2/imgproc.hpp>
 #include <random>
+#include <unordered_map>
 
 #include "core/error.h"
 #include "core/fs.h"
@@ -46,6 +47,16 @@ struct Snapshot {
   Moments moments;
   int64_t iteration = 0;
   int64_t adam_step = 0;
+  std::vector<int64_t> origin;
+};
+
+// The budget of one frame's training and what it may do.
+struct FrameBudget {
+  int64_t iterations = 0;  // > 0: stop after this many
+  double seconds = 0;      // > 0: stop after this long
+  bool first = true;       // frame 0: the degree raised progressively, the paper's densification
+                           // schedule and opacity resets; later frames: full degree, higher
+                           // harmonics frozen, densified every frame_densify_every
 };
 
 struct Evaluation {
@@ -63,6 +74,8 @@ class Trainer {
       cameras_.push_back(ToPinhole(view.camera));
       targets_.push_back(ToFloat(view.image));
       backgrounds_.push_back(ToFloat(view.background));
+      images_.push_back(&view.image);
+      masks_.push_back(&view.mask);
     }
     if (training_.empty()) Fail("no training view: every camera is held out");
     MeasureScene();
@@ -71,10 +84,22 @@ class Trainer {
   SplatSummary Run(Report* report);
 
  private:
+  void TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary* summary, Report* report);
+  void ShowFrame(int64_t frame);
+  void ResetMoments();
+  int64_t AddNewSurface(const SplatSeed& seed);
+  void StoreDelta(int64_t frame, const Gaussians& previous, SplatFrameSummary* stored);
+  void TrainLaterFrames(SplatSummary* summary, Report* report);
+  SplatFrameSummary ScoreFrame(int64_t frame, double seconds, int64_t iterations);
+  void Record(const SplatFrameSummary& frame, SplatSummary* summary, Report* report);
+  double Elapsed() const {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+  }
   void MeasureScene();
   void Seed(SplatSummary* summary);
-  double TrainStep(int64_t iteration, int view);
-  void AdamStep(double progress);
+  void SeedGaussian(int64_t i, const SplatSeed& seed, size_t s, float log_scale);
+  double TrainStep(int active_degree, int view);
+  void AdamStep(double progress, double* opacity_step);
   void BoundParameters();
   void Densify(SplatSummary* summary);
   void Prune(bool prune_large, SplatSummary* summary);
@@ -98,8 +123,15 @@ class Trainer {
   std::vector<int> training_, heldout_;
   std::vector<splat::PinholeCamera> cameras_;
   std::vector<std::vector<float>> targets_, backgrounds_;
-  double extent_ = 1;  // the paper's "cameras extent": 1.1 x the farthest camera from
-                       // their mean centre
+  std::vector<const cv::Mat*> images_, masks_;  // the frame being trained, per view
+  std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
+  int64_t total_iterations_ = 0;  // over the frames before the one being trained
+  bool temporal_ = false;         // training a later frame
+  int64_t add_room_ = -1;         // Gaussians the frame may still add (-1: no limit but the cap)
+  std::vector<int64_t> origin_;   // per Gaussian: its index in the frame before (-1: added)
+  SplatModel stored_;             // frame 0 as saved, and the frames written
+  double extent_ = 1;             // the paper's "cameras extent": 1.1 x the farthest camera from
+                                  // their mean centre
   double min_log_scale_ = -20, max_log_scale_ = 0;
   Gaussians gaussians_, gradient_;
   Moments moments_;
@@ -137,6 +169,19 @@ void Trainer::MeasureScene() {
   max_log_scale_ = std::log(options_.max_scale_extent * extent_);
 }
 
+// Gaussian i becomes seed point s: isotropic at `log_scale`, the seed's colour as the degree-0
+// coefficient, the initial opacity.
+void Trainer::SeedGaussian(int64_t i, const SplatSeed& seed, size_t s, float log_scale) {
+  const int k = gaussians_.coefficients();
+  for (int a = 0; a < 3; ++a) {
+    gaussians_.position[3 * i + a] = seed.points[s][a];
+    gaussians_.log_scale[3 * i + a] = log_scale;
+    gaussians_.sh[(i * k) * 3 + a] = static_cast<float>((seed.colors[s][a] - 0.5) / kShC0);
+  }
+  gaussians_.rotation[4 * i] = 1;
+  gaussians_.opacity[i] = Logit(options_.initial_opacity);
+}
+
 // One Gaussian per seed point: isotropic at the seeds' spacing, the seed's colour as the
 // degree-0 coefficient, the paper's initial opacity.
 void Trainer::Seed(SplatSummary* summary) {
@@ -144,19 +189,10 @@ void Trainer::Seed(SplatSummary* summary) {
   gaussians_.sh_degree = options_.sh_degree;
   const int64_t n = static_cast<int64_t>(seed.points.size());
   gaussians_.Resize(n);
-  const int k = gaussians_.coefficients();
   // Not clamped here: BoundParameters lifts (and counts) seeds below the floor.
   const float log_scale =
       static_cast<float>(std::log(options_.seed_scale_factor * std::max(seed.spacing_m, 1e-30)));
-  for (int64_t i = 0; i < n; ++i) {
-    for (int a = 0; a < 3; ++a) {
-      gaussians_.position[3 * i + a] = seed.points[i][a];
-      gaussians_.log_scale[3 * i + a] = log_scale;
-      gaussians_.sh[(i * k) * 3 + a] = static_cast<float>((seed.colors[i][a] - 0.5) / kShC0);
-    }
-    gaussians_.rotation[4 * i] = 1;
-    gaussians_.opacity[i] = Logit(options_.initial_opacity);
-  }
+  for (int64_t i = 0; i < n; ++i) SeedGaussian(i, seed, i, log_scale);
   gradient_.sh_degree = moments_.first.sh_degree = moments_.second.sh_degree = options_.sh_degree;
   moments_.first.Resize(n);
   moments_.second.Resize(n);
@@ -165,10 +201,10 @@ void Trainer::Seed(SplatSummary* summary) {
   summary->seed_points = n;
 }
 
-double Trainer::TrainStep(int64_t iteration, int v) {
+double Trainer::TrainStep(int active_degree, int v) {
   const splat::PinholeCamera& camera = cameras_[v];
   splat::RasterOptions raster;
-  raster.active_sh_degree = ActiveDegree(iteration);
+  raster.active_sh_degree = active_degree;
   splat::ProjectGaussians(gaussians_, camera, raster, &projected_);
   const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
   image_.resize(3 * pixels);
@@ -197,12 +233,18 @@ double Trainer::TrainStep(int64_t iteration, int v) {
 }
 
 // Adam on every group with its own rate; the position's decays exponentially to 1/100.
-void Trainer::AdamStep(double progress) {
+// opacity_step receives the mean |change| of the opacity logits that had a gradient.
+void Trainer::AdamStep(double progress, double* opacity_step) {
+  const std::vector<float> opacity_before = gaussians_.opacity;
   ++adam_step_;
   const double beta1 = 0.9, beta2 = 0.999, epsilon = 1e-15;
   const double correction1 = 1 - std::pow(beta1, adam_step_);
   const double correction2 = 1 - std::pow(beta2, adam_step_);
-  const double position_lr = options_.position_lr * extent_ * std::pow(0.01, progress);
+  // A later frame's motion is learned at a higher rate, decaying to 1/10 over the frame.
+  const double position_lr = temporal_
+                                 ? options_.position_lr * extent_ *
+                                       options_.frame_position_lr_scale * std::pow(0.1, progress)
+                                 : options_.position_lr * extent_ * std::pow(0.01, progress);
   // Elements whose index within a stride-long block is below 3 move at lr_first, the others at
   // lr_rest (the spherical harmonics: degree 0 at the full rate, the rest at 1/20).
   auto step = [&](std::vector<float>& p, const std::vector<float>& g, std::vector<float>& m,
@@ -228,7 +270,16 @@ void Trainer::AdamStep(double progress) {
   step(gaussians_.log_scale, gradient_.log_scale, m.log_scale, s.log_scale, options_.scale_lr, 0,
        0);
   step(gaussians_.opacity, gradient_.opacity, m.opacity, s.opacity, options_.opacity_lr, 0, 0);
-  step(gaussians_.sh, gradient_.sh, m.sh, s.sh, options_.sh_lr, options_.sh_lr / 20,
+  double moved = 0;
+  int64_t moving = 0;
+  for (size_t i = 0; i < opacity_before.size(); ++i) {
+    if (gradient_.opacity[i] == 0) continue;
+    moved += std::abs(gaussians_.opacity[i] - opacity_before[i]);
+    ++moving;
+  }
+  *opacity_step = moving > 0 ? moved / moving : 0;
+  // A later frame's delta holds no higher harmonics: they stay as the frame before left them.
+  step(gaussians_.sh, gradient_.sh, m.sh, s.sh, options_.sh_lr, temporal_ ? 0 : options_.sh_lr / 20,
        3 * gaussians_.coefficients());
 }
 
@@ -274,6 +325,15 @@ void Trainer::Keep(const std::vector<int64_t>& indices) {
   }
   grad_accum_ = std::move(accum);
   grad_count_ = std::move(count);
+  // A Gaussian continues the frame before's only once, in order; copies are added ones.
+  std::vector<int64_t> origin;
+  int64_t last = -1;
+  for (int64_t i : indices) {
+    const int64_t o = i < static_cast<int64_t>(origin_.size()) ? origin_[i] : -1;
+    origin.push_back(o > last ? o : -1);
+    if (o > last) last = o;
+  }
+  origin_ = std::move(origin);
 }
 
 // The paper's densification: Gaussians whose mean view-space positional gradient exceeds the
@@ -296,7 +356,8 @@ void Trainer::Densify(SplatSummary* summary) {
     }
   }
   // Each clone adds one Gaussian, each split one net: within the cap, the first ones win.
-  const int64_t room = std::max<int64_t>(0, options_.max_gaussians - n);
+  int64_t room = std::max<int64_t>(0, options_.max_gaussians - n);
+  if (add_room_ >= 0) room = std::min(room, add_room_);
   if (static_cast<int64_t>(clones.size() + splits.size()) > room) {
     summary->cap_reached = true;
     const int64_t clone_room = std::min<int64_t>(clones.size(), room);
@@ -330,6 +391,7 @@ void Trainer::Densify(SplatSummary* summary) {
   }
   summary->cloned += clones.size();
   summary->split += splits.size();
+  if (add_room_ >= 0) add_room_ -= static_cast<int64_t>(clones.size() + splits.size());
   std::fill(grad_accum_.begin(), grad_accum_.end(), 0.0f);
   std::fill(grad_count_.begin(), grad_count_.end(), 0);
 }
@@ -400,10 +462,10 @@ Evaluation Trainer::Evaluate(bool write_images) {
     SplatRender render = RenderSplats(gaussians_, view.camera, background, options_.sh_degree);
     cv::Mat predicted, truth;
     cv::min(cv::max(render.color, 0.0), 1.0, predicted);
-    view.image.convertTo(truth, CV_32FC3, 1.0 / 255.0);
+    images_[v]->convertTo(truth, CV_32FC3, 1.0 / 255.0);
     // The subject's silhouette in the held-out view, grown by 3 pixels (as Neural Volumes').
     cv::Mat mask;
-    cv::dilate(view.mask, mask, cv::Mat(), cv::Point(-1, -1), 3);
+    cv::dilate(*masks_[v], mask, cv::Mat(), cv::Point(-1, -1), 3);
     result.subject_seen = result.subject_seen || cv::countNonZero(mask) > 0;
     mse += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
     if (cv::countNonZero(mask) > 0) {
@@ -433,7 +495,7 @@ double Trainer::TrainingPsnr() {
     const SplatView& view = scene_.views[v];
     cv::Mat background, truth, predicted;
     view.background.convertTo(background, CV_32FC3, 1.0 / 255.0);
-    view.image.convertTo(truth, CV_32FC3, 1.0 / 255.0);
+    images_[v]->convertTo(truth, CV_32FC3, 1.0 / 255.0);
     cv::min(
         cv::max(RenderSplats(gaussians_, view.camera, background, options_.sh_degree).color, 0.0),
         1.0, predicted);
@@ -499,77 +561,286 @@ SplatSummary Trainer::Run(Report* report) {
   }
   Seed(&summary);
   BoundParameters();
-  Snapshot snapshot{gaussians_, moments_, 0, 0};
-  const auto start = std::chrono::steady_clock::now();
-  auto elapsed = [&] {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  start_ = std::chrono::steady_clock::now();
+  TrainFrame(0, FrameBudget{options_.iterations, options_.minutes * 60.0, true}, &summary, report);
+  summary.seconds = Elapsed();
+  summary.iterations = total_iterations_;
+  Finish(&summary);
+  SplatFrameSummary first = ScoreFrame(0, summary.seconds, summary.iterations);
+  first.megabytes = summary.megabytes;
+  Record(first, &summary, report);
+  if (summary.divergences <= options_.max_divergences) TrainLaterFrames(&summary, report);
+  if (summary.divergences <= options_.max_divergences) Judge(summary.iterations, &summary);
+  return summary;
+}
+
+// The views show frame `frame` (0: the scene's views, else a later frame's images).
+void Trainer::ShowFrame(int64_t frame) {
+  for (size_t v = 0; v < scene_.views.size(); ++v) {
+    const SplatView& view = scene_.views[v];
+    images_[v] = frame == 0 ? &view.image : &scene_.later_frames[frame - 1].images[v];
+    masks_[v] = frame == 0 ? &view.mask : &scene_.later_frames[frame - 1].masks[v];
+    if (!view.heldout) targets_[v] = ToFloat(*images_[v]);
+  }
+}
+
+void Trainer::ResetMoments() {
+  moments_.first.Resize(0);
+  moments_.second.Resize(0);
+  moments_.first.Resize(gaussians_.size());
+  moments_.second.Resize(gaussians_.size());
+  adam_step_ = 0;
+  grad_accum_.assign(gaussians_.size(), 0);
+  grad_count_.assign(gaussians_.size(), 0);
+}
+
+// Seeds a Gaussian at each of the new frame's surface samples that lies farther than
+// new_surface_spacings x the spacing from every Gaussian (a hash grid of that cell size), within
+// the frame's room. Returns how many were added.
+int64_t Trainer::AddNewSurface(const SplatSeed& seed) {
+  if (seed.points.empty() || add_room_ == 0) return 0;
+  const double cell = options_.new_surface_spacings * std::max(seed.spacing_m, 1e-6);
+  auto key = [&](const Eigen::Vector3f& p, int dx, int dy, int dz) {
+    const int64_t x = static_cast<int64_t>(std::floor(p.x() / cell)) + dx;
+    const int64_t y = static_cast<int64_t>(std::floor(p.y() / cell)) + dy;
+    const int64_t z = static_cast<int64_t>(std::floor(p.z() / cell)) + dz;
+    return (x * 73856093) ^ (y * 19349663) ^ (z * 83492791);
   };
-  const double budget_s = options_.minutes * 60.0;
-  Progress progress("splat train",
-                    options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
+  std::unordered_multimap<int64_t, int64_t> grid;
+  auto position = [&](int64_t i) {
+    return Eigen::Vector3f(gaussians_.position[3 * i], gaussians_.position[3 * i + 1],
+                           gaussians_.position[3 * i + 2]);
+  };
+  for (int64_t i = 0; i < gaussians_.size(); ++i) grid.emplace(key(position(i), 0, 0, 0), i);
+  std::vector<size_t> uncovered;
+  for (size_t s = 0; s < seed.points.size(); ++s) {
+    bool covered = false;
+    for (int d = 0; d < 27 && !covered; ++d) {
+      auto [from, to] = grid.equal_range(key(seed.points[s], d % 3 - 1, d / 3 % 3 - 1, d / 9 - 1));
+      for (auto it = from; it != to && !covered; ++it)
+        covered = (position(it->second) - seed.points[s]).norm() <= cell;
+    }
+    if (!covered) uncovered.push_back(s);
+  }
+  int64_t count = static_cast<int64_t>(uncovered.size());
+  count = std::min(count, std::max<int64_t>(0, options_.max_gaussians - gaussians_.size()));
+  if (add_room_ >= 0) count = std::min(count, add_room_);
+  const int64_t n = gaussians_.size();
+  const float log_scale = static_cast<float>(std::log(std::max(seed.spacing_m, 1e-30)));
+  gaussians_.Resize(n + count);
+  for (int64_t j = 0; j < count; ++j) {
+    // Spread over the uncovered samples when the room is smaller than they are.
+    const size_t s = uncovered[j * uncovered.size() / std::max<int64_t>(count, 1)];
+    SeedGaussian(n + j, seed, s, log_scale);
+  }
+  origin_.resize(n + count, -1);
+  if (add_room_ >= 0) add_room_ -= count;
+  return count;
+}
+
+// The frame's delta of the frame before, coarsened until it fits max_frame_megabytes (and, were
+// the added Gaussians alone over it, without them); the trainer continues from the frame as
+// decoded, so that playback and training never drift apart.
+void Trainer::StoreDelta(int64_t frame, const Gaussians& previous, SplatFrameSummary* stored) {
+  SplatDeltaSteps steps;
+  steps.position_m = static_cast<float>(options_.delta_position_step_m);
+  steps.rotation = static_cast<float>(options_.delta_rotation_step);
+  steps.log_scale = static_cast<float>(options_.delta_scale_step);
+  steps.opacity = static_cast<float>(options_.delta_opacity_step);
+  steps.color = static_cast<float>(options_.delta_color_step / kShC0);
+  const double max_bytes = options_.max_frame_megabytes * 1e6;
+  std::string delta = EncodeSplatDelta(previous, gaussians_, origin_, steps);
+  while (static_cast<double>(delta.size()) > max_bytes) {
+    if (stored->coarsened >= 16) {
+      std::vector<int64_t> survivors;
+      for (int64_t i = 0; i < gaussians_.size(); ++i)
+        if (origin_[i] >= 0) survivors.push_back(i);
+      Keep(survivors);
+    }
+    steps = steps.Doubled();
+    ++stored->coarsened;
+    delta = EncodeSplatDelta(previous, gaussians_, origin_, steps);
+    if (stored->coarsened > 40) Fail("a splat delta does not fit ", max_bytes, " bytes");
+  }
+  gaussians_ = ApplySplatDelta(previous, delta);
+  CreateDirectories(model_dir_ / "deltas");
+  WriteFileAtomic(SplatDeltaFile(model_dir_, frame), delta);
+  stored_.frames = frame + 1;
+  stored_.Save(model_dir_, /*gaussians_file=*/false);
+  const SplatDeltaCounts counts = CountSplatDelta(delta);
+  stored->added = counts.added;
+  stored->removed = counts.removed;
+  stored->changed = counts.changed;
+  stored->megabytes = static_cast<double>(delta.size()) / 1e6;
+}
+
+SplatFrameSummary Trainer::ScoreFrame(int64_t frame, double seconds, int64_t iterations) {
+  const Evaluation eval = Evaluate(true);
+  subject_seen_ = eval.subject_seen;
+  SplatFrameSummary scored;
+  scored.frame = frame;
+  scored.set =
+      frame == 0 ? scene_.plan.value("frame_set", int64_t{0}) : scene_.later_frames[frame - 1].set;
+  scored.iterations = iterations;
+  scored.seconds = seconds;
+  scored.elapsed_s = Elapsed();
+  scored.heldout_psnr_db = eval.psnr_db;
+  scored.heldout_psnr_fg_db = eval.psnr_fg_db;
+  scored.background_psnr_fg_db = eval.background_psnr_fg_db;
+  scored.heldout_ssim = eval.ssim;
+  scored.gaussians = gaussians_.size();
+  return scored;
+}
+
+// The frame's scores become the summary's (the last frame's stand at the end) and the report's.
+void Trainer::Record(const SplatFrameSummary& frame, SplatSummary* summary, Report* report) {
+  summary->frames.push_back(frame);
+  summary->heldout_psnr_db = frame.heldout_psnr_db;
+  summary->heldout_psnr_fg_db = frame.heldout_psnr_fg_db;
+  summary->background_psnr_fg_db = frame.background_psnr_fg_db;
+  summary->heldout_ssim = frame.heldout_ssim;
+  summary->gaussians = gaussians_.size();
+  if (report == nullptr) return;
+  if (!heldout_.empty()) {
+    // The training series ends each frame with its score (the curve runs on across frames).
+    report->AddPoint("heldout_psnr_db", frame.heldout_psnr_db, total_iterations_);
+    report->AddPoint("heldout_psnr_fg_db", frame.heldout_psnr_fg_db, total_iterations_);
+    report->AddPoint("heldout_ssim", frame.heldout_ssim, total_iterations_);
+    report->AddPoint("frame_heldout_psnr_db", frame.heldout_psnr_db, frame.frame);
+    report->AddPoint("frame_heldout_psnr_fg_db", frame.heldout_psnr_fg_db, frame.frame);
+  }
+  report->AddPoint("frame_megabytes", frame.megabytes, frame.frame);
+  report->metrics()["frames"] = nlohmann::json::array();
+  for (const auto& f : summary->frames) report->metrics()["frames"].push_back(f.ToJson());
+  report->Write(model_dir_ / "report.json");
+}
+
+// Frames 1, 2, ...: each from the frame before, new surface seeded, trained for the frame's
+// budget, stored as a delta and scored at once.
+void Trainer::TrainLaterFrames(SplatSummary* summary, Report* report) {
+  temporal_ = true;
+  summary->temporal = !scene_.later_frames.empty();
+  for (size_t f = 0; f < scene_.later_frames.size(); ++f) {
+    const int64_t frame = static_cast<int64_t>(f) + 1;
+    const double frame_start = Elapsed();
+    const int64_t iterations_before = total_iterations_;
+    const int divergences_before = summary->divergences;
+    ShowFrame(frame);
+    const Gaussians previous = gaussians_;
+    origin_.resize(gaussians_.size());
+    std::iota(origin_.begin(), origin_.end(), int64_t{0});
+    add_room_ = options_.max_added_per_frame;
+    const int64_t surface = AddNewSurface(scene_.later_frames[f].seed);
+    BoundParameters();
+    ResetMoments();
+    TrainFrame(frame, FrameBudget{options_.frame_iterations, options_.frame_minutes * 60.0, false},
+               summary, report);
+    if (summary->divergences > options_.max_divergences) return;
+    SplatFrameSummary stored;
+    StoreDelta(frame, previous, &stored);
+    SplatFrameSummary scored =
+        ScoreFrame(frame, Elapsed() - frame_start, total_iterations_ - iterations_before);
+    scored.added = stored.added;
+    scored.added_surface = surface;
+    scored.removed = stored.removed;
+    scored.changed = stored.changed;
+    scored.coarsened = stored.coarsened;
+    scored.megabytes = stored.megabytes;
+    scored.divergences = summary->divergences - divergences_before;
+    Record(scored, summary, report);
+    std::printf(
+        "splat: frame %lld (set %lld): %.1f s, held-out %.2f dB (subject %.2f dB), %lld "
+        "Gaussians, %.3f MB\n",
+        static_cast<long long>(frame), static_cast<long long>(scored.set), scored.seconds,
+        scored.heldout_psnr_db, scored.heldout_psnr_fg_db, static_cast<long long>(scored.gaussians),
+        scored.megabytes);
+  }
+  summary->seconds = Elapsed();
+  summary->iterations = total_iterations_;
+  if (summary->temporal) summary->train_psnr_db = TrainingPsnr();
+  add_room_ = -1;
+}
+
+// Trains the Gaussians on the frame the views show, for the budget; the divergence guard
+// restores the last snapshot and halves the rates.
+void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary* summary,
+                         Report* report) {
+  Snapshot snapshot{gaussians_, moments_, 0, adam_step_, origin_};
+  const double frame_start = Elapsed();
+  auto elapsed = [&] { return Elapsed() - frame_start; };
+  Progress progress(
+      frame == 0 ? "splat train" : Cat("splat frame ", frame),
+      budget.iterations > 0 ? budget.iterations : static_cast<int64_t>(budget.seconds));
   std::vector<double> reference(scene_.views.size(), -1), losses;
   std::vector<int> order;
   size_t cursor = 0;
   double next_eval = 0;
   Evaluation last_eval;
-  auto log_eval = [&](int64_t it, bool write_images) {
-    last_eval = Evaluate(write_images);
+  auto log_eval = [&](int64_t it) {
+    last_eval = Evaluate(false);
     subject_seen_ = last_eval.subject_seen;
     if (report == nullptr || heldout_.empty()) return;
-    report->AddPoint("heldout_psnr_db", last_eval.psnr_db, it);
-    report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, it);
-    report->AddPoint("heldout_ssim", last_eval.ssim, it);
-    report->AddPoint("gaussians", static_cast<double>(gaussians_.size()), it);
+    report->AddPoint("heldout_psnr_db", last_eval.psnr_db, total_iterations_ + it);
+    report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, total_iterations_ + it);
+    report->AddPoint("heldout_ssim", last_eval.ssim, total_iterations_ + it);
+    report->AddPoint("gaussians", static_cast<double>(gaussians_.size()), total_iterations_ + it);
     report->Write(model_dir_ / "report.json");
   };
   int64_t iteration = 0;
   while (true) {
     const double t = elapsed();
-    if (options_.iterations > 0 && iteration >= options_.iterations) break;
-    if (options_.minutes > 0 && t >= budget_s) break;
-    const bool eval_due = options_.eval_every_iterations > 0
-                              ? iteration % options_.eval_every_iterations == 0
-                              : t >= next_eval;
+    if (budget.iterations > 0 && iteration >= budget.iterations) break;
+    if (budget.seconds > 0 && t >= budget.seconds) break;
+    // Later frames are scored once, when trained.
+    const bool eval_due = budget.first && (options_.eval_every_iterations > 0
+                                               ? iteration % options_.eval_every_iterations == 0
+                                               : t >= next_eval);
     if (eval_due) {
-      log_eval(iteration, false);
+      log_eval(iteration);
       next_eval = elapsed() + options_.eval_every_s;
     }
     double fraction = 0;
-    if (options_.iterations > 0) fraction = static_cast<double>(iteration) / options_.iterations;
-    if (options_.minutes > 0) fraction = std::max(fraction, t / budget_s);
+    if (budget.iterations > 0) fraction = static_cast<double>(iteration) / budget.iterations;
+    if (budget.seconds > 0) fraction = std::max(fraction, t / budget.seconds);
     if (cursor == order.size()) {
       order = training_;
       std::shuffle(order.begin(), order.end(), rng_);
       cursor = 0;
     }
     const int v = order[cursor++];
-    const double loss = TrainStep(iteration, v);
+    const double loss = TrainStep(budget.first ? ActiveDegree(iteration) : options_.sh_degree, v);
     bool diverged = !std::isfinite(loss) ||
                     (reference[v] > 0 && loss > options_.divergence_factor * reference[v]);
+    double opacity_step = 0;
     if (!diverged) {
-      AdamStep(std::min(fraction, 1.0));
+      AdamStep(std::min(fraction, 1.0), &opacity_step);
       BoundParameters();
-      diverged = !Finite();
+      // A step that flips opacities (a rate far too high) diverges even while the loss, noisy
+      // from the start, has not yet doubled.
+      diverged = !Finite() || opacity_step > options_.max_opacity_step;
     }
     if (diverged) {
-      ++summary.divergences;
+      ++summary->divergences;
       gaussians_ = snapshot.gaussians;
       moments_ = snapshot.moments;
       adam_step_ = snapshot.adam_step;
+      origin_ = snapshot.origin;
       grad_accum_.assign(gaussians_.size(), 0);
       grad_count_.assign(gaussians_.size(), 0);
       lr_scale_ *= 0.5;
       std::fprintf(stderr,
-                   "splat: iteration %lld: loss %g (view %s, %g before); restored iteration %lld, "
-                   "learning rates x%.3g\n",
-                   static_cast<long long>(iteration), loss, scene_.views[v].name.c_str(),
-                   reference[v], static_cast<long long>(snapshot.iteration), lr_scale_);
-      if (report != nullptr) report->AddPoint("divergence_lr_scale", lr_scale_, iteration);
+                   "splat: frame %lld iteration %lld: loss %g (view %s, %g before), opacity "
+                   "step %g; restored iteration %lld, learning rates x%.3g\n",
+                   static_cast<long long>(frame), static_cast<long long>(iteration), loss,
+                   scene_.views[v].name.c_str(), reference[v], opacity_step,
+                   static_cast<long long>(snapshot.iteration), lr_scale_);
+      if (report != nullptr)
+        report->AddPoint("divergence_lr_scale", lr_scale_, total_iterations_ + iteration);
       iteration = snapshot.iteration;
       std::fill(reference.begin(), reference.end(), -1.0);
-      if (summary.divergences > options_.max_divergences) {
-        summary.End(Termination::kFailure,
-                    Cat("training diverged ", summary.divergences, " times; stopped"));
+      if (summary->divergences > options_.max_divergences) {
+        summary->End(Termination::kFailure,
+                     Cat("training diverged ", summary->divergences, " times; stopped"));
         break;
       }
       continue;
@@ -580,46 +851,41 @@ SplatSummary Trainer::Run(Report* report) {
     losses.push_back(loss);
     ++iteration;
     bool changed = false;
-    if (iteration >= options_.densify_from && iteration <= options_.densify_until &&
-        iteration % options_.densify_every == 0) {
-      Densify(&summary);
-      Prune(reset_done_, &summary);
+    const bool densify = budget.first ? iteration >= options_.densify_from &&
+                                            iteration <= options_.densify_until &&
+                                            iteration % options_.densify_every == 0
+                                      : iteration % options_.frame_densify_every == 0;
+    if (densify) {
+      Densify(summary);
+      Prune(reset_done_, summary);
       changed = true;
     }
-    if (options_.opacity_reset_every > 0 && iteration % options_.opacity_reset_every == 0 &&
-        iteration <= options_.densify_until) {
+    if (budget.first && options_.opacity_reset_every > 0 &&
+        iteration % options_.opacity_reset_every == 0 && iteration <= options_.densify_until) {
       ResetOpacity();
       changed = true;
     }
     // A changed model renders differently: each view's reference starts again.
     if (changed) std::fill(reference.begin(), reference.end(), -1.0);
-    if (iteration % options_.snapshot_every == 0) {
-      snapshot = Snapshot{gaussians_, moments_, iteration, adam_step_};
-    }
+    if (iteration % options_.snapshot_every == 0)
+      snapshot = Snapshot{gaussians_, moments_, iteration, adam_step_, origin_};
     if (report != nullptr && iteration % 10 == 0) {
-      report->AddPoint("loss", loss, iteration);
-      report->AddPoint("gaussians", static_cast<double>(gaussians_.size()), iteration);
+      report->AddPoint("loss", loss, total_iterations_ + iteration);
+      report->AddPoint("gaussians", static_cast<double>(gaussians_.size()),
+                       total_iterations_ + iteration);
     }
-    progress.Update(options_.iterations > 0 ? iteration : static_cast<int64_t>(t),
+    progress.Update(budget.iterations > 0 ? iteration : static_cast<int64_t>(t),
                     Cat("it ", iteration, " loss ", loss, " held-out ", last_eval.psnr_db, " dB, ",
                         gaussians_.size(), " Gaussians"));
   }
   progress.Finish();
-  summary.seconds = elapsed();
-  summary.iterations = iteration;
-  log_eval(iteration, true);
+  total_iterations_ += iteration;
   const size_t window = std::max<size_t>(1, std::min<size_t>(10, losses.size() / 4));
   if (!losses.empty()) {
-    summary.first_loss = std::accumulate(losses.begin(), losses.begin() + window, 0.0) / window;
-    summary.last_loss = std::accumulate(losses.end() - window, losses.end(), 0.0) / window;
+    if (frame == 0)
+      summary->first_loss = std::accumulate(losses.begin(), losses.begin() + window, 0.0) / window;
+    summary->last_loss = std::accumulate(losses.end() - window, losses.end(), 0.0) / window;
   }
-  summary.heldout_psnr_db = last_eval.psnr_db;
-  summary.heldout_psnr_fg_db = last_eval.psnr_fg_db;
-  summary.background_psnr_fg_db = last_eval.background_psnr_fg_db;
-  summary.heldout_ssim = last_eval.ssim;
-  Finish(&summary);
-  if (summary.divergences <= options_.max_divergences) Judge(iteration, &summary);
-  return summary;
 }
 
 // The model on disk, its size, the training views' PSNR and the playback speed.
@@ -627,12 +893,12 @@ void Trainer::Finish(SplatSummary* summary) {
   summary->gaussians = gaussians_.size();
   summary->floored_scales = floored_;
   summary->train_psnr_db = TrainingPsnr();
-  SplatModel model;
-  model.gaussians = gaussians_;
-  for (const auto& view : scene_.views) model.cameras.push_back(view.camera);
-  model.box = scene_.box;
-  model.plan = summary->plan;
-  model.Save(model_dir_);
+  stored_.gaussians = gaussians_;
+  stored_.cameras.clear();
+  for (const auto& view : scene_.views) stored_.cameras.push_back(view.camera);
+  stored_.box = scene_.box;
+  stored_.plan = summary->plan;
+  stored_.Save(model_dir_);
   summary->megabytes = static_cast<double>(fs::file_size(model_dir_ / "gaussians.bin")) / 1e6;
   const SplatView& view = scene_.views[heldout_.empty() ? training_.front() : heldout_.front()];
   const auto start = std::chrono::steady_clock::now();
@@ -669,7 +935,16 @@ SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
                               {"pruned_outside", summary.pruned_outside},
                               {"floored_scales", summary.floored_scales},
                               {"megabytes", summary.megabytes},
-                              {"render_fps", summary.render_fps}});
+                              {"render_fps", summary.render_fps},
+                              {"temporal", summary.temporal}});
+    nlohmann::json frames = nlohmann::json::array();
+    double largest_mb = 0;
+    for (const auto& frame : summary.frames) {
+      frames.push_back(frame.ToJson());
+      if (frame.frame > 0) largest_mb = std::max(largest_mb, frame.megabytes);
+    }
+    report->metrics()["frames"] = frames;
+    if (summary.temporal) report->metrics()["largest_delta_megabytes"] = largest_mb;
     report->SetSummary(summary);
     report->Write(model_dir / "report.json");
   }

@@ -236,5 +236,37 @@ TEST(Cli, ReportShowsOutcomeMetricsAndTheErrorAgainstTime) {
   ExpectOneLineError(RunCli("report " + (dir / "empty").string()), "does not exist");
 }
 
+// Several reports given at once share one plot: the series they all have, one line per run
+// (two methods' held-out PSNR against time, say), each in its own colour.
+TEST(Cli, ReportsGivenTogetherShareOnePlot) {
+  TempDir dir;
+  for (const std::string method : {"nvol", "splat"}) {
+    Report report("train " + method);
+    for (int i = 0; i < 10; ++i)
+      report.AddPoint("heldout_psnr_db", 20 + i * (method == "splat" ? 1.0 : 0.5), i);
+    report.AddPoint(method + "_only", 1, 0);
+    report.SetSummary({Termination::kNoConvergence, "ran out of time"});
+    report.Write(dir / method / "report.json");
+  }
+  auto shown =
+      RunCli("report " + (dir / "nvol/report.json").string() + " " +
+             (dir / "splat/report.json").string() + " --out " + (dir / "both.png").string());
+  ASSERT_EQ(shown.exit_code, 0) << shown.output;
+  EXPECT_NE(shown.output.find("plot: " + (dir / "both.png").string()), std::string::npos)
+      << shown.output;
+  EXPECT_FALSE(std::filesystem::exists(dir / "nvol.png"));
+  const cv::Mat plot = cv::imread((dir / "both.png").string());
+  ASSERT_FALSE(plot.empty());
+  // One panel (heldout_psnr_db; the series only one run has are left out) below a legend of two.
+  EXPECT_LT(plot.rows, 2 * 260);
+  auto pixels_of = [&](cv::Scalar bgr) {
+    cv::Mat match;
+    cv::inRange(plot, bgr, bgr, match);
+    return cv::countNonZero(match);
+  };
+  EXPECT_GT(pixels_of({180, 90, 20}), 100);   // the first run's line
+  EXPECT_GT(pixels_of({30, 120, 230}), 100);  // the second's
+}
+
 }  // namespace
 }  // namespace holocap

@@ -8,6 +8,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 
+#include "core/error.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
@@ -54,6 +55,12 @@ TEST_F(SplatCli, TrainsFromItsOwnReconstructionAndRenders) {
   EXPECT_GT(subject, background + 5);
   EXPECT_GT(report["metrics"]["megabytes"].get<double>(), 0);
   EXPECT_TRUE(fs::exists(model / "seed_recon" / "000000.ply"));
+  // One frame set: nothing temporal, and the plan says so.
+  EXPECT_TRUE(report["plan"]["left_out"].contains("temporal")) << report["plan"].dump();
+  EXPECT_EQ(report["plan"]["scene"], "static");
+  EXPECT_FALSE(report["metrics"]["temporal"].get<bool>());
+  EXPECT_EQ(report["metrics"]["frames"].size(), 1u);
+  EXPECT_FALSE(fs::exists(model / "deltas"));
 
   const CommandResult rendered =
       RunCli("render " + (root_ / "dino").string() + " --model " + model.string() +
@@ -75,6 +82,44 @@ TEST_F(SplatCli, EmptyReconstructionIsDegenerate) {
             std::string::npos)
       << result.output;
   EXPECT_EQ(ReadJson(root_ / "degenerate" / "report.json")["summary"]["termination"], "DEGENERATE");
+}
+
+// A simulated dynamic take: frame 0 trained, each later frame a delta within its bound, scored
+// at once, and `holocap render` plays the frames back from frame 0 and the deltas.
+TEST_F(SplatCli, DynamicTakeTrainsFrameToFrameAndPlays) {
+  const fs::path take = root_ / "walk";
+  const CommandResult simulated = RunCli(
+      "sim --rig studio8 --frames 4 --clean-plate 1 --size 128 "
+      "--no-noise --seed 2 --out " +
+      take.string());
+  ASSERT_EQ(simulated.exit_code, 0) << simulated.output;
+  const fs::path model = root_ / "walk_splat";
+  const CommandResult trained =
+      RunCli("train splat " + take.string() + " --out " + model.string() +
+             " --iterations 40 --frame-iterations 10 --width 64 --seed-points 2000 --threads 2");
+  ASSERT_EQ(trained.exit_code, 0) << trained.output;
+  const nlohmann::json report = ReadJson(model / "report.json");
+  EXPECT_EQ(report["plan"]["scene"], "dynamic");
+  EXPECT_TRUE(report["metrics"]["temporal"].get<bool>());
+  const nlohmann::json& frames = report["metrics"]["frames"];
+  ASSERT_EQ(frames.size(), 3u);  // the clean plate is not a frame of the subject
+  for (size_t f = 1; f < frames.size(); ++f) {
+    EXPECT_EQ(frames[f]["iterations"], 10);
+    EXPECT_GT(frames[f]["megabytes"].get<double>(), 0);
+    EXPECT_LE(frames[f]["megabytes"].get<double>(), 1.0);
+    EXPECT_GT(frames[f]["heldout_psnr_fg_db"].get<double>(),
+              frames[f]["background_psnr_fg_db"].get<double>());
+    EXPECT_TRUE(fs::exists(model / "deltas" / Cat("00000", f, ".bin")));
+  }
+  EXPECT_EQ(ReadJson(model / "model.json")["frames"], 3);
+
+  const CommandResult rendered =
+      RunCli("render " + take.string() + " --model " + model.string() +
+             " --size 64 --views 3 --no-exr --out " + (root_ / "walk_frames").string());
+  ASSERT_EQ(rendered.exit_code, 0) << rendered.output;
+  const nlohmann::json played = ReadJson(root_ / "walk_frames" / "report.json");
+  EXPECT_EQ(played["plan"]["model_frames"], 3);
+  EXPECT_TRUE(fs::exists(root_ / "walk_frames" / "000002.png"));
 }
 
 }  // namespace
