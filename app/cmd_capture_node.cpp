@@ -90,7 +90,7 @@ std::shared_ptr<NodeCaptureOptions> AddNodeCaptureFlags(CLI::App* capture) {
       ->capture_default_str()
       ->group(group);
   capture
-      ->add_option("--merge-tolerance-us", options->merge.tolerance_ns,
+      ->add_option("--merge-tolerance-ns", options->merge.tolerance_ns,
                    "Largest spread of a merged set across nodes, ns (0: 0.4 frame periods)")
       ->group(group);
   return options;
@@ -108,7 +108,7 @@ void CaptureOnRigNodes(const RigDescription& rig, const std::string& rig_file,
                    {{"capture: reply_timeout_s", "--node-timeout"},
                     {"capture: start_lead_s", "--start-lead"},
                     {"capture: max_clock_offset_us", "--max-clock-offset-us"},
-                    {"merge: tolerance_ns", "--merge-tolerance-us"}});
+                    {"merge: tolerance_ns", "--merge-tolerance-ns"}});
   Report report("capture");
   report.options() = {{"rig", rig_file},
                       {"out", out},

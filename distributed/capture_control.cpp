@@ -368,9 +368,22 @@ class Coordinator {
 
   void MergeParts() {
     std::vector<std::filesystem::path> parts;
+    std::string elsewhere;
     for (const Node& node : nodes_) {
-      if (!node.record.part.empty() && std::filesystem::exists(node.record.part / "take.json"))
+      if (node.record.part.empty()) continue;
+      if (std::filesystem::exists(node.record.part / "take.json")) {
         parts.push_back(node.record.part);
+      } else if (node.record.state == "recorded") {
+        // On the node's own disk (capture-node --root): a merge here would lack its sensors.
+        elsewhere += Cat(elsewhere.empty() ? "" : ", ", node.record.name, " (",
+                         node.record.part.string(), ")");
+      }
+    }
+    if (!elsewhere.empty()) {
+      summary_.merge.message = Cat("the parts of ", elsewhere,
+                                   " are not visible here: copy them beside the others and run "
+                                   "holocap merge");
+      return;
     }
     if (parts.empty()) {
       summary_.merge.message = "no node recorded a part";
