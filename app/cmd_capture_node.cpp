@@ -118,7 +118,12 @@ void CaptureOnRigNodes(const RigDescription& rig, const std::string& rig_file,
                       {"node_timeout_s", options.reply_timeout_s},
                       {"start_lead_s", options.start_lead_s},
                       {"max_clock_offset_us", options.max_clock_offset_us},
-                      {"recorder", nlohmann::json::object()}};
+                      {"codec", recorder.codec},
+                      {"writers", recorder.writer_threads},
+                      {"queue_frames", recorder.queue_frames},
+                      {"trigger_priority", recorder.trigger_priority},
+                      {"lost_after_periods", recorder.lost_after_periods},
+                      {"durable", recorder.take.durable}};
   report.plan() = {{"sync", ToString(rig.sync)},
                    {"fps", rig.fps},
                    {"sensors", rig.sensors.size()},
