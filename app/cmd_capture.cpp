@@ -41,6 +41,7 @@ static void AddCaptureCommand(CLI::App& app) {
     RecorderOptions options;
   };
   auto args = std::make_shared<Args>();
+  auto nodes = AddNodeCaptureFlags(command);
   command->add_option("--rig", args->rig, "Rig file (YAML or JSON) naming sensors by driver URI")
       ->required();
   command->add_option("--out", args->out, "The take directory to create")->required();
@@ -71,7 +72,7 @@ static void AddCaptureCommand(CLI::App& app) {
   command->add_flag("--durable", args->options.take.durable, "fsync every frame and index line");
   command->add_flag("--overwrite", args->options.take.overwrite,
                     "Replace an existing take directory");
-  command->callback([args] {
+  command->callback([args, nodes] {
     if (args->options.seconds <= 0 && args->options.frames <= 0)
       Fail("capture: give --seconds S or --frames N");
     CheckNamingFlags([&] { args->options.Check(); },
@@ -83,6 +84,8 @@ static void AddCaptureCommand(CLI::App& app) {
     RigDescription rig = RigDescription::Load(args->rig);
     args->options.take.command = "capture";
     args->options.take.inputs = {args->rig};
+    if (!rig.hosts.empty())
+      return CaptureOnRigNodes(rig, args->rig, args->out, args->options, *nodes);
     Recorder recorder(rig, args->out, args->options);
     Report report("capture");
     report.options() = {{"rig", args->rig},

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <functional>
 #include <iosfwd>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -77,6 +78,16 @@ std::function<void(const WebExportRequest&)>& WebExportCommand();
 
 // Every driver compiled into this build, registered in DriverRegistry::Global().
 void RegisterBuiltinDrivers();
+
+// `holocap capture` on a rig whose sensors name hosts (app/cmd_capture_node.cpp): the flags
+// it adds to the capture command, and the run that coordinates the hosts' capture nodes.
+struct NodeCaptureOptions;
+struct RecorderOptions;
+struct RigDescription;
+std::shared_ptr<NodeCaptureOptions> AddNodeCaptureFlags(CLI::App* capture);
+void CaptureOnRigNodes(const RigDescription& rig, const std::string& rig_file,
+                       const std::string& out, const RecorderOptions& recorder,
+                       NodeCaptureOptions& options);
 
 // What `holocap info` prints about a take.
 void PrintTakeInfo(const Take& take, std::ostream& out);

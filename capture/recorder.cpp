@@ -41,6 +41,8 @@ void RecorderOptions::Check() const {
   if (sync_tolerance_ns < 0) Fail("capture: sync_tolerance_ns must be >= 0");
   if (trigger_priority < 0 || trigger_priority > 99)
     Fail("capture: trigger_priority must be 0..99");
+  if (first_trigger_realtime_ns < 0) Fail("capture: first_trigger_realtime_ns must be >= 0");
+  if (!metadata.is_object()) Fail("capture: metadata must be an object");
 }
 
 nlohmann::json SensorLoss::ToJson() const {
@@ -463,6 +465,9 @@ void Recorder::Session::StartSensorsAndOpenTake() {
                                  {"frames", options_.frames},
                                  {"seconds", options_.seconds},
                                  {"sync_tolerance_ns", options_.sync_tolerance_ns}}}};
+    for (const auto& [key, value] : options_.metadata.items()) {
+      if (key != "capture") metadata[key] = value;
+    }
     writer_ = std::make_unique<TakeWriter>(recorder_.out_, rig, streams_, metadata, options_.take);
   } catch (const Error&) {
     for (auto& sensor : sensors_) sensor->Stop();
@@ -473,18 +478,21 @@ void Recorder::Session::StartSensorsAndOpenTake() {
 Clock::time_point Recorder::Session::FirstTriggerTick() const {
   const auto after_warmup = start_ + std::chrono::duration_cast<Clock::duration>(
                                          std::chrono::duration<double>(options_.warmup_s));
-  if (options_.trigger_phase_s < 0) return after_warmup;
+  if (options_.trigger_phase_s < 0 && options_.first_trigger_realtime_ns <= 0) return after_warmup;
   // The first grid instant after the warm-up, carried over to the steady clock.
   const int64_t period_ns = static_cast<int64_t>(std::llround(period_s_ * 1e9));
   const int64_t phase_ns =
-      static_cast<int64_t>(std::llround(options_.trigger_phase_s * 1e9)) % period_ns;
+      options_.trigger_phase_s < 0
+          ? options_.first_trigger_realtime_ns % period_ns
+          : static_cast<int64_t>(std::llround(options_.trigger_phase_s * 1e9)) % period_ns;
   const int64_t realtime_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
                                   std::chrono::system_clock::now().time_since_epoch())
                                   .count();
   const int64_t steady_now_ns =
       std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now() - start_).count();
   const int64_t earliest =
-      realtime_ns - steady_now_ns + static_cast<int64_t>(options_.warmup_s * 1e9);
+      std::max(realtime_ns - steady_now_ns + static_cast<int64_t>(options_.warmup_s * 1e9),
+               options_.first_trigger_realtime_ns);
   const int64_t grid = (earliest - phase_ns + period_ns - 1) / period_ns * period_ns + phase_ns;
   return start_ + std::chrono::nanoseconds(grid - (realtime_ns - steady_now_ns));
 }

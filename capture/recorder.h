@@ -54,6 +54,12 @@ struct RecorderOptions {
   // cameras that sample triggers on a clock grid of their own see them mid-interval.
   // < 0: the first trigger fires warmup_s after start.
   double trigger_phase_s = -1;
+  // > 0: the first software trigger fires at this CLOCK_REALTIME instant or, where the warm-up
+  // ends later, at the first instant of the trigger_phase_s grid after it. Recorders on hosts
+  // that share a clock and are given the same instant fire the same triggers.
+  int64_t first_trigger_realtime_ns = 0;
+  // Kept under the take's metadata beside "capture" (e.g. the capture host and its clock).
+  nlohmann::json metadata = nlohmann::json::object();
   double drain_s = 1.0;  // after the last trigger, how long late frames may still arrive
   // A sensor silent for this many frame periods while frames are due is declared lost (see
   // above). Before its first frame a sensor is silent from the first trigger (software) or the

@@ -153,6 +153,13 @@ RigDescription RigDescription::FromJson(const nlohmann::json& json, const std::s
   }
   rig.fps = Field<double>(json, "fps", rig.fps, origin);
   if (json.contains("options") && json["options"].is_object()) rig.options = json["options"];
+  if (json.contains("hosts")) {
+    if (!json["hosts"].is_object()) Fail(origin, ": 'hosts' must map host names to addresses");
+    for (const auto& [host, address] : json["hosts"].items()) {
+      if (!address.is_string()) Fail(origin, ": hosts: '", host, "' must be an address string");
+      rig.hosts[host] = address.get<std::string>();
+    }
+  }
   if (!json.contains("sensors") || !json["sensors"].is_array()) {
     Fail(origin, ": 'sensors' must be a list of sensors");
   }
@@ -173,6 +180,7 @@ RigDescription RigDescription::FromJson(const nlohmann::json& json, const std::s
     spec.exposure_us = Field<double>(item, "exposure_us", 0.0, where);
     spec.gain_db = Field<double>(item, "gain_db", 0.0, where);
     spec.paired_with = Field<std::string>(item, "paired_with", "", where);
+    spec.host = Field<std::string>(item, "host", "", where);
     if (item.contains("options")) {
       if (!item["options"].is_object()) Fail(where, ": 'options' must be a mapping");
       spec.options = item["options"];
@@ -219,6 +227,7 @@ nlohmann::json RigDescription::ToJson() const {
   json["sync"] = ToString(sync);
   json["fps"] = fps;
   if (!options.empty()) json["options"] = options;
+  if (!hosts.empty()) json["hosts"] = hosts;
   json["sensors"] = nlohmann::json::array();
   for (const auto& spec : sensors) {
     nlohmann::json item;
@@ -229,10 +238,19 @@ nlohmann::json RigDescription::ToJson() const {
     if (spec.gain_db != 0) item["gain_db"] = spec.gain_db;
     if (!spec.paired_with.empty()) item["paired_with"] = spec.paired_with;
     if (!spec.options.empty()) item["options"] = spec.options;
+    if (!spec.host.empty()) item["host"] = spec.host;
     json["sensors"].push_back(item);
   }
   return json;
 }
+
+namespace {
+std::string HostList(const std::map<std::string, std::string>& hosts) {
+  std::string list;
+  for (const auto& [host, address] : hosts) list += (list.empty() ? "" : ", ") + host;
+  return list.empty() ? "none" : list;
+}
+}  // namespace
 
 void RigDescription::Check() const {
   if (!(fps > 0) || fps > 10000) Fail("fps must be in (0, 10000], got ", fps);
@@ -251,6 +269,15 @@ void RigDescription::Check() const {
       Fail("sensor '", spec.name, "' is paired with '", spec.paired_with,
            "', which is not in the rig");
     }
+    if (!hosts.empty() && spec.host.empty())
+      Fail("sensor '", spec.name, "' names no host (the rig's hosts: ", HostList(hosts), ")");
+    if (!spec.host.empty() && !hosts.count(spec.host))
+      Fail("sensor '", spec.name, "': host '", spec.host, "' is not in the rig's hosts (",
+           HostList(hosts), ")");
+  }
+  for (const auto& [host, address] : hosts) {
+    if (host.empty() || host.find_first_of("/\\ \t#") != std::string::npos)
+      Fail("host name '", host, "' may not be empty or contain '/', '\\', '#' or spaces");
   }
 }
 

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <filesystem>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -25,6 +26,8 @@ struct SensorSpec {
   double gain_db = 0;
   std::string paired_with;  // a depth sensor's colour sensor (depth_from_color)
   nlohmann::json options = nlohmann::json::object();  // driver-specific settings
+  // The capture host that records it (a key of RigDescription::hosts); "": this machine.
+  std::string host;
 
   // The part of the URI before the first ':' ("sim", "aravis", ...).
   std::string scheme() const;
@@ -36,6 +39,10 @@ struct RigDescription {
   double fps = 30;  // frame sets per second asked of the sensors
   std::vector<SensorSpec> sensors;
   nlohmann::json options = nlohmann::json::object();  // rig-wide driver settings (e.g. sim)
+  // Capture hosts by name: the control address of each `holocap capture-node`
+  // ("tcp://10.0.0.2:5601"). Empty: one machine records every sensor. Otherwise every sensor
+  // names its host.
+  std::map<std::string, std::string> hosts;
 
   // Throws Error (file, field and reason) for a malformed or inconsistent description.
   static RigDescription Load(const std::filesystem::path& file);

@@ -23,6 +23,7 @@ packages=(
   libcamera-dev libaravis-dev aravis-tools libusb-1.0-0-dev libv4l-dev
   libtorch-dev
   nlohmann-json3-dev libcli11-dev libyaml-cpp-dev
+  libzmq3-dev cppzmq-dev
   ffmpeg libcpp-httplib-dev zlib1g-dev libwebp-dev
 )
 if [ "$want_tests" = 1 ]; then
