@@ -205,9 +205,9 @@ void MergeRun(const std::filesystem::path& out) {
   const OutputDirectory claimed = OutputDirectory::Claim(out, {run.command, false, {}, true});
   Report report(run.command);
   const ReconstructionSummary summary = MergeReconstruction(out, &report);
+  FailUnlessUsable(summary, "the merged run");
   std::printf("merged %zu frame record(s) into %s\n", run.complete.size(),
               (out / "report.json").c_str());
-  FailUnlessUsable(summary, "the merged run");
 }
 
 void AddReportCommand(CLI::App& app) {
