@@ -26,7 +26,7 @@ packages=(
   ffmpeg
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2)
+  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 slurm-wlm munge)
 fi
 
 missing=()
