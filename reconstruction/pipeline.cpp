@@ -1281,7 +1281,19 @@ class TakeReconstructor {
     options.erase("tasks");
     nlohmann::json plan = summary_.plan;
     plan.erase("parallel");
-    records_.emplace(out_, "reconstruct", nlohmann::json{{"options", options}, {"plan", plan}},
+    // The take's recording and camera models too: a re-recorded or recalibrated take is
+    // another run even where its plan reads the same.
+    std::string recording = ReadFileToString(take_.dir() / "take.json");
+    std::error_code ec;
+    if (fs::exists(take_.dir() / "index.jsonl", ec))
+      recording += ReadFileToString(take_.dir() / "index.jsonl");
+    std::string cameras;
+    for (const auto& [name, camera] : take_plan_.cameras) cameras += name + camera.ToString();
+    records_.emplace(out_, "reconstruct",
+                     nlohmann::json{{"options", options},
+                                    {"plan", plan},
+                                    {"recording", HashBytes(recording)},
+                                    {"cameras", HashBytes(cameras)}},
                      take_plan_.sets);
     options["take"] = take_.dir().string();
     options["out"] = out_.string();
