@@ -30,6 +30,8 @@ struct ReconstructArgs {
   bool no_atlas = false;
   bool no_sweep = false;
   bool no_completion = false;
+  std::string shard;
+  bool redo = false;
 };
 
 void PrintSummary(const ReconstructionSummary& summary, const Report& report) {
@@ -85,6 +87,12 @@ void AddReconstructCommand(CLI::App& app) {
   command->add_option("--simplify", args->simplify,
                       "Vertex-clustering cell for simplification (e.g. 8mm)");
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
+  command->add_option("--shard", args->shard,
+                      "Do task K of N of the run (K from 0): the K-th of N contiguous blocks of "
+                      "its frame sets; report.json is merged when every frame is done "
+                      "(holocap report OUT --merge)");
+  command->add_flag("--redo", args->redo,
+                    "Reconstruct frame sets whose outputs are complete from an earlier run too");
   command->add_flag("--no-glb", args->no_glb, "Write PLY only");
   command->add_flag("--no-atlas", args->no_atlas, "Vertex colours only, no texture atlas");
   command->add_flag("--no-sweep", args->no_sweep,
@@ -107,13 +115,15 @@ void AddReconstructCommand(CLI::App& app) {
     options.texture.atlas = !args->no_atlas;
     if (args->no_sweep) options.sweep_voxels_m.clear();
     options.tsdf_hull_completion = !args->no_completion;
+    if (!args->shard.empty()) options.tasks.shard = Shard::Parse(args->shard);
+    options.tasks.redo = args->redo;
     const OutputDirectory claimed =
         OutputDirectory::Claim(args->out.empty() ? std::filesystem::path(args->take) / "recon"
                                                  : std::filesystem::path(args->out),
-                               {"reconstruct", args->overwrite, {}});
+                               {"reconstruct", args->overwrite, {}, !options.tasks.shard.whole()});
     const std::filesystem::path& out = claimed.path();
     Report report("reconstruct");
-    report.SetFailureDestination(out / "report.json");
+    report.SetFailureDestination(TaskReportPath(out, options.tasks.shard));
     ReconstructionSummary summary = ReconstructTake(args->take, selection, out, options, &report);
     PrintSummary(summary, report);
     std::printf("meshes and report: %s\n", out.c_str());

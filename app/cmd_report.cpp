@@ -15,7 +15,9 @@
 #include "app/commands.h"
 #include "app/options.h"
 #include "core/error.h"
+#include "core/frame_tasks.h"
 #include "core/fs.h"
+#include "reconstruction/reconstruction.h"
 
 namespace holocap {
 namespace {
@@ -40,6 +42,7 @@ struct ReportArgs {
   int rows = 8;
   bool log_y = false;
   bool overwrite = false;
+  bool merge = false;
 };
 
 nlohmann::json LoadReport(const std::filesystem::path& file) {
@@ -239,6 +242,21 @@ std::vector<std::filesystem::path> ReportsUnder(const std::filesystem::path& pat
   return files;
 }
 
+// Merges a per-frame run's records into its report.json (beside the run's tasks, which may
+// still be writing: the take's lock is shared with them). An incomplete run gets a FAILURE
+// report naming its incomplete frame sets, and the command ends with that state.
+void MergeRun(const std::filesystem::path& out) {
+  const RunState run = ReadRunState(out);
+  if (run.command != "reconstruct")
+    Fail("'", out.string(), "' holds a run of ", run.command, ", which has no merge");
+  const OutputDirectory claimed = OutputDirectory::Claim(out, {run.command, false, {}, true});
+  Report report(run.command);
+  const ReconstructionSummary summary = MergeReconstruction(out, &report);
+  FailUnlessUsable(summary, "the merged run");
+  std::printf("merged %zu frame record(s) into %s\n", run.complete.size(),
+              (out / "report.json").c_str());
+}
+
 void AddReportCommand(CLI::App& app) {
   auto* command = app.add_subcommand("report",
                                      "Show a run's report.json (or every one under a directory): "
@@ -261,7 +279,13 @@ void AddReportCommand(CLI::App& app) {
       ->check(CLI::Range(2, 1000));
   command->add_flag("--log", args->log_y, "Log scale for every positive series");
   AddOverwriteFlag(command, &args->overwrite);
+  command->add_flag("--merge", args->merge,
+                    "PATH is the output of a per-frame run (reconstruct, with or without "
+                    "--shard): merge its frames' reports into its report.json first");
   command->callback([args] {
+    if (args->merge) {
+      for (const std::string& path : args->paths) MergeRun(path);
+    }
     std::vector<std::filesystem::path> files;
     for (const std::string& path : args->paths) {
       const auto under = ReportsUnder(path);

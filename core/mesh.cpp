@@ -81,7 +81,7 @@ std::vector<Eigen::Vector3d> Mesh::SampleSurface(size_t count, uint64_t seed) co
   return points;
 }
 
-void WritePly(const std::filesystem::path& file, const Mesh& mesh) {
+void WritePly(const std::filesystem::path& file, const Mesh& mesh, bool durable) {
   const bool has_normals = !mesh.normals.empty() && mesh.normals.size() == mesh.vertices.size();
   const bool has_colors = !mesh.colors.empty() && mesh.colors.size() == mesh.vertices.size();
   std::ostringstream header;
@@ -106,7 +106,7 @@ void WritePly(const std::filesystem::path& file, const Mesh& mesh) {
     put(&three, 1);
     put(face.data(), 12);
   }
-  WriteFileAtomic(file, bytes);
+  WriteFileAtomic(file, bytes, durable);
 }
 
 namespace {

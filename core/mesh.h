@@ -26,7 +26,8 @@ struct Mesh {
   std::vector<Eigen::Vector3d> SampleSurface(size_t count, uint64_t seed) const;
 };
 
-void WritePly(const std::filesystem::path& file, const Mesh& mesh);  // atomic
+// Atomic; with `durable`, the data and the directory entry are fsync'ed (core/fs.h).
+void WritePly(const std::filesystem::path& file, const Mesh& mesh, bool durable = false);
 Mesh ReadPly(const std::filesystem::path& file);
 
 }  // namespace holocap

@@ -127,7 +127,7 @@ std::optional<fs::path> EnclosingTake(const fs::path& path) {
   }
 }
 
-TakeLock TakeLock::Acquire(const fs::path& take, const std::string& command) {
+TakeLock TakeLock::Acquire(const fs::path& take, const std::string& command, bool shared) {
   const std::string key = Canonical(take).string();
   std::error_code ec;
   if (!fs::is_directory(key, ec)) Fail("take '", take.string(), "' does not exist");
@@ -140,7 +140,7 @@ TakeLock TakeLock::Acquire(const fs::path& take, const std::string& command) {
       HeldLocks().erase(key);
       Fail("cannot lock take '", take.string(), "' (", file.string(), "): ", std::strerror(errno));
     }
-    if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+    if (::flock(fd, (shared ? LOCK_SH : LOCK_EX) | LOCK_NB) != 0) {
       const int err = errno;
       std::string holder;
       try {
@@ -223,7 +223,7 @@ OutputDirectory OutputDirectory::Claim(const fs::path& dir, const OutputRequest&
   OutputDirectory output;
   output.dir_ = dir;
   if (const auto take = EnclosingTake(canonical)) {
-    output.lock_ = TakeLock::Acquire(*take, request.command);
+    output.lock_ = TakeLock::Acquire(*take, request.command, request.shared);
   }
   CreateDirectories(dir);
   if (fresh) WriteFileAtomic(dir / kOutputMarkerFile, request.command + "\n");

@@ -16,6 +16,9 @@ struct OutputRequest {
   std::string command;                        // "render": named in messages and the lock
   bool overwrite = false;                     // --overwrite was given
   std::vector<std::filesystem::path> inputs;  // what the command reads (files or folders)
+  // One task of a sharded run (--shard K/N): the take's lock is shared with the run's other
+  // tasks, which write other frames into the same output; any other writer is still refused.
+  bool shared = false;
 };
 
 // The take directory at or above `path` (the nearest one holding take.json), if any.
@@ -26,8 +29,10 @@ std::optional<std::filesystem::path> EnclosingTake(const std::filesystem::path& 
 class TakeLock {
  public:
   TakeLock() = default;
-  // Throws Error naming the holder when another process holds the take's lock.
-  static TakeLock Acquire(const std::filesystem::path& take, const std::string& command);
+  // Throws Error naming the holder when another process holds the take's lock. `shared`: held
+  // beside other shared holders (the tasks of one sharded run), never beside an exclusive one.
+  static TakeLock Acquire(const std::filesystem::path& take, const std::string& command,
+                          bool shared = false);
   ~TakeLock();
   TakeLock(TakeLock&& other) noexcept;
   TakeLock& operator=(TakeLock&& other) noexcept;

@@ -62,7 +62,10 @@ double Report::ElapsedSeconds() const {
 }
 
 void Report::AddPoint(const std::string& metric, double value, int64_t iter) {
-  double t = ElapsedSeconds();
+  AddPointAt(metric, value, iter, ElapsedSeconds());
+}
+
+void Report::AddPointAt(const std::string& metric, double value, int64_t iter, double t) {
   std::lock_guard lock(mutex_);
   json_["series"].push_back({{"t_s", t}, {"iter", iter}, {"metric", metric}, {"value", value}});
 }

@@ -70,6 +70,8 @@ class Report {
   void SetSummary(const Summary& summary);
   // Appends a point to the error-against-time series, timed from construction. Thread-safe.
   void AddPoint(const std::string& metric, double value, int64_t iter);
+  // The same at a given time (a series rebuilt from what earlier runs recorded).
+  void AddPointAt(const std::string& metric, double value, int64_t iter, double t_s);
   double ElapsedSeconds() const;
 
   // Writes atomically (report.json stays readable if the process dies mid-write).

@@ -145,19 +145,21 @@ SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
   };
   const Surface recon_surface = surface_of(reconstruction);
   const Surface truth_surface = surface_of(truth);
-  double accuracy = 0, completeness = 0;
-  int64_t precise = 0, recalled = 0;
   const int64_t nr = static_cast<int64_t>(recon_points.size());
   const int64_t nt = static_cast<int64_t>(truth_points.size());
-#pragma omp parallel for reduction(+ : accuracy, precise) schedule(dynamic, 256)
-  for (int64_t i = 0; i < nr; ++i) {
-    double d = truth_surface.Distance(recon_points[i]);
+  // Distances in parallel, summed in order: the same bits whatever the threads.
+  std::vector<double> to_truth(nr), to_recon(nt);
+#pragma omp parallel for schedule(dynamic, 256)
+  for (int64_t i = 0; i < nr; ++i) to_truth[i] = truth_surface.Distance(recon_points[i]);
+#pragma omp parallel for schedule(dynamic, 256)
+  for (int64_t i = 0; i < nt; ++i) to_recon[i] = recon_surface.Distance(truth_points[i]);
+  double accuracy = 0, completeness = 0;
+  int64_t precise = 0, recalled = 0;
+  for (double d : to_truth) {
     accuracy += d;
     precise += d <= fscore_threshold_m;
   }
-#pragma omp parallel for reduction(+ : completeness, recalled) schedule(dynamic, 256)
-  for (int64_t i = 0; i < nt; ++i) {
-    double d = recon_surface.Distance(truth_points[i]);
+  for (double d : to_recon) {
     completeness += d;
     recalled += d <= fscore_threshold_m;
   }

@@ -1,7 +1,6 @@
 // The per-take pipeline: plan the methods from the rig, reconstruct frame sets in parallel,
 // write meshes and report.json, measure against ground truth where the take has it.
 #include <omp.h>
-#include <sys/resource.h>
 #include <opencv2/imgproc.hpp>
 
 #include <atomic>
@@ -12,6 +11,7 @@
 #include <limits>
 #include <map>
 #include <mutex>
+#include <numeric>
 #include <optional>
 
 #include "core/error.h"
@@ -65,6 +65,7 @@ void ReconstructionOptions::Check() const {
     if (!(v > 0 && v < 1)) Fail("sweep voxel sizes must be in (0, 1) m (got ", v, ")");
   }
   if (threads < 0) Fail("threads must be >= 0");
+  tasks.Check();
   if (!(completion_margin_px > -10 && completion_margin_px < 100)) {
     Fail("completion margin must be in (-10, 100) px (got ", completion_margin_px, ")");
   }
@@ -135,7 +136,8 @@ nlohmann::json ReconstructionOptions::ToJson() const {
             {"atlas", texture.atlas}}},
           {"write_glb", write_glb},
           {"sweep_voxels_m", sweep_voxels_m},
-          {"threads", threads}};
+          {"threads", threads},
+          {"tasks", tasks.ToJson()}};
 }
 
 namespace {
@@ -150,12 +152,6 @@ std::string Fixed(double value, int digits) {
   char text[64];
   std::snprintf(text, sizeof(text), "%.*f", digits, value);
   return text;
-}
-
-double PeakRssMb() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return usage.ru_maxrss / 1024.0;
 }
 
 // How this run reconstructs the take's frames (the take's own selection is the TakePlan).
@@ -608,6 +604,153 @@ std::map<std::string, cv::Mat> LearnBackgroundModel(const Take& take, TakePlan& 
 
 namespace {
 
+// A frame's result as its record and the run's report hold it, and back.
+nlohmann::json ToJson(const FrameResult& f) {
+  return {{"set", f.set},
+          {"seconds", f.seconds},
+          {"vertices", f.vertices},
+          {"faces", f.faces},
+          {"termination", ToString(f.termination)},
+          {"message", f.message},
+          {"metrics", f.metrics}};
+}
+
+FrameResult FrameResultFromJson(const nlohmann::json& json) {
+  FrameResult f;
+  f.set = json.at("set").get<int64_t>();
+  f.seconds = json.at("seconds").get<double>();
+  f.vertices = json.at("vertices").get<int64_t>();
+  f.faces = json.at("faces").get<int64_t>();
+  const std::string termination = json.at("termination").get<std::string>();
+  for (auto t : {Termination::kSuccess, Termination::kConvergence, Termination::kNoConvergence,
+                 Termination::kDegenerate, Termination::kFailure}) {
+    if (termination == ToString(t)) f.End(t, json.at("message").get<std::string>());
+  }
+  f.metrics = json.at("metrics");
+  return f;
+}
+
+// SUCCESS when at least one frame set gave a surface (the first failure is named); DEGENERATE
+// when none did. Frames whose depth fusion fell back to the colour cameras' hull: the plan and
+// the message say so, with the first one's reason.
+void EndByFrames(const std::vector<FrameResult>& frames, const std::string& method,
+                 ReconstructionSummary* summary) {
+  const int count = static_cast<int>(frames.size());
+  int usable = 0;
+  for (const FrameResult& f : frames) usable += f.IsUsable();
+  if (usable == count) {
+    summary->End(Termination::kSuccess, Cat(count, " frame set(s) reconstructed by ", method));
+  } else {
+    std::string message = Cat(usable, " of ", count, " frame sets gave a surface; first failure: ");
+    for (const FrameResult& f : frames) {
+      if (!f.IsUsable()) {
+        message += Cat("set ", f.set, ": ", f.message);
+        break;
+      }
+    }
+    summary->End(usable == 0 ? Termination::kDegenerate : Termination::kSuccess, message);
+  }
+  int fallbacks = 0;
+  std::string first;
+  for (const FrameResult& f : frames) {
+    if (!f.IsUsable() || !f.metrics.contains("tsdf") || !f.metrics["tsdf"].contains("fallback"))
+      continue;
+    if (fallbacks++ == 0)
+      first = Cat("set ", f.set, ": ", f.metrics["tsdf"]["fallback"].get<std::string>());
+  }
+  if (fallbacks == 0) return;
+  const std::string note =
+      Cat("fell back to the colour cameras' visual hull in ", fallbacks, " frame set(s); ", first);
+  summary->plan["depth_fusion"] = note;
+  summary->message += "; depth fusion " + note;
+  std::printf("reconstruct: depth fusion %s\n", note.c_str());
+}
+
+// The frames' results into a report's metrics: each frame, the held-out cameras' mean IoU and,
+// on simulated takes, the mean of every ground-truth metric with the voxel sweep.
+void AddFrameMetrics(const std::vector<FrameResult>& frames, const nlohmann::json& sweep,
+                     nlohmann::json* metrics) {
+  nlohmann::json frames_json = nlohmann::json::array();
+  std::map<std::string, double> gt_sums;
+  int gt_count = 0;
+  double iou_sum = 0;
+  int iou_count = 0;
+  for (const FrameResult& f : frames) {
+    frames_json.push_back(ToJson(f));
+    if (f.metrics.contains("gt")) {
+      ++gt_count;
+      for (auto& [key, value] : f.metrics["gt"].items()) {
+        if (value.is_number()) gt_sums[key] += value.get<double>();
+      }
+    }
+    if (!f.metrics.contains("heldout_iou")) continue;
+    for (auto& [name, iou] : f.metrics["heldout_iou"].items()) {
+      iou_sum += iou.get<double>();
+      ++iou_count;
+    }
+  }
+  (*metrics)["frames"] = frames_json;
+  if (iou_count > 0) (*metrics)["heldout_iou_mean"] = iou_sum / iou_count;
+  if (gt_count > 0) {
+    for (auto& [key, sum] : gt_sums) (*metrics)["gt"][key] = sum / gt_count;
+    (*metrics)["gt"]["frames"] = gt_count;
+    (*metrics)["gt"]["voxel_sweep"] = sweep;
+  }
+}
+
+// The run's report.json from its records alone (run.json's options and plan, each frame's
+// result, the first frame's voxel sweep): the same bytes whichever tasks made the records,
+// timings aside. FAILURE naming the incomplete frame sets while any is.
+ReconstructionSummary SummariseRun(const RunState& run, Report* report) {
+  ReconstructionSummary summary;
+  summary.plan = run.header.value("plan", nlohmann::json::object());
+  report->options() = run.header.value("options", nlohmann::json::object());
+  nlohmann::json sweep = nlohmann::json::array();
+  nlohmann::json per_frame = nlohmann::json::array();
+  double first_start = std::numeric_limits<double>::infinity(), last_end = 0, peak_mb = 0;
+  double total_seconds = 0;
+  for (const auto& [set, record] : run.complete) {
+    summary.frames.push_back(FrameResultFromJson(record["result"]));
+    if (set == run.sets.front() && record["result"].contains("voxel_sweep"))
+      sweep = record["result"]["voxel_sweep"];
+    per_frame.push_back(summary.frames.back().seconds);
+    total_seconds += summary.frames.back().seconds;
+    first_start = std::min(first_start, record.value("started_unix_s", 0.0));
+    last_end = std::max(last_end, record.value("finished_unix_s", 0.0));
+    peak_mb = std::max(peak_mb, record.value("peak_rss_mb", 0.0));
+  }
+  EndByFrames(summary.frames, summary.plan.value("method", "?"), &summary);
+  if (!run.done()) {
+    summary.End(Termination::kFailure,
+                Cat(run.Describe(), ": run the run's tasks again (each redoes only its ",
+                    "incomplete frame sets), then merge"));
+  }
+  report->plan() = summary.plan;
+  nlohmann::json& metrics = report->metrics();
+  AddFrameMetrics(summary.frames, sweep, &metrics);
+  const double wall_s = run.complete.empty() ? 0 : last_end - first_start;
+  const size_t count = summary.frames.size();
+  metrics["timing"] = {{"per_frame_s", per_frame},
+                       {"mean_frame_s", count > 0 ? total_seconds / count : 0},
+                       {"wall_s", wall_s},
+                       {"frames_per_minute", wall_s > 0 ? 60.0 * count / wall_s : 0},
+                       {"frames_by_task", run.frames_by_task}};
+  metrics["peak_rss_mb"] = peak_mb;
+  double t_s = 0;
+  int64_t iter = 0;
+  for (const auto& point : sweep) {
+    t_s += point["seconds"].get<double>();
+    report->AddPointAt("gt.chamfer_mm", point["chamfer_mm"].get<double>(), iter, t_s);
+    report->AddPointAt("seconds_per_frame", point["seconds"].get<double>(), iter, t_s);
+    report->AddPointAt("voxel_mm", point["voxel_mm"].get<double>(), iter, t_s);
+    ++iter;
+  }
+  report->SetSummary(summary);
+  report->Write(run.out / "report.json");
+  summary.seconds = wall_s;
+  return summary;
+}
+
 // Reconstructs a planned take: method, plates and threads chosen once, then every frame set,
 // the voxel sweep on simulated takes, and the summary. Each step is a method.
 class TakeReconstructor {
@@ -625,15 +768,16 @@ class TakeReconstructor {
     ChooseVoxel();
     ChooseDepthRange();
     CheckBoundsSeen();
+    ChooseTaskFrames();
     DescribePlan();
     CreateDirectories(out_);
     if (!implausible_.empty()) {
       EndImplausible();
       return summary_;
     }
+    StartRecords();
     ReconstructFrames();
-    const nlohmann::json sweep = SweepVoxels();
-    Summarise(sweep);
+    FinishTask();
     return summary_;
   }
 
@@ -694,8 +838,18 @@ class TakeReconstructor {
     }
     threads_ = recon::ResolveThreads(options_.threads);
     frame_count_ = static_cast<int>(take_plan_.sets.size());
-    plan_.outer_threads = frame_count_ >= threads_ ? threads_ : 1;
-    plan_.inner_threads = frame_count_ >= threads_ ? 1 : threads_;
+  }
+
+  // This task's part of the run's frame sets; they run in parallel when the task has at least
+  // as many of them as threads.
+  void ChooseTaskFrames() {
+    std::vector<int64_t> all(frame_count_);
+    std::iota(all.begin(), all.end(), 0);
+    for (int64_t i : options_.tasks.shard.Of(all)) todo_.push_back(static_cast<int>(i));
+    const int count = static_cast<int>(todo_.size());
+    plan_.outer_threads = count >= threads_ ? threads_ : 1;
+    plan_.inner_threads = count >= threads_ ? 1 : threads_;
+    task_ = DescribeTask(options_.tasks.shard);
   }
 
   // The plan's silhouette source applied to the options' parameters; the stage's options may
@@ -979,6 +1133,10 @@ class TakeReconstructor {
     }
     if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
     std::printf("  %s\n", plan["parallel"].get<std::string>().c_str());
+    if (!options_.tasks.shard.whole()) {
+      std::printf("  shard %s: %zu of the run's %d frame set(s)\n",
+                  options_.tasks.shard.ToString().c_str(), todo_.size(), frame_count_);
+    }
     std::fflush(stdout);
     if (report_ != nullptr) {
       report_->options() = options_.ToJson();
@@ -988,8 +1146,9 @@ class TakeReconstructor {
     }
   }
 
-  // Reconstructs, textures and writes one frame set; measures it against the truth if any.
-  void ReconstructOne(int i) {
+  // Reconstructs, textures and writes the run's i-th frame set into `result`; measures it
+  // against the truth if any. Returns the files written (durably), relative to the output.
+  std::vector<std::string> ReconstructOne(int i, FrameResult* result) {
     const int64_t set = take_plan_.sets[i];
     auto frame_start = std::chrono::steady_clock::now();
     FrameOutput frame =
@@ -997,10 +1156,10 @@ class TakeReconstructor {
             .Run(set);
     const std::string too_large = MeshLargerThanView(frame);
     if (!too_large.empty()) frame.End(Termination::kDegenerate, too_large);
-    FrameResult& result = summary_.frames[i];
-    result.set = set;
-    result.End(frame.termination, frame.message);
-    result.metrics = frame.metrics;
+    result->set = set;
+    result->End(frame.termination, frame.message);
+    result->metrics = frame.metrics;
+    std::vector<std::string> written;
     if (frame.IsUsable()) {
       std::vector<View> views;
       FrameSet colour = take_.Read(static_cast<size_t>(set), take_plan_.color_sensors);
@@ -1009,35 +1168,61 @@ class TakeReconstructor {
             {name, take_plan_.cameras.at(name), ColourOf(colour.Find(name)->image, name), {}});
       }
       if (!take_plan_.heldout.empty())
-        result.metrics["heldout_iou"] = HeldoutIoU(frame.mesh, colour);
+        result->metrics["heldout_iou"] = HeldoutIoU(frame.mesh, colour);
       TextureOptions texture = options_.texture;
       texture.atlas = texture.atlas && options_.write_glb;
       // Visibility's depth tolerance follows the scene: at most four voxels (1 cm is 20 of them
       // on a 9 cm object).
       texture.depth_tolerance_m = std::min(texture.depth_tolerance_m, 4 * voxel_);
       TexturedMesh textured = TextureMesh(frame.mesh, views, texture);
-      WritePly(out_ / (SetName(set) + ".ply"), textured.mesh);
-      if (options_.write_glb) WriteGlb(out_ / (SetName(set) + ".glb"), textured);
-      result.metrics["texture"] = textured.Metrics();
+      written.push_back(SetName(set) + ".ply");
+      WritePly(out_ / written.back(), textured.mesh, /*durable=*/true);
+      if (options_.write_glb) {
+        written.push_back(SetName(set) + ".glb");
+        WriteGlb(out_ / written.back(), textured, /*durable=*/true);
+      }
+      result->metrics["texture"] = textured.Metrics();
     }
-    result.seconds =
+    result->seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - frame_start).count();
-    result.vertices = static_cast<int64_t>(frame.mesh.vertices.size());
-    result.faces = static_cast<int64_t>(frame.mesh.faces.size());
+    result->vertices = static_cast<int64_t>(frame.mesh.vertices.size());
+    result->faces = static_cast<int64_t>(frame.mesh.faces.size());
     if (frame.IsUsable() && take_.has_ground_truth()) {
-      AddGroundTruthMetrics(take_, set, frame.mesh, take_plan_, plan_, &result.metrics);
+      AddGroundTruthMetrics(take_, set, frame.mesh, take_plan_, plan_, &result->metrics);
     }
+    return written;
+  }
+
+  // The task's k-th frame set: skipped when its record is complete, else reconstructed and
+  // recorded last (the run's first set with the voxel sweep). False when skipped.
+  bool ReconstructOrSkip(int k) {
+    const int i = todo_[k];
+    const int64_t set = take_plan_.sets[i];
+    if (!options_.tasks.redo) {
+      if (const auto record = records_->Complete(set)) {
+        summary_.frames[k] = FrameResultFromJson((*record)["result"]);
+        return false;
+      }
+    }
+    const double started = UnixSeconds();
+    const std::vector<std::string> written = ReconstructOne(i, &summary_.frames[k]);
+    nlohmann::json result = ToJson(summary_.frames[k]);
+    if (i == 0) result["voxel_sweep"] = SweepVoxels(summary_.frames[k]);
+    records_->Record(set, result, written, started, task_);
+    return true;
   }
 
   void ReconstructFrames() {
-    summary_.frames.resize(take_plan_.sets.size());
-    Progress progress("reconstruct", frame_count_);
+    const int count = static_cast<int>(todo_.size());
+    summary_.frames.resize(count);
+    Progress progress("reconstruct", count);
     std::mutex error_mutex;
     std::exception_ptr error;
+    std::atomic<int> skipped{0};
 #pragma omp parallel for num_threads(plan_.outer_threads) schedule(dynamic, 1)
-    for (int i = 0; i < frame_count_; ++i) {
+    for (int k = 0; k < count; ++k) {
       try {
-        ReconstructOne(i);
+        if (!ReconstructOrSkip(k)) ++skipped;
         progress.Increment();
       } catch (...) {
         std::lock_guard lock(error_mutex);
@@ -1046,26 +1231,30 @@ class TakeReconstructor {
     }
     progress.Finish();
     if (error) std::rethrow_exception(error);
+    skipped_ = skipped;
+    if (skipped_ > 0) {
+      std::printf("reconstruct: %d of %d frame set(s) skipped: complete from an earlier run\n",
+                  skipped_, count);
+    }
   }
 
-  // Error against time as the voxel size varies, on the first frame (simulated takes).
-  nlohmann::json SweepVoxels() {
+  // Error against time as the voxel size varies, on the run's first frame (simulated takes).
+  nlohmann::json SweepVoxels(const FrameResult& first) {
     nlohmann::json sweep = nlohmann::json::array();
     if (!take_.has_ground_truth() || options_.sweep_voxels_m.empty() ||
-        !summary_.frames[0].metrics.contains("gt")) {
+        !first.metrics.contains("gt")) {
       return sweep;
     }
     std::vector<double> voxels = options_.sweep_voxels_m;
     voxels.push_back(voxel_);
     std::sort(voxels.begin(), voxels.end(), std::greater<double>());
     voxels.erase(std::unique(voxels.begin(), voxels.end()), voxels.end());
-    int64_t iter = 0;
     for (double voxel : voxels) {
       double seconds;
       nlohmann::json metrics;
       if (voxel == voxel_) {
-        seconds = summary_.frames[0].seconds;
-        metrics = summary_.frames[0].metrics;
+        seconds = first.seconds;
+        metrics = first.metrics;
       } else {
         auto t0 = std::chrono::steady_clock::now();
         FrameOutput frame =
@@ -1076,110 +1265,82 @@ class TakeReconstructor {
         AddGroundTruthMetrics(take_, take_plan_.sets[0], frame.mesh, take_plan_, plan_, &metrics);
       }
       if (!metrics.contains("gt")) continue;
-      double chamfer = metrics["gt"]["chamfer_mm"].get<double>();
       sweep.push_back({{"voxel_mm", voxel * 1e3},
                        {"seconds", seconds},
-                       {"chamfer_mm", chamfer},
+                       {"chamfer_mm", metrics["gt"]["chamfer_mm"]},
                        {"fscore_5mm", metrics["gt"]["fscore_5mm"]}});
-      if (report_ != nullptr) {
-        report_->AddPoint("gt.chamfer_mm", chamfer, iter);
-        report_->AddPoint("seconds_per_frame", seconds, iter);
-        report_->AddPoint("voxel_mm", voxel * 1e3, iter);
-      }
-      ++iter;
     }
     return sweep;
   }
 
-  // Frames whose depth fusion fell back to the colour cameras' hull: the plan and the summary
-  // say so, with the first one's reason.
-  void NoteFallback() {
-    int count = 0;
-    std::string first;
-    for (const FrameResult& f : summary_.frames) {
-      if (!f.IsUsable() || !f.metrics.contains("tsdf") || !f.metrics["tsdf"].contains("fallback"))
-        continue;
-      if (count++ == 0)
-        first = Cat("set ", f.set, ": ", f.metrics["tsdf"]["fallback"].get<std::string>());
-    }
-    if (count == 0) return;
-    const std::string note =
-        Cat("fell back to the colour cameras' visual hull in ", count, " frame set(s); ", first);
-    summary_.plan["depth_fusion"] = note;
-    if (report_ != nullptr) report_->plan()["depth_fusion"] = note;
-    summary_.message += "; depth fusion " + note;
-    std::printf("reconstruct: depth fusion %s\n", note.c_str());
+  // The run's records: its identity is what decides each frame's bytes (the options and the
+  // plan, less threads, the task's shard and how the task runs its frames in parallel).
+  void StartRecords() {
+    nlohmann::json options = options_.ToJson();
+    options.erase("threads");
+    options.erase("tasks");
+    nlohmann::json plan = summary_.plan;
+    plan.erase("parallel");
+    // The take's recording and camera models too: a re-recorded or recalibrated take is
+    // another run even where its plan reads the same.
+    std::string recording = ReadFileToString(take_.dir() / "take.json");
+    std::error_code ec;
+    if (fs::exists(take_.dir() / "index.jsonl", ec))
+      recording += ReadFileToString(take_.dir() / "index.jsonl");
+    std::string cameras;
+    for (const auto& [name, camera] : take_plan_.cameras) cameras += name + camera.ToString();
+    records_.emplace(out_, "reconstruct",
+                     nlohmann::json{{"options", options},
+                                    {"plan", plan},
+                                    {"recording", HashBytes(recording)},
+                                    {"cameras", HashBytes(cameras)}},
+                     take_plan_.sets);
+    options["take"] = take_.dir().string();
+    options["out"] = out_.string();
+    records_->WriteRun({{"options", options}, {"plan", plan}});
   }
 
-  // SUCCESS when at least one frame set gave a surface (the others are named); DEGENERATE when
-  // none did.
-  void Summarise(const nlohmann::json& sweep) {
-    nlohmann::json per_frame = nlohmann::json::array();
-    nlohmann::json frames_json = nlohmann::json::array();
-    int usable = 0;
-    double total_seconds = 0;
-    std::map<std::string, double> gt_sums;
-    int gt_count = 0;
-    for (const FrameResult& f : summary_.frames) {
-      per_frame.push_back(f.seconds);
-      total_seconds += f.seconds;
-      usable += f.IsUsable();
-      frames_json.push_back({{"set", f.set},
-                             {"seconds", f.seconds},
-                             {"vertices", f.vertices},
-                             {"faces", f.faces},
-                             {"termination", ToString(f.termination)},
-                             {"message", f.message},
-                             {"metrics", f.metrics}});
-      if (f.metrics.contains("gt")) {
-        ++gt_count;
-        for (auto& [key, value] : f.metrics["gt"].items()) {
-          if (value.is_number()) gt_sums[key] += value.get<double>();
-        }
-      }
-    }
-    summary_.seconds =
+  // A whole run's report is the one merged from its records (as a sharded run's is); a shard
+  // writes its own, and the run's too when its frames complete the run.
+  void FinishTask() {
+    const double wall_s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
-    if (usable == frame_count_) {
-      summary_.End(Termination::kSuccess,
-                   Cat(frame_count_, " frame set(s) reconstructed by ", ToString(plan_.method)));
-    } else {
-      std::string message =
-          Cat(usable, " of ", frame_count_, " frame sets gave a surface; first failure: ");
-      for (const FrameResult& f : summary_.frames) {
-        if (!f.IsUsable()) {
-          message += Cat("set ", f.set, ": ", f.message);
-          break;
-        }
-      }
-      summary_.End(usable == 0 ? Termination::kDegenerate : Termination::kSuccess, message);
+    const RunState run = ReadRunState(out_);
+    const Shard& shard = options_.tasks.shard;
+    if (shard.whole()) {
+      Report local("reconstruct");
+      summary_ = SummariseRun(run, report_ != nullptr ? report_ : &local);
+      summary_.seconds = wall_s;
+      return;
     }
-    NoteFallback();
+    const int count = static_cast<int>(todo_.size());
+    EndByFrames(summary_.frames, ToString(plan_.method), &summary_);
+    if (count == 0) {
+      summary_.End(Termination::kSuccess, Cat("shard ", shard.ToString(), " holds none of the ",
+                                              frame_count_, " frame sets"));
+    }
+    summary_.seconds = wall_s;
+    std::printf("reconstruct: shard %s did %d and skipped %d of its %d frame set(s); the run: %s\n",
+                shard.ToString().c_str(), count - skipped_, skipped_, count,
+                run.Describe().c_str());
+    if (run.done()) {
+      Report merged("reconstruct");
+      const ReconstructionSummary all = SummariseRun(run, &merged);
+      std::printf("reconstruct: the run is complete: %s (%s)\n", (out_ / "report.json").c_str(),
+                  ToString(all.termination));
+    }
     if (report_ == nullptr) return;
     nlohmann::json& metrics = report_->metrics();
-    metrics["timing"] = {{"per_frame_s", per_frame},
-                         {"mean_frame_s", total_seconds / frame_count_},
-                         {"wall_s", summary_.seconds},
-                         {"frames_per_minute", 60.0 * frame_count_ / summary_.seconds}};
+    AddFrameMetrics(summary_.frames, nlohmann::json::array(), &metrics);
+    metrics["timing"] = {{"frames_done", count - skipped_},
+                         {"frames_skipped", skipped_},
+                         {"wall_s", wall_s},
+                         {"frames_per_minute", 60.0 * (count - skipped_) / wall_s}};
     metrics["peak_rss_mb"] = PeakRssMb();
-    metrics["frames"] = frames_json;
-    double iou_sum = 0;
-    int iou_count = 0;
-    for (const FrameResult& f : summary_.frames) {
-      if (!f.metrics.contains("heldout_iou")) continue;
-      for (auto& [name, iou] : f.metrics["heldout_iou"].items()) {
-        iou_sum += iou.get<double>();
-        ++iou_count;
-      }
-    }
-    if (iou_count > 0) metrics["heldout_iou_mean"] = iou_sum / iou_count;
-    if (gt_count > 0) {
-      for (auto& [key, sum] : gt_sums) metrics["gt"][key] = sum / gt_count;
-      metrics["gt"]["frames"] = gt_count;
-      metrics["gt"]["voxel_sweep"] = sweep;
-    }
+    metrics["run"] = run.Describe();
+    report_->plan() = summary_.plan;
     report_->SetSummary(summary_);
-    report_->Write(out_ / "report.json");
+    report_->Write(TaskReportPath(out_, shard));
   }
 
   const Take& take_;
@@ -1194,7 +1355,11 @@ class TakeReconstructor {
   std::string implausible_;  // why the run cannot give a plausible result, before any frame
   double voxel_ = 0;
   int threads_ = 1;
-  int frame_count_ = 0;
+  int frame_count_ = 0;    // the run's frame sets
+  std::vector<int> todo_;  // this task's: indices into the run's sets
+  int skipped_ = 0;        // of them, complete from an earlier run
+  std::string task_;       // who this task is, for the records
+  std::optional<FrameRecords> records_;
   ReconstructionSummary summary_;
 };
 
@@ -1215,6 +1380,14 @@ ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir,
   const Take take = Take::Open(take_dir);
   const TakePlan plan = PlanTake(take, selection);
   return ReconstructTake(take, plan, out, options, report);
+}
+
+ReconstructionSummary MergeReconstruction(const std::filesystem::path& out, Report* report) {
+  const RunState run = ReadRunState(out);
+  if (run.command != "reconstruct") {
+    Fail("'", out.string(), "' holds a run of holocap ", run.command, ", not of reconstruct");
+  }
+  return SummariseRun(run, report);
 }
 
 }  // namespace holocap

@@ -28,6 +28,7 @@
 #include <vector>
 
 #include "core/camera.h"
+#include "core/frame_tasks.h"
 #include "core/mesh.h"
 #include "core/report.h"
 #include "core/take_plan.h"
@@ -396,8 +397,9 @@ TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views,
                          const TextureOptions& options = {});
 
 // Binary glTF 2.0 (.glb): positions, normals, vertex colours and, with an atlas, texture
-// coordinates and the atlas as an embedded PNG. Atomic write.
-void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured);
+// coordinates and the atlas as an embedded PNG. Atomic write (`durable`: fsync'ed, core/fs.h).
+void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured,
+              bool durable = false);
 
 // Renders a mesh's silhouette into a camera (triangles through the lens model): CV_8U, 255 =
 // covered. Used to compare hulls with held-out views.
@@ -502,6 +504,10 @@ struct ReconstructionOptions {
   std::vector<double> sweep_voxels_m = {0.016, 0.008};
   int threads = 0;  // 0: all cores; frames run in parallel when there are
                     // at least as many frames as threads
+  // This task's part of the run's frame sets (--shard K/N) and whether complete frames are
+  // done again (core/frame_tasks.h). The run is planned from all its sets whatever the shard,
+  // so every frame's outputs are the same bytes however the run is split.
+  FrameTaskOptions tasks;
 
   void Check() const;
   nlohmann::json ToJson() const;
@@ -539,6 +545,12 @@ std::map<std::string, cv::Mat> LearnBackgroundModel(const Take& take, TakePlan& 
                                                     const SilhouetteOptions& silhouette,
                                                     double min_moving_fraction);
 
+// Each frame set's outputs are written atomically and durably, then its record
+// (OUT/frame-reports/<set>.json, core/frame_tasks.h) last; a frame whose record is complete for
+// the same options and plan is skipped (options.tasks.redo: done again). A task of a sharded
+// run (options.tasks.shard) does its part of the plan's sets and writes its own report to
+// TaskReportPath; report.json is the run's, merged from every frame's record once all are
+// complete (by the task that completes the run, or by MergeReconstruction).
 ReconstructionSummary ReconstructTake(const Take& take, const TakePlan& plan,
                                       const std::filesystem::path& out,
                                       const ReconstructionOptions& options,
@@ -549,5 +561,11 @@ ReconstructionSummary ReconstructTake(const std::filesystem::path& take_dir,
                                       const std::filesystem::path& out,
                                       const ReconstructionOptions& options,
                                       Report* report = nullptr);
+
+// The run's report.json in `out` merged from its frames' records (core/frame_tasks.h): the same
+// bytes as a one-process run's, timings aside. FAILURE naming the incomplete frame sets when a
+// frame has no complete record (a task that was killed or never ran); rerunning its shard
+// redoes only those. Throws Error when `out` is not a reconstruction run's output.
+ReconstructionSummary MergeReconstruction(const std::filesystem::path& out, Report* report);
 
 }  // namespace holocap

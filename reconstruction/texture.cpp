@@ -400,7 +400,7 @@ void AppendRaw(std::string* bytes, const T* data, size_t count) {
 
 }  // namespace
 
-void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured) {
+void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured, bool durable) {
   const Mesh& mesh = textured.mesh;
   if (mesh.vertices.empty() || mesh.faces.empty())
     Fail("cannot write an empty mesh to ", file.string());
@@ -516,7 +516,7 @@ void WriteGlb(const std::filesystem::path& file, const TexturedMesh& textured) {
   const uint32_t bin_chunk[2] = {static_cast<uint32_t>(bin.size()), 0x004E4942u};
   AppendRaw(&out, bin_chunk, 2);
   out += bin;
-  WriteFileAtomic(file, out);
+  WriteFileAtomic(file, out, durable);
 }
 
 }  // namespace holocap

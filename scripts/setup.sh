@@ -27,7 +27,7 @@ packages=(
   ffmpeg libcpp-httplib-dev zlib1g-dev libwebp-dev
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium nodejs npm)
+  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium nodejs npm slurm-wlm munge)
 fi
 
 missing=()

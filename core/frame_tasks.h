@@ -1,0 +1,128 @@
+// Per-frame tasks: a run's frame sets done by any number of independent, idempotent tasks (one
+// process, the tasks of a Slurm job array, GNU parallel over SSH), so that a task killed at any
+// point leaves nothing a later task takes as done, and the merged outputs are the same bytes as
+// one process's.
+//
+// A run writes into its output directory OUT:
+//   OUT/run.json                   the run: command, fingerprint, its frame sets, and the options
+//                                  and plan its report shows (every task writes the same)
+//   OUT/<each frame's outputs>     written to a temporary sibling, fsync'ed and renamed
+//   OUT/frame-reports/<set>.json   the frame's record, written last (atomically, durably): the
+//                                  run's fingerprint, the frame's result (its own report), and
+//                                  each output's size and hash
+//   OUT/report.json                the run's report, merged from the records once all exist
+// A frame is complete when its record parses, names the run's fingerprint, and every output it
+// lists has the recorded size and hash. Complete frames are skipped on a re-run; anything else
+// (no record, another run's record, an output missing, cut short or changed) is done again.
+#pragma once
+
+#include <cstdint>
+#include <filesystem>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace holocap {
+
+// `--shard K/N`: task K (0-based) of N does the K-th of N contiguous blocks of the run's frame
+// sets, their sizes differing by one at most. Deterministic: the same K/N always names the same
+// sets, so a resubmitted task redoes exactly its own unfinished frames.
+struct Shard {
+  int index = 0;  // K, in [0, count)
+  int count = 1;  // N >= 1; 1/1 ... 0/1: the whole run
+
+  // "K/N" (e.g. "2/8"); throws Error naming `flag` for anything else.
+  static Shard Parse(const std::string& text, const std::string& flag = "--shard");
+  bool whole() const { return count == 1; }
+  std::string ToString() const;  // "K/N"
+  // The shard's sets out of a run's `sets`, in their order (empty when N exceeds the sets).
+  std::vector<int64_t> Of(const std::vector<int64_t>& sets) const;
+  void Check() const;  // throws Error naming --shard
+};
+
+// How a task of a per-frame command runs; never part of what decides a frame's bytes.
+struct FrameTaskOptions {
+  Shard shard;        // this task's part of the run's frame sets (--shard K/N)
+  bool redo = false;  // do complete frames again (their records are replaced) (--redo)
+
+  void Check() const;
+  nlohmann::json ToJson() const;
+};
+
+// 64-bit FNV-1a of `bytes` as 16 hex digits: detects an output that was cut short or changed.
+std::string HashBytes(std::string_view bytes);
+
+// The folder of a run's per-frame records, and one set's record in it.
+inline constexpr const char* kFrameReportsDir = "frame-reports";
+std::filesystem::path FrameRecordPath(const std::filesystem::path& out, int64_t set);
+
+// One run's records in its output directory (see the top of this file).
+class FrameRecords {
+ public:
+  // `identity`: everything that decides the frames' bytes (the command's options less threads
+  // and shard, and its plan); its hash is the run's fingerprint. `sets`: the run's frame sets.
+  FrameRecords(std::filesystem::path out, std::string command, const nlohmann::json& identity,
+               std::vector<int64_t> sets);
+
+  // The records of a run whose fingerprint is known (read from its run.json).
+  static FrameRecords OfRun(std::filesystem::path out, std::string command, std::string fingerprint,
+                            std::vector<int64_t> sets);
+
+  const std::string& fingerprint() const { return fingerprint_; }
+  const std::vector<int64_t>& sets() const { return sets_; }
+  const std::filesystem::path& out() const { return out_; }
+
+  // Writes OUT/run.json atomically and durably: command, fingerprint, sets, and `header` (the
+  // options and plan of the run's report). Every task of a run writes the same bytes.
+  void WriteRun(const nlohmann::json& header) const;
+  // The set's record when the frame is complete; otherwise nothing, and `why` says what is
+  // missing (no record, another run's, an output missing or changed).
+  std::optional<nlohmann::json> Complete(int64_t set, std::string* why = nullptr) const;
+  // Records `set` as done, last of all its writes: `result` is the frame's own report,
+  // `outputs` the files (relative to OUT) its task wrote there durably, each recorded with its
+  // size and hash; `started_unix_s` when the frame began; `task` names who did it.
+  void Record(int64_t set, const nlohmann::json& result, const std::vector<std::string>& outputs,
+              double started_unix_s, const std::string& task) const;
+
+ private:
+  std::filesystem::path out_;
+  std::string command_;
+  std::string fingerprint_;
+  std::vector<int64_t> sets_;
+};
+
+// A run's progress read from its output directory alone (its run.json and records), never from
+// a scheduler's accounting.
+struct RunState {
+  std::filesystem::path out;
+  std::string command;
+  std::string fingerprint;
+  std::vector<int64_t> sets;
+  nlohmann::json header;                          // run.json's options and plan
+  std::map<int64_t, nlohmann::json> complete;     // set -> its record
+  std::map<int64_t, std::string> incomplete;      // set -> why it is not complete
+  std::map<std::string, int64_t> frames_by_task;  // who did the complete frames
+
+  bool done() const { return incomplete.empty(); }
+  // "3 of 6 frame sets complete; incomplete: 2 (no record), 4 (...), ..." (at most `shown`).
+  std::string Describe(size_t shown = 8) const;
+};
+// Throws Error when `out` holds no run.json (not the output of a per-frame command).
+RunState ReadRunState(const std::filesystem::path& out);
+
+// Where a task writes its own report.json: OUT/report.json for a whole run, else
+// OUT/tasks/shard-K-of-N/report.json (the run's report.json is merged from the records).
+std::filesystem::path TaskReportPath(const std::filesystem::path& out, const Shard& shard);
+
+// This process as a task: "shard K/N, host H, pid P" (with the Slurm job and array task when
+// it runs under Slurm).
+std::string DescribeTask(const Shard& shard);
+// Seconds since the Unix epoch (the records' times, comparable across hosts).
+double UnixSeconds();
+// This process's peak resident memory so far, in MB.
+double PeakRssMb();
+
+}  // namespace holocap

@@ -1,0 +1,92 @@
+// Comparing two runs of a per-frame command: every mesh the same bytes, and the same report
+// and per-frame results once what only measures time (and where the run wrote) is left out.
+#pragma once
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "core/frame_tasks.h"
+#include "core/fs.h"
+
+namespace holocap::testing {
+
+// `json` without what differs between two runs of the same work: times (every key ending in
+// "seconds", t_s, elapsed_s, timing, peak_rss_mb), the seconds_per_frame series and the
+// options naming the output directory.
+inline nlohmann::json WithoutTimes(nlohmann::json json) {
+  if (json.is_object()) {
+    nlohmann::json out = nlohmann::json::object();
+    for (auto& [key, value] : json.items()) {
+      const bool time = key == "t_s" || key == "elapsed_s" || key == "timing" ||
+                        key == "peak_rss_mb" || key == "out" ||
+                        (key.size() >= 7 && key.compare(key.size() - 7, 7, "seconds") == 0);
+      if (!time) out[key] = WithoutTimes(value);
+    }
+    return out;
+  }
+  if (json.is_array()) {
+    nlohmann::json out = nlohmann::json::array();
+    for (auto& value : json) {
+      if (value.is_object() && value.value("metric", "") == "seconds_per_frame") continue;
+      out.push_back(WithoutTimes(value));
+    }
+    return out;
+  }
+  return json;
+}
+
+inline nlohmann::json ReadJson(const std::filesystem::path& file) {
+  return nlohmann::json::parse(ReadFileToString(file));
+}
+
+// The meshes (*.ply, *.glb) of an output directory: name -> bytes.
+inline std::map<std::string, std::string> Meshes(const std::filesystem::path& out) {
+  std::map<std::string, std::string> meshes;
+  for (const auto& entry : std::filesystem::directory_iterator(out)) {
+    const std::string ext = entry.path().extension().string();
+    if (ext == ".ply" || ext == ".glb")
+      meshes[entry.path().filename().string()] = ReadFileToString(entry.path());
+  }
+  return meshes;
+}
+
+// Every mesh of `expected` and `actual` the same bytes, the same report.json and per-frame
+// results, times aside. Returns the number of meshes compared.
+inline size_t ExpectSameRun(const std::filesystem::path& expected,
+                            const std::filesystem::path& actual) {
+  const auto a = Meshes(expected), b = Meshes(actual);
+  EXPECT_EQ(a.size(), b.size());
+  size_t same = 0;
+  for (const auto& [name, bytes] : a) {
+    const auto other = b.find(name);
+    if (other == b.end()) {
+      ADD_FAILURE() << name << " is missing from " << actual;
+      continue;
+    }
+    EXPECT_EQ(bytes.size(), other->second.size()) << name;
+    EXPECT_TRUE(bytes == other->second) << name << " differs";
+    same += bytes == other->second;
+  }
+  const nlohmann::json report_a = ReadJson(expected / "report.json");
+  const nlohmann::json report_b = ReadJson(actual / "report.json");
+  EXPECT_EQ(WithoutTimes(report_a).dump(1), WithoutTimes(report_b).dump(1));
+  const RunState run_a = ReadRunState(expected), run_b = ReadRunState(actual);
+  EXPECT_EQ(run_a.fingerprint, run_b.fingerprint);
+  EXPECT_EQ(run_a.complete.size(), run_b.complete.size());
+  for (const auto& [set, record] : run_a.complete) {
+    if (!run_b.complete.count(set)) {
+      ADD_FAILURE() << "set " << set << " is not complete in " << actual;
+      continue;
+    }
+    EXPECT_EQ(WithoutTimes(record["result"]).dump(),
+              WithoutTimes(run_b.complete.at(set)["result"]).dump());
+    EXPECT_EQ(record["outputs"], run_b.complete.at(set)["outputs"]) << "set " << set;
+  }
+  return same;
+}
+
+}  // namespace holocap::testing
