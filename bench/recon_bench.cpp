@@ -16,7 +16,6 @@
 // Usage: recon_bench [frames=2] [threads=2] [work_dir=/tmp/holocap-recon-bench]
 //                    [sections=1234] [repeats=5]
 // (bench/fusion_bench_results.txt: `recon_bench 2 2 /tmp/holocap-recon-bench 16 7`).
-#include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -43,12 +42,6 @@ namespace {
 
 double Now() {
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
-}
-
-double PeakRssMb() {
-  rusage usage{};
-  getrusage(RUSAGE_SELF, &usage);
-  return usage.ru_maxrss / 1024.0;
 }
 
 std::string SetName(int64_t set) {
