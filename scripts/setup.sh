@@ -27,7 +27,10 @@ packages=(
   ffmpeg libcpp-httplib-dev zlib1g-dev libwebp-dev
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium nodejs npm slurm-wlm munge)
+  packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium slurm-wlm munge)
+  # Node.js and npm only where no npm runs yet: a machine with NodeSource's nodejs has its
+  # own npm, and Debian's npm package conflicts with it.
+  command -v npm >/dev/null 2>&1 || packages+=(nodejs npm)
 fi
 
 missing=()
