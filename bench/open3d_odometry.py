@@ -7,8 +7,12 @@ DIR/frames.json gives the pinhole intrinsics (fx, fy, cx, cy, width, height), th
 frame's world_from_cam (4x4, row-major) and the frames, each with its time_s, a raw float32
 z-depth map in metres (0 = none) and a raw 8-bit RGB image registered to the depth pixels.
 PEERS is a comma list of:
-  "odometry": frame to frame, o3d.t.pipelines.odometry.rgbd_odometry_multi_scale (hybrid:
-              depth and intensity, Open3D's default three levels), poses chained;
+  "odometry": frame to frame, o3d.pipelines.odometry.compute_rgbd_odometry (hybrid: depth
+              and intensity, Open3D's default pyramid), poses chained. The tensor versions
+              (o3d.t.pipelines.odometry, o3d.t.pipelines.slam.Model) cannot run here: Debian's
+              CPU build of Open3D 0.16 lacks IPP, and their depth pre-filter stops with
+              "FilterBilateral with data type Float32 on device CPU:0 is not implemented"
+              (RGBToGray likewise); "slam" stays for a build that has it.
   "slam":     frame to model, o3d.t.pipelines.slam.Model (Open3D's dense SLAM: point-to-plane
               ICP against the model's raycast, then integration), voxel VOXEL_M, 8 voxels'
               truncation as Open3D's example uses.
@@ -33,9 +37,10 @@ def load(folder):
     frames = []
     for f in meta["frames"]:
         depth = np.fromfile(folder + "/" + f["depth"], dtype=np.float32).reshape(h, w)
-        # Open3D 0.16 turns colour into intensity only from float images.
+        # Millimetres as UInt16 (as the sensor gives them): Open3D 0.16's CPU build filters
+        # only those (FilterBilateral of Float32 is "not implemented" without IPP).
+        depth = np.round(np.nan_to_num(depth) * 1000).astype(np.uint16)
         color = np.fromfile(folder + "/" + f["color"], dtype=np.uint8).reshape(h, w, 3)
-        color = color.astype(np.float32) / 255
         frames.append((f["time_s"], depth, color))
     first = np.array(meta["world_from_cam"], dtype=np.float64).reshape(4, 4)
     return frames, k, first, w, h
@@ -70,17 +75,22 @@ def rgbd(depth, color):
         o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(depth))))
 
 
-def odometry(frames, k, first, depth_max):
-    intrinsics = o3d.core.Tensor(k)
-    images = [rgbd(depth, color) for _, depth, color in frames]
+def odometry(frames, k, first, w, h, depth_max):
+    intrinsic = o3d.camera.PinholeCameraIntrinsic(w, h, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    images = [o3d.geometry.RGBDImage.create_from_color_and_depth(
+        o3d.geometry.Image(np.ascontiguousarray(color)), o3d.geometry.Image(depth),
+        depth_scale=1000.0, depth_trunc=depth_max, convert_rgb_to_intensity=True)
+        for _, depth, color in frames]
+    option = o3d.pipelines.odometry.OdometryOption()
+    option.depth_max = depth_max
+    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
     poses = [first]
     start = time.perf_counter()
     for i in range(1, len(images)):
         # source = frame i, target = frame i - 1: the result maps i's frame into i - 1's.
-        result = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
-            images[i], images[i - 1], intrinsics, o3d.core.Tensor(np.eye(4)), 1.0, depth_max,
-            method=o3d.t.pipelines.odometry.Method.Hybrid)
-        poses.append(poses[-1] @ result.transformation.numpy())
+        ok, transformation, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+            images[i], images[i - 1], intrinsic, np.eye(4), jacobian, option)
+        poses.append(poses[-1] @ (transformation if ok else np.eye(4)))
     return poses, time.perf_counter() - start
 
 
@@ -99,11 +109,11 @@ def slam(frames, k, first, w, h, voxel, depth_max):
         input_frame.set_data_from_image("depth", depth)
         input_frame.set_data_from_image("color", color)
         if i > 0:
-            result = model.track_frame_to_model(input_frame, raycast_frame, 1.0, depth_max)
+            result = model.track_frame_to_model(input_frame, raycast_frame, 1000.0, depth_max)
             pose = pose @ result.transformation
         model.update_frame_pose(i, pose)
-        model.integrate(input_frame, 1.0, depth_max, 8.0)
-        model.synthesize_model_frame(raycast_frame, 1.0, 0.1, depth_max, 8.0, False)
+        model.integrate(input_frame, 1000.0, depth_max, 8.0)
+        model.synthesize_model_frame(raycast_frame, 1000.0, 0.1, depth_max, 8.0, False)
         poses.append(pose.numpy())
     return poses, time.perf_counter() - start
 
@@ -114,7 +124,7 @@ def main():
     frames, k, first, w, h = load(folder)
     for peer in peers:
         if peer == "odometry":
-            poses, seconds = odometry(frames, k, first, depth_max)
+            poses, seconds = odometry(frames, k, first, w, h, depth_max)
         elif peer == "slam":
             poses, seconds = slam(frames, k, first, w, h, voxel, depth_max)
         else:

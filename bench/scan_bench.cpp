@@ -4,7 +4,7 @@
 // true surface beside a studio8 reconstruction of the same subject pose.
 //
 //   build/bench/scan_bench [--frames N] [--sizes 320x240,640x480] [--trajectories orbit,handheld]
-//                          [--threads T] [--keep DIR]
+//                          [--threads T] [--photometric W] [--keep DIR]
 //
 // Open3D runs in /usr/bin/python3 (bench/open3d_odometry.py) with OMP_WAIT_POLICY=PASSIVE and
 // the same thread count. Open3D is given the depth resampled into a pinhole camera of the
@@ -36,6 +36,7 @@ struct Args {
   std::vector<std::pair<int, int>> sizes = {{320, 240}, {640, 480}};
   std::vector<std::string> trajectories = {"orbit", "handheld"};
   int threads = 2;
+  double photometric_weight_m = ScanOptions().photometric_weight_m;
   fs::path keep;
 };
 
@@ -85,7 +86,8 @@ void ExportForOpen3d(const Take& take, const TakePlan& plan, const fs::path& dir
         Eigen::Vector2d pc;
         const Eigen::Vector3d p(d * (x - cx) / f, d * (y - cy) / f, d);
         if (!color_lens.Project(color_from_depth * p, &pc)) continue;
-        const int u = static_cast<int>(std::lround(pc.x())), v = static_cast<int>(std::lround(pc.y()));
+        const int u = static_cast<int>(std::lround(pc.x())),
+                  v = static_cast<int>(std::lround(pc.y()));
         if (u < 0 || v < 0 || u >= color.cols || v >= color.rows) continue;
         const uint8_t* bgr = color.ptr<uint8_t>(v) + u * color.channels();
         for (int c = 0; c < 3; ++c) out_color[3 * i + c] = bgr[2 - c];
@@ -95,9 +97,9 @@ void ExportForOpen3d(const Take& take, const TakePlan& plan, const fs::path& dir
     WriteFileAtomic(dir / (name + ".depth"),
                     std::string_view(reinterpret_cast<const char*>(out_depth.data()),
                                      out_depth.size() * sizeof(float)));
-    WriteFileAtomic(dir / (name + ".rgb"),
-                    std::string_view(reinterpret_cast<const char*>(out_color.data()),
-                                     out_color.size()));
+    WriteFileAtomic(
+        dir / (name + ".rgb"),
+        std::string_view(reinterpret_cast<const char*>(out_color.data()), out_color.size()));
     const int64_t stamp = take.entry(static_cast<size_t>(set)).Find(depth_name)->timestamp_ns;
     frames.push_back({{"time_s", 1e-9 * static_cast<double>(stamp)},
                       {"depth", name + ".depth"},
@@ -107,8 +109,8 @@ void ExportForOpen3d(const Take& take, const TakePlan& plan, const fs::path& dir
   std::vector<double> rows;
   for (int r = 0; r < 4; ++r)
     for (int c = 0; c < 4; ++c) rows.push_back(first(r, c));
-  const Json meta = {{"width", w}, {"height", h},     {"fx", f},          {"fy", f},
-                     {"cx", cx},   {"cy", cy},        {"frames", frames}, {"world_from_cam", rows}};
+  const Json meta = {{"width", w}, {"height", h}, {"fx", f},          {"fy", f},
+                     {"cx", cx},   {"cy", cy},    {"frames", frames}, {"world_from_cam", rows}};
   WriteFileAtomic(dir / "frames.json", meta.dump());
 }
 
@@ -118,12 +120,11 @@ struct PeerRun {
   TrajectoryErrors errors;
 };
 
-std::vector<PeerRun> RunOpen3d(const fs::path& dir, double voxel_m, double depth_max_m,
-                               int threads, const std::vector<StampedPose>& truth) {
-  const std::string command =
-      Cat("OMP_WAIT_POLICY=PASSIVE OMP_NUM_THREADS=", threads, " /usr/bin/python3 ",
-          HOLOCAP_BENCH_DIR, "/open3d_odometry.py ", dir.string(), " odometry,slam ", voxel_m, " ",
-          depth_max_m, " 2>&1");
+std::vector<PeerRun> RunOpen3d(const fs::path& dir, double voxel_m, double depth_max_m, int threads,
+                               const std::vector<StampedPose>& truth) {
+  const std::string command = Cat("OMP_WAIT_POLICY=PASSIVE OMP_NUM_THREADS=", threads,
+                                  " /usr/bin/python3 ", HOLOCAP_BENCH_DIR, "/open3d_odometry.py ",
+                                  dir.string(), " odometry ", voxel_m, " ", depth_max_m, " 2>&1");
   std::vector<PeerRun> runs;
   FILE* pipe = popen(command.c_str(), "r");
   if (pipe == nullptr) return runs;
@@ -179,10 +180,13 @@ void PrintRow(const std::string& trajectory, const std::string& size, const std:
 }
 
 void TrackingSection(const Args& args, const fs::path& work) {
-  std::printf("\n## Tracking: ATE RMSE (cm, rigid alignment), RPE per frame (mm, deg), fps of "
-              "tracking + fusion; %lld frames at 10 fps, 30 deg/s around the subject, %d threads\n\n",
-              static_cast<long long>(args.frames), args.threads);
-  std::printf("| traj.    | size    | method                             | ATE cm  | RPE mm  | RPE deg | fps    | note |\n");
+  std::printf(
+      "\n## Tracking: ATE RMSE (cm, rigid alignment), RPE per frame (mm, deg), fps of "
+      "tracking + fusion; %lld frames at 10 fps, 30 deg/s around the subject, %d threads\n\n",
+      static_cast<long long>(args.frames), args.threads);
+  std::printf(
+      "| traj.    | size    | method                             | ATE cm  | RPE mm  | RPE deg | "
+      "fps    | note |\n");
   std::printf("|---|---|---|---|---|---|---|---|\n");
   for (const std::string& trajectory : args.trajectories) {
     for (const auto& [w, h] : args.sizes) {
@@ -203,19 +207,20 @@ void TrackingSection(const Args& args, const fs::path& work) {
       const TakePlan plan = PlanTake(take, TakeSelection{});
       ScanOptions options;
       options.threads = args.threads;
+      options.photometric_weight_m = args.photometric_weight_m;
       const std::string load_before = Uptime();
       const ScanSummary scan = ScanTake(take, plan, take_dir / "scan", options);
       const std::vector<StampedPose> truth = TrueTrajectory(take, plan.depth_sensors.front());
-      PrintRow(trajectory, size, "holocap scan (ICP+photometric)", scan.errors.value_or(TrajectoryErrors{}),
-               scan.frames_per_second,
+      PrintRow(trajectory, size, "holocap scan (ICP+photometric)",
+               scan.errors.value_or(TrajectoryErrors{}), scan.frames_per_second,
                Cat(ToString(scan.termination), ", lost ", scan.lost, ", loops ", scan.loops,
                    ", load ", load_before));
       ExportForOpen3d(take, plan, take_dir / "open3d");
-      for (const PeerRun& peer :
-           RunOpen3d(take_dir / "open3d", options.voxel_m, options.depth_max_m, args.threads, truth)) {
+      for (const PeerRun& peer : RunOpen3d(take_dir / "open3d", options.voxel_m,
+                                           options.depth_max_m, args.threads, truth)) {
         PrintRow(trajectory, size,
                  peer.name == "slam" ? "Open3D slam.Model (frame to model)"
-                                     : "Open3D rgbd_odometry (frame to frame)",
+                                     : "Open3D rgbd odometry (hybrid, f2f)",
                  peer.errors, 1.0 / std::max(1e-9, peer.seconds_per_frame),
                  Cat("matched ", peer.errors.matched, ", load ", Uptime()));
       }
@@ -225,8 +230,10 @@ void TrackingSection(const Args& args, const fs::path& work) {
 
 void QualitySection(const Args& args, const fs::path& work) {
   std::printf("\n## Scan quality against the true subject (outer surface, F-score at 5 mm)\n\n");
-  std::printf("| what | chamfer mm | accuracy mm | completeness mm | F@5mm |\n|---|---|---|---|---|\n");
-  const fs::path orbit = work / Cat("orbit-", args.sizes.front().first, "x", args.sizes.front().second);
+  std::printf(
+      "| what | chamfer mm | accuracy mm | completeness mm | F@5mm |\n|---|---|---|---|---|\n");
+  const fs::path orbit =
+      work / Cat("orbit-", args.sizes.front().first, "x", args.sizes.front().second);
   const Mesh truth = ReadPly(orbit / "gt" / "meshes" / "000000.ply");
   if (fs::exists(orbit / "scan" / "mesh.ply")) {
     const SurfaceErrors e = ScanQuality(ReadPly(orbit / "scan" / "mesh.ply"), truth);
@@ -253,10 +260,12 @@ void QualitySection(const Args& args, const fs::path& work) {
   for (const FrameResult& f : recon.frames) {
     if (!f.metrics.contains("gt")) continue;
     const Json& gt = f.metrics["gt"];
-    std::printf("| studio8 reconstruct (8 colour + 2 depth, fixed), set %lld | %.2f | %.2f | %.2f | %.3f |\n",
-                static_cast<long long>(f.set), gt["chamfer_mm"].get<double>(),
-                gt["accuracy_mm"].get<double>(), gt["completeness_mm"].get<double>(),
-                gt["fscore_5mm"].get<double>());
+    std::printf(
+        "| studio8 reconstruct (8 colour + 2 depth, fixed), set %lld | %.2f | %.2f | %.2f | %.3f "
+        "|\n",
+        static_cast<long long>(f.set), gt["chamfer_mm"].get<double>(),
+        gt["accuracy_mm"].get<double>(), gt["completeness_mm"].get<double>(),
+        gt["fscore_5mm"].get<double>());
   }
 }
 
@@ -270,6 +279,7 @@ int main(int argc, char** argv) {
     const std::string flag = argv[i], value = argv[i + 1];
     if (flag == "--frames") args.frames = std::stoll(value);
     if (flag == "--threads") args.threads = std::stoi(value);
+    if (flag == "--photometric") args.photometric_weight_m = std::stod(value);
     if (flag == "--keep") args.keep = value;
     if (flag == "--trajectories") {
       args.trajectories.clear();

@@ -111,8 +111,10 @@ const char* ToString(TrackingState state) {
 }
 
 Json TrajectoryErrors::ToJson() const {
-  return {{"matched", matched},          {"ate_rmse_m", ate_rmse_m},
-          {"ate_max_m", ate_max_m},      {"rpe_trans_m", rpe_trans_m},
+  return {{"matched", matched},
+          {"ate_rmse_m", ate_rmse_m},
+          {"ate_max_m", ate_max_m},
+          {"rpe_trans_m", rpe_trans_m},
           {"rpe_rot_deg", rpe_rot_deg}};
 }
 
@@ -309,8 +311,7 @@ class Scanner {
   Box VolumeBounds(const scan::TrackFrame& frame, const Pose& world_from_cam) const {
     if (options_.bounds) return *options_.bounds;
     if (plan_.bounds_source.rfind("user", 0) == 0) return Box::From(plan_.bounds);
-    const Eigen::Vector3d center =
-        world_from_cam * Eigen::Vector3d(0, 0, frame.median_depth_m);
+    const Eigen::Vector3d center = world_from_cam * Eigen::Vector3d(0, 0, frame.median_depth_m);
     const Eigen::Vector3d half = Eigen::Vector3d::Constant(0.5 * options_.volume_side_m);
     return {center - half, center + half};
   }
@@ -358,8 +359,8 @@ class Scanner {
     const Clock::time_point start = Clock::now();
     const Pose predicted = Predict();
     const cv::Mat depth = UsableDepth(raw, predicted);
-    const cv::Mat gray = scan::RegisterIntensity(depth, rays_, color, color_lens_,
-                                                 color_from_depth_, threads_);
+    const cv::Mat gray =
+        scan::RegisterIntensity(depth, rays_, color, color_lens_, color_from_depth_, threads_);
     scan::TrackFrame track = scan::PrepareFrame(depth, rays_, gray, options_.pyramid_levels,
                                                 options_.depth_min_m, options_.depth_max_m);
     frame.points = track.valid;
@@ -429,10 +430,10 @@ class Scanner {
       frame.why = Cat(track.valid, " valid depth points (< ", options_.min_points, ")");
     } else {
       const double window = 0.1 + 2 * volume_->volume().truncation_m();
-      const scan::ModelView model = scan::RaycastModel(volume_->volume(), rays_, predicted, depth,
-                                                       window, threads_);
-      const scan::AlignResult aligned = scan::AlignToReference(track, model, depth_lens_,
-                                                               predicted, options_, threads_);
+      const scan::ModelView model =
+          scan::RaycastModel(volume_->volume(), rays_, predicted, depth, window, threads_);
+      const scan::AlignResult aligned =
+          scan::AlignToReference(track, model, depth_lens_, predicted, options_, threads_);
       frame.world_from_cam = aligned.world_from_cam;
       frame.inlier_fraction = aligned.inlier_fraction;
       frame.residual_m = aligned.residual_m;
@@ -504,7 +505,8 @@ void Scanner::Refine() {
   for (const Keyframe& k : keyframes_) poses.push_back(summary_.frames[k.frame].world_from_cam);
   std::vector<scan::PoseEdge> edges;
   for (size_t k = 1; k < keyframes_.size(); ++k)
-    edges.push_back({static_cast<int>(k - 1), static_cast<int>(k), poses[k - 1].inverse() * poses[k]});
+    edges.push_back(
+        {static_cast<int>(k - 1), static_cast<int>(k), poses[k - 1].inverse() * poses[k]});
   int loops = 0;
   for (size_t b = 0; b < keyframes_.size(); ++b) {
     double travelled_deg = 0;
@@ -519,8 +521,8 @@ void Scanner::Refine() {
       const scan::AlignResult aligned = scan::AlignToReference(
           keyframes_[b].track, reference, depth_lens_, poses[b], options_, threads_);
       if (Judge(aligned, poses[b], options_).state != TrackingState::kTracked) continue;
-      edges.push_back({static_cast<int>(a), static_cast<int>(b),
-                       poses[a].inverse() * aligned.world_from_cam});
+      edges.push_back(
+          {static_cast<int>(a), static_cast<int>(b), poses[a].inverse() * aligned.world_from_cam});
       ++loops;
     }
   }
@@ -605,23 +607,22 @@ void Scanner::Conclude(const std::filesystem::path& out) {
                     "), never fused");
   }
   if (!volume_) {
-    summary_.End(Termination::kDegenerate,
-                 Cat("no frame had enough valid depth to start a model (", plan_.sets.size(),
-                     " frames of ", depth_name_, ")"));
+    summary_.End(Termination::kDegenerate, Cat("no frame had enough valid depth to start a model (",
+                                               plan_.sets.size(), " frames of ", depth_name_, ")"));
   } else if (stopped_) {
     summary_.End(Termination::kDegenerate, stop_reason_ + "; the model so far is kept" + lost_note);
-  } else if (considered > 0 &&
-             summary_.degenerate > options_.max_degenerate_fraction * static_cast<double>(considered)) {
+  } else if (considered > 0 && summary_.degenerate > options_.max_degenerate_fraction *
+                                                         static_cast<double>(considered)) {
     const ScanFrame* d = first_of(TrackingState::kDegenerate);
-    summary_.End(Termination::kDegenerate,
-                 Cat(summary_.degenerate, " of ", considered, " tracked frames degenerate (first: set ",
-                     d->set, ", ", d->why, "): the surface does not fix the sensor's pose"));
+    summary_.End(
+        Termination::kDegenerate,
+        Cat(summary_.degenerate, " of ", considered, " tracked frames degenerate (first: set ",
+            d->set, ", ", d->why, "): the surface does not fix the sensor's pose"));
   } else if (mesh.faces.empty()) {
     summary_.End(Termination::kDegenerate, "the fused volume holds no surface" + lost_note);
   } else {
-    summary_.End(Termination::kSuccess,
-                 Cat(summary_.fused, " of ", summary_.frames.size(), " frames tracked and fused",
-                     lost_note));
+    summary_.End(Termination::kSuccess, Cat(summary_.fused, " of ", summary_.frames.size(),
+                                            " frames tracked and fused", lost_note));
   }
   try {
     WriteOutputs(out, mesh);
@@ -632,7 +633,8 @@ void Scanner::Conclude(const std::filesystem::path& out) {
 
 void Scanner::WriteOutputs(const std::filesystem::path& out, const Mesh& mesh) {
   std::string tum = "# world_from_cam of " + depth_name_ + ": time_s tx ty tz qx qy qz qw\n";
-  for (const StampedPose& pose : EstimatedTrajectory()) tum += TumLine(pose.time_s, pose.world_from_cam);
+  for (const StampedPose& pose : EstimatedTrajectory())
+    tum += TumLine(pose.time_s, pose.world_from_cam);
   WriteFileAtomic(out / "trajectory.tum", tum);
   Json frames = Json::array();
   for (const ScanFrame& f : summary_.frames) {
@@ -660,7 +662,8 @@ void Scanner::WriteOutputs(const std::filesystem::path& out, const Mesh& mesh) {
     View view;
     view.name = Cat(color_name_, "@", summary_.frames[k.frame].set);
     view.camera = color_lens_;
-    view.camera.set_cam_from_world(color_from_depth_ * summary_.frames[k.frame].world_from_cam.inverse());
+    view.camera.set_cam_from_world(color_from_depth_ *
+                                   summary_.frames[k.frame].world_from_cam.inverse());
     view.image = k.color;
     views.push_back(view);
   }
@@ -723,8 +726,7 @@ ScanSummary ScanTake(const Take& take, const TakePlan& plan, const std::filesyst
 }
 
 ScanSummary ScanTake(const std::filesystem::path& take_dir, const TakeSelection& selection,
-                     const std::filesystem::path& out, const ScanOptions& options,
-                     Report* report) {
+                     const std::filesystem::path& out, const ScanOptions& options, Report* report) {
   options.Check();
   const Take take = Take::Open(take_dir);
   const TakePlan plan = PlanTake(take, selection);

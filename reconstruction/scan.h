@@ -21,9 +21,9 @@
 #include <vector>
 
 #include "core/pose.h"
-#include "core/trajectory.h"
 #include "core/report.h"
 #include "core/take_plan.h"
+#include "core/trajectory.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -65,7 +65,7 @@ struct ScanOptions {
   int min_points = 300;
   double max_step_m = 0.25;
   double max_step_deg = 20;
-  double min_condition = 2e-3;
+  double min_condition = 1e-4;
   // This many lost frames in a row end the scan with the model so far (DEGENERATE).
   int max_lost_frames = 15;
   // More than this fraction of degenerate frames makes the scan DEGENERATE.
@@ -94,26 +94,26 @@ const char* ToString(TrackingState state);
 
 struct ScanFrame {
   int64_t set = 0;
-  double time_s = 0;                      // the depth frame's timestamp, seconds of its clock
+  double time_s = 0;  // the depth frame's timestamp, seconds of its clock
   TrackingState state = TrackingState::kSkipped;
-  std::string why;                        // lost, degenerate or skipped: the reason
+  std::string why;                         // lost, degenerate or skipped: the reason
   Pose world_from_cam = Pose::Identity();  // the depth sensor (after refinement)
   bool fused = false;
-  int64_t points = 0;             // valid depth points at the finest level
-  double inlier_fraction = 0;     // of them, paired with the model
-  double residual_m = 0;          // point-to-plane RMS of the pairs
-  double condition = 0;           // smallest / largest eigenvalue of the scaled Hessian
+  int64_t points = 0;          // valid depth points at the finest level
+  double inlier_fraction = 0;  // of them, paired with the model
+  double residual_m = 0;       // point-to-plane RMS of the pairs
+  double condition = 0;        // smallest / largest eigenvalue of the scaled Hessian
   Eigen::Vector3d weak_direction = Eigen::Vector3d::Zero();  // degenerate: translation part
-  double seconds = 0;             // tracking + fusion
+  double seconds = 0;                                        // tracking + fusion
 };
 
 // Errors of an estimated trajectory against the truth, matched by time (within half a frame).
 struct TrajectoryErrors {
   int64_t matched = 0;
-  double ate_rmse_m = 0;    // after the rigid (Umeyama, no scale) alignment of positions
+  double ate_rmse_m = 0;  // after the rigid (Umeyama, no scale) alignment of positions
   double ate_max_m = 0;
-  double rpe_trans_m = 0;   // RMSE of the relative motion's translation error, consecutive frames
-  double rpe_rot_deg = 0;   // ... and of its rotation error
+  double rpe_trans_m = 0;  // RMSE of the relative motion's translation error, consecutive frames
+  double rpe_rot_deg = 0;  // ... and of its rotation error
   nlohmann::json ToJson() const;
 };
 TrajectoryErrors CompareTrajectories(const std::vector<StampedPose>& estimate,
@@ -129,9 +129,9 @@ struct ScanSummary : Summary {
   std::vector<ScanFrame> frames;
   int64_t tracked = 0, degenerate = 0, lost = 0, fused = 0, keyframes = 0, loops = 0;
   double seconds = 0;
-  double tracking_seconds = 0;  // of which tracking (pyramids, raycasts, ICP)
-  double fusion_seconds = 0;    // ... and fusion
-  double frames_per_second = 0;  // frames tracked and fused per second of the two
+  double tracking_seconds = 0;             // of which tracking (pyramids, raycasts, ICP)
+  double fusion_seconds = 0;               // ... and fusion
+  double frames_per_second = 0;            // frames tracked and fused per second of the two
   std::optional<TrajectoryErrors> errors;  // against the truth, when the take has it
   int64_t vertices = 0, faces = 0;
   nlohmann::json metrics;  // the report's metrics

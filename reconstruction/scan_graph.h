@@ -10,7 +10,7 @@
 namespace holocap::scan {
 
 struct PoseEdge {
-  int a = 0, b = 0;                   // keyframe indices
+  int a = 0, b = 0;                  // keyframe indices
   Pose a_from_b = Pose::Identity();  // measured: world_from_a^-1 * world_from_b
   double weight = 1;
 };

@@ -39,8 +39,7 @@ TrackFrame PrepareFrame(const cv::Mat& depth_m, const cv::Mat& rays, const cv::M
 // depth or the colour has nothing). `color_from_depth` maps the depth camera's frame to the
 // colour camera's.
 cv::Mat RegisterIntensity(const cv::Mat& depth_m, const cv::Mat& rays, const cv::Mat& color_bgr,
-                          const CameraModel& color_lens, const Pose& color_from_depth,
-                          int threads);
+                          const CameraModel& color_lens, const Pose& color_from_depth, int threads);
 
 // What a reference (the model, or a keyframe) looks like from a pose: world points and
 // normals per pixel of the depth camera, and their intensity.
@@ -56,9 +55,8 @@ struct ModelView {
 // Raycasts the TSDF's zero crossing from `world_from_cam` through the depth camera's pixels,
 // searching each ray within `window_m` of `hint_depth_m` (the frame being tracked; pixels
 // without a hint are skipped). Colour from the voxels.
-ModelView RaycastModel(const SparseVolume& volume, const cv::Mat& rays,
-                       const Pose& world_from_cam, const cv::Mat& hint_depth_m, double window_m,
-                       int threads);
+ModelView RaycastModel(const SparseVolume& volume, const cv::Mat& rays, const Pose& world_from_cam,
+                       const cv::Mat& hint_depth_m, double window_m, int threads);
 // A keyframe's own finest level as a reference, posed at `world_from_cam`.
 ModelView ViewOfFrame(const TrackFrame& frame, const Pose& world_from_cam);
 
@@ -67,8 +65,8 @@ struct AlignResult {
   int64_t points = 0;   // valid points at the finest level
   int64_t inliers = 0;  // of them paired at the last iteration
   double inlier_fraction = 0;
-  double residual_m = 0;  // point-to-plane RMS of the pairs
-  double condition = 0;   // smallest / largest eigenvalue of the scaled Hessian
+  double residual_m = 0;           // point-to-plane RMS of the pairs
+  double condition = 0;            // smallest / largest eigenvalue of the scaled Hessian
   double geometric_condition = 0;  // the same without the photometric term
   Eigen::Vector3d weak_direction = Eigen::Vector3d::Zero();
   int iterations = 0;

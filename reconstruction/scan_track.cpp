@@ -112,7 +112,8 @@ void ComputeNormals(Level& level, int reach) {
       const Eigen::Vector3f& r = level.points[y * w + x + reach];
       const Eigen::Vector3f& u = level.points[(y - reach) * w + x];
       const Eigen::Vector3f& d = level.points[(y + reach) * w + x];
-      if (std::isnan(l.z()) || std::isnan(r.z()) || std::isnan(u.z()) || std::isnan(d.z())) continue;
+      if (std::isnan(l.z()) || std::isnan(r.z()) || std::isnan(u.z()) || std::isnan(d.z()))
+        continue;
       Eigen::Vector3f n = (r - l).cross(d - u);
       const float norm = n.norm();
       if (!(norm > 0)) continue;
@@ -271,14 +272,13 @@ class Linearizer {
     const Eigen::Vector3d pw = p_world.cast<double>();
     motion.rightCols<3>() << 0, pw.z(), -pw.y(), -pw.z(), 0, pw.x(), pw.y(), -pw.x(), 0;
     const double lambda = options_.photometric_weight_m;
-    const Vector6d j = lambda * (gradient.cast<double>().transpose() * projection *
-                                 ref_from_world * motion)
-                                    .transpose();
+    const Vector6d j =
+        lambda *
+        (gradient.cast<double>().transpose() * projection * ref_from_world * motion).transpose();
     const double residual = lambda * (reference - intensity);
     // Robust to what the model's averaged colour cannot predict (specular, blur).
-    const double weight = std::abs(residual) <= options_.huber_m ? 1.0
-                                                                 : options_.huber_m /
-                                                                       std::abs(residual);
+    const double weight =
+        std::abs(residual) <= options_.huber_m ? 1.0 : options_.huber_m / std::abs(residual);
     eq->photometric += weight * j * j.transpose();
     eq->gradient += weight * j * residual;
   }
@@ -385,7 +385,8 @@ TrackFrame PrepareFrame(const cv::Mat& depth_m, const cv::Mat& rays, const cv::M
     for (int y = 0; y < fine.height; ++y) {
       for (int x = 0; x < fine.width; ++x) {
         const int cx = std::min(x / 2, coarse.width - 1), cy = std::min(y / 2, coarse.height - 1);
-        fine.normals[static_cast<size_t>(y) * fine.width + x] = coarse.normals[cy * coarse.width + cx];
+        fine.normals[static_cast<size_t>(y) * fine.width + x] =
+            coarse.normals[cy * coarse.width + cx];
       }
     }
   } else {
@@ -478,8 +479,8 @@ ModelView ViewOfFrame(const TrackFrame& frame, const Pose& world_from_cam) {
     if (std::isnan(level.points[i].z()) || std::isnan(level.normals[i].z())) continue;
     view.points[i] = pose * level.points[i];
     view.normals[i] = pose.linear() * level.normals[i];
-    view.intensity.at<float>(static_cast<int>(i) / level.width,
-                             static_cast<int>(i) % level.width) = level.intensity[i];
+    view.intensity.at<float>(static_cast<int>(i) / level.width, static_cast<int>(i) % level.width) =
+        level.intensity[i];
     ++view.hits;
   }
   return view;
