@@ -30,21 +30,23 @@ void PrintScan(const ScanSummary& summary) {
     std::printf("  set %06lld: %-10s %s\n", static_cast<long long>(f.set), ToString(f.state),
                 f.why.c_str());
   }
-  std::printf("%lld frames: %lld tracked, %lld degenerate, %lld lost, %lld fused; %lld keyframes, "
-              "%lld loop edges\n",
-              static_cast<long long>(summary.frames.size()),
-              static_cast<long long>(summary.tracked), static_cast<long long>(summary.degenerate),
-              static_cast<long long>(summary.lost), static_cast<long long>(summary.fused),
-              static_cast<long long>(summary.keyframes), static_cast<long long>(summary.loops));
+  std::printf(
+      "%lld frames: %lld tracked, %lld degenerate, %lld lost, %lld fused; %lld keyframes, "
+      "%lld loop edges\n",
+      static_cast<long long>(summary.frames.size()), static_cast<long long>(summary.tracked),
+      static_cast<long long>(summary.degenerate), static_cast<long long>(summary.lost),
+      static_cast<long long>(summary.fused), static_cast<long long>(summary.keyframes),
+      static_cast<long long>(summary.loops));
   std::printf("tracking %.2f s + fusion %.2f s: %.1f frames/s; mesh %lld vertices\n",
               summary.tracking_seconds, summary.fusion_seconds, summary.frames_per_second,
               static_cast<long long>(summary.vertices));
   if (summary.errors) {
-    std::printf("against the true trajectory (%lld frames): ATE RMSE %.2f cm (max %.2f cm), "
-                "RPE %.2f mm / %.3f deg per frame\n",
-                static_cast<long long>(summary.errors->matched), 100 * summary.errors->ate_rmse_m,
-                100 * summary.errors->ate_max_m, 1e3 * summary.errors->rpe_trans_m,
-                summary.errors->rpe_rot_deg);
+    std::printf(
+        "against the true trajectory (%lld frames): ATE RMSE %.2f cm (max %.2f cm), "
+        "RPE %.2f mm / %.3f deg per frame\n",
+        static_cast<long long>(summary.errors->matched), 100 * summary.errors->ate_rmse_m,
+        100 * summary.errors->ate_max_m, 1e3 * summary.errors->rpe_trans_m,
+        summary.errors->rpe_rot_deg);
   }
 }
 
@@ -61,9 +63,10 @@ void AddScanCommand(CLI::App& app) {
   AddTakeSelectionFlags(command, &args->selection);
   AddSceneFlags(command, &args->scene);
   command->add_option("--voxel", args->voxel, "TSDF voxel (e.g. 6mm)");
-  command->add_option("--volume-side", o.volume_side_m,
-                      "Side of the cube scanned around what the first frame sees (metres), "
-                      "when no --bounds")
+  command
+      ->add_option("--volume-side", o.volume_side_m,
+                   "Side of the cube scanned around what the first frame sees (metres), "
+                   "when no --bounds")
       ->capture_default_str();
   command->add_option("--depth-max", o.depth_max_m, "Farthest depth tracked and fused (metres)")
       ->capture_default_str();
@@ -85,10 +88,10 @@ void AddScanCommand(CLI::App& app) {
     options.Check();
     TakeSelection selection = args->selection.Parse();
     args->scene.Apply(&selection);
-    const OutputDirectory claimed = OutputDirectory::Claim(
-        args->out.empty() ? std::filesystem::path(args->take) / "scan"
-                          : std::filesystem::path(args->out),
-        {"scan", args->overwrite, {}});
+    const OutputDirectory claimed =
+        OutputDirectory::Claim(args->out.empty() ? std::filesystem::path(args->take) / "scan"
+                                                 : std::filesystem::path(args->out),
+                               {"scan", args->overwrite, {}});
     const std::filesystem::path& out = claimed.path();
     Report report("scan");
     report.SetFailureDestination(out / "report.json");

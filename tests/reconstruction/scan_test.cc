@@ -87,8 +87,9 @@ TEST(ScanSimTest, TurntableSubjectMovesAndTheSensorStays) {
   const std::vector<StampedPose> truth =
       ParseTum(ReadFileToString(dir / "take" / "gt" / "trajectory" / "depth0.tum"), "depth0.tum");
   ASSERT_EQ(truth.size(), 3u);
-  EXPECT_NEAR(RotationAngleDeg((truth[0].world_from_cam.inverse() * truth[2].world_from_cam).linear()),
-              6.0, 0.05);
+  EXPECT_NEAR(
+      RotationAngleDeg((truth[0].world_from_cam.inverse() * truth[2].world_from_cam).linear()), 6.0,
+      0.05);
   const Mesh first = ReadPly(dir / "take" / "gt" / "meshes" / "000000.ply");
   const Mesh last = ReadPly(dir / "take" / "gt" / "meshes" / "000002.ply");
   EXPECT_GT((first.vertices[0] - last.vertices[0]).norm(), 1e-3);
@@ -180,8 +181,7 @@ TEST(ScanTest, NoValidDepthIsDegenerateWithAReason) {
   const testing::CommandResult cli =
       testing::RunCli("scan " + (dir / "take").string() + " --out " + (dir / "cli").string());
   testing::ExpectOneLineError(cli, "no frame had enough valid depth");
-  const auto report =
-      nlohmann::json::parse(ReadFileToString(dir / "cli" / "report.json"));
+  const auto report = nlohmann::json::parse(ReadFileToString(dir / "cli" / "report.json"));
   EXPECT_EQ(report["summary"]["termination"], "DEGENERATE");
 }
 
