@@ -96,6 +96,9 @@ void AddScanCommand(CLI::App& app) {
     Report report("scan");
     report.SetFailureDestination(out / "report.json");
     const ScanSummary summary = ScanTake(args->take, selection, out, options, &report);
+    // Nothing fused (no frame had depth to start a model): the input cannot be scanned, and
+    // the one error line says why (report.json holds every frame's reason).
+    if (summary.fused == 0) FailUnlessUsable(summary, "scan");
     PrintScan(summary);
     std::printf("trajectory, mesh and report: %s\n", out.c_str());
     EndCommand(summary, "scan");
