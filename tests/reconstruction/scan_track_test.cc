@@ -75,8 +75,7 @@ class TrackerFixture {
         const cv::Vec2f ray = rays_.at<cv::Vec2f>(y, x);
         const Eigen::Vector3d p =
             truth_[set].world_from_cam * Eigen::Vector3d(ray[0] * d, ray[1] * d, d);
-        if (!(d >= options_.depth_min_m && d <= options_.depth_max_m) ||
-            !bounds_.Contains(p)) {
+        if (!(d >= options_.depth_min_m && d <= options_.depth_max_m) || !bounds_.Contains(p)) {
           d = std::numeric_limits<float>::quiet_NaN();
         }
       }
@@ -89,8 +88,8 @@ class TrackerFixture {
     const cv::Mat depth = Depth(last_);
     const cv::Mat gray = scan::RegisterIntensity(depth, rays_, take_->ReadFrame(last_, "cam0"),
                                                  color_lens_, color_from_depth_, 2);
-    const scan::TrackFrame frame = scan::PrepareFrame(
-        depth, rays_, gray, options.pyramid_levels, options.depth_min_m, options.depth_max_m);
+    const scan::TrackFrame frame = scan::PrepareFrame(depth, rays_, gray, options.pyramid_levels,
+                                                      options.depth_min_m, options.depth_max_m);
     const double window = 0.1 + 2 * volume_->volume().truncation_m();
     const scan::ModelView model =
         scan::RaycastModel(volume_->volume(), rays_, start, depth, window, 2);
