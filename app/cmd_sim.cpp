@@ -90,6 +90,16 @@ static void AddSimCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_flag("--no-noise", args->no_noise, "Noise-free, deterministic frames");
   command->add_flag("--motion-blur", o.motion_blur, "Integrate the motion over each exposure");
+  command
+      ->add_option("--trajectory", o.trajectory,
+                   "Sensor motion: fixed, orbit (circle the subject), handheld (walk around it "
+                   "with shake and motion blur) or turn (the subject turns before the sensors); "
+                   "true poses in gt/trajectory/")
+      ->capture_default_str();
+  command
+      ->add_option("--trajectory-speed", o.trajectory_deg_per_s,
+                   "Degrees per second around the subject (orbit, handheld, turn)")
+      ->capture_default_str();
   command->add_option("--threads", o.threads, "Render threads (0: all cores)")
       ->capture_default_str();
   command->add_flag("--overwrite", o.overwrite, "Replace an existing take directory");

@@ -133,6 +133,7 @@ nlohmann::json TakePlan::ToJson() const {
   return {{"cameras", cameras_source},
           {"color_sensors", color_sensors},
           {"depth_sensors", depth_sensors},
+          {"sensor_motion", sensor_motion},
           {"clean_plate_frames", clean_plate_frames},
           {"frame_sets", sets},
           {"heldout", heldout},
@@ -169,6 +170,7 @@ void ChooseCameraSource(const Take& take, const TakeSelection& selection, TakePl
 }
 
 void ChooseFrameSets(const Take& take, const TakeSelection& selection, TakePlan& plan) {
+  plan.sensor_motion = take.metadata().value("trajectory", std::string("fixed"));
   plan.clean_plate_frames = selection.clean_plate_frames >= 0
                                 ? selection.clean_plate_frames
                                 : take.metadata().value("clean_plate_frames", int64_t{0});

@@ -398,7 +398,31 @@ Pose Scene::WorldFromBoard(int64_t set) const {
   return PlanBoardPose(*board_, board_cameras_, set, seed_);
 }
 
+void Scene::HoldStill(std::function<Pose(double)> world_from_subject) {
+  world_from_subject_ = std::move(world_from_subject);
+}
+
+Eigen::Vector3d Scene::CenterAtStart() const {
+  Eigen::Vector3d center = Eigen::Vector3d::Zero();
+  if (kind_ == SceneKind::kBoard || parts_.empty()) return center;
+  const std::vector<Pose> poses = MovingPartPoses(0);
+  for (const Pose& pose : poses) center += pose.translation();
+  center /= static_cast<double>(poses.size());
+  center.z() = 0;
+  return center;
+}
+
 std::vector<Pose> Scene::PartPoses(double t_s) const {
+  if (world_from_subject_) {
+    std::vector<Pose> poses = MovingPartPoses(0);
+    const Pose motion = world_from_subject_(t_s);
+    for (Pose& pose : poses) pose = motion * pose;
+    return poses;
+  }
+  return MovingPartPoses(t_s);
+}
+
+std::vector<Pose> Scene::MovingPartPoses(double t_s) const {
   std::vector<Pose> poses(parts_.size(), Pose::Identity());
   if (kind_ == SceneKind::kObject) {
     for (size_t p = 0; p < parts_.size(); ++p) {

@@ -6,6 +6,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -112,8 +113,14 @@ class Scene {
   const std::vector<Part>& parts() const { return parts_; }
   // world_from_part of every part at `t_s` (the humanoid's walk; the object is static).
   std::vector<Pose> PartPoses(double t_s) const;
+  // From now on the subject holds its pose of t = 0, moved rigidly by world_from_subject(t)
+  // (a scan's still subject, or one turning on the spot).
+  void HoldStill(std::function<Pose(double)> world_from_subject);
+  // The subject's centre at t = 0 on the floor: the mean of its parts' origins, z = 0.
+  Eigen::Vector3d CenterAtStart() const;
 
  private:
+  std::vector<Pose> MovingPartPoses(double t_s) const;  // the walk, or the static object
   SceneKind kind_;
   std::vector<Part> parts_;
   std::optional<Board> board_;
@@ -121,6 +128,7 @@ class Scene {
   int64_t clean_plate_frames_ = 0;
   uint64_t seed_ = 1;
   Appearance appearance_;
+  std::function<Pose(double)> world_from_subject_;  // set: the subject holds still
 };
 
 // The humanoid's parts (15 ellipsoidal limbs, each a closed mesh) and the static object's

@@ -81,6 +81,14 @@ struct SimOptions {
   double fps = 0;                  // frame sets per second; 0: the rig's fps
   int64_t clean_plate_frames = 0;  // leading frame sets rendered without the subject/object
   BoardLayout board = DefaultSimBoard();  // the board of the "board" scene
+  // How the sensors move (scan takes): "fixed"; "orbit" (every sensor circles the vertical
+  // axis through the subject's centre, bobbing 3 cm); "handheld" (an uneven walk around the
+  // subject: distance and height wander by 15 and 10 cm, the aim drifts, the hand trembles,
+  // and colour frames integrate the motion over their exposure); "turn" (the sensors stay,
+  // the subject turns on the spot about that axis). With any of these the subject holds its
+  // first pose (it does not walk). The true pose of every frame is in gt/ (see SimulateTake).
+  std::string trajectory = "fixed";
+  double trajectory_deg_per_s = 30;  // angular speed around the axis (orbit, handheld, turn)
 
   // The take's world (see "Variants" above). Rendering is the same for every choice.
   double world_scale = 1;                         // everything scaled by this, > 0
@@ -145,9 +153,14 @@ struct SimSummary : Summary {
 //   gt/masks/<sensor>/<set:06d>.png   the subject's silhouette (255) per delivered frame
 //   gt/depth/<sensor>/<set:06d>.exr   true z-depth (metres) for depth sensors
 //   gt/board.json                     board layout and per-set world_from_board (board scene)
+//   gt/trajectory/<sensor>.tum        moving takes: every delivered frame's true world_from_cam
+//                                     as TUM lines "time_s tx ty tz qx qy qz qw" (time_s: the
+//                                     frame's true mid-exposure time); a turning subject's are
+//                                     relative to the subject (the world as it is at t = 0)
 //   gt/sim.json                       options, per-sensor clock offsets, exposure times,
 //                                     every frame's true time and timestamp, dropped frames,
-//                                     noise parameters, depth_from_color of paired sensors
+//                                     noise parameters, depth_from_color of paired sensors,
+//                                     and each frame's true cam_from_world when sensors move
 // `report` (optional) gets the options, metrics and a frame-sets-per-minute series.
 // Throws Error for bad options or an unwritable directory.
 SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& out,

@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <cstdio>
+#include <map>
 #include <memory>
 
 #include "core/error.h"
@@ -10,6 +11,7 @@
 #include "core/mesh.h"
 #include "core/progress.h"
 #include "core/take.h"
+#include "core/trajectory.h"
 #include "sim/sim.h"
 #include "sim/world.h"
 
@@ -92,7 +94,8 @@ class Simulation {
     const Json metadata = {{"simulated", true},
                            {"scene", options_.scene},
                            {"seed", options_.seed},
-                           {"clean_plate_frames", options_.clean_plate_frames}};
+                           {"clean_plate_frames", options_.clean_plate_frames},
+                           {"trajectory", options_.trajectory}};
     writer_ =
         std::make_unique<TakeWriter>(out, world_.rig(), world_.streams(), metadata, writer_options);
   }
@@ -187,10 +190,16 @@ class Simulation {
 
     FrameSet frame_set = WriteFrameGroundTruth(set, present, rendered);
     for (size_t k = 0; k < present.size(); ++k) {
+      const std::string& sensor = world_.sensor(present[k]).spec.name;
       frames_json_.push_back({{"set", set},
-                              {"sensor", world_.sensor(present[k]).spec.name},
+                              {"sensor", sensor},
                               {"time_s", rendered[k].time_s},
                               {"timestamp_ns", rendered[k].timestamp_ns}});
+      if (world_.trajectory().moving()) {
+        const CameraModel truth = world_.TrueModelAt(present[k], rendered[k].time_s);
+        frames_json_.back()["cam_from_world"] = PoseJson(truth.cam_from_world());
+        tum_[sensor] += TumLine(rendered[k].time_s, truth.world_from_cam());
+      }
     }
     writer_->Append(frame_set);
     summary_.frames_written += static_cast<int64_t>(present.size());
@@ -239,6 +248,10 @@ class Simulation {
   }
 
   void WriteBoardAndSimJson() {
+    for (const auto& [sensor, lines] : tum_) {
+      CreateDirectories(gt_ / "trajectory");
+      WriteFileAtomic(gt_ / "trajectory" / (sensor + ".tum"), lines);
+    }
     if (scene_.kind() == sim::SceneKind::kBoard) {
       // The board scales with the world: its layout in the take's metres.
       BoardLayout layout = options_.board;
@@ -305,6 +318,7 @@ class Simulation {
   Json frames_json_ = Json::array();
   Json dropped_json_ = Json::array();
   Json board_poses_ = Json::array();
+  std::map<std::string, std::string> tum_;  // moving takes: each sensor's true trajectory
 };
 
 }  // namespace

@@ -61,6 +61,14 @@ void SimOptions::Check() const {
     Fail("sim: drop_probability must be in [0, 1), got ", drop_probability);
   }
   if (threads < 0) Fail("sim: threads must be >= 0 (0: all cores)");
+  const sim::TrajectoryKind motion = sim::TrajectoryKindFromString(trajectory);
+  if (!(std::isfinite(trajectory_deg_per_s) && std::abs(trajectory_deg_per_s) <= 3600)) {
+    Fail("sim: trajectory_deg_per_s must be finite and within +-3600, got ", trajectory_deg_per_s);
+  }
+  if (motion != sim::TrajectoryKind::kFixed &&
+      sim::SceneKindFromString(scene) == sim::SceneKind::kBoard) {
+    Fail("sim: trajectory '", trajectory, "' needs a subject or object scene, not the board");
+  }
   if (!(world_scale > 0) || !std::isfinite(world_scale)) {
     Fail("sim: world_scale must be > 0, got ", world_scale);
   }
@@ -83,6 +91,8 @@ nlohmann::json SimOptions::ToJson() const {
           {"fps", fps},
           {"clean_plate_frames", clean_plate_frames},
           {"board", board.ToJson()},
+          {"trajectory", trajectory},
+          {"trajectory_deg_per_s", trajectory_deg_per_s},
           {"noise", noise},
           {"full_well_electrons", full_well_electrons},
           {"read_noise_electrons", read_noise_electrons},
@@ -191,6 +201,13 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options), frame_(option
   scene_ = std::make_unique<Scene>(SceneKindFromString(options_.scene), options_.board,
                                    colour_cameras, options_.clean_plate_frames, options_.seed,
                                    Appearance{options_.subject_albedo, options_.background_albedo});
+  trajectory_ = std::make_unique<Trajectory>(TrajectoryKindFromString(options_.trajectory),
+                                             options_.trajectory_deg_per_s, scene_->CenterAtStart(),
+                                             options_.seed);
+  if (trajectory_->moving()) {
+    const Trajectory* trajectory = trajectory_.get();
+    scene_->HoldStill([trajectory](double t_s) { return trajectory->WorldFromSubject(t_s); });
+  }
 }
 
 int SimWorld::IndexOf(const std::string& name) const {
@@ -253,6 +270,21 @@ double SimWorld::TrueTime(int index, int64_t set) const {
   return static_cast<double>(set) / fps_ + sensors_[index].exposure_offset_s;
 }
 
+CameraModel SimWorld::SimModelAt(int index, double t_s) const {
+  CameraModel model = sensors_[index].sim_model;
+  if (trajectory_->moves_sensor()) {
+    model.set_cam_from_world(trajectory_->WorldFromCam(model.world_from_cam(), t_s).inverse());
+  }
+  return model;
+}
+
+CameraModel SimWorld::TrueModelAt(int index, double t_s) const {
+  CameraModel in_sim = SimModelAt(index, t_s);
+  // Relative to a turning subject: cam_from_subject = cam_from_world * world_from_subject.
+  in_sim.set_cam_from_world(in_sim.cam_from_world() * trajectory_->WorldFromSubject(t_s));
+  return frame_.Camera(in_sim);
+}
+
 SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
   const SimSensorState& sensor = sensors_[index];
   const RayTable& rays = Rays(index);
@@ -268,7 +300,8 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
       MixSeed(options_.seed, 3, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
 
   if (sensor.spec.role == SensorRole::kDepth) {
-    const DepthRender truth = RenderDepth(*snapshot, sensor.sim_model, rays, threads);
+    const DepthRender truth =
+        RenderDepth(*snapshot, SimModelAt(index, frame.time_s), rays, threads);
     DepthSensorModel model;
     model.noise_k = options_.depth_noise_k;
     model.max_incidence_deg = options_.depth_max_incidence_deg;
@@ -286,18 +319,19 @@ SensorFrame SimWorld::Render(int index, int64_t set, int threads) const {
 
   const uint64_t jitter_seed =
       MixSeed(options_.seed, 5, static_cast<uint64_t>(index), static_cast<uint64_t>(set));
-  ColorRender render =
-      RenderColor(*snapshot, sensor.sim_model, rays, options_.antialias, jitter_seed, threads);
+  ColorRender render = RenderColor(*snapshot, SimModelAt(index, frame.time_s), rays,
+                                   options_.antialias, jitter_seed, threads);
   frame.mask = render.mask;
   cv::Mat radiance = render.radiance;
-  const int samples = options_.motion_blur ? options_.motion_blur_samples : 1;
+  const bool blur = options_.motion_blur || trajectory_->kind() == TrajectoryKind::kHandheld;
+  const int samples = blur ? options_.motion_blur_samples : 1;
   if (samples > 1) {
     // The exposure integrates the moving scene: average renders spread over it.
     radiance = cv::Mat::zeros(radiance.size(), radiance.type());
     const double exposure_s = sensor.exposure_us * 1e-6;
     for (int s = 0; s < samples; ++s) {
       const double t = frame.time_s + ((s + 0.5) / samples - 0.5) * exposure_s;
-      const ColorRender sub = RenderColor(*SnapshotAt(t, set), sensor.sim_model, rays,
+      const ColorRender sub = RenderColor(*SnapshotAt(t, set), SimModelAt(index, t), rays,
                                           options_.antialias, jitter_seed + s, threads);
       radiance += sub.radiance;
     }

@@ -2,6 +2,7 @@
 // shared by SimulateTake and the sim: driver so that both render identical frames.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <deque>
 #include <memory>
@@ -36,6 +37,38 @@ class WorldFrame {
  private:
   double scale_ = 1;
   Eigen::Matrix3d rotation_ = Eigen::Matrix3d::Identity();
+};
+
+// How the sensors (or the subject) move during a take (SimOptions::trajectory). Every motion
+// is the identity at t = 0, so the rig's poses are the poses of the first frame set.
+enum class TrajectoryKind { kFixed, kOrbit, kHandheld, kTurn };
+TrajectoryKind TrajectoryKindFromString(const std::string& text);  // throws Error
+const char* ToString(TrajectoryKind kind);
+
+class Trajectory {
+ public:
+  // `center`: a point on the vertical axis that orbits and turns go around (simulation world).
+  Trajectory(TrajectoryKind kind, double deg_per_s, const Eigen::Vector3d& center, uint64_t seed);
+  TrajectoryKind kind() const { return kind_; }
+  bool moves_sensor() const {
+    return kind_ == TrajectoryKind::kOrbit || kind_ == TrajectoryKind::kHandheld;
+  }
+  bool moving() const { return kind_ != TrajectoryKind::kFixed; }
+  // A sensor's pose at `t_s` from its pose at t = 0 (simulation world). Orbit: turned about
+  // the axis, bobbing 3 cm; handheld: an uneven arc around the axis whose distance and height
+  // wander by 15 and 10 cm while the aim drifts by 2 degrees, plus hand tremor (0.3 degrees
+  // and 1.5 mm at 4-11 Hz).
+  Pose WorldFromCam(const Pose& world_from_cam_at_0, double t_s) const;
+  // The subject's rigid motion (turn: about the axis; otherwise the identity): where a point of
+  // the subject at t = 0 is at `t_s`.
+  Pose WorldFromSubject(double t_s) const;
+
+ private:
+  Pose TurnAbout(double angle_rad) const;
+  TrajectoryKind kind_;
+  double rad_per_s_;
+  Eigen::Vector3d center_;
+  std::array<double, 8> phase_{};
 };
 
 struct SimSensorState {
@@ -83,6 +116,12 @@ class SimWorld {
   SensorFrame Render(int index, int64_t set, int threads) const;
   // Exact noise-free timestamp part: nominal time + exposure offset + clock offset.
   double TrueTime(int index, int64_t set) const;
+  const Trajectory& trajectory() const { return *trajectory_; }
+  // Sensor `index` at `t_s` along the trajectory: in the simulation's world (rendering) and
+  // as ground truth in the take's world. For a turning subject the ground truth is relative to
+  // the subject (the take's world as the subject is at t = 0), which is what a scan recovers.
+  CameraModel SimModelAt(int index, double t_s) const;
+  CameraModel TrueModelAt(int index, double t_s) const;
 
  private:
   const RayTable& Rays(int index) const;
@@ -93,6 +132,7 @@ class SimWorld {
   WorldFrame frame_;
   std::vector<SimSensorState> sensors_;
   std::unique_ptr<Scene> scene_;
+  std::unique_ptr<Trajectory> trajectory_;
   mutable std::mutex mutex_;
   mutable std::vector<std::shared_ptr<const RayTable>> rays_;
   mutable std::deque<std::pair<std::pair<double, int64_t>, std::shared_ptr<const Snapshot>>>
