@@ -6,16 +6,23 @@
 // (dynamic) trained for the same total wall time as the splats' frame 0 (--minutes) plus N - 1
 // later frames (--frame-minutes each), both at --width with the same two held-out cameras; the
 // splats' per-frame table (held-out PSNR, seconds, MB) and both models' sequence playback at
-// 512x512 measured in the same run. Prints tables; never passes or fails on time. Usage:
+// 512x512 measured in the same run. With --playback MODEL: only that splat model's playback,
+// the vectorised rasteriser against the scalar reference loop, interleaved. Prints tables; never
+// passes or fails on time. Usage:
 //   splat_bench [--minutes 3] [--width 320] [--seed-points 20000] [--work /tmp/splat-bench]
 //   splat_bench --studio8-frames 4 --minutes 2 --frame-minutes 0.5 --width 160 [--sim-width 320]
+//   splat_bench --playback /tmp/splat-bench-studio8/studio8-splat [--rounds 3]
+#include <sys/resource.h>
+
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <vector>
 
 #include "bench/bench_data.h"
 #include "core/error.h"
@@ -55,19 +62,39 @@ void PrintSeries(const char* name, const Report& report) {
   }
 }
 
-// Views per second of a 24-view orbit at 512x512 (frame 0, or the sequence played while turning
-// with `sequence`; nothing written), after one view that loads and warms the model.
-double PlaybackFps(const fs::path& model_dir, const fs::path& out, bool sequence = false) {
-  auto model = OpenModel(model_dir);
+// CPU seconds (user + system, every thread) this process has used so far.
+double CpuSeconds() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return usage.ru_utime.tv_sec + usage.ru_stime.tv_sec +
+         1e-6 * (usage.ru_utime.tv_usec + usage.ru_stime.tv_usec);
+}
+
+// A 24-view orbit at 512x512 played: views per second of rendering and CPU seconds per view.
+struct OrbitPlay {
+  double fps = 0, cpu_s_per_view = 0;
+};
+
+// Plays a 24-view orbit at 512x512 of frame 0 (or the sequence played while turning with
+// `sequence`; nothing written), after one view that loads and warms the model.
+OrbitPlay PlayOrbit(AvatarModel& model, const fs::path& out, bool sequence) {
   OrbitOptions orbit;
   orbit.views = 24;
   orbit.advance_frames = sequence;
-  const CameraPath path = OrbitPath(*model, orbit);
+  const CameraPath path = OrbitPath(model, orbit);
   PlaybackOptions options;
   options.out = out;
   options.write_frames = false;
-  model->Render(path.cameras[0], 0, options.render);
-  return RenderPath(*model, path, options).render_fps;
+  model.Render(path.cameras[0], 0, options.render);
+  const double cpu_start = CpuSeconds();
+  const PlaybackSummary summary = RenderPath(model, path, options);
+  return {summary.render_fps, (CpuSeconds() - cpu_start) / std::max<int64_t>(1, summary.views)};
+}
+
+// Views per second of a model directory's orbit, as `holocap render` plays it.
+double PlaybackFps(const fs::path& model_dir, const fs::path& out, bool sequence = false) {
+  auto model = OpenModel(model_dir);
+  return PlayOrbit(*model, out, sequence).fps;
 }
 
 // Both methods trained on one take, one after the other, and what they reported.
@@ -133,15 +160,21 @@ int RunStudio8(const fs::path& root, int frames, double minutes, double frame_mi
   PrintSeries("Neural Volumes", runs.nvol_report);
   PrintSeries("splats (frames one after another)", runs.splat_report);
   std::printf("\nsplats per frame (scored on the held-out cameras as soon as trained)\n");
-  std::printf("%6s %6s %7s %9s %10s %10s %10s %9s %8s %9s\n", "frame", "set", "iters", "seconds",
-              "whole_dB", "subject_dB", "background", "MB", "added", "Gaussians");
+  std::printf("%6s %6s %7s %9s %10s %10s %10s %9s %8s %8s %10s %9s\n", "frame", "set", "iters",
+              "seconds", "whole_dB", "subject_dB", "background", "MB", "added", "surface",
+              "uncovered", "Gaussians");
   for (const SplatFrameSummary& f : runs.splat.frames) {
-    std::printf("%6lld %6lld %7lld %9.1f %10.2f %10.2f %10.2f %9.3f %8lld %9lld\n",
+    std::printf("%6lld %6lld %7lld %9.1f %10.2f %10.2f %10.2f %9.3f %8lld %8lld %10lld %9lld\n",
                 static_cast<long long>(f.frame), static_cast<long long>(f.set),
                 static_cast<long long>(f.iterations), f.seconds, f.heldout_psnr_db,
                 f.heldout_psnr_fg_db, f.background_psnr_fg_db, f.megabytes,
-                static_cast<long long>(f.added), static_cast<long long>(f.gaussians));
+                static_cast<long long>(f.added), static_cast<long long>(f.added_surface),
+                static_cast<long long>(f.surface_uncovered), static_cast<long long>(f.gaussians));
   }
+  std::printf(
+      "added: Gaussians the delta adds (at most --max-added-per-frame); surface: of them seeded on "
+      "the frame's own reconstruction; uncovered: its surface samples farther than 3 spacings from "
+      "every Gaussian of the frame before, before the frame's motion is learned\n");
   // Interleaved, twice each: the machine's load moves between runs.
   double nvol_fps = 0, splat_fps = 0;
   for (int round = 0; round < 2; ++round) {
@@ -177,6 +210,53 @@ int RunStudio8(const fs::path& root, int frames, double minutes, double frame_mi
   return 0;
 }
 
+// A trained splat model's playback with the vectorised rasteriser against the scalar reference
+// loop, interleaved round by round (the load moves between runs): frame 0's orbit and the
+// sequence's, fps and CPU seconds per view, the medians and the ratio of each round.
+int RunPlayback(const fs::path& model_dir, const fs::path& root, int rounds) {
+  const char* kKernels[] = {"vector", "scalar"};
+  const char* kPaths[] = {"frame0", "sequence"};
+  std::vector<double> fps[2][2], cpu[2][2], ratio[2];
+  std::printf("playback of %s: 24-view orbit at 512x512, nothing written, %d rounds\n",
+              model_dir.c_str(), rounds);
+  std::printf("%6s %9s %7s %8s %12s %14s\n", "round", "path", "kernel", "fps", "cpu_s/view",
+              "load");
+  for (int round = 0; round < rounds; ++round) {
+    for (int path = 0; path < 2; ++path) {
+      double round_fps[2] = {0, 0};
+      for (int kernel = 0; kernel < 2; ++kernel) {
+        splat::RasterOptions options;
+        options.vectorized = kernel == 0;
+        auto model = OpenSplatModel(model_dir, options);
+        const OrbitPlay play = PlayOrbit(*model, root / "play-splat", path == 1);
+        fps[path][kernel].push_back(play.fps);
+        cpu[path][kernel].push_back(play.cpu_s_per_view);
+        round_fps[kernel] = play.fps;
+        std::printf("%6d %9s %7s %8.2f %12.4f %14s\n", round, kPaths[path], kKernels[kernel],
+                    play.fps, play.cpu_s_per_view, Load().c_str());
+      }
+      ratio[path].push_back(round_fps[0] / std::max(round_fps[1], 1e-9));
+    }
+  }
+  auto median = [](std::vector<double> values) {
+    std::sort(values.begin(), values.end());
+    const size_t n = values.size();
+    return n % 2 == 1 ? values[n / 2] : 0.5 * (values[n / 2 - 1] + values[n / 2]);
+  };
+  std::printf("\nmedians over %d rounds\n%9s %7s %8s %12s %16s %14s\n", rounds, "path", "kernel",
+              "fps", "cpu_s/view", "fps_at_cpu_2", "vector/scalar");
+  for (int path = 0; path < 2; ++path) {
+    for (int kernel = 0; kernel < 2; ++kernel) {
+      const double cpu_s = median(cpu[path][kernel]);
+      // Views per second were the two cores this process's alone: CPU time spread over both.
+      std::printf("%9s %7s %8.2f %12.4f %16.2f %14.2f\n", kPaths[path], kKernels[kernel],
+                  median(fps[path][kernel]), cpu_s, 2 / std::max(cpu_s, 1e-9),
+                  kernel == 0 ? median(ratio[path]) : 1.0);
+    }
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -199,10 +279,16 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--sim-width", sim_width, "Simulated image width (studio8)")
       ->capture_default_str();
+  std::string playback;
+  int rounds = 3;
+  app.add_option("--playback", playback,
+                 "Only play this trained splat model, vectorised against scalar rasteriser");
+  app.add_option("--rounds", rounds, "Interleaved rounds of --playback")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   RegisterSplatModelKind();
   const fs::path root(work);
   fs::create_directories(root);
+  if (!playback.empty()) return RunPlayback(playback, root, std::max(1, rounds));
   if (studio8_frames > 0) {
     return RunStudio8(root, studio8_frames, minutes, frame_minutes, width, sim_width, seed_points);
   }

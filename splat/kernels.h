@@ -84,6 +84,9 @@ struct RasterState {
   std::vector<int32_t> entries;               // Gaussian indices, per tile front to back
   std::vector<float> final_transmittance;     // [pixels]
   std::vector<int32_t> last_contributor;      // [pixels] one past the last entry composited
+  // Scratch of the depth sort, kept so that a frame of the same size allocates nothing.
+  std::vector<int32_t> depth_order, order_scratch, tile_rects;
+  std::vector<uint32_t> depth_keys, key_scratch;
 };
 
 struct RasterOptions {
@@ -93,6 +96,11 @@ struct RasterOptions {
   float max_alpha = 0.99f;              // a splat never blocks all light (keeps 1 / (1 - alpha))
   float low_pass_px2 = 0.3f;            // added to the 2D covariance: a splat covers a pixel
   int active_sh_degree = kMaxShDegree;  // degrees above this are not evaluated
+  bool vectorized = true;  // float: pixels of a tile row in lanes with a polynomial exp (the
+                           // picture within float rounding of the scalar loop); false, and
+                           // always for double: the scalar loop, the reference it is tested on
+  int lanes = 0;           // vectorized: 4 (SSE2), 8 (AVX2; 4 on CPUs without it), 0: the widest
+                           // this CPU runs
 };
 
 // The real spherical-harmonic basis up to `degree` at a unit direction (x, y, z); out holds
@@ -108,8 +116,9 @@ void ProjectGaussians(const GaussianArrays<T>& gaussians, const PinholeCamera& c
                       const RasterOptions& options, ProjectedArrays<T>* projected);
 
 // Draws the projected Gaussians front to back into colour [H*W*3] over `background` [H*W*3]
-// (nullptr: black), alpha [H*W] = 1 - transmittance, and depth [H*W] = the alpha-weighted mean
-// depth (nullptr: not written). Tiles run in parallel (OpenMP, dynamic schedule).
+// (nullptr: black), alpha [H*W] = 1 - transmittance (nullptr: not written), and depth [H*W] =
+// the alpha-weighted mean depth (nullptr: not written). Tiles run in parallel (OpenMP, dynamic
+// schedule). `state` keeps its buffers between calls (no allocation per frame once sized).
 template <typename T>
 void RasterizeForward(const ProjectedArrays<T>& projected, const PinholeCamera& camera,
                       const RasterOptions& options, const T* background, T* color, T* alpha,

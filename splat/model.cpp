@@ -104,6 +104,8 @@ nlohmann::json SplatFrameSummary::ToJson() const {
           {"gaussians", gaussians},
           {"added", added},
           {"added_surface", added_surface},
+          {"surface_uncovered", surface_uncovered},
+          {"add_cap_reached", add_cap_reached},
           {"removed", removed},
           {"changed", changed},
           {"coarsened", coarsened},
@@ -186,11 +188,18 @@ splat::PinholeCamera ToPinhole(const CameraModel& camera) {
 
 SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& camera,
                          const cv::Mat& background, int sh_degree) {
-  const splat::PinholeCamera pinhole = ToPinhole(camera);
   splat::RasterOptions options;
   options.active_sh_degree = sh_degree;
-  splat::ProjectedArrays<float> projected;
-  splat::ProjectGaussians(gaussians, pinhole, options, &projected);
+  return RenderSplats(gaussians, camera, background, options, nullptr);
+}
+
+SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& camera,
+                         const cv::Mat& background, const splat::RasterOptions& options,
+                         SplatRenderScratch* scratch) {
+  const splat::PinholeCamera pinhole = ToPinhole(camera);
+  SplatRenderScratch local;
+  if (scratch == nullptr) scratch = &local;
+  splat::ProjectGaussians(gaussians, pinhole, options, &scratch->projected);
   SplatRender out;
   out.color.create(camera.height(), camera.width(), CV_32FC3);
   out.alpha.create(camera.height(), camera.width(), CV_32FC1);
@@ -201,11 +210,10 @@ SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& c
     if (bg.type() != CV_32FC3 || bg.size() != out.color.size())
       Fail("a splat render's background must be CV_32FC3 at the camera's size");
   }
-  splat::RasterState state;
-  splat::RasterizeForward(projected, pinhole, options,
+  splat::RasterizeForward(scratch->projected, pinhole, options,
                           bg.empty() ? static_cast<const float*>(nullptr) : bg.ptr<float>(),
                           out.color.ptr<float>(), out.alpha.ptr<float>(), out.depth.ptr<float>(),
-                          &state);
+                          &scratch->state);
   return out;
 }
 
@@ -301,11 +309,14 @@ splat::Gaussians SplatModel::Frame(const fs::path& dir, int64_t frame,
 
 namespace {
 
-// A splat model as playback sees it: one static frame, drawn natively.
+// A splat model as playback sees it: its frames drawn natively, one delta after another.
 class SplatAvatar : public AvatarModel {
  public:
-  SplatAvatar(SplatModel model, fs::path dir)
-      : model_(std::move(model)), dir_(std::move(dir)), current_(model_.gaussians) {}
+  SplatAvatar(SplatModel model, fs::path dir, const splat::RasterOptions& options)
+      : model_(std::move(model)),
+        dir_(std::move(dir)),
+        current_(model_.gaussians),
+        options_(options) {}
   std::string method() const override { return "splat"; }
   int64_t frame_count() const override { return model_.frames; }
   Eigen::Vector3d box_min() const override { return model_.box.min(); }
@@ -320,11 +331,11 @@ class SplatAvatar : public AvatarModel {
       current_ = model_.Frame(dir_, frame, &current_, current_frame_);
       current_frame_ = frame;
     }
-    SplatRender render = RenderSplats(current_, camera);
+    SplatRender render = RenderSplats(current_, camera, {}, options_, &scratch_);
     RenderedView view;
     view.color = render.color;
     view.alpha = render.alpha;
-    view.depth = render.depth.clone();
+    view.depth = render.depth;  // this view's own: marked in place
     for (int y = 0; y < view.depth.rows; ++y) {
       float* depth = view.depth.ptr<float>(y);
       const float* alpha = render.alpha.ptr<float>(y);
@@ -341,16 +352,22 @@ class SplatAvatar : public AvatarModel {
   fs::path dir_;
   splat::Gaussians current_;
   int64_t current_frame_ = 0;
+  splat::RasterOptions options_;
+  SplatRenderScratch scratch_;
 };
 
 }  // namespace
 
+std::unique_ptr<AvatarModel> OpenSplatModel(const fs::path& dir,
+                                            const splat::RasterOptions& options) {
+  return std::make_unique<SplatAvatar>(SplatModel::Load(dir), dir, options);
+}
+
 void RegisterSplatModelKind() {
   static std::once_flag once;
   std::call_once(once, [] {
-    RegisterModelKind("splat", [](const fs::path& dir, const nlohmann::json&) {
-      return std::unique_ptr<AvatarModel>(new SplatAvatar(SplatModel::Load(dir), dir));
-    });
+    RegisterModelKind(
+        "splat", [](const fs::path& dir, const nlohmann::json&) { return OpenSplatModel(dir); });
   });
 }
 

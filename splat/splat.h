@@ -50,6 +50,7 @@
 #include <Eigen/Geometry>
 #include <cstdint>
 #include <filesystem>
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 #include <string>
@@ -61,6 +62,8 @@
 #include "splat/kernels.h"
 
 namespace holocap {
+
+class AvatarModel;  // neural/neural.h: what playback renders
 
 struct SplatOptions {
   // Model.
@@ -191,8 +194,14 @@ struct SplatFrameSummary {
   int64_t gaussians = 0;
   int64_t added = 0, added_surface = 0, removed = 0, changed = 0;  // as the delta stores them
                                                                    // (added_surface: of added)
-  int coarsened = 0;     // times the delta's steps were doubled to fit max_frame_megabytes
-  double megabytes = 0;  // stored: gaussians.bin for frame 0, the delta for later frames
+  // The new frame's surface samples farther than new_surface_spacings from every Gaussian of
+  // the frame before, measured before the frame's motion is learned: a part that moved that far
+  // counts as well as one never seen. What asked to be added; added_surface is what the room
+  // took, and the densification of the frame gets what is left.
+  int64_t surface_uncovered = 0;
+  bool add_cap_reached = false;  // the frame added max_added_per_frame Gaussians
+  int coarsened = 0;             // times the delta's steps were doubled to fit max_frame_megabytes
+  double megabytes = 0;          // stored: gaussians.bin for frame 0, the delta for later frames
   int divergences = 0;
   nlohmann::json ToJson() const;
 };
@@ -293,6 +302,22 @@ struct SplatRender {
 };
 SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& camera,
                          const cv::Mat& background = {}, int sh_degree = splat::kMaxShDegree);
+// The buffers a renderer keeps between views, so that a view of the same size allocates only
+// the images it returns.
+struct SplatRenderScratch {
+  splat::ProjectedArrays<float> projected;
+  splat::RasterState state;
+};
+// The same with the kernels' options (the SH degree drawn, the rasteriser) and reusable
+// buffers (nullptr: allocated for this view).
+SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& camera,
+                         const cv::Mat& background, const splat::RasterOptions& options,
+                         SplatRenderScratch* scratch);
+
+// A splat model directory opened for playback with the given kernel options (what
+// RegisterSplatModelKind's OpenModel gives, with the defaults).
+std::unique_ptr<AvatarModel> OpenSplatModel(const std::filesystem::path& dir,
+                                            const splat::RasterOptions& options = {});
 
 // Lets OpenModel (neural/neural.h) open "splat" model directories, so `holocap render` plays
 // them. Idempotent.

@@ -87,7 +87,7 @@ class Trainer {
   void TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary* summary, Report* report);
   void ShowFrame(int64_t frame);
   void ResetMoments();
-  int64_t AddNewSurface(const SplatSeed& seed);
+  int64_t AddNewSurface(const SplatSeed& seed, int64_t* uncovered_count);
   void StoreDelta(int64_t frame, const Gaussians& previous, SplatFrameSummary* stored);
   void TrainLaterFrames(SplatSummary* summary, Report* report);
   SplatFrameSummary ScoreFrame(int64_t frame, double seconds, int64_t iterations);
@@ -596,8 +596,10 @@ void Trainer::ResetMoments() {
 
 // Seeds a Gaussian at each of the new frame's surface samples that lies farther than
 // new_surface_spacings x the spacing from every Gaussian (a hash grid of that cell size), within
-// the frame's room. Returns how many were added.
-int64_t Trainer::AddNewSurface(const SplatSeed& seed) {
+// the frame's room. Returns how many were added; `uncovered_count` receives how many samples
+// asked.
+int64_t Trainer::AddNewSurface(const SplatSeed& seed, int64_t* uncovered_count) {
+  *uncovered_count = 0;
   if (seed.points.empty() || add_room_ == 0) return 0;
   const double cell = options_.new_surface_spacings * std::max(seed.spacing_m, 1e-6);
   auto key = [&](const Eigen::Vector3f& p, int dx, int dy, int dz) {
@@ -623,6 +625,7 @@ int64_t Trainer::AddNewSurface(const SplatSeed& seed) {
     if (!covered) uncovered.push_back(s);
   }
   int64_t count = static_cast<int64_t>(uncovered.size());
+  *uncovered_count = count;
   count = std::min(count, std::max<int64_t>(0, options_.max_gaussians - gaussians_.size()));
   if (add_room_ >= 0) count = std::min(count, add_room_);
   const int64_t n = gaussians_.size();
@@ -730,7 +733,8 @@ void Trainer::TrainLaterFrames(SplatSummary* summary, Report* report) {
     origin_.resize(gaussians_.size());
     std::iota(origin_.begin(), origin_.end(), int64_t{0});
     add_room_ = options_.max_added_per_frame;
-    const int64_t surface = AddNewSurface(scene_.later_frames[f].seed);
+    int64_t uncovered = 0;
+    const int64_t surface = AddNewSurface(scene_.later_frames[f].seed, &uncovered);
     BoundParameters();
     ResetMoments();
     TrainFrame(frame, FrameBudget{options_.frame_iterations, options_.frame_minutes * 60.0, false},
@@ -742,6 +746,8 @@ void Trainer::TrainLaterFrames(SplatSummary* summary, Report* report) {
         ScoreFrame(frame, Elapsed() - frame_start, total_iterations_ - iterations_before);
     scored.added = stored.added;
     scored.added_surface = surface;
+    scored.surface_uncovered = uncovered;
+    scored.add_cap_reached = stored.added >= options_.max_added_per_frame;
     scored.removed = stored.removed;
     scored.changed = stored.changed;
     scored.coarsened = stored.coarsened;
@@ -750,10 +756,13 @@ void Trainer::TrainLaterFrames(SplatSummary* summary, Report* report) {
     Record(scored, summary, report);
     std::printf(
         "splat: frame %lld (set %lld): %.1f s, held-out %.2f dB (subject %.2f dB), %lld "
-        "Gaussians, %.3f MB\n",
+        "Gaussians, %.3f MB; added %lld (%lld on new surface: %lld samples lay beyond %.3g "
+        "spacings of the frame before's Gaussians%s)\n",
         static_cast<long long>(frame), static_cast<long long>(scored.set), scored.seconds,
         scored.heldout_psnr_db, scored.heldout_psnr_fg_db, static_cast<long long>(scored.gaussians),
-        scored.megabytes);
+        scored.megabytes, static_cast<long long>(scored.added), static_cast<long long>(surface),
+        static_cast<long long>(uncovered), options_.new_surface_spacings,
+        scored.add_cap_reached ? "; the per-frame cap bit" : "");
   }
   summary->seconds = Elapsed();
   summary->iterations = total_iterations_;

@@ -372,6 +372,11 @@ TEST(SplatDynamic, LaterFrameFromThePreviousNearsScratchInFewerIterations) {
   ASSERT_EQ(dynamic.frames.size(), 2u);
   const SplatFrameSummary& later = dynamic.frames[1];
   EXPECT_EQ(later.iterations, 100);
+  // New surface is added only where it asked (lay beyond the frame before's Gaussians), within
+  // the cap, and the report says whether the cap bit.
+  EXPECT_LE(later.added_surface, later.surface_uncovered);
+  EXPECT_LE(later.added, options.max_added_per_frame);
+  EXPECT_EQ(later.add_cap_reached, later.added >= options.max_added_per_frame);
   // Frame 1 from scratch: its own seed, the whole frame-0 budget.
   SplatScene scratch_scene = moving;
   scratch_scene.seed = moving.later_frames[0].seed;
