@@ -37,9 +37,11 @@ void PrintScan(const ScanSummary& summary) {
       static_cast<long long>(summary.degenerate), static_cast<long long>(summary.lost),
       static_cast<long long>(summary.fused), static_cast<long long>(summary.keyframes),
       static_cast<long long>(summary.loops));
-  std::printf("tracking %.2f s + fusion %.2f s: %.1f frames/s; mesh %lld vertices\n",
-              summary.tracking_seconds, summary.fusion_seconds, summary.frames_per_second,
-              static_cast<long long>(summary.vertices));
+  std::printf(
+      "tracking %.2f s + fusion %.2f s: %.1f frames/s (%.1f ms of CPU a frame); mesh %lld "
+      "vertices\n",
+      summary.tracking_seconds, summary.fusion_seconds, summary.frames_per_second,
+      1e3 * summary.cpu_seconds_per_frame, static_cast<long long>(summary.vertices));
   if (summary.errors) {
     std::printf(
         "against the true trajectory (%lld frames): ATE RMSE %.2f cm (max %.2f cm), "

@@ -17,7 +17,7 @@ PEERS is a comma list of:
               ICP against the model's raycast, then integration), voxel VOXEL_M, 8 voxels'
               truncation as Open3D's example uses.
 Each peer writes DIR/PEER.tum (world_from_cam, TUM format, the frames' time_s) and prints
-  PEER seconds_per_frame frames
+  PEER seconds_per_frame frames cpu_seconds_per_frame (process CPU time, every thread)
 timing tracking (and, for slam, the raycast and integration) after the images are loaded.
 """
 import json
@@ -85,13 +85,13 @@ def odometry(frames, k, first, w, h, depth_max):
     option.depth_max = depth_max
     jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
     poses = [first]
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     for i in range(1, len(images)):
         # source = frame i, target = frame i - 1: the result maps i's frame into i - 1's.
         ok, transformation, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
             images[i], images[i - 1], intrinsic, np.eye(4), jacobian, option)
         poses.append(poses[-1] @ (transformation if ok else np.eye(4)))
-    return poses, time.perf_counter() - start
+    return poses, time.perf_counter() - start, time.process_time() - start_cpu
 
 
 def slam(frames, k, first, w, h, voxel, depth_max):
@@ -104,7 +104,7 @@ def slam(frames, k, first, w, h, voxel, depth_max):
               for _, depth, color in frames]
     pose = o3d.core.Tensor(first)
     poses = []
-    start = time.perf_counter()
+    start, start_cpu = time.perf_counter(), time.process_time()
     for i, (depth, color) in enumerate(images):
         input_frame.set_data_from_image("depth", depth)
         input_frame.set_data_from_image("color", color)
@@ -115,7 +115,7 @@ def slam(frames, k, first, w, h, voxel, depth_max):
         model.integrate(input_frame, 1000.0, depth_max, 8.0)
         model.synthesize_model_frame(raycast_frame, 1000.0, 0.1, depth_max, 8.0, False)
         poses.append(pose.numpy())
-    return poses, time.perf_counter() - start
+    return poses, time.perf_counter() - start, time.process_time() - start_cpu
 
 
 def main():
@@ -124,15 +124,16 @@ def main():
     frames, k, first, w, h = load(folder)
     for peer in peers:
         if peer == "odometry":
-            poses, seconds = odometry(frames, k, first, w, h, depth_max)
+            poses, seconds, cpu_seconds = odometry(frames, k, first, w, h, depth_max)
         elif peer == "slam":
-            poses, seconds = slam(frames, k, first, w, h, voxel, depth_max)
+            poses, seconds, cpu_seconds = slam(frames, k, first, w, h, voxel, depth_max)
         else:
             sys.exit("unknown peer " + peer)
         with open("%s/%s.tum" % (folder, peer), "w") as out:
             for (t, _, _), pose in zip(frames, poses):
                 out.write(tum_line(t, pose))
-        print(peer, seconds / max(1, len(frames)), len(frames), flush=True)
+        print(peer, seconds / max(1, len(frames)), len(frames), cpu_seconds / max(1, len(frames)),
+              flush=True)
 
 
 if __name__ == "__main__":

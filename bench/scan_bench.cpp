@@ -12,7 +12,9 @@
 // undistorted images); holocap reads the take as it is.
 #include <omp.h>
 
+#include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <sstream>
 
@@ -117,6 +119,7 @@ void ExportForOpen3d(const Take& take, const TakePlan& plan, const fs::path& dir
 struct PeerRun {
   std::string name;
   double seconds_per_frame = 0;
+  double cpu_seconds_per_frame = 0;
   TrajectoryErrors errors;
 };
 
@@ -133,7 +136,7 @@ std::vector<PeerRun> RunOpen3d(const fs::path& dir, double voxel_m, double depth
     std::istringstream fields(line);
     PeerRun run;
     int64_t frames = 0;
-    if (!(fields >> run.name >> run.seconds_per_frame >> frames)) {
+    if (!(fields >> run.name >> run.seconds_per_frame >> frames >> run.cpu_seconds_per_frame)) {
       std::printf("  open3d: %s", line);
       continue;
     }
@@ -171,23 +174,30 @@ SurfaceErrors ScanQuality(const Mesh& scanned, const Mesh& truth) {
   return CompareSurfaces(cropped, truth, 0.005, 40000, OnOuterSurface(truth));
 }
 
+// cpu_ms: CPU time a frame (every thread); fusion_ms: of which fusion (negative: none).
 void PrintRow(const std::string& trajectory, const std::string& size, const std::string& method,
-              const TrajectoryErrors& e, double fps, const std::string& note) {
-  std::printf("| %-8s | %-7s | %-34s | %7.2f | %7.2f | %7.3f | %6.1f | %s |\n", trajectory.c_str(),
-              size.c_str(), method.c_str(), 100 * e.ate_rmse_m, 1e3 * e.rpe_trans_m, e.rpe_rot_deg,
-              fps, note.c_str());
+              const TrajectoryErrors& e, double fps, double cpu_ms, double fusion_ms,
+              const std::string& note) {
+  const std::string fusion = fusion_ms < 0 ? "-" : Cat(std::lround(fusion_ms));
+  std::printf(
+      "| %-8s | %-7s | %-34s | %7.2f | %7.2f | %7.3f | %6.1f | %7.1f | %6s | %6.1f | %s |\n",
+      trajectory.c_str(), size.c_str(), method.c_str(), 100 * e.ate_rmse_m, 1e3 * e.rpe_trans_m,
+      e.rpe_rot_deg, fps, cpu_ms, fusion.c_str(), cpu_ms > 0 ? 1e3 / cpu_ms : 0.0, note.c_str());
   std::fflush(stdout);
 }
 
 void TrackingSection(const Args& args, const fs::path& work) {
   std::printf(
       "\n## Tracking: ATE RMSE (cm, rigid alignment), RPE per frame (mm, deg), fps of "
-      "tracking + fusion; %lld frames at 10 fps, 30 deg/s around the subject, %d threads\n\n",
-      static_cast<long long>(args.frames), args.threads);
+      "tracking + fusion (wall clock, shared machine); CPU ms a frame (process CPU time, every "
+      "thread; fusion: of which fusing); 1-core fps = 1000 / CPU ms, the rate on one idle core; "
+      "%lld frames at 10 fps, 30 deg/s around the subject, %d threads, OMP_WAIT_POLICY=%s\n\n",
+      static_cast<long long>(args.frames), args.threads,
+      std::getenv("OMP_WAIT_POLICY") ? std::getenv("OMP_WAIT_POLICY") : "(unset)");
   std::printf(
       "| traj.    | size    | method                             | ATE cm  | RPE mm  | RPE deg | "
-      "fps    | note |\n");
-  std::printf("|---|---|---|---|---|---|---|---|\n");
+      "fps    | CPU ms  | fusion | 1-core fps | note |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|\n");
   for (const std::string& trajectory : args.trajectories) {
     for (const auto& [w, h] : args.sizes) {
       const std::string size = Cat(w, "x", h);
@@ -213,6 +223,7 @@ void TrackingSection(const Args& args, const fs::path& work) {
       const std::vector<StampedPose> truth = TrueTrajectory(take, plan.depth_sensors.front());
       PrintRow(trajectory, size, "holocap scan (ICP+photometric)",
                scan.errors.value_or(TrajectoryErrors{}), scan.frames_per_second,
+               1e3 * scan.cpu_seconds_per_frame, 1e3 * scan.fusion_cpu_seconds_per_frame,
                Cat(ToString(scan.termination), ", lost ", scan.lost, ", loops ", scan.loops,
                    ", load ", load_before));
       ExportForOpen3d(take, plan, take_dir / "open3d");
@@ -222,6 +233,7 @@ void TrackingSection(const Args& args, const fs::path& work) {
                  peer.name == "slam" ? "Open3D slam.Model (frame to model)"
                                      : "Open3D rgbd odometry (hybrid, f2f)",
                  peer.errors, 1.0 / std::max(1e-9, peer.seconds_per_frame),
+                 1e3 * peer.cpu_seconds_per_frame, -1.0,
                  Cat("matched ", peer.errors.matched, ", load ", Uptime()));
       }
     }
@@ -259,6 +271,18 @@ void QualitySection(const Args& args, const fs::path& work) {
       ReconstructTake(studio, TakeSelection{}, studio / "recon", options);
   for (const FrameResult& f : recon.frames) {
     if (!f.metrics.contains("gt")) continue;
+    // The same subject pose: the two takes' true meshes, vertex by vertex.
+    char name[32];
+    std::snprintf(name, sizeof(name), "%06lld.ply", static_cast<long long>(f.set));
+    const Mesh studio_truth = ReadPly(studio / "gt" / "meshes" / name);
+    double apart_m = studio_truth.vertices.size() == truth.vertices.size() ? 0 : INFINITY;
+    for (size_t i = 0; std::isfinite(apart_m) && i < truth.vertices.size(); ++i)
+      apart_m = std::max<double>(apart_m, (studio_truth.vertices[i] - truth.vertices[i]).norm());
+    std::printf(
+        "(studio8 set %lld's true subject against the scan take's: %zu vs %zu vertices, "
+        "%.2f mm apart at most)\n",
+        static_cast<long long>(f.set), studio_truth.vertices.size(), truth.vertices.size(),
+        1e3 * apart_m);
     const Json& gt = f.metrics["gt"];
     std::printf(
         "| studio8 reconstruct (8 colour + 2 depth, fixed), set %lld | %.2f | %.2f | %.2f | %.3f "

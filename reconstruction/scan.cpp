@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <ctime>
 #include <map>
 
 #include "core/error.h"
@@ -38,6 +39,7 @@ void ScanOptions::Check() const {
   if (!(max_correspondence_m > 0)) Fail("scan: max_correspondence_m must be > 0");
   if (!(max_normal_angle_deg > 0 && max_normal_angle_deg <= 90))
     Fail("scan: max_normal_angle_deg must be in (0, 90]");
+  if (model_stride < 1 || model_stride > 8) Fail("scan: model_stride must be in 1..8");
   if (!(photometric_weight_m >= 0)) Fail("scan: photometric_weight_m must be >= 0");
   if (!(huber_m > 0)) Fail("scan: huber_m must be > 0");
   if (!(min_inlier_fraction >= 0 && min_inlier_fraction <= 1))
@@ -70,6 +72,7 @@ Json ScanOptions::ToJson() const {
                {"iterations", iterations},
                {"max_correspondence_m", max_correspondence_m},
                {"max_normal_angle_deg", max_normal_angle_deg},
+               {"model_stride", model_stride},
                {"photometric_weight_m", photometric_weight_m},
                {"huber_m", huber_m},
                {"min_inlier_fraction", min_inlier_fraction},
@@ -201,6 +204,9 @@ using Clock = std::chrono::steady_clock;
 double Since(Clock::time_point start) {
   return std::chrono::duration<double>(Clock::now() - start).count();
 }
+
+// CPU time of the whole process (every thread), seconds.
+double ProcessCpuSeconds() { return static_cast<double>(std::clock()) / CLOCKS_PER_SEC; }
 
 cv::Mat Bgr(const cv::Mat& frame) {
   if (frame.channels() == 3) return frame;
@@ -357,6 +363,7 @@ class Scanner {
       color = Bgr(take_.ReadFrame(static_cast<size_t>(set), color_name_));
     // Timed from here: reading and decoding the take's files is not the tracker's work.
     const Clock::time_point start = Clock::now();
+    const double cpu_start = ProcessCpuSeconds();
     const Pose predicted = Predict();
     const cv::Mat depth = UsableDepth(raw, predicted);
     const cv::Mat gray =
@@ -372,9 +379,11 @@ class Scanner {
     if (frame.state == TrackingState::kTracked || frame.state == TrackingState::kDegenerate ||
         frame.state == TrackingState::kFirst) {
       const Clock::time_point fuse_start = Clock::now();
+      const double fuse_cpu_start = ProcessCpuSeconds();
       Fuse(depth, color, frame.world_from_cam);
       frame.fused = true;
       summary_.fusion_seconds += Since(fuse_start);
+      summary_.fusion_cpu_seconds_per_frame += ProcessCpuSeconds() - fuse_cpu_start;
       if (frame.state != TrackingState::kFirst) previous_good_ = last_good_;
       last_good_ = frame.world_from_cam;
       has_velocity_ = frame.state != TrackingState::kFirst;
@@ -383,7 +392,9 @@ class Scanner {
         keyframes_.push_back({summary_.frames.size(), std::move(track), color});
     }
     frame.seconds = Since(start);
+    frame.cpu_seconds = ProcessCpuSeconds() - cpu_start;
     busy_seconds_ += frame.seconds;
+    summary_.cpu_seconds_per_frame += frame.cpu_seconds;
     summary_.frames.push_back(frame);
     if (report_ != nullptr && frame.fused && frame.state != TrackingState::kFirst) {
       report_->AddPoint("inlier_fraction", frame.inlier_fraction, set);
@@ -430,8 +441,8 @@ class Scanner {
       frame.why = Cat(track.valid, " valid depth points (< ", options_.min_points, ")");
     } else {
       const double window = 0.1 + 2 * volume_->volume().truncation_m();
-      const scan::ModelView model =
-          scan::RaycastModel(volume_->volume(), rays_, predicted, depth, window, threads_);
+      const scan::ModelView model = scan::RaycastModel(volume_->volume(), rays_, predicted, depth,
+                                                       window, options_.model_stride, threads_);
       const scan::AlignResult aligned =
           scan::AlignToReference(track, model, depth_lens_, predicted, options_, threads_);
       frame.world_from_cam = aligned.world_from_cam;
@@ -587,6 +598,10 @@ void Scanner::Conclude(const std::filesystem::path& out) {
   summary_.tracking_seconds = busy_seconds_ - summary_.fusion_seconds;
   summary_.frames_per_second =
       busy_seconds_ > 0 ? static_cast<double>(summary_.frames.size()) / busy_seconds_ : 0;
+  if (!summary_.frames.empty()) {
+    summary_.cpu_seconds_per_frame /= static_cast<double>(summary_.frames.size());
+    summary_.fusion_cpu_seconds_per_frame /= static_cast<double>(summary_.frames.size());
+  }
   const std::vector<StampedPose> truth = TrueTrajectory(take_, depth_name_);
   if (!truth.empty()) summary_.errors = CompareTrajectories(EstimatedTrajectory(), truth);
 
@@ -683,6 +698,8 @@ void Scanner::WriteReport(const std::filesystem::path& out) {
   m["tracking_seconds"] = summary_.tracking_seconds;
   m["fusion_seconds"] = summary_.fusion_seconds;
   m["frames_per_second"] = summary_.frames_per_second;
+  m["cpu_seconds_per_frame"] = summary_.cpu_seconds_per_frame;
+  m["fusion_cpu_seconds_per_frame"] = summary_.fusion_cpu_seconds_per_frame;
   m["vertices"] = summary_.vertices;
   m["faces"] = summary_.faces;
   m["refinement"] = refinement_;

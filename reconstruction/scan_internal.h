@@ -45,6 +45,7 @@ cv::Mat RegisterIntensity(const cv::Mat& depth_m, const cv::Mat& rays, const cv:
 // normals per pixel of the depth camera, and their intensity.
 struct ModelView {
   int width = 0, height = 0;
+  int stride = 1;  // pixel (x, y) of the view is pixel (stride x, stride y) of the depth camera
   Pose world_from_cam = Pose::Identity();
   std::vector<Eigen::Vector3f> points;   // world; NaN: nothing
   std::vector<Eigen::Vector3f> normals;  // world, unit
@@ -52,11 +53,11 @@ struct ModelView {
   int64_t hits = 0;
 };
 
-// Raycasts the TSDF's zero crossing from `world_from_cam` through the depth camera's pixels,
-// searching each ray within `window_m` of `hint_depth_m` (the frame being tracked; pixels
-// without a hint are skipped). Colour from the voxels.
+// Raycasts the TSDF's zero crossing from `world_from_cam` through every stride-th pixel of the
+// depth camera along each axis, searching each ray within `window_m` of `hint_depth_m` (the
+// frame being tracked; pixels without a hint are skipped). Colour from the voxels.
 ModelView RaycastModel(const SparseVolume& volume, const cv::Mat& rays, const Pose& world_from_cam,
-                       const cv::Mat& hint_depth_m, double window_m, int threads);
+                       const cv::Mat& hint_depth_m, double window_m, int stride, int threads);
 // A keyframe's own finest level as a reference, posed at `world_from_cam`.
 ModelView ViewOfFrame(const TrackFrame& frame, const Pose& world_from_cam);
 

@@ -18,6 +18,9 @@ const Eigen::Vector3f kNoPoint = Eigen::Vector3f::Constant(kNaN);
 using Vector6d = Eigen::Matrix<double, 6, 1>;
 using Matrix6d = Eigen::Matrix<double, 6, 6>;
 
+// Fewer points than this per thread: one thread (waking another costs more than it saves).
+constexpr size_t kMinPointsPerThread = 8192;
+
 int FloorDiv(int a, int b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
 
 // Trilinear reads of the TSDF with the last block looked up kept at hand (neighbouring samples
@@ -47,6 +50,10 @@ class VolumeSampler {
     const Eigen::Vector3f base = g.array().floor();
     const Eigen::Vector3f f = g - base;
     const Eigen::Vector3i i0 = base.cast<int>();
+    const Eigen::Vector3i block(FloorDiv(i0.x(), kBlockSide), FloorDiv(i0.y(), kBlockSide),
+                                FloorDiv(i0.z(), kBlockSide));
+    const Eigen::Vector3i local = i0 - block * kBlockSide;
+    if ((local.array() < kBlockSide - 1).all()) return SampleInBlock(block, local, f, sdf, rgb);
     float value = 0;
     Eigen::Vector3f colour = Eigen::Vector3f::Zero();
     for (int c = 0; c < 8; ++c) {
@@ -63,20 +70,55 @@ class VolumeSampler {
     return true;
   }
 
+  // Sample's common case: all eight corners in one block (7 in 8 along each axis), read
+  // without a lookup per corner.
+  bool SampleInBlock(const Eigen::Vector3i& block, const Eigen::Vector3i& local,
+                     const Eigen::Vector3f& f, float* sdf, Eigen::Vector3f* rgb) {
+    if (block != cached_block_ || !has_cached_) {
+      cached_ = volume_.Find(block);
+      cached_block_ = block;
+      has_cached_ = true;
+    }
+    if (cached_ == nullptr) return false;
+    const Voxel* origin = &cached_->at(local.x(), local.y(), local.z());
+    constexpr int kStepY = kBlockSide, kStepZ = kBlockSide * kBlockSide;
+    constexpr int kOffsets[8] = {0,      1,          kStepY,          kStepY + 1,
+                                 kStepZ, kStepZ + 1, kStepZ + kStepY, kStepZ + kStepY + 1};
+    const float wx[2] = {1 - f.x(), f.x()}, wy[2] = {1 - f.y(), f.y()}, wz[2] = {1 - f.z(), f.z()};
+    float value = 0;
+    for (int c = 0; c < 8; ++c) {
+      const Voxel& voxel = origin[kOffsets[c]];
+      if (!(voxel.weight > 0)) return false;
+      value += wx[c & 1] * wy[(c >> 1) & 1] * wz[c >> 2] * voxel.sdf;
+    }
+    *sdf = value;
+    if (rgb != nullptr) {
+      Eigen::Vector3f colour = Eigen::Vector3f::Zero();
+      for (int c = 0; c < 8; ++c) {
+        const Voxel& voxel = origin[kOffsets[c]];
+        colour +=
+            wx[c & 1] * wy[(c >> 1) & 1] * wz[c >> 2] * Eigen::Vector3f(voxel.r, voxel.g, voxel.b);
+      }
+      *rgb = colour;
+    }
+    return true;
+  }
+
   bool Normal(const Eigen::Vector3f& point, Eigen::Vector3f* normal) {
     const float h = 1.0f / inv_voxel_;
     Eigen::Vector3f gradient;
     float centre = 0;
-    const bool has_centre = Sample(point, &centre);
+    int has_centre = -1;  // read only when a side is missing
     for (int axis = 0; axis < 3; ++axis) {
       Eigen::Vector3f step = Eigen::Vector3f::Zero();
       step[axis] = h;
       float plus = 0, minus = 0;
       const bool has_plus = Sample(point + step, &plus), has_minus = Sample(point - step, &minus);
+      if (!(has_plus && has_minus) && has_centre < 0) has_centre = Sample(point, &centre);
       // Central where both sides are observed, one-sided at the edge of the observed band.
       if (has_plus && has_minus) {
         gradient[axis] = 0.5f * (plus - minus);
-      } else if (has_centre && (has_plus || has_minus)) {
+      } else if (has_centre > 0 && (has_plus || has_minus)) {
         gradient[axis] = has_plus ? plus - centre : centre - minus;
       } else {
         return false;
@@ -199,6 +241,17 @@ struct NormalEquations {
   Vector6d gradient = Vector6d::Zero();
   double squared_residuals = 0;
   int64_t pairs = 0;
+  // w j j^T into the upper triangle of `h` (Symmetrize completes it once the sums are done).
+  static void AddOuter(const Vector6d& j, double w, Matrix6d* h) {
+    for (int c = 0; c < 6; ++c) {
+      const double wj = w * j[c];
+      for (int r = 0; r <= c; ++r) (*h)(r, c) += wj * j[r];
+    }
+  }
+  void Symmetrize() {
+    geometric.triangularView<Eigen::StrictlyLower>() = geometric.transpose();
+    photometric.triangularView<Eigen::StrictlyLower>() = photometric.transpose();
+  }
   void Add(const NormalEquations& other) {
     geometric += other.geometric;
     photometric += other.photometric;
@@ -224,8 +277,11 @@ class Linearizer {
     const Eigen::Matrix3f rotation = world_from_cam.linear().cast<float>();
     const Eigen::Vector3f translation = world_from_cam.translation().cast<float>();
     const Eigen::Matrix3d ref_from_world = reference_.world_from_cam.linear().transpose();
-    std::vector<NormalEquations> partial(threads);
-#pragma omp parallel num_threads(threads)
+    const float inv_stride = 1.0f / static_cast<float>(reference_.stride);
+    // Small levels are not worth waking a second thread for.
+    const int used_threads = level.points.size() >= kMinPointsPerThread * 2 ? threads : 1;
+    std::vector<NormalEquations> partial(used_threads);
+#pragma omp parallel num_threads(used_threads)
     {
       NormalEquations& eq = partial[omp_get_thread_num()];
 #pragma omp for schedule(static)
@@ -235,8 +291,12 @@ class Linearizer {
         const Eigen::Vector3f p_world = rotation * p + translation;
         float u = 0, v = 0, z = 0;
         if (!projector_.ProjectWorld(p_world, &u, &v, &z)) continue;
-        const int px = static_cast<int>(std::lround(u)), py = static_cast<int>(std::lround(v));
-        if (px < 0 || py < 0 || px >= reference_.width || py >= reference_.height) continue;
+        // The reference pixel nearest the projection (the reference may be a coarser grid).
+        u *= inv_stride;
+        v *= inv_stride;
+        if (!(u > -0.5f && v > -0.5f)) continue;
+        const int px = static_cast<int>(u + 0.5f), py = static_cast<int>(v + 0.5f);
+        if (px >= reference_.width || py >= reference_.height) continue;
         const size_t r = static_cast<size_t>(py) * reference_.width + px;
         const Eigen::Vector3f& q = reference_.points[r];
         if (std::isnan(q.z())) continue;
@@ -250,45 +310,50 @@ class Linearizer {
         Vector6d j;
         j.head<3>() = n.cast<double>();
         j.tail<3>() = p_world.cast<double>().cross(n.cast<double>());
-        eq.geometric += weight * j * j.transpose();
+        NormalEquations::AddOuter(j, weight, &eq.geometric);
         eq.gradient += weight * j * residual;
         eq.squared_residuals += residual * residual;
         ++eq.pairs;
         if (photometric_ && !std::isnan(level.intensity[i])) {
-          AddPhotometric(level.intensity[i], p_world, u, v, ref_from_world, &eq);
+          AddPhotometric(level.intensity[i], p_world, u, v, inv_stride, ref_from_world, &eq);
         }
       }
     }
     NormalEquations total;
     for (const NormalEquations& eq : partial) total.Add(eq);
+    total.Symmetrize();
     return total;
   }
 
  private:
+  // (u, v): the point's position on the reference's grid; inv_stride turns that grid's
+  // intensity gradient into one per pixel of the lens.
   void AddPhotometric(float intensity, const Eigen::Vector3f& p_world, float u, float v,
-                      const Eigen::Matrix3d& ref_from_world, NormalEquations* eq) const {
+                      float inv_stride, const Eigen::Matrix3d& ref_from_world,
+                      NormalEquations* eq) const {
     float reference = 0;
     Eigen::Vector2f gradient;
     if (!IntensityAt(reference_.intensity, u, v, &reference, &gradient)) return;
+    gradient *= inv_stride;
     const Eigen::Vector3d p_ref =
         ref_from_world * (p_world.cast<double>() - reference_.world_from_cam.translation());
     if (!(p_ref.z() > 1e-3)) return;
     const double f = projector_.focal(), iz = 1.0 / p_ref.z();
-    Eigen::Matrix<double, 2, 3> projection;
-    projection << f * iz, 0, -f * p_ref.x() * iz * iz, 0, f * iz, -f * p_ref.y() * iz * iz;
-    Eigen::Matrix<double, 3, 6> motion;
-    motion.leftCols<3>() = Eigen::Matrix3d::Identity();
-    const Eigen::Vector3d pw = p_world.cast<double>();
-    motion.rightCols<3>() << 0, pw.z(), -pw.y(), -pw.z(), 0, pw.x(), pw.y(), -pw.x(), 0;
+    // d intensity / d world point: the image gradient through the projection, into the world.
+    const Eigen::Vector3d along_ref(
+        f * iz * gradient.x(), f * iz * gradient.y(),
+        -f * iz * iz * (gradient.x() * p_ref.x() + gradient.y() * p_ref.y()));
+    const Eigen::Vector3d b = ref_from_world.transpose() * along_ref;
+    // A left twist (t, w) moves the point by t + w x p: the same shape as the geometric row.
     const double lambda = options_.photometric_weight_m;
-    const Vector6d j =
-        lambda *
-        (gradient.cast<double>().transpose() * projection * ref_from_world * motion).transpose();
+    Vector6d j;
+    j.head<3>() = lambda * b;
+    j.tail<3>() = lambda * p_world.cast<double>().cross(b);
     const double residual = lambda * (reference - intensity);
     // Robust to what the model's averaged colour cannot predict (specular, blur).
     const double weight =
         std::abs(residual) <= options_.huber_m ? 1.0 : options_.huber_m / std::abs(residual);
-    eq->photometric += weight * j * j.transpose();
+    NormalEquations::AddOuter(j, weight, &eq->photometric);
     eq->gradient += weight * j * residual;
   }
 
@@ -392,14 +457,15 @@ TrackFrame PrepareFrame(const cv::Mat& depth_m, const cv::Mat& rays, const cv::M
 }
 
 ModelView RaycastModel(const SparseVolume& volume, const cv::Mat& rays, const Pose& world_from_cam,
-                       const cv::Mat& hint_depth_m, double window_m, int threads) {
+                       const cv::Mat& hint_depth_m, double window_m, int stride, int threads) {
   ModelView view;
-  view.width = rays.cols;
-  view.height = rays.rows;
+  view.stride = stride;
+  view.width = (rays.cols + stride - 1) / stride;
+  view.height = (rays.rows + stride - 1) / stride;
   view.world_from_cam = world_from_cam;
   view.points.assign(static_cast<size_t>(view.width) * view.height, kNoPoint);
   view.normals.assign(view.points.size(), kNoPoint);
-  view.intensity = cv::Mat(rays.size(), CV_32F, cv::Scalar(kNaN));
+  view.intensity = cv::Mat(view.height, view.width, CV_32F, cv::Scalar(kNaN));
   const Eigen::Matrix3f rotation = world_from_cam.linear().cast<float>();
   const Eigen::Vector3f origin = world_from_cam.translation().cast<float>();
   const float voxel = static_cast<float>(volume.voxel_m());
@@ -412,8 +478,8 @@ ModelView RaycastModel(const SparseVolume& volume, const cv::Mat& rays, const Po
 #pragma omp for schedule(dynamic, 4)
     for (int y = 0; y < view.height; ++y) {
       for (int x = 0; x < view.width; ++x) {
-        const float hint = hint_depth_m.at<float>(y, x);
-        const cv::Vec2f ray = rays.at<cv::Vec2f>(y, x);
+        const float hint = hint_depth_m.at<float>(y * stride, x * stride);
+        const cv::Vec2f ray = rays.at<cv::Vec2f>(y * stride, x * stride);
         if (!(hint > 0) || std::isnan(ray[0])) continue;
         // t runs along z (depth), the point is origin + t * direction with direction.z = 1.
         const Eigen::Vector3f direction = rotation * Eigen::Vector3f(ray[0], ray[1], 1);

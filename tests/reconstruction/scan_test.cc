@@ -1,5 +1,6 @@
-// Scanning with one moving RGB-D sensor on small simulated takes: accuracy on an orbit and a
-// hand-held walk, and the stiff cases (a flat wall, a sensor too fast to follow, no depth).
+// Scanning with one moving RGB-D sensor on small simulated takes: accuracy on an orbit, a
+// hand-held walk and a turntable, and the stiff cases (a flat wall, a sensor too fast to follow, no
+// depth).
 #include <gtest/gtest.h>
 
 #include <fstream>
@@ -8,6 +9,7 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/mesh.h"
+#include "core/report.h"
 #include "core/take.h"
 #include "core/trajectory.h"
 #include "reconstruction/scan.h"
@@ -20,15 +22,16 @@ namespace {
 using testing::TempDir;
 
 // A small scan take: 160x120 frames of the still subject.
-SimOptions ScanSim(const std::string& trajectory, int64_t frames) {
+SimOptions ScanSim(const std::string& trajectory, int64_t frames, int width = 160,
+                   int height = 120) {
   SimOptions sim;
   sim.rig = "single-rgbd";
   sim.scene = "subject";
   sim.trajectory = trajectory;
   sim.frames = frames;
   sim.fps = 10;
-  sim.image_width = 160;
-  sim.image_height = 120;
+  sim.image_width = width;
+  sim.image_height = height;
   sim.antialias = 1;
   sim.motion_blur_samples = 3;
   sim.seed = 7;
@@ -121,6 +124,35 @@ TEST(ScanTest, HandheldTracksWithinAFewVoxels) {
   EXPECT_EQ(summary.lost, 0);
   ASSERT_TRUE(summary.errors.has_value());
   EXPECT_LT(summary.errors->ate_rmse_m, 0.03);
+}
+
+TEST(ScanTest, TurntableTracksTheSubjectWithoutTheFloor) {
+  TempDir dir;
+  // 320x240: at 160x120 the sensor sees too little of the floor to find it.
+  ASSERT_TRUE(SimulateTake(ScanSim("turn", 12, 320, 240), dir / "take").IsUsable());
+  Report report("scan");
+  const ScanSummary summary =
+      ScanTake(dir / "take", TakeSelection{}, dir / "scan", SmallScan(), &report);
+  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  EXPECT_EQ(summary.lost, 0);
+  EXPECT_EQ(summary.fused, 12);
+  // The floor stays while the subject turns: left in, it would hold the pose still.
+  EXPECT_EQ(report.plan()["scan"]["sensor_motion"], "turn");
+  EXPECT_EQ(report.plan()["scan"]["floor_removed"], true);
+  ASSERT_TRUE(summary.errors.has_value());
+  EXPECT_EQ(summary.errors->matched, 12);
+  // 12 frames at 3 degrees: the subject turns 33 degrees; the recovered orbit around it holds
+  // to a voxel.
+  EXPECT_LT(summary.errors->ate_rmse_m, 0.02);
+  EXPECT_LT(summary.errors->rpe_rot_deg, 0.5);
+  const std::vector<StampedPose> truth = TrueTrajectory(Take::Open(dir / "take"), "depth0");
+  ASSERT_EQ(truth.size(), 12u);
+  const double turned_deg = RotationAngleDeg(
+      (truth.front().world_from_cam.inverse() * truth.back().world_from_cam).linear());
+  const ScanFrame& last = summary.frames.back();
+  const double scanned_deg = RotationAngleDeg(
+      (summary.frames.front().world_from_cam.inverse() * last.world_from_cam).linear());
+  EXPECT_NEAR(scanned_deg, turned_deg, 1.0);
 }
 
 TEST(ScanTest, SensorFasterThanTrackingIsLostAndNotFused) {

@@ -92,7 +92,7 @@ class TrackerFixture {
                                                       options.depth_min_m, options.depth_max_m);
     const double window = 0.1 + 2 * volume_->volume().truncation_m();
     const scan::ModelView model =
-        scan::RaycastModel(volume_->volume(), rays_, start, depth, window, 2);
+        scan::RaycastModel(volume_->volume(), rays_, start, depth, window, 1, 2);
     return scan::AlignToReference(frame, model, depth_lens_, start, options, 2);
   }
 
