@@ -1,9 +1,9 @@
 // The web stream per kind and quality level: MB per frame, Mbps at 30 fps, PSNR of the page's
 // picture against the uncompressed native render (Neural Volumes: `holocap render`'s marcher on
-// the model; meshes: the reconstruction's own glTF rasterised natively), the loss (how much
-// closer to the captured image of a held-out camera the lossless stream's page comes than this
-// level's), time to first frame on loopback and frames decoded per second in the page (headless
-// Chromium, SwiftShader).
+// the model; meshes: the reconstruction's own glTF rasterised natively), the loss (how far this
+// level's page falls below the lossless stream's in PSNR against a held-out camera's captured
+// image, bench/web_loss.py), time to first frame on loopback and frames decoded per second in the
+// page (headless Chromium, SwiftShader).
 //
 //   bench/web_bench [FRAMES] [WIDTH] [ITERATIONS] [VOXEL] [DIR]
 //     FRAMES      frame sets of the studio8 walk (30), after one clean plate
@@ -21,13 +21,11 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
-#include <map>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <string>
 
 #include "core/fs.h"
-#include "core/take.h"
 #include "neural/neural.h"
 #include "playback/playback.h"
 
@@ -138,7 +136,6 @@ int main(int argc, char** argv) {
   const RenderedView nvol_native = model->Render(camera, frame, {});
   const RenderedView mesh_native =
       RenderTexturedMesh(ReadTexturedGlb(dir / "take" / "recon" / glb), camera);
-  const cv::Mat captured = Take::Open(dir / "take").ReadFrame(set, heldout);
   Eigen::AlignedBox3d box;
   for (int a = 0; a < 3; ++a) {
     box.min()[a] = manifest.at("bounds").at("min").at(a).get<double>();
@@ -147,35 +144,32 @@ int main(int argc, char** argv) {
   std::printf("\n# load: %s", Run("uptime").c_str());
   std::printf(
       "# page pictures: held-out camera %s (pinhole core, %dx%d), frame %d, inside the "
-      "subject's box\n",
+      "scene's box\n",
       heldout.c_str(), camera.width(), camera.height(), frame);
-  std::printf("%-15s %7s %9s %8s %9s %9s %9s %7s %8s %9s\n", "stream", "faces", "MB/frame",
-              "Mbps@30", "PSNR unc", "PSNR exp", "PSNR cap", "loss", "TTFF ms", "decoded/s");
-  std::map<std::string, double> lossless_capture_db;
-  for (const auto& s : manifest.at("streams"))
-    if (s.at("quality") == "lossless")
-      lossless_capture_db[s.at("kind")] = PsnrInsideBoxDb(
-          cv::imread((dir / "browser" / (s.at("name").get<std::string>() + ".png")).string()),
-          captured, camera, box);
+  std::printf("%-15s %7s %9s %8s %9s %9s %8s %9s\n", "stream", "faces", "MB/frame", "Mbps@30",
+              "PSNR unc", "PSNR exp", "TTFF ms", "decoded/s");
   for (const auto& s : manifest.at("streams")) {
     const std::string name = s.at("name");
     const cv::Mat shot = cv::imread((dir / "browser" / (name + ".png")).string());
     const bool volume = s.at("kind") == "volume";
     const double uncompressed_db =
         PsnrInsideBoxDb(shot, (volume ? nvol_native : mesh_native).color, camera, box);
-    const double capture_db = PsnrInsideBoxDb(shot, captured, camera, box);
     const auto& b = bench.at(name);
     const auto metrics = nlohmann::json::parse(ReadFileToString(dir / "site" / "report.json"))
                              .at("metrics")
                              .at("streams")
                              .at(name);
-    std::printf(
-        "%-15s %7.0f %9.4f %8.2f %9.2f %9.2f %9.2f %7.2f %8.0f %9.1f\n", name.c_str(),
-        metrics.value("mean_faces", 0.0), s.at("mb_per_frame").get<double>(),
-        s.at("mb_per_frame").get<double>() * 8 * 30, uncompressed_db, s.at("psnr_db").get<double>(),
-        capture_db, lossless_capture_db[s.at("kind")] - capture_db,
-        b.at("timeToFirstFrameMs").get<double>(), b.at("framesDecodedPerSecond").get<double>());
+    std::printf("%-15s %7.0f %9.4f %8.2f %9.2f %9.2f %8.0f %9.1f\n", name.c_str(),
+                metrics.value("mean_faces", 0.0), s.at("mb_per_frame").get<double>(),
+                s.at("mb_per_frame").get<double>() * 8 * 30, uncompressed_db,
+                s.at("psnr_db").get<double>(), b.at("timeToFirstFrameMs").get<double>(),
+                b.at("framesDecodedPerSecond").get<double>());
   }
+  // The loss against the held-out camera's captured image (bench/web_loss.py).
+  std::printf("\n%s", Run("/usr/bin/python3 '" +
+                          (fs::path(HOLOCAP_BENCH_SOURCE_DIR) / "bench/web_loss.py").string() +
+                          "' '" + dir.string() + "' " + heldout + " " + std::to_string(frame))
+                          .c_str());
   if (fs::exists(dir / "browser" / "player.png")) std::printf("# player picture kept\n");
   std::printf("# outputs under %s\n", dir.c_str());
   return 0;

@@ -87,8 +87,8 @@ class SurfaceColour {
     *distance_m = std::sqrt(best);
     const size_t c = 3 * best_face;
     if (!mesh_.atlas.empty()) {
-      const Eigen::Vector2f uv = best_w.x() * mesh_.uvs[c] + best_w.y() * mesh_.uvs[c + 1] +
-                                 best_w.z() * mesh_.uvs[c + 2];
+      const Eigen::Vector2f uv =
+          best_w.x() * mesh_.uvs[c] + best_w.y() * mesh_.uvs[c + 1] + best_w.z() * mesh_.uvs[c + 2];
       *bgr = SampleAtlas(mesh_.atlas, uv.x(), uv.y());
     } else {
       cv::Vec3f rgb(0, 0, 0);
@@ -192,10 +192,9 @@ CellMesh SimplifyForStream(const TexturedMeshFrame& mesh, double max_error_m, in
     const float scale = meshopt_simplifyScale(out.vertices[0].data(), n, sizeof(Eigen::Vector3f));
     std::vector<uint32_t> simplified(indices.size());
     float relative_error = 0;
-    simplified.resize(meshopt_simplify(simplified.data(), indices.data(), indices.size(),
-                                       out.vertices[0].data(), n, sizeof(Eigen::Vector3f), 0,
-                                       static_cast<float>(max_error_m / scale), 0,
-                                       &relative_error));
+    simplified.resize(meshopt_simplify(
+        simplified.data(), indices.data(), indices.size(), out.vertices[0].data(), n,
+        sizeof(Eigen::Vector3f), 0, static_cast<float>(max_error_m / scale), 0, &relative_error));
     indices.swap(simplified);
     out.error_m = relative_error * scale;
   }
@@ -240,10 +239,9 @@ void BakeCellAtlas(const TexturedMeshFrame& original, double reach_m, CellMesh* 
         if (!surface.At(w.x() * p0 + w.y() * p1 + w.z() * p2, &bgr, &distance_m)) continue;
         cells->max_texel_distance_m =
             std::max(cells->max_texel_distance_m, static_cast<double>(distance_m));
-        cells->atlas.at<cv::Vec3b>(y0 + ty, x0 + tx) =
-            cv::Vec3b(cv::saturate_cast<uint8_t>(255 * bgr[0]),
-                      cv::saturate_cast<uint8_t>(255 * bgr[1]),
-                      cv::saturate_cast<uint8_t>(255 * bgr[2]));
+        cells->atlas.at<cv::Vec3b>(y0 + ty, x0 + tx) = cv::Vec3b(
+            cv::saturate_cast<uint8_t>(255 * bgr[0]), cv::saturate_cast<uint8_t>(255 * bgr[1]),
+            cv::saturate_cast<uint8_t>(255 * bgr[2]));
       }
     }
   }
