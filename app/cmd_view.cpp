@@ -73,6 +73,21 @@ Summary ExportDemoSite(DemoContext& context) {
 }
 HOLOCAP_DEMO_STAGE(60, "web", ExportDemoSite);
 
+// A temporary site, removed when the command ends (served and stopped, or failed).
+class TemporarySite {
+ public:
+  TemporarySite()
+      : dir_(fs::temp_directory_path() / ("holocap-view-" + std::to_string(::getpid()))) {}
+  ~TemporarySite() {
+    std::error_code ignored;
+    fs::remove_all(dir_, ignored);
+  }
+  const fs::path& dir() const { return dir_; }
+
+ private:
+  fs::path dir_;
+};
+
 struct ViewArgs {
   std::string input;
   int port = 8080;
@@ -93,12 +108,12 @@ void AddViewCommand(CLI::App& app) {
     options.port = args->port;
     options.Check();
     fs::path site = args->input;
-    std::optional<fs::path> temporary;
+    std::optional<TemporarySite> temporary;
     if (fs::is_regular_file(site / "take.json")) {
-      temporary = fs::temp_directory_path() / ("holocap-view-" + std::to_string(::getpid()));
+      temporary.emplace();
       WebExportRequest request;
       request.take = args->input;
-      request.out = temporary->string();
+      request.out = temporary->dir().string();
       request.models = args->models;
       if (request.models.empty() && fs::is_regular_file(site / "models" / "nvol" / "model.json"))
         request.models.push_back((site / "models" / "nvol").string());
@@ -106,14 +121,15 @@ void AddViewCommand(CLI::App& app) {
       Report report("export web");
       const WebExportSummary summary = ExportWeb(request, &report);
       FailUnlessUsable(summary, "export web");
-      std::printf("exported %s to %s (%s)\n", args->input.c_str(), temporary->c_str(),
-                  summary.message.c_str());
-      site = *temporary;
+      std::printf("exported %s to %s (%s; removed when the server stops)\n", args->input.c_str(),
+                  temporary->dir().c_str(), summary.message.c_str());
+      site = temporary->dir();
     }
     ServeSite(site, options, [](const std::string& url) {
       std::printf("serving on %s (Ctrl-C stops)\n", url.c_str());
       std::fflush(stdout);
     });
+    std::printf("stopped\n");
   });
 }
 

@@ -1,13 +1,18 @@
 // The web stream per kind and quality level: MB per frame, Mbps at 30 fps, PSNR of the page's
 // picture against the uncompressed native render (Neural Volumes: `holocap render`'s marcher on
-// the model; meshes: the reconstruction's own glTF rasterised natively), time to first frame on
-// loopback and frames decoded per second in the page (headless Chromium, SwiftShader).
+// the model; meshes: the reconstruction's own glTF rasterised natively), the loss (how far this
+// level's page falls below the lossless stream's in PSNR against a held-out camera's captured
+// image, bench/web_loss.py), time to first frame on loopback and frames decoded per second in the
+// page (headless Chromium, SwiftShader).
 //
-//   bench/web_bench [FRAMES] [WIDTH] [ITERATIONS] [VOXEL]
+//   bench/web_bench [FRAMES] [WIDTH] [ITERATIONS] [VOXEL] [DIR]
 //     FRAMES      frame sets of the studio8 walk (30), after one clean plate
 //     WIDTH       image width of the simulated cameras (640)
 //     ITERATIONS  Neural Volumes training iterations (300)
 //     VOXEL       the reconstruction's voxel (8mm)
+//     DIR         work folder (default a new one under $TMP); a take, reconstruction and model
+//                 already in it (DIR/take with recon/, DIR/nvol) are used as they are
+// Camera cam1 is held out of the reconstruction and the training: the loss is measured in it.
 // Needs chromium and tests/playback/browser/node_modules (scripts/setup.sh --tests).
 #include <signal.h>
 #include <unistd.h>
@@ -42,18 +47,6 @@ std::string Run(const std::string& command) {
   return output;
 }
 
-double PsnrOver(const cv::Mat& shot, const RenderedView& native) {
-  double squared = 0;
-  for (int y = 0; y < shot.rows; ++y)
-    for (int x = 0; x < shot.cols; ++x)
-      for (int c = 0; c < 3; ++c) {
-        const double d = shot.at<cv::Vec3b>(y, x)[c] / 255.0 -
-                         std::clamp(native.color.at<cv::Vec3f>(y, x)[c], 0.0f, 1.0f);
-        squared += d * d;
-      }
-  return 10 * std::log10(1.0 / std::max(squared / (3.0 * shot.total()), 1e-12));
-}
-
 CameraModel PinholeOf(const nlohmann::json& camera) {
   const auto& m = camera.at("cam_from_world");
   Pose pose = Pose::Identity();
@@ -73,21 +66,35 @@ int main(int argc, char** argv) {
   const fs::path cli = HOLOCAP_BENCH_CLI;
   const fs::path driver = fs::path(HOLOCAP_BENCH_SOURCE_DIR) / "tests/playback/browser/drive.mjs";
   const fs::path dir =
-      fs::temp_directory_path() / ("holocap-web-bench-" + std::to_string(getpid()));
+      argc > 5 ? fs::path(argv[5])
+               : fs::temp_directory_path() / ("holocap-web-bench-" + std::to_string(getpid()));
+  const std::string heldout = "cam1";
   fs::create_directories(dir);
   const std::string q = "HOLOCAP_NO_PROGRESS=1 '" + cli.string() + "' ";
   const auto start = std::chrono::steady_clock::now();
   auto elapsed = [&] {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   };
-  Run(q + "sim --rig studio8 --frames " + std::to_string(frames + 1) + " --clean-plate 1 --size " +
-      std::to_string(width) + " --seed 3 --out '" + (dir / "take").string() + "'");
-  std::printf("# simulated %d frame sets at %d px (%.0f s)\n", frames, width, elapsed());
-  Run(q + "reconstruct '" + (dir / "take").string() + "' --voxel " + voxel + " --no-sweep");
-  std::printf("# reconstructed at %s (%.0f s)\n", voxel.c_str(), elapsed());
-  Run(q + "train nvol '" + (dir / "take").string() + "' --out '" + (dir / "nvol").string() +
-      "' --iterations " + std::to_string(iterations) + " --eval-every 100000 || true");
-  std::printf("# Neural Volumes: %d iterations (%.0f s)\n", iterations, elapsed());
+  if (!fs::exists(dir / "take" / "take.json")) {
+    Run(q + "sim --rig studio8 --frames " + std::to_string(frames + 1) +
+        " --clean-plate 1 --size " + std::to_string(width) + " --seed 3 --out '" +
+        (dir / "take").string() + "'");
+    std::printf("# simulated %d frame sets at %d px (%.0f s)\n", frames, width, elapsed());
+  }
+  if (!fs::is_directory(dir / "take" / "recon")) {
+    Run(q + "reconstruct '" + (dir / "take").string() + "' --voxel " + voxel +
+        " --no-sweep --heldout-names " + heldout);
+    std::printf("# reconstructed at %s without %s (%.0f s)\n", voxel.c_str(), heldout.c_str(),
+                elapsed());
+  }
+  if (!fs::exists(dir / "nvol" / "model.json")) {
+    Run(q + "train nvol '" + (dir / "take").string() + "' --out '" + (dir / "nvol").string() +
+        "' --iterations " + std::to_string(iterations) + " --heldout-names " + heldout +
+        " --eval-every 100000 || true");
+    std::printf("# Neural Volumes: %d iterations without %s (%.0f s)\n", iterations,
+                heldout.c_str(), elapsed());
+  }
+  fs::remove_all(dir / "site");
   const std::string export_output =
       Run(q + "export web '" + (dir / "take").string() + "' --model '" + (dir / "nvol").string() +
           "' --quality low,medium,high,lossless --fps 30 --out '" + (dir / "site").string() + "'");
@@ -112,7 +119,9 @@ int main(int argc, char** argv) {
   fs::create_directories(dir / "browser");
   Run("node '" + driver.string() + "' bench " + url + " '" + (dir / "browser").string() + "'" +
       list);
-  const int camera_index = 1, frame = frames / 2;
+  int camera_index = 0;
+  while (manifest.at("cameras").at(camera_index).at("name") != heldout) ++camera_index;
+  const int frame = frames / 2;
   const CameraModel camera = PinholeOf(manifest.at("cameras").at(camera_index));
   Run("node '" + driver.string() + "' shots " + url + " '" + (dir / "browser").string() + "' " +
       std::to_string(camera.width()) + " " + std::to_string(camera.height()) + " " +
@@ -127,22 +136,40 @@ int main(int argc, char** argv) {
   const RenderedView nvol_native = model->Render(camera, frame, {});
   const RenderedView mesh_native =
       RenderTexturedMesh(ReadTexturedGlb(dir / "take" / "recon" / glb), camera);
+  Eigen::AlignedBox3d box;
+  for (int a = 0; a < 3; ++a) {
+    box.min()[a] = manifest.at("bounds").at("min").at(a).get<double>();
+    box.max()[a] = manifest.at("bounds").at("max").at(a).get<double>();
+  }
   std::printf("\n# load: %s", Run("uptime").c_str());
-  std::printf("# page PSNR: capture camera %d (pinhole core, %dx%d), frame %d, whole picture\n",
-              camera_index, camera.width(), camera.height(), frame);
-  std::printf("%-15s %9s %10s %10s %10s %9s %10s\n", "stream", "MB/frame", "Mbps@30", "PSNR page",
-              "PSNR exp.", "TTFF ms", "decoded/s");
+  std::printf(
+      "# page pictures: held-out camera %s (pinhole core, %dx%d), frame %d, inside the "
+      "scene's box\n",
+      heldout.c_str(), camera.width(), camera.height(), frame);
+  std::printf("%-15s %7s %9s %8s %9s %9s %8s %9s\n", "stream", "faces", "MB/frame", "Mbps@30",
+              "PSNR unc", "PSNR exp", "TTFF ms", "decoded/s");
   for (const auto& s : manifest.at("streams")) {
     const std::string name = s.at("name");
     const cv::Mat shot = cv::imread((dir / "browser" / (name + ".png")).string());
     const bool volume = s.at("kind") == "volume";
-    const double page_psnr = PsnrOver(shot, volume ? nvol_native : mesh_native);
+    const double uncompressed_db =
+        PsnrInsideBoxDb(shot, (volume ? nvol_native : mesh_native).color, camera, box);
     const auto& b = bench.at(name);
-    std::printf("%-15s %9.4f %10.2f %10.2f %10.2f %9.0f %10.1f\n", name.c_str(),
-                s.at("mb_per_frame").get<double>(), s.at("mb_per_frame").get<double>() * 8 * 30,
-                page_psnr, s.at("psnr_db").get<double>(), b.at("timeToFirstFrameMs").get<double>(),
+    const auto metrics = nlohmann::json::parse(ReadFileToString(dir / "site" / "report.json"))
+                             .at("metrics")
+                             .at("streams")
+                             .at(name);
+    std::printf("%-15s %7.0f %9.4f %8.2f %9.2f %9.2f %8.0f %9.1f\n", name.c_str(),
+                metrics.value("mean_faces", 0.0), s.at("mb_per_frame").get<double>(),
+                s.at("mb_per_frame").get<double>() * 8 * 30, uncompressed_db,
+                s.at("psnr_db").get<double>(), b.at("timeToFirstFrameMs").get<double>(),
                 b.at("framesDecodedPerSecond").get<double>());
   }
+  // The loss against the held-out camera's captured image (bench/web_loss.py).
+  std::printf("\n%s", Run("/usr/bin/python3 '" +
+                          (fs::path(HOLOCAP_BENCH_SOURCE_DIR) / "bench/web_loss.py").string() +
+                          "' '" + dir.string() + "' " + heldout + " " + std::to_string(frame))
+                          .c_str());
   if (fs::exists(dir / "browser" / "player.png")) std::printf("# player picture kept\n");
   std::printf("# outputs under %s\n", dir.c_str());
   return 0;

@@ -116,12 +116,19 @@ TexturedMeshFrame ReadTexturedGlb(const std::filesystem::path& file);
 // mesh seen through the pinhole core of `camera` (fx, fy, cx, cy; distortion left out).
 RenderedView RenderTexturedMesh(const TexturedMeshFrame& mesh, const CameraModel& camera);
 
+// PSNR (dB, peak 1) of `picture` against `reference` over the pixels inside the projection of
+// `box` through `camera` (its bounding rectangle, clipped to the picture): the subject's
+// surroundings. Either image may be 8-bit, 16-bit or float in [0, 1] (BGR, 3 channels, the
+// same size). `pixels` (optional) receives how many pixels were compared.
+double PsnrInsideBoxDb(const cv::Mat& picture, const cv::Mat& reference, const CameraModel& camera,
+                       const Eigen::AlignedBox3d& box, int64_t* pixels = nullptr);
+
 // ---------------------------------------------------------------------------------------------
 // The web player: `holocap export web` writes a static site (index.html, the player's ES
 // modules, manifest.json and per-frame chunks; README "The stream format") that plays a take's
 // textured meshes and baked Neural Volumes in a browser; `holocap view` serves it.
 
-inline constexpr int kWebStreamFormatVersion = 1;
+inline constexpr int kWebStreamFormatVersion = 2;
 
 struct WebExportOptions {
   // Quality levels, one stream per kind and level: "low", "medium", "high" (quantised and
@@ -149,7 +156,8 @@ struct WebStreamMetrics {
   double mb_per_frame = 0;  // mean chunk size, 10^6 bytes
   double mbps = 0;          // at the manifest's fps
   double psnr_db = 0;       // decoded stream against the uncompressed one (capture cameras)
-  double max_position_error_mm = 0;  // meshes: quantisation of the vertices
+  double max_position_error_mm = 0;  // meshes: simplification and quantisation of the vertices
+  double mean_faces = 0;             // meshes: faces per frame streamed
   nlohmann::json ToJson() const;
 };
 
@@ -179,8 +187,9 @@ struct ViewServerOptions {
   void Check() const;
 };
 
-// Serves `site` over HTTP until the process ends; `listening` gets the URL once the port is
-// bound. Throws Error (one line) for a folder that is not a site or a port that is taken.
+// Serves `site` over HTTP until SIGINT (Ctrl-C) or SIGTERM arrives, then returns (so that the
+// caller can clean up); `listening` gets the URL once the port is bound. Throws Error (one line)
+// for a folder that is not a site or a port that is taken.
 void ServeSite(const std::filesystem::path& site, const ViewServerOptions& options,
                const std::function<void(const std::string& url)>& listening);
 

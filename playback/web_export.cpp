@@ -165,6 +165,7 @@ void SiteWriter::WriteMeshStreams(const std::map<int64_t, fs::path>& files) {
       chunks.push_back({{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}});
       bytes += chunk.size();
       metrics.max_position_error_mm = std::max(metrics.max_position_error_mm, 1e3 * max_error_m);
+      metrics.mean_faces += static_cast<double>(decoded.faces());
       for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
         AccumulateError(RenderTexturedMesh(decoded, camera), RenderTexturedMesh(mesh, camera),
                         &squared, &count);
@@ -173,6 +174,7 @@ void SiteWriter::WriteMeshStreams(const std::map<int64_t, fs::path>& files) {
         report_->AddPoint(metrics.name + ".psnr_db", Psnr(squared, count), metrics.frames);
     }
     metrics.mb_per_frame = metrics.frames > 0 ? bytes / 1e6 / metrics.frames : 0;
+    metrics.mean_faces /= std::max<int64_t>(metrics.frames, 1);
     metrics.mbps = metrics.mb_per_frame * 8 * fps_;
     metrics.psnr_db = Psnr(squared, count);
     summary_.bytes += bytes;
@@ -347,7 +349,8 @@ nlohmann::json WebStreamMetrics::ToJson() const {
           {"mb_per_frame", mb_per_frame},
           {"mbps", mbps},
           {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
-          {"max_position_error_mm", max_position_error_mm}};
+          {"max_position_error_mm", max_position_error_mm},
+          {"mean_faces", mean_faces}};
 }
 
 WebExportSummary ExportWebSite(const fs::path& take_dir, const fs::path& site_dir,
@@ -371,6 +374,49 @@ WebExportSummary ExportWebSite(const fs::path& take_dir, const fs::path& site_di
     report->Write(site_dir / "report.json");
   }
   return summary;
+}
+
+namespace {
+
+cv::Mat UnitFloat(const cv::Mat& image) {
+  cv::Mat out;
+  const double scale = image.depth() == CV_8U    ? 1.0 / 255
+                       : image.depth() == CV_16U ? 1.0 / 65535
+                                                 : 1;
+  image.convertTo(out, CV_32F, scale);
+  if (out.channels() != 3) Fail("PSNR inside the box needs 3-channel images");
+  return cv::min(cv::max(out, 0.0), 1.0);
+}
+
+}  // namespace
+
+double PsnrInsideBoxDb(const cv::Mat& picture, const cv::Mat& reference, const CameraModel& camera,
+                       const Eigen::AlignedBox3d& box, int64_t* pixels) {
+  if (picture.size() != reference.size())
+    Fail("PSNR inside the box: pictures of ", picture.cols, "x", picture.rows, " and ",
+         reference.cols, "x", reference.rows);
+  double x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
+  for (int k = 0; k < 8; ++k) {
+    const Eigen::Vector3d corner = box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(k));
+    Eigen::Vector2d p;
+    camera.ProjectWorld(corner, &p);
+    x0 = std::min(x0, p.x()), y0 = std::min(y0, p.y());
+    x1 = std::max(x1, p.x()), y1 = std::max(y1, p.y());
+  }
+  const cv::Mat a = UnitFloat(picture), b = UnitFloat(reference);
+  double squared = 0;
+  int64_t count = 0;
+  for (int y = std::max(0, static_cast<int>(y0)); y <= std::min(a.rows - 1, static_cast<int>(y1));
+       ++y) {
+    for (int x = std::max(0, static_cast<int>(x0)); x <= std::min(a.cols - 1, static_cast<int>(x1));
+         ++x) {
+      const cv::Vec3f d = a.at<cv::Vec3f>(y, x) - b.at<cv::Vec3f>(y, x);
+      squared += d.dot(d);
+      count += 3;
+    }
+  }
+  if (pixels != nullptr) *pixels = count / 3;
+  return Psnr(squared, count);
 }
 
 bool IsWebSite(const fs::path& dir, std::string* why) {

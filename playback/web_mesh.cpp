@@ -10,6 +10,7 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "playback/playback.h"
+#include "playback/web_stream.h"
 
 namespace holocap {
 namespace {
@@ -128,9 +129,7 @@ TexturedMeshFrame ReadTexturedGlb(const std::filesystem::path& file) {
   return mesh;
 }
 
-namespace {
-
-cv::Vec3f SampleBilinear(const cv::Mat& atlas, float u, float v) {
+cv::Vec3f web::SampleAtlas(const cv::Mat& atlas, float u, float v) {
   const float x = u * atlas.cols - 0.5f, y = v * atlas.rows - 0.5f;
   const int x0 = static_cast<int>(std::floor(x)), y0 = static_cast<int>(std::floor(y));
   const float fx = x - x0, fy = y - y0;
@@ -142,8 +141,6 @@ cv::Vec3f SampleBilinear(const cv::Mat& atlas, float u, float v) {
   return (at(x0, y0) * (1 - fx) + at(x0 + 1, y0) * fx) * (1 - fy) +
          (at(x0, y0 + 1) * (1 - fx) + at(x0 + 1, y0 + 1) * fx) * fy;
 }
-
-}  // namespace
 
 RenderedView RenderTexturedMesh(const TexturedMeshFrame& mesh, const CameraModel& camera) {
   if (!camera.has_core()) Fail("camera lens ", camera.lensmodel(), " has no pinhole core");
@@ -195,7 +192,7 @@ RenderedView RenderTexturedMesh(const TexturedMeshFrame& mesh, const CameraModel
         if (textured) {
           const Eigen::Vector2f uv =
               w0 * mesh.uvs[3 * f] + w1 * mesh.uvs[3 * f + 1] + w2 * mesh.uvs[3 * f + 2];
-          color = SampleBilinear(mesh.atlas, uv.x(), uv.y());
+          color = web::SampleAtlas(mesh.atlas, uv.x(), uv.y());
         } else if (!mesh.colors.empty()) {
           const Eigen::Vector3f rgb =
               (w0 * mesh.colors[3 * f].cast<float>() + w1 * mesh.colors[3 * f + 1].cast<float>() +

@@ -1,4 +1,10 @@
 // holocap view: a site served on loopback (cpp-httplib), static files only.
+#include <pthread.h>
+#include <signal.h>
+
+#include <atomic>
+#include <thread>
+
 #include "core/error.h"
 #include "playback/playback.h"
 
@@ -7,6 +13,42 @@
 #include <httplib.h>
 
 namespace holocap {
+namespace {
+
+// While alive, SIGINT and SIGTERM stop `server` instead of ending the process: they are blocked
+// in every thread (httplib's workers inherit the mask) and a watcher thread waits for them.
+class StopOnSignals {
+ public:
+  explicit StopOnSignals(httplib::Server* server) {
+    sigemptyset(&signals_);
+    sigaddset(&signals_, SIGINT);
+    sigaddset(&signals_, SIGTERM);
+    pthread_sigmask(SIG_BLOCK, &signals_, &previous_);
+    watcher_ = std::thread([this, server] {
+      const timespec poll{0, 100'000'000};
+      while (!done_) {
+        if (sigtimedwait(&signals_, nullptr, &poll) > 0) {
+          stopped_ = true;
+          server->stop();
+          return;
+        }
+      }
+    });
+  }
+  ~StopOnSignals() {
+    done_ = true;
+    watcher_.join();
+    pthread_sigmask(SIG_SETMASK, &previous_, nullptr);
+  }
+  bool stopped() const { return stopped_; }
+
+ private:
+  sigset_t signals_, previous_;
+  std::atomic<bool> done_{false}, stopped_{false};
+  std::thread watcher_;
+};
+
+}  // namespace
 
 void ViewServerOptions::Check() const {
   if (port < 0 || port > 65535) Fail("--port must be in 0..65535, got ", port);
@@ -47,8 +89,9 @@ void ServeSite(const std::filesystem::path& site, const ViewServerOptions& optio
     Fail("port ", port, " on ", options.host,
          " is in use (or not permitted); pick another with --port");
   }
+  const StopOnSignals stop(&server);
   listening("http://" + options.host + ":" + std::to_string(port) + "/");
-  if (!server.listen_after_bind()) Fail("serving on port ", port, " stopped");
+  if (!server.listen_after_bind() && !stop.stopped()) Fail("serving on port ", port, " stopped");
 }
 
 }  // namespace holocap

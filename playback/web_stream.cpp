@@ -109,17 +109,23 @@ QualityLevel QualityByName(const std::string& name) {
   q.name = name;
   if (name == "low") {
     q.position_bits = 11;
-    q.texture_quality = 50;
+    q.simplify_edges = 1.0;
+    q.cell_px = 6;
+    q.texture_quality = 60;
     q.texture_scale = 0.5;
     q.color_bits = 6;
     q.density_levels = 64;
   } else if (name == "medium") {
     q.position_bits = 13;
+    q.simplify_edges = 0.75;
+    q.cell_px = 8;
     q.texture_quality = 75;
     q.color_bits = 7;
     q.density_levels = 128;
   } else if (name == "high") {
-    q.position_bits = 16;
+    q.position_bits = 14;
+    q.simplify_edges = 0.35;
+    q.cell_px = 8;
     q.texture_quality = 92;
     q.color_bits = 8;
     q.density_levels = 256;
@@ -187,50 +193,182 @@ std::string SectionBytes(const Chunk& chunk, const std::string& name) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Meshes: welded positions (quantised over the frame's box), corner indices, per-corner texture
-// coordinates and the atlas as an image (or per-corner colours without one).
+// Meshes. Simplified levels ("layout": "cells"): welded vertices quantised over the frame's box
+// as zigzagged differences from the previous vertex, indices as distances below the next new
+// vertex, both as byte planes, texture coordinates implied by the cell layout. Unsimplified
+// levels: welded positions (quantised or float32), zigzagged index differences and per-corner
+// texture coordinates. Either carries the atlas as an image (or per-corner colours without one).
+
+namespace {
+
+// Values of T as sizeof(T) planes: every element's lowest byte, then every next byte, ...
+// (differences of nearby values share their high bytes, which deflate then packs to nothing).
+template <typename T>
+std::string BytePlanes(const std::vector<T>& values) {
+  std::string out(values.size() * sizeof(T), '\0');
+  for (size_t i = 0; i < values.size(); ++i)
+    for (size_t b = 0; b < sizeof(T); ++b)
+      out[b * values.size() + i] = static_cast<char>((values[i] >> (8 * b)) & 0xff);
+  return out;
+}
+template <typename T>
+std::vector<T> FromBytePlanes(const std::string& bytes, size_t count, const char* what) {
+  if (bytes.size() != count * sizeof(T))
+    Fail("chunk section '", what, "' holds ", bytes.size(), " bytes, not ", count * sizeof(T));
+  std::vector<T> values(count, 0);
+  for (size_t i = 0; i < count; ++i)
+    for (size_t b = 0; b < sizeof(T); ++b)
+      values[i] |= static_cast<T>(static_cast<uint8_t>(bytes[b * count + i])) << (8 * b);
+  return values;
+}
+
+uint16_t Zigzag16(int32_t d) { return static_cast<uint16_t>(d >= 0 ? 2 * d : -2 * d - 1); }
+int32_t Unzigzag16(uint16_t c) { return c % 2 == 0 ? c / 2 : -(static_cast<int32_t>(c) + 1) / 2; }
+
+// Indices whose vertices first appear in order (0, 1, 2, ...): each as how far it lies below
+// the next vertex not yet used (0 for that new vertex).
+std::vector<uint32_t> HighWaterCodes(const std::vector<uint32_t>& indices) {
+  std::vector<uint32_t> codes(indices.size());
+  uint32_t next = 0;
+  for (size_t i = 0; i < indices.size(); ++i) {
+    if (indices[i] > next) Fail("mesh vertices are not in order of first use");
+    codes[i] = next - indices[i];
+    if (indices[i] == next) ++next;
+  }
+  return codes;
+}
+std::vector<uint32_t> UndoHighWaterCodes(const std::vector<uint32_t>& codes) {
+  std::vector<uint32_t> indices(codes.size());
+  uint32_t next = 0;
+  for (size_t i = 0; i < codes.size(); ++i) {
+    if (codes[i] > next) Fail("chunk index code ", codes[i], " names a vertex before the first");
+    indices[i] = next - codes[i];
+    if (codes[i] == 0) ++next;
+  }
+  return indices;
+}
+
+struct PositionBox {
+  Eigen::Vector3d lo = Eigen::Vector3d::Zero(), hi = Eigen::Vector3d::Zero();
+};
+PositionBox BoxOf(const std::vector<Eigen::Vector3f>& points) {
+  PositionBox box;
+  if (points.empty()) return box;
+  box.lo = box.hi = points.front().cast<double>();
+  for (const auto& p : points) {
+    box.lo = box.lo.cwiseMin(p.cast<double>());
+    box.hi = box.hi.cwiseMax(p.cast<double>());
+  }
+  return box;
+}
+
+// Quantised codes (3 per vertex) and the positions they restore; the largest error in *max_m.
+std::vector<uint16_t> QuantisePositions(const std::vector<Eigen::Vector3f>& points,
+                                        const PositionBox& box, int bits,
+                                        std::vector<Eigen::Vector3f>* restored, double* max_m) {
+  std::vector<uint16_t> codes;
+  restored->resize(points.size());
+  for (size_t v = 0; v < points.size(); ++v) {
+    for (int a = 0; a < 3; ++a) {
+      const uint32_t code = Quantise(points[v][a], box.lo[a], box.hi[a], bits);
+      codes.push_back(static_cast<uint16_t>(code));
+      (*restored)[v][a] = Dequantise(code, box.lo[a], box.hi[a], bits);
+    }
+    *max_m = std::max(*max_m, static_cast<double>(((*restored)[v] - points[v]).norm()));
+  }
+  return codes;
+}
+
+// The atlas as an image section (scaled and coded as the level says); returns what decodes.
+cv::Mat AddAtlas(const cv::Mat& full, const QualityLevel& quality, double scale, Chunk* chunk) {
+  cv::Mat atlas = full;
+  if (scale < 1) cv::resize(full, atlas, cv::Size(), scale, scale, cv::INTER_AREA);
+  std::vector<int> params;
+  const std::string codec = quality.texture_codec;
+  if (codec == "webp") params = {cv::IMWRITE_WEBP_QUALITY, quality.texture_quality};
+  if (codec == "jpeg") params = {cv::IMWRITE_JPEG_QUALITY, quality.texture_quality};
+  std::vector<uint8_t> encoded;
+  if (!cv::imencode(codec == "jpeg" ? ".jpg" : "." + codec, atlas, encoded, params))
+    Fail("cannot encode a texture atlas as ", codec);
+  chunk->header["texture"] = {{"width", atlas.cols}, {"height", atlas.rows}, {"codec", codec}};
+  chunk->AddSection("texture", Bytes(encoded), codec);
+  return cv::imdecode(encoded, cv::IMREAD_COLOR);
+}
+
+nlohmann::json MeshHeader(int64_t frame, size_t faces, size_t vertices, const PositionBox& box,
+                          const QualityLevel& quality) {
+  return {{"kind", "mesh"},
+          {"frame", frame},
+          {"face_count", faces},
+          {"vertex_count", vertices},
+          {"box_min", Vec(box.lo)},
+          {"box_max", Vec(box.hi)},
+          {"position_bits", quality.position_bits},
+          {"uv_bits", quality.uv_bits},
+          {"sections", nlohmann::json::array()}};
+}
+
+Chunk EncodeCellMesh(const TexturedMeshFrame& mesh, int64_t frame, const QualityLevel& quality,
+                     TexturedMeshFrame* decoded, double* max_position_error_m) {
+  const CellMesh cells =
+      SimplifyForStream(mesh, quality.simplify_edges * MedianEdgeM(mesh), quality.cell_px);
+  const PositionBox box = BoxOf(cells.vertices);
+  Chunk chunk;
+  chunk.header = MeshHeader(frame, cells.indices.size() / 3, cells.vertices.size(), box, quality);
+  chunk.header["uv_bits"] = 0;
+  chunk.header["layout"] = {{"kind", "cells"},
+                            {"cell_px", cells.layout.cell_px},
+                            {"columns", cells.layout.columns},
+                            {"rows", cells.layout.rows}};
+  chunk.header["simplify_error_m"] = cells.error_m;
+  std::vector<Eigen::Vector3f> restored;
+  double quantisation_m = 0;
+  std::vector<uint16_t> codes =
+      QuantisePositions(cells.vertices, box, quality.position_bits, &restored, &quantisation_m);
+  std::vector<uint16_t> differences(codes.size());
+  for (size_t i = 0; i < codes.size(); ++i)
+    differences[i] = Zigzag16(
+        static_cast<int16_t>(static_cast<uint16_t>(codes[i] - (i >= 3 ? codes[i - 3] : 0))));
+  chunk.AddSection("positions", BytePlanes(differences), "deflate");
+  const std::vector<uint32_t> index_codes = HighWaterCodes(cells.indices);
+  if (cells.vertices.size() <= 65536) {
+    chunk.header["index_bytes"] = 2;
+    chunk.AddSection("indices",
+                     BytePlanes(std::vector<uint16_t>(index_codes.begin(), index_codes.end())),
+                     "deflate");
+  } else {
+    chunk.header["index_bytes"] = 4;
+    chunk.AddSection("indices", BytePlanes(index_codes), "deflate");
+  }
+  *max_position_error_m = cells.error_m + quantisation_m;
+  decoded->positions.clear();
+  decoded->uvs.clear();
+  decoded->colors.clear();
+  for (size_t c = 0; c < cells.indices.size(); ++c) {
+    decoded->positions.push_back(restored[cells.indices[c]]);
+    decoded->uvs.push_back(CellCornerUv(c / 3, static_cast<int>(c % 3), cells.layout));
+  }
+  decoded->atlas = AddAtlas(cells.atlas, quality, 1.0, &chunk);
+  return chunk;
+}
+
+}  // namespace
 
 Chunk EncodeMesh(const TexturedMeshFrame& mesh, int64_t frame, const QualityLevel& quality,
                  TexturedMeshFrame* decoded, double* max_position_error_m) {
-  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
-  Eigen::Vector3d hi = -lo;
-  for (const auto& p : mesh.positions) {
-    lo = lo.cwiseMin(p.cast<double>());
-    hi = hi.cwiseMax(p.cast<double>());
-  }
-  if (mesh.positions.empty()) lo = hi = Eigen::Vector3d::Zero();
-  std::map<std::array<uint32_t, 3>, uint32_t> welded;
+  if (quality.simplify_edges > 0)
+    return EncodeCellMesh(mesh, frame, quality, decoded, max_position_error_m);
   std::vector<uint32_t> indices;
   std::vector<Eigen::Vector3f> unique;
-  for (const auto& p : mesh.positions) {
-    std::array<uint32_t, 3> key;
-    std::memcpy(key.data(), p.data(), 12);
-    auto [it, added] = welded.emplace(key, static_cast<uint32_t>(unique.size()));
-    if (added) unique.push_back(p);
-    indices.push_back(it->second);
-  }
+  WeldCorners(mesh.positions, &unique, &indices);
+  const PositionBox box = BoxOf(mesh.positions);
   Chunk chunk;
-  chunk.header = {{"kind", "mesh"},
-                  {"frame", frame},
-                  {"face_count", mesh.faces()},
-                  {"vertex_count", unique.size()},
-                  {"box_min", Vec(lo)},
-                  {"box_max", Vec(hi)},
-                  {"position_bits", quality.position_bits},
-                  {"uv_bits", quality.uv_bits},
-                  {"sections", nlohmann::json::array()}};
+  chunk.header = MeshHeader(frame, mesh.faces(), unique.size(), box, quality);
   std::vector<Eigen::Vector3f> restored(unique.size());
   double max_error = 0;
   if (quality.position_bits > 0) {
-    std::vector<uint16_t> codes;
-    for (size_t v = 0; v < unique.size(); ++v) {
-      for (int a = 0; a < 3; ++a) {
-        const uint32_t code = Quantise(unique[v][a], lo[a], hi[a], quality.position_bits);
-        codes.push_back(static_cast<uint16_t>(code));
-        restored[v][a] = Dequantise(code, lo[a], hi[a], quality.position_bits);
-      }
-      max_error = std::max(max_error, static_cast<double>((restored[v] - unique[v]).norm()));
-    }
+    const std::vector<uint16_t> codes =
+        QuantisePositions(unique, box, quality.position_bits, &restored, &max_error);
     chunk.AddSection("positions", Bytes(DeltaEncode(codes, 3)), "deflate");
   } else {
     restored = unique;
@@ -270,21 +408,7 @@ Chunk EncodeMesh(const TexturedMeshFrame& mesh, int64_t frame, const QualityLeve
       decoded->uvs = mesh.uvs;
       chunk.AddSection("uvs", Bytes(raw), "deflate");
     }
-    cv::Mat atlas = mesh.atlas;
-    if (quality.texture_scale < 1) {
-      cv::resize(mesh.atlas, atlas, cv::Size(), quality.texture_scale, quality.texture_scale,
-                 cv::INTER_AREA);
-    }
-    std::vector<int> params;
-    const std::string codec = quality.texture_codec;
-    if (codec == "webp") params = {cv::IMWRITE_WEBP_QUALITY, quality.texture_quality};
-    if (codec == "jpeg") params = {cv::IMWRITE_JPEG_QUALITY, quality.texture_quality};
-    std::vector<uint8_t> encoded;
-    if (!cv::imencode(codec == "jpeg" ? ".jpg" : "." + codec, atlas, encoded, params))
-      Fail("cannot encode a texture atlas as ", codec);
-    chunk.header["texture"] = {{"width", atlas.cols}, {"height", atlas.rows}, {"codec", codec}};
-    chunk.AddSection("texture", Bytes(encoded), codec);
-    decoded->atlas = cv::imdecode(encoded, cv::IMREAD_COLOR);
+    decoded->atlas = AddAtlas(mesh.atlas, quality, quality.texture_scale, &chunk);
   } else {
     std::vector<uint8_t> rgb;
     for (const auto& c : mesh.colors) rgb.insert(rgb.end(), {c[0], c[1], c[2]});
@@ -294,29 +418,65 @@ Chunk EncodeMesh(const TexturedMeshFrame& mesh, int64_t frame, const QualityLeve
   return chunk;
 }
 
-TexturedMeshFrame DecodeMesh(const Chunk& chunk) {
+namespace {
+
+// The welded vertices and per-corner indices of a mesh chunk.
+void DecodeMeshGeometry(const Chunk& chunk, std::vector<Eigen::Vector3f>* unique,
+                        std::vector<uint32_t>* indices) {
   const auto& h = chunk.header;
   const size_t faces = h.at("face_count"), vertices = h.at("vertex_count");
-  const int position_bits = h.at("position_bits"), uv_bits = h.at("uv_bits");
+  const int position_bits = h.at("position_bits");
   const Eigen::Vector3d lo = Vec(h.at("box_min")), hi = Vec(h.at("box_max"));
-  std::vector<Eigen::Vector3f> unique(vertices);
+  unique->resize(vertices);
   const std::string positions = SectionBytes(chunk, "positions");
-  if (position_bits > 0) {
+  const bool cells = h.contains("layout");
+  if (cells) {
+    const auto differences = FromBytePlanes<uint16_t>(positions, 3 * vertices, "positions");
+    std::vector<int32_t> codes(differences.size());
+    for (size_t i = 0; i < codes.size(); ++i)
+      codes[i] = static_cast<uint16_t>(Unzigzag16(differences[i]) + (i >= 3 ? codes[i - 3] : 0));
+    for (size_t v = 0; v < vertices; ++v)
+      for (int a = 0; a < 3; ++a)
+        (*unique)[v][a] = Dequantise(codes[3 * v + a], lo[a], hi[a], position_bits);
+  } else if (position_bits > 0) {
     const auto codes = DeltaDecode(Values<uint16_t>(positions, 3 * vertices, "positions"), 3);
     for (size_t v = 0; v < vertices; ++v)
       for (int a = 0; a < 3; ++a)
-        unique[v][a] = Dequantise(codes[3 * v + a], lo[a], hi[a], position_bits);
+        (*unique)[v][a] = Dequantise(codes[3 * v + a], lo[a], hi[a], position_bits);
   } else {
     const auto raw = Values<float>(positions, 3 * vertices, "positions");
-    for (size_t v = 0; v < vertices; ++v) unique[v] = Eigen::Vector3f(&raw[3 * v]);
+    for (size_t v = 0; v < vertices; ++v) (*unique)[v] = Eigen::Vector3f(&raw[3 * v]);
   }
-  TexturedMeshFrame mesh;
-  for (uint32_t i :
-       UndoZigzagDeltas(Values<uint32_t>(SectionBytes(chunk, "indices"), 3 * faces, "indices"))) {
+  const std::string index_bytes = SectionBytes(chunk, "indices");
+  if (!cells) {
+    *indices = UndoZigzagDeltas(Values<uint32_t>(index_bytes, 3 * faces, "indices"));
+  } else if (h.at("index_bytes") == 2) {
+    const auto codes = FromBytePlanes<uint16_t>(index_bytes, 3 * faces, "indices");
+    *indices = UndoHighWaterCodes(std::vector<uint32_t>(codes.begin(), codes.end()));
+  } else {
+    *indices = UndoHighWaterCodes(FromBytePlanes<uint32_t>(index_bytes, 3 * faces, "indices"));
+  }
+  for (uint32_t i : *indices)
     if (i >= vertices) Fail("chunk index ", i, " names a missing vertex");
-    mesh.positions.push_back(unique[i]);
-  }
-  if (h.contains("texture")) {
+}
+
+}  // namespace
+
+TexturedMeshFrame DecodeMesh(const Chunk& chunk) {
+  const auto& h = chunk.header;
+  const size_t faces = h.at("face_count");
+  const int uv_bits = h.at("uv_bits");
+  std::vector<Eigen::Vector3f> unique;
+  std::vector<uint32_t> indices;
+  DecodeMeshGeometry(chunk, &unique, &indices);
+  TexturedMeshFrame mesh;
+  for (uint32_t i : indices) mesh.positions.push_back(unique[i]);
+  if (h.contains("layout")) {
+    const CellLayout layout{h.at("layout").at("cell_px"), h.at("layout").at("columns"),
+                            h.at("layout").at("rows")};
+    for (size_t c = 0; c < 3 * faces; ++c)
+      mesh.uvs.push_back(CellCornerUv(c / 3, static_cast<int>(c % 3), layout));
+  } else if (h.contains("texture")) {
     const std::string uvs = SectionBytes(chunk, "uvs");
     if (uv_bits > 0) {
       const auto codes = DeltaDecode(Values<uint16_t>(uvs, 6 * faces, "uvs"), 2);
@@ -327,6 +487,8 @@ TexturedMeshFrame DecodeMesh(const Chunk& chunk) {
       const auto raw = Values<float>(uvs, 6 * faces, "uvs");
       for (size_t c = 0; c < 3 * faces; ++c) mesh.uvs.emplace_back(raw[2 * c], raw[2 * c + 1]);
     }
+  }
+  if (h.contains("texture")) {
     const std::string image = SectionBytes(chunk, "texture");
     mesh.atlas = cv::imdecode(std::vector<uint8_t>(image.begin(), image.end()), cv::IMREAD_COLOR);
   } else {
@@ -454,6 +616,14 @@ Chunk EncodeVolume(const BakedFrame& volume, int64_t frame, const QualityLevel& 
       }
     });
   }
+  if (!lossless) {
+    // Each code as its difference (mod 256) from the one before it in its brick row: smooth
+    // colours and densities turn into runs of small values that deflate packs tightly.
+    const int brick = chunk.header.at("brick");
+    for (size_t i = codes.size(); i-- > 0;)
+      if (i % brick != 0) codes[i] = static_cast<uint8_t>(codes[i] - codes[i - 1]);
+    chunk.header["voxel_rows"] = "differences";
+  }
   chunk.AddSection("voxels", lossless ? Bytes(raw) : Bytes(codes), "deflate");
   return chunk;
 }
@@ -481,8 +651,9 @@ BakedFrame DecodeVolume(const Chunk& chunk) {
   DensityScale density{h.at("density").at("min"), h.at("density").at("max"),
                        h.at("density").at("levels")};
   const double colour_levels = std::ldexp(1.0, h.at("color_bits").get<int>()) - 1;
-  const auto codes =
-      lossless ? std::vector<uint8_t>() : Values<uint8_t>(voxels, 4 * per_plane, "voxels");
+  auto codes = lossless ? std::vector<uint8_t>() : Values<uint8_t>(voxels, 4 * per_plane, "voxels");
+  for (size_t i = 0; i < codes.size(); ++i)
+    if (i % brick != 0) codes[i] = static_cast<uint8_t>(codes[i] + codes[i - 1]);
   const auto raw = lossless ? Values<float>(voxels, 4 * per_plane, "voxels") : std::vector<float>();
   size_t k = 0;
   for (int c = 0; c < 4; ++c) {

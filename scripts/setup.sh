@@ -24,7 +24,7 @@ packages=(
   libtorch-dev
   nlohmann-json3-dev libcli11-dev libyaml-cpp-dev
   libzmq3-dev cppzmq-dev
-  ffmpeg libcpp-httplib-dev zlib1g-dev libwebp-dev
+  ffmpeg libcpp-httplib-dev zlib1g-dev libwebp-dev libmeshoptimizer-dev
 )
 if [ "$want_tests" = 1 ]; then
   packages+=(googletest libgtest-dev clang-format clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium slurm-wlm munge)

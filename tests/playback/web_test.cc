@@ -49,6 +49,7 @@ class ViewServer {
     char line[512];
     while (output_ != nullptr && fgets(line, sizeof(line), output_) != nullptr) {
       first_line_ = line;
+      printed_ += line;
       const auto at = first_line_.find("http://");
       if (at != std::string::npos) {
         url_ = first_line_.substr(at, first_line_.find(' ', at) - at);
@@ -57,19 +58,26 @@ class ViewServer {
     }
   }
   ~ViewServer() {
+    Stop();
+    if (output_ != nullptr) fclose(output_);
+  }
+  // SIGTERM, then the server's exit status (-1 if it was not running).
+  int Stop() {
+    int status = -1;
     if (pid_ > 0) {
       kill(pid_, SIGTERM);
-      waitpid(pid_, nullptr, 0);
+      waitpid(pid_, &status, 0);
+      pid_ = -1;
     }
-    if (output_ != nullptr) fclose(output_);
+    return status;
   }
   const std::string& url() const { return url_; }
   const std::string& first_line() const { return first_line_; }
-
+  const std::string& printed() const { return printed_; }  // up to the URL
  private:
   pid_t pid_ = -1;
   FILE* output_ = nullptr;
-  std::string url_, first_line_;
+  std::string url_, first_line_, printed_;
 };
 
 class WebTest : public ::testing::Test {
@@ -96,7 +104,7 @@ class WebTest : public ::testing::Test {
     ASSERT_TRUE(fs::exists(Model() / "model.json"));
     auto exported =
         RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
-               "' --quality high,lossless --ground-truth --out '" + Site().string() + "'");
+               "' --quality low,high,lossless --ground-truth --out '" + Site().string() + "'");
     ASSERT_EQ(exported.exit_code, 0) << exported.output;
   }
   static void TearDownTestSuite() {
@@ -131,33 +139,14 @@ CameraModel PinholeOf(const nlohmann::json& camera) {
                      camera.at("width"), camera.at("height"), pose);
 }
 
-// PSNR of a screenshot (BGR 8-bit) against a native render (premultiplied over black), inside
-// the projection of the scene's box.
-double PsnrInsideBox(const cv::Mat& shot, const RenderedView& native, const CameraModel& camera,
-                     const nlohmann::json& bounds, int64_t* pixels) {
-  double x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
-  for (int k = 0; k < 8; ++k) {
-    const Eigen::Vector3d corner(bounds.at(k & 1 ? "max" : "min").at(0).get<double>(),
-                                 bounds.at(k & 2 ? "max" : "min").at(1).get<double>(),
-                                 bounds.at(k & 4 ? "max" : "min").at(2).get<double>());
-    Eigen::Vector2d p;
-    camera.ProjectWorld(corner, &p);
-    x0 = std::min(x0, p.x()), y0 = std::min(y0, p.y()), x1 = std::max(x1, p.x()),
-    y1 = std::max(y1, p.y());
+// The manifest's bounds as a box.
+Eigen::AlignedBox3d BoxOf(const nlohmann::json& bounds) {
+  Eigen::AlignedBox3d box;
+  for (int a = 0; a < 3; ++a) {
+    box.min()[a] = bounds.at("min").at(a).get<double>();
+    box.max()[a] = bounds.at("max").at(a).get<double>();
   }
-  double squared = 0;
-  *pixels = 0;
-  for (int y = std::max(0, int(y0)); y <= std::min(shot.rows - 1, int(y1)); ++y) {
-    for (int x = std::max(0, int(x0)); x <= std::min(shot.cols - 1, int(x1)); ++x) {
-      for (int c = 0; c < 3; ++c) {
-        const double a = shot.at<cv::Vec3b>(y, x)[c] / 255.0;
-        const double b = std::clamp(native.color.at<cv::Vec3f>(y, x)[c], 0.0f, 1.0f);
-        squared += (a - b) * (a - b);
-      }
-      ++*pixels;
-    }
-  }
-  return 10 * std::log10(1.0 / std::max(squared / (3.0 * std::max<int64_t>(*pixels, 1)), 1e-12));
+  return box;
 }
 
 TEST_F(WebTest, ExportStreamsEveryFrameAndMeasuresItsLoss) {
@@ -197,6 +186,67 @@ TEST_F(WebTest, ExportStreamsEveryFrameAndMeasuresItsLoss) {
   EXPECT_GT(cv::mean(native.alpha)[0], 0.01) << "the view shows too little of the volume";
 }
 
+TEST_F(WebTest, SimplifiedMeshChunkDecodesToTheExportedMeshWithinItsBound) {
+  const nlohmann::json manifest = Manifest();
+  const auto& stream = StreamNamed(manifest, "mesh-low");
+  const int frame = 1;
+  const int64_t set = manifest.at("frames").at(frame).at("set");
+  char glb[32];
+  std::snprintf(glb, sizeof(glb), "%06lld.glb", static_cast<long long>(set));
+  const TexturedMeshFrame original = ReadTexturedGlb(Take() / "recon" / glb);
+  const web::Chunk chunk = web::ParseChunk(
+      ReadFileToString(Site() / stream.at("path").get<std::string>() /
+                       stream.at("chunks").at(frame).at("file").get<std::string>()));
+  ASSERT_TRUE(chunk.header.contains("layout")) << chunk.header.dump(1);
+  const TexturedMeshFrame decoded = web::DecodeMesh(chunk);
+  // Fewer faces than the reconstruction, texture coordinates implied by the layout.
+  EXPECT_GT(decoded.faces(), 50u);
+  EXPECT_LT(decoded.faces(), original.faces());
+  ASSERT_EQ(decoded.uvs.size(), decoded.positions.size());
+  ASSERT_FALSE(decoded.atlas.empty());
+  EXPECT_EQ(decoded.atlas.cols, chunk.header.at("layout").at("columns").get<int>() *
+                                    chunk.header.at("layout").at("cell_px").get<int>());
+  // What the export measured is what the chunk holds: encoding again gives the same corners.
+  TexturedMeshFrame encoded;
+  double max_error_m = 0;
+  const std::string again =
+      web::EncodeMesh(original, frame, web::QualityByName("low"), &encoded, &max_error_m)
+          .Serialise();
+  EXPECT_EQ(again.size(), stream.at("chunks").at(frame).at("bytes").get<size_t>());
+  ASSERT_EQ(encoded.positions.size(), decoded.positions.size());
+  for (size_t c = 0; c < decoded.positions.size(); ++c) {
+    ASSERT_EQ(encoded.positions[c], decoded.positions[c]) << "corner " << c;
+    ASSERT_EQ(encoded.uvs[c], decoded.uvs[c]) << "corner " << c;
+  }
+  // Every decoded vertex lies near the original surface: within the error the simplifier
+  // reported plus the quantisation, checked against the nearest original vertex (one median
+  // edge more, as vertices sample the surface that finely).
+  const double edge_m = web::MedianEdgeM(original);
+  double worst_m = 0;
+  for (const auto& p : decoded.positions) {
+    double nearest = std::numeric_limits<double>::infinity();
+    for (const auto& q : original.positions) nearest = std::min(nearest, double((p - q).norm()));
+    worst_m = std::max(worst_m, nearest);
+  }
+  std::printf(
+      "mesh-low frame %d: %zu of %zu faces, vertices within %.2f mm of the original's "
+      "(bound %.2f + %.2f mm), median edge %.2f mm\n",
+      frame, decoded.faces(), original.faces(), 1e3 * worst_m, 1e3 * max_error_m, 1e3 * edge_m,
+      1e3 * edge_m);
+  EXPECT_LE(worst_m, max_error_m + edge_m);
+  // Seen through a capture camera, the decoded frame looks like the exported mesh.
+  const CameraModel camera = PinholeOf(manifest.at("cameras").at(3));
+  const RenderedView a = RenderTexturedMesh(decoded, camera);
+  const RenderedView b = RenderTexturedMesh(original, camera);
+  int64_t pixels = 0;
+  const double psnr =
+      PsnrInsideBoxDb(a.color, b.color, camera, BoxOf(manifest.at("bounds")), &pixels);
+  std::printf("mesh-low decoded against the exported mesh, camera 3: %.2f dB over %lld px\n", psnr,
+              static_cast<long long>(pixels));
+  EXPECT_GT(psnr, 30.0);
+  EXPECT_GT(cv::mean(b.alpha)[0], 0.01) << "the view shows too little of the mesh";
+}
+
 TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   if (RunShell("command -v chromium").exit_code != 0)
     GTEST_SKIP() << "Debian's chromium is not installed (scripts/setup.sh --tests installs it)";
@@ -228,9 +278,9 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
 
   int64_t pixels = 0;
   auto model = OpenModel(Model());
-  const double nvol_psnr =
-      PsnrInsideBox(cv::imread((out / "nvol-high.png").string()), model->Render(camera, frame, {}),
-                    camera, manifest.at("bounds"), &pixels);
+  const double nvol_psnr = PsnrInsideBoxDb(cv::imread((out / "nvol-high.png").string()),
+                                           model->Render(camera, frame, {}).color, camera,
+                                           BoxOf(manifest.at("bounds")), &pixels);
   std::printf("Neural Volumes stream in the page against holocap render: %.2f dB over %lld px\n",
               nvol_psnr, static_cast<long long>(pixels));
   EXPECT_GE(nvol_psnr, 35.0);
@@ -239,9 +289,9 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   char glb[32];
   std::snprintf(glb, sizeof(glb), "%06lld.glb", static_cast<long long>(set));
   const double mesh_psnr =
-      PsnrInsideBox(cv::imread((out / "mesh-high.png").string()),
-                    RenderTexturedMesh(ReadTexturedGlb(Take() / "recon" / glb), camera), camera,
-                    manifest.at("bounds"), &pixels);
+      PsnrInsideBoxDb(cv::imread((out / "mesh-high.png").string()),
+                      RenderTexturedMesh(ReadTexturedGlb(Take() / "recon" / glb), camera).color,
+                      camera, BoxOf(manifest.at("bounds")), &pixels);
   std::printf("mesh stream in the page against the native textured render: %.2f dB over %lld px\n",
               mesh_psnr, static_cast<long long>(pixels));
   EXPECT_GE(mesh_psnr, 30.0);
@@ -269,6 +319,19 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
     fs::copy_file(out / "player.png", keep, fs::copy_options::overwrite_existing);
 }
 
+TEST_F(WebTest, ViewOfATakeRemovesItsTemporarySiteWhenStopped) {
+  ViewServer server(Take());
+  ASSERT_FALSE(server.url().empty()) << server.printed();
+  const std::string& printed = server.printed();
+  const auto at = printed.find(" to ");
+  ASSERT_NE(at, std::string::npos) << printed;
+  const fs::path temporary = printed.substr(at + 4, printed.find(" (", at) - at - 4);
+  EXPECT_TRUE(fs::exists(temporary / "manifest.json")) << temporary;
+  const int status = server.Stop();
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << status;
+  EXPECT_FALSE(fs::exists(temporary)) << temporary << " is left after SIGTERM";
+}
+
 TEST(WebViewTest, RefusesAFolderThatIsNotASiteAndAPortInUse) {
   TempDir dir("holocap-web-view");
   fs::create_directories(dir.path() / "empty");
@@ -283,8 +346,13 @@ TEST(WebViewTest, RefusesAFolderThatIsNotASiteAndAPortInUse) {
                   R"({"format": "holocap-stream", "version": 99})");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
                               "version 99");
+  // So is a site of the previous version (its mesh chunks are laid out differently).
   WriteFileAtomic(dir.path() / "site" / "manifest.json",
                   R"({"format": "holocap-stream", "version": 1})");
+  testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
+                              "version 1; this holocap plays version 2");
+  WriteFileAtomic(dir.path() / "site" / "manifest.json",
+                  R"({"format": "holocap-stream", "version": 2})");
   ViewServer first(dir.path() / "site");
   ASSERT_FALSE(first.url().empty()) << first.first_line();
   const std::string port = first.url().substr(first.url().rfind(':') + 1,

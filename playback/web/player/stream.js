@@ -1,7 +1,7 @@
-// The holocap stream format, version 1 (README "The stream format"): the manifest and the
+// The holocap stream format, version 2 (README "The stream format"): the manifest and the
 // per-frame chunks, fetched ahead of the play head and decoded in the page.
 
-export const FORMAT_VERSION = 1;
+export const FORMAT_VERSION = 2;
 const MAGIC = 'HOLOCAPC';
 
 export class FormatError extends Error {}
@@ -79,20 +79,79 @@ function undoZigzag(codes) {
   return codes;
 }
 
+// Values stored as byte planes (every element's lowest byte, then every next byte, ...).
+function fromBytePlanes(bytes, count, width, what) {
+  if (bytes.length !== count * width)
+    throw new FormatError(`section '${what}' holds ${bytes.length} bytes, not ${count * width}`);
+  const values = new Uint32Array(count);
+  for (let b = 0; b < width; ++b)
+    for (let i = 0; i < count; ++i) values[i] += bytes[b * count + i] * 2 ** (8 * b);
+  return values;
+}
+
+// Simplified meshes: positions as zigzagged u16 differences from the previous vertex's, indices
+// as how far below the next new vertex each one lies.
+function decodeCellGeometry(h, positionBytes, indexBytes) {
+  const vertices = h.vertex_count, faces = h.face_count;
+  const differences = fromBytePlanes(positionBytes, 3 * vertices, 2, 'positions');
+  const unique = new Float32Array(3 * vertices);
+  const codes = new Uint16Array(3 * vertices);
+  for (let i = 0; i < 3 * vertices; ++i) {
+    const c = differences[i];
+    const d = c % 2 === 0 ? c / 2 : -(c + 1) / 2;
+    codes[i] = ((i >= 3 ? codes[i - 3] : 0) + d) & 0xffff;
+    unique[i] = dequantise(codes[i], h.box_min[i % 3], h.box_max[i % 3], h.position_bits);
+  }
+  const indices = fromBytePlanes(indexBytes, 3 * faces, h.index_bytes, 'indices');
+  let next = 0;
+  for (let i = 0; i < indices.length; ++i) {
+    const code = indices[i];
+    if (code > next) throw new FormatError(`index code ${code} names a vertex before the first`);
+    indices[i] = next - code;
+    if (code === 0) ++next;
+  }
+  return { unique, indices };
+}
+
+// Texture coordinates of the cell layout: face f in cell f/2 (row by row), its lower (even f)
+// or upper (odd f) half, inset half a texel (and one more along the shared diagonal).
+function cellUvs(layout, faces) {
+  const s = layout.cell_px, width = layout.columns * s, height = layout.rows * s;
+  const halves = [[[0.5, 0.5], [s - 1.5, 0.5], [0.5, s - 1.5]],
+                  [[s - 0.5, s - 0.5], [1.5, s - 0.5], [s - 0.5, 1.5]]];
+  const uvs = new Float32Array(6 * faces);
+  for (let f = 0; f < faces; ++f) {
+    const cell = Math.floor(f / 2);
+    const x = (cell % layout.columns) * s, y = Math.floor(cell / layout.columns) * s;
+    for (let k = 0; k < 3; ++k) {
+      const [u, v] = halves[f % 2][k];
+      uvs[6 * f + 2 * k] = (x + u) / width;
+      uvs[6 * f + 2 * k + 1] = (y + v) / height;
+    }
+  }
+  return uvs;
+}
+
 // A mesh chunk -> per-corner positions (and uvs + an ImageBitmap atlas, or colours).
 export async function decodeMesh(chunk) {
   const h = chunk.header;
   const faces = h.face_count, vertices = h.vertex_count;
   const positionBytes = await sectionBytes(chunk, 'positions');
-  const unique = new Float32Array(3 * vertices);
-  if (h.position_bits > 0) {
-    const codes = undoDeltas(typed(positionBytes, Uint16Array), 3);
-    for (let i = 0; i < 3 * vertices; ++i)
-      unique[i] = dequantise(codes[i], h.box_min[i % 3], h.box_max[i % 3], h.position_bits);
+  let unique, indices;
+  if (h.layout) {
+    ({ unique, indices } = decodeCellGeometry(h, positionBytes,
+                                              await sectionBytes(chunk, 'indices')));
   } else {
-    unique.set(typed(positionBytes, Float32Array));
+    unique = new Float32Array(3 * vertices);
+    if (h.position_bits > 0) {
+      const codes = undoDeltas(typed(positionBytes, Uint16Array), 3);
+      for (let i = 0; i < 3 * vertices; ++i)
+        unique[i] = dequantise(codes[i], h.box_min[i % 3], h.box_max[i % 3], h.position_bits);
+    } else {
+      unique.set(typed(positionBytes, Float32Array));
+    }
+    indices = undoZigzag(typed(await sectionBytes(chunk, 'indices'), Uint32Array));
   }
-  const indices = undoZigzag(typed(await sectionBytes(chunk, 'indices'), Uint32Array));
   const positions = new Float32Array(9 * faces);
   for (let c = 0; c < 3 * faces; ++c) {
     const v = indices[c];
@@ -100,7 +159,9 @@ export async function decodeMesh(chunk) {
     positions.set(unique.subarray(3 * v, 3 * v + 3), 3 * c);
   }
   const mesh = { kind: 'mesh', faces, positions };
-  if (h.texture) {
+  if (h.layout) {
+    mesh.uvs = cellUvs(h.layout, faces);
+  } else if (h.texture) {
     const uvBytes = await sectionBytes(chunk, 'uvs');
     if (h.uv_bits > 0) {
       const codes = undoDeltas(typed(uvBytes, Uint16Array), 2);
@@ -109,6 +170,8 @@ export async function decodeMesh(chunk) {
     } else {
       mesh.uvs = typed(uvBytes, Float32Array);
     }
+  }
+  if (h.texture) {
     const type = { webp: 'image/webp', jpeg: 'image/jpeg', png: 'image/png' }[h.texture.codec];
     mesh.atlas = await createImageBitmap(new Blob([chunk.sections.texture.data], { type }), {
       colorSpaceConversion: 'none', premultiplyAlpha: 'none', imageOrientation: 'none' });
@@ -132,6 +195,11 @@ export async function decodeVolume(chunk) {
   const floats = h.voxel === 'float32' ? typed(voxels, Float32Array) : null;
   if ((floats ? floats.length : voxels.length) !== 4 * perPlane)
     throw new FormatError(`volume voxels: ${voxels.length} bytes for ${bricks.length} bricks`);
+  if (!floats) {
+    // Codes stored as differences (mod 256) from the previous one in their brick row.
+    for (let i = 0; i < voxels.length; ++i)
+      if (i % brick !== 0) voxels[i] = (voxels[i] + voxels[i - 1]) & 0xff;
+  }
   const colourLevels = 2 ** h.color_bits - 1;
   const d = h.density;
   const density = new Float32Array(256);
