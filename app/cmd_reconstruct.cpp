@@ -89,8 +89,9 @@ void AddReconstructCommand(CLI::App& app) {
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
   command->add_option("--shard", args->shard,
                       "Do task K of N of the run (K from 0): the K-th of N contiguous blocks of "
-                      "its frame sets; report.json is merged when every frame is done "
-                      "(holocap report OUT --merge)");
+                      "its frame sets (those --frames selects); the first task plans the run "
+                      "into OUT/plan, the others read it; report.json is merged when every "
+                      "frame is done (holocap report OUT --merge)");
   command->add_flag("--redo", args->redo,
                     "Reconstruct frame sets whose outputs are complete from an earlier run too");
   command->add_flag("--no-glb", args->no_glb, "Write PLY only");

@@ -2,6 +2,8 @@
 
 #include <cmath>
 #include <cstdio>
+#include <functional>
+#include <set>
 #include <sstream>
 
 #include "app/commands.h"
@@ -12,7 +14,7 @@ namespace holocap {
 
 TakeSelection TakeSelectionFlags::Parse() const {
   TakeSelection selection;
-  ParseFrames(frames, &selection.first_frame, &selection.last_frame);
+  ParseFrames(frames, &selection);
   selection.clean_plate_frames = clean_plate;
   selection.ground_truth_cameras = ground_truth_cameras;
   selection.Check();
@@ -21,7 +23,8 @@ TakeSelection TakeSelectionFlags::Parse() const {
 
 void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags) {
   command->add_option("--frames", flags->frames,
-                      "Frame sets A:B (or A:, or A alone) after the clean plate (default: all)");
+                      "Frame sets after the clean plate: A:B (B excluded), A:, A, or a list such "
+                      "as 0-9,15,20-29 (ranges inclusive) (default: all)");
   command->add_option("--clean-plate", flags->clean_plate,
                       "Leading frame sets without the subject (default: from the take, else 0)");
   command->add_flag("--ground-truth-cameras", flags->ground_truth_cameras,
@@ -85,7 +88,30 @@ Eigen::Vector3d ParseUp(const std::string& text, const char* option) {
   return up.normalized();
 }
 
-void ParseFrames(const std::string& text, int64_t* first, int64_t* last) {
+namespace {
+
+// The frame sets a list "a-b,c,d-e" names (ranges inclusive), in increasing order, each once.
+std::vector<int64_t> ParseFrameList(const std::string& text,
+                                    const std::function<int64_t(const std::string&)>& number) {
+  constexpr int64_t kMaxListed = 10'000'000;  // more than any take's frame sets
+  std::set<int64_t> sets;
+  std::stringstream items(text);
+  std::string item;
+  while (std::getline(items, item, ',')) {
+    const size_t dash = item.find('-', 1);
+    const int64_t a = number(item.substr(0, dash));
+    const int64_t b = dash == std::string::npos ? a : number(item.substr(dash + 1));
+    if (a < 0 || b < a) Fail("--frames: '", item, "' is not a range A-B with 0 <= A <= B");
+    if (b - a >= kMaxListed) Fail("--frames: '", item, "' lists more than ", kMaxListed, " sets");
+    for (int64_t f = a; f <= b; ++f) sets.insert(f);
+  }
+  if (sets.empty() || text.back() == ',') throw std::invalid_argument(text);
+  return {sets.begin(), sets.end()};
+}
+
+}  // namespace
+
+void ParseFrames(const std::string& text, TakeSelection* selection) {
   if (text.empty()) return;
   auto colon = text.find(':');
   try {
@@ -95,16 +121,23 @@ void ParseFrames(const std::string& text, int64_t* first, int64_t* last) {
       if (used != part.size()) throw std::invalid_argument(part);
       return static_cast<int64_t>(value);
     };
+    if (colon == std::string::npos &&
+        (text.find(',') != std::string::npos || text.find('-', 1) != std::string::npos)) {
+      selection->frame_list = ParseFrameList(text, number);
+      return;
+    }
     if (colon == std::string::npos) {
-      *first = number(text);
-      *last = *first + 1;
+      selection->first_frame = number(text);
+      selection->last_frame = selection->first_frame + 1;
       return;
     }
     std::string a = text.substr(0, colon), b = text.substr(colon + 1);
-    *first = a.empty() ? 0 : number(a);
-    *last = b.empty() ? -1 : number(b);
-  } catch (const std::exception&) {
-    Fail("--frames must be A:B, A: or A, got '", text, "'");
+    selection->first_frame = a.empty() ? 0 : number(a);
+    selection->last_frame = b.empty() ? -1 : number(b);
+  } catch (const std::invalid_argument&) {
+    Fail("--frames must be A:B, A:, A or a list like 0-9,15,20-29, got '", text, "'");
+  } catch (const std::out_of_range&) {
+    Fail("--frames must be A:B, A:, A or a list like 0-9,15,20-29, got '", text, "'");
   }
 }
 

@@ -44,8 +44,10 @@ void AddSceneFlags(CLI::App* command, SceneFlags* flags);
 // "+z", "-y", "z" or "x,y,z" (any non-zero direction); throws Error naming `option`.
 Eigen::Vector3d ParseUp(const std::string& text, const char* option = "--up");
 
-// "a:b", "a:" or "a" (one frame set), counted after the clean plate.
-void ParseFrames(const std::string& text, int64_t* first, int64_t* last);
+// "a:b", "a:" or "a" (one frame set), counted after the clean plate, into the selection's
+// range; or a list "a-b,c,d-e" (ranges inclusive, as sbatch --array writes them) into its
+// frame_list, in increasing order, each set once.
+void ParseFrames(const std::string& text, TakeSelection* selection);
 // "4mm", "4 mm", "0.4cm", "0.004m" or a bare number of metres; throws Error naming `what`.
 double ParseLength(const std::string& text, const char* what);
 // A capture volume given as "xmin,ymin,zmin,xmax,ymax,zmax" (metres); throws Error naming

@@ -3,9 +3,11 @@
 // minute for 1 and 2 array tasks of one CPU each, interleaved, beside one process's run with
 // 1 and 2 threads, the parallel efficiency, and the model of N nodes from the measured
 // per-frame cost, the bytes a frame reads and writes, and the disk's measured bandwidth (where
-// a shared filesystem becomes the limit).
+// a shared filesystem becomes the limit). The run's plan is made once, by the first task
+// (core/frame_tasks.h PlanOnce); every run's CPU seconds per task (from its frames' records) and
+// the plan's give the efficiency on a quiet node, where each task has its CPU to itself.
 //
-//   build/bench/slurm_bench [SIZE=192] [SETS=8] [REPEATS=2] [WORK=/tmp/holocap-slurm-bench]
+//   build/bench/slurm_bench [SIZE=192] [SETS=24] [REPEATS=2] [WORK=/tmp/holocap-slurm-bench]
 #include <fcntl.h>
 #include <unistd.h>
 
@@ -59,6 +61,11 @@ struct Measure {
   double frame_s = 0;          // mean per-frame seconds (the tasks' own)
   double task_overhead_s = 0;  // a task's wall less its frames: start, planning, merge
   std::string load;
+  double cpu_s = 0;       // CPU seconds of all its tasks together (at their last records)
+  double plan_cpu_s = 0;  // CPU seconds the run's plan took, in the task that made it
+  // The run's compute on a quiet node (each task its own CPU): the longest task, counting
+  // for a task that read the plan the time the task that made it took.
+  double quiet_s = 0;
 };
 
 // Mean per-frame seconds of a merged run, and its tasks' mean overhead.
@@ -66,6 +73,13 @@ void ReadRun(const fs::path& out, Measure* m) {
   const auto report = nlohmann::json::parse(ReadFileToString(out / "report.json"));
   if (report["summary"]["termination"] != "SUCCESS") Fail(out.string(), " did not succeed");
   m->frame_s = report["metrics"]["timing"]["mean_frame_s"].get<double>();
+  const auto plan = nlohmann::json::parse(ReadFileToString(out / "plan" / "plan.json"));
+  m->plan_cpu_s = plan["made_cpu_s"].get<double>();
+  for (const auto& [task, cpu] : report["metrics"]["timing"]["cpu_s_by_task"].items()) {
+    m->cpu_s += cpu.get<double>();
+    const bool read_plan = task != plan["made_by"].get<std::string>();
+    m->quiet_s = std::max(m->quiet_s, cpu.get<double>() + (read_plan ? m->plan_cpu_s : 0));
+  }
   double overhead = 0;
   int tasks = 0;
   std::error_code ec;
@@ -119,7 +133,7 @@ uint64_t BytesWritten(const fs::path& out, int64_t set) {
 
 int Main(int argc, char** argv) {
   const int size = argc > 1 ? std::atoi(argv[1]) : 192;
-  const int sets = argc > 2 ? std::atoi(argv[2]) : 8;
+  const int sets = argc > 2 ? std::atoi(argv[2]) : 24;
   const int repeats = argc > 3 ? std::atoi(argv[3]) : 2;
   const fs::path work = argc > 4 ? fs::path(argv[4]) : fs::path("/tmp/holocap-slurm-bench");
   if (geteuid() != 0) Fail("slurm_bench starts munged, slurmctld and slurmd: run it as root");
@@ -139,6 +153,8 @@ int Main(int argc, char** argv) {
         " --out " + out.string());
     m.wall_s = Now() - t0;
     ReadRun(out, &m);
+    // Two threads share one task's CPU seconds: no single-CPU critical path to read from them.
+    if (threads > 1) m.quiet_s = 0;
     measures.push_back(m);
   };
   LocalSlurm cluster(work / "cluster");
@@ -169,14 +185,20 @@ int Main(int argc, char** argv) {
       "holocap submit slurm reconstruct: studio8 at %d px, %d frame sets, --no-sweep, "
       "one-node cluster on this machine (%u cores); load = 1-min load average at start\n\n",
       size, sets, std::thread::hardware_concurrency());
-  std::printf("| run | wall s | frames/min | mean frame s | task overhead s | load |\n");
-  std::printf("|---|---|---|---|---|---|\n");
-  std::map<std::string, std::vector<double>> fpm;
+  std::printf(
+      "| run | wall s | frames/min | mean frame s | task overhead s | CPU s (all tasks) | plan "
+      "CPU s | quiet-node s | load |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|\n");
+  std::map<std::string, std::vector<double>> fpm, quiet;
   for (const Measure& m : measures) {
     const double rate = 60.0 * sets / m.wall_s;
     fpm[m.what].push_back(rate);
-    std::printf("| %s | %.1f | %.2f | %.2f | %.1f | %s |\n", m.what.c_str(), m.wall_s, rate,
-                m.frame_s, m.task_overhead_s, m.load.c_str());
+    quiet[m.what].push_back(m.quiet_s);
+    char quiet_s[32] = "-";
+    if (m.quiet_s > 0) std::snprintf(quiet_s, sizeof(quiet_s), "%.1f", m.quiet_s);
+    std::printf("| %s | %.1f | %.2f | %.2f | %.1f | %.1f | %.1f | %s | %s |\n", m.what.c_str(),
+                m.wall_s, rate, m.frame_s, m.task_overhead_s, m.cpu_s, m.plan_cpu_s, quiet_s,
+                m.load.c_str());
   }
   auto mean = [](const std::vector<double>& v) {
     double s = 0;
@@ -191,6 +213,12 @@ int Main(int argc, char** argv) {
       repeats, two, one, 100.0 * two / (2 * one));
   std::printf("Slurm 1 task against 1 process with 1 thread: %.0f %% of its frames per minute\n",
               100.0 * one / mean(fpm["1 process, 1 thread(s)"]));
+  const double quiet_one = mean(quiet["Slurm, 1 task(s) x 1 CPU"]);
+  const double quiet_two = mean(quiet["Slurm, 2 task(s) x 1 CPU"]);
+  std::printf(
+      "on a quiet node, from the CPU seconds (compute only, Slurm's start and merge aside): "
+      "%.1f s / (2 x %.1f s) = %.0f %%\n",
+      quiet_one, quiet_two, 100.0 * quiet_one / (2 * quiet_two));
 
   // The model: N nodes like this one each run 2 tasks at the measured rate; every frame reads
   // its frame set from, and writes its meshes and record to, the shared filesystem.

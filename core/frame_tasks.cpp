@@ -1,11 +1,16 @@
 #include "core/frame_tasks.h"
 
+#include <fcntl.h>
+#include <sys/file.h>
 #include <sys/resource.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <cerrno>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 
 #include "core/error.h"
 #include "core/fs.h"
@@ -25,6 +30,40 @@ std::optional<nlohmann::json> ParseObject(const std::string& text) {
 
 std::string Dump(const nlohmann::json& json) {
   return json.dump(2, ' ', false, nlohmann::json::error_handler_t::replace) + "\n";
+}
+
+// Each of `names` (relative to `dir`) with its size and hash, as records and plans list them.
+nlohmann::json DescribeFiles(const std::filesystem::path& dir,
+                             const std::vector<std::string>& names) {
+  nlohmann::json files = nlohmann::json::array();
+  for (const std::string& name : names) {
+    const std::string bytes = ReadFileToString(dir / name);
+    files.push_back({{"file", name}, {"bytes", bytes.size()}, {"fnv1a64", HashBytes(bytes)}});
+  }
+  return files;
+}
+
+// Whether every file DescribeFiles listed in `files` is in `dir` with its size and hash; else
+// `why` says which is not ("'NAME' is missing", "... has another size/hash than recorded").
+bool FilesIntact(const std::filesystem::path& dir, const nlohmann::json& files, std::string* why) {
+  std::error_code ec;
+  for (const auto& file : files) {
+    const std::string name = file.value("file", "");
+    const std::filesystem::path path = dir / name;
+    if (name.empty() || !std::filesystem::is_regular_file(path, ec)) {
+      *why = Cat("'", name, "' is missing");
+      return false;
+    }
+    if (std::filesystem::file_size(path, ec) != file.value("bytes", uint64_t{0})) {
+      *why = Cat("'", name, "' has another size than recorded");
+      return false;
+    }
+    if (HashBytes(ReadFileToString(path)) != file.value("fnv1a64", "")) {
+      *why = Cat("'", name, "' has another hash than recorded");
+      return false;
+    }
+  }
+  return true;
 }
 
 bool ParseInt(const std::string& text, int* value) {
@@ -128,27 +167,15 @@ std::optional<nlohmann::json> FrameRecords::Complete(int64_t set, std::string* w
     return fail("its record is not a frame record");
   }
   if ((*record)["fingerprint"] != fingerprint_) return fail("its record is another run's");
-  for (const auto& output : (*record)["outputs"]) {
-    const std::string name = output.value("file", "");
-    const std::filesystem::path path = out_ / name;
-    if (name.empty() || !std::filesystem::is_regular_file(path, ec))
-      return fail(Cat("output '", name, "' is missing"));
-    if (std::filesystem::file_size(path, ec) != output.value("bytes", uint64_t{0}))
-      return fail(Cat("output '", name, "' has another size than recorded"));
-    if (HashBytes(ReadFileToString(path)) != output.value("fnv1a64", ""))
-      return fail(Cat("output '", name, "' has another hash than recorded"));
-  }
+  std::string changed;
+  if (!FilesIntact(out_, (*record)["outputs"], &changed)) return fail(Cat("output ", changed));
   return record;
 }
 
 void FrameRecords::Record(int64_t set, const nlohmann::json& result,
                           const std::vector<std::string>& outputs, double started_unix_s,
                           const std::string& task) const {
-  nlohmann::json files = nlohmann::json::array();
-  for (const std::string& name : outputs) {
-    const std::string bytes = ReadFileToString(out_ / name);
-    files.push_back({{"file", name}, {"bytes", bytes.size()}, {"fnv1a64", HashBytes(bytes)}});
-  }
+  const nlohmann::json files = DescribeFiles(out_, outputs);
   const nlohmann::json record = {{"format", kRunFormat},
                                  {"command", command_},
                                  {"fingerprint", fingerprint_},
@@ -158,9 +185,100 @@ void FrameRecords::Record(int64_t set, const nlohmann::json& result,
                                  {"started_unix_s", started_unix_s},
                                  {"finished_unix_s", UnixSeconds()},
                                  {"peak_rss_mb", PeakRssMb()},
+                                 {"task_cpu_s", CpuSeconds()},
                                  {"task", task}};
   CreateDirectories(out_ / kFrameReportsDir);
   WriteFileAtomic(FrameRecordPath(out_, set), Dump(record), /*durable=*/true);
+}
+
+namespace {
+
+constexpr const char* kPlanFile = "plan.json";
+constexpr const char* kPlanFormat = "holocap run plan 1";
+
+// OUT/plan/plan.json's plan (and who made it) when it is `fingerprint`'s and its files are
+// intact; else nothing, and `why` says what is missing.
+std::optional<nlohmann::json> ReadPlan(const std::filesystem::path& dir, const std::string& command,
+                                       const std::string& fingerprint, std::string* why,
+                                       std::string* made_by) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(dir / kPlanFile, ec)) {
+    *why = "no plan yet";
+    return std::nullopt;
+  }
+  const auto stored = ParseObject(ReadFileToString(dir / kPlanFile));
+  if (!stored || stored->value("format", "") != kPlanFormat || !stored->contains("plan") ||
+      !(*stored)["files"].is_array()) {
+    *why = "plan.json is not a run plan";
+    return std::nullopt;
+  }
+  if (stored->value("command", "") != command || stored->value("fingerprint", "") != fingerprint) {
+    *why = "the plan is another run's";
+    return std::nullopt;
+  }
+  std::string changed;
+  if (!FilesIntact(dir, (*stored)["files"], &changed)) {
+    *why = Cat("the plan's file ", changed);
+    return std::nullopt;
+  }
+  *made_by = stored->value("made_by", "");
+  return (*stored)["plan"];
+}
+
+// An exclusive flock(2) on `file` while it lives, waited for; released however the process ends.
+class WaitedLock {
+ public:
+  explicit WaitedLock(const std::filesystem::path& file)
+      : fd_(::open(file.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644)) {
+    if (fd_ < 0) Fail("cannot open the lock '", file.string(), "': ", std::strerror(errno));
+    while (::flock(fd_, LOCK_EX) != 0) {
+      if (errno == EINTR) continue;
+      const int error = errno;
+      ::close(fd_);
+      Fail("cannot lock '", file.string(), "': ", std::strerror(error));
+    }
+  }
+  ~WaitedLock() { ::close(fd_); }
+  WaitedLock(const WaitedLock&) = delete;
+  WaitedLock& operator=(const WaitedLock&) = delete;
+
+ private:
+  int fd_;
+};
+
+}  // namespace
+
+StoredPlan PlanOnce(const std::filesystem::path& out, const std::string& command,
+                    const std::string& fingerprint, const std::string& task,
+                    const std::function<nlohmann::json(std::vector<std::string>* files)>& make) {
+  const std::filesystem::path dir = out / kPlanDir;
+  StoredPlan result;
+  if (auto plan = ReadPlan(dir, command, fingerprint, &result.why, &result.made_by)) {
+    result.plan = std::move(*plan);
+    return result;
+  }
+  CreateDirectories(dir);
+  const WaitedLock lock(dir / ".lock");
+  // Another task may have made it while this one waited.
+  if (auto plan = ReadPlan(dir, command, fingerprint, &result.why, &result.made_by)) {
+    result.plan = std::move(*plan);
+    return result;
+  }
+  std::vector<std::string> files;
+  const double cpu_s = CpuSeconds();
+  result.plan = make(&files);
+  result.made = true;
+  result.made_by = task;
+  const nlohmann::json stored = {{"format", kPlanFormat},
+                                 {"command", command},
+                                 {"fingerprint", fingerprint},
+                                 {"plan", result.plan},
+                                 {"files", DescribeFiles(dir, files)},
+                                 {"made_by", task},
+                                 {"made_cpu_s", CpuSeconds() - cpu_s},
+                                 {"made_unix_s", UnixSeconds()}};
+  WriteFileAtomic(dir / kPlanFile, Dump(stored), /*durable=*/true);
+  return result;
 }
 
 std::string RunState::Describe(size_t shown) const {
@@ -199,7 +317,10 @@ RunState ReadRunState(const std::filesystem::path& out) {
   for (int64_t set : state.sets) {
     std::string why;
     if (auto record = run_records.Complete(set, &why)) {
-      ++state.frames_by_task[record->value("task", "?")];
+      const std::string task = record->value("task", "?");
+      ++state.frames_by_task[task];
+      state.cpu_s_by_task[task] =
+          std::max(state.cpu_s_by_task[task], record->value("task_cpu_s", 0.0));
       state.complete[set] = std::move(*record);
     } else {
       state.incomplete[set] = why;
@@ -227,6 +348,13 @@ double PeakRssMb() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
   return usage.ru_maxrss / 1024.0;
+}
+
+double CpuSeconds() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  const auto seconds = [](const timeval& t) { return t.tv_sec + 1e-6 * t.tv_usec; };
+  return seconds(usage.ru_utime) + seconds(usage.ru_stime);
 }
 
 double UnixSeconds() {

@@ -6,6 +6,11 @@
 // A run writes into its output directory OUT:
 //   OUT/run.json                   the run: command, fingerprint, its frame sets, and the options
 //                                  and plan its report shows (every task writes the same)
+//   OUT/plan/plan.json             the run's plan where making it costs more than reading it
+//                                  (a coarse hull over the take, a background model): made
+//                                  once, by the first task to take OUT/plan/.lock, with the
+//                                  files it lists beside it; every later task reads and
+//                                  verifies it (its fingerprint, each file's size and hash)
 //   OUT/<each frame's outputs>     written to a temporary sibling, fsync'ed and renamed
 //   OUT/frame-reports/<set>.json   the frame's record, written last (atomically, durably): the
 //                                  run's fingerprint, the frame's result (its own report), and
@@ -18,6 +23,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -83,7 +89,8 @@ class FrameRecords {
   std::optional<nlohmann::json> Complete(int64_t set, std::string* why = nullptr) const;
   // Records `set` as done, last of all its writes: `result` is the frame's own report,
   // `outputs` the files (relative to OUT) its task wrote there durably, each recorded with its
-  // size and hash; `started_unix_s` when the frame began; `task` names who did it.
+  // size and hash; `started_unix_s` when the frame began; `task` names who did it. The record
+  // also holds the task's CPU seconds so far (task_cpu_s: a run's CPU per task is the largest).
   void Record(int64_t set, const nlohmann::json& result, const std::vector<std::string>& outputs,
               double started_unix_s, const std::string& task) const;
 
@@ -93,6 +100,26 @@ class FrameRecords {
   std::string fingerprint_;
   std::vector<int64_t> sets_;
 };
+
+// The run's plan, made once for every task of the run (see the top of this file).
+struct StoredPlan {
+  nlohmann::json plan;  // what `make` returned
+  bool made = false;    // this task made it (else it was read, made by another task or run)
+  std::string made_by;  // the task that made it (PlanOnce's `task`)
+  std::string why;      // why it was made here ("no plan yet", "the plan is another run's", ...)
+};
+// The folder of a run's plan.
+inline constexpr const char* kPlanDir = "plan";
+// Returns OUT/plan/plan.json's plan when it names `fingerprint` (a hash of everything that
+// decides the plan) and every file it lists is intact. Otherwise, holding OUT/plan/.lock
+// (flock(2), so the run's other tasks wait for it and then read it), calls `make`, which plans
+// and writes its files into OUT/plan/ durably, adding their names (relative to OUT/plan) to
+// `files`; the plan, the files' sizes and hashes, `task` (who made it) and the CPU seconds it
+// took (made_cpu_s) are then written, atomically, last. A plan another task made while this one
+// waited for the lock is read, not made again.
+StoredPlan PlanOnce(const std::filesystem::path& out, const std::string& command,
+                    const std::string& fingerprint, const std::string& task,
+                    const std::function<nlohmann::json(std::vector<std::string>* files)>& make);
 
 // A run's progress read from its output directory alone (its run.json and records), never from
 // a scheduler's accounting.
@@ -105,6 +132,7 @@ struct RunState {
   std::map<int64_t, nlohmann::json> complete;     // set -> its record
   std::map<int64_t, std::string> incomplete;      // set -> why it is not complete
   std::map<std::string, int64_t> frames_by_task;  // who did the complete frames
+  std::map<std::string, double> cpu_s_by_task;    // each one's CPU seconds at its last record
 
   bool done() const { return incomplete.empty(); }
   // "3 of 6 frame sets complete; incomplete: 2 (no record), 4 (...), ..." (at most `shown`).
@@ -124,5 +152,7 @@ std::string DescribeTask(const Shard& shard);
 double UnixSeconds();
 // This process's peak resident memory so far, in MB.
 double PeakRssMb();
+// The CPU time this process has used so far (user + system), in seconds.
+double CpuSeconds();
 
 }  // namespace holocap

@@ -31,6 +31,14 @@ void TakeSelection::Check() const {
   if (last_frame >= 0 && last_frame <= first_frame) {
     Fail("--frames: the range ", first_frame, ":", last_frame, " is empty");
   }
+  for (size_t i = 0; i < frame_list.size(); ++i) {
+    if (frame_list[i] < 0) Fail("--frames: frame sets are 0 or more, not ", frame_list[i]);
+    if (i > 0 && frame_list[i] <= frame_list[i - 1])
+      Fail("--frames: the listed frame sets must increase (", frame_list[i - 1], " then ",
+           frame_list[i], ")");
+  }
+  if (!frame_list.empty() && (first_frame != 0 || last_frame != -1))
+    Fail("--frames: a list of frame sets and a range A:B are one or the other");
   if (clean_plate_frames < -1)
     Fail("--clean-plate must be -1 (from the take) or more, not ", clean_plate_frames);
   if (bounds && !(bounds->max().array() > bounds->min().array()).all())
@@ -48,13 +56,15 @@ void TakeSelection::Check() const {
 }
 
 nlohmann::json TakeSelection::ToJson() const {
-  return {{"first_frame", first_frame},
-          {"last_frame", last_frame},
-          {"clean_plate_frames", clean_plate_frames},
-          {"ground_truth_cameras", ground_truth_cameras},
-          {"heldout", heldout},
-          {"silhouettes", silhouettes},
-          {"silhouette_threshold", silhouette_threshold}};
+  nlohmann::json json = {{"first_frame", first_frame},
+                         {"last_frame", last_frame},
+                         {"clean_plate_frames", clean_plate_frames},
+                         {"ground_truth_cameras", ground_truth_cameras},
+                         {"heldout", heldout},
+                         {"silhouettes", silhouettes},
+                         {"silhouette_threshold", silhouette_threshold}};
+  if (!frame_list.empty()) json["frames"] = frame_list;
+  return json;
 }
 
 std::vector<CameraModel> TakePlan::Cameras(const std::vector<std::string>& names) const {
@@ -178,6 +188,16 @@ void ChooseFrameSets(const Take& take, const TakeSelection& selection, TakePlan&
   if (available <= 0) {
     Fail("take '", take.dir().string(), "' has ", take.size(),
          " frame sets, all of them clean plate");
+  }
+  if (!selection.frame_list.empty()) {
+    for (int64_t f : selection.frame_list) {
+      if (f >= available) {
+        Fail("--frames lists frame set ", f, "; the take has ", available,
+             " frame sets after its clean plate (0 to ", available - 1, ")");
+      }
+      plan.sets.push_back(plan.clean_plate_frames + f);
+    }
+    return;
   }
   const int64_t first = selection.first_frame;
   const int64_t last =

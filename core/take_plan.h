@@ -47,8 +47,11 @@ constexpr int64_t kMaxBackgroundSets = 31;
 
 // What the user asks of a take. The flags of every command that reads a take map onto these.
 struct TakeSelection {
-  int64_t first_frame = 0;            // frame sets [first, last) after the clean plate
-  int64_t last_frame = -1;            // -1: to the end
+  int64_t first_frame = 0;  // frame sets [first, last) after the clean plate
+  int64_t last_frame = -1;  // -1: to the end
+  // Or these frame sets after the clean plate, in increasing order (--frames 0-9,15,20-29);
+  // empty: the range above.
+  std::vector<int64_t> frame_list;
   int64_t clean_plate_frames = -1;    // leading sets without the subject; -1: the take's own
                                       // metadata (the simulator writes it), else 0
   bool ground_truth_cameras = false;  // gt/cameras even when calib/ exists (simulated takes)

@@ -16,6 +16,7 @@
 
 #include "core/error.h"
 #include "core/fs.h"
+#include "core/image.h"
 #include "core/mesh.h"
 #include "core/progress.h"
 #include "core/rig_alignment.h"
@@ -734,7 +735,8 @@ ReconstructionSummary SummariseRun(const RunState& run, Report* report) {
                        {"mean_frame_s", count > 0 ? total_seconds / count : 0},
                        {"wall_s", wall_s},
                        {"frames_per_minute", wall_s > 0 ? 60.0 * count / wall_s : 0},
-                       {"frames_by_task", run.frames_by_task}};
+                       {"frames_by_task", run.frames_by_task},
+                       {"cpu_s_by_task", run.cpu_s_by_task}};
   metrics["peak_rss_mb"] = peak_mb;
   double t_s = 0;
   int64_t iter = 0;
@@ -760,11 +762,7 @@ class TakeReconstructor {
       : take_(take), take_plan_(take_plan), out_(out), options_(options), report_(report) {}
 
   ReconstructionSummary Run() {
-    LearnBackground();
-    ChooseMethod();
-    ChooseSilhouettes();
-    ReadPlates();
-    TightenBounds();
+    PlanRun();
     ChooseVoxel();
     ChooseDepthRange();
     CheckBoundsSeen();
@@ -849,7 +847,6 @@ class TakeReconstructor {
     const int count = static_cast<int>(todo_.size());
     plan_.outer_threads = count >= threads_ ? threads_ : 1;
     plan_.inner_threads = count >= threads_ ? 1 : threads_;
-    task_ = DescribeTask(options_.tasks.shard);
   }
 
   // The plan's silhouette source applied to the options' parameters; the stage's options may
@@ -1053,6 +1050,102 @@ class TakeReconstructor {
     return out;
   }
 
+  // The run's plan up to its bounds, made once for all its tasks (core/frame_tasks.h PlanOnce):
+  // the background model and the coarse hull cost as much as several frames, so the task that
+  // takes the plan's lock first makes them and every other task reads what they chose.
+  void PlanRun() {
+    const StoredPlan stored = PlanOnce(out_, "reconstruct", PlanFingerprint(), task_,
+                                       [this](std::vector<std::string>* files) {
+                                         LearnBackground();
+                                         ChooseMethodAndPlates();
+                                         TightenBounds();
+                                         return SavePlan(files);
+                                       });
+    if (!stored.made) {
+      ApplyPlan(stored.plan);
+      ChooseMethodAndPlates();
+    }
+    plan_origin_ = stored.made ? Cat("made by this task (", stored.why, ")")
+                               : Cat("read from ", (out_ / kPlanDir).string(), " (made by ",
+                                     stored.made_by, ")");
+  }
+
+  void ChooseMethodAndPlates() {
+    ChooseMethod();
+    ChooseSilhouettes();
+    ReadPlates();
+  }
+
+  // What decides the plan: the options (less threads and the task's part), the take's plan
+  // before this stage's steps, its recording and its camera models.
+  std::string PlanFingerprint() const {
+    nlohmann::json options = options_.ToJson();
+    options.erase("threads");
+    options.erase("tasks");
+    return HashBytes(nlohmann::json{
+        {"options", options}, {"take_plan", take_plan_.ToJson()}, {"take", TakeIdentity()}}
+                         .dump());
+  }
+
+  // The take's recording and camera models as hashes: a re-recorded or recalibrated take is
+  // another run even where its plan reads the same.
+  nlohmann::json TakeIdentity() const {
+    std::string recording = ReadFileToString(take_.dir() / "take.json");
+    std::error_code ec;
+    if (fs::exists(take_.dir() / "index.jsonl", ec))
+      recording += ReadFileToString(take_.dir() / "index.jsonl");
+    std::string cameras;
+    for (const auto& [name, camera] : take_plan_.cameras) cameras += name + camera.ToString();
+    return {{"recording", HashBytes(recording)}, {"cameras", HashBytes(cameras)}};
+  }
+
+  // What PlanRun's costly steps chose, as OUT/plan/plan.json stores it (doubles round-trip
+  // exactly through JSON), the background model's images written beside it as PNG.
+  nlohmann::json SavePlan(std::vector<std::string>* files) const {
+    nlohmann::json background = nlohmann::json::object();
+    if (take_plan_.silhouettes == SilhouetteSource::kBackgroundModel) {
+      for (const auto& name : take_plan_.color_sensors) {
+        files->push_back(Cat("background-", name, ".png"));
+        WritePng(out_ / kPlanDir / files->back(), plates_.color.at(name));
+        background[name] = files->back();
+      }
+    }
+    const Eigen::AlignedBox3d& b = take_plan_.bounds;
+    return {{"silhouettes", static_cast<int>(take_plan_.silhouettes)},
+            {"silhouette_reason", take_plan_.silhouette_reason},
+            {"silhouette_threshold", take_plan_.silhouette_threshold},
+            {"background_sets", take_plan_.background_sets},
+            {"background", background},
+            {"bounds_min", {b.min().x(), b.min().y(), b.min().z()}},
+            {"bounds_max", {b.max().x(), b.max().y(), b.max().z()}},
+            {"bounds_source", take_plan_.bounds_source},
+            {"voxel_m", take_plan_.voxel_m},
+            {"voxel_source", take_plan_.voxel_source},
+            {"check_fill", plan_.check_fill},
+            {"implausible", implausible_}};
+  }
+
+  // A plan SavePlan stored: the take's plan and this stage's as the task that made it left them.
+  void ApplyPlan(const nlohmann::json& stored) {
+    take_plan_.silhouettes = static_cast<SilhouetteSource>(stored.at("silhouettes").get<int>());
+    take_plan_.silhouette_reason = stored.at("silhouette_reason").get<std::string>();
+    take_plan_.silhouette_threshold = stored.at("silhouette_threshold").get<double>();
+    take_plan_.background_sets = stored.at("background_sets").get<std::vector<int64_t>>();
+    for (const auto& [name, file] : stored.at("background").items())
+      plates_.color[name] = ReadImage(out_ / kPlanDir / file.get<std::string>());
+    const auto corner = [](const nlohmann::json& xyz) {
+      return Eigen::Vector3d(xyz.at(0).get<double>(), xyz.at(1).get<double>(),
+                             xyz.at(2).get<double>());
+    };
+    take_plan_.bounds =
+        Eigen::AlignedBox3d(corner(stored.at("bounds_min")), corner(stored.at("bounds_max")));
+    take_plan_.bounds_source = stored.at("bounds_source").get<std::string>();
+    take_plan_.voxel_m = stored.at("voxel_m").get<double>();
+    take_plan_.voxel_source = stored.at("voxel_source").get<std::string>();
+    plan_.check_fill = stored.at("check_fill").get<bool>();
+    implausible_ = stored.at("implausible").get<std::string>();
+  }
+
   // The background model stands in for the colour cameras' clean plates (or the plan falls
   // back to Otsu when the subject does not move).
   void LearnBackground() {
@@ -1133,6 +1226,7 @@ class TakeReconstructor {
     }
     if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
     std::printf("  %s\n", plan["parallel"].get<std::string>().c_str());
+    std::printf("  plan: %s\n", plan_origin_.c_str());
     if (!options_.tasks.shard.whole()) {
       std::printf("  shard %s: %zu of the run's %d frame set(s)\n",
                   options_.tasks.shard.ToString().c_str(), todo_.size(), frame_count_);
@@ -1281,19 +1375,12 @@ class TakeReconstructor {
     options.erase("tasks");
     nlohmann::json plan = summary_.plan;
     plan.erase("parallel");
-    // The take's recording and camera models too: a re-recorded or recalibrated take is
-    // another run even where its plan reads the same.
-    std::string recording = ReadFileToString(take_.dir() / "take.json");
-    std::error_code ec;
-    if (fs::exists(take_.dir() / "index.jsonl", ec))
-      recording += ReadFileToString(take_.dir() / "index.jsonl");
-    std::string cameras;
-    for (const auto& [name, camera] : take_plan_.cameras) cameras += name + camera.ToString();
+    const nlohmann::json take = TakeIdentity();
     records_.emplace(out_, "reconstruct",
                      nlohmann::json{{"options", options},
                                     {"plan", plan},
-                                    {"recording", HashBytes(recording)},
-                                    {"cameras", HashBytes(cameras)}},
+                                    {"recording", take["recording"]},
+                                    {"cameras", take["cameras"]}},
                      take_plan_.sets);
     options["take"] = take_.dir().string();
     options["out"] = out_.string();
@@ -1337,6 +1424,7 @@ class TakeReconstructor {
                          {"wall_s", wall_s},
                          {"frames_per_minute", 60.0 * (count - skipped_) / wall_s}};
     metrics["peak_rss_mb"] = PeakRssMb();
+    metrics["plan"] = plan_origin_;
     metrics["run"] = run.Describe();
     report_->plan() = summary_.plan;
     report_->SetSummary(summary_);
@@ -1358,7 +1446,8 @@ class TakeReconstructor {
   int frame_count_ = 0;    // the run's frame sets
   std::vector<int> todo_;  // this task's: indices into the run's sets
   int skipped_ = 0;        // of them, complete from an earlier run
-  std::string task_;       // who this task is, for the records
+  const std::string task_ = DescribeTask(options_.tasks.shard);  // who this task is
+  std::string plan_origin_;  // whether this task made the run's plan or read it
   std::optional<FrameRecords> records_;
   ReconstructionSummary summary_;
 };

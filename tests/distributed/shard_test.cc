@@ -7,6 +7,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <fstream>
 #include <thread>
@@ -105,6 +106,49 @@ TEST_F(Records, AFrameIsCompleteOnlyWithTheBytesItsRecordNames) {
   EXPECT_FALSE(run.done());
   EXPECT_EQ(run.Describe(),
             "1 of 2 frame sets complete; incomplete: 8 (its record is not a frame record)");
+}
+
+// The plan made by one of two tasks that ask for it at once (the other waits for the lock and
+// reads it), remade when the run differs or a file it lists changed.
+TEST(PlanOnce, OneTaskMakesThePlanAndTheOthersReadAndVerifyIt) {
+  TempDir dir("holocap-plan-once");
+  std::atomic<int> made{0};
+  auto make = [&](std::vector<std::string>* files) {
+    ++made;
+    // Long enough for the other task to find no plan and wait for the lock.
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    files->push_back("model.bin");
+    WriteFileAtomic(dir.path() / kPlanDir / "model.bin", "0123456789");
+    return nlohmann::json{{"bounds", {1.0 / 3, 2.0}}};
+  };
+  StoredPlan a, b;
+  std::thread other([&] { b = PlanOnce(dir.path(), "reconstruct", "f1", "task b", make); });
+  a = PlanOnce(dir.path(), "reconstruct", "f1", "task a", make);
+  other.join();
+  EXPECT_EQ(made.load(), 1);
+  EXPECT_NE(a.made, b.made);
+  EXPECT_EQ(a.plan, b.plan);
+  EXPECT_EQ(a.plan["bounds"][0].get<double>(), 1.0 / 3);  // doubles come back exactly
+  EXPECT_EQ(a.made_by, a.made ? "task a" : "task b");
+  EXPECT_EQ(b.made_by, a.made_by);
+  const auto stored = ReadJson(dir.path() / kPlanDir / "plan.json");
+  EXPECT_EQ(stored["made_by"], a.made ? "task a" : "task b");
+  EXPECT_EQ(stored["files"][0]["bytes"], 10);
+
+  StoredPlan again = PlanOnce(dir.path(), "reconstruct", "f1", "task c", make);
+  EXPECT_FALSE(again.made);
+  EXPECT_EQ(made.load(), 1);
+  again = PlanOnce(dir.path(), "reconstruct", "f2", "task c", make);
+  EXPECT_TRUE(again.made);
+  EXPECT_EQ(again.why, "the plan is another run's");
+  WriteFileAtomic(dir.path() / kPlanDir / "model.bin", "0123456780");
+  again = PlanOnce(dir.path(), "reconstruct", "f2", "task c", make);
+  EXPECT_TRUE(again.made);
+  EXPECT_EQ(again.why, "the plan's file 'model.bin' has another hash than recorded");
+  WriteFileAtomic(dir.path() / kPlanDir / "model.bin", "012");
+  again = PlanOnce(dir.path(), "reconstruct", "f2", "task c", make);
+  EXPECT_EQ(again.why, "the plan's file 'model.bin' has another size than recorded");
+  EXPECT_EQ(made.load(), 4);
 }
 
 // One take, reconstructed once by one process; every other run is compared with it.
@@ -208,6 +252,63 @@ TEST_F(ShardedReconstruct, ATaskKilledMidFrameLeavesNothingTakenAsComplete) {
             std::string::npos)
       << rerun.output;
   ExpectSameRun(out("whole"), dir);
+}
+
+TEST_F(ShardedReconstruct, TheFirstTaskPlansTheRunAndTheOthersReadItsPlan) {
+  const std::string dir = out("planned");
+  auto first = RunCli("reconstruct " + take() + " --out " + dir + " --shard 0/2");
+  ASSERT_EQ(first.exit_code, 0) << first.output;
+  EXPECT_NE(first.output.find("plan: made by this task (no plan yet)"), std::string::npos)
+      << first.output;
+  ASSERT_TRUE(fs::exists(dir + "/plan/plan.json"));
+  const auto plan = ReadJson(dir + "/plan/plan.json");
+  EXPECT_NE(plan["plan"]["bounds_source"].get<std::string>().find("coarse hull"),
+            std::string::npos);
+  auto second = RunCli("reconstruct " + take() + " --out " + dir + " --shard 1/2");
+  ASSERT_EQ(second.exit_code, 0) << second.output;
+  EXPECT_NE(second.output.find("plan: read from " + dir + "/plan"), std::string::npos)
+      << second.output;
+  EXPECT_EQ(
+      ReadJson(dir + "/tasks/shard-1-of-2/report.json")["metrics"]["plan"].get<std::string>().rfind(
+          "read from", 0),
+      0u);
+  EXPECT_EQ(ExpectSameRun(out("whole"), dir), 10u);
+  // A task that finds no plan plans itself, to the same bytes.
+  fs::remove_all(dir + "/plan");
+  auto alone = RunCli("reconstruct " + take() + " --out " + dir + " --shard 1/2 --redo");
+  ASSERT_EQ(alone.exit_code, 0) << alone.output;
+  EXPECT_NE(alone.output.find("plan: made by this task (no plan yet)"), std::string::npos)
+      << alone.output;
+  ExpectSameRun(out("whole"), dir);
+}
+
+TEST_F(ShardedReconstruct, AFrameListIsARunThatShardsSplit) {
+  const std::string frames = " --no-sweep --frames 0,2-3";
+  auto whole = RunCli("reconstruct " + take() + " --out " + out("listed") + frames);
+  ASSERT_EQ(whole.exit_code, 0) << whole.output;
+  // After the clean plate (set 0): sets 1, 3 and 4 of the take.
+  EXPECT_EQ(ReadRunState(out("listed")).sets, (std::vector<int64_t>{1, 3, 4}));
+  for (const char* shard : {"0/2", "1/2"}) {
+    auto task = RunCli("reconstruct " + take() + " --out " + out("listed-split") + frames +
+                       " --shard " + shard);
+    ASSERT_EQ(task.exit_code, 0) << task.output;
+    const std::string part = std::string(shard) == "0/2" ? "1 of" : "2 of";
+    EXPECT_NE(
+        task.output.find("shard " + std::string(shard) + ": " + part + " the run's 3 frame set(s)"),
+        std::string::npos)
+        << task.output;
+  }
+  EXPECT_EQ(ExpectSameRun(out("listed"), out("listed-split")), 6u);
+  EXPECT_EQ(ReadRunState(out("listed-split")).complete.begin()->first, 1);
+
+  const std::string bad = "reconstruct " + take() + " --out " + out("bad-list") + " --frames ";
+  ExpectOneLineError(RunCli(bad + "3-1"), "--frames: '3-1' is not a range A-B with 0 <= A <= B");
+  ExpectOneLineError(RunCli(bad + "0,9"),
+                     "--frames lists frame set 9; the take has 5 frame sets after its clean "
+                     "plate (0 to 4)");
+  ExpectOneLineError(RunCli(bad + "1,,2"), "--frames must be A:B, A:, A or a list");
+  ExpectOneLineError(RunCli(bad + "1,2,"), "--frames must be A:B, A:, A or a list");
+  ExpectOneLineError(RunCli(bad + "1-x"), "--frames must be A:B, A:, A or a list");
 }
 
 TEST_F(ShardedReconstruct, BadShardsAndMergesEndInOneLine) {
