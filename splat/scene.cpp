@@ -63,6 +63,17 @@ struct Undistortion {
   }
 };
 
+// `selection` narrowed to its first frame set (a static scene; the seed of one frame), whether
+// it names a range A:B or a list of frame sets.
+TakeSelection FirstSetOnly(TakeSelection selection) {
+  if (!selection.frame_list.empty()) {
+    selection.frame_list.resize(1);
+  } else {
+    selection.last_frame = selection.first_frame + 1;
+  }
+  return selection;
+}
+
 // The first planned frame set's surface: recon_dir's, else reconstructed now by the plan's
 // method from the training cameras (the held-out ones never). Empty when the reconstruction
 // found none; `source` says what happened.
@@ -74,8 +85,7 @@ std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_d
   fs::path recon_dir = options.recon_dir;
   if (recon_dir.empty()) {
     recon_dir = model_dir / "seed_recon";
-    TakeSelection selection = options.take;
-    if (frames == 1) selection.last_frame = selection.first_frame + 1;
+    TakeSelection selection = frames == 1 ? FirstSetOnly(options.take) : options.take;
     selection.heldout.clear();
     for (const auto& view : data.views)
       if (view.heldout) selection.heldout.push_back(view.name);
@@ -158,7 +168,7 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
   data_options.take = options.take;
   data_options.threads = options.threads;
   data_options.scene = "static";
-  if (options.scene == "static") data_options.take.last_frame = data_options.take.first_frame + 1;
+  if (options.scene == "static") data_options.take = FirstSetOnly(options.take);
   const neural::TrainingData data = neural::LoadTrainingData(take_dir, data_options);
   const bool dynamic = options.scene == "dynamic" || data.sets.size() > 1;
   SplatScene scene;

@@ -120,6 +120,17 @@ TEST_F(SplatCli, DynamicTakeTrainsFrameToFrameAndPlays) {
   const nlohmann::json played = ReadJson(root_ / "walk_frames" / "report.json");
   EXPECT_EQ(played["plan"]["model_frames"], 3);
   EXPECT_TRUE(fs::exists(root_ / "walk_frames" / "000002.png"));
+
+  // A static scene from a list of frame sets trains the first listed set alone.
+  const fs::path listed = root_ / "walk_listed";
+  const CommandResult one = RunCli("train splat " + take.string() + " --out " + listed.string() +
+                                   " --scene static --frames 2,3 --iterations 10 --width 64 " +
+                                   "--seed-points 2000 --threads 2");
+  ASSERT_EQ(one.exit_code, 0) << one.output;
+  const nlohmann::json listed_report = ReadJson(listed / "report.json");
+  EXPECT_EQ(listed_report["plan"]["scene"], "static");
+  EXPECT_EQ(listed_report["metrics"]["frames"].size(), 1u);
+  EXPECT_EQ(ReadJson(listed / "model.json")["frames"], 1);
 }
 
 }  // namespace
