@@ -3,6 +3,7 @@
 #include <signal.h>
 
 #include <atomic>
+#include <chrono>
 #include <thread>
 
 #include "core/error.h"
@@ -26,9 +27,13 @@ class StopOnSignals {
     pthread_sigmask(SIG_BLOCK, &signals_, &previous_);
     watcher_ = std::thread([this, server] {
       const timespec poll{0, 100'000'000};
+      constexpr std::chrono::milliseconds kPoll{10};
       while (!done_) {
         if (sigtimedwait(&signals_, nullptr, &poll) > 0) {
           stopped_ = true;
+          // A signal may come before listen_after_bind() starts, and httplib's stop() stops a
+          // running server only: wait until it runs (or the serving is over), then stop it.
+          while (!done_ && !server->is_running()) std::this_thread::sleep_for(kPoll);
           server->stop();
           return;
         }
