@@ -28,6 +28,7 @@ WebExportSummary ExportWeb(const WebExportRequest& request, Report* report) {
   options.meshes = !request.no_meshes;
   for (const auto& model : request.models) options.models.push_back(model);
   options.fps = request.fps;
+  if (request.key_every != 0) options.splat_key_every = request.key_every;
   options.take.ground_truth_cameras = request.ground_truth_cameras;
   options.overwrite = request.overwrite;
   return ExportWebSite(request.take, request.out, options, report);
@@ -59,8 +60,9 @@ Summary ExportDemoSite(DemoContext& context) {
   request.take = context.take.string();
   request.out = (context.out / "site").string();
   request.recon = (context.out / "recon").string();
-  if (fs::is_regular_file(context.out / "nvol" / "model.json"))
-    request.models.push_back((context.out / "nvol").string());
+  for (const char* model : {"nvol", "splat"})
+    if (fs::is_regular_file(context.out / model / "model.json"))
+      request.models.push_back((context.out / model).string());
   request.overwrite = true;
   Report report("export web");
   const WebExportSummary summary = ExportWeb(request, &report);

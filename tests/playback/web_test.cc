@@ -346,11 +346,12 @@ TEST(WebViewTest, RefusesAFolderThatIsNotASiteAndAPortInUse) {
                   R"({"format": "holocap-stream", "version": 99})");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
                               "version 99");
-  // So is a site of the previous version (its mesh chunks are laid out differently).
+  // So is a site of version 1 (its mesh chunks are laid out differently); version 2 (before
+  // the splat stream) still plays.
   WriteFileAtomic(dir.path() / "site" / "manifest.json",
                   R"({"format": "holocap-stream", "version": 1})");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
-                              "version 1; this holocap plays version 2");
+                              "version 1; this holocap plays versions 2 to 3");
   WriteFileAtomic(dir.path() / "site" / "manifest.json",
                   R"({"format": "holocap-stream", "version": 2})");
   ViewServer first(dir.path() / "site");
