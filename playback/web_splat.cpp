@@ -120,7 +120,7 @@ void AppendRecord(const splat::Gaussians& g, int64_t i, int group, const SplatEn
     case 0:
       for (int a = 0; a < 3; ++a)
         Put<uint16_t>(out, static_cast<uint16_t>(Quantise(g.position[3 * i + a], e.box_min[a],
-                                                           e.box_max[a], e.position_bits)));
+                                                          e.box_max[a], e.position_bits)));
       return;
     case 1:
       Put<uint32_t>(out, SmallestThree(&g.rotation[4 * i], e.rotation_bits));
@@ -131,7 +131,8 @@ void AppendRecord(const splat::Gaussians& g, int64_t i, int group, const SplatEn
                                                         e.log_scale_max, e.scale_bits)));
       return;
     case 3:
-      Put<uint8_t>(out, static_cast<uint8_t>(Quantise(Sigmoid(g.opacity[i]), 0, 1, e.opacity_bits)));
+      Put<uint8_t>(out,
+                   static_cast<uint8_t>(Quantise(Sigmoid(g.opacity[i]), 0, 1, e.opacity_bits)));
       return;
     default:
       for (int k = 0; k < k_streamed; ++k) {
@@ -299,10 +300,13 @@ Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const Splat
   *codes = QuantiseSplats(gaussians, e);
   const auto widths = e.RecordBytes();
   Chunk chunk;
-  chunk.header = {{"kind", "splats"},        {"frame", frame},
-                  {"key", previous == nullptr}, {"count", gaussians.size()},
+  chunk.header = {{"kind", "splats"},
+                  {"frame", frame},
+                  {"key", previous == nullptr},
+                  {"count", gaussians.size()},
                   {"stored", gaussians.size()},
-                  {"encoding", e.ToJson()},  {"sections", nlohmann::json::array()}};
+                  {"encoding", e.ToJson()},
+                  {"sections", nlohmann::json::array()}};
   if (previous == nullptr) {
     for (int group = 0; group < kSplatGroups; ++group)
       chunk.AddSection(kSplatGroupNames[group], ToPlanes(codes->records[group], widths[group]),
@@ -340,7 +344,8 @@ Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const Splat
     changed_any += changed;
   }
   for (int group = 0; group < kSplatGroups; ++group) {
-    for (int64_t i : added) stored[group].append(codes->records[group], i * widths[group], widths[group]);
+    for (int64_t i : added)
+      stored[group].append(codes->records[group], i * widths[group], widths[group]);
   }
   chunk.header["previous"] = n;
   chunk.header["added"] = added.size();
@@ -363,7 +368,8 @@ SplatCodes DecodeSplats(const Chunk& chunk, const SplatCodes* previous) {
   if (h.at("key").get<bool>()) {
     for (int group = 0; group < kSplatGroups; ++group) {
       const char* name = kSplatGroupNames[group];
-      codes.records[group] = FromPlanes(SectionBytes(chunk, name), widths[group], codes.count, name);
+      codes.records[group] =
+          FromPlanes(SectionBytes(chunk, name), widths[group], codes.count, name);
     }
     return codes;
   }

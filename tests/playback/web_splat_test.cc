@@ -44,7 +44,8 @@ void ExpectWithinSteps(const splat::Gaussians& model, const splat::Gaussians& de
   ASSERT_EQ(decoded.size(), model.size());
   const double levels16 = std::ldexp(1.0, e.position_bits) - 1;
   const double rotation_step = std::sqrt(2.0) / (std::ldexp(1.0, e.rotation_bits) - 1);
-  const double scale_step = (e.log_scale_max - e.log_scale_min) / (std::ldexp(1.0, e.scale_bits) - 1);
+  const double scale_step =
+      (e.log_scale_max - e.log_scale_min) / (std::ldexp(1.0, e.scale_bits) - 1);
   const double dc_step = (e.dc_max - e.dc_min) / (std::ldexp(1.0, e.dc_bits) - 1);
   const double rest_step = 2 * e.rest_max / (std::ldexp(1.0, e.rest_bits) - 1);
   const int k_model = model.coefficients(), k = decoded.coefficients();
@@ -52,11 +53,15 @@ void ExpectWithinSteps(const splat::Gaussians& model, const splat::Gaussians& de
   for (int64_t i = 0; i < model.size(); ++i) {
     for (int a = 0; a < 3; ++a) {
       const double step = (e.box_max[a] - e.box_min[a]) / levels16;
-      worst[0] = std::max(worst[0], std::abs(decoded.position[3 * i + a] - model.position[3 * i + a]) / step);
-      worst[2] = std::max(worst[2], std::abs(decoded.log_scale[3 * i + a] - model.log_scale[3 * i + a]) / scale_step);
+      worst[0] = std::max(worst[0],
+                          std::abs(decoded.position[3 * i + a] - model.position[3 * i + a]) / step);
+      worst[2] =
+          std::max(worst[2], std::abs(decoded.log_scale[3 * i + a] - model.log_scale[3 * i + a]) /
+                                 scale_step);
     }
     double q[4], norm = 0, dot = 0;
-    for (int c = 0; c < 4; ++c) norm += double(model.rotation[4 * i + c]) * model.rotation[4 * i + c];
+    for (int c = 0; c < 4; ++c)
+      norm += double(model.rotation[4 * i + c]) * model.rotation[4 * i + c];
     for (int c = 0; c < 4; ++c) {
       q[c] = model.rotation[4 * i + c] / std::sqrt(norm);
       dot += q[c] * decoded.rotation[4 * i + c];
@@ -65,7 +70,8 @@ void ExpectWithinSteps(const splat::Gaussians& model, const splat::Gaussians& de
       const double d = std::abs((dot < 0 ? -1 : 1) * decoded.rotation[4 * i + c] - q[c]);
       worst[1] = std::max(worst[1], d / rotation_step / 5);  // half a step is 0.5: 2.5 steps too
     }
-    worst[3] = std::max(worst[3], std::abs(Sigmoid(decoded.opacity[i]) - Sigmoid(model.opacity[i])) * 255);
+    worst[3] =
+        std::max(worst[3], std::abs(Sigmoid(decoded.opacity[i]) - Sigmoid(model.opacity[i])) * 255);
     for (int j = 0; j < 3 * k; ++j) {
       const double d = std::abs(decoded.sh[3 * k * i + j] - model.sh[3 * k_model * i + j]);
       worst[4] = std::max(worst[4], d / (j < 3 ? dc_step : rest_step));
@@ -88,7 +94,9 @@ TEST(WebSplatTest, KeyFrameDecodesWithinHalfAStepOfEachAttribute) {
     const web::SplatCodes decoded = RoundTrip(chunk, nullptr);
     ASSERT_EQ(decoded.records, codes.records) << level;
     const splat::Gaussians g = web::SplatsFromCodes(decoded, e);
-    EXPECT_EQ(g.sh_degree, std::string(level) == "low" ? 0 : std::string(level) == "medium" ? 1 : 3);
+    EXPECT_EQ(g.sh_degree, std::string(level) == "low"      ? 0
+                           : std::string(level) == "medium" ? 1
+                                                            : 3);
     std::printf("%s: %zu bytes for %lld Gaussians of degree %d\n", level, chunk.Serialise().size(),
                 static_cast<long long>(model.size()), g.sh_degree);
     ExpectWithinSteps(model, g, e);
@@ -152,8 +160,8 @@ TEST(WebSplatTest, LosslessChunksAreExact) {
   web::SplatEncoding e = web::SplatEncoding::For(web::QualityByName("lossless"), 3);
   e.Include(model);
   web::SplatCodes codes;
-  const splat::Gaussians g =
-      web::SplatsFromCodes(RoundTrip(web::EncodeSplats(model, 0, e, nullptr, {}, &codes), nullptr), e);
+  const splat::Gaussians g = web::SplatsFromCodes(
+      RoundTrip(web::EncodeSplats(model, 0, e, nullptr, {}, &codes), nullptr), e);
   EXPECT_EQ(g.position, model.position);
   EXPECT_EQ(g.rotation, model.rotation);
   EXPECT_EQ(g.log_scale, model.log_scale);
