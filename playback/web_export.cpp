@@ -489,17 +489,21 @@ nlohmann::json WebExportOptions::ToJson() const {
 }
 
 nlohmann::json WebStreamMetrics::ToJson() const {
-  return {{"kind", kind},
-          {"quality", quality},
-          {"frames", frames},
-          {"mb_per_frame", mb_per_frame},
-          {"mbps", mbps},
-          {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
-          {"max_position_error_mm", max_position_error_mm},
-          {"mean_faces", mean_faces},
-          {"mean_gaussians", mean_gaussians},
-          {"mean_stored_gaussians", mean_stored_gaussians},
-          {"key_frames", key_frames}};
+  nlohmann::json json = {
+      {"kind", kind},
+      {"quality", quality},
+      {"frames", frames},
+      {"mb_per_frame", mb_per_frame},
+      {"mbps", mbps},
+      {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
+      {"max_position_error_mm", max_position_error_mm},
+      {"mean_faces", mean_faces}};
+  if (kind == "splats") {
+    json["mean_gaussians"] = mean_gaussians;
+    json["mean_stored_gaussians"] = mean_stored_gaussians;
+    json["key_frames"] = key_frames;
+  }
+  return json;
 }
 
 WebExportSummary ExportWebSite(const fs::path& take_dir, const fs::path& site_dir,

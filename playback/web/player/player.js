@@ -279,7 +279,8 @@ function updateStats(now) {
       `fps        ${state.stats.fps}\n` +
       `decoded    ${state.stats.decodedMBps.toFixed(2)} MB/s (${state.decoded.length} frames/s)\n` +
       `buffer     ${ahead} frames (${state.stats.bufferAheadS.toFixed(2)} s ahead)\n` +
-      `stream     ${state.manifest.streams[state.stream]?.name ?? '-'}`;
+      `stream     ${state.manifest.streams[state.stream]?.name ?? '-'}` +
+      (state.drawnSplats ? `\nsplats     ${state.drawnSplats.drawn} of ${state.drawnSplats.count} drawn` : '');
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -306,6 +307,8 @@ function draw(gl, renderers) {
     if (entry.data.kind === 'mesh') renderers.mesh.draw(entry.data, view, projection);
     else if (entry.data.kind === 'splats') renderers.splats.draw(entry.data, camera, W, H);
     else renderers.volume.draw(entry.data, camera, H);
+    state.drawnSplats = entry.data.kind === 'splats'
+        ? { drawn: renderers.splats.drawn, count: entry.data.count } : null;
     if (state.drawnFrame !== state.frame && state.timeToFirstFrameMs === null)
       state.timeToFirstFrameMs = performance.now();
   }

@@ -129,19 +129,19 @@ export class SplatRenderer {
       const z = R[2][0] * wx + R[2][1] * wy + R[2][2] * wz + t[2];
       if (!(z > NEAR_M)) continue;
       const u = Math.min(limitU, Math.max(-limitU, px / z)), v = Math.min(limitV, Math.max(-limitV, py / z));
-      // T = J W, J the EWA Jacobian at the clamped tangent.
+      // T = J W (rows t0, t1), J the EWA Jacobian at the clamped tangent; cov = T Sigma T^T.
       const j00 = fx / z, j02 = -fx * u / z, j11 = fy / z, j12 = -fy * v / z;
-      const T = [0, 1, 2].map((c) => j00 * R[0][c] + j02 * R[2][c]).concat(
-                [0, 1, 2].map((c) => j11 * R[1][c] + j12 * R[2][c]));
-      const s = sigma.subarray(6 * i, 6 * i + 6);
-      const S = [s[0], s[1], s[2], s[1], s[3], s[4], s[2], s[4], s[5]];
-      const ts = new Array(6);
-      for (let row = 0; row < 2; ++row)
-        for (let col = 0; col < 3; ++col)
-          ts[3 * row + col] = T[3 * row] * S[col] + T[3 * row + 1] * S[3 + col] + T[3 * row + 2] * S[6 + col];
-      const a = ts[0] * T[0] + ts[1] * T[1] + ts[2] * T[2] + LOW_PASS_PX2;
-      const b = ts[0] * T[3] + ts[1] * T[4] + ts[2] * T[5];
-      const c = ts[3] * T[3] + ts[4] * T[4] + ts[5] * T[5] + LOW_PASS_PX2;
+      const t00 = j00 * R[0][0] + j02 * R[2][0], t01 = j00 * R[0][1] + j02 * R[2][1];
+      const t02 = j00 * R[0][2] + j02 * R[2][2], t10 = j11 * R[1][0] + j12 * R[2][0];
+      const t11 = j11 * R[1][1] + j12 * R[2][1], t12 = j11 * R[1][2] + j12 * R[2][2];
+      const o6 = 6 * i, sxx = sigma[o6], sxy = sigma[o6 + 1], sxz = sigma[o6 + 2];
+      const syy = sigma[o6 + 3], syz = sigma[o6 + 4], szz = sigma[o6 + 5];
+      const a0 = t00 * sxx + t01 * sxy + t02 * sxz, a1 = t00 * sxy + t01 * syy + t02 * syz;
+      const a2 = t00 * sxz + t01 * syz + t02 * szz, b0 = t10 * sxx + t11 * sxy + t12 * sxz;
+      const b1 = t10 * sxy + t11 * syy + t12 * syz, b2 = t10 * sxz + t11 * syz + t12 * szz;
+      const a = a0 * t00 + a1 * t01 + a2 * t02 + LOW_PASS_PX2;
+      const b = a0 * t10 + a1 * t11 + a2 * t12;
+      const c = b0 * t10 + b1 * t11 + b2 * t12 + LOW_PASS_PX2;
       const det = a * c - b * b;
       if (!(det > 0) || !Number.isFinite(det)) continue;
       const mu = fx * px / z + cx, mv = fy * py / z + cy;
@@ -154,7 +154,14 @@ export class SplatRenderer {
       const length = Math.hypot(dx, dy, dz), inv = length > 0 ? 1 / length : 0;
       shBasis(g.degree, dx * inv, dy * inv, dz * inv, basis);
       const at = FLOATS * i;
-      values.set([mu, mv, Math.min(eu, cap), Math.min(ev, cap), c / det, -b / det, a / det, o], at);
+      values[at] = mu;
+      values[at + 1] = mv;
+      values[at + 2] = Math.min(eu, cap);
+      values[at + 3] = Math.min(ev, cap);
+      values[at + 4] = c / det;
+      values[at + 5] = -b / det;
+      values[at + 6] = a / det;
+      values[at + 7] = o;
       for (let channel = 0; channel < 3; ++channel) {
         let value = 0.5;
         for (let q = 0; q < k; ++q) value += basis[q] * g.sh[(i * k + q) * 3 + channel];
