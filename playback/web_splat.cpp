@@ -1,6 +1,7 @@
 // The splat stream's chunks (README "The stream format"): Gaussians quantised per attribute
 // group, key frames in full and later frames as deltas of the frame before as decoded (kept and
-// changed bits over the frame before's Gaussians, the changed and added ones' codes).
+// changed bits over the frame before's Gaussians, the changed ones' codes as byte differences
+// from the frame before's, the added ones' codes).
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -338,7 +339,11 @@ Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const Splat
       if (codes->records[group].compare(i * w, w, previous->records[group], from * w, w) == 0)
         continue;
       SetBit(&masks, (1 + group) * mask_bytes, from);
-      stored[group].append(codes->records[group], i * w, w);
+      // Each byte as its difference (modulo 256) from the frame before's: a small move leaves
+      // small numbers, which deflate packs tighter than the codes.
+      for (size_t b = 0; b < w; ++b)
+        stored[group].push_back(static_cast<char>(codes->records[group][i * w + b] -
+                                                  previous->records[group][from * w + b]));
       changed = true;
     }
     changed_any += changed;
@@ -396,7 +401,8 @@ SplatCodes DecodeSplats(const Chunk& chunk, const SplatCodes* previous) {
     for (int64_t i = 0; i < n; ++i) {
       if (!Bit(masks, 0, i)) continue;
       if (Bit(masks, offset, i)) {
-        out.append(stored, next, w);
+        for (size_t b = 0; b < w; ++b)
+          out.push_back(static_cast<char>(stored[next + b] + previous->records[group][i * w + b]));
         next += w;
       } else {
         out.append(previous->records[group], i * w, w);

@@ -328,8 +328,12 @@ export async function decodeSplats(chunk, previous) {
       let next = 0, o = 0;
       for (let i = 0; i < n; ++i) {
         if (!bit(0, i)) continue;
-        const source = bit(offset, i) ? stored : before, at = source === stored ? w * next++ : w * i;
-        for (let b = 0; b < w; ++b) out[o + b] = source[at + b];
+        if (bit(offset, i)) {  // each byte stored as its difference (mod 256) from the one before
+          for (let b = 0; b < w; ++b) out[o + b] = (stored[w * next + b] + before[w * i + b]) & 0xff;
+          ++next;
+        } else {
+          for (let b = 0; b < w; ++b) out[o + b] = before[w * i + b];
+        }
         o += w;
       }
       out.set(stored.subarray(w * next), o);
