@@ -13,6 +13,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <random>
 
 #include "core/error.h"
 #include "core/fs.h"
@@ -110,17 +111,29 @@ class WebTest : public ::testing::Test {
     splats.image_width = 64;
     splats.max_seed_points = 4000;
     splats.iterations = 150;
+    splats.sh_degree_every = 40;  // degree 3 by iteration 120: the page evaluates every degree
     splats.frame_iterations = 30;
     splats.minutes = splats.frame_minutes = 10;
     splats.eval_every_s = 1000;
     splats.threads = 1;
     TrainSplats(Take(), SplatModelDir(), splats);
     ASSERT_TRUE(fs::exists(SplatModelDir() / "deltas"));
+    // Its first frame with strong view-dependent colour (every coefficient above degree 0
+    // random in +-0.2), as a static model: what the page's spherical harmonics must match.
+    SplatModel vivid = SplatModel::Load(SplatModelDir());
+    vivid.frames = 1;
+    std::mt19937 random(5);
+    std::uniform_real_distribution<float> coefficient(-0.2f, 0.2f);
+    const int k = vivid.gaussians.coefficients();
+    for (size_t j = 0; j < vivid.gaussians.sh.size(); ++j)
+      if ((j / 3) % k != 0) vivid.gaussians.sh[j] = coefficient(random);
+    vivid.Save(VividModelDir());
     // Key frames every 2 frames: frame 1 is a delta of frame 0, frame 2 a key frame again.
-    auto exported = RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
-                           "' --model '" + SplatModelDir().string() +
-                           "' --quality low,high,lossless --key-every 2 --ground-truth --out '" +
-                           Site().string() + "'");
+    auto exported =
+        RunCli("export web '" + Take().string() + "' --model '" + Model().string() + "' --model '" +
+               SplatModelDir().string() + "' --model '" + VividModelDir().string() +
+               "' --quality low,high,lossless --key-every 2 --ground-truth --out '" +
+               Site().string() + "'");
     ASSERT_EQ(exported.exit_code, 0) << exported.output;
   }
   static void TearDownTestSuite() {
@@ -130,6 +143,7 @@ class WebTest : public ::testing::Test {
   static fs::path Take() { return dir_->path() / "take"; }
   static fs::path Model() { return dir_->path() / "nvol"; }
   static fs::path SplatModelDir() { return dir_->path() / "splat"; }
+  static fs::path VividModelDir() { return dir_->path() / "vivid"; }
   static fs::path Site() { return dir_->path() / "site"; }
   static nlohmann::json Manifest() {
     return nlohmann::json::parse(ReadFileToString(Site() / "manifest.json"));
@@ -331,10 +345,11 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   fs::create_directories(out);
   const int camera_index = 2, frame = 1;
   const CameraModel camera = PinholeOf(manifest.at("cameras").at(camera_index));
-  auto shots = RunShell("node '" + (driver / "drive.mjs").string() + "' shots " + server.url() +
-                        " '" + out.string() + "' " + std::to_string(camera.width()) + " " +
-                        std::to_string(camera.height()) + " " + std::to_string(frame) + " " +
-                        std::to_string(camera_index) + " nvol-high mesh-high splat-high");
+  auto shots =
+      RunShell("node '" + (driver / "drive.mjs").string() + "' shots " + server.url() + " '" +
+               out.string() + "' " + std::to_string(camera.width()) + " " +
+               std::to_string(camera.height()) + " " + std::to_string(frame) + " " +
+               std::to_string(camera_index) + " nvol-high mesh-high splat-high vivid-high");
   const auto shot_results = nlohmann::json::parse(ReadFileToString(out / "shots.json"));
   ASSERT_TRUE(shot_results.at("ok").get<bool>()) << shots.output;
   EXPECT_TRUE(shot_results.at("consoleErrors").empty()) << shot_results.dump(1);
@@ -369,6 +384,23 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   std::printf("splat stream in the page against holocap render: %.2f dB over %lld px\n", splat_psnr,
               static_cast<long long>(pixels));
   EXPECT_GE(splat_psnr, 30.0);
+  const RenderedView vivid = OpenModel(VividModelDir())->Render(camera, frame, {});
+  const cv::Mat vivid_page = cv::imread((out / "vivid-high.png").string());
+  const double vivid_psnr =
+      PsnrInsideBoxDb(vivid_page, vivid.color, camera, BoxOf(manifest.at("bounds")), &pixels);
+  // Where the splats cover the picture, the page's 8-bit colour against the native float one.
+  cv::Mat native_8u, covered;
+  vivid.color.convertTo(native_8u, CV_8UC3, 255.0);
+  cv::compare(vivid.alpha, 0.5, covered, cv::CMP_GT);
+  const double vivid_covered_psnr = PsnrDb(vivid_page, native_8u, covered);
+  std::printf(
+      "splats of strong view-dependent colour (degree 3) in the page: %.2f dB inside the box, "
+      "%.2f dB over the %d px they cover\n",
+      vivid_psnr, vivid_covered_psnr, cv::countNonZero(covered));
+  EXPECT_GE(vivid_psnr, 30.0);
+  // 42 dB measured; one basis term of the wrong sign in the page gives 34 dB here.
+  EXPECT_GE(vivid_covered_psnr, 38.0);
+  EXPECT_GT(cv::countNonZero(covered), 200);
   auto scrub = RunShell("node '" + (driver / "drive.mjs").string() + "' scrub " + server.url() +
                         " '" + out.string() + "' " + std::to_string(camera.width()) + " " +
                         std::to_string(camera.height()) + " " + std::to_string(camera_index) +
