@@ -410,6 +410,7 @@ state.benchDecode = async (name) => {
     const t = performance.now();
     const parsed = parseChunk(buffer);
     previous = await decodeChunk(parsed, previous);  // splat deltas: from the frame before
+    previous.expand?.();  // a splat frame's Gaussians, as drawing it makes them
     decodeMs += performance.now() - t;
     bytes += buffer.byteLength;
     ++frames;

@@ -115,7 +115,7 @@ export class SplatRenderer {
   // Projects and sorts the frame's Gaussians for a camera on a W x H canvas; fills the instance
   // buffer back to front.
   project(splats, camera, W, H) {
-    const g = splats.gaussians, n = g.count;
+    const g = splats.expand(), n = g.count;
     if (!splats.sigma) splats.sigma = covariances(g);
     const sigma = splats.sigma, { R, t, fx, fy, cx, cy } = camera;
     const centre = [0, 1, 2].map((j) => -(R[0][j] * t[0] + R[1][j] * t[1] + R[2][j] * t[2]));
@@ -189,6 +189,10 @@ export class SplatRenderer {
     const gl = this.gl;
     const key = JSON.stringify([camera, W, H]);
     if (this.frame !== splats || this.viewKey !== key) {
+      if (this.frame && this.frame !== splats) {  // the frame drawn before keeps its codes only
+        this.frame.gaussians = null;
+        this.frame.sigma = null;
+      }
       this.project(splats, camera, W, H);
       this.frame = splats;
       this.viewKey = key;

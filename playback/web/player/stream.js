@@ -299,8 +299,8 @@ function splatsFromCodes(records, e, count) {
   return g;
 }
 
-// A splat chunk -> its codes (what the next frame's delta refers to) and its Gaussians. A delta
-// needs the frame before as decoded.
+// A splat chunk -> its codes (what the next frame's delta refers to), expand() giving its
+// Gaussians. A delta needs the frame before as decoded.
 export async function decodeSplats(chunk, previous) {
   const h = chunk.header, e = h.encoding, count = h.count;
   const widths = splatRecordBytes(e);
@@ -340,7 +340,10 @@ export async function decodeSplats(chunk, previous) {
       records.push(out);
     }
   }
-  return { kind: 'splats', header: h, count, records, gaussians: splatsFromCodes(records, e, count) };
+  // The Gaussians in floats (about 240 bytes each at degree 3) are made when the frame is drawn,
+  // so that the frames buffered ahead hold their codes only.
+  return { kind: 'splats', header: h, count, records, gaussians: null,
+           expand() { return this.gaussians ??= splatsFromCodes(records, e, count); } };
 }
 
 // Any chunk (a splat delta with the frame before's decoded data).
