@@ -55,6 +55,9 @@ static void AddExportCommand(CLI::App& app) {
                    "web: quality levels, one stream each: low, medium, high, lossless")
       ->capture_default_str();
   command->add_option("--fps", args->web.fps, "web: playback rate (default: the take's)");
+  command->add_option("--key-every", args->web.key_every,
+                      "web: frames between the splat streams' key frames (default 10; 1: every "
+                      "frame a key frame)");
   command->callback([args] {
     if (args->format == "web") {
       WebExportRequest request = args->web;

@@ -28,6 +28,7 @@ WebExportSummary ExportWeb(const WebExportRequest& request, Report* report) {
   options.meshes = !request.no_meshes;
   for (const auto& model : request.models) options.models.push_back(model);
   options.fps = request.fps;
+  if (request.key_every != 0) options.splat_key_every = request.key_every;
   options.take.ground_truth_cameras = request.ground_truth_cameras;
   options.overwrite = request.overwrite;
   return ExportWebSite(request.take, request.out, options, report);
@@ -53,14 +54,15 @@ const bool kWebExportRegistered = [] {
   return true;
 }();
 
-// The demo's last stage: its meshes and Neural Volume as a site (out/demo/site).
+// The demo's last stage: its meshes, Neural Volume and splats as a site (out/demo/site).
 Summary ExportDemoSite(DemoContext& context) {
   WebExportRequest request;
   request.take = context.take.string();
   request.out = (context.out / "site").string();
   request.recon = (context.out / "recon").string();
-  if (fs::is_regular_file(context.out / "nvol" / "model.json"))
-    request.models.push_back((context.out / "nvol").string());
+  for (const char* model : {"nvol", "splat"})
+    if (fs::is_regular_file(context.out / model / "model.json"))
+      request.models.push_back((context.out / model).string());
   request.overwrite = true;
   Report report("export web");
   const WebExportSummary summary = ExportWeb(request, &report);
@@ -102,7 +104,8 @@ void AddViewCommand(CLI::App& app) {
   command->add_option("--port", args->port, "Port on 127.0.0.1 (0: any free one)")
       ->capture_default_str();
   command->add_option("--model", args->models,
-                      "A take: the models to stream (default TAKE/models/nvol when trained)");
+                      "A take: the models to stream (default TAKE/models/nvol and "
+                      "TAKE/models/splat when trained)");
   command->callback([args] {
     ViewServerOptions options;
     options.port = args->port;
@@ -115,8 +118,9 @@ void AddViewCommand(CLI::App& app) {
       request.take = args->input;
       request.out = temporary->dir().string();
       request.models = args->models;
-      if (request.models.empty() && fs::is_regular_file(site / "models" / "nvol" / "model.json"))
-        request.models.push_back((site / "models" / "nvol").string());
+      for (const char* model : {"nvol", "splat"})
+        if (args->models.empty() && fs::is_regular_file(site / "models" / model / "model.json"))
+          request.models.push_back((site / "models" / model).string());
       request.overwrite = true;
       Report report("export web");
       const WebExportSummary summary = ExportWeb(request, &report);

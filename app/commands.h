@@ -71,6 +71,7 @@ struct WebExportRequest {
   std::vector<std::string> qualities;  // --quality low,medium,high,lossless
   bool no_meshes = false;
   double fps = 0;
+  int key_every = 0;  // --key-every (0: the default)
   bool ground_truth_cameras = false;
   bool overwrite = false;
 };

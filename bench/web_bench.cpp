@@ -1,17 +1,20 @@
 // The web stream per kind and quality level: MB per frame, Mbps at 30 fps, PSNR of the page's
 // picture against the uncompressed native render (Neural Volumes: `holocap render`'s marcher on
-// the model; meshes: the reconstruction's own glTF rasterised natively), the loss (how far this
+// the model; splats: `holocap render`'s tile rasteriser on the model; meshes: the
+// reconstruction's own glTF rasterised natively), the loss (how far this
 // level's page falls below the lossless stream's in PSNR against a held-out camera's captured
 // image, bench/web_loss.py), time to first frame on loopback and frames decoded per second in the
 // page (headless Chromium, SwiftShader).
 //
-//   bench/web_bench [FRAMES] [WIDTH] [ITERATIONS] [VOXEL] [DIR]
+//   bench/web_bench [FRAMES] [WIDTH] [ITERATIONS] [VOXEL] [DIR] [SPLAT_ITERATIONS]
 //     FRAMES      frame sets of the studio8 walk (30), after one clean plate
 //     WIDTH       image width of the simulated cameras (640)
 //     ITERATIONS  Neural Volumes training iterations (300)
 //     VOXEL       the reconstruction's voxel (8mm)
-//     DIR         work folder (default a new one under $TMP); a take, reconstruction and model
-//                 already in it (DIR/take with recon/, DIR/nvol) are used as they are
+//     DIR         work folder (default a new one under $TMP); a take, reconstruction and models
+//                 already in it (DIR/take with recon/, DIR/nvol, DIR/splat) are used as they are
+//     SPLAT_ITERATIONS  splat training iterations of frame 0 (3000; a tenth for each later
+//                 frame), seeded from the take's reconstruction
 // Camera cam1 is held out of the reconstruction and the training: the loss is measured in it.
 // Needs chromium and tests/playback/browser/node_modules (scripts/setup.sh --tests).
 #include <signal.h>
@@ -28,6 +31,7 @@
 #include "core/fs.h"
 #include "neural/neural.h"
 #include "playback/playback.h"
+#include "splat/splat.h"
 
 namespace fs = std::filesystem;
 using namespace holocap;
@@ -63,6 +67,7 @@ int main(int argc, char** argv) {
   const int width = argc > 2 ? std::atoi(argv[2]) : 640;
   const int iterations = argc > 3 ? std::atoi(argv[3]) : 300;
   const std::string voxel = argc > 4 ? argv[4] : "8mm";
+  const int splat_iterations = argc > 6 ? std::atoi(argv[6]) : 3000;
   const fs::path cli = HOLOCAP_BENCH_CLI;
   const fs::path driver = fs::path(HOLOCAP_BENCH_SOURCE_DIR) / "tests/playback/browser/drive.mjs";
   const fs::path dir =
@@ -94,9 +99,20 @@ int main(int argc, char** argv) {
     std::printf("# Neural Volumes: %d iterations without %s (%.0f s)\n", iterations,
                 heldout.c_str(), elapsed());
   }
+  if (!fs::exists(dir / "splat" / "model.json")) {
+    Run(q + "train splat '" + (dir / "take").string() + "' --out '" + (dir / "splat").string() +
+        "' --recon '" + (dir / "take" / "recon").string() + "' --iterations " +
+        std::to_string(splat_iterations) + " --frame-iterations " +
+        std::to_string(std::max(1, splat_iterations / 10)) +
+        " --minutes 1000 --frame-minutes 1000" + " --heldout-names " + heldout +
+        " --eval-every 100000 || true");
+    std::printf("# splats: %d iterations (then %d a frame) without %s (%.0f s)\n", splat_iterations,
+                std::max(1, splat_iterations / 10), heldout.c_str(), elapsed());
+  }
   fs::remove_all(dir / "site");
   const std::string export_output =
       Run(q + "export web '" + (dir / "take").string() + "' --model '" + (dir / "nvol").string() +
+          "' --model '" + (dir / "splat").string() +
           "' --quality low,medium,high,lossless --fps 30 --out '" + (dir / "site").string() + "'");
   std::printf("# exported (%.0f s)\n%s", elapsed(), export_output.c_str());
   const nlohmann::json manifest =
@@ -130,6 +146,8 @@ int main(int argc, char** argv) {
   const auto bench = nlohmann::json::parse(ReadFileToString(dir / "browser" / "bench.json"));
 
   auto model = OpenModel(dir / "nvol");
+  RegisterSplatModelKind();
+  const RenderedView splat_native = OpenModel(dir / "splat")->Render(camera, frame, {});
   const int64_t set = manifest.at("frames").at(frame).at("set");
   char glb[32];
   std::snprintf(glb, sizeof(glb), "%06lld.glb", static_cast<long long>(set));
@@ -146,23 +164,27 @@ int main(int argc, char** argv) {
       "# page pictures: held-out camera %s (pinhole core, %dx%d), frame %d, inside the "
       "scene's box\n",
       heldout.c_str(), camera.width(), camera.height(), frame);
+  std::printf("# faces: meshes' faces per frame, splats' Gaussians per frame\n");
   std::printf("%-15s %7s %9s %8s %9s %9s %8s %9s\n", "stream", "faces", "MB/frame", "Mbps@30",
               "PSNR unc", "PSNR exp", "TTFF ms", "decoded/s");
   for (const auto& s : manifest.at("streams")) {
     const std::string name = s.at("name");
     const cv::Mat shot = cv::imread((dir / "browser" / (name + ".png")).string());
-    const bool volume = s.at("kind") == "volume";
-    const double uncompressed_db =
-        PsnrInsideBoxDb(shot, (volume ? nvol_native : mesh_native).color, camera, box);
+    const std::string kind = s.at("kind");
+    const RenderedView& native = kind == "volume"   ? nvol_native
+                                 : kind == "splats" ? splat_native
+                                                    : mesh_native;
+    const double uncompressed_db = PsnrInsideBoxDb(shot, native.color, camera, box);
     const auto& b = bench.at(name);
     const auto metrics = nlohmann::json::parse(ReadFileToString(dir / "site" / "report.json"))
                              .at("metrics")
                              .at("streams")
                              .at(name);
     std::printf("%-15s %7.0f %9.4f %8.2f %9.2f %9.2f %8.0f %9.1f\n", name.c_str(),
-                metrics.value("mean_faces", 0.0), s.at("mb_per_frame").get<double>(),
-                s.at("mb_per_frame").get<double>() * 8 * 30, uncompressed_db,
-                s.at("psnr_db").get<double>(), b.at("timeToFirstFrameMs").get<double>(),
+                metrics.value("mean_faces", 0.0) + metrics.value("mean_gaussians", 0.0),
+                s.at("mb_per_frame").get<double>(), s.at("mb_per_frame").get<double>() * 8 * 30,
+                uncompressed_db, s.at("psnr_db").get<double>(),
+                b.at("timeToFirstFrameMs").get<double>(),
                 b.at("framesDecodedPerSecond").get<double>());
   }
   // The loss against the held-out camera's captured image (bench/web_loss.py).

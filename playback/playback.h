@@ -126,9 +126,12 @@ double PsnrInsideBoxDb(const cv::Mat& picture, const cv::Mat& reference, const C
 // ---------------------------------------------------------------------------------------------
 // The web player: `holocap export web` writes a static site (index.html, the player's ES
 // modules, manifest.json and per-frame chunks; README "The stream format") that plays a take's
-// textured meshes and baked Neural Volumes in a browser; `holocap view` serves it.
+// textured meshes, baked Neural Volumes and splats in a browser; `holocap view` serves it.
 
-inline constexpr int kWebStreamFormatVersion = 2;
+// Version 3 added the splat stream (a version-2 player would take its chunks for volumes); this
+// holocap still plays version-2 sites.
+inline constexpr int kWebStreamFormatVersion = 3;
+inline constexpr int kOldestWebStreamFormatVersion = 2;
 
 struct WebExportOptions {
   // Quality levels, one stream per kind and level: "low", "medium", "high" (quantised and
@@ -139,6 +142,8 @@ struct WebExportOptions {
   std::vector<std::filesystem::path> models;  // volumetric models (model.json), one stream each
   double fps = 0;                             // playback rate; 0: the take's rig rate (else 30)
   double step_voxels = 1.0;                   // ray-marching step of the volume streams
+  int splat_key_every = 10;                   // splat streams: frames between key frames (1:
+                                              // every frame; the others are deltas)
   int error_width_px = 160;                   // width of the views the export's error is
                                               // measured on (the capture cameras, rescaled)
   int error_cameras = 2;                      // capture cameras measured per frame
@@ -150,7 +155,7 @@ struct WebExportOptions {
 
 struct WebStreamMetrics {
   std::string name;     // "mesh-medium", "nvol-high"
-  std::string kind;     // "mesh" | "volume"
+  std::string kind;     // "mesh" | "volume" | "splats"
   std::string quality;  // the level
   int64_t frames = 0;
   double mb_per_frame = 0;  // mean chunk size, 10^6 bytes
@@ -158,6 +163,10 @@ struct WebStreamMetrics {
   double psnr_db = 0;       // decoded stream against the uncompressed one (capture cameras)
   double max_position_error_mm = 0;  // meshes: simplification and quantisation of the vertices
   double mean_faces = 0;             // meshes: faces per frame streamed
+  double mean_gaussians = 0;         // splats: Gaussians per frame
+  double mean_stored_gaussians = 0;  // splats: Gaussians whose codes a chunk carries (changed
+                                     // or added in a delta, every one in a key frame)
+  int64_t key_frames = 0;            // splats: chunks that decode alone
   nlohmann::json ToJson() const;
 };
 

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <map>
+#include <numeric>
 #include <set>
 
 #include "core/error.h"
@@ -14,6 +15,7 @@
 #include "core/take_plan.h"
 #include "playback/playback.h"
 #include "playback/web_stream.h"
+#include "splat/splat.h"
 
 namespace holocap {
 namespace {
@@ -92,8 +94,30 @@ class SiteWriter {
   void PlanCameras();
   void WriteMeshStreams(const std::map<int64_t, fs::path>& files);
   void WriteVolumeStream(const fs::path& model_dir, const std::string& name);
-  nlohmann::json StreamJson(const WebStreamMetrics& metrics, const std::string& kind,
-                            const std::string& folder, const nlohmann::json& chunks);
+  void WriteSplatStream(const fs::path& model_dir, const std::string& name);
+  std::vector<int64_t> ModelFrames(const fs::path& model_dir, int64_t model_frame_count) const;
+  // One stream being written: its chunks, their bytes and the squared error of its decoded
+  // frames against the uncompressed ones.
+  struct StreamTally {
+    WebStreamMetrics metrics;
+    std::string folder;
+    nlohmann::json chunks = nlohmann::json::array();
+    uint64_t bytes = 0;
+    double squared = 0;
+    int64_t count = 0;
+  };
+  StreamTally BeginStream(const std::string& name, const std::string& kind,
+                          const std::string& level) const;
+  // Writes timeline frame i's chunk (`entry`: more fields of its manifest entry).
+  void WriteChunk(StreamTally* stream, size_t i, const std::string& chunk,
+                  const nlohmann::json& entry = nlohmann::json::object()) const;
+  void EndFrame(StreamTally* stream) const;  // after the frame's error was accumulated
+  void EndStream(StreamTally* stream);       // its metrics and manifest entry
+  // A splat frame: a key frame or a delta of the frame before as decoded (`decoded`, which
+  // becomes this frame's).
+  void WriteSplatChunk(StreamTally* stream, size_t i, const splat::Gaussians& gaussians,
+                       const web::SplatEncoding& encoding, bool key,
+                       const std::vector<int64_t>& origin, web::SplatCodes* decoded);
   std::vector<CameraModel> ErrorCameras(int64_t frame_index) const;
   void WriteManifest();
 
@@ -129,30 +153,62 @@ std::vector<CameraModel> SiteWriter::ErrorCameras(int64_t frame_index) const {
   return chosen;
 }
 
-nlohmann::json SiteWriter::StreamJson(const WebStreamMetrics& metrics, const std::string& kind,
-                                      const std::string& folder, const nlohmann::json& chunks) {
+SiteWriter::StreamTally SiteWriter::BeginStream(const std::string& name, const std::string& kind,
+                                                const std::string& level) const {
+  StreamTally stream;
+  stream.metrics = {.name = name + "-" + level, .kind = kind, .quality = level};
+  stream.folder = "streams/" + stream.metrics.name;
+  CreateDirectories(site_ / stream.folder);
+  return stream;
+}
+
+void SiteWriter::WriteChunk(StreamTally* stream, size_t i, const std::string& chunk,
+                            const nlohmann::json& entry) const {
+  WriteFileAtomic(site_ / stream->folder / ChunkName(sets_[i]), chunk);
+  nlohmann::json listed = {{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}};
+  listed.update(entry);
+  stream->chunks.push_back(listed);
+  stream->bytes += chunk.size();
+}
+
+void SiteWriter::EndFrame(StreamTally* stream) const {
+  ++stream->metrics.frames;
+  if (report_ != nullptr)
+    report_->AddPoint(stream->metrics.name + ".psnr_db", Psnr(stream->squared, stream->count),
+                      stream->metrics.frames);
+}
+
+void SiteWriter::EndStream(StreamTally* stream) {
+  WebStreamMetrics& metrics = stream->metrics;
+  const double frames = static_cast<double>(std::max<int64_t>(metrics.frames, 1));
+  metrics.mb_per_frame = metrics.frames > 0 ? stream->bytes / 1e6 / metrics.frames : 0;
+  metrics.mean_faces /= frames;
+  metrics.mean_gaussians /= frames;
+  metrics.mean_stored_gaussians /= frames;
+  metrics.mbps = metrics.mb_per_frame * 8 * fps_;
+  metrics.psnr_db = Psnr(stream->squared, stream->count);
+  summary_.bytes += stream->bytes;
   summary_.streams.push_back(metrics);
   if (report_ != nullptr) report_->metrics()["streams"][metrics.name] = metrics.ToJson();
-  return {{"name", metrics.name},       {"kind", kind},
-          {"quality", metrics.quality}, {"path", folder},
-          {"chunks", chunks},           {"mb_per_frame", metrics.mb_per_frame},
-          {"mbps", metrics.mbps},       {"psnr_db", metrics.psnr_db}};
+  streams_.push_back({{"name", metrics.name},
+                      {"kind", metrics.kind},
+                      {"quality", metrics.quality},
+                      {"path", stream->folder},
+                      {"chunks", stream->chunks},
+                      {"mb_per_frame", metrics.mb_per_frame},
+                      {"mbps", metrics.mbps},
+                      {"psnr_db", metrics.psnr_db}});
 }
 
 void SiteWriter::WriteMeshStreams(const std::map<int64_t, fs::path>& files) {
   for (const std::string& level : options_.qualities) {
     const web::QualityLevel quality = web::QualityByName(level);
-    WebStreamMetrics metrics{.name = "mesh-" + level, .kind = "mesh", .quality = level};
-    const std::string folder = "streams/" + metrics.name;
-    CreateDirectories(site_ / folder);
-    nlohmann::json chunks = nlohmann::json::array();
-    uint64_t bytes = 0;
-    double squared = 0;
-    int64_t count = 0;
+    StreamTally stream = BeginStream("mesh", "mesh", level);
+    WebStreamMetrics& metrics = stream.metrics;
     for (size_t i = 0; i < sets_.size(); ++i) {
       auto it = files.find(sets_[i]);
       if (it == files.end()) {
-        chunks.push_back(nullptr);
+        stream.chunks.push_back(nullptr);
         continue;
       }
       const TexturedMeshFrame mesh = ReadTexturedGlb(it->second);
@@ -161,53 +217,47 @@ void SiteWriter::WriteMeshStreams(const std::map<int64_t, fs::path>& files) {
       const std::string chunk =
           web::EncodeMesh(mesh, static_cast<int64_t>(i), quality, &decoded, &max_error_m)
               .Serialise();
-      WriteFileAtomic(site_ / folder / ChunkName(sets_[i]), chunk);
-      chunks.push_back({{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}});
-      bytes += chunk.size();
+      WriteChunk(&stream, i, chunk);
       metrics.max_position_error_mm = std::max(metrics.max_position_error_mm, 1e3 * max_error_m);
       metrics.mean_faces += static_cast<double>(decoded.faces());
       for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
         AccumulateError(RenderTexturedMesh(decoded, camera), RenderTexturedMesh(mesh, camera),
-                        &squared, &count);
-      ++metrics.frames;
-      if (report_ != nullptr)
-        report_->AddPoint(metrics.name + ".psnr_db", Psnr(squared, count), metrics.frames);
+                        &stream.squared, &stream.count);
+      EndFrame(&stream);
     }
-    metrics.mb_per_frame = metrics.frames > 0 ? bytes / 1e6 / metrics.frames : 0;
-    metrics.mean_faces /= std::max<int64_t>(metrics.frames, 1);
-    metrics.mbps = metrics.mb_per_frame * 8 * fps_;
-    metrics.psnr_db = Psnr(squared, count);
-    summary_.bytes += bytes;
-    streams_.push_back(StreamJson(metrics, "mesh", folder, chunks));
+    EndStream(&stream);
   }
+}
+
+std::vector<int64_t> SiteWriter::ModelFrames(const fs::path& model_dir,
+                                             int64_t model_frame_count) const {
+  const nlohmann::json model_json =
+      nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
+  const std::vector<int64_t> model_sets = model_json.value("frame_sets", std::vector<int64_t>{});
+  std::vector<int64_t> frames(sets_.size(), 0);  // a static model shows its one frame throughout
+  if (model_frame_count <= 1) return frames;
+  for (size_t i = 0; i < sets_.size(); ++i) {
+    auto it = std::find(model_sets.begin(), model_sets.end(), sets_[i]);
+    frames[i] = it == model_sets.end() || it - model_sets.begin() >= model_frame_count
+                    ? -1
+                    : it - model_sets.begin();
+  }
+  return frames;
 }
 
 void SiteWriter::WriteVolumeStream(const fs::path& model_dir, const std::string& name) {
   auto model = OpenModel(model_dir);
-  const nlohmann::json model_json =
-      nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
-  std::vector<int64_t> model_sets = model_json.value("frame_sets", std::vector<int64_t>{});
+  const std::vector<int64_t> model_frames = ModelFrames(model_dir, model->frame_count());
   ViewRenderOptions render;
   render.step_voxels = options_.step_voxels;
   for (const std::string& level : options_.qualities) {
     const web::QualityLevel quality = web::QualityByName(level);
-    WebStreamMetrics metrics{.name = name + "-" + level, .kind = "volume", .quality = level};
-    const std::string folder = "streams/" + metrics.name;
-    CreateDirectories(site_ / folder);
-    nlohmann::json chunks = nlohmann::json::array();
-    uint64_t bytes = 0;
-    double squared = 0;
-    int64_t count = 0;
+    StreamTally stream = BeginStream(name, "volume", level);
     for (size_t i = 0; i < sets_.size(); ++i) {
-      // The model's frame showing this set (a static model shows its one frame throughout).
-      int64_t frame = 0;
-      if (model->frame_count() > 1) {
-        auto it = std::find(model_sets.begin(), model_sets.end(), sets_[i]);
-        if (it == model_sets.end()) {
-          chunks.push_back(nullptr);
-          continue;
-        }
-        frame = it - model_sets.begin();
+      const int64_t frame = model_frames[i];
+      if (frame < 0) {
+        stream.chunks.push_back(nullptr);
+        continue;
       }
       BakedFrame baked, decoded;
       if (!model->Bake(frame, render, &baked))
@@ -216,23 +266,114 @@ void SiteWriter::WriteVolumeStream(const fs::path& model_dir, const std::string&
       const std::string chunk = web::EncodeVolume(baked, static_cast<int64_t>(i), quality,
                                                   render.min_transmittance, &decoded)
                                     .Serialise();
-      WriteFileAtomic(site_ / folder / ChunkName(sets_[i]), chunk);
-      chunks.push_back({{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}});
-      bytes += chunk.size();
+      WriteChunk(&stream, i, chunk);
       for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
         AccumulateError(web::RenderBakedFrame(decoded, camera, render.min_transmittance),
-                        web::RenderBakedFrame(baked, camera, render.min_transmittance), &squared,
-                        &count);
-      ++metrics.frames;
-      if (report_ != nullptr)
-        report_->AddPoint(metrics.name + ".psnr_db", Psnr(squared, count), metrics.frames);
+                        web::RenderBakedFrame(baked, camera, render.min_transmittance),
+                        &stream.squared, &stream.count);
+      EndFrame(&stream);
     }
-    metrics.mb_per_frame = metrics.frames > 0 ? bytes / 1e6 / metrics.frames : 0;
-    metrics.mbps = metrics.mb_per_frame * 8 * fps_;
-    metrics.psnr_db = Psnr(squared, count);
-    summary_.bytes += bytes;
-    streams_.push_back(StreamJson(metrics, "volume", folder, chunks));
+    EndStream(&stream);
   }
+}
+
+// A splat model's frames in order, each from the one before (one delta applied), with where each
+// Gaussian of the frame came from in the frame before.
+class SplatSequence {
+ public:
+  explicit SplatSequence(const fs::path& dir) : dir_(dir), model_(SplatModel::Load(dir)) {}
+  int64_t frames() const { return model_.frames; }
+  int sh_degree() const { return model_.gaussians.sh_degree; }
+  // Frame `frame` (not before the last one asked for, else from frame 0 again).
+  const splat::Gaussians& Frame(int64_t frame) {
+    if (frame < current_frame_ || current_frame_ < 0) {
+      current_ = model_.gaussians;
+      current_frame_ = 0;
+      origin_.clear();
+    }
+    for (; current_frame_ < frame; ++current_frame_) {
+      const std::string delta = ReadFileToString(SplatDeltaFile(dir_, current_frame_ + 1));
+      origin_ = SplatDeltaOrigins(delta);
+      current_ = ApplySplatDelta(current_, delta);
+    }
+    return current_;
+  }
+  // Where the last frame's Gaussians continue the frame before's (after Frame(k) with k > 0).
+  const std::vector<int64_t>& origin() const { return origin_; }
+
+ private:
+  fs::path dir_;
+  SplatModel model_;
+  splat::Gaussians current_;
+  int64_t current_frame_ = -1;
+  std::vector<int64_t> origin_;
+};
+
+RenderedView SplatView(const splat::Gaussians& gaussians, const CameraModel& camera) {
+  RenderedView view;
+  view.color = RenderSplats(gaussians, camera).color;
+  return view;
+}
+
+void SiteWriter::WriteSplatStream(const fs::path& model_dir, const std::string& name) {
+  SplatSequence sequence(model_dir);
+  const std::vector<int64_t> model_frames = ModelFrames(model_dir, sequence.frames());
+  for (const std::string& level : options_.qualities) {
+    web::SplatEncoding encoding =
+        web::SplatEncoding::For(web::QualityByName(level), sequence.sh_degree());
+    for (int64_t frame : model_frames)
+      if (frame >= 0) encoding.Include(sequence.Frame(frame));
+    StreamTally stream = BeginStream(name, "splats", level);
+    int64_t since_key = 0, previous_frame = -1;
+    web::SplatCodes previous;
+    for (size_t i = 0; i < sets_.size(); ++i) {
+      const int64_t frame = model_frames[i];
+      if (frame < 0) {
+        stream.chunks.push_back(nullptr);
+        previous_frame = -1;
+        continue;
+      }
+      const splat::Gaussians& gaussians = sequence.Frame(frame);
+      // A delta follows the frame before when that shows the same model frame or the one before.
+      const bool follows =
+          previous_frame >= 0 && (frame == previous_frame || frame == previous_frame + 1);
+      const bool key = !follows || since_key >= options_.splat_key_every;
+      std::vector<int64_t> origin;
+      if (!key && frame == previous_frame) {
+        origin.resize(gaussians.size());
+        std::iota(origin.begin(), origin.end(), int64_t{0});
+      } else if (!key) {
+        origin = sequence.origin();
+      }
+      WriteSplatChunk(&stream, i, gaussians, encoding, key, origin, &previous);
+      since_key = key ? 1 : since_key + 1;
+      previous_frame = frame;
+    }
+    EndStream(&stream);
+  }
+}
+
+void SiteWriter::WriteSplatChunk(StreamTally* stream, size_t i, const splat::Gaussians& gaussians,
+                                 const web::SplatEncoding& encoding, bool key,
+                                 const std::vector<int64_t>& origin, web::SplatCodes* decoded) {
+  const web::SplatCodes* previous = key ? nullptr : decoded;
+  web::SplatCodes codes;
+  const std::string chunk =
+      web::EncodeSplats(gaussians, static_cast<int64_t>(i), encoding, previous, origin, &codes)
+          .Serialise();
+  WriteChunk(stream, i, chunk, {{"key", key}});
+  // Decoded again as the page decodes it, from the frame before as decoded.
+  const web::Chunk parsed = web::ParseChunk(chunk);
+  *decoded = web::DecodeSplats(parsed, previous);
+  const splat::Gaussians drawn = web::SplatsFromCodes(*decoded, encoding);
+  for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
+    AccumulateError(SplatView(drawn, camera), SplatView(gaussians, camera), &stream->squared,
+                    &stream->count);
+  WebStreamMetrics& metrics = stream->metrics;
+  metrics.key_frames += key;
+  metrics.mean_gaussians += static_cast<double>(gaussians.size());
+  metrics.mean_stored_gaussians += parsed.header.at("stored").get<double>();
+  EndFrame(stream);
 }
 
 void SiteWriter::WriteManifest() {
@@ -299,7 +440,10 @@ WebExportSummary SiteWriter::Run() {
   for (const fs::path& model_dir : options_.models) {
     const std::string kind = OpenModel(model_dir)->method();
     const std::string name = options_.models.size() > 1 ? model_dir.filename().string() : kind;
-    WriteVolumeStream(model_dir, name);
+    if (kind == "splat")
+      WriteSplatStream(model_dir, name);
+    else
+      WriteVolumeStream(model_dir, name);
   }
   WriteManifest();
   for (const auto& [path, bytes] : web::PlayerFiles()) {
@@ -324,6 +468,7 @@ void WebExportOptions::Check() const {
   if (!(step_voxels > 0)) Fail("--step must be positive, got ", step_voxels);
   if (error_width_px < 8) Fail("error_width_px must be at least 8, got ", error_width_px);
   if (error_cameras < 0) Fail("error_cameras must be >= 0, got ", error_cameras);
+  if (splat_key_every < 1) Fail("--key-every must be at least 1, got ", splat_key_every);
   take.Check();
 }
 
@@ -338,19 +483,27 @@ nlohmann::json WebExportOptions::ToJson() const {
           {"step_voxels", step_voxels},
           {"error_width_px", error_width_px},
           {"error_cameras", error_cameras},
+          {"splat_key_every", splat_key_every},
           {"take", take.ToJson()},
           {"overwrite", overwrite}};
 }
 
 nlohmann::json WebStreamMetrics::ToJson() const {
-  return {{"kind", kind},
-          {"quality", quality},
-          {"frames", frames},
-          {"mb_per_frame", mb_per_frame},
-          {"mbps", mbps},
-          {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
-          {"max_position_error_mm", max_position_error_mm},
-          {"mean_faces", mean_faces}};
+  nlohmann::json json = {
+      {"kind", kind},
+      {"quality", quality},
+      {"frames", frames},
+      {"mb_per_frame", mb_per_frame},
+      {"mbps", mbps},
+      {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
+      {"max_position_error_mm", max_position_error_mm},
+      {"mean_faces", mean_faces}};
+  if (kind == "splats") {
+    json["mean_gaussians"] = mean_gaussians;
+    json["mean_stored_gaussians"] = mean_stored_gaussians;
+    json["key_frames"] = key_frames;
+  }
+  return json;
 }
 
 WebExportSummary ExportWebSite(const fs::path& take_dir, const fs::path& site_dir,
@@ -431,9 +584,11 @@ bool IsWebSite(const fs::path& dir, std::string* why) {
     *why = manifest.string() + " is not a holocap stream manifest";
     return false;
   }
-  if (json.value("version", -1) != kWebStreamFormatVersion) {
+  const int version = json.value("version", -1);
+  if (version < kOldestWebStreamFormatVersion || version > kWebStreamFormatVersion) {
     *why = manifest.string() + " is stream format version " +
-           json.value("version", nlohmann::json()).dump() + "; this holocap plays version " +
+           json.value("version", nlohmann::json()).dump() + "; this holocap plays versions " +
+           std::to_string(kOldestWebStreamFormatVersion) + " to " +
            std::to_string(kWebStreamFormatVersion);
     return false;
   }

@@ -57,16 +57,6 @@ Eigen::Vector3d Vec(const nlohmann::json& j) {
   return {j.at(0).get<double>(), j.at(1).get<double>(), j.at(2).get<double>()};
 }
 
-uint32_t Quantise(double value, double lo, double hi, int bits) {
-  const double levels = std::ldexp(1.0, bits) - 1;
-  const double t = hi > lo ? (value - lo) / (hi - lo) : 0.0;
-  return static_cast<uint32_t>(std::lround(std::clamp(t, 0.0, 1.0) * levels));
-}
-float Dequantise(uint32_t code, double lo, double hi, int bits) {
-  const double levels = std::ldexp(1.0, bits) - 1;
-  return static_cast<float>(lo + (hi - lo) * (code / levels));
-}
-
 // Each element minus the one `stride` before it, modulo 2^16 (the first ones kept): a mesh's
 // neighbouring vertices and texture cells are near each other, so the differences are small and
 // deflate packs them tightly.
@@ -104,6 +94,16 @@ std::vector<uint32_t> UndoZigzagDeltas(const std::vector<uint32_t>& codes) {
 
 }  // namespace
 
+uint32_t Quantise(double value, double lo, double hi, int bits) {
+  const double levels = std::ldexp(1.0, bits) - 1;
+  const double t = hi > lo ? (value - lo) / (hi - lo) : 0.0;
+  return static_cast<uint32_t>(std::lround(std::clamp(t, 0.0, 1.0) * levels));
+}
+float Dequantise(uint32_t code, double lo, double hi, int bits) {
+  const double levels = std::ldexp(1.0, bits) - 1;
+  return static_cast<float>(lo + (hi - lo) * (code / levels));
+}
+
 QualityLevel QualityByName(const std::string& name) {
   QualityLevel q;
   q.name = name;
@@ -115,6 +115,9 @@ QualityLevel QualityByName(const std::string& name) {
     q.texture_scale = 0.5;
     q.color_bits = 6;
     q.density_levels = 64;
+    q.splat_position_bits = 14;
+    q.splat_sh_degree = 0;
+    q.splat_rest_bits = 4;
   } else if (name == "medium") {
     q.position_bits = 13;
     q.simplify_edges = 0.75;
@@ -122,6 +125,8 @@ QualityLevel QualityByName(const std::string& name) {
     q.texture_quality = 75;
     q.color_bits = 7;
     q.density_levels = 128;
+    q.splat_sh_degree = 1;
+    q.splat_rest_bits = 5;
   } else if (name == "high") {
     q.position_bits = 14;
     q.simplify_edges = 0.35;
@@ -136,6 +141,7 @@ QualityLevel QualityByName(const std::string& name) {
     q.texture_quality = 100;
     q.color_bits = 0;
     q.density_levels = 0;
+    q.splat_position_bits = 0;
   } else {
     Fail("unknown --quality '", name, "' (known: low, medium, high, lossless)");
   }

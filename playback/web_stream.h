@@ -3,6 +3,7 @@
 // player does, and the tests decode them to check the player. Internal to holocap_playback.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -10,6 +11,7 @@
 
 #include "neural/neural.h"
 #include "playback/playback.h"
+#include "splat/kernels.h"
 
 namespace holocap::web {
 
@@ -24,8 +26,12 @@ struct QualityLevel {
   const char* texture_codec = "webp";  // "webp" | "jpeg" | "png"
   int texture_quality = 80;            // WebP/JPEG quality (1..100)
   double texture_scale = 1.0;          // atlas size kept
-  int color_bits = 8;        // volume colour per channel; 0 with density_levels 0: float32
-  int density_levels = 256;  // volume density codes (log scale), 0: float32
+  int color_bits = 8;            // volume colour per channel; 0 with density_levels 0: float32
+  int density_levels = 256;      // volume density codes (log scale), 0: float32
+  int splat_position_bits = 16;  // splat centres per axis over the stream's box; 0: every
+                                 // splat value float32
+  int splat_sh_degree = 3;       // spherical-harmonic degree streamed (at most the model's)
+  int splat_rest_bits = 6;       // spherical-harmonic coefficients above degree 0
 };
 // Throws Error naming the unknown level and the known ones.
 QualityLevel QualityByName(const std::string& name);
@@ -97,6 +103,60 @@ BakedFrame DecodeVolume(const Chunk& chunk);
 // samples, skipping and stopping).
 RenderedView RenderBakedFrame(const BakedFrame& volume, const CameraModel& camera,
                               double min_transmittance);
+
+// Uniform quantisation of [lo, hi] on `bits` bits (values outside clamped) and back.
+uint32_t Quantise(double value, double lo, double hi, int bits);
+float Dequantise(uint32_t code, double lo, double hi, int bits);
+
+// A splat stream's quantisation, the same for every chunk of the stream (so that a Gaussian whose
+// codes stay the same from one frame to the next costs nothing in a delta). Every chunk's header
+// carries it as `encoding`.
+struct SplatEncoding {
+  bool float32 = false;  // every value as the model stores it (lossless)
+  int position_bits = 16;
+  Eigen::Vector3d box_min = Eigen::Vector3d::Zero(), box_max = Eigen::Vector3d::Ones();
+  int rotation_bits = 10;  // smallest three of the unit quaternion
+  int scale_bits = 8;      // log-scales over [log_scale_min, log_scale_max]
+  double log_scale_min = 0, log_scale_max = 0;
+  int opacity_bits = 8;  // sigmoid(logit) over [0, 1]
+  int sh_degree = 0;     // the degree streamed
+  int dc_bits = 8;       // degree-0 coefficients over [dc_min, dc_max]
+  double dc_min = 0, dc_max = 0;
+  int rest_bits = 6;  // higher coefficients over [-rest_max, rest_max]
+  double rest_max = 0;
+
+  // The encoding of a quality level for Gaussians of at most `model_degree` (ranges empty until
+  // Include widens them over every frame of the stream).
+  static SplatEncoding For(const QualityLevel& quality, int model_degree);
+  void Include(const splat::Gaussians& gaussians);
+  nlohmann::json ToJson() const;
+  static SplatEncoding FromJson(const nlohmann::json& json);  // throws Error
+  // Bytes per Gaussian of each attribute group: position, rotation, scale, opacity, colour.
+  std::array<size_t, 5> RecordBytes() const;
+};
+inline constexpr int kSplatGroups = 5;
+inline constexpr const char* kSplatGroupNames[kSplatGroups] = {"position", "rotation", "scale",
+                                                               "opacity", "color"};
+
+// A splat frame as a decoder holds it: each Gaussian's codes per attribute group, RecordBytes()
+// bytes a Gaussian, Gaussian after Gaussian (what the next frame's delta refers to).
+struct SplatCodes {
+  int64_t count = 0;
+  std::array<std::string, kSplatGroups> records;
+};
+SplatCodes QuantiseSplats(const splat::Gaussians& gaussians, const SplatEncoding& encoding);
+// The Gaussians the codes stand for (degree encoding.sh_degree, raw parameters as the kernels
+// take them).
+splat::Gaussians SplatsFromCodes(const SplatCodes& codes, const SplatEncoding& encoding);
+// Encodes a frame of Gaussians: a key frame when `previous` is null, else a delta of the frame
+// before as decoded (`origin[i]`: the index in `previous` that Gaussian i continues, ascending
+// over the survivors, or -1 for an added one). `codes` receives the frame's codes.
+Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const SplatEncoding& encoding,
+                   const SplatCodes* previous, const std::vector<int64_t>& origin,
+                   SplatCodes* codes);
+// Decodes a splat chunk; a delta needs the frame before's codes. Throws Error for a chunk that
+// is corrupt or does not follow `previous`.
+SplatCodes DecodeSplats(const Chunk& chunk, const SplatCodes* previous);
 
 // The player's files (index.html and its modules), embedded at build time: path -> bytes.
 const std::vector<std::pair<std::string, std::string>>& PlayerFiles();

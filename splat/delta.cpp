@@ -229,4 +229,16 @@ SplatDeltaCounts CountSplatDelta(const std::string& delta) {
   return counts;
 }
 
+std::vector<int64_t> SplatDeltaOrigins(const std::string& delta) {
+  const std::string bytes = Decompress(delta);
+  Reader reader(bytes);
+  const Header header = ReadHeader(&reader);
+  const char* kept = reader.Take(static_cast<size_t>((header.previous + 7) / 8));
+  std::vector<int64_t> origin;
+  for (int64_t i = 0; i < header.previous; ++i)
+    if (Bit(kept, i)) origin.push_back(i);
+  origin.insert(origin.end(), header.added, -1);
+  return origin;
+}
+
 }  // namespace holocap

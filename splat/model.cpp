@@ -235,17 +235,21 @@ void SplatModel::Save(const fs::path& dir, bool write_gaussians) const {
     names.push_back(name);
   }
   const Eigen::Vector3d lo = box.min(), hi = box.max();
-  nlohmann::json json = {{"method", "splat"},
-                         {"gaussians", gaussians.size()},
-                         {"frames", frames},
-                         {"deltas", "deltas/<frame, 6 digits>.bin (splat/splat.h)"},
-                         {"sh_degree", gaussians.sh_degree},
-                         {"fields", fields},
-                         {"format", "float32 little-endian, each field for every Gaussian in turn"},
-                         {"cameras", names},
-                         {"box_min", {lo.x(), lo.y(), lo.z()}},
-                         {"box_max", {hi.x(), hi.y(), hi.z()}},
-                         {"plan", plan}};
+  nlohmann::json json = {
+      {"method", "splat"},
+      {"gaussians", gaussians.size()},
+      {"frames", frames},
+      {"frame_sets",
+       std::vector<int64_t>(frame_sets.begin(),
+                            frame_sets.begin() + std::min<int64_t>(frames, frame_sets.size()))},
+      {"deltas", "deltas/<frame, 6 digits>.bin (splat/splat.h)"},
+      {"sh_degree", gaussians.sh_degree},
+      {"fields", fields},
+      {"format", "float32 little-endian, each field for every Gaussian in turn"},
+      {"cameras", names},
+      {"box_min", {lo.x(), lo.y(), lo.z()}},
+      {"box_max", {hi.x(), hi.y(), hi.z()}},
+      {"plan", plan}};
   WriteFileAtomic(dir / "model.json", json.dump(2) + "\n");
 }
 
@@ -286,6 +290,7 @@ SplatModel SplatModel::Load(const fs::path& dir) {
                                   Eigen::Vector3d(hi[0], hi[1], hi[2]));
   model.plan = json.value("plan", nlohmann::json::object());
   model.frames = json.value("frames", int64_t{1});
+  model.frame_sets = json.value("frame_sets", std::vector<int64_t>{});
   if (model.frames < 1) Fail(dir.string(), "/model.json: frames must be at least 1");
   return model;
 }

@@ -255,6 +255,8 @@ SplatSummary TrainSplats(const std::filesystem::path& take_dir,
 struct SplatModel {
   splat::Gaussians gaussians;        // frame 0
   int64_t frames = 1;                // frames it plays (later ones: deltas/<frame>.bin)
+  std::vector<int64_t> frame_sets;   // the take's frame set each frame shows (model.json keeps
+                                     // the first `frames`; empty in models trained without it)
   std::vector<CameraModel> cameras;  // the training views'
   Eigen::AlignedBox3d box;
   nlohmann::json plan;
@@ -291,6 +293,9 @@ struct SplatDeltaCounts {
   int64_t changed = 0, removed = 0, added = 0;
 };
 SplatDeltaCounts CountSplatDelta(const std::string& delta);
+// Where each Gaussian of the frame a delta encodes comes from: its index in the frame before, or
+// -1 for an added one (the `origin` EncodeSplatDelta was given). Throws Error for a corrupt delta.
+std::vector<int64_t> SplatDeltaOrigins(const std::string& delta);
 
 // A pinhole camera in the kernels' terms (the intrinsics core of any lens model).
 splat::PinholeCamera ToPinhole(const CameraModel& camera);

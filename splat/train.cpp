@@ -907,6 +907,8 @@ void Trainer::Finish(SplatSummary* summary) {
   for (const auto& view : scene_.views) stored_.cameras.push_back(view.camera);
   stored_.box = scene_.box;
   stored_.plan = summary->plan;
+  stored_.frame_sets = {scene_.plan.value("frame_set", int64_t{0})};
+  for (const SplatFrame& later : scene_.later_frames) stored_.frame_sets.push_back(later.set);
   stored_.Save(model_dir_);
   summary->megabytes = static_cast<double>(fs::file_size(model_dir_ / "gaussians.bin")) / 1e6;
   const SplatView& view = scene_.views[heldout_.empty() ? training_.front() : heldout_.front()];

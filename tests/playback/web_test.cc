@@ -1,8 +1,8 @@
-// The web player: `holocap export web` on a small simulated take (3 frame sets, meshes and a
-// dynamic Neural Volume), its stream decoded natively, `holocap view` serving it, and a real
-// headless Chromium playing it (tests/playback/browser/drive.mjs): the page at a capture
-// camera's pose and frame against the native renders, synthetic input, a truncated chunk, a
-// site of an unknown version, no console error.
+// The web player: `holocap export web` on a small simulated take (3 frame sets, meshes, a
+// dynamic Neural Volume and dynamic splats), its stream decoded natively, `holocap view` serving
+// it, and a real headless Chromium playing it (tests/playback/browser/drive.mjs): the page at a
+// capture camera's pose and frame against the native renders, synthetic input, scrubbing across
+// a splat key frame, a truncated chunk, a site of an unknown version, no console error.
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -13,12 +13,14 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <random>
 
 #include "core/error.h"
 #include "core/fs.h"
 #include "neural/neural.h"
 #include "playback/playback.h"
 #include "playback/web_stream.h"
+#include "splat/splat.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
@@ -102,9 +104,36 @@ class WebTest : public ::testing::Test {
     // views); the model is kept and is what the page must draw like the native renderer.
     TrainNeuralVolume(Take(), Model(), options);
     ASSERT_TRUE(fs::exists(Model() / "model.json"));
+    // Splats frame to frame, seeded from the take's reconstruction: few iterations, one thread
+    // (a loaded machine's spinning OpenMP threads cost more than they give at this size).
+    SplatOptions splats;
+    splats.recon_dir = (Take() / "recon").string();
+    splats.image_width = 64;
+    splats.max_seed_points = 4000;
+    splats.iterations = 150;
+    splats.sh_degree_every = 40;  // degree 3 by iteration 120: the page evaluates every degree
+    splats.frame_iterations = 30;
+    splats.minutes = splats.frame_minutes = 10;
+    splats.eval_every_s = 1000;
+    splats.threads = 1;
+    TrainSplats(Take(), SplatModelDir(), splats);
+    ASSERT_TRUE(fs::exists(SplatModelDir() / "deltas"));
+    // Its first frame with strong view-dependent colour (every coefficient above degree 0
+    // random in +-0.2), as a static model: what the page's spherical harmonics must match.
+    SplatModel vivid = SplatModel::Load(SplatModelDir());
+    vivid.frames = 1;
+    std::mt19937 random(5);
+    std::uniform_real_distribution<float> coefficient(-0.2f, 0.2f);
+    const int k = vivid.gaussians.coefficients();
+    for (size_t j = 0; j < vivid.gaussians.sh.size(); ++j)
+      if ((j / 3) % k != 0) vivid.gaussians.sh[j] = coefficient(random);
+    vivid.Save(VividModelDir());
+    // Key frames every 2 frames: frame 1 is a delta of frame 0, frame 2 a key frame again.
     auto exported =
-        RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
-               "' --quality low,high,lossless --ground-truth --out '" + Site().string() + "'");
+        RunCli("export web '" + Take().string() + "' --model '" + Model().string() + "' --model '" +
+               SplatModelDir().string() + "' --model '" + VividModelDir().string() +
+               "' --quality low,high,lossless --key-every 2 --ground-truth --out '" +
+               Site().string() + "'");
     ASSERT_EQ(exported.exit_code, 0) << exported.output;
   }
   static void TearDownTestSuite() {
@@ -112,7 +141,9 @@ class WebTest : public ::testing::Test {
     dir_ = nullptr;
   }
   static fs::path Take() { return dir_->path() / "take"; }
-  static fs::path Model() { return dir_->path() / "model"; }
+  static fs::path Model() { return dir_->path() / "nvol"; }
+  static fs::path SplatModelDir() { return dir_->path() / "splat"; }
+  static fs::path VividModelDir() { return dir_->path() / "vivid"; }
   static fs::path Site() { return dir_->path() / "site"; }
   static nlohmann::json Manifest() {
     return nlohmann::json::parse(ReadFileToString(Site() / "manifest.json"));
@@ -156,7 +187,8 @@ TEST_F(WebTest, ExportStreamsEveryFrameAndMeasuresItsLoss) {
   EXPECT_EQ(manifest.at("cameras").size(), 8u);
   const nlohmann::json report = nlohmann::json::parse(ReadFileToString(Site() / "report.json"));
   EXPECT_EQ(report.at("summary").at("termination"), "SUCCESS") << report.dump(1);
-  for (const std::string name : {"mesh-high", "mesh-lossless", "nvol-high", "nvol-lossless"}) {
+  for (const std::string name : {"mesh-high", "mesh-lossless", "nvol-high", "nvol-lossless",
+                                 "splat-high", "splat-lossless"}) {
     const auto& stream = StreamNamed(manifest, name);
     ASSERT_EQ(stream.at("chunks").size(), 3u) << name;
     for (const auto& chunk : stream.at("chunks")) {
@@ -184,6 +216,51 @@ TEST_F(WebTest, ExportStreamsEveryFrameAndMeasuresItsLoss) {
   const double psnr = PsnrDb(streamed.color, native.color);
   EXPECT_GT(psnr, 40.0);
   EXPECT_GT(cv::mean(native.alpha)[0], 0.01) << "the view shows too little of the volume";
+}
+
+// The splat chunks of frames 0 and 1 (a key frame and a delta of it) decode, natively, to the
+// model's frames: exactly at `lossless`, within the quantisation at `high`.
+TEST_F(WebTest, SplatStreamDecodesKeyFramesAndDeltasToTheModelsFrames) {
+  RegisterSplatModelKind();
+  const nlohmann::json manifest = Manifest();
+  const SplatModel model = SplatModel::Load(SplatModelDir());
+  ASSERT_EQ(model.frames, 3);
+  EXPECT_EQ(model.frame_sets, (std::vector<int64_t>{1, 2, 3}));
+  auto chunk = [&](const nlohmann::json& stream, int frame) {
+    return web::ParseChunk(
+        ReadFileToString(Site() / stream.at("path").get<std::string>() /
+                         stream.at("chunks").at(frame).at("file").get<std::string>()));
+  };
+  for (const std::string level : {"high", "lossless"}) {
+    const auto& stream = StreamNamed(manifest, "splat-" + level);
+    std::vector<bool> keys;
+    for (const auto& c : stream.at("chunks")) keys.push_back(c.at("key").get<bool>());
+    EXPECT_EQ(keys, (std::vector<bool>{true, false, true})) << level;
+    const web::Chunk key = chunk(stream, 0), delta = chunk(stream, 1);
+    const web::SplatCodes first = web::DecodeSplats(key, nullptr);
+    EXPECT_THROW(web::DecodeSplats(delta, nullptr), Error);
+    const web::SplatCodes second = web::DecodeSplats(delta, &first);
+    const web::SplatEncoding encoding = web::SplatEncoding::FromJson(delta.header.at("encoding"));
+    const splat::Gaussians decoded = web::SplatsFromCodes(second, encoding);
+    const splat::Gaussians original = model.Frame(SplatModelDir(), 1);
+    ASSERT_EQ(decoded.size(), original.size()) << level;
+    std::printf(
+        "splat-%s frame 1: a delta of %lld Gaussians (%lld removed, %lld added, %lld stored)\n",
+        level.c_str(), static_cast<long long>(decoded.size()),
+        delta.header.at("removed").get<long long>(), delta.header.at("added").get<long long>(),
+        delta.header.at("stored").get<long long>());
+    if (level == "lossless") {
+      EXPECT_EQ(decoded.position, original.position);
+      EXPECT_EQ(decoded.sh, original.sh);
+      continue;
+    }
+    const CameraModel camera = PinholeOf(manifest.at("cameras").at(2));
+    auto view = OpenModel(SplatModelDir())->Render(camera, 1, {});
+    const double psnr = PsnrDb(RenderSplats(decoded, camera).color, view.color);
+    std::printf("splat-high frame 1 decoded against holocap render, camera 2: %.2f dB\n", psnr);
+    EXPECT_GT(psnr, 40.0);
+    EXPECT_GT(cv::mean(view.alpha)[0], 0.01) << "the view shows too little of the splats";
+  }
 }
 
 TEST_F(WebTest, SimplifiedMeshChunkDecodesToTheExportedMeshWithinItsBound) {
@@ -268,10 +345,11 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   fs::create_directories(out);
   const int camera_index = 2, frame = 1;
   const CameraModel camera = PinholeOf(manifest.at("cameras").at(camera_index));
-  auto shots = RunShell("node '" + (driver / "drive.mjs").string() + "' shots " + server.url() +
-                        " '" + out.string() + "' " + std::to_string(camera.width()) + " " +
-                        std::to_string(camera.height()) + " " + std::to_string(frame) + " " +
-                        std::to_string(camera_index) + " nvol-high mesh-high");
+  auto shots =
+      RunShell("node '" + (driver / "drive.mjs").string() + "' shots " + server.url() + " '" +
+               out.string() + "' " + std::to_string(camera.width()) + " " +
+               std::to_string(camera.height()) + " " + std::to_string(frame) + " " +
+               std::to_string(camera_index) + " nvol-high mesh-high splat-high vivid-high");
   const auto shot_results = nlohmann::json::parse(ReadFileToString(out / "shots.json"));
   ASSERT_TRUE(shot_results.at("ok").get<bool>()) << shots.output;
   EXPECT_TRUE(shot_results.at("consoleErrors").empty()) << shot_results.dump(1);
@@ -295,6 +373,52 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   std::printf("mesh stream in the page against the native textured render: %.2f dB over %lld px\n",
               mesh_psnr, static_cast<long long>(pixels));
   EXPECT_GE(mesh_psnr, 30.0);
+
+  // Splats: the page against holocap render of the splat model, then scrubbed from frame 2 (a key
+  // frame) to frame 1 (a delta of frame 0, which the page fetches and decodes first) and 0.
+  RegisterSplatModelKind();
+  auto splats = OpenModel(SplatModelDir());
+  const double splat_psnr = PsnrInsideBoxDb(cv::imread((out / "splat-high.png").string()),
+                                            splats->Render(camera, frame, {}).color, camera,
+                                            BoxOf(manifest.at("bounds")), &pixels);
+  std::printf("splat stream in the page against holocap render: %.2f dB over %lld px\n", splat_psnr,
+              static_cast<long long>(pixels));
+  EXPECT_GE(splat_psnr, 30.0);
+  const RenderedView vivid = OpenModel(VividModelDir())->Render(camera, frame, {});
+  const cv::Mat vivid_page = cv::imread((out / "vivid-high.png").string());
+  const double vivid_psnr =
+      PsnrInsideBoxDb(vivid_page, vivid.color, camera, BoxOf(manifest.at("bounds")), &pixels);
+  // Where the splats cover the picture, the page's 8-bit colour against the native float one.
+  cv::Mat native_8u, covered;
+  vivid.color.convertTo(native_8u, CV_8UC3, 255.0);
+  cv::compare(vivid.alpha, 0.5, covered, cv::CMP_GT);
+  const double vivid_covered_psnr = PsnrDb(vivid_page, native_8u, covered);
+  std::printf(
+      "splats of strong view-dependent colour (degree 3) in the page: %.2f dB inside the box, "
+      "%.2f dB over the %d px they cover\n",
+      vivid_psnr, vivid_covered_psnr, cv::countNonZero(covered));
+  EXPECT_GE(vivid_psnr, 30.0);
+  // 42 dB measured; one basis term of the wrong sign in the page gives 34 dB here.
+  EXPECT_GE(vivid_covered_psnr, 38.0);
+  EXPECT_GT(cv::countNonZero(covered), 200);
+  auto scrub = RunShell("node '" + (driver / "drive.mjs").string() + "' scrub " + server.url() +
+                        " '" + out.string() + "' " + std::to_string(camera.width()) + " " +
+                        std::to_string(camera.height()) + " " + std::to_string(camera_index) +
+                        " splat-high 2 1 0");
+  const auto scrubbed = nlohmann::json::parse(ReadFileToString(out / "scrub.json"));
+  ASSERT_TRUE(scrubbed.at("ok").get<bool>()) << scrub.output;
+  EXPECT_TRUE(scrubbed.at("consoleErrors").empty()) << scrubbed.dump(1);
+  for (const auto& step : scrubbed.at("frames")) {
+    const int target = step.at("target");
+    EXPECT_EQ(step.at("drawnFrame"), target);
+    EXPECT_TRUE(step.at("messages").empty()) << step.dump();
+    const double psnr = PsnrInsideBoxDb(
+        cv::imread((out / ("scrub-" + std::to_string(target) + ".png")).string()),
+        splats->Render(camera, target, {}).color, camera, BoxOf(manifest.at("bounds")));
+    std::printf("splat stream scrubbed to frame %d: %.2f dB against holocap render\n", target,
+                psnr);
+    EXPECT_GE(psnr, 30.0);
+  }
 
   auto interact = RunShell("node '" + (driver / "drive.mjs").string() + "' interact " +
                            server.url() + " '" + out.string() + "' 1 mesh-lossless");
@@ -346,11 +470,12 @@ TEST(WebViewTest, RefusesAFolderThatIsNotASiteAndAPortInUse) {
                   R"({"format": "holocap-stream", "version": 99})");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
                               "version 99");
-  // So is a site of the previous version (its mesh chunks are laid out differently).
+  // So is a site of version 1 (its mesh chunks are laid out differently); version 2 (before
+  // the splat stream) still plays.
   WriteFileAtomic(dir.path() / "site" / "manifest.json",
                   R"({"format": "holocap-stream", "version": 1})");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
-                              "version 1; this holocap plays version 2");
+                              "version 1; this holocap plays versions 2 to 3");
   WriteFileAtomic(dir.path() / "site" / "manifest.json",
                   R"({"format": "holocap-stream", "version": 2})");
   ViewServer first(dir.path() / "site");

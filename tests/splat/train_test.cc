@@ -439,6 +439,7 @@ TEST(SplatDynamic, DeltasStayWithinTheirBoundAndPlayBackAsTrained) {
   // The last frame rebuilt from frame 0 and the deltas scores what training scored.
   const SplatModel model = SplatModel::Load(Path("bounded"));
   ASSERT_EQ(model.frames, 3);
+  EXPECT_EQ(model.frame_sets.size(), 3u);  // the take's frame set of each frame
   const splat::Gaussians last = model.Frame(Path("bounded"), 2);
   EXPECT_EQ(last.size(), summary.frames[2].gaussians);
   EXPECT_NEAR(HeldoutPsnr(last, moving, 2), summary.frames[2].heldout_psnr_db, 1e-3);
@@ -470,6 +471,23 @@ TEST(SplatDynamic, CorruptDeltaIsRefused) {
   shorter.Resize(19);
   EXPECT_THROW(ApplySplatDelta(shorter, delta), Error);
   EXPECT_THROW(ApplySplatDelta(previous, delta.substr(0, delta.size() / 2)), Error);
+}
+
+TEST(SplatDynamic, DeltaNamesWhereEachGaussianComesFrom) {
+  const splat::Gaussians previous = Truth(20);
+  splat::Gaussians next;
+  next.sh_degree = previous.sh_degree;
+  std::vector<int64_t> origin;
+  for (int64_t i : {1, 2, 5, 19}) {
+    next.AppendFrom(previous, i);
+    origin.push_back(i);
+  }
+  next.AppendFrom(previous, 0);  // added again, in full
+  origin.push_back(-1);
+  const std::string delta = EncodeSplatDelta(previous, next, origin, SplatDeltaSteps{});
+  EXPECT_EQ(SplatDeltaOrigins(delta), origin);
+  EXPECT_EQ(CountSplatDelta(delta).removed, 16);
+  EXPECT_THROW(SplatDeltaOrigins(delta.substr(0, delta.size() / 2)), Error);
 }
 
 }  // namespace

@@ -4,9 +4,10 @@
 // ui=0 (no overlays) are optional. window.holocap exposes the state for tests and tools.
 import { captureCamera, cameraCentre, cross, dot, lookAt, multiply, normalize, projectionMatrix,
          scale, add, sub, norm, viewMatrix } from './math.js';
-import { FormatError, StreamBuffer, decodeMesh, decodeVolume, loadManifest, parseChunk } from './stream.js';
+import { FormatError, StreamBuffer, decodeChunk, loadManifest, parseChunk } from './stream.js';
 import { MeshRenderer } from './mesh.js';
 import { VolumeRenderer } from './volume.js';
+import { SplatRenderer } from './splat.js';
 import { LineRenderer, floorLines, frustumLines } from './helpers.js';
 
 const $ = (id) => document.getElementById(id);
@@ -278,7 +279,8 @@ function updateStats(now) {
       `fps        ${state.stats.fps}\n` +
       `decoded    ${state.stats.decodedMBps.toFixed(2)} MB/s (${state.decoded.length} frames/s)\n` +
       `buffer     ${ahead} frames (${state.stats.bufferAheadS.toFixed(2)} s ahead)\n` +
-      `stream     ${state.manifest.streams[state.stream]?.name ?? '-'}`;
+      `stream     ${state.manifest.streams[state.stream]?.name ?? '-'}` +
+      (state.drawnSplats ? `\nsplats     ${state.drawnSplats.drawn} of ${state.drawnSplats.count} drawn` : '');
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -303,7 +305,10 @@ function draw(gl, renderers) {
   if (!stream || !entry) return;
   if (entry.state === 'ready') {
     if (entry.data.kind === 'mesh') renderers.mesh.draw(entry.data, view, projection);
+    else if (entry.data.kind === 'splats') renderers.splats.draw(entry.data, camera, W, H);
     else renderers.volume.draw(entry.data, camera, H);
+    state.drawnSplats = entry.data.kind === 'splats'
+        ? { drawn: renderers.splats.drawn, count: entry.data.count } : null;
     if (state.drawnFrame !== state.frame && state.timeToFirstFrameMs === null)
       state.timeToFirstFrameMs = performance.now();
   }
@@ -364,7 +369,7 @@ async function main() {
       (bytes) => state.decoded.push({ t: performance.now(), bytes })));
   state.view = defaultView();
   readHash();
-  const renderers = { mesh: new MeshRenderer(gl), volume: new VolumeRenderer(gl),
+  const renderers = { mesh: new MeshRenderer(gl), volume: new VolumeRenderer(gl), splats: new SplatRenderer(gl),
                       floor: new LineRenderer(gl), frusta: new LineRenderer(gl) };
   buildUi(renderers);
   const moveFly = installInput(canvas);
@@ -397,14 +402,15 @@ async function main() {
 // Fetches and decodes every chunk of a stream in turn (nothing drawn): the page's decoding rate.
 state.benchDecode = async (name) => {
   const stream = state.manifest.streams.find((s) => s.name === name);
-  let frames = 0, bytes = 0, decodeMs = 0;
+  let frames = 0, bytes = 0, decodeMs = 0, previous = null;
   const start = performance.now();
   for (const chunk of stream.chunks) {
     if (!chunk) continue;
     const buffer = await (await fetch(new URL(`${stream.path}/${chunk.file}`, base))).arrayBuffer();
     const t = performance.now();
     const parsed = parseChunk(buffer);
-    await (parsed.header.kind === 'mesh' ? decodeMesh(parsed) : decodeVolume(parsed));
+    previous = await decodeChunk(parsed, previous);  // splat deltas: from the frame before
+    previous.expand?.();  // a splat frame's Gaussians, as drawing it makes them
     decodeMs += performance.now() - t;
     bytes += buffer.byteLength;
     ++frames;

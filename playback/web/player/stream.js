@@ -1,7 +1,11 @@
-// The holocap stream format, version 2 (README "The stream format"): the manifest and the
-// per-frame chunks, fetched ahead of the play head and decoded in the page.
+// The holocap stream format, version 3 (README "The stream format"): the manifest and the
+// per-frame chunks, fetched ahead of the play head and decoded in the page. Version 2 sites (no
+// splat streams) are read too.
 
-export const FORMAT_VERSION = 2;
+export const FORMAT_VERSION = 3;
+export const OLDEST_FORMAT_VERSION = 2;
+const readable = (version) => version >= OLDEST_FORMAT_VERSION && version <= FORMAT_VERSION;
+const versions = `versions ${OLDEST_FORMAT_VERSION} to ${FORMAT_VERSION}`;
 const MAGIC = 'HOLOCAPC';
 
 export class FormatError extends Error {}
@@ -12,9 +16,9 @@ export async function loadManifest(base) {
   const manifest = await response.json();
   if (manifest.format !== 'holocap-stream')
     throw new FormatError('manifest.json is not a holocap stream');
-  if (manifest.version !== FORMAT_VERSION)
+  if (!readable(manifest.version))
     throw new FormatError(`this site is stream format version ${manifest.version}; ` +
-                          `this player reads version ${FORMAT_VERSION} only`);
+                          `this player reads ${versions}`);
   return manifest;
 }
 
@@ -30,8 +34,8 @@ export function parseChunk(buffer) {
     throw new FormatError('not a holocap chunk');
   const view = new DataView(buffer);
   const version = view.getUint32(8, true), headerBytes = view.getUint32(12, true);
-  if (version !== FORMAT_VERSION)
-    throw new FormatError(`chunk format version ${version} (this player reads ${FORMAT_VERSION})`);
+  if (!readable(version))
+    throw new FormatError(`chunk format version ${version} (this player reads ${versions})`);
   if (16 + headerBytes > bytes.length)
     throw new FormatError(`chunk truncated: ${bytes.length} bytes, header needs ${16 + headerBytes}`);
   const header = JSON.parse(new TextDecoder().decode(bytes.subarray(16, 16 + headerBytes)));
@@ -224,6 +228,133 @@ export async function decodeVolume(chunk) {
   return { kind: 'volume', header: h, rgba, occupancy };
 }
 
+// Records of `width` bytes stored as byte planes (byte 0 of every record, then byte 1, ...).
+function fromPlanes(planes, width, count, what) {
+  if (planes.length !== width * count)
+    throw new FormatError(`section '${what}' holds ${planes.length} bytes, not ${width * count}`);
+  const records = new Uint8Array(planes.length);
+  for (let b = 0; b < width; ++b)
+    for (let i = 0, j = b; i < count; ++i, j += width) records[j] = planes[b * count + i];
+  return records;
+}
+
+const SPLAT_GROUPS = ['position', 'rotation', 'scale', 'opacity', 'color'];
+
+function splatRecordBytes(e) {
+  const k = (e.sh_degree + 1) ** 2;
+  return e.values === 'float32' ? [12, 16, 12, 4, 12 * k] : [6, 4, 3, 1, 3 * k];
+}
+
+// The Gaussians the codes stand for, activated as the kernels use them: unit quaternions
+// (w, x, y, z), scales (metres), opacities, spherical-harmonic coefficients ((i K + k) 3 + c, BGR).
+function splatsFromCodes(records, e, count) {
+  const k = (e.sh_degree + 1) ** 2;
+  const g = { count, degree: e.sh_degree, position: new Float32Array(3 * count),
+              rotation: new Float32Array(4 * count), scale: new Float32Array(3 * count),
+              opacity: new Float32Array(count), sh: new Float32Array(3 * k * count) };
+  if (e.values === 'float32') {
+    const f = SPLAT_GROUPS.map((_, i) => typed(records[i], Float32Array));
+    g.position.set(f[0]);
+    g.rotation.set(f[1]);
+    g.sh.set(f[4]);
+    for (let i = 0; i < 3 * count; ++i) g.scale[i] = Math.exp(f[2][i]);
+    for (let i = 0; i < count; ++i) g.opacity[i] = 1 / (1 + Math.exp(-f[3][i]));
+  } else {
+    const [position, rotation, scale, opacity, color] = records;
+    const rotationView = new DataView(rotation.buffer, rotation.byteOffset, rotation.byteLength);
+    const s = Math.SQRT1_2, mask = (1 << e.rotation_bits) - 1;
+    const opacityLevels = 2 ** e.opacity_bits - 1;
+    for (let i = 0; i < count; ++i) {
+      for (let a = 0; a < 3; ++a) {
+        g.position[3 * i + a] = dequantise(position[6 * i + 2 * a] | (position[6 * i + 2 * a + 1] << 8),
+                                           e.box_min[a], e.box_max[a], e.position_bits);
+        g.scale[3 * i + a] = Math.exp(dequantise(scale[3 * i + a], e.log_scale_min, e.log_scale_max,
+                                                 e.scale_bits));
+      }
+      const code = rotationView.getUint32(4 * i, true), largest = code >>> 30;
+      let sum = 0, shift = 2 * e.rotation_bits;
+      for (let c = 0; c < 4; ++c) {
+        if (c === largest) continue;
+        const v = Math.fround(dequantise((code >>> shift) & mask, -s, s, e.rotation_bits));
+        g.rotation[4 * i + c] = v;
+        sum += v * v;
+        shift -= e.rotation_bits;
+      }
+      g.rotation[4 * i + largest] = Math.sqrt(Math.max(0, 1 - sum));
+      g.opacity[i] = Math.min(Math.max(opacity[i] / opacityLevels, 0.5 / opacityLevels),
+                              1 - 0.5 / opacityLevels);
+      for (let j = 0; j < 3 * k; ++j) {
+        const c = color[3 * k * i + j];
+        g.sh[3 * k * i + j] = j < 3 ? dequantise(c, e.dc_min, e.dc_max, e.dc_bits)
+                                    : dequantise(c, -e.rest_max, e.rest_max, e.rest_bits);
+      }
+    }
+  }
+  for (let i = 0; i < count; ++i) {  // the kernels normalise every quaternion
+    const q = g.rotation.subarray(4 * i, 4 * i + 4);
+    const n = Math.hypot(q[0], q[1], q[2], q[3]);
+    if (n > 0) for (let c = 0; c < 4; ++c) q[c] /= n;
+    else q.set([1, 0, 0, 0]);
+  }
+  return g;
+}
+
+// A splat chunk -> its codes (what the next frame's delta refers to), expand() giving its
+// Gaussians. A delta needs the frame before as decoded.
+export async function decodeSplats(chunk, previous) {
+  const h = chunk.header, e = h.encoding, count = h.count;
+  const widths = splatRecordBytes(e);
+  const records = [];
+  if (h.key) {
+    for (const [g, name] of SPLAT_GROUPS.entries())
+      records.push(fromPlanes(await sectionBytes(chunk, name), widths[g], count, name));
+  } else {
+    const n = h.previous;
+    if (!previous || previous.count !== n)
+      throw new FormatError(`a splat delta of a frame of ${n} Gaussians has no frame before it`);
+    const B = Math.ceil(n / 8), masks = await sectionBytes(chunk, 'masks');
+    if (masks.length !== 6 * B) throw new FormatError('splat delta masks cut short');
+    const bit = (offset, i) => (masks[offset + (i >> 3)] >> (i & 7)) & 1;
+    let survivors = 0;
+    for (let i = 0; i < n; ++i) survivors += bit(0, i);
+    if (survivors + h.added !== count)
+      throw new FormatError('splat delta: survivors and added Gaussians do not make its count');
+    for (const [g, name] of SPLAT_GROUPS.entries()) {
+      const w = widths[g], offset = (1 + g) * B, before = previous.records[g];
+      let changed = 0;
+      for (let i = 0; i < n; ++i) changed += bit(0, i) & bit(offset, i);
+      const stored = fromPlanes(await sectionBytes(chunk, name), w, changed + h.added, name);
+      const out = new Uint8Array(w * count);
+      let next = 0, o = 0;
+      for (let i = 0; i < n; ++i) {
+        if (!bit(0, i)) continue;
+        if (bit(offset, i)) {  // each byte stored as its difference (mod 256) from the one before
+          for (let b = 0; b < w; ++b) out[o + b] = (stored[w * next + b] + before[w * i + b]) & 0xff;
+          ++next;
+        } else {
+          for (let b = 0; b < w; ++b) out[o + b] = before[w * i + b];
+        }
+        o += w;
+      }
+      out.set(stored.subarray(w * next), o);
+      records.push(out);
+    }
+  }
+  // The Gaussians in floats (about 240 bytes each at degree 3) are made when the frame is drawn,
+  // so that the frames buffered ahead hold their codes only.
+  return { kind: 'splats', header: h, count, records, gaussians: null,
+           expand() { return this.gaussians ??= splatsFromCodes(records, e, count); } };
+}
+
+// Any chunk (a splat delta with the frame before's decoded data).
+export function decodeChunk(parsed, previous) {
+  const kind = parsed.header.kind;
+  if (kind === 'mesh') return decodeMesh(parsed);
+  if (kind === 'volume') return decodeVolume(parsed);
+  if (kind === 'splats') return decodeSplats(parsed, previous);
+  throw new FormatError(`unknown chunk kind '${kind}'`);
+}
+
 // Fetches and decodes chunks of one stream ahead of the play head; remembers failures so that a
 // broken chunk is reported once and skipped.
 export class StreamBuffer {
@@ -238,6 +369,14 @@ export class StreamBuffer {
 
   get(index) { return this.frames.get(index); }
 
+  // Frame `index` decoded (requested when it is not here yet); rejects when it cannot be.
+  decoded(index) {
+    if (index < 0 || !this.stream.chunks[index])
+      return Promise.reject(new FormatError(`frame ${index} holds no data`));
+    this.request(index);
+    return this.frames.get(index).promise;
+  }
+
   request(index) {
     if (index < 0 || index >= this.stream.chunks.length || this.frames.has(index)) return;
     const entry = { state: 'loading' };
@@ -248,19 +387,30 @@ export class StreamBuffer {
       return;
     }
     const url = new URL(`${this.stream.path}/${chunk.file}`, this.base);
-    (async () => {
+    // A splat delta decodes from the frame before as decoded (fetched too when it is not here).
+    const before = this.stream.kind === 'splats' && !chunk.key ? this.decoded(index - 1) : null;
+    entry.promise = (async () => {
       const response = await fetch(url);
       if (!response.ok) throw new FormatError(`HTTP ${response.status}`);
       const buffer = await response.arrayBuffer();
       if (buffer.byteLength !== chunk.bytes)
         throw new FormatError(`chunk truncated: ${buffer.byteLength} of ${chunk.bytes} bytes`);
       const parsed = parseChunk(buffer);
+      let previous = null;
+      if (before) {
+        try {
+          previous = await before;
+        } catch (error) {
+          throw new FormatError(`the frame before did not decode (${error.message})`);
+        }
+      }
       const started = performance.now();
-      const data = parsed.header.kind === 'mesh' ? await decodeMesh(parsed)
-                                                 : await decodeVolume(parsed);
+      const data = await decodeChunk(parsed, previous);
       this.onBytes(buffer.byteLength, performance.now() - started);
       return data;
-    })().then((data) => {
+    })();
+    entry.promise.catch(() => {});  // reported below, once
+    entry.promise.then((data) => {
       entry.state = 'ready';
       entry.data = data;
     }, (error) => {

@@ -6,6 +6,10 @@
 //   node drive.mjs interact URL OUT BROKEN_FRAME             drag, zoom, play, scrub, a broken
 //                                                             chunk, an unknown version, the
 //                                                             player's picture (OUT/player.png)
+//   node drive.mjs scrub URL OUT W H CAMERA STREAM FRAME...  opens STREAM at the first FRAME through
+//                                                             capture camera CAMERA, scrubs the
+//                                                             timeline to each next FRAME in turn
+//                                                             (OUT/scrub-FRAME.png each)
 //   node drive.mjs bench URL OUT STREAM...                    time to first frame and frames
 //                                                             decoded per second per stream
 // Each writes OUT/<mode>.json, with every console error and page error seen.
@@ -125,6 +129,27 @@ async function interact([brokenFrame]) {
   return results;
 }
 
+async function scrub([width, height, camera, stream, first, ...targets]) {
+  const page = await open(`frame=${first}&camera=${camera}&stream=${stream}&helpers=0&ui=0`, +width, +height);
+  await waitFor(page, (s) => s.drawnFrame === +first && s.drawnState === 'ready', `${stream} frame ${first}`);
+  const results = { first: +first, frames: [] };
+  for (const target of targets.map(Number)) {
+    await page.evaluate((frame) => {
+      const t = document.getElementById('timeline');
+      t.value = String(frame);
+      t.dispatchEvent(new Event('input', { bubbles: true }));
+    }, target);
+    const s = await waitFor(page, (s) => s.drawnFrame === target && s.drawnState === 'ready', `scrubbed to ${target}`);
+    await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+    const file = path.join(out, `scrub-${target}.png`);
+    await page.screenshot({ path: file, clip: { x: 0, y: 0, width: +width, height: +height } });
+    results.frames.push({ target, frame: s.frame, drawnFrame: s.drawnFrame, state: s.drawnState,
+                          messages: s.messages, file });
+  }
+  await page.close();
+  return results;
+}
+
 async function bench(streams) {
   const results = {};
   for (const stream of streams) {
@@ -141,6 +166,7 @@ let results;
 try {
   if (mode === 'shots') results = await shots(rest);
   else if (mode === 'interact') results = await interact(rest);
+  else if (mode === 'scrub') results = await scrub(rest);
   else if (mode === 'bench') results = await bench(rest);
   else throw new Error(`unknown mode '${mode}'`);
   results.ok = true;
