@@ -215,6 +215,17 @@ cv::Mat Bgr(const cv::Mat& frame) {
   return bgr;
 }
 
+// The rigid motion `motion` scaled by `ratio` along its own screw (rotation angle and
+// translation scaled alike): the motion of ratio times the interval it took. Its rotation is
+// rebuilt from the angle and axis, so it is orthonormal whatever rounding `motion` carries.
+Pose ScaleMotion(const Pose& motion, double ratio) {
+  const Eigen::AngleAxisd rotation(NearestRotation(motion.linear()));
+  Pose scaled = Pose::Identity();
+  scaled.linear() = Eigen::AngleAxisd(ratio * rotation.angle(), rotation.axis()).toRotationMatrix();
+  scaled.translation() = ratio * motion.translation();
+  return scaled;
+}
+
 // What one frame's tracking concluded.
 struct Verdict {
   TrackingState state = TrackingState::kTracked;
@@ -364,7 +375,7 @@ class Scanner {
     // Timed from here: reading and decoding the take's files is not the tracker's work.
     const Clock::time_point start = Clock::now();
     const double cpu_start = ProcessCpuSeconds();
-    const Pose predicted = Predict();
+    const Pose predicted = Predict(frame.time_s);
     const cv::Mat depth = UsableDepth(raw, predicted);
     const cv::Mat gray =
         scan::RegisterIntensity(depth, rays_, color, color_lens_, color_from_depth_, threads_);
@@ -384,8 +395,12 @@ class Scanner {
       frame.fused = true;
       summary_.fusion_seconds += Since(fuse_start);
       summary_.fusion_cpu_seconds_per_frame += ProcessCpuSeconds() - fuse_cpu_start;
-      if (frame.state != TrackingState::kFirst) previous_good_ = last_good_;
+      if (frame.state != TrackingState::kFirst) {
+        previous_good_ = last_good_;
+        previous_good_time_s_ = last_good_time_s_;
+      }
       last_good_ = frame.world_from_cam;
+      last_good_time_s_ = frame.time_s;
       has_velocity_ = frame.state != TrackingState::kFirst;
       lost_in_row_ = 0;
       if (tracked_since_keyframe_++ % options_.keyframe_every == 0)
@@ -402,10 +417,13 @@ class Scanner {
     }
   }
 
-  // Constant velocity from the last two good poses.
-  Pose Predict() const {
-    if (!has_velocity_) return last_good_;
-    return last_good_ * (previous_good_.inverse() * last_good_);
+  // Constant velocity from the last two good poses, carried over the time since the last one:
+  // after lost frames the sensor has gone on moving, and the pose it left is frames behind.
+  Pose Predict(double time_s) const {
+    const double interval_s = last_good_time_s_ - previous_good_time_s_;
+    if (!has_velocity_ || !(interval_s > 0)) return last_good_;
+    const double ratio = (time_s - last_good_time_s_) / interval_s;
+    return last_good_ * ScaleMotion(previous_good_.inverse() * last_good_, ratio);
   }
 
   void StartVolume(ScanFrame& frame, const scan::TrackFrame& track, const cv::Mat& raw,
@@ -456,7 +474,6 @@ class Scanner {
     }
     if (frame.state == TrackingState::kLost) {
       frame.world_from_cam = last_good_;
-      has_velocity_ = false;  // re-localise from the last good pose
       if (++lost_in_row_ >= options_.max_lost_frames) {
         stopped_ = true;
         stop_reason_ = Cat("scan stopped: tracking lost for ", lost_in_row_,
@@ -499,6 +516,7 @@ class Scanner {
   std::unique_ptr<TsdfVolume> volume_;
   Pose last_good_ = Pose::Identity();
   Pose previous_good_ = Pose::Identity();
+  double last_good_time_s_ = 0, previous_good_time_s_ = 0;
   bool has_velocity_ = false;
   int lost_in_row_ = 0;
   bool stopped_ = false;
