@@ -51,6 +51,8 @@ void ScanOptions::Check() const {
   if (max_lost_frames < 1) Fail("scan: max_lost_frames must be >= 1");
   if (!(max_degenerate_fraction >= 0 && max_degenerate_fraction <= 1))
     Fail("scan: max_degenerate_fraction must be in [0, 1]");
+  if (!(max_lost_fraction >= 0 && max_lost_fraction <= 1))
+    Fail("scan: max_lost_fraction must be in [0, 1]");
   if (keyframe_every < 1) Fail("scan: keyframe_every must be >= 1");
   if (!(loop_max_distance_m > 0)) Fail("scan: loop_max_distance_m must be > 0");
   if (!(loop_min_angle_deg >= 0)) Fail("scan: loop_min_angle_deg must be >= 0");
@@ -83,6 +85,8 @@ Json ScanOptions::ToJson() const {
                {"min_condition", min_condition},
                {"max_lost_frames", max_lost_frames},
                {"max_degenerate_fraction", max_degenerate_fraction},
+               {"max_lost_fraction", max_lost_fraction},
+               {"check_keyframes", check_keyframes},
                {"refine_poses", refine_poses},
                {"keyframe_every", keyframe_every},
                {"loop_min_angle_deg", loop_min_angle_deg},
@@ -317,6 +321,7 @@ class Scanner {
       summary_.frames.push_back(skipped);
     }
     if (volume_ && options_.refine_poses) Refine();
+    if (volume_ && options_.check_keyframes) CheckKeyframes();
     Conclude(out);
     summary_.seconds = Since(start);
     WriteReport(out);
@@ -497,6 +502,8 @@ class Scanner {
   // Loop edges between keyframes that came back to a place seen before, then the graph.
   void Refine();
   void Refuse();
+  // Each keyframe against the final model (ScanOptions::check_keyframes).
+  void CheckKeyframes();
   void Conclude(const std::filesystem::path& out);
   void WriteOutputs(const std::filesystem::path& out, const Mesh& mesh);
   void WriteReport(const std::filesystem::path& out);
@@ -526,6 +533,8 @@ class Scanner {
   double busy_seconds_ = 0;  // tracking and fusion
   ScanSummary summary_;
   Json refinement_ = Json::object();
+  Json consistency_ = Json::object();
+  std::string inconsistency_;  // the first keyframe the final model contradicts, said why
 };
 
 void Scanner::Refine() {
@@ -598,6 +607,46 @@ void Scanner::Refuse() {
   refinement_["refused"] = true;
 }
 
+void Scanner::CheckKeyframes() {
+  const Clock::time_point start = Clock::now();
+  const double window = 0.1 + 2 * volume_->volume().truncation_m();
+  double largest_move = 0;
+  int64_t checked = 0, contradicted = 0;
+  for (const Keyframe& k : keyframes_) {
+    const ScanFrame& frame = summary_.frames[k.frame];
+    if (frame.state == TrackingState::kFirst) continue;  // it started the model
+    const scan::Level& finest = k.track.levels.front();
+    cv::Mat hint(finest.height, finest.width, CV_32F);
+    for (int i = 0; i < finest.width * finest.height; ++i)
+      hint.at<float>(i / finest.width, i % finest.width) = finest.points[i].z();
+    const scan::ModelView model = scan::RaycastModel(volume_->volume(), rays_, frame.world_from_cam,
+                                                     hint, window, options_.model_stride, threads_);
+    const scan::AlignResult aligned = scan::AlignToReference(
+        k.track, model, depth_lens_, frame.world_from_cam, options_, threads_);
+    const Pose move = frame.world_from_cam.inverse() * aligned.world_from_cam;
+    // A rotation moves the surface by the angle times its distance.
+    const double move_m = move.translation().norm() +
+                          RotationAngleDeg(move.linear()) * M_PI / 180 * k.track.median_depth_m;
+    largest_move = std::max(largest_move, move_m);
+    ++checked;
+    const Verdict verdict = Judge(aligned, frame.world_from_cam, options_);
+    std::string why;
+    if (verdict.state == TrackingState::kLost) {
+      why = verdict.why;
+    } else if (move_m > volume_->volume().truncation_m()) {
+      why = Cat("it moves ", std::lround(1e3 * move_m), " mm to fit it (> the ",
+                std::lround(1e3 * volume_->volume().truncation_m()), " mm truncation)");
+    }
+    if (why.empty()) continue;
+    if (contradicted++ == 0)
+      inconsistency_ = Cat("keyframe at set ", frame.set, " contradicts the final model: ", why);
+  }
+  consistency_ = {{"keyframes_checked", checked},
+                  {"keyframes_contradicted", contradicted},
+                  {"largest_move_m", largest_move},
+                  {"seconds", Since(start)}};
+}
+
 std::vector<StampedPose> Scanner::EstimatedTrajectory() const {
   std::vector<StampedPose> trajectory;
   for (const ScanFrame& frame : summary_.frames) {
@@ -644,6 +693,14 @@ void Scanner::Conclude(const std::filesystem::path& out) {
                                                plan_.sets.size(), " frames of ", depth_name_, ")"));
   } else if (stopped_) {
     summary_.End(Termination::kDegenerate, stop_reason_ + "; the model so far is kept" + lost_note);
+  } else if (summary_.lost >
+             options_.max_lost_fraction * static_cast<double>(summary_.lost + considered)) {
+    summary_.End(Termination::kDegenerate,
+                 Cat(summary_.lost, " of ", summary_.lost + considered, " frames lost (more than ",
+                     std::lround(100 * options_.max_lost_fraction),
+                     "%): the trajectory across the gaps is the motion model's guess", lost_note));
+  } else if (!inconsistency_.empty()) {
+    summary_.End(Termination::kDegenerate, inconsistency_ + lost_note);
   } else if (considered > 0 && summary_.degenerate > options_.max_degenerate_fraction *
                                                          static_cast<double>(considered)) {
     const ScanFrame* d = first_of(TrackingState::kDegenerate);
@@ -721,6 +778,7 @@ void Scanner::WriteReport(const std::filesystem::path& out) {
   m["vertices"] = summary_.vertices;
   m["faces"] = summary_.faces;
   m["refinement"] = refinement_;
+  m["keyframe_check"] = consistency_;
   if (volume_) m["volume_blocks"] = volume_->volume().block_count();
   if (summary_.errors) m["gt"] = summary_.errors->ToJson();
   if (report_ == nullptr) return;
