@@ -163,15 +163,21 @@ TEST(ScanTest, FortyFrameOrbitLosesNoFrameAndTracksWithinAVoxel) {
   EXPECT_LT(summary.metrics["keyframe_check"]["largest_move_m"].get<double>(), 0.04);
 }
 
+// Frame sets 0-11, then 30-37 of a 38-set take: the sensor jumps 1.8 s ahead.
+TakeSelection JumpingSelection() {
+  TakeSelection selection;
+  for (int64_t set = 0; set < 12; ++set) selection.frame_list.push_back(set);
+  for (int64_t set = 30; set < 38; ++set) selection.frame_list.push_back(set);
+  return selection;
+}
+
 // The hand-held sensor jumps 1.8 s ahead between the 12th and the 13th frame scanned: the
 // frames after the jump are lost, fewer than max_lost_frames in a row, so tracking never
 // stops; such a scan once ended SUCCESS with a third of its frames missing.
 TEST(ScanTest, ScanWithManyLostFramesIsDegenerateNotSuccess) {
   TempDir dir;
   ASSERT_TRUE(SimulateTake(ScanSim("handheld", 38), dir / "take").IsUsable());
-  TakeSelection selection;
-  for (int64_t set = 0; set < 12; ++set) selection.frame_list.push_back(set);
-  for (int64_t set = 30; set < 38; ++set) selection.frame_list.push_back(set);
+  const TakeSelection selection = JumpingSelection();
   const ScanSummary summary = ScanTake(dir / "take", selection, dir / "scan", SmallScan());
   EXPECT_EQ(summary.termination, Termination::kDegenerate) << summary.message;
   EXPECT_GE(summary.lost, 3);
@@ -181,6 +187,29 @@ TEST(ScanTest, ScanWithManyLostFramesIsDegenerateNotSuccess) {
   for (const ScanFrame& f : summary.frames) {
     if (f.state == TrackingState::kLost) EXPECT_FALSE(f.fused) << "set " << f.set;
   }
+}
+
+// The same jump with tracking tests that accept anything: no frame is lost, the frames after
+// the jump are fused wherever the alignment left them, and only the keyframes' check against
+// the final model can tell that the trajectory broke.
+TEST(ScanTest, KeyframeContradictingTheFinalModelIsDegenerate) {
+  TempDir dir;
+  ASSERT_TRUE(SimulateTake(ScanSim("handheld", 38), dir / "take").IsUsable());
+  const TakeSelection selection = JumpingSelection();
+  ScanOptions options = SmallScan();
+  options.min_inlier_fraction = 0;
+  options.max_residual_m = 1;
+  options.max_step_m = 10;
+  options.max_step_deg = 180;
+  options.keyframe_every = 4;
+  const ScanSummary summary = ScanTake(dir / "take", selection, dir / "scan", options);
+  EXPECT_EQ(summary.lost, 0);
+  EXPECT_EQ(summary.termination, Termination::kDegenerate) << summary.message;
+  EXPECT_NE(summary.message.find("contradicts the final model"), std::string::npos)
+      << summary.message;
+  EXPECT_GE(summary.metrics["keyframe_check"]["keyframes_contradicted"].get<int64_t>(), 1);
+  ASSERT_TRUE(summary.errors.has_value());
+  EXPECT_GT(summary.errors->ate_rmse_m, 0.05);  // the trajectory did break
 }
 
 TEST(ScanTest, SensorFasterThanTrackingIsLostAndNotFused) {
