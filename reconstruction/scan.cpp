@@ -633,9 +633,9 @@ void Scanner::CheckKeyframes() {
     std::string why;
     if (verdict.state == TrackingState::kLost) {
       why = verdict.why;
-    } else if (move_m > volume_->volume().truncation_m()) {
+    } else if (move_m > options_.max_correspondence_m) {
       why = Cat("it moves ", std::lround(1e3 * move_m), " mm to fit it (> the ",
-                std::lround(1e3 * volume_->volume().truncation_m()), " mm truncation)");
+                std::lround(1e3 * options_.max_correspondence_m), " mm association gate)");
     }
     if (why.empty()) continue;
     if (contradicted++ == 0)

@@ -83,9 +83,10 @@ struct ScanOptions {
   double max_lost_fraction = 0.1;
   // Every keyframe is aligned again, at the end, against the final model seen from its final
   // pose (the model every other frame built). Frames fused against one consistent model move
-  // by a fraction of a voxel; a keyframe that must move more than the TSDF's truncation (the
-  // band within which two views of a surface average into one) to fit it, or that the
-  // tracking tests reject, belongs to a model that holds its surfaces twice: DEGENERATE.
+  // by millimetres (the slow drift of frame-to-model tracking around the subject: 7-25 mm over
+  // 60 frames of the simulated orbit); a keyframe that the tracking tests reject there, or that
+  // must move further than max_correspondence_m (beyond it the tracker pairs no point with the
+  // surface at all) to fit it, does not belong to that model: DEGENERATE.
   bool check_keyframes = true;
 
   // Pose graph over keyframes (every keyframe_every-th tracked frame), with loop edges between

@@ -157,7 +157,7 @@ TEST(ScanTest, FortyFrameOrbitLosesNoFrameAndTracksWithinAVoxel) {
   EXPECT_TRUE(std::filesystem::exists(dir / "scan" / "trajectory.tum"));
   EXPECT_TRUE(std::filesystem::exists(dir / "scan" / "mesh.ply"));
   // Every keyframe but the first was checked against the final model and fits it to well
-  // under the truncation (half its 8 cm, with 2 cm voxels).
+  // under the association gate (6 cm).
   EXPECT_GE(summary.metrics["keyframe_check"]["keyframes_checked"].get<int64_t>(), 3);
   EXPECT_EQ(summary.metrics["keyframe_check"]["keyframes_contradicted"].get<int64_t>(), 0);
   EXPECT_LT(summary.metrics["keyframe_check"]["largest_move_m"].get<double>(), 0.04);
