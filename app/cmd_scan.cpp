@@ -79,6 +79,10 @@ void AddScanCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--max-lost", o.max_lost_frames, "Lost frames in a row that end the scan")
       ->capture_default_str();
+  command
+      ->add_option("--max-lost-fraction", o.max_lost_fraction,
+                   "Fraction of lost frames above which the scan ends DEGENERATE")
+      ->capture_default_str();
   command->add_flag("--no-refine", args->no_refine, "No keyframe pose graph at the end");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY only (no texture)");
   command->add_option("--threads", o.threads, "Threads (0: all cores)")->capture_default_str();

@@ -51,6 +51,8 @@ void ScanOptions::Check() const {
   if (max_lost_frames < 1) Fail("scan: max_lost_frames must be >= 1");
   if (!(max_degenerate_fraction >= 0 && max_degenerate_fraction <= 1))
     Fail("scan: max_degenerate_fraction must be in [0, 1]");
+  if (!(max_lost_fraction >= 0 && max_lost_fraction <= 1))
+    Fail("scan: max_lost_fraction must be in [0, 1]");
   if (keyframe_every < 1) Fail("scan: keyframe_every must be >= 1");
   if (!(loop_max_distance_m > 0)) Fail("scan: loop_max_distance_m must be > 0");
   if (!(loop_min_angle_deg >= 0)) Fail("scan: loop_min_angle_deg must be >= 0");
@@ -83,6 +85,8 @@ Json ScanOptions::ToJson() const {
                {"min_condition", min_condition},
                {"max_lost_frames", max_lost_frames},
                {"max_degenerate_fraction", max_degenerate_fraction},
+               {"max_lost_fraction", max_lost_fraction},
+               {"check_keyframes", check_keyframes},
                {"refine_poses", refine_poses},
                {"keyframe_every", keyframe_every},
                {"loop_min_angle_deg", loop_min_angle_deg},
@@ -215,6 +219,17 @@ cv::Mat Bgr(const cv::Mat& frame) {
   return bgr;
 }
 
+// The rigid motion `motion` scaled by `ratio` along its own screw (rotation angle and
+// translation scaled alike): the motion of ratio times the interval it took. Its rotation is
+// rebuilt from the angle and axis, so it is orthonormal whatever rounding `motion` carries.
+Pose ScaleMotion(const Pose& motion, double ratio) {
+  const Eigen::AngleAxisd rotation(NearestRotation(motion.linear()));
+  Pose scaled = Pose::Identity();
+  scaled.linear() = Eigen::AngleAxisd(ratio * rotation.angle(), rotation.axis()).toRotationMatrix();
+  scaled.translation() = ratio * motion.translation();
+  return scaled;
+}
+
 // What one frame's tracking concluded.
 struct Verdict {
   TrackingState state = TrackingState::kTracked;
@@ -306,6 +321,7 @@ class Scanner {
       summary_.frames.push_back(skipped);
     }
     if (volume_ && options_.refine_poses) Refine();
+    if (volume_ && options_.check_keyframes) CheckKeyframes();
     Conclude(out);
     summary_.seconds = Since(start);
     WriteReport(out);
@@ -364,7 +380,7 @@ class Scanner {
     // Timed from here: reading and decoding the take's files is not the tracker's work.
     const Clock::time_point start = Clock::now();
     const double cpu_start = ProcessCpuSeconds();
-    const Pose predicted = Predict();
+    const Pose predicted = Predict(frame.time_s);
     const cv::Mat depth = UsableDepth(raw, predicted);
     const cv::Mat gray =
         scan::RegisterIntensity(depth, rays_, color, color_lens_, color_from_depth_, threads_);
@@ -384,8 +400,12 @@ class Scanner {
       frame.fused = true;
       summary_.fusion_seconds += Since(fuse_start);
       summary_.fusion_cpu_seconds_per_frame += ProcessCpuSeconds() - fuse_cpu_start;
-      if (frame.state != TrackingState::kFirst) previous_good_ = last_good_;
+      if (frame.state != TrackingState::kFirst) {
+        previous_good_ = last_good_;
+        previous_good_time_s_ = last_good_time_s_;
+      }
       last_good_ = frame.world_from_cam;
+      last_good_time_s_ = frame.time_s;
       has_velocity_ = frame.state != TrackingState::kFirst;
       lost_in_row_ = 0;
       if (tracked_since_keyframe_++ % options_.keyframe_every == 0)
@@ -402,10 +422,13 @@ class Scanner {
     }
   }
 
-  // Constant velocity from the last two good poses.
-  Pose Predict() const {
-    if (!has_velocity_) return last_good_;
-    return last_good_ * (previous_good_.inverse() * last_good_);
+  // Constant velocity from the last two good poses, carried over the time since the last one:
+  // after lost frames the sensor has gone on moving, and the pose it left is frames behind.
+  Pose Predict(double time_s) const {
+    const double interval_s = last_good_time_s_ - previous_good_time_s_;
+    if (!has_velocity_ || !(interval_s > 0)) return last_good_;
+    const double ratio = (time_s - last_good_time_s_) / interval_s;
+    return last_good_ * ScaleMotion(previous_good_.inverse() * last_good_, ratio);
   }
 
   void StartVolume(ScanFrame& frame, const scan::TrackFrame& track, const cv::Mat& raw,
@@ -456,7 +479,6 @@ class Scanner {
     }
     if (frame.state == TrackingState::kLost) {
       frame.world_from_cam = last_good_;
-      has_velocity_ = false;  // re-localise from the last good pose
       if (++lost_in_row_ >= options_.max_lost_frames) {
         stopped_ = true;
         stop_reason_ = Cat("scan stopped: tracking lost for ", lost_in_row_,
@@ -480,6 +502,8 @@ class Scanner {
   // Loop edges between keyframes that came back to a place seen before, then the graph.
   void Refine();
   void Refuse();
+  // Each keyframe against the final model (ScanOptions::check_keyframes).
+  void CheckKeyframes();
   void Conclude(const std::filesystem::path& out);
   void WriteOutputs(const std::filesystem::path& out, const Mesh& mesh);
   void WriteReport(const std::filesystem::path& out);
@@ -499,6 +523,7 @@ class Scanner {
   std::unique_ptr<TsdfVolume> volume_;
   Pose last_good_ = Pose::Identity();
   Pose previous_good_ = Pose::Identity();
+  double last_good_time_s_ = 0, previous_good_time_s_ = 0;
   bool has_velocity_ = false;
   int lost_in_row_ = 0;
   bool stopped_ = false;
@@ -508,6 +533,8 @@ class Scanner {
   double busy_seconds_ = 0;  // tracking and fusion
   ScanSummary summary_;
   Json refinement_ = Json::object();
+  Json consistency_ = Json::object();
+  std::string inconsistency_;  // the first keyframe the final model contradicts, said why
 };
 
 void Scanner::Refine() {
@@ -580,6 +607,46 @@ void Scanner::Refuse() {
   refinement_["refused"] = true;
 }
 
+void Scanner::CheckKeyframes() {
+  const Clock::time_point start = Clock::now();
+  const double window = 0.1 + 2 * volume_->volume().truncation_m();
+  double largest_move = 0;
+  int64_t checked = 0, contradicted = 0;
+  for (const Keyframe& k : keyframes_) {
+    const ScanFrame& frame = summary_.frames[k.frame];
+    if (frame.state == TrackingState::kFirst) continue;  // it started the model
+    const scan::Level& finest = k.track.levels.front();
+    cv::Mat hint(finest.height, finest.width, CV_32F);
+    for (int i = 0; i < finest.width * finest.height; ++i)
+      hint.at<float>(i / finest.width, i % finest.width) = finest.points[i].z();
+    const scan::ModelView model = scan::RaycastModel(volume_->volume(), rays_, frame.world_from_cam,
+                                                     hint, window, options_.model_stride, threads_);
+    const scan::AlignResult aligned = scan::AlignToReference(
+        k.track, model, depth_lens_, frame.world_from_cam, options_, threads_);
+    const Pose move = frame.world_from_cam.inverse() * aligned.world_from_cam;
+    // A rotation moves the surface by the angle times its distance.
+    const double move_m = move.translation().norm() +
+                          RotationAngleDeg(move.linear()) * M_PI / 180 * k.track.median_depth_m;
+    largest_move = std::max(largest_move, move_m);
+    ++checked;
+    const Verdict verdict = Judge(aligned, frame.world_from_cam, options_);
+    std::string why;
+    if (verdict.state == TrackingState::kLost) {
+      why = verdict.why;
+    } else if (move_m > options_.max_correspondence_m) {
+      why = Cat("it moves ", std::lround(1e3 * move_m), " mm to fit it (> the ",
+                std::lround(1e3 * options_.max_correspondence_m), " mm association gate)");
+    }
+    if (why.empty()) continue;
+    if (contradicted++ == 0)
+      inconsistency_ = Cat("keyframe at set ", frame.set, " contradicts the final model: ", why);
+  }
+  consistency_ = {{"keyframes_checked", checked},
+                  {"keyframes_contradicted", contradicted},
+                  {"largest_move_m", largest_move},
+                  {"seconds", Since(start)}};
+}
+
 std::vector<StampedPose> Scanner::EstimatedTrajectory() const {
   std::vector<StampedPose> trajectory;
   for (const ScanFrame& frame : summary_.frames) {
@@ -626,6 +693,14 @@ void Scanner::Conclude(const std::filesystem::path& out) {
                                                plan_.sets.size(), " frames of ", depth_name_, ")"));
   } else if (stopped_) {
     summary_.End(Termination::kDegenerate, stop_reason_ + "; the model so far is kept" + lost_note);
+  } else if (summary_.lost >
+             options_.max_lost_fraction * static_cast<double>(summary_.lost + considered)) {
+    summary_.End(Termination::kDegenerate,
+                 Cat(summary_.lost, " of ", summary_.lost + considered, " frames lost (more than ",
+                     std::lround(100 * options_.max_lost_fraction),
+                     "%): the trajectory across the gaps is the motion model's guess", lost_note));
+  } else if (!inconsistency_.empty()) {
+    summary_.End(Termination::kDegenerate, inconsistency_ + lost_note);
   } else if (considered > 0 && summary_.degenerate > options_.max_degenerate_fraction *
                                                          static_cast<double>(considered)) {
     const ScanFrame* d = first_of(TrackingState::kDegenerate);
@@ -703,6 +778,7 @@ void Scanner::WriteReport(const std::filesystem::path& out) {
   m["vertices"] = summary_.vertices;
   m["faces"] = summary_.faces;
   m["refinement"] = refinement_;
+  m["keyframe_check"] = consistency_;
   if (volume_) m["volume_blocks"] = volume_->volume().block_count();
   if (summary_.errors) m["gt"] = summary_.errors->ToJson();
   if (report_ == nullptr) return;

@@ -77,6 +77,17 @@ struct ScanOptions {
   int max_lost_frames = 15;
   // More than this fraction of degenerate frames makes the scan DEGENERATE.
   double max_degenerate_fraction = 0.5;
+  // The scan judges its trajectory, which a user cannot check against any truth. A lost frame
+  // is a gap that only the motion model bridges, and nothing checks the frames after it against
+  // the frames before it; more than this fraction of lost frames makes the scan DEGENERATE.
+  double max_lost_fraction = 0.1;
+  // Every keyframe is aligned again, at the end, against the final model seen from its final
+  // pose (the model every other frame built). Frames fused against one consistent model move
+  // by millimetres (the slow drift of frame-to-model tracking around the subject: 7-25 mm over
+  // 60 frames of the simulated orbit); a keyframe that the tracking tests reject there, or that
+  // must move further than max_correspondence_m (beyond it the tracker pairs no point with the
+  // surface at all) to fit it, does not belong to that model: DEGENERATE.
+  bool check_keyframes = true;
 
   // Pose graph over keyframes (every keyframe_every-th tracked frame), with loop edges between
   // keyframes whose views overlap (ICP, accepted by the tracking tests above); the volume is
@@ -130,9 +141,11 @@ TrajectoryErrors CompareTrajectories(const std::vector<StampedPose>& estimate,
 // timestamps like a scan's; empty when the take has none. Throws Error for a damaged file.
 std::vector<StampedPose> TrueTrajectory(const Take& take, const std::string& sensor);
 
-// SUCCESS: every frame tracked or re-localised (lost frames are counted and named); DEGENERATE:
-// tracking lost for good (the model so far is written), too many degenerate frames, no valid
-// depth at all, or nothing fused; FAILURE: an output could not be written.
+// SUCCESS: every frame tracked or re-localised, at most max_lost_fraction of them lost (lost
+// frames are counted and named), and every keyframe agreeing with the final model; DEGENERATE:
+// tracking lost for good (the model so far is written), too many lost or degenerate frames, a
+// keyframe that the final model contradicts, no valid depth at all, or nothing fused; FAILURE:
+// an output could not be written.
 struct ScanSummary : Summary {
   std::vector<ScanFrame> frames;
   int64_t tracked = 0, degenerate = 0, lost = 0, fused = 0, keyframes = 0, loops = 0;

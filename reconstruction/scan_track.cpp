@@ -587,6 +587,11 @@ AlignResult AlignToReference(const TrackFrame& frame, const ModelView& reference
       if (step.head<3>().norm() < 1e-5 && step.tail<3>().norm() < 1e-5) break;
     }
   }
+  // Each step multiplies the pose by a rotation, and the constant-velocity prediction it starts
+  // from multiplies poses and their inverses (Isometry3d inverts by transposing): left alone,
+  // rounding away from orthonormal compounds from frame to frame (1e-15 at the first frame,
+  // 1e-2 by the 36th of an orbit, scaling every depth by a percent), so it is removed here.
+  result.world_from_cam.linear() = NearestRotation(result.world_from_cam.linear());
   // The finest level's pairs at the final pose decide.
   last = linearizer.Run(frame.levels.front(), result.world_from_cam, options.max_correspondence_m,
                         threads);

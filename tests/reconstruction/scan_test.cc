@@ -102,21 +102,6 @@ TEST(ScanSimTest, TurntableSubjectMovesAndTheSensorStays) {
   EXPECT_GT(moved, 0.02f);
 }
 
-TEST(ScanTest, OrbitTracksWithinAFewVoxels) {
-  TempDir dir;
-  const ScanSummary summary = SimulateAndScan(ScanSim("orbit", 24), SmallScan(), dir);
-  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
-  EXPECT_EQ(summary.lost, 0);
-  EXPECT_EQ(summary.fused, 24);
-  ASSERT_TRUE(summary.errors.has_value());
-  EXPECT_EQ(summary.errors->matched, 24);
-  // 2 cm voxels at 160x120 (a pixel spans ~1.5 cm at 2.4 m): the pose holds to under a voxel.
-  EXPECT_LT(summary.errors->ate_rmse_m, 0.02);
-  EXPECT_LT(summary.errors->rpe_rot_deg, 0.5);
-  EXPECT_TRUE(std::filesystem::exists(dir / "scan" / "trajectory.tum"));
-  EXPECT_TRUE(std::filesystem::exists(dir / "scan" / "mesh.ply"));
-}
-
 TEST(ScanTest, HandheldTracksWithinAFewVoxels) {
   TempDir dir;
   const ScanSummary summary = SimulateAndScan(ScanSim("handheld", 24), SmallScan(), dir);
@@ -153,6 +138,78 @@ TEST(ScanTest, TurntableTracksTheSubjectWithoutTheFloor) {
   const double scanned_deg = RotationAngleDeg(
       (summary.frames.front().world_from_cam.inverse() * last.world_from_cam).linear());
   EXPECT_NEAR(scanned_deg, turned_deg, 1.0);
+}
+
+// 40 frames: the constant-velocity prediction once compounded rounding in its rotation (an
+// Isometry3d inverts by transposing) until, past the 36th frame of any trajectory, depths were
+// scaled by a percent and every frame from there was lost.
+TEST(ScanTest, FortyFrameOrbitLosesNoFrameAndTracksWithinAVoxel) {
+  TempDir dir;
+  const ScanSummary summary = SimulateAndScan(ScanSim("orbit", 40), SmallScan(), dir);
+  ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
+  EXPECT_EQ(summary.lost, 0);
+  EXPECT_EQ(summary.fused, 40);
+  ASSERT_TRUE(summary.errors.has_value());
+  EXPECT_EQ(summary.errors->matched, 40);
+  // 2 cm voxels at 160x120 (a pixel spans ~1.5 cm at 2.4 m): the pose holds to under a voxel.
+  EXPECT_LT(summary.errors->ate_rmse_m, 0.02);
+  EXPECT_LT(summary.errors->rpe_rot_deg, 0.5);
+  EXPECT_TRUE(std::filesystem::exists(dir / "scan" / "trajectory.tum"));
+  EXPECT_TRUE(std::filesystem::exists(dir / "scan" / "mesh.ply"));
+  // Every keyframe but the first was checked against the final model and fits it to well
+  // under the association gate (6 cm).
+  EXPECT_GE(summary.metrics["keyframe_check"]["keyframes_checked"].get<int64_t>(), 3);
+  EXPECT_EQ(summary.metrics["keyframe_check"]["keyframes_contradicted"].get<int64_t>(), 0);
+  EXPECT_LT(summary.metrics["keyframe_check"]["largest_move_m"].get<double>(), 0.04);
+}
+
+// Frame sets 0-11, then 30-37 of a 38-set take: the sensor jumps 1.8 s ahead.
+TakeSelection JumpingSelection() {
+  TakeSelection selection;
+  for (int64_t set = 0; set < 12; ++set) selection.frame_list.push_back(set);
+  for (int64_t set = 30; set < 38; ++set) selection.frame_list.push_back(set);
+  return selection;
+}
+
+// The hand-held sensor jumps 1.8 s ahead between the 12th and the 13th frame scanned: the
+// frames after the jump are lost, fewer than max_lost_frames in a row, so tracking never
+// stops; such a scan once ended SUCCESS with a third of its frames missing.
+TEST(ScanTest, ScanWithManyLostFramesIsDegenerateNotSuccess) {
+  TempDir dir;
+  ASSERT_TRUE(SimulateTake(ScanSim("handheld", 38), dir / "take").IsUsable());
+  const TakeSelection selection = JumpingSelection();
+  const ScanSummary summary = ScanTake(dir / "take", selection, dir / "scan", SmallScan());
+  EXPECT_EQ(summary.termination, Termination::kDegenerate) << summary.message;
+  EXPECT_GE(summary.lost, 3);
+  EXPECT_LT(summary.lost, SmallScan().max_lost_frames);  // never stopped: judged at the end
+  EXPECT_NE(summary.message.find("frames lost (more than 10%)"), std::string::npos)
+      << summary.message;
+  for (const ScanFrame& f : summary.frames) {
+    if (f.state == TrackingState::kLost) EXPECT_FALSE(f.fused) << "set " << f.set;
+  }
+}
+
+// The same jump with tracking tests that accept anything: no frame is lost, the frames after
+// the jump are fused wherever the alignment left them, and only the keyframes' check against
+// the final model can tell that the trajectory broke.
+TEST(ScanTest, KeyframeContradictingTheFinalModelIsDegenerate) {
+  TempDir dir;
+  ASSERT_TRUE(SimulateTake(ScanSim("handheld", 38), dir / "take").IsUsable());
+  const TakeSelection selection = JumpingSelection();
+  ScanOptions options = SmallScan();
+  options.min_inlier_fraction = 0;
+  options.max_residual_m = 1;
+  options.max_step_m = 10;
+  options.max_step_deg = 180;
+  options.keyframe_every = 4;
+  const ScanSummary summary = ScanTake(dir / "take", selection, dir / "scan", options);
+  EXPECT_EQ(summary.lost, 0);
+  EXPECT_EQ(summary.termination, Termination::kDegenerate) << summary.message;
+  EXPECT_NE(summary.message.find("contradicts the final model"), std::string::npos)
+      << summary.message;
+  EXPECT_GE(summary.metrics["keyframe_check"]["keyframes_contradicted"].get<int64_t>(), 1);
+  ASSERT_TRUE(summary.errors.has_value());
+  EXPECT_GT(summary.errors->ate_rmse_m, 0.05);  // the trajectory did break
 }
 
 TEST(ScanTest, SensorFasterThanTrackingIsLostAndNotFused) {

@@ -165,6 +165,21 @@ TEST_P(ScanTrackTest, AFrameMovedByASmallMotionComesBack) {
   EXPECT_LT(degrees, 0.1) << metres << " m";
 }
 
+// A start whose rotation carries rounding away from orthonormal (as a prediction composed of
+// poses and their transposed inverses did, compounding frame after frame) comes back as a
+// rotation: the tracker's pose is what the next prediction is made of.
+TEST(ScanTrackOrthonormalTest, AlignedPoseIsARotationWhateverTheStartCarries) {
+  const TrackerFixture fixture(160, 120, 0.02, 4);
+  Pose start = fixture.TruePose();
+  start.linear() *= 1 + 1e-6;
+  const scan::AlignResult aligned = fixture.Align(start, fixture.options());
+  const Eigen::Matrix3d rotation = aligned.world_from_cam.linear();
+  EXPECT_LT((rotation.transpose() * rotation - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+  EXPECT_NEAR(rotation.determinant(), 1.0, 1e-12);
+  const auto [metres, degrees] = PoseError(aligned.world_from_cam, fixture.TruePose());
+  EXPECT_LT(metres, 0.0025) << degrees << " deg";
+}
+
 INSTANTIATE_TEST_SUITE_P(GeometryAndColour, ScanTrackTest, ::testing::Values(0.0, 0.02),
                          [](const ::testing::TestParamInfo<double>& info) {
                            return info.param > 0 ? std::string("Photometric")
