@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <set>
 #include <unordered_map>
@@ -127,23 +128,159 @@ const CubeTables& Tables() {
   return tables;
 }
 
-// Global edge id: the voxel at the edge's lower corner (20 bits per axis, +-524288 voxels) and
-// the axis (2 bits above them).
-uint64_t EdgeKey(const Eigen::Vector3i& voxel, int axis) {
+// A cell's key: 20 bits per axis (+-524288 cells).
+uint64_t CellKey(const Eigen::Vector3i& cell) {
   constexpr int64_t offset = int64_t{1} << 19;
   constexpr uint64_t mask = (uint64_t{1} << 20) - 1;
-  return ((static_cast<uint64_t>(voxel.x() + offset) & mask)) |
-         ((static_cast<uint64_t>(voxel.y() + offset) & mask) << 20) |
-         ((static_cast<uint64_t>(voxel.z() + offset) & mask) << 40) |
-         (static_cast<uint64_t>(axis) << 60);
+  return ((static_cast<uint64_t>(cell.x() + offset) & mask)) |
+         ((static_cast<uint64_t>(cell.y() + offset) & mask) << 20) |
+         ((static_cast<uint64_t>(cell.z() + offset) & mask) << 40);
 }
 
-struct BlockMesh {
-  std::vector<uint64_t> vertex_keys;
+// The crossed edges a block owns: edge (voxel v, axis a) runs from v to v + unit(a), and the
+// block holding v owns it. A bit per edge (id (voxel index) * 3 + axis) with running counts, so
+// that a cube in any block finds an edge's vertex without a hash map.
+struct BlockEdges {
+  static constexpr int kWords = kBlockVoxels * 3 / 64;
+  std::array<uint64_t, kWords> bits{};
+  std::array<uint16_t, kWords> before{};  // crossed edges in the words before each
+  int64_t base = 0;                       // the first vertex's index in the whole mesh
   std::vector<Eigen::Vector3f> positions;
   std::vector<Eigen::Vector3f> colors;
-  std::vector<Eigen::Vector3i> faces;  // indices into this block's vertices
+
+  bool Has(int edge) const { return (bits[edge >> 6] >> (edge & 63)) & 1; }
+  int64_t Vertex(int edge) const {
+    const uint64_t below = bits[edge >> 6] & ((uint64_t{1} << (edge & 63)) - 1);
+    return base + before[edge >> 6] + __builtin_popcountll(below);
+  }
 };
+
+// Edge id of voxel (x, y, z) of a block along `axis`.
+int EdgeId(int x, int y, int z, int axis) {
+  return ((z * kBlockSide + y) * kBlockSide + x) * 3 + axis;
+}
+
+// A block's voxel at (x, y, z), each coordinate in [0, 2 * kBlockSide): this block or one of
+// its seven positive neighbours (`near`, by CornerOffset index; nullptr where not allocated).
+const Voxel* VoxelNear(const VoxelBlock* const* near, int x, int y, int z) {
+  const int n = (x >= kBlockSide) | ((y >= kBlockSide) << 1) | ((z >= kBlockSide) << 2);
+  return near[n] == nullptr ? nullptr
+                            : &near[n]->at(x % kBlockSide, y % kBlockSide, z % kBlockSide);
+}
+
+// Blocks by index, each with the indices of its seven positive neighbours (-1: none).
+struct BlockIndex {
+  std::vector<Eigen::Vector3i> coordinates;
+  std::vector<const VoxelBlock*> data;
+  std::vector<std::array<int, 8>> near;  // by CornerOffset index; near[b][0] == b
+
+  explicit BlockIndex(const SparseVolume& volume) : coordinates(volume.BlockCoordinates()) {
+    std::unordered_map<uint64_t, int> index_of;
+    index_of.reserve(coordinates.size());
+    data.resize(coordinates.size());
+    for (size_t i = 0; i < coordinates.size(); ++i) {
+      index_of.emplace(SparseVolume::Key(coordinates[i]), static_cast<int>(i));
+      data[i] = volume.Find(coordinates[i]);
+    }
+    near.resize(coordinates.size());
+    for (size_t i = 0; i < coordinates.size(); ++i) {
+      for (int n = 0; n < 8; ++n) {
+        const auto it = index_of.find(SparseVolume::Key(coordinates[i] + CornerOffset(n)));
+        near[i][n] = it == index_of.end() ? -1 : it->second;
+      }
+    }
+  }
+  void Neighbours(size_t b, const VoxelBlock** out) const {
+    for (int n = 0; n < 8; ++n) out[n] = near[b][n] < 0 ? nullptr : data[near[b][n]];
+  }
+};
+
+// Block b's crossed edges (a sign change between two voxels both observed with more than
+// `min_weight`) and their vertices, interpolated where the signed distance is zero.
+void CrossedEdges(const BlockIndex& index, size_t b, float min_weight, double voxel,
+                  BlockEdges* out) {
+  const VoxelBlock* near[8];
+  index.Neighbours(b, near);
+  const Eigen::Vector3i base = index.coordinates[b] * kBlockSide;
+  for (int z = 0; z < kBlockSide; ++z) {
+    for (int y = 0; y < kBlockSide; ++y) {
+      for (int x = 0; x < kBlockSide; ++x) {
+        const Voxel& a = near[0]->at(x, y, z);
+        if (!(a.weight > min_weight)) continue;
+        for (int axis = 0; axis < 3; ++axis) {
+          const Eigen::Vector3i to = Eigen::Vector3i(x, y, z) + Eigen::Vector3i::Unit(axis);
+          const Voxel* other = VoxelNear(near, to.x(), to.y(), to.z());
+          if (other == nullptr || !(other->weight > min_weight) || (a.sdf < 0) == (other->sdf < 0))
+            continue;
+          const int edge = EdgeId(x, y, z, axis);
+          out->bits[edge >> 6] |= uint64_t{1} << (edge & 63);
+          const float t = a.sdf / (a.sdf - other->sdf);
+          const Eigen::Vector3f pa = (base + Eigen::Vector3i(x, y, z)).cast<float>();
+          const Eigen::Vector3f pb = (base + to).cast<float>();
+          out->positions.push_back(((1 - t) * pa + t * pb) * static_cast<float>(voxel));
+          out->colors.push_back((1 - t) * Eigen::Vector3f(a.r, a.g, a.b) +
+                                t * Eigen::Vector3f(other->r, other->g, other->b));
+        }
+      }
+    }
+  }
+  int count = 0;
+  for (int w = 0; w < BlockEdges::kWords; ++w) {
+    out->before[w] = static_cast<uint16_t>(count);
+    count += __builtin_popcountll(out->bits[w]);
+  }
+}
+
+// The triangles of the cubes whose lower corner is in block b, as indices of the whole mesh's
+// vertices (`edges`: every block's crossed edges, their bases set).
+void BlockFaces(const BlockIndex& index, const std::vector<BlockEdges>& edges, size_t b,
+                float min_weight, float truncation, std::vector<Eigen::Vector3i>* faces) {
+  const CubeTables& tables = Tables();
+  const bool truncated = std::isfinite(truncation);
+  const VoxelBlock* near[8];
+  index.Neighbours(b, near);
+  for (int z = 0; z < kBlockSide; ++z) {
+    for (int y = 0; y < kBlockSide; ++y) {
+      for (int x = 0; x < kBlockSide; ++x) {
+        const Voxel* corners[8];
+        int mask = 0;
+        bool usable = true;
+        for (int c = 0; c < 8 && usable; ++c) {
+          corners[c] = VoxelNear(near, x + (c & 1), y + ((c >> 1) & 1), z + ((c >> 2) & 1));
+          usable = corners[c] != nullptr && corners[c]->weight > min_weight;
+          if (usable && corners[c]->sdf < 0) mask |= 1 << c;
+        }
+        if (!usable || mask == 0 || mask == 255) continue;
+        if (truncated) {
+          // A sign change between two truncated values is a jump across space no sensor
+          // resolved (the back of a thin part, an occlusion edge): no surface there.
+          bool jump = false;
+          for (const EdgeDef& e : tables.edges) {
+            const float p = corners[e.c0]->sdf, q = corners[e.c1]->sdf;
+            jump |= (p < 0) != (q < 0) && std::abs(p) >= 0.999f * truncation &&
+                    std::abs(q) >= 0.999f * truncation;
+          }
+          if (jump) continue;
+        }
+        for (const auto& tri : tables.triangles[mask]) {
+          int64_t ids[3];
+          for (int k = 0; k < 3; ++k) {
+            const EdgeDef& e = tables.edges[tri[k]];
+            const int ox = x + (e.c0 & 1), oy = y + ((e.c0 >> 1) & 1), oz = z + ((e.c0 >> 2) & 1);
+            const int n =
+                (ox >= kBlockSide) | ((oy >= kBlockSide) << 1) | ((oz >= kBlockSide) << 2);
+            const BlockEdges& owner = edges[index.near[b][n]];
+            const int edge = EdgeId(ox % kBlockSide, oy % kBlockSide, oz % kBlockSide, e.axis);
+            if (!owner.Has(edge)) Fail("marching cubes: a crossed edge has no vertex");
+            ids[k] = owner.Vertex(edge);
+          }
+          faces->emplace_back(static_cast<int>(ids[0]), static_cast<int>(ids[1]),
+                              static_cast<int>(ids[2]));
+        }
+      }
+    }
+  }
+}
 
 }  // namespace
 
@@ -153,116 +290,53 @@ void MeshingOptions::Check() const {
     Fail("meshing simplify_cell_m must be >= 0 (got ", simplify_cell_m, ")");
 }
 
+// Two passes over the blocks in parallel: every crossed edge's vertex, made once by the block
+// that owns the edge (so nothing is welded afterwards), then every cube's triangles, which find
+// their vertices through the owners' edge bits. Vertices no triangle uses (an edge whose cubes
+// all touch an unobserved voxel or a jump) are left out at the end.
 Mesh ExtractMesh(const SparseVolume& volume, const MeshingOptions& options) {
   options.Check();
-  const CubeTables& tables = Tables();
-  const std::vector<Eigen::Vector3i> coordinates = volume.BlockCoordinates();
-  const double voxel = volume.voxel_m();
+  const BlockIndex index(volume);
+  const size_t count = index.coordinates.size();
+  const float min_weight = options.min_weight;
   const float truncation = static_cast<float>(volume.truncation_m());
-  const bool truncated = std::isfinite(truncation);
   bool any_color = false;
-  volume.ForEachBlock([&](const Eigen::Vector3i&, const VoxelBlock& block) {
-    if (any_color) return;
-    for (const Voxel& v : block.voxels) {
-      if (v.weight > 0 && (v.r | v.g | v.b)) {
-        any_color = true;
-        return;
-      }
-    }
-  });
-  std::vector<BlockMesh> parts(coordinates.size());
-#pragma omp parallel for schedule(dynamic, 8)
-  for (size_t bi = 0; bi < coordinates.size(); ++bi) {
-    const Eigen::Vector3i block = coordinates[bi];
-    // This block and its seven positive neighbours cover every cube whose lower corner is in it.
-    const VoxelBlock* neighbours[8];
-    for (int n = 0; n < 8; ++n) neighbours[n] = volume.Find(block + CornerOffset(n));
-    auto voxel_at = [&](int x, int y, int z) -> const Voxel* {
-      int n = (x >= kBlockSide) | ((y >= kBlockSide) << 1) | ((z >= kBlockSide) << 2);
-      const VoxelBlock* data = neighbours[n];
-      if (data == nullptr) return nullptr;
-      return &data->at(x % kBlockSide, y % kBlockSide, z % kBlockSide);
-    };
-    BlockMesh& part = parts[bi];
-    std::unordered_map<uint64_t, int> local;
-    for (int z = 0; z < kBlockSide; ++z) {
-      for (int y = 0; y < kBlockSide; ++y) {
-        for (int x = 0; x < kBlockSide; ++x) {
-          const Voxel* corners[8];
-          int mask = 0;
-          bool usable = true;
-          for (int c = 0; c < 8; ++c) {
-            Eigen::Vector3i o = CornerOffset(c);
-            corners[c] = voxel_at(x + o.x(), y + o.y(), z + o.z());
-            if (corners[c] == nullptr || corners[c]->weight <= options.min_weight) {
-              usable = false;
-              break;
-            }
-            if (corners[c]->sdf < 0) mask |= 1 << c;
-          }
-          if (!usable || mask == 0 || mask == 255) continue;
-          if (truncated) {
-            // A sign change between two truncated values is a jump across space no sensor
-            // resolved (the back of a thin part, an occlusion edge): no surface there.
-            bool jump = false;
-            for (const EdgeDef& e : tables.edges) {
-              float a = corners[e.c0]->sdf, b = corners[e.c1]->sdf;
-              if ((a < 0) != (b < 0) && std::abs(a) >= 0.999f * truncation &&
-                  std::abs(b) >= 0.999f * truncation) {
-                jump = true;
-                break;
-              }
-            }
-            if (jump) continue;
-          }
-          const Eigen::Vector3i origin = block * kBlockSide + Eigen::Vector3i(x, y, z);
-          int ids[12];
-          for (const auto& tri : tables.triangles[mask]) {
-            for (int k = 0; k < 3; ++k) {
-              const EdgeDef& e = tables.edges[tri[k]];
-              uint64_t key = EdgeKey(origin + CornerOffset(e.c0), e.axis);
-              auto [it, inserted] = local.try_emplace(key, static_cast<int>(part.positions.size()));
-              if (inserted) {
-                const Voxel& a = *corners[e.c0];
-                const Voxel& b = *corners[e.c1];
-                float t = a.sdf / (a.sdf - b.sdf);
-                Eigen::Vector3f pa = (origin + CornerOffset(e.c0)).cast<float>();
-                Eigen::Vector3f pb = (origin + CornerOffset(e.c1)).cast<float>();
-                part.positions.push_back(((1 - t) * pa + t * pb) * static_cast<float>(voxel));
-                part.colors.push_back((1 - t) * Eigen::Vector3f(a.r, a.g, a.b) +
-                                      t * Eigen::Vector3f(b.r, b.g, b.b));
-                part.vertex_keys.push_back(key);
-              }
-              ids[k] = it->second;
-            }
-            if (ids[0] != ids[1] && ids[1] != ids[2] && ids[0] != ids[2]) {
-              part.faces.emplace_back(ids[0], ids[1], ids[2]);
-            }
-          }
-        }
-      }
-    }
+  for (size_t b = 0; b < count && !any_color; ++b) {
+    for (const Voxel& v : index.data[b]->voxels) any_color |= v.weight > 0 && (v.r | v.g | v.b);
   }
-  // Weld: a vertex on a block boundary is produced by every block whose cubes use its edge.
+  std::vector<BlockEdges> edges(count);
+#pragma omp parallel for schedule(dynamic, 16)
+  for (size_t b = 0; b < count; ++b)
+    CrossedEdges(index, b, min_weight, volume.voxel_m(), &edges[b]);
+  int64_t vertices = 0;
+  for (BlockEdges& e : edges)
+    e.base = vertices, vertices += static_cast<int64_t>(e.positions.size());
+  if (vertices > std::numeric_limits<int>::max()) Fail("marching cubes: too many vertices");
+  std::vector<std::vector<Eigen::Vector3i>> faces(count);
+#pragma omp parallel for schedule(dynamic, 16)
+  for (size_t b = 0; b < count; ++b) BlockFaces(index, edges, b, min_weight, truncation, &faces[b]);
+  // Keep the vertices that faces use, in their order.
+  std::vector<int> remap(vertices, -1);
+  for (const auto& part : faces)
+    for (const auto& f : part) remap[f.x()] = remap[f.y()] = remap[f.z()] = 0;
   Mesh mesh;
-  std::unordered_map<uint64_t, int> global;
-  for (const BlockMesh& part : parts) {
-    std::vector<int> remap(part.positions.size());
-    for (size_t i = 0; i < part.positions.size(); ++i) {
-      auto [it, inserted] =
-          global.try_emplace(part.vertex_keys[i], static_cast<int>(mesh.vertices.size()));
-      if (inserted) {
-        mesh.vertices.push_back(part.positions[i]);
-        if (any_color) {
-          Eigen::Vector3f c = part.colors[i].array().round().min(255.0f).max(0.0f);
-          mesh.colors.push_back(c.cast<uint8_t>());
-        }
+  int64_t v = 0;
+  for (const BlockEdges& e : edges) {
+    for (size_t i = 0; i < e.positions.size(); ++i, ++v) {
+      if (remap[v] < 0) continue;
+      remap[v] = static_cast<int>(mesh.vertices.size());
+      mesh.vertices.push_back(e.positions[i]);
+      if (any_color) {
+        const Eigen::Vector3f c = e.colors[i].array().round().min(255.0f).max(0.0f);
+        mesh.colors.push_back(c.cast<uint8_t>());
       }
-      remap[i] = it->second;
     }
-    for (const auto& f : part.faces)
-      mesh.faces.emplace_back(remap[f.x()], remap[f.y()], remap[f.z()]);
   }
+  size_t face_count = 0;
+  for (const auto& part : faces) face_count += part.size();
+  mesh.faces.reserve(face_count);
+  for (const auto& part : faces)
+    for (const auto& f : part) mesh.faces.emplace_back(remap[f.x()], remap[f.y()], remap[f.z()]);
   if (options.simplify_cell_m > 0) mesh = SimplifyMesh(mesh, options.simplify_cell_m);
   if (options.normals && !mesh.empty()) mesh.ComputeNormals();
   return mesh;
@@ -278,7 +352,7 @@ Mesh SimplifyMesh(const Mesh& mesh, double cell_m) {
   const bool has_color = mesh.colors.size() == mesh.vertices.size();
   for (size_t i = 0; i < mesh.vertices.size(); ++i) {
     Eigen::Vector3i cell = (mesh.vertices[i].cast<double>() / cell_m).array().floor().cast<int>();
-    auto [it, inserted] = cell_index.try_emplace(EdgeKey(cell, 0), static_cast<int>(sums.size()));
+    auto [it, inserted] = cell_index.try_emplace(CellKey(cell), static_cast<int>(sums.size()));
     if (inserted) {
       sums.emplace_back(Eigen::Vector3d::Zero());
       color_sums.emplace_back(Eigen::Vector3d::Zero());
