@@ -15,7 +15,7 @@
 //      2 mm against both peers, and 60 frame sets fused into one growing volume.
 // Usage: recon_bench [frames=2] [threads=2] [work_dir=/tmp/holocap-recon-bench]
 //                    [sections=1234] [repeats=5]
-// (bench/fusion_bench_results.txt: `recon_bench 2 2 /tmp/holocap-recon-bench 16 7`).
+// (bench/recon_bench_results.txt: `recon_bench 2 2 /tmp/holocap-recon-bench 16 7`).
 #include <unistd.h>
 
 #include <algorithm>

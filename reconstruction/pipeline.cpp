@@ -111,6 +111,7 @@ nlohmann::json ReconstructionOptions::ToJson() const {
             {"margin_px", hull.margin_px}}},
           {"tsdf",
            {{"truncation_voxels", tsdf.truncation_voxels},
+            {"band_voxels", tsdf.band_voxels},
             {"max_weight", tsdf.max_weight},
             {"depth_noise_k", tsdf.depth_noise_k},
             {"smoothing_radius_px", tsdf.smoothing_radius_px},

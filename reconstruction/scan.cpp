@@ -445,6 +445,10 @@ class Scanner {
     TsdfOptions tsdf;
     tsdf.voxel_m = options_.voxel_m;
     tsdf.truncation_voxels = options_.truncation_voxels;
+    // The model is raycast from each new pose: its rays need the signed distances in front of
+    // and behind the surface along other directions than the sensor's that fused them, so a
+    // frame allocates the whole truncation band, not only the blocks at its surface.
+    tsdf.band_voxels = options_.truncation_voxels;
     tsdf.bounds = VolumeBounds(track, frame.world_from_cam);
     tsdf.depth_min_m = options_.depth_min_m;
     tsdf.depth_max_m = options_.depth_max_m;

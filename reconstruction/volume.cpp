@@ -146,6 +146,7 @@ void TsdfOptions::Check() const {
   }
   if (!(carve_weight > 0 && carve_weight <= 1))
     Fail("tsdf carve_weight must be in (0, 1] (got ", carve_weight, ")");
+  if (!(band_voxels > 0)) Fail("tsdf band_voxels must be > 0 (got ", band_voxels, ")");
   if (threads < 0) Fail("tsdf threads must be >= 0");
 }
 
@@ -349,7 +350,8 @@ class FrameIntegrator {
     return kept;
   }
 
-  // 2. Blocks within the truncation band of every measurement, sorted and unique.
+  // 2. Blocks within options_.band_voxels (at most the truncation) of every measurement along
+  // its ray, sorted and unique.
   std::vector<uint64_t> TouchedBlocks() const {
     const Pose world_from_cam = depth_camera_.world_from_cam();
     const Eigen::Matrix3f rotation = world_from_cam.rotation().cast<float>();
@@ -357,13 +359,23 @@ class FrameIntegrator {
     const Eigen::Vector3f lo = volume_.bounds().min.cast<float>();
     const Eigen::Vector3f hi = volume_.bounds().max.cast<float>();
     const float block_m = voxel_ * kBlockSide;
-    const int band_steps = std::max(1, static_cast<int>(std::ceil(truncation_ / (0.5f * block_m))));
+    const float band = std::min(truncation_, static_cast<float>(options_.band_voxels) * voxel_);
+    // The whole truncation band along the ray (the samples below reach every block it crosses)
+    // closes the surface by itself; a narrower band adds the blocks around each measured point.
+    const bool whole_band = band >= truncation_;
+    // Within one voxel the blocks around the measured point (below) hold the whole band.
+    const int band_steps =
+        band <= voxel_ ? 0 : std::max(1, static_cast<int>(std::ceil(band / (0.5f * block_m))));
     // Voxel i sits at i * voxel, block j holds voxels 8j..8j+7: a point's block is
     // floor((p / voxel + 0.5) / 8).
     const float to_block = 1.0f / block_m, half_voxel = 0.5f / kBlockSide;
     auto floor_int = [](float f) {
       int i = static_cast<int>(f);
       return i - (f < static_cast<float>(i));
+    };
+    const float to_voxel = 1.0f / voxel_;
+    auto floor_div = [](int v) {
+      return v >= 0 ? v / kBlockSide : -((-v + kBlockSide - 1) / kBlockSide);
     };
     std::vector<std::vector<uint64_t>> per_thread(threads_);
     const int count = static_cast<int>(measured_.size());
@@ -374,6 +386,11 @@ class FrameIntegrator {
       // repeats out of the list that is sorted.
       uint64_t recent[64];
       std::fill(std::begin(recent), std::end(recent), ~uint64_t{0});
+      auto add = [&](const Eigen::Vector3i& block) {
+        const uint64_t key = SparseVolume::Key(block);
+        uint64_t& slot = recent[(key ^ (key >> 21) ^ (key >> 42)) & 63];
+        if (slot != key) keys.push_back(key), slot = key;
+      };
 #pragma omp for schedule(static)
       for (int i = 0; i < count; ++i) {
         const int pixel = measured_[i];
@@ -382,15 +399,27 @@ class FrameIntegrator {
         const Eigen::Vector3f direction(ray[0], ray[1], 1);
         const float length = direction.norm();
         for (int s = -band_steps; s <= band_steps; ++s) {
-          const float along = d * length + s * truncation_ / band_steps;
+          const float along = d * length + (band_steps > 0 ? s * band / band_steps : 0.0f);
           const Eigen::Vector3f p = rotation * (direction * (along / length)) + translation;
           if (!((p.array() >= lo.array()).all() && (p.array() <= hi.array()).all())) continue;
-          const Eigen::Vector3i block(floor_int(p.x() * to_block + half_voxel),
-                                      floor_int(p.y() * to_block + half_voxel),
-                                      floor_int(p.z() * to_block + half_voxel));
-          const uint64_t key = SparseVolume::Key(block);
-          uint64_t& slot = recent[(key ^ (key >> 21) ^ (key >> 42)) & 63];
-          if (slot != key) keys.push_back(key), slot = key;
+          if (s != 0 || whole_band) {
+            add(Eigen::Vector3i(floor_int(p.x() * to_block + half_voxel),
+                                floor_int(p.y() * to_block + half_voxel),
+                                floor_int(p.z() * to_block + half_voxel)));
+            continue;
+          }
+          // The measured point itself: every block holding a voxel within one voxel of the
+          // cell around it (voxels floor(p) - 1 .. floor(p) + 1 on each axis), so that the
+          // surface there is meshed whole even where the narrow band along the ray stays inside
+          // one block (with the cell's own corners alone a sphere's mesh has open edges).
+          Eigen::Vector3i first, last;
+          for (int axis = 0; axis < 3; ++axis) {
+            const int v = floor_int(p[axis] * to_voxel);
+            first[axis] = floor_div(v - 1), last[axis] = floor_div(v + 1);
+          }
+          for (int z = first.z(); z <= last.z(); ++z)
+            for (int y = first.y(); y <= last.y(); ++y)
+              for (int x = first.x(); x <= last.x(); ++x) add(Eigen::Vector3i(x, y, z));
         }
       }
       std::sort(keys.begin(), keys.end());
@@ -490,13 +519,13 @@ class FrameIntegrator {
     return lens;
   }
 
-  // Block b's voxels that project onto a measurement (or onto the background, in front of it).
-  // Row by row: first the eight voxels' pixels and ray lengths (camera coordinates stepped
-  // voxel by voxel through the block's lens, branch-free so that the compiler vectorises it),
-  // then the lookups and updates.
+  // Block b's voxels that project onto a measurement (or onto the background, in front of it),
+  // row by row of eight voxels, each step over the eight branch-free so that the compiler
+  // vectorises it: the voxels' pixels and ray lengths (camera coordinates stepped voxel by voxel
+  // through the block's lens), the depths at those pixels, the signed distances and weights
+  // (weight 0: no update), then the running averages.
   void FuseBlock(size_t b, int64_t* updated_out, int64_t* carved_out) const {
     const auto& projector = tables_->projector;
-    const Box& bounds = volume_.bounds();
     VoxelBlock& block = *blocks_[b];
     const Eigen::Vector3i base = coordinates_[b] * kBlockSide;
     const bool inside = BlockInsideBounds(base);
@@ -506,7 +535,6 @@ class FrameIntegrator {
     for (int axis = 0; axis < 3; ++axis)
       steps.col(axis) = projector.ToCamera(Eigen::Vector3f::Unit(axis) * voxel_) - zero;
     const BlockLens lens = LensOver(origin, steps);
-    const float max_u = w_ - 0.5f, max_v = h_ - 0.5f;
     int64_t updated = 0, carved = 0;
     for (int z = 0; z < kBlockSide; ++z) {
       for (int y = 0; y < kBlockSide; ++y) {
@@ -526,44 +554,104 @@ class FrameIntegrator {
         if (!lens.affine) {
           for (int x = 0; x < kBlockSide; ++x) {
             const Eigen::Vector3f p = row + static_cast<float>(x) * steps.col(0);
-            if (!projector.Project(p, &us[x], &vs[x])) us[x] = -1;  // outside: skipped below
+            if (!projector.Project(p, &us[x], &vs[x])) us[x] = -1;  // outside: no depth below
           }
         }
-        for (int x = 0; x < kBlockSide; ++x) {
-          const float u = us[x], v = vs[x];
-          if (!(u >= -0.5f && v >= -0.5f && u < max_u && v < max_v)) continue;
-          if (!inside && !bounds.Contains((base + Eigen::Vector3i(x, y, z)).cast<double>() *
-                                          volume_.voxel_m()))
-            continue;
-          const float d = depth_.ptr<float>(static_cast<int>(v + 0.5f))[static_cast<int>(u + 0.5f)];
-          if (!(d == d)) continue;  // NaN: no measurement
-          // Distance along the ray rather than along z: projective, but not stretched at the
-          // image border. A background pixel (negated) is free space up to its measurement.
-          float sdf = (std::abs(d) - zs[x]) * std::sqrt(along_squared[x]);
-          if (d < 0) {
-            if (sdf < truncation_) continue;  // at or behind the room's surface: not the subject
-            ++carved;
-          }
-          if (sdf < -truncation_) continue;
-          sdf = std::min(sdf, truncation_);
-          const float depth = d > 0 ? d : zs[x];
-          float sigma_ratio = k_ > 0 ? 1.0f / (depth * depth) : 1.0f;  // sigma(1 m) / sigma(d)
-          float weight = std::clamp(sigma_ratio * sigma_ratio, 1e-3f, 1.0f);
-          if (d < 0) weight *= carve_weight_;
-          Voxel& voxel_data = block.at(x, y, z);
-          float total = voxel_data.weight + weight;
-          voxel_data.sdf = (voxel_data.sdf * voxel_data.weight + sdf * weight) / total;
-          if (use_color_ && std::abs(sdf) < 0.5f * truncation_) {
-            const Eigen::Vector3f world = (base + Eigen::Vector3i(x, y, z)).cast<float>() * voxel_;
-            BlendColor(world, weight, total, &voxel_data);
-          }
-          voxel_data.weight = std::min(total, options_.max_weight);
-          ++updated;
-        }
+        float depths[kBlockSide];
+        MeasurementsAt(us, vs, depths);
+        if (!inside) WithoutOutOfBounds(base + Eigen::Vector3i(0, y, z), depths);
+        bool measured = false;  // rows that see no measurement (beside the subject) are left be
+        for (int x = 0; x < kBlockSide; ++x) measured |= depths[x] == depths[x];
+        if (!measured) continue;
+        float sdfs[kBlockSide], weights[kBlockSide];
+        carved += Observations(depths, zs, along_squared, sdfs, weights);
+        updated += UpdateRow(base, y, z, sdfs, weights, &block.at(0, y, z));
       }
     }
     *updated_out += updated;
     *carved_out += carved;
+  }
+
+  // The depth map at each of eight pixel positions (nearest pixel); NaN outside the image.
+  void MeasurementsAt(const float* us, const float* vs, float* depths) const {
+    const float max_u = w_ - 0.5f, max_v = h_ - 0.5f;
+    const float* depth = depth_.ptr<float>();
+    for (int x = 0; x < kBlockSide; ++x) {
+      const float u = us[x], v = vs[x];
+      const bool in_image = u >= -0.5f && v >= -0.5f && u < max_u && v < max_v;
+      const int pixel = in_image ? static_cast<int>(v + 0.5f) * w_ + static_cast<int>(u + 0.5f) : 0;
+      depths[x] = in_image ? depth[pixel] : std::numeric_limits<float>::quiet_NaN();
+    }
+  }
+
+  // NaN for the voxels of the row from `first` (voxel coordinates) whose centre is outside the
+  // bounds.
+  void WithoutOutOfBounds(const Eigen::Vector3i& first, float* depths) const {
+    for (int x = 0; x < kBlockSide; ++x) {
+      if (!volume_.bounds().Contains((first + Eigen::Vector3i(x, 0, 0)).cast<double>() *
+                                     volume_.voxel_m()))
+        depths[x] = std::numeric_limits<float>::quiet_NaN();
+    }
+  }
+
+  // Projective signed distances along the ray (not along z: not stretched at the image border)
+  // and noise weights of eight voxels from their depths; weight 0 where there is no update (no
+  // measurement, more than the truncation behind it, or a background pixel's free space at or
+  // behind the room's surface: not the subject). Returns how many are background free space.
+  int64_t Observations(const float* depths, const float* zs, const float* along_squared,
+                       float* sdfs, float* weights) const {
+    int carved = 0;
+    const float truncation = truncation_, carve_weight = carve_weight_;
+    const float noise = k_ > 0 ? 1.0f : 0.0f;
+#pragma omp simd reduction(+ : carved)
+    for (int x = 0; x < kBlockSide; ++x) {
+      const float d = depths[x];
+      const float sdf = (std::abs(d) - zs[x]) * std::sqrt(along_squared[x]);
+      const bool background = d < 0;  // negated: free space up to its measurement
+      const bool keep = sdf >= -truncation && !(background && sdf < truncation);  // false: NaN
+      const float depth = background ? zs[x] : d;
+      // sigma(1 m) / sigma(d), squared
+      const float ratio = noise / (depth * depth) + (1.0f - noise);
+      const float weight =
+          std::min(std::max(ratio * ratio, 1e-3f), 1.0f) * (background ? carve_weight : 1.0f);
+      sdfs[x] = keep ? std::min(sdf, truncation) : 0.0f;
+      weights[x] = keep ? weight : 0.0f;
+      carved += keep && background ? 1 : 0;
+    }
+    return carved;
+  }
+
+  // Noise-weighted running averages of eight voxels (row y, z of the block at `base`) with
+  // capped weights; colour where fused, near the surface. Returns how many were updated.
+  int64_t UpdateRow(const Eigen::Vector3i& base, int y, int z, const float* sdfs,
+                    const float* weights, Voxel* voxels) const {
+    if (use_color_) {
+      for (int x = 0; x < kBlockSide; ++x) {
+        if (!(weights[x] > 0 && std::abs(sdfs[x]) < 0.5f * truncation_)) continue;
+        const Eigen::Vector3f world = (base + Eigen::Vector3i(x, y, z)).cast<float>() * voxel_;
+        BlendColor(world, weights[x], voxels[x].weight + weights[x], &voxels[x]);
+      }
+    }
+    bool observed = false;
+    for (int x = 0; x < kBlockSide; ++x) observed |= weights[x] > 0;
+    if (!observed) return 0;
+    // Through arrays of eight so that the arithmetic vectorises (the voxels interleave colour).
+    float old_sdfs[kBlockSide], old_weights[kBlockSide];
+    for (int x = 0; x < kBlockSide; ++x)
+      old_sdfs[x] = voxels[x].sdf, old_weights[x] = voxels[x].weight;
+    int updated = 0;
+    const float max_weight = options_.max_weight;
+#pragma omp simd reduction(+ : updated)
+    for (int x = 0; x < kBlockSide; ++x) {
+      const float weight = weights[x];
+      const float total = old_weights[x] + weight;
+      old_sdfs[x] += (sdfs[x] - old_sdfs[x]) * (weight / std::max(total, 1e-30f));
+      old_weights[x] = std::min(total, max_weight);
+      updated += weight > 0 ? 1 : 0;
+    }
+    for (int x = 0; x < kBlockSide; ++x)
+      voxels[x].sdf = old_sdfs[x], voxels[x].weight = old_weights[x];
+    return updated;
   }
 
   // The colour image's pixel at `world`, averaged into the voxel with the measurement's
