@@ -225,10 +225,11 @@ struct TsdfOptions {
   double truncation_voxels = 4;  // truncation distance in voxels
   // A frame allocates and updates the blocks within this distance (voxels, along each
   // measurement's ray, at most the truncation) of its measurements, and always those holding the
-  // voxels within one voxel of each measured point's cell: the voxels the surface needs. Their
-  // voxels take the whole truncation band; voxels further out in blocks it does not reach are
-  // left as they are (studio8 at 4 mm, 2 maps with the background carving: the whole band 3894
-  // blocks, 2 voxels 3658, 1 voxel 3502 with completeness 4.19, 4.20 and 4.27 mm).
+  // voxels within one voxel of each measured point's cell (unless the band is the whole
+  // truncation, which reaches them): the voxels the surface needs. Their voxels take the whole
+  // truncation band; voxels further out in blocks it does not reach are left as they are
+  // (studio8 at 4 mm, 2 maps with the background carving: the whole band 3990 blocks, 2 voxels
+  // 3658, 1 voxel 3502, with completeness 4.19, 4.20 and 4.27 mm).
   double band_voxels = 1;
   float max_weight = 64;     // weights are capped so that the volume can follow change
   Box bounds;                // nothing outside is allocated
