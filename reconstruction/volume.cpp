@@ -374,9 +374,6 @@ class FrameIntegrator {
       return i - (f < static_cast<float>(i));
     };
     const float to_voxel = 1.0f / voxel_;
-    auto floor_div = [](int v) {
-      return v >= 0 ? v / kBlockSide : -((-v + kBlockSide - 1) / kBlockSide);
-    };
     std::vector<std::vector<uint64_t>> per_thread(threads_);
     const int count = static_cast<int>(measured_.size());
 #pragma omp parallel num_threads(threads_)
@@ -412,11 +409,10 @@ class FrameIntegrator {
           // cell around it (voxels floor(p) - 1 .. floor(p) + 1 on each axis), so that the
           // surface there is meshed whole even where the narrow band along the ray stays inside
           // one block (with the cell's own corners alone a sphere's mesh has open edges).
-          Eigen::Vector3i first, last;
-          for (int axis = 0; axis < 3; ++axis) {
-            const int v = floor_int(p[axis] * to_voxel);
-            first[axis] = floor_div(v - 1), last[axis] = floor_div(v + 1);
-          }
+          const Eigen::Vector3i cell(floor_int(p.x() * to_voxel), floor_int(p.y() * to_voxel),
+                                     floor_int(p.z() * to_voxel));
+          const Eigen::Vector3i first = SparseVolume::BlockOf(cell - Eigen::Vector3i::Ones());
+          const Eigen::Vector3i last = SparseVolume::BlockOf(cell + Eigen::Vector3i::Ones());
           for (int z = first.z(); z <= last.z(); ++z)
             for (int y = first.y(); y <= last.y(); ++y)
               for (int x = first.x(); x <= last.x(); ++x) add(Eigen::Vector3i(x, y, z));
