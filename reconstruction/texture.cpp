@@ -85,7 +85,54 @@ struct ViewSampler {
   int scale = 1;
   Eigen::Vector3f centre;
   float radians_per_pixel = 0;  // of the occlusion buffer, near the image centre
+  // At image pixel (x0, y0): the nearest and farthest depth of the occlusion buffer over the
+  // four image pixels x0..x0+1, y0..y0+1 (NaN where any is NaN), which Visible tests.
+  cv::Mat nearest, farthest;
 };
+
+// The occlusion-buffer pixels inside image pixels i..i+1 along an axis of `size` buffer pixels.
+inline int WindowStart(int i, int scale, int size) { return std::clamp(i * scale, 0, size - 1); }
+inline int WindowEnd(int i, int scale, int size) {
+  return std::clamp((i + 2) * scale - 1, 0, size - 1);
+}
+
+// ViewSampler::nearest and farthest: the extremes over each window, along rows, then columns.
+void DepthExtremes(ViewSampler* s, int width, int height) {
+  const cv::Mat& depth = s->depth;
+  const int scale = s->scale;
+  cv::Mat row_lo(depth.rows, width, CV_32F), row_hi(depth.rows, width, CV_32F);
+  // NaN, once met, stays: v < NaN and v > NaN are false.
+  const auto lower = [](float m, float v) { return v < m || v != v ? v : m; };
+  const auto upper = [](float m, float v) { return v > m || v != v ? v : m; };
+#pragma omp parallel for schedule(static)
+  for (int y = 0; y < depth.rows; ++y) {
+    const float* in = depth.ptr<float>(y);
+    float* lo = row_lo.ptr<float>(y);
+    float* hi = row_hi.ptr<float>(y);
+    for (int x0 = 0; x0 < width; ++x0) {
+      const int xs = WindowStart(x0, scale, depth.cols), xe = WindowEnd(x0, scale, depth.cols);
+      float a = in[xs], b = in[xs];
+      for (int x = xs + 1; x <= xe; ++x) a = lower(a, in[x]), b = upper(b, in[x]);
+      lo[x0] = a, hi[x0] = b;
+    }
+  }
+  s->nearest.create(height, width, CV_32F);
+  s->farthest.create(height, width, CV_32F);
+#pragma omp parallel for schedule(static)
+  for (int y0 = 0; y0 < height; ++y0) {
+    const int ys = WindowStart(y0, scale, depth.rows), ye = WindowEnd(y0, scale, depth.rows);
+    float* lo = s->nearest.ptr<float>(y0);
+    float* hi = s->farthest.ptr<float>(y0);
+    for (int x0 = 0; x0 < width; ++x0) lo[x0] = row_lo.at<float>(ys, x0);
+    for (int x0 = 0; x0 < width; ++x0) hi[x0] = row_hi.at<float>(ys, x0);
+    for (int y = ys + 1; y <= ye; ++y) {
+      const float* a = row_lo.ptr<float>(y);
+      const float* b = row_hi.ptr<float>(y);
+      for (int x0 = 0; x0 < width; ++x0)
+        lo[x0] = lower(lo[x0], a[x0]), hi[x0] = upper(hi[x0], b[x0]);
+    }
+  }
+}
 
 // The angle one pixel spans near the image's centre (any lens model).
 float RadiansPerPixel(const CameraModel& camera) {
@@ -119,11 +166,15 @@ bool Visible(const ViewSampler& s, float u, float v, float z, float cos_incidenc
   const float image_footprint = z * s.radians_per_pixel * s.scale;
   const float allowed = static_cast<float>(tolerance) + 1.5f * image_footprint * slope;
   const int x0 = static_cast<int>(std::floor(u)), y0 = static_cast<int>(std::floor(v));
+  if (x0 >= 0 && y0 >= 0 && x0 < s.nearest.cols && y0 < s.nearest.rows) {
+    // Every occlusion-buffer pixel inside the four image pixels is within `allowed` of z
+    // exactly when the nearest and the farthest are (r - z rounds monotonically in r).
+    return std::abs(s.nearest.at<float>(y0, x0) - z) <= allowed &&
+           std::abs(s.farthest.at<float>(y0, x0) - z) <= allowed;
+  }
   // Every occlusion-buffer pixel inside the four image pixels.
-  const int xs = std::clamp(x0 * s.scale, 0, s.depth.cols - 1),
-            xe = std::clamp((x0 + 2) * s.scale - 1, 0, s.depth.cols - 1);
-  const int ys = std::clamp(y0 * s.scale, 0, s.depth.rows - 1),
-            ye = std::clamp((y0 + 2) * s.scale - 1, 0, s.depth.rows - 1);
+  const int xs = WindowStart(x0, s.scale, s.depth.cols), xe = WindowEnd(x0, s.scale, s.depth.cols);
+  const int ys = WindowStart(y0, s.scale, s.depth.rows), ye = WindowEnd(y0, s.scale, s.depth.rows);
   for (int y = ys; y <= ye; ++y) {
     const float* row = s.depth.ptr<float>(y);
     for (int x = xs; x <= xe; ++x) {
@@ -145,7 +196,10 @@ bool BlendColor(const std::vector<ViewSampler>& samplers, const Eigen::Vector3f&
   const int keep = std::min(options.max_views, 8);
   for (const ViewSampler& s : samplers) {
     Eigen::Vector3f to_camera = s.centre - point;
-    float cos_incidence = normal.dot(to_camera) / (to_camera.norm() + 1e-12f);
+    const float facing = normal.dot(to_camera);
+    // A view behind the surface fails the test below whatever the norm (skips the square root).
+    if (facing < 0 && options.min_cos_incidence >= 0) continue;
+    float cos_incidence = facing / (to_camera.norm() + 1e-12f);
     if (cos_incidence < options.min_cos_incidence) continue;
     float u, v, z;
     if (!s.projector.ProjectWorld(point, &u, &v, &z)) continue;
@@ -301,7 +355,10 @@ TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views,
                             view.camera.height(), scale),
                   scale,
                   view.camera.center_in_world().cast<float>(),
-                  RadiansPerPixel(view.camera) / scale};
+                  RadiansPerPixel(view.camera) / scale,
+                  {},
+                  {}};
+    DepthExtremes(&s, view.camera.width(), view.camera.height());
     samplers.push_back(std::move(s));
   }
   if (samplers.empty()) Fail("texturing needs at least one view with an image");
