@@ -763,6 +763,10 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   }
   const int32_t begin = state.tile_start[tile];
   const T min_alpha = T(options.min_alpha), max_alpha = T(options.max_alpha);
+  // Every entry's slot is written: those no pixel reached hold zeros.
+  T* const slots = entry_gradient + kEntryGradient * static_cast<size_t>(begin);
+  std::fill(slots + kEntryGradient * static_cast<size_t>(max_last),
+            slots + kEntryGradient * static_cast<size_t>(state.tile_end[tile] - begin), T(0));
   for (int32_t local = max_last - 1; local >= 0; --local) {
     const int32_t i = state.entries[begin + local];
     const T* conic = &p.conic[3 * i];
@@ -770,7 +774,11 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
     const T col[3] = {p.color[3 * i], p.color[3 * i + 1], p.color[3 * i + 2]};
     T d_mean[2] = {0, 0}, d_conic[3] = {0, 0, 0}, d_col[3] = {0, 0, 0}, d_opacity = 0;
     int range[4];
-    if (!PixelRange(p, i, x0, y0, w, h, range)) continue;
+    T* out = slots + kEntryGradient * static_cast<size_t>(local);
+    if (!PixelRange(p, i, x0, y0, w, h, range)) {
+      std::fill(out, out + kEntryGradient, T(0));
+      continue;
+    }
     const T cutoff = PowerCutoff(o, options.min_alpha);
     for (int ly = range[2]; ly <= range[3]; ++ly) {
       for (int q = ly * kTileSide + range[0]; q <= ly * kTileSide + range[1]; ++q) {
@@ -802,7 +810,6 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
         d_conic[2] += d_power * T(-0.5) * dy * dy;
       }
     }
-    T* out = &entry_gradient[kEntryGradient * static_cast<size_t>(begin + local)];
     out[0] = d_mean[0];
     out[1] = d_mean[1];
     for (int c = 0; c < 3; ++c) {
@@ -825,18 +832,20 @@ void RasterizeBackward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   // Each (tile, Gaussian) entry's gradient in its own slot, then summed per Gaussian in tile
   // order: the same bytes whatever the threads and however the tiles were shared out among
   // them (per-thread sums would add in the order the tiles happened to run).
-  const size_t entries = state.entries.size();
-  std::vector<T> entry_gradient(kEntryGradient * entries, T(0));
+  // Reused between calls by the calling thread (each tile writes all of its slots): a view
+  // allocates nothing. The workers write through `slots`, never through their own copy.
+  static thread_local std::vector<T> entry_gradient;
+  entry_gradient.resize(kEntryGradient * state.entries.size());
+  T* const slots = entry_gradient.data();
 #pragma omp parallel for schedule(dynamic, 1)
   for (int tile = 0; tile < tiles; ++tile) {
-    BackwardTile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha,
-                 entry_gradient.data());
+    BackwardTile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha, slots);
   }
   gradients->Resize(n);
   for (int tile = 0; tile < tiles; ++tile) {
     for (int32_t e = state.tile_start[tile]; e < state.tile_end[tile]; ++e) {
       const int32_t i = state.entries[e];
-      const T* g = &entry_gradient[kEntryGradient * static_cast<size_t>(e)];
+      const T* g = slots + kEntryGradient * static_cast<size_t>(e);
       gradients->mean2d[2 * i] += g[0];
       gradients->mean2d[2 * i + 1] += g[1];
       for (int c = 0; c < 3; ++c) {
