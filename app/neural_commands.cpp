@@ -51,8 +51,11 @@ void HandOverNeuralCommands(int argc, char** argv) {
   const std::string_view word = argv[1];
   bool neural = false;
   for (const auto& command : kNeuralCommands) neural = neural || word == command.name;
-  // export web bakes volumes; the other formats stay here.
+  // export web bakes volumes; the other formats stay here. Merging a run of train splat needs
+  // its model code.
   neural = neural || (word == "export" && argc > 2 && std::string_view(argv[2]) == "web");
+  for (int i = 2; i < argc && word == "report"; ++i)
+    neural = neural || std::string_view(argv[i]) == "--merge";
   if (!neural) return;
   std::error_code ec;
   const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);

@@ -43,6 +43,14 @@ inline nlohmann::json ReadJson(const std::filesystem::path& file) {
   return nlohmann::json::parse(ReadFileToString(file));
 }
 
+// When each complete set's record of the run in `dir` was written.
+inline std::map<int64_t, double> RecordTimes(const std::filesystem::path& dir) {
+  std::map<int64_t, double> finished;
+  for (const auto& [set, record] : ReadRunState(dir).complete)
+    finished[set] = record["finished_unix_s"].get<double>();
+  return finished;
+}
+
 // The meshes (*.ply, *.glb) of an output directory: name -> bytes.
 inline std::map<std::string, std::string> Meshes(const std::filesystem::path& out) {
   std::map<std::string, std::string> meshes;
