@@ -78,6 +78,22 @@ TEST(SubmitSlurm, OneShardPerArrayTaskAndAMergeAfterThem) {
                      "--time '1 day' holds ' '");
   ExpectOneLineError(RunCli("submit slurm reconstruct " + take + " --shard 0/2 --dry-run"),
                      "leave it out of the command's flags");
+  // A command of two words: train splat, a per-frame run of segments.
+  auto splat = RunCli("submit slurm train splat " + take +
+                      " --segment-frames 4 --iterations 300 --frame-iterations 50 --tasks 2 "
+                      "--dry-run");
+  ASSERT_EQ(splat.exit_code, 0) << splat.output;
+  for (const char* line :
+       {"#SBATCH --job-name=holocap-train-splat\n",
+        "#SBATCH --job-name=holocap-train-splat-merge\n", " train splat '",
+        "' '--segment-frames' '4' '--iterations' '300' '--frame-iterations' '50' "
+        "--threads \"$OMP_NUM_THREADS\" --shard \"${SLURM_ARRAY_TASK_ID}/2\"\n"}) {
+    EXPECT_NE(splat.output.find(line), std::string::npos) << line << " in\n" << splat.output;
+  }
+  EXPECT_NE(splat.output.find(take + "/models/splat' --merge\n"), std::string::npos)
+      << splat.output;
+  ExpectOneLineError(RunCli("submit slurm train splat " + take + " --tasks 2 --dry-run"),
+                     "give --segment-frames S");
 }
 
 // A simulated take reconstructed by 3 array tasks; one is cancelled in the middle of its second
