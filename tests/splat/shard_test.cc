@@ -22,51 +22,17 @@ namespace {
 
 namespace fs = std::filesystem;
 using testing::ExpectOneLineError;
+using testing::ExpectSameModel;
 using testing::ReadJson;
 using testing::RecordTimes;
 using testing::RunCli;
 using testing::TempDir;
-using testing::WithoutTimes;
 
 // A short budget in iterations, 2 frames a segment: the take's 5 frames are frame 0 and the
 // segments {1, 2} and {3, 4}.
 const char* const kBudget =
     " --segment-frames 2 --iterations 30 --frame-iterations 8 --segment-start-iterations 16 "
     "--width 64 --seed-points 1500 --heldout 1";
-
-// The model's files: name (relative) -> bytes; what the run keeps for itself (records, plan,
-// reports, logs) left out.
-std::map<std::string, std::string> ModelFiles(const fs::path& dir) {
-  std::map<std::string, std::string> files;
-  for (const char* name : {"model.json", "gaussians.bin"})
-    files[name] = ReadFileToString(dir / name);
-  for (const char* folder : {"deltas", "cameras"}) {
-    for (const auto& entry : fs::directory_iterator(dir / folder)) {
-      const std::string name = (fs::path(folder) / entry.path().filename()).string();
-      files[name] = ReadFileToString(entry.path());
-    }
-  }
-  return files;
-}
-
-// The same model bytes, report and frame records as `expected`, times aside.
-void ExpectSameModel(const fs::path& expected, const fs::path& actual) {
-  const auto a = ModelFiles(expected), b = ModelFiles(actual);
-  ASSERT_EQ(a.size(), b.size());
-  for (const auto& [name, bytes] : a) {
-    ASSERT_TRUE(b.count(name)) << name << " is missing from " << actual;
-    EXPECT_TRUE(bytes == b.at(name)) << name << " differs";
-  }
-  EXPECT_EQ(WithoutTimes(ReadJson(expected / "report.json")).dump(1),
-            WithoutTimes(ReadJson(actual / "report.json")).dump(1));
-  const RunState run_a = ReadRunState(expected), run_b = ReadRunState(actual);
-  EXPECT_EQ(run_a.fingerprint, run_b.fingerprint);
-  ASSERT_TRUE(run_b.done()) << run_b.Describe();
-  for (const auto& [set, record] : run_a.complete) {
-    EXPECT_EQ(WithoutTimes(record["result"]).dump(),
-              WithoutTimes(run_b.complete.at(set)["result"]).dump());
-  }
-}
 
 class ShardedSplats : public ::testing::Test {
  protected:
