@@ -1,7 +1,7 @@
 // `holocap train splat --segment-frames`: a dynamic take's splats as a per-frame run. Frame 0 is
 // the run's plan, trained once; the later frames form segments that shards split; a run split
 // into shards, one killed mid-frame, or one whose outputs were damaged, ends with the same bytes
-// as one process's run, and a complete frame is skipped.
+// as one process's run, and a complete frame is skipped; the model plays along its deltas' bases.
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -81,6 +81,17 @@ TEST_F(ShardedSplats, SegmentsStartFromFrameZeroAndPlayBack) {
   const splat::Gaussians two = model.Frame(out("whole"), 2);
   EXPECT_EQ(model.Frame(out("whole"), 3, &two, 2).position, three.position);
   EXPECT_NE(two.position, three.position);
+
+  // The web stream: a delta where the frame before is the delta's base, a key frame where a
+  // segment starts again from frame 0; the export decodes each chunk as the player does.
+  auto site = RunCli("export web " + take() + " --model " + out("whole") +
+                     " --no-meshes --quality medium --out " + out("site"));
+  ASSERT_EQ(site.exit_code, 0) << site.output;
+  const nlohmann::json manifest = ReadJson(out("site") + "/manifest.json");
+  ASSERT_EQ(manifest["streams"].size(), 1u);
+  std::vector<bool> keys;
+  for (const auto& chunk : manifest["streams"][0]["chunks"]) keys.push_back(chunk["key"]);
+  EXPECT_EQ(keys, (std::vector<bool>{true, false, false, true, false}));
 }
 
 TEST_F(ShardedSplats, TwoShardsOnOtherThreadCountsMergeIntoTheOneProcessRunsBytes) {
