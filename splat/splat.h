@@ -64,6 +64,7 @@
 #include <Eigen/Geometry>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -261,8 +262,12 @@ struct SplatSummary : Summary {
 // backgrounds as Neural Volumes (neural/data.h), distortion removed, and the seed from the
 // reconstruction of the first planned frame set (options.recon_dir, else one run now with the
 // plan's method into model_dir/seed_recon). Throws Error for a take that cannot be trained on.
+// `needed(frame, frames)` false for a later frame: only its set is kept (no images, silhouettes
+// or seed; a per-frame run's task leaves the frames other tasks train).
+using SplatFramesNeeded = std::function<bool(int64_t frame, int64_t frames)>;
 SplatScene LoadSplatScene(const std::filesystem::path& take_dir,
-                          const std::filesystem::path& model_dir, const SplatOptions& options);
+                          const std::filesystem::path& model_dir, const SplatOptions& options,
+                          const SplatFramesNeeded& needed = {});
 
 // Trains on a scene into `model_dir` (model.json, gaussians.bin, cameras/, heldout/,
 // report.json). `report` receives options, plan, metrics and the series heldout_psnr_db,

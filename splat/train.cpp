@@ -1085,7 +1085,7 @@ class FrameRun {
 
   SplatSummary Run() {
     PlanFirstFrame();
-    if (!scene_) scene_.emplace(LoadSplatScene(take_dir_, out_, options_));
+    if (!scene_) scene_.emplace(LoadSplatScene(take_dir_, out_, options_, TaskFrames()));
     StartRecords();
     const Termination first = TerminationNamed(plan_.at("termination").get<std::string>());
     if (IsUsable(first)) {
@@ -1106,7 +1106,7 @@ class FrameRun {
         {"take", TakeFingerprint(take_dir_)}}.dump());
     const StoredPlan stored =
         PlanOnce(out_, kFramesCommand, fingerprint, task_, [this](std::vector<std::string>* files) {
-          scene_.emplace(LoadSplatScene(take_dir_, out_, options_));
+          scene_.emplace(LoadSplatScene(take_dir_, out_, options_, TaskFrames()));
           return TrainFirstFrame(files);
         });
     plan_ = stored.plan;
@@ -1162,12 +1162,28 @@ class FrameRun {
     records_->WriteRun({{"options", options}, {"plan", plan_.at("plan")}});
   }
 
-  std::vector<int64_t> TaskSegments() {
-    const int64_t later = static_cast<int64_t>(scene_->later_frames.size());
-    std::vector<int64_t> segments((later + options_.segment_frames - 1) / options_.segment_frames);
+  // Whether the task trains a frame of a run of `frames` (frame 0 and its segments' frames): the
+  // others' images and seeds are not loaded.
+  SplatFramesNeeded TaskFrames() const {
+    return [this](int64_t frame, int64_t frames) {
+      const std::vector<int64_t> mine = SegmentsOf(frames);
+      return frame == 0 || std::find(mine.begin(), mine.end(),
+                                     (frame - 1) / options_.segment_frames) != mine.end();
+    };
+  }
+
+  // The task's segments of a run of `frames`.
+  std::vector<int64_t> SegmentsOf(int64_t frames) const {
+    std::vector<int64_t> segments((frames - 1 + options_.segment_frames - 1) /
+                                  options_.segment_frames);
     std::iota(segments.begin(), segments.end(), int64_t{0});
-    segment_count_ = static_cast<int64_t>(segments.size());
     return options_.tasks.shard.Of(segments);
+  }
+
+  std::vector<int64_t> TaskSegments() {
+    const int64_t frames = 1 + static_cast<int64_t>(scene_->later_frames.size());
+    segment_count_ = (frames - 1 + options_.segment_frames - 1) / options_.segment_frames;
+    return SegmentsOf(frames);
   }
 
   // The segment's frames in order: each decoded when complete, else trained from its base.
