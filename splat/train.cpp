@@ -1224,6 +1224,7 @@ class FrameRun {
   SplatSummary FinishTask(Termination first) {
     const RunState run = ReadRunState(out_);
     const Shard& shard = options_.tasks.shard;
+    if (!failed_.empty()) std::printf("splat: not trained: %s\n", failed_.c_str());
     if (shard.whole()) {
       Report local(kFramesCommand);
       return MergeSplatFrames(out_, report_ != nullptr ? report_ : &local);
