@@ -245,14 +245,30 @@ std::vector<std::filesystem::path> ReportsUnder(const std::filesystem::path& pat
 // Merges a per-frame run's records into its report.json (beside the run's tasks, which may
 // still be writing: the take's lock is shared with them). An incomplete run gets a FAILURE
 // report naming its incomplete frame sets, and the command ends with that state.
+}  // namespace
+
+std::map<std::string, RunMerger>& RunMergers() {
+  static std::map<std::string, RunMerger> mergers;
+  return mergers;
+}
+
+namespace {
+
 void MergeRun(const std::filesystem::path& out) {
   const RunState run = ReadRunState(out);
-  if (run.command != "reconstruct")
+  if (run.command != "reconstruct" && run.command != "train splat")
     Fail("'", out.string(), "' holds a run of ", run.command, ", which has no merge");
   const OutputDirectory claimed = OutputDirectory::Claim(out, {run.command, false, {}, true});
   Report report(run.command);
-  const ReconstructionSummary summary = MergeReconstruction(out, &report);
-  FailUnlessUsable(summary, "the merged run");
+  if (run.command == "reconstruct") {
+    FailUnlessUsable(MergeReconstruction(out, &report), "the merged run");
+  } else {
+    const auto merger = RunMergers().find(run.command);
+    if (merger == RunMergers().end())
+      Fail("holocap ", run.command,
+           "'s runs are merged by holocap-neural, which is not this program");
+    FailUnlessUsable(merger->second(out, &report), "the merged run");
+  }
   std::printf("merged %zu frame record(s) into %s\n", run.complete.size(),
               (out / "report.json").c_str());
 }
@@ -280,8 +296,9 @@ void AddReportCommand(CLI::App& app) {
   command->add_flag("--log", args->log_y, "Log scale for every positive series");
   AddOverwriteFlag(command, &args->overwrite);
   command->add_flag("--merge", args->merge,
-                    "PATH is the output of a per-frame run (reconstruct, with or without "
-                    "--shard): merge its frames' reports into its report.json first");
+                    "PATH is the output of a per-frame run (reconstruct, train splat "
+                    "--segment-frames, with or without --shard): merge its frames' reports "
+                    "into its report.json (and a splat run's model.json) first");
   command->callback([args] {
     if (args->merge) {
       for (const std::string& path : args->paths) MergeRun(path);

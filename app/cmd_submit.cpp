@@ -44,7 +44,11 @@ void AddSlurmCommand(CLI::App* submit) {
       "Run a per-frame command over a take as a Slurm job array (task K does --shard K/N) and a "
       "job after it that merges the frames' reports; the command's own flags follow TAKE");
   auto args = std::make_shared<SubmitSlurmArgs>();
-  command->add_option("COMMAND", args->command, "The per-frame command: reconstruct")->required();
+  command
+      ->add_option("COMMAND", args->command,
+                   "The per-frame command: reconstruct, or train splat (two words; its flags "
+                   "need --segment-frames)")
+      ->required();
   command->add_option("TAKE", args->take, "The take, on a filesystem every node sees")->required();
   command->add_option("--tasks", args->tasks, "Array tasks, one shard of the run each")
       ->capture_default_str();
@@ -61,6 +65,13 @@ void AddSlurmCommand(CLI::App* submit) {
     options.command = args->command;
     options.take = args->take;
     options.args = command->remaining();
+    // A command of two words (train splat): the second was taken as TAKE.
+    if (args->command == "train") {
+      if (options.args.empty()) Fail("submit slurm train ", args->take, " needs a take after it");
+      options.command += " " + args->take;
+      options.take = options.args.front();
+      options.args.erase(options.args.begin());
+    }
     options.tasks = args->tasks;
     options.partition = args->partition;
     options.time = args->time;
@@ -81,8 +92,8 @@ void AddSlurmCommand(CLI::App* submit) {
         OutputDirectory::Claim(scripts.out, {options.command, false, {}, true});
     const SubmitSummary summary = SubmitToSlurm(options);
     std::printf("scripts: %s, %s\n", summary.array_script.c_str(), summary.merge_script.c_str());
-    std::printf("progress: holocap submit status %s --out %s\n", args->take.c_str(),
-                summary.out.c_str());
+    std::printf("progress: holocap submit status %s --command '%s' --out %s\n",
+                options.take.c_str(), options.command.c_str(), summary.out.c_str());
     EndCommand(summary, "submit slurm");
   });
 }
@@ -94,7 +105,8 @@ void AddStatusCommand(CLI::App* submit) {
       "scheduler's accounting)");
   auto args = std::make_shared<SubmitStatusArgs>();
   command->add_option("TAKE", args->take, "The take")->required();
-  command->add_option("--command", args->command, "The per-frame command")->capture_default_str();
+  command->add_option("--command", args->command, "The per-frame command (e.g. 'train splat')")
+      ->capture_default_str();
   command->add_option("--out", args->out,
                       "The run's output (default: the command's, e.g. TAKE/recon)");
   command->callback([args] {

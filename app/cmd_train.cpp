@@ -338,7 +338,20 @@ void AddRerenderCommand(CLI::App* train) {
 struct SplatArgs {
   SharedTrainArgs shared;
   SplatOptions options;
+  std::string shard;
 };
+
+// A per-frame run's outcome (its frames are in its report).
+void PrintFrameRun(const SplatSummary& summary, const std::filesystem::path& out,
+                   const Shard& shard) {
+  if (!shard.whole()) {
+    std::printf("task report: %s\n", TaskReportPath(out, shard).c_str());
+    EndCommand(summary, "the shard");
+    return;
+  }
+  std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+  EndCommand(summary, "training");
+}
 
 void AddSplatCommand(CLI::App* train) {
   auto* command = train->add_subcommand(
@@ -384,7 +397,27 @@ void AddSplatCommand(CLI::App* train) {
       ->add_option("--max-added-per-frame", o.max_added_per_frame,
                    "Gaussians a later frame may add (densified or on new surface)")
       ->capture_default_str();
-  command->callback([args] {
+  command
+      ->add_option("--segment-frames", o.segment_frames,
+                   "A per-frame run: frame 0 trained once (the run's plan), the later frames "
+                   "in segments of this many, each segment's first frame from frame 0 (a "
+                   "delta of it) and the rest chained; budgets in iterations only; complete "
+                   "frames are skipped on a re-run (0: one chain in one process)")
+      ->capture_default_str();
+  command
+      ->add_option("--segment-start-iterations", o.segment_start_iterations,
+                   "Iterations of a segment's first frame (0: 4 x --frame-iterations)")
+      ->capture_default_str();
+  command->add_option(
+      "--shard", args->shard,
+      "Do task K of N of a per-frame run (K from 0): the K-th of N contiguous blocks "
+      "of its segments; the first task trains frame 0 into OUT/plan, the others "
+      "wait for it and read it; the model and report.json are merged when every "
+      "frame is done (holocap report OUT --merge)");
+  command->add_flag("--redo", o.tasks.redo,
+                    "A per-frame run: train frames whose deltas are complete from an earlier run "
+                    "too");
+  command->callback([command, args] {
     SplatOptions o = args->options;
     const SharedTrainArgs& shared = args->shared;
     ApplyShared(shared, &o);
@@ -398,13 +431,31 @@ void AddSplatCommand(CLI::App* train) {
                   {"frame_minutes", "--frame-minutes"},
                   {"frame_iterations", "--frame-iterations"},
                   {"max_frame_megabytes", "--max-frame-mb"},
-                  {"max_added_per_frame", "--max-added-per-frame"}});
+                  {"max_added_per_frame", "--max-added-per-frame"},
+                  {"segment_frames", "--segment-frames"},
+                  {"segment_start_iterations", "--segment-start-iterations"}});
+    if (!args->shard.empty()) o.tasks.shard = Shard::Parse(args->shard);
+    if (o.segment_frames > 0) {
+      // A wall-clock budget would make each frame's bytes depend on the machine that trained it.
+      for (const char* flag : {"--minutes", "--frame-minutes"}) {
+        if (command->count(flag) > 0)
+          Fail(flag,
+               " is a wall-clock budget; a per-frame run (--segment-frames) trains each "
+               "frame for --iterations / --frame-iterations, the same bytes on any machine");
+      }
+    }
     CheckNamingFlags([&] { o.Check(); }, flags);
-    const OutputDirectory claimed = shared.Claim("splat");
+    const OutputDirectory claimed = OutputDirectory::Claim(
+        shared.Out("splat"), {"train splat", shared.overwrite, {}, !o.tasks.shard.whole()});
     const std::filesystem::path& out = claimed.path();
     Report report("train splat");
-    report.SetFailureDestination(out / "report.json");
+    report.SetFailureDestination(o.segment_frames > 0 ? TaskReportPath(out, o.tasks.shard)
+                                                      : out / "report.json");
     SplatSummary summary = TrainSplats(shared.take, out, o, &report);
+    if (o.segment_frames > 0) {
+      PrintFrameRun(summary, out, o.tasks.shard);
+      return;
+    }
     PrintPlan(summary.plan);
     std::printf("iterations   %lld in %.1f s (%.2f it/s)\n",
                 static_cast<long long>(summary.iterations), summary.seconds,
@@ -436,6 +487,13 @@ void AddSplatCommand(CLI::App* train) {
     EndCommand(summary, "training");
   });
 }
+
+const bool kSplatMergeRegistered = [] {
+  RunMergers()["train splat"] = [](const std::filesystem::path& out, Report* report) -> Summary {
+    return MergeSplatFrames(out, report);
+  };
+  return true;
+}();
 
 void AddTrainCommand(CLI::App& app) {
   auto* train = app.add_subcommand(

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <functional>
 #include <iosfwd>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -76,6 +77,12 @@ struct WebExportRequest {
   bool overwrite = false;
 };
 std::function<void(const WebExportRequest&)>& WebExportCommand();
+
+// `holocap report OUT --merge` of a per-frame run whose command lives in holocap-neural (train
+// splat): its merge, by the run's command, registered by that command's file (holocap hands
+// `report ... --merge` over). Each returns the merged run's summary, report.json written.
+using RunMerger = std::function<Summary(const std::filesystem::path& out, Report* report)>;
+std::map<std::string, RunMerger>& RunMergers();
 
 // Every driver compiled into this build, registered in DriverRegistry::Global().
 void RegisterBuiltinDrivers();

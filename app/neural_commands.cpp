@@ -8,6 +8,8 @@
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
 #include <string_view>
 
 #include "app/commands.h"
@@ -21,6 +23,19 @@ void HandOverNeuralCommands(int, char**) {}
 #else
 
 namespace {
+
+// `report ... --merge` of a run whose command lives in holocap-neural (train splat): its merge
+// writes that command's model. Other merges (reconstruct) stay here, without LibTorch's start.
+bool MergesANeuralRun(int argc, char** argv) {
+  bool merge = false;
+  for (int i = 2; i < argc; ++i) merge = merge || std::string_view(argv[i]) == "--merge";
+  for (int i = 2; i < argc && merge; ++i) {
+    std::ifstream run(std::filesystem::path(argv[i]) / "run.json");
+    const nlohmann::json json = nlohmann::json::parse(run, nullptr, /*allow_exceptions=*/false);
+    if (json.is_object() && json.value("command", "") == "train splat") return true;
+  }
+  return false;
+}
 
 struct NeuralCommand {
   int order;  // the place the command's own HOLOCAP_COMMAND gives it in --help
@@ -53,6 +68,7 @@ void HandOverNeuralCommands(int argc, char** argv) {
   for (const auto& command : kNeuralCommands) neural = neural || word == command.name;
   // export web bakes volumes; the other formats stay here.
   neural = neural || (word == "export" && argc > 2 && std::string_view(argv[2]) == "web");
+  neural = neural || (word == "report" && MergesANeuralRun(argc, argv));
   if (!neural) return;
   std::error_code ec;
   const std::filesystem::path self = std::filesystem::read_symlink("/proc/self/exe", ec);

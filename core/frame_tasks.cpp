@@ -301,7 +301,8 @@ RunState ReadRunState(const std::filesystem::path& out) {
   std::error_code ec;
   if (!std::filesystem::is_regular_file(file, ec)) {
     Fail("'", out.string(), "' holds no ", kRunFile,
-         ": it is not the output of a per-frame command (reconstruct)");
+         ": it is not the output of a per-frame command (reconstruct, train splat "
+         "--segment-frames)");
   }
   const auto run = ParseObject(ReadFileToString(file));
   if (!run || run->value("format", "") != kRunFormat || !(*run)["sets"].is_array())

@@ -4,6 +4,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cctype>
 #include <cerrno>
@@ -21,6 +22,7 @@ namespace {
 const std::vector<PerFrameCommand>& PerFrameCommands() {
   static const std::vector<PerFrameCommand> commands = {
       {"reconstruct", "recon", true},
+      {"train splat", "models/splat", true},
   };
   return commands;
 }
@@ -135,6 +137,10 @@ void SlurmOptions::Check() const {
          "')");
   if (HasFlag(args, "--shard"))
     Fail("submit slurm gives each task its --shard; leave it out of the command's flags");
+  if (command == "train splat" && !HasFlag(args, "--segment-frames"))
+    Fail(
+        "submit slurm train splat runs a per-frame run: give --segment-frames S (and "
+        "--iterations, --frame-iterations)");
 }
 
 nlohmann::json SlurmOptions::ToJson() const {
@@ -156,9 +162,12 @@ SlurmScripts MakeSlurmScripts(const SlurmOptions& options) {
   if (!options.time.empty()) header << "#SBATCH --time=" << options.time << "\n";
   if (!options.mem.empty()) header << "#SBATCH --mem=" << options.mem << "\n";
 
+  // "train splat" -> "train-splat": a job name holds no space.
+  std::string job_name = options.command;
+  std::replace(job_name.begin(), job_name.end(), ' ', '-');
   std::ostringstream array;
   array << "#!/bin/bash\n"
-        << "#SBATCH --job-name=holocap-" << options.command << "\n"
+        << "#SBATCH --job-name=holocap-" << job_name << "\n"
         << "#SBATCH --array=0-" << options.tasks - 1 << "\n"
         << "#SBATCH --ntasks=1\n"
         << "#SBATCH --cpus-per-task=" << options.cpus << "\n"
@@ -178,7 +187,7 @@ SlurmScripts MakeSlurmScripts(const SlurmOptions& options) {
 
   std::ostringstream merge;
   merge << "#!/bin/bash\n"
-        << "#SBATCH --job-name=holocap-" << options.command << "-merge\n"
+        << "#SBATCH --job-name=holocap-" << job_name << "-merge\n"
         << "#SBATCH --ntasks=1\n"
         << "#SBATCH --cpus-per-task=1\n"
         << "#SBATCH --output=" << (logs / "%j-merge.out").string() << "\n"

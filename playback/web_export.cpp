@@ -277,28 +277,25 @@ void SiteWriter::WriteVolumeStream(const fs::path& model_dir, const std::string&
   }
 }
 
-// A splat model's frames in order, each from the one before (one delta applied), with where each
-// Gaussian of the frame came from in the frame before.
+// A splat model's frames, each from its delta's base (the frame before, or frame 0 where a
+// per-frame run's segment starts), with where each Gaussian of the frame came from in its base.
 class SplatSequence {
  public:
   explicit SplatSequence(const fs::path& dir) : dir_(dir), model_(SplatModel::Load(dir)) {}
   int64_t frames() const { return model_.frames; }
   int sh_degree() const { return model_.gaussians.sh_degree; }
-  // Frame `frame` (not before the last one asked for, else from frame 0 again).
+  int64_t Base(int64_t frame) const { return model_.Base(frame); }
+  // Frame `frame`: from the last one asked for when that is on its way from frame 0.
   const splat::Gaussians& Frame(int64_t frame) {
-    if (frame < current_frame_ || current_frame_ < 0) {
-      current_ = model_.gaussians;
-      current_frame_ = 0;
-      origin_.clear();
-    }
-    for (; current_frame_ < frame; ++current_frame_) {
-      const std::string delta = ReadFileToString(SplatDeltaFile(dir_, current_frame_ + 1));
-      origin_ = SplatDeltaOrigins(delta);
-      current_ = ApplySplatDelta(current_, delta);
-    }
+    if (frame == current_frame_) return current_;
+    current_ = current_frame_ < 0 ? model_.Frame(dir_, frame)
+                                  : model_.Frame(dir_, frame, &current_, current_frame_);
+    origin_.clear();
+    if (frame > 0) origin_ = SplatDeltaOrigins(ReadFileToString(SplatDeltaFile(dir_, frame)));
+    current_frame_ = frame;
     return current_;
   }
-  // Where the last frame's Gaussians continue the frame before's (after Frame(k) with k > 0).
+  // Where the last frame's Gaussians continue its base's (after Frame(k) with k > 0).
   const std::vector<int64_t>& origin() const { return origin_; }
 
  private:
@@ -334,9 +331,10 @@ void SiteWriter::WriteSplatStream(const fs::path& model_dir, const std::string& 
         continue;
       }
       const splat::Gaussians& gaussians = sequence.Frame(frame);
-      // A delta follows the frame before when that shows the same model frame or the one before.
-      const bool follows =
-          previous_frame >= 0 && (frame == previous_frame || frame == previous_frame + 1);
+      // A delta follows the frame before when that shows the same model frame or the base of
+      // this frame's delta (where a segment of a per-frame run starts, frame 0: a key frame).
+      const bool follows = previous_frame >= 0 &&
+                           (frame == previous_frame || sequence.Base(frame) == previous_frame);
       const bool key = !follows || since_key >= options_.splat_key_every;
       std::vector<int64_t> origin;
       if (!key && frame == previous_frame) {

@@ -728,13 +728,17 @@ void RasterizeForward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
 
 namespace {
 
-// Gradients of one tile's pixels with respect to its Gaussians, back to front, accumulated
-// into `grad` (one thread's buffer).
+// Values of one (tile, Gaussian) entry's gradient: mean2d (2), conic (3), colour (3), opacity.
+constexpr int kEntryGradient = 9;
+
+// Gradients of one tile's pixels with respect to its Gaussians, back to front, each entry's
+// into its own kEntryGradient values of `entry_gradient` (indexed as state.entries): no two
+// tiles write the same values, so the sum over tiles can be taken in a fixed order.
 template <typename T>
 void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
                   const RasterOptions& options, const RasterState& state, int tile,
                   const T* background, const T* dloss_dcolor, const T* dloss_dalpha,
-                  ProjectedGradients<T>* grad) {
+                  T* entry_gradient) {
   const int tiles_x = camera.tiles_x();
   const int x0 = (tile % tiles_x) * kTileSide, y0 = (tile / tiles_x) * kTileSide;
   const int w = std::min(kTileSide, camera.width - x0), h = std::min(kTileSide, camera.height - y0);
@@ -759,6 +763,10 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   }
   const int32_t begin = state.tile_start[tile];
   const T min_alpha = T(options.min_alpha), max_alpha = T(options.max_alpha);
+  // Every entry's slot is written: those no pixel reached hold zeros.
+  T* const slots = entry_gradient + kEntryGradient * static_cast<size_t>(begin);
+  std::fill(slots + kEntryGradient * static_cast<size_t>(max_last),
+            slots + kEntryGradient * static_cast<size_t>(state.tile_end[tile] - begin), T(0));
   for (int32_t local = max_last - 1; local >= 0; --local) {
     const int32_t i = state.entries[begin + local];
     const T* conic = &p.conic[3 * i];
@@ -766,7 +774,11 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
     const T col[3] = {p.color[3 * i], p.color[3 * i + 1], p.color[3 * i + 2]};
     T d_mean[2] = {0, 0}, d_conic[3] = {0, 0, 0}, d_col[3] = {0, 0, 0}, d_opacity = 0;
     int range[4];
-    if (!PixelRange(p, i, x0, y0, w, h, range)) continue;
+    T* out = slots + kEntryGradient * static_cast<size_t>(local);
+    if (!PixelRange(p, i, x0, y0, w, h, range)) {
+      std::fill(out, out + kEntryGradient, T(0));
+      continue;
+    }
     const T cutoff = PowerCutoff(o, options.min_alpha);
     for (int ly = range[2]; ly <= range[3]; ++ly) {
       for (int q = ly * kTileSide + range[0]; q <= ly * kTileSide + range[1]; ++q) {
@@ -798,13 +810,13 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
         d_conic[2] += d_power * T(-0.5) * dy * dy;
       }
     }
-    grad->mean2d[2 * i] += d_mean[0];
-    grad->mean2d[2 * i + 1] += d_mean[1];
+    out[0] = d_mean[0];
+    out[1] = d_mean[1];
     for (int c = 0; c < 3; ++c) {
-      grad->conic[3 * i + c] += d_conic[c];
-      grad->color[3 * i + c] += d_col[c];
+      out[2 + c] = d_conic[c];
+      out[5 + c] = d_col[c];
     }
-    grad->opacity[i] += d_opacity;
+    out[8] = d_opacity;
   }
 }
 
@@ -817,32 +829,32 @@ void RasterizeBackward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
                        ProjectedGradients<T>* gradients) {
   const int64_t n = static_cast<int64_t>(p.radius.size());
   const int tiles = camera.tiles_x() * camera.tiles_y();
-  const int threads = omp_get_max_threads();
-  // One buffer per thread (a Gaussian spans several tiles), summed afterwards: no atomics in
-  // the inner loop.
-  std::vector<ProjectedGradients<T>> partial(threads);
-#pragma omp parallel
-  {
-    ProjectedGradients<T>& mine = partial[omp_get_thread_num()];
-    mine.Resize(n);
-#pragma omp for schedule(dynamic, 1)
-    for (int tile = 0; tile < tiles; ++tile) {
-      BackwardTile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha, &mine);
+  // Each (tile, Gaussian) entry's gradient in its own slot, then summed per Gaussian in tile
+  // order: the same bytes whatever the threads and however the tiles were shared out among
+  // them (per-thread sums would add in the order the tiles happened to run).
+  // Reused between calls by the calling thread (each tile writes all of its slots): a view
+  // allocates nothing. The workers write through `slots`, never through their own copy.
+  static thread_local std::vector<T> entry_gradient;
+  entry_gradient.resize(kEntryGradient * state.entries.size());
+  T* const slots = entry_gradient.data();
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int tile = 0; tile < tiles; ++tile) {
+    BackwardTile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha, slots);
+  }
+  gradients->Resize(n);
+  for (int tile = 0; tile < tiles; ++tile) {
+    for (int32_t e = state.tile_start[tile]; e < state.tile_end[tile]; ++e) {
+      const int32_t i = state.entries[e];
+      const T* g = slots + kEntryGradient * static_cast<size_t>(e);
+      gradients->mean2d[2 * i] += g[0];
+      gradients->mean2d[2 * i + 1] += g[1];
+      for (int c = 0; c < 3; ++c) {
+        gradients->conic[3 * i + c] += g[2 + c];
+        gradients->color[3 * i + c] += g[5 + c];
+      }
+      gradients->opacity[i] += g[8];
     }
   }
-  *gradients = std::move(partial[0]);
-  for (int t = 1; t < threads; ++t) {
-    const ProjectedGradients<T>& other = partial[t];
-    if (other.opacity.empty()) continue;
-    auto add = [](std::vector<T>& into, const std::vector<T>& from) {
-      for (size_t k = 0; k < into.size(); ++k) into[k] += from[k];
-    };
-    add(gradients->mean2d, other.mean2d);
-    add(gradients->conic, other.conic);
-    add(gradients->color, other.color);
-    add(gradients->opacity, other.opacity);
-  }
-  if (gradients->opacity.empty()) gradients->Resize(n);
 }
 
 namespace {

@@ -89,6 +89,24 @@ void SplatOptions::Check() const {
       !(delta_opacity_step > 0) || !(delta_color_step > 0)) {
     Fail("the delta's quantisation steps must be positive");
   }
+  if (segment_frames < 0) Fail("segment_frames must be >= 0, got ", segment_frames);
+  if (segment_start_iterations < 0)
+    Fail("segment_start_iterations must be >= 0, got ", segment_start_iterations);
+  tasks.Check();
+  if (segment_frames == 0 && !tasks.shard.whole())
+    Fail("--shard splits a per-frame run: give --segment-frames too");
+  if (segment_frames > 0 && (iterations <= 0 || frame_iterations <= 0)) {
+    Fail(
+        "segment_frames (a per-frame run) trains every frame for a number of iterations, so "
+        "that its bytes do not depend on the machine's speed: give iterations and "
+        "frame_iterations");
+  }
+  if (segment_frames > 0 && scene == "static")
+    Fail("segment_frames splits the frames of a dynamic scene; scene is static");
+}
+
+int64_t SplatOptions::SegmentStartIterations() const {
+  return segment_start_iterations > 0 ? segment_start_iterations : 4 * frame_iterations;
 }
 
 nlohmann::json SplatFrameSummary::ToJson() const {
@@ -164,7 +182,10 @@ nlohmann::json SplatOptions::ToJson() const {
           {"delta_rotation_step", delta_rotation_step},
           {"delta_scale_step", delta_scale_step},
           {"delta_opacity_step", delta_opacity_step},
-          {"delta_color_step", delta_color_step}};
+          {"delta_color_step", delta_color_step},
+          {"segment_frames", segment_frames},
+          {"segment_start_iterations", segment_start_iterations},
+          {"tasks", tasks.ToJson()}};
 }
 
 splat::PinholeCamera ToPinhole(const CameraModel& camera) {
@@ -237,6 +258,7 @@ void SplatModel::Save(const fs::path& dir, bool write_gaussians) const {
   const Eigen::Vector3d lo = box.min(), hi = box.max();
   nlohmann::json json = {
       {"method", "splat"},
+      {"format_version", bases.empty() ? 1 : 2},
       {"gaussians", gaussians.size()},
       {"frames", frames},
       {"frame_sets",
@@ -250,6 +272,10 @@ void SplatModel::Save(const fs::path& dir, bool write_gaussians) const {
       {"box_min", {lo.x(), lo.y(), lo.z()}},
       {"box_max", {hi.x(), hi.y(), hi.z()}},
       {"plan", plan}};
+  if (!bases.empty()) {
+    json["delta_bases"] = std::vector<int64_t>(
+        bases.begin(), bases.begin() + std::min<int64_t>(frames, bases.size()));
+  }
   WriteFileAtomic(dir / "model.json", json.dump(2) + "\n");
 }
 
@@ -292,6 +318,20 @@ SplatModel SplatModel::Load(const fs::path& dir) {
   model.frames = json.value("frames", int64_t{1});
   model.frame_sets = json.value("frame_sets", std::vector<int64_t>{});
   if (model.frames < 1) Fail(dir.string(), "/model.json: frames must be at least 1");
+  const int version = json.value("format_version", 1);
+  if (version > 2)
+    Fail(dir.string(), "/model.json: format version ", version,
+         " is newer than this program's (2)");
+  if (version == 2) {
+    model.bases = json.at("delta_bases").get<std::vector<int64_t>>();
+    if (static_cast<int64_t>(model.bases.size()) != model.frames)
+      Fail(dir.string(), "/model.json: delta_bases must name a base for each of its frames");
+    for (int64_t f = 0; f < model.frames; ++f) {
+      if (f == 0 ? model.bases[f] != -1 : model.bases[f] < 0 || model.bases[f] >= f)
+        Fail(dir.string(), "/model.json: frame ", f, "'s base ", model.bases[f],
+             " is not an earlier frame");
+    }
+  }
   return model;
 }
 
@@ -305,11 +345,25 @@ splat::Gaussians SplatModel::Frame(const fs::path& dir, int64_t frame,
                                    const splat::Gaussians* previous, int64_t previous_frame) const {
   if (frame < 0 || frame >= frames)
     Fail("frame ", frame, " is outside the splat model's 0..", frames - 1);
-  const bool resume = previous != nullptr && previous_frame >= 0 && previous_frame <= frame;
+  // The frames whose deltas lead from frame 0 (or from `previous`) to `frame`, last first.
+  std::vector<int64_t> way;
+  bool resume = false;
+  for (int64_t k = frame; k > 0; k = Base(k)) {
+    if (previous != nullptr && k == previous_frame) {
+      resume = true;
+      break;
+    }
+    way.push_back(k);
+  }
   splat::Gaussians current = resume ? *previous : gaussians;
-  for (int64_t k = resume ? previous_frame + 1 : 1; k <= frame; ++k)
-    current = ApplySplatDelta(current, ReadFileToString(SplatDeltaFile(dir, k)));
+  for (auto k = way.rbegin(); k != way.rend(); ++k)
+    current = ApplySplatDelta(current, ReadFileToString(SplatDeltaFile(dir, *k)));
   return current;
+}
+
+int64_t SplatModel::Base(int64_t frame) const {
+  if (frame <= 0) return -1;
+  return frame < static_cast<int64_t>(bases.size()) ? bases[frame] : frame - 1;
 }
 
 namespace {

@@ -80,7 +80,8 @@ TakeSelection FirstSetOnly(TakeSelection selection) {
 // `frames` of them from the first (a dynamic take's later frames seed where their surface is new).
 std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_dir,
                                const SplatOptions& options, const neural::TrainingData& data,
-                               size_t frames, std::string* source) {
+                               size_t frames, const std::function<bool(size_t)>& needed,
+                               std::string* source) {
   std::vector<Mesh> meshes(frames);
   fs::path recon_dir = options.recon_dir;
   if (recon_dir.empty()) {
@@ -103,6 +104,7 @@ std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_d
     *source = Cat("reconstruction ", recon_dir.string());
   }
   for (size_t f = 0; f < frames; ++f) {
+    if (!needed(f)) continue;
     const fs::path file = recon_dir / (SetName(data.sets[f]) + ".ply");
     if (!fs::exists(file)) {
       if (f == 0)
@@ -159,7 +161,7 @@ SplatSeed SeedFrom(const Mesh& mesh, const std::vector<SplatView>& views, int64_
 }  // namespace
 
 SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
-                          const SplatOptions& options) {
+                          const SplatOptions& options, const SplatFramesNeeded& needed_frames) {
   options.Check();
   NeuralVolumeOptions data_options;
   data_options.image_width = options.image_width;
@@ -178,6 +180,10 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
   scene.box = Eigen::AlignedBox3d(data.box_min, data.box_max);
   std::vector<std::string> undistorted;
   scene.later_frames.resize(dynamic ? data.sets.size() - 1 : 0);
+  const int64_t frames = 1 + static_cast<int64_t>(scene.later_frames.size());
+  auto needed = [&](size_t frame) {
+    return frame == 0 || !needed_frames || needed_frames(static_cast<int64_t>(frame), frames);
+  };
   for (size_t f = 0; f < scene.later_frames.size(); ++f)
     scene.later_frames[f].set = data.sets[f + 1];
   for (size_t v = 0; v < data.views.size(); ++v) {
@@ -198,6 +204,7 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
       undistorted.push_back(view.name);
     }
     for (size_t f = 0; f < scene.later_frames.size(); ++f) {
+      if (!needed(f + 1)) continue;
       const cv::Mat& image = data.images[f + 1][v];
       const cv::Mat& mask = data.masks[f + 1][v];
       scene.later_frames[f].images.push_back(undistortion ? undistortion->Color(image) : image);
@@ -229,10 +236,11 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
   }
   std::string source;
   const std::vector<Mesh> meshes =
-      SeedSurfaces(take_dir, model_dir, options, data, 1 + scene.later_frames.size(), &source);
+      SeedSurfaces(take_dir, model_dir, options, data, frames, needed, &source);
   scene.seed = SeedFrom(meshes.front(), scene.views, options.max_seed_points, options.seed);
   scene.seed.source = source + (scene.seed.source.empty() ? "" : "; " + scene.seed.source);
   for (size_t f = 0; f < scene.later_frames.size(); ++f) {
+    if (!needed(f + 1)) continue;
     std::vector<SplatView> views = scene.views;
     for (size_t v = 0; v < views.size(); ++v) {
       views[v].image = scene.later_frames[f].images[v];

@@ -27,10 +27,24 @@
 // on the held-out cameras at once. A static take (one frame set, or scene "static") trains one
 // frame and nothing temporal; the plan says so.
 //
+// Per-frame runs (segment_frames > 0, `--segment-frames S`, what `--shard K/N` splits): a chain
+// cannot be cut between machines, since a frame starts from the one before. So frame 0 is the
+// run's plan (trained once, by the first task, core/frame_tasks.h PlanOnce; the others read it),
+// and the later frames form segments of S: a segment's first frame starts from frame 0's
+// Gaussians (for segment_start_iterations: it learns the whole motion since frame 0) and is
+// stored as a delta of frame 0; the rest of the segment chain as above. A shard does whole
+// segments. Every later frame starts from its base as decoded, with its own random stream and
+// the rates frame 0 ended with, and trains for iterations only (never a wall-clock budget), so a
+// frame's bytes are the same whichever task trains it, and a task that finds a frame complete
+// (its record and delta intact) decodes it instead. model.json is written when every frame is
+// complete (by the task that completes the run, or `holocap report OUT --merge`).
+//
 // The per-frame delta, deltas/<frame, 6 digits>.bin in the model directory: one zstd frame
 // whose content is, little-endian:
 //   char[4]   "HSD1"
-//   uint32    previous      Gaussians of the frame before
+//   uint32    previous      Gaussians of the delta's base: the frame before, or the frame
+//                           model.json's delta_bases names (format_version 2; a model without
+//                           one is format 1, each delta's base the frame before)
 //   uint32    added         Gaussians appended in full at the end
 //   uint32    sh_degree     the model's (coefficients per channel K = (degree + 1)^2)
 //   float32   steps[5]      quantisation steps of the five groups below
@@ -50,6 +64,7 @@
 #include <Eigen/Geometry>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -57,6 +72,7 @@
 #include <vector>
 
 #include "core/camera.h"
+#include "core/frame_tasks.h"
 #include "core/report.h"
 #include "core/take_plan.h"
 #include "splat/kernels.h"
@@ -99,6 +115,8 @@ struct SplatOptions {
                                   // median distance (keeps covariances positive definite)
   double max_scale_extent = 0.5;  // scale cap, x the scene's extent
   uint64_t seed = 1;
+  FrameTaskOptions tasks;  // per-frame runs: this task's shard and --redo (never part of what
+                           // decides a frame's bytes)
 
   // Densification and pruning.
   int64_t densify_from = 100;          // first iteration that densifies
@@ -134,6 +152,11 @@ struct SplatOptions {
   double new_surface_spacings = 3;      // a later frame's surface sample farther than this x the
                                         // seed spacing from every Gaussian seeds a new one
   double max_frame_megabytes = 1.0;     // a delta larger than this is coarsened until it fits
+  int64_t segment_frames = 0;  // > 0: a per-frame run (see the top of this file): the frames
+                               // after the first in segments of this many, each segment's first
+                               // frame a delta of frame 0; budgets in iterations only
+  int64_t segment_start_iterations = 0;  // a segment's first frame's iterations (0: 4 x
+                                         // frame_iterations: it learns the motion since frame 0)
   // Quantisation steps of a delta (coarsened together, x2 at a time, when over the bound).
   double delta_position_step_m = 5e-4;
   double delta_rotation_step = 2e-3;
@@ -143,6 +166,7 @@ struct SplatOptions {
 
   void Check() const;  // throws Error naming the bad field and why
   nlohmann::json ToJson() const;
+  int64_t SegmentStartIterations() const;  // segment_start_iterations, its default resolved
 };
 
 // One view of the scene a splat model trains on: a pinhole camera at the training size, its
@@ -238,23 +262,45 @@ struct SplatSummary : Summary {
 // backgrounds as Neural Volumes (neural/data.h), distortion removed, and the seed from the
 // reconstruction of the first planned frame set (options.recon_dir, else one run now with the
 // plan's method into model_dir/seed_recon). Throws Error for a take that cannot be trained on.
+// `needed(frame, frames)` false for a later frame: only its set is kept (no images, silhouettes
+// or seed; a per-frame run's task leaves the frames other tasks train).
+using SplatFramesNeeded = std::function<bool(int64_t frame, int64_t frames)>;
 SplatScene LoadSplatScene(const std::filesystem::path& take_dir,
-                          const std::filesystem::path& model_dir, const SplatOptions& options);
+                          const std::filesystem::path& model_dir, const SplatOptions& options,
+                          const SplatFramesNeeded& needed = {});
 
 // Trains on a scene into `model_dir` (model.json, gaussians.bin, cameras/, heldout/,
 // report.json). `report` receives options, plan, metrics and the series heldout_psnr_db,
 // heldout_psnr_fg_db, heldout_ssim, loss and gaussians against time and iteration.
 SplatSummary TrainSplatsOn(const SplatScene& scene, const std::filesystem::path& model_dir,
                            const SplatOptions& options, Report* report = nullptr);
-// LoadSplatScene then TrainSplatsOn.
+// LoadSplatScene then TrainSplatsOn; a per-frame run (options.segment_frames > 0) as
+// TrainSplatFrames.
 SplatSummary TrainSplats(const std::filesystem::path& take_dir,
                          const std::filesystem::path& model_dir, const SplatOptions& options,
                          Report* report = nullptr);
+
+// A per-frame run's task (see the top of this file): frame 0 from the run's plan (made here when
+// no task made it yet), then this task's segments (options.tasks.shard), each frame's delta
+// written atomically and durably and its record (model_dir/frame-reports/<set>.json) last;
+// complete frames are decoded, not trained again (options.tasks.redo: trained again). A whole
+// run, or a task whose frames complete the run, merges it (MergeSplatFrames); a shard's own
+// report goes to TaskReportPath. Throws Error for options a per-frame run cannot take.
+SplatSummary TrainSplatFrames(const std::filesystem::path& take_dir,
+                              const std::filesystem::path& model_dir, const SplatOptions& options,
+                              Report* report = nullptr);
+// The model of a per-frame run in `model_dir` (model.json, gaussians.bin, cameras/) and its
+// report.json, merged from the plan and the frames' records: the same bytes as a one-process
+// run's, timings aside. FAILURE naming the incomplete frame sets when a frame has no complete
+// record (model.json is then not written). Throws Error when `model_dir` holds no such run.
+SplatSummary MergeSplatFrames(const std::filesystem::path& model_dir, Report* report);
 
 // A trained splat model on disk.
 struct SplatModel {
   splat::Gaussians gaussians;        // frame 0
   int64_t frames = 1;                // frames it plays (later ones: deltas/<frame>.bin)
+  std::vector<int64_t> bases;        // per frame, the frame its delta applies to (frame 0: -1);
+                                     // empty: the frame before (format 1, chained models)
   std::vector<int64_t> frame_sets;   // the take's frame set each frame shows (model.json keeps
                                      // the first `frames`; empty in models trained without it)
   std::vector<CameraModel> cameras;  // the training views'
@@ -264,8 +310,11 @@ struct SplatModel {
   // model.json + gaussians.bin (write_gaussians false: model.json alone), atomic.
   void Save(const std::filesystem::path& dir, bool write_gaussians = true) const;
   static SplatModel Load(const std::filesystem::path& dir);  // throws Error
+  // The frame `frame`'s delta applies to (-1 for frame 0).
+  int64_t Base(int64_t frame) const;
   // Frame `frame` (0 .. frames - 1) reconstructed from frame 0 and the deltas of the model in
-  // `dir`; pass the frame before (and its number) to apply one delta only. Throws Error.
+  // `dir`, following each delta's base; pass a frame on that way (and its number), e.g. the
+  // frame before, to apply the deltas after it only. Throws Error.
   splat::Gaussians Frame(const std::filesystem::path& dir, int64_t frame,
                          const splat::Gaussians* previous = nullptr,
                          int64_t previous_frame = -1) const;

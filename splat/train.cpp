@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <numeric>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <random>
 #include <unordered_map>
 
@@ -83,12 +84,26 @@ class Trainer {
 
   SplatSummary Run(Report* report);
 
+  // Per-frame runs (splat.h): the trainer's state after frame 0 that later frames start with.
+  nlohmann::json FirstFrameState() const {
+    return {{"lr_scale", lr_scale_}, {"reset_done", reset_done_}};
+  }
+  // Trains later frame `frame` from `base` (its delta's base as decoded, after frame 0 ended in
+  // `state`) for `iterations`, with a random stream of its own; its delta is written durably to
+  // model_dir/deltas. The frame as decoded is left in gaussians(). FAILURE (no delta) when
+  // training diverged more than max_divergences times.
+  SplatSummary TrainFromBase(int64_t frame, const Gaussians& base, const nlohmann::json& state,
+                             int64_t iterations);
+  const Gaussians& gaussians() const { return gaussians_; }
+
  private:
   void TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary* summary, Report* report);
   void ShowFrame(int64_t frame);
   void ResetMoments();
   int64_t AddNewSurface(const SplatSeed& seed, int64_t* uncovered_count);
   void StoreDelta(int64_t frame, const Gaussians& previous, SplatFrameSummary* stored);
+  bool TrainLaterFrame(int64_t frame, const FrameBudget& budget, SplatSummary* summary,
+                       Report* report, SplatFrameSummary* scored);
   void TrainLaterFrames(SplatSummary* summary, Report* report);
   SplatFrameSummary ScoreFrame(int64_t frame, double seconds, int64_t iterations);
   void Record(const SplatFrameSummary& frame, SplatSummary* summary, Report* report);
@@ -130,6 +145,8 @@ class Trainer {
   int64_t add_room_ = -1;         // Gaussians the frame may still add (-1: no limit but the cap)
   std::vector<int64_t> origin_;   // per Gaussian: its index in the frame before (-1: added)
   SplatModel stored_;             // frame 0 as saved, and the frames written
+  bool per_frame_ = false;        // a later frame of a per-frame run (TrainFromBase): its delta
+                                  // durable, no model.json or held-out images written
   double extent_ = 1;             // the paper's "cameras extent": 1.1 x the farthest camera from
                                   // their mean centre
   double min_log_scale_ = -20, max_log_scale_ = 0;
@@ -667,9 +684,11 @@ void Trainer::StoreDelta(int64_t frame, const Gaussians& previous, SplatFrameSum
   }
   gaussians_ = ApplySplatDelta(previous, delta);
   CreateDirectories(model_dir_ / "deltas");
-  WriteFileAtomic(SplatDeltaFile(model_dir_, frame), delta);
-  stored_.frames = frame + 1;
-  stored_.Save(model_dir_, /*gaussians_file=*/false);
+  WriteFileAtomic(SplatDeltaFile(model_dir_, frame), delta, /*durable=*/per_frame_);
+  if (!per_frame_) {
+    stored_.frames = frame + 1;
+    stored_.Save(model_dir_, /*gaussians_file=*/false);
+  }
   const SplatDeltaCounts counts = CountSplatDelta(delta);
   stored->added = counts.added;
   stored->removed = counts.removed;
@@ -678,7 +697,8 @@ void Trainer::StoreDelta(int64_t frame, const Gaussians& previous, SplatFrameSum
 }
 
 SplatFrameSummary Trainer::ScoreFrame(int64_t frame, double seconds, int64_t iterations) {
-  const Evaluation eval = Evaluate(true);
+  // The tasks of a per-frame run would write one folder of held-out images at once.
+  const Evaluation eval = Evaluate(!per_frame_);
   subject_seen_ = eval.subject_seen;
   SplatFrameSummary scored;
   scored.frame = frame;
@@ -718,56 +738,93 @@ void Trainer::Record(const SplatFrameSummary& frame, SplatSummary* summary, Repo
   report->Write(model_dir_ / "report.json");
 }
 
-// Frames 1, 2, ...: each from the frame before, new surface seeded, trained for the frame's
-// budget, stored as a delta and scored at once.
+// Frame `frame` from the Gaussians held now (its delta's base): new surface seeded, trained for
+// the budget, stored as a delta and scored into `scored`. False when training diverged too often
+// (nothing stored).
+bool Trainer::TrainLaterFrame(int64_t frame, const FrameBudget& budget, SplatSummary* summary,
+                              Report* report, SplatFrameSummary* scored) {
+  const double frame_start = Elapsed();
+  const int64_t iterations_before = total_iterations_;
+  const int divergences_before = summary->divergences;
+  ShowFrame(frame);
+  const Gaussians previous = gaussians_;
+  origin_.resize(gaussians_.size());
+  std::iota(origin_.begin(), origin_.end(), int64_t{0});
+  add_room_ = options_.max_added_per_frame;
+  int64_t uncovered = 0;
+  const int64_t surface = AddNewSurface(scene_.later_frames[frame - 1].seed, &uncovered);
+  BoundParameters();
+  ResetMoments();
+  TrainFrame(frame, budget, summary, report);
+  add_room_ = -1;
+  if (summary->divergences > options_.max_divergences) return false;
+  SplatFrameSummary stored;
+  StoreDelta(frame, previous, &stored);
+  *scored = ScoreFrame(frame, Elapsed() - frame_start, total_iterations_ - iterations_before);
+  scored->added = stored.added;
+  scored->added_surface = surface;
+  scored->surface_uncovered = uncovered;
+  scored->add_cap_reached = stored.added >= options_.max_added_per_frame;
+  scored->removed = stored.removed;
+  scored->changed = stored.changed;
+  scored->coarsened = stored.coarsened;
+  scored->megabytes = stored.megabytes;
+  scored->divergences = summary->divergences - divergences_before;
+  Record(*scored, summary, report);
+  std::printf(
+      "splat: frame %lld (set %lld): %.1f s, held-out %.2f dB (subject %.2f dB), %lld "
+      "Gaussians, %.3f MB; added %lld (%lld on new surface: %lld samples lay beyond %.3g "
+      "spacings of the frame before's Gaussians%s)\n",
+      static_cast<long long>(frame), static_cast<long long>(scored->set), scored->seconds,
+      scored->heldout_psnr_db, scored->heldout_psnr_fg_db,
+      static_cast<long long>(scored->gaussians), scored->megabytes,
+      static_cast<long long>(scored->added), static_cast<long long>(surface),
+      static_cast<long long>(uncovered), options_.new_surface_spacings,
+      scored->add_cap_reached ? "; the per-frame cap bit" : "");
+  return true;
+}
+
+// Frames 1, 2, ...: each from the frame before, trained for the frame's budget.
 void Trainer::TrainLaterFrames(SplatSummary* summary, Report* report) {
   temporal_ = true;
   summary->temporal = !scene_.later_frames.empty();
   for (size_t f = 0; f < scene_.later_frames.size(); ++f) {
-    const int64_t frame = static_cast<int64_t>(f) + 1;
-    const double frame_start = Elapsed();
-    const int64_t iterations_before = total_iterations_;
-    const int divergences_before = summary->divergences;
-    ShowFrame(frame);
-    const Gaussians previous = gaussians_;
-    origin_.resize(gaussians_.size());
-    std::iota(origin_.begin(), origin_.end(), int64_t{0});
-    add_room_ = options_.max_added_per_frame;
-    int64_t uncovered = 0;
-    const int64_t surface = AddNewSurface(scene_.later_frames[f].seed, &uncovered);
-    BoundParameters();
-    ResetMoments();
-    TrainFrame(frame, FrameBudget{options_.frame_iterations, options_.frame_minutes * 60.0, false},
-               summary, report);
-    if (summary->divergences > options_.max_divergences) return;
-    SplatFrameSummary stored;
-    StoreDelta(frame, previous, &stored);
-    SplatFrameSummary scored =
-        ScoreFrame(frame, Elapsed() - frame_start, total_iterations_ - iterations_before);
-    scored.added = stored.added;
-    scored.added_surface = surface;
-    scored.surface_uncovered = uncovered;
-    scored.add_cap_reached = stored.added >= options_.max_added_per_frame;
-    scored.removed = stored.removed;
-    scored.changed = stored.changed;
-    scored.coarsened = stored.coarsened;
-    scored.megabytes = stored.megabytes;
-    scored.divergences = summary->divergences - divergences_before;
-    Record(scored, summary, report);
-    std::printf(
-        "splat: frame %lld (set %lld): %.1f s, held-out %.2f dB (subject %.2f dB), %lld "
-        "Gaussians, %.3f MB; added %lld (%lld on new surface: %lld samples lay beyond %.3g "
-        "spacings of the frame before's Gaussians%s)\n",
-        static_cast<long long>(frame), static_cast<long long>(scored.set), scored.seconds,
-        scored.heldout_psnr_db, scored.heldout_psnr_fg_db, static_cast<long long>(scored.gaussians),
-        scored.megabytes, static_cast<long long>(scored.added), static_cast<long long>(surface),
-        static_cast<long long>(uncovered), options_.new_surface_spacings,
-        scored.add_cap_reached ? "; the per-frame cap bit" : "");
+    SplatFrameSummary scored;
+    const FrameBudget budget{options_.frame_iterations, options_.frame_minutes * 60.0, false};
+    if (!TrainLaterFrame(static_cast<int64_t>(f) + 1, budget, summary, report, &scored)) return;
   }
   summary->seconds = Elapsed();
   summary->iterations = total_iterations_;
   if (summary->temporal) summary->train_psnr_db = TrainingPsnr();
-  add_room_ = -1;
+}
+
+SplatSummary Trainer::TrainFromBase(int64_t frame, const Gaussians& base,
+                                    const nlohmann::json& state, int64_t iterations) {
+  per_frame_ = temporal_ = true;
+  // Everything the frame's bytes depend on comes from its base, its own data and frame 0's
+  // end state: never from the frames this task happened to train before.
+  std::seed_seq stream{options_.seed, static_cast<uint64_t>(frame)};
+  rng_.seed(stream);
+  lr_scale_ = state.at("lr_scale").get<double>();
+  reset_done_ = state.at("reset_done").get<bool>();
+  gaussians_ = base;
+  gradient_.sh_degree = moments_.first.sh_degree = moments_.second.sh_degree = base.sh_degree;
+  SplatSummary summary;
+  summary.temporal = true;
+  SplatFrameSummary scored;
+  if (!TrainLaterFrame(frame, FrameBudget{iterations, 0, false}, &summary, nullptr, &scored))
+    return summary;
+  summary.seconds = scored.seconds;
+  Judge(scored.iterations, &summary);
+  // The frame's record holds what decides its bytes and its scores, never its time.
+  if (summary.termination == Termination::kNoConvergence) {
+    summary.End(
+        Termination::kNoConvergence,
+        Cat("trained ", scored.iterations, " iterations; held-out PSNR ", scored.heldout_psnr_db,
+            " dB (subject ", scored.heldout_psnr_fg_db, " dB, background alone ",
+            scored.background_psnr_fg_db, " dB), ", scored.gaussians, " Gaussians"));
+  }
+  return summary;
 }
 
 // Trains the Gaussians on the frame the views show, for the budget; the divergence guard
@@ -965,10 +1022,372 @@ SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
 SplatSummary TrainSplats(const fs::path& take_dir, const fs::path& model_dir,
                          const SplatOptions& options, Report* report) {
   options.Check();
+  if (options.segment_frames > 0) return TrainSplatFrames(take_dir, model_dir, options, report);
   if (options.threads > 0) omp_set_num_threads(options.threads);
   CreateDirectories(model_dir);
   const SplatScene scene = LoadSplatScene(take_dir, model_dir, options);
   return TrainSplatsOn(scene, model_dir, options, report);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Per-frame runs (splat.h, core/frame_tasks.h).
+
+namespace {
+
+constexpr const char* kFramesCommand = "train splat";
+
+Termination TerminationNamed(const std::string& name) {
+  for (Termination t :
+       {Termination::kSuccess, Termination::kConvergence, Termination::kNoConvergence,
+        Termination::kDegenerate, Termination::kFailure}) {
+    if (name == ToString(t)) return t;
+  }
+  return Termination::kFailure;
+}
+
+// The frame a later frame's delta applies to: frame 0 where a segment starts, else the one before.
+int64_t SegmentBase(int64_t frame, int64_t segment_frames) {
+  return (frame - 1) % segment_frames == 0 ? 0 : frame - 1;
+}
+
+// A delta's name relative to the model directory, as its record lists it.
+std::string DeltaName(int64_t frame) { return SplatDeltaFile("", frame).string(); }
+
+// The options that decide a frame's bytes (less threads and how the task runs).
+nlohmann::json IdentityOptions(const SplatOptions& options) {
+  nlohmann::json json = options.ToJson();
+  json.erase("threads");
+  json.erase("tasks");
+  return json;
+}
+
+// The take's recording and camera models as one hash: a re-recorded or recalibrated take is
+// another run.
+std::string TakeFingerprint(const fs::path& take_dir) {
+  std::string bytes = ReadFileToString(take_dir / "take.json");
+  std::error_code ec;
+  if (fs::exists(take_dir / "index.jsonl", ec)) bytes += ReadFileToString(take_dir / "index.jsonl");
+  std::vector<fs::path> models;
+  if (fs::is_directory(take_dir / "calib", ec)) {
+    for (const auto& entry : fs::directory_iterator(take_dir / "calib", ec))
+      if (entry.is_regular_file()) models.push_back(entry.path());
+  }
+  std::sort(models.begin(), models.end());
+  for (const fs::path& file : models) bytes += file.filename().string() + ReadFileToString(file);
+  return HashBytes(bytes);
+}
+
+// One task of a per-frame run: frame 0 from the run's plan, then the task's segments.
+class FrameRun {
+ public:
+  FrameRun(fs::path take_dir, fs::path out, const SplatOptions& options, Report* report)
+      : take_dir_(std::move(take_dir)), out_(std::move(out)), options_(options), report_(report) {}
+
+  SplatSummary Run() {
+    PlanFirstFrame();
+    if (!scene_) scene_.emplace(LoadSplatScene(take_dir_, out_, options_, TaskFrames()));
+    StartRecords();
+    const Termination first = TerminationNamed(plan_.at("termination").get<std::string>());
+    if (IsUsable(first)) {
+      frame0_ = SplatModel::Load(out_ / kPlanDir).gaussians;
+      trainer_.emplace(*scene_, options_, out_);
+      for (int64_t segment : TaskSegments()) TrainSegment(segment);
+    } else {
+      failed_ = Cat("frame 0: ", plan_.at("message").get<std::string>());
+    }
+    return FinishTask(first);
+  }
+
+ private:
+  // Frame 0, trained once for every task of the run (PlanOnce) into OUT/plan.
+  void PlanFirstFrame() {
+    const std::string fingerprint = HashBytes(nlohmann::json{
+        {"options", IdentityOptions(options_)},
+        {"take", TakeFingerprint(take_dir_)}}.dump());
+    const StoredPlan stored =
+        PlanOnce(out_, kFramesCommand, fingerprint, task_, [this](std::vector<std::string>* files) {
+          scene_.emplace(LoadSplatScene(take_dir_, out_, options_, TaskFrames()));
+          return TrainFirstFrame(files);
+        });
+    plan_ = stored.plan;
+    plan_origin_ = stored.made ? Cat("made by this task (", stored.why, ")")
+                               : Cat("read from ", (out_ / kPlanDir).string(), " (made by ",
+                                     stored.made_by, ")");
+    std::printf("splat: frame 0 (the run's plan): %s\n", plan_origin_.c_str());
+  }
+
+  nlohmann::json TrainFirstFrame(std::vector<std::string>* files) {
+    SplatScene first = *scene_;
+    first.later_frames.clear();
+    SplatOptions options = options_;
+    options.minutes = 0;  // iterations alone decide frame 0's bytes
+    const fs::path dir = out_ / kPlanDir;
+    Trainer trainer(first, options, dir);
+    const SplatSummary summary = trainer.Run(nullptr);
+    std::error_code ec;
+    if (fs::exists(dir / "gaussians.bin", ec)) {
+      files->push_back("model.json");
+      files->push_back("gaussians.bin");
+      for (const auto& entry : fs::directory_iterator(dir / "cameras", ec))
+        files->push_back((fs::path("cameras") / entry.path().filename()).string());
+      std::sort(files->begin(), files->end());
+    }
+    std::vector<int64_t> sets = {scene_->plan.value("frame_set", int64_t{0})};
+    for (const SplatFrame& later : scene_->later_frames) sets.push_back(later.set);
+    return {{"sets", sets},
+            {"termination", ToString(summary.termination)},
+            {"message", summary.message},
+            {"frame0", summary.frames.empty() ? nlohmann::json() : summary.frames.front().ToJson()},
+            {"state", trainer.FirstFrameState()},
+            {"plan", summary.plan},
+            {"seed_points", summary.seed_points},
+            {"cloned", summary.cloned},
+            {"split", summary.split},
+            {"floored_scales", summary.floored_scales},
+            {"train_psnr_db", summary.train_psnr_db}};
+  }
+
+  void StartRecords() {
+    if (scene_->later_frames.empty())
+      Fail("--segment-frames splits the frames after the first; the run has one frame set");
+    std::vector<int64_t> sets;
+    for (const SplatFrame& later : scene_->later_frames) sets.push_back(later.set);
+    records_.emplace(out_, kFramesCommand,
+                     nlohmann::json{{"options", IdentityOptions(options_)},
+                                    {"take", TakeFingerprint(take_dir_)}},
+                     sets);
+    nlohmann::json options = IdentityOptions(options_);
+    options["take_dir"] = take_dir_.string();
+    options["out"] = out_.string();
+    records_->WriteRun({{"options", options}, {"plan", plan_.at("plan")}});
+  }
+
+  // Whether the task trains a frame of a run of `frames` (frame 0 and its segments' frames): the
+  // others' images and seeds are not loaded.
+  SplatFramesNeeded TaskFrames() const {
+    return [this](int64_t frame, int64_t frames) {
+      const std::vector<int64_t> mine = SegmentsOf(frames);
+      return frame == 0 || std::find(mine.begin(), mine.end(),
+                                     (frame - 1) / options_.segment_frames) != mine.end();
+    };
+  }
+
+  // The task's segments of a run of `frames`.
+  std::vector<int64_t> SegmentsOf(int64_t frames) const {
+    std::vector<int64_t> segments((frames - 1 + options_.segment_frames - 1) /
+                                  options_.segment_frames);
+    std::iota(segments.begin(), segments.end(), int64_t{0});
+    return options_.tasks.shard.Of(segments);
+  }
+
+  std::vector<int64_t> TaskSegments() {
+    const int64_t frames = 1 + static_cast<int64_t>(scene_->later_frames.size());
+    segment_count_ = (frames - 1 + options_.segment_frames - 1) / options_.segment_frames;
+    return SegmentsOf(frames);
+  }
+
+  // The segment's frames in order: each decoded when complete, else trained from its base.
+  void TrainSegment(int64_t segment) {
+    const int64_t frames = 1 + static_cast<int64_t>(scene_->later_frames.size());
+    const int64_t first = 1 + segment * options_.segment_frames;
+    const int64_t end = std::min(frames, first + options_.segment_frames);
+    Gaussians current;
+    for (int64_t f = first; f < end; ++f) {
+      const Gaussians& base = f == first ? frame0_ : current;
+      const int64_t set = scene_->later_frames[f - 1].set;
+      if (!options_.tasks.redo) {
+        if (const auto record = records_->Complete(set)) {
+          current = ApplySplatDelta(base, ReadFileToString(SplatDeltaFile(out_, f)));
+          results_.push_back((*record)["result"]);
+          ++skipped_;
+          continue;
+        }
+      }
+      const double started = UnixSeconds();
+      const int64_t iterations =
+          f == first ? options_.SegmentStartIterations() : options_.frame_iterations;
+      const SplatSummary trained = trainer_->TrainFromBase(f, base, plan_.at("state"), iterations);
+      if (trained.frames.empty()) {
+        failed_ = Cat("frame ", f, " (set ", set, "): ", trained.message);
+        return;  // the segment's later frames start from this one
+      }
+      nlohmann::json result = trained.frames.back().ToJson();
+      result["base"] = SegmentBase(f, options_.segment_frames);
+      result["termination"] = ToString(trained.termination);
+      result["message"] = trained.message;
+      records_->Record(set, result, {DeltaName(f)}, started, task_);
+      results_.push_back(result);
+      current = trainer_->gaussians();
+    }
+  }
+
+  SplatSummary FinishTask(Termination first) {
+    const RunState run = ReadRunState(out_);
+    const Shard& shard = options_.tasks.shard;
+    if (!failed_.empty()) std::printf("splat: not trained: %s\n", failed_.c_str());
+    if (shard.whole()) {
+      Report local(kFramesCommand);
+      return MergeSplatFrames(out_, report_ != nullptr ? report_ : &local);
+    }
+    const int64_t done = static_cast<int64_t>(results_.size()) - skipped_;
+    std::printf(
+        "splat: shard %s trained %lld and skipped %lld frame(s) of its segments; the run: %s\n",
+        shard.ToString().c_str(), static_cast<long long>(done), static_cast<long long>(skipped_),
+        run.Describe().c_str());
+    if (run.done()) {
+      Report merged(kFramesCommand);
+      const SplatSummary all = MergeSplatFrames(out_, &merged);
+      std::printf("splat: the run is complete: %s (%s)\n", (out_ / "report.json").c_str(),
+                  ToString(all.termination));
+    }
+    SplatSummary summary;
+    if (!failed_.empty()) {
+      summary.End(IsUsable(first) ? Termination::kFailure : first, failed_);
+    } else {
+      summary.End(
+          Termination::kSuccess,
+          Cat("shard ", shard.ToString(), ": ", done, " frame(s) trained, ", skipped_,
+              " complete from an earlier run (", segment_count_, " segment(s) in the run)"));
+      for (const nlohmann::json& result : results_) {
+        const Termination t = TerminationNamed(result.value("termination", ""));
+        if (!IsUsable(t)) summary.End(t, Cat("frame ", result["frame"], ": ", result["message"]));
+      }
+    }
+    if (report_ == nullptr) return summary;
+    report_->options() = options_.ToJson();
+    report_->plan() = plan_.at("plan");
+    report_->metrics()["frames"] = results_;
+    report_->metrics()["plan"] = plan_origin_;
+    report_->metrics()["run"] = run.Describe();
+    const double wall_s = report_->ElapsedSeconds();
+    report_->metrics()["timing"] = {{"frames_done", done},
+                                    {"frames_skipped", skipped_},
+                                    {"wall_s", wall_s},
+                                    {"frames_per_minute", 60.0 * done / std::max(wall_s, 1e-9)}};
+    report_->metrics()["peak_rss_mb"] = PeakRssMb();
+    report_->SetSummary(summary);
+    report_->Write(TaskReportPath(out_, shard));
+    return summary;
+  }
+
+  const fs::path take_dir_, out_;
+  const SplatOptions& options_;
+  Report* report_;
+  const std::string task_ = DescribeTask(options_.tasks.shard);
+  std::optional<SplatScene> scene_;
+  nlohmann::json plan_;
+  std::string plan_origin_;
+  std::optional<FrameRecords> records_;
+  std::optional<Trainer> trainer_;
+  Gaussians frame0_;
+  int64_t segment_count_ = 0;
+  std::vector<nlohmann::json> results_;  // this task's frames, trained or complete
+  int64_t skipped_ = 0;
+  std::string failed_;  // the frame that could not be trained, and why
+};
+
+// The merged report's frames, series and end state (the model is written by the caller).
+void SummariseFrames(const RunState& run, const nlohmann::json& plan, SplatSummary* summary,
+                     Report* report) {
+  nlohmann::json frames = nlohmann::json::array();
+  if (plan.at("frame0").is_object()) frames.push_back(plan.at("frame0"));  // none: no seed
+  double largest_mb = 0;
+  for (int64_t set : run.sets) {
+    const auto record = run.complete.find(set);
+    if (record == run.complete.end()) continue;
+    frames.push_back(record->second["result"]);
+    largest_mb = std::max(largest_mb, record->second["result"].value("megabytes", 0.0));
+  }
+  for (const nlohmann::json& frame : frames) {
+    const int64_t f = frame.value("frame", int64_t{0});
+    report->AddPointAt("frame_heldout_psnr_db", frame.value("heldout_psnr_db", 0.0), f, 0);
+    report->AddPointAt("frame_heldout_psnr_fg_db", frame.value("heldout_psnr_fg_db", 0.0), f, 0);
+    report->AddPointAt("frame_megabytes", frame.value("megabytes", 0.0), f, 0);
+  }
+  const nlohmann::json last = frames.empty() ? nlohmann::json::object() : frames.back();
+  summary->temporal = true;
+  summary->heldout_psnr_db = last.value("heldout_psnr_db", 0.0);
+  summary->heldout_psnr_fg_db = last.value("heldout_psnr_fg_db", 0.0);
+  summary->background_psnr_fg_db = last.value("background_psnr_fg_db", 0.0);
+  summary->heldout_ssim = last.value("heldout_ssim", 0.0);
+  summary->gaussians = last.value("gaussians", int64_t{0});
+  report->metrics() = {{"frames", frames},
+                       {"temporal", true},
+                       {"largest_delta_megabytes", largest_mb},
+                       {"seed_points", plan.at("seed_points")},
+                       {"cloned", plan.at("cloned")},
+                       {"split", plan.at("split")},
+                       {"floored_scales", plan.at("floored_scales")},
+                       {"train_psnr_db", plan.at("train_psnr_db")},
+                       {"run", run.Describe()},
+                       {"timing", {{"frames_by_task", run.frames_by_task}}}};
+  if (!run.done()) {
+    summary->End(Termination::kFailure, Cat("the run is incomplete: ", run.Describe()));
+    return;
+  }
+  summary->End(TerminationNamed(plan.at("termination").get<std::string>()),
+               Cat("frame 0: ", plan.at("message").get<std::string>()));
+  if (!summary->IsUsable()) return;
+  for (const nlohmann::json& frame : frames) {
+    const Termination t =
+        TerminationNamed(frame.value("termination", ToString(summary->termination)));
+    if (!IsUsable(t)) {
+      summary->End(t, Cat("frame ", frame["frame"], ": ", frame["message"]));
+      return;
+    }
+  }
+  summary->End(Termination::kNoConvergence,
+               Cat(frames.size(), " frames trained for their iterations (frame 0: ",
+                   plan.at("frame0").value("iterations", int64_t{0}),
+                   "); last frame held-out PSNR ", summary->heldout_psnr_db, " dB (subject ",
+                   summary->heldout_psnr_fg_db, " dB, background alone ",
+                   summary->background_psnr_fg_db, " dB), ", summary->gaussians, " Gaussians"));
+}
+
+}  // namespace
+
+SplatSummary TrainSplatFrames(const fs::path& take_dir, const fs::path& model_dir,
+                              const SplatOptions& options, Report* report) {
+  options.Check();
+  if (options.segment_frames <= 0) Fail("a per-frame splat run needs --segment-frames");
+  if (options.threads > 0) omp_set_num_threads(options.threads);
+  CreateDirectories(model_dir);
+  return FrameRun(take_dir, model_dir, options, report).Run();
+}
+
+SplatSummary MergeSplatFrames(const fs::path& model_dir, Report* report) {
+  const RunState run = ReadRunState(model_dir);
+  if (run.command != kFramesCommand) {
+    Fail("'", model_dir.string(), "' holds a run of holocap ", run.command, ", not of ",
+         kFramesCommand);
+  }
+  const fs::path plan_file = model_dir / kPlanDir / "plan.json";
+  nlohmann::json plan;
+  try {
+    plan = nlohmann::json::parse(ReadFileToString(plan_file)).at("plan");
+  } catch (const nlohmann::json::exception& e) {
+    Fail("cannot read the run's plan ", plan_file.string(), ": ", e.what());
+  }
+  SplatSummary summary;
+  summary.plan = run.header.value("plan", nlohmann::json::object());
+  report->options() = run.header.value("options", nlohmann::json::object());
+  report->plan() = summary.plan;
+  SummariseFrames(run, plan, &summary, report);
+  if (run.done() && summary.IsUsable()) {
+    SplatModel model = SplatModel::Load(model_dir / kPlanDir);
+    const int64_t segment_frames = report->options().at("segment_frames").get<int64_t>();
+    model.frame_sets = plan.at("sets").get<std::vector<int64_t>>();
+    model.frames = static_cast<int64_t>(model.frame_sets.size());
+    model.bases = {-1};
+    for (int64_t f = 1; f < model.frames; ++f)
+      model.bases.push_back(SegmentBase(f, segment_frames));
+    model.plan = summary.plan;
+    model.Save(model_dir);
+    summary.megabytes = static_cast<double>(fs::file_size(model_dir / "gaussians.bin")) / 1e6;
+  }
+  report->SetSummary(summary);
+  report->Write(model_dir / "report.json");
+  return summary;
 }
 
 }  // namespace holocap

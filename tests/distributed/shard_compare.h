@@ -1,5 +1,6 @@
-// Comparing two runs of a per-frame command: every mesh the same bytes, and the same report
-// and per-frame results once what only measures time (and where the run wrote) is left out.
+// Comparing two runs of a per-frame command: every mesh (or splat model file) the same bytes,
+// and the same report and per-frame results once what only measures time (and where the run
+// wrote) is left out.
 #pragma once
 
 #include <gtest/gtest.h>
@@ -41,6 +42,14 @@ inline nlohmann::json WithoutTimes(nlohmann::json json) {
 
 inline nlohmann::json ReadJson(const std::filesystem::path& file) {
   return nlohmann::json::parse(ReadFileToString(file));
+}
+
+// When each complete set's record of the run in `dir` was written.
+inline std::map<int64_t, double> RecordTimes(const std::filesystem::path& dir) {
+  std::map<int64_t, double> finished;
+  for (const auto& [set, record] : ReadRunState(dir).complete)
+    finished[set] = record["finished_unix_s"].get<double>();
+  return finished;
 }
 
 // The meshes (*.ply, *.glb) of an output directory: name -> bytes.
@@ -87,6 +96,41 @@ inline size_t ExpectSameRun(const std::filesystem::path& expected,
     EXPECT_EQ(record["outputs"], run_b.complete.at(set)["outputs"]) << "set " << set;
   }
   return same;
+}
+
+// The model's files: name (relative) -> bytes; what the run keeps for itself (records, plan,
+// reports, logs) left out.
+inline std::map<std::string, std::string> ModelFiles(const std::filesystem::path& dir) {
+  std::map<std::string, std::string> files;
+  for (const char* name : {"model.json", "gaussians.bin"})
+    files[name] = ReadFileToString(dir / name);
+  for (const char* folder : {"deltas", "cameras"}) {
+    for (const auto& entry : std::filesystem::directory_iterator(dir / folder)) {
+      const std::string name = (std::filesystem::path(folder) / entry.path().filename()).string();
+      files[name] = ReadFileToString(entry.path());
+    }
+  }
+  return files;
+}
+
+// The same model bytes, report and frame records as `expected`, times aside.
+inline void ExpectSameModel(const std::filesystem::path& expected,
+                            const std::filesystem::path& actual) {
+  const auto a = ModelFiles(expected), b = ModelFiles(actual);
+  ASSERT_EQ(a.size(), b.size());
+  for (const auto& [name, bytes] : a) {
+    ASSERT_TRUE(b.count(name)) << name << " is missing from " << actual;
+    EXPECT_TRUE(bytes == b.at(name)) << name << " differs";
+  }
+  EXPECT_EQ(WithoutTimes(ReadJson(expected / "report.json")).dump(1),
+            WithoutTimes(ReadJson(actual / "report.json")).dump(1));
+  const RunState run_a = ReadRunState(expected), run_b = ReadRunState(actual);
+  EXPECT_EQ(run_a.fingerprint, run_b.fingerprint);
+  ASSERT_TRUE(run_b.done()) << run_b.Describe();
+  for (const auto& [set, record] : run_a.complete) {
+    EXPECT_EQ(WithoutTimes(record["result"]).dump(),
+              WithoutTimes(run_b.complete.at(set)["result"]).dump());
+  }
 }
 
 }  // namespace holocap::testing

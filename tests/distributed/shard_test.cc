@@ -24,6 +24,7 @@ namespace {
 using testing::ExpectOneLineError;
 using testing::ExpectSameRun;
 using testing::ReadJson;
+using testing::RecordTimes;
 using testing::RunCli;
 using testing::TempDir;
 namespace fs = std::filesystem;
@@ -165,13 +166,6 @@ class ShardedReconstruct : public ::testing::Test {
   static void TearDownTestSuite() { delete dir_; }
   static std::string take() { return (dir_->path() / "take").string(); }
   static std::string out(const std::string& name) { return (dir_->path() / name).string(); }
-  // When each set's record was written.
-  static std::map<int64_t, double> Finished(const std::string& dir) {
-    std::map<int64_t, double> finished;
-    for (const auto& [set, record] : ReadRunState(dir).complete)
-      finished[set] = record["finished_unix_s"].get<double>();
-    return finished;
-  }
   static TempDir* dir_;
 };
 TempDir* ShardedReconstruct::dir_ = nullptr;
@@ -207,14 +201,14 @@ TEST_F(ShardedReconstruct, TwoShardsMergeIntoTheOneProcessRunsBytes) {
 
 TEST_F(ShardedReconstruct, ARerunRedoesOnlyTheFramesWhoseOutputsAreNotComplete) {
   fs::copy(out("whole"), out("damaged"), fs::copy_options::recursive);
-  const std::map<int64_t, double> before = Finished(out("damaged"));
+  const std::map<int64_t, double> before = RecordTimes(out("damaged"));
   fs::remove(FrameRecordPath(out("damaged"), 2));
   const std::string glb = out("damaged") + "/000004.glb";
   fs::resize_file(glb, fs::file_size(glb) / 2);
   auto rerun = RunCli("reconstruct " + take() + " --out " + out("damaged"));
   ASSERT_EQ(rerun.exit_code, 0) << rerun.output;
   EXPECT_NE(rerun.output.find("3 of 5 frame set(s) skipped"), std::string::npos) << rerun.output;
-  const std::map<int64_t, double> after = Finished(out("damaged"));
+  const std::map<int64_t, double> after = RecordTimes(out("damaged"));
   for (int64_t set : {1, 3, 5}) EXPECT_EQ(after.at(set), before.at(set)) << "set " << set;
   for (int64_t set : {2, 4}) EXPECT_GT(after.at(set), before.at(set)) << "set " << set;
   ExpectSameRun(out("whole"), out("damaged"));

@@ -28,6 +28,7 @@ namespace holocap {
 namespace {
 
 using testing::ExpectOneLineError;
+using testing::ExpectSameModel;
 using testing::ExpectSameRun;
 using testing::FindProgram;
 using testing::LocalSlurm;
@@ -78,11 +79,28 @@ TEST(SubmitSlurm, OneShardPerArrayTaskAndAMergeAfterThem) {
                      "--time '1 day' holds ' '");
   ExpectOneLineError(RunCli("submit slurm reconstruct " + take + " --shard 0/2 --dry-run"),
                      "leave it out of the command's flags");
+  // A command of two words: train splat, a per-frame run of segments.
+  auto splat = RunCli("submit slurm train splat " + take +
+                      " --segment-frames 4 --iterations 300 --frame-iterations 50 --tasks 2 "
+                      "--dry-run");
+  ASSERT_EQ(splat.exit_code, 0) << splat.output;
+  for (const char* line :
+       {"#SBATCH --job-name=holocap-train-splat\n",
+        "#SBATCH --job-name=holocap-train-splat-merge\n", " train splat '",
+        "' '--segment-frames' '4' '--iterations' '300' '--frame-iterations' '50' "
+        "--threads \"$OMP_NUM_THREADS\" --shard \"${SLURM_ARRAY_TASK_ID}/2\"\n"}) {
+    EXPECT_NE(splat.output.find(line), std::string::npos) << line << " in\n" << splat.output;
+  }
+  EXPECT_NE(splat.output.find(take + "/models/splat' --merge\n"), std::string::npos)
+      << splat.output;
+  ExpectOneLineError(RunCli("submit slurm train splat " + take + " --tasks 2 --dry-run"),
+                     "give --segment-frames S");
 }
 
 // A simulated take reconstructed by 3 array tasks; one is cancelled in the middle of its second
 // frame; the merge job reports the run incomplete; a resubmission redoes only what was lost,
-// and the merged meshes and report are those of one process's run.
+// and the merged meshes and report are those of one process's run. Then the take's splats by 2
+// array tasks (train splat --segment-frames): the merged model is one process's.
 TEST(SlurmCluster, ACancelledTaskIsRedoneAndTheMergeIsTheOneProcessRun) {
   if (geteuid() != 0) GTEST_SKIP() << "starting munged, slurmctld and slurmd needs root";
   for (const char* program :
@@ -145,6 +163,25 @@ TEST(SlurmCluster, ACancelledTaskIsRedoneAndTheMergeIsTheOneProcessRun) {
     EXPECT_EQ(done.complete.at(set)["finished_unix_s"], finished) << "set " << set << " redone";
   EXPECT_EQ(ReadJson(split + "/report.json")["summary"]["termination"], "SUCCESS");
   EXPECT_EQ(ExpectSameRun(whole, split), 12u);  // 6 PLY + 6 glTF, the same bytes
+
+  // The take's splats as 2 array tasks (frame 0, then segments {1, 2, 3} and {4, 5}), merged
+  // by the merge job into the model of one process's run.
+  const std::string splats = " --recon " + whole +
+                             " --segment-frames 3 --iterations 20 --frame-iterations 6 "
+                             "--width 48 --seed-points 800 --heldout 1";
+  const std::string splat_whole = (dir.path() / "splat-whole").string();
+  const std::string splat_split = (dir.path() / "splat-split").string();
+  auto one_splat = RunCli("train splat " + take + " --out " + splat_whole + splats);
+  ASSERT_EQ(one_splat.exit_code, 0) << one_splat.output;
+  auto splat = RunCli("submit slurm train splat " + take + " --out " + splat_split + splats +
+                      " --tasks 2 --cpus 1");
+  ASSERT_EQ(splat.exit_code, 0) << splat.output;
+  const auto [splat_array, splat_merge] = JobIds(splat.output);
+  ASSERT_TRUE(LocalSlurm::WaitForJob(splat_array)) << "the splat array did not end";
+  ASSERT_TRUE(LocalSlurm::WaitForJob(splat_merge)) << "the splat merge job did not end";
+  EXPECT_EQ(ReadJson(splat_split + "/report.json")["summary"]["termination"], "NO_CONVERGENCE");
+  EXPECT_EQ(ReadRunState(splat_split).frames_by_task.size(), 2u);
+  ExpectSameModel(splat_whole, splat_split);
 }
 
 }  // namespace
