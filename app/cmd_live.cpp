@@ -94,8 +94,7 @@ void AddLiveCommand(CLI::App& app) {
     const std::filesystem::path& out = claimed.path();
     Report report("live");
     report.SetFailureDestination(out / "report.json");
-    const LiveSummary summary =
-        LiveTake(args->take, selection, args->scan, out, options, &report);
+    const LiveSummary summary = LiveTake(args->take, selection, args->scan, out, options, &report);
     PrintLive(summary);
     std::printf("meshes (recon/<set>.ply, .glb) and report: %s\n", out.c_str());
     EndCommand(summary, "live");

@@ -57,7 +57,8 @@ FitStats Associate(const std::vector<Eigen::Vector3f>& points,
     ++fit.inliers;
     const double r = nq.dot(p - q);
     squared += r * r;
-    if (pairs != nullptr) pairs->push_back({static_cast<int>(i), q.cast<double>(), nq.cast<double>()});
+    if (pairs != nullptr)
+      pairs->push_back({static_cast<int>(i), q.cast<double>(), nq.cast<double>()});
   }
   if (fit.expected > 0) fit.inlier_fraction = static_cast<double>(fit.inliers) / fit.expected;
   if (fit.inliers > 0) fit.residual_m = std::sqrt(squared / fit.inliers);
@@ -81,7 +82,8 @@ void AddNearestPairs(const std::vector<Eigen::Vector3f>& points,
   if (facing.empty()) return;
   const recon::PointTree tree(facing);
   const float cos_max = static_cast<float>(std::cos(max_normal_angle_deg * M_PI / 180));
-  const size_t stride = std::max<size_t>(1, static_cast<size_t>(live.valid / std::max(1, live_samples)));
+  const size_t stride =
+      std::max<size_t>(1, static_cast<size_t>(live.valid / std::max(1, live_samples)));
   size_t seen = 0;
   for (size_t pixel = 0; pixel < live.points.size(); ++pixel) {
     if (!live.normals[pixel].allFinite() || seen++ % stride != 0) continue;
@@ -168,7 +170,8 @@ FitStats MeasureFit(const std::vector<Eigen::Vector3f>& points,
 RigidAlignment AlignRigid(const Mesh& scan, const LiveSurface& live, const Pose& initial,
                           const LiveOptions& options) {
   if (scan.normals.size() != scan.vertices.size()) Fail("live: the scan's mesh has no normals");
-  const std::vector<int> samples = live::ThinnedVertices(scan.vertices.size(), options.alignment_samples);
+  const std::vector<int> samples =
+      live::ThinnedVertices(scan.vertices.size(), options.alignment_samples);
   RigidAlignment result;
   result.world_from_scan = initial;
   std::vector<Eigen::Vector3f> points(samples.size()), normals(samples.size());
@@ -229,7 +232,8 @@ DeformationGraph::DeformationGraph(const Mesh& mesh, double spacing_m, int neigh
   auto key_of = [&](const Eigen::Vector3f& v) {
     const Eigen::Vector3i c = (v.cast<double>() / spacing_m).array().floor().cast<int>();
     return (static_cast<int64_t>(c.x() + (1 << 20)) << 42) |
-           (static_cast<int64_t>(c.y() + (1 << 20)) << 21) | static_cast<int64_t>(c.z() + (1 << 20));
+           (static_cast<int64_t>(c.y() + (1 << 20)) << 21) |
+           static_cast<int64_t>(c.z() + (1 << 20));
   };
   for (const Eigen::Vector3f& v : mesh.vertices) {
     Cell& cell = cells[key_of(v)];
@@ -258,8 +262,9 @@ DeformationGraph::DeformationGraph(const Mesh& mesh, double spacing_m, int neigh
       if (static_cast<int>(j) == skip) continue;
       const double d = (nodes[j] - point).squaredNorm();
       if (static_cast<int>(best.size()) < k + 1 || d < best.back().first) {
-        best.insert(std::upper_bound(best.begin(), best.end(), std::make_pair(d, static_cast<int>(j))),
-                    {d, static_cast<int>(j)});
+        best.insert(
+            std::upper_bound(best.begin(), best.end(), std::make_pair(d, static_cast<int>(j))),
+            {d, static_cast<int>(j)});
         if (static_cast<int>(best.size()) > k + 1) best.pop_back();
       }
     }

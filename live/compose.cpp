@@ -66,6 +66,35 @@ Mesh KeepFaces(const Mesh& mesh, const std::vector<bool>& keep) {
   return kept;
 }
 
+// A scan that kept the floor it stood on (a wide flat layer at its bottom, most of its vertices)
+// loses it: the floor does not move with the subject, and the live frame has its own.
+void CutFloor(Mesh* scan, const Eigen::Vector3d& up) {
+  constexpr double kBin = 0.01, kReach = 0.1, kLayer = 0.02, kCut = 0.03, kShare = 0.25;
+  std::vector<double> height(scan->vertices.size());
+  double lowest = std::numeric_limits<double>::infinity();
+  for (size_t v = 0; v < height.size(); ++v) {
+    height[v] = up.dot(scan->vertices[v].cast<double>());
+    lowest = std::min(lowest, height[v]);
+  }
+  std::vector<int64_t> bins(static_cast<size_t>(kReach / kBin), 0);
+  for (double h : height) {
+    const size_t bin = static_cast<size_t>((h - lowest) / kBin);
+    if (bin < bins.size()) ++bins[bin];
+  }
+  const size_t peak = static_cast<size_t>(std::max_element(bins.begin(), bins.end()) - bins.begin());
+  const double level = lowest + (peak + 0.5) * kBin;
+  int64_t layer = 0;
+  for (double h : height) layer += std::abs(h - level) <= kLayer;
+  if (layer < kShare * static_cast<double>(height.size())) return;
+  std::vector<bool> keep(scan->faces.size());
+  for (size_t f = 0; f < scan->faces.size(); ++f) {
+    const Eigen::Vector3i& face = scan->faces[f];
+    keep[f] = height[face[0]] > level + kCut && height[face[1]] > level + kCut &&
+              height[face[2]] > level + kCut;
+  }
+  *scan = KeepFaces(*scan, keep);
+}
+
 }  // namespace
 
 Mesh MeshLiveSurface(const LiveSurface& live, const cv::Mat& subject, const cv::Mat& color_bgr,
@@ -113,10 +142,11 @@ LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vec
                                double floor_m)
     : scan_(std::move(scan)), options_(options), up_(up.normalized()), floor_m_(floor_m) {
   options_.Check();
-  if (scan_.faces.empty()) Fail("live: the scan has no triangles");
   if (scan_.normals.size() != scan_.vertices.size()) scan_.ComputeNormals();
   if (scan_.colors.size() != scan_.vertices.size())
     scan_.colors.assign(scan_.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
+  CutFloor(&scan_, up_);
+  if (scan_.faces.empty()) Fail("live: the scan has no triangles (besides a floor)");
 }
 
 // The first frame: the scan moved so that its centroid sits behind the centroid of the nearest
@@ -207,10 +237,13 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   LiveResult result;
   LiveFrame& frame = result.frame;
   frame.set = set;
-  LiveSurface live = MakeLiveSurface(depth_m, depth_camera, options_.depth_min_m, options_.depth_max_m);
+  LiveSurface live =
+      MakeLiveSurface(depth_m, depth_camera, options_.depth_min_m, options_.depth_max_m);
   if (std::isfinite(floor_m_)) {
     for (size_t i = 0; i < live.points.size(); ++i) {
-      if (!live.points[i].allFinite() || up_.cast<float>().dot(live.points[i]) >= floor_m_ + options_.floor_margin_m) continue;
+      if (!live.points[i].allFinite() ||
+          up_.cast<float>().dot(live.points[i]) >= floor_m_ + options_.floor_margin_m)
+        continue;
       if (live.normals[i].allFinite()) --live.valid;
       live.points[i] = live.normals[i] = Eigen::Vector3f::Constant(kNaN);
       live.depth[i] = kNaN;
@@ -254,16 +287,16 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
                                            fit.after.expected, " scan points in view)"));
   }
   if (fit.after.inlier_fraction < options_.min_inlier_fraction) {
-    return finish(LiveState::kRefused,
-                  Cat("the scan does not fit the live surface: ", Fixed(100 * fit.after.inlier_fraction, 1),
-                      " % of its visible points within ", Fixed(100 * options_.gate_m, 1),
-                      " cm (needs ", Fixed(100 * options_.min_inlier_fraction, 1), " %)"));
+    return finish(
+        LiveState::kRefused,
+        Cat("the scan does not fit the live surface: ", Fixed(100 * fit.after.inlier_fraction, 1),
+            " % of its visible points within ", Fixed(100 * options_.gate_m, 1), " cm (needs ",
+            Fixed(100 * options_.min_inlier_fraction, 1), " %)"));
   }
   if (!(fit.after.residual_m <= options_.max_residual_m)) {
-    return finish(LiveState::kRefused,
-                  Cat("the scan does not fit the live surface: residual ",
-                      Fixed(1e3 * fit.after.residual_m, 1), " mm (at most ",
-                      Fixed(1e3 * options_.max_residual_m, 1), " mm)"));
+    return finish(LiveState::kRefused, Cat("the scan does not fit the live surface: residual ",
+                                           Fixed(1e3 * fit.after.residual_m, 1), " mm (at most ",
+                                           Fixed(1e3 * options_.max_residual_m, 1), " mm)"));
   }
   has_pose_ = true;
   last_world_from_scan_ = rigid.world_from_scan;

@@ -181,9 +181,8 @@ void Conclude(const LiveOptions& options, LiveSummary* summary) {
     summary->End(Termination::kDegenerate, Cat("no frame has usable depth (", counts, ")"));
   } else if (summary->composed == 0 ||
              summary->refused > options.max_refused_fraction * static_cast<double>(with_depth)) {
-    summary->End(Termination::kDegenerate,
-                 Cat("the scan does not match the live subject (", counts, "; first ",
-                     first_refusal, ")"));
+    summary->End(Termination::kDegenerate, Cat("the scan does not match the live subject (", counts,
+                                               "; first ", first_refusal, ")"));
   } else {
     summary->End(Termination::kSuccess, counts);
   }
@@ -216,9 +215,8 @@ LiveSummary LiveTake(const fs::path& take_dir, const TakeSelection& selection,
   if (!ignored.empty()) {
     std::string names;
     for (const std::string& name : ignored) names += (names.empty() ? "" : ", ") + name;
-    plan.LeaveOut(Cat("colour cameras ", names),
-                  Cat("live reads only ", summary.depth_sensor, " and its paired ",
-                      summary.color_sensor));
+    plan.LeaveOut(Cat("colour cameras ", names), Cat("live reads only ", summary.depth_sensor,
+                                                     " and its paired ", summary.color_sensor));
   }
   const CameraModel& depth_camera = plan.cameras.at(summary.depth_sensor);
   const CameraModel& color_camera = plan.cameras.at(summary.color_sensor);
@@ -261,9 +259,9 @@ LiveSummary LiveTake(const fs::path& take_dir, const TakeSelection& selection,
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   Json frames = Json::array();
   for (const LiveFrame& frame : summary.frames) frames.push_back(frame.ToJson());
-  summary.metrics = {{"frames", summary.frames.size()}, {"composed", summary.composed},
-                     {"no_depth", summary.no_depth},    {"refused", summary.refused},
-                     {"seconds", summary.seconds},      {"depth_sensor", summary.depth_sensor},
+  summary.metrics = {{"frames", summary.frames.size()},      {"composed", summary.composed},
+                     {"no_depth", summary.no_depth},         {"refused", summary.refused},
+                     {"seconds", summary.seconds},           {"depth_sensor", summary.depth_sensor},
                      {"color_sensor", summary.color_sensor}, {"per_frame", frames}};
   if (report != nullptr) {
     report->metrics() = summary.metrics;

@@ -94,8 +94,8 @@ struct LiveSurface {
   int64_t valid = 0;                     // pixels with a point and a normal
 };
 // `depth_m`: CV_32F z-depth in metres (NaN: none) of the sensor `camera`.
-LiveSurface MakeLiveSurface(const cv::Mat& depth_m, const CameraModel& camera,
-                            double depth_min_m, double depth_max_m);
+LiveSurface MakeLiveSurface(const cv::Mat& depth_m, const CameraModel& camera, double depth_min_m,
+                            double depth_max_m);
 
 // How well posed scan points fit a live surface.
 struct FitStats {
@@ -134,8 +134,8 @@ struct DeformationGraph {
 };
 
 struct NonRigidFit {
-  Mesh deformed;              // the mesh with every vertex (and normal) moved
-  FitStats before, after;     // at the final gate
+  Mesh deformed;                 // the mesh with every vertex (and normal) moved
+  FitStats before, after;        // at the final gate
   double deformation_rms_m = 0;  // vertex displacement, RMS and max
   double deformation_max_m = 0;
   int64_t nodes = 0;
@@ -182,7 +182,8 @@ struct LiveResult {
 // Frame after frame of one fixed sensor: keeps the alignment of the frame before.
 class LiveCompositor {
  public:
-  // `scan`: the scan's mesh (world coordinates of the scan take) with vertex colours.
+  // `scan`: the scan's mesh (world coordinates of the scan take) with vertex colours; a floor
+  // it kept (a flat layer at its bottom, along `up`, holding a quarter of its vertices) is cut.
   // `floor_m`: the floor's height along `up` (NaN: none).
   LiveCompositor(Mesh scan, const LiveOptions& options,
                  Eigen::Vector3d up = Eigen::Vector3d::UnitZ(),

@@ -98,7 +98,8 @@ class NonRigidSolver {
         const int j = graph_.vertex_node[v][n];
         if (j < 0) continue;
         const double alpha = graph_.vertex_weight[v][n];
-        const Eigen::Vector3d arm = graph_.rotation[j] * (mesh_.vertices[v].cast<double>() - graph_.nodes[j]);
+        const Eigen::Vector3d arm =
+            graph_.rotation[j] * (mesh_.vertices[v].cast<double>() - graph_.nodes[j]);
         blocks[used] << alpha * arm.cross(pair.normal), alpha * pair.normal;
         columns[used++] = 6 * j;
       }
@@ -119,16 +120,18 @@ class NonRigidSolver {
   void AddRegulariser(std::vector<Eigen::Triplet<double>>* triplets,
                       Eigen::VectorXd* gradient) const {
     int64_t edges = 0;
-    for (const std::vector<int>& neighbours : graph_.edges) edges += static_cast<int64_t>(neighbours.size());
+    for (const std::vector<int>& neighbours : graph_.edges)
+      edges += static_cast<int64_t>(neighbours.size());
     if (edges == 0) return;
     // Balanced against the data however many pairs and edges there are.
-    const double weight = options_.arap_weight * std::max<double>(1, static_cast<double>(pairs_.size())) /
+    const double weight = options_.arap_weight *
+                          std::max<double>(1, static_cast<double>(pairs_.size())) /
                           static_cast<double>(edges);
     for (size_t j = 0; j < graph_.nodes.size(); ++j) {
       for (int k : graph_.edges[j]) {
         const Eigen::Vector3d arm = graph_.rotation[j] * (graph_.nodes[k] - graph_.nodes[j]);
-        const Eigen::Vector3d e = arm + graph_.nodes[j] + graph_.translation[j] -
-                                  graph_.nodes[k] - graph_.translation[k];
+        const Eigen::Vector3d e =
+            arm + graph_.nodes[j] + graph_.translation[j] - graph_.nodes[k] - graph_.translation[k];
         // e's Jacobian: -[arm]x for node j's rotation, I for its translation, -I for k's.
         Eigen::Matrix<double, 3, 12> jacobian;
         jacobian << -Skew(arm), Eigen::Matrix3d::Identity(), Eigen::Matrix3d::Zero(),
@@ -141,7 +144,8 @@ class NonRigidSolver {
           for (int b = 0; b < 2; ++b)
             for (int row = 0; row < 6; ++row)
               for (int col = 0; col < 6; ++col)
-                triplets->emplace_back(columns[a] + row, columns[b] + col, block(6 * a + row, 6 * b + col));
+                triplets->emplace_back(columns[a] + row, columns[b] + col,
+                                       block(6 * a + row, 6 * b + col));
         }
       }
     }

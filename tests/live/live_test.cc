@@ -23,7 +23,8 @@ namespace {
 Mesh Tube(double length, double radius, double bend_rad, Eigen::Vector3d base) {
   constexpr int kRings = 61, kSegments = 24;
   Mesh mesh;
-  const Eigen::Matrix3d turn = Eigen::AngleAxisd(bend_rad, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  const Eigen::Matrix3d turn =
+      Eigen::AngleAxisd(bend_rad, Eigen::Vector3d::UnitY()).toRotationMatrix();
   for (int r = 0; r < kRings; ++r) {
     const double s = length * r / (kRings - 1);
     Eigen::Matrix3d frame = Eigen::Matrix3d::Identity();
@@ -35,7 +36,8 @@ Mesh Tube(double length, double radius, double bend_rad, Eigen::Vector3d base) {
     for (int k = 0; k < kSegments; ++k) {
       const double a = 2 * M_PI * k / kSegments;
       mesh.vertices.push_back(
-          (centre + frame * Eigen::Vector3d(radius * std::cos(a), radius * std::sin(a), 0)).cast<float>());
+          (centre + frame * Eigen::Vector3d(radius * std::cos(a), radius * std::sin(a), 0))
+              .cast<float>());
     }
   }
   for (int r = 0; r + 1 < kRings; ++r) {
@@ -78,15 +80,17 @@ Mesh Moved(const Mesh& mesh, const Pose& pose) {
 
 LiveSurface SurfaceOf(const Mesh& mesh, const CameraModel& camera) {
   const LiveOptions options;
-  return MakeLiveSurface(SensorDepth(mesh, camera), camera, options.depth_min_m, options.depth_max_m);
+  return MakeLiveSurface(SensorDepth(mesh, camera), camera, options.depth_min_m,
+                         options.depth_max_m);
 }
 
 TEST(LiveAlign, RecoversAKnownRigidMotion) {
   const Mesh scan = Tube(0.6, 0.08, 1.0, Eigen::Vector3d(0, 0, 0.7));
   Pose truth = Pose::Identity();
-  truth.linear() = Eigen::AngleAxisd(0.12, Eigen::Vector3d(0.3, 0.2, 1).normalized()).toRotationMatrix();
-  truth.translation() = Eigen::Vector3d(0.05, -0.03, 0.04) + (Eigen::Matrix3d::Identity() - truth.linear()) *
-                                                                  Eigen::Vector3d(0, 0, 1.0);
+  truth.linear() =
+      Eigen::AngleAxisd(0.12, Eigen::Vector3d(0.3, 0.2, 1).normalized()).toRotationMatrix();
+  truth.translation() = Eigen::Vector3d(0.05, -0.03, 0.04) +
+                        (Eigen::Matrix3d::Identity() - truth.linear()) * Eigen::Vector3d(0, 0, 1.0);
   const CameraModel camera = SideCamera();
   const LiveSurface live = SurfaceOf(Moved(scan, truth), camera);
   ASSERT_GT(live.valid, 1000);
@@ -150,7 +154,8 @@ TEST(LiveCompositor, ComposesTheLiveSurfaceWithTheUnseenScan) {
   const Mesh bent = Tube(0.6, 0.08, 0.5, Eigen::Vector3d(0, 0, 0.7));
   const CameraModel camera = SideCamera();
   LiveCompositor compositor(straight, LiveOptions());
-  const LiveResult result = compositor.Process(3, SensorDepth(bent, camera), camera, cv::Mat(), camera);
+  const LiveResult result =
+      compositor.Process(3, SensorDepth(bent, camera), camera, cv::Mat(), camera);
   ASSERT_EQ(result.frame.state, LiveState::kComposed) << result.frame.why;
   EXPECT_GT(result.frame.live_faces, 1000);
   // The back of the tube, which the sensor cannot see, comes from the scan: about half of it.
@@ -159,14 +164,16 @@ TEST(LiveCompositor, ComposesTheLiveSurfaceWithTheUnseenScan) {
   EXPECT_EQ(result.composed.faces.size(), result.frame.live_faces + result.frame.scan_faces);
   // The composed back lies on the bent tube's surface (its axis within a few mm of the radius).
   const Eigen::Vector3d elbow(0, 0, 1.0);
-  const Eigen::Vector3d upper = Eigen::AngleAxisd(0.5, Eigen::Vector3d::UnitY()) * Eigen::Vector3d::UnitZ();
+  const Eigen::Vector3d upper =
+      Eigen::AngleAxisd(0.5, Eigen::Vector3d::UnitY()) * Eigen::Vector3d::UnitZ();
   double worst = 0;
   for (size_t v = result.live.vertices.size(); v < result.composed.vertices.size(); ++v) {
     const Eigen::Vector3d p = result.composed.vertices[v].cast<double>();
     const Eigen::Vector3d rel = p - elbow;
     const double along = rel.dot(upper);
-    const double off = along > 0.03 ? (rel - along * upper).norm()
-                       : rel.z() < -0.03 ? Eigen::Vector2d(p.x(), p.y()).norm() : 0.08;
+    const double off = along > 0.03      ? (rel - along * upper).norm()
+                       : rel.z() < -0.03 ? Eigen::Vector2d(p.x(), p.y()).norm()
+                                         : 0.08;
     worst = std::max(worst, std::abs(off - 0.08));
   }
   EXPECT_LT(worst, 0.02);
@@ -177,7 +184,8 @@ TEST(LiveCompositor, RefusesAScanOfAnotherShape) {
   const Mesh ball = testing::SphereMesh({Eigen::Vector3d(0, 0, 1.0), 0.2}, 24, 48);
   const CameraModel camera = SideCamera();
   LiveCompositor compositor(ball, LiveOptions());
-  const LiveResult result = compositor.Process(0, SensorDepth(tube, camera), camera, cv::Mat(), camera);
+  const LiveResult result =
+      compositor.Process(0, SensorDepth(tube, camera), camera, cv::Mat(), camera);
   EXPECT_EQ(result.frame.state, LiveState::kRefused);
   EXPECT_NE(result.frame.why.find("does not fit"), std::string::npos) << result.frame.why;
   EXPECT_TRUE(result.composed.empty());
@@ -194,7 +202,8 @@ TEST(LiveCompositor, ReportsADepthlessFrameWithoutComposingIt) {
   EXPECT_NE(none.frame.why.find("no usable depth"), std::string::npos);
   EXPECT_TRUE(none.composed.empty());
   // The next frame with depth is composed as usual.
-  const LiveResult next = compositor.Process(2, SensorDepth(tube, camera), camera, cv::Mat(), camera);
+  const LiveResult next =
+      compositor.Process(2, SensorDepth(tube, camera), camera, cv::Mat(), camera);
   EXPECT_EQ(next.frame.state, LiveState::kComposed) << next.frame.why;
 }
 
@@ -209,7 +218,8 @@ TEST(LiveCli, RefusesAMissingOrDamagedScan) {
       testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "empty").string()),
       "holds no mesh.ply");
   std::filesystem::create_directories(dir / "damaged");
-  std::ofstream(dir / "damaged" / "mesh.ply") << "ply\nformat binary_little_endian 1.0\nelement vertex 9";
+  std::ofstream(dir / "damaged" / "mesh.ply")
+      << "ply\nformat binary_little_endian 1.0\nelement vertex 9";
   testing::ExpectOneLineError(
       testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "damaged").string()),
       "mesh.ply");
