@@ -311,6 +311,25 @@ Eigen::Vector3d DeformationGraph::Apply(size_t vertex, const Eigen::Vector3d& re
   return total > 0 ? Eigen::Vector3d(moved / total) : rest;
 }
 
+DeformationGraph DeformationGraph::Posed(const Pose& world_from_rest) const {
+  DeformationGraph posed = *this;
+  const Eigen::Matrix3d r = world_from_rest.linear();
+  for (size_t j = 0; j < nodes.size(); ++j) {
+    posed.nodes[j] = world_from_rest * nodes[j];
+    posed.rotation[j] = r * rotation[j] * r.transpose();
+    posed.translation[j] = r * translation[j];
+  }
+  return posed;
+}
+
+void DeformationGraph::TakeMotions(const DeformationGraph& posed, const Pose& world_from_rest) {
+  const Eigen::Matrix3d r = world_from_rest.linear();
+  for (size_t j = 0; j < nodes.size(); ++j) {
+    rotation[j] = NearestRotation(r.transpose() * posed.rotation[j] * r);
+    translation[j] = r.transpose() * posed.translation[j];
+  }
+}
+
 Eigen::Vector3d DeformationGraph::ApplyNormal(size_t vertex, const Eigen::Vector3d& rest) const {
   Eigen::Vector3d turned = Eigen::Vector3d::Zero();
   for (int n = 0; n < 4; ++n) {

@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <optional>
 
 #include "core/error.h"
 #include "live/live.h"
@@ -81,7 +82,8 @@ void CutFloor(Mesh* scan, const Eigen::Vector3d& up) {
     const size_t bin = static_cast<size_t>((h - lowest) / kBin);
     if (bin < bins.size()) ++bins[bin];
   }
-  const size_t peak = static_cast<size_t>(std::max_element(bins.begin(), bins.end()) - bins.begin());
+  const size_t peak =
+      static_cast<size_t>(std::max_element(bins.begin(), bins.end()) - bins.begin());
   const double level = lowest + (peak + 0.5) * kBin;
   int64_t layer = 0;
   for (double h : height) layer += std::abs(h - level) <= kLayer;
@@ -259,23 +261,34 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   if (live.valid < kMinLivePoints) {
     return finish(LiveState::kNoDepth, Cat("no usable depth (", live.valid, " valid pixels)"));
   }
+  if (options_.nonrigid && !graph_)
+    graph_.emplace(scan_, options_.node_spacing_m, options_.node_neighbours);
+  // The scan as the frame before left it, aligned rigidly from where it was.
+  Mesh previous = scan_;
+  if (graph_) {
+    for (size_t v = 0; v < previous.vertices.size(); ++v) {
+      previous.vertices[v] = graph_->Apply(v, scan_.vertices[v].cast<double>()).cast<float>();
+      previous.normals[v] = graph_->ApplyNormal(v, scan_.normals[v].cast<double>()).cast<float>();
+    }
+  }
   bool first = false;
   const Pose initial = InitialPose(live, &first);
-  RigidAlignment rigid = AlignRigid(scan_, live, initial, options_);
+  RigidAlignment rigid = AlignRigid(previous, live, initial, options_);
   if (first) {
     // The scan where it is may already sit on the subject (the same world): keep the better.
-    const RigidAlignment in_place = AlignRigid(scan_, live, Pose::Identity(), options_);
+    const RigidAlignment in_place = AlignRigid(previous, live, Pose::Identity(), options_);
     if (in_place.fit.inlier_fraction > rigid.fit.inlier_fraction) rigid = in_place;
   }
   frame.world_from_scan = rigid.world_from_scan;
   frame.rigid_inlier_fraction = rigid.fit.inlier_fraction;
   frame.rigid_residual_m = rigid.fit.residual_m;
-  const Mesh aligned = Transformed(scan_, rigid.world_from_scan);
   NonRigidFit fit;
-  if (options_.nonrigid) {
-    fit = FitNonRigid(aligned, live, options_);
+  std::optional<DeformationGraph> posed;
+  if (graph_) {
+    posed = graph_->Posed(rigid.world_from_scan);
+    fit = FitNonRigid(Transformed(scan_, rigid.world_from_scan), live, options_, &*posed);
   } else {
-    fit.deformed = aligned;
+    fit.deformed = Transformed(scan_, rigid.world_from_scan);
     fit.before = fit.after = rigid.fit;
   }
   frame.inlier_fraction = fit.after.inlier_fraction;
@@ -285,6 +298,19 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   if (fit.after.expected < kMinExpected) {
     return finish(LiveState::kRefused, Cat("the aligned scan lies where the sensor sees nothing (",
                                            fit.after.expected, " scan points in view)"));
+  }
+  if (rigid.fit.inlier_fraction < options_.min_rigid_inlier_fraction) {
+    return finish(LiveState::kRefused,
+                  Cat("the scan does not fit the live surface rigidly: ",
+                      Fixed(100 * rigid.fit.inlier_fraction, 1), " % of its visible points within ",
+                      Fixed(100 * options_.gate_m, 1), " cm (needs ",
+                      Fixed(100 * options_.min_rigid_inlier_fraction, 1), " %)"));
+  }
+  if (fit.deformation_rms_m > options_.max_deformation_rms_m) {
+    return finish(LiveState::kRefused,
+                  Cat("the scan does not fit the live surface without bending it ",
+                      Fixed(100 * fit.deformation_rms_m, 1), " cm RMS (at most ",
+                      Fixed(100 * options_.max_deformation_rms_m, 1), " cm)"));
   }
   if (fit.after.inlier_fraction < options_.min_inlier_fraction) {
     return finish(
@@ -300,6 +326,7 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   }
   has_pose_ = true;
   last_world_from_scan_ = rigid.world_from_scan;
+  if (graph_) graph_->TakeMotions(*posed, rigid.world_from_scan);
   const cv::Mat subject = SubjectMask(live, fit.deformed);
   frame.subject_pixels = cv::countNonZero(subject);
   result.live = MeshLiveSurface(live, subject, color_bgr, color_camera, options_.max_depth_jump_m);

@@ -34,6 +34,9 @@ void LiveOptions::Check() const {
   if (!(min_inlier_fraction >= 0 && min_inlier_fraction <= 1))
     Fail("live: min_inlier_fraction must be in [0, 1]");
   if (!(max_residual_m > 0)) Fail("live: max_residual_m must be > 0");
+  if (!(min_rigid_inlier_fraction >= 0 && min_rigid_inlier_fraction <= 1))
+    Fail("live: min_rigid_inlier_fraction must be in [0, 1]");
+  if (!(max_deformation_rms_m > 0)) Fail("live: max_deformation_rms_m must be > 0");
   if (!(max_refused_fraction >= 0 && max_refused_fraction <= 1))
     Fail("live: max_refused_fraction must be in [0, 1]");
   if (!(subject_gate_m > 0 && observed_gate_m > 0 && max_depth_jump_m > 0))
@@ -58,6 +61,8 @@ Json LiveOptions::ToJson() const {
           {"arap_weight", arap_weight},
           {"min_inlier_fraction", min_inlier_fraction},
           {"max_residual_m", max_residual_m},
+          {"min_rigid_inlier_fraction", min_rigid_inlier_fraction},
+          {"max_deformation_rms_m", max_deformation_rms_m},
           {"max_refused_fraction", max_refused_fraction},
           {"subject_gate_m", subject_gate_m},
           {"observed_gate_m", observed_gate_m},

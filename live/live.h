@@ -8,7 +8,8 @@
 //   2. bent where the subject's pose differs from the scan's: an embedded deformation graph
 //      (nodes sampled on the scan every node_spacing_m, each vertex moved by its nearest nodes'
 //      rigid motions blended by distance) fitted by Gauss-Newton to the same point-to-plane
-//      pairs with an as-rigid-as-possible regulariser between neighbouring nodes;
+//      pairs with an as-rigid-as-possible regulariser between neighbouring nodes, started from
+//      the frame before's deformation (step 1 aligns the scan as that one left it);
 //   3. composed with the live frame: the live depth of the subject (the pixels whose depth lies
 //      near the deformed scan) meshed and coloured from the paired colour camera, plus every
 //      triangle of the deformed scan the live frame does not observe (its back, what the
@@ -26,6 +27,7 @@
 #include <limits>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -66,6 +68,13 @@ struct LiveOptions {
   // point-to-plane RMS of those that do exceeds max_residual_m.
   double min_inlier_fraction = 0.6;
   double max_residual_m = 0.015;
+  // ... and when the rigid alignment alone (of the scan as the frame before left it) fits fewer
+  // than this fraction, or when the fit needs a deformation larger than this RMS over the
+  // scan's vertices: a scan of another object can be bent onto the subject, but only by moving
+  // everything far (on the simulated walk the subject's own scan moves by at most 14 cm RMS
+  // and fits 62 % or more rigidly; a scanned knot moved by 31-55 cm, fitting 16-33 % rigidly).
+  double min_rigid_inlier_fraction = 0.4;
+  double max_deformation_rms_m = 0.2;
   // More than this fraction of refused frames makes the run DEGENERATE: the scan is not this
   // subject.
   double max_refused_fraction = 0.2;
@@ -131,6 +140,10 @@ struct DeformationGraph {
   DeformationGraph(const Mesh& mesh, double spacing_m, int neighbours);
   Eigen::Vector3d Apply(size_t vertex, const Eigen::Vector3d& rest) const;
   Eigen::Vector3d ApplyNormal(size_t vertex, const Eigen::Vector3d& rest) const;
+  // The same deformation of the mesh moved rigidly by `world_from_rest` (nodes moved, motions
+  // turned into the new frame), and back: the motions of such a posed graph, in this one's frame.
+  DeformationGraph Posed(const Pose& world_from_rest) const;
+  void TakeMotions(const DeformationGraph& posed, const Pose& world_from_rest);
 };
 
 struct NonRigidFit {
@@ -141,8 +154,10 @@ struct NonRigidFit {
   int64_t nodes = 0;
 };
 // Fits the deformation graph of `aligned` (the scan after its rigid alignment, world
-// coordinates) to the live surface.
-NonRigidFit FitNonRigid(const Mesh& aligned, const LiveSurface& live, const LiveOptions& options);
+// coordinates) to the live surface. `graph` (optional): the graph of `aligned`, its motions the
+// start (the frame before's) and the result; without it a new graph starts at rest.
+NonRigidFit FitNonRigid(const Mesh& aligned, const LiveSurface& live, const LiveOptions& options,
+                        DeformationGraph* graph = nullptr);
 
 // The live frame meshed: the subject's pixels (`subject`: CV_8U, 255 = subject) joined into
 // triangles with their neighbours, coloured from `color_bgr` seen by `color_camera` (mid grey
@@ -198,6 +213,10 @@ class LiveCompositor {
   Mesh UnobservedScan(const Mesh& deformed, const LiveSurface& live, const cv::Mat& subject) const;
 
   Mesh scan_;
+  // The scan's deformation graph, in the scan's frame, holding the last composed frame's
+  // motions: each frame starts where the one before ended (a limb that swings far over a few
+  // frames is followed step by step), while the regulariser still measures against the scan.
+  std::optional<DeformationGraph> graph_;
   LiveOptions options_;
   Eigen::Vector3d up_;
   double floor_m_;

@@ -15,11 +15,12 @@ namespace {
 
 class NonRigidSolver {
  public:
-  NonRigidSolver(const Mesh& aligned, const LiveSurface& live, const LiveOptions& options)
+  NonRigidSolver(const Mesh& aligned, const LiveSurface& live, const LiveOptions& options,
+                 DeformationGraph* graph)
       : mesh_(aligned),
         live_(live),
         options_(options),
-        graph_(aligned, options.node_spacing_m, options.node_neighbours),
+        graph_(*graph),
         samples_(live::ThinnedVertices(aligned.vertices.size(), options.alignment_samples)) {}
 
   NonRigidFit Run() {
@@ -27,6 +28,8 @@ class NonRigidSolver {
     fit.nodes = static_cast<int64_t>(graph_.nodes.size());
     PoseSamples();
     fit.before = Measure();
+    const std::vector<Eigen::Matrix3d> start_rotation = graph_.rotation;
+    const std::vector<Eigen::Vector3d> start_translation = graph_.translation;
     for (int iteration = 0; iteration < options_.nonrigid_iterations; ++iteration) {
       // The gate shrinks from four times the final one: a limb bent away from the scan's pose
       // is first caught, then fitted closely.
@@ -40,9 +43,9 @@ class NonRigidSolver {
     fit.after = Measure();
     // A correction that fits worse than the rigid alignment is not kept.
     if (fit.after.inlier_fraction + 1e-9 < fit.before.inlier_fraction) {
-      fit.deformed = mesh_;
+      graph_.rotation = start_rotation;
+      graph_.translation = start_translation;
       fit.after = fit.before;
-      return fit;
     }
     fit.deformed = Deformed(&fit.deformation_rms_m, &fit.deformation_max_m);
     return fit;
@@ -177,7 +180,7 @@ class NonRigidSolver {
   const Mesh& mesh_;
   const LiveSurface& live_;
   const LiveOptions& options_;
-  DeformationGraph graph_;
+  DeformationGraph& graph_;
   std::vector<int> samples_;
   std::vector<Eigen::Vector3f> points_, normals_;
   std::vector<live::Pair> pairs_;
@@ -185,8 +188,11 @@ class NonRigidSolver {
 
 }  // namespace
 
-NonRigidFit FitNonRigid(const Mesh& aligned, const LiveSurface& live, const LiveOptions& options) {
-  return NonRigidSolver(aligned, live, options).Run();
+NonRigidFit FitNonRigid(const Mesh& aligned, const LiveSurface& live, const LiveOptions& options,
+                        DeformationGraph* graph) {
+  if (graph != nullptr) return NonRigidSolver(aligned, live, options, graph).Run();
+  DeformationGraph own(aligned, options.node_spacing_m, options.node_neighbours);
+  return NonRigidSolver(aligned, live, options, &own).Run();
 }
 
 }  // namespace holocap
