@@ -30,19 +30,20 @@ namespace {
 namespace fs = std::filesystem;
 using Json = nlohmann::json;
 
+// The load averages: a timing on a shared machine is read beside them.
+std::string LoadAverages() {
+  std::ifstream in("/proc/loadavg");
+  std::string one, five, fifteen;
+  in >> one >> five >> fifteen;
+  return one + " " + five + " " + fifteen;
+}
+
 struct Args {
   int64_t frames = 16;
   int64_t scan_frames = 72;
   int width = 320;
   fs::path keep;
 };
-
-std::string Uptime() {
-  std::ifstream in("/proc/loadavg");
-  std::string a, b, c;
-  in >> a >> b >> c;
-  return a + " " + b + " " + c;
-}
 
 // single-rgbd's sensor pair and two pinhole colour cameras at the same distance and height,
 // turned 90 and 180 degrees about the vertical axis through the centre of the subject's walk.
@@ -111,9 +112,13 @@ double PsnrInMask(const RenderedView& view, const cv::Mat& reference_bgr, const 
   return count == 0 ? NAN : 10 * std::log10(1.0 / std::max(1e-12, squared / count));
 }
 
+// PSNR sums per method x (cam90, cam180) and the frames summed: (a) live, (b) rigid only,
+// (b) rigid + non-rigid; over every frame the method composed ([0]) and over the frames both
+// compositors composed ([1]).
 struct Row {
-  double psnr[3][2] = {};  // (a) live, (b) rigid, (b) non-rigid x (cam90, cam180)
-  int64_t frames = 0;
+  double psnr[2][3][2] = {};
+  int64_t counted[2][3] = {};
+  int64_t frames = 0;  // composed by the non-rigid compositor (the command's)
   double inliers = 0, residual_mm = 0, rigid_residual_mm = 0, deformation_mm = 0, seconds = 0;
   std::vector<std::string> refused;
 };
@@ -148,14 +153,19 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
       row.refused.push_back(Cat(set, " (non-rigid): ", n.frame.why));
     if (r.frame.state != LiveState::kComposed)
       row.refused.push_back(Cat(set, " (rigid only): ", r.frame.why));
-    if (n.frame.state != LiveState::kComposed || r.frame.state != LiveState::kComposed) continue;
+    if (n.frame.state != LiveState::kComposed) continue;
+    const bool both = r.frame.state == LiveState::kComposed;
     ++row.frames;
     row.inliers += n.frame.inlier_fraction;
     row.residual_mm += 1e3 * n.frame.residual_m;
-    row.rigid_residual_mm += 1e3 * r.frame.rigid_residual_m;
+    row.rigid_residual_mm += 1e3 * n.frame.rigid_residual_m;
     row.deformation_mm += 1e3 * n.frame.deformation_rms_m;
     row.seconds += n.frame.seconds;
     const Mesh* meshes[3] = {&n.live, &r.composed, &n.composed};
+    for (int m = 0; m < 3; ++m) {
+      if (m != 1 || both) ++row.counted[0][m];
+      if (both) ++row.counted[1][m];
+    }
     for (int c = 0; c < 2; ++c) {
       const cv::Mat reference = Bgr(take.ReadFrame(static_cast<size_t>(set), held_out[c]));
       char name[32];
@@ -164,9 +174,12 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
                                       cv::IMREAD_GRAYSCALE);
       if (mask.empty()) Fail("live_bench: no true mask of ", held_out[c], " set ", set);
       for (int m = 0; m < 3; ++m) {
+        if (m == 1 && !both) continue;
         const RenderedView view =
             RenderTexturedMesh(Corners(*meshes[m]), plan.cameras.at(held_out[c]));
-        row.psnr[m][c] += PsnrInMask(view, reference, mask);
+        const double psnr = PsnrInMask(view, reference, mask);
+        row.psnr[0][m][c] += psnr;
+        if (both) row.psnr[1][m][c] += psnr;
       }
     }
   }
@@ -202,7 +215,7 @@ int Run(int argc, char** argv) {
   CreateDirectories(work);
   std::printf("# live_bench: --frames %lld --scan-frames %lld --width %d, load at start %s\n\n",
               static_cast<long long>(args.frames), static_cast<long long>(args.scan_frames),
-              args.width, Uptime().c_str());
+              args.width, LoadAverages().c_str());
   // The scan: the subject turning once before single-rgbd at 10 frames a second.
   SimOptions scan_sim;
   scan_sim.rig = "single-rgbd";
@@ -228,22 +241,28 @@ int Run(int argc, char** argv) {
   SimulateTake(live_sim, work / "live-take");
   const Row row = Measure(work / "live-take", work / "scan");
   const double n = static_cast<double>(std::max<int64_t>(1, row.frames));
-  std::printf(
-      "\n%lld of %lld frames composed by both (walking 0.4 m/s, turning 46 deg/s), %dx%d\n\n",
-      static_cast<long long>(row.frames), static_cast<long long>(args.frames), args.width,
-      args.width * 3 / 4);
+  std::printf("\n%lld of %lld frames composed (walking 0.4 m/s, turning 46 deg/s), %dx%d\n\n",
+              static_cast<long long>(row.frames), static_cast<long long>(args.frames), args.width,
+              args.width * 3 / 4);
   for (const std::string& refused : row.refused) std::printf("  refused %s\n", refused.c_str());
-  std::printf("| what | PSNR cam90 dB | PSNR cam180 dB |\n|---|---|---|\n");
-  const char* names[3] = {"(a) live frame alone", "(b) live + scan, rigid",
+  std::printf("| what | frames | PSNR cam90 dB | PSNR cam180 dB |\n|---|---|---|---|\n");
+  const char* names[3] = {"(a) live frame alone", "(b) live + scan, rigid only",
                           "(b) live + scan, rigid + non-rigid"};
-  for (int m = 0; m < 3; ++m)
-    std::printf("| %s | %.2f | %.2f |\n", names[m], row.psnr[m][0] / n, row.psnr[m][1] / n);
+  const char* over[2] = {"frames each composed", "frames both composed"};
+  for (int o = 0; o < 2; ++o) {
+    for (int m = 0; m < 3; ++m) {
+      const double k = static_cast<double>(std::max<int64_t>(1, row.counted[o][m]));
+      std::printf("| %s (%s) | %lld | %.2f | %.2f |\n", names[m], over[o],
+                  static_cast<long long>(row.counted[o][m]), row.psnr[o][m][0] / k,
+                  row.psnr[o][m][1] / k);
+    }
+  }
   std::printf(
       "\nalignment (means over frames): rigid residual %.2f mm; after non-rigid: residual %.2f "
       "mm, inliers %.1f %%, deformation %.1f mm RMS; %.2f s a frame (rigid + non-rigid + "
       "composition, load %s)\n",
       row.rigid_residual_mm / n, row.residual_mm / n, 100 * row.inliers / n, row.deformation_mm / n,
-      row.seconds / n, Uptime().c_str());
+      row.seconds / n, LoadAverages().c_str());
   // The command's own path on the same take, with this scan and with a scan of another subject
   // (the static knot of the "object" scene, turned and scanned the same way).
   const LiveSummary same = LiveTake(work / "live-take", TakeSelection{}, work / "scan",
