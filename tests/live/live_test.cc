@@ -5,8 +5,11 @@
 
 #include <cmath>
 #include <fstream>
+#include <nlohmann/json.hpp>
 
 #include "core/camera.h"
+#include "core/fs.h"
+#include "core/image.h"
 #include "core/mesh.h"
 #include "core/pose.h"
 #include "live/live.h"
@@ -230,6 +233,58 @@ TEST(LiveCli, RefusesAMissingOrDamagedScan) {
       testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "failed").string()),
       "ended DEGENERATE");
   EXPECT_FALSE(std::filesystem::exists(dir / "take" / "live"));
+}
+
+// The README's workflow on a small simulated take: a half turn scanned, three frames of the walk
+// seen by the fixed sensor beside two held-out cameras, one frame's depth lost.
+TEST(LiveCli, CompletesASimulatedWalkAndReportsADepthlessFrame) {
+  testing::TempDir dir("holocap-live");
+  const std::string rig = R"(name: live-rig
+sync: hardware
+fps: 10
+sensors:
+  - {name: cam0, uri: "sim:live-rig#cam0", role: color, options: {lens: LENSMODEL_OPENCV5, intrinsics: [535.4, 534.8, 320.6, 238.3, 0.08, -0.18, 0.0004, -0.0002, 0.09], size: [640, 480], position: [2.4, -1.3, 1.15], look_at: [0, 0, 0.95]}}
+  - {name: depth0, uri: "sim:live-rig#depth0", role: depth, paired_with: cam0, options: {lens: LENSMODEL_OPENCV4, intrinsics: [570.3, 570.9, 319.2, 241.6, 0.01, -0.02, 0.0002, -0.0001], size: [640, 480], depth_from_color: [0.0015, -0.002, 0.001, -0.045, 0.0002, 0.0008]}}
+  - {name: cam90, uri: "sim:live-rig#cam90", role: color, options: {lens: LENSMODEL_PINHOLE, intrinsics: [535, 535, 319.5, 239.5], size: [640, 480], position: [1.3, 2.4, 1.15], look_at: [0, 0, 0.95]}}
+)";
+  std::ofstream(dir / "live-rig.yaml") << rig;
+  const std::string turn = (dir / "turn").string(), walk = (dir / "walk").string();
+  ASSERT_EQ(testing::RunCli("sim --rig single-rgbd --trajectory turn --fps 10 --frames 36 "
+                            "--trajectory-speed 50 --size 160x120 --out " +
+                            turn)
+                .exit_code,
+            0);
+  const testing::CommandResult scan = testing::RunCli("scan " + turn);
+  ASSERT_EQ(scan.exit_code, 0) << scan.output;
+  ASSERT_EQ(testing::RunCli("sim --rig " + (dir / "live-rig.yaml").string() +
+                            " --frames 3 --size 160x120 --out " + walk)
+                .exit_code,
+            0);
+  const std::filesystem::path lost = dir / "walk" / "frames" / "depth0" / "000001.exr";
+  const cv::Mat depth = ReadImage(lost);
+  WriteExrDepth(lost,
+                cv::Mat(depth.size(), CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN())));
+  const testing::CommandResult live = testing::RunCli("live " + walk + " --scan " + turn + "/scan");
+  ASSERT_EQ(live.exit_code, 0) << live.output;
+  EXPECT_NE(live.output.find("2 composed, 1 without depth, 0 refused"), std::string::npos)
+      << live.output;
+  const std::filesystem::path out = dir / "walk" / "live";
+  const auto report = nlohmann::json::parse(ReadFileToString(out / "report.json"));
+  EXPECT_EQ(report["summary"]["termination"], "SUCCESS");
+  EXPECT_TRUE(report["plan"]["left_out"].contains("colour cameras cam90"));
+  const auto& frames = report["metrics"]["per_frame"];
+  ASSERT_EQ(frames.size(), 3u);
+  EXPECT_EQ(frames[1]["state"], "no_depth");
+  for (int i : {0, 2}) {
+    EXPECT_EQ(frames[i]["state"], "composed");
+    EXPECT_GT(frames[i]["inlier_fraction"].get<double>(), 0.6);
+    EXPECT_LT(frames[i]["residual_m"].get<double>(), 0.015);
+    EXPECT_GT(frames[i]["scan_faces"].get<int64_t>(), 0);
+    EXPECT_GT(frames[i]["live_faces"].get<int64_t>(), 0);
+  }
+  EXPECT_TRUE(std::filesystem::exists(out / "recon" / "000000.glb"));
+  EXPECT_TRUE(std::filesystem::exists(out / "recon" / "000002.ply"));
+  EXPECT_FALSE(std::filesystem::exists(out / "recon" / "000001.ply"));
 }
 
 }  // namespace
