@@ -152,6 +152,37 @@ TEST(LiveAlign, NonRigidFollowsABentLimbWithoutTearing) {
   EXPECT_GT(EdgeStretch(aligned, floppy.deformed).first, most);
 }
 
+// The deformation carried from frame to frame: the same deformation of the scan moved rigidly,
+// and back.
+TEST(LiveAlign, DeformationGraphMovesWithTheScan) {
+  const Mesh tube = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
+  DeformationGraph graph(tube, 0.1, 4);
+  for (size_t j = 0; j < graph.nodes.size(); ++j) {
+    graph.rotation[j] =
+        Eigen::AngleAxisd(0.05 * j, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+    graph.translation[j] = Eigen::Vector3d(0.01 * j, -0.02, 0.005 * j);
+  }
+  Pose world_from_rest = Pose::Identity();
+  world_from_rest.linear() =
+      Eigen::AngleAxisd(0.7, Eigen::Vector3d(0.2, 1, 0.4).normalized()).toRotationMatrix();
+  world_from_rest.translation() = Eigen::Vector3d(0.3, -1.2, 0.5);
+  const DeformationGraph posed = graph.Posed(world_from_rest);
+  double worst = 0;
+  for (size_t v = 0; v < tube.vertices.size(); v += 7) {
+    const Eigen::Vector3d rest = tube.vertices[v].cast<double>();
+    worst = std::max(
+        worst,
+        (posed.Apply(v, world_from_rest * rest) - world_from_rest * graph.Apply(v, rest)).norm());
+  }
+  EXPECT_LT(worst, 1e-9);
+  DeformationGraph back(tube, 0.1, 4);
+  back.TakeMotions(posed, world_from_rest);
+  for (size_t j = 0; j < graph.nodes.size(); ++j) {
+    EXPECT_LT((back.rotation[j] - graph.rotation[j]).norm(), 1e-9);
+    EXPECT_LT((back.translation[j] - graph.translation[j]).norm(), 1e-9);
+  }
+}
+
 TEST(LiveCompositor, ComposesTheLiveSurfaceWithTheUnseenScan) {
   const Mesh straight = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
   const Mesh bent = Tube(0.6, 0.08, 0.5, Eigen::Vector3d(0, 0, 0.7));
