@@ -214,8 +214,8 @@ class LiveCompositor {
 
   Mesh scan_;
   // The scan's deformation graph, in the scan's frame, holding the last composed frame's
-  // motions: each frame starts where the one before ended (a limb that swings far over a few
-  // frames is followed step by step), while the regulariser still measures against the scan.
+  // motions: each frame starts where the one before ended, while the regulariser still measures
+  // against the scan.
   std::optional<DeformationGraph> graph_;
   LiveOptions options_;
   Eigen::Vector3d up_;
