@@ -21,6 +21,7 @@ struct LiveArgs {
   SceneFlags scene;
   LiveOptions options;
   bool rigid_only = false;
+  bool carry = false;
   bool no_glb = false;
 };
 
@@ -78,11 +79,14 @@ void AddLiveCommand(CLI::App& app) {
                    "Stiffness of the deformation (as-rigid-as-possible weight)")
       ->capture_default_str();
   command->add_flag("--rigid-only", args->rigid_only, "No non-rigid correction");
+  command->add_flag("--carry", args->carry,
+                    "Start each frame's deformation from the frame before's, not the scan at rest");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY meshes only");
   command->callback([args] {
     LiveOptions options = args->options;
     if (args->rigid_only) options.nonrigid = false;
     if (args->no_glb) options.write_glb = false;
+    if (args->carry) options.carry_deformation = true;
     options.Check();
     TakeSelection selection = args->selection.Parse();
     args->scene.Apply(&selection);

@@ -3,7 +3,8 @@
 // subject, completed by a scan of the same subject (sim --trajectory turn + holocap scan).
 // PSNR inside the subject's true silhouette in the held-out cameras of
 //   (a) the live frame alone (its depth meshed, coloured from cam0),
-//   (b) live + the scan aligned rigidly, and live + the scan aligned rigidly and non-rigidly,
+//   (b) live + the scan aligned rigidly only, and rigidly and non-rigidly (the deformation
+//       started from the scan at rest each frame: the command's; or from the frame before's),
 // with each frame's alignment residual, inlier fraction, deformation and seconds; then
 // `holocap live`'s own run (LiveTake) on the take with this scan and with a scan of another
 // subject (the object scene), which it must refuse.
@@ -112,13 +113,21 @@ double PsnrInMask(const RenderedView& view, const cv::Mat& reference_bgr, const 
   return count == 0 ? NAN : 10 * std::log10(1.0 / std::max(1e-12, squared / count));
 }
 
-// PSNR sums per method x (cam90, cam180) and the frames summed: (a) live, (b) rigid only,
-// (b) rigid + non-rigid; over every frame the method composed ([0]) and over the frames both
-// compositors composed ([1]).
+// The methods compared: (a) the live frame alone; (b) live + scan aligned rigidly only, and
+// non-rigidly from the scan at rest each frame (the command's default) or from the frame
+// before's deformation (--carry).
+constexpr int kMethods = 4;
+const char* const kMethodNames[kMethods] = {"(a) live frame alone", "(b) live + scan, rigid only",
+                                            "(b) live + scan, non-rigid from rest",
+                                            "(b) live + scan, non-rigid carried"};
+constexpr int kCommand = 2;  // the command's own: non-rigid from rest
+
+// PSNR sums per method x (cam90, cam180) and the frames summed, over every frame the method
+// composed ([0]) and over the frames every compositor composed ([1]).
 struct Row {
-  double psnr[2][3][2] = {};
-  int64_t counted[2][3] = {};
-  int64_t frames = 0;  // composed by the non-rigid compositor (the command's)
+  double psnr[2][kMethods][2] = {};
+  int64_t counted[2][kMethods] = {};
+  int64_t frames = 0;  // composed by the command's compositor (non-rigid from rest)
   double inliers = 0, residual_mm = 0, rigid_residual_mm = 0, deformation_mm = 0, seconds = 0;
   std::vector<std::string> refused;
 };
@@ -136,10 +145,12 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
   selection.ground_truth_cameras = true;
   const TakePlan plan = PlanTake(take, selection);
   const Mesh scan = ReadScan(scan_dir);
-  LiveOptions rigid_options;
-  rigid_options.nonrigid = false;
-  LiveCompositor rigid(scan, rigid_options, plan.up, plan.floor_m);
-  LiveCompositor full(scan, LiveOptions(), plan.up, plan.floor_m);
+  LiveOptions options[kMethods];
+  options[1].nonrigid = false;
+  options[3].carry_deformation = true;
+  std::vector<LiveCompositor> compositors;
+  for (int m = 1; m < kMethods; ++m)
+    compositors.emplace_back(scan, options[m], plan.up, plan.floor_m);
   const CameraModel& depth_camera = plan.cameras.at("depth0");
   const CameraModel& color_camera = plan.cameras.at("cam0");
   const std::string held_out[2] = {"cam90", "cam180"};
@@ -147,24 +158,27 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
   for (int64_t set : plan.sets) {
     const cv::Mat depth = take.ReadFrame(static_cast<size_t>(set), "depth0");
     const cv::Mat color = Bgr(take.ReadFrame(static_cast<size_t>(set), "cam0"));
-    const LiveResult r = rigid.Process(set, depth, depth_camera, color, color_camera);
-    const LiveResult n = full.Process(set, depth, depth_camera, color, color_camera);
-    if (n.frame.state != LiveState::kComposed)
-      row.refused.push_back(Cat(set, " (non-rigid): ", n.frame.why));
-    if (r.frame.state != LiveState::kComposed)
-      row.refused.push_back(Cat(set, " (rigid only): ", r.frame.why));
-    if (n.frame.state != LiveState::kComposed) continue;
-    const bool both = r.frame.state == LiveState::kComposed;
-    ++row.frames;
-    row.inliers += n.frame.inlier_fraction;
-    row.residual_mm += 1e3 * n.frame.residual_m;
-    row.rigid_residual_mm += 1e3 * n.frame.rigid_residual_m;
-    row.deformation_mm += 1e3 * n.frame.deformation_rms_m;
-    row.seconds += n.frame.seconds;
-    const Mesh* meshes[3] = {&n.live, &r.composed, &n.composed};
-    for (int m = 0; m < 3; ++m) {
-      if (m != 1 || both) ++row.counted[0][m];
-      if (both) ++row.counted[1][m];
+    std::vector<LiveResult> results;
+    bool all = true;
+    for (int m = 1; m < kMethods; ++m) {
+      results.push_back(compositors[m - 1].Process(set, depth, depth_camera, color, color_camera));
+      if (results.back().frame.state == LiveState::kComposed) continue;
+      all = false;
+      row.refused.push_back(Cat(set, " ", kMethodNames[m], ": ", results.back().frame.why));
+    }
+    const LiveResult& n = results[kCommand - 1];
+    const Mesh* meshes[kMethods] = {&n.live, &results[0].composed, &results[1].composed,
+                                    &results[2].composed};
+    bool composed[kMethods] = {n.frame.state == LiveState::kComposed};
+    for (int m = 1; m < kMethods; ++m)
+      composed[m] = results[m - 1].frame.state == LiveState::kComposed;
+    if (composed[kCommand]) {
+      ++row.frames;
+      row.inliers += n.frame.inlier_fraction;
+      row.residual_mm += 1e3 * n.frame.residual_m;
+      row.rigid_residual_mm += 1e3 * n.frame.rigid_residual_m;
+      row.deformation_mm += 1e3 * n.frame.deformation_rms_m;
+      row.seconds += n.frame.seconds;
     }
     for (int c = 0; c < 2; ++c) {
       const cv::Mat reference = Bgr(take.ReadFrame(static_cast<size_t>(set), held_out[c]));
@@ -173,13 +187,17 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
       const cv::Mat mask = cv::imread((live_take / "gt" / "masks" / held_out[c] / name).string(),
                                       cv::IMREAD_GRAYSCALE);
       if (mask.empty()) Fail("live_bench: no true mask of ", held_out[c], " set ", set);
-      for (int m = 0; m < 3; ++m) {
-        if (m == 1 && !both) continue;
+      for (int m = 0; m < kMethods; ++m) {
+        if (!composed[m]) continue;
         const RenderedView view =
             RenderTexturedMesh(Corners(*meshes[m]), plan.cameras.at(held_out[c]));
         const double psnr = PsnrInMask(view, reference, mask);
         row.psnr[0][m][c] += psnr;
-        if (both) row.psnr[1][m][c] += psnr;
+        if (all) row.psnr[1][m][c] += psnr;
+        if (c == 0) {
+          ++row.counted[0][m];
+          if (all) ++row.counted[1][m];
+        }
       }
     }
   }
@@ -246,13 +264,11 @@ int Run(int argc, char** argv) {
               args.width * 3 / 4);
   for (const std::string& refused : row.refused) std::printf("  refused %s\n", refused.c_str());
   std::printf("| what | frames | PSNR cam90 dB | PSNR cam180 dB |\n|---|---|---|---|\n");
-  const char* names[3] = {"(a) live frame alone", "(b) live + scan, rigid only",
-                          "(b) live + scan, rigid + non-rigid"};
-  const char* over[2] = {"frames each composed", "frames both composed"};
+  const char* over[2] = {"frames each composed", "frames all composed"};
   for (int o = 0; o < 2; ++o) {
-    for (int m = 0; m < 3; ++m) {
+    for (int m = 0; m < kMethods; ++m) {
       const double k = static_cast<double>(std::max<int64_t>(1, row.counted[o][m]));
-      std::printf("| %s (%s) | %lld | %.2f | %.2f |\n", names[m], over[o],
+      std::printf("| %s (%s) | %lld | %.2f | %.2f |\n", kMethodNames[m], over[o],
                   static_cast<long long>(row.counted[o][m]), row.psnr[o][m][0] / k,
                   row.psnr[o][m][1] / k);
     }

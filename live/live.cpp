@@ -59,6 +59,7 @@ Json LiveOptions::ToJson() const {
           {"node_neighbours", node_neighbours},
           {"nonrigid_iterations", nonrigid_iterations},
           {"arap_weight", arap_weight},
+          {"carry_deformation", carry_deformation},
           {"min_inlier_fraction", min_inlier_fraction},
           {"max_residual_m", max_residual_m},
           {"min_rigid_inlier_fraction", min_rigid_inlier_fraction},
