@@ -1,0 +1,341 @@
+// One live frame completed by the scan: alignment, the subject's live surface, and the scan's
+// triangles the sensor does not observe.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <optional>
+
+#include "core/error.h"
+#include "live/live.h"
+#include "live/live_internal.h"
+#include "reconstruction/projector.h"
+#include "reconstruction/reconstruction.h"
+
+namespace holocap {
+
+namespace {
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+// Fewer valid live pixels than this: the frame has no usable depth.
+constexpr int64_t kMinLivePoints = 200;
+// Fewer scan points the sensor should see than this: nothing to judge the fit by.
+constexpr int64_t kMinExpected = 50;
+
+std::string Fixed(double value, int decimals) {
+  char text[64];
+  std::snprintf(text, sizeof(text), "%.*f", decimals, value);
+  return text;
+}
+
+Mesh Transformed(const Mesh& mesh, const Pose& pose) {
+  Mesh moved = mesh;
+  const Eigen::Isometry3f transform = pose.cast<float>();
+  for (Eigen::Vector3f& v : moved.vertices) v = transform * v;
+  for (Eigen::Vector3f& n : moved.normals) n = transform.linear() * n;
+  return moved;
+}
+
+Eigen::Matrix<uint8_t, 3, 1> ColorAt(const cv::Mat& bgr, float u, float v) {
+  const int x = static_cast<int>(std::lround(u));
+  const int y = static_cast<int>(std::lround(v));
+  if (bgr.empty() || x < 0 || y < 0 || x >= bgr.cols || y >= bgr.rows)
+    return Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128);
+  const cv::Vec3b pixel = bgr.at<cv::Vec3b>(y, x);
+  return Eigen::Matrix<uint8_t, 3, 1>(pixel[2], pixel[1], pixel[0]);
+}
+
+// Keeps the faces `keep` says, and only the vertices they use.
+Mesh KeepFaces(const Mesh& mesh, const std::vector<bool>& keep) {
+  Mesh kept;
+  std::vector<int> index(mesh.vertices.size(), -1);
+  for (size_t f = 0; f < mesh.faces.size(); ++f) {
+    if (!keep[f]) continue;
+    Eigen::Vector3i face;
+    for (int c = 0; c < 3; ++c) {
+      const int v = mesh.faces[f][c];
+      if (index[v] < 0) {
+        index[v] = static_cast<int>(kept.vertices.size());
+        kept.vertices.push_back(mesh.vertices[v]);
+        if (!mesh.normals.empty()) kept.normals.push_back(mesh.normals[v]);
+        if (!mesh.colors.empty()) kept.colors.push_back(mesh.colors[v]);
+      }
+      face[c] = index[v];
+    }
+    kept.faces.push_back(face);
+  }
+  return kept;
+}
+
+// A scan that kept the floor it stood on (a wide flat layer at its bottom, most of its vertices)
+// loses it: the floor does not move with the subject, and the live frame has its own.
+void CutFloor(Mesh* scan, const Eigen::Vector3d& up) {
+  constexpr double kBin = 0.01, kReach = 0.1, kLayer = 0.02, kCut = 0.03, kShare = 0.25;
+  std::vector<double> height(scan->vertices.size());
+  double lowest = std::numeric_limits<double>::infinity();
+  for (size_t v = 0; v < height.size(); ++v) {
+    height[v] = up.dot(scan->vertices[v].cast<double>());
+    lowest = std::min(lowest, height[v]);
+  }
+  std::vector<int64_t> bins(static_cast<size_t>(kReach / kBin), 0);
+  for (double h : height) {
+    const size_t bin = static_cast<size_t>((h - lowest) / kBin);
+    if (bin < bins.size()) ++bins[bin];
+  }
+  const size_t peak =
+      static_cast<size_t>(std::max_element(bins.begin(), bins.end()) - bins.begin());
+  const double level = lowest + (peak + 0.5) * kBin;
+  int64_t layer = 0;
+  for (double h : height) layer += std::abs(h - level) <= kLayer;
+  if (layer < kShare * static_cast<double>(height.size())) return;
+  std::vector<bool> keep(scan->faces.size());
+  for (size_t f = 0; f < scan->faces.size(); ++f) {
+    const Eigen::Vector3i& face = scan->faces[f];
+    keep[f] = height[face[0]] > level + kCut && height[face[1]] > level + kCut &&
+              height[face[2]] > level + kCut;
+  }
+  *scan = KeepFaces(*scan, keep);
+}
+
+}  // namespace
+
+Mesh MeshLiveSurface(const LiveSurface& live, const cv::Mat& subject, const cv::Mat& color_bgr,
+                     const CameraModel& color_camera, double max_depth_jump_m) {
+  Mesh mesh;
+  std::vector<int> index(live.points.size(), -1);
+  const recon::FastProjector color(color_camera);
+  for (int y = 0; y < live.height; ++y) {
+    for (int x = 0; x < live.width; ++x) {
+      const size_t i = static_cast<size_t>(y) * live.width + x;
+      if (subject.at<uint8_t>(y, x) == 0 || !live.points[i].allFinite()) continue;
+      index[i] = static_cast<int>(mesh.vertices.size());
+      mesh.vertices.push_back(live.points[i]);
+      float u = -1, v = -1, z = 0;
+      if (color_bgr.empty() || !color.ProjectWorld(live.points[i], &u, &v, &z)) u = v = -1;
+      mesh.colors.push_back(ColorAt(color_bgr, u, v));
+    }
+  }
+  const Eigen::Vector3f center = live.camera.center_in_world().cast<float>();
+  auto add = [&](size_t a, size_t b, size_t c) {
+    if (index[a] < 0 || index[b] < 0 || index[c] < 0) return;
+    const float lo = std::min({live.depth[a], live.depth[b], live.depth[c]});
+    const float hi = std::max({live.depth[a], live.depth[b], live.depth[c]});
+    if (hi - lo > max_depth_jump_m) return;
+    const Eigen::Vector3f& pa = live.points[a];
+    const Eigen::Vector3f n = (live.points[b] - pa).cross(live.points[c] - pa);
+    if (n.dot(center - pa) >= 0) {
+      mesh.faces.emplace_back(index[a], index[b], index[c]);
+    } else {
+      mesh.faces.emplace_back(index[a], index[c], index[b]);
+    }
+  };
+  for (int y = 0; y + 1 < live.height; ++y) {
+    for (int x = 0; x + 1 < live.width; ++x) {
+      const size_t a = static_cast<size_t>(y) * live.width + x;
+      add(a, a + live.width, a + 1);
+      add(a + 1, a + live.width, a + live.width + 1);
+    }
+  }
+  mesh.ComputeNormals();
+  return mesh;
+}
+
+LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vector3d up,
+                               double floor_m)
+    : scan_(std::move(scan)), options_(options), up_(up.normalized()), floor_m_(floor_m) {
+  options_.Check();
+  if (scan_.normals.size() != scan_.vertices.size()) scan_.ComputeNormals();
+  if (scan_.colors.size() != scan_.vertices.size())
+    scan_.colors.assign(scan_.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
+  CutFloor(&scan_, up_);
+  if (scan_.faces.empty()) Fail("live: the scan has no triangles (besides a floor)");
+}
+
+// The first frame: the scan moved so that its centroid sits behind the centroid of the nearest
+// live points (by the scan's own half depth along the view), for when the scan was made
+// elsewhere in the world than the live take.
+Pose LiveCompositor::InitialPose(const LiveSurface& live, bool* first) const {
+  *first = !has_pose_;
+  if (has_pose_) return last_world_from_scan_;
+  Eigen::AlignedBox3f box;
+  Eigen::Vector3d scan_centroid = Eigen::Vector3d::Zero();
+  for (const Eigen::Vector3f& v : scan_.vertices) {
+    box.extend(v);
+    scan_centroid += v.cast<double>();
+  }
+  scan_centroid /= static_cast<double>(scan_.vertices.size());
+  std::vector<float> depths;
+  for (float d : live.depth)
+    if (!std::isnan(d)) depths.push_back(d);
+  if (depths.empty()) return Pose::Identity();
+  std::nth_element(depths.begin(), depths.begin() + depths.size() / 20, depths.end());
+  const float near = depths[depths.size() / 20] + box.sizes().norm() * 0.5f;
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  int64_t count = 0;
+  for (size_t i = 0; i < live.points.size(); ++i) {
+    if (std::isnan(live.depth[i]) || live.depth[i] > near) continue;
+    sum += live.points[i].cast<double>();
+    ++count;
+  }
+  if (count == 0) return Pose::Identity();
+  const Eigen::Vector3d live_centroid = sum / static_cast<double>(count);
+  const Eigen::Vector3d view = (live_centroid - live.camera.center_in_world()).normalized();
+  Pose pose = Pose::Identity();
+  pose.translation() = live_centroid + view * (0.25 * box.sizes().minCoeff()) - scan_centroid;
+  return pose;
+}
+
+cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deformed) const {
+  const cv::Mat scan_depth = RenderDepth(deformed, live.camera);
+  cv::Mat subject(live.height, live.width, CV_8U, cv::Scalar(0));
+  constexpr int kRadius = 2;
+  for (int y = 0; y < live.height; ++y) {
+    for (int x = 0; x < live.width; ++x) {
+      const float d = live.depth[static_cast<size_t>(y) * live.width + x];
+      if (std::isnan(d)) continue;
+      bool near = false;
+      for (int dy = -kRadius; dy <= kRadius && !near; ++dy) {
+        for (int dx = -kRadius; dx <= kRadius && !near; ++dx) {
+          const int xx = x + dx, yy = y + dy;
+          if (xx < 0 || yy < 0 || xx >= live.width || yy >= live.height) continue;
+          near = std::abs(scan_depth.at<float>(yy, xx) - d) < options_.subject_gate_m;
+        }
+      }
+      if (near) subject.at<uint8_t>(y, x) = 255;
+    }
+  }
+  return subject;
+}
+
+Mesh LiveCompositor::UnobservedScan(const Mesh& deformed, const LiveSurface& live,
+                                    const cv::Mat& subject) const {
+  const recon::FastProjector projector(live.camera);
+  const Eigen::Vector3f center = live.camera.center_in_world().cast<float>();
+  std::vector<bool> observed(deformed.vertices.size(), false);
+  for (size_t v = 0; v < deformed.vertices.size(); ++v) {
+    const Eigen::Vector3f& p = deformed.vertices[v];
+    if (deformed.normals[v].dot(center - p) <= 0) continue;
+    float u, w, z;
+    if (!projector.ProjectWorld(p, &u, &w, &z)) continue;
+    const int x = static_cast<int>(std::lround(u));
+    const int y = static_cast<int>(std::lround(w));
+    if (x < 0 || y < 0 || x >= live.width || y >= live.height) continue;
+    if (subject.at<uint8_t>(y, x) == 0) continue;
+    const float d = live.depth[static_cast<size_t>(y) * live.width + x];
+    observed[v] = std::abs(d - z) < options_.observed_gate_m;
+  }
+  std::vector<bool> keep(deformed.faces.size());
+  for (size_t f = 0; f < deformed.faces.size(); ++f) {
+    const Eigen::Vector3i& face = deformed.faces[f];
+    keep[f] = !(observed[face[0]] && observed[face[1]] && observed[face[2]]);
+  }
+  return KeepFaces(deformed, keep);
+}
+
+LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
+                                   const CameraModel& depth_camera, const cv::Mat& color_bgr,
+                                   const CameraModel& color_camera) {
+  const auto start = std::chrono::steady_clock::now();
+  LiveResult result;
+  LiveFrame& frame = result.frame;
+  frame.set = set;
+  LiveSurface live =
+      MakeLiveSurface(depth_m, depth_camera, options_.depth_min_m, options_.depth_max_m);
+  if (std::isfinite(floor_m_)) {
+    for (size_t i = 0; i < live.points.size(); ++i) {
+      if (!live.points[i].allFinite() ||
+          up_.cast<float>().dot(live.points[i]) >= floor_m_ + options_.floor_margin_m)
+        continue;
+      if (live.normals[i].allFinite()) --live.valid;
+      live.points[i] = live.normals[i] = Eigen::Vector3f::Constant(kNaN);
+      live.depth[i] = kNaN;
+    }
+  }
+  frame.live_points = live.valid;
+  auto finish = [&](LiveState state, std::string why) {
+    frame.state = state;
+    frame.why = std::move(why);
+    frame.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    return result;
+  };
+  if (live.valid < kMinLivePoints) {
+    return finish(LiveState::kNoDepth, Cat("no usable depth (", live.valid, " valid pixels)"));
+  }
+  if (options_.nonrigid && (!graph_ || !options_.carry_deformation))
+    graph_.emplace(scan_, options_.node_spacing_m, options_.node_neighbours);
+  // The scan as the frame before left it, aligned rigidly from where it was.
+  Mesh previous = scan_;
+  if (graph_) {
+    for (size_t v = 0; v < previous.vertices.size(); ++v) {
+      previous.vertices[v] = graph_->Apply(v, scan_.vertices[v].cast<double>()).cast<float>();
+      previous.normals[v] = graph_->ApplyNormal(v, scan_.normals[v].cast<double>()).cast<float>();
+    }
+  }
+  bool first = false;
+  const Pose initial = InitialPose(live, &first);
+  RigidAlignment rigid = AlignRigid(previous, live, initial, options_);
+  if (first) {
+    // The scan where it is may already sit on the subject (the same world): keep the better.
+    const RigidAlignment in_place = AlignRigid(previous, live, Pose::Identity(), options_);
+    if (in_place.fit.inlier_fraction > rigid.fit.inlier_fraction) rigid = in_place;
+  }
+  frame.world_from_scan = rigid.world_from_scan;
+  frame.rigid_inlier_fraction = rigid.fit.inlier_fraction;
+  frame.rigid_residual_m = rigid.fit.residual_m;
+  NonRigidFit fit;
+  std::optional<DeformationGraph> posed;
+  if (graph_) {
+    posed = graph_->Posed(rigid.world_from_scan);
+    fit = FitNonRigid(Transformed(scan_, rigid.world_from_scan), live, options_, &*posed);
+  } else {
+    fit.deformed = Transformed(scan_, rigid.world_from_scan);
+    fit.before = fit.after = rigid.fit;
+  }
+  frame.inlier_fraction = fit.after.inlier_fraction;
+  frame.residual_m = fit.after.residual_m;
+  frame.deformation_rms_m = fit.deformation_rms_m;
+  frame.deformation_max_m = fit.deformation_max_m;
+  if (fit.after.expected < kMinExpected) {
+    return finish(LiveState::kRefused, Cat("the aligned scan lies where the sensor sees nothing (",
+                                           fit.after.expected, " scan points in view)"));
+  }
+  if (rigid.fit.inlier_fraction < options_.min_rigid_inlier_fraction) {
+    return finish(LiveState::kRefused,
+                  Cat("the scan does not fit the live surface rigidly: ",
+                      Fixed(100 * rigid.fit.inlier_fraction, 1), " % of its visible points within ",
+                      Fixed(100 * options_.gate_m, 1), " cm (needs ",
+                      Fixed(100 * options_.min_rigid_inlier_fraction, 1), " %)"));
+  }
+  if (fit.deformation_rms_m > options_.max_deformation_rms_m) {
+    return finish(LiveState::kRefused,
+                  Cat("the scan does not fit the live surface without bending it ",
+                      Fixed(100 * fit.deformation_rms_m, 1), " cm RMS (at most ",
+                      Fixed(100 * options_.max_deformation_rms_m, 1), " cm)"));
+  }
+  if (fit.after.inlier_fraction < options_.min_inlier_fraction) {
+    return finish(
+        LiveState::kRefused,
+        Cat("the scan does not fit the live surface: ", Fixed(100 * fit.after.inlier_fraction, 1),
+            " % of its visible points within ", Fixed(100 * options_.gate_m, 1), " cm (needs ",
+            Fixed(100 * options_.min_inlier_fraction, 1), " %)"));
+  }
+  if (!(fit.after.residual_m <= options_.max_residual_m)) {
+    return finish(LiveState::kRefused, Cat("the scan does not fit the live surface: residual ",
+                                           Fixed(1e3 * fit.after.residual_m, 1), " mm (at most ",
+                                           Fixed(1e3 * options_.max_residual_m, 1), " mm)"));
+  }
+  has_pose_ = true;
+  last_world_from_scan_ = rigid.world_from_scan;
+  if (graph_) graph_->TakeMotions(*posed, rigid.world_from_scan);
+  const cv::Mat subject = SubjectMask(live, fit.deformed);
+  frame.subject_pixels = cv::countNonZero(subject);
+  result.live = MeshLiveSurface(live, subject, color_bgr, color_camera, options_.max_depth_jump_m);
+  const Mesh unobserved = UnobservedScan(fit.deformed, live, subject);
+  frame.live_faces = static_cast<int64_t>(result.live.faces.size());
+  frame.scan_faces = static_cast<int64_t>(unobserved.faces.size());
+  result.composed = result.live;
+  result.composed.Append(unobserved);
+  return finish(LiveState::kComposed, "");
+}
+
+}  // namespace holocap

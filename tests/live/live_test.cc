@@ -1,0 +1,322 @@
+// live/: the scan aligned rigidly and non-rigidly to a live depth frame, the refused mismatching
+// scan, the depthless frame, and the CLI's error lines. Synthetic tubes seen by a 160x120
+// pinhole camera, their depth rendered exactly.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "core/camera.h"
+#include "core/fs.h"
+#include "core/image.h"
+#include "core/mesh.h"
+#include "core/pose.h"
+#include "live/live.h"
+#include "reconstruction/reconstruction.h"
+#include "tests/reconstruction/synthetic.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+// A tube of `radius` along a centreline that runs up +z for `length` and bends by `bend_rad`
+// about +y at its middle. The same ring and segment of every tube is the same vertex, so a bent
+// tube is the straight one's vertices moved.
+Mesh Tube(double length, double radius, double bend_rad, Eigen::Vector3d base) {
+  constexpr int kRings = 61, kSegments = 24;
+  Mesh mesh;
+  const Eigen::Matrix3d turn =
+      Eigen::AngleAxisd(bend_rad, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  for (int r = 0; r < kRings; ++r) {
+    const double s = length * r / (kRings - 1);
+    Eigen::Matrix3d frame = Eigen::Matrix3d::Identity();
+    Eigen::Vector3d centre = base + Eigen::Vector3d(0, 0, std::min(s, length / 2));
+    if (s > length / 2) {
+      frame = turn;
+      centre += turn * Eigen::Vector3d(0, 0, s - length / 2);
+    }
+    for (int k = 0; k < kSegments; ++k) {
+      const double a = 2 * M_PI * k / kSegments;
+      mesh.vertices.push_back(
+          (centre + frame * Eigen::Vector3d(radius * std::cos(a), radius * std::sin(a), 0))
+              .cast<float>());
+    }
+  }
+  for (int r = 0; r + 1 < kRings; ++r) {
+    for (int k = 0; k < kSegments; ++k) {
+      const int a = r * kSegments + k, b = r * kSegments + (k + 1) % kSegments;
+      mesh.faces.emplace_back(a, b, b + kSegments);
+      mesh.faces.emplace_back(a, b + kSegments, a + kSegments);
+    }
+  }
+  mesh.ComputeNormals();
+  mesh.colors.assign(mesh.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(200, 150, 100));
+  return mesh;
+}
+
+// A 160x120 pinhole camera 1.1 m in front of the tube (along -y), looking at its middle.
+CameraModel SideCamera() {
+  const Eigen::Vector3d target(0, 0, 1.0);
+  return CameraModel("LENSMODEL_PINHOLE", {150, 150, 79.5, 59.5}, 160, 120,
+                     CamFromWorldLookAt(target + Eigen::Vector3d(0.15, -1.1, 0.05), target));
+}
+
+// What the sensor measures: the subject before a wall 0.7 m behind it.
+cv::Mat SensorDepth(const Mesh& subject, const CameraModel& camera) {
+  Mesh scene = subject;
+  Mesh wall;
+  wall.vertices = {{-3, 0.7f, -2}, {3, 0.7f, -2}, {3, 0.7f, 4}, {-3, 0.7f, 4}};
+  wall.faces = {{0, 1, 2}, {0, 2, 3}};
+  scene.normals.clear();
+  scene.colors.clear();
+  scene.Append(wall);
+  return RenderDepth(scene, camera);
+}
+
+Mesh Moved(const Mesh& mesh, const Pose& pose) {
+  Mesh moved = mesh;
+  for (Eigen::Vector3f& v : moved.vertices) v = (pose * v.cast<double>()).cast<float>();
+  moved.ComputeNormals();
+  return moved;
+}
+
+LiveSurface SurfaceOf(const Mesh& mesh, const CameraModel& camera) {
+  const LiveOptions options;
+  return MakeLiveSurface(SensorDepth(mesh, camera), camera, options.depth_min_m,
+                         options.depth_max_m);
+}
+
+TEST(LiveAlign, RecoversAKnownRigidMotion) {
+  const Mesh scan = Tube(0.6, 0.08, 1.0, Eigen::Vector3d(0, 0, 0.7));
+  Pose truth = Pose::Identity();
+  truth.linear() =
+      Eigen::AngleAxisd(0.12, Eigen::Vector3d(0.3, 0.2, 1).normalized()).toRotationMatrix();
+  truth.translation() = Eigen::Vector3d(0.05, -0.03, 0.04) +
+                        (Eigen::Matrix3d::Identity() - truth.linear()) * Eigen::Vector3d(0, 0, 1.0);
+  const CameraModel camera = SideCamera();
+  const LiveSurface live = SurfaceOf(Moved(scan, truth), camera);
+  ASSERT_GT(live.valid, 1000);
+  const RigidAlignment aligned = AlignRigid(scan, live, Pose::Identity(), LiveOptions());
+  const Pose error = truth.inverse() * aligned.world_from_scan;
+  // Points of the tube (within 0.5 m of the rotation's centre) move by at most this much.
+  EXPECT_LT(error.translation().norm(), 0.004);
+  EXPECT_LT(RotationAngleDeg(error.linear()), 0.4);
+  // Edge pixels at 160x120 (7 mm across) pair with the wall behind or carry slanted normals.
+  EXPECT_GT(aligned.fit.inlier_fraction, 0.85);
+  EXPECT_LT(aligned.fit.residual_m, 0.004);
+}
+
+// Longest ratio of an edge's deformed length to its rest length, and the shortest.
+std::pair<double, double> EdgeStretch(const Mesh& rest, const Mesh& deformed) {
+  double most = 0, least = 1e9;
+  for (const Eigen::Vector3i& face : rest.faces) {
+    for (int c = 0; c < 3; ++c) {
+      const int a = face[c], b = face[(c + 1) % 3];
+      const double ratio = (deformed.vertices[a] - deformed.vertices[b]).norm() /
+                           (rest.vertices[a] - rest.vertices[b]).norm();
+      most = std::max(most, ratio);
+      least = std::min(least, ratio);
+    }
+  }
+  return {most, least};
+}
+
+TEST(LiveAlign, NonRigidFollowsABentLimbWithoutTearing) {
+  const Mesh straight = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
+  const Mesh bent = Tube(0.6, 0.08, 0.5, Eigen::Vector3d(0, 0, 0.7));  // ~29 degrees at the elbow
+  const CameraModel camera = SideCamera();
+  const LiveSurface live = SurfaceOf(bent, camera);
+  LiveOptions options;
+  // The scan's upper arm lies on the live one (as the rigid alignment leaves a limb attached to
+  // a body); its forearm points straight on where the live one bends away.
+  const Mesh& aligned = straight;
+  const NonRigidFit fit = FitNonRigid(aligned, live, options);
+  EXPECT_GT(fit.nodes, 5);
+  // The rigid fit cannot follow the elbow; the deformation does.
+  EXPECT_LT(fit.before.inlier_fraction, 0.75);
+  // (A perfect scan reaches 0.94 here: edge pixels pair with the wall or carry slanted normals.)
+  EXPECT_GT(fit.after.inlier_fraction, 0.8);
+  EXPECT_LT(fit.after.residual_m, 0.5 * fit.before.residual_m);
+  // The forearm's tip moves by the chord of the bend, 15 cm.
+  EXPECT_GT(fit.deformation_max_m, 0.12);
+  // No tearing: every edge keeps its length within 35 %.
+  const auto [most, least] = EdgeStretch(aligned, fit.deformed);
+  EXPECT_LT(most, 1.35);
+  EXPECT_GT(least, 0.65);
+  // The regulariser is what holds it together: all but no stiffness fits the data as well but
+  // stretches the mesh further.
+  LiveOptions loose = options;
+  loose.arap_weight = 1e-4;
+  const NonRigidFit floppy = FitNonRigid(aligned, live, loose);
+  EXPECT_GT(EdgeStretch(aligned, floppy.deformed).first, most);
+}
+
+// The deformation carried from frame to frame: the same deformation of the scan moved rigidly,
+// and back.
+TEST(LiveAlign, DeformationGraphMovesWithTheScan) {
+  const Mesh tube = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
+  DeformationGraph graph(tube, 0.1, 4);
+  for (size_t j = 0; j < graph.nodes.size(); ++j) {
+    graph.rotation[j] =
+        Eigen::AngleAxisd(0.05 * j, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+    graph.translation[j] = Eigen::Vector3d(0.01 * j, -0.02, 0.005 * j);
+  }
+  Pose world_from_rest = Pose::Identity();
+  world_from_rest.linear() =
+      Eigen::AngleAxisd(0.7, Eigen::Vector3d(0.2, 1, 0.4).normalized()).toRotationMatrix();
+  world_from_rest.translation() = Eigen::Vector3d(0.3, -1.2, 0.5);
+  const DeformationGraph posed = graph.Posed(world_from_rest);
+  double worst = 0;
+  for (size_t v = 0; v < tube.vertices.size(); v += 7) {
+    const Eigen::Vector3d rest = tube.vertices[v].cast<double>();
+    worst = std::max(
+        worst,
+        (posed.Apply(v, world_from_rest * rest) - world_from_rest * graph.Apply(v, rest)).norm());
+  }
+  EXPECT_LT(worst, 1e-9);
+  DeformationGraph back(tube, 0.1, 4);
+  back.TakeMotions(posed, world_from_rest);
+  for (size_t j = 0; j < graph.nodes.size(); ++j) {
+    EXPECT_LT((back.rotation[j] - graph.rotation[j]).norm(), 1e-9);
+    EXPECT_LT((back.translation[j] - graph.translation[j]).norm(), 1e-9);
+  }
+}
+
+TEST(LiveCompositor, ComposesTheLiveSurfaceWithTheUnseenScan) {
+  const Mesh straight = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
+  const Mesh bent = Tube(0.6, 0.08, 0.5, Eigen::Vector3d(0, 0, 0.7));
+  const CameraModel camera = SideCamera();
+  LiveCompositor compositor(straight, LiveOptions());
+  const LiveResult result =
+      compositor.Process(3, SensorDepth(bent, camera), camera, cv::Mat(), camera);
+  ASSERT_EQ(result.frame.state, LiveState::kComposed) << result.frame.why;
+  EXPECT_GT(result.frame.live_faces, 1000);
+  // The back of the tube, which the sensor cannot see, comes from the scan: about half of it.
+  EXPECT_GT(result.frame.scan_faces, straight.faces.size() / 3);
+  EXPECT_LT(result.frame.scan_faces, straight.faces.size() * 4 / 5);
+  EXPECT_EQ(result.composed.faces.size(), result.frame.live_faces + result.frame.scan_faces);
+  // The composed back lies on the bent tube's surface (its axis within a few mm of the radius).
+  const Eigen::Vector3d elbow(0, 0, 1.0);
+  const Eigen::Vector3d upper =
+      Eigen::AngleAxisd(0.5, Eigen::Vector3d::UnitY()) * Eigen::Vector3d::UnitZ();
+  double worst = 0;
+  for (size_t v = result.live.vertices.size(); v < result.composed.vertices.size(); ++v) {
+    const Eigen::Vector3d p = result.composed.vertices[v].cast<double>();
+    const Eigen::Vector3d rel = p - elbow;
+    const double along = rel.dot(upper);
+    const double off = along > 0.03      ? (rel - along * upper).norm()
+                       : rel.z() < -0.03 ? Eigen::Vector2d(p.x(), p.y()).norm()
+                                         : 0.08;
+    worst = std::max(worst, std::abs(off - 0.08));
+  }
+  EXPECT_LT(worst, 0.02);
+}
+
+TEST(LiveCompositor, RefusesAScanOfAnotherShape) {
+  const Mesh tube = Tube(0.6, 0.08, 0.5, Eigen::Vector3d(0, 0, 0.7));
+  const Mesh ball = testing::SphereMesh({Eigen::Vector3d(0, 0, 1.0), 0.2}, 24, 48);
+  const CameraModel camera = SideCamera();
+  LiveCompositor compositor(ball, LiveOptions());
+  const LiveResult result =
+      compositor.Process(0, SensorDepth(tube, camera), camera, cv::Mat(), camera);
+  EXPECT_EQ(result.frame.state, LiveState::kRefused);
+  EXPECT_NE(result.frame.why.find("does not fit"), std::string::npos) << result.frame.why;
+  EXPECT_TRUE(result.composed.empty());
+}
+
+TEST(LiveCompositor, ReportsADepthlessFrameWithoutComposingIt) {
+  const Mesh tube = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
+  const CameraModel camera = SideCamera();
+  LiveCompositor compositor(tube, LiveOptions());
+  const cv::Mat nan(camera.height(), camera.width(), CV_32F,
+                    cv::Scalar(std::numeric_limits<float>::quiet_NaN()));
+  const LiveResult none = compositor.Process(1, nan, camera, cv::Mat(), camera);
+  EXPECT_EQ(none.frame.state, LiveState::kNoDepth);
+  EXPECT_NE(none.frame.why.find("no usable depth"), std::string::npos);
+  EXPECT_TRUE(none.composed.empty());
+  // The next frame with depth is composed as usual.
+  const LiveResult next =
+      compositor.Process(2, SensorDepth(tube, camera), camera, cv::Mat(), camera);
+  EXPECT_EQ(next.frame.state, LiveState::kComposed) << next.frame.why;
+}
+
+TEST(LiveCli, RefusesAMissingOrDamagedScan) {
+  testing::TempDir dir("holocap-live");
+  std::filesystem::create_directories(dir / "take");
+  testing::ExpectOneLineError(
+      testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "none").string()),
+      "is not a directory");
+  std::filesystem::create_directories(dir / "empty");
+  testing::ExpectOneLineError(
+      testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "empty").string()),
+      "holds no mesh.ply");
+  std::filesystem::create_directories(dir / "damaged");
+  std::ofstream(dir / "damaged" / "mesh.ply")
+      << "ply\nformat binary_little_endian 1.0\nelement vertex 9";
+  testing::ExpectOneLineError(
+      testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "damaged").string()),
+      "mesh.ply");
+  std::filesystem::create_directories(dir / "failed");
+  WritePly(dir / "failed" / "mesh.ply", Tube(0.6, 0.08, 0, Eigen::Vector3d::Zero()));
+  std::ofstream(dir / "failed" / "report.json") << R"({"summary": {"termination": "DEGENERATE"}})";
+  testing::ExpectOneLineError(
+      testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "failed").string()),
+      "ended DEGENERATE");
+  EXPECT_FALSE(std::filesystem::exists(dir / "take" / "live"));
+}
+
+// The README's workflow on a small simulated take: a half turn scanned, three frames of the walk
+// seen by the fixed sensor beside two held-out cameras, one frame's depth lost.
+TEST(LiveCli, CompletesASimulatedWalkAndReportsADepthlessFrame) {
+  testing::TempDir dir("holocap-live");
+  const std::string rig = R"(name: live-rig
+sync: hardware
+fps: 10
+sensors:
+  - {name: cam0, uri: "sim:live-rig#cam0", role: color, options: {lens: LENSMODEL_OPENCV5, intrinsics: [535.4, 534.8, 320.6, 238.3, 0.08, -0.18, 0.0004, -0.0002, 0.09], size: [640, 480], position: [2.4, -1.3, 1.15], look_at: [0, 0, 0.95]}}
+  - {name: depth0, uri: "sim:live-rig#depth0", role: depth, paired_with: cam0, options: {lens: LENSMODEL_OPENCV4, intrinsics: [570.3, 570.9, 319.2, 241.6, 0.01, -0.02, 0.0002, -0.0001], size: [640, 480], depth_from_color: [0.0015, -0.002, 0.001, -0.045, 0.0002, 0.0008]}}
+  - {name: cam90, uri: "sim:live-rig#cam90", role: color, options: {lens: LENSMODEL_PINHOLE, intrinsics: [535, 535, 319.5, 239.5], size: [640, 480], position: [1.3, 2.4, 1.15], look_at: [0, 0, 0.95]}}
+)";
+  std::ofstream(dir / "live-rig.yaml") << rig;
+  const std::string turn = (dir / "turn").string(), walk = (dir / "walk").string();
+  ASSERT_EQ(testing::RunCli("sim --rig single-rgbd --trajectory turn --fps 10 --frames 36 "
+                            "--trajectory-speed 50 --size 160x120 --out " +
+                            turn)
+                .exit_code,
+            0);
+  const testing::CommandResult scan = testing::RunCli("scan " + turn);
+  ASSERT_EQ(scan.exit_code, 0) << scan.output;
+  ASSERT_EQ(testing::RunCli("sim --rig " + (dir / "live-rig.yaml").string() +
+                            " --frames 3 --size 160x120 --out " + walk)
+                .exit_code,
+            0);
+  const std::filesystem::path lost = dir / "walk" / "frames" / "depth0" / "000001.exr";
+  const cv::Mat depth = ReadImage(lost);
+  WriteExrDepth(lost,
+                cv::Mat(depth.size(), CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN())));
+  const testing::CommandResult live = testing::RunCli("live " + walk + " --scan " + turn + "/scan");
+  ASSERT_EQ(live.exit_code, 0) << live.output;
+  EXPECT_NE(live.output.find("2 composed, 1 without depth, 0 refused"), std::string::npos)
+      << live.output;
+  const std::filesystem::path out = dir / "walk" / "live";
+  const auto report = nlohmann::json::parse(ReadFileToString(out / "report.json"));
+  EXPECT_EQ(report["summary"]["termination"], "SUCCESS");
+  EXPECT_TRUE(report["plan"]["left_out"].contains("colour cameras cam90"));
+  const auto& frames = report["metrics"]["per_frame"];
+  ASSERT_EQ(frames.size(), 3u);
+  EXPECT_EQ(frames[1]["state"], "no_depth");
+  for (int i : {0, 2}) {
+    EXPECT_EQ(frames[i]["state"], "composed");
+    EXPECT_GT(frames[i]["inlier_fraction"].get<double>(), 0.6);
+    EXPECT_LT(frames[i]["residual_m"].get<double>(), 0.015);
+    EXPECT_GT(frames[i]["scan_faces"].get<int64_t>(), 0);
+    EXPECT_GT(frames[i]["live_faces"].get<int64_t>(), 0);
+  }
+  EXPECT_TRUE(std::filesystem::exists(out / "recon" / "000000.glb"));
+  EXPECT_TRUE(std::filesystem::exists(out / "recon" / "000002.ply"));
+  EXPECT_FALSE(std::filesystem::exists(out / "recon" / "000001.ply"));
+}
+
+}  // namespace
+}  // namespace holocap
