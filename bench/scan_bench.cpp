@@ -255,9 +255,12 @@ void QualitySection(const Args& args, const fs::path& work) {
   }
   SimOptions sim;
   sim.rig = "studio8";
-  sim.frames = 1;
   sim.clean_plate_frames = 1;
   sim.frames = 2;
+  // The subject holds its first pose, as the scan take's does: a turn at 0 degrees a second
+  // keeps every sensor fixed and the subject where it stood at t = 0.
+  sim.trajectory = "turn";
+  sim.trajectory_deg_per_s = 0;
   sim.seed = 3;
   sim.overwrite = true;
   sim.threads = args.threads;
