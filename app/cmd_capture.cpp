@@ -3,6 +3,9 @@
 #include <csignal>
 #include <iomanip>
 #include <iostream>
+#include <map>
+#include <memory>
+#include <optional>
 #include <sstream>
 
 #include "app/commands.h"
@@ -10,6 +13,7 @@
 #include "capture/recorder.h"
 #include "core/error.h"
 #include "core/progress.h"
+#include "live/live.h"
 
 namespace holocap {
 namespace {
@@ -31,6 +35,71 @@ std::string StatusLine(const RecorderStatus& status) {
   return line.str();
 }
 
+struct LiveFlags {
+  std::string scan;   // --live: the subject's scan
+  std::string out;    // --live-out (default TAKE/live)
+  std::string calib;  // --calib: a folder of <sensor>.cameramodel
+};
+
+// `holocap capture --live SCAN`: the rig's one depth sensor and its paired colour camera,
+// composed with the scan as the sets are written. Their models: --calib's files, else what the
+// drivers know.
+std::unique_ptr<LiveStream> StartLive(const RigDescription& rig, const Recorder& recorder,
+                                      const LiveFlags& flags, const std::string& take,
+                                      std::map<std::string, CameraModel>* models) {
+  const SensorSpec* depth = nullptr;
+  for (const SensorSpec& spec : rig.sensors) {
+    if (spec.role != SensorRole::kDepth) continue;
+    if (depth != nullptr) Fail("capture --live: the rig has more than one depth sensor");
+    depth = &spec;
+  }
+  if (depth == nullptr) Fail("capture --live: the rig has no depth sensor");
+  if (depth->paired_with.empty())
+    Fail("capture --live: depth sensor '", depth->name, "' names no paired colour camera");
+  *models = recorder.KnownModels();
+  if (!flags.calib.empty()) {
+    models->clear();
+    for (const SensorSpec& spec : rig.sensors) {
+      const std::filesystem::path file =
+          std::filesystem::path(flags.calib) / (spec.name + ".cameramodel");
+      if (std::filesystem::exists(file)) models->emplace(spec.name, CameraModel::Read(file));
+    }
+  }
+  for (const std::string& name : {depth->name, depth->paired_with}) {
+    if (models->count(name)) continue;
+    if (!flags.calib.empty())
+      Fail("capture --live: no ", name, ".cameramodel in '", flags.calib, "'");
+    Fail("capture --live: the driver of sensor '", name,
+         "' knows no model of it; give --calib DIR (a calibrated take's calib/)");
+  }
+  const std::filesystem::path out =
+      flags.out.empty() ? std::filesystem::path(take) / "live" : std::filesystem::path(flags.out);
+  return std::make_unique<LiveStream>(flags.scan, depth->name, models->at(depth->name),
+                                      depth->paired_with, models->at(depth->paired_with), out,
+                                      false, LiveOptions{});
+}
+
+// After a live capture: the models it composed with go into the take's calib/ when they cover
+// every sensor of the take, so that `holocap live TAKE --scan SCAN` can compose every set.
+void RecordLiveModels(const std::map<std::string, CameraModel>& models, const std::string& take) {
+  const std::filesystem::path dir(take);
+  if (!std::filesystem::exists(dir / "take.json")) return;
+  const Take opened = Take::Open(dir);
+  for (const StreamInfo& stream : opened.streams())
+    if (!models.count(stream.name)) return;
+  std::filesystem::create_directories(opened.calib_dir());
+  for (const StreamInfo& stream : opened.streams())
+    models.at(stream.name).Write(opened.calib_dir() / (stream.name + ".cameramodel"));
+}
+
+void PrintLive(const LiveSummary& live, const LiveStreamStatus& status) {
+  std::cout << "live        " << status.offered << " sets offered, " << live.composed
+            << " composed, " << status.skipped << " skipped (behind), " << live.refused
+            << " refused, " << live.no_depth << " without depth; latency median "
+            << live.metrics["latency_s"]["median"].get<double>() << " s\n"
+            << ToString(live.termination) << ": " << live.message << std::endl;
+}
+
 }  // namespace
 
 static void AddCaptureCommand(CLI::App& app) {
@@ -39,6 +108,7 @@ static void AddCaptureCommand(CLI::App& app) {
   struct Args {
     std::string rig, out;
     RecorderOptions options;
+    LiveFlags live;
   };
   auto args = std::make_shared<Args>();
   auto nodes = AddNodeCaptureFlags(command);
@@ -70,6 +140,13 @@ static void AddCaptureCommand(CLI::App& app) {
                    "frame periods while frames are due")
       ->capture_default_str();
   command->add_flag("--durable", args->options.take.durable, "fsync every frame and index line");
+  command->add_option("--live", args->live.scan,
+                      "Compose the depth sensor's sets with this scan as they are recorded "
+                      "(`holocap live`'s output, newest set first)");
+  command->add_option("--live-out", args->live.out, "Output of --live (default TAKE/live)");
+  command->add_option("--calib", args->live.calib,
+                      "Camera models for --live (a calibrated take's calib/; default: the "
+                      "drivers' own)");
   command->add_flag("--overwrite", args->options.take.overwrite,
                     "Replace an existing take directory");
   command->callback([args, nodes] {
@@ -84,9 +161,18 @@ static void AddCaptureCommand(CLI::App& app) {
     RigDescription rig = RigDescription::Load(args->rig);
     args->options.take.command = "capture";
     args->options.take.inputs = {args->rig};
+    if (!rig.hosts.empty() && !args->live.scan.empty())
+      Fail("capture --live: records on this machine only (the rig names capture hosts)");
     if (!rig.hosts.empty())
       return CaptureOnRigNodes(rig, args->rig, args->out, args->options, *nodes);
+    if (!args->live.scan.empty()) args->options.take.inputs.push_back(args->live.scan);
     Recorder recorder(rig, args->out, args->options);
+    std::map<std::string, CameraModel> live_models;
+    std::unique_ptr<LiveStream> live;
+    if (!args->live.scan.empty()) {
+      live = StartLive(rig, recorder, args->live, args->out, &live_models);
+      recorder.set_on_set_written([&live](const FrameSet& set) { live->Offer(set); });
+    }
     Report report("capture");
     report.options() = {{"rig", args->rig},
                         {"out", args->out},
@@ -110,7 +196,12 @@ static void AddCaptureCommand(CLI::App& app) {
     auto previous_term = std::signal(SIGTERM, OnInterrupt);
     RecorderSummary summary = recorder.Run(
         [&](const RecorderStatus& status) {
-          progress.Update(status.frame_sets, StatusLine(status));
+          std::string line = StatusLine(status);
+          if (live) {
+            const LiveStreamStatus s = live->status();
+            line += Cat(" | live ", s.composed, " composed, ", s.skipped, " skipped");
+          }
+          progress.Update(status.frame_sets, line);
         },
         &report);
     std::signal(SIGINT, previous_int);
@@ -140,7 +231,14 @@ static void AddCaptureCommand(CLI::App& app) {
       summary.message += Cat("; and ", report_failure);
       if (summary.IsUsable()) Fail("capture: ", summary.message);
     }
+    std::optional<LiveSummary> composed;
+    if (live) {
+      composed = live->Finish();
+      PrintLive(*composed, live->status());
+      RecordLiveModels(live_models, args->out);
+    }
     FailUnlessUsable(summary, "capture");
+    if (composed) FailUnlessUsable(*composed, "capture --live");
   });
 }
 

@@ -689,6 +689,14 @@ void Recorder::Session::EnqueueSet(FrameSet set) {
   set_cv_.notify_one();
 }
 
+std::map<std::string, CameraModel> Recorder::KnownModels() const {
+  std::map<std::string, CameraModel> models;
+  for (size_t s = 0; s < sensors_.size(); ++s) {
+    if (auto model = sensors_[s]->known_model()) models.emplace(streams_[s].name, *model);
+  }
+  return models;
+}
+
 void Recorder::Session::WriteLoop() {
   while (true) {
     FrameSet set;
@@ -703,6 +711,7 @@ void Recorder::Session::WriteLoop() {
       try {
         writer_->Append(set);
         for (const auto& frame : set.frames) ++state_[IndexOf(frame.sensor)].written;
+        if (options_.on_set_written) options_.on_set_written(set);
         continue;
       } catch (const std::exception& e) {
         RecordFailure(Cat("writing frame set ", set.index, " failed: ", e.what(),

@@ -28,6 +28,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -75,6 +76,10 @@ struct RecorderOptions {
   // 0: normal scheduling.
   int trigger_priority = 10;
   TakeWriterOptions take;  // crash-safety and compression of the take
+  // Called by a writer thread once a complete set is in the take (its frames written, its index
+  // line after them), with the set's frames as the sensors delivered them. It must return
+  // quickly (hand the set over, never process it there): the writers wait for it.
+  std::function<void(const FrameSet&)> on_set_written;
 
   void Check() const;  // throws Error explaining a bad value
 };
@@ -169,10 +174,16 @@ class Recorder {
   // spread series.
   RecorderSummary Run(const std::function<void(const RecorderStatus&)>& on_status = {},
                       Report* report = nullptr);
+  // Sets RecorderOptions::on_set_written (before Run()).
+  void set_on_set_written(std::function<void(const FrameSet&)> callback) {
+    options_.on_set_written = std::move(callback);
+  }
   // Ends the recording early (thread-safe; safe from a signal handler).
   void RequestStop() { stop_requested_ = true; }
 
   const std::vector<StreamInfo>& streams() const { return streams_; }
+  // The exact models the drivers know (simulation, a replayed take's calibration), by sensor.
+  std::map<std::string, CameraModel> KnownModels() const;
 
  private:
   class Session;  // one run: its threads and what they share (recorder.cpp)

@@ -154,9 +154,24 @@ LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vec
 // The first frame: the scan moved so that its centroid sits behind the centroid of the nearest
 // live points (by the scan's own half depth along the view), for when the scan was made
 // elsewhere in the world than the live take.
-Pose LiveCompositor::InitialPose(const LiveSurface& live, bool* first) const {
-  *first = !has_pose_;
-  if (has_pose_) return last_world_from_scan_;
+Pose LiveCompositor::PredictedPose(int64_t set) const {
+  const auto& [set0, pose0] = poses_.front();
+  const auto& [set1, pose1] = poses_.back();
+  if (set <= set1 || set1 <= set0) return pose1;
+  const double ahead = static_cast<double>(set - set1) / static_cast<double>(set1 - set0);
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  for (const Eigen::Vector3f& v : scan_.vertices) centroid += v.cast<double>();
+  centroid /= static_cast<double>(scan_.vertices.size());
+  const Eigen::Vector3d c0 = pose0 * centroid, c1 = pose1 * centroid;
+  Eigen::AngleAxisd turn(Eigen::Matrix3d(pose1.linear() * pose0.linear().transpose()));
+  turn.angle() *= ahead;
+  Pose pose = Pose::Identity();
+  pose.linear() = turn.toRotationMatrix() * pose1.linear();
+  pose.translation() = c1 + ahead * (c1 - c0) - pose.linear() * centroid;
+  return pose;
+}
+
+Pose LiveCompositor::CentredPose(const LiveSurface& live, double yaw_rad) const {
   Eigen::AlignedBox3f box;
   Eigen::Vector3d scan_centroid = Eigen::Vector3d::Zero();
   for (const Eigen::Vector3f& v : scan_.vertices) {
@@ -181,7 +196,9 @@ Pose LiveCompositor::InitialPose(const LiveSurface& live, bool* first) const {
   const Eigen::Vector3d live_centroid = sum / static_cast<double>(count);
   const Eigen::Vector3d view = (live_centroid - live.camera.center_in_world()).normalized();
   Pose pose = Pose::Identity();
-  pose.translation() = live_centroid + view * (0.25 * box.sizes().minCoeff()) - scan_centroid;
+  pose.linear() = Eigen::AngleAxisd(yaw_rad, up_.normalized()).toRotationMatrix();
+  pose.translation() =
+      live_centroid + view * (0.25 * box.sizes().minCoeff()) - pose.linear() * scan_centroid;
   return pose;
 }
 
@@ -271,13 +288,31 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
       previous.normals[v] = graph_->ApplyNormal(v, scan_.normals[v].cast<double>()).cast<float>();
     }
   }
-  bool first = false;
-  const Pose initial = InitialPose(live, &first);
-  RigidAlignment rigid = AlignRigid(previous, live, initial, options_);
-  if (first) {
-    // The scan where it is may already sit on the subject (the same world): keep the better.
-    const RigidAlignment in_place = AlignRigid(previous, live, Pose::Identity(), options_);
-    if (in_place.fit.inlier_fraction > rigid.fit.inlier_fraction) rigid = in_place;
+  // From the frame before's alignment; the first frame from the scan where it is (it may
+  // already sit on the subject: the same world).
+  const bool first = !has_pose_;
+  RigidAlignment rigid =
+      AlignRigid(previous, live, first ? Pose::Identity() : last_world_from_scan_, options_);
+  if (first || rigid.fit.inlier_fraction < options_.min_rigid_inlier_fraction) {
+    // The first frame, or the subject moved too far since the last composed frame (frames
+    // skipped, a quick turn): the last two composed frames' motion carried on to this set, and
+    // the scan moved onto the subject's nearest points turned to kHeadings headings about the
+    // up axis; the best fit wins.
+    // The headings are searched only when the motion does not fit either.
+    auto try_start = [&](const Pose& start_pose) {
+      const RigidAlignment candidate = AlignRigid(previous, live, start_pose, options_);
+      if (candidate.fit.inlier_fraction <= rigid.fit.inlier_fraction) return;
+      rigid = candidate;
+      frame.relocalised = !first;
+    };
+    if (poses_.size() == 2) try_start(PredictedPose(set));
+    constexpr int kHeadings = 8;
+    for (int k = 0; k < kHeadings; ++k) {
+      // The first frame always tries the scan moved onto the subject as it is turned.
+      const bool fits = rigid.fit.inlier_fraction >= options_.min_rigid_inlier_fraction;
+      if (fits && !(first && k == 0)) break;
+      try_start(CentredPose(live, 2 * M_PI * k / kHeadings));
+    }
   }
   frame.world_from_scan = rigid.world_from_scan;
   frame.rigid_inlier_fraction = rigid.fit.inlier_fraction;
@@ -326,6 +361,8 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   }
   has_pose_ = true;
   last_world_from_scan_ = rigid.world_from_scan;
+  if (poses_.size() == 2) poses_.erase(poses_.begin());
+  poses_.emplace_back(set, rigid.world_from_scan);
   if (graph_) graph_->TakeMotions(*posed, rigid.world_from_scan);
   const cv::Mat subject = SubjectMask(live, fit.deformed);
   frame.subject_pixels = cv::countNonZero(subject);

@@ -10,6 +10,7 @@
 #include "core/fs.h"
 #include "core/progress.h"
 #include "core/take.h"
+#include "live/live_internal.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -96,6 +97,7 @@ Json LiveFrame::ToJson() const {
           {"state", ToString(state)},
           {"why", why},
           {"world_from_scan", rows},
+          {"relocalised", relocalised},
           {"live_points", live_points},
           {"rigid_inlier_fraction", rigid_inlier_fraction},
           {"rigid_residual_m", number(rigid_residual_m)},
@@ -146,7 +148,7 @@ Mesh ReadScan(const fs::path& scan_dir) {
   return scan;
 }
 
-namespace {
+namespace live {
 
 cv::Mat ThreeChannels(const cv::Mat& frame) {
   if (frame.empty() || frame.channels() == 3) return frame;
@@ -194,7 +196,23 @@ void Conclude(const LiveOptions& options, LiveSummary* summary) {
   }
 }
 
-}  // namespace
+void RecordFrame(Report* report, const LiveFrame& frame) {
+  if (report == nullptr || frame.state != LiveState::kComposed) return;
+  report->AddPoint("inlier_fraction", frame.inlier_fraction, frame.set);
+  report->AddPoint("residual_m", frame.residual_m, frame.set);
+  report->AddPoint("deformation_rms_m", frame.deformation_rms_m, frame.set);
+}
+
+Json SummaryMetrics(const LiveSummary& summary) {
+  Json frames = Json::array();
+  for (const LiveFrame& frame : summary.frames) frames.push_back(frame.ToJson());
+  return {{"frames", summary.frames.size()},      {"composed", summary.composed},
+          {"no_depth", summary.no_depth},         {"refused", summary.refused},
+          {"seconds", summary.seconds},           {"depth_sensor", summary.depth_sensor},
+          {"color_sensor", summary.color_sensor}, {"per_frame", frames}};
+}
+
+}  // namespace live
 
 LiveSummary LiveTake(const fs::path& take_dir, const TakeSelection& selection,
                      const fs::path& scan_dir, const fs::path& out, const LiveOptions& options,
@@ -246,29 +264,20 @@ LiveSummary LiveTake(const fs::path& take_dir, const TakeSelection& selection,
       const cv::Mat depth = take.ReadFrame(static_cast<size_t>(set), summary.depth_sensor);
       cv::Mat color;
       if (entry.Find(summary.color_sensor) != nullptr)
-        color = ThreeChannels(take.ReadFrame(static_cast<size_t>(set), summary.color_sensor));
+        color = live::ThreeChannels(take.ReadFrame(static_cast<size_t>(set), summary.color_sensor));
       LiveResult result = compositor.Process(set, depth, depth_camera, color, color_camera);
       frame = result.frame;
       if (frame.state == LiveState::kComposed)
-        WriteComposed(recon, set, result.composed, options.write_glb);
+        live::WriteComposed(recon, set, result.composed, options.write_glb);
     }
-    if (report != nullptr && frame.state == LiveState::kComposed) {
-      report->AddPoint("inlier_fraction", frame.inlier_fraction, set);
-      report->AddPoint("residual_m", frame.residual_m, set);
-      report->AddPoint("deformation_rms_m", frame.deformation_rms_m, set);
-    }
+    live::RecordFrame(report, frame);
     summary.frames.push_back(frame);
     progress.Increment(ToString(frame.state));
   }
   progress.Finish();
-  Conclude(options, &summary);
+  live::Conclude(options, &summary);
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  Json frames = Json::array();
-  for (const LiveFrame& frame : summary.frames) frames.push_back(frame.ToJson());
-  summary.metrics = {{"frames", summary.frames.size()},      {"composed", summary.composed},
-                     {"no_depth", summary.no_depth},         {"refused", summary.refused},
-                     {"seconds", summary.seconds},           {"depth_sensor", summary.depth_sensor},
-                     {"color_sensor", summary.color_sensor}, {"per_frame", frames}};
+  summary.metrics = live::SummaryMetrics(summary);
   if (report != nullptr) {
     report->metrics() = summary.metrics;
     report->SetSummary(summary);

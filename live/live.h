@@ -4,7 +4,9 @@
 //   1. aligned rigidly to the live surface: point-to-plane ICP from the scan's camera-facing
 //      points to the live depth (projective association, Gauss-Newton, the gate shrinking from
 //      coarse to fine), started from the frame before's alignment (the first frame tries the
-//      scan where it is and the scan moved onto the centroid of the nearest live points);
+//      scan where it is and the scan moved onto the centroid of the nearest live points, turned
+//      to eight headings about the up axis; so does a frame the frame before's alignment no
+//      longer fits rigidly);
 //   2. bent where the subject's pose differs from the scan's: an embedded deformation graph
 //      (nodes sampled on the scan every node_spacing_m, each vertex moved by its nearest nodes'
 //      rigid motions blended by distance) fitted by Gauss-Newton to the same point-to-plane
@@ -36,6 +38,7 @@
 #include "core/mesh.h"
 #include "core/pose.h"
 #include "core/report.h"
+#include "core/take.h"
 #include "core/take_plan.h"
 
 namespace holocap {
@@ -178,6 +181,8 @@ struct LiveFrame {
   LiveState state = LiveState::kSkipped;
   std::string why;  // not composed: the reason
   Pose world_from_scan = Pose::Identity();
+  // The frame before's alignment did not hold and the pose was searched for again.
+  bool relocalised = false;
   int64_t live_points = 0;           // valid live pixels
   double rigid_inlier_fraction = 0;  // after the rigid alignment
   double rigid_residual_m = std::numeric_limits<double>::quiet_NaN();
@@ -213,7 +218,12 @@ class LiveCompositor {
                      const cv::Mat& color_bgr, const CameraModel& color_camera);
 
  private:
-  Pose InitialPose(const LiveSurface& live, bool* first) const;
+  // The scan turned by `yaw_rad` about the up axis and moved onto the live subject's nearest
+  // points (where a search for its pose starts).
+  Pose CentredPose(const LiveSurface& live, double yaw_rad) const;
+  // The last composed frame's pose moved on to `set` at the rate of the last two composed frames
+  // (turning about the scan's centre, which moves on in a straight line).
+  Pose PredictedPose(int64_t set) const;
   cv::Mat SubjectMask(const LiveSurface& live, const Mesh& deformed) const;
   Mesh UnobservedScan(const Mesh& deformed, const LiveSurface& live, const cv::Mat& subject) const;
 
@@ -227,6 +237,7 @@ class LiveCompositor {
   double floor_m_;
   bool has_pose_ = false;
   Pose last_world_from_scan_ = Pose::Identity();
+  std::vector<std::pair<int64_t, Pose>> poses_;  // the last two composed frames' sets and poses
 };
 
 // SUCCESS: every frame with depth composed, or refused no more often than
@@ -252,5 +263,38 @@ Mesh ReadScan(const std::filesystem::path& scan_dir);
 LiveSummary LiveTake(const std::filesystem::path& take_dir, const TakeSelection& selection,
                      const std::filesystem::path& scan_dir, const std::filesystem::path& out,
                      const LiveOptions& options, Report* report = nullptr);
+
+// Live from sensors (`holocap capture --live SCAN`): the frame sets a recording writes, composed
+// as they come on a thread of their own. The newest set wins: a set that arrives while the one
+// before is still being composed replaces the set waiting, which is counted as skipped, so the
+// output falls behind by at most one set and never by a growing queue; the recording keeps
+// every set whatever happens here (`holocap live TAKE --scan SCAN` composes them all later).
+struct LiveStreamStatus {
+  int64_t offered = 0, composed = 0, refused = 0, no_depth = 0, skipped = 0;
+  double last_latency_s = 0;  // from a set's arrival to its meshes written
+};
+class LiveStream {
+ public:
+  // Reads the scan (Error for a bad one) and starts the thread. `out` is claimed when the first
+  // set arrives (the recording creates the take it may lie in); the floor and up axis come from
+  // that set's depth.
+  LiveStream(const std::filesystem::path& scan_dir, std::string depth_sensor,
+             CameraModel depth_camera, std::string color_sensor, CameraModel color_camera,
+             std::filesystem::path out, bool overwrite, const LiveOptions& options);
+  ~LiveStream();
+  LiveStream(const LiveStream&) = delete;
+  LiveStream& operator=(const LiveStream&) = delete;
+  // Hands over a set (any thread; returns at once, never throws).
+  void Offer(const FrameSet& set);
+  LiveStreamStatus status() const;
+  // Composes the set still waiting, stops the thread and writes OUT/report.json (metrics as
+  // LiveTake's, plus offered/skipped sets and latency). FAILURE when the output could not be
+  // claimed or written; otherwise as LiveTake.
+  LiveSummary Finish();
+
+ private:
+  struct State;
+  std::unique_ptr<State> state_;
+};
 
 }  // namespace holocap

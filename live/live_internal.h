@@ -4,6 +4,9 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <cmath>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
 #include <vector>
 
 #include "live/live.h"
@@ -49,4 +52,14 @@ void AddNearestPairs(const std::vector<Eigen::Vector3f>& points,
                      double gate_m, double max_normal_angle_deg, int live_samples,
                      std::vector<Pair>* pairs);
 
+// Colour as three channels (grey and BGRA frames converted; empty stays empty).
+cv::Mat ThreeChannels(const cv::Mat& frame);
+// OUT_RECON/<set>.ply and, with `glb`, <set>.glb.
+void WriteComposed(const std::filesystem::path& recon, int64_t set, const Mesh& mesh, bool glb);
+// Counts the frames' states and ends `summary` (see LiveSummary).
+void Conclude(const LiveOptions& options, LiveSummary* summary);
+// A composed frame's fit in the report's series (nothing for other states or no report).
+void RecordFrame(Report* report, const LiveFrame& frame);
+// The report's metrics of a run: counts, sensors, every frame.
+nlohmann::json SummaryMetrics(const LiveSummary& summary);
 }  // namespace holocap::live

@@ -12,6 +12,7 @@
 #include "core/image.h"
 #include "core/mesh.h"
 #include "core/pose.h"
+#include "core/take.h"
 #include "live/live.h"
 #include "reconstruction/reconstruction.h"
 #include "tests/reconstruction/synthetic.h"
@@ -316,6 +317,50 @@ sensors:
   EXPECT_TRUE(std::filesystem::exists(out / "recon" / "000000.glb"));
   EXPECT_TRUE(std::filesystem::exists(out / "recon" / "000002.ply"));
   EXPECT_FALSE(std::filesystem::exists(out / "recon" / "000001.ply"));
+
+  // The same sensor live: the walk's depth0 and cam0 replayed at their recorded pace through the
+  // HAL, recorded into a new take and composed as the sets arrive (the newest set first: how
+  // many are skipped depends on the machine, never which set is last).
+  std::ofstream(dir / "sensor.yaml") << "name: rgbd\nsync: free-run\nfps: 10\nsensors:\n"
+                                     << "  - {name: cam0, uri: \"replay:" << walk
+                                     << "#cam0\", role: color, options: {pace: recorded}}\n"
+                                     << "  - {name: depth0, uri: \"replay:" << walk
+                                     << "#depth0\", role: depth, paired_with: cam0, options: "
+                                        "{pace: recorded}}\n";
+  const std::string captured = (dir / "captured").string(), sensor = (dir / "sensor.yaml").string();
+  const testing::CommandResult streamed = testing::RunCli(
+      "capture --rig " + sensor + " --frames 3 --out " + captured + " --live " + turn + "/scan");
+  ASSERT_EQ(streamed.exit_code, 0) << streamed.output;
+  EXPECT_NE(streamed.output.find("3 sets offered"), std::string::npos) << streamed.output;
+  EXPECT_EQ(Take::Open(captured).size(), 3u);  // every set recorded, whatever was composed
+  const auto live_report =
+      nlohmann::json::parse(ReadFileToString(dir / "captured" / "live" / "report.json"));
+  EXPECT_EQ(live_report["summary"]["termination"], "SUCCESS");
+  EXPECT_EQ(live_report["metrics"]["offered"], 3);
+  const auto& streamed_frames = live_report["metrics"]["per_frame"];
+  ASSERT_EQ(streamed_frames.size(), 3u);
+  EXPECT_NE(streamed_frames[1]["state"], "composed");
+  EXPECT_EQ(streamed_frames[2]["state"], "composed");
+  EXPECT_GT(live_report["metrics"]["latency_s"]["max"].get<double>(), 0);
+  EXPECT_TRUE(std::filesystem::exists(dir / "captured" / "live" / "recon" / "000002.glb"));
+  // The models it composed with are the new take's calibration: `live` composes every set later.
+  EXPECT_TRUE(std::filesystem::exists(dir / "captured" / "calib" / "depth0.cameramodel"));
+  const testing::CommandResult later = testing::RunCli("live " + captured + " --scan " + turn +
+                                                       "/scan --out " + (dir / "later").string());
+  ASSERT_EQ(later.exit_code, 0) << later.output;
+  EXPECT_NE(later.output.find("2 composed, 1 without depth, 0 refused"), std::string::npos)
+      << later.output;
+  // Bad set-ups are one error line each, before anything is recorded.
+  testing::ExpectOneLineError(
+      testing::RunCli("capture --rig " + sensor + " --frames 3 --out " + (dir / "c2").string() +
+                      " --live " + turn + "/scan --calib " + dir.path().string()),
+      "no depth0.cameramodel");
+  testing::ExpectOneLineError(
+      testing::RunCli("capture --rig " + sensor + " --frames 3 --out " + (dir / "c3").string() +
+                      " --live " + (dir / "nothing").string()),
+      "is not a directory");
+  EXPECT_FALSE(std::filesystem::exists(dir / "c2"));
+  EXPECT_FALSE(std::filesystem::exists(dir / "c3"));
 }
 
 }  // namespace
