@@ -81,6 +81,11 @@ void AddNearestPairs(const std::vector<Eigen::Vector3f>& points,
   }
   if (facing.empty()) return;
   const recon::PointTree tree(facing);
+  // A live point outside the facing points' box grown by the gate pairs with none of them.
+  Eigen::AlignedBox3d reach;
+  for (const Eigen::Vector3d& p : facing) reach.extend(p);
+  reach.min().array() -= gate_m;
+  reach.max().array() += gate_m;
   const float cos_max = static_cast<float>(std::cos(max_normal_angle_deg * M_PI / 180));
   const size_t stride =
       std::max<size_t>(1, static_cast<size_t>(live.valid / std::max(1, live_samples)));
@@ -88,15 +93,19 @@ void AddNearestPairs(const std::vector<Eigen::Vector3f>& points,
   for (size_t pixel = 0; pixel < live.points.size(); ++pixel) {
     if (!live.normals[pixel].allFinite() || seen++ % stride != 0) continue;
     const Eigen::Vector3d q = live.points[pixel].cast<double>();
+    if (!reach.contains(q)) continue;
     int nearest = -1;
     double best = std::numeric_limits<double>::infinity();
+    // Only a point within the gate can pair: the distances are clamped to it, so the tree
+    // prunes every branch farther than the gate (most live pixels are the room, far from the
+    // scan).
     tree.Nearest(q, 0, [&](int i) {
       const double d = (facing[i] - q).norm();
       if (d < best) {
         best = d;
         nearest = i;
       }
-      return d;
+      return std::min(d, gate_m);
     });
     if (nearest < 0 || best > gate_m) continue;
     const int sample = index[nearest];

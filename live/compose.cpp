@@ -278,8 +278,11 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   if (live.valid < kMinLivePoints) {
     return finish(LiveState::kNoDepth, Cat("no usable depth (", live.valid, " valid pixels)"));
   }
-  if (options_.nonrigid && (!graph_ || !options_.carry_deformation))
-    graph_.emplace(scan_, options_.node_spacing_m, options_.node_neighbours);
+  if (options_.nonrigid && (!graph_ || !options_.carry_deformation)) {
+    // The graph at rest is the same every frame: built once, copied.
+    if (!rest_graph_) rest_graph_.emplace(scan_, options_.node_spacing_m, options_.node_neighbours);
+    graph_ = rest_graph_;
+  }
   // The scan as the frame before left it, aligned rigidly from where it was.
   Mesh previous = scan_;
   if (graph_) {

@@ -232,6 +232,7 @@ class LiveCompositor {
   // composed frame's motions, where the next frame starts (the regulariser still measures
   // against the scan).
   std::optional<DeformationGraph> graph_;
+  std::optional<DeformationGraph> rest_graph_;  // the scan's graph at rest
   LiveOptions options_;
   Eigen::Vector3d up_;
   double floor_m_;

@@ -13,6 +13,39 @@ namespace holocap {
 
 namespace {
 
+// The Gauss-Newton system's 6x6 blocks by node pair, each summed in the order its terms are
+// added: the matrix is entry for entry the one that a triplet per term gave, built without a
+// triplet per term (a pair's four nodes make 16 blocks of 36 entries).
+class BlockSum {
+ public:
+  using Block = Eigen::Matrix<double, 6, 6>;
+  explicit BlockSum(size_t nodes) : rows_(nodes) {}
+  Block& At(int j, int k) {
+    std::vector<std::pair<int, Block>>& row = rows_[static_cast<size_t>(j)];
+    for (auto& [column, block] : row)
+      if (column == k) return block;
+    row.emplace_back(k, Block::Zero());
+    return row.back().second;
+  }
+  Eigen::SparseMatrix<double> Matrix() const {
+    std::vector<Eigen::Triplet<double>> triplets;
+    for (size_t j = 0; j < rows_.size(); ++j) {
+      for (const auto& [k, block] : rows_[j]) {
+        for (int row = 0; row < 6; ++row)
+          for (int col = 0; col < 6; ++col)
+            triplets.emplace_back(static_cast<int>(6 * j) + row, 6 * k + col, block(row, col));
+      }
+    }
+    const int unknowns = static_cast<int>(6 * rows_.size());
+    Eigen::SparseMatrix<double> matrix(unknowns, unknowns);
+    matrix.setFromTriplets(triplets.begin(), triplets.end());
+    return matrix;
+  }
+
+ private:
+  std::vector<std::vector<std::pair<int, Block>>> rows_;
+};
+
 class NonRigidSolver {
  public:
   NonRigidSolver(const Mesh& aligned, const LiveSurface& live, const LiveOptions& options,
@@ -70,15 +103,16 @@ class NonRigidSolver {
   // current one) and translation. False when the system cannot be solved.
   bool Step() {
     const int unknowns = 6 * static_cast<int>(graph_.nodes.size());
-    std::vector<Eigen::Triplet<double>> triplets;
+    BlockSum blocks(graph_.nodes.size());
     Eigen::VectorXd gradient = Eigen::VectorXd::Zero(unknowns);
-    AddData(&triplets, &gradient);
-    AddRegulariser(&triplets, &gradient);
+    AddData(&blocks, &gradient);
+    AddRegulariser(&blocks, &gradient);
     // Nodes that neither data nor neighbours hold stay where they are.
-    for (int k = 0; k < unknowns; ++k) triplets.emplace_back(k, k, 1e-6);
-    Eigen::SparseMatrix<double> hessian(unknowns, unknowns);
-    hessian.setFromTriplets(triplets.begin(), triplets.end());
-    Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver(hessian);
+    for (size_t j = 0; j < graph_.nodes.size(); ++j) {
+      BlockSum::Block& diagonal = blocks.At(static_cast<int>(j), static_cast<int>(j));
+      for (int d = 0; d < 6; ++d) diagonal(d, d) += 1e-6;
+    }
+    Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> solver(blocks.Matrix());
     if (solver.info() != Eigen::Success) return false;
     const Eigen::VectorXd step = solver.solve(-gradient);
     if (solver.info() != Eigen::Success || !step.allFinite()) return false;
@@ -89,7 +123,7 @@ class NonRigidSolver {
     return true;
   }
 
-  void AddData(std::vector<Eigen::Triplet<double>>* triplets, Eigen::VectorXd* gradient) const {
+  void AddData(BlockSum* hessian, Eigen::VectorXd* gradient) const {
     for (const live::Pair& pair : pairs_) {
       const size_t v = static_cast<size_t>(samples_[pair.index]);
       const double r = pair.normal.dot(points_[pair.index].cast<double>() - pair.point);
@@ -108,20 +142,15 @@ class NonRigidSolver {
       }
       for (int a = 0; a < used; ++a) {
         gradient->segment<6>(columns[a]) += weight * r * blocks[a];
-        for (int b = 0; b < used; ++b) {
-          const Eigen::Matrix<double, 6, 6> block = weight * blocks[a] * blocks[b].transpose();
-          for (int row = 0; row < 6; ++row)
-            for (int col = 0; col < 6; ++col)
-              triplets->emplace_back(columns[a] + row, columns[b] + col, block(row, col));
-        }
+        for (int b = 0; b < used; ++b)
+          hessian->At(columns[a] / 6, columns[b] / 6) += weight * blocks[a] * blocks[b].transpose();
       }
     }
   }
 
   // As rigid as possible: node j's motion carries its neighbour k's rest position to where
   // node k's own motion takes it.
-  void AddRegulariser(std::vector<Eigen::Triplet<double>>* triplets,
-                      Eigen::VectorXd* gradient) const {
+  void AddRegulariser(BlockSum* hessian, Eigen::VectorXd* gradient) const {
     int64_t edges = 0;
     for (const std::vector<int>& neighbours : graph_.edges)
       edges += static_cast<int64_t>(neighbours.size());
@@ -145,10 +174,7 @@ class NonRigidSolver {
         for (int a = 0; a < 2; ++a) {
           gradient->segment<6>(columns[a]) += g.segment<6>(6 * a);
           for (int b = 0; b < 2; ++b)
-            for (int row = 0; row < 6; ++row)
-              for (int col = 0; col < 6; ++col)
-                triplets->emplace_back(columns[a] + row, columns[b] + col,
-                                       block(6 * a + row, 6 * b + col));
+            hessian->At(columns[a] / 6, columns[b] / 6) += block.block<6, 6>(6 * a, 6 * b);
         }
       }
     }
