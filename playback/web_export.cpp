@@ -426,7 +426,11 @@ void SiteWriter::WriteGroup(size_t group) {
   std::vector<std::string> outputs;
   for (const SiteStream& stream : streams_)
     streams[stream.name] = WriteStreamFrames(stream, begin, end, &outputs);
+  // Its termination and seconds are what `submit status` shows (a group whose chunks are all
+  // written succeeded).
   const nlohmann::json result = {
+      {"termination", ToString(Termination::kSuccess)},
+      {"seconds", UnixSeconds() - started},
       {"group", group},
       {"sets", std::vector<int64_t>(sets_.begin() + static_cast<std::ptrdiff_t>(begin),
                                     sets_.begin() + static_cast<std::ptrdiff_t>(end))},
