@@ -1,5 +1,6 @@
 // holocap export colmap|nerf|web TAKE --out DIR: a take's cameras and colour frames for other
-// tools, or (web) a static site that plays the take's meshes and volumes in a browser.
+// tools, or (web) a static site that plays the take's meshes and volumes in a browser, in one
+// process or as shards (--shard K/N) of a per-frame run.
 #include <cstdio>
 #include <memory>
 #include <sstream>
@@ -56,8 +57,19 @@ static void AddExportCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--fps", args->web.fps, "web: playback rate (default: the take's)");
   command->add_option("--key-every", args->web.key_every,
-                      "web: frames between the splat streams' key frames (default 10; 1: every "
-                      "frame a key frame)");
+                      "web: a splat key frame at every multiple of it on the timeline "
+                      "(default 10; 1: every frame a key frame); also the frames of a group, "
+                      "the unit of --shard");
+  command->add_option("--frames", args->web.frames,
+                      "web: only these frame sets of the meshes and models (a:b, or a list "
+                      "0-9,15,20-29; counted after the clean plate)");
+  command->add_option("--shard", args->web.shard,
+                      "web: do task K of N of the export (K from 0): the K-th of N contiguous "
+                      "blocks of its groups; the first task plans the site into SITE/plan, the "
+                      "others read it; the manifest is written once every group is done "
+                      "(holocap report SITE --merge)");
+  command->add_flag("--redo", args->web.redo,
+                    "web: write groups whose chunks are complete from an earlier run too");
   command->callback([args] {
     if (args->format == "web") {
       WebExportRequest request = args->web;
@@ -74,8 +86,11 @@ static void AddExportCommand(CLI::App& app) {
       WebExportCommand()(request);
       return;
     }
-    if (!args->web.models.empty() || !args->web.recon.empty() || args->web.no_meshes)
-      Fail("--model, --recon and --no-meshes are options of export web only");
+    if (!args->web.models.empty() || !args->web.recon.empty() || args->web.no_meshes ||
+        !args->web.frames.empty() || !args->web.shard.empty() || args->web.redo)
+      Fail(
+          "--model, --recon, --no-meshes, --frames, --shard and --redo are options of export web "
+          "only");
     ExportOptions options = args->options;
     options.format = InteropFormatFromString(args->format);
     options.copy_images = !args->no_images;

@@ -256,7 +256,7 @@ namespace {
 
 void MergeRun(const std::filesystem::path& out) {
   const RunState run = ReadRunState(out);
-  if (run.command != "reconstruct" && run.command != "train splat")
+  if (run.command != "reconstruct" && run.command != "train splat" && run.command != "export web")
     Fail("'", out.string(), "' holds a run of ", run.command, ", which has no merge");
   const OutputDirectory claimed = OutputDirectory::Claim(out, {run.command, false, {}, true});
   Report report(run.command);
@@ -297,8 +297,9 @@ void AddReportCommand(CLI::App& app) {
   AddOverwriteFlag(command, &args->overwrite);
   command->add_flag("--merge", args->merge,
                     "PATH is the output of a per-frame run (reconstruct, train splat "
-                    "--segment-frames, with or without --shard): merge its frames' reports "
-                    "into its report.json (and a splat run's model.json) first");
+                    "--segment-frames, export web, with or without --shard): merge its frames' "
+                    "reports into its report.json (a splat run's model.json, a site's "
+                    "manifest.json) first");
   command->callback([args] {
     if (args->merge) {
       for (const std::string& path : args->paths) MergeRun(path);

@@ -46,8 +46,8 @@ void AddSlurmCommand(CLI::App* submit) {
   auto args = std::make_shared<SubmitSlurmArgs>();
   command
       ->add_option("COMMAND", args->command,
-                   "The per-frame command: reconstruct, or train splat (two words; its flags "
-                   "need --segment-frames)")
+                   "The per-frame command: reconstruct, train splat (two words; its flags "
+                   "need --segment-frames) or export web (its flags need --out)")
       ->required();
   command->add_option("TAKE", args->take, "The take, on a filesystem every node sees")->required();
   command->add_option("--tasks", args->tasks, "Array tasks, one shard of the run each")
@@ -65,9 +65,10 @@ void AddSlurmCommand(CLI::App* submit) {
     options.command = args->command;
     options.take = args->take;
     options.args = command->remaining();
-    // A command of two words (train splat): the second was taken as TAKE.
-    if (args->command == "train") {
-      if (options.args.empty()) Fail("submit slurm train ", args->take, " needs a take after it");
+    // A command of two words (train splat, export web): the second was taken as TAKE.
+    if (args->command == "train" || args->command == "export") {
+      if (options.args.empty())
+        Fail("submit slurm ", args->command, " ", args->take, " needs a take after it");
       options.command += " " + args->take;
       options.take = options.args.front();
       options.args.erase(options.args.begin());

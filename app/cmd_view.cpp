@@ -30,7 +30,10 @@ WebExportSummary ExportWeb(const WebExportRequest& request, Report* report) {
   options.fps = request.fps;
   if (request.key_every != 0) options.splat_key_every = request.key_every;
   options.take.ground_truth_cameras = request.ground_truth_cameras;
+  if (!request.frames.empty()) ParseFrames(request.frames, &options.take);
   options.overwrite = request.overwrite;
+  if (!request.shard.empty()) options.tasks.shard = Shard::Parse(request.shard);
+  options.tasks.redo = request.redo;
   return ExportWebSite(request.take, request.out, options, report);
 }
 
@@ -42,15 +45,22 @@ void RunWebExport(const WebExportRequest& request) {
         "  %-16s %3lld frames  %8.3f MB/frame  %7.2f Mbps  PSNR %5.1f dB against uncompressed\n",
         s.name.c_str(), static_cast<long long>(s.frames), s.mb_per_frame, s.mbps, s.psnr_db);
   }
-  std::printf("%s: %s\nsite: %s\nreport: %s\nwatch it: holocap view %s\n",
-              ToString(summary.termination), summary.message.c_str(), request.out.c_str(),
-              (fs::path(request.out) / "report.json").c_str(), request.out.c_str());
+  const Shard shard = request.shard.empty() ? Shard{} : Shard::Parse(request.shard);
+  std::printf("%s: %s\nsite: %s\nreport: %s\n", ToString(summary.termination),
+              summary.message.c_str(), request.out.c_str(),
+              TaskReportPath(request.out, shard).c_str());
+  if (std::filesystem::exists(fs::path(request.out) / "manifest.json"))
+    std::printf("watch it: holocap view %s\n", request.out.c_str());
   std::fflush(stdout);
   FailUnlessUsable(summary, "export web");
 }
 
 const bool kWebExportRegistered = [] {
   WebExportCommand() = RunWebExport;
+  // `holocap report SITE --merge`: the manifest once every group of a sharded export is done.
+  RunMergers()["export web"] = [](const fs::path& site, Report* report) -> Summary {
+    return MergeWebSite(site, report);
+  };
   return true;
 }();
 

@@ -75,6 +75,9 @@ struct WebExportRequest {
   int key_every = 0;  // --key-every (0: the default)
   bool ground_truth_cameras = false;
   bool overwrite = false;
+  std::string frames;  // --frames (the timeline's sets, counted after the clean plate)
+  std::string shard;   // --shard K/N (empty: the whole run)
+  bool redo = false;   // --redo
 };
 std::function<void(const WebExportRequest&)>& WebExportCommand();
 

@@ -24,15 +24,17 @@ void HandOverNeuralCommands(int, char**) {}
 
 namespace {
 
-// `report ... --merge` of a run whose command lives in holocap-neural (train splat): its merge
-// writes that command's model. Other merges (reconstruct) stay here, without LibTorch's start.
+// `report ... --merge` of a run whose command lives in holocap-neural (train splat, export web):
+// its merge writes that command's model or site. Other merges (reconstruct) stay here, without
+// LibTorch's start.
 bool MergesANeuralRun(int argc, char** argv) {
   bool merge = false;
   for (int i = 2; i < argc; ++i) merge = merge || std::string_view(argv[i]) == "--merge";
   for (int i = 2; i < argc && merge; ++i) {
     std::ifstream run(std::filesystem::path(argv[i]) / "run.json");
     const nlohmann::json json = nlohmann::json::parse(run, nullptr, /*allow_exceptions=*/false);
-    if (json.is_object() && json.value("command", "") == "train splat") return true;
+    const std::string command = json.is_object() ? json.value("command", "") : "";
+    if (command == "train splat" || command == "export web") return true;
   }
   return false;
 }

@@ -302,7 +302,7 @@ RunState ReadRunState(const std::filesystem::path& out) {
   if (!std::filesystem::is_regular_file(file, ec)) {
     Fail("'", out.string(), "' holds no ", kRunFile,
          ": it is not the output of a per-frame command (reconstruct, train splat "
-         "--segment-frames)");
+         "--segment-frames, export web)");
   }
   const auto run = ParseObject(ReadFileToString(file));
   if (!run || run->value("format", "") != kRunFormat || !(*run)["sets"].is_array())

@@ -23,6 +23,7 @@ const std::vector<PerFrameCommand>& PerFrameCommands() {
   static const std::vector<PerFrameCommand> commands = {
       {"reconstruct", "recon", true},
       {"train splat", "models/splat", true},
+      {"export web", "site", false},
   };
   return commands;
 }
@@ -141,6 +142,8 @@ void SlurmOptions::Check() const {
     Fail(
         "submit slurm train splat runs a per-frame run: give --segment-frames S (and "
         "--iterations, --frame-iterations)");
+  if (command == "export web" && !HasFlag(args, "--out"))
+    Fail("submit slurm export web needs the site's --out DIR (every task writes into it)");
 }
 
 nlohmann::json SlurmOptions::ToJson() const {

@@ -23,6 +23,7 @@
 #include <vector>
 
 #include "core/camera.h"
+#include "core/frame_tasks.h"
 #include "core/report.h"
 #include "neural/neural.h"
 
@@ -142,13 +143,16 @@ struct WebExportOptions {
   std::vector<std::filesystem::path> models;  // volumetric models (model.json), one stream each
   double fps = 0;                             // playback rate; 0: the take's rig rate (else 30)
   double step_voxels = 1.0;                   // ray-marching step of the volume streams
-  int splat_key_every = 10;                   // splat streams: frames between key frames (1:
-                                              // every frame; the others are deltas)
+  int splat_key_every = 10;                   // splat streams: a key frame at every multiple
+                                              // of it on the timeline (1: every frame; the
+                                              // others are deltas); also the frames of a
+                                              // group, the unit of --shard
   int error_width_px = 160;                   // width of the views the export's error is
                                               // measured on (the capture cameras, rescaled)
   int error_cameras = 2;                      // capture cameras measured per frame
   TakeSelection take;                         // cameras (calib/ or gt/cameras)
   bool overwrite = false;                     // write into a non-empty site made by export
+  FrameTaskOptions tasks;                     // this task's groups (--shard K/N), --redo
   void Check() const;                         // throws Error naming the flag
   nlohmann::json ToJson() const;
 };
@@ -182,9 +186,29 @@ struct WebExportSummary : Summary {
 // Writes the site into `site_dir` (claimed with the output-safety rules of core/output.h).
 // `report` receives options, plan, metrics per stream and the series psnr_db against bytes.
 // Throws Error for bad options, an unreadable take, mesh or model, or an unwritable site.
+//
+// The export is a per-frame run (core/frame_tasks.h) whose unit is a group: `splat_key_every`
+// consecutive frames of the timeline, a splat key frame first (deltas never reach into the
+// group before), so any group is written alone. The run's plan (the manifest's frames,
+// cameras and bounds, its streams, each splat stream's quantisation over the whole timeline) is
+// made once into SITE/plan; each group's chunks are written atomically, then its record
+// SITE/frame-reports/<group's first set>.json (per stream and frame: the chunk's manifest
+// entry and the error sums of its frame). `options.tasks.shard` does the K-th of N contiguous
+// blocks of groups and skips complete ones. manifest.json, the player's files and report.json
+// are written by MergeWebSite once every group is complete (here, when this task completes the
+// run), manifest.json last; a task that writes a group first removes a manifest.json already
+// there, so a player never opens a site whose chunks are being replaced. A shard's own report
+// goes to TaskReportPath.
 WebExportSummary ExportWebSite(const std::filesystem::path& take_dir,
                                const std::filesystem::path& site_dir,
                                const WebExportOptions& options, Report* report = nullptr);
+
+// The site of an export web run from its plan and group records: the manifest (every stream's
+// chunks and metrics summed over the groups in timeline order, so the bytes are the same however
+// the run was split), the player's files and report.json. An incomplete run gets a FAILURE
+// report naming its incomplete groups, and no manifest. Throws Error when `site_dir` holds no
+// export web run.
+WebExportSummary MergeWebSite(const std::filesystem::path& site_dir, Report* report);
 
 // Whether `dir` is a site export web wrote (a manifest of a known version); `why` says what is
 // missing or wrong when not.

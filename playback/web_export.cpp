@@ -1,10 +1,13 @@
 // holocap export web: the manifest, one chunk per stream and frame, the player's files, and the
-// export's error against its size measured by decoding every chunk as the player does.
+// export's error against its size measured by decoding every chunk as the player does; a
+// per-frame run whose tasks write groups of frames (playback.h ExportWebSite).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <map>
+#include <memory>
 #include <numeric>
+#include <optional>
 #include <set>
 
 #include "core/error.h"
@@ -82,200 +85,27 @@ void AccumulateError(const RenderedView& a, const RenderedView& b, double* squar
   }
 }
 
-class SiteWriter {
- public:
-  SiteWriter(const fs::path& take_dir, const fs::path& site, const WebExportOptions& options,
-             Report* report)
-      : take_(Take::Open(take_dir)), site_(site), options_(options), report_(report) {}
+constexpr const char* kCommand = "export web";
 
-  WebExportSummary Run();
+// One stream of the site as the run's plan lists it.
+struct SiteStream {
+  std::string name;         // "mesh-medium", "splat-high"
+  std::string kind;         // "mesh" | "volume" | "splats"
+  std::string quality;      // the level
+  std::string folder;       // its chunks, relative to the site
+  int source = -1;          // -1: the meshes; else its model's index in options.models
+  nlohmann::json encoding;  // splats: the stream's quantisation over the whole timeline
 
- private:
-  void PlanCameras();
-  void WriteMeshStreams(const std::map<int64_t, fs::path>& files);
-  void WriteVolumeStream(const fs::path& model_dir, const std::string& name);
-  void WriteSplatStream(const fs::path& model_dir, const std::string& name);
-  std::vector<int64_t> ModelFrames(const fs::path& model_dir, int64_t model_frame_count) const;
-  // One stream being written: its chunks, their bytes and the squared error of its decoded
-  // frames against the uncompressed ones.
-  struct StreamTally {
-    WebStreamMetrics metrics;
-    std::string folder;
-    nlohmann::json chunks = nlohmann::json::array();
-    uint64_t bytes = 0;
-    double squared = 0;
-    int64_t count = 0;
-  };
-  StreamTally BeginStream(const std::string& name, const std::string& kind,
-                          const std::string& level) const;
-  // Writes timeline frame i's chunk (`entry`: more fields of its manifest entry).
-  void WriteChunk(StreamTally* stream, size_t i, const std::string& chunk,
-                  const nlohmann::json& entry = nlohmann::json::object()) const;
-  void EndFrame(StreamTally* stream) const;  // after the frame's error was accumulated
-  void EndStream(StreamTally* stream);       // its metrics and manifest entry
-  // A splat frame: a key frame or a delta of the frame before as decoded (`decoded`, which
-  // becomes this frame's).
-  void WriteSplatChunk(StreamTally* stream, size_t i, const splat::Gaussians& gaussians,
-                       const web::SplatEncoding& encoding, bool key,
-                       const std::vector<int64_t>& origin, web::SplatCodes* decoded);
-  std::vector<CameraModel> ErrorCameras(int64_t frame_index) const;
-  void WriteManifest();
-
-  Take take_;
-  fs::path site_;
-  WebExportOptions options_;
-  Report* report_;
-  TakePlan plan_;
-  std::vector<std::string> camera_names_;
-  std::vector<CameraModel> cameras_;
-  std::vector<int64_t> sets_;  // the timeline: frame sets shown, in order
-  nlohmann::json streams_ = nlohmann::json::array();
-  WebExportSummary summary_;
-  Eigen::AlignedBox3d bounds_;
-  double fps_ = 30;
+  nlohmann::json ToJson() const {
+    return {{"name", name},   {"kind", kind},     {"quality", quality},
+            {"path", folder}, {"source", source}, {"encoding", encoding}};
+  }
+  static SiteStream FromJson(const nlohmann::json& json) {
+    return {json.at("name").get<std::string>(),    json.at("kind").get<std::string>(),
+            json.at("quality").get<std::string>(), json.at("path").get<std::string>(),
+            json.at("source").get<int>(),          json.at("encoding")};
+  }
 };
-
-void SiteWriter::PlanCameras() {
-  plan_ = PlanTake(take_, options_.take);
-  camera_names_ = plan_.color_sensors;
-  cameras_ = plan_.Cameras(camera_names_);
-  bounds_ = plan_.bounds;
-  fps_ = options_.fps > 0 ? options_.fps : (take_.rig().fps > 0 ? take_.rig().fps : 30);
-}
-
-std::vector<CameraModel> SiteWriter::ErrorCameras(int64_t frame_index) const {
-  std::vector<CameraModel> chosen;
-  const int n = static_cast<int>(cameras_.size());
-  for (int k = 0; k < std::min(options_.error_cameras, n); ++k) {
-    const CameraModel& camera = cameras_[(frame_index + k * std::max(1, n / 2)) % n];
-    chosen.push_back(camera.Scaled(static_cast<double>(options_.error_width_px) / camera.width()));
-  }
-  return chosen;
-}
-
-SiteWriter::StreamTally SiteWriter::BeginStream(const std::string& name, const std::string& kind,
-                                                const std::string& level) const {
-  StreamTally stream;
-  stream.metrics = {.name = name + "-" + level, .kind = kind, .quality = level};
-  stream.folder = "streams/" + stream.metrics.name;
-  CreateDirectories(site_ / stream.folder);
-  return stream;
-}
-
-void SiteWriter::WriteChunk(StreamTally* stream, size_t i, const std::string& chunk,
-                            const nlohmann::json& entry) const {
-  WriteFileAtomic(site_ / stream->folder / ChunkName(sets_[i]), chunk);
-  nlohmann::json listed = {{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}};
-  listed.update(entry);
-  stream->chunks.push_back(listed);
-  stream->bytes += chunk.size();
-}
-
-void SiteWriter::EndFrame(StreamTally* stream) const {
-  ++stream->metrics.frames;
-  if (report_ != nullptr)
-    report_->AddPoint(stream->metrics.name + ".psnr_db", Psnr(stream->squared, stream->count),
-                      stream->metrics.frames);
-}
-
-void SiteWriter::EndStream(StreamTally* stream) {
-  WebStreamMetrics& metrics = stream->metrics;
-  const double frames = static_cast<double>(std::max<int64_t>(metrics.frames, 1));
-  metrics.mb_per_frame = metrics.frames > 0 ? stream->bytes / 1e6 / metrics.frames : 0;
-  metrics.mean_faces /= frames;
-  metrics.mean_gaussians /= frames;
-  metrics.mean_stored_gaussians /= frames;
-  metrics.mbps = metrics.mb_per_frame * 8 * fps_;
-  metrics.psnr_db = Psnr(stream->squared, stream->count);
-  summary_.bytes += stream->bytes;
-  summary_.streams.push_back(metrics);
-  if (report_ != nullptr) report_->metrics()["streams"][metrics.name] = metrics.ToJson();
-  streams_.push_back({{"name", metrics.name},
-                      {"kind", metrics.kind},
-                      {"quality", metrics.quality},
-                      {"path", stream->folder},
-                      {"chunks", stream->chunks},
-                      {"mb_per_frame", metrics.mb_per_frame},
-                      {"mbps", metrics.mbps},
-                      {"psnr_db", metrics.psnr_db}});
-}
-
-void SiteWriter::WriteMeshStreams(const std::map<int64_t, fs::path>& files) {
-  for (const std::string& level : options_.qualities) {
-    const web::QualityLevel quality = web::QualityByName(level);
-    StreamTally stream = BeginStream("mesh", "mesh", level);
-    WebStreamMetrics& metrics = stream.metrics;
-    for (size_t i = 0; i < sets_.size(); ++i) {
-      auto it = files.find(sets_[i]);
-      if (it == files.end()) {
-        stream.chunks.push_back(nullptr);
-        continue;
-      }
-      const TexturedMeshFrame mesh = ReadTexturedGlb(it->second);
-      TexturedMeshFrame decoded;
-      double max_error_m = 0;
-      const std::string chunk =
-          web::EncodeMesh(mesh, static_cast<int64_t>(i), quality, &decoded, &max_error_m)
-              .Serialise();
-      WriteChunk(&stream, i, chunk);
-      metrics.max_position_error_mm = std::max(metrics.max_position_error_mm, 1e3 * max_error_m);
-      metrics.mean_faces += static_cast<double>(decoded.faces());
-      for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
-        AccumulateError(RenderTexturedMesh(decoded, camera), RenderTexturedMesh(mesh, camera),
-                        &stream.squared, &stream.count);
-      EndFrame(&stream);
-    }
-    EndStream(&stream);
-  }
-}
-
-std::vector<int64_t> SiteWriter::ModelFrames(const fs::path& model_dir,
-                                             int64_t model_frame_count) const {
-  const nlohmann::json model_json =
-      nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
-  const std::vector<int64_t> model_sets = model_json.value("frame_sets", std::vector<int64_t>{});
-  std::vector<int64_t> frames(sets_.size(), 0);  // a static model shows its one frame throughout
-  if (model_frame_count <= 1) return frames;
-  for (size_t i = 0; i < sets_.size(); ++i) {
-    auto it = std::find(model_sets.begin(), model_sets.end(), sets_[i]);
-    frames[i] = it == model_sets.end() || it - model_sets.begin() >= model_frame_count
-                    ? -1
-                    : it - model_sets.begin();
-  }
-  return frames;
-}
-
-void SiteWriter::WriteVolumeStream(const fs::path& model_dir, const std::string& name) {
-  auto model = OpenModel(model_dir);
-  const std::vector<int64_t> model_frames = ModelFrames(model_dir, model->frame_count());
-  ViewRenderOptions render;
-  render.step_voxels = options_.step_voxels;
-  for (const std::string& level : options_.qualities) {
-    const web::QualityLevel quality = web::QualityByName(level);
-    StreamTally stream = BeginStream(name, "volume", level);
-    for (size_t i = 0; i < sets_.size(); ++i) {
-      const int64_t frame = model_frames[i];
-      if (frame < 0) {
-        stream.chunks.push_back(nullptr);
-        continue;
-      }
-      BakedFrame baked, decoded;
-      if (!model->Bake(frame, render, &baked))
-        Fail("model ", model_dir.string(), " (", model->method(),
-             ") is not a volume: the web stream carries meshes and volumes");
-      const std::string chunk = web::EncodeVolume(baked, static_cast<int64_t>(i), quality,
-                                                  render.min_transmittance, &decoded)
-                                    .Serialise();
-      WriteChunk(&stream, i, chunk);
-      for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
-        AccumulateError(web::RenderBakedFrame(decoded, camera, render.min_transmittance),
-                        web::RenderBakedFrame(baked, camera, render.min_transmittance),
-                        &stream.squared, &stream.count);
-      EndFrame(&stream);
-    }
-    EndStream(&stream);
-  }
-}
 
 // A splat model's frames, each from its delta's base (the frame before, or frame 0 where a
 // per-frame run's segment starts), with where each Gaussian of the frame came from in its base.
@@ -312,105 +142,120 @@ RenderedView SplatView(const splat::Gaussians& gaussians, const CameraModel& cam
   return view;
 }
 
-void SiteWriter::WriteSplatStream(const fs::path& model_dir, const std::string& name) {
-  SplatSequence sequence(model_dir);
-  const std::vector<int64_t> model_frames = ModelFrames(model_dir, sequence.frames());
-  for (const std::string& level : options_.qualities) {
-    web::SplatEncoding encoding =
-        web::SplatEncoding::For(web::QualityByName(level), sequence.sh_degree());
-    for (int64_t frame : model_frames)
-      if (frame >= 0) encoding.Include(sequence.Frame(frame));
-    StreamTally stream = BeginStream(name, "splats", level);
-    int64_t since_key = 0, previous_frame = -1;
-    web::SplatCodes previous;
-    for (size_t i = 0; i < sets_.size(); ++i) {
-      const int64_t frame = model_frames[i];
-      if (frame < 0) {
-        stream.chunks.push_back(nullptr);
-        previous_frame = -1;
-        continue;
-      }
-      const splat::Gaussians& gaussians = sequence.Frame(frame);
-      // A delta follows the frame before when that shows the same model frame or the base of
-      // this frame's delta (where a segment of a per-frame run starts, frame 0: a key frame).
-      const bool follows = previous_frame >= 0 &&
-                           (frame == previous_frame || sequence.Base(frame) == previous_frame);
-      const bool key = !follows || since_key >= options_.splat_key_every;
-      std::vector<int64_t> origin;
-      if (!key && frame == previous_frame) {
-        origin.resize(gaussians.size());
-        std::iota(origin.begin(), origin.end(), int64_t{0});
-      } else if (!key) {
-        origin = sequence.origin();
-      }
-      WriteSplatChunk(&stream, i, gaussians, encoding, key, origin, &previous);
-      since_key = key ? 1 : since_key + 1;
-      previous_frame = frame;
-    }
-    EndStream(&stream);
-  }
+// One hash of each file's name (relative to `root`) and bytes: what the run reads of an input.
+std::string HashInputFiles(const fs::path& root, const std::vector<fs::path>& files) {
+  std::string hashes;
+  for (const fs::path& file : files)
+    hashes += Cat(fs::relative(file, root).string(), " ", HashBytes(ReadFileToString(file)), "\n");
+  return HashBytes(hashes);
 }
 
-void SiteWriter::WriteSplatChunk(StreamTally* stream, size_t i, const splat::Gaussians& gaussians,
+// Every file of a model's folder but its reports (a merge rewrites them, not the model).
+std::vector<fs::path> ModelFiles(const fs::path& dir) {
+  std::vector<fs::path> files;
+  for (const auto& entry : fs::recursive_directory_iterator(dir))
+    if (entry.is_regular_file() && entry.path().filename() != "report.json")
+      files.push_back(entry.path());
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
+bool SelectsFrames(const TakeSelection& selection) {
+  return !selection.frame_list.empty() || selection.first_frame != 0 || selection.last_frame >= 0;
+}
+
+// One task of an export web run (see ExportWebSite in playback.h): the plan, then the task's
+// groups, each written or skipped as complete.
+class SiteWriter {
+ public:
+  SiteWriter(const fs::path& take_dir, const fs::path& site, const WebExportOptions& options,
+             Report* report)
+      : take_(Take::Open(take_dir)), site_(site), options_(options), report_(report) {}
+
+  WebExportSummary Run();
+
+ private:
+  void PlanCameras();
+  bool ChooseTimeline();  // false (the summary DEGENERATE) when there is nothing to stream
+  nlohmann::json ReportPlan() const;
+  nlohmann::json Identity() const;
+  void PlanSite();
+  nlohmann::json MakePlan();
+  std::vector<SiteStream> ListStreams() const;
+  nlohmann::json ManifestHead() const;
+  web::SplatEncoding EncodingOver(int source, const std::string& level);
+  void StartRecords();
+  void WriteGroup(size_t group);
+  // One group's frames [begin, end) of a stream: per frame, its manifest entry ("chunk", null
+  // where the stream has no frame) and what the stream's metrics sum.
+  nlohmann::json WriteStreamFrames(const SiteStream& stream, size_t begin, size_t end,
+                                   std::vector<std::string>* outputs);
+  nlohmann::json WriteMeshFrame(const SiteStream& stream, const web::QualityLevel& quality,
+                                size_t i, std::vector<std::string>* outputs);
+  nlohmann::json WriteVolumeFrame(const SiteStream& stream, const web::QualityLevel& quality,
+                                  size_t i, std::vector<std::string>* outputs);
+  nlohmann::json WriteSplatFrames(const SiteStream& stream, size_t begin, size_t end,
+                                  std::vector<std::string>* outputs);
+  // A splat frame: a key frame or a delta of the frame before as decoded (`decoded`, which
+  // becomes this frame's).
+  nlohmann::json WriteSplatChunk(const SiteStream& stream, size_t i,
+                                 const splat::Gaussians& gaussians,
                                  const web::SplatEncoding& encoding, bool key,
-                                 const std::vector<int64_t>& origin, web::SplatCodes* decoded) {
-  const web::SplatCodes* previous = key ? nullptr : decoded;
-  web::SplatCodes codes;
-  const std::string chunk =
-      web::EncodeSplats(gaussians, static_cast<int64_t>(i), encoding, previous, origin, &codes)
-          .Serialise();
-  WriteChunk(stream, i, chunk, {{"key", key}});
-  // Decoded again as the page decodes it, from the frame before as decoded.
-  const web::Chunk parsed = web::ParseChunk(chunk);
-  *decoded = web::DecodeSplats(parsed, previous);
-  const splat::Gaussians drawn = web::SplatsFromCodes(*decoded, encoding);
-  for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
-    AccumulateError(SplatView(drawn, camera), SplatView(gaussians, camera), &stream->squared,
-                    &stream->count);
-  WebStreamMetrics& metrics = stream->metrics;
-  metrics.key_frames += key;
-  metrics.mean_gaussians += static_cast<double>(gaussians.size());
-  metrics.mean_stored_gaussians += parsed.header.at("stored").get<double>();
-  EndFrame(stream);
+                                 const std::vector<int64_t>& origin, web::SplatCodes* decoded,
+                                 std::vector<std::string>* outputs) const;
+  // Writes timeline frame i's chunk durably (`entry`: more fields of its manifest entry).
+  nlohmann::json WriteChunk(const SiteStream& stream, size_t i, const std::string& chunk,
+                            const nlohmann::json& entry, std::vector<std::string>* outputs) const;
+  std::vector<CameraModel> ErrorCameras(int64_t frame_index) const;
+  // Per timeline frame, the frame of model `source` it shows (-1: none).
+  const std::vector<int64_t>& FramesOf(int source);
+  AvatarModel& VolumeModel(int source);
+  SplatSequence& Sequence(int source);
+  WebExportSummary FinishTask(size_t groups);
+
+  Take take_;
+  fs::path site_;
+  WebExportOptions options_;
+  Report* report_;
+  TakePlan plan_;
+  std::vector<std::string> camera_names_;
+  std::vector<CameraModel> cameras_;
+  fs::path recon_;
+  std::map<int64_t, fs::path> mesh_files_;
+  std::vector<int64_t> sets_;  // the timeline: frame sets shown, in order
+  Eigen::AlignedBox3d bounds_;
+  double fps_ = 30;
+  nlohmann::json identity_;
+  std::vector<SiteStream> streams_;
+  std::string plan_origin_;
+  std::vector<int64_t> group_keys_;  // each group's first frame set (its record's name)
+  std::optional<FrameRecords> records_;
+  const std::string task_ = DescribeTask(options_.tasks.shard);
+  std::map<int, std::vector<int64_t>> model_frames_;
+  std::map<int, std::unique_ptr<AvatarModel>> volumes_;
+  std::map<int, std::unique_ptr<SplatSequence>> sequences_;
+  bool manifest_withdrawn_ = false;
+  int64_t written_ = 0, skipped_ = 0;
+  WebExportSummary summary_;
+};
+
+void SiteWriter::PlanCameras() {
+  plan_ = PlanTake(take_, options_.take);
+  camera_names_ = plan_.color_sensors;
+  cameras_ = plan_.Cameras(camera_names_);
+  bounds_ = plan_.bounds;
+  fps_ = options_.fps > 0 ? options_.fps : (take_.rig().fps > 0 ? take_.rig().fps : 30);
 }
 
-void SiteWriter::WriteManifest() {
-  nlohmann::json frames = nlohmann::json::array();
-  const int64_t first_ns = take_.entry(sets_.front()).items.front().timestamp_ns;
-  for (size_t i = 0; i < sets_.size(); ++i) {
-    const auto& entry = take_.entry(sets_[i]);
-    frames.push_back(
-        {{"set", sets_[i]}, {"time_s", (entry.items.front().timestamp_ns - first_ns) * 1e-9}});
-  }
-  nlohmann::json cameras = nlohmann::json::array();
-  for (size_t i = 0; i < cameras_.size(); ++i)
-    cameras.push_back(CameraJson(camera_names_[i], cameras_[i]));
-  const nlohmann::json manifest = {
-      {"format", "holocap-stream"},
-      {"version", kWebStreamFormatVersion},
-      {"take", take_.dir().filename().string()},
-      {"fps", fps_},
-      {"frames", frames},
-      {"bounds",
-       {{"min", {bounds_.min().x(), bounds_.min().y(), bounds_.min().z()}},
-        {"max", {bounds_.max().x(), bounds_.max().y(), bounds_.max().z()}}}},
-      {"up", {plan_.up.x(), plan_.up.y(), plan_.up.z()}},
-      {"cameras", cameras},
-      {"streams", streams_}};
-  WriteFileAtomic(site_ / "manifest.json", manifest.dump(1) + "\n");
-}
-
-WebExportSummary SiteWriter::Run() {
-  const auto start = std::chrono::steady_clock::now();
-  PlanCameras();
-  fs::path recon = options_.recon;
-  if (recon.empty() && options_.meshes && fs::is_directory(take_.dir() / "recon"))
-    recon = take_.dir() / "recon";
-  const auto mesh_files = options_.meshes ? MeshFiles(recon) : std::map<int64_t, fs::path>{};
-  if (!options_.recon.empty() && mesh_files.empty())
+bool SiteWriter::ChooseTimeline() {
+  recon_ = options_.recon;
+  if (recon_.empty() && options_.meshes && fs::is_directory(take_.dir() / "recon"))
+    recon_ = take_.dir() / "recon";
+  if (options_.meshes) mesh_files_ = MeshFiles(recon_);
+  if (!options_.recon.empty() && mesh_files_.empty())
     Fail("--recon ", options_.recon.string(), " holds no meshes (<set>.glb)");
   std::set<int64_t> sets;
-  for (const auto& [set, file] : mesh_files) sets.insert(set);
+  for (const auto& [set, file] : mesh_files_) sets.insert(set);
   for (const fs::path& model_dir : options_.models) {
     const nlohmann::json json =
         nlohmann::json::parse(ReadFileToString(model_dir / "model.json"), nullptr, false);
@@ -420,42 +265,472 @@ WebExportSummary SiteWriter::Run() {
   for (int64_t set : sets)
     if (set < 0 || set >= static_cast<int64_t>(take_.size()))
       Fail("frame set ", set, " of the meshes or models is not in take ", take_.dir().string());
+  const size_t available = sets.size();
+  if (SelectsFrames(options_.take)) {
+    // --frames: the timeline is the selected sets that the meshes or models show.
+    const std::set<int64_t> selected(plan_.sets.begin(), plan_.sets.end());
+    std::erase_if(sets, [&](int64_t set) { return !selected.contains(set); });
+    std::erase_if(mesh_files_, [&](const auto& file) { return !sets.contains(file.first); });
+  }
   sets_.assign(sets.begin(), sets.end());
   if (sets_.empty()) {
     summary_.End(Termination::kDegenerate,
-                 "nothing to stream: no reconstruction (" +
-                     (recon.empty() ? (take_.dir() / "recon").string() : recon.string()) +
-                     ") and no --model");
-    return summary_;
+                 available > 0
+                     ? Cat("nothing to stream: --frames selects none of the ", available,
+                           " frame sets of the meshes and models")
+                     : "nothing to stream: no reconstruction (" +
+                           (recon_.empty() ? (take_.dir() / "recon").string() : recon_.string()) +
+                           ") and no --model");
+    return false;
   }
-  if (report_ != nullptr) {
-    report_->plan() = plan_.ToJson();
-    report_->plan()["recon"] = recon.string();
-    report_->plan()["frame_sets"] = sets_;
+  if (report_ != nullptr) report_->plan() = ReportPlan();
+  return true;
+}
+
+nlohmann::json SiteWriter::ReportPlan() const {
+  nlohmann::json plan = plan_.ToJson();
+  plan["recon"] = recon_.string();
+  plan["frame_sets"] = sets_;
+  plan["group_frames"] = options_.splat_key_every;
+  return plan;
+}
+
+// Everything that decides the site's bytes: the options (less how the task runs), the take's
+// recording and cameras, and every input file's bytes.
+nlohmann::json SiteWriter::Identity() const {
+  nlohmann::json options = options_.ToJson();
+  options.erase("tasks");
+  options.erase("overwrite");
+  std::string recording = ReadFileToString(take_.dir() / "take.json");
+  std::error_code ec;
+  if (fs::exists(take_.dir() / "index.jsonl", ec))
+    recording += ReadFileToString(take_.dir() / "index.jsonl");
+  std::string cameras;
+  for (size_t i = 0; i < cameras_.size(); ++i) cameras += camera_names_[i] + cameras_[i].ToString();
+  std::vector<fs::path> meshes;
+  for (const auto& [set, file] : mesh_files_) meshes.push_back(file);
+  nlohmann::json models = nlohmann::json::array();
+  for (const fs::path& dir : options_.models)
+    models.push_back(HashInputFiles(dir, ModelFiles(dir)));
+  return {{"options", options},
+          {"recording", HashBytes(recording)},
+          {"cameras", HashBytes(cameras)},
+          {"meshes", HashInputFiles(recon_, meshes)},
+          {"models", models}};
+}
+
+// The run's plan, made once for all its tasks (core/frame_tasks.h PlanOnce): the splat streams'
+// quantisation decodes every frame of their models, which a task of a few groups would
+// otherwise pay for the whole timeline.
+void SiteWriter::PlanSite() {
+  const StoredPlan stored =
+      PlanOnce(site_, kCommand, HashBytes(identity_.dump()), task_,
+               [this](std::vector<std::string>* /*files*/) { return MakePlan(); });
+  for (const auto& stream : stored.plan.at("streams"))
+    streams_.push_back(SiteStream::FromJson(stream));
+  plan_origin_ = stored.made ? Cat("made by this task (", stored.why, ")")
+                             : Cat("read from ", (site_ / kPlanDir).string(), " (made by ",
+                                   stored.made_by, ")");
+  std::printf("export web: %zu frame(s) in groups of %d, %zu stream(s); plan: %s\n", sets_.size(),
+              options_.splat_key_every, streams_.size(), plan_origin_.c_str());
+}
+
+nlohmann::json SiteWriter::MakePlan() {
+  nlohmann::json streams = nlohmann::json::array();
+  for (SiteStream& stream : ListStreams()) {
+    if (stream.kind == "splats")
+      stream.encoding = EncodingOver(stream.source, stream.quality).ToJson();
+    streams.push_back(stream.ToJson());
   }
-  CreateDirectories(site_ / "streams");
-  if (!mesh_files.empty()) WriteMeshStreams(mesh_files);
-  for (const fs::path& model_dir : options_.models) {
+  return {{"head", ManifestHead()},
+          {"streams", streams},
+          {"group_frames", options_.splat_key_every},
+          {"sets", sets_}};
+}
+
+std::vector<SiteStream> SiteWriter::ListStreams() const {
+  std::vector<SiteStream> streams;
+  auto add = [&](const std::string& name, const std::string& kind, int source) {
+    for (const std::string& level : options_.qualities)
+      streams.push_back(
+          {name + "-" + level, kind, level, "streams/" + name + "-" + level, source, nullptr});
+  };
+  if (!mesh_files_.empty()) add("mesh", "mesh", -1);
+  for (size_t m = 0; m < options_.models.size(); ++m) {
+    const fs::path& model_dir = options_.models[m];
     const std::string kind = OpenModel(model_dir)->method();
     const std::string name = options_.models.size() > 1 ? model_dir.filename().string() : kind;
-    if (kind == "splat")
-      WriteSplatStream(model_dir, name);
-    else
-      WriteVolumeStream(model_dir, name);
+    add(name, kind == "splat" ? "splats" : "volume", static_cast<int>(m));
   }
-  WriteManifest();
-  for (const auto& [path, bytes] : web::PlayerFiles()) {
-    CreateDirectories((site_ / path).parent_path());
-    WriteFileAtomic(site_ / path, bytes);
-  }
-  summary_.frames = static_cast<int64_t>(sets_.size());
-  summary_.seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  std::string message = std::to_string(sets_.size()) + " frame(s), " +
-                        std::to_string(summary_.streams.size()) + " stream(s)";
-  summary_.End(Termination::kSuccess, message);
-  return summary_;
+  return streams;
 }
+
+// The manifest but its streams.
+nlohmann::json SiteWriter::ManifestHead() const {
+  nlohmann::json frames = nlohmann::json::array();
+  const int64_t first_ns = take_.entry(sets_.front()).items.front().timestamp_ns;
+  for (int64_t set : sets_) {
+    const auto& entry = take_.entry(set);
+    frames.push_back(
+        {{"set", set}, {"time_s", (entry.items.front().timestamp_ns - first_ns) * 1e-9}});
+  }
+  nlohmann::json cameras = nlohmann::json::array();
+  for (size_t i = 0; i < cameras_.size(); ++i)
+    cameras.push_back(CameraJson(camera_names_[i], cameras_[i]));
+  return {{"format", "holocap-stream"},
+          {"version", kWebStreamFormatVersion},
+          {"take", take_.dir().filename().string()},
+          {"fps", fps_},
+          {"frames", frames},
+          {"bounds",
+           {{"min", {bounds_.min().x(), bounds_.min().y(), bounds_.min().z()}},
+            {"max", {bounds_.max().x(), bounds_.max().y(), bounds_.max().z()}}}},
+          {"up", {plan_.up.x(), plan_.up.y(), plan_.up.z()}},
+          {"cameras", cameras}};
+}
+
+// A splat stream's quantisation: the same ranges for every chunk of the stream, over every
+// frame the timeline shows.
+web::SplatEncoding SiteWriter::EncodingOver(int source, const std::string& level) {
+  SplatSequence& sequence = Sequence(source);
+  web::SplatEncoding encoding =
+      web::SplatEncoding::For(web::QualityByName(level), sequence.sh_degree());
+  for (int64_t frame : FramesOf(source))
+    if (frame >= 0) encoding.Include(sequence.Frame(frame));
+  return encoding;
+}
+
+void SiteWriter::StartRecords() {
+  for (size_t i = 0; i < sets_.size(); i += static_cast<size_t>(options_.splat_key_every))
+    group_keys_.push_back(sets_[i]);
+  records_.emplace(site_, kCommand, identity_, group_keys_);
+  for (const SiteStream& stream : streams_) CreateDirectories(site_ / stream.folder);
+  nlohmann::json options = options_.ToJson();
+  options.erase("tasks");
+  options.erase("overwrite");
+  options["take_dir"] = take_.dir().string();
+  options["out"] = site_.string();
+  records_->WriteRun({{"options", options}, {"plan", ReportPlan()}});
+}
+
+void SiteWriter::WriteGroup(size_t group) {
+  if (!manifest_withdrawn_) {
+    std::error_code ec;
+    fs::remove(site_ / "manifest.json", ec);
+    manifest_withdrawn_ = true;
+  }
+  const size_t frames = static_cast<size_t>(options_.splat_key_every);
+  const size_t begin = group * frames, end = std::min(sets_.size(), begin + frames);
+  const double started = UnixSeconds();
+  nlohmann::json streams = nlohmann::json::object();
+  std::vector<std::string> outputs;
+  for (const SiteStream& stream : streams_)
+    streams[stream.name] = WriteStreamFrames(stream, begin, end, &outputs);
+  // Its termination and seconds are what `submit status` shows (a group whose chunks are all
+  // written succeeded).
+  const nlohmann::json result = {
+      {"termination", ToString(Termination::kSuccess)},
+      {"seconds", UnixSeconds() - started},
+      {"group", group},
+      {"sets", std::vector<int64_t>(sets_.begin() + static_cast<std::ptrdiff_t>(begin),
+                                    sets_.begin() + static_cast<std::ptrdiff_t>(end))},
+      {"streams", streams}};
+  records_->Record(group_keys_[group], result, outputs, started, task_);
+}
+
+nlohmann::json SiteWriter::WriteStreamFrames(const SiteStream& stream, size_t begin, size_t end,
+                                             std::vector<std::string>* outputs) {
+  if (stream.kind == "splats") return WriteSplatFrames(stream, begin, end, outputs);
+  const web::QualityLevel quality = web::QualityByName(stream.quality);
+  nlohmann::json frames = nlohmann::json::array();
+  for (size_t i = begin; i < end; ++i) {
+    frames.push_back(stream.kind == "mesh" ? WriteMeshFrame(stream, quality, i, outputs)
+                                           : WriteVolumeFrame(stream, quality, i, outputs));
+  }
+  return frames;
+}
+
+nlohmann::json SiteWriter::WriteChunk(const SiteStream& stream, size_t i, const std::string& chunk,
+                                      const nlohmann::json& entry,
+                                      std::vector<std::string>* outputs) const {
+  outputs->push_back(stream.folder + "/" + ChunkName(sets_[i]));
+  WriteFileAtomic(site_ / outputs->back(), chunk, /*durable=*/true);
+  nlohmann::json listed = {{"file", ChunkName(sets_[i])}, {"bytes", chunk.size()}};
+  listed.update(entry);
+  return {{"chunk", listed}};
+}
+
+std::vector<CameraModel> SiteWriter::ErrorCameras(int64_t frame_index) const {
+  std::vector<CameraModel> chosen;
+  const int n = static_cast<int>(cameras_.size());
+  for (int k = 0; k < std::min(options_.error_cameras, n); ++k) {
+    const CameraModel& camera = cameras_[(frame_index + k * std::max(1, n / 2)) % n];
+    chosen.push_back(camera.Scaled(static_cast<double>(options_.error_width_px) / camera.width()));
+  }
+  return chosen;
+}
+
+nlohmann::json SiteWriter::WriteMeshFrame(const SiteStream& stream,
+                                          const web::QualityLevel& quality, size_t i,
+                                          std::vector<std::string>* outputs) {
+  auto it = mesh_files_.find(sets_[i]);
+  if (it == mesh_files_.end()) return {{"chunk", nullptr}};
+  const TexturedMeshFrame mesh = ReadTexturedGlb(it->second);
+  TexturedMeshFrame decoded;
+  double max_error_m = 0;
+  const std::string chunk =
+      web::EncodeMesh(mesh, static_cast<int64_t>(i), quality, &decoded, &max_error_m).Serialise();
+  nlohmann::json tally = WriteChunk(stream, i, chunk, nlohmann::json::object(), outputs);
+  double squared = 0;
+  int64_t count = 0;
+  for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
+    AccumulateError(RenderTexturedMesh(decoded, camera), RenderTexturedMesh(mesh, camera), &squared,
+                    &count);
+  tally.update({{"squared", squared},
+                {"count", count},
+                {"faces", decoded.faces()},
+                {"max_position_error_mm", 1e3 * max_error_m}});
+  return tally;
+}
+
+nlohmann::json SiteWriter::WriteVolumeFrame(const SiteStream& stream,
+                                            const web::QualityLevel& quality, size_t i,
+                                            std::vector<std::string>* outputs) {
+  const int64_t frame = FramesOf(stream.source)[i];
+  if (frame < 0) return {{"chunk", nullptr}};
+  ViewRenderOptions render;
+  render.step_voxels = options_.step_voxels;
+  BakedFrame baked, decoded;
+  if (!VolumeModel(stream.source).Bake(frame, render, &baked))
+    Fail("model ", options_.models[stream.source].string(), " (",
+         VolumeModel(stream.source).method(),
+         ") is not a volume: the web stream carries meshes and volumes");
+  const std::string chunk =
+      web::EncodeVolume(baked, static_cast<int64_t>(i), quality, render.min_transmittance, &decoded)
+          .Serialise();
+  nlohmann::json tally = WriteChunk(stream, i, chunk, nlohmann::json::object(), outputs);
+  double squared = 0;
+  int64_t count = 0;
+  for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
+    AccumulateError(web::RenderBakedFrame(decoded, camera, render.min_transmittance),
+                    web::RenderBakedFrame(baked, camera, render.min_transmittance), &squared,
+                    &count);
+  tally.update({{"squared", squared}, {"count", count}});
+  return tally;
+}
+
+nlohmann::json SiteWriter::WriteSplatFrames(const SiteStream& stream, size_t begin, size_t end,
+                                            std::vector<std::string>* outputs) {
+  SplatSequence& sequence = Sequence(stream.source);
+  const std::vector<int64_t>& model_frames = FramesOf(stream.source);
+  const web::SplatEncoding encoding = web::SplatEncoding::FromJson(stream.encoding);
+  nlohmann::json frames = nlohmann::json::array();
+  web::SplatCodes previous;
+  for (size_t i = begin; i < end; ++i) {
+    const int64_t frame = model_frames[i];
+    if (frame < 0) {
+      frames.push_back({{"chunk", nullptr}});
+      continue;
+    }
+    const int64_t previous_frame = i > begin ? model_frames[i - 1] : -1;
+    const splat::Gaussians& gaussians = sequence.Frame(frame);
+    // A delta follows the frame before when that shows the same model frame or the base of
+    // this frame's delta (where a segment of a per-frame run starts, frame 0: a key frame); a
+    // group starts with a key frame, so no delta reaches into the group before.
+    const bool follows =
+        previous_frame >= 0 && (frame == previous_frame || sequence.Base(frame) == previous_frame);
+    const bool key = !follows || i % static_cast<size_t>(options_.splat_key_every) == 0;
+    std::vector<int64_t> origin;
+    if (!key && frame == previous_frame) {
+      origin.resize(gaussians.size());
+      std::iota(origin.begin(), origin.end(), int64_t{0});
+    } else if (!key) {
+      origin = sequence.origin();
+    }
+    frames.push_back(
+        WriteSplatChunk(stream, i, gaussians, encoding, key, origin, &previous, outputs));
+  }
+  return frames;
+}
+
+nlohmann::json SiteWriter::WriteSplatChunk(const SiteStream& stream, size_t i,
+                                           const splat::Gaussians& gaussians,
+                                           const web::SplatEncoding& encoding, bool key,
+                                           const std::vector<int64_t>& origin,
+                                           web::SplatCodes* decoded,
+                                           std::vector<std::string>* outputs) const {
+  const web::SplatCodes* previous = key ? nullptr : decoded;
+  web::SplatCodes codes;
+  const std::string chunk =
+      web::EncodeSplats(gaussians, static_cast<int64_t>(i), encoding, previous, origin, &codes)
+          .Serialise();
+  nlohmann::json tally = WriteChunk(stream, i, chunk, {{"key", key}}, outputs);
+  // Decoded again as the page decodes it, from the frame before as decoded.
+  const web::Chunk parsed = web::ParseChunk(chunk);
+  *decoded = web::DecodeSplats(parsed, previous);
+  const splat::Gaussians drawn = web::SplatsFromCodes(*decoded, encoding);
+  double squared = 0;
+  int64_t count = 0;
+  for (const CameraModel& camera : ErrorCameras(static_cast<int64_t>(i)))
+    AccumulateError(SplatView(drawn, camera), SplatView(gaussians, camera), &squared, &count);
+  tally.update({{"squared", squared},
+                {"count", count},
+                {"gaussians", gaussians.size()},
+                {"stored", parsed.header.at("stored")}});
+  return tally;
+}
+
+const std::vector<int64_t>& SiteWriter::FramesOf(int source) {
+  auto found = model_frames_.find(source);
+  if (found != model_frames_.end()) return found->second;
+  const fs::path& model_dir = options_.models[source];
+  const int64_t model_frame_count = OpenModel(model_dir)->frame_count();
+  const nlohmann::json model_json =
+      nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
+  const std::vector<int64_t> model_sets = model_json.value("frame_sets", std::vector<int64_t>{});
+  std::vector<int64_t> frames(sets_.size(), 0);  // a static model shows its one frame throughout
+  for (size_t i = 0; i < sets_.size() && model_frame_count > 1; ++i) {
+    auto it = std::find(model_sets.begin(), model_sets.end(), sets_[i]);
+    frames[i] = it == model_sets.end() || it - model_sets.begin() >= model_frame_count
+                    ? -1
+                    : it - model_sets.begin();
+  }
+  return model_frames_[source] = std::move(frames);
+}
+
+AvatarModel& SiteWriter::VolumeModel(int source) {
+  auto& model = volumes_[source];
+  if (!model) model = OpenModel(options_.models[source]);
+  return *model;
+}
+
+SplatSequence& SiteWriter::Sequence(int source) {
+  auto& sequence = sequences_[source];
+  if (!sequence) sequence = std::make_unique<SplatSequence>(options_.models[source]);
+  return *sequence;
+}
+
+WebExportSummary SiteWriter::Run() {
+  const auto start = std::chrono::steady_clock::now();
+  PlanCameras();
+  if (!ChooseTimeline()) {
+    if (report_ != nullptr) {
+      report_->SetSummary(summary_);
+      report_->Write(TaskReportPath(site_, options_.tasks.shard));
+    }
+    return summary_;
+  }
+  identity_ = Identity();
+  PlanSite();
+  StartRecords();
+  const std::vector<int64_t> mine = options_.tasks.shard.Of(group_keys_);
+  Progress progress("export web", static_cast<int64_t>(mine.size()));
+  for (int64_t key : mine) {
+    const size_t group = static_cast<size_t>(
+        std::find(group_keys_.begin(), group_keys_.end(), key) - group_keys_.begin());
+    if (!options_.tasks.redo && records_->Complete(key)) {
+      ++skipped_;
+    } else {
+      WriteGroup(group);
+      ++written_;
+    }
+    progress.Increment();
+  }
+  progress.Finish();
+  WebExportSummary summary = FinishTask(mine.size());
+  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return summary;
+}
+
+// A whole run's report is the one merged from its records (as a sharded run's is); a shard
+// writes its own, and merges the site when its groups complete the run.
+WebExportSummary SiteWriter::FinishTask(size_t groups) {
+  const Shard& shard = options_.tasks.shard;
+  if (skipped_ > 0) {
+    std::printf("export web: %lld of %zu group(s) skipped: complete from an earlier run\n",
+                static_cast<long long>(skipped_), groups);
+  }
+  if (shard.whole()) {
+    Report local(kCommand);
+    return MergeWebSite(site_, report_ != nullptr ? report_ : &local);
+  }
+  const RunState run = ReadRunState(site_);
+  std::printf("export web: shard %s wrote %lld and skipped %lld of its %zu group(s); the run: %s\n",
+              shard.ToString().c_str(), static_cast<long long>(written_),
+              static_cast<long long>(skipped_), groups, run.Describe().c_str());
+  if (run.done()) {
+    Report merged(kCommand);
+    const WebExportSummary all = MergeWebSite(site_, &merged);
+    std::printf("export web: the run is complete: %s (%s)\n", (site_ / "manifest.json").c_str(),
+                ToString(all.termination));
+  }
+  WebExportSummary summary;
+  summary.End(Termination::kSuccess,
+              Cat("shard ", shard.ToString(), ": ", written_, " group(s) written, ", skipped_,
+                  " complete from an earlier run (", group_keys_.size(), " group(s) of up to ",
+                  options_.splat_key_every, " frames in the run)"));
+  if (report_ == nullptr) return summary;
+  report_->metrics()["groups_written"] = written_;
+  report_->metrics()["groups_skipped"] = skipped_;
+  report_->metrics()["plan"] = plan_origin_;
+  report_->metrics()["run"] = run.Describe();
+  report_->metrics()["peak_rss_mb"] = PeakRssMb();
+  report_->SetSummary(summary);
+  report_->Write(TaskReportPath(site_, shard));
+  return summary;
+}
+
+// A stream's metrics and manifest entry summed from its frames in the groups' records.
+class StreamSum {
+ public:
+  StreamSum(const SiteStream& stream, Report* report) : stream_(stream), report_(report) {
+    metrics_ = {.name = stream.name, .kind = stream.kind, .quality = stream.quality};
+  }
+
+  void Add(const nlohmann::json& frame) {
+    chunks_.push_back(frame.at("chunk"));
+    if (frame.at("chunk").is_null()) return;
+    bytes_ += frame.at("chunk").at("bytes").get<uint64_t>();
+    squared_ += frame.at("squared").get<double>();
+    count_ += frame.at("count").get<int64_t>();
+    ++metrics_.frames;
+    metrics_.max_position_error_mm =
+        std::max(metrics_.max_position_error_mm, frame.value("max_position_error_mm", 0.0));
+    metrics_.mean_faces += frame.value("faces", 0.0);
+    metrics_.mean_gaussians += frame.value("gaussians", 0.0);
+    metrics_.mean_stored_gaussians += frame.value("stored", 0.0);
+    metrics_.key_frames += frame.at("chunk").value("key", false) ? 1 : 0;
+    report_->AddPoint(metrics_.name + ".psnr_db", Psnr(squared_, count_), metrics_.frames);
+  }
+
+  // The stream's manifest entry; its metrics go to `summary` and the report.
+  nlohmann::json End(double fps, WebExportSummary* summary) {
+    WebStreamMetrics& metrics = metrics_;
+    const double frames = static_cast<double>(std::max<int64_t>(metrics.frames, 1));
+    metrics.mb_per_frame = metrics.frames > 0 ? bytes_ / 1e6 / metrics.frames : 0;
+    metrics.mean_faces /= frames;
+    metrics.mean_gaussians /= frames;
+    metrics.mean_stored_gaussians /= frames;
+    metrics.mbps = metrics.mb_per_frame * 8 * fps;
+    metrics.psnr_db = Psnr(squared_, count_);
+    summary->bytes += bytes_;
+    summary->streams.push_back(metrics);
+    report_->metrics()["streams"][metrics.name] = metrics.ToJson();
+    return {{"name", metrics.name},       {"kind", metrics.kind},
+            {"quality", metrics.quality}, {"path", stream_.folder},
+            {"chunks", chunks_},          {"mb_per_frame", metrics.mb_per_frame},
+            {"mbps", metrics.mbps},       {"psnr_db", metrics.psnr_db}};
+  }
+
+ private:
+  SiteStream stream_;
+  Report* report_;
+  WebStreamMetrics metrics_;
+  nlohmann::json chunks_ = nlohmann::json::array();
+  uint64_t bytes_ = 0;
+  double squared_ = 0;
+  int64_t count_ = 0;
+};
 
 }  // namespace
 
@@ -468,6 +743,7 @@ void WebExportOptions::Check() const {
   if (error_cameras < 0) Fail("error_cameras must be >= 0, got ", error_cameras);
   if (splat_key_every < 1) Fail("--key-every must be at least 1, got ", splat_key_every);
   take.Check();
+  tasks.Check();
 }
 
 nlohmann::json WebExportOptions::ToJson() const {
@@ -483,7 +759,8 @@ nlohmann::json WebExportOptions::ToJson() const {
           {"error_cameras", error_cameras},
           {"splat_key_every", splat_key_every},
           {"take", take.ToJson()},
-          {"overwrite", overwrite}};
+          {"overwrite", overwrite},
+          {"tasks", tasks.ToJson()}};
 }
 
 nlohmann::json WebStreamMetrics::ToJson() const {
@@ -507,23 +784,67 @@ nlohmann::json WebStreamMetrics::ToJson() const {
 WebExportSummary ExportWebSite(const fs::path& take_dir, const fs::path& site_dir,
                                const WebExportOptions& options, Report* report) {
   options.Check();
-  OutputRequest request{"export web", options.overwrite, {take_dir}};
+  OutputRequest request{kCommand, options.overwrite, {take_dir}, !options.tasks.shard.whole()};
   for (const auto& model : options.models) request.inputs.push_back(model);
   if (!options.recon.empty()) request.inputs.push_back(options.recon);
   const OutputDirectory claimed = OutputDirectory::Claim(site_dir, request);
   if (report != nullptr) {
     report->options() = options.ToJson();
-    report->SetFailureDestination(site_dir / "report.json");
+    report->SetFailureDestination(TaskReportPath(site_dir, options.tasks.shard));
   }
   SiteWriter writer(take_dir, site_dir, options, report);
   WebExportSummary summary = writer.Run();
-  if (report != nullptr) {
-    report->metrics()["frames"] = summary.frames;
-    report->metrics()["bytes"] = summary.bytes;
-    report->metrics()["seconds"] = summary.seconds;
+  return summary;
+}
+
+WebExportSummary MergeWebSite(const fs::path& site_dir, Report* report) {
+  const RunState run = ReadRunState(site_dir);
+  if (run.command != kCommand)
+    Fail("'", site_dir.string(), "' holds a run of holocap ", run.command, ", not of ", kCommand);
+  const fs::path plan_file = site_dir / kPlanDir / "plan.json";
+  nlohmann::json plan;
+  try {
+    plan = nlohmann::json::parse(ReadFileToString(plan_file)).at("plan");
+  } catch (const nlohmann::json::exception& e) {
+    Fail("cannot read the run's plan ", plan_file.string(), ": ", e.what());
+  }
+  report->options() = run.header.value("options", nlohmann::json::object());
+  report->plan() = run.header.value("plan", nlohmann::json::object());
+  report->metrics()["run"] = run.Describe();
+  report->metrics()["timing"] = {{"groups_by_task", run.frames_by_task},
+                                 {"cpu_s_by_task", run.cpu_s_by_task}};
+  WebExportSummary summary;
+  summary.frames = static_cast<int64_t>(plan.at("sets").size());
+  if (!run.done()) {
+    summary.End(Termination::kFailure, Cat("the run is incomplete: ", run.Describe()));
     report->SetSummary(summary);
     report->Write(site_dir / "report.json");
+    return summary;
   }
+  nlohmann::json streams = nlohmann::json::array();
+  for (const auto& planned : plan.at("streams")) {
+    const SiteStream stream = SiteStream::FromJson(planned);
+    StreamSum sum(stream, report);
+    for (const auto& [set, record] : run.complete)
+      for (const auto& frame : record.at("result").at("streams").at(stream.name)) sum.Add(frame);
+    streams.push_back(sum.End(plan.at("head").at("fps").get<double>(), &summary));
+  }
+  for (const auto& [path, bytes] : web::PlayerFiles()) {
+    CreateDirectories((site_dir / path).parent_path());
+    WriteFileAtomic(site_dir / path, bytes, /*durable=*/true);
+  }
+  // Last: a player opens the site only once every chunk it lists is in place.
+  nlohmann::json manifest = plan.at("head");
+  manifest["streams"] = streams;
+  WriteFileAtomic(site_dir / "manifest.json", manifest.dump(1) + "\n", /*durable=*/true);
+  summary.seconds = report->ElapsedSeconds();
+  summary.End(Termination::kSuccess,
+              Cat(summary.frames, " frame(s), ", summary.streams.size(), " stream(s)"));
+  report->metrics()["frames"] = summary.frames;
+  report->metrics()["bytes"] = summary.bytes;
+  report->metrics()["seconds"] = summary.seconds;
+  report->SetSummary(summary);
+  report->Write(site_dir / "report.json");
   return summary;
 }
 

@@ -1,17 +1,23 @@
-// Comparing two runs of a per-frame command: every mesh (or splat model file) the same bytes,
-// and the same report and per-frame results once what only measures time (and where the run
+// Comparing two runs of a per-frame command: every mesh (splat model file, site file) the same
+// bytes, and the same report and per-frame results once what only measures time (and where the run
 // wrote) is left out.
 #pragma once
 
 #include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
+#include <chrono>
 #include <filesystem>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <thread>
 
 #include "core/frame_tasks.h"
 #include "core/fs.h"
+#include "tests/support/test_support.h"
 
 namespace holocap::testing {
 
@@ -113,15 +119,9 @@ inline std::map<std::string, std::string> ModelFiles(const std::filesystem::path
   return files;
 }
 
-// The same model bytes, report and frame records as `expected`, times aside.
-inline void ExpectSameModel(const std::filesystem::path& expected,
-                            const std::filesystem::path& actual) {
-  const auto a = ModelFiles(expected), b = ModelFiles(actual);
-  ASSERT_EQ(a.size(), b.size());
-  for (const auto& [name, bytes] : a) {
-    ASSERT_TRUE(b.count(name)) << name << " is missing from " << actual;
-    EXPECT_TRUE(bytes == b.at(name)) << name << " differs";
-  }
+// The same report and frame records as the run in `expected`, times aside.
+inline void ExpectSameReportAndRecords(const std::filesystem::path& expected,
+                                       const std::filesystem::path& actual) {
   EXPECT_EQ(WithoutTimes(ReadJson(expected / "report.json")).dump(1),
             WithoutTimes(ReadJson(actual / "report.json")).dump(1));
   const RunState run_a = ReadRunState(expected), run_b = ReadRunState(actual);
@@ -131,6 +131,67 @@ inline void ExpectSameModel(const std::filesystem::path& expected,
     EXPECT_EQ(WithoutTimes(record["result"]).dump(),
               WithoutTimes(run_b.complete.at(set)["result"]).dump());
   }
+}
+
+// Every file of `a` in `b` with the same bytes, and no other.
+inline void ExpectSameFiles(const std::map<std::string, std::string>& a,
+                            const std::map<std::string, std::string>& b,
+                            const std::filesystem::path& actual) {
+  ASSERT_EQ(a.size(), b.size()) << actual;
+  for (const auto& [name, bytes] : a) {
+    ASSERT_TRUE(b.count(name)) << name << " is missing from " << actual;
+    EXPECT_TRUE(bytes == b.at(name)) << name << " differs";
+  }
+}
+
+// The same model bytes, report and frame records as `expected`, times aside.
+inline void ExpectSameModel(const std::filesystem::path& expected,
+                            const std::filesystem::path& actual) {
+  ExpectSameFiles(ModelFiles(expected), ModelFiles(actual), actual);
+  ExpectSameReportAndRecords(expected, actual);
+}
+
+// What a player reads of a site (manifest.json, index.html, player/, streams/): name (relative)
+// -> bytes; what the run keeps for itself (records, plan, reports, logs) left out.
+inline std::map<std::string, std::string> SiteFiles(const std::filesystem::path& site) {
+  std::map<std::string, std::string> files;
+  for (const auto& entry : std::filesystem::recursive_directory_iterator(site)) {
+    const std::string name = std::filesystem::relative(entry.path(), site).string();
+    const std::string top = name.substr(0, name.find('/'));
+    if (entry.is_regular_file() &&
+        (top == "manifest.json" || top == "index.html" || top == "player" || top == "streams"))
+      files[name] = ReadFileToString(entry.path());
+  }
+  return files;
+}
+
+// The same site bytes, report and group records as `expected`, times aside.
+inline void ExpectSameSite(const std::filesystem::path& expected,
+                           const std::filesystem::path& actual) {
+  const auto a = SiteFiles(expected);
+  ASSERT_TRUE(a.count("manifest.json")) << expected;
+  ExpectSameFiles(a, SiteFiles(actual), actual);
+  ExpectSameReportAndRecords(expected, actual);
+}
+
+// Runs `holocap ARGS` (a shell word list) and kills it (SIGKILL) as soon as `record` exists;
+// true when the command was killed, false when it ended before (or never wrote the record in
+// two minutes and was killed then, which the caller's checks of the records tell apart).
+inline bool KillWhenRecorded(const std::string& args, const std::filesystem::path& record) {
+  const pid_t child = fork();
+  if (child < 0) return false;
+  if (child == 0) {
+    execl("/bin/sh", "sh", "-c", ("exec " + CliPath() + " " + args).c_str(),
+          static_cast<char*>(nullptr));
+    _exit(127);
+  }
+  int polls = 0;
+  while (polls++ < 60000 && !std::filesystem::exists(record))
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  kill(child, SIGKILL);
+  int status = 0;
+  waitpid(child, &status, 0);
+  return WIFSIGNALED(status) && WTERMSIG(status) == SIGKILL;
 }
 
 }  // namespace holocap::testing

@@ -30,6 +30,7 @@ namespace {
 using testing::ExpectOneLineError;
 using testing::ExpectSameModel;
 using testing::ExpectSameRun;
+using testing::ExpectSameSite;
 using testing::FindProgram;
 using testing::LocalSlurm;
 using testing::ReadJson;
@@ -100,7 +101,8 @@ TEST(SubmitSlurm, OneShardPerArrayTaskAndAMergeAfterThem) {
 // A simulated take reconstructed by 3 array tasks; one is cancelled in the middle of its second
 // frame; the merge job reports the run incomplete; a resubmission redoes only what was lost,
 // and the merged meshes and report are those of one process's run. Then the take's splats by 2
-// array tasks (train splat --segment-frames): the merged model is one process's.
+// array tasks (train splat --segment-frames): the merged model is one process's; and its site
+// by 2 array tasks (export web): one process's site.
 TEST(SlurmCluster, ACancelledTaskIsRedoneAndTheMergeIsTheOneProcessRun) {
   if (geteuid() != 0) GTEST_SKIP() << "starting munged, slurmctld and slurmd needs root";
   for (const char* program :
@@ -182,6 +184,24 @@ TEST(SlurmCluster, ACancelledTaskIsRedoneAndTheMergeIsTheOneProcessRun) {
   EXPECT_EQ(ReadJson(splat_split + "/report.json")["summary"]["termination"], "NO_CONVERGENCE");
   EXPECT_EQ(ReadRunState(splat_split).frames_by_task.size(), 2u);
   ExpectSameModel(splat_whole, splat_split);
+
+  // The site of the meshes and the splats as 2 array tasks (groups {1, 2} and {3, 4}, {5, 6}),
+  // its manifest written by the task that completes it: one process's site.
+  const std::string web = " --recon " + whole + " --model " + splat_whole +
+                          " --quality low --key-every 2 --ground-truth";
+  const std::string site_whole = (dir.path() / "site-whole").string();
+  const std::string site_split = (dir.path() / "site-split").string();
+  auto one_site = RunCli("export web " + take + " --out " + site_whole + web);
+  ASSERT_EQ(one_site.exit_code, 0) << one_site.output;
+  auto site = RunCli("submit slurm export web " + take + " --out " + site_split + web +
+                     " --tasks 2 --cpus 1");
+  ASSERT_EQ(site.exit_code, 0) << site.output;
+  const auto [site_array, site_merge] = JobIds(site.output);
+  ASSERT_TRUE(LocalSlurm::WaitForJob(site_array)) << "the site's array did not end";
+  ASSERT_TRUE(LocalSlurm::WaitForJob(site_merge)) << "the site's merge job did not end";
+  EXPECT_EQ(ReadJson(site_split + "/report.json")["summary"]["termination"], "SUCCESS");
+  EXPECT_EQ(ReadRunState(site_split).frames_by_task.size(), 2u);
+  ExpectSameSite(site_whole, site_split);
 }
 
 }  // namespace

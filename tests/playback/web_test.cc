@@ -1,8 +1,9 @@
 // The web player: `holocap export web` on a small simulated take (3 frame sets, meshes, a
-// dynamic Neural Volume and dynamic splats), its stream decoded natively, `holocap view` serving
-// it, and a real headless Chromium playing it (tests/playback/browser/drive.mjs): the page at a
-// capture camera's pose and frame against the native renders, synthetic input, scrubbing across
-// a splat key frame, a truncated chunk, a site of an unknown version, no console error.
+// dynamic Neural Volume and dynamic splats; exported as two shards), its stream decoded
+// natively, `holocap view` serving it, and a real headless Chromium playing it
+// (tests/playback/browser/drive.mjs): the page at a capture camera's pose and frame against the
+// native renders, synthetic input, scrubbing across a splat key frame, a truncated chunk, a site of
+// an unknown version, no console error.
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -128,13 +129,17 @@ class WebTest : public ::testing::Test {
     for (size_t j = 0; j < vivid.gaussians.sh.size(); ++j)
       if ((j / 3) % k != 0) vivid.gaussians.sh[j] = coefficient(random);
     vivid.Save(VividModelDir());
-    // Key frames every 2 frames: frame 1 is a delta of frame 0, frame 2 a key frame again.
-    auto exported =
-        RunCli("export web '" + Take().string() + "' --model '" + Model().string() + "' --model '" +
-               SplatModelDir().string() + "' --model '" + VividModelDir().string() +
-               "' --quality low,high,lossless --key-every 2 --ground-truth --out '" +
-               Site().string() + "'");
-    ASSERT_EQ(exported.exit_code, 0) << exported.output;
+    // Key frames every 2 frames: frame 1 is a delta of frame 0, frame 2 a key frame again. The
+    // site is exported as two shards (groups {0, 1} and {2}), so the page plays a sharded site
+    // (web_shard_test.cc checks that one is the bytes of one process's).
+    for (const char* shard : {"0/2", "1/2"}) {
+      auto exported = RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
+                             "' --model '" + SplatModelDir().string() + "' --model '" +
+                             VividModelDir().string() +
+                             "' --quality low,high,lossless --key-every 2 --ground-truth --out '" +
+                             Site().string() + "' --shard " + shard);
+      ASSERT_EQ(exported.exit_code, 0) << exported.output;
+    }
   }
   static void TearDownTestSuite() {
     delete dir_;

@@ -3,14 +3,9 @@
 // into shards, one killed mid-frame, or one whose outputs were damaged, ends with the same bytes
 // as one process's run, and a complete frame is skipped; the model plays along its deltas' bases.
 #include <gtest/gtest.h>
-#include <signal.h>
-#include <sys/wait.h>
-#include <unistd.h>
 
-#include <chrono>
 #include <filesystem>
 #include <map>
-#include <thread>
 
 #include "core/fs.h"
 #include "splat/splat.h"
@@ -143,23 +138,10 @@ TEST_F(ShardedSplats, AShardKilledMidFrameRedoesOnlyItsUnfinishedFrames) {
   auto first = RunCli(Train("killed", " --threads 2 --shard 0/2"));
   ASSERT_EQ(first.exit_code, 0) << first.output;
   const std::vector<int64_t> sets = ReadRunState(dir).sets;
-  const pid_t child = fork();
-  ASSERT_GE(child, 0);
-  if (child == 0) {
-    const std::string cli = testing::CliPath();
-    const std::string command = Train("killed", " --threads 1 --shard 1/2");
-    execl("/bin/sh", "sh", "-c", ("exec " + cli + " " + command).c_str(),
-          static_cast<char*>(nullptr));
-    _exit(127);
-  }
   // Kill -9 as soon as the segment's first frame is recorded: the second is being trained.
-  int polls = 0;
-  while (polls++ < 60000 && !fs::exists(FrameRecordPath(dir, sets[2])))
-    std::this_thread::sleep_for(std::chrono::milliseconds(2));
-  ASSERT_EQ(kill(child, SIGKILL), 0);
-  int status = 0;
-  waitpid(child, &status, 0);
-  ASSERT_TRUE(WIFSIGNALED(status)) << "the task ended before it was killed";
+  ASSERT_TRUE(testing::KillWhenRecorded(Train("killed", " --threads 1 --shard 1/2"),
+                                        FrameRecordPath(dir, sets[2])))
+      << "the task ended before it was killed";
   const RunState killed = ReadRunState(dir);
   ASSERT_EQ(killed.complete.size(), 3u) << killed.Describe();
   EXPECT_FALSE(fs::exists(dir + "/model.json"));
