@@ -75,6 +75,18 @@ void RefuseInputsUnder(const fs::path& shown, const fs::path& canonical,
   }
 }
 
+// Empty, or holding nothing but another process's marker still being written (its temporary
+// file, renamed into place in a moment): the tasks of a sharded run claim the same new folder
+// at the same time.
+bool EmptyButForMarkerBeingWritten(const fs::path& dir) {
+  const std::string temporary = std::string(kOutputMarkerFile) + ".tmp";
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(dir, ec)) {
+    if (entry.path().filename().string().rfind(temporary, 0) != 0) return false;
+  }
+  return !ec;
+}
+
 std::string ReadMarker(const fs::path& dir) {
   std::error_code ec;
   if (!fs::is_regular_file(dir / kOutputMarkerFile, ec)) return "";
@@ -210,7 +222,7 @@ OutputDirectory OutputDirectory::Claim(const fs::path& dir, const OutputRequest&
   bool fresh = true;
   if (fs::exists(canonical, ec)) {
     if (!fs::is_directory(canonical, ec)) Fail("'", dir.string(), "' exists and is not a folder");
-    if (!fs::is_empty(canonical, ec)) {
+    if (!EmptyButForMarkerBeingWritten(canonical)) {
       fresh = false;
       const std::string maker = ReadMarker(canonical);
       if (maker != request.command && !request.overwrite) {

@@ -66,5 +66,19 @@ TEST(Output, AnOutputFileIsReplacedOnlyWithOverwrite) {
   EXPECT_EQ(ReadFileToString(dir / "board.png"), "printed");  // a claim writes nothing
 }
 
+// The tasks of a sharded run claim one new folder at the same moment: a folder holding only
+// another task's marker, still a temporary file, is claimed as new; anything else in a folder
+// without a marker is refused.
+TEST(Output, AMarkerBeingWrittenByAnotherTaskIsNoStrangerOutput) {
+  TempDir dir;
+  fs::create_directories(dir / "site");
+  std::ofstream(dir / "site" / (std::string(kOutputMarkerFile) + ".tmp4242_17")) << "export web\n";
+  EXPECT_NO_THROW(OutputDirectory::Claim(dir / "site", {"export web"}));
+  EXPECT_EQ(ReadFileToString(dir / "site" / kOutputMarkerFile), "export web\n");
+  fs::create_directories(dir / "other");
+  std::ofstream(dir / "other" / "notes.txt") << "mine";
+  EXPECT_THROW(OutputDirectory::Claim(dir / "other", {"export web"}), Error);
+}
+
 }  // namespace
 }  // namespace holocap
