@@ -316,6 +316,15 @@ void AddLiveRerenderFlags(CLI::App* command, RerenderArgs* args) {
                    "With --scan: views of each composition, frames turned 60-180 degrees away")
       ->capture_default_str();
   command
+      ->add_option("--jitter", l.jitter_m,
+                   "With --scan: each composition moved by a random shift of this RMS per axis "
+                   "(metres) before it is rendered, as a live alignment errs")
+      ->capture_default_str();
+  command
+      ->add_option("--jitter-deg", l.jitter_deg,
+                   "With --scan: ... and turned by this RMS (degrees)")
+      ->capture_default_str();
+  command
       ->add_option("--validate-every", l.eval_every,
                    "With --scan: validation PSNR every this many iterations (the best is kept)")
       ->capture_default_str();
@@ -343,7 +352,9 @@ void TrainLiveRerenderCommand(const RerenderArgs& args) {
                 {"supersample", "--supersample"},
                 {"live_frames", "--live-frames"},
                 {"targets_per_frame", "--targets-per-frame"},
-                {"eval_every", "--validate-every"}});
+                {"eval_every", "--validate-every"},
+                {"jitter_m", "--jitter"},
+                {"jitter_deg", "--jitter-deg"}});
   CheckNamingFlags([&] { o.Check(); }, flags);
   ReadScan(args.scan);  // a bad scan is refused before any output is claimed
   const OutputDirectory claimed = OutputDirectory::Claim(

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <random>
 
 #include "core/error.h"
 #include "core/fs.h"
@@ -29,6 +30,10 @@ void LiveRerenderOptions::Check() const {
   if (!(min_turn_deg >= 0 && min_turn_deg <= max_turn_deg && max_turn_deg <= 180))
     Fail("the turn range must satisfy 0 <= min_turn_deg <= max_turn_deg <= 180 (got ", min_turn_deg,
          "..", max_turn_deg, ")");
+  if (!(jitter_m >= 0 && jitter_m <= 0.5))
+    Fail("jitter_m must be in [0, 0.5] (got ", jitter_m, ")");
+  if (!(jitter_deg >= 0 && jitter_deg <= 45))
+    Fail("jitter_deg must be in [0, 45] (got ", jitter_deg, ")");
   if (validation_every < 2) Fail("validation_every must be >= 2 (got ", validation_every, ")");
   if (image_width < 0 || (image_width > 0 && image_width < 32))
     Fail("image_width must be 0 (native) or >= 32 px (got ", image_width, ")");
@@ -56,6 +61,8 @@ Json LiveRerenderOptions::ToJson() const {
           {"min_turn_deg", min_turn_deg},
           {"max_turn_deg", max_turn_deg},
           {"validation_every", validation_every},
+          {"jitter_m", jitter_m},
+          {"jitter_deg", jitter_deg},
           {"image_width", image_width},
           {"supersample", supersample},
           {"minutes", minutes},
@@ -74,6 +81,7 @@ GBuffer LiveRerenderBuffers(const Mesh& composed, const CameraModel& camera,
                             const RasterOptions& raster) {
   GBuffer buffers = RasteriseMesh(composed, camera, raster);
   buffers.position = cv::Mat();
+  buffers.normal.setTo(cv::Scalar::all(0));
   return buffers;
 }
 
@@ -132,6 +140,26 @@ double TurnDeg(const ComposedFrame& a, const ComposedFrame& b) {
   const Eigen::Matrix3d relative =
       a.world_from_depth.rotation().transpose() * b.world_from_depth.rotation();
   return Eigen::AngleAxisd(relative).angle() * 180 / M_PI;
+}
+
+// `mesh` moved by a random rigid motion about its centroid (LiveRerenderOptions::jitter_m).
+Mesh Jittered(const Mesh& mesh, double jitter_m, double jitter_deg, std::mt19937_64& rng) {
+  if (mesh.vertices.empty() || (jitter_m == 0 && jitter_deg == 0)) return mesh;
+  std::normal_distribution<double> normal(0, 1);
+  Eigen::Vector3d axis(normal(rng), normal(rng), normal(rng));
+  axis = axis.norm() > 1e-9 ? axis.normalized() : Eigen::Vector3d::UnitZ();
+  const Eigen::Matrix3f turn = Eigen::AngleAxisd(jitter_deg * normal(rng) * M_PI / 180, axis)
+                                   .toRotationMatrix()
+                                   .cast<float>();
+  const Eigen::Vector3f shift =
+      (jitter_m * Eigen::Vector3d(normal(rng), normal(rng), normal(rng))).cast<float>();
+  Eigen::Vector3f centre = Eigen::Vector3f::Zero();
+  for (const Eigen::Vector3f& v : mesh.vertices)
+    centre += v / static_cast<float>(mesh.vertices.size());
+  Mesh moved = mesh;
+  for (Eigen::Vector3f& v : moved.vertices) v = turn * (v - centre) + centre + shift;
+  for (Eigen::Vector3f& n : moved.normals) n = turn * n;
+  return moved;
 }
 
 // The scan take's sensors, poses and compositions.
@@ -224,6 +252,7 @@ class PairBuilder {
   // that range; every validation_every-th composition's pairs are for validation.
   void Pair() {
     Progress progress("live rerender: pairs", static_cast<int64_t>(frames_.size()));
+    std::mt19937_64 rng(options_.seed);
     for (size_t a = 0; a < frames_.size(); ++a) {
       std::vector<std::pair<double, size_t>> candidates;
       for (size_t b = 0; b < frames_.size(); ++b) {
@@ -241,7 +270,9 @@ class PairBuilder {
         pair.live_set = frames_[a].set;
         pair.target_set = frames_[b].set;
         pair.turn_deg = turn;
-        pair.buffers = LiveRerenderBuffers(frames_[a].composed, frames_[b].camera, raster_);
+        pair.buffers = LiveRerenderBuffers(
+            Jittered(frames_[a].composed, options_.jitter_m, options_.jitter_deg, rng),
+            frames_[b].camera, raster_);
         pair.target = frames_[b].target;
         pair.silhouette = frames_[b].silhouette;
         (validation ? pairs_.validation : pairs_.train).push_back(std::move(pair));
@@ -255,7 +286,8 @@ class PairBuilder {
     pairs_.plan["pairs"] =
         Cat(pairs_.train.size(), " trained, ", pairs_.validation.size(), " validation (every ",
             options_.validation_every, "th composition's), turned ", options_.min_turn_deg, "-",
-            options_.max_turn_deg, " degrees");
+            options_.max_turn_deg, " degrees, each composition jittered by ", options_.jitter_m,
+            " m and ", options_.jitter_deg, " degrees RMS");
   }
 
   const Take take_;
