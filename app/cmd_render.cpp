@@ -1,5 +1,6 @@
 // holocap render TAKE --model DIR --path orbit|PATH.json --out DIR|file.mp4: free-viewpoint
-// playback of any trained model (model.json names its kind).
+// playback of any trained model (model.json names its kind); and, with --recon, `holocap live`'s
+// compositions rerendered by a network trained on the scan take at the take's own cameras.
 #include <cstdio>
 #include <filesystem>
 #include <optional>
@@ -8,6 +9,7 @@
 #include "app/options.h"
 #include "core/error.h"
 #include "core/report.h"
+#include "neural/live_rerender.h"
 #include "neural/neural.h"
 #include "neural/rerender.h"
 #include "playback/playback.h"
@@ -30,7 +32,30 @@ struct RenderArgs {
   double fps = 30;
   double step = 1.0;
   int threads = 0;
+  std::string recon;
+  std::vector<std::string> cameras;
 };
+
+// --recon: every composed frame at the named cameras of the take.
+void RenderLiveCommand(const RenderArgs& args) {
+  if (args.model.empty()) Fail("--recon needs --model (holocap train rerender SCAN_TAKE --scan)");
+  const std::filesystem::path out(args.out);
+  const OutputDirectory claimed =
+      OutputDirectory::Claim(out, {"render", args.overwrite, {args.model, args.recon}});
+  Report report("render");
+  report.SetFailureDestination(out / "report.json");
+  report.options() = {{"take", args.take},
+                      {"model", args.model},
+                      {"recon", args.recon},
+                      {"cameras", args.cameras},
+                      {"out", args.out}};
+  const LiveRenderSummary summary =
+      RenderLiveRecon(args.take, args.recon, args.model, args.cameras, out, &report);
+  report.Write(out / "report.json");
+  std::printf("%s\nimages (<camera>/<set>.png) and report: %s\n", summary.message.c_str(),
+              out.c_str());
+  EndCommand(summary, "rendering");
+}
 
 void AddRenderCommand(CLI::App& app) {
   auto* command = app.add_subcommand(
@@ -57,7 +82,15 @@ void AddRenderCommand(CLI::App& app) {
   AddOverwriteFlag(command, &args->overwrite);
   command->add_flag("--no-skip", args->no_skip, "Evaluate every sample (no empty-space skipping)");
   command->add_flag("--no-exr", args->no_exr, "Directory output: PNG frames only");
+  command->add_option("--recon", args->recon,
+                      "Composed frames of `holocap live` (its recon/): rerender each at --cameras "
+                      "with a model trained by `holocap train rerender SCAN_TAKE --scan SCAN`");
+  command
+      ->add_option("--cameras", args->cameras,
+                   "With --recon: cameras of TAKE to render at (names, comma-separated)")
+      ->delimiter(',');
   command->callback([args] {
+    if (!args->recon.empty()) return RenderLiveCommand(*args);
     // Checked before anything is allocated: 8192 px square is 1 GiB of float RGBA per frame.
     if (args->size < 8 || args->size > 8192)
       Fail("--size ", args->size, " is outside 8..8192 pixels");

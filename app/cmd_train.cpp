@@ -9,6 +9,7 @@
 #include "app/options.h"
 #include "core/error.h"
 #include "core/report.h"
+#include "neural/live_rerender.h"
 #include "neural/neural.h"
 #include "neural/rerender.h"
 #include "playback/playback.h"
@@ -186,6 +187,9 @@ struct RerenderArgs {
   std::string recon_method = "auto";
   std::string recon_bounds;
   bool recon_no_completion = false;
+  // With a scan: the network for `holocap live`'s compositions, trained on the scan take.
+  std::string scan;
+  LiveRerenderOptions live;
 };
 
 void AddRerenderWitnessFlags(CLI::App* command, RerenderOptions& r) {
@@ -296,6 +300,80 @@ RerenderOptions RerenderOptionsFrom(const RerenderArgs& args) {
   return o;
 }
 
+void AddLiveRerenderFlags(CLI::App* command, RerenderArgs* args) {
+  LiveRerenderOptions& l = args->live;
+  command->add_option(
+      "--scan", args->scan,
+      "TAKE is a scan take and this its scan (`holocap scan`): train the network that rerenders "
+      "`holocap live`'s compositions, on pairs of the scan take's frames (the witness and "
+      "reconstruction flags do not apply)");
+  command
+      ->add_option("--live-frames", l.live_frames,
+                   "With --scan: frames composed as the live frame, spread over the take")
+      ->capture_default_str();
+  command
+      ->add_option("--targets-per-frame", l.targets_per_frame,
+                   "With --scan: views of each composition, frames turned 60-180 degrees away")
+      ->capture_default_str();
+  command
+      ->add_option("--jitter", l.jitter_m,
+                   "With --scan: each composition moved by a random shift of this RMS per axis "
+                   "(metres) before it is rendered, as a live alignment errs")
+      ->capture_default_str();
+  command
+      ->add_option("--jitter-deg", l.jitter_deg,
+                   "With --scan: ... and turned by this RMS (degrees)")
+      ->capture_default_str();
+  command
+      ->add_option("--validate-every", l.eval_every,
+                   "With --scan: validation PSNR every this many iterations (the best is kept)")
+      ->capture_default_str();
+}
+
+void TrainLiveRerenderCommand(const RerenderArgs& args) {
+  LiveRerenderOptions o = args.live;
+  const RerenderOptions& r = args.options;
+  const SharedTrainArgs& shared = args.shared;
+  o.net = r.net;
+  o.supersample = r.supersample;
+  o.crop_px = r.crop_px;
+  o.subject_weight = r.subject_weight;
+  o.alpha_weight = r.alpha_weight;
+  o.minutes = shared.minutes;
+  o.iterations = shared.iterations;
+  o.image_width = shared.image_width;
+  o.learning_rate = shared.learning_rate;
+  o.seed = shared.seed;
+  o.threads = shared.threads;
+  std::map<std::string, std::string> flags = kSharedFlags;
+  flags.insert({{"crop_px", "--crop"},
+                {"subject_weight", "--subject-weight"},
+                {"alpha_weight", "--alpha-weight"},
+                {"supersample", "--supersample"},
+                {"live_frames", "--live-frames"},
+                {"targets_per_frame", "--targets-per-frame"},
+                {"eval_every", "--validate-every"},
+                {"jitter_m", "--jitter"},
+                {"jitter_deg", "--jitter-deg"}});
+  CheckNamingFlags([&] { o.Check(); }, flags);
+  ReadScan(args.scan);  // a bad scan is refused before any output is claimed
+  const OutputDirectory claimed = OutputDirectory::Claim(
+      shared.Out("rerender"), {"train rerender", shared.overwrite, {args.scan}});
+  const std::filesystem::path& out = claimed.path();
+  Report report("train rerender");
+  report.SetFailureDestination(out / "report.json");
+  const LiveRerenderSummary summary = TrainLiveRerender(shared.take, args.scan, out, o, &report);
+  PrintPlan(summary.plan);
+  std::printf("iterations   %lld in %.1f s (kept %lld)\n",
+              static_cast<long long>(summary.iterations), summary.seconds,
+              static_cast<long long>(summary.kept_iteration));
+  std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
+  std::printf("validation   PSNR %.2f dB (raw composition %.2f dB) inside the silhouettes\n",
+              summary.validation_psnr_db, summary.raw_psnr_db);
+  std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+  EndCommand(summary, "training");
+}
+
 void AddRerenderCommand(CLI::App* train) {
   auto* command = train->add_subcommand("rerender",
                                         "Neural rerendering (LookinGood): a U-Net that repairs "
@@ -311,7 +389,9 @@ void AddRerenderCommand(CLI::App* train) {
   AddRerenderNetworkFlags(command, r);
   command->add_option("--batch-pairs", r.batch_pairs, "Pairs of consecutive frames per iteration")
       ->capture_default_str();
+  AddLiveRerenderFlags(command, args.get());
   command->callback([args] {
+    if (!args->scan.empty()) return TrainLiveRerenderCommand(*args);
     const RerenderOptions o = RerenderOptionsFrom(*args);
     const OutputDirectory claimed = args->shared.Claim("rerender");
     const std::filesystem::path& out = claimed.path();

@@ -5,11 +5,15 @@
 //   (a) the live frame alone (its depth meshed, coloured from cam0),
 //   (b) live + the scan aligned rigidly only, and rigidly and non-rigidly (the deformation
 //       started from the scan at rest each frame: the command's; or from the frame before's),
+//   (c) live + scan + a rerender network trained on the scan take alone (holocap train rerender
+//       SCAN_TAKE --scan SCAN), applied to the command's compositions (beside the same
+//       compositions rasterised as the network sees them),
 // with each frame's alignment residual, inlier fraction, deformation and seconds; then
 // `holocap live`'s own run (LiveTake) on the take with this scan and with a scan of another
 // subject (the object scene), which it must refuse.
 //
 //   build/bench/live_bench [--frames N] [--scan-frames M] [--width W] [--keep DIR]
+//                          [--rerender-minutes T] [--rerender-iterations I] [--rerender-lr R]
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -21,6 +25,7 @@
 #include "core/fs.h"
 #include "core/take.h"
 #include "live/live.h"
+#include "neural/live_rerender.h"
 #include "playback/playback.h"
 #include "reconstruction/scan.h"
 #include "sim/sim.h"
@@ -44,6 +49,9 @@ struct Args {
   int64_t scan_frames = 72;
   int width = 320;
   fs::path keep;
+  double rerender_minutes = 5;
+  int64_t rerender_iterations = 0;
+  double rerender_lr = LiveRerenderOptions{}.learning_rate;
 };
 
 // single-rgbd's sensor pair and two pinhole colour cameras at the same distance and height,
@@ -115,12 +123,17 @@ double PsnrInMask(const RenderedView& view, const cv::Mat& reference_bgr, const 
 
 // The methods compared: (a) the live frame alone; (b) live + scan aligned rigidly only, and
 // non-rigidly from the scan at rest each frame (the command's default) or from the frame
-// before's deformation (--carry).
-constexpr int kMethods = 4;
-const char* const kMethodNames[kMethods] = {"(a) live frame alone", "(b) live + scan, rigid only",
+// before's deformation (--carry); the command's compositions rasterised as the rerender network
+// sees them (supersampled), and (c) the network's output on them.
+constexpr int kMethods = 6;
+const char* const kMethodNames[kMethods] = {"(a) live frame alone",
+                                            "(b) live + scan, rigid only",
                                             "(b) live + scan, non-rigid from rest",
-                                            "(b) live + scan, non-rigid carried"};
-constexpr int kCommand = 2;  // the command's own: non-rigid from rest
+                                            "(b) live + scan, non-rigid carried",
+                                            "(b) non-rigid from rest, rasterised for the network",
+                                            "(c) live + scan + rerender network"};
+constexpr int kCommand = 2;      // the command's own: non-rigid from rest
+constexpr int kCompositors = 4;  // methods 1-3 compose; 4 and 5 render the command's compositions
 
 // PSNR sums per method x (cam90, cam180) and the frames summed, over every frame the method
 // composed ([0]) and over the frames every compositor composed ([1]).
@@ -139,17 +152,17 @@ cv::Mat Bgr(const cv::Mat& frame) {
   return out;
 }
 
-Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
+Row Measure(const fs::path& live_take, const fs::path& scan_dir, const LiveRerenderModel& model) {
   const Take take = Take::Open(live_take);
   TakeSelection selection;
   selection.ground_truth_cameras = true;
   const TakePlan plan = PlanTake(take, selection);
   const Mesh scan = ReadScan(scan_dir);
-  LiveOptions options[kMethods];
+  LiveOptions options[kCompositors];
   options[1].nonrigid = false;
   options[3].carry_deformation = true;
   std::vector<LiveCompositor> compositors;
-  for (int m = 1; m < kMethods; ++m)
+  for (int m = 1; m < kCompositors; ++m)
     compositors.emplace_back(scan, options[m], plan.up, plan.floor_m);
   const CameraModel& depth_camera = plan.cameras.at("depth0");
   const CameraModel& color_camera = plan.cameras.at("cam0");
@@ -160,18 +173,19 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
     const cv::Mat color = Bgr(take.ReadFrame(static_cast<size_t>(set), "cam0"));
     std::vector<LiveResult> results;
     bool all = true;
-    for (int m = 1; m < kMethods; ++m) {
+    for (int m = 1; m < kCompositors; ++m) {
       results.push_back(compositors[m - 1].Process(set, depth, depth_camera, color, color_camera));
       if (results.back().frame.state == LiveState::kComposed) continue;
       all = false;
       row.refused.push_back(Cat(set, " ", kMethodNames[m], ": ", results.back().frame.why));
     }
     const LiveResult& n = results[kCommand - 1];
-    const Mesh* meshes[kMethods] = {&n.live, &results[0].composed, &results[1].composed,
-                                    &results[2].composed};
+    const Mesh* meshes[kCompositors] = {&n.live, &results[0].composed, &results[1].composed,
+                                        &results[2].composed};
     bool composed[kMethods] = {n.frame.state == LiveState::kComposed};
-    for (int m = 1; m < kMethods; ++m)
+    for (int m = 1; m < kCompositors; ++m)
       composed[m] = results[m - 1].frame.state == LiveState::kComposed;
+    for (int m = kCompositors; m < kMethods; ++m) composed[m] = composed[kCommand];
     if (composed[kCommand]) {
       ++row.frames;
       row.inliers += n.frame.inlier_fraction;
@@ -187,11 +201,18 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir) {
       const cv::Mat mask = cv::imread((live_take / "gt" / "masks" / held_out[c] / name).string(),
                                       cv::IMREAD_GRAYSCALE);
       if (mask.empty()) Fail("live_bench: no true mask of ", held_out[c], " set ", set);
+      RenderedView views[kMethods];
+      for (int m = 0; m < kCompositors; ++m) {
+        if (composed[m])
+          views[m] = RenderTexturedMesh(Corners(*meshes[m]), plan.cameras.at(held_out[c]));
+      }
+      if (composed[kCommand]) {
+        views[kCompositors + 1] = model.Render(*meshes[kCommand], plan.cameras.at(held_out[c]),
+                                               &views[kCompositors].color);
+      }
       for (int m = 0; m < kMethods; ++m) {
         if (!composed[m]) continue;
-        const RenderedView view =
-            RenderTexturedMesh(Corners(*meshes[m]), plan.cameras.at(held_out[c]));
-        const double psnr = PsnrInMask(view, reference, mask);
+        const double psnr = PsnrInMask(views[m], reference, mask);
         row.psnr[0][m][c] += psnr;
         if (all) row.psnr[1][m][c] += psnr;
         if (c == 0) {
@@ -218,6 +239,12 @@ Args Parse(int argc, char** argv) {
       args.width = std::stoi(value);
     } else if (flag == "--keep") {
       args.keep = value;
+    } else if (flag == "--rerender-minutes") {
+      args.rerender_minutes = std::stod(value);
+    } else if (flag == "--rerender-iterations") {
+      args.rerender_iterations = std::stoll(value);
+    } else if (flag == "--rerender-lr") {
+      args.rerender_lr = std::stod(value);
     } else {
       Fail("live_bench: unknown flag ", flag);
     }
@@ -231,9 +258,12 @@ int Run(int argc, char** argv) {
       args.keep.empty() ? fs::temp_directory_path() / "holocap-live-bench" : args.keep;
   fs::remove_all(work);
   CreateDirectories(work);
-  std::printf("# live_bench: --frames %lld --scan-frames %lld --width %d, load at start %s\n\n",
-              static_cast<long long>(args.frames), static_cast<long long>(args.scan_frames),
-              args.width, LoadAverages().c_str());
+  std::printf(
+      "# live_bench: --frames %lld --scan-frames %lld --width %d --rerender-minutes %g "
+      "--rerender-iterations %lld --rerender-lr %g, load at start %s\n\n",
+      static_cast<long long>(args.frames), static_cast<long long>(args.scan_frames), args.width,
+      args.rerender_minutes, static_cast<long long>(args.rerender_iterations), args.rerender_lr,
+      LoadAverages().c_str());
   // The scan: the subject turning once before single-rgbd at 10 frames a second.
   SimOptions scan_sim;
   scan_sim.rig = "single-rgbd";
@@ -249,6 +279,21 @@ int Run(int argc, char** argv) {
   std::printf("scan: %s (%s), %lld vertices, %.1f s\n", ToString(scan.termination),
               scan.message.c_str(), static_cast<long long>(scan.vertices),
               std::chrono::duration<double>(std::chrono::steady_clock::now() - scan_start).count());
+  // (c)'s network, trained on the scan take alone.
+  LiveRerenderOptions rerender;
+  rerender.minutes = args.rerender_minutes;
+  rerender.iterations = args.rerender_iterations;
+  rerender.learning_rate = args.rerender_lr;
+  const LiveRerenderSummary trained =
+      TrainLiveRerender(work / "scan-take", work / "scan", work / "rerender", rerender);
+  std::printf(
+      "rerender network: %s (%s); %lld training and %lld validation pairs from %lld composed "
+      "frames, %lld iterations in %.0f s (load %s)\n",
+      ToString(trained.termination), trained.message.c_str(),
+      static_cast<long long>(trained.train_pairs), static_cast<long long>(trained.validation_pairs),
+      static_cast<long long>(trained.composed_frames), static_cast<long long>(trained.iterations),
+      trained.seconds, LoadAverages().c_str());
+  const LiveRerenderModel model(work / "rerender");
   // The live take: the subject walking before the fixed sensor, the held-out cameras beside.
   WriteRig(work / "live-rig.json");
   SimOptions live_sim;
@@ -257,7 +302,7 @@ int Run(int argc, char** argv) {
   live_sim.fps = 10;
   live_sim.image_width = args.width;
   SimulateTake(live_sim, work / "live-take");
-  const Row row = Measure(work / "live-take", work / "scan");
+  const Row row = Measure(work / "live-take", work / "scan", model);
   const double n = static_cast<double>(std::max<int64_t>(1, row.frames));
   std::printf("\n%lld of %lld frames composed (walking 0.4 m/s, turning 46 deg/s), %dx%d\n\n",
               static_cast<long long>(row.frames), static_cast<long long>(args.frames), args.width,
