@@ -218,12 +218,7 @@ class LiveTrainer {
   }
 
   void KeepWeights() {
-    const size_t window = std::max<size_t>(1, std::min<size_t>(20, losses_.size() / 4));
-    if (!losses_.empty()) {
-      summary_.first_loss =
-          std::accumulate(losses_.begin(), losses_.begin() + window, 0.0) / window;
-      summary_.last_loss = std::accumulate(losses_.end() - window, losses_.end(), 0.0) / window;
-    }
+    neural::LossEnds(losses_, &summary_.first_loss, &summary_.last_loss);
     network_ = RerenderNetwork::Load(model_dir_ / "unet.pt", options_.net);
     summary_.validation_psnr_db = best_;
   }

@@ -173,6 +173,10 @@ std::unique_ptr<AvatarModel> OpenModel(const std::filesystem::path& dir) {
   if (!opener) {
     std::string known;
     for (const auto& kind : ModelKinds()) known += (known.empty() ? "" : ", ") + kind;
+    if (method == "live-rerender") {
+      Fail(file.string(), ": a live rerender model renders `holocap live` meshes: holocap render ",
+           "TAKE --model ", dir.string(), " --recon TAKE/live/recon --cameras NAMES");
+    }
     Fail(file.string(), ": unknown model method '", method, "' (known: ", known, ")");
   }
   return opener(dir, json);

@@ -8,6 +8,7 @@
 #include <limits>
 #include <map>
 #include <mutex>
+#include <numeric>
 
 #include "core/error.h"
 #include "core/fs.h"
@@ -78,6 +79,13 @@ torch::Tensor ImageToTensor(const cv::Mat& image) {
                           torch::kFloat32)
       .permute({2, 0, 1})
       .clone();
+}
+
+void LossEnds(const std::vector<double>& losses, double* first, double* last) {
+  if (losses.empty()) return;
+  const size_t window = std::max<size_t>(1, std::min<size_t>(20, losses.size() / 4));
+  *first = std::accumulate(losses.begin(), losses.begin() + window, 0.0) / window;
+  *last = std::accumulate(losses.end() - window, losses.end(), 0.0) / window;
 }
 
 cv::Mat TensorToImage(const torch::Tensor& chw) {

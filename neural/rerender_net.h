@@ -46,6 +46,9 @@ torch::Tensor RawOutputPenalty(const torch::Tensor& raw);
 // CV_32FC3 / CV_32FC1 <-> [C, H, W] float tensors.
 torch::Tensor ImageToTensor(const cv::Mat& image);
 cv::Mat TensorToImage(const torch::Tensor& chw);
+// The mean loss over a run's first and over its last iterations (windows of a quarter of the
+// run, 1 to 20 iterations); both stay as they are when there was no iteration.
+void LossEnds(const std::vector<double>& losses, double* first, double* last);
 
 }  // namespace holocap::neural
 

@@ -917,12 +917,7 @@ class RerenderTrainer {
   // The weights on disk are those of the last evaluation before the loss broke down, or those
   // where the validation witnesses peaked; `last_` holds their held-out scores.
   void KeepWeights() {
-    const size_t window = std::max<size_t>(1, std::min<size_t>(20, losses_.size() / 4));
-    if (!losses_.empty()) {
-      summary_.first_loss =
-          std::accumulate(losses_.begin(), losses_.begin() + window, 0.0) / window;
-      summary_.last_loss = std::accumulate(losses_.end() - window, losses_.end(), 0.0) / window;
-    }
+    neural::LossEnds(losses_, &summary_.first_loss, &summary_.last_loss);
     summary_.validation_psnr_db = validation_cameras_.empty() ? 0 : best_validation_;
     if (diverged_ || !validation_cameras_.empty()) {
       network_ = RerenderNetwork::Load(weights_file(), options_.net);
