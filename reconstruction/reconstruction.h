@@ -129,6 +129,28 @@ struct VoxelBlock {
   }
 };
 
+// The blocks of a volume in chunks of 64, each chunk allocated zeroed (never-observed voxels)
+// and never moved: a block's address stays valid as others are added.
+class BlockStore {
+ public:
+  static constexpr size_t kChunk = 64;
+  BlockStore() = default;
+  BlockStore(const BlockStore& other);
+  BlockStore& operator=(const BlockStore& other);
+  BlockStore(BlockStore&&) noexcept = default;
+  BlockStore& operator=(BlockStore&&) noexcept = default;
+  size_t size() const { return size_; }
+  size_t capacity() const { return chunks_.size() * kChunk; }
+  VoxelBlock& operator[](size_t i) { return chunks_[i / kChunk][i % kChunk]; }
+  const VoxelBlock& operator[](size_t i) const { return chunks_[i / kChunk][i % kChunk]; }
+  VoxelBlock& Add();            // a zero-weight block
+  void Reserve(size_t blocks);  // their memory allocated and zeroed now
+
+ private:
+  std::vector<std::unique_ptr<VoxelBlock[]>> chunks_;
+  size_t size_ = 0;
+};
+
 class SparseVolume {
  public:
   // `truncation_m` marks the values that carry no surface position: a sign change between two
@@ -140,7 +162,10 @@ class SparseVolume {
   double truncation_m() const { return truncation_m_; }
   const Box& bounds() const { return bounds_; }
   size_t block_count() const { return blocks_.size(); }
-  size_t memory_bytes() const;  // blocks plus the hash table
+  size_t memory_bytes() const;  // blocks (reserved ones too) plus the hash table
+  // Memory for this many blocks allocated and zeroed now, so that adding them later touches no
+  // new memory (as Open3D's VoxelBlockGrid does for its block_count at construction).
+  void Reserve(size_t blocks);
 
   // Block coordinates of the block holding voxel (i, j, k) and the key packing them.
   static Eigen::Vector3i BlockOf(const Eigen::Vector3i& voxel);
@@ -167,7 +192,7 @@ class SparseVolume {
   Box bounds_;
   double truncation_m_;
   std::unordered_map<uint64_t, size_t> index_;
-  std::deque<VoxelBlock> blocks_;
+  BlockStore blocks_;
   std::vector<Eigen::Vector3i> coordinates_;
 };
 
@@ -257,6 +282,9 @@ struct TsdfOptions {
   // 8 depth sensors).
   double carve_weight = 0.1;
   int threads = 0;  // 0: all cores
+  // Blocks whose memory the volume allocates and zeroes when it is made (SparseVolume::Reserve);
+  // 0: each as a frame first touches it.
+  size_t reserve_blocks = 0;
 
   void Check() const;
 };

@@ -40,8 +40,35 @@ SparseVolume::SparseVolume(double voxel_m, Box bounds, double truncation_m)
   }
 }
 
+BlockStore::BlockStore(const BlockStore& other) { *this = other; }
+
+BlockStore& BlockStore::operator=(const BlockStore& other) {
+  if (this == &other) return *this;
+  chunks_.clear();
+  size_ = 0;
+  Reserve(other.size_);
+  for (size_t i = 0; i < other.size_; ++i) (*this)[i] = other[i];
+  size_ = other.size_;
+  return *this;
+}
+
+VoxelBlock& BlockStore::Add() {
+  if (size_ == capacity()) chunks_.push_back(std::make_unique<VoxelBlock[]>(kChunk));
+  return (*this)[size_++];
+}
+
+void BlockStore::Reserve(size_t blocks) {
+  while (capacity() < blocks) chunks_.push_back(std::make_unique<VoxelBlock[]>(kChunk));
+}
+
+void SparseVolume::Reserve(size_t blocks) {
+  blocks_.Reserve(blocks);
+  index_.reserve(blocks);
+  coordinates_.reserve(blocks);
+}
+
 size_t SparseVolume::memory_bytes() const {
-  return blocks_.size() * sizeof(VoxelBlock) +
+  return blocks_.capacity() * sizeof(VoxelBlock) +
          index_.size() * (sizeof(uint64_t) + sizeof(size_t) + 2 * sizeof(void*)) +
          index_.bucket_count() * sizeof(void*) + coordinates_.capacity() * sizeof(Eigen::Vector3i);
 }
@@ -90,7 +117,7 @@ const VoxelBlock* SparseVolume::Find(const Eigen::Vector3i& block) const {
 VoxelBlock& SparseVolume::Allocate(const Eigen::Vector3i& block) {
   auto [it, inserted] = index_.try_emplace(Key(block), blocks_.size());
   if (inserted) {
-    blocks_.emplace_back();
+    blocks_.Add();
     coordinates_.push_back(block);
   }
   return blocks_[it->second];
@@ -693,7 +720,9 @@ class FrameIntegrator {
 
 TsdfVolume::TsdfVolume(const TsdfOptions& options)
     : options_((options.Check(), options)),
-      volume_(options.voxel_m, options.bounds, options.voxel_m * options.truncation_voxels) {}
+      volume_(options.voxel_m, options.bounds, options.voxel_m * options.truncation_voxels) {
+  if (options.reserve_blocks > 0) volume_.Reserve(options.reserve_blocks);
+}
 
 TsdfFrameStats TsdfVolume::Integrate(const cv::Mat& depth_in, const CameraModel& depth_camera,
                                      const cv::Mat& foreground, const cv::Mat& color,
