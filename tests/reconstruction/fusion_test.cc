@@ -118,6 +118,51 @@ TEST(TsdfTest, SphereIsClosedSeamlessAndAccurate) {
   EXPECT_LT(SphereError(simple, sphere).first, 0.004);
 }
 
+// A volume made with its blocks reserved fuses the same field as one that takes them as frames
+// touch them; blocks never move as more are added, and a copy holds the same voxels.
+TEST(TsdfTest, ReservedBlocksFuseTheSameFieldAndStayPut) {
+  const Sphere sphere;
+  TsdfOptions options;
+  options.voxel_m = 0.02;
+  options.smoothing_radius_px = 0;
+  options.bounds = {Eigen::Vector3d(-1, -1, 0), Eigen::Vector3d(1, 1, 2)};
+  TsdfVolume lazy(options);
+  options.reserve_blocks = 30;  // fewer than the sphere needs: the rest as frames touch them
+  TsdfVolume reserved(options);
+  EXPECT_GE(reserved.volume().memory_bytes(), 30 * sizeof(VoxelBlock));
+  EXPECT_EQ(reserved.volume().block_count(), 0u);
+  const VoxelBlock* first = nullptr;
+  Eigen::Vector3i first_coordinates;
+  for (const CameraModel& camera : SurroundingCameras(sphere)) {
+    cv::Mat depth;
+    RenderSphere(camera, sphere, &depth, nullptr);
+    lazy.Integrate(depth, camera);
+    reserved.Integrate(depth, camera);
+    if (first == nullptr) {
+      first_coordinates = reserved.volume().BlockCoordinates().front();
+      first = reserved.volume().Find(first_coordinates);
+    }
+  }
+  ASSERT_GT(reserved.volume().block_count(), BlockStore::kChunk);  // past the first chunk
+  EXPECT_EQ(reserved.volume().Find(first_coordinates), first);
+  const SparseVolume copy = reserved.volume();
+  size_t same = 0;
+  lazy.volume().ForEachBlock([&](const Eigen::Vector3i& coordinates, const VoxelBlock& block) {
+    const VoxelBlock* other = reserved.volume().Find(coordinates);
+    const VoxelBlock* copied = copy.Find(coordinates);
+    ASSERT_NE(other, nullptr);
+    ASSERT_NE(copied, nullptr);
+    ASSERT_NE(copied, other);
+    for (int v = 0; v < kBlockVoxels; ++v) {
+      EXPECT_EQ(block.voxels[v].sdf, other->voxels[v].sdf);
+      EXPECT_EQ(block.voxels[v].weight, other->voxels[v].weight);
+      EXPECT_EQ(copied->voxels[v].weight, other->voxels[v].weight);
+    }
+    ++same;
+  });
+  EXPECT_EQ(same, reserved.volume().block_count());
+}
+
 TEST(TsdfTest, InvalidDepthPixelsAreRejectedNotFused) {
   const Sphere sphere;
   TsdfOptions options;
