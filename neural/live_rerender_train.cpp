@@ -252,6 +252,11 @@ class LiveTrainer {
     } else if (!(summary_.validation_psnr_db > summary_.raw_psnr_db)) {
       summary_.End(Termination::kDegenerate,
                    Cat("the network is no better than the raw composition: ", scores));
+    } else if (summary_.kept_iteration == 0) {
+      // The untrained network starts as the raw composition: no step improved on it.
+      summary_.End(Termination::kDegenerate,
+                   Cat("no training step improved on the untrained network (the raw composition ",
+                       "rendered as it is) in ", summary_.iterations, " iterations: ", scores));
     } else {
       summary_.End(summary_.kept_iteration < summary_.iterations ? Termination::kConvergence
                                                                  : Termination::kNoConvergence,
