@@ -149,19 +149,20 @@ LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vec
     scan_.colors.assign(scan_.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
   CutFloor(&scan_, up_);
   if (scan_.faces.empty()) Fail("live: the scan has no triangles (besides a floor)");
+  scan_centroid_ = Eigen::Vector3d::Zero();
+  for (const Eigen::Vector3f& v : scan_.vertices) {
+    scan_box_.extend(v);
+    scan_centroid_ += v.cast<double>();
+  }
+  scan_centroid_ /= static_cast<double>(scan_.vertices.size());
 }
 
-// The first frame: the scan moved so that its centroid sits behind the centroid of the nearest
-// live points (by the scan's own half depth along the view), for when the scan was made
-// elsewhere in the world than the live take.
 Pose LiveCompositor::PredictedPose(int64_t set) const {
   const auto& [set0, pose0] = poses_.front();
   const auto& [set1, pose1] = poses_.back();
   if (set <= set1 || set1 <= set0) return pose1;
   const double ahead = static_cast<double>(set - set1) / static_cast<double>(set1 - set0);
-  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
-  for (const Eigen::Vector3f& v : scan_.vertices) centroid += v.cast<double>();
-  centroid /= static_cast<double>(scan_.vertices.size());
+  const Eigen::Vector3d& centroid = scan_centroid_;
   const Eigen::Vector3d c0 = pose0 * centroid, c1 = pose1 * centroid;
   Eigen::AngleAxisd turn(Eigen::Matrix3d(pose1.linear() * pose0.linear().transpose()));
   turn.angle() *= ahead;
@@ -171,14 +172,12 @@ Pose LiveCompositor::PredictedPose(int64_t set) const {
   return pose;
 }
 
+// The scan moved so that its centroid sits behind the centroid of the nearest live points (by
+// the scan's own half depth along the view), for when the scan was made elsewhere in the world
+// than the live take.
 Pose LiveCompositor::CentredPose(const LiveSurface& live, double yaw_rad) const {
-  Eigen::AlignedBox3f box;
-  Eigen::Vector3d scan_centroid = Eigen::Vector3d::Zero();
-  for (const Eigen::Vector3f& v : scan_.vertices) {
-    box.extend(v);
-    scan_centroid += v.cast<double>();
-  }
-  scan_centroid /= static_cast<double>(scan_.vertices.size());
+  const Eigen::AlignedBox3f& box = scan_box_;
+  const Eigen::Vector3d& scan_centroid = scan_centroid_;
   std::vector<float> depths;
   for (float d : live.depth)
     if (!std::isnan(d)) depths.push_back(d);

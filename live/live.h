@@ -239,6 +239,8 @@ class LiveCompositor {
   bool has_pose_ = false;
   Pose last_world_from_scan_ = Pose::Identity();
   std::vector<std::pair<int64_t, Pose>> poses_;  // the last two composed frames' sets and poses
+  Eigen::Vector3d scan_centroid_;                // of the scan's vertices (floor cut)
+  Eigen::AlignedBox3f scan_box_;
 };
 
 // SUCCESS: every frame with depth composed, or refused no more often than
