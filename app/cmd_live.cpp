@@ -22,6 +22,7 @@ struct LiveArgs {
   LiveOptions options;
   bool rigid_only = false;
   bool carry = false;
+  bool no_relight = false;
   bool no_glb = false;
 };
 
@@ -81,16 +82,20 @@ void AddLiveCommand(CLI::App& app) {
   command->add_flag("--rigid-only", args->rigid_only, "No non-rigid correction");
   command->add_flag("--carry", args->carry,
                     "Start each frame's deformation from the frame before's, not the scan at rest");
+  command->add_flag("--no-relight", args->no_relight,
+                    "Compose the scan in the colours it was seen in, not relit in its light");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY meshes only");
   command->callback([args] {
     LiveOptions options = args->options;
     if (args->rigid_only) options.nonrigid = false;
     if (args->no_glb) options.write_glb = false;
     if (args->carry) options.carry_deformation = true;
+    if (args->no_relight) options.relight = false;
     options.Check();
     TakeSelection selection = args->selection.Parse();
     args->scene.Apply(&selection);
-    ReadScan(args->scan);  // a bad scan is refused before any output is claimed
+    // A bad scan is refused before any output is claimed.
+    ReadScanAlbedo(args->scan, ReadScan(args->scan));
     const OutputDirectory claimed =
         OutputDirectory::Claim(args->out.empty() ? std::filesystem::path(args->take) / "live"
                                                  : std::filesystem::path(args->out),

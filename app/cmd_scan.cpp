@@ -50,6 +50,16 @@ void PrintScan(const ScanSummary& summary) {
         100 * summary.errors->ate_max_m, 1e3 * summary.errors->rpe_trans_m,
         summary.errors->rpe_rot_deg);
   }
+  if (summary.metrics.contains("lighting")) {
+    const auto& light = summary.metrics["lighting"];
+    if (light["observed"].get<bool>()) {
+      std::printf("light: %.2f of the ambient, log-intensity residual %.3f (%.3f unlit)\n",
+                  light["strength"].get<double>(), light["rms_lit"].get<double>(),
+                  light["rms_flat"].get<double>());
+    } else {
+      std::printf("light: none found (%s)\n", light["why"].get<std::string>().c_str());
+    }
+  }
 }
 
 void AddScanCommand(CLI::App& app) {
@@ -83,6 +93,13 @@ void AddScanCommand(CLI::App& app) {
       ->add_option("--max-lost-fraction", o.max_lost_fraction,
                    "Fraction of lost frames above which the scan ends DEGENERATE")
       ->capture_default_str();
+  command
+      ->add_option("--light-views", o.light_views,
+                   "Fused frames whose colours give the scan's light and albedo")
+      ->capture_default_str();
+  command->add_flag("--turn", o.subject_turns,
+                    "The subject turned before a still sensor: the floor is left out and the "
+                    "light found (a simulated take says so itself)");
   command->add_flag("--no-refine", args->no_refine, "No keyframe pose graph at the end");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY only (no texture)");
   command->add_option("--threads", o.threads, "Threads (0: all cores)")->capture_default_str();

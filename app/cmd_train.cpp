@@ -356,7 +356,8 @@ void TrainLiveRerenderCommand(const RerenderArgs& args) {
                 {"jitter_m", "--jitter"},
                 {"jitter_deg", "--jitter-deg"}});
   CheckNamingFlags([&] { o.Check(); }, flags);
-  ReadScan(args.scan);  // a bad scan is refused before any output is claimed
+  // A bad scan is refused before any output is claimed.
+  ReadScanAlbedo(args.scan, ReadScan(args.scan));
   const OutputDirectory claimed = OutputDirectory::Claim(
       shared.Out("rerender"), {"train rerender", shared.overwrite, {args.scan}});
   const std::filesystem::path& out = claimed.path();

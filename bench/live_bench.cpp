@@ -121,19 +121,44 @@ double PsnrInMask(const RenderedView& view, const cv::Mat& reference_bgr, const 
   return count == 0 ? NAN : 10 * std::log10(1.0 / std::max(1e-12, squared / count));
 }
 
+// Where a render's error lies inside the true silhouette: pixels the render leaves uncovered
+// (alpha below a half: black there) and the rest.
+struct Coverage {
+  int64_t pixels = 0, uncovered = 0;
+  double squared = 0, uncovered_squared = 0;
+  void Add(const RenderedView& view, const cv::Mat& reference_bgr, const cv::Mat& mask) {
+    cv::Mat reference;
+    reference_bgr.convertTo(reference, CV_32FC3, 1.0 / 255);
+    for (int y = 0; y < mask.rows; ++y) {
+      for (int x = 0; x < mask.cols; ++x) {
+        if (mask.at<uint8_t>(y, x) == 0) continue;
+        const cv::Vec3f d = view.color.at<cv::Vec3f>(y, x) - reference.at<cv::Vec3f>(y, x);
+        const double e = d.dot(d) / 3;
+        ++pixels;
+        squared += e;
+        if (view.alpha.empty() || view.alpha.at<float>(y, x) < 0.5f) {
+          ++uncovered;
+          uncovered_squared += e;
+        }
+      }
+    }
+  }
+};
+
 // The methods compared: (a) the live frame alone; (b) live + scan aligned rigidly only, and
 // non-rigidly from the scan at rest each frame (the command's default) or from the frame
 // before's deformation (--carry); the command's compositions rasterised as the rerender network
 // sees them (supersampled), and (c) the network's output on them.
-constexpr int kMethods = 6;
+constexpr int kMethods = 7;
 const char* const kMethodNames[kMethods] = {"(a) live frame alone",
                                             "(b) live + scan, rigid only",
                                             "(b) live + scan, non-rigid from rest",
                                             "(b) live + scan, non-rigid carried",
+                                            "(b) live + scan, non-rigid from rest, not relit",
                                             "(b) non-rigid from rest, rasterised for the network",
                                             "(c) live + scan + rerender network"};
 constexpr int kCommand = 2;      // the command's own: non-rigid from rest
-constexpr int kCompositors = 4;  // methods 1-3 compose; 4 and 5 render the command's compositions
+constexpr int kCompositors = 5;  // methods 1-4 compose; 5 and 6 render the command's compositions
 
 // PSNR sums per method x (cam90, cam180) and the frames summed, over every frame the method
 // composed ([0]) and over the frames every compositor composed ([1]).
@@ -143,6 +168,7 @@ struct Row {
   int64_t frames = 0;  // composed by the command's compositor (non-rigid from rest)
   double inliers = 0, residual_mm = 0, rigid_residual_mm = 0, deformation_mm = 0, seconds = 0;
   std::vector<std::string> refused;
+  Coverage coverage[2];  // the command's composition at cam90 and cam180
 };
 
 cv::Mat Bgr(const cv::Mat& frame) {
@@ -152,18 +178,29 @@ cv::Mat Bgr(const cv::Mat& frame) {
   return out;
 }
 
-Row Measure(const fs::path& live_take, const fs::path& scan_dir, const LiveRerenderModel& model) {
+Row Measure(const fs::path& live_take, const fs::path& scan_dir, const LiveRerenderModel& model,
+            const fs::path& coverage_dir) {
   const Take take = Take::Open(live_take);
   TakeSelection selection;
   selection.ground_truth_cameras = true;
   const TakePlan plan = PlanTake(take, selection);
   const Mesh scan = ReadScan(scan_dir);
+  std::string unlit;
+  const std::optional<ScanAlbedo> albedo = ReadScanAlbedo(scan_dir, scan, &unlit);
+  if (albedo) {
+    const Eigen::Vector3d& l = albedo->light.light;
+    std::printf("scan light (depth sensor frame): [%.3f %.3f %.3f], strength %.2f of the ambient\n",
+                l.x(), l.y(), l.z(), l.norm());
+  } else {
+    std::printf("scan light: none (%s)\n", unlit.c_str());
+  }
   LiveOptions options[kCompositors];
   options[1].nonrigid = false;
   options[3].carry_deformation = true;
+  options[4].relight = false;
   std::vector<LiveCompositor> compositors;
   for (int m = 1; m < kCompositors; ++m)
-    compositors.emplace_back(scan, options[m], plan.up, plan.floor_m);
+    compositors.emplace_back(scan, options[m], plan.up, plan.floor_m, albedo);
   const CameraModel& depth_camera = plan.cameras.at("depth0");
   const CameraModel& color_camera = plan.cameras.at("cam0");
   const std::string held_out[2] = {"cam90", "cam180"};
@@ -181,7 +218,7 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir, const LiveReren
     }
     const LiveResult& n = results[kCommand - 1];
     const Mesh* meshes[kCompositors] = {&n.live, &results[0].composed, &results[1].composed,
-                                        &results[2].composed};
+                                        &results[2].composed, &results[3].composed};
     bool composed[kMethods] = {n.frame.state == LiveState::kComposed};
     for (int m = 1; m < kCompositors; ++m)
       composed[m] = results[m - 1].frame.state == LiveState::kComposed;
@@ -209,6 +246,28 @@ Row Measure(const fs::path& live_take, const fs::path& scan_dir, const LiveReren
       if (composed[kCommand]) {
         views[kCompositors + 1] = model.Render(*meshes[kCommand], plan.cameras.at(held_out[c]),
                                                &views[kCompositors].color);
+      }
+      if (composed[kCommand]) {
+        row.coverage[c].Add(views[kCommand], reference, mask);
+        if (!coverage_dir.empty()) {
+          // Beside the true frame: the command's render, and its coverage (green: covered inside
+          // the true silhouette, red: uncovered inside it, blue: covered outside it).
+          cv::Mat render, map(mask.size(), CV_8UC3, cv::Scalar::all(0));
+          views[kCommand].color.convertTo(render, CV_8UC3, 255);
+          for (int y = 0; y < mask.rows; ++y) {
+            for (int x = 0; x < mask.cols; ++x) {
+              const bool in = mask.at<uint8_t>(y, x) != 0;
+              const bool covered = views[kCommand].alpha.at<float>(y, x) >= 0.5f;
+              if (in || covered)
+                map.at<cv::Vec3b>(y, x) = !in       ? cv::Vec3b(255, 0, 0)
+                                          : covered ? cv::Vec3b(0, 160, 0)
+                                                    : cv::Vec3b(0, 0, 255);
+            }
+          }
+          cv::Mat row_image;
+          cv::hconcat(std::vector<cv::Mat>{reference, render, map}, row_image);
+          cv::imwrite((coverage_dir / (held_out[c] + "-" + name)).string(), row_image);
+        }
       }
       for (int m = 0; m < kMethods; ++m) {
         if (!composed[m]) continue;
@@ -302,7 +361,9 @@ int Run(int argc, char** argv) {
   live_sim.fps = 10;
   live_sim.image_width = args.width;
   SimulateTake(live_sim, work / "live-take");
-  const Row row = Measure(work / "live-take", work / "scan", model);
+  if (!args.keep.empty()) CreateDirectories(work / "coverage");
+  const Row row =
+      Measure(work / "live-take", work / "scan", model, args.keep.empty() ? "" : work / "coverage");
   const double n = static_cast<double>(std::max<int64_t>(1, row.frames));
   std::printf("\n%lld of %lld frames composed (walking 0.4 m/s, turning 46 deg/s), %dx%d\n\n",
               static_cast<long long>(row.frames), static_cast<long long>(args.frames), args.width,
@@ -317,6 +378,16 @@ int Run(int argc, char** argv) {
                   static_cast<long long>(row.counted[o][m]), row.psnr[o][m][0] / k,
                   row.psnr[o][m][1] / k);
     }
+  }
+  for (int c = 0; c < 2; ++c) {
+    const Coverage& k = row.coverage[c];
+    const double covered = static_cast<double>(std::max<int64_t>(1, k.pixels - k.uncovered));
+    std::printf(
+        "%s the command's compositions: %.1f %% of the true silhouette uncovered, %.1f %% of the "
+        "squared error; %.2f dB over the covered pixels\n",
+        c == 0 ? "\ncam90:  " : "cam180: ", 100.0 * k.uncovered / std::max<int64_t>(1, k.pixels),
+        100 * k.uncovered_squared / std::max(1e-12, k.squared),
+        10 * std::log10(covered / std::max(1e-12, k.squared - k.uncovered_squared)));
   }
   std::printf(
       "\nalignment (means over frames): rigid residual %.2f mm; after non-rigid: residual %.2f "

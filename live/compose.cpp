@@ -141,12 +141,23 @@ Mesh MeshLiveSurface(const LiveSurface& live, const cv::Mat& subject, const cv::
 }
 
 LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vector3d up,
-                               double floor_m)
+                               double floor_m, std::optional<ScanAlbedo> albedo)
     : scan_(std::move(scan)), options_(options), up_(up.normalized()), floor_m_(floor_m) {
   options_.Check();
   if (scan_.normals.size() != scan_.vertices.size()) scan_.ComputeNormals();
   if (scan_.colors.size() != scan_.vertices.size())
     scan_.colors.assign(scan_.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
+  if (albedo && options_.relight) {
+    if (albedo->colors.size() != scan_.vertices.size())
+      Fail("live: the scan's albedo has ", albedo->colors.size(), " colours for ",
+           scan_.vertices.size(), " vertices");
+    // The same cut as the scan's below keeps the same vertices in the same order.
+    Mesh cut = scan_;
+    cut.colors = std::move(albedo->colors);
+    CutFloor(&cut, up_);
+    albedo->colors = std::move(cut.colors);
+    albedo_ = std::move(albedo);
+  }
   CutFloor(&scan_, up_);
   if (scan_.faces.empty()) Fail("live: the scan has no triangles (besides a floor)");
   scan_centroid_ = Eigen::Vector3d::Zero();
@@ -199,6 +210,18 @@ Pose LiveCompositor::CentredPose(const LiveSurface& live, double yaw_rad) const 
   pose.translation() =
       live_centroid + view * (0.25 * box.sizes().minCoeff()) - pose.linear() * scan_centroid;
   return pose;
+}
+
+void LiveCompositor::Relight(Mesh* deformed, const CameraModel& sensor) const {
+  const Eigen::Matrix3d to_sensor = sensor.cam_from_world().linear();
+  for (size_t v = 0; v < deformed->vertices.size(); ++v) {
+    const double shading =
+        albedo_->light.Shading((to_sensor * deformed->normals[v].cast<double>()).normalized());
+    for (int c = 0; c < 3; ++c) {
+      deformed->colors[v][c] =
+          static_cast<uint8_t>(std::min(255.0, std::round(albedo_->colors[v][c] * shading)));
+    }
+  }
 }
 
 cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deformed) const {
@@ -369,6 +392,7 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   const cv::Mat subject = SubjectMask(live, fit.deformed);
   frame.subject_pixels = cv::countNonZero(subject);
   result.live = MeshLiveSurface(live, subject, color_bgr, color_camera, options_.max_depth_jump_m);
+  if (albedo_) Relight(&fit.deformed, live.camera);
   const Mesh unobserved = UnobservedScan(fit.deformed, live, subject);
   frame.live_faces = static_cast<int64_t>(result.live.faces.size());
   frame.scan_faces = static_cast<int64_t>(unobserved.faces.size());

@@ -61,6 +61,7 @@ Json LiveOptions::ToJson() const {
           {"nonrigid_iterations", nonrigid_iterations},
           {"arap_weight", arap_weight},
           {"carry_deformation", carry_deformation},
+          {"relight", relight},
           {"min_inlier_fraction", min_inlier_fraction},
           {"max_residual_m", max_residual_m},
           {"min_rigid_inlier_fraction", min_rigid_inlier_fraction},
@@ -148,6 +149,36 @@ Mesh ReadScan(const fs::path& scan_dir) {
   return scan;
 }
 
+std::optional<ScanAlbedo> ReadScanAlbedo(const fs::path& scan_dir, const Mesh& scan,
+                                         std::string* why) {
+  auto none = [&](std::string reason) -> std::optional<ScanAlbedo> {
+    if (why != nullptr) *why = std::move(reason);
+    return std::nullopt;
+  };
+  const fs::path light_file = scan_dir / "lighting.json";
+  const fs::path albedo_file = scan_dir / "albedo.ply";
+  if (!fs::is_regular_file(light_file))
+    return none("the scan holds no lighting.json (a scan without colour)");
+  ScanAlbedo out;
+  try {
+    out.light = ScanLight::FromJson(Json::parse(ReadFileToString(light_file)));
+  } catch (const Json::exception&) {
+    Fail("live: scan light '", light_file.string(), "' is damaged (not JSON)");
+  } catch (const Error& e) {
+    Fail("live: scan light '", light_file.string(), "' is damaged: ", e.what());
+  }
+  if (!out.light.observed) return none("the scan found no light: " + out.light.why);
+  if (!fs::is_regular_file(albedo_file))
+    Fail("live: scan '", scan_dir.string(), "' found a light but holds no albedo.ply");
+  Mesh albedo = ReadPly(albedo_file);
+  if (albedo.vertices.size() != scan.vertices.size() ||
+      albedo.colors.size() != scan.vertices.size())
+    Fail("live: scan albedo '", albedo_file.string(), "' has ", albedo.vertices.size(),
+         " vertices with ", albedo.colors.size(), " colours; the scan has ", scan.vertices.size());
+  out.colors = std::move(albedo.colors);
+  return out;
+}
+
 namespace live {
 
 cv::Mat ThreeChannels(const cv::Mat& frame) {
@@ -206,10 +237,17 @@ void RecordFrame(Report* report, const LiveFrame& frame) {
 Json SummaryMetrics(const LiveSummary& summary) {
   Json frames = Json::array();
   for (const LiveFrame& frame : summary.frames) frames.push_back(frame.ToJson());
-  return {{"frames", summary.frames.size()},      {"composed", summary.composed},
-          {"no_depth", summary.no_depth},         {"refused", summary.refused},
-          {"seconds", summary.seconds},           {"depth_sensor", summary.depth_sensor},
-          {"color_sensor", summary.color_sensor}, {"per_frame", frames}};
+  return {{"frames", summary.frames.size()},
+          {"composed", summary.composed},
+          {"no_depth", summary.no_depth},
+          {"refused", summary.refused},
+          {"seconds", summary.seconds},
+          {"depth_sensor", summary.depth_sensor},
+          {"color_sensor", summary.color_sensor},
+          {"relit", summary.relit},
+          {"relit_why", summary.relit_why},
+          {"scan_light", {summary.scan_light.x(), summary.scan_light.y(), summary.scan_light.z()}},
+          {"per_frame", frames}};
 }
 
 }  // namespace live
@@ -220,6 +258,9 @@ LiveSummary LiveTake(const fs::path& take_dir, const TakeSelection& selection,
   options.Check();
   const auto start = std::chrono::steady_clock::now();
   Mesh scan = ReadScan(scan_dir);
+  std::string unlit = "relight is off";
+  std::optional<ScanAlbedo> albedo =
+      options.relight ? ReadScanAlbedo(scan_dir, scan, &unlit) : std::nullopt;
   const Take take = Take::Open(take_dir);
   TakePlan plan = PlanTake(take, selection);
   if (plan.depth_sensors.size() != 1) {
@@ -249,7 +290,10 @@ LiveSummary LiveTake(const fs::path& take_dir, const TakeSelection& selection,
     report->options()["scan"] = scan_dir.string();
     report->plan() = plan.ToJson();
   }
-  LiveCompositor compositor(std::move(scan), options, plan.up, plan.floor_m);
+  summary.relit = albedo.has_value();
+  summary.relit_why = albedo ? "" : unlit;
+  if (albedo) summary.scan_light = albedo->light.light;
+  LiveCompositor compositor(std::move(scan), options, plan.up, plan.floor_m, std::move(albedo));
   const fs::path recon = out / "recon";
   CreateDirectories(recon);
   Progress progress("live", static_cast<int64_t>(plan.sets.size()));

@@ -16,7 +16,11 @@
 //   3. composed with the live frame: the live depth of the subject (the pixels whose depth lies
 //      near the deformed scan) meshed and coloured from the paired colour camera, plus every
 //      triangle of the deformed scan the live frame does not observe (its back, what the
-//      subject hides from the sensor), in the scan's colours.
+//      subject hides from the sensor), in the scan's colours; relit, when the scan knows the
+//      light it was seen in (lighting.json, albedo.ply: reconstruction/scan_light.h), as that
+//      light falls on the deformed scan where it stands in the live frame: each vertex's
+//      albedo times the shading of its live normal, the light fixed to the sensor as it was
+//      during the scan (the sensor stands where it stood for the scan, in the same room).
 // A scan that does not fit (too few of its visible points near the live surface, or too large
 // a residual after the fit) is refused for that frame; a frame without usable depth is
 // reported and not composed.
@@ -40,6 +44,7 @@
 #include "core/report.h"
 #include "core/take.h"
 #include "core/take_plan.h"
+#include "reconstruction/scan_light.h"
 
 namespace holocap {
 
@@ -94,6 +99,9 @@ struct LiveOptions {
   double max_depth_jump_m = 0.04;  // no live triangle across a larger jump in depth
   double floor_margin_m = 0.02;    // live points this close to the plan's floor are left out
 
+  // The scan's unobserved part relit (step 3) when the scan holds its light and albedo; false
+  // composes the colours as the scan saw them.
+  bool relight = true;
   bool write_glb = true;  // recon/<set>.glb (vertex colours) beside recon/<set>.ply
   int threads = 0;        // 0: all cores
 
@@ -204,15 +212,23 @@ struct LiveResult {
   Mesh composed;  // live + the unobserved deformed scan
 };
 
+// The light a scan was seen in and its vertices' albedo (`holocap scan` writes both).
+struct ScanAlbedo {
+  ScanLight light;
+  std::vector<Eigen::Matrix<uint8_t, 3, 1>> colors;  // per scan vertex, RGB
+};
+
 // Frame after frame of one fixed sensor: keeps the alignment of the frame before.
 class LiveCompositor {
  public:
   // `scan`: the scan's mesh (world coordinates of the scan take) with vertex colours; a floor
   // it kept (a flat layer at its bottom, along `up`, holding a quarter of its vertices) is cut.
-  // `floor_m`: the floor's height along `up` (NaN: none).
+  // `floor_m`: the floor's height along `up` (NaN: none). `albedo` (one colour per scan
+  // vertex): the unobserved scan is relit with it (LiveOptions::relight).
   LiveCompositor(Mesh scan, const LiveOptions& options,
                  Eigen::Vector3d up = Eigen::Vector3d::UnitZ(),
-                 double floor_m = std::numeric_limits<double>::quiet_NaN());
+                 double floor_m = std::numeric_limits<double>::quiet_NaN(),
+                 std::optional<ScanAlbedo> albedo = std::nullopt);
   // `depth_m` from `depth_camera`, `color_bgr` (CV_8UC3, may be empty) from `color_camera`.
   LiveResult Process(int64_t set, const cv::Mat& depth_m, const CameraModel& depth_camera,
                      const cv::Mat& color_bgr, const CameraModel& color_camera);
@@ -227,7 +243,11 @@ class LiveCompositor {
   cv::Mat SubjectMask(const LiveSurface& live, const Mesh& deformed) const;
   Mesh UnobservedScan(const Mesh& deformed, const LiveSurface& live, const cv::Mat& subject) const;
 
+  // The deformed scan's colours: its albedo in the light of the sensor `sensor`.
+  void Relight(Mesh* deformed, const CameraModel& sensor) const;
+
   Mesh scan_;
+  std::optional<ScanAlbedo> albedo_;  // floor cut like scan_
   // The scan's deformation graph, in the scan's frame; with carry_deformation it holds the last
   // composed frame's motions, where the next frame starts (the regulariser still measures
   // against the scan).
@@ -252,12 +272,21 @@ struct LiveSummary : Summary {
   int64_t composed = 0, no_depth = 0, refused = 0;
   double seconds = 0;
   std::string depth_sensor, color_sensor;
+  // The scan's part relit in its light (scan_light, the depth sensor's frame), or why not.
+  bool relit = false;
+  std::string relit_why;
+  Eigen::Vector3d scan_light = Eigen::Vector3d::Zero();
   nlohmann::json metrics;
 };
 
 // Reads SCAN_DIR/mesh.ply (throws Error for a missing, damaged or empty scan, or a scan whose
 // report.json says it failed).
 Mesh ReadScan(const std::filesystem::path& scan_dir);
+// SCAN_DIR's light and albedo when it holds them (lighting.json, albedo.ply) and the light was
+// observed; nullopt otherwise, with `why` (may be null) saying why. Throws Error for a damaged
+// file or an albedo mesh that is not `scan`'s.
+std::optional<ScanAlbedo> ReadScanAlbedo(const std::filesystem::path& scan_dir, const Mesh& scan,
+                                         std::string* why = nullptr);
 
 // Runs the plan's frame sets of a take with one depth sensor (and its paired colour camera;
 // any other camera is ignored) into `out`: recon/<set>.ply and .glb (the composed mesh, vertex

@@ -26,6 +26,8 @@ struct LiveStream::State {
   std::string depth_sensor, color_sensor;
   CameraModel depth_camera, color_camera;
   Mesh scan;
+  std::optional<ScanAlbedo> albedo;  // the scan's light and albedo (nullopt: not relit)
+  std::string unlit;                 // ... or why not
   Clock::time_point start = Clock::now();
 
   // Shared between Offer() and the thread.
@@ -81,7 +83,14 @@ void LiveStream::State::Start(const cv::Mat& first_depth) {
                     {"up", {up.x(), up.y(), up.z()}},
                     {"up_source", up_source},
                     {"floor_m", std::isfinite(floor_m) ? Json(floor_m) : Json(nullptr)}};
-  compositor.emplace(std::move(scan), options, up, floor_m);
+  report->plan()["relit"] = albedo.has_value();
+  if (albedo) {
+    const Eigen::Vector3d& l = albedo->light.light;
+    report->plan()["scan_light"] = {l.x(), l.y(), l.z()};
+  } else {
+    report->plan()["relit_why"] = unlit;
+  }
+  compositor.emplace(std::move(scan), options, up, floor_m, std::move(albedo));
 }
 
 LiveFrame LiveStream::State::Compose(const Pending& job) {
@@ -142,6 +151,10 @@ LiveStream::LiveStream(const fs::path& scan_dir, std::string depth_sensor, Camer
   options.Check();
   State& s = *state_;
   s.scan = ReadScan(scan_dir);
+  if (options.relight)
+    s.albedo = ReadScanAlbedo(scan_dir, s.scan, &s.unlit);
+  else
+    s.unlit = "relight is off";
   s.scan_dir = scan_dir;
   s.out = std::move(out);
   s.overwrite = overwrite;

@@ -169,6 +169,7 @@ class PairBuilder {
               const LiveRerenderOptions& options)
       : take_(Take::Open(scan_take)),
         scan_(ReadScan(scan_dir)),
+        albedo_(ReadScanAlbedo(scan_dir, scan_)),
         poses_(ScanPoses(scan_dir)),
         options_(options) {
     raster_.supersample = options.supersample;
@@ -215,7 +216,7 @@ class PairBuilder {
       Fail("live rerender: the scan fused ", fused.size(), " frames of '", take_.dir().string(),
            "' (is it this take's scan?)");
     const size_t count = std::min<size_t>(options_.live_frames, fused.size());
-    LiveCompositor compositor(scan_, options_.live, plan_.up, plan_.floor_m);
+    LiveCompositor compositor(scan_, options_.live, plan_.up, plan_.floor_m, albedo_);
     Progress progress("live rerender: compose", static_cast<int64_t>(count));
     for (size_t k = 0; k < count; ++k) {
       ComposedFrame frame;
@@ -248,6 +249,27 @@ class PairBuilder {
     pairs_.composed = static_cast<int64_t>(frames_.size());
   }
 
+  // The composition of `live` in the light of `target`'s frame. The sensor stands still in the
+  // room while the subject turns, so in the scan's world the light turns with the sensor: each
+  // vertex's colour (the live frame's light on it) times the ratio of its shading in the
+  // target's sensor frame to its shading in the live frame's. Without a light, as it is.
+  Mesh InTargetLight(const ComposedFrame& live, const ComposedFrame& target) const {
+    if (!albedo_ || !options_.live.relight) return live.composed;
+    Mesh lit = live.composed;
+    if (lit.normals.size() != lit.vertices.size()) lit.ComputeNormals();
+    const Eigen::Matrix3d from = live.world_from_depth.linear().transpose();
+    const Eigen::Matrix3d to = target.world_from_depth.linear().transpose();
+    for (size_t v = 0; v < lit.vertices.size(); ++v) {
+      const Eigen::Vector3d n = lit.normals[v].cast<double>().normalized();
+      const double ratio = albedo_->light.Shading(to * n) / albedo_->light.Shading(from * n);
+      for (int c = 0; c < 3; ++c) {
+        lit.colors[v][c] =
+            static_cast<uint8_t>(std::min(255.0, std::round(lit.colors[v][c] * ratio)));
+      }
+    }
+    return lit;
+  }
+
   // Each composition at targets_per_frame frames turned min..max degrees away, spread over
   // that range; every validation_every-th composition's pairs are for validation.
   void Pair() {
@@ -270,9 +292,9 @@ class PairBuilder {
         pair.live_set = frames_[a].set;
         pair.target_set = frames_[b].set;
         pair.turn_deg = turn;
-        pair.buffers = LiveRerenderBuffers(
-            Jittered(frames_[a].composed, options_.jitter_m, options_.jitter_deg, rng),
-            frames_[b].camera, raster_);
+        pair.buffers = LiveRerenderBuffers(Jittered(InTargetLight(frames_[a], frames_[b]),
+                                                    options_.jitter_m, options_.jitter_deg, rng),
+                                           frames_[b].camera, raster_);
         pair.target = frames_[b].target;
         pair.silhouette = frames_[b].silhouette;
         (validation ? pairs_.validation : pairs_.train).push_back(std::move(pair));
@@ -292,6 +314,7 @@ class PairBuilder {
 
   const Take take_;
   const Mesh scan_;
+  const std::optional<ScanAlbedo> albedo_;  // relights the compositions (LiveOptions::relight)
   const std::map<int64_t, Pose> poses_;
   const LiveRerenderOptions& options_;
   RasterOptions raster_;

@@ -17,6 +17,7 @@
 #include "reconstruction/projector.h"
 #include "reconstruction/scan_graph.h"
 #include "reconstruction/scan_internal.h"
+#include "reconstruction/scan_light.h"
 
 namespace holocap {
 
@@ -57,6 +58,7 @@ void ScanOptions::Check() const {
   if (!(loop_max_distance_m > 0)) Fail("scan: loop_max_distance_m must be > 0");
   if (!(loop_min_angle_deg >= 0)) Fail("scan: loop_min_angle_deg must be >= 0");
   if (texture_views < 1) Fail("scan: texture_views must be >= 1");
+  if (light_views < 2) Fail("scan: light_views must be >= 2");
   if (threads < 0) Fail("scan: threads must be >= 0 (0: all cores)");
   meshing.Check();
   texture.Check();
@@ -92,6 +94,8 @@ Json ScanOptions::ToJson() const {
                {"loop_min_angle_deg", loop_min_angle_deg},
                {"loop_max_distance_m", loop_max_distance_m},
                {"texture_views", texture_views},
+               {"light_views", light_views},
+               {"subject_turns", subject_turns},
                {"write_glb", write_glb},
                {"threads", threads}};
   if (bounds) {
@@ -302,7 +306,7 @@ class Scanner {
       color_name_.clear();
     }
     rays_ = recon::NormalisedRays(depth_lens_);
-    turntable_ = plan.sensor_motion == "turn";
+    turntable_ = plan.sensor_motion == "turn" || options.subject_turns;
   }
 
   ScanSummary Run(const std::filesystem::path& out) {
@@ -510,6 +514,7 @@ class Scanner {
   void CheckKeyframes();
   void Conclude(const std::filesystem::path& out);
   void WriteOutputs(const std::filesystem::path& out, const Mesh& mesh);
+  void WriteLight(const std::filesystem::path& out, const Mesh& mesh);
   void WriteReport(const std::filesystem::path& out);
   std::vector<StampedPose> EstimatedTrajectory() const;
 
@@ -746,6 +751,7 @@ void Scanner::WriteOutputs(const std::filesystem::path& out, const Mesh& mesh) {
   WriteFileAtomic(out / "trajectory.json", frames.dump(1) + "\n");
   if (mesh.faces.empty()) return;
   WritePly(out / "mesh.ply", mesh);
+  if (!color_name_.empty()) WriteLight(out, mesh);
   if (!options_.write_glb || keyframes_.empty() || color_name_.empty()) return;
   // Keyframes spread over the scan colour the mesh.
   std::vector<View> views;
@@ -764,6 +770,51 @@ void Scanner::WriteOutputs(const std::filesystem::path& out, const Mesh& mesh) {
   const TexturedMesh textured = TextureMesh(mesh, views, options_.texture);
   WriteGlb(out / "mesh.glb", textured);
   summary_.metrics["texture"] = textured.Metrics();
+}
+
+// The scan's light and albedo (reconstruction/scan_light.h) from up to light_views fused frames
+// spread over the scan: lighting.json, and albedo.ply when a light was found.
+void Scanner::WriteLight(const std::filesystem::path& out, const Mesh& mesh) {
+  std::vector<const ScanFrame*> fused;
+  for (const ScanFrame& f : summary_.frames)
+    if (f.fused) fused.push_back(&f);
+  const size_t count = std::min<size_t>(options_.light_views, fused.size());
+  std::vector<LitView> views;
+  for (size_t k = 0; k < count; ++k) {
+    const ScanFrame& f = *fused[k * fused.size() / count];
+    LitView view;
+    view.bgr = Bgr(take_.ReadFrame(static_cast<size_t>(f.set), color_name_));
+    if (view.bgr.empty()) continue;
+    view.camera = color_lens_;
+    view.camera.set_cam_from_world(color_from_depth_ * f.world_from_cam.inverse());
+    view.sensor_from_world = f.world_from_cam.linear().transpose();
+    views.push_back(view);
+  }
+  ScanLight light;
+  light.views = static_cast<int64_t>(views.size());
+  if (!turntable_) {
+    // A sensor moving through the room carries no light with it: the light cannot be told from
+    // the colours, which are kept as seen.
+    light.why = Cat("the sensor moved (", plan_.sensor_motion,
+                    "): a light is found only when the subject turns before a still sensor "
+                    "(--turn)");
+  } else {
+    Mesh lit = mesh;
+    if (lit.normals.size() != lit.vertices.size()) lit.ComputeNormals();
+    // The floor does not turn with the subject: it is left out of the fit.
+    std::vector<bool> fit(lit.vertices.size(), true);
+    if (std::isfinite(plan_.floor_m)) {
+      for (size_t v = 0; v < fit.size(); ++v) {
+        fit[v] = plan_.up.dot(lit.vertices[v].cast<double>()) >
+                 plan_.floor_m + options_.floor_margin_m + 0.02;
+      }
+    }
+    Mesh albedo;
+    light = EstimateScanLight(lit, views, fit, ScanLightOptions{}, &albedo);
+    if (light.observed) WritePly(out / "albedo.ply", albedo);
+  }
+  WriteFileAtomic(out / "lighting.json", light.ToJson().dump(2) + "\n");
+  summary_.metrics["lighting"] = light.ToJson();
 }
 
 void Scanner::WriteReport(const std::filesystem::path& out) {
@@ -790,6 +841,7 @@ void Scanner::WriteReport(const std::filesystem::path& out) {
   report_->plan()["scan"] = {{"depth_sensor", depth_name_},
                              {"color_sensor", color_name_},
                              {"sensor_motion", plan_.sensor_motion},
+                             {"subject_turns", turntable_},
                              {"floor_removed", turntable_ && std::isfinite(plan_.floor_m)}};
   if (volume_) {
     const Box& b = volume_->volume().bounds();

@@ -100,6 +100,12 @@ struct ScanOptions {
   MeshingOptions meshing;
   TextureOptions texture;
   int texture_views = 12;  // keyframes (spread over the scan) that colour the mesh
+  // Fused frames (spread over the scan) whose colours give the scan's light and albedo
+  // (reconstruction/scan_light.h: lighting.json, albedo.ply).
+  int light_views = 36;
+  // The subject turned on the spot before a still sensor (a simulated take's metadata says so
+  // itself): the floor is left out of tracking and fusion, and the light found.
+  bool subject_turns = false;
   bool write_glb = true;
   int threads = 0;  // 0: all cores
 
@@ -165,8 +171,9 @@ struct ScanSummary : Summary {
 // Scans the plan's frame sets of a take with its single depth sensor (and its paired colour
 // camera, for the photometric term and the texture) into `out`: trajectory.tum (world_from_cam
 // of the depth sensor, TUM format, times in seconds of the take's clock), trajectory.json
-// (every frame's state and pose), mesh.ply, mesh.glb (textured) and report.json. Throws Error
-// for bad options or a take without exactly one depth sensor.
+// (every frame's state and pose), mesh.ply, mesh.glb (textured), with a colour camera the light
+// the scan was seen in and, when one was found, the mesh's albedo (lighting.json, albedo.ply), and
+// report.json. Throws Error for bad options or a take without exactly one depth sensor.
 ScanSummary ScanTake(const Take& take, const TakePlan& plan, const std::filesystem::path& out,
                      const ScanOptions& options, Report* report = nullptr);
 // The same, opening and planning the take first.

@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/camera.h"
+#include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/mesh.h"
@@ -214,6 +215,51 @@ TEST(LiveCompositor, ComposesTheLiveSurfaceWithTheUnseenScan) {
   EXPECT_LT(worst, 0.02);
 }
 
+// The unseen scan in the light the scan was seen in, fixed to the sensor: each vertex's albedo
+// times 1 + max(0, n . light), n its composed normal in the sensor's frame; colours as scanned
+// with relight off.
+TEST(LiveCompositor, RelightsTheUnseenScanInTheSensorsLight) {
+  Mesh scan = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
+  scan.colors.assign(scan.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(77, 77, 77));
+  ScanAlbedo albedo;
+  albedo.light.observed = true;
+  albedo.light.light = Eigen::Vector3d(1.5, 0, 0.5);  // from the camera's right, a little behind
+  albedo.colors.assign(scan.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(100, 90, 80));
+  const CameraModel camera = SideCamera();
+  const cv::Mat depth = SensorDepth(scan, camera);
+  LiveCompositor relit(scan, LiveOptions(), Eigen::Vector3d::UnitZ(),
+                       std::numeric_limits<double>::quiet_NaN(), albedo);
+  const LiveResult result = relit.Process(0, depth, camera, cv::Mat(), camera);
+  ASSERT_EQ(result.frame.state, LiveState::kComposed) << result.frame.why;
+  ASSERT_EQ(result.composed.normals.size(), result.composed.vertices.size());
+  const Eigen::Matrix3d to_sensor = camera.cam_from_world().linear();
+  int lit = 0, scanned = 0;
+  for (size_t v = result.live.vertices.size(); v < result.composed.vertices.size(); ++v) {
+    const Eigen::Vector3d n = (to_sensor * result.composed.normals[v].cast<double>()).normalized();
+    const double shading = 1 + std::max(0.0, n.dot(albedo.light.light));
+    ASSERT_NEAR(result.composed.colors[v][0], std::min(255.0, 100 * shading), 0.51);
+    ASSERT_NEAR(result.composed.colors[v][2], std::min(255.0, 80 * shading), 0.51);
+    lit += shading > 1.2;
+    ++scanned;
+  }
+  EXPECT_GT(scanned, 100);
+  EXPECT_GT(lit, scanned / 5);  // the right side of the back is lit, the left is not
+  EXPECT_LT(lit, scanned * 4 / 5);
+  LiveOptions off;
+  off.relight = false;
+  LiveCompositor as_seen(scan, off, Eigen::Vector3d::UnitZ(),
+                         std::numeric_limits<double>::quiet_NaN(), albedo);
+  const LiveResult plain = as_seen.Process(0, depth, camera, cv::Mat(), camera);
+  ASSERT_EQ(plain.frame.state, LiveState::kComposed) << plain.frame.why;
+  for (size_t v = plain.live.vertices.size(); v < plain.composed.vertices.size(); ++v)
+    ASSERT_EQ(plain.composed.colors[v][0], 77);
+  // An albedo of another mesh is refused.
+  albedo.colors.pop_back();
+  EXPECT_THROW(LiveCompositor(scan, LiveOptions(), Eigen::Vector3d::UnitZ(),
+                              std::numeric_limits<double>::quiet_NaN(), albedo),
+               Error);
+}
+
 TEST(LiveCompositor, RefusesAScanOfAnotherShape) {
   const Mesh tube = Tube(0.6, 0.08, 0.5, Eigen::Vector3d(0, 0, 0.7));
   const Mesh ball = testing::SphereMesh({Eigen::Vector3d(0, 0, 1.0), 0.2}, 24, 48);
@@ -264,6 +310,13 @@ TEST(LiveCli, RefusesAMissingOrDamagedScan) {
   testing::ExpectOneLineError(
       testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "failed").string()),
       "ended DEGENERATE");
+  std::filesystem::create_directories(dir / "unlit");
+  WritePly(dir / "unlit" / "mesh.ply", Tube(0.6, 0.08, 0, Eigen::Vector3d::Zero()));
+  WritePly(dir / "unlit" / "albedo.ply", Tube(0.6, 0.08, 0, Eigen::Vector3d::Zero()));
+  std::ofstream(dir / "unlit" / "lighting.json") << R"({"observed": true, "light": [0, 1)";
+  testing::ExpectOneLineError(
+      testing::RunCli("live " + (dir / "take").string() + " --scan " + (dir / "unlit").string()),
+      "lighting.json' is damaged");
   EXPECT_FALSE(std::filesystem::exists(dir / "take" / "live"));
 }
 
@@ -304,6 +357,16 @@ sensors:
   const auto report = nlohmann::json::parse(ReadFileToString(out / "report.json"));
   EXPECT_EQ(report["summary"]["termination"], "SUCCESS");
   EXPECT_TRUE(report["plan"]["left_out"].contains("colour cameras cam90"));
+  // The turn scan looked for its light; live relights the scan's part when it found one.
+  const auto light =
+      nlohmann::json::parse(ReadFileToString(dir / "turn" / "scan" / "lighting.json"));
+  const bool found = light["observed"].get<bool>();
+  EXPECT_EQ(report["metrics"]["relit"], found) << report["metrics"]["relit_why"];
+  EXPECT_EQ(std::filesystem::exists(dir / "turn" / "scan" / "albedo.ply"), found);
+  if (found) {
+    EXPECT_EQ(ReadPly(dir / "turn" / "scan" / "albedo.ply").vertices.size(),
+              ReadPly(dir / "turn" / "scan" / "mesh.ply").vertices.size());
+  }
   const auto& frames = report["metrics"]["per_frame"];
   ASSERT_EQ(frames.size(), 3u);
   EXPECT_EQ(frames[1]["state"], "no_depth");

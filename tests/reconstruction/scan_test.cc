@@ -109,6 +109,14 @@ TEST(ScanTest, HandheldTracksWithinAFewVoxels) {
   EXPECT_EQ(summary.lost, 0);
   ASSERT_TRUE(summary.errors.has_value());
   EXPECT_LT(summary.errors->ate_rmse_m, 0.03);
+  // A sensor carried through the room carries no light with it: none is looked for, and the
+  // colours stay as seen.
+  const nlohmann::json light =
+      nlohmann::json::parse(ReadFileToString(dir / "scan" / "lighting.json"));
+  EXPECT_FALSE(light["observed"].get<bool>());
+  EXPECT_NE(light["why"].get<std::string>().find("the sensor moved (handheld)"), std::string::npos)
+      << light.dump();
+  EXPECT_FALSE(std::filesystem::exists(dir / "scan" / "albedo.ply"));
 }
 
 TEST(ScanTest, TurntableTracksTheSubjectWithoutTheFloor) {
