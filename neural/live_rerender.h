@@ -38,9 +38,9 @@ struct LiveRerenderOptions {
   LiveOptions live;  // the composition of each live frame, as `holocap live` makes it
 
   // Pairs.
-  int live_frames = 24;       // frames of the scan take composed as the live frame, spread
+  int live_frames = 48;       // frames of the scan take composed as the live frame, spread
                               // over the turn; each is also a target of the others
-  int targets_per_frame = 6;  // views of each composition: frames turned between
+  int targets_per_frame = 8;  // views of each composition: frames turned between
   double min_turn_deg = 60;   // min_turn_deg and max_turn_deg from it, spread over that range
   double max_turn_deg = 180;
   int validation_every = 4;  // the pairs of every this-many-th live frame are validation only

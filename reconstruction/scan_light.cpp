@@ -89,8 +89,7 @@ class Sightings {
     for (size_t k = 0; k < views_.size(); ++k) {
       const LitView& view = views_[k];
       const recon::FastProjector projector(view.camera);
-      const Eigen::Matrix3f to_camera =
-          view.camera.cam_from_world().linear().cast<float>();
+      const Eigen::Matrix3f to_camera = view.camera.cam_from_world().linear().cast<float>();
       const Eigen::Matrix3f to_sensor = view.sensor_from_world.cast<float>();
       const cv::Mat& depth = depth_[k];
       for (int v : vertices) {
@@ -298,8 +297,7 @@ ScanLight EstimateScanLight(const Mesh& mesh, const std::vector<LitView>& views,
     Residuals(data, fitted, &r, nullptr);
     std::vector<double> magnitude;
     for (double x : r) magnitude.push_back(std::abs(x));
-    std::nth_element(magnitude.begin(), magnitude.begin() + magnitude.size() / 2,
-                     magnitude.end());
+    std::nth_element(magnitude.begin(), magnitude.begin() + magnitude.size() / 2, magnitude.end());
     const double limit = std::max(0.02, 3 * 1.4826 * magnitude[magnitude.size() / 2]);
     for (size_t j = 0; j < r.size(); ++j) data.kept[j] = std::abs(r[j]) <= limit;
     fitted = Refine(data, fitted);
@@ -341,9 +339,8 @@ ScanLight EstimateScanLight(const Mesh& mesh, const std::vector<LitView>& views,
   albedo->colors.resize(mesh.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(128, 128, 128));
   for (size_t v = 0; v < all.size(); ++v) {
     const Eigen::Vector3d a =
-        shading[v] > 0
-            ? Eigen::Vector3d(colour[v] / shading[v])
-            : Eigen::Vector3d(albedo->colors[v].cast<double>() / (255.0 * typical));
+        shading[v] > 0 ? Eigen::Vector3d(colour[v] / shading[v])
+                       : Eigen::Vector3d(albedo->colors[v].cast<double>() / (255.0 * typical));
     for (int c = 0; c < 3; ++c) {
       albedo->colors[v][c] =
           static_cast<uint8_t>(std::clamp(std::lround(255 * a[c]), long{0}, long{255}));

@@ -34,7 +34,7 @@ namespace holocap {
 struct ScanLight {
   bool observed = false;  // a directional light explains the intensities (see above)
   Eigen::Vector3d light = Eigen::Vector3d::Zero();  // in the depth sensor's camera frame
-  int64_t views = 0;         // colour frames read
+  int64_t views = 0;                                // colour frames read
   int64_t vertices = 0;      // vertices fitted (seen at least twice, off the floor)
   int64_t observations = 0;  // their sightings
   double rms_flat = 0;       // RMS of the log-intensity residuals under ambient light alone

@@ -142,10 +142,14 @@ TEST(LiveAlign, NonRigidFollowsABentLimbWithoutTearing) {
   EXPECT_LT(fit.after.residual_m, 0.5 * fit.before.residual_m);
   // The forearm's tip moves by the chord of the bend, 15 cm.
   EXPECT_GT(fit.deformation_max_m, 0.12);
-  // No tearing: every edge keeps its length within 35 %.
+  // No tearing: the live tube kinks at the elbow (its own edges there stretch and shrink
+  // several times over); the graph spreads the bend over its nodes, every edge within half its
+  // length.
+  const auto [kink_most, kink_least] = EdgeStretch(aligned, bent);
+  EXPECT_GT(kink_most, 3);
   const auto [most, least] = EdgeStretch(aligned, fit.deformed);
-  EXPECT_LT(most, 1.35);
-  EXPECT_GT(least, 0.65);
+  EXPECT_LT(most, 1.5);
+  EXPECT_GT(least, 0.5);
   // The regulariser is what holds it together: all but no stiffness fits the data as well but
   // stretches the mesh further.
   LiveOptions loose = options;

@@ -37,7 +37,8 @@ cv::Mat RenderLit(const CameraModel& camera, const Sphere& sphere,
       const double t = testing::RaySphere(origin, ray, sphere);
       if (!std::isfinite(t)) continue;
       const Eigen::Vector3d n = (origin + t * ray - sphere.centre).normalized();
-      const double shading = 1 + std::max(0.0, (world_from_cam.transpose() * n).dot(light_in_camera)) +
+      const double shading = 1 +
+                             std::max(0.0, (world_from_cam.transpose() * n).dot(light_in_camera)) +
                              std::max(0.0, n.dot(light_in_world));
       const Eigen::Vector3d rgb = 0.45 * shading * Albedo(n);
       for (int c = 0; c < 3; ++c) {
@@ -62,8 +63,8 @@ Scene Ring(const Eigen::Vector3d& light_in_camera, const Eigen::Vector3d& light_
   scene.mesh.ComputeNormals();
   for (int i = 0; i < 24; ++i) {
     const double azimuth = 2 * M_PI * i / 24;
-    const Eigen::Vector3d eye =
-        scene.sphere.centre + Eigen::Vector3d(1.2 * std::cos(azimuth), 1.2 * std::sin(azimuth), 0.3);
+    const Eigen::Vector3d eye = scene.sphere.centre + Eigen::Vector3d(1.2 * std::cos(azimuth),
+                                                                      1.2 * std::sin(azimuth), 0.3);
     LitView view;
     view.camera = CameraModel::Pinhole(200, 160, 120, CamFromWorldLookAt(eye, scene.sphere.centre));
     view.sensor_from_world = view.camera.cam_from_world().linear();
@@ -78,9 +79,9 @@ TEST(ScanLight, ALightTurningWithTheSensorIsFoundAndDividedOut) {
   const Eigen::Vector3d truth = 1.2 * Eigen::Vector3d(0.6, -0.6, -0.3).normalized();
   const Scene scene = Ring(truth, Eigen::Vector3d::Zero());
   Mesh albedo;
-  const ScanLight light =
-      EstimateScanLight(scene.mesh, scene.views, std::vector<bool>(scene.mesh.vertices.size(), true),
-                        ScanLightOptions{}, &albedo);
+  const ScanLight light = EstimateScanLight(scene.mesh, scene.views,
+                                            std::vector<bool>(scene.mesh.vertices.size(), true),
+                                            ScanLightOptions{}, &albedo);
   ASSERT_TRUE(light.observed) << light.why;
   EXPECT_EQ(light.views, 24);
   EXPECT_GT(light.vertices, 1000);
@@ -92,7 +93,8 @@ TEST(ScanLight, ALightTurningWithTheSensorIsFoundAndDividedOut) {
   double error = 0;
   int64_t counted = 0;
   for (size_t v = 0; v < albedo.vertices.size(); ++v) {
-    const Eigen::Vector3d n = (albedo.vertices[v].cast<double>() - scene.sphere.centre).normalized();
+    const Eigen::Vector3d n =
+        (albedo.vertices[v].cast<double>() - scene.sphere.centre).normalized();
     if (std::abs(n.z()) > 0.5) continue;  // the poles, seen at grazing angles only
     error += (albedo.colors[v].cast<double>() / 255 - 0.45 * Albedo(n)).cwiseAbs().mean();
     ++counted;
@@ -105,9 +107,9 @@ TEST(ScanLight, ALightFixedToAStillSubjectIsNotObservedAndColoursStay) {
   // The sensor circles the subject: every patch is seen in one light, whatever it is.
   const Scene scene = Ring(Eigen::Vector3d::Zero(), Eigen::Vector3d(0.3, 0.2, 0.9));
   Mesh albedo;
-  const ScanLight light =
-      EstimateScanLight(scene.mesh, scene.views, std::vector<bool>(scene.mesh.vertices.size(), true),
-                        ScanLightOptions{}, &albedo);
+  const ScanLight light = EstimateScanLight(scene.mesh, scene.views,
+                                            std::vector<bool>(scene.mesh.vertices.size(), true),
+                                            ScanLightOptions{}, &albedo);
   EXPECT_FALSE(light.observed);
   EXPECT_NE(light.why.find("no directional light"), std::string::npos) << light.why;
   EXPECT_EQ(light.light, Eigen::Vector3d::Zero());
@@ -116,9 +118,9 @@ TEST(ScanLight, ALightFixedToAStillSubjectIsNotObservedAndColoursStay) {
 TEST(ScanLight, TooFewSightingsAreSaid) {
   const Scene scene = Ring(Eigen::Vector3d(0.5, -0.5, 0), Eigen::Vector3d::Zero());
   const std::vector<LitView> one(scene.views.begin(), scene.views.begin() + 1);
-  const ScanLight light = EstimateScanLight(
-      scene.mesh, one, std::vector<bool>(scene.mesh.vertices.size(), true), ScanLightOptions{},
-      nullptr);
+  const ScanLight light =
+      EstimateScanLight(scene.mesh, one, std::vector<bool>(scene.mesh.vertices.size(), true),
+                        ScanLightOptions{}, nullptr);
   EXPECT_FALSE(light.observed);
   EXPECT_NE(light.why.find("seen twice"), std::string::npos) << light.why;
 }
