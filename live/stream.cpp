@@ -28,6 +28,8 @@ struct LiveStream::State {
   Mesh scan;
   std::optional<ScanAlbedo> albedo;  // the scan's light and albedo (nullopt: not relit)
   std::string unlit;                 // ... or why not
+  bool relit = false;                // for the report, once albedo has gone to the compositor
+  Eigen::Vector3d scan_light = Eigen::Vector3d::Zero();
   Clock::time_point start = Clock::now();
 
   // Shared between Offer() and the thread.
@@ -83,13 +85,6 @@ void LiveStream::State::Start(const cv::Mat& first_depth) {
                     {"up", {up.x(), up.y(), up.z()}},
                     {"up_source", up_source},
                     {"floor_m", std::isfinite(floor_m) ? Json(floor_m) : Json(nullptr)}};
-  report->plan()["relit"] = albedo.has_value();
-  if (albedo) {
-    const Eigen::Vector3d& l = albedo->light.light;
-    report->plan()["scan_light"] = {l.x(), l.y(), l.z()};
-  } else {
-    report->plan()["relit_why"] = unlit;
-  }
   compositor.emplace(std::move(scan), options, up, floor_m, std::move(albedo));
 }
 
@@ -155,6 +150,8 @@ LiveStream::LiveStream(const fs::path& scan_dir, std::string depth_sensor, Camer
     s.albedo = ReadScanAlbedo(scan_dir, s.scan, &s.unlit);
   else
     s.unlit = "relight is off";
+  s.relit = s.albedo.has_value();
+  if (s.albedo) s.scan_light = s.albedo->light.light;
   s.scan_dir = scan_dir;
   s.out = std::move(out);
   s.overwrite = overwrite;
@@ -217,6 +214,9 @@ LiveSummary LiveStream::Finish() {
   LiveSummary summary;
   summary.depth_sensor = s.depth_sensor;
   summary.color_sensor = s.color_sensor;
+  summary.relit = s.relit;
+  summary.relit_why = s.relit ? "" : s.unlit;
+  summary.scan_light = s.scan_light;
   summary.frames = s.frames;
   std::sort(summary.frames.begin(), summary.frames.end(),
             [](const LiveFrame& a, const LiveFrame& b) { return a.set < b.set; });

@@ -404,6 +404,7 @@ sensors:
       nlohmann::json::parse(ReadFileToString(dir / "captured" / "live" / "report.json"));
   EXPECT_EQ(live_report["summary"]["termination"], "SUCCESS");
   EXPECT_EQ(live_report["metrics"]["offered"], 3);
+  EXPECT_EQ(live_report["metrics"]["relit"], found) << live_report["metrics"]["relit_why"];
   const auto& streamed_frames = live_report["metrics"]["per_frame"];
   ASSERT_EQ(streamed_frames.size(), 3u);
   EXPECT_NE(streamed_frames[1]["state"], "composed");
