@@ -2,7 +2,9 @@
 // ICP and the embedded deformation graph.
 #include <Eigen/Sparse>
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <functional>
 #include <unordered_map>
 
 #include "core/error.h"
@@ -16,6 +18,8 @@ namespace holocap {
 namespace {
 
 constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+// How far along the surface, in node spacings, a node's reach is searched.
+constexpr double kGeodesicReach = 3;
 
 }  // namespace
 
@@ -228,9 +232,26 @@ RigidAlignment AlignRigid(const Mesh& scan, const LiveSurface& live, const Pose&
   return result;
 }
 
-DeformationGraph::DeformationGraph(const Mesh& mesh, double spacing_m, int neighbours) {
-  neighbours = std::clamp(neighbours, 1, 4);
-  // One node per occupied cell: the vertex nearest the mean of the cell's vertices.
+namespace {
+
+// Up to `count` (distance, node) pairs, nearest first.
+struct NearestNodes {
+  std::array<std::pair<float, int>, 5> best;
+  int count = 0;
+  void Offer(float distance, int node, int capacity) {
+    if (count == capacity && distance >= best[count - 1].first) return;
+    int at = std::min(count, capacity - 1);
+    if (count < capacity) ++count;
+    while (at > 0 && best[at - 1].first > distance) {
+      best[at] = best[at - 1];
+      --at;
+    }
+    best[at] = {distance, node};
+  }
+};
+
+// One node per occupied cell of `spacing_m`: the vertex nearest the mean of the cell's vertices.
+std::vector<int> SampleNodeVertices(const Mesh& mesh, double spacing_m) {
   struct Cell {
     Eigen::Vector3d sum = Eigen::Vector3d::Zero();
     int count = 0;
@@ -260,42 +281,125 @@ DeformationGraph::DeformationGraph(const Mesh& mesh, double spacing_m, int neigh
   std::vector<int> chosen;
   for (const auto& [key, cell] : cells) chosen.push_back(cell.best);
   std::sort(chosen.begin(), chosen.end());  // deterministic order
-  for (int index : chosen) nodes.push_back(mesh.vertices[index].cast<double>());
+  return chosen;
+}
+
+// The `capacity` nearest nodes of every vertex along the mesh's edges, within `reach_m`:
+// a bounded Dijkstra from each node's vertex.
+std::vector<NearestNodes> GeodesicNearestNodes(const Mesh& mesh,
+                                               const std::vector<int>& node_vertex, double reach_m,
+                                               int capacity) {
+  const size_t n = mesh.vertices.size();
+  // The mesh's edges, both ways, as compressed rows.
+  std::vector<std::pair<int, int>> pairs;
+  pairs.reserve(mesh.faces.size() * 6);
+  for (const Eigen::Vector3i& f : mesh.faces) {
+    for (int c = 0; c < 3; ++c) {
+      const int a = f[c], b = f[(c + 1) % 3];
+      if (a < 0 || b < 0 || a >= static_cast<int>(n) || b >= static_cast<int>(n) || a == b)
+        continue;
+      pairs.emplace_back(a, b);
+      pairs.emplace_back(b, a);
+    }
+  }
+  std::sort(pairs.begin(), pairs.end());
+  pairs.erase(std::unique(pairs.begin(), pairs.end()), pairs.end());
+  std::vector<int> start(n + 1, 0), to(pairs.size());
+  std::vector<float> length(pairs.size());
+  for (size_t e = 0; e < pairs.size(); ++e) {
+    ++start[pairs[e].first + 1];
+    to[e] = pairs[e].second;
+    length[e] = (mesh.vertices[pairs[e].first] - mesh.vertices[pairs[e].second]).norm();
+  }
+  for (size_t i = 0; i < n; ++i) start[i + 1] += start[i];
+
+  std::vector<NearestNodes> nearest(n);
+  std::vector<float> distance(n, std::numeric_limits<float>::infinity());
+  std::vector<int> touched;
+  using Entry = std::pair<float, int>;
+  std::vector<Entry> heap;
+  const float reach = static_cast<float>(reach_m);
+  for (size_t j = 0; j < node_vertex.size(); ++j) {
+    const int source = node_vertex[j];
+    distance[source] = 0;
+    touched.push_back(source);
+    heap.assign(1, {0.0f, source});
+    while (!heap.empty()) {
+      std::pop_heap(heap.begin(), heap.end(), std::greater<>());
+      const auto [d, v] = heap.back();
+      heap.pop_back();
+      if (d > distance[v]) continue;
+      nearest[v].Offer(d, static_cast<int>(j), capacity);
+      for (int e = start[v]; e < start[v + 1]; ++e) {
+        const float next = d + length[e];
+        if (next > reach || next >= distance[to[e]]) continue;
+        if (!std::isfinite(distance[to[e]])) touched.push_back(to[e]);
+        distance[to[e]] = next;
+        heap.emplace_back(next, to[e]);
+        std::push_heap(heap.begin(), heap.end(), std::greater<>());
+      }
+    }
+    for (int v : touched) distance[v] = std::numeric_limits<float>::infinity();
+    touched.clear();
+  }
+  return nearest;
+}
+
+}  // namespace
+
+DeformationGraph::DeformationGraph(const Mesh& mesh, double spacing_m, int neighbours) {
+  neighbours = std::clamp(neighbours, 1, 4);
+  const std::vector<int> node_vertex = SampleNodeVertices(mesh, spacing_m);
+  for (int index : node_vertex) nodes.push_back(mesh.vertices[index].cast<double>());
   rotation.assign(nodes.size(), Eigen::Matrix3d::Identity());
   translation.assign(nodes.size(), Eigen::Vector3d::Zero());
 
-  // The k + 1 nearest nodes of a point (the last one sets the weights' reach).
+  // Nodes and vertices are tied along the surface, not through the air: two legs or an arm and
+  // the torso that pass close move apart without pulling each other. A piece of the mesh that
+  // no node reaches along its edges falls back on the nearest nodes in space.
+  const double reach_m = kGeodesicReach * spacing_m;
+  const std::vector<NearestNodes> geodesic =
+      GeodesicNearestNodes(mesh, node_vertex, reach_m, neighbours + 1);
+  // The k + 1 nearest nodes of a point in space (the last one sets the weights' reach).
   auto nearest = [&](const Eigen::Vector3d& point, int k, int skip) {
-    std::vector<std::pair<double, int>> best;
+    NearestNodes best;
     for (size_t j = 0; j < nodes.size(); ++j) {
       if (static_cast<int>(j) == skip) continue;
-      const double d = (nodes[j] - point).squaredNorm();
-      if (static_cast<int>(best.size()) < k + 1 || d < best.back().first) {
-        best.insert(
-            std::upper_bound(best.begin(), best.end(), std::make_pair(d, static_cast<int>(j))),
-            {d, static_cast<int>(j)});
-        if (static_cast<int>(best.size()) > k + 1) best.pop_back();
-      }
+      best.Offer(static_cast<float>((nodes[j] - point).norm()), static_cast<int>(j), k + 1);
     }
     return best;
   };
   edges.resize(nodes.size());
   for (size_t j = 0; j < nodes.size(); ++j) {
-    const auto best = nearest(nodes[j], neighbours, static_cast<int>(j));
-    for (int n = 0; n < std::min<int>(neighbours, static_cast<int>(best.size())); ++n)
-      edges[j].push_back(best[n].second);
+    const NearestNodes& along = geodesic[node_vertex[j]];
+    for (int n = 0; n < along.count; ++n)
+      if (along.best[n].second != static_cast<int>(j) &&
+          static_cast<int>(edges[j].size()) < neighbours)
+        edges[j].push_back(along.best[n].second);
+    if (!edges[j].empty()) continue;
+    const NearestNodes best = nearest(nodes[j], neighbours, static_cast<int>(j));
+    for (int n = 0; n < std::min(neighbours, best.count); ++n)
+      edges[j].push_back(best.best[n].second);
   }
   vertex_node.assign(mesh.vertices.size(), {-1, -1, -1, -1});
   vertex_weight.assign(mesh.vertices.size(), Eigen::Vector4f::Zero());
   for (size_t i = 0; i < mesh.vertices.size(); ++i) {
-    const auto best = nearest(mesh.vertices[i].cast<double>(), neighbours, -1);
-    if (best.empty()) continue;
-    const int used = std::min<int>(neighbours, static_cast<int>(best.size()));
-    const double reach = std::sqrt(best.back().first) + 1e-6;
+    NearestNodes best = geodesic[i];
+    // Fewer than k + 1 along the surface: the search's reach bounds the weights.
+    double reach = reach_m;
+    if (best.count == 0) {
+      best = nearest(mesh.vertices[i].cast<double>(), neighbours, -1);
+      if (best.count == 0) continue;
+      reach = best.best[best.count - 1].first;
+    } else if (best.count == neighbours + 1) {
+      reach = best.best[neighbours].first;
+    }
+    reach += 1e-6;
+    const int used = std::min(neighbours, best.count);
     float total = 0;
     for (int n = 0; n < used; ++n) {
-      const double w = std::pow(1 - std::sqrt(best[n].first) / reach, 2);
-      vertex_node[i][n] = best[n].second;
+      const double w = std::pow(1 - best.best[n].first / reach, 2);
+      vertex_node[i][n] = best.best[n].second;
       vertex_weight[i][n] = static_cast<float>(w);
       total += static_cast<float>(w);
     }

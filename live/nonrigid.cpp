@@ -8,6 +8,8 @@
 
 #include "live/live.h"
 #include "live/live_internal.h"
+#include "reconstruction/projector.h"
+#include "reconstruction/reconstruction.h"
 
 namespace holocap {
 
@@ -54,7 +56,8 @@ class NonRigidSolver {
         live_(live),
         options_(options),
         graph_(*graph),
-        samples_(live::ThinnedVertices(aligned.vertices.size(), options.alignment_samples)) {}
+        samples_(live::ThinnedVertices(aligned.vertices.size(), options.alignment_samples)),
+        posed_(aligned) {}
 
   NonRigidFit Run() {
     NonRigidFit fit;
@@ -85,13 +88,28 @@ class NonRigidSolver {
   }
 
  private:
+  // The samples where the graph puts them. A sample that the posed scan itself hides from the
+  // sensor (a leg behind the other leg) is left out (NaN): the live surface in front of it is
+  // the other limb's, and pairing it there would pull the hidden limb onto the seen one.
   void PoseSamples() {
+    for (size_t v = 0; v < mesh_.vertices.size(); ++v)
+      posed_.vertices[v] = graph_.Apply(v, mesh_.vertices[v].cast<double>()).cast<float>();
+    const cv::Mat own_depth = RenderDepth(posed_, live_.camera);
+    const recon::FastProjector projector(live_.camera);
+    const float margin = static_cast<float>(options_.gate_m);
     points_.resize(samples_.size());
     normals_.resize(samples_.size());
     for (size_t s = 0; s < samples_.size(); ++s) {
       const size_t v = static_cast<size_t>(samples_[s]);
-      points_[s] = graph_.Apply(v, mesh_.vertices[v].cast<double>()).cast<float>();
+      points_[s] = posed_.vertices[v];
       normals_[s] = graph_.ApplyNormal(v, mesh_.normals[v].cast<double>()).cast<float>();
+      float u, w, z;
+      if (!projector.ProjectWorld(points_[s], &u, &w, &z)) continue;
+      const int x = static_cast<int>(std::lround(u)), y = static_cast<int>(std::lround(w));
+      if (x < 0 || y < 0 || x >= own_depth.cols || y >= own_depth.rows) continue;
+      const float front = own_depth.at<float>(y, x);
+      if (std::isfinite(front) && z > front + margin)
+        points_[s] = Eigen::Vector3f::Constant(std::numeric_limits<float>::quiet_NaN());
     }
   }
 
@@ -210,6 +228,7 @@ class NonRigidSolver {
   std::vector<int> samples_;
   std::vector<Eigen::Vector3f> points_, normals_;
   std::vector<live::Pair> pairs_;
+  Mesh posed_;  // the mesh where the graph puts it (its own depth hides samples)
 };
 
 }  // namespace
