@@ -73,6 +73,11 @@ void AddLiveCommand(CLI::App& app) {
       ->add_option("--max-residual", o.max_residual_m,
                    "Largest point-to-plane RMS of a fitting scan (metres)")
       ->capture_default_str();
+  command
+      ->add_option("--subject-reach", o.subject_reach_m,
+                   "Live pixels joined to the fitted subject without a depth jump, within this "
+                   "distance of the deformed scan, are the subject too (metres; 0: none)")
+      ->capture_default_str();
   command->add_option("--node-spacing", o.node_spacing_m, "Deformation graph spacing (metres)")
       ->capture_default_str();
   command

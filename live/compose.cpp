@@ -227,6 +227,7 @@ void LiveCompositor::Relight(Mesh* deformed, const CameraModel& sensor) const {
 cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deformed) const {
   const cv::Mat scan_depth = RenderDepth(deformed, live.camera);
   cv::Mat subject(live.height, live.width, CV_8U, cv::Scalar(0));
+  std::vector<int> front;  // the subject's pixels, grown from those near the scan
   constexpr int kRadius = 2;
   for (int y = 0; y < live.height; ++y) {
     for (int x = 0; x < live.width; ++x) {
@@ -240,7 +241,44 @@ cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deforme
           near = std::abs(scan_depth.at<float>(yy, xx) - d) < options_.subject_gate_m;
         }
       }
-      if (near) subject.at<uint8_t>(y, x) = 255;
+      if (near) {
+        subject.at<uint8_t>(y, x) = 255;
+        front.push_back(y * live.width + x);
+      }
+    }
+  }
+  // The subject goes on where its surface does: a limb the scan was not bent onto (a leg
+  // swung further than the scan's) is joined to the body without a jump in depth. Only within
+  // subject_reach_m of the deformed scan's box, and 5 cm above its soles: the floor joins the
+  // feet without a jump, and a floor known to a few centimetres is not cut exactly.
+  if (deformed.vertices.empty() || options_.subject_reach_m <= 0) return subject;
+  Eigen::AlignedBox3f box;
+  float lowest = std::numeric_limits<float>::infinity();
+  const Eigen::Vector3f up = up_.cast<float>();
+  for (const Eigen::Vector3f& v : deformed.vertices) {
+    box.extend(v);
+    lowest = std::min(lowest, up.dot(v));
+  }
+  box.min().array() -= static_cast<float>(options_.subject_reach_m);
+  box.max().array() += static_cast<float>(options_.subject_reach_m);
+  constexpr float kAboveSoles = 0.05f;
+  const float above = lowest + kAboveSoles;
+  const float jump = static_cast<float>(options_.max_depth_jump_m);
+  while (!front.empty()) {
+    const int i = front.back();
+    front.pop_back();
+    const int x = i % live.width, y = i / live.width;
+    const float d = live.depth[static_cast<size_t>(i)];
+    const int next[4][2] = {{x - 1, y}, {x + 1, y}, {x, y - 1}, {x, y + 1}};
+    for (const auto& [xx, yy] : next) {
+      if (xx < 0 || yy < 0 || xx >= live.width || yy >= live.height) continue;
+      const size_t j = static_cast<size_t>(yy) * live.width + xx;
+      if (subject.at<uint8_t>(yy, xx) || !(std::abs(live.depth[j] - d) < jump) ||
+          !live.points[j].allFinite() || !box.contains(live.points[j]) ||
+          up.dot(live.points[j]) < above)
+        continue;
+      subject.at<uint8_t>(yy, xx) = 255;
+      front.push_back(static_cast<int>(j));
     }
   }
   return subject;

@@ -43,6 +43,7 @@ void LiveOptions::Check() const {
   if (!(subject_gate_m > 0 && observed_gate_m > 0 && max_depth_jump_m > 0))
     Fail("live: subject_gate_m, observed_gate_m and max_depth_jump_m must be > 0");
   if (!(floor_margin_m >= 0)) Fail("live: floor_margin_m must be >= 0");
+  if (!(subject_reach_m >= 0)) Fail("live: subject_reach_m must be >= 0");
   if (threads < 0) Fail("live: threads must be >= 0");
 }
 
@@ -68,6 +69,7 @@ Json LiveOptions::ToJson() const {
           {"max_deformation_rms_m", max_deformation_rms_m},
           {"max_refused_fraction", max_refused_fraction},
           {"subject_gate_m", subject_gate_m},
+          {"subject_reach_m", subject_reach_m},
           {"observed_gate_m", observed_gate_m},
           {"max_depth_jump_m", max_depth_jump_m},
           {"floor_margin_m", floor_margin_m},

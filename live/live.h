@@ -96,8 +96,11 @@ struct LiveOptions {
   double max_refused_fraction = 0.2;
 
   // Composition.
-  double subject_gate_m = 0.06;    // live pixels within this depth of the deformed scan (in a
-                                   // 5x5 window) are the subject
+  double subject_gate_m = 0.06;  // live pixels within this depth of the deformed scan (in a
+                                 // 5x5 window) are the subject
+  // ... and so are live pixels joined to those without a jump in depth (max_depth_jump_m)
+  // within this distance of the deformed scan's box (0: none joined)
+  double subject_reach_m = 0.3;
   double observed_gate_m = 0.03;   // scan vertices this close to the live subject are observed
   double max_depth_jump_m = 0.04;  // no live triangle across a larger jump in depth
   double floor_margin_m = 0.02;    // live points this close to the plan's floor are left out

@@ -5,6 +5,7 @@
 
 #include <cmath>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 
 #include "core/camera.h"
@@ -292,6 +293,33 @@ TEST(LiveCompositor, ComposesTheLiveSurfaceWithTheUnseenScan) {
     worst = std::max(worst, std::abs(off - 0.08));
   }
   EXPECT_LT(worst, 0.02);
+}
+
+// A limb the scan was not bent onto (here: the alignment kept rigid) is still the subject's:
+// the live pixels joined to the fitted body without a jump in depth are kept; the wall behind,
+// across a jump, is not.
+TEST(LiveCompositor, KeepsTheLiveLimbTheScanWasNotBentOnto) {
+  const Mesh straight = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
+  const Mesh bent = Tube(0.6, 0.08, 0.6, Eigen::Vector3d(0, 0, 0.7));
+  const CameraModel camera = SideCamera();
+  const int tube_pixels = cv::countNonZero(RenderSilhouette(bent, camera));
+  LiveOptions options;
+  options.nonrigid = false;
+  options.min_inlier_fraction = 0.3;  // the rigid scan fits the lower half only
+  const double reach = options.subject_reach_m;
+  std::map<double, int64_t> kept;
+  for (double r : {0.0, reach}) {
+    options.subject_reach_m = r;
+    LiveCompositor compositor(straight, options);
+    const LiveResult result =
+        compositor.Process(3, SensorDepth(bent, camera), camera, cv::Mat(), camera);
+    ASSERT_EQ(result.frame.state, LiveState::kComposed) << result.frame.why;
+    kept[r] = result.frame.subject_pixels;
+  }
+  // Near the scan alone: 1103 of the tube's 1885 pixels; grown: all of them, and no more.
+  EXPECT_LT(kept[0.0], 0.8 * tube_pixels);
+  EXPECT_GT(kept[reach], 0.97 * tube_pixels);
+  EXPECT_LE(kept[reach], tube_pixels);
 }
 
 // The unseen scan in the light the scan was seen in, fixed to the sensor: each vertex's albedo
