@@ -19,7 +19,7 @@ namespace {
 
 constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
 // How far along the surface, in node spacings, a node's reach is searched.
-constexpr double kGeodesicReach = 3;
+constexpr double kGeodesicReach = 2;
 
 }  // namespace
 

@@ -159,7 +159,7 @@ struct DeformationGraph {
   std::vector<Eigen::Vector3d> translation;
   // Samples nodes every `spacing_m` over the mesh's vertices; `neighbours` (1 to 4) nodes
   // move each vertex. Nodes and vertices are tied to their nearest nodes along the mesh's
-  // edges (within 3 spacings), so that limbs that pass close (legs, an arm by the torso) move
+  // edges (within 2 spacings), so that limbs that pass close (legs, an arm by the torso) move
   // apart; a piece that no node reaches along the surface is tied through space.
   DeformationGraph(const Mesh& mesh, double spacing_m, int neighbours);
   Eigen::Vector3d Apply(size_t vertex, const Eigen::Vector3d& rest) const;

@@ -62,7 +62,7 @@ class NonRigidSolver {
   NonRigidFit Run() {
     NonRigidFit fit;
     fit.nodes = static_cast<int64_t>(graph_.nodes.size());
-    PoseSamples();
+    PoseSamples(/*find_hidden=*/true);
     fit.before = Measure();
     const std::vector<Eigen::Matrix3d> start_rotation = graph_.rotation;
     const std::vector<Eigen::Vector3d> start_translation = graph_.translation;
@@ -74,7 +74,7 @@ class NonRigidSolver {
       live::AddNearestPairs(points_, normals_, live_, gate, options_.max_normal_angle_deg,
                             options_.alignment_samples, &pairs_);
       if (pairs_.size() < 6 || !Step()) break;
-      PoseSamples();
+      PoseSamples(/*find_hidden=*/gate > options_.gate_m);
     }
     fit.after = Measure();
     // A correction that fits worse than the rigid alignment is not kept.
@@ -90,26 +90,37 @@ class NonRigidSolver {
  private:
   // The samples where the graph puts them. A sample that the posed scan itself hides from the
   // sensor (a leg behind the other leg) is left out (NaN): the live surface in front of it is
-  // the other limb's, and pairing it there would pull the hidden limb onto the seen one.
-  void PoseSamples() {
+  // the other limb's, and pairing it there would pull the hidden limb onto the seen one. Which
+  // samples are hidden is found anew (`find_hidden`: the scan's own depth rendered) while the
+  // gate is coarse, where such pairs form, and kept once it is fine.
+  void PoseSamples(bool find_hidden) {
+    points_.resize(samples_.size());
+    normals_.resize(samples_.size());
+    for (size_t s = 0; s < samples_.size(); ++s) {
+      const size_t v = static_cast<size_t>(samples_[s]);
+      points_[s] = graph_.Apply(v, mesh_.vertices[v].cast<double>()).cast<float>();
+      normals_[s] = graph_.ApplyNormal(v, mesh_.normals[v].cast<double>()).cast<float>();
+    }
+    if (find_hidden) FindHidden();
+    for (size_t s = 0; s < samples_.size(); ++s)
+      if (hidden_[s])
+        points_[s] = Eigen::Vector3f::Constant(std::numeric_limits<float>::quiet_NaN());
+  }
+
+  void FindHidden() {
     for (size_t v = 0; v < mesh_.vertices.size(); ++v)
       posed_.vertices[v] = graph_.Apply(v, mesh_.vertices[v].cast<double>()).cast<float>();
     const cv::Mat own_depth = RenderDepth(posed_, live_.camera);
     const recon::FastProjector projector(live_.camera);
     const float margin = static_cast<float>(options_.gate_m);
-    points_.resize(samples_.size());
-    normals_.resize(samples_.size());
+    hidden_.assign(samples_.size(), 0);
     for (size_t s = 0; s < samples_.size(); ++s) {
-      const size_t v = static_cast<size_t>(samples_[s]);
-      points_[s] = posed_.vertices[v];
-      normals_[s] = graph_.ApplyNormal(v, mesh_.normals[v].cast<double>()).cast<float>();
       float u, w, z;
       if (!projector.ProjectWorld(points_[s], &u, &w, &z)) continue;
       const int x = static_cast<int>(std::lround(u)), y = static_cast<int>(std::lround(w));
       if (x < 0 || y < 0 || x >= own_depth.cols || y >= own_depth.rows) continue;
       const float front = own_depth.at<float>(y, x);
-      if (std::isfinite(front) && z > front + margin)
-        points_[s] = Eigen::Vector3f::Constant(std::numeric_limits<float>::quiet_NaN());
+      hidden_[s] = std::isfinite(front) && z > front + margin;
     }
   }
 
@@ -228,7 +239,8 @@ class NonRigidSolver {
   std::vector<int> samples_;
   std::vector<Eigen::Vector3f> points_, normals_;
   std::vector<live::Pair> pairs_;
-  Mesh posed_;  // the mesh where the graph puts it (its own depth hides samples)
+  Mesh posed_;                // the mesh where the graph puts it (its own depth hides samples)
+  std::vector<char> hidden_;  // per sample
 };
 
 }  // namespace
