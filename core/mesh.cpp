@@ -22,6 +22,25 @@ void Mesh::ComputeNormals() {
   }
 }
 
+VertexNeighbours NeighboursOf(const Mesh& mesh) {
+  const size_t n = mesh.vertices.size();
+  VertexNeighbours out;
+  out.start.assign(n + 1, 0);
+  for (const Eigen::Vector3i& f : mesh.faces) {
+    for (int k = 0; k < 3; ++k) out.start[f[k] + 1] += 2;
+  }
+  for (size_t i = 0; i < n; ++i) out.start[i + 1] += out.start[i];
+  out.neighbours.resize(out.start[n]);
+  std::vector<int32_t> fill(out.start.begin(), out.start.end() - 1);
+  for (const Eigen::Vector3i& f : mesh.faces) {
+    for (int k = 0; k < 3; ++k) {
+      out.neighbours[fill[f[k]]++] = f[(k + 1) % 3];
+      out.neighbours[fill[f[k]]++] = f[(k + 2) % 3];
+    }
+  }
+  return out;
+}
+
 void Mesh::Append(const Mesh& other) {
   const int offset = static_cast<int>(vertices.size());
   const bool keep_normals =

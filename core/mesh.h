@@ -26,6 +26,14 @@ struct Mesh {
   std::vector<Eigen::Vector3d> SampleSurface(size_t count, uint64_t seed) const;
 };
 
+// The vertices each vertex shares a face edge with, as compressed rows: vertex i's are
+// neighbours[start[i]] .. neighbours[start[i + 1] - 1]. An edge is listed once for every face
+// that has it (an edge of two faces twice).
+struct VertexNeighbours {
+  std::vector<int32_t> start, neighbours;
+};
+VertexNeighbours NeighboursOf(const Mesh& mesh);
+
 // Atomic; with `durable`, the data and the directory entry are fsync'ed (core/fs.h).
 void WritePly(const std::filesystem::path& file, const Mesh& mesh, bool durable = false);
 Mesh ReadPly(const std::filesystem::path& file);

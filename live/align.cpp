@@ -290,29 +290,7 @@ std::vector<NearestNodes> GeodesicNearestNodes(const Mesh& mesh,
                                                const std::vector<int>& node_vertex, double reach_m,
                                                int capacity) {
   const size_t n = mesh.vertices.size();
-  // The mesh's edges, both ways, as compressed rows.
-  std::vector<std::pair<int, int>> pairs;
-  pairs.reserve(mesh.faces.size() * 6);
-  for (const Eigen::Vector3i& f : mesh.faces) {
-    for (int c = 0; c < 3; ++c) {
-      const int a = f[c], b = f[(c + 1) % 3];
-      if (a < 0 || b < 0 || a >= static_cast<int>(n) || b >= static_cast<int>(n) || a == b)
-        continue;
-      pairs.emplace_back(a, b);
-      pairs.emplace_back(b, a);
-    }
-  }
-  std::sort(pairs.begin(), pairs.end());
-  pairs.erase(std::unique(pairs.begin(), pairs.end()), pairs.end());
-  std::vector<int> start(n + 1, 0), to(pairs.size());
-  std::vector<float> length(pairs.size());
-  for (size_t e = 0; e < pairs.size(); ++e) {
-    ++start[pairs[e].first + 1];
-    to[e] = pairs[e].second;
-    length[e] = (mesh.vertices[pairs[e].first] - mesh.vertices[pairs[e].second]).norm();
-  }
-  for (size_t i = 0; i < n; ++i) start[i + 1] += start[i];
-
+  const VertexNeighbours adjacency = NeighboursOf(mesh);
   std::vector<NearestNodes> nearest(n);
   std::vector<float> distance(n, std::numeric_limits<float>::infinity());
   std::vector<int> touched;
@@ -330,12 +308,13 @@ std::vector<NearestNodes> GeodesicNearestNodes(const Mesh& mesh,
       heap.pop_back();
       if (d > distance[v]) continue;
       nearest[v].Offer(d, static_cast<int>(j), capacity);
-      for (int e = start[v]; e < start[v + 1]; ++e) {
-        const float next = d + length[e];
-        if (next > reach || next >= distance[to[e]]) continue;
-        if (!std::isfinite(distance[to[e]])) touched.push_back(to[e]);
-        distance[to[e]] = next;
-        heap.emplace_back(next, to[e]);
+      for (int32_t e = adjacency.start[v]; e < adjacency.start[v + 1]; ++e) {
+        const int32_t to = adjacency.neighbours[e];
+        const float next = d + (mesh.vertices[v] - mesh.vertices[to]).norm();
+        if (next > reach || next >= distance[to]) continue;
+        if (!std::isfinite(distance[to])) touched.push_back(to);
+        distance[to] = next;
+        heap.emplace_back(next, to);
         std::push_heap(heap.begin(), heap.end(), std::greater<>());
       }
     }

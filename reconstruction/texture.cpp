@@ -229,20 +229,10 @@ bool BlendColor(const std::vector<ViewSampler>& samplers, const Eigen::Vector3f&
 int64_t FillUnseen(const Mesh& mesh, const std::vector<uint8_t>& seen, int smoothing_iterations,
                    std::vector<Eigen::Vector3f>* rgb) {
   const size_t n = mesh.vertices.size();
-  // Vertex adjacency (compressed rows) from the faces' edges; duplicates only weigh an edge more.
-  std::vector<int32_t> start(n + 1, 0), neighbours;
-  for (const auto& f : mesh.faces) {
-    for (int k = 0; k < 3; ++k) start[f[k] + 1] += 2;
-  }
-  for (size_t i = 0; i < n; ++i) start[i + 1] += start[i];
-  neighbours.resize(start[n]);
-  std::vector<int32_t> fill = start;
-  for (const auto& f : mesh.faces) {
-    for (int k = 0; k < 3; ++k) {
-      neighbours[fill[f[k]]++] = f[(k + 1) % 3];
-      neighbours[fill[f[k]]++] = f[(k + 2) % 3];
-    }
-  }
+  // Vertex adjacency from the faces' edges; duplicates only weigh an edge more.
+  const VertexNeighbours adjacency = NeighboursOf(mesh);
+  const std::vector<int32_t>& start = adjacency.start;
+  const std::vector<int32_t>& neighbours = adjacency.neighbours;
   std::vector<uint8_t> coloured = seen;
   std::vector<int32_t> front, next, filled;
   for (size_t i = 0; i < n; ++i) {
