@@ -15,14 +15,9 @@
 #include "core/pose.h"
 #include "core/report.h"
 #include "core/rig_alignment.h"
+#include "core/threads.h"
 
 namespace holocap::calibration_internal {
-
-// 0 = every core; never more threads than jobs.
-inline int ResolveThreads(int requested, int jobs) {
-  int threads = requested > 0 ? requested : static_cast<int>(std::thread::hardware_concurrency());
-  return std::max(1, std::min(threads, std::max(1, jobs)));
-}
 
 // The rigid transform b_from_a minimising sum |b - T a|² (Kabsch/Umeyama without scale).
 Pose FitRigid(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen::Vector3d>& b);
@@ -98,5 +93,4 @@ TakeWorld ChooseTakeWorld(const Take& take, const BoardLayout& layout,
 }  // namespace holocap::calibration_internal
 
 namespace holocap {
-using calibration_internal::ResolveThreads;
 }

@@ -10,8 +10,8 @@
 #include "core/error.h"
 #include "live/live.h"
 #include "live/live_internal.h"
-#include "reconstruction/nearest.h"
-#include "reconstruction/projector.h"
+#include "core/point_tree.h"
+#include "core/projector.h"
 
 namespace holocap {
 
@@ -35,7 +35,7 @@ std::vector<int> ThinnedVertices(size_t vertices, int samples) {
 FitStats Associate(const std::vector<Eigen::Vector3f>& points,
                    const std::vector<Eigen::Vector3f>& normals, const LiveSurface& live,
                    double gate_m, double max_normal_angle_deg, std::vector<Pair>* pairs) {
-  const recon::FastProjector projector(live.camera);
+  const FastProjector projector(live.camera);
   const Eigen::Vector3f center = live.camera.center_in_world().cast<float>();
   const float cos_max = static_cast<float>(std::cos(max_normal_angle_deg * M_PI / 180));
   const float gate = static_cast<float>(gate_m);
@@ -84,7 +84,7 @@ void AddNearestPairs(const std::vector<Eigen::Vector3f>& points,
     index.push_back(static_cast<int>(i));
   }
   if (facing.empty()) return;
-  const recon::PointTree tree(facing);
+  const PointTree tree(facing);
   // A live point outside the facing points' box grown by the gate pairs with none of them.
   Eigen::AlignedBox3d reach;
   for (const Eigen::Vector3d& p : facing) reach.extend(p);
@@ -135,7 +135,7 @@ LiveSurface MakeLiveSurface(const cv::Mat& depth_m, const CameraModel& camera, d
   live.points.assign(count, Eigen::Vector3f::Constant(kNaN));
   live.normals.assign(count, Eigen::Vector3f::Constant(kNaN));
   live.depth.assign(count, kNaN);
-  const cv::Mat rays = recon::NormalisedRays(camera);
+  const cv::Mat rays = NormalisedRays(camera);
   const Eigen::Isometry3f world_from_cam = camera.world_from_cam().cast<float>();
   for (int y = 0; y < live.height; ++y) {
     for (int x = 0; x < live.width; ++x) {

@@ -9,7 +9,7 @@
 #include "core/error.h"
 #include "live/live.h"
 #include "live/live_internal.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -103,7 +103,7 @@ Mesh MeshLiveSurface(const LiveSurface& live, const cv::Mat& subject, const cv::
                      const CameraModel& color_camera, double max_depth_jump_m) {
   Mesh mesh;
   std::vector<int> index(live.points.size(), -1);
-  const recon::FastProjector color(color_camera);
+  const FastProjector color(color_camera);
   for (int y = 0; y < live.height; ++y) {
     for (int x = 0; x < live.width; ++x) {
       const size_t i = static_cast<size_t>(y) * live.width + x;
@@ -286,7 +286,7 @@ cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deforme
 
 Mesh LiveCompositor::UnobservedScan(const Mesh& deformed, const LiveSurface& live,
                                     const cv::Mat& subject) const {
-  const recon::FastProjector projector(live.camera);
+  const FastProjector projector(live.camera);
   const Eigen::Vector3f center = live.camera.center_in_world().cast<float>();
   std::vector<bool> observed(deformed.vertices.size(), false);
   for (size_t v = 0; v < deformed.vertices.size(); ++v) {

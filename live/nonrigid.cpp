@@ -8,7 +8,7 @@
 
 #include "live/live.h"
 #include "live/live_internal.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -111,7 +111,7 @@ class NonRigidSolver {
     for (size_t v = 0; v < mesh_.vertices.size(); ++v)
       posed_.vertices[v] = graph_.Apply(v, mesh_.vertices[v].cast<double>()).cast<float>();
     const cv::Mat own_depth = RenderDepth(posed_, live_.camera);
-    const recon::FastProjector projector(live_.camera);
+    const FastProjector projector(live_.camera);
     const float margin = static_cast<float>(options_.gate_m);
     hidden_.assign(samples_.size(), 0);
     for (size_t s = 0; s < samples_.size(); ++s) {

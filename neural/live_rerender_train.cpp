@@ -12,7 +12,8 @@
 #include "core/progress.h"
 #include "neural/live_rerender_internal.h"
 #include "neural/rerender_net.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 
 namespace holocap {
 
@@ -48,7 +49,7 @@ class LiveTrainer {
         network_(options.net, options.seed) {}
 
   LiveRerenderSummary Run() {
-    torch::set_num_threads(recon::ResolveThreads(options_.threads));
+    torch::set_num_threads(ResolveThreads(options_.threads));
     pairs_ = neural::MakeLivePairs(scan_take_, scan_dir_, options_);
     summary_.plan = pairs_.plan;
     summary_.plan["parameters"] = network_.parameter_count();

@@ -13,7 +13,8 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/mesh.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 
 namespace holocap {
 namespace neural {
@@ -314,7 +315,7 @@ void RerenderNetwork::Save(const std::filesystem::path& weights) const {
 
 RenderedView RerenderNetwork::Apply(const GBuffer& buffers, int threads) const {
   torch::NoGradGuard no_grad;
-  torch::set_num_threads(recon::ResolveThreads(threads));
+  torch::set_num_threads(ResolveThreads(threads));
   state_->net->eval();
   const int height = buffers.color.rows, width = buffers.color.cols;
   const torch::Tensor features =

@@ -1,5 +1,5 @@
 // G-buffer rasterisation of a reconstruction through an mrcal lens: vertices projected by the
-// reconstruction's tabulated projector (recon::FastProjector, exact to well under a
+// reconstruction's tabulated projector (FastProjector, exact to well under a
 // hundredth of a pixel), triangles split in 3D where the lens bends them, then filled in
 // bands of rows, one band per task, so that threads never share a pixel.
 #include <omp.h>
@@ -11,7 +11,8 @@
 
 #include "core/error.h"
 #include "neural/rerender.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 
 namespace holocap {
 
@@ -40,7 +41,7 @@ SurfacePoint Midpoint(const SurfacePoint& a, const SurfacePoint& b) {
 
 class TriangleSplitter {
  public:
-  TriangleSplitter(const recon::FastProjector& projector, const RasterOptions& options)
+  TriangleSplitter(const FastProjector& projector, const RasterOptions& options)
       : projector_(projector),
         options_(options),
         rotation_(projector.camera().cam_from_world().rotation().cast<float>()) {}
@@ -107,13 +108,13 @@ class TriangleSplitter {
            y0 <= projector_.height() - 0.5f;
   }
 
-  const recon::FastProjector& projector_;
+  const FastProjector& projector_;
   const RasterOptions& options_;
   Eigen::Matrix3f rotation_;
 };
 
 // A square splat of `radius` pixels as two triangles at the point's depth.
-void SplatPoint(const recon::FastProjector& projector, const SurfacePoint& point,
+void SplatPoint(const FastProjector& projector, const SurfacePoint& point,
                 const Eigen::Matrix3f& rotation, float radius, std::vector<ScreenTriangle>* out) {
   const Eigen::Vector3f cam = projector.ToCamera(point.world);
   float u, v;
@@ -203,7 +204,7 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
     fine.max_edge_px = options.max_edge_px * s;
     fine.point_radius_px = options.point_radius_px * s;
     return AverageBlocks(RasteriseMesh(mesh, camera.Scaled(s), fine), s, width, height,
-                         recon::ResolveThreads(options.threads));
+                         ResolveThreads(options.threads));
   }
   const int64_t vertex_count = static_cast<int64_t>(mesh.vertices.size());
   for (const auto& f : mesh.faces) {
@@ -222,8 +223,8 @@ GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterO
     with_normals.ComputeNormals();
     source = &with_normals;
   }
-  const int threads = recon::ResolveThreads(options.threads);
-  const recon::FastProjector projector(camera);
+  const int threads = ResolveThreads(options.threads);
+  const FastProjector projector(camera);
   const Eigen::Matrix3f rotation = camera.cam_from_world().rotation().cast<float>();
   auto surface_point = [&](int i) {
     SurfacePoint p;

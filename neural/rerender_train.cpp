@@ -21,7 +21,8 @@
 #include "core/take_plan.h"
 #include "neural/data.h"
 #include "neural/rerender_net.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 
 namespace holocap {
 
@@ -647,7 +648,7 @@ class RerenderTrainer {
   void LoadData() {
     validation_names_ =
         std::set<std::string>(witness_names_.end() - validation_count_, witness_names_.end());
-    threads_ = recon::ResolveThreads(options_.threads);
+    threads_ = ResolveThreads(options_.threads);
     torch::set_num_threads(threads_);
     multiple_ = 1 << options_.net.depth;
     for (size_t k = 0; k < folds_.size(); ++k) {

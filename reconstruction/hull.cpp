@@ -13,7 +13,8 @@
 #include <unordered_set>
 
 #include "core/error.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -67,7 +68,7 @@ Eigen::AlignedBox3d VisualHull::Extent() const {
 namespace {
 
 struct HullView {
-  recon::FastProjector projector;
+  FastProjector projector;
   cv::Mat signed_distance;  // CV_32F pixels, negative inside the silhouette
 };
 
@@ -104,7 +105,7 @@ float FieldAt(const std::vector<HullView>& views, const Eigen::Vector3f& point, 
     float u, v;
     if (!view.projector.Project(p, &u, &v)) continue;
     float d;
-    if (!recon::SampleBilinear(view.signed_distance, u, v, &d)) continue;
+    if (!SampleBilinear(view.signed_distance, u, v, &d)) continue;
     scratch[seen++] = d * p.z() / view.projector.focal();
   }
   if (seen < min_views) return kOutside;
@@ -131,7 +132,7 @@ int ClassifyCell(const std::vector<HullView>& views, const Eigen::Vector3f& cent
     if (!view.projector.InImage(u, v, -reach)) continue;  // the view cannot see any of the cell
     float d = 0;
     if (!view.projector.InImage(u, v, reach) ||
-        !recon::SampleBilinear(view.signed_distance, u, v, &d)) {
+        !SampleBilinear(view.signed_distance, u, v, &d)) {
       ++partial;
       continue;
     }
@@ -160,7 +161,7 @@ std::vector<HullView> PrepareViews(const std::vector<View>& views, double margin
       Fail("visual hull: silhouette of '", view.name, "' is ", view.mask.cols, "x", view.mask.rows,
            " CV_8U expected ", view.camera.width(), "x", view.camera.height());
     }
-    hull_views.push_back({recon::FastProjector(view.camera), SignedDistance(view.mask, margin_px)});
+    hull_views.push_back({FastProjector(view.camera), SignedDistance(view.mask, margin_px)});
   }
   return hull_views;
 }
@@ -172,7 +173,7 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
   options.Check();
   auto start = std::chrono::steady_clock::now();
   std::vector<HullView> hull_views = PrepareViews(views, options.margin_px);
-  const int threads = recon::ResolveThreads(options.threads);
+  const int threads = ResolveThreads(options.threads);
   const int tolerated = options.tolerated_bad_views;
   const int min_views = options.min_views;
   VisualHull hull;

@@ -17,7 +17,7 @@
 #include <unordered_map>
 
 #include "core/error.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {

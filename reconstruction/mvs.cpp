@@ -13,7 +13,8 @@
 #include <limits>
 
 #include "core/error.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -140,7 +141,7 @@ class PlaneSweep {
 
   // Plane spacing: the depth change that moves a point depth_step_px in the nearest source.
   void ChoosePlanes(double zmin, double zmax) {
-    recon::FastProjector ref_projector(view_.camera);
+    FastProjector ref_projector(view_.camera);
     double baseline = 1e9;
     for (int s : sources_) {
       baseline = std::min(
@@ -157,7 +158,7 @@ class PlaneSweep {
   // The reference's rays and window sums, each source's projector and source_from_ref, and
   // the per-pixel buffers of the sweep.
   void PrepareWarps() {
-    rays_ = recon::NormalisedRays(view_.camera);
+    rays_ = NormalisedRays(view_.camera);
     const Pose world_from_ref = view_.camera.world_from_cam();
     for (int s : sources_) {
       projectors_.emplace_back(views_[s].camera);
@@ -208,7 +209,7 @@ class PlaneSweep {
         Eigen::Vector3f p =
             rotation_[s] * Eigen::Vector3f(ray[x][0] * z, ray[x][1] * z, z) + translation_[s];
         float u, v, value;
-        if (!projectors_[s].Project(p, &u, &v) || !recon::SampleBilinear(src, u, v, &value)) {
+        if (!projectors_[s].Project(p, &u, &v) || !SampleBilinear(src, u, v, &value)) {
           continue;
         }
         wrow[x] = value;
@@ -319,7 +320,7 @@ class PlaneSweep {
   cv::Rect roi_;             // the searched pixels and their windows
   std::vector<float> planes_;
   cv::Mat rays_;
-  std::vector<recon::FastProjector> projectors_;
+  std::vector<FastProjector> projectors_;
   std::vector<Eigen::Matrix3f> rotation_;  // source_from_ref
   std::vector<Eigen::Vector3f> translation_;
   cv::Mat ref_gray_, sum_r_, sum_rr_;  // all within roi_ from here on
@@ -350,13 +351,13 @@ cv::Mat ConsistentDepth(const std::vector<View>& views, const std::vector<SweepR
   const View& view = views[i];
   const cv::Mat& depth = sweeps[i].depth;
   cv::Mat filtered(depth.size(), CV_32F, cv::Scalar(kNan));
-  const cv::Mat rays = recon::NormalisedRays(view.camera);
-  recon::FastProjector self(view.camera);
-  std::vector<recon::FastProjector> others;
+  const cv::Mat rays = NormalisedRays(view.camera);
+  FastProjector self(view.camera);
+  std::vector<FastProjector> others;
   std::vector<cv::Mat> other_rays;
   for (int s : sources) {
     others.emplace_back(views[s].camera);
-    other_rays.push_back(recon::NormalisedRays(views[s].camera));
+    other_rays.push_back(NormalisedRays(views[s].camera));
   }
   const Eigen::Matrix3f world_from_cam_r = view.camera.world_from_cam().rotation().cast<float>();
   const Eigen::Vector3f world_from_cam_t = view.camera.world_from_cam().translation().cast<float>();
@@ -406,7 +407,7 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
   MeshingOptions meshing;
   meshing.normals = false;
   const Mesh hull_mesh = ExtractMesh(*hull.volume, meshing);
-  const int threads = recon::ResolveThreads(options.threads);
+  const int threads = ResolveThreads(options.threads);
   const int n = static_cast<int>(views.size());
   std::vector<cv::Mat> grays(n);
   std::vector<std::vector<int>> sources(n);

@@ -21,7 +21,8 @@
 #include "core/progress.h"
 #include "core/rig_alignment.h"
 #include "core/take.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -232,7 +233,7 @@ cv::Mat Silhouette(const cv::Mat& frame, const std::string& name, const Plates& 
 // and walls lie outside the colour cameras' hull). CV_8U, 255 = foreground.
 cv::Mat DepthInHull(const cv::Mat& depth_m, const CameraModel& camera, const VisualHull& hull,
                     double margin_m, double depth_noise_k) {
-  const cv::Mat rays = recon::NormalisedRays(camera);
+  const cv::Mat rays = NormalisedRays(camera);
   const Pose world_from_cam = camera.world_from_cam();
   cv::Mat inside = cv::Mat::zeros(depth_m.size(), CV_8U);
   for (int y = 0; y < depth_m.rows; ++y) {
@@ -835,7 +836,7 @@ class TakeReconstructor {
           : reconstructed < 2              ? "off: fewer than two colour cameras"
                                            : "off: no silhouettes for the colour cameras";
     }
-    threads_ = recon::ResolveThreads(options_.threads);
+    threads_ = ResolveThreads(options_.threads);
     frame_count_ = static_cast<int>(take_plan_.sets.size());
   }
 

@@ -27,6 +27,7 @@
 #include <unordered_set>
 #include <vector>
 
+#include "core/box.h"
 #include "core/camera.h"
 #include "core/frame_tasks.h"
 #include "core/mesh.h"
@@ -34,16 +35,6 @@
 #include "core/take_plan.h"
 
 namespace holocap {
-
-// An axis-aligned box in world coordinates, metres.
-struct Box {
-  Eigen::Vector3d min = Eigen::Vector3d(-1.5, -1.5, 0.0);
-  Eigen::Vector3d max = Eigen::Vector3d(1.5, 1.5, 2.5);
-  bool Contains(const Eigen::Vector3d& point) const;
-  bool valid() const { return (max.array() > min.array()).all(); }
-  static Box From(const Eigen::AlignedBox3d& box) { return {box.min(), box.max()}; }
-  Eigen::AlignedBox3d aligned() const { return {min, max}; }
-};
 
 // One calibrated view of a frame set.
 struct View {

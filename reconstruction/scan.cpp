@@ -14,7 +14,8 @@
 #include "core/fs.h"
 #include "core/progress.h"
 #include "core/take.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 #include "reconstruction/scan_graph.h"
 #include "reconstruction/scan_internal.h"
 #include "reconstruction/scan_light.h"
@@ -291,7 +292,7 @@ class Scanner {
         plan_(plan),
         options_(options),
         report_(report),
-        threads_(recon::ResolveThreads(options.threads)) {
+        threads_(ResolveThreads(options.threads)) {
     if (plan.depth_sensors.size() != 1) {
       Fail("scan: take '", take.dir().string(), "' has ", plan.depth_sensors.size(),
            " depth sensors; a scan needs exactly one");
@@ -305,7 +306,7 @@ class Scanner {
     } else {
       color_name_.clear();
     }
-    rays_ = recon::NormalisedRays(depth_lens_);
+    rays_ = NormalisedRays(depth_lens_);
     turntable_ = plan.sensor_motion == "turn" || options.subject_turns;
   }
 

@@ -10,7 +10,7 @@
 
 #include "core/camera.h"
 #include "core/pose.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/scan.h"
 
 namespace holocap::scan {

@@ -6,7 +6,7 @@
 #include <limits>
 
 #include "core/error.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -88,7 +88,7 @@ class Sightings {
   void ForEach(const std::vector<int>& vertices, Visit visit) const {
     for (size_t k = 0; k < views_.size(); ++k) {
       const LitView& view = views_[k];
-      const recon::FastProjector projector(view.camera);
+      const FastProjector projector(view.camera);
       const Eigen::Matrix3f to_camera = view.camera.cam_from_world().linear().cast<float>();
       const Eigen::Matrix3f to_sensor = view.sensor_from_world.cast<float>();
       const cv::Mat& depth = depth_[k];

@@ -264,7 +264,7 @@ struct NormalEquations {
 // One Gauss-Newton linearisation of the level's points against the reference.
 class Linearizer {
  public:
-  Linearizer(const ModelView& reference, const recon::FastProjector& projector,
+  Linearizer(const ModelView& reference, const FastProjector& projector,
              const ScanOptions& options)
       : reference_(reference),
         projector_(projector),
@@ -358,7 +358,7 @@ class Linearizer {
   }
 
   const ModelView& reference_;
-  const recon::FastProjector& projector_;
+  const FastProjector& projector_;
   const ScanOptions& options_;
   float cos_normal_;
   bool photometric_;
@@ -397,7 +397,7 @@ cv::Mat RegisterIntensity(const cv::Mat& depth_m, const cv::Mat& rays, const cv:
   if (color_bgr.empty()) return gray;
   CameraModel color = color_lens;
   color.set_cam_from_world(color_from_depth);
-  const recon::FastProjector projector(color);
+  const FastProjector projector(color);
   const int channels = color_bgr.channels();
 #pragma omp parallel for num_threads(threads) schedule(static)
   for (int y = 0; y < depth_m.rows; ++y) {
@@ -553,7 +553,7 @@ AlignResult AlignToReference(const TrackFrame& frame, const ModelView& reference
                              const ScanOptions& options, int threads) {
   CameraModel at_reference = lens;
   at_reference.set_cam_from_world(reference.world_from_cam.inverse());
-  const recon::FastProjector projector(at_reference);
+  const FastProjector projector(at_reference);
   const Linearizer linearizer(reference, projector, options);
   const double length_m = std::max(0.3, static_cast<double>(frame.median_depth_m));
   AlignResult result;

@@ -12,7 +12,7 @@
 
 #include "core/error.h"
 #include "core/fs.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -80,7 +80,7 @@ cv::Mat Rasterise(const Mesh& mesh, const Projected& p, int width, int height, i
 
 struct ViewSampler {
   const View* view;
-  recon::FastProjector projector;
+  FastProjector projector;
   cv::Mat depth;  // occlusion buffer at `scale` times the image's resolution
   int scale = 1;
   Eigen::Vector3f centre;
@@ -340,7 +340,7 @@ TexturedMesh TextureMesh(const Mesh& mesh, const std::vector<View>& views,
     }
     const int scale = options.occlusion_scale;
     ViewSampler s{&view,
-                  recon::FastProjector(view.camera),
+                  FastProjector(view.camera),
                   Rasterise(out.mesh, ProjectVertices(out.mesh, view.camera), view.camera.width(),
                             view.camera.height(), scale),
                   scale,

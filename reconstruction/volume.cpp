@@ -9,7 +9,8 @@
 #include <mutex>
 
 #include "core/error.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
+#include "core/threads.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
@@ -23,10 +24,6 @@ constexpr uint64_t kKeyMask = (uint64_t{1} << kKeyBits) - 1;
 int FloorDiv(int a, int b) { return a >= 0 ? a / b : -((-a + b - 1) / b); }
 
 }  // namespace
-
-bool Box::Contains(const Eigen::Vector3d& point) const {
-  return (point.array() >= min.array()).all() && (point.array() <= max.array()).all();
-}
 
 SparseVolume::SparseVolume(double voxel_m, Box bounds, double truncation_m)
     : voxel_m_(voxel_m), bounds_(bounds), truncation_m_(truncation_m) {
@@ -182,13 +179,13 @@ namespace {
 constexpr float kFar = std::numeric_limits<float>::infinity();
 
 struct CameraTables {
-  recon::FastProjector projector;
+  FastProjector projector;
   cv::Mat rays;  // normalised rays per pixel
 };
 
 std::shared_ptr<const CameraTables> TablesFor(const CameraModel& camera) {
   return std::make_shared<const CameraTables>(
-      CameraTables{recon::FastProjector(camera), recon::NormalisedRays(camera)});
+      CameraTables{FastProjector(camera), NormalisedRays(camera)});
 }
 
 bool ValidDepth(float d, const TsdfOptions& options) {
@@ -278,7 +275,7 @@ class FrameIntegrator {
         foreground_(foreground),
         color_(color),
         use_color_(CheckFrame(depth_in, depth_camera, foreground, color, color_camera)),
-        threads_(recon::ResolveThreads(options.threads)),
+        threads_(ResolveThreads(options.threads)),
         tables_(TablesFor(depth_camera)),
         color_tables_(use_color_ ? TablesFor(*color_camera) : nullptr),
         w_(depth_in.cols),
@@ -741,7 +738,7 @@ CompletionStats TsdfVolume::CompleteFromHull(
   auto start = std::chrono::steady_clock::now();
   if (hull.volume == nullptr) Fail("completion needs a computed visual hull");
   if (!(weight > 0)) Fail("completion weight must be > 0 (got ", weight, ")");
-  const int threads = recon::ResolveThreads(options_.threads);
+  const int threads = ResolveThreads(options_.threads);
   struct FreeSpace {
     std::shared_ptr<const CameraTables> tables;
     cv::Mat depth;

@@ -8,11 +8,10 @@
 #include <numbers>
 
 #include "core/error.h"
+#include "core/threads.h"
 
 namespace holocap::sim {
 namespace {
-
-int ThreadCount(int threads) { return threads > 0 ? threads : omp_get_max_threads(); }
 
 // A uniform number in [0, 1) from a hash of the pixel and sample, so the jitter of one pixel
 // does not depend on how rows were split between threads.
@@ -60,7 +59,7 @@ RayTable::RayTable(const CameraModel& camera, int threads)
   const int rows = height_ + 2;
   dirs_.resize(static_cast<size_t>(stride_) * rows);
   bool failed = false;
-#pragma omp parallel for schedule(dynamic, 8) num_threads(ThreadCount(threads))
+#pragma omp parallel for schedule(dynamic, 8) num_threads(ResolveThreads(threads))
   for (int row = 0; row < rows; ++row) {
     Eigen::Matrix2Xd pixels(2, stride_);
     for (int col = 0; col < stride_; ++col) pixels.col(col) << col - 1, row - 1;
@@ -102,7 +101,7 @@ ColorRender RenderColor(const Snapshot& scene, const CameraModel& camera, const 
   out.radiance.create(height, width, CV_32FC3);
   out.mask.create(height, width, CV_8U);
   std::vector<int> keys(static_cast<size_t>(width) * height);
-  const int nthreads = ThreadCount(threads);
+  const int nthreads = ResolveThreads(threads);
 
   // Pass 1: one ray through every pixel centre.
 #pragma omp parallel for schedule(dynamic, 4) num_threads(nthreads)
@@ -189,7 +188,7 @@ DepthRender RenderDepth(const Snapshot& scene, const CameraModel& camera, const 
   out.z.create(height, width, CV_32F);
   out.cos_incidence.create(height, width, CV_32F);
   out.mask.create(height, width, CV_8U);
-#pragma omp parallel for schedule(dynamic, 4) num_threads(ThreadCount(threads))
+#pragma omp parallel for schedule(dynamic, 4) num_threads(ResolveThreads(threads))
   for (int y = 0; y < height; ++y) {
     for (int x = 0; x < width; ++x) {
       const Eigen::Vector3d direction_in_cam = rays.Center(x, y);

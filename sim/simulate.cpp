@@ -11,6 +11,7 @@
 #include "core/mesh.h"
 #include "core/progress.h"
 #include "core/take.h"
+#include "core/threads.h"
 #include "core/trajectory.h"
 #include "sim/sim.h"
 #include "sim/world.h"
@@ -72,7 +73,7 @@ class Simulation {
   Simulation(const SimOptions& options, const std::filesystem::path& out, Report* report)
       : options_(options),
         report_(report),
-        threads_(options.threads > 0 ? options.threads : omp_get_max_threads()),
+        threads_(ResolveThreads(options.threads)),
         world_(options),
         scene_(world_.scene()),
         gt_(out / "gt"),

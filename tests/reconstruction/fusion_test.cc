@@ -8,7 +8,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "core/error.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 #include "tests/reconstruction/synthetic.h"
 
@@ -66,7 +66,7 @@ TEST(ProjectorTest, TableMatchesMrcalToAHundredthOfAPixel) {
                   640, 480)};
   std::mt19937 rng(3);
   for (const CameraModel& lens : lenses) {
-    recon::FastProjector projector(lens);
+    FastProjector projector(lens);
     double worst = 0;
     for (int i = 0; i < 2000; ++i) {
       Eigen::Vector2d pixel(std::uniform_real_distribution<>(0, 639)(rng),

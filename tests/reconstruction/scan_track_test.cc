@@ -7,7 +7,7 @@
 
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 #include "reconstruction/scan.h"
 #include "reconstruction/scan_internal.h"
 #include "sim/sim.h"
@@ -41,7 +41,7 @@ class TrackerFixture {
     depth_lens_ = plan_.cameras.at("depth0");
     color_lens_ = plan_.cameras.at(take_->stream("depth0").paired_with);
     color_from_depth_ = color_lens_.cam_from_world() * depth_lens_.world_from_cam();
-    rays_ = recon::NormalisedRays(depth_lens_);
+    rays_ = NormalisedRays(depth_lens_);
     options_.voxel_m = voxel_m;
     options_.threads = 2;
 

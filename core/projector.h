@@ -14,7 +14,7 @@
 
 #include "core/camera.h"
 
-namespace holocap::recon {
+namespace holocap {
 
 // The pose-independent part: pixel positions over a grid of normalised coordinates.
 struct ProjectionTable {
@@ -98,7 +98,4 @@ inline bool SampleBilinear(const cv::Mat& image, float u, float v, float* value)
   return true;
 }
 
-// Threads to use: `requested` > 0 as is, otherwise every core OpenMP offers.
-int ResolveThreads(int requested);
-
-}  // namespace holocap::recon
+}  // namespace holocap

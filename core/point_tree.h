@@ -7,7 +7,7 @@
 #include <limits>
 #include <vector>
 
-namespace holocap::recon {
+namespace holocap {
 
 class PointTree {
  public:
@@ -64,4 +64,4 @@ double PointTree::Nearest(const Eigen::Vector3d& query, double slack, Distance d
 double PointTriangleDistance(const Eigen::Vector3d& p, const Eigen::Vector3d& a,
                              const Eigen::Vector3d& b, const Eigen::Vector3d& c);
 
-}  // namespace holocap::recon
+}  // namespace holocap

@@ -1,4 +1,4 @@
-#include "reconstruction/projector.h"
+#include "core/projector.h"
 
 #include <omp.h>
 
@@ -12,7 +12,7 @@
 
 #include "core/error.h"
 
-namespace holocap::recon {
+namespace holocap {
 
 namespace {
 
@@ -149,6 +149,4 @@ cv::Mat NormalisedRays(const CameraModel& camera) {
   return *Cached<cv::Mat>("rays|" + LensKey(camera), [&] { return BuildRays(camera); });
 }
 
-int ResolveThreads(int requested) { return requested > 0 ? requested : omp_get_max_threads(); }
-
-}  // namespace holocap::recon
+}  // namespace holocap
