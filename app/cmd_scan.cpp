@@ -6,7 +6,7 @@
 #include "core/error.h"
 #include "core/output.h"
 #include "core/report.h"
-#include "reconstruction/scan.h"
+#include "scan/scan.h"
 
 namespace holocap {
 

@@ -27,7 +27,7 @@
 #include "live/live.h"
 #include "neural/live_rerender.h"
 #include "playback/playback.h"
-#include "reconstruction/scan.h"
+#include "scan/scan.h"
 #include "sim/sim.h"
 
 namespace holocap {

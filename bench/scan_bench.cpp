@@ -24,7 +24,7 @@
 #include "core/take.h"
 #include "core/trajectory.h"
 #include "reconstruction/reconstruction.h"
-#include "reconstruction/scan.h"
+#include "scan/scan.h"
 #include "sim/sim.h"
 
 namespace holocap {

@@ -17,7 +17,7 @@
 //      near the deformed scan) meshed and coloured from the paired colour camera, plus every
 //      triangle of the deformed scan the live frame does not observe (its back, what the
 //      subject hides from the sensor), in the scan's colours; relit, when the scan knows the
-//      light it was seen in (lighting.json, albedo.ply: reconstruction/scan_light.h), as that
+//      light it was seen in (lighting.json, albedo.ply: scan/light.h), as that
 //      light falls on the deformed scan where it stands in the live frame: each vertex's
 //      albedo times the shading of its live normal, the light fixed to the sensor as it was
 //      during the scan (the sensor stands where it stood for the scan, in the same room).
@@ -44,7 +44,7 @@
 #include "core/report.h"
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "reconstruction/scan_light.h"
+#include "scan/light.h"
 
 namespace holocap {
 

@@ -3,7 +3,7 @@
 #include <ceres/ceres.h>
 #include <ceres/rotation.h>
 
-#include "reconstruction/scan_graph.h"
+#include "scan/internal/pose_graph.h"
 
 namespace holocap::scan {
 namespace {

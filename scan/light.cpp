@@ -1,4 +1,4 @@
-#include "reconstruction/scan_light.h"
+#include "scan/light.h"
 
 #include <Eigen/Dense>
 #include <algorithm>

@@ -1,4 +1,4 @@
-// The scanner's keyframe pose graph (reconstruction/scan_graph.cpp), kept apart so that only
+// The scanner's keyframe pose graph (scan/pose_graph.cpp), kept apart so that only
 // one translation unit includes Ceres.
 #pragma once
 

@@ -101,7 +101,7 @@ struct ScanOptions {
   TextureOptions texture;
   int texture_views = 12;  // keyframes (spread over the scan) that colour the mesh
   // Fused frames (spread over the scan) whose colours give the scan's light and albedo
-  // (reconstruction/scan_light.h: lighting.json, albedo.ply).
+  // (scan/light.h: lighting.json, albedo.ply).
   int light_views = 36;
   // The subject turned on the spot before a still sensor (a simulated take's metadata says so
   // itself): the floor is left out of tracking and fusion, and the light found.

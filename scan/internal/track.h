@@ -1,4 +1,4 @@
-// The pieces of the scanner that its tracker and its driver share (reconstruction/scan*.cpp).
+// The pieces of the scanner that its tracker and its driver share (scan/scan.cpp, scan/track.cpp).
 #pragma once
 
 #include <Eigen/Core>
@@ -11,7 +11,7 @@
 #include "core/camera.h"
 #include "core/pose.h"
 #include "core/projector.h"
-#include "reconstruction/scan.h"
+#include "scan/scan.h"
 
 namespace holocap::scan {
 

@@ -7,7 +7,7 @@
 #include <cmath>
 #include <limits>
 
-#include "reconstruction/scan_internal.h"
+#include "scan/internal/track.h"
 
 namespace holocap::scan {
 namespace {

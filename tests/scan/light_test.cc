@@ -1,7 +1,7 @@
 // The light a scan was seen in: a textured sphere seen by a ring of cameras, lit by ambient +
 // directional light either fixed to the camera (a subject turning before a fixed sensor) or
 // fixed to the sphere's world (a sensor circling a still subject), rendered analytically.
-#include "reconstruction/scan_light.h"
+#include "scan/light.h"
 
 #include <gtest/gtest.h>
 

@@ -12,7 +12,7 @@
 #include "core/report.h"
 #include "core/take.h"
 #include "core/trajectory.h"
-#include "reconstruction/scan.h"
+#include "scan/scan.h"
 #include "sim/sim.h"
 #include "tests/support/test_support.h"
 

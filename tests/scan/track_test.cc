@@ -8,8 +8,8 @@
 #include "core/take.h"
 #include "core/take_plan.h"
 #include "core/projector.h"
-#include "reconstruction/scan.h"
-#include "reconstruction/scan_internal.h"
+#include "scan/scan.h"
+#include "scan/internal/track.h"
 #include "sim/sim.h"
 #include "tests/support/test_support.h"
 

@@ -1,5 +1,5 @@
-// holocap's scanner: one moving RGB-D sensor tracked and fused (see reconstruction/scan.h).
-#include "reconstruction/scan.h"
+// holocap's scanner: one moving RGB-D sensor tracked and fused (see scan/scan.h).
+#include "scan/scan.h"
 
 #include <opencv2/imgproc.hpp>
 
@@ -16,9 +16,9 @@
 #include "core/take.h"
 #include "core/projector.h"
 #include "core/threads.h"
-#include "reconstruction/scan_graph.h"
-#include "reconstruction/scan_internal.h"
-#include "reconstruction/scan_light.h"
+#include "scan/internal/pose_graph.h"
+#include "scan/internal/track.h"
+#include "scan/light.h"
 
 namespace holocap {
 
@@ -773,7 +773,7 @@ void Scanner::WriteOutputs(const std::filesystem::path& out, const Mesh& mesh) {
   summary_.metrics["texture"] = textured.Metrics();
 }
 
-// The scan's light and albedo (reconstruction/scan_light.h) from up to light_views fused frames
+// The scan's light and albedo (scan/light.h) from up to light_views fused frames
 // spread over the scan: lighting.json, and albedo.ply when a light was found.
 void Scanner::WriteLight(const std::filesystem::path& out, const Mesh& mesh) {
   std::vector<const ScanFrame*> fused;
