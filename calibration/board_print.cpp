@@ -3,7 +3,7 @@
 #include <cstdio>
 
 #include "calibration/calibration.h"
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"

@@ -3,7 +3,7 @@
 #include <cmath>
 
 #include "calibration/calibration.h"
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 #include "core/error.h"
 
 namespace holocap {

@@ -13,7 +13,7 @@
 #include <cmath>
 #include <vector>
 
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 
 namespace holocap::calibration_internal {
 namespace {

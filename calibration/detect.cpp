@@ -15,7 +15,7 @@
 #include <thread>
 
 #include "calibration/calibration.h"
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 #include "core/error.h"
 #include "core/progress.h"
 #include "core/take.h"

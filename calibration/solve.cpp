@@ -14,7 +14,7 @@
 #include <set>
 
 #include "calibration/calibration.h"
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 #include "core/error.h"
 
 extern "C" {

@@ -4,7 +4,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "calibration/calibration.h"
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"

@@ -5,7 +5,7 @@
 #include <cmath>
 
 #include "calibration/calibration.h"
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 #include "core/error.h"
 #include "core/take.h"
 #include "core/take_plan.h"

@@ -7,7 +7,7 @@
 
 #include "core/error.h"
 #include "core/output.h"
-#include "distributed/capture_control_channel.h"
+#include "distributed/internal/capture_control_channel.h"
 #include "distributed/node.h"
 
 namespace holocap {

@@ -13,7 +13,7 @@
 #include <thread>
 
 #include "core/error.h"
-#include "distributed/capture_control_channel.h"
+#include "distributed/internal/capture_control_channel.h"
 
 namespace holocap {
 

@@ -9,7 +9,7 @@
 
 #include "core/error.h"
 #include "live/live.h"
-#include "live/live_internal.h"
+#include "live/internal/live.h"
 #include "core/point_tree.h"
 #include "core/projector.h"
 

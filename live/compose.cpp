@@ -8,7 +8,7 @@
 
 #include "core/error.h"
 #include "live/live.h"
-#include "live/live_internal.h"
+#include "live/internal/live.h"
 #include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 

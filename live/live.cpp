@@ -10,7 +10,7 @@
 #include "core/fs.h"
 #include "core/progress.h"
 #include "core/take.h"
-#include "live/live_internal.h"
+#include "live/internal/live.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {

@@ -7,7 +7,7 @@
 #include <cmath>
 
 #include "live/live.h"
-#include "live/live_internal.h"
+#include "live/internal/live.h"
 #include "core/projector.h"
 #include "reconstruction/reconstruction.h"
 

@@ -10,7 +10,7 @@
 #include "core/fs.h"
 #include "core/output.h"
 #include "live/live.h"
-#include "live/live_internal.h"
+#include "live/internal/live.h"
 
 namespace holocap {
 

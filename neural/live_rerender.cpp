@@ -12,7 +12,7 @@
 #include "core/progress.h"
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "neural/live_rerender_internal.h"
+#include "neural/internal/live_rerender.h"
 
 namespace holocap {
 

@@ -10,8 +10,8 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
-#include "neural/live_rerender_internal.h"
-#include "neural/rerender_net.h"
+#include "neural/internal/live_rerender.h"
+#include "neural/internal/rerender_net.h"
 #include "core/projector.h"
 #include "core/threads.h"
 

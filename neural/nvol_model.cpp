@@ -7,7 +7,7 @@
 
 #include "core/error.h"
 #include "core/fs.h"
-#include "neural/nvol.h"
+#include "neural/internal/nvol.h"
 
 namespace holocap::neural {
 namespace {

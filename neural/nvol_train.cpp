@@ -17,7 +17,7 @@
 #include "core/image.h"
 #include "core/progress.h"
 #include "neural/data.h"
-#include "neural/nvol.h"
+#include "neural/internal/nvol.h"
 
 namespace holocap {
 namespace {

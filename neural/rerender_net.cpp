@@ -1,5 +1,5 @@
 // The rerendering U-Net, its inputs and outputs, and rerendering models as AvatarModels.
-#include "neural/rerender_net.h"
+#include "neural/internal/rerender_net.h"
 
 #include <algorithm>
 #include <chrono>

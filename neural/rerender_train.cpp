@@ -20,7 +20,7 @@
 #include "core/take.h"
 #include "core/take_plan.h"
 #include "neural/data.h"
-#include "neural/rerender_net.h"
+#include "neural/internal/rerender_net.h"
 #include "core/projector.h"
 #include "core/threads.h"
 

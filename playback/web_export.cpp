@@ -17,7 +17,7 @@
 #include "core/take.h"
 #include "core/take_plan.h"
 #include "playback/playback.h"
-#include "playback/web_stream.h"
+#include "playback/internal/web_stream.h"
 #include "splat/splat.h"
 
 namespace holocap {

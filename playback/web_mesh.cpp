@@ -10,7 +10,7 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "playback/playback.h"
-#include "playback/web_stream.h"
+#include "playback/internal/web_stream.h"
 
 namespace holocap {
 namespace {

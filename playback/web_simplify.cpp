@@ -11,7 +11,7 @@
 #include <unordered_map>
 
 #include "core/error.h"
-#include "playback/web_stream.h"
+#include "playback/internal/web_stream.h"
 
 namespace holocap::web {
 namespace {

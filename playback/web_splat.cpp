@@ -8,7 +8,7 @@
 #include <limits>
 
 #include "core/error.h"
-#include "playback/web_stream.h"
+#include "playback/internal/web_stream.h"
 
 namespace holocap::web {
 namespace {

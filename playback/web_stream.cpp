@@ -1,4 +1,4 @@
-#include "playback/web_stream.h"
+#include "playback/internal/web_stream.h"
 
 #include <zlib.h>
 

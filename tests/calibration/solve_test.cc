@@ -5,7 +5,7 @@
 #include <cstdlib>
 
 #include "calibration/calibration.h"
-#include "calibration/internal.h"
+#include "calibration/internal/common.h"
 #include "core/error.h"
 #include "tests/calibration/synthetic_rig.h"
 

@@ -7,7 +7,7 @@
 #include <random>
 
 #include "core/error.h"
-#include "playback/web_stream.h"
+#include "playback/internal/web_stream.h"
 
 namespace holocap {
 namespace {

@@ -20,7 +20,7 @@
 #include "core/fs.h"
 #include "neural/neural.h"
 #include "playback/playback.h"
-#include "playback/web_stream.h"
+#include "playback/internal/web_stream.h"
 #include "splat/splat.h"
 #include "tests/support/test_support.h"
 
