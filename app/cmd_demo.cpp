@@ -15,6 +15,8 @@
 
 namespace holocap {
 
+#if HOLOCAP_WITH_NEURAL
+
 namespace {
 
 struct DemoArgs {
@@ -47,9 +49,7 @@ Summary SimulateDemoTake(DemoContext& context) {
 }
 HOLOCAP_DEMO_STAGE(10, "sim", SimulateDemoTake);
 
-void AddDemoCommand(CLI::App& app) {
-  auto* command = app.add_subcommand(
-      "demo", "Run every pipeline stage on a small simulated studio8 take into out/demo/");
+void FillDemoCommand(CLI::App* command) {
   auto args = std::make_shared<DemoArgs>();
   command->add_option("--out", args->out, "Output directory")->capture_default_str();
   command->add_option("--frames", args->frames, "Frame sets to simulate")->capture_default_str();
@@ -103,6 +103,10 @@ void AddDemoCommand(CLI::App& app) {
 
 }  // namespace
 
-HOLOCAP_COMMAND(100, AddDemoCommand);
+#endif  // HOLOCAP_WITH_NEURAL
+
+HOLOCAP_LIBTORCH_COMMAND(100, "demo",
+                         "Run every pipeline stage on a small simulated studio8 take into out/demo/",
+                         FillDemoCommand);
 
 }  // namespace holocap

@@ -79,10 +79,8 @@ static void AddExportCommand(CLI::App& app) {
       request.overwrite = args->options.overwrite;
       std::stringstream list(args->qualities);
       for (std::string level; std::getline(list, level, ',');) request.qualities.push_back(level);
-      if (!WebExportCommand())
-        Fail(
-            "export web runs in holocap-neural: write `holocap export web TAKE ...` with web "
-            "first");
+      // The export bakes volumes of any kind: holocap-neural runs it.
+      if (!WebExportCommand()) HandOverToLibTorchProgram("holocap export web");
       WebExportCommand()(request);
       return;
     }

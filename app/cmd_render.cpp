@@ -16,6 +16,8 @@
 #include "splat/splat.h"
 
 namespace holocap {
+
+#if HOLOCAP_WITH_NEURAL
 namespace {
 
 struct RenderArgs {
@@ -57,9 +59,7 @@ void RenderLiveCommand(const RenderArgs& args) {
   EndCommand(summary, "rendering");
 }
 
-void AddRenderCommand(CLI::App& app) {
-  auto* command = app.add_subcommand(
-      "render", "Render a trained avatar along a camera path to frames or an MP4");
+void FillRenderCommand(CLI::App* command) {
   auto args = std::make_shared<RenderArgs>();
   command
       ->add_option("TAKE", args->take,
@@ -112,8 +112,6 @@ void AddRenderCommand(CLI::App& app) {
     } else {
       claimed = OutputDirectory::Claim(out, request);
     }
-    RegisterRerenderModelKind();
-    RegisterSplatModelKind();
     auto model = OpenModel(model_dir);
     CameraPath path;
     if (args->path == "orbit") {
@@ -162,6 +160,10 @@ void AddRenderCommand(CLI::App& app) {
 
 }  // namespace
 
-HOLOCAP_COMMAND(70, AddRenderCommand);
+#endif  // HOLOCAP_WITH_NEURAL
+
+HOLOCAP_LIBTORCH_COMMAND(70, "render",
+                         "Render a trained avatar along a camera path to frames or an MP4",
+                         FillRenderCommand);
 
 }  // namespace holocap

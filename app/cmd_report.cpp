@@ -258,16 +258,16 @@ void MergeRun(const std::filesystem::path& out) {
   const RunState run = ReadRunState(out);
   if (run.command != "reconstruct" && run.command != "train splat" && run.command != "export web")
     Fail("'", out.string(), "' holds a run of ", run.command, ", which has no merge");
+  // A run whose command this program does not link (export web bakes volumes) is merged by
+  // holocap-neural, before anything here is claimed.
+  if (run.command != "reconstruct" && RunMergers().count(run.command) == 0)
+    HandOverToLibTorchProgram("holocap report --merge of a " + run.command + " run");
   const OutputDirectory claimed = OutputDirectory::Claim(out, {run.command, false, {}, true});
   Report report(run.command);
   if (run.command == "reconstruct") {
     FailUnlessUsable(MergeReconstruction(out, &report), "the merged run");
   } else {
-    const auto merger = RunMergers().find(run.command);
-    if (merger == RunMergers().end())
-      Fail("holocap ", run.command,
-           "'s runs are merged by holocap-neural, which is not this program");
-    FailUnlessUsable(merger->second(out, &report), "the merged run");
+    FailUnlessUsable(RunMergers().at(run.command)(out, &report), "the merged run");
   }
   std::printf("merged %zu frame record(s) into %s\n", run.complete.size(),
               (out / "report.json").c_str());

@@ -1,6 +1,9 @@
-// holocap train nvol|rerender TAKE: learn an avatar from a calibrated take, one subcommand per
-// method, each with only its own flags (the shared ones are defined once); and the demo's
-// neural stage (a tiny model on the demo take, then a short orbit).
+// holocap train nvol|rerender|splat TAKE: learn an avatar from a calibrated take, one
+// subcommand per method, each with only its own flags (the shared ones are defined once); and
+// the demo's avatar stages (tiny models on the demo take, then a short orbit). Compiled into both
+// programs: splats train in holocap itself; nvol and rerender need LibTorch (holocap-neural,
+// HOLOCAP_WITH_NEURAL), and so does the demo.
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
@@ -114,6 +117,8 @@ void PrintPlan(const nlohmann::json& plan) {
     std::printf("  %-18s %s\n", key.c_str(), value.dump().c_str());
 }
 
+#if HOLOCAP_WITH_NEURAL
+
 // ---------------------------------------------------------------------------------------------
 // holocap train nvol
 
@@ -123,9 +128,7 @@ struct NvolArgs {
   std::string bounds = "auto";
 };
 
-void AddNvolCommand(CLI::App* train) {
-  auto* command = train->add_subcommand(
-      "nvol", "Neural Volumes: an RGBA voxel grid decoded per frame, ray-marched");
+void FillNvolCommand(CLI::App* command) {
   auto args = std::make_shared<NvolArgs>();
   NeuralVolumeOptions& o = args->options;
   SharedTrainArgs& shared = args->shared;
@@ -375,11 +378,7 @@ void TrainLiveRerenderCommand(const RerenderArgs& args) {
   EndCommand(summary, "training");
 }
 
-void AddRerenderCommand(CLI::App* train) {
-  auto* command = train->add_subcommand("rerender",
-                                        "Neural rerendering (LookinGood): a U-Net that repairs "
-                                        "renders of the reconstruction, trained on "
-                                        "witness cameras the reconstruction never saw");
+void FillRerenderCommand(CLI::App* command) {
   auto args = std::make_shared<RerenderArgs>();
   RerenderOptions& r = args->options;
   SharedTrainArgs& shared = args->shared;
@@ -412,6 +411,8 @@ void AddRerenderCommand(CLI::App* train) {
     EndCommand(summary, "training");
   });
 }
+
+#endif  // HOLOCAP_WITH_NEURAL
 
 // ---------------------------------------------------------------------------------------------
 // holocap train splat
@@ -576,23 +577,35 @@ const bool kSplatMergeRegistered = [] {
   return true;
 }();
 
+// The methods `train` offers, as registered (nvol, rerender, splat), for its error lines.
+std::string TrainingMethods(const CLI::App* train, const char* separator) {
+  std::vector<std::string> names;
+  for (const CLI::App* method : train->get_subcommands({})) names.push_back(method->get_name());
+  std::sort(names.begin(), names.end());
+  std::string joined;
+  for (const auto& name : names) joined += (joined.empty() ? "" : separator) + name;
+  return joined;
+}
+
 void AddTrainCommand(CLI::App& app) {
   auto* train = app.add_subcommand(
-      "train",
-      "Learn an avatar from a calibrated take: `train nvol`, `train rerender` or `train splat`");
-  AddNvolCommand(train);
-  AddRerenderCommand(train);
+      "train", "Learn an avatar from a calibrated take: `train nvol`, `train rerender` or "
+               "`train splat`");
   AddSplatCommand(train);
-  // A word that names no method reaches `train` itself (the methods, added first, keep refusing
-  // each other's flags): it ends with one line naming it and the methods there are.
+  // A word that names no method reaches `train` itself (the methods keep refusing each other's
+  // flags): it ends with one line naming it and the methods there are.
   train->allow_extras();
   train->parse_complete_callback([train] {
     if (!train->get_subcommands().empty()) return;
     const std::vector<std::string> extras = train->remaining();
-    if (extras.empty()) Fail("train needs a method: holocap train nvol|rerender|splat TAKE");
-    Fail("unknown training method '", extras.front(), "' (known: nvol, rerender, splat)");
+    if (extras.empty())
+      Fail("train needs a method: holocap train ", TrainingMethods(train, "|"), " TAKE");
+    Fail("unknown training method '", extras.front(), "' (known: ", TrainingMethods(train, ", "),
+         ")");
   });
 }
+
+#if HOLOCAP_WITH_NEURAL
 
 // The demo's short orbit of a trained model (context.out/method) into its orbit.mp4, its speed
 // added to `metrics` (stored under the method's name); training's state stands unless playback
@@ -671,14 +684,24 @@ Summary TrainDemoSplats(DemoContext& context) {
     context.report->metrics()["splat"] = metrics;
     return summary;
   }
-  RegisterSplatModelKind();
   return DemoOrbit("splat", summary, metrics, context);
 }
+
+#endif  // HOLOCAP_WITH_NEURAL
 
 }  // namespace
 
 HOLOCAP_COMMAND(60, AddTrainCommand);
+HOLOCAP_LIBTORCH_COMMAND(61, "train nvol",
+                         "Neural Volumes: an RGBA voxel grid decoded per frame, ray-marched",
+                         FillNvolCommand);
+HOLOCAP_LIBTORCH_COMMAND(62, "train rerender",
+                         "Neural rerendering (LookinGood): a U-Net that repairs renders of the "
+                         "reconstruction, trained on witness cameras the reconstruction never saw",
+                         FillRerenderCommand);
+#if HOLOCAP_WITH_NEURAL
 HOLOCAP_DEMO_STAGE(40, "nvol", TrainDemoAvatar);
 HOLOCAP_DEMO_STAGE(45, "splat", TrainDemoSplats);
+#endif
 
 }  // namespace holocap

@@ -15,13 +15,13 @@
 #include "splat/splat.h"
 
 namespace holocap {
+
+#if HOLOCAP_WITH_NEURAL
 namespace {
 
 namespace fs = std::filesystem;
 
 WebExportSummary ExportWeb(const WebExportRequest& request, Report* report) {
-  RegisterRerenderModelKind();
-  RegisterSplatModelKind();
   WebExportOptions options;
   if (!request.qualities.empty()) options.qualities = request.qualities;
   options.recon = request.recon;
@@ -106,9 +106,7 @@ struct ViewArgs {
   std::vector<std::string> models;
 };
 
-void AddViewCommand(CLI::App& app) {
-  auto* command = app.add_subcommand(
-      "view", "Serve a site of export web (or a take, exported first) on 127.0.0.1");
+void FillViewCommand(CLI::App* command) {
   auto args = std::make_shared<ViewArgs>();
   command->add_option("SITE", args->input, "A site of `holocap export web`, or a take")->required();
   command->add_option("--port", args->port, "Port on 127.0.0.1 (0: any free one)")
@@ -149,6 +147,10 @@ void AddViewCommand(CLI::App& app) {
 
 }  // namespace
 
-HOLOCAP_COMMAND(75, AddViewCommand);
+#endif  // HOLOCAP_WITH_NEURAL
+
+HOLOCAP_LIBTORCH_COMMAND(75, "view",
+                         "Serve a site of export web (or a take, exported first) on 127.0.0.1",
+                         FillViewCommand);
 
 }  // namespace holocap

@@ -22,20 +22,52 @@ class Take;
 struct CommandEntry {
   int order;
   std::function<void(CLI::App&)> add;
+  bool needs_libtorch = false;  // runs in holocap-neural; holocap hands it over
 };
 std::vector<CommandEntry>& CommandTable();
-
-// The commands that learn or play an avatar (demo, train, render) need LibTorch, whose start-up
-// costs every command a second and ~170 MB: they live in holocap-neural, beside holocap, which
-// hands them over (execv, the same arguments) before parsing. holocap-neural runs them itself.
-void HandOverNeuralCommands(int argc, char** argv);
 struct CommandRegistrar {
-  CommandRegistrar(int order, std::function<void(CLI::App&)> add) {
-    CommandTable().push_back({order, std::move(add)});
+  CommandRegistrar(int order, std::function<void(CLI::App&)> add, bool needs_libtorch = false) {
+    CommandTable().push_back({order, std::move(add), needs_libtorch});
   }
 };
 #define HOLOCAP_COMMAND(order, add_function) \
   static const ::holocap::CommandRegistrar add_function##_registrar(order, add_function)
+
+// The subcommand at `path` ("render", "train nvol": words from the program's root, the parents
+// created where no command made them yet) with its one-line help.
+CLI::App* AddCommandAt(CLI::App& app, const std::string& path, const std::string& help);
+
+// Commands that need LibTorch (Neural Volumes, rerendering: whatever links holocap_neural),
+// whose start-up costs a second and ~170 MB, live in holocap-neural, beside holocap, built
+// from the same command files: HOLOCAP_LIBTORCH_COMMAND(order, "train nvol", "help", Fill)
+// adds the subcommand at that path and, where LibTorch is linked (HOLOCAP_WITH_NEURAL),
+// Fill(CLI::App*) gives it its flags and callback; in holocap the same registration lists it
+// and hands every use of it (--help included) to holocap-neural. The files that register such
+// commands are compiled into both programs, their LibTorch parts inside
+// `#if HOLOCAP_WITH_NEURAL`.
+#if HOLOCAP_WITH_NEURAL
+#define HOLOCAP_LIBTORCH_COMMAND(order, path, help, fill_function)                 \
+  static const ::holocap::CommandRegistrar fill_function##_registrar(              \
+      order, [](CLI::App& app) { fill_function(::holocap::AddCommandAt(app, path, help)); }, \
+      true)
+#else
+#define HOLOCAP_LIBTORCH_COMMAND(order, path, help, fill_function)                        \
+  static const ::holocap::CommandRegistrar fill_function##_registrar(                     \
+      order,                                                                               \
+      [](CLI::App& app) { ::holocap::AddHandedOverCommand(::holocap::AddCommandAt(app, path, help)); }, \
+      true)
+#endif
+
+// True in holocap-neural, the program that links LibTorch.
+bool ProgramHasLibTorch();
+// A command of holocap that holocap-neural runs: listed in --help, every use of it handed over.
+void AddHandedOverCommand(CLI::App* command);
+// Replaces this process by holocap-neural with the same arguments (what holocap does for a
+// command, a merge or an export it does not link); never returns. In holocap-neural it throws
+// Error: there is nothing to hand over to.
+[[noreturn]] void HandOverToLibTorchProgram(const std::string& what);
+// The program's arguments, kept by main() for HandOverToLibTorchProgram.
+void SetProgramArguments(int argc, char** argv);
 
 // `holocap demo` runs every registered stage in order on a small simulated take. A stage
 // file registers with HOLOCAP_DEMO_STAGE(order, "name", Fn), Fn(DemoContext&) -> Summary;
@@ -89,6 +121,9 @@ std::map<std::string, RunMerger>& RunMergers();
 
 // Every driver compiled into this build, registered in DriverRegistry::Global().
 void RegisterBuiltinDrivers();
+// Every avatar kind this program links, registered in AvatarKindRegistry::Global()
+// (app/avatar_kinds.cpp): splats everywhere, the LibTorch kinds in holocap-neural.
+void RegisterAvatarKinds();
 
 // `holocap capture` on a rig whose sensors name hosts (app/cmd_capture_node.cpp): the flags
 // it adds to the capture command, and the run that coordinates the hosts' capture nodes.

@@ -35,13 +35,14 @@ std::string CommandLine(int argc, char** argv) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  holocap::HandOverNeuralCommands(argc, argv);
+  holocap::SetProgramArguments(argc, argv);
   CLI::App app{
       "holocap: record multi-camera takes, calibrate the rig, reconstruct geometry, learn an "
       "avatar and play it back from any viewpoint"};
   app.require_subcommand(1);
   app.set_version_flag("--version", "holocap 0.1.0");
   holocap::RegisterBuiltinDrivers();
+  holocap::RegisterAvatarKinds();
   auto& table = holocap::CommandTable();
   std::stable_sort(table.begin(), table.end(),
                    [](const auto& a, const auto& b) { return a.order < b.order; });

@@ -20,6 +20,7 @@
 #include "neural/neural.h"
 #include "playback/playback.h"
 #include "sim/sim.h"
+#include "avatar/image_metrics.h"
 
 namespace {
 
@@ -163,6 +164,7 @@ void PlaybackTable(const fs::path& model_dir, const fs::path& out) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
   CLI::App app{"Neural Volumes benchmark"};
   double minutes = 30, dino_minutes = 5;
   int grid = 64, frames = 30, width = 160, sim_width = 320, rays = 16384;

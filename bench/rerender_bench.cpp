@@ -95,7 +95,6 @@ void PrintComparison(const RerenderSummary& s) {
 }
 
 void InferenceTable(const fs::path& model_dir, int threads) {
-  RegisterRerenderModelKind();
   auto model = OpenModel(model_dir);
   const nlohmann::json json = nlohmann::json::parse(std::ifstream(model_dir / "model.json"));
   const RerenderNetwork network =
@@ -118,7 +117,7 @@ void InferenceTable(const fs::path& model_dir, int threads) {
       json.value("supersample", 1) * json.value("supersample", 1));
   std::printf("%8s %14s %14s %14s %8s\n", "threads", "rasterise ms", "U-Net ms", "total ms", "fps");
   for (int t : {1, threads}) {
-    RasterOptions raster;
+    MeshRasterOptions raster;
     raster.threads = t;
     raster.supersample = json.value("supersample", 1);  // as playback does
     double raster_s = 0, net_s = 0;
@@ -282,6 +281,7 @@ void RunDino(const BenchArgs& args, const fs::path& root) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  holocap::RegisterRerenderAvatarKind(holocap::AvatarKindRegistry::Global());
   CLI::App app{"Neural rerendering benchmark"};
   BenchArgs args;
   AddFlags(&app, args);

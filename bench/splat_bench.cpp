@@ -260,6 +260,8 @@ int RunPlayback(const fs::path& model_dir, const fs::path& root, int rounds) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
+  holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
   CLI::App app("splats against Neural Volumes on dinoSparseRing");
   double minutes = 3;
   int width = 320;
@@ -285,7 +287,6 @@ int main(int argc, char** argv) {
                  "Only play this trained splat model, vectorised against scalar rasteriser");
   app.add_option("--rounds", rounds, "Interleaved rounds of --playback")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
-  RegisterSplatModelKind();
   const fs::path root(work);
   fs::create_directories(root);
   if (!playback.empty()) return RunPlayback(playback, root, std::max(1, rounds));

@@ -63,6 +63,8 @@ CameraModel PinholeOf(const nlohmann::json& camera) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
+  holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
   const int frames = argc > 1 ? std::atoi(argv[1]) : 30;
   const int width = argc > 2 ? std::atoi(argv[2]) : 640;
   const int iterations = argc > 3 ? std::atoi(argv[3]) : 300;
@@ -146,7 +148,6 @@ int main(int argc, char** argv) {
   const auto bench = nlohmann::json::parse(ReadFileToString(dir / "browser" / "bench.json"));
 
   auto model = OpenModel(dir / "nvol");
-  RegisterSplatModelKind();
   const RenderedView splat_native = OpenModel(dir / "splat")->Render(camera, frame, {});
   const int64_t set = manifest.at("frames").at(frame).at("set");
   char glb[32];

@@ -22,7 +22,7 @@ using Json = nlohmann::json;
 void LiveRerenderOptions::Check() const {
   net.Check();
   live.Check();
-  RasterOptions{.supersample = supersample}.Check();
+  MeshRasterOptions{.supersample = supersample}.Check();
   if (live_frames < 4 || live_frames > 1000)
     Fail("live_frames must be in [4, 1000] (got ", live_frames, ")");
   if (targets_per_frame < 1 || targets_per_frame > 100)
@@ -78,7 +78,7 @@ Json LiveRerenderOptions::ToJson() const {
 }
 
 GBuffer LiveRerenderBuffers(const Mesh& composed, const CameraModel& camera,
-                            const RasterOptions& raster) {
+                            const MeshRasterOptions& raster) {
   GBuffer buffers = RasteriseMesh(composed, camera, raster);
   buffers.position = cv::Mat();
   buffers.normal.setTo(cv::Scalar::all(0));
@@ -317,7 +317,7 @@ class PairBuilder {
   const std::optional<ScanAlbedo> albedo_;  // relights the compositions (LiveOptions::relight)
   const std::map<int64_t, Pose> poses_;
   const LiveRerenderOptions& options_;
-  RasterOptions raster_;
+  MeshRasterOptions raster_;
   TakePlan plan_;
   std::string depth_name_, color_name_;
   Pose color_from_depth_ = Pose::Identity();
@@ -430,6 +430,15 @@ LiveRenderSummary RenderLiveRecon(const fs::path& take_dir, const fs::path& reco
     report->SetSummary(summary);
   }
   return summary;
+}
+
+void RegisterLiveRerenderAvatarKind(AvatarKindRegistry& registry) {
+  registry.Register({"live-rerender", "rerendering of the compositions of holocap live",
+                     [](const fs::path& dir, const nlohmann::json&) -> std::unique_ptr<AvatarModel> {
+                       Fail((dir / "model.json").string(),
+                            ": a live rerender model renders `holocap live` meshes: holocap render ",
+                            "TAKE --model ", dir.string(), " --recon TAKE/live/recon --cameras NAMES");
+                     }});
 }
 
 }  // namespace holocap

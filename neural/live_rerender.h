@@ -111,13 +111,13 @@ class LiveRerenderModel {
 
  private:
   RerenderNetwork network_;
-  RasterOptions raster_;
+  MeshRasterOptions raster_;
   int threads_ = 0;
 };
 
 // The rasterised buffers the network sees: world positions and normals left out (see above).
 GBuffer LiveRerenderBuffers(const Mesh& composed, const CameraModel& camera,
-                            const RasterOptions& raster);
+                            const MeshRasterOptions& raster);
 
 // SUCCESS when every composed frame was rendered at every camera (an image that cannot be
 // written throws Error).
@@ -132,5 +132,10 @@ LiveRenderSummary RenderLiveRecon(const std::filesystem::path& take_dir,
                                   const std::filesystem::path& model_dir,
                                   const std::vector<std::string>& cameras,
                                   const std::filesystem::path& out, Report* report = nullptr);
+
+// Lets OpenModel (avatar/avatar.h) name "live-rerender" model directories: such a model renders
+// the meshes of `holocap live`, not a viewpoint of its own, so opening one as an avatar fails
+// with the command that renders it (RenderLiveRecon).
+void RegisterLiveRerenderAvatarKind(AvatarKindRegistry& registry);
 
 }  // namespace holocap

@@ -1,6 +1,7 @@
 // Neural Volumes (Lombardi et al. 2019): an avatar learned from a calibrated multi-view take
-// and played back from any viewpoint. This header is the whole public interface of
-// holocap_neural and pulls in no LibTorch header, so the CLI and playback compile fast.
+// and played back from any viewpoint. The public interface of Neural Volumes in holocap_neural
+// (rerendering: neural/rerender.h, live rerendering: neural/live_rerender.h); it pulls in no
+// LibTorch header, so what includes it compiles fast.
 //
 // The model, after the paper and its public code:
 //   encoder  a few fixed views of a frame -> a 256-d latent (a VAE: mean and log-sigma, KL)
@@ -8,7 +9,7 @@
 //   warp     a mixture of 16 affine warps blended on a 32³ grid, mapping each sample to the
 //            template grid
 //   per-camera colour calibration (gain, bias) and per-camera background images
-// and the renderer is the differentiable ray marcher of neural/raymarch.h (rays through the
+// and the renderer is the differentiable ray marcher of avatar/raymarch.h (rays through the
 // mrcal models, distortion included, clipped to the volume's box, about one voxel per step
 // with jitter, empty space skipped through an occupancy grid).
 //
@@ -16,9 +17,8 @@
 // builds no encoder and no warp field; its RGBA grid itself is optimised. The plan is printed
 // and stored in report.json.
 //
-// A trained model is a directory holding model.json (its "method" names the kind) and the
-// kind's own files. OpenModel() reads any kind registered with RegisterModelKind(); "nvol" is
-// built in.
+// A trained model is a directory holding model.json (its "method" is "nvol") and its weights;
+// RegisterNeuralVolumeAvatarKind() lets OpenModel (avatar/avatar.h) open it.
 #pragma once
 
 #include <Eigen/Core>
@@ -32,21 +32,13 @@
 #include <string>
 #include <vector>
 
+#include "avatar/avatar.h"
+#include "avatar/training_data.h"
 #include "core/camera.h"
 #include "core/report.h"
 #include "core/take_plan.h"
 
 namespace holocap {
-
-// The source of the box that bounds the volume, in order of preference for kAuto.
-enum class VolumeBoundsSource {
-  kAuto,         // hull, then ground-truth meshes, then the stage
-  kHull,         // the visual hull of the training views (reconstruction/), per frame
-  kGroundTruth,  // the take's gt/meshes (simulated takes)
-  kStage,        // the take plan's bounds (--bounds, else from the rig; see core/take_plan.h)
-};
-const char* ToString(VolumeBoundsSource source);
-VolumeBoundsSource VolumeBoundsSourceFromString(const std::string& text);  // throws Error
 
 struct NeuralVolumeOptions {
   // Model.
@@ -113,6 +105,7 @@ struct NeuralVolumeOptions {
 
   void Check() const;  // throws Error naming the bad field and why
   nlohmann::json ToJson() const;
+  TrainingDataOptions data_options() const;  // what the training-data loader reads
 };
 
 // NO_CONVERGENCE when the budget is spent (training has no stopping criterion of its own),
@@ -137,21 +130,6 @@ struct NeuralVolumeSummary : Summary {
   double samples_per_ray = 0;  // mean over the last training batch
 };
 
-// The metrics every trained model's report.json starts with, by the same names (Neural Volumes,
-// splats): held-out scores, the background alone's, the budget spent and the loss's course.
-template <typename TrainingSummary>
-nlohmann::json TrainingMetrics(const TrainingSummary& summary) {
-  return {{"heldout_psnr_db", summary.heldout_psnr_db},
-          {"heldout_psnr_fg_db", summary.heldout_psnr_fg_db},
-          {"heldout_ssim", summary.heldout_ssim},
-          {"background_psnr_fg_db", summary.background_psnr_fg_db},
-          {"iterations", summary.iterations},
-          {"seconds", summary.seconds},
-          {"first_loss", summary.first_loss},
-          {"last_loss", summary.last_loss},
-          {"divergences", summary.divergences}};
-}
-
 // Trains a Neural Volume on a take into `model_dir` (model.json, weights, per-frame latents,
 // backgrounds, checkpoint.pt, report.json). Cameras come from calib/, else from gt/cameras
 // (said in the plan). `report` receives options, plan, metrics (metrics.heldout_psnr_db) and
@@ -162,76 +140,7 @@ NeuralVolumeSummary TrainNeuralVolume(const std::filesystem::path& take_dir,
                                       const std::filesystem::path& model_dir,
                                       const NeuralVolumeOptions& options, Report* report = nullptr);
 
-// ---------------------------------------------------------------------------------------------
-// Trained models, of any kind.
-
-struct ViewRenderOptions {
-  double step_voxels = 1.0;         // ray-marching step in voxels
-  bool skip_empty = true;           // skip empty space through the occupancy grid
-  double min_transmittance = 1e-3;  // a ray stops once this little light is left
-  double depth_min_alpha = 0.5;     // depth is reported where alpha reaches this (else NaN)
-  int threads = 0;                  // 0: all cores
-  bool bake = true;                 // march one world-space RGBA grid (the template resampled
-                                    // through the warp once per frame) instead of warp + template
-  double bake_scale = 1.0;          // baked voxels per template voxel along each axis (>= 1)
-};
-
-struct RenderedView {
-  cv::Mat color;  // CV_32FC3, BGR in [0, 1], premultiplied by alpha (over black)
-  cv::Mat alpha;  // CV_32FC1 in [0, 1]
-  cv::Mat depth;  // CV_32FC1 z-depth in metres along the optical axis, NaN where alpha is
-                  // below ViewRenderOptions::depth_min_alpha
-  double samples_per_ray = 0;  // mean over the rays that enter the volume
-  int64_t rays_in_volume = 0;
-  double seconds = 0;  // marching (and decoding, when the frame was not cached)
-};
-
-// One frame of a volumetric avatar exactly as Render marches it: a world-space RGBA grid
-// (channels last, x fastest; colour in [0, 1], density in 1/m; voxel centres at normalised box
-// coordinates (i + 0.5) / grid) and the occupancy whose empty cells add nothing.
-struct BakedFrame {
-  Eigen::Vector3d box_min = Eigen::Vector3d::Zero();
-  Eigen::Vector3d box_max = Eigen::Vector3d::Ones();
-  int grid = 0;
-  std::vector<float> rgba;        // grid³ x 4
-  bool clamped = false;           // outside its voxel centres the grid continues its border
-                                  // (a resampled grid), else it is zero there
-  int occupancy_cells = 0;        // cells per axis; 0: no cell is skipped
-  std::vector<uint8_t> occupied;  // occupancy_cells³, x fastest
-  double step_m = 0;              // Render's sample spacing at the options' step_voxels
-};
-
-class AvatarModel {
- public:
-  virtual ~AvatarModel() = default;
-  virtual std::string method() const = 0;
-  virtual int64_t frame_count() const = 0;  // frames it can play (1 for a static scene)
-  // The world box the avatar lives in.
-  virtual Eigen::Vector3d box_min() const = 0;
-  virtual Eigen::Vector3d box_max() const = 0;
-  // The cameras it was trained from (for orbits at their distance and for comparisons).
-  virtual std::vector<CameraModel> cameras() const = 0;
-  // Renders frame `frame` (clamped to the model's range) through any camera.
-  virtual RenderedView Render(const CameraModel& camera, int64_t frame,
-                              const ViewRenderOptions& options) = 0;
-  // The frame as the grid Render marches (the web export streams it); false for a kind that is
-  // not a volume.
-  virtual bool Bake(int64_t /*frame*/, const ViewRenderOptions& /*options*/, BakedFrame* /*out*/) {
-    return false;
-  }
-};
-
-using ModelOpener = std::function<std::unique_ptr<AvatarModel>(const std::filesystem::path& dir,
-                                                               const nlohmann::json& model_json)>;
-// Adds a model kind; model.json's "method" selects it.
-void RegisterModelKind(const std::string& method, ModelOpener opener);
-std::vector<std::string> ModelKinds();
-// Opens a model directory. Throws Error for a missing/corrupt model.json or an unknown method
-// (naming the known ones).
-std::unique_ptr<AvatarModel> OpenModel(const std::filesystem::path& dir);
-
-// Image quality, on 8-bit or float images of one size and type (float: range [0, 1]).
-double PsnrDb(const cv::Mat& image, const cv::Mat& reference, const cv::Mat& mask = {});
-double Ssim(const cv::Mat& image, const cv::Mat& reference);
+// Lets OpenModel (avatar/avatar.h) open "nvol" model directories.
+void RegisterNeuralVolumeAvatarKind(AvatarKindRegistry& registry);
 
 }  // namespace holocap

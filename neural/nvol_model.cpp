@@ -325,8 +325,7 @@ class NeuralVolumeAvatar : public AvatarModel {
 
   std::string method() const override { return "nvol"; }
   int64_t frame_count() const override { return frames_; }
-  Eigen::Vector3d box_min() const override { return config_.box_min; }
-  Eigen::Vector3d box_max() const override { return config_.box_max; }
+  Box box() const override { return {config_.box_min, config_.box_max}; }
   std::vector<CameraModel> cameras() const override { return cameras_; }
 
   RenderedView Render(const CameraModel& camera, int64_t frame,
@@ -385,8 +384,7 @@ class NeuralVolumeAvatar : public AvatarModel {
 
   bool Bake(int64_t frame, const ViewRenderOptions& options, BakedFrame* out) override {
     Decode(std::clamp<int64_t>(frame, 0, frames_ - 1), options.bake_scale);
-    out->box_min = config_.box_min;
-    out->box_max = config_.box_max;
+    out->box = {config_.box_min, config_.box_max};
     out->grid = baked_.grid;
     out->rgba = baked_.rgba;
     out->clamped = baked_.clamped;
@@ -459,3 +457,12 @@ std::unique_ptr<AvatarModel> OpenNeuralVolume(const std::filesystem::path& dir,
 }
 
 }  // namespace holocap::neural
+
+namespace holocap {
+
+void RegisterNeuralVolumeAvatarKind(AvatarKindRegistry& registry) {
+  registry.Register({"nvol", "Neural Volumes: a learned RGBA volume and warp field",
+                     neural::OpenNeuralVolume});
+}
+
+}  // namespace holocap

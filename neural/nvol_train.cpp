@@ -16,8 +16,9 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
-#include "neural/data.h"
+#include "avatar/training_data.h"
 #include "neural/internal/nvol.h"
+#include "avatar/image_metrics.h"
 
 namespace holocap {
 namespace {
@@ -28,7 +29,7 @@ using neural::MarchContext;
 constexpr int64_t kWarmupIterations = 20;  // of the learning rates (dynamic scenes)
 using neural::NvolConfig;
 using neural::NvolModel;
-using neural::TrainingData;
+using TrainingData;
 
 // Everything that must be saved and restored together.
 struct Snapshot {
@@ -89,11 +90,11 @@ class Trainer {
     config_.decoder_channels = options.decoder_channels;
     config_.cameras = static_cast<int>(data.views.size());
     config_.frames = data.dynamic ? static_cast<int>(data.sets.size()) : 0;
-    config_.box_min = data.box_min;
-    config_.box_max = data.box_max;
+    config_.box_min = data.box.min;
+    config_.box_max = data.box.max;
     torch::manual_seed(options.seed);
     model_ = NvolModel(config_);
-    step_m_ = options.step_voxels * (data.box_max - data.box_min).minCoeff() / options.grid;
+    step_m_ = options.step_voxels * data.box.size().minCoeff() / options.grid;
 
     training_ = data.TrainingViews();
     heldout_ = data.HeldoutViews();
@@ -111,7 +112,7 @@ class Trainer {
     // Rays of every pixel of every view, and the pixels whose rays meet the box.
     for (const auto& view : data.views) {
       all_rays_.push_back(
-          neural::CameraRaysAllPixels(view.camera, data.box_min_f(), data.box_max_f()));
+          CameraRaysAllPixels(view.camera, data.box_min_f(), data.box_max_f()));
       std::vector<int32_t> pixels;
       for (int64_t i = 0; i < all_rays_.back().size(); ++i) {
         if (all_rays_.back().t_far[i] > all_rays_.back().t_near[i])
@@ -291,7 +292,7 @@ class Trainer {
   int64_t total_pixels_ = 0;
   torch::Tensor backgrounds_, images_, encoder_inputs_;
   torch::Tensor background_learnable_;  // [P, 1]: 1 where no frame's silhouette reaches
-  std::vector<neural::RayBatch> all_rays_;
+  std::vector<RayBatch> all_rays_;
   std::vector<std::vector<int32_t>> box_pixels_;
   std::vector<std::vector<std::pair<int, int32_t>>> subject_pixels_;  // [frame] (view, pixel)
   std::vector<int64_t> eval_frames_;
@@ -846,7 +847,7 @@ NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& 
   }
   CreateDirectories(model_dir);
   if (report != nullptr) report->options() = options.ToJson();
-  TrainingData data = neural::LoadTrainingData(take_dir, options);
+  TrainingData data = LoadTrainingData(take_dir, options.data_options());
   NeuralVolumeSummary summary;
   try {
     Trainer trainer(data, options, model_dir);

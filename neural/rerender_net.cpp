@@ -219,8 +219,7 @@ class RerenderModel : public AvatarModel {
   }
   std::string method() const override { return "rerender"; }
   int64_t frame_count() const override { return static_cast<int64_t>(meshes_.size()); }
-  Eigen::Vector3d box_min() const override { return box_min_; }
-  Eigen::Vector3d box_max() const override { return box_max_; }
+  Box box() const override { return {box_min_, box_max_}; }
   std::vector<CameraModel> cameras() const override { return cameras_; }
 
   RenderedView Render(const CameraModel& camera, int64_t frame,
@@ -231,7 +230,7 @@ class RerenderModel : public AvatarModel {
       mesh_ = ReadPly(meshes_[frame]);
       cached_frame_ = frame;
     }
-    RasterOptions raster;
+    MeshRasterOptions raster;
     raster.threads = options.threads;
     raster.supersample = supersample_;  // as the network was trained
     RenderedView view = network_.Apply(RasteriseMesh(mesh_, camera, raster), options.threads);
@@ -331,17 +330,16 @@ RenderedView RerenderNetwork::Apply(const GBuffer& buffers, int threads) const {
   return view;
 }
 
-void RegisterRerenderModelKind() {
-  static std::once_flag once;
-  std::call_once(once, [] {
-    RegisterModelKind("rerender", [](const std::filesystem::path& dir, const nlohmann::json& json) {
-      try {
-        return std::unique_ptr<AvatarModel>(new neural::RerenderModel(dir, json));
-      } catch (const nlohmann::json::exception& e) {
-        Fail(dir.string(), "/model.json is not a rerendering model: ", e.what());
-      }
-    });
-  });
+void RegisterRerenderAvatarKind(AvatarKindRegistry& registry) {
+  registry.Register(
+      {"rerender", "a reconstruction rasterised and refined by a U-Net",
+       [](const std::filesystem::path& dir, const nlohmann::json& json) {
+         try {
+           return std::unique_ptr<AvatarModel>(new neural::RerenderModel(dir, json));
+         } catch (const nlohmann::json::exception& e) {
+           Fail(dir.string(), "/model.json is not a rerendering model: ", e.what());
+         }
+       }});
 }
 
 }  // namespace holocap

@@ -19,10 +19,11 @@
 #include "core/progress.h"
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "neural/data.h"
+#include "avatar/training_data.h"
 #include "neural/internal/rerender_net.h"
 #include "core/projector.h"
 #include "core/threads.h"
+#include "avatar/image_metrics.h"
 
 namespace holocap {
 
@@ -225,7 +226,7 @@ void RerenderOptions::Check() const {
   if (witness_cameras < 1 && witness.empty()) Fail("rerender needs at least one witness camera");
   if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
   if (validation_witnesses < -1) Fail("validation_witnesses must be >= 0 (or -1: automatic)");
-  RasterOptions{.supersample = supersample}.Check();
+  MeshRasterOptions{.supersample = supersample}.Check();
   if (witness_scales.empty()) Fail("witness_scales cannot be empty (1: the training width only)");
   for (double s : witness_scales) {
     if (!(s >= 0.25 && s <= 2)) Fail("witness scales must be in [0.25, 2] (got ", s, ")");
@@ -606,7 +607,7 @@ class RerenderTrainer {
     for (size_t f = 0; f < sets_.size(); ++f) {
       GBuffer buffers =
           RasteriseMesh(mesh_cache[f], d.scaled,
-                        RasterOptions{.supersample = options_.supersample, .threads = threads_});
+                        MeshRasterOptions{.supersample = options_.supersample, .threads = threads_});
       const cv::Mat native = take_.ReadFrame(entry_of_set_[sets_[f]], d.name);
       cv::Mat image = ToFloatImage(native, size);
       if (silhouettes) {

@@ -26,12 +26,12 @@ namespace {
 namespace fs = std::filesystem;
 
 Eigen::Vector3d BoxCenter(const AvatarModel& model) {
-  return 0.5 * (model.box_min() + model.box_max());
+  return model.box().center();
 }
 
 // Horizontal field of view that keeps the whole box in view from `distance`.
 double FitFovDeg(const AvatarModel& model, double distance, int width, int height) {
-  const double radius = 0.5 * (model.box_max() - model.box_min()).norm();
+  const double radius = 0.5 * model.box().size().norm();
   const double half = std::atan(std::min(0.95, 1.1 * radius / std::max(distance, 1e-6)));
   // The box must fit the shorter side; convert that angle to the horizontal one.
   const double aspect = static_cast<double>(width) / height;
@@ -179,7 +179,7 @@ CameraPath OrbitPath(const AvatarModel& model, const OrbitOptions& options) {
     height += along / cameras.size();
     if (i == 0 && flat.norm() > 1e-9) start = flat.normalized();
   }
-  if (cameras.empty()) radius = 2 * (model.box_max() - model.box_min()).norm();
+  if (cameras.empty()) radius = 2 * model.box().size().norm();
   if (options.radius_m > 0) radius = options.radius_m;
   if (options.use_height) height = options.height_m;
   if (std::abs(start.dot(up)) > 0.99) start = up.unitOrthogonal();

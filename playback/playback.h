@@ -1,5 +1,5 @@
-// Playback: free-viewpoint renders of any trained avatar (neural/neural.h's AvatarModel: a
-// Neural Volume today, any kind registered there tomorrow) along a camera path, written as
+// Playback: free-viewpoint renders of any trained avatar (avatar/avatar.h's AvatarModel, of
+// any kind registered in AvatarKindRegistry) along a camera path, written as
 // frames (PNG colour+alpha, OpenEXR colour+alpha+depth) or as an MP4 through ffmpeg.
 //
 // Camera paths:
@@ -25,7 +25,7 @@
 #include "core/camera.h"
 #include "core/frame_tasks.h"
 #include "core/report.h"
-#include "neural/neural.h"
+#include "avatar/avatar.h"
 
 namespace holocap {
 

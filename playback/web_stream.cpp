@@ -11,7 +11,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "core/error.h"
-#include "neural/raymarch.h"
+#include "avatar/raymarch.h"
 
 namespace holocap::web {
 namespace {
@@ -586,8 +586,8 @@ Chunk EncodeVolume(const BakedFrame& volume, int64_t frame, const QualityLevel& 
       {"frame", frame},
       {"grid", v.grid},
       {"clamped", v.clamped},
-      {"box_min", Vec(v.box_min)},
-      {"box_max", Vec(v.box_max)},
+      {"box_min", Vec(v.box.min)},
+      {"box_max", Vec(v.box.max)},
       {"occupancy_cells", v.occupancy_cells},
       {"brick", v.occupancy_cells > 0 ? v.grid / v.occupancy_cells : v.grid},
       {"brick_count", bricks.size()},
@@ -639,8 +639,8 @@ BakedFrame DecodeVolume(const Chunk& chunk) {
   BakedFrame v;
   v.grid = h.at("grid");
   v.clamped = h.at("clamped");
-  v.box_min = Vec(h.at("box_min"));
-  v.box_max = Vec(h.at("box_max"));
+  v.box.min = Vec(h.at("box_min"));
+  v.box.max = Vec(h.at("box_max"));
   v.occupancy_cells = h.at("occupancy_cells");
   v.step_m = h.at("step_m");
   const size_t cells =
@@ -679,22 +679,22 @@ BakedFrame DecodeVolume(const Chunk& chunk) {
 
 RenderedView RenderBakedFrame(const BakedFrame& volume, const CameraModel& camera,
                               double min_transmittance) {
-  neural::OccupancyGrid occupancy;
+  OccupancyGrid occupancy;
   occupancy.size = volume.occupancy_cells;
   occupancy.occupied = volume.occupied;
-  neural::MarchVolume march;
-  march.box_min = volume.box_min.cast<float>();
-  march.box_max = volume.box_max.cast<float>();
+  MarchVolume march;
+  march.box_min = volume.box.min.cast<float>();
+  march.box_max = volume.box.max.cast<float>();
   march.rgba = volume.rgba.data();
   march.grid = volume.grid;
   march.rgba_clamped = volume.clamped;
   march.occupancy = &occupancy;
-  neural::MarchOptions options;
+  MarchOptions options;
   options.step_m = static_cast<float>(volume.step_m);
   options.min_transmittance = static_cast<float>(min_transmittance);
-  const neural::RayBatch rays = neural::CameraRaysAllPixels(camera, march.box_min, march.box_max);
-  neural::MarchOutputs outputs;
-  neural::MarchPlayback(march, rays, options, &outputs);
+  const RayBatch rays = CameraRaysAllPixels(camera, march.box_min, march.box_max);
+  MarchOutputs outputs;
+  MarchPlayback(march, rays, options, &outputs);
   RenderedView view;
   const int w = camera.width(), h = camera.height();
   view.color.create(h, w, CV_32FC3);

@@ -8,7 +8,7 @@
 
 #include "core/error.h"
 #include "core/fs.h"
-#include "neural/neural.h"
+#include "avatar/avatar.h"
 #include "splat/splat.h"
 
 namespace holocap {
@@ -378,8 +378,7 @@ class SplatAvatar : public AvatarModel {
         options_(options) {}
   std::string method() const override { return "splat"; }
   int64_t frame_count() const override { return model_.frames; }
-  Eigen::Vector3d box_min() const override { return model_.box.min(); }
-  Eigen::Vector3d box_max() const override { return model_.box.max(); }
+  Box box() const override { return Box::From(model_.box); }
   std::vector<CameraModel> cameras() const override { return model_.cameras; }
   RenderedView Render(const CameraModel& camera, int64_t frame,
                       const ViewRenderOptions& options) override {
@@ -422,12 +421,9 @@ std::unique_ptr<AvatarModel> OpenSplatModel(const fs::path& dir,
   return std::make_unique<SplatAvatar>(SplatModel::Load(dir), dir, options);
 }
 
-void RegisterSplatModelKind() {
-  static std::once_flag once;
-  std::call_once(once, [] {
-    RegisterModelKind(
-        "splat", [](const fs::path& dir, const nlohmann::json&) { return OpenSplatModel(dir); });
-  });
+void RegisterSplatAvatarKind(AvatarKindRegistry& registry) {
+  registry.Register({"splat", "3D Gaussian splats drawn by the CPU rasteriser",
+                     [](const fs::path& dir, const nlohmann::json&) { return OpenSplatModel(dir); }});
 }
 
 }  // namespace holocap

@@ -10,7 +10,7 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/mesh.h"
-#include "neural/data.h"
+#include "avatar/training_data.h"
 #include "reconstruction/reconstruction.h"
 #include "splat/splat.h"
 
@@ -79,7 +79,7 @@ TakeSelection FirstSetOnly(TakeSelection selection) {
 // found none; `source` says what happened.
 // `frames` of them from the first (a dynamic take's later frames seed where their surface is new).
 std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_dir,
-                               const SplatOptions& options, const neural::TrainingData& data,
+                               const SplatOptions& options, const TrainingData& data,
                                size_t frames, const std::function<bool(size_t)>& needed,
                                std::string* source) {
   std::vector<Mesh> meshes(frames);
@@ -92,7 +92,7 @@ std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_d
       if (view.heldout) selection.heldout.push_back(view.name);
     ReconstructionOptions recon;
     // A seed needs points a few pixels apart, not the finest surface: 1/256 of the volume.
-    recon.voxel_m = (data.box_max - data.box_min).maxCoeff() / 256.0;
+    recon.voxel_m = data.box.size().maxCoeff() / 256.0;
     recon.sweep_voxels_m.clear();
     recon.write_glb = false;
     recon.threads = options.threads;
@@ -163,7 +163,7 @@ SplatSeed SeedFrom(const Mesh& mesh, const std::vector<SplatView>& views, int64_
 SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
                           const SplatOptions& options, const SplatFramesNeeded& needed_frames) {
   options.Check();
-  NeuralVolumeOptions data_options;
+  TrainingDataOptions data_options;
   data_options.image_width = options.image_width;
   data_options.heldout_cameras = options.heldout_cameras;
   data_options.heldout = options.heldout;
@@ -171,13 +171,13 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
   data_options.threads = options.threads;
   data_options.scene = "static";
   if (options.scene == "static") data_options.take = FirstSetOnly(options.take);
-  const neural::TrainingData data = neural::LoadTrainingData(take_dir, data_options);
+  const TrainingData data = LoadTrainingData(take_dir, data_options);
   const bool dynamic = options.scene == "dynamic" || data.sets.size() > 1;
   SplatScene scene;
   scene.plan = data.plan;
   scene.plan.erase("encoder_views");
   scene.plan.erase("occupancy");
-  scene.box = Eigen::AlignedBox3d(data.box_min, data.box_max);
+  scene.box = data.box.aligned();
   std::vector<std::string> undistorted;
   scene.later_frames.resize(dynamic ? data.sets.size() - 1 : 0);
   const int64_t frames = 1 + static_cast<int64_t>(scene.later_frames.size());

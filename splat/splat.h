@@ -79,7 +79,8 @@
 
 namespace holocap {
 
-class AvatarModel;  // neural/neural.h: what playback renders
+class AvatarModel;         // avatar/avatar.h: what playback renders
+class AvatarKindRegistry;  // avatar/avatar.h
 
 struct SplatOptions {
   // Model.
@@ -259,7 +260,7 @@ struct SplatSummary : Summary {
 };
 
 // Reads a take into a splat scene: the same views, held-out cameras, silhouettes and
-// backgrounds as Neural Volumes (neural/data.h), distortion removed, and the seed from the
+// backgrounds as Neural Volumes (avatar/training_data.h), distortion removed, and the seed from the
 // reconstruction of the first planned frame set (options.recon_dir, else one run now with the
 // plan's method into model_dir/seed_recon). Throws Error for a take that cannot be trained on.
 // `needed(frame, frames)` false for a later frame: only its set is kept (no images, silhouettes
@@ -373,8 +374,8 @@ SplatRender RenderSplats(const splat::Gaussians& gaussians, const CameraModel& c
 std::unique_ptr<AvatarModel> OpenSplatModel(const std::filesystem::path& dir,
                                             const splat::RasterOptions& options = {});
 
-// Lets OpenModel (neural/neural.h) open "splat" model directories, so `holocap render` plays
-// them. Idempotent.
-void RegisterSplatModelKind();
+// Lets OpenModel (avatar/avatar.h) open "splat" model directories, so `holocap render` plays
+// them.
+void RegisterSplatAvatarKind(AvatarKindRegistry& registry);
 
 }  // namespace holocap

@@ -17,7 +17,8 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
-#include "neural/neural.h"
+#include "avatar/avatar.h"
+#include "avatar/image_metrics.h"
 #include "splat/splat.h"
 
 namespace holocap {

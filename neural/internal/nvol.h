@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "neural/neural.h"
-#include "neural/raymarch.h"
+#include "avatar/raymarch.h"
 
 namespace holocap::neural {
 

@@ -9,7 +9,7 @@
 #include <string>
 #include <vector>
 
-#include "neural/neural.h"
+#include "avatar/avatar.h"
 #include "playback/playback.h"
 #include "splat/kernels.h"
 

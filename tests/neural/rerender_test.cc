@@ -103,7 +103,7 @@ TEST(RerenderRaster, WideLensNeedsSplitTriangles) {
     return worst;
   };
   const GBuffer split = RasteriseMesh(wall, camera);
-  RasterOptions whole;
+  MeshRasterOptions whole;
   whole.max_subdivisions = 0;
   const GBuffer unsplit = RasteriseMesh(wall, camera, whole);
   EXPECT_EQ(split.triangles_split, 2);
@@ -149,7 +149,7 @@ TEST(RerenderRaster, SupersamplingGivesTheCoveredFractionOfEdgePixels) {
   const cv::Mat white(camera.height(), camera.width(), CV_32FC3, cv::Scalar::all(1));
   for (int s : {1, 2, 4}) {
     SCOPED_TRACE(s);
-    const GBuffer b = RasteriseMesh(quad, camera, RasterOptions{.supersample = s, .threads = 1});
+    const GBuffer b = RasteriseMesh(quad, camera, MeshRasterOptions{.supersample = s, .threads = 1});
     ASSERT_EQ(b.mask.size(), cv::Size(32, 16));
     for (int y = 0; y < 16; ++y) {
       EXPECT_EQ(b.mask.at<uint8_t>(y, 9), 255);
@@ -168,7 +168,7 @@ TEST(RerenderRaster, SupersamplingGivesTheCoveredFractionOfEdgePixels) {
     EXPECT_NEAR(raw.at<cv::Vec3f>(5, 10)[0], a * 50 / 255.0 + (1 - a), 1e-5);
     EXPECT_NEAR(raw.at<cv::Vec3f>(5, 11)[0], 1, 1e-6);
   }
-  RasterOptions bad;
+  MeshRasterOptions bad;
   bad.supersample = 5;
   EXPECT_THROW(RasteriseMesh(quad, camera, bad), Error);
 }
@@ -193,7 +193,7 @@ TEST(RerenderRaster, RejectsBadInput) {
   const CameraModel camera = CameraModel::Pinhole(50, 64, 48);
   EXPECT_THROW(RasteriseMesh(mesh, camera), Error);
   mesh.faces = {{0, 1, 2}};
-  RasterOptions bad;
+  MeshRasterOptions bad;
   bad.max_edge_px = 0;
   EXPECT_THROW(RasteriseMesh(mesh, camera, bad), Error);
 }
@@ -236,7 +236,7 @@ TEST(RerenderNet, StartsAsTheSupersampledRawRenderAtPartlyCoveredEdges) {
   mesh.colors.assign(mesh.vertices.size(), Eigen::Matrix<uint8_t, 3, 1>(200, 90, 40));
   const CameraModel camera = testing::RingCameras(1, sphere, 1.4, 100, 70, false)[0];
   const GBuffer buffers =
-      RasteriseMesh(mesh, camera, RasterOptions{.supersample = 4, .threads = 1});
+      RasteriseMesh(mesh, camera, MeshRasterOptions{.supersample = 4, .threads = 1});
   const RenderedView view =
       RerenderNetwork(UNetConfig{.width = 8, .depth = 3}, 3).Apply(buffers, 1);
   const cv::Mat background(buffers.color.size(), CV_32FC3, cv::Scalar(0.1, 0.8, 0.5));

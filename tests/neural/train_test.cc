@@ -11,12 +11,18 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/take.h"
-#include "neural/data.h"
+#include "avatar/training_data.h"
 #include "neural/neural.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
 namespace {
+
+// The avatar kinds these tests open.
+const bool kAvatarKindsRegistered = [] {
+  RegisterNeuralVolumeAvatarKind(AvatarKindRegistry::Global());
+  return true;
+}();
 
 using testing::RunCli;
 using testing::TempDir;
@@ -150,8 +156,7 @@ TEST_F(NeuralTrainTest, StaticSceneLeavesOutEncoderAndWarp) {
   ASSERT_EQ(view.color.cols, camera.width());
   int64_t opaque = 0;
   const double far =
-      (camera.center_in_world() - 0.5 * (avatar->box_min() + avatar->box_max())).norm() +
-      (avatar->box_max() - avatar->box_min()).norm();
+      (camera.center_in_world() - avatar->box().center()).norm() + avatar->box().size().norm();
   for (int y = 0; y < view.depth.rows; ++y) {
     for (int x = 0; x < view.depth.cols; ++x) {
       const float d = view.depth.at<float>(y, x);
@@ -185,7 +190,7 @@ TEST_F(NeuralTrainTest, AlphaFramesTrainAsColourWithAlphaAsTheSilhouettes) {
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   NeuralVolumeOptions options = StaticOptions();
   options.take.silhouettes = "alpha";  // as auto would choose, asked for by name
-  neural::TrainingData data = neural::LoadTrainingData(take, options);
+  TrainingData data = LoadTrainingData(take, options.data_options());
   EXPECT_EQ(data.plan["silhouettes"], "the frames' own alpha channel (bgra8)") << data.plan.dump();
   ASSERT_FALSE(data.images.empty());
   Take opened = Take::Open(take);

@@ -14,6 +14,12 @@
 namespace holocap {
 namespace {
 
+// The avatar kinds these tests open.
+const bool kAvatarKindsRegistered = [] {
+  RegisterNeuralVolumeAvatarKind(AvatarKindRegistry::Global());
+  return true;
+}();
+
 using testing::RunCli;
 using testing::RunShell;
 using testing::TempDir;
@@ -52,7 +58,7 @@ TEST_F(PlaybackTest, OrbitCirclesTheBoxAndLooksAtItsCentre) {
   orbit.height = 48;
   CameraPath path = OrbitPath(*model, orbit);
   ASSERT_EQ(path.size(), 12u);
-  const Eigen::Vector3d center = 0.5 * (model->box_min() + model->box_max());
+  const Eigen::Vector3d center = model->box().center();
   const Eigen::Vector3d up = ModelUp(*model);
   EXPECT_GT(up.z(), 0.9);  // studio8's cameras stand upright in a z-up world
   double radius0 = -1;

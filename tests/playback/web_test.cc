@@ -23,9 +23,17 @@
 #include "playback/internal/web_stream.h"
 #include "splat/splat.h"
 #include "tests/support/test_support.h"
+#include "avatar/image_metrics.h"
 
 namespace holocap {
 namespace {
+
+// The avatar kinds these tests open.
+const bool kAvatarKindsRegistered = [] {
+  RegisterNeuralVolumeAvatarKind(AvatarKindRegistry::Global());
+  RegisterSplatAvatarKind(AvatarKindRegistry::Global());
+  return true;
+}();
 
 namespace fs = std::filesystem;
 using testing::RunCli;
@@ -226,7 +234,6 @@ TEST_F(WebTest, ExportStreamsEveryFrameAndMeasuresItsLoss) {
 // The splat chunks of frames 0 and 1 (a key frame and a delta of it) decode, natively, to the
 // model's frames: exactly at `lossless`, within the quantisation at `high`.
 TEST_F(WebTest, SplatStreamDecodesKeyFramesAndDeltasToTheModelsFrames) {
-  RegisterSplatModelKind();
   const nlohmann::json manifest = Manifest();
   const SplatModel model = SplatModel::Load(SplatModelDir());
   ASSERT_EQ(model.frames, 3);
@@ -381,7 +388,6 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
 
   // Splats: the page against holocap render of the splat model, then scrubbed from frame 2 (a key
   // frame) to frame 1 (a delta of frame 0, which the page fetches and decodes first) and 0.
-  RegisterSplatModelKind();
   auto splats = OpenModel(SplatModelDir());
   const double splat_psnr = PsnrInsideBoxDb(cv::imread((out / "splat-high.png").string()),
                                             splats->Render(camera, frame, {}).color, camera,

@@ -14,6 +14,7 @@
 #include "core/report.h"
 #include "neural/neural.h"
 #include "splat/splat.h"
+#include "avatar/image_metrics.h"
 
 namespace holocap {
 namespace {

@@ -10,7 +10,7 @@
 
 #include "core/camera.h"
 #include "core/pose.h"
-#include "neural/raymarch.h"
+#include "avatar/raymarch.h"
 
 namespace holocap::neural {
 namespace {

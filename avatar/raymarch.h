@@ -24,7 +24,7 @@
 
 #include "core/camera.h"
 
-namespace holocap::neural {
+namespace holocap {
 
 // Rays in world coordinates, clipped to the volume's box: samples lie in [t_near, t_far].
 struct RayBatch {
@@ -135,4 +135,4 @@ BakedVolume BakeVolume(const MarchVolume& volume, int grid);
 void MarchPlayback(const MarchVolume& volume, const RayBatch& rays, const MarchOptions& options,
                    MarchOutputs* outputs);
 
-}  // namespace holocap::neural
+}  // namespace holocap

@@ -1,4 +1,4 @@
-#include "neural/data.h"
+#include "avatar/training_data.h"
 
 #include <algorithm>
 #include <cmath>
@@ -13,7 +13,7 @@
 #include "core/take_plan.h"
 #include "reconstruction/reconstruction.h"
 
-namespace holocap::neural {
+namespace holocap {
 namespace {
 
 namespace fs = std::filesystem;
@@ -149,7 +149,7 @@ namespace {
 // Reads a planned take into training data, one named step at a time.
 class TrainingDataLoader {
  public:
-  TrainingDataLoader(const fs::path& take_dir, const NeuralVolumeOptions& options)
+  TrainingDataLoader(const fs::path& take_dir, const TrainingDataOptions& options)
       : take_(Take::Open(take_dir)), options_(options), plan_(data_.plan) {}
 
   TrainingData Load() {
@@ -403,11 +403,11 @@ class TrainingDataLoader {
       hi_ = take_plan_.bounds.max();
       plan_["bounds_plan"] = take_plan_.bounds_source;
     }
-    data_.box_min = lo_.array() - options_.bounds_margin_m;
-    data_.box_max = hi_.array() + options_.bounds_margin_m;
+    data_.box.min = lo_.array() - options_.bounds_margin_m;
+    data_.box.max = hi_.array() + options_.bounds_margin_m;
     plan_["bounds"] = {{"source", ToString(source)},
-                       {"box_min", {data_.box_min.x(), data_.box_min.y(), data_.box_min.z()}},
-                       {"box_max", {data_.box_max.x(), data_.box_max.y(), data_.box_max.z()}}};
+                       {"box_min", {data_.box.min.x(), data_.box.min.y(), data_.box.min.z()}},
+                       {"box_max", {data_.box.max.x(), data_.box.max.y(), data_.box.max.z()}}};
   }
 
   // Occupancy for skipping: cells the hull reaches (grown by one cell), per frame.
@@ -418,7 +418,7 @@ class TrainingDataLoader {
       return;
     }
     const int n = options_.occupancy_cells;
-    const Eigen::Vector3d cell = (data_.box_max - data_.box_min) / n;
+    const Eigen::Vector3d cell = (data_.box.max - data_.box.min) / n;
     const double tolerance = 0.5 * cell.norm();
     double occupied_fraction = 0;
     for (size_t f = 0; f < hulls_.size(); ++f) {
@@ -429,7 +429,7 @@ class TrainingDataLoader {
         for (int y = 0; y < n; ++y) {
           for (int x = 0; x < n; ++x) {
             const Eigen::Vector3d center =
-                data_.box_min + cell.cwiseProduct(Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5));
+                data_.box.min + cell.cwiseProduct(Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5));
             grid.occupied[(static_cast<int64_t>(z) * n + y) * n + x] =
                 hulls_[f].Contains(center, tolerance);
           }
@@ -454,7 +454,7 @@ class TrainingDataLoader {
   }
 
   const Take take_;
-  const NeuralVolumeOptions& options_;
+  const TrainingDataOptions& options_;
   TrainingData data_;
   nlohmann::json& plan_;
   TakePlan take_plan_;
@@ -470,9 +470,43 @@ class TrainingDataLoader {
 
 }  // namespace
 
-TrainingData LoadTrainingData(const fs::path& take_dir, const NeuralVolumeOptions& options) {
+const char* ToString(VolumeBoundsSource source) {
+  switch (source) {
+    case VolumeBoundsSource::kAuto:
+      return "auto";
+    case VolumeBoundsSource::kHull:
+      return "hull";
+    case VolumeBoundsSource::kGroundTruth:
+      return "gt";
+    case VolumeBoundsSource::kStage:
+      return "stage";
+  }
+  return "?";
+}
+
+VolumeBoundsSource VolumeBoundsSourceFromString(const std::string& text) {
+  for (auto source : {VolumeBoundsSource::kAuto, VolumeBoundsSource::kHull,
+                      VolumeBoundsSource::kGroundTruth, VolumeBoundsSource::kStage}) {
+    if (text == ToString(source)) return source;
+  }
+  Fail("unknown volume bounds source '", text, "' (auto, hull, gt, stage)");
+}
+
+void TrainingDataOptions::Check() const {
+  if (image_width < 0) Fail("image_width must be >= 0 (0: native), got ", image_width);
+  if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0, got ", heldout_cameras);
+  take.Check();
+  if (scene != "auto" && scene != "static" && scene != "dynamic")
+    Fail("scene must be auto, static or dynamic, got '", scene, "'");
+  if (encoder_views < 1) Fail("encoder_views must be at least 1, got ", encoder_views);
+  if (!(bounds_margin_m >= 0)) Fail("bounds_margin_m must be >= 0, got ", bounds_margin_m);
+  if (occupancy_cells < 0) Fail("occupancy_cells must be >= 0, got ", occupancy_cells);
+  if (threads < 0) Fail("threads must be >= 0, got ", threads);
+}
+
+TrainingData LoadTrainingData(const fs::path& take_dir, const TrainingDataOptions& options) {
   options.Check();
   return TrainingDataLoader(take_dir, options).Load();
 }
 
-}  // namespace holocap::neural
+}  // namespace holocap

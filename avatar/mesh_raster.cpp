@@ -2,6 +2,8 @@
 // reconstruction's tabulated projector (FastProjector, exact to well under a
 // hundredth of a pixel), triangles split in 3D where the lens bends them, then filled in
 // bands of rows, one band per task, so that threads never share a pixel.
+#include "avatar/mesh_raster.h"
+
 #include <omp.h>
 
 #include <algorithm>
@@ -10,7 +12,6 @@
 #include <limits>
 
 #include "core/error.h"
-#include "neural/rerender.h"
 #include "core/projector.h"
 #include "core/threads.h"
 
@@ -41,7 +42,7 @@ SurfacePoint Midpoint(const SurfacePoint& a, const SurfacePoint& b) {
 
 class TriangleSplitter {
  public:
-  TriangleSplitter(const FastProjector& projector, const RasterOptions& options)
+  TriangleSplitter(const FastProjector& projector, const MeshRasterOptions& options)
       : projector_(projector),
         options_(options),
         rotation_(projector.camera().cam_from_world().rotation().cast<float>()) {}
@@ -109,7 +110,7 @@ class TriangleSplitter {
   }
 
   const FastProjector& projector_;
-  const RasterOptions& options_;
+  const MeshRasterOptions& options_;
   Eigen::Matrix3f rotation_;
 };
 
@@ -181,7 +182,7 @@ GBuffer AverageBlocks(const GBuffer& fine, int s, int width, int height, int thr
 
 }  // namespace
 
-void RasterOptions::Check() const {
+void MeshRasterOptions::Check() const {
   if (!(max_edge_px >= 1 && max_edge_px <= 4096))
     Fail("raster max_edge_px must be in [1, 4096] (got ", max_edge_px, ")");
   if (max_subdivisions < 0 || max_subdivisions > 8)
@@ -193,13 +194,13 @@ void RasterOptions::Check() const {
     Fail("raster supersample must be in [1, 4] (got ", supersample, ")");
 }
 
-GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const RasterOptions& options) {
+GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const MeshRasterOptions& options) {
   options.Check();
   const int width = camera.width(), height = camera.height();
   if (width <= 0 || height <= 0) Fail("rasterise: the camera has no imager size");
   if (options.supersample > 1) {
     const int s = options.supersample;
-    RasterOptions fine = options;
+    MeshRasterOptions fine = options;
     fine.supersample = 1;
     fine.max_edge_px = options.max_edge_px * s;
     fine.point_radius_px = options.point_radius_px * s;

@@ -1,4 +1,4 @@
-#include "neural/raymarch.h"
+#include "avatar/raymarch.h"
 
 #include <omp.h>
 
@@ -6,7 +6,7 @@
 #include <cmath>
 #include <limits>
 
-namespace holocap::neural {
+namespace holocap {
 namespace {
 
 // The 8 trilinear corners of a normalised coordinate on an n³ grid (voxel centres at
@@ -736,4 +736,4 @@ void MarchPlayback(const MarchVolume& volume, const RayBatch& rays, const MarchO
   }
 }
 
-}  // namespace holocap::neural
+}  // namespace holocap
