@@ -149,15 +149,12 @@ static void AddCaptureCommand(CLI::App& app) {
                       "drivers' own)");
   command->add_flag("--overwrite", args->options.take.overwrite,
                     "Replace an existing take directory");
+  NameFieldFlags(command, {{"RecorderOptions::writer_threads", "--writers"},
+                           {"RecorderOptions::queue_frames", "--queue"}});
   command->callback([args, nodes] {
     if (args->options.seconds <= 0 && args->options.frames <= 0)
       Fail("capture: give --seconds S or --frames N");
-    CheckNamingFlags([&] { args->options.Check(); },
-                     {{"capture: lost_after_periods", "--lost-after-periods"},
-                      {"capture: writer_threads", "--writers"},
-                      {"capture: queue_frames", "--queue"},
-                      {"capture: trigger_priority", "--trigger-priority"},
-                      {"capture: codec", "--codec"}});
+    args->options.Check();
     RigDescription rig = RigDescription::Load(args->rig);
     args->options.take.command = "capture";
     args->options.take.inputs = {args->rig};

@@ -50,9 +50,9 @@ static void AddCaptureNodeCommand(CLI::App& app) {
       ->add_option("--takes", options->max_takes,
                    "Exit after recording this many takes (0: serve until SIGINT/SIGTERM)")
       ->capture_default_str();
+  NameFieldFlags(command, {{"max_takes", "--takes"}});
   command->callback([options] {
-    CheckNamingFlags([&] { options->Check(); }, {{"capture-node: listen", "--listen"},
-                                                 {"capture-node: max_takes", "--takes"}});
+    options->Check();
     g_stop = false;
     auto previous_int = std::signal(SIGINT, OnSignal);
     auto previous_term = std::signal(SIGTERM, OnSignal);
@@ -93,6 +93,8 @@ std::shared_ptr<NodeCaptureOptions> AddNodeCaptureFlags(CLI::App* capture) {
       ->add_option("--merge-tolerance-ns", options->merge.tolerance_ns,
                    "Largest spread of a merged set across nodes, ns (0: 0.4 frame periods)")
       ->group(group);
+  NameFieldFlags(capture, {{"NodeCaptureOptions::reply_timeout_s", "--node-timeout"},
+                           {"MergeOptions::tolerance_ns", "--merge-tolerance-ns"}});
   return options;
 }
 
@@ -104,11 +106,7 @@ void CaptureOnRigNodes(const RigDescription& rig, const std::string& rig_file,
   options.seconds = recorder.seconds;
   options.recorder = recorder;
   options.merge.overwrite = recorder.take.overwrite;
-  CheckNamingFlags([&] { options.Check(); },
-                   {{"capture: reply_timeout_s", "--node-timeout"},
-                    {"capture: start_lead_s", "--start-lead"},
-                    {"capture: max_clock_offset_us", "--max-clock-offset-us"},
-                    {"merge: tolerance_ns", "--merge-tolerance-ns"}});
+  options.Check();
   Report report("capture");
   report.options() = {{"rig", rig_file},
                       {"out", out},

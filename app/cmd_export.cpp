@@ -70,6 +70,7 @@ static void AddExportCommand(CLI::App& app) {
                       "(holocap report SITE --merge)");
   command->add_flag("--redo", args->web.redo,
                     "web: write groups whose chunks are complete from an earlier run too");
+  NameFieldFlags(command, {{"splat_key_every", "--key-every"}, {"qualities", "--quality"}});
   command->callback([args] {
     if (args->format == "web") {
       WebExportRequest request = args->web;

@@ -90,6 +90,7 @@ void AddLiveCommand(CLI::App& app) {
   command->add_flag("--no-relight", args->no_relight,
                     "Compose the scan in the colours it was seen in, not relit in its light");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY meshes only");
+  NameFieldFlags(command, {{"min_inlier_fraction", "--min-inliers"}});
   command->callback([args] {
     LiveOptions options = args->options;
     if (args->rigid_only) options.nonrigid = false;

@@ -31,10 +31,9 @@ static void AddMergeCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_flag("--overwrite", args->options.overwrite,
                     "Replace an existing merged take (never a capture's recording)");
+  NameFieldFlags(command, {{"writer_threads", "--writers"}});
   command->callback([args] {
-    CheckNamingFlags([&] { args->options.Check(); }, {{"merge: match", "--match"},
-                                                      {"merge: tolerance_ns", "--tolerance-ns"},
-                                                      {"merge: writer_threads", "--writers"}});
+    args->options.Check();
     std::vector<std::filesystem::path> parts(args->parts.begin(), args->parts.end());
     Report report("merge");
     report.options() = {{"parts", args->parts},

@@ -101,6 +101,8 @@ void AddReconstructCommand(CLI::App& app) {
   command->add_flag(
       "--no-completion", args->no_completion,
       "TSDF: mesh only what the depth sensors saw (no completion from the visual hull)");
+  NameFieldFlags(command,
+                 {{"tolerated_bad_views", "--conservative"}, {"simplify_cell_m", "--simplify"}});
   command->callback([args] {
     ReconstructionOptions options;
     options.method = ReconstructionMethodFromString(args->method);

@@ -89,6 +89,9 @@ void FillRenderCommand(CLI::App* command) {
       ->add_option("--cameras", args->cameras,
                    "With --recon: cameras of TAKE to render at (names, comma-separated)")
       ->delimiter(',');
+  NameFieldFlags(command, {{"OrbitOptions::width", "--size"},
+                           {"OrbitOptions::height", "--size"},
+                           {"render.step_voxels", "--step"}});
   command->callback([args] {
     if (!args->recon.empty()) return RenderLiveCommand(*args);
     // Checked before anything is allocated: 8192 px square is 1 GiB of float RGBA per frame.

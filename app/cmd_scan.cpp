@@ -103,6 +103,7 @@ void AddScanCommand(CLI::App& app) {
   command->add_flag("--no-refine", args->no_refine, "No keyframe pose graph at the end");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY only (no texture)");
   command->add_option("--threads", o.threads, "Threads (0: all cores)")->capture_default_str();
+  NameFieldFlags(command, {{"max_lost_frames", "--max-lost"}});
   command->callback([args] {
     ScanOptions options = args->options;
     if (!args->voxel.empty()) options.voxel_m = ParseLength(args->voxel, "--voxel");

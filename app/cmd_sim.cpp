@@ -104,6 +104,11 @@ static void AddSimCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_flag("--overwrite", o.overwrite, "Replace an existing take directory");
   AddVariantFlags(command, args.get());
+  NameFieldFlags(command, {{"image_width", "--size"},
+                           {"image_height", "--size"},
+                           {"clean_plate_frames", "--clean-plate"},
+                           {"drop_probability", "--drop"},
+                           {"trajectory_deg_per_s", "--trajectory-speed"}});
   command->callback([args] {
     SimOptions options = args->options;
     if (args->board) options.scene = "board";

@@ -102,14 +102,12 @@ void AddSharedTrainFlags(CLI::App* command, SharedTrainArgs* args) {
       ->capture_default_str();
   command->add_option("--seed", args->seed, "Random seed")->capture_default_str();
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
+  NameFieldFlags(command, {{"image_width", "--width"},
+                           {"heldout_cameras", "--heldout"},
+                           {"heldout", "--heldout-names"},
+                           {"learning_rate", "--lr"},
+                           {"eval_every_s", "--eval-every"}});
 }
-
-// The flags each shared field was typed as, for option errors.
-const std::map<std::string, std::string> kSharedFlags = {
-    {"minutes", "--minutes"},   {"iterations", "--iterations"},
-    {"image_width", "--width"}, {"heldout_cameras", "--heldout"},
-    {"learning_rate", "--lr"},  {"eval_every_s", "--eval-every"},
-    {"threads", "--threads"}};
 
 void PrintPlan(const nlohmann::json& plan) {
   std::printf("plan:\n");
@@ -155,14 +153,13 @@ void FillNvolCommand(CLI::App* command) {
                    "Mean squared warp displacement (dynamic scenes)")
       ->capture_default_str();
   command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
+  NameFieldFlags(command, {{"rays_per_batch", "--rays"}});
   command->callback([args] {
     NeuralVolumeOptions o = args->options;
     const SharedTrainArgs& shared = args->shared;
     ApplyShared(shared, &o);
     o.bounds = VolumeBoundsSourceFromString(args->bounds);
-    std::map<std::string, std::string> flags = kSharedFlags;
-    flags.insert({{"grid", "--grid"}, {"rays_per_batch", "--rays"}, {"scene", "--scene"}});
-    CheckNamingFlags([&] { o.Check(); }, flags);
+    o.Check();
     const OutputDirectory claimed = shared.Claim("nvol");
     const std::filesystem::path& out = claimed.path();
     Report report("train nvol");
@@ -290,16 +287,7 @@ RerenderOptions RerenderOptionsFrom(const RerenderArgs& args) {
   if (!args.recon_bounds.empty())
     o.reconstruction.bounds = ParseBounds(args.recon_bounds, "--recon-bounds");
   if (args.recon_no_completion) o.reconstruction.tsdf_hull_completion = false;
-  std::map<std::string, std::string> flags = kSharedFlags;
-  flags.insert({{"witness_folds", "--witness-folds"},
-                {"validation_witnesses", "--validation-witnesses"},
-                {"witness_scales", "--witness-scales"},
-                {"batch_pairs", "--batch-pairs"},
-                {"crop_px", "--crop"},
-                {"subject_weight", "--subject-weight"},
-                {"alpha_weight", "--alpha-weight"},
-                {"supersample", "--supersample"}});
-  CheckNamingFlags([&] { o.Check(); }, flags);
+  o.Check();
   return o;
 }
 
@@ -348,17 +336,7 @@ void TrainLiveRerenderCommand(const RerenderArgs& args) {
   o.learning_rate = shared.learning_rate;
   o.seed = shared.seed;
   o.threads = shared.threads;
-  std::map<std::string, std::string> flags = kSharedFlags;
-  flags.insert({{"crop_px", "--crop"},
-                {"subject_weight", "--subject-weight"},
-                {"alpha_weight", "--alpha-weight"},
-                {"supersample", "--supersample"},
-                {"live_frames", "--live-frames"},
-                {"targets_per_frame", "--targets-per-frame"},
-                {"eval_every", "--validate-every"},
-                {"jitter_m", "--jitter"},
-                {"jitter_deg", "--jitter-deg"}});
-  CheckNamingFlags([&] { o.Check(); }, flags);
+  o.Check();
   // A bad scan is refused before any output is claimed.
   ReadScanAlbedo(args.scan, ReadScan(args.scan));
   const OutputDirectory claimed = OutputDirectory::Claim(
@@ -390,6 +368,17 @@ void FillRerenderCommand(CLI::App* command) {
   command->add_option("--batch-pairs", r.batch_pairs, "Pairs of consecutive frames per iteration")
       ->capture_default_str();
   AddLiveRerenderFlags(command, args.get());
+  // The U-Net's width and depth are not the training images' (--width); the reconstruction's
+  // voxel is --recon-voxel; --scan's validation interval counts iterations (--eval-every: s).
+  NameFieldFlags(command, {{"witness_cameras", "--witness"},
+                           {"witness", "--witness-names"},
+                           {"fold_witness", "--fold-witnesses"},
+                           {"fold_recon_dirs", "--fold-recon"},
+                           {"recon_dir", "--recon"},
+                           {"voxel_m", "--recon-voxel"},
+                           {"UNetConfig::width", "--unet-width"},
+                           {"UNetConfig::depth", "--unet-depth"},
+                           {"LiveRerenderOptions::eval_every", "--validate-every"}});
   command->callback([args] {
     if (!args->scan.empty()) return TrainLiveRerenderCommand(*args);
     const RerenderOptions o = RerenderOptionsFrom(*args);
@@ -499,23 +488,13 @@ void AddSplatCommand(CLI::App* train) {
   command->add_flag("--redo", o.tasks.redo,
                     "A per-frame run: train frames whose deltas are complete from an earlier run "
                     "too");
+  NameFieldFlags(command, {{"max_seed_points", "--seed-points"},
+                           {"recon_dir", "--recon"},
+                           {"max_frame_megabytes", "--max-frame-mb"}});
   command->callback([command, args] {
     SplatOptions o = args->options;
     const SharedTrainArgs& shared = args->shared;
     ApplyShared(shared, &o);
-    std::map<std::string, std::string> flags = kSharedFlags;
-    flags.insert({{"sh_degree", "--sh-degree"},
-                  {"max_gaussians", "--max-gaussians"},
-                  {"max_seed_points", "--seed-points"},
-                  {"initial_opacity", "--initial-opacity"},
-                  {"ssim_weight", "--ssim-weight"},
-                  {"scene", "--scene"},
-                  {"frame_minutes", "--frame-minutes"},
-                  {"frame_iterations", "--frame-iterations"},
-                  {"max_frame_megabytes", "--max-frame-mb"},
-                  {"max_added_per_frame", "--max-added-per-frame"},
-                  {"segment_frames", "--segment-frames"},
-                  {"segment_start_iterations", "--segment-start-iterations"}});
     if (!args->shard.empty()) o.tasks.shard = Shard::Parse(args->shard);
     if (o.segment_frames > 0) {
       // A wall-clock budget would make each frame's bytes depend on the machine that trained it.
@@ -526,7 +505,7 @@ void AddSplatCommand(CLI::App* train) {
                "frame for --iterations / --frame-iterations, the same bytes on any machine");
       }
     }
-    CheckNamingFlags([&] { o.Check(); }, flags);
+    o.Check();
     const OutputDirectory claimed = OutputDirectory::Claim(
         shared.Out("splat"), {"train splat", shared.overwrite, {}, !o.tasks.shard.whole()});
     const std::filesystem::path& out = claimed.path();

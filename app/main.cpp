@@ -7,6 +7,8 @@
 #include <string>
 
 #include "app/commands.h"
+#include "app/options.h"
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/report.h"
 
@@ -24,6 +26,13 @@ void PrintError(std::string message) {
   while (!message.empty() && std::isspace(static_cast<unsigned char>(message.back())))
     message.pop_back();
   std::fprintf(stderr, "holocap: error: %s\n", holocap::Printable(message).c_str());
+}
+
+// The command the user ran: the deepest subcommand parsed (train nvol, submit slurm).
+const CLI::App& CommandRun(const CLI::App& app) {
+  const CLI::App* command = &app;
+  while (!command->get_subcommands().empty()) command = command->get_subcommands().front();
+  return *command;
 }
 
 std::string CommandLine(int argc, char** argv) {
@@ -51,6 +60,13 @@ int main(int argc, char** argv) {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e);
+  } catch (const holocap::OptionError& e) {
+    // The commands check their options while parsing (in their callbacks): the line names the
+    // flag the user typed where one fills the field.
+    const std::string message = holocap::OptionErrorMessage(CommandRun(app), e);
+    holocap::WritePendingFailureReports(message);
+    PrintError(message);
+    return 1;
   } catch (const std::bad_alloc&) {
     // The allocation that failed is not known here; the command line says what was asked.
     const std::string message =

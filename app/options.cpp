@@ -1,5 +1,6 @@
 #include "app/options.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <functional>
@@ -177,17 +178,85 @@ Box ParseBounds(const std::string& text, const char* option) {
   return box;
 }
 
-void CheckNamingFlags(const std::function<void()>& check,
-                      const std::map<std::string, std::string>& flag_of_field) {
-  try {
-    check();
-  } catch (const Error& e) {
-    const std::string message = e.what();
-    for (const auto& [field, flag] : flag_of_field) {
-      if (message.rfind(field + " ", 0) == 0) throw Error(flag + message.substr(field.size()));
-    }
-    throw;
+namespace {
+
+// Each command's flags whose names do not follow from their fields (NameFieldFlags).
+std::map<const CLI::App*, std::map<std::string, std::string>>& FieldFlagTables() {
+  static std::map<const CLI::App*, std::map<std::string, std::string>> tables;
+  return tables;
+}
+
+// Flags of other names than their fields, the same on every command that has them.
+const std::map<std::string, std::string> kSharedFieldFlags = {
+    {"TakeSelection::first_frame", "--frames"},
+    {"TakeSelection::last_frame", "--frames"},
+    {"TakeSelection::frame_list", "--frames"},
+    {"TakeSelection::clean_plate_frames", "--clean-plate"},
+    {"Shard::index", "--shard"},
+    {"Shard::count", "--shard"}};
+
+// The units of field names (core/check_option.h's fields carry them; flags do not).
+constexpr const char* kUnitSuffixes[] = {"_m", "_mm", "_px", "_s", "_ms", "_db", "_deg"};
+
+// kl_weight: --kl-weight.
+std::string FlagNamed(std::string field) {
+  std::replace(field.begin(), field.end(), '_', '-');
+  return "--" + field;
+}
+
+// The flag that fills the field `error` names, whether the user gave it or not; "" for none.
+std::string FlagFillingField(const CLI::App& command, const OptionError& error) {
+  // A member of a member ("render.step_voxels") is found by its own name too.
+  const std::string& written = error.field();
+  const std::string name = written.substr(written.rfind('.') + 1);
+  std::vector<std::string> keys;
+  for (const std::string& field : {written, name}) {
+    if (!error.options().empty()) keys.push_back(error.options() + "::" + field);
+    keys.push_back(field);
   }
+  const auto table = FieldFlagTables().find(&command);
+  for (const std::string& key : keys) {
+    if (table == FieldFlagTables().end()) break;
+    if (const auto entry = table->second.find(key); entry != table->second.end())
+      return entry->second;
+  }
+  for (const std::string& key : keys) {
+    const auto entry = kSharedFieldFlags.find(key);
+    if (entry != kSharedFieldFlags.end() && command.get_option_no_throw(entry->second) != nullptr)
+      return entry->second;
+  }
+  if (command.get_option_no_throw(FlagNamed(name)) != nullptr) return FlagNamed(name);
+  for (const std::string unit : kUnitSuffixes) {
+    if (name.size() <= unit.size() || !name.ends_with(unit)) continue;
+    const std::string flag = FlagNamed(name.substr(0, name.size() - unit.size()));
+    if (command.get_option_no_throw(flag) != nullptr) return flag;
+  }
+  return "";
+}
+
+}  // namespace
+
+void NameFieldFlags(CLI::App* command, const std::map<std::string, std::string>& flag_of_field) {
+  for (const auto& [field, flag] : flag_of_field) FieldFlagTables()[command][field] = flag;
+}
+
+std::string FlagOfField(const CLI::App& command, const OptionError& error) {
+  const std::string flag = FlagFillingField(command, error);
+  if (flag.empty()) return "";
+  const CLI::Option* option = command.get_option_no_throw(flag);
+  return option != nullptr && option->count() > 0 ? flag : "";
+}
+
+std::string OptionErrorMessage(const CLI::App& command, const OptionError& error) {
+  const std::string flag = FlagOfField(command, error);
+  if (flag.empty()) return error.what();
+  // What the user typed after the flag (a length in its unit, K/N, a list), not the field's
+  // value: the line quotes the command line back.
+  const CLI::Option* option = command.get_option_no_throw(flag);
+  std::string typed;
+  for (const std::string& result : option->results())
+    typed += (typed.empty() ? "" : ",") + (result.empty() ? std::string("''") : result);
+  return error.NamedAs(option->get_expected_max() == 0 ? flag : flag + " " + typed);
 }
 
 void EndCommand(const Summary& summary, const std::string& what) {

@@ -6,11 +6,11 @@
 #include <CLI/CLI.hpp>
 #include <Eigen/Core>
 #include <cstdint>
-#include <functional>
 #include <map>
 #include <string>
 #include <vector>
 
+#include "core/check_option.h"
 #include "core/output.h"
 #include "core/report.h"
 #include "core/take_plan.h"
@@ -54,10 +54,20 @@ double ParseLength(const std::string& text, const char* what);
 // `option` when it is not six numbers with max above min on every axis.
 Box ParseBounds(const std::string& text, const char* option = "--bounds");
 
-// Runs `check` (an Options::Check()); an Error whose message begins with a field name in
-// `flag_of_field` is rethrown beginning with the flag the user typed instead.
-void CheckNamingFlags(const std::function<void()>& check,
-                      const std::map<std::string, std::string>& flag_of_field);
+// Option errors name the flag the user typed. An OptionError (core/check_option.h) names a
+// field; the flag that fills it is the one `command`'s table gives (NameFieldFlags), else the
+// one every command that has it shares (the take selection's --frames and --clean-plate,
+// --shard), else the field's name (kl_weight: --kl-weight), else its name without a unit
+// (gate_m: --gate, voxel_m: --voxel, start_lead_s: --start-lead).
+//
+// NameFieldFlags adds to `command`'s table: keys are "Options::field" or "field" as the error
+// names them, values the flag; "" where no flag of the command fills a field of that name.
+void NameFieldFlags(CLI::App* command, const std::map<std::string, std::string>& flag_of_field);
+// The flag of `command` that fills the field `error` names, when the user gave it; else "".
+std::string FlagOfField(const CLI::App& command, const OptionError& error);
+// The error line: "--kl-weight -1 violates kl_weight >= 0" (the flag and what the user typed
+// after it) where FlagOfField finds a flag, else the error's own message.
+std::string OptionErrorMessage(const CLI::App& command, const OptionError& error);
 
 // --overwrite on a command that writes results: write into a non-empty output another command
 // made, or replace an output file (core/output.h; nothing is removed, no input is written).

@@ -11,6 +11,7 @@
 #include <cmath>
 #include <limits>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/projector.h"
 #include "core/threads.h"
@@ -183,15 +184,12 @@ GBuffer AverageBlocks(const GBuffer& fine, int s, int width, int height, int thr
 }  // namespace
 
 void MeshRasterOptions::Check() const {
-  if (!(max_edge_px >= 1 && max_edge_px <= 4096))
-    Fail("raster max_edge_px must be in [1, 4096] (got ", max_edge_px, ")");
-  if (max_subdivisions < 0 || max_subdivisions > 8)
-    Fail("raster max_subdivisions must be in [0, 8] (got ", max_subdivisions, ")");
-  if (!(point_radius_px > 0 && point_radius_px <= 32))
-    Fail("raster point_radius_px must be in (0, 32] (got ", point_radius_px, ")");
-  if (threads < 0) Fail("raster threads must be >= 0 (0: all cores)");
-  if (supersample < 1 || supersample > 4)
-    Fail("raster supersample must be in [1, 4] (got ", supersample, ")");
+  HOLOCAP_CHECK_OPTION_IN(max_edge_px, 1, 4096);
+  HOLOCAP_CHECK_OPTION_IN(max_subdivisions, 0, 8);
+  HOLOCAP_CHECK_OPTION_GT(point_radius_px, 0);
+  HOLOCAP_CHECK_OPTION_LE(point_radius_px, 32);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0, "0: all cores");
+  HOLOCAP_CHECK_OPTION_IN(supersample, 1, 4);
 }
 
 GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const MeshRasterOptions& options) {

@@ -6,6 +6,7 @@
 #include <random>
 
 #include "calibration/calibration.h"
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/take.h"
 
@@ -126,13 +127,12 @@ Plane BoardPlane(const Pose& cam_from_board) {
 }  // namespace
 
 void DepthAlignmentOptions::Check() const {
-  if (!(plane_inlier_m > 0)) Fail("plane_inlier_m must be > 0");
-  if (!(max_plane_band_m >= plane_inlier_m)) Fail("max_plane_band_m must be >= plane_inlier_m");
-  if (min_planes < 3)
-    Fail("min_planes must be >= 3 (three normals fix a rotation and translation)");
-  if (!(min_normal_spread_deg > 0 && min_normal_spread_deg < 90))
-    Fail("min_normal_spread_deg must be in (0, 90)");
-  if (!(max_time_offset_s >= 0)) Fail("max_time_offset_s must be >= 0");
+  HOLOCAP_CHECK_OPTION_GT(plane_inlier_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(max_plane_band_m, plane_inlier_m);
+  HOLOCAP_CHECK_OPTION_GE(min_planes, 3, "three normals fix a rotation and translation");
+  HOLOCAP_CHECK_OPTION_GT(min_normal_spread_deg, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_normal_spread_deg, 90);
+  HOLOCAP_CHECK_OPTION_GE(max_time_offset_s, 0);
 }
 
 nlohmann::json DepthAlignmentSummary::ToJson() const {

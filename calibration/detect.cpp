@@ -16,6 +16,7 @@
 
 #include "calibration/calibration.h"
 #include "calibration/internal/common.h"
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/progress.h"
 #include "core/take.h"
@@ -180,14 +181,14 @@ int BoardObservation::seen() const {
 }
 
 void DetectionOptions::Check() const {
-  if (threads < 0) Fail("detection threads must be >= 0, got ", threads);
-  if (refine_half_window_px < 0) Fail("refine_half_window_px must be >= 0");
-  if (max_hamming < 0 || max_hamming > 3) Fail("max_hamming must be in 0..3, got ", max_hamming);
-  if (!(min_decision_margin >= 0)) Fail("min_decision_margin must be >= 0");
-  if (min_tags < 1) Fail("min_tags must be >= 1, got ", min_tags);
-  if (!(min_tag_side_px > 0)) Fail("min_tag_side_px must be > 0");
-  if (!(quad_sigma >= 0)) Fail("quad_sigma must be >= 0");
-  if (!(max_corner_residual_px > 0)) Fail("max_corner_residual_px must be > 0");
+  HOLOCAP_CHECK_OPTION_GE(threads, 0);
+  HOLOCAP_CHECK_OPTION_GE(refine_half_window_px, 0);
+  HOLOCAP_CHECK_OPTION_IN(max_hamming, 0, 3);
+  HOLOCAP_CHECK_OPTION_GE(min_decision_margin, 0);
+  HOLOCAP_CHECK_OPTION_GE(min_tags, 1);
+  HOLOCAP_CHECK_OPTION_GT(min_tag_side_px, 0);
+  HOLOCAP_CHECK_OPTION_GE(quad_sigma, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_corner_residual_px, 0);
 }
 
 nlohmann::json DetectionOptions::ToJson() const {

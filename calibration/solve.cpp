@@ -15,6 +15,7 @@
 
 #include "calibration/calibration.h"
 #include "calibration/internal/common.h"
+#include "core/check_option.h"
 #include "core/error.h"
 
 extern "C" {
@@ -656,16 +657,14 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
 }  // namespace
 
 void CalibrationOptions::Check() const {
-  if (min_views_per_camera < 3)
-    Fail("min_views_per_camera must be >= 3, got ", min_views_per_camera);
-  if (min_points_per_view < 4) Fail("min_points_per_view must be >= 4, got ", min_points_per_view);
-  if (!(max_seed_rms_px > 0)) Fail("max_seed_rms_px must be > 0");
-  if (uncertainty_grid_x < 2 || uncertainty_grid_y < 2)
-    Fail("the uncertainty grid needs >= 2x2 points");
-  if (!(uncertainty_distance_m >= 0)) Fail("uncertainty_distance_m must be >= 0 (0: automatic)");
-  if (!(observed_pixel_sigma >= 0))
-    Fail("observed_pixel_sigma must be >= 0 (0: from the residuals)");
-  if (!(max_uncertainty_px > 0)) Fail("max_uncertainty_px must be > 0");
+  HOLOCAP_CHECK_OPTION_GE(min_views_per_camera, 3);
+  HOLOCAP_CHECK_OPTION_GE(min_points_per_view, 4);
+  HOLOCAP_CHECK_OPTION_GT(max_seed_rms_px, 0);
+  HOLOCAP_CHECK_OPTION_GE(uncertainty_grid_x, 2);
+  HOLOCAP_CHECK_OPTION_GE(uncertainty_grid_y, 2);
+  HOLOCAP_CHECK_OPTION_GE(uncertainty_distance_m, 0, "0: automatic");
+  HOLOCAP_CHECK_OPTION_GE(observed_pixel_sigma, 0, "0: from the residuals");
+  HOLOCAP_CHECK_OPTION_GT(max_uncertainty_px, 0);
 }
 
 nlohmann::json CalibrationOptions::ToJson() const {

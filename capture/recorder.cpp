@@ -12,6 +12,7 @@
 #include <mutex>
 #include <thread>
 
+#include "core/check_option.h"
 #include "core/error.h"
 
 namespace holocap {
@@ -26,23 +27,22 @@ double SecondsSince(Clock::time_point start) {
 }  // namespace
 
 void RecorderOptions::Check() const {
-  if (frames < 0) Fail("capture: frames must be >= 0");
-  if (seconds < 0 || !std::isfinite(seconds)) Fail("capture: seconds must be >= 0");
-  if (frames == 0 && seconds == 0) Fail("capture: give a frame count or a duration");
-  if (queue_frames < 1) Fail("capture: queue_frames must be >= 1");
-  if (queue_sets < 1) Fail("capture: queue_sets must be >= 1");
-  if (writer_threads < 1 || writer_threads > 64) Fail("capture: writer_threads must be 1..64");
-  if (warmup_s < 0 || drain_s < 0) Fail("capture: warmup_s and drain_s must be >= 0");
-  if (lost_after_periods < 1 || lost_after_periods > 1000)
-    Fail("capture: lost_after_periods must be 1..1000 (not ", lost_after_periods, ")");
-  if (!(first_frame_s > 0)) Fail("capture: first_frame_s must be positive");
-  if (!codec.empty() && codec != "png" && codec != "zstd")
-    Fail("capture: codec must be png or zstd (not '", codec, "')");
-  if (sync_tolerance_ns < 0) Fail("capture: sync_tolerance_ns must be >= 0");
-  if (trigger_priority < 0 || trigger_priority > 99)
-    Fail("capture: trigger_priority must be 0..99");
-  if (first_trigger_realtime_ns < 0) Fail("capture: first_trigger_realtime_ns must be >= 0");
-  if (!metadata.is_object()) Fail("capture: metadata must be an object");
+  HOLOCAP_CHECK_OPTION_GE(frames, 0);
+  HOLOCAP_CHECK_OPTION_GE(seconds, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(seconds), seconds);
+  HOLOCAP_CHECK_OPTION(frames != 0 || seconds != 0, frames, "give a frame count or a duration");
+  HOLOCAP_CHECK_OPTION_GE(queue_frames, 1);
+  HOLOCAP_CHECK_OPTION_GE(queue_sets, 1);
+  HOLOCAP_CHECK_OPTION_IN(writer_threads, 1, 64);
+  HOLOCAP_CHECK_OPTION_GE(warmup_s, 0);
+  HOLOCAP_CHECK_OPTION_GE(drain_s, 0);
+  HOLOCAP_CHECK_OPTION_IN(lost_after_periods, 1, 1000);
+  HOLOCAP_CHECK_OPTION_GT(first_frame_s, 0);
+  HOLOCAP_CHECK_OPTION(codec.empty() || IsOneOf(codec, {"png", "zstd"}), codec);
+  HOLOCAP_CHECK_OPTION_GE(sync_tolerance_ns, 0);
+  HOLOCAP_CHECK_OPTION_IN(trigger_priority, 0, 99);
+  HOLOCAP_CHECK_OPTION_GE(first_trigger_realtime_ns, 0);
+  HOLOCAP_CHECK_OPTION(metadata.is_object(), metadata);
 }
 
 nlohmann::json SensorLoss::ToJson() const {

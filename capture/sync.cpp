@@ -4,23 +4,23 @@
 #include <cmath>
 #include <limits>
 
+#include "core/check_option.h"
 #include "core/error.h"
 
 namespace holocap {
 
 void SyncOptions::Check() const {
-  if (!(fps > 0) || !std::isfinite(fps)) Fail("sync: fps must be positive (got ", fps, ")");
-  if (tolerance_ns < 0) Fail("sync: tolerance_ns must be >= 0 (0 picks 0.4 of the frame period)");
-  if (max_latency_ns < 0) Fail("sync: max_latency_ns must be >= 0 (0 picks 3 frame periods)");
-  if (!(offset_smoothing > 0 && offset_smoothing <= 1)) {
-    Fail("sync: offset_smoothing must be in (0, 1] (got ", offset_smoothing, ")");
-  }
+  HOLOCAP_CHECK_OPTION_GT(fps, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(fps), fps);
+  HOLOCAP_CHECK_OPTION_GE(tolerance_ns, 0, "0 picks 0.4 of the frame period");
+  HOLOCAP_CHECK_OPTION_GE(max_latency_ns, 0, "0 picks 3 frame periods");
+  HOLOCAP_CHECK_OPTION_GT(offset_smoothing, 0);
+  HOLOCAP_CHECK_OPTION_LE(offset_smoothing, 1);
   const int64_t period = static_cast<int64_t>(1e9 / fps);
-  if (tolerance() * 2 >= period) {
-    Fail("sync: a tolerance of ", tolerance() / 1e3,
-         " us would let one set take two frames of a sensor at ", fps,
-         " fps (keep it under half the ", period / 1e3, " us period)");
-  }
+  HOLOCAP_CHECK_OPTION(tolerance() * 2 < period, tolerance_ns,
+                       Cat("a tolerance of ", tolerance() / 1e3,
+                           " us would let one set take two frames of a sensor at ", fps,
+                           " fps: keep it under half the ", period / 1e3, " us period"));
 }
 
 int64_t SyncOptions::tolerance() const {

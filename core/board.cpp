@@ -7,6 +7,7 @@
 #include <cstdlib>
 #include <memory>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 
@@ -123,34 +124,34 @@ int BoardLayout::height_n() const {
 }
 
 void BoardLayout::Check() const {
-  if (!(spacing > 0) || !std::isfinite(spacing)) Fail("board spacing must be > 0, got ", spacing);
-  if (!(margin >= 0) || !std::isfinite(margin)) Fail("board margin must be >= 0, got ", margin);
+  HOLOCAP_CHECK_OPTION_GT(spacing, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(spacing), spacing);
+  HOLOCAP_CHECK_OPTION_GE(margin, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(margin), margin);
   if (type == BoardType::kChessboard) {
-    if (chessboard_width_n < 2 || chessboard_height_n < 2) {
-      Fail("a chessboard needs at least 2x2 inner corners, got ", chessboard_width_n, "x",
-           chessboard_height_n);
-    }
-    if (margin < spacing * (1 - 1e-9)) {
-      Fail("chessboard margin ", margin, " m cuts the outer squares (needs >= spacing ", spacing,
-           " m)");
-    }
+    HOLOCAP_CHECK_OPTION_GE(chessboard_width_n, 2, "a chessboard needs at least 2x2 inner corners");
+    HOLOCAP_CHECK_OPTION_GE(chessboard_height_n, 2,
+                            "a chessboard needs at least 2x2 inner corners");
+    HOLOCAP_CHECK_OPTION(
+        margin >= spacing * (1 - 1e-9), margin,
+        Cat("the margin cuts the outer squares: it needs >= spacing ", spacing, " m"));
     return;
   }
+  HOLOCAP_CHECK_OPTION(FindFamily(family) != nullptr, family, "known: tag36h11, tagStandard41h12");
   const apriltag_family_t* family = FindFamily(this->family);
-  if (family == nullptr) {
-    Fail("unknown AprilTag family '", this->family, "' (known: tag36h11, tagStandard41h12)");
-  }
-  if (tags_across < 1 || tags_down < 1 || tags_across * tags_down < 2) {
-    Fail("an AprilTag board needs at least 2 tags, got ", tags_across, "x", tags_down);
-  }
-  if (first_id < 0 || first_id + tags_across * tags_down > static_cast<int>(family->ncodes)) {
-    Fail("tag ids ", first_id, "..", first_id + tags_across * tags_down - 1, " exceed ",
-         this->family, " (", family->ncodes, " codes)");
-  }
+  HOLOCAP_CHECK_OPTION_GE(tags_across, 1, "an AprilTag board needs at least 2 tags");
+  HOLOCAP_CHECK_OPTION_GE(tags_down, 1, "an AprilTag board needs at least 2 tags");
+  HOLOCAP_CHECK_OPTION(
+      tags_across * tags_down >= 2, tags_across,
+      Cat("an AprilTag board needs at least 2 tags, got ", tags_across, "x", tags_down));
+  HOLOCAP_CHECK_OPTION_GE(first_id, 0);
+  HOLOCAP_CHECK_OPTION(first_id + tags_across * tags_down <= static_cast<int>(family->ncodes),
+                       first_id,
+                       Cat("tag ids ", first_id, "..", first_id + tags_across * tags_down - 1,
+                           " exceed ", this->family, " (", family->ncodes, " codes)"));
   const double outer = spacing * OuterBits(family) / family->width_at_border;
-  if (margin < outer * (1 - 1e-9)) {
-    Fail("board margin ", margin, " m cuts the tags' outer bits (needs >= ", outer, " m)");
-  }
+  HOLOCAP_CHECK_OPTION(margin >= outer * (1 - 1e-9), margin,
+                       Cat("the margin cuts the tags' outer bits: it needs >= ", outer, " m"));
 }
 
 nlohmann::json BoardLayout::ToJson() const {

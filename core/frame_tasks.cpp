@@ -12,6 +12,7 @@
 #include <cstdlib>
 #include <cstring>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 
@@ -89,9 +90,9 @@ Shard Shard::Parse(const std::string& text, const std::string& flag) {
 }
 
 void Shard::Check() const {
-  if (count < 1) Fail("--shard K/N needs N >= 1 (got ", count, ")");
-  if (index < 0 || index >= count)
-    Fail("--shard K/N needs 0 <= K < N (got ", index, "/", count, ")");
+  HOLOCAP_CHECK_OPTION_GE(count, 1, "K/N needs N >= 1");
+  HOLOCAP_CHECK_OPTION_GE(index, 0, "K/N needs 0 <= K < N");
+  HOLOCAP_CHECK_OPTION_LT(index, count, "K/N needs 0 <= K < N");
 }
 
 std::string Shard::ToString() const { return Cat(index, "/", count); }

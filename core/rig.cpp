@@ -4,6 +4,7 @@
 
 #include <set>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 
@@ -253,31 +254,39 @@ std::string HostList(const std::map<std::string, std::string>& hosts) {
 }  // namespace
 
 void RigDescription::Check() const {
-  if (!(fps > 0) || fps > 10000) Fail("fps must be in (0, 10000], got ", fps);
-  if (sensors.empty()) Fail("the rig has no sensors");
+  HOLOCAP_CHECK_OPTION_GT(fps, 0);
+  HOLOCAP_CHECK_OPTION_LE(fps, 10000);
+  HOLOCAP_CHECK_OPTION(!sensors.empty(), sensors, "the rig has no sensors");
+  const auto is_plain_name = [](const std::string& name) {
+    return name.find_first_of("/\\ \t#") == std::string::npos;
+  };
   std::set<std::string> names;
   for (const auto& spec : sensors) {
-    if (spec.name.find_first_of("/\\ \t#") != std::string::npos) {
-      Fail("sensor name '", spec.name, "' may not contain '/', '\\', '#' or spaces");
-    }
-    if (!names.insert(spec.name).second) Fail("sensor name '", spec.name, "' appears twice");
-    if (spec.scheme().empty())
-      Fail("sensor '", spec.name, "': URI '", spec.uri, "' has no scheme (like sim: or aravis:)");
+    HOLOCAP_CHECK_OPTION(
+        is_plain_name(spec.name), sensors,
+        Cat("sensor name '", spec.name, "' may not contain '/', '\\', '#' or spaces"));
+    HOLOCAP_CHECK_OPTION(names.count(spec.name) == 0, sensors,
+                         Cat("sensor name '", spec.name, "' appears twice"));
+    names.insert(spec.name);
+    HOLOCAP_CHECK_OPTION(
+        !spec.scheme().empty(), sensors,
+        Cat("sensor '", spec.name, "': URI '", spec.uri, "' has no scheme (like sim: or aravis:)"));
   }
   for (const auto& spec : sensors) {
-    if (!spec.paired_with.empty() && !names.count(spec.paired_with)) {
-      Fail("sensor '", spec.name, "' is paired with '", spec.paired_with,
-           "', which is not in the rig");
-    }
-    if (!hosts.empty() && spec.host.empty())
-      Fail("sensor '", spec.name, "' names no host (the rig's hosts: ", HostList(hosts), ")");
-    if (!spec.host.empty() && !hosts.count(spec.host))
-      Fail("sensor '", spec.name, "': host '", spec.host, "' is not in the rig's hosts (",
-           HostList(hosts), ")");
+    HOLOCAP_CHECK_OPTION(spec.paired_with.empty() || names.count(spec.paired_with) > 0, sensors,
+                         Cat("sensor '", spec.name, "' is paired with '", spec.paired_with,
+                             "', which is not in the rig"));
+    HOLOCAP_CHECK_OPTION(
+        hosts.empty() || !spec.host.empty(), sensors,
+        Cat("sensor '", spec.name, "' names no host (the rig's hosts: ", HostList(hosts), ")"));
+    HOLOCAP_CHECK_OPTION(spec.host.empty() || hosts.count(spec.host) > 0, hosts,
+                         Cat("sensor '", spec.name, "': host '", spec.host,
+                             "' is not in the rig's hosts (", HostList(hosts), ")"));
   }
   for (const auto& [host, address] : hosts) {
-    if (host.empty() || host.find_first_of("/\\ \t#") != std::string::npos)
-      Fail("host name '", host, "' may not be empty or contain '/', '\\', '#' or spaces");
+    HOLOCAP_CHECK_OPTION(
+        !host.empty() && is_plain_name(host), hosts,
+        Cat("host name '", host, "' may not be empty or contain '/', '\\', '#' or spaces"));
   }
 }
 

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <limits>
 
+#include "core/check_option.h"
 #include "core/error.h"
 
 namespace holocap {
@@ -27,32 +28,27 @@ const char* ToString(SilhouetteSource source) {
 }
 
 void TakeSelection::Check() const {
-  if (first_frame < 0) Fail("--frames: the first frame set must be 0 or more, not ", first_frame);
-  if (last_frame >= 0 && last_frame <= first_frame) {
-    Fail("--frames: the range ", first_frame, ":", last_frame, " is empty");
-  }
+  HOLOCAP_CHECK_OPTION_GE(first_frame, 0);
+  HOLOCAP_CHECK_OPTION(last_frame < 0 || last_frame > first_frame, last_frame,
+                       Cat("the range ", first_frame, ":", last_frame, " is empty"));
   for (size_t i = 0; i < frame_list.size(); ++i) {
-    if (frame_list[i] < 0) Fail("--frames: frame sets are 0 or more, not ", frame_list[i]);
-    if (i > 0 && frame_list[i] <= frame_list[i - 1])
-      Fail("--frames: the listed frame sets must increase (", frame_list[i - 1], " then ",
-           frame_list[i], ")");
+    HOLOCAP_CHECK_OPTION(frame_list[i] >= 0, frame_list, "frame sets are 0 or more");
+    HOLOCAP_CHECK_OPTION(i == 0 || frame_list[i] > frame_list[i - 1], frame_list,
+                         "the listed frame sets must increase");
   }
-  if (!frame_list.empty() && (first_frame != 0 || last_frame != -1))
-    Fail("--frames: a list of frame sets and a range A:B are one or the other");
-  if (clean_plate_frames < -1)
-    Fail("--clean-plate must be -1 (from the take) or more, not ", clean_plate_frames);
-  if (bounds && !(bounds->max().array() > bounds->min().array()).all())
-    Fail("--bounds: max must exceed min on every axis");
-  if (up && !(up->norm() > 0 && up->allFinite())) Fail("--up must be a non-zero direction");
-  if (silhouettes != "auto" && silhouettes != "alpha" && silhouettes != "plate" &&
-      silhouettes != "median" && silhouettes != "otsu" && silhouettes != "threshold") {
-    Fail("--silhouettes must be auto, alpha, plate, median, otsu or threshold, not '", silhouettes,
-         "'");
-  }
-  if ((silhouettes == "alpha" || silhouettes == "median") && silhouette_threshold > 0)
-    Fail("--silhouettes ", silhouettes, " takes no --silhouette-threshold");
-  if (!(silhouette_threshold >= 0 && silhouette_threshold < 1))
-    Fail("--silhouette-threshold must be in (0, 1) of full scale, not ", silhouette_threshold);
+  HOLOCAP_CHECK_OPTION(frame_list.empty() || (first_frame == 0 && last_frame == -1), frame_list,
+                       "a list of frame sets and a range A:B are one or the other");
+  HOLOCAP_CHECK_OPTION_GE(clean_plate_frames, -1, "-1: from the take");
+  HOLOCAP_CHECK_OPTION(!bounds || (bounds->max().array() > bounds->min().array()).all(), bounds,
+                       "max must exceed min on every axis");
+  HOLOCAP_CHECK_OPTION(!up || (up->norm() > 0 && up->allFinite()), up, "a non-zero direction");
+  HOLOCAP_CHECK_OPTION(
+      IsOneOf(silhouettes, {"auto", "alpha", "plate", "median", "otsu", "threshold"}), silhouettes);
+  HOLOCAP_CHECK_OPTION_GE(silhouette_threshold, 0, "of full scale; 0: none");
+  HOLOCAP_CHECK_OPTION_LT(silhouette_threshold, 1, "of full scale; 0: none");
+  HOLOCAP_CHECK_OPTION(silhouette_threshold == 0 || !IsOneOf(silhouettes, {"alpha", "median"}),
+                       silhouette_threshold,
+                       Cat("silhouettes ", silhouettes, " take no threshold"));
 }
 
 nlohmann::json TakeSelection::ToJson() const {

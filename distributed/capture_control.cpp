@@ -5,6 +5,7 @@
 #include <cstdlib>
 #include <thread>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/output.h"
 #include "distributed/internal/capture_control_channel.h"
@@ -106,15 +107,16 @@ RecorderOptions RecorderOptionsFromJson(const nlohmann::json& json) {
 }  // namespace control
 
 void NodeCaptureOptions::Check() const {
-  if (out.empty()) Fail("capture: out must name the take to write");
-  if (frames < 0 || seconds < 0 || !std::isfinite(seconds))
-    Fail("capture: frames and seconds must be >= 0");
-  if (frames == 0 && seconds == 0) Fail("capture: give a frame count or a duration");
-  if (!(reply_timeout_s > 0)) Fail("capture: reply_timeout_s must be positive");
-  if (!(start_lead_s > 0)) Fail("capture: start_lead_s must be positive");
-  if (max_clock_offset_us < 0) Fail("capture: max_clock_offset_us must be >= 0");
-  if (clock_probes < 1 || clock_probes > 1000) Fail("capture: clock_probes must be 1..1000");
-  if (!(status_every_s > 0)) Fail("capture: status_every_s must be positive");
+  HOLOCAP_CHECK_OPTION(!out.empty(), out, "the take to write");
+  HOLOCAP_CHECK_OPTION_GE(frames, 0);
+  HOLOCAP_CHECK_OPTION_GE(seconds, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(seconds), seconds);
+  HOLOCAP_CHECK_OPTION(frames != 0 || seconds != 0, frames, "give a frame count or a duration");
+  HOLOCAP_CHECK_OPTION_GT(reply_timeout_s, 0);
+  HOLOCAP_CHECK_OPTION_GT(start_lead_s, 0);
+  HOLOCAP_CHECK_OPTION_GE(max_clock_offset_us, 0);
+  HOLOCAP_CHECK_OPTION_IN(clock_probes, 1, 1000);
+  HOLOCAP_CHECK_OPTION_GT(status_every_s, 0);
   merge.Check();
 }
 

@@ -10,15 +10,15 @@
 #include <set>
 #include <thread>
 
+#include "core/check_option.h"
 #include "core/error.h"
 
 namespace holocap {
 
 void MergeOptions::Check() const {
-  if (tolerance_ns < 0) Fail("merge: tolerance_ns must be >= 0");
-  if (match != "auto" && match != "timestamp" && match != "sequence")
-    Fail("merge: match must be auto, timestamp or sequence (not '", match, "')");
-  if (writer_threads < 1 || writer_threads > 64) Fail("merge: writer_threads must be 1..64");
+  HOLOCAP_CHECK_OPTION_GE(tolerance_ns, 0);
+  HOLOCAP_CHECK_OPTION(IsOneOf(match, {"auto", "timestamp", "sequence"}), match);
+  HOLOCAP_CHECK_OPTION_IN(writer_threads, 1, 64);
 }
 
 nlohmann::json MergePartRecord::ToJson() const {

@@ -12,6 +12,7 @@
 #include <regex>
 #include <thread>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "distributed/internal/capture_control_channel.h"
 
@@ -147,8 +148,8 @@ ClockState ReadClockState() {
 }
 
 void CaptureNodeOptions::Check() const {
-  if (listen.empty()) Fail("capture-node: listen must name a ZeroMQ endpoint (tcp://ADDR:PORT)");
-  if (max_takes < 0) Fail("capture-node: max_takes must be >= 0");
+  HOLOCAP_CHECK_OPTION(!listen.empty(), listen, "a ZeroMQ endpoint, tcp://ADDR:PORT");
+  HOLOCAP_CHECK_OPTION_GE(max_takes, 0);
 }
 
 namespace {

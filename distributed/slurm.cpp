@@ -13,6 +13,7 @@
 #include <cstring>
 #include <sstream>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 
@@ -127,23 +128,23 @@ std::filesystem::path PerFrameOutput(const PerFrameCommand& command,
 
 void SlurmOptions::Check() const {
   FindPerFrameCommand(command);
-  if (take.empty()) Fail("submit slurm needs a take");
-  if (tasks < 1 || tasks > 100000) Fail("--tasks must be in [1, 100000] (got ", tasks, ")");
-  if (cpus < 1 || cpus > 1024) Fail("--cpus must be in [1, 1024] (got ", cpus, ")");
+  HOLOCAP_CHECK_OPTION(!take.empty(), take, "submit slurm needs a take");
+  HOLOCAP_CHECK_OPTION_IN(tasks, 1, 100000);
+  HOLOCAP_CHECK_OPTION_IN(cpus, 1, 1024);
   CheckSbatchValue(partition, "--partition");
   CheckSbatchValue(time, "--time");
   CheckSbatchValue(mem, "--mem");
-  if (holocap.empty() || !holocap.is_absolute())
-    Fail("submit slurm needs the absolute path of the holocap program (got '", holocap.string(),
-         "')");
-  if (HasFlag(args, "--shard"))
-    Fail("submit slurm gives each task its --shard; leave it out of the command's flags");
-  if (command == "train splat" && !HasFlag(args, "--segment-frames"))
-    Fail(
-        "submit slurm train splat runs a per-frame run: give --segment-frames S (and "
-        "--iterations, --frame-iterations)");
-  if (command == "export web" && !HasFlag(args, "--out"))
-    Fail("submit slurm export web needs the site's --out DIR (every task writes into it)");
+  HOLOCAP_CHECK_OPTION(!holocap.empty() && holocap.is_absolute(), holocap,
+                       "the absolute path of the holocap program");
+  HOLOCAP_CHECK_OPTION(!HasFlag(args, "--shard"), args,
+                       "submit slurm gives each task its --shard; leave it out of the command's "
+                       "flags");
+  HOLOCAP_CHECK_OPTION(command != "train splat" || HasFlag(args, "--segment-frames"), command,
+                       "submit slurm train splat runs a per-frame run: give --segment-frames S "
+                       "(and --iterations, --frame-iterations)");
+  HOLOCAP_CHECK_OPTION(command != "export web" || HasFlag(args, "--out"), command,
+                       "submit slurm export web needs the site's --out DIR (every task writes "
+                       "into it)");
 }
 
 nlohmann::json SlurmOptions::ToJson() const {

@@ -1,6 +1,7 @@
 // Writing a take's cameras (and colour frames) as a COLMAP text model or a transforms.json.
 #include <cstdio>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -19,9 +20,8 @@ std::string SetFileName(int64_t set_index) {
 }  // namespace
 
 void ExportOptions::Check() const {
-  if (format != InteropFormat::kColmap && format != InteropFormat::kNerf) {
-    Fail("export writes colmap or nerf, not ", ToString(format));
-  }
+  HOLOCAP_CHECK_OPTION(format == InteropFormat::kColmap || format == InteropFormat::kNerf, format,
+                       "export writes colmap or nerf");
 }
 
 ExportSummary ExportTake(const fs::path& take_dir, const fs::path& out_dir,

@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 #include <set>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -590,13 +591,12 @@ PixelFormat PixelFormatOf(const cv::Mat& image, const fs::path& file) {
 }  // namespace
 
 void ImportOptions::Check() const {
-  if (!(metres_per_unit >= 0) || !std::isfinite(metres_per_unit))
-    Fail("metres_per_unit must be >= 0 (0: the format's unit), got ", metres_per_unit);
-  if (!(max_rotation_residual >= 0))
-    Fail("max_rotation_residual must be >= 0, got ", max_rotation_residual);
-  if (!(fps > 0) || fps > 10000) Fail("fps must be in (0, 10000], got ", fps);
-  if (png_compression < 0 || png_compression > 9)
-    Fail("png_compression must be 0..9, got ", png_compression);
+  HOLOCAP_CHECK_OPTION_GE(metres_per_unit, 0, "0: the format's unit");
+  HOLOCAP_CHECK_OPTION(std::isfinite(metres_per_unit), metres_per_unit);
+  HOLOCAP_CHECK_OPTION_GE(max_rotation_residual, 0);
+  HOLOCAP_CHECK_OPTION_GT(fps, 0);
+  HOLOCAP_CHECK_OPTION_LE(fps, 10000);
+  HOLOCAP_CHECK_OPTION_IN(png_compression, 0, 9);
 }
 
 ImportedRig ReadForeignRig(const fs::path& source, const ImportOptions& options) {

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <opencv2/imgproc.hpp>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/progress.h"
@@ -19,32 +20,30 @@ namespace fs = std::filesystem;
 using Json = nlohmann::json;
 
 void LiveOptions::Check() const {
-  if (!(depth_min_m > 0 && depth_max_m > depth_min_m))
-    Fail("live: depth range [depth_min_m, depth_max_m] must be positive and non-empty");
-  if (alignment_samples < 100) Fail("live: alignment_samples must be >= 100");
-  if (rigid_iterations < 1) Fail("live: rigid_iterations must be >= 1");
-  if (!(gate_m > 0 && coarse_gate_m >= gate_m))
-    Fail("live: gate_m must be > 0 and coarse_gate_m >= gate_m");
-  if (!(max_normal_angle_deg > 0 && max_normal_angle_deg <= 90))
-    Fail("live: max_normal_angle_deg must be in (0, 90]");
-  if (!(huber_m > 0)) Fail("live: huber_m must be > 0");
-  if (!(node_spacing_m > 0)) Fail("live: node_spacing_m must be > 0");
-  if (node_neighbours < 1 || node_neighbours > 4) Fail("live: node_neighbours must be in [1, 4]");
-  if (nonrigid_iterations < 0) Fail("live: nonrigid_iterations must be >= 0");
-  if (!(arap_weight > 0)) Fail("live: arap_weight must be > 0");
-  if (!(min_inlier_fraction >= 0 && min_inlier_fraction <= 1))
-    Fail("live: min_inlier_fraction must be in [0, 1]");
-  if (!(max_residual_m > 0)) Fail("live: max_residual_m must be > 0");
-  if (!(min_rigid_inlier_fraction >= 0 && min_rigid_inlier_fraction <= 1))
-    Fail("live: min_rigid_inlier_fraction must be in [0, 1]");
-  if (!(max_deformation_rms_m > 0)) Fail("live: max_deformation_rms_m must be > 0");
-  if (!(max_refused_fraction >= 0 && max_refused_fraction <= 1))
-    Fail("live: max_refused_fraction must be in [0, 1]");
-  if (!(subject_gate_m > 0 && observed_gate_m > 0 && max_depth_jump_m > 0))
-    Fail("live: subject_gate_m, observed_gate_m and max_depth_jump_m must be > 0");
-  if (!(floor_margin_m >= 0)) Fail("live: floor_margin_m must be >= 0");
-  if (!(subject_reach_m >= 0)) Fail("live: subject_reach_m must be >= 0");
-  if (threads < 0) Fail("live: threads must be >= 0");
+  HOLOCAP_CHECK_OPTION_GT(depth_min_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(depth_max_m, depth_min_m);
+  HOLOCAP_CHECK_OPTION_GE(alignment_samples, 100);
+  HOLOCAP_CHECK_OPTION_GE(rigid_iterations, 1);
+  HOLOCAP_CHECK_OPTION_GT(gate_m, 0);
+  HOLOCAP_CHECK_OPTION_LE(gate_m, coarse_gate_m);
+  HOLOCAP_CHECK_OPTION_GT(max_normal_angle_deg, 0);
+  HOLOCAP_CHECK_OPTION_LE(max_normal_angle_deg, 90);
+  HOLOCAP_CHECK_OPTION_GT(huber_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(node_spacing_m, 0);
+  HOLOCAP_CHECK_OPTION_IN(node_neighbours, 1, 4);
+  HOLOCAP_CHECK_OPTION_GE(nonrigid_iterations, 0);
+  HOLOCAP_CHECK_OPTION_GT(arap_weight, 0);
+  HOLOCAP_CHECK_OPTION_IN(min_inlier_fraction, 0, 1);
+  HOLOCAP_CHECK_OPTION_GT(max_residual_m, 0);
+  HOLOCAP_CHECK_OPTION_IN(min_rigid_inlier_fraction, 0, 1);
+  HOLOCAP_CHECK_OPTION_GT(max_deformation_rms_m, 0);
+  HOLOCAP_CHECK_OPTION_IN(max_refused_fraction, 0, 1);
+  HOLOCAP_CHECK_OPTION_GT(subject_gate_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(observed_gate_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_depth_jump_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(floor_margin_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(subject_reach_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0);
 }
 
 Json LiveOptions::ToJson() const {

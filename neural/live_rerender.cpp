@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -23,34 +24,27 @@ void LiveRerenderOptions::Check() const {
   net.Check();
   live.Check();
   MeshRasterOptions{.supersample = supersample}.Check();
-  if (live_frames < 4 || live_frames > 1000)
-    Fail("live_frames must be in [4, 1000] (got ", live_frames, ")");
-  if (targets_per_frame < 1 || targets_per_frame > 100)
-    Fail("targets_per_frame must be in [1, 100] (got ", targets_per_frame, ")");
-  if (!(min_turn_deg >= 0 && min_turn_deg <= max_turn_deg && max_turn_deg <= 180))
-    Fail("the turn range must satisfy 0 <= min_turn_deg <= max_turn_deg <= 180 (got ", min_turn_deg,
-         "..", max_turn_deg, ")");
-  if (!(jitter_m >= 0 && jitter_m <= 0.5))
-    Fail("jitter_m must be in [0, 0.5] (got ", jitter_m, ")");
-  if (!(jitter_deg >= 0 && jitter_deg <= 45))
-    Fail("jitter_deg must be in [0, 45] (got ", jitter_deg, ")");
-  if (validation_every < 2) Fail("validation_every must be >= 2 (got ", validation_every, ")");
-  if (image_width < 0 || (image_width > 0 && image_width < 32))
-    Fail("image_width must be 0 (native) or >= 32 px (got ", image_width, ")");
-  if (!(minutes > 0) && iterations <= 0)
-    Fail("give a positive time budget (minutes) or an iteration count");
-  if (iterations < 0) Fail("iterations must be >= 0");
-  if (batch < 1 || batch > 64) Fail("batch must be in [1, 64] (got ", batch, ")");
-  if (crop_px < 0 || (crop_px > 0 && crop_px < 16))
-    Fail("crop_px must be 0 (whole images) or >= 16 (got ", crop_px, ")");
-  if (!(learning_rate > 0 && learning_rate < 1))
-    Fail("learning_rate must be in (0, 1) (got ", learning_rate, ")");
-  if (!(subject_weight >= 1 && subject_weight <= 100))
-    Fail("subject_weight must be in [1, 100] (got ", subject_weight, ")");
-  if (!(alpha_weight >= 0 && alpha_weight <= 100))
-    Fail("alpha_weight must be in [0, 100] (got ", alpha_weight, ")");
-  if (eval_every < 1) Fail("eval_every must be >= 1 iteration (got ", eval_every, ")");
-  if (threads < 0) Fail("threads must be >= 0 (0: all cores)");
+  HOLOCAP_CHECK_OPTION_IN(live_frames, 4, 1000);
+  HOLOCAP_CHECK_OPTION_IN(targets_per_frame, 1, 100);
+  HOLOCAP_CHECK_OPTION_GE(min_turn_deg, 0);
+  HOLOCAP_CHECK_OPTION_LE(min_turn_deg, max_turn_deg);
+  HOLOCAP_CHECK_OPTION_LE(max_turn_deg, 180);
+  HOLOCAP_CHECK_OPTION_IN(jitter_m, 0, 0.5);
+  HOLOCAP_CHECK_OPTION_IN(jitter_deg, 0, 45);
+  HOLOCAP_CHECK_OPTION_GE(validation_every, 2);
+  HOLOCAP_CHECK_OPTION(image_width == 0 || image_width >= 32, image_width,
+                       "0: native, else at least 32 px");
+  HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
+                       "give a positive time budget (minutes) or an iteration count");
+  HOLOCAP_CHECK_OPTION_GE(iterations, 0);
+  HOLOCAP_CHECK_OPTION_IN(batch, 1, 64);
+  HOLOCAP_CHECK_OPTION(crop_px == 0 || crop_px >= 16, crop_px, "0: whole images, else at least 16");
+  HOLOCAP_CHECK_OPTION_GT(learning_rate, 0);
+  HOLOCAP_CHECK_OPTION_LT(learning_rate, 1);
+  HOLOCAP_CHECK_OPTION_IN(subject_weight, 1, 100);
+  HOLOCAP_CHECK_OPTION_IN(alpha_weight, 0, 100);
+  HOLOCAP_CHECK_OPTION_GE(eval_every, 1, "iterations");
+  HOLOCAP_CHECK_OPTION_GE(threads, 0, "0: all cores");
 }
 
 Json LiveRerenderOptions::ToJson() const {

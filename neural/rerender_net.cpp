@@ -10,6 +10,7 @@
 #include <mutex>
 #include <numeric>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/mesh.h"
@@ -263,8 +264,8 @@ UNetConfig UNetConfig::FromJson(const nlohmann::json& json) {
 }
 
 void UNetConfig::Check() const {
-  if (width < 4 || width > 128) Fail("U-Net width must be in [4, 128] channels (got ", width, ")");
-  if (depth < 1 || depth > 6) Fail("U-Net depth must be in [1, 6] levels (got ", depth, ")");
+  HOLOCAP_CHECK_OPTION_IN(width, 4, 128, "channels");
+  HOLOCAP_CHECK_OPTION_IN(depth, 1, 6, "levels");
 }
 
 RerenderNetwork::RerenderNetwork(std::unique_ptr<State> state) : state_(std::move(state)) {}

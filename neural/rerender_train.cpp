@@ -13,6 +13,7 @@
 #include <set>
 #include <tuple>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -223,49 +224,48 @@ Evaluation Score(const std::vector<std::vector<cv::Mat>>& images,
 
 void RerenderOptions::Check() const {
   net.Check();
-  if (witness_cameras < 1 && witness.empty()) Fail("rerender needs at least one witness camera");
-  if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0");
-  if (validation_witnesses < -1) Fail("validation_witnesses must be >= 0 (or -1: automatic)");
+  HOLOCAP_CHECK_OPTION(witness_cameras >= 1 || !witness.empty(), witness_cameras,
+                       "rerender needs at least one witness camera");
+  HOLOCAP_CHECK_OPTION_GE(heldout_cameras, 0);
+  HOLOCAP_CHECK_OPTION_GE(validation_witnesses, -1, "-1: automatic");
   MeshRasterOptions{.supersample = supersample}.Check();
-  if (witness_scales.empty()) Fail("witness_scales cannot be empty (1: the training width only)");
-  for (double s : witness_scales) {
-    if (!(s >= 0.25 && s <= 2)) Fail("witness scales must be in [0.25, 2] (got ", s, ")");
+  HOLOCAP_CHECK_OPTION(!witness_scales.empty(), witness_scales, "1: the training width only");
+  for (double scale : witness_scales) {
+    HOLOCAP_CHECK_OPTION(scale >= 0.25 && scale <= 2, witness_scales, "each in [0.25, 2]");
   }
-  if (std::find(witness_scales.begin(), witness_scales.end(), 1.0) == witness_scales.end()) {
-    Fail(
-        "witness_scales must include 1 (the training width, where validation and held-out cameras "
-        "are scored)");
+  HOLOCAP_CHECK_OPTION(std::ranges::find(witness_scales, 1.0) != witness_scales.end(),
+                       witness_scales,
+                       "1 is the training width, where validation and held-out cameras are "
+                       "scored");
+  HOLOCAP_CHECK_OPTION_IN(witness_folds, 1, 16);
+  for (const auto& fold : fold_witness) {
+    HOLOCAP_CHECK_OPTION(!fold.empty(), fold_witness, "a fold of witnesses cannot be empty");
   }
-  if (witness_folds < 1 || witness_folds > 16)
-    Fail("witness_folds must be in [1, 16] (got ", witness_folds, ")");
-  for (const auto& fold : fold_witness)
-    if (fold.empty()) Fail("a fold of witnesses cannot be empty");
-  if (fold_witness.empty() && fold_recon_dirs.size() > static_cast<size_t>(witness_folds - 1)) {
-    Fail(fold_recon_dirs.size(), " fold reconstructions given for ", witness_folds - 1,
-         " further fold(s)");
-  }
-  if (image_width < 0 || (image_width > 0 && image_width < 32))
-    Fail("image_width must be 0 (native) or >= 32 px (got ", image_width, ")");
+  HOLOCAP_CHECK_OPTION(
+      !fold_witness.empty() || fold_recon_dirs.size() <= static_cast<size_t>(witness_folds - 1),
+      fold_recon_dirs,
+      Cat(fold_recon_dirs.size(), " fold reconstructions given for ", witness_folds - 1,
+          " further fold(s)"));
+  HOLOCAP_CHECK_OPTION(image_width == 0 || image_width >= 32, image_width,
+                       "0: native, else at least 32 px");
   take.Check();
-  if (!(minutes > 0) && iterations <= 0)
-    Fail("give a positive time budget (minutes) or an iteration count");
-  if (iterations < 0) Fail("iterations must be >= 0");
-  if (batch_pairs < 1 || batch_pairs > 64)
-    Fail("batch_pairs must be in [1, 64] (got ", batch_pairs, ")");
-  if (crop_px < 0 || (crop_px > 0 && crop_px < 16))
-    Fail("crop_px must be 0 (whole images) or >= 16 (got ", crop_px, ")");
-  if (!(learning_rate > 0 && learning_rate < 1))
-    Fail("learning_rate must be in (0, 1) (got ", learning_rate, ")");
-  for (double w : {l1_weight, ssim_weight, temporal_weight, gan_weight}) {
-    if (!(w >= 0 && std::isfinite(w))) Fail("loss weights must be finite and >= 0");
-  }
-  if (!(l1_weight + ssim_weight > 0)) Fail("l1_weight and ssim_weight cannot both be 0");
-  if (!(subject_weight >= 1 && subject_weight <= 100))
-    Fail("subject_weight must be in [1, 100] (got ", subject_weight, ")");
-  if (!(alpha_weight >= 0 && alpha_weight <= 100))
-    Fail("alpha_weight must be in [0, 100] (got ", alpha_weight, ")");
-  if (!(eval_every_s > 0)) Fail("eval_every_s must be > 0");
-  if (threads < 0) Fail("threads must be >= 0 (0: all cores)");
+  HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
+                       "give a positive time budget (minutes) or an iteration count");
+  HOLOCAP_CHECK_OPTION_GE(iterations, 0);
+  HOLOCAP_CHECK_OPTION_IN(batch_pairs, 1, 64);
+  HOLOCAP_CHECK_OPTION(crop_px == 0 || crop_px >= 16, crop_px, "0: whole images, else at least 16");
+  HOLOCAP_CHECK_OPTION_GT(learning_rate, 0);
+  HOLOCAP_CHECK_OPTION_LT(learning_rate, 1);
+  HOLOCAP_CHECK_OPTION(l1_weight >= 0 && std::isfinite(l1_weight), l1_weight);
+  HOLOCAP_CHECK_OPTION(ssim_weight >= 0 && std::isfinite(ssim_weight), ssim_weight);
+  HOLOCAP_CHECK_OPTION(temporal_weight >= 0 && std::isfinite(temporal_weight), temporal_weight);
+  HOLOCAP_CHECK_OPTION(gan_weight >= 0 && std::isfinite(gan_weight), gan_weight);
+  HOLOCAP_CHECK_OPTION(l1_weight + ssim_weight > 0, l1_weight,
+                       "l1_weight and ssim_weight cannot both be 0");
+  HOLOCAP_CHECK_OPTION_IN(subject_weight, 1, 100);
+  HOLOCAP_CHECK_OPTION_IN(alpha_weight, 0, 100);
+  HOLOCAP_CHECK_OPTION_GT(eval_every_s, 0);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0, "0: all cores");
   reconstruction.Check();
 }
 

@@ -14,6 +14,7 @@
 #include <nlohmann/json.hpp>
 #include <numbers>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -140,21 +141,24 @@ class VideoWriter {
 }  // namespace
 
 void OrbitOptions::Check() const {
-  if (views < 1) Fail("an orbit needs at least one view, got ", views);
-  if (width < 2 || height < 2 || width % 2 || height % 2)
-    Fail("output size must be even and at least 2x2 (H.264), got ", width, "x", height);
-  if (!(fov_deg >= 0 && fov_deg < 179)) Fail("fov_deg must be in [0, 179), got ", fov_deg);
-  if (!(radius_m >= 0)) Fail("radius_m must be >= 0, got ", radius_m);
-  if (frame < 0) Fail("frame must be >= 0, got ", frame);
-  if (!(fps > 0)) Fail("fps must be positive, got ", fps);
+  HOLOCAP_CHECK_OPTION_GE(views, 1);
+  HOLOCAP_CHECK_OPTION_GE(width, 2, "H.264: even and at least 2x2");
+  HOLOCAP_CHECK_OPTION_GE(height, 2, "H.264: even and at least 2x2");
+  HOLOCAP_CHECK_OPTION(width % 2 == 0, width, "H.264: even and at least 2x2");
+  HOLOCAP_CHECK_OPTION(height % 2 == 0, height, "H.264: even and at least 2x2");
+  HOLOCAP_CHECK_OPTION_GE(fov_deg, 0);
+  HOLOCAP_CHECK_OPTION_LT(fov_deg, 179);
+  HOLOCAP_CHECK_OPTION_GE(radius_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(frame, 0);
+  HOLOCAP_CHECK_OPTION_GT(fps, 0);
 }
 
 void PlaybackOptions::Check() const {
-  if (out.empty()) Fail("playback needs an output (a directory or a .mp4 file)");
-  if (crf < 0 || crf > 51) Fail("crf must be in [0, 51], got ", crf);
-  if (!(render.step_voxels > 0)) Fail("step_voxels must be positive, got ", render.step_voxels);
-  if (out.extension() != ".mp4" && !png && !exr && write_frames)
-    Fail("a frame directory needs PNG or EXR output");
+  HOLOCAP_CHECK_OPTION(!out.empty(), out, "a directory or a .mp4 file");
+  HOLOCAP_CHECK_OPTION_IN(crf, 0, 51);
+  HOLOCAP_CHECK_OPTION_GT(render.step_voxels, 0);
+  HOLOCAP_CHECK_OPTION(out.extension() == ".mp4" || png || exr || !write_frames, out,
+                       "a frame directory needs PNG or EXR output");
 }
 
 Eigen::Vector3d ModelUp(const AvatarModel& model) {

@@ -10,6 +10,7 @@
 #include <optional>
 #include <set>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/output.h"
@@ -735,13 +736,13 @@ class StreamSum {
 }  // namespace
 
 void WebExportOptions::Check() const {
-  if (qualities.empty()) Fail("--quality needs at least one level");
+  HOLOCAP_CHECK_OPTION(!qualities.empty(), qualities, "at least one level");
   for (const auto& q : qualities) web::QualityByName(q);
-  if (!(fps >= 0)) Fail("--fps must be >= 0, got ", fps);
-  if (!(step_voxels > 0)) Fail("--step must be positive, got ", step_voxels);
-  if (error_width_px < 8) Fail("error_width_px must be at least 8, got ", error_width_px);
-  if (error_cameras < 0) Fail("error_cameras must be >= 0, got ", error_cameras);
-  if (splat_key_every < 1) Fail("--key-every must be at least 1, got ", splat_key_every);
+  HOLOCAP_CHECK_OPTION_GE(fps, 0);
+  HOLOCAP_CHECK_OPTION_GT(step_voxels, 0);
+  HOLOCAP_CHECK_OPTION_GE(error_width_px, 8);
+  HOLOCAP_CHECK_OPTION_GE(error_cameras, 0);
+  HOLOCAP_CHECK_OPTION_GE(splat_key_every, 1);
   take.Check();
   tasks.Check();
 }

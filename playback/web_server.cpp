@@ -6,6 +6,7 @@
 #include <chrono>
 #include <thread>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "playback/playback.h"
 
@@ -56,9 +57,9 @@ class StopOnSignals {
 }  // namespace
 
 void ViewServerOptions::Check() const {
-  if (port < 0 || port > 65535) Fail("--port must be in 0..65535, got ", port);
-  if (host != "127.0.0.1" && host != "localhost" && host != "::1")
-    Fail("holocap view serves on loopback only, not '", host, "'");
+  HOLOCAP_CHECK_OPTION_IN(port, 0, 65535);
+  HOLOCAP_CHECK_OPTION(IsOneOf(host, {"127.0.0.1", "localhost", "::1"}), host,
+                       "holocap view serves on loopback only");
 }
 
 void ServeSite(const std::filesystem::path& site, const ViewServerOptions& options,

@@ -12,6 +12,7 @@
 #include <limits>
 #include <unordered_set>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/projector.h"
 #include "core/threads.h"
@@ -20,13 +21,14 @@
 namespace holocap {
 
 void HullOptions::Check() const {
-  if (!(voxel_m > 0 && voxel_m < 1)) Fail("hull voxel must be in (0, 1) m (got ", voxel_m, ")");
-  if (!bounds.valid()) Fail("hull bounds are empty");
-  if (tolerated_bad_views < 0) Fail("hull tolerated_bad_views must be >= 0");
-  if (min_views < 1) Fail("hull min_views must be >= 1 (got ", min_views, ")");
-  if (!(margin_px > -10 && margin_px < 100))
-    Fail("hull margin_px must be in (-10, 100) px (got ", margin_px, ")");
-  if (threads < 0) Fail("hull threads must be >= 0");
+  HOLOCAP_CHECK_OPTION_GT(voxel_m, 0);
+  HOLOCAP_CHECK_OPTION_LT(voxel_m, 1);
+  HOLOCAP_CHECK_OPTION(bounds.valid(), bounds, "an empty box");
+  HOLOCAP_CHECK_OPTION_GE(tolerated_bad_views, 0);
+  HOLOCAP_CHECK_OPTION_GE(min_views, 1);
+  HOLOCAP_CHECK_OPTION_GT(margin_px, -10);
+  HOLOCAP_CHECK_OPTION_LT(margin_px, 100);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0);
 }
 
 double VisualHull::Field(const Eigen::Vector3d& point_in_world) const {

@@ -16,6 +16,7 @@
 #include <set>
 #include <unordered_map>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/projector.h"
 #include "reconstruction/reconstruction.h"
@@ -285,9 +286,8 @@ void BlockFaces(const BlockIndex& index, const std::vector<BlockEdges>& edges, s
 }  // namespace
 
 void MeshingOptions::Check() const {
-  if (!(min_weight >= 0)) Fail("meshing min_weight must be >= 0 (got ", min_weight, ")");
-  if (!(simplify_cell_m >= 0))
-    Fail("meshing simplify_cell_m must be >= 0 (got ", simplify_cell_m, ")");
+  HOLOCAP_CHECK_OPTION_GE(min_weight, 0);
+  HOLOCAP_CHECK_OPTION_GE(simplify_cell_m, 0);
 }
 
 // Two passes over the blocks in parallel: every crossed edge's vertex, made once by the block

@@ -12,6 +12,7 @@
 #include <cmath>
 #include <limits>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/projector.h"
 #include "core/threads.h"
@@ -20,20 +21,19 @@
 namespace holocap {
 
 void MvsOptions::Check() const {
-  if (neighbors < 1 || neighbors > 16)
-    Fail("mvs neighbors must be in [1, 16] (got ", neighbors, ")");
-  if (window_radius < 1 || window_radius > 10) Fail("mvs window_radius must be in [1, 10]");
-  if (!(depth_step_px > 0 && depth_step_px <= 4)) Fail("mvs depth_step_px must be in (0, 4]");
-  if (!(hull_margin_m >= 0) || !(search_depth_m > 0))
-    Fail("mvs hull margin must be >= 0 and search depth > 0");
-  if (!(min_ncc > -1 && min_ncc < 1)) Fail("mvs min_ncc must be in (-1, 1)");
-  if (best_k < 1 || best_k > neighbors) Fail("mvs best_k must be in [1, neighbors]");
-  if (min_consistent_views < 0 || min_consistent_views > neighbors) {
-    Fail("mvs min_consistent_views must be in [0, neighbors]");
-  }
-  if (!(max_reprojection_px > 0 && max_relative_depth > 0))
-    Fail("mvs consistency tolerances must be > 0");
-  if (threads < 0) Fail("mvs threads must be >= 0");
+  HOLOCAP_CHECK_OPTION_IN(neighbors, 1, 16);
+  HOLOCAP_CHECK_OPTION_IN(window_radius, 1, 10);
+  HOLOCAP_CHECK_OPTION_GT(depth_step_px, 0);
+  HOLOCAP_CHECK_OPTION_LE(depth_step_px, 4);
+  HOLOCAP_CHECK_OPTION_GE(hull_margin_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(search_depth_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(min_ncc, -1);
+  HOLOCAP_CHECK_OPTION_LT(min_ncc, 1);
+  HOLOCAP_CHECK_OPTION_IN(best_k, 1, neighbors);
+  HOLOCAP_CHECK_OPTION_IN(min_consistent_views, 0, neighbors);
+  HOLOCAP_CHECK_OPTION_GT(max_reprojection_px, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_relative_depth, 0);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0);
 }
 
 namespace {

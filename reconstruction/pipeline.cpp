@@ -14,6 +14,7 @@
 #include <numeric>
 #include <optional>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -50,27 +51,25 @@ ReconstructionMethod ReconstructionMethodFromString(const std::string& text) {
 }
 
 void ReconstructionOptions::Check() const {
-  if (!(voxel_m >= 0 && voxel_m < 1))
-    Fail("voxel must be in (0, 1) m, or 0 for the plan's (got ", voxel_m, ")");
-  if (bounds && !bounds->valid()) Fail("reconstruction bounds are empty");
-  if (tighten_sets < 0) Fail("tighten_sets must be >= 0 (got ", tighten_sets, ")");
-  if (max_touched_faces < 1 || max_touched_faces > 7)
-    Fail("max_touched_faces must be in [1, 7] (7: never) (got ", max_touched_faces, ")");
-  if (!(max_fill_fraction > 0 && max_fill_fraction <= 1))
-    Fail("max_fill_fraction must be in (0, 1] (got ", max_fill_fraction, ")");
-  if (!(max_view_ratio >= 1)) Fail("max_view_ratio must be >= 1 (got ", max_view_ratio, ")");
-  if (!(min_moving_fraction >= 0 && min_moving_fraction < 1))
-    Fail("min_moving_fraction must be in [0, 1) (got ", min_moving_fraction, ")");
-  if (!(min_silhouette_agreement >= 0 && min_silhouette_agreement < 1))
-    Fail("min_silhouette_agreement must be in [0, 1) (got ", min_silhouette_agreement, ")");
-  for (double v : sweep_voxels_m) {
-    if (!(v > 0 && v < 1)) Fail("sweep voxel sizes must be in (0, 1) m (got ", v, ")");
+  HOLOCAP_CHECK_OPTION_GE(voxel_m, 0, "in (0, 1) m, or 0 for the plan's");
+  HOLOCAP_CHECK_OPTION_LT(voxel_m, 1, "in (0, 1) m, or 0 for the plan's");
+  HOLOCAP_CHECK_OPTION(!bounds || bounds->valid(), bounds, "an empty box");
+  HOLOCAP_CHECK_OPTION_GE(tighten_sets, 0);
+  HOLOCAP_CHECK_OPTION_IN(max_touched_faces, 1, 7, "7: never");
+  HOLOCAP_CHECK_OPTION_GT(max_fill_fraction, 0);
+  HOLOCAP_CHECK_OPTION_LE(max_fill_fraction, 1);
+  HOLOCAP_CHECK_OPTION_GE(max_view_ratio, 1);
+  HOLOCAP_CHECK_OPTION_GE(min_moving_fraction, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_moving_fraction, 1);
+  HOLOCAP_CHECK_OPTION_GE(min_silhouette_agreement, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_silhouette_agreement, 1);
+  for (double size_m : sweep_voxels_m) {
+    HOLOCAP_CHECK_OPTION(size_m > 0 && size_m < 1, sweep_voxels_m, "each in (0, 1) m");
   }
-  if (threads < 0) Fail("threads must be >= 0");
+  HOLOCAP_CHECK_OPTION_GE(threads, 0);
   tasks.Check();
-  if (!(completion_margin_px > -10 && completion_margin_px < 100)) {
-    Fail("completion margin must be in (-10, 100) px (got ", completion_margin_px, ")");
-  }
+  HOLOCAP_CHECK_OPTION_GT(completion_margin_px, -10);
+  HOLOCAP_CHECK_OPTION_LT(completion_margin_px, 100);
   silhouette.Check();
   mvs.Check();
   meshing.Check();

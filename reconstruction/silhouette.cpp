@@ -7,33 +7,28 @@
 #include <array>
 #include <cmath>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {
 
 void SilhouetteOptions::Check() const {
-  if (!(noise_sigmas > 0)) Fail("silhouette noise_sigmas must be > 0 (got ", noise_sigmas, ")");
-  if (!(min_difference >= 0 && min_difference < 255)) {
-    Fail("silhouette min_difference must be in [0, 255) DN (got ", min_difference, ")");
-  }
-  if (!(hysteresis_sigmas >= 0 && hysteresis_sigmas < 100)) {
-    Fail("silhouette hysteresis_sigmas must be in [0, 100) (got ", hysteresis_sigmas, ")");
-  }
-  if (!(hysteresis_min_difference >= 0 && hysteresis_min_difference < 255)) {
-    Fail("silhouette hysteresis_min_difference must be in [0, 255) DN (got ",
-         hysteresis_min_difference, ")");
-  }
-  if (!(threshold > 0 && threshold < 1))
-    Fail("silhouette threshold must be in (0, 1) (got ", threshold, ")");
-  if (open_px < 0 || dilate_px < 0 || erode_px < 0 || open_px > 50 || dilate_px > 50 ||
-      erode_px > 50) {
-    Fail("silhouette morphology radii must be in [0, 50] px");
-  }
-  if (morphology_width < 0) Fail("silhouette morphology_width must be >= 0");
-  if (!(min_component_fraction >= 0 && min_component_fraction < 1)) {
-    Fail("silhouette min_component_fraction must be in [0, 1) (got ", min_component_fraction, ")");
-  }
+  HOLOCAP_CHECK_OPTION_GT(noise_sigmas, 0);
+  HOLOCAP_CHECK_OPTION_GE(min_difference, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_difference, 255, "DN");
+  HOLOCAP_CHECK_OPTION_GE(hysteresis_sigmas, 0);
+  HOLOCAP_CHECK_OPTION_LT(hysteresis_sigmas, 100);
+  HOLOCAP_CHECK_OPTION_GE(hysteresis_min_difference, 0);
+  HOLOCAP_CHECK_OPTION_LT(hysteresis_min_difference, 255, "DN");
+  HOLOCAP_CHECK_OPTION_GT(threshold, 0);
+  HOLOCAP_CHECK_OPTION_LT(threshold, 1);
+  HOLOCAP_CHECK_OPTION_IN(open_px, 0, 50);
+  HOLOCAP_CHECK_OPTION_IN(dilate_px, 0, 50);
+  HOLOCAP_CHECK_OPTION_IN(erode_px, 0, 50);
+  HOLOCAP_CHECK_OPTION_GE(morphology_width, 0);
+  HOLOCAP_CHECK_OPTION_GE(min_component_fraction, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_component_fraction, 1);
 }
 
 namespace {

@@ -10,6 +10,7 @@
 #include <limits>
 #include <nlohmann/json.hpp>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/projector.h"
@@ -302,16 +303,13 @@ cv::Mat RenderSilhouette(const Mesh& mesh, const CameraModel& camera) {
 }
 
 void TextureOptions::Check() const {
-  if (texels_per_cell < 4 || texels_per_cell > 64)
-    Fail("texture texels_per_cell must be in [4, 64]");
-  if (!(min_cos_incidence >= 0 && min_cos_incidence < 1))
-    Fail("texture min_cos_incidence must be in [0, 1)");
-  if (!(depth_tolerance_m > 0)) Fail("texture depth_tolerance_m must be > 0");
-  if (max_views < 1 || max_views > 8) Fail("texture max_views must be in [1, 8]");
-  if (occlusion_scale < 1 || occlusion_scale > 4) Fail("texture occlusion_scale must be in [1, 4]");
-  if (fill_smoothing_iterations < 0 || fill_smoothing_iterations > 1000) {
-    Fail("texture fill_smoothing_iterations must be in [0, 1000]");
-  }
+  HOLOCAP_CHECK_OPTION_IN(texels_per_cell, 4, 64);
+  HOLOCAP_CHECK_OPTION_GE(min_cos_incidence, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_cos_incidence, 1);
+  HOLOCAP_CHECK_OPTION_GT(depth_tolerance_m, 0);
+  HOLOCAP_CHECK_OPTION_IN(max_views, 1, 8);
+  HOLOCAP_CHECK_OPTION_IN(occlusion_scale, 1, 4);
+  HOLOCAP_CHECK_OPTION_IN(fill_smoothing_iterations, 0, 1000);
 }
 
 nlohmann::json TexturedMesh::Metrics() const {

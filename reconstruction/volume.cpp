@@ -8,6 +8,7 @@
 #include <map>
 #include <mutex>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/projector.h"
 #include "core/threads.h"
@@ -153,25 +154,21 @@ bool SparseVolume::Sample(const Eigen::Vector3d& point_in_world, double* sdf) co
 }
 
 void TsdfOptions::Check() const {
-  if (!(voxel_m > 0 && voxel_m < 1)) Fail("tsdf voxel must be in (0, 1) m (got ", voxel_m, ")");
-  if (!(truncation_voxels >= 1))
-    Fail("tsdf truncation must be >= 1 voxel (got ", truncation_voxels, ")");
-  if (!(max_weight > 0)) Fail("tsdf max_weight must be > 0 (got ", max_weight, ")");
-  if (!bounds.valid()) Fail("tsdf bounds are empty");
-  if (!(depth_min_m >= 0 && depth_max_m > depth_min_m)) {
-    Fail("tsdf depth range must satisfy 0 <= min < max (got ", depth_min_m, ", ", depth_max_m, ")");
-  }
-  if (!(depth_noise_k >= 0)) Fail("tsdf depth_noise_k must be >= 0 (got ", depth_noise_k, ")");
-  if (smoothing_radius_px < 0 || smoothing_radius_px > 10) {
-    Fail("tsdf smoothing_radius_px must be in [0, 10] (got ", smoothing_radius_px, ")");
-  }
-  if (!(max_incidence_deg > 0 && max_incidence_deg <= 90)) {
-    Fail("tsdf max_incidence_deg must be in (0, 90] (got ", max_incidence_deg, ")");
-  }
-  if (!(carve_weight > 0 && carve_weight <= 1))
-    Fail("tsdf carve_weight must be in (0, 1] (got ", carve_weight, ")");
-  if (!(band_voxels > 0)) Fail("tsdf band_voxels must be > 0 (got ", band_voxels, ")");
-  if (threads < 0) Fail("tsdf threads must be >= 0");
+  HOLOCAP_CHECK_OPTION_GT(voxel_m, 0);
+  HOLOCAP_CHECK_OPTION_LT(voxel_m, 1);
+  HOLOCAP_CHECK_OPTION_GE(truncation_voxels, 1);
+  HOLOCAP_CHECK_OPTION_GT(max_weight, 0);
+  HOLOCAP_CHECK_OPTION(bounds.valid(), bounds, "an empty box");
+  HOLOCAP_CHECK_OPTION_GE(depth_min_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(depth_max_m, depth_min_m);
+  HOLOCAP_CHECK_OPTION_GE(depth_noise_k, 0);
+  HOLOCAP_CHECK_OPTION_IN(smoothing_radius_px, 0, 10);
+  HOLOCAP_CHECK_OPTION_GT(max_incidence_deg, 0);
+  HOLOCAP_CHECK_OPTION_LE(max_incidence_deg, 90);
+  HOLOCAP_CHECK_OPTION_GT(carve_weight, 0);
+  HOLOCAP_CHECK_OPTION_LE(carve_weight, 1);
+  HOLOCAP_CHECK_OPTION_GT(band_voxels, 0);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0);
 }
 
 namespace {

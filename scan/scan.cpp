@@ -10,6 +10,7 @@
 #include <ctime>
 #include <map>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/progress.h"
@@ -25,42 +26,42 @@ namespace holocap {
 using Json = nlohmann::json;
 
 void ScanOptions::Check() const {
-  if (!(voxel_m > 0 && voxel_m <= 0.1)) Fail("scan: voxel_m must be in (0, 0.1], got ", voxel_m);
-  if (!(truncation_voxels >= 1)) Fail("scan: truncation_voxels must be >= 1");
-  if (bounds && !bounds->valid()) Fail("scan: bounds must have max above min on every axis");
-  if (!(volume_side_m > 0)) Fail("scan: volume_side_m must be > 0");
-  if (!(depth_min_m >= 0 && depth_max_m > depth_min_m))
-    Fail("scan: need 0 <= depth_min_m < depth_max_m");
-  if (!(depth_noise_k >= 0)) Fail("scan: depth_noise_k must be >= 0");
-  if (!(floor_margin_m >= 0)) Fail("scan: floor_margin_m must be >= 0");
-  if (pyramid_levels < 1 || pyramid_levels > 5) Fail("scan: pyramid_levels must be in 1..5");
-  if (iterations.empty()) Fail("scan: iterations needs one count per level (finest first)");
-  for (int n : iterations) {
-    if (n < 1 || n > 100) Fail("scan: iterations must each be in 1..100, got ", n);
+  HOLOCAP_CHECK_OPTION_GT(voxel_m, 0);
+  HOLOCAP_CHECK_OPTION_LE(voxel_m, 0.1);
+  HOLOCAP_CHECK_OPTION_GE(truncation_voxels, 1);
+  HOLOCAP_CHECK_OPTION(!bounds || bounds->valid(), bounds, "max above min on every axis");
+  HOLOCAP_CHECK_OPTION_GT(volume_side_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(depth_min_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(depth_max_m, depth_min_m);
+  HOLOCAP_CHECK_OPTION_GE(depth_noise_k, 0);
+  HOLOCAP_CHECK_OPTION_GE(floor_margin_m, 0);
+  HOLOCAP_CHECK_OPTION_IN(pyramid_levels, 1, 5);
+  HOLOCAP_CHECK_OPTION(!iterations.empty(), iterations, "one count per level, finest first");
+  for (int count : iterations) {
+    HOLOCAP_CHECK_OPTION(count >= 1 && count <= 100, iterations, "each in 1..100");
   }
-  if (!(max_correspondence_m > 0)) Fail("scan: max_correspondence_m must be > 0");
-  if (!(max_normal_angle_deg > 0 && max_normal_angle_deg <= 90))
-    Fail("scan: max_normal_angle_deg must be in (0, 90]");
-  if (model_stride < 1 || model_stride > 8) Fail("scan: model_stride must be in 1..8");
-  if (!(photometric_weight_m >= 0)) Fail("scan: photometric_weight_m must be >= 0");
-  if (!(huber_m > 0)) Fail("scan: huber_m must be > 0");
-  if (!(min_inlier_fraction >= 0 && min_inlier_fraction <= 1))
-    Fail("scan: min_inlier_fraction must be in [0, 1]");
-  if (!(max_residual_m > 0)) Fail("scan: max_residual_m must be > 0");
-  if (min_points < 6) Fail("scan: min_points must be >= 6");
-  if (!(max_step_m > 0 && max_step_deg > 0)) Fail("scan: max_step_m and max_step_deg must be > 0");
-  if (!(min_condition >= 0 && min_condition < 1)) Fail("scan: min_condition must be in [0, 1)");
-  if (max_lost_frames < 1) Fail("scan: max_lost_frames must be >= 1");
-  if (!(max_degenerate_fraction >= 0 && max_degenerate_fraction <= 1))
-    Fail("scan: max_degenerate_fraction must be in [0, 1]");
-  if (!(max_lost_fraction >= 0 && max_lost_fraction <= 1))
-    Fail("scan: max_lost_fraction must be in [0, 1]");
-  if (keyframe_every < 1) Fail("scan: keyframe_every must be >= 1");
-  if (!(loop_max_distance_m > 0)) Fail("scan: loop_max_distance_m must be > 0");
-  if (!(loop_min_angle_deg >= 0)) Fail("scan: loop_min_angle_deg must be >= 0");
-  if (texture_views < 1) Fail("scan: texture_views must be >= 1");
-  if (light_views < 2) Fail("scan: light_views must be >= 2");
-  if (threads < 0) Fail("scan: threads must be >= 0 (0: all cores)");
+  HOLOCAP_CHECK_OPTION_GT(max_correspondence_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_normal_angle_deg, 0);
+  HOLOCAP_CHECK_OPTION_LE(max_normal_angle_deg, 90);
+  HOLOCAP_CHECK_OPTION_IN(model_stride, 1, 8);
+  HOLOCAP_CHECK_OPTION_GE(photometric_weight_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(huber_m, 0);
+  HOLOCAP_CHECK_OPTION_IN(min_inlier_fraction, 0, 1);
+  HOLOCAP_CHECK_OPTION_GT(max_residual_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(min_points, 6);
+  HOLOCAP_CHECK_OPTION_GT(max_step_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_step_deg, 0);
+  HOLOCAP_CHECK_OPTION_GE(min_condition, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_condition, 1);
+  HOLOCAP_CHECK_OPTION_GE(max_lost_frames, 1);
+  HOLOCAP_CHECK_OPTION_IN(max_degenerate_fraction, 0, 1);
+  HOLOCAP_CHECK_OPTION_IN(max_lost_fraction, 0, 1);
+  HOLOCAP_CHECK_OPTION_GE(keyframe_every, 1);
+  HOLOCAP_CHECK_OPTION_GT(loop_max_distance_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(loop_min_angle_deg, 0);
+  HOLOCAP_CHECK_OPTION_GE(texture_views, 1);
+  HOLOCAP_CHECK_OPTION_GE(light_views, 2);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0, "0: all cores");
   meshing.Check();
   texture.Check();
 }

@@ -4,6 +4,7 @@
 #include <numbers>
 #include <random>
 
+#include "core/check_option.h"
 #include "core/error.h"
 
 namespace holocap {
@@ -22,63 +23,52 @@ BoardLayout SimOptions::DefaultSimBoard() {
 }
 
 void SimOptions::Check() const {
-  if (rig.empty()) Fail("sim: rig must name a built-in rig or a rig file");
-  if (frames < 1) Fail("sim: frames must be >= 1, got ", frames);
+  HOLOCAP_CHECK_OPTION(!rig.empty(), rig, "a built-in rig or a rig file");
+  HOLOCAP_CHECK_OPTION_GE(frames, 1);
   sim::SceneKindFromString(scene);
-  if (image_width < 0 || image_height < 0) Fail("sim: image size must be >= 0");
-  if (image_height > 0 && image_width == 0) Fail("sim: image_height needs image_width");
-  if (image_width > 0 && image_width < 8) Fail("sim: image_width must be >= 8, got ", image_width);
-  if (image_height > 0 && image_height < 8) {
-    Fail("sim: image_height must be >= 8, got ", image_height);
-  }
-  if (!(fps >= 0) || !std::isfinite(fps)) Fail("sim: fps must be >= 0 (0: the rig's), got ", fps);
-  if (clean_plate_frames < 0) Fail("sim: clean_plate_frames must be >= 0");
+  HOLOCAP_CHECK_OPTION_GE(image_width, 0);
+  HOLOCAP_CHECK_OPTION_GE(image_height, 0);
+  HOLOCAP_CHECK_OPTION(image_height == 0 || image_width > 0, image_height,
+                       "image_height needs image_width");
+  HOLOCAP_CHECK_OPTION(image_width == 0 || image_width >= 8, image_width);
+  HOLOCAP_CHECK_OPTION(image_height == 0 || image_height >= 8, image_height);
+  HOLOCAP_CHECK_OPTION_GE(fps, 0, "0: the rig's");
+  HOLOCAP_CHECK_OPTION(std::isfinite(fps), fps);
+  HOLOCAP_CHECK_OPTION_GE(clean_plate_frames, 0);
   board.Check();
-  if (!(full_well_electrons > 0)) Fail("sim: full_well_electrons must be > 0");
-  if (!(read_noise_electrons >= 0)) Fail("sim: read_noise_electrons must be >= 0");
-  if (!(exposure_us > 0)) Fail("sim: exposure_us must be > 0, got ", exposure_us);
-  if (!(exposure_scale > 0)) Fail("sim: exposure_scale must be > 0, got ", exposure_scale);
-  if (!std::isfinite(gain_db)) Fail("sim: gain_db must be finite");
-  if (!(reference_exposure_us > 0)) Fail("sim: reference_exposure_us must be > 0");
-  if (antialias < 1 || antialias > 32) Fail("sim: antialias must be in 1..32, got ", antialias);
-  if (motion_blur_samples < 1 || motion_blur_samples > 64) {
-    Fail("sim: motion_blur_samples must be in 1..64, got ", motion_blur_samples);
-  }
-  if (!(depth_noise_k >= 0)) Fail("sim: depth_noise_k must be >= 0");
-  if (!(depth_max_incidence_deg > 0 && depth_max_incidence_deg <= 90)) {
-    Fail("sim: depth_max_incidence_deg must be in (0, 90], got ", depth_max_incidence_deg);
-  }
-  if (!(depth_edge_threshold_m > 0)) Fail("sim: depth_edge_threshold_m must be > 0");
-  if (!(depth_min_m >= 0 && depth_max_m > depth_min_m)) {
-    Fail("sim: need 0 <= depth_min_m < depth_max_m, got ", depth_min_m, ", ", depth_max_m);
-  }
-  if (!(depth_dropout_probability >= 0 && depth_dropout_probability <= 1)) {
-    Fail("sim: depth_dropout_probability must be in [0, 1]");
-  }
-  if (!(timestamp_jitter_ns >= 0)) Fail("sim: timestamp_jitter_ns must be >= 0");
-  if (!(clock_offset_max_ns >= 0)) Fail("sim: clock_offset_max_ns must be >= 0");
-  if (!(drop_probability >= 0 && drop_probability < 1)) {
-    Fail("sim: drop_probability must be in [0, 1), got ", drop_probability);
-  }
-  if (threads < 0) Fail("sim: threads must be >= 0 (0: all cores)");
+  HOLOCAP_CHECK_OPTION_GT(full_well_electrons, 0);
+  HOLOCAP_CHECK_OPTION_GE(read_noise_electrons, 0);
+  HOLOCAP_CHECK_OPTION_GT(exposure_us, 0);
+  HOLOCAP_CHECK_OPTION_GT(exposure_scale, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(gain_db), gain_db);
+  HOLOCAP_CHECK_OPTION_GT(reference_exposure_us, 0);
+  HOLOCAP_CHECK_OPTION_IN(antialias, 1, 32);
+  HOLOCAP_CHECK_OPTION_IN(motion_blur_samples, 1, 64);
+  HOLOCAP_CHECK_OPTION_GE(depth_noise_k, 0);
+  HOLOCAP_CHECK_OPTION_GT(depth_max_incidence_deg, 0);
+  HOLOCAP_CHECK_OPTION_LE(depth_max_incidence_deg, 90);
+  HOLOCAP_CHECK_OPTION_GT(depth_edge_threshold_m, 0);
+  HOLOCAP_CHECK_OPTION_GE(depth_min_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(depth_max_m, depth_min_m);
+  HOLOCAP_CHECK_OPTION_IN(depth_dropout_probability, 0, 1);
+  HOLOCAP_CHECK_OPTION_GE(timestamp_jitter_ns, 0);
+  HOLOCAP_CHECK_OPTION_GE(clock_offset_max_ns, 0);
+  HOLOCAP_CHECK_OPTION_GE(drop_probability, 0);
+  HOLOCAP_CHECK_OPTION_LT(drop_probability, 1);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0, "0: all cores");
   const sim::TrajectoryKind motion = sim::TrajectoryKindFromString(trajectory);
-  if (!(std::isfinite(trajectory_deg_per_s) && std::abs(trajectory_deg_per_s) <= 3600)) {
-    Fail("sim: trajectory_deg_per_s must be finite and within +-3600, got ", trajectory_deg_per_s);
-  }
-  if (motion != sim::TrajectoryKind::kFixed &&
-      sim::SceneKindFromString(scene) == sim::SceneKind::kBoard) {
-    Fail("sim: trajectory '", trajectory, "' needs a subject or object scene, not the board");
-  }
-  if (!(world_scale > 0) || !std::isfinite(world_scale)) {
-    Fail("sim: world_scale must be > 0, got ", world_scale);
-  }
-  if (!up.allFinite() || !(up.norm() > 0)) Fail("sim: up must be a non-zero direction");
-  if (!(subject_albedo > 0 && subject_albedo <= 1)) {
-    Fail("sim: subject_albedo must be in (0, 1], got ", subject_albedo);
-  }
-  if (!(background_albedo > 0 && background_albedo <= 1)) {
-    Fail("sim: background_albedo must be in (0, 1], got ", background_albedo);
-  }
+  HOLOCAP_CHECK_OPTION_IN(trajectory_deg_per_s, -3600, 3600);
+  HOLOCAP_CHECK_OPTION(motion == sim::TrajectoryKind::kFixed ||
+                           sim::SceneKindFromString(scene) != sim::SceneKind::kBoard,
+                       trajectory,
+                       "a moving sensor needs a subject or object scene, not the board");
+  HOLOCAP_CHECK_OPTION_GT(world_scale, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(world_scale), world_scale);
+  HOLOCAP_CHECK_OPTION(up.allFinite() && up.norm() > 0, up, "a non-zero direction");
+  HOLOCAP_CHECK_OPTION_GT(subject_albedo, 0);
+  HOLOCAP_CHECK_OPTION_LE(subject_albedo, 1);
+  HOLOCAP_CHECK_OPTION_GT(background_albedo, 0);
+  HOLOCAP_CHECK_OPTION_LE(background_albedo, 1);
 }
 
 nlohmann::json SimOptions::ToJson() const {

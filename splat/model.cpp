@@ -6,6 +6,7 @@
 #include <cstring>
 #include <mutex>
 
+#include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "avatar/avatar.h"
@@ -31,78 +32,70 @@ const Field kFields[] = {{"position", &splat::Gaussians::position, 3},
 }  // namespace
 
 void SplatOptions::Check() const {
-  if (sh_degree < 0 || sh_degree > splat::kMaxShDegree)
-    Fail("sh_degree must be in [0, ", splat::kMaxShDegree, "], got ", sh_degree);
-  if (sh_degree_every < 1) Fail("sh_degree_every must be at least 1, got ", sh_degree_every);
-  if (max_gaussians < 1) Fail("max_gaussians must be positive, got ", max_gaussians);
-  if (max_seed_points < 1) Fail("max_seed_points must be positive, got ", max_seed_points);
-  if (!(seed_scale_factor > 0)) Fail("seed_scale_factor must be positive, got ", seed_scale_factor);
-  if (!(initial_opacity > 0 && initial_opacity < 1))
-    Fail("initial_opacity must be in (0, 1), got ", initial_opacity);
-  if (image_width < 0) Fail("image_width must be >= 0 (0: native), got ", image_width);
-  if (heldout_cameras < 0) Fail("heldout_cameras must be >= 0, got ", heldout_cameras);
+  HOLOCAP_CHECK_OPTION_IN(sh_degree, 0, splat::kMaxShDegree);
+  HOLOCAP_CHECK_OPTION_GE(sh_degree_every, 1);
+  HOLOCAP_CHECK_OPTION_GE(max_gaussians, 1);
+  HOLOCAP_CHECK_OPTION_GE(max_seed_points, 1);
+  HOLOCAP_CHECK_OPTION_GT(seed_scale_factor, 0);
+  HOLOCAP_CHECK_OPTION_GT(initial_opacity, 0);
+  HOLOCAP_CHECK_OPTION_LT(initial_opacity, 1);
+  HOLOCAP_CHECK_OPTION_GE(image_width, 0, "0: native");
+  HOLOCAP_CHECK_OPTION_GE(heldout_cameras, 0);
   take.Check();
-  if (!(minutes >= 0)) Fail("minutes must be >= 0, got ", minutes);
-  if (!(minutes > 0) && iterations <= 0)
-    Fail("give a positive minutes budget or a number of iterations");
-  if (iterations < 0) Fail("iterations must be >= 0, got ", iterations);
-  if (!(learning_rate > 0)) Fail("learning_rate must be positive, got ", learning_rate);
-  if (!(position_lr > 0) || !(sh_lr > 0) || !(opacity_lr > 0) || !(scale_lr > 0) ||
-      !(rotation_lr > 0)) {
-    Fail("the parameter groups' rates must be positive");
-  }
-  if (!(ssim_weight >= 0 && ssim_weight <= 1))
-    Fail("ssim_weight must be in [0, 1], got ", ssim_weight);
-  if (!(min_scale_px > 0)) Fail("min_scale_px must be positive, got ", min_scale_px);
-  if (!(max_scale_extent > 0)) Fail("max_scale_extent must be positive, got ", max_scale_extent);
-  if (densify_every < 1) Fail("densify_every must be at least 1, got ", densify_every);
-  if (!(densify_gradient > 0)) Fail("densify_gradient must be positive, got ", densify_gradient);
-  if (!(percent_dense > 0)) Fail("percent_dense must be positive, got ", percent_dense);
-  if (!(prune_opacity > 0 && prune_opacity < 1))
-    Fail("prune_opacity must be in (0, 1), got ", prune_opacity);
-  if (!(prune_extent > 0)) Fail("prune_extent must be positive, got ", prune_extent);
-  if (opacity_reset_every < 0) Fail("opacity_reset_every must be >= 0, got ", opacity_reset_every);
-  if (!(eval_every_s > 0)) Fail("eval_every_s must be positive, got ", eval_every_s);
-  if (eval_every_iterations < 0)
-    Fail("eval_every_iterations must be >= 0, got ", eval_every_iterations);
-  if (!(divergence_factor > 1)) Fail("divergence_factor must exceed 1, got ", divergence_factor);
-  if (!(max_opacity_step > 0)) Fail("max_opacity_step must be positive, got ", max_opacity_step);
-  if (max_divergences < 0) Fail("max_divergences must be >= 0, got ", max_divergences);
-  if (snapshot_every < 1) Fail("snapshot_every must be at least 1, got ", snapshot_every);
-  if (threads < 0) Fail("threads must be >= 0, got ", threads);
-  if (scene != "auto" && scene != "static" && scene != "dynamic")
-    Fail("scene must be auto, static or dynamic, got '", scene, "'");
-  if (!(frame_minutes >= 0)) Fail("frame_minutes must be >= 0, got ", frame_minutes);
-  if (!(frame_minutes > 0) && frame_iterations <= 0)
-    Fail("give later frames a positive frame_minutes budget or frame_iterations");
-  if (frame_iterations < 0) Fail("frame_iterations must be >= 0, got ", frame_iterations);
-  if (frame_densify_every < 1)
-    Fail("frame_densify_every must be at least 1, got ", frame_densify_every);
-  if (!(frame_position_lr_scale > 0))
-    Fail("frame_position_lr_scale must be positive, got ", frame_position_lr_scale);
-  if (max_added_per_frame < 0) Fail("max_added_per_frame must be >= 0, got ", max_added_per_frame);
-  if (!(new_surface_spacings > 0))
-    Fail("new_surface_spacings must be positive, got ", new_surface_spacings);
-  if (!(max_frame_megabytes > 0))
-    Fail("max_frame_megabytes must be positive, got ", max_frame_megabytes);
-  if (!(delta_position_step_m > 0) || !(delta_rotation_step > 0) || !(delta_scale_step > 0) ||
-      !(delta_opacity_step > 0) || !(delta_color_step > 0)) {
-    Fail("the delta's quantisation steps must be positive");
-  }
-  if (segment_frames < 0) Fail("segment_frames must be >= 0, got ", segment_frames);
-  if (segment_start_iterations < 0)
-    Fail("segment_start_iterations must be >= 0, got ", segment_start_iterations);
+  HOLOCAP_CHECK_OPTION_GE(minutes, 0);
+  HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
+                       "give a positive minutes budget or a number of iterations");
+  HOLOCAP_CHECK_OPTION_GE(iterations, 0);
+  HOLOCAP_CHECK_OPTION_GT(learning_rate, 0);
+  HOLOCAP_CHECK_OPTION_GT(position_lr, 0);
+  HOLOCAP_CHECK_OPTION_GT(sh_lr, 0);
+  HOLOCAP_CHECK_OPTION_GT(opacity_lr, 0);
+  HOLOCAP_CHECK_OPTION_GT(scale_lr, 0);
+  HOLOCAP_CHECK_OPTION_GT(rotation_lr, 0);
+  HOLOCAP_CHECK_OPTION_IN(ssim_weight, 0, 1);
+  HOLOCAP_CHECK_OPTION_GT(min_scale_px, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_scale_extent, 0);
+  HOLOCAP_CHECK_OPTION_GE(densify_every, 1);
+  HOLOCAP_CHECK_OPTION_GT(densify_gradient, 0);
+  HOLOCAP_CHECK_OPTION_GT(percent_dense, 0);
+  HOLOCAP_CHECK_OPTION_GT(prune_opacity, 0);
+  HOLOCAP_CHECK_OPTION_LT(prune_opacity, 1);
+  HOLOCAP_CHECK_OPTION_GT(prune_extent, 0);
+  HOLOCAP_CHECK_OPTION_GE(opacity_reset_every, 0);
+  HOLOCAP_CHECK_OPTION_GT(eval_every_s, 0);
+  HOLOCAP_CHECK_OPTION_GE(eval_every_iterations, 0);
+  HOLOCAP_CHECK_OPTION_GT(divergence_factor, 1);
+  HOLOCAP_CHECK_OPTION_GT(max_opacity_step, 0);
+  HOLOCAP_CHECK_OPTION_GE(max_divergences, 0);
+  HOLOCAP_CHECK_OPTION_GE(snapshot_every, 1);
+  HOLOCAP_CHECK_OPTION_GE(threads, 0);
+  HOLOCAP_CHECK_OPTION(IsOneOf(scene, {"auto", "static", "dynamic"}), scene);
+  HOLOCAP_CHECK_OPTION_GE(frame_minutes, 0);
+  HOLOCAP_CHECK_OPTION(frame_minutes > 0 || frame_iterations > 0, frame_minutes,
+                       "give later frames a positive frame_minutes budget or frame_iterations");
+  HOLOCAP_CHECK_OPTION_GE(frame_iterations, 0);
+  HOLOCAP_CHECK_OPTION_GE(frame_densify_every, 1);
+  HOLOCAP_CHECK_OPTION_GT(frame_position_lr_scale, 0);
+  HOLOCAP_CHECK_OPTION_GE(max_added_per_frame, 0);
+  HOLOCAP_CHECK_OPTION_GT(new_surface_spacings, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_frame_megabytes, 0);
+  HOLOCAP_CHECK_OPTION_GT(delta_position_step_m, 0);
+  HOLOCAP_CHECK_OPTION_GT(delta_rotation_step, 0);
+  HOLOCAP_CHECK_OPTION_GT(delta_scale_step, 0);
+  HOLOCAP_CHECK_OPTION_GT(delta_opacity_step, 0);
+  HOLOCAP_CHECK_OPTION_GT(delta_color_step, 0);
+  HOLOCAP_CHECK_OPTION_GE(segment_frames, 0);
+  HOLOCAP_CHECK_OPTION_GE(segment_start_iterations, 0);
   tasks.Check();
-  if (segment_frames == 0 && !tasks.shard.whole())
-    Fail("--shard splits a per-frame run: give --segment-frames too");
-  if (segment_frames > 0 && (iterations <= 0 || frame_iterations <= 0)) {
-    Fail(
-        "segment_frames (a per-frame run) trains every frame for a number of iterations, so "
-        "that its bytes do not depend on the machine's speed: give iterations and "
-        "frame_iterations");
-  }
-  if (segment_frames > 0 && scene == "static")
-    Fail("segment_frames splits the frames of a dynamic scene; scene is static");
+  HOLOCAP_CHECK_OPTION(segment_frames > 0 || tasks.shard.whole(), tasks.shard,
+                       "--shard splits a per-frame run: give --segment-frames too");
+  HOLOCAP_CHECK_OPTION(segment_frames == 0 || (iterations > 0 && frame_iterations > 0),
+                       segment_frames,
+                       "a per-frame run trains every frame for a number of iterations, so that "
+                       "its bytes do not depend on the machine's speed: give iterations and "
+                       "frame_iterations");
+  HOLOCAP_CHECK_OPTION(segment_frames == 0 || scene != "static", segment_frames,
+                       "a per-frame run splits the frames of a dynamic scene; scene is static");
 }
 
 int64_t SplatOptions::SegmentStartIterations() const {

@@ -5,6 +5,9 @@
 #include <cmath>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "capture/drivers_built.h"
 #include "capture/hal.h"
@@ -203,6 +206,61 @@ TEST(Cli, BadInputGivesOneClearError) {
       RunCli("sim --rig single-rgbd --frames 1 --size 64x48 --out " + (dir / "full").string()),
       "not empty");
   EXPECT_TRUE(std::filesystem::exists(dir / "full/keep.txt"));  // nothing already there is lost
+}
+
+// An option out of its bound ends in one line naming the flag as the user typed it, what
+// followed it, and the bound, in every command (`live` and `scan` included). The checks run
+// before anything is written (reconstruct claims its output first).
+TEST_F(SimulatedTake, OptionErrorsNameTheFlagTypedItsValueAndTheBound) {
+  TempDir dir;
+  const std::string take_dir = take().string();
+  // calibrate's failure report goes into the take's calib/: it gets a take of its own.
+  std::filesystem::copy(take(), dir / "copy", std::filesystem::copy_options::recursive);
+  const std::string scan = " --scan " + (dir / "scan").string();
+  // " --out DIR/name"; every output but reconstruct's must still be missing at the end.
+  std::vector<std::filesystem::path> unwritten;
+  auto out = [&](const std::string& name, bool written = false) {
+    if (!written) unwritten.push_back(dir / name);
+    return " --out " + (dir / name).string();
+  };
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"train nvol " + take_dir + out("nvol") + " --kl-weight -1",
+       "--kl-weight -1 violates kl_weight >= 0"},
+      {"live " + take_dir + scan + out("live") + " --gate -1", "--gate -1 violates gate_m > 0"},
+      {"scan " + take_dir + out("scan0") + " --voxel 0", "--voxel must be > 0, got '0'"},
+      {"scan " + take_dir + out("scan20") + " --voxel 20cm",
+       "--voxel 20cm violates voxel_m <= 0.1"},
+      {"reconstruct " + take_dir + out("recon", true) + " --voxel 2m",
+       "--voxel 2m violates voxel_m < 1 (in (0, 1) m, or 0 for the plan's)"},
+      {"train splat " + take_dir + out("splat") + " --iterations -5",
+       "--iterations -5 violates iterations >= 0"},
+      {"sim --rig single-rgbd --frames 0" + out("sim0"), "--frames 0 violates frames >= 1"},
+      {"calibrate " + (dir / "copy").string() + " --threads -1",
+       "--threads -1 violates threads >= 0"},
+      {"merge " + take_dir + out("merged") + " --writers 0",
+       "--writers 0 violates writer_threads in [1, 64]"},
+      {"capture --rig " + (dir / "rig.yaml").string() + out("captured") +
+           " --frames 5 --lost-after-periods 0",
+       "--lost-after-periods 0 violates lost_after_periods in [1, 1000]"},
+      // Flags of other names than their fields: the command's table, or the take selection's.
+      {"train rerender " + take_dir + out("rerender") + " --width 64 --unet-width 2",
+       "--unet-width 2 violates width in [4, 128] (channels)"},
+      {"live " + take_dir + scan + out("live2") + " --min-inliers 1.5",
+       "--min-inliers 1.5 violates min_inlier_fraction in [0, 1]"},
+      {"sim --rig single-rgbd --frames 1 --size 4" + out("sim4"),
+       "--size 4 violates image_width == 0 || image_width >= 8"},
+      {"train nvol " + take_dir + out("nvol2") + " --frames 5:3",
+       "--frames 5:3 violates last_frame < 0 || last_frame > first_frame (the range 5:3 is "
+       "empty)"},
+      // A field no flag fills: the line is the check's own, naming the struct and the field.
+      {"export middlebury " + take_dir + out("exported"),
+       "ExportOptions::format = middlebury violates "},
+  };
+  for (const auto& [args, line] : cases) {
+    SCOPED_TRACE(args);
+    ExpectOneLineError(RunCli(args), "holocap: error: " + line);
+  }
+  for (const auto& path : unwritten) EXPECT_FALSE(std::filesystem::exists(path)) << path;
 }
 
 // holocap report reads what a run wrote: its outcome, metrics and series as text, the series

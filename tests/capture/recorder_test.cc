@@ -270,7 +270,9 @@ TEST(RecorderLoss, LostAfterPeriodsIsChecked) {
     options.Check();
     FAIL();
   } catch (const Error& e) {
-    EXPECT_STREQ(e.what(), "capture: lost_after_periods must be 1..1000 (not 0)");
+    EXPECT_STREQ(
+        e.what(),
+        "RecorderOptions::lost_after_periods = 0 violates lost_after_periods in [1, 1000]");
   }
 }
 

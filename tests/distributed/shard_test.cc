@@ -307,7 +307,7 @@ TEST_F(ShardedReconstruct, AFrameListIsARunThatShardsSplit) {
 
 TEST_F(ShardedReconstruct, BadShardsAndMergesEndInOneLine) {
   ExpectOneLineError(RunCli("reconstruct " + take() + " --out " + out("bad") + " --shard 2/2"),
-                     "--shard K/N needs 0 <= K < N (got 2/2)");
+                     "--shard 2/2 violates index < count (2) (K/N needs 0 <= K < N)");
   ExpectOneLineError(RunCli("reconstruct " + take() + " --out " + out("bad") + " --shard two"),
                      "--shard must be K/N");
   ExpectOneLineError(RunCli("report " + take() + " --merge"), "holds no run.json");

@@ -75,7 +75,7 @@ TEST(SubmitSlurm, OneShardPerArrayTaskAndAMergeAfterThem) {
   ExpectOneLineError(RunCli("submit slurm render " + take + " --dry-run"),
                      "'render' is not a per-frame command");
   ExpectOneLineError(RunCli("submit slurm reconstruct " + take + " --tasks 0 --dry-run"),
-                     "--tasks must be in [1, 100000]");
+                     "--tasks 0 violates tasks in [1, 100000]");
   ExpectOneLineError(RunCli("submit slurm reconstruct " + take + " --time '1 day' --dry-run"),
                      "--time '1 day' holds ' '");
   ExpectOneLineError(RunCli("submit slurm reconstruct " + take + " --shard 0/2 --dry-run"),

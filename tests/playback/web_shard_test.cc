@@ -139,7 +139,8 @@ TEST_F(ShardedWebExport, FramesSelectTheTimelineAndBadFlagsEndInOneLine) {
   EXPECT_EQ(manifest["frames"][0]["set"], 3);
   EXPECT_EQ(manifest["frames"][1]["set"], 4);
 
-  ExpectOneLineError(RunCli(Export("bad", " --shard 2/2")), "--shard K/N needs 0 <= K < N");
+  ExpectOneLineError(RunCli(Export("bad", " --shard 2/2")),
+                     "--shard 2/2 violates index < count (2) (K/N needs 0 <= K < N)");
   ExpectOneLineError(RunCli(Export("bad", " --shard half")), "--shard must be K/N");
   ExpectOneLineError(RunCli(Export("bad", " --frames 40-49")), "--frames lists frame set 40");
   ExpectOneLineError(RunCli("export colmap " + take() + " --out " + out("bad") + " --shard 0/2"),
