@@ -105,8 +105,8 @@ void FillDemoCommand(CLI::App* command) {
 
 #endif  // HOLOCAP_WITH_NEURAL
 
-HOLOCAP_LIBTORCH_COMMAND(100, "demo",
-                         "Run every pipeline stage on a small simulated studio8 take into out/demo/",
-                         FillDemoCommand);
+HOLOCAP_LIBTORCH_COMMAND(
+    100, "demo", "Run every pipeline stage on a small simulated studio8 take into out/demo/",
+    FillDemoCommand);
 
 }  // namespace holocap

@@ -568,8 +568,9 @@ std::string TrainingMethods(const CLI::App* train, const char* separator) {
 
 void AddTrainCommand(CLI::App& app) {
   auto* train = app.add_subcommand(
-      "train", "Learn an avatar from a calibrated take: `train nvol`, `train rerender` or "
-               "`train splat`");
+      "train",
+      "Learn an avatar from a calibrated take: `train nvol`, `train rerender` or "
+      "`train splat`");
   AddSplatCommand(train);
   // A word that names no method reaches `train` itself (the methods keep refusing each other's
   // flags): it ends with one line naming it and the methods there are.

@@ -46,15 +46,16 @@ CLI::App* AddCommandAt(CLI::App& app, const std::string& path, const std::string
 // commands are compiled into both programs, their LibTorch parts inside
 // `#if HOLOCAP_WITH_NEURAL`.
 #if HOLOCAP_WITH_NEURAL
+#define HOLOCAP_LIBTORCH_COMMAND(order, path, help, fill_function)    \
+  static const ::holocap::CommandRegistrar fill_function##_registrar( \
+      order, [](CLI::App& app) { fill_function(::holocap::AddCommandAt(app, path, help)); }, true)
+#else
 #define HOLOCAP_LIBTORCH_COMMAND(order, path, help, fill_function)                 \
   static const ::holocap::CommandRegistrar fill_function##_registrar(              \
-      order, [](CLI::App& app) { fill_function(::holocap::AddCommandAt(app, path, help)); }, \
-      true)
-#else
-#define HOLOCAP_LIBTORCH_COMMAND(order, path, help, fill_function)                        \
-  static const ::holocap::CommandRegistrar fill_function##_registrar(                     \
-      order,                                                                               \
-      [](CLI::App& app) { ::holocap::AddHandedOverCommand(::holocap::AddCommandAt(app, path, help)); }, \
+      order,                                                                       \
+      [](CLI::App& app) {                                                          \
+        ::holocap::AddHandedOverCommand(::holocap::AddCommandAt(app, path, help)); \
+      },                                                                           \
       true)
 #endif
 

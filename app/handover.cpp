@@ -45,7 +45,8 @@ CLI::App* AddCommandAt(CLI::App& app, const std::string& path, const std::string
   CLI::App* parent = &app;
   for (size_t i = 0; i + 1 < words.size(); ++i) {
     CLI::App* found = nullptr;
-    for (CLI::App* sub : parent->get_subcommands([&](CLI::App* s) { return s->get_name() == words[i]; }))
+    for (CLI::App* sub :
+         parent->get_subcommands([&](CLI::App* s) { return s->get_name() == words[i]; }))
       found = sub;
     parent = found != nullptr ? found : parent->add_subcommand(words[i]);
   }

@@ -192,7 +192,8 @@ void MeshRasterOptions::Check() const {
   HOLOCAP_CHECK_OPTION_IN(supersample, 1, 4);
 }
 
-GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera, const MeshRasterOptions& options) {
+GBuffer RasteriseMesh(const Mesh& mesh, const CameraModel& camera,
+                      const MeshRasterOptions& options) {
   options.Check();
   const int width = camera.width(), height = camera.height();
   if (width <= 0 || height <= 0) Fail("rasterise: the camera has no imager size");

@@ -12,9 +12,9 @@
 #include <string>
 #include <vector>
 
-#include "core/camera.h"
 #include "avatar/raymarch.h"
 #include "core/box.h"
+#include "core/camera.h"
 #include "core/take_plan.h"
 
 namespace holocap {

@@ -14,13 +14,13 @@
 #include <nlohmann/json.hpp>
 #include <string>
 
+#include "avatar/image_metrics.h"
 #include "bench/bench_data.h"
 #include "core/report.h"
 #include "interop/interop.h"
 #include "neural/neural.h"
 #include "playback/playback.h"
 #include "sim/sim.h"
-#include "avatar/image_metrics.h"
 
 namespace {
 

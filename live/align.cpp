@@ -8,10 +8,10 @@
 #include <unordered_map>
 
 #include "core/error.h"
-#include "live/live.h"
-#include "live/internal/live.h"
 #include "core/point_tree.h"
 #include "core/projector.h"
+#include "live/internal/live.h"
+#include "live/live.h"
 
 namespace holocap {
 

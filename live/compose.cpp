@@ -7,9 +7,9 @@
 #include <optional>
 
 #include "core/error.h"
-#include "live/live.h"
-#include "live/internal/live.h"
 #include "core/projector.h"
+#include "live/internal/live.h"
+#include "live/live.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {

@@ -6,9 +6,9 @@
 #include <algorithm>
 #include <cmath>
 
-#include "live/live.h"
-#include "live/internal/live.h"
 #include "core/projector.h"
+#include "live/internal/live.h"
+#include "live/live.h"
 #include "reconstruction/reconstruction.h"
 
 namespace holocap {

@@ -9,8 +9,8 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/output.h"
-#include "live/live.h"
 #include "live/internal/live.h"
+#include "live/live.h"
 
 namespace holocap {
 

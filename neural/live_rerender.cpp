@@ -427,12 +427,13 @@ LiveRenderSummary RenderLiveRecon(const fs::path& take_dir, const fs::path& reco
 }
 
 void RegisterLiveRerenderAvatarKind(AvatarKindRegistry& registry) {
-  registry.Register({"live-rerender", "rerendering of the compositions of holocap live",
-                     [](const fs::path& dir, const nlohmann::json&) -> std::unique_ptr<AvatarModel> {
-                       Fail((dir / "model.json").string(),
-                            ": a live rerender model renders `holocap live` meshes: holocap render ",
-                            "TAKE --model ", dir.string(), " --recon TAKE/live/recon --cameras NAMES");
-                     }});
+  registry.Register(
+      {"live-rerender", "rerendering of the compositions of holocap live",
+       [](const fs::path& dir, const nlohmann::json&) -> std::unique_ptr<AvatarModel> {
+         Fail((dir / "model.json").string(),
+              ": a live rerender model renders `holocap live` meshes: holocap render ",
+              "TAKE --model ", dir.string(), " --recon TAKE/live/recon --cameras NAMES");
+       }});
 }
 
 }  // namespace holocap

@@ -10,10 +10,10 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
-#include "neural/internal/live_rerender.h"
-#include "neural/internal/rerender_net.h"
 #include "core/projector.h"
 #include "core/threads.h"
+#include "neural/internal/live_rerender.h"
+#include "neural/internal/rerender_net.h"
 
 namespace holocap {
 

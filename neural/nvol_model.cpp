@@ -461,8 +461,8 @@ std::unique_ptr<AvatarModel> OpenNeuralVolume(const std::filesystem::path& dir,
 namespace holocap {
 
 void RegisterNeuralVolumeAvatarKind(AvatarKindRegistry& registry) {
-  registry.Register({"nvol", "Neural Volumes: a learned RGBA volume and warp field",
-                     neural::OpenNeuralVolume});
+  registry.Register(
+      {"nvol", "Neural Volumes: a learned RGBA volume and warp field", neural::OpenNeuralVolume});
 }
 
 }  // namespace holocap

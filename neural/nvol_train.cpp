@@ -12,13 +12,13 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "avatar/image_metrics.h"
+#include "avatar/training_data.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
-#include "avatar/training_data.h"
 #include "neural/internal/nvol.h"
-#include "avatar/image_metrics.h"
 
 namespace holocap {
 namespace {
@@ -29,7 +29,6 @@ using neural::MarchContext;
 constexpr int64_t kWarmupIterations = 20;  // of the learning rates (dynamic scenes)
 using neural::NvolConfig;
 using neural::NvolModel;
-using TrainingData;
 
 // Everything that must be saved and restored together.
 struct Snapshot {
@@ -111,8 +110,7 @@ class Trainer {
     if (options.learn_background) backgrounds_.set_requires_grad(true);
     // Rays of every pixel of every view, and the pixels whose rays meet the box.
     for (const auto& view : data.views) {
-      all_rays_.push_back(
-          CameraRaysAllPixels(view.camera, data.box_min_f(), data.box_max_f()));
+      all_rays_.push_back(CameraRaysAllPixels(view.camera, data.box_min_f(), data.box_max_f()));
       std::vector<int32_t> pixels;
       for (int64_t i = 0; i < all_rays_.back().size(); ++i) {
         if (all_rays_.back().t_far[i] > all_rays_.back().t_near[i])

@@ -332,15 +332,14 @@ RenderedView RerenderNetwork::Apply(const GBuffer& buffers, int threads) const {
 }
 
 void RegisterRerenderAvatarKind(AvatarKindRegistry& registry) {
-  registry.Register(
-      {"rerender", "a reconstruction rasterised and refined by a U-Net",
-       [](const std::filesystem::path& dir, const nlohmann::json& json) {
-         try {
-           return std::unique_ptr<AvatarModel>(new neural::RerenderModel(dir, json));
-         } catch (const nlohmann::json::exception& e) {
-           Fail(dir.string(), "/model.json is not a rerendering model: ", e.what());
-         }
-       }});
+  registry.Register({"rerender", "a reconstruction rasterised and refined by a U-Net",
+                     [](const std::filesystem::path& dir, const nlohmann::json& json) {
+                       try {
+                         return std::unique_ptr<AvatarModel>(new neural::RerenderModel(dir, json));
+                       } catch (const nlohmann::json::exception& e) {
+                         Fail(dir.string(), "/model.json is not a rerendering model: ", e.what());
+                       }
+                     }});
 }
 
 }  // namespace holocap

@@ -13,18 +13,18 @@
 #include <set>
 #include <tuple>
 
+#include "avatar/image_metrics.h"
+#include "avatar/training_data.h"
 #include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
+#include "core/projector.h"
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "avatar/training_data.h"
-#include "neural/internal/rerender_net.h"
-#include "core/projector.h"
 #include "core/threads.h"
-#include "avatar/image_metrics.h"
+#include "neural/internal/rerender_net.h"
 
 namespace holocap {
 
@@ -605,9 +605,9 @@ class RerenderTrainer {
     const cv::Mat kernel =
         cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * dilate + 1, 2 * dilate + 1));
     for (size_t f = 0; f < sets_.size(); ++f) {
-      GBuffer buffers =
-          RasteriseMesh(mesh_cache[f], d.scaled,
-                        MeshRasterOptions{.supersample = options_.supersample, .threads = threads_});
+      GBuffer buffers = RasteriseMesh(
+          mesh_cache[f], d.scaled,
+          MeshRasterOptions{.supersample = options_.supersample, .threads = threads_});
       const cv::Mat native = take_.ReadFrame(entry_of_set_[sets_[f]], d.name);
       cv::Mat image = ToFloatImage(native, size);
       if (silhouettes) {

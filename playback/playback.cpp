@@ -26,9 +26,7 @@ namespace {
 
 namespace fs = std::filesystem;
 
-Eigen::Vector3d BoxCenter(const AvatarModel& model) {
-  return model.box().center();
-}
+Eigen::Vector3d BoxCenter(const AvatarModel& model) { return model.box().center(); }
 
 // Horizontal field of view that keeps the whole box in view from `distance`.
 double FitFovDeg(const AvatarModel& model, double distance, int width, int height) {

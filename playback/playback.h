@@ -22,10 +22,12 @@
 #include <string>
 #include <vector>
 
+#include "avatar/avatar.h"
+#include "core/box.h"
 #include "core/camera.h"
 #include "core/frame_tasks.h"
 #include "core/report.h"
-#include "avatar/avatar.h"
+#include "core/take_plan.h"
 
 namespace holocap {
 

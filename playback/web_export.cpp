@@ -17,8 +17,8 @@
 #include "core/progress.h"
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "playback/playback.h"
 #include "playback/internal/web_stream.h"
+#include "playback/playback.h"
 #include "splat/splat.h"
 
 namespace holocap {

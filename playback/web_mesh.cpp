@@ -9,8 +9,8 @@
 
 #include "core/error.h"
 #include "core/fs.h"
-#include "playback/playback.h"
 #include "playback/internal/web_stream.h"
+#include "playback/playback.h"
 
 namespace holocap {
 namespace {

@@ -10,8 +10,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "core/error.h"
 #include "avatar/raymarch.h"
+#include "core/error.h"
 
 namespace holocap::web {
 namespace {

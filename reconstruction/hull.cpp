@@ -133,8 +133,7 @@ int ClassifyCell(const std::vector<HullView>& views, const Eigen::Vector3f& cent
     float reach = 1.3f * radius * view.projector.focal() / (p.z() - radius) + 1;
     if (!view.projector.InImage(u, v, -reach)) continue;  // the view cannot see any of the cell
     float d = 0;
-    if (!view.projector.InImage(u, v, reach) ||
-        !SampleBilinear(view.signed_distance, u, v, &d)) {
+    if (!view.projector.InImage(u, v, reach) || !SampleBilinear(view.signed_distance, u, v, &d)) {
       ++partial;
       continue;
     }

@@ -48,8 +48,8 @@ SurfaceErrors CompareSurfaces(const Mesh& reconstruction, const Mesh& truth,
       return centroids->Nearest(q, slack, [&](int f) {
         const Eigen::Vector3i& face = mesh->faces[f];
         return PointTriangleDistance(q, mesh->vertices[face[0]].cast<double>(),
-                                            mesh->vertices[face[1]].cast<double>(),
-                                            mesh->vertices[face[2]].cast<double>());
+                                     mesh->vertices[face[1]].cast<double>(),
+                                     mesh->vertices[face[2]].cast<double>());
       });
     }
   };

@@ -20,9 +20,9 @@
 #include "core/image.h"
 #include "core/mesh.h"
 #include "core/progress.h"
+#include "core/projector.h"
 #include "core/rig_alignment.h"
 #include "core/take.h"
-#include "core/projector.h"
 #include "core/threads.h"
 #include "reconstruction/reconstruction.h"
 

@@ -264,8 +264,7 @@ struct NormalEquations {
 // One Gauss-Newton linearisation of the level's points against the reference.
 class Linearizer {
  public:
-  Linearizer(const ModelView& reference, const FastProjector& projector,
-             const ScanOptions& options)
+  Linearizer(const ModelView& reference, const FastProjector& projector, const ScanOptions& options)
       : reference_(reference),
         projector_(projector),
         options_(options),

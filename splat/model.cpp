@@ -6,10 +6,10 @@
 #include <cstring>
 #include <mutex>
 
+#include "avatar/avatar.h"
 #include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
-#include "avatar/avatar.h"
 #include "splat/splat.h"
 
 namespace holocap {
@@ -415,8 +415,9 @@ std::unique_ptr<AvatarModel> OpenSplatModel(const fs::path& dir,
 }
 
 void RegisterSplatAvatarKind(AvatarKindRegistry& registry) {
-  registry.Register({"splat", "3D Gaussian splats drawn by the CPU rasteriser",
-                     [](const fs::path& dir, const nlohmann::json&) { return OpenSplatModel(dir); }});
+  registry.Register(
+      {"splat", "3D Gaussian splats drawn by the CPU rasteriser",
+       [](const fs::path& dir, const nlohmann::json&) { return OpenSplatModel(dir); }});
 }
 
 }  // namespace holocap

@@ -7,10 +7,10 @@
 #include <opencv2/imgproc.hpp>
 #include <optional>
 
+#include "avatar/training_data.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/mesh.h"
-#include "avatar/training_data.h"
 #include "reconstruction/reconstruction.h"
 #include "splat/splat.h"
 
@@ -79,9 +79,8 @@ TakeSelection FirstSetOnly(TakeSelection selection) {
 // found none; `source` says what happened.
 // `frames` of them from the first (a dynamic take's later frames seed where their surface is new).
 std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_dir,
-                               const SplatOptions& options, const TrainingData& data,
-                               size_t frames, const std::function<bool(size_t)>& needed,
-                               std::string* source) {
+                               const SplatOptions& options, const TrainingData& data, size_t frames,
+                               const std::function<bool(size_t)>& needed, std::string* source) {
   std::vector<Mesh> meshes(frames);
   fs::path recon_dir = options.recon_dir;
   if (recon_dir.empty()) {

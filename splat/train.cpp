@@ -13,12 +13,12 @@
 #include <random>
 #include <unordered_map>
 
+#include "avatar/avatar.h"
+#include "avatar/image_metrics.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
-#include "avatar/avatar.h"
-#include "avatar/image_metrics.h"
 #include "splat/splat.h"
 
 namespace holocap {

@@ -92,5 +92,4 @@ TakeWorld ChooseTakeWorld(const Take& take, const BoardLayout& layout,
 
 }  // namespace holocap::calibration_internal
 
-namespace holocap {
-}
+namespace holocap {}

@@ -21,21 +21,27 @@
 #include <random>
 #include <vector>
 
-#include "core/check_option.h"
 #include "core/error.h"
 
 namespace holocap {
 
+// Plain checks: this file is also the standalone fake camera program, which links no holocap
+// library (HOLOCAP_CHECK_OPTION_* lives in holocap_core).
 void FakeGigeCameraSpec::Check() const {
-  HOLOCAP_CHECK_OPTION(!address.empty(), address);
+  if (address.empty()) Fail("fake GigE camera: no address");
   // The GigE Vision bootstrap registers hold the serial in 16 bytes, NUL included.
-  HOLOCAP_CHECK_OPTION(!serial.empty() && serial.size() <= 15, serial, "1..15 characters");
-  HOLOCAP_CHECK_OPTION_IN(lost_per_thousand, 0, 1000);
+  if (serial.empty() || serial.size() > 15)
+    Fail("fake GigE camera: serial must have 1..15 characters");
+  if (!(lost_per_thousand >= 0 && lost_per_thousand <= 1000)) {
+    Fail("fake GigE camera: lost_per_thousand must be 0..1000");
+  }
   // The camera sleeps whole microseconds between ticks.
-  HOLOCAP_CHECK_OPTION_GT(trigger_tick_hz, 0);
-  HOLOCAP_CHECK_OPTION_LE(trigger_tick_hz, 1e5);
-  HOLOCAP_CHECK_OPTION(IsOneOf(pattern, {"ramp", "noise"}), pattern);
-  HOLOCAP_CHECK_OPTION(IsOneOf(peer, {"holocap", "libaravis"}), peer);
+  if (!(trigger_tick_hz > 0 && trigger_tick_hz <= 1e5))
+    Fail("fake GigE camera: trigger_tick_hz must be in (0, 1e5]");
+  if (pattern != "ramp" && pattern != "noise")
+    Fail("fake GigE camera: pattern must be ramp or noise (not '", pattern, "')");
+  if (peer != "holocap" && peer != "libaravis")
+    Fail("fake GigE camera: peer must be holocap or libaravis (not '", peer, "')");
 }
 
 namespace {

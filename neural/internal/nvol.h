@@ -11,8 +11,8 @@
 #include <string>
 #include <vector>
 
-#include "neural/neural.h"
 #include "avatar/raymarch.h"
+#include "neural/neural.h"
 
 namespace holocap::neural {
 

@@ -8,9 +8,9 @@
 #include <cmath>
 #include <random>
 
+#include "avatar/raymarch.h"
 #include "core/camera.h"
 #include "core/pose.h"
-#include "avatar/raymarch.h"
 
 namespace holocap::neural {
 namespace {

@@ -60,8 +60,8 @@ TEST(ToyAvatarKind, RendersAlongAnOrbit) {
     const RenderedView view = model->Render(path.cameras[v], 0, {});
     Eigen::Vector2d pixel;
     ASSERT_TRUE(path.cameras[v].ProjectWorld(kCenter, &pixel));
-    const cv::Vec3f centre = view.color.at<cv::Vec3f>(static_cast<int>(pixel.y()),
-                                                      static_cast<int>(pixel.x()));
+    const cv::Vec3f centre =
+        view.color.at<cv::Vec3f>(static_cast<int>(pixel.y()), static_cast<int>(pixel.x()));
     for (int c = 0; c < 3; ++c) EXPECT_NEAR(centre[c], kBgr[c], 1e-6) << "view " << v;
     EXPECT_EQ(view.alpha.at<float>(0, 0), 0.0f) << "view " << v;
     const double distance = (path.cameras[v].center_in_world() - kCenter).norm();
@@ -76,8 +76,9 @@ TEST(ToyAvatarKind, RendersAlongAnOrbit) {
 // chunks match the uncompressed ball.
 TEST(ToyAvatarKind, StreamsInAWebSite) {
   TempDir dir("holocap-toy-kind");
-  const auto sim = RunCli("sim --rig studio8 --scene object --frames 1 --size 160 --seed 3 --out '" +
-                          (dir.path() / "take").string() + "'");
+  const auto sim =
+      RunCli("sim --rig studio8 --scene object --frames 1 --size 160 --seed 3 --out '" +
+             (dir.path() / "take").string() + "'");
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   toy::WriteToyModel(dir.path() / "ball", kCenter, 0.3, kBgr);
   toy::RegisterToyAvatarKind(AvatarKindRegistry::Global());

@@ -149,7 +149,8 @@ TEST(RerenderRaster, SupersamplingGivesTheCoveredFractionOfEdgePixels) {
   const cv::Mat white(camera.height(), camera.width(), CV_32FC3, cv::Scalar::all(1));
   for (int s : {1, 2, 4}) {
     SCOPED_TRACE(s);
-    const GBuffer b = RasteriseMesh(quad, camera, MeshRasterOptions{.supersample = s, .threads = 1});
+    const GBuffer b =
+        RasteriseMesh(quad, camera, MeshRasterOptions{.supersample = s, .threads = 1});
     ASSERT_EQ(b.mask.size(), cv::Size(32, 16));
     for (int y = 0; y < 16; ++y) {
       EXPECT_EQ(b.mask.at<uint8_t>(y, 9), 255);

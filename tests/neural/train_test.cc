@@ -8,10 +8,10 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "avatar/training_data.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/take.h"
-#include "avatar/training_data.h"
 #include "neural/neural.h"
 #include "tests/support/test_support.h"
 

@@ -16,14 +16,14 @@
 #include <opencv2/imgcodecs.hpp>
 #include <random>
 
+#include "avatar/image_metrics.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "neural/neural.h"
-#include "playback/playback.h"
 #include "playback/internal/web_stream.h"
+#include "playback/playback.h"
 #include "splat/splat.h"
 #include "tests/support/test_support.h"
-#include "avatar/image_metrics.h"
 
 namespace holocap {
 namespace {

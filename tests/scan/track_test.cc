@@ -5,11 +5,11 @@
 
 #include <cmath>
 
+#include "core/projector.h"
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "core/projector.h"
-#include "scan/scan.h"
 #include "scan/internal/track.h"
+#include "scan/scan.h"
 #include "sim/sim.h"
 #include "tests/support/test_support.h"
 

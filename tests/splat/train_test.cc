@@ -10,11 +10,11 @@
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "avatar/image_metrics.h"
 #include "core/error.h"
 #include "core/report.h"
 #include "neural/neural.h"
 #include "splat/splat.h"
-#include "avatar/image_metrics.h"
 
 namespace holocap {
 namespace {

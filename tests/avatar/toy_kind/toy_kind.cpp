@@ -24,7 +24,8 @@ class ToyAvatar : public AvatarModel {
   std::string method() const override { return "toy"; }
   int64_t frame_count() const override { return 1; }
   Box box() const override {
-    return {center_ - Eigen::Vector3d::Constant(radius_), center_ + Eigen::Vector3d::Constant(radius_)};
+    return {center_ - Eigen::Vector3d::Constant(radius_),
+            center_ + Eigen::Vector3d::Constant(radius_)};
   }
   std::vector<CameraModel> cameras() const override { return {}; }
 
@@ -65,7 +66,8 @@ class ToyAvatar : public AvatarModel {
     for (int z = 0; z < kGrid; ++z) {
       for (int y = 0; y < kGrid; ++y) {
         for (int x = 0; x < kGrid; ++x) {
-          const Eigen::Vector3d p = out->box.min + voxel * Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5);
+          const Eigen::Vector3d p =
+              out->box.min + voxel * Eigen::Vector3d(x + 0.5, y + 0.5, z + 0.5);
           if ((p - center_).norm() > radius_) continue;
           float* v = &out->rgba[((static_cast<size_t>(z) * kGrid + y) * kGrid + x) * 4];
           v[0] = static_cast<float>(bgr_.x());  // the channels of the images it renders
@@ -98,10 +100,10 @@ void WriteToyModel(const std::filesystem::path& dir, const Eigen::Vector3d& cent
 }
 
 void RegisterToyAvatarKind(AvatarKindRegistry& registry) {
-  registry.Register({"toy", "a ball of one colour", [](const std::filesystem::path&,
-                                                      const nlohmann::json& json) {
-                       return std::unique_ptr<AvatarModel>(new ToyAvatar(json));
-                     }});
+  registry.Register(
+      {"toy", "a ball of one colour", [](const std::filesystem::path&, const nlohmann::json& json) {
+         return std::unique_ptr<AvatarModel>(new ToyAvatar(json));
+       }});
 }
 
 }  // namespace holocap::toy
