@@ -92,7 +92,9 @@ class ToyAvatar : public AvatarModel {
 void WriteToyModel(const std::filesystem::path& dir, const Eigen::Vector3d& center_m,
                    double radius_m, const Eigen::Vector3d& bgr) {
   CreateDirectories(dir);
+  // "frame_sets": the take's frame sets the model shows (the web export's timeline).
   const nlohmann::json json = {{"method", "toy"},
+                               {"frame_sets", {0}},
                                {"center", {center_m.x(), center_m.y(), center_m.z()}},
                                {"radius", radius_m},
                                {"color", {bgr.x(), bgr.y(), bgr.z()}}};
