@@ -21,6 +21,17 @@
 namespace holocap {
 namespace {
 
+// `train` takes words no method knows, to name an unknown method (AddTrainCommand), and the
+// methods added after it inherit that; so each method refuses here, by name and before it runs,
+// the words it was given that are not its own (whether it kept them or handed them up).
+void RefuseForeignFlags(const CLI::App* method) {
+  std::vector<std::string> extras = method->remaining();
+  if (extras.empty()) extras = method->get_parent()->remaining();
+  if (extras.empty()) return;
+  Fail("train ", method->get_name(), " has no option '", extras.front(), "' (holocap train ",
+       method->get_name(), " --help lists its options)");
+}
+
 // What every training method takes, filled by AddSharedTrainFlags.
 struct SharedTrainArgs {
   std::string take;
@@ -154,7 +165,8 @@ void FillNvolCommand(CLI::App* command) {
       ->capture_default_str();
   command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
   NameFieldFlags(command, {{"rays_per_batch", "--rays"}});
-  command->callback([args] {
+  command->callback([command, args] {
+    RefuseForeignFlags(command);
     NeuralVolumeOptions o = args->options;
     const SharedTrainArgs& shared = args->shared;
     ApplyShared(shared, &o);
@@ -379,7 +391,8 @@ void FillRerenderCommand(CLI::App* command) {
                            {"UNetConfig::width", "--unet-width"},
                            {"UNetConfig::depth", "--unet-depth"},
                            {"LiveRerenderOptions::eval_every", "--validate-every"}});
-  command->callback([args] {
+  command->callback([command, args] {
+    RefuseForeignFlags(command);
     if (!args->scan.empty()) return TrainLiveRerenderCommand(*args);
     const RerenderOptions o = RerenderOptionsFrom(*args);
     const OutputDirectory claimed = args->shared.Claim("rerender");
@@ -492,6 +505,7 @@ void AddSplatCommand(CLI::App* train) {
                            {"recon_dir", "--recon"},
                            {"max_frame_megabytes", "--max-frame-mb"}});
   command->callback([command, args] {
+    RefuseForeignFlags(command);
     SplatOptions o = args->options;
     const SharedTrainArgs& shared = args->shared;
     ApplyShared(shared, &o);
@@ -571,12 +585,13 @@ void AddTrainCommand(CLI::App& app) {
       "train",
       "Learn an avatar from a calibrated take: `train nvol`, `train rerender` or "
       "`train splat`");
-  AddSplatCommand(train);
-  // A word that names no method reaches `train` itself (the methods keep refusing each other's
-  // flags): it ends with one line naming it and the methods there are.
+  // A word that names no method reaches `train` itself: it ends with one line naming it and the
+  // methods there are. The methods inherit this and refuse each other's flags themselves
+  // (RefuseForeignFlags).
   train->allow_extras();
+  AddSplatCommand(train);
   train->parse_complete_callback([train] {
-    if (!train->get_subcommands().empty()) return;
+    if (!train->get_subcommands().empty()) return;  // the method refuses what is not its own
     const std::vector<std::string> extras = train->remaining();
     if (extras.empty())
       Fail("train needs a method: holocap train ", TrainingMethods(train, "|"), " TAKE");

@@ -252,6 +252,11 @@ TEST_F(SimulatedTake, OptionErrorsNameTheFlagTypedItsValueAndTheBound) {
       {"train nvol " + take_dir + out("nvol2") + " --frames 5:3",
        "--frames 5:3 violates last_frame < 0 || last_frame > first_frame (the range 5:3 is "
        "empty)"},
+      // A method's options are its own: another method's flag is refused by name.
+      {"train splat " + take_dir + out("splat2") + " --witness 2",
+       "train splat has no option '--witness'"},
+      {"train nvol " + take_dir + out("nvol3") + " --seed-points 10",
+       "train nvol has no option '--seed-points'"},
       // A field no flag fills: the line is the check's own, naming the struct and the field.
       {"export middlebury " + take_dir + out("exported"),
        "ExportOptions::format = middlebury violates "},
