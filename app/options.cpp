@@ -33,7 +33,7 @@ void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags) {
 }
 
 void SceneFlags::Apply(TakeSelection* selection) const {
-  if (!bounds.empty()) selection->bounds = ParseBounds(bounds).aligned();
+  if (!bounds.empty()) selection->bounds = ParseBounds(bounds);
   if (!up.empty()) selection->up = ParseUp(up);
   // "background" is the name of the clean plate's silhouettes before other sources existed.
   selection->silhouettes = silhouettes == "background" ? "plate" : silhouettes;

@@ -399,8 +399,8 @@ class TrainingDataLoader {
     }
     if (source == VolumeBoundsSource::kStage) {
       // The take plan's scene bounds: the user's, else the rig's own (never a fixed studio).
-      lo_ = take_plan_.bounds.min();
-      hi_ = take_plan_.bounds.max();
+      lo_ = take_plan_.bounds.min;
+      hi_ = take_plan_.bounds.max;
       plan_["bounds_plan"] = take_plan_.bounds_source;
     }
     data_.box.min = lo_.array() - options_.bounds_margin_m;

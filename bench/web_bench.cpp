@@ -155,10 +155,10 @@ int main(int argc, char** argv) {
   const RenderedView nvol_native = model->Render(camera, frame, {});
   const RenderedView mesh_native =
       RenderTexturedMesh(ReadTexturedGlb(dir / "take" / "recon" / glb), camera);
-  Eigen::AlignedBox3d box;
+  Box box;
   for (int a = 0; a < 3; ++a) {
-    box.min()[a] = manifest.at("bounds").at("min").at(a).get<double>();
-    box.max()[a] = manifest.at("bounds").at("max").at(a).get<double>();
+    box.min[a] = manifest.at("bounds").at("min").at(a).get<double>();
+    box.max[a] = manifest.at("bounds").at("max").at(a).get<double>();
   }
   std::printf("\n# load: %s", Run("uptime").c_str());
   std::printf(

@@ -42,21 +42,20 @@ std::vector<int> SeenCounts(const std::vector<CameraModel>& cameras, const Eigen
 
 // The box of the points of a grid over `box` (n per side) that `min_cameras` cameras see; empty
 // when none is.
-Eigen::AlignedBox3d SeenBox(const std::vector<CameraModel>& cameras, const Eigen::AlignedBox3d& box,
-                            int n, int min_cameras) {
+Box SeenBox(const std::vector<CameraModel>& cameras, const Box& box, int n, int min_cameras) {
   Eigen::Matrix3Xd points(3, n * n * n);
-  const Eigen::Vector3d step = box.sizes() / (n - 1);
+  const Eigen::Vector3d step = box.size() / (n - 1);
   for (int i = 0, c = 0; i < n; ++i)
     for (int j = 0; j < n; ++j)
       for (int k = 0; k < n; ++k, ++c)
-        points.col(c) = box.min() + step.cwiseProduct(Eigen::Vector3d(i, j, k));
+        points.col(c) = box.min + step.cwiseProduct(Eigen::Vector3d(i, j, k));
   const std::vector<int> counts = SeenCounts(cameras, points);
-  Eigen::AlignedBox3d seen;  // empty
+  Box seen = Box::Empty();
   for (Eigen::Index i = 0; i < points.cols(); ++i)
-    if (counts[i] >= min_cameras) seen.extend(Eigen::Vector3d(points.col(i)));
-  if (seen.isEmpty()) return seen;
+    if (counts[i] >= min_cameras) seen.Extend(Eigen::Vector3d(points.col(i)));
+  if (seen.empty()) return seen;
   // The true edge lies within a step of the outermost seen points.
-  return Eigen::AlignedBox3d(seen.min() - step, seen.max() + step).intersection(box);
+  return Box{seen.min - step, seen.max + step}.Intersection(box);
 }
 
 }  // namespace
@@ -99,10 +98,10 @@ RigView ViewOfRig(const std::vector<CameraModel>& cameras) {
   // A coarse grid, then two finer ones over what the coarser saw (a narrow lens sees a volume
   // a few grid steps wide).
   const double half = view.median_distance_m;
-  Eigen::AlignedBox3d box(view.center.array() - half, view.center.array() + half);
-  for (int pass = 0; pass < 3 && !box.isEmpty(); ++pass)
+  Box box{view.center.array() - half, view.center.array() + half};
+  for (int pass = 0; pass < 3 && !box.empty(); ++pass)
     box = SeenBox(cameras, box, 24, view.min_cameras);
-  if (box.isEmpty()) {
+  if (box.empty()) {
     view.why = Cat("no point near where the optical axes meet is seen by ", view.min_cameras,
                    " of the ", n, " cameras");
     return view;
@@ -114,7 +113,7 @@ RigView ViewOfRig(const std::vector<CameraModel>& cameras) {
           Format("(%.3f, %.3f, %.3f)", view.center.x(), view.center.y(), view.center.z()),
           Format(", %.3f m from the cameras (median); the box that ", view.median_distance_m),
           view.min_cameras, " of them see, ",
-          Format("%.3f x %.3f x %.3f m", box.sizes().x(), box.sizes().y(), box.sizes().z()));
+          Format("%.3f x %.3f x %.3f m", box.size().x(), box.size().y(), box.size().z()));
   return view;
 }
 
@@ -230,8 +229,7 @@ bool FloorFromDepth(const std::vector<std::pair<CameraModel, cv::Mat>>& depth_ma
   return true;
 }
 
-double ImpliedVoxel(const Eigen::AlignedBox3d& box, const std::vector<CameraModel>& cameras,
-                    std::string* why) {
+double ImpliedVoxel(const Box& box, const std::vector<CameraModel>& cameras, std::string* why) {
   const Eigen::Vector3d center = box.center();
   std::vector<double> footprints;
   for (const auto& camera : cameras) {
@@ -242,7 +240,7 @@ double ImpliedVoxel(const Eigen::AlignedBox3d& box, const std::vector<CameraMode
     footprints.push_back(radians * (camera.center_in_world() - center).norm());
   }
   const double detail = 2.0 / 3.0 * Median(footprints);
-  const double memory = box.sizes().maxCoeff() / 512;
+  const double memory = box.size().maxCoeff() / 512;
   const double chosen = std::max(detail, memory);
   const double voxel = 1e-3 * std::exp2(std::round(std::log2(chosen * 1e3)));
   if (why != nullptr) {

@@ -39,8 +39,7 @@ void TakeSelection::Check() const {
   HOLOCAP_CHECK_OPTION(frame_list.empty() || (first_frame == 0 && last_frame == -1), frame_list,
                        "a list of frame sets and a range A:B are one or the other");
   HOLOCAP_CHECK_OPTION_GE(clean_plate_frames, -1, "-1: from the take");
-  HOLOCAP_CHECK_OPTION(!bounds || (bounds->max().array() > bounds->min().array()).all(), bounds,
-                       "max must exceed min on every axis");
+  HOLOCAP_CHECK_OPTION(!bounds || bounds->valid(), bounds, "max must exceed min on every axis");
   HOLOCAP_CHECK_OPTION(!up || (up->norm() > 0 && up->allFinite()), up, "a non-zero direction");
   HOLOCAP_CHECK_OPTION(
       IsOneOf(silhouettes, {"auto", "alpha", "plate", "median", "otsu", "threshold"}), silhouettes);
@@ -109,29 +108,28 @@ std::vector<std::string> TakePlan::ReconstructionSensors() const {
   return out;
 }
 
-void TakePlan::SetBounds(const Eigen::AlignedBox3d& box, std::string why, bool cut_at_floor) {
+void TakePlan::SetBounds(const Box& box, std::string why, bool cut_at_floor) {
   bounds = cut_at_floor ? AboveFloor(box) : box;
   bounds_source = std::move(why);
-  if (!bounds.isApprox(box)) bounds_source += Cat("; cut at the floor (", floor_m, " m along up)");
+  if (!(bounds == box)) bounds_source += Cat("; cut at the floor (", floor_m, " m along up)");
   voxel_m = ImpliedVoxel(bounds, Cameras(color_sensors.empty() ? depth_sensors : color_sensors),
                          &voxel_source);
 }
 
-Eigen::AlignedBox3d TakePlan::AboveFloor(Eigen::AlignedBox3d box) const {
+Box TakePlan::AboveFloor(Box box) const {
   if (!std::isfinite(floor_m)) return box;
   for (int axis = 0; axis < 3; ++axis) {
-    if (up(axis) == 1 && box.max()(axis) > floor_m)
-      box.min()(axis) = std::max(box.min()(axis), floor_m);
-    if (up(axis) == -1 && box.min()(axis) < -floor_m)
-      box.max()(axis) = std::min(box.max()(axis), -floor_m);
+    if (up(axis) == 1 && box.max(axis) > floor_m) box.min(axis) = std::max(box.min(axis), floor_m);
+    if (up(axis) == -1 && box.min(axis) < -floor_m)
+      box.max(axis) = std::min(box.max(axis), -floor_m);
   }
   return box;
 }
 
 nlohmann::json TakePlan::ToJson() const {
-  auto box = [](const Eigen::AlignedBox3d& b) {
-    return nlohmann::json{{"min", {b.min().x(), b.min().y(), b.min().z()}},
-                          {"max", {b.max().x(), b.max().y(), b.max().z()}}};
+  auto box = [](const Box& b) {
+    return nlohmann::json{{"min", {b.min.x(), b.min.y(), b.min.z()}},
+                          {"max", {b.max.x(), b.max.y(), b.max.z()}}};
   };
   nlohmann::json silhouette = {{"source", ToString(silhouettes)}, {"why", silhouette_reason}};
   if (silhouettes == SilhouetteSource::kThreshold) silhouette["threshold"] = silhouette_threshold;
@@ -249,7 +247,7 @@ void ChooseScene(const Take& take, const TakeSelection& selection, TakePlan& pla
   }
   if (!view.converges) {
     // No convergent rig (one sensor, parallel axes): the stage volume of a metre-scale studio.
-    const Eigen::AlignedBox3d stage(Eigen::Vector3d(-1.5, -1.5, 0), Eigen::Vector3d(1.5, 1.5, 2.5));
+    const Box stage{Eigen::Vector3d(-1.5, -1.5, 0), Eigen::Vector3d(1.5, 1.5, 2.5)};
     plan.view_bounds = stage;
     plan.SetBounds(stage, "default stage box: " + view.why + "; give --bounds for another scene",
                    false);

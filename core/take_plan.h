@@ -24,6 +24,7 @@
 #include <opencv2/core.hpp>
 #include <utility>
 
+#include "core/box.h"
 #include "core/camera.h"
 #include "core/take.h"
 
@@ -56,8 +57,8 @@ struct TakeSelection {
                                       // metadata (the simulator writes it), else 0
   bool ground_truth_cameras = false;  // gt/cameras even when calib/ exists (simulated takes)
   std::vector<std::string> heldout;   // colour cameras never reconstructed from (--heldout-names)
-  std::optional<Eigen::AlignedBox3d> bounds;  // the scene's box (--bounds); else from the rig
-  std::optional<Eigen::Vector3d> up;          // the world's up axis (--up); else from the rig
+  std::optional<Box> bounds;          // the scene's box (--bounds); else from the rig
+  std::optional<Eigen::Vector3d> up;  // the world's up axis (--up); else from the rig
   // Silhouettes: "auto" (the first of the take's sources that can run: alpha, clean plate,
   // a background model of a take of kMinBackgroundSets frame sets or more, Otsu), "alpha",
   // "plate", "median" (the background model), "otsu" or "threshold" (silhouette_threshold,
@@ -88,9 +89,9 @@ struct TakePlan {
   nlohmann::json left_out = nlohmann::json::object();  // {what: why} for skipped work
   // The scene: the box every stage works in, the box the cameras share (what a result may
   // fill at most), the up axis and the voxel size the bounds imply, each with its reason.
-  Eigen::AlignedBox3d bounds;
+  Box bounds = Box::Empty();
   std::string bounds_source;  // "user (--bounds)", "cameras (...)", "cameras + coarse hull ..."
-  Eigen::AlignedBox3d view_bounds;  // seen by most colour cameras (the user's box if none)
+  Box view_bounds = Box::Empty();  // seen by most colour cameras (the user's box if none)
   Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
   std::string up_source;
   // The floor's height along `up` when depth saw one and `up` is a world axis, less the fit's
@@ -122,9 +123,9 @@ struct TakePlan {
   std::vector<std::string> ReconstructionSensors() const;
   // Sets bounds (cut at the floor, if any) and the voxel size they imply (ImpliedVoxel), with
   // the reason for both.
-  void SetBounds(const Eigen::AlignedBox3d& box, std::string why, bool cut_at_floor = true);
+  void SetBounds(const Box& box, std::string why, bool cut_at_floor = true);
   // `box` without what lies below the floor (unchanged when there is none).
-  Eigen::AlignedBox3d AboveFloor(Eigen::AlignedBox3d box) const;
+  Box AboveFloor(Box box) const;
   // The plan's keys of every report: cameras, color_sensors, depth_sensors, clean_plate_frames,
   // frame_sets, heldout, witness, left_out, bounds, up, voxel, silhouettes.
   nlohmann::json ToJson() const;
@@ -134,7 +135,7 @@ struct TakePlan {
 struct RigView {
   Eigen::Vector3d center = Eigen::Vector3d::Zero();  // least squares nearest the optical axes
   double median_distance_m = 0;                      // from the cameras to `center`
-  Eigen::AlignedBox3d shared;  // points seen by at least `min_cameras` (in front, in image)
+  Box shared = Box::Empty();  // points seen by at least `min_cameras` (in front, in image)
   int min_cameras = 0;
   bool converges = false;  // optical axes meet (else `shared` is empty)
   std::string why;         // one line for the plan
@@ -158,8 +159,7 @@ Eigen::Vector3d SnapToAxis(const Eigen::Vector3d& up, double degrees, std::strin
 // The voxel a box and its cameras imply: 2/3 of a pixel's footprint at the cameras' median
 // distance to the box's centre (finer adds no detail), no finer than 1/512 of the box's largest
 // side (memory), rounded to a power of two in millimetres. `why` says which bound chose it.
-double ImpliedVoxel(const Eigen::AlignedBox3d& box, const std::vector<CameraModel>& cameras,
-                    std::string* why);
+double ImpliedVoxel(const Box& box, const std::vector<CameraModel>& cameras, std::string* why);
 // How many of the cameras see a point (in front, inside the image).
 int CamerasSeeing(const std::vector<CameraModel>& cameras, const Eigen::Vector3d& point_in_world);
 

@@ -7,6 +7,7 @@
 #include <functional>
 #include <unordered_map>
 
+#include "core/box.h"
 #include "core/error.h"
 #include "core/point_tree.h"
 #include "core/projector.h"
@@ -86,10 +87,9 @@ void AddNearestPairs(const std::vector<Eigen::Vector3f>& points,
   if (facing.empty()) return;
   const PointTree tree(facing);
   // A live point outside the facing points' box grown by the gate pairs with none of them.
-  Eigen::AlignedBox3d reach;
-  for (const Eigen::Vector3d& p : facing) reach.extend(p);
-  reach.min().array() -= gate_m;
-  reach.max().array() += gate_m;
+  Box reach = Box::Empty();
+  for (const Eigen::Vector3d& p : facing) reach.Extend(p);
+  reach = reach.Grown(gate_m);
   const float cos_max = static_cast<float>(std::cos(max_normal_angle_deg * M_PI / 180));
   const size_t stride =
       std::max<size_t>(1, static_cast<size_t>(live.valid / std::max(1, live_samples)));
@@ -97,7 +97,7 @@ void AddNearestPairs(const std::vector<Eigen::Vector3f>& points,
   for (size_t pixel = 0; pixel < live.points.size(); ++pixel) {
     if (!live.normals[pixel].allFinite() || seen++ % stride != 0) continue;
     const Eigen::Vector3d q = live.points[pixel].cast<double>();
-    if (!reach.contains(q)) continue;
+    if (!reach.Contains(q)) continue;
     int nearest = -1;
     double best = std::numeric_limits<double>::infinity();
     // Only a point within the gate can pair: the distances are clamped to it, so the tree

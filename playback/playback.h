@@ -124,7 +124,7 @@ RenderedView RenderTexturedMesh(const TexturedMeshFrame& mesh, const CameraModel
 // surroundings. Either image may be 8-bit, 16-bit or float in [0, 1] (BGR, 3 channels, the
 // same size). `pixels` (optional) receives how many pixels were compared.
 double PsnrInsideBoxDb(const cv::Mat& picture, const cv::Mat& reference, const CameraModel& camera,
-                       const Eigen::AlignedBox3d& box, int64_t* pixels = nullptr);
+                       const Box& box, int64_t* pixels = nullptr);
 
 // ---------------------------------------------------------------------------------------------
 // The web player: `holocap export web` writes a static site (index.html, the player's ES

@@ -224,7 +224,7 @@ class SiteWriter {
   fs::path recon_;
   std::map<int64_t, fs::path> mesh_files_;
   std::vector<int64_t> sets_;  // the timeline: frame sets shown, in order
-  Eigen::AlignedBox3d bounds_;
+  Box bounds_ = Box::Empty();
   double fps_ = 30;
   nlohmann::json identity_;
   std::vector<SiteStream> streams_;
@@ -384,8 +384,8 @@ nlohmann::json SiteWriter::ManifestHead() const {
           {"fps", fps_},
           {"frames", frames},
           {"bounds",
-           {{"min", {bounds_.min().x(), bounds_.min().y(), bounds_.min().z()}},
-            {"max", {bounds_.max().x(), bounds_.max().y(), bounds_.max().z()}}}},
+           {{"min", {bounds_.min.x(), bounds_.min.y(), bounds_.min.z()}},
+            {"max", {bounds_.max.x(), bounds_.max.y(), bounds_.max.z()}}}},
           {"up", {plan_.up.x(), plan_.up.y(), plan_.up.z()}},
           {"cameras", cameras}};
 }
@@ -864,13 +864,13 @@ cv::Mat UnitFloat(const cv::Mat& image) {
 }  // namespace
 
 double PsnrInsideBoxDb(const cv::Mat& picture, const cv::Mat& reference, const CameraModel& camera,
-                       const Eigen::AlignedBox3d& box, int64_t* pixels) {
+                       const Box& box, int64_t* pixels) {
   if (picture.size() != reference.size())
     Fail("PSNR inside the box: pictures of ", picture.cols, "x", picture.rows, " and ",
          reference.cols, "x", reference.rows);
   double x0 = 1e9, y0 = 1e9, x1 = -1e9, y1 = -1e9;
   for (int k = 0; k < 8; ++k) {
-    const Eigen::Vector3d corner = box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(k));
+    const Eigen::Vector3d corner = box.Corner(k);
     Eigen::Vector2d p;
     camera.ProjectWorld(corner, &p);
     x0 = std::min(x0, p.x()), y0 = std::min(y0, p.y());

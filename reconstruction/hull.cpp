@@ -47,8 +47,8 @@ bool VisualHull::Contains(const Eigen::Vector3d& point_in_world, double toleranc
   return Field(point_in_world) <= tolerance_m;
 }
 
-Eigen::AlignedBox3d VisualHull::Extent() const {
-  Eigen::AlignedBox3d extent;
+Box VisualHull::Extent() const {
+  Box extent = Box::Empty();
   if (volume == nullptr) return extent;
   volume->ForEachBlock([&](const Eigen::Vector3i& block, const VoxelBlock& data) {
     for (int z = 0; z < kBlockSide; ++z)
@@ -56,13 +56,13 @@ Eigen::AlignedBox3d VisualHull::Extent() const {
         for (int x = 0; x < kBlockSide; ++x) {
           const Voxel& voxel = data.at(x, y, z);
           if (voxel.weight > 0 && voxel.sdf < 0)
-            extent.extend(volume->CenterOf(block * kBlockSide + Eigen::Vector3i(x, y, z)));
+            extent.Extend(volume->CenterOf(block * kBlockSide + Eigen::Vector3i(x, y, z)));
         }
   });
   for (uint64_t key : inside_blocks) {
     const Eigen::Vector3i block = SparseVolume::Unkey(key);
-    extent.extend(volume->CenterOf(block * kBlockSide));
-    extent.extend(volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1)));
+    extent.Extend(volume->CenterOf(block * kBlockSide));
+    extent.Extend(volume->CenterOf(block * kBlockSide + Eigen::Vector3i::Constant(kBlockSide - 1)));
   }
   return extent;
 }

@@ -10,6 +10,7 @@
 #include <map>
 #include <memory>
 
+#include "core/box.h"
 #include "core/error.h"
 #include "core/point_tree.h"
 #include "core/projector.h"
@@ -145,7 +146,7 @@ std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, do
   }
   struct Part {
     std::vector<std::array<Eigen::Vector3d, 3>> triangles;
-    Eigen::AlignedBox3d box;
+    Box box = Box::Empty();
     std::map<std::pair<int, int>, int> edge_uses;
   };
   std::map<int, Part> by_root;
@@ -155,7 +156,7 @@ std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, do
     std::array<Eigen::Vector3d, 3> t;
     for (int k = 0; k < 3; ++k) {
       t[k] = truth.vertices[f[k]].cast<double>();
-      part.box.extend(t[k]);
+      part.box.Extend(t[k]);
     }
     if (w[0] == w[1] || w[1] == w[2] || w[0] == w[2]) continue;
     for (int k = 0; k < 3; ++k)
@@ -172,7 +173,7 @@ std::function<bool(const Eigen::Vector3d&)> OnOuterSurface(const Mesh& truth, do
   }
   return [parts, tolerance_m](const Eigen::Vector3d& p) {
     for (const Part& part : *parts) {
-      if (!part.box.contains(p)) continue;
+      if (!part.box.Contains(p)) continue;
       // Ray parity along a direction no axis-aligned structure shares.
       const Eigen::Vector3d direction = Eigen::Vector3d(0.0123, 0.0371, 1.0).normalized();
       int crossings = 0;

@@ -177,15 +177,15 @@ struct MethodPlan {
 // volume it fills; a reason when that is implausible for a subject inside them, else empty.
 std::string ImplausibleHull(const VisualHull& hull, const HullSummary& summary, const Box& bounds,
                             const ReconstructionOptions& options, bool check_fill) {
-  const Eigen::AlignedBox3d extent = hull.Extent();
-  if (extent.isEmpty()) return "";
+  const Box extent = hull.Extent();
+  if (extent.empty()) return "";
   const double reach = 1.5 * hull.volume->voxel_m();
   int touched = 0;
   for (int axis = 0; axis < 3; ++axis) {
-    touched += extent.min()(axis) <= bounds.min(axis) + reach;
-    touched += extent.max()(axis) >= bounds.max(axis) - reach;
+    touched += extent.min(axis) <= bounds.min(axis) + reach;
+    touched += extent.max(axis) >= bounds.max(axis) - reach;
   }
-  const double fill = summary.volume_m3 / bounds.aligned().volume();
+  const double fill = summary.volume_m3 / bounds.Volume();
   if (touched < options.max_touched_faces && !(check_fill && fill > options.max_fill_fraction))
     return "";
   return Cat("the hull fills ", static_cast<int>(std::round(100 * fill)), "% of its bounds and ",
@@ -261,7 +261,7 @@ class FrameReconstructor {
         plates_(plates),
         plan_(plan),
         options_(options),
-        bounds_(Box::From(take_plan.bounds)),
+        bounds_(take_plan.bounds),
         voxel_(voxel),
         threads_(threads) {
     tsdf_options_ = options.tsdf;
@@ -905,7 +905,7 @@ class TakeReconstructor {
   // run DEGENERATE (the silhouettes do not separate a subject).
   void TightenBounds() {
     if (options_.bounds) {
-      take_plan_.SetBounds(options_.bounds->aligned(), "the stage's options");
+      take_plan_.SetBounds(*options_.bounds, "the stage's options");
       plan_.check_fill = true;
       return;
     }
@@ -913,20 +913,20 @@ class TakeReconstructor {
     const bool masks = needs_plate() || plan_.hull_completion;
     plan_.check_fill = true;
     if (!from_rig || !masks || options_.tighten_sets == 0) return;
-    const Eigen::AlignedBox3d& view = take_plan_.view_bounds;
+    const Box& view = take_plan_.view_bounds;
     // Cameras that see the subject whole may see past the box most of them share.
-    const Eigen::AlignedBox3d search = take_plan_.AboveFloor(
-        Eigen::AlignedBox3d(view.min() - 0.25 * view.sizes(), view.max() + 0.25 * view.sizes()));
+    const Box search =
+        take_plan_.AboveFloor(Box{view.min - 0.25 * view.size(), view.max + 0.25 * view.size()});
     HullOptions hull_options = options_.hull;
-    hull_options.voxel_m = search.sizes().maxCoeff() / 64;
-    hull_options.bounds = Box::From(search);
+    hull_options.voxel_m = search.size().maxCoeff() / 64;
+    hull_options.bounds = search;
     hull_options.threads = threads_;
     // Outside the box most cameras share, points seen by a few cameras grow the hull's ghost
     // wedges: the coarse hull counts what half of them see, as the shared box does.
     const int cameras = static_cast<int>(take_plan_.ReconstructionSensors().size());
     hull_options.min_views = std::max(hull_options.min_views, (cameras + 1) / 2);
     const int count = std::min<int>(options_.tighten_sets, frame_count_);
-    Eigen::AlignedBox3d extent;
+    Box extent = Box::Empty();
     for (int i = 0; i < count; ++i) {
       const int64_t set = take_plan_.sets[count > 1 ? i * (frame_count_ - 1) / (count - 1) : 0];
       HullSummary summary;
@@ -935,18 +935,18 @@ class TakeReconstructor {
       // Measured against the box the cameras share: silhouettes that cover every image give
       // a hull that is that box.
       const std::string implausible =
-          ImplausibleHull(hull, summary, Box::From(take_plan_.AboveFloor(view)), options_, true);
+          ImplausibleHull(hull, summary, take_plan_.AboveFloor(view), options_, true);
       if (!implausible.empty()) {
         implausible_ =
             Cat("set ", set, ": a coarse ", implausible.substr(4), " (the box the cameras share)");
         return;
       }
-      extent.extend(hull.Extent());
+      extent.Extend(hull.Extent());
     }
-    if (extent.isEmpty()) return;  // the frames say why
-    const double margin = 2 * hull_options.voxel_m + 0.1 * extent.sizes().maxCoeff();
+    if (extent.empty()) return;  // the frames say why
+    const double margin = 2 * hull_options.voxel_m + 0.1 * extent.size().maxCoeff();
     take_plan_.SetBounds(
-        Eigen::AlignedBox3d(extent.min().array() - margin, extent.max().array() + margin),
+        extent.Grown(margin),
         Cat("cameras + coarse hull: the visual hull of ", count, " frame set(s) at ",
             Fixed(hull_options.voxel_m * 1e3, 1), " mm, grown by ", Fixed(margin * 1e3, 1),
             " mm; before it, ", take_plan_.bounds_source));
@@ -965,7 +965,7 @@ class TakeReconstructor {
     // A surface more than half the scene's smallest side behind the hull's is its far side,
     // which other views see; the margin in front stays a few voxels.
     plan_.mvs.search_depth_m =
-        std::min(options_.mvs.search_depth_m, 0.5 * take_plan_.bounds.sizes().minCoeff());
+        std::min(options_.mvs.search_depth_m, 0.5 * take_plan_.bounds.size().minCoeff());
     plan_.mvs.hull_margin_m = std::min(options_.mvs.hull_margin_m, 10 * voxel_);
   }
 
@@ -975,12 +975,10 @@ class TakeReconstructor {
     const std::vector<std::string> names =
         is_tsdf() ? take_plan_.depth_sensors : take_plan_.ReconstructionSensors();
     double nearest = std::numeric_limits<double>::infinity(), farthest = 0;
-    const Eigen::AlignedBox3d& box = take_plan_.bounds;
+    const Box& box = take_plan_.bounds;
     for (const CameraModel& camera : take_plan_.Cameras(names)) {
       for (int corner = 0; corner < 8; ++corner) {
-        const double z = (camera.cam_from_world() *
-                          box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(corner)))
-                             .z();
+        const double z = (camera.cam_from_world() * box.Corner(corner)).z();
         nearest = std::min(nearest, std::max(z, 0.0));
         farthest = std::max(farthest, z);
       }
@@ -1026,10 +1024,10 @@ class TakeReconstructor {
   // A mesh wider than the cameras' shared view on some axis is not a subject they all see.
   std::string MeshLargerThanView(const FrameOutput& frame) const {
     if (!frame.IsUsable() || frame.mesh.vertices.empty()) return "";
-    Eigen::AlignedBox3d extent;
-    for (const auto& v : frame.mesh.vertices) extent.extend(v.cast<double>());
-    const Eigen::Vector3d view = take_plan_.view_bounds.sizes();
-    const Eigen::Vector3d size = extent.sizes();
+    Box extent = Box::Empty();
+    for (const auto& v : frame.mesh.vertices) extent.Extend(v.cast<double>());
+    const Eigen::Vector3d view = take_plan_.view_bounds.size();
+    const Eigen::Vector3d size = extent.size();
     for (int axis = 0; axis < 3; ++axis) {
       if (size(axis) > options_.max_view_ratio * view(axis)) {
         return Cat("the mesh is ", Fixed(size(axis), 3), " m across along ", "xyz"[axis],
@@ -1111,14 +1109,14 @@ class TakeReconstructor {
         background[name] = files->back();
       }
     }
-    const Eigen::AlignedBox3d& b = take_plan_.bounds;
+    const Box& b = take_plan_.bounds;
     return {{"silhouettes", static_cast<int>(take_plan_.silhouettes)},
             {"silhouette_reason", take_plan_.silhouette_reason},
             {"silhouette_threshold", take_plan_.silhouette_threshold},
             {"background_sets", take_plan_.background_sets},
             {"background", background},
-            {"bounds_min", {b.min().x(), b.min().y(), b.min().z()}},
-            {"bounds_max", {b.max().x(), b.max().y(), b.max().z()}},
+            {"bounds_min", {b.min.x(), b.min.y(), b.min.z()}},
+            {"bounds_max", {b.max.x(), b.max.y(), b.max.z()}},
             {"bounds_source", take_plan_.bounds_source},
             {"voxel_m", take_plan_.voxel_m},
             {"voxel_source", take_plan_.voxel_source},
@@ -1138,8 +1136,7 @@ class TakeReconstructor {
       return Eigen::Vector3d(xyz.at(0).get<double>(), xyz.at(1).get<double>(),
                              xyz.at(2).get<double>());
     };
-    take_plan_.bounds =
-        Eigen::AlignedBox3d(corner(stored.at("bounds_min")), corner(stored.at("bounds_max")));
+    take_plan_.bounds = Box{corner(stored.at("bounds_min")), corner(stored.at("bounds_max"))};
     take_plan_.bounds_source = stored.at("bounds_source").get<std::string>();
     take_plan_.voxel_m = stored.at("voxel_m").get<double>();
     take_plan_.voxel_source = stored.at("voxel_source").get<std::string>();
@@ -1214,10 +1211,9 @@ class TakeReconstructor {
                 ToString(plan_.method), frame_count_, voxel_ * 1e3,
                 take_plan_.ground_truth_cameras ? "gt/ (not calibrated)" : "calib/");
     std::printf("  %s\n", plan["method_reason"].get<std::string>().c_str());
-    const Eigen::AlignedBox3d& b = take_plan_.bounds;
-    std::printf("  bounds (%.3f, %.3f, %.3f) to (%.3f, %.3f, %.3f) m: %s\n", b.min().x(),
-                b.min().y(), b.min().z(), b.max().x(), b.max().y(), b.max().z(),
-                take_plan_.bounds_source.c_str());
+    const Box& b = take_plan_.bounds;
+    std::printf("  bounds (%.3f, %.3f, %.3f) to (%.3f, %.3f, %.3f) m: %s\n", b.min.x(), b.min.y(),
+                b.min.z(), b.max.x(), b.max.y(), b.max.z(), take_plan_.bounds_source.c_str());
     std::printf("  voxel: %s\n", take_plan_.voxel_source.c_str());
     std::printf("  up (%.3f, %.3f, %.3f): %s\n", take_plan_.up.x(), take_plan_.up.y(),
                 take_plan_.up.z(), take_plan_.up_source.c_str());

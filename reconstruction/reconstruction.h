@@ -224,7 +224,7 @@ struct VisualHull {
   // Whether a point lies in the hull, allowing `tolerance_m` outside its surface.
   bool Contains(const Eigen::Vector3d& point_in_world, double tolerance_m = 0) const;
   // The box of the voxel centres inside the hull; empty for an empty hull.
-  Eigen::AlignedBox3d Extent() const;
+  Box Extent() const;
 };
 
 // Carves through an octree of cells down to 8³-voxel blocks, evaluating voxels only in blocks

@@ -338,7 +338,7 @@ class Scanner {
   // The volume's box: the user's, else a cube around what the first frame sees.
   Box VolumeBounds(const scan::TrackFrame& frame, const Pose& world_from_cam) const {
     if (options_.bounds) return *options_.bounds;
-    if (plan_.bounds_source.rfind("user", 0) == 0) return Box::From(plan_.bounds);
+    if (plan_.bounds_source.rfind("user", 0) == 0) return plan_.bounds;
     const Eigen::Vector3d center = world_from_cam * Eigen::Vector3d(0, 0, frame.median_depth_m);
     const Eigen::Vector3d half = Eigen::Vector3d::Constant(0.5 * options_.volume_side_m);
     return {center - half, center + half};

@@ -248,7 +248,7 @@ void SplatModel::Save(const fs::path& dir, bool write_gaussians) const {
     if (write_gaussians) cameras[k].Write(dir / "cameras" / (name + ".cameramodel"));
     names.push_back(name);
   }
-  const Eigen::Vector3d lo = box.min(), hi = box.max();
+  const Eigen::Vector3d lo = box.min, hi = box.max;
   nlohmann::json json = {
       {"method", "splat"},
       {"format_version", bases.empty() ? 1 : 2},
@@ -305,8 +305,7 @@ SplatModel SplatModel::Load(const fs::path& dir) {
         CameraModel::Read(dir / "cameras" / (name.get<std::string>() + ".cameramodel")));
   const auto lo = json.at("box_min").get<std::vector<double>>();
   const auto hi = json.at("box_max").get<std::vector<double>>();
-  model.box = Eigen::AlignedBox3d(Eigen::Vector3d(lo[0], lo[1], lo[2]),
-                                  Eigen::Vector3d(hi[0], hi[1], hi[2]));
+  model.box = Box{Eigen::Vector3d(lo[0], lo[1], lo[2]), Eigen::Vector3d(hi[0], hi[1], hi[2])};
   model.plan = json.value("plan", nlohmann::json::object());
   model.frames = json.value("frames", int64_t{1});
   model.frame_sets = json.value("frame_sets", std::vector<int64_t>{});
@@ -371,7 +370,7 @@ class SplatAvatar : public AvatarModel {
         options_(options) {}
   std::string method() const override { return "splat"; }
   int64_t frame_count() const override { return model_.frames; }
-  Box box() const override { return Box::From(model_.box); }
+  Box box() const override { return model_.box; }
   std::vector<CameraModel> cameras() const override { return model_.cameras; }
   RenderedView Render(const CameraModel& camera, int64_t frame,
                       const ViewRenderOptions& options) override {

@@ -176,7 +176,7 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
   scene.plan = data.plan;
   scene.plan.erase("encoder_views");
   scene.plan.erase("occupancy");
-  scene.box = data.box.aligned();
+  scene.box = data.box;
   std::vector<std::string> undistorted;
   scene.later_frames.resize(dynamic ? data.sets.size() - 1 : 0);
   const int64_t frames = 1 + static_cast<int64_t>(scene.later_frames.size());

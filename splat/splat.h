@@ -71,6 +71,7 @@
 #include <string>
 #include <vector>
 
+#include "core/box.h"
 #include "core/camera.h"
 #include "core/frame_tasks.h"
 #include "core/report.h"
@@ -202,7 +203,7 @@ struct SplatScene {
   std::vector<SplatView> views;          // frame 0's images and silhouettes
   std::vector<SplatFrame> later_frames;  // dynamic takes: frames 1, 2, ... (else empty)
   SplatSeed seed;
-  Eigen::AlignedBox3d box;  // the volume the subject lives in (Gaussians leaving it are removed)
+  Box box = Box::Empty();  // the volume the subject lives in (Gaussians leaving it are removed)
   nlohmann::json plan = nlohmann::json::object();
 };
 
@@ -305,7 +306,7 @@ struct SplatModel {
   std::vector<int64_t> frame_sets;   // the take's frame set each frame shows (model.json keeps
                                      // the first `frames`; empty in models trained without it)
   std::vector<CameraModel> cameras;  // the training views'
-  Eigen::AlignedBox3d box;
+  Box box = Box::Empty();
   nlohmann::json plan;
 
   // model.json + gaussians.bin (write_gaussians false: model.json alone), atomic.

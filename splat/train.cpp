@@ -179,7 +179,7 @@ void Trainer::MeasureScene() {
     distances.push_back((view.camera.center_in_world() - subject).norm());
   }
   // One camera (or cameras at one place) has no spread: the subject's box stands in.
-  extent_ = 1.1 * std::max(farthest, 0.5 * scene_.box.diagonal().norm());
+  extent_ = 1.1 * std::max(farthest, 0.5 * scene_.box.size().norm());
   std::nth_element(distances.begin(), distances.begin() + distances.size() / 2, distances.end());
   const double median_distance = distances[distances.size() / 2];
   const double focal = scene_.views.front().camera.intrinsics()[0];
@@ -419,8 +419,8 @@ void Trainer::Densify(SplatSummary* summary) {
 void Trainer::Prune(bool prune_large, SplatSummary* summary) {
   const float min_logit = Logit(options_.prune_opacity);
   const float max_log = static_cast<float>(std::log(options_.prune_extent * extent_));
-  const Eigen::Vector3d grow = Eigen::Vector3d::Constant(0.05 * scene_.box.diagonal().norm());
-  const Eigen::AlignedBox3d volume(scene_.box.min() - grow, scene_.box.max() + grow);
+  const Eigen::Vector3d grow = Eigen::Vector3d::Constant(0.05 * scene_.box.size().norm());
+  const Box volume{scene_.box.min - grow, scene_.box.max + grow};
   std::vector<int64_t> keep;
   for (int64_t i = 0; i < gaussians_.size(); ++i) {
     bool finite = std::isfinite(gaussians_.opacity[i]);
@@ -438,7 +438,7 @@ void Trainer::Prune(bool prune_large, SplatSummary* summary) {
     const float* ls = &gaussians_.log_scale[3 * i];
     if (gaussians_.opacity[i] < min_logit) {
       ++summary->pruned_transparent;
-    } else if (!volume.contains(p)) {
+    } else if (!volume.Contains(p)) {
       ++summary->pruned_outside;
     } else if (prune_large && std::max({ls[0], ls[1], ls[2]}) > max_log) {
       ++summary->pruned_large;

@@ -221,10 +221,10 @@ TEST(SceneFromRig, BoundsUpAndVoxelFollowTheCamerasAtAnyScale) {
     EXPECT_LT((view.center - target * scale).norm(), 1e-6 * scale) << view.why;
     EXPECT_NEAR(view.median_distance_m, std::hypot(3.0, 1.0) * scale, 1e-9);
     EXPECT_EQ(view.min_cameras, 6);
-    EXPECT_TRUE(view.shared.contains(target * scale));
+    EXPECT_TRUE(view.shared.Contains(target * scale));
     // f = 1000 px over 640 px sees 2 x 0.32 x 3.16 m = 2.0 m across at the target: the box that
     // half the ring sees is about that wide, never the ring itself.
-    const Eigen::Vector3d size = view.shared.sizes() / scale;
+    const Eigen::Vector3d size = view.shared.size() / scale;
     EXPECT_GT(size.minCoeff(), 1.0) << size.transpose();
     EXPECT_LT(size.maxCoeff(), 4.0) << size.transpose();
     std::string why;
@@ -275,16 +275,16 @@ TEST(SceneFromRig, ThePlanRecordsTheUsersSceneAndSilhouettesOrTheTakes) {
   EXPECT_EQ(plan.silhouettes, SilhouetteSource::kOtsu) << plan.silhouette_reason;
   EXPECT_FALSE(plan.bounds_source.empty());
   EXPECT_GT(plan.voxel_m, 0);
-  EXPECT_TRUE(plan.bounds.contains(plan.bounds.center()));
+  EXPECT_TRUE(plan.bounds.Contains(plan.bounds.center()));
 
   TakeSelection selection;
-  selection.bounds = Eigen::AlignedBox3d(Eigen::Vector3d(-1, -2, -3), Eigen::Vector3d(1, 2, 3));
+  selection.bounds = Box{Eigen::Vector3d(-1, -2, -3), Eigen::Vector3d(1, 2, 3)};
   selection.up = Eigen::Vector3d(0, -2, 0);
   selection.silhouette_threshold = 0.3;
   selection.heldout = {"cam2"};
   plan = PlanTake(take, selection);
   EXPECT_EQ(plan.bounds_source, "user (--bounds)");
-  EXPECT_EQ(plan.bounds.max(), Eigen::Vector3d(1, 2, 3));
+  EXPECT_EQ(plan.bounds.max, Eigen::Vector3d(1, 2, 3));
   EXPECT_EQ(plan.up, -Eigen::Vector3d::UnitY());
   EXPECT_EQ(plan.up_source.rfind("user (--up)", 0), 0u) << plan.up_source;
   EXPECT_EQ(plan.silhouettes, SilhouetteSource::kThreshold);

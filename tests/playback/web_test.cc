@@ -184,11 +184,11 @@ CameraModel PinholeOf(const nlohmann::json& camera) {
 }
 
 // The manifest's bounds as a box.
-Eigen::AlignedBox3d BoxOf(const nlohmann::json& bounds) {
-  Eigen::AlignedBox3d box;
+Box BoxOf(const nlohmann::json& bounds) {
+  Box box;
   for (int a = 0; a < 3; ++a) {
-    box.min()[a] = bounds.at("min").at(a).get<double>();
-    box.max()[a] = bounds.at("max").at(a).get<double>();
+    box.min[a] = bounds.at("min").at(a).get<double>();
+    box.max[a] = bounds.at("max").at(a).get<double>();
   }
   return box;
 }

@@ -258,7 +258,7 @@ TEST(StudioTest, MissingFramesAreAClearError) {
 // old hand-set stage box: the same Chamfer against the truth.
 TEST(StudioTest, BoundsFromTheRigGiveTheSameHullAsTheStageBox) {
   TempDir dir;
-  auto run = [&](const std::optional<Eigen::AlignedBox3d>& bounds, const std::string& name) {
+  auto run = [&](const std::optional<Box>& bounds, const std::string& name) {
     ReconstructionOptions options;
     options.method = ReconstructionMethod::kHull;
     options.voxel_m = 0.008;
@@ -273,8 +273,8 @@ TEST(StudioTest, BoundsFromTheRigGiveTheSameHullAsTheStageBox) {
     EXPECT_EQ(summary.termination, Termination::kSuccess) << summary.message;
     return report.json();
   };
-  const nlohmann::json stage = run(
-      Eigen::AlignedBox3d(Eigen::Vector3d(-1.5, -1.5, 0), Eigen::Vector3d(1.5, 1.5, 2.5)), "stage");
+  const nlohmann::json stage =
+      run(Box{Eigen::Vector3d(-1.5, -1.5, 0), Eigen::Vector3d(1.5, 1.5, 2.5)}, "stage");
   const nlohmann::json rig = run(std::nullopt, "rig");
   const nlohmann::json& plan = rig["plan"];
   EXPECT_EQ(plan["bounds"]["source"].get<std::string>().rfind("cameras + coarse hull", 0), 0u)
@@ -285,16 +285,16 @@ TEST(StudioTest, BoundsFromTheRigGiveTheSameHullAsTheStageBox) {
   EXPECT_EQ(stage["plan"]["bounds"]["source"], "user (--bounds)");
   // The subject (1.8 m tall, walking) fits; the stage box around it is not kept.
   const Mesh truth = ReadPly(StudioTake() / "gt" / "meshes" / "000001.ply");
-  Eigen::AlignedBox3d box(Eigen::Vector3d(plan["bounds"]["box"]["min"][0].get<double>(),
-                                          plan["bounds"]["box"]["min"][1].get<double>(),
-                                          plan["bounds"]["box"]["min"][2].get<double>()),
-                          Eigen::Vector3d(plan["bounds"]["box"]["max"][0].get<double>(),
-                                          plan["bounds"]["box"]["max"][1].get<double>(),
-                                          plan["bounds"]["box"]["max"][2].get<double>()));
+  const Box box{Eigen::Vector3d(plan["bounds"]["box"]["min"][0].get<double>(),
+                                plan["bounds"]["box"]["min"][1].get<double>(),
+                                plan["bounds"]["box"]["min"][2].get<double>()),
+                Eigen::Vector3d(plan["bounds"]["box"]["max"][0].get<double>(),
+                                plan["bounds"]["box"]["max"][1].get<double>(),
+                                plan["bounds"]["box"]["max"][2].get<double>())};
   int outside = 0;
-  for (const auto& v : truth.vertices) outside += !box.contains(v.cast<double>());
+  for (const auto& v : truth.vertices) outside += !box.Contains(v.cast<double>());
   EXPECT_EQ(outside, 0);
-  EXPECT_LT(box.volume(), 0.5 * 3 * 3 * 2.5);
+  EXPECT_LT(box.Volume(), 0.5 * 3 * 3 * 2.5);
   const double chamfer_stage = stage["metrics"]["gt"]["chamfer_mm"].get<double>();
   const double chamfer_rig = rig["metrics"]["gt"]["chamfer_mm"].get<double>();
   std::printf("hull at 8 mm: chamfer %.3f mm in the stage box, %.3f mm in the rig's bounds\n",

@@ -116,8 +116,8 @@ SplatScene MakeScene(const SceneSpec& spec) {
       Truth(spec.detailed ? 1600 : 400, 0.3, spec.planar, spec.detailed, spec.stripes);
   const splat::Gaussians truth = Moved(still, spec, 0);
   SplatScene scene;
-  scene.box = Eigen::AlignedBox3d(Eigen::Vector3d::Constant(-spec.box_half_m),
-                                  Eigen::Vector3d::Constant(spec.box_half_m));
+  scene.box =
+      Box{Eigen::Vector3d::Constant(-spec.box_half_m), Eigen::Vector3d::Constant(spec.box_half_m)};
   const cv::Mat background(kSide, kSide, CV_32FC3, cv::Scalar(0.2, 0.25, 0.15));
   scene.later_frames.resize(spec.frames - 1);
   for (int c = 0; c < spec.cameras; ++c) {
@@ -321,7 +321,7 @@ TEST(SplatTrain, SubjectLeavingTheVolumeIsPrunedAtItsEdge) {
   ASSERT_TRUE(summary.IsUsable()) << summary.message;
   EXPECT_GT(summary.pruned_outside, 0);
   const SplatModel model = SplatModel::Load(Path("leaving"));
-  const double grow = 0.05 * scene.box.diagonal().norm();
+  const double grow = 0.05 * scene.box.size().norm();
   for (int64_t i = 0; i < model.gaussians.size(); ++i)
     EXPECT_LE(model.gaussians.position[3 * i], 0.5 + grow + 0.05) << "Gaussian " << i;
 }
