@@ -12,6 +12,9 @@
 //                                                             (OUT/scrub-FRAME.png each)
 //   node drive.mjs bench URL OUT STREAM...                    time to first frame and frames
 //                                                             decoded per second per stream
+//   node drive.mjs picture URL OUT W H STREAM                 the whole page, its bar shown, at
+//                                                             frame 0 of STREAM (OUT/player.png;
+//                                                             the documentation's picture)
 // Each writes OUT/<mode>.json, with every console error and page error seen.
 import fs from 'node:fs';
 import path from 'node:path';
@@ -150,6 +153,16 @@ async function scrub([width, height, camera, stream, first, ...targets]) {
   return results;
 }
 
+async function picture([width, height, stream]) {
+  const page = await open(`frame=0&stream=${stream}`, +width, +height);
+  const s = await waitFor(page, (s) => s.drawnFrame === 0 && s.drawnStream === stream && s.drawnState === 'ready', `${stream} frame 0`);
+  await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
+  const file = path.join(out, 'player.png');
+  await page.screenshot({ path: file });
+  await page.close();
+  return { file, state: s.drawnState, messages: s.messages };
+}
+
 async function bench(streams) {
   const results = {};
   for (const stream of streams) {
@@ -168,6 +181,7 @@ try {
   else if (mode === 'interact') results = await interact(rest);
   else if (mode === 'scrub') results = await scrub(rest);
   else if (mode === 'bench') results = await bench(rest);
+  else if (mode === 'picture') results = await picture(rest);
   else throw new Error(`unknown mode '${mode}'`);
   results.ok = true;
 } catch (error) {
