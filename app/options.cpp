@@ -228,7 +228,7 @@ std::string FlagFillingField(const CLI::App& command, const OptionError& error) 
   if (command.get_option_no_throw(FlagNamed(name)) != nullptr) return FlagNamed(name);
   for (const std::string unit : kUnitSuffixes) {
     if (name.size() <= unit.size() || !name.ends_with(unit)) continue;
-    const std::string flag = FlagNamed(name.substr(0, name.size() - unit.size()));
+    std::string flag = FlagNamed(name.substr(0, name.size() - unit.size()));
     if (command.get_option_no_throw(flag) != nullptr) return flag;
   }
   return "";

@@ -23,6 +23,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <exception>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -60,9 +61,7 @@ CameraModel PinholeOf(const nlohmann::json& camera) {
                      camera.at("width"), camera.at("height"), pose);
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+int RunBench(int argc, char** argv) {
   holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
   holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
   const int frames = argc > 1 ? std::atoi(argv[1]) : 30;
@@ -196,4 +195,15 @@ int main(int argc, char** argv) {
   if (fs::exists(dir / "browser" / "player.png")) std::printf("# player picture kept\n");
   std::printf("# outputs under %s\n", dir.c_str());
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return RunBench(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "web_bench: error: %s\n", e.what());
+    return 1;
+  }
 }

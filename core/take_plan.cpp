@@ -79,6 +79,7 @@ int TakePlan::ColorIndex(const std::string& name, const char* what) const {
 std::vector<int> TakePlan::ColorIndices(const std::vector<std::string>& names,
                                         const char* what) const {
   std::vector<int> out;
+  out.reserve(names.size());
   for (const auto& name : names) out.push_back(ColorIndex(name, what));
   return out;
 }

@@ -140,7 +140,7 @@ LiveSurface MakeLiveSurface(const cv::Mat& depth_m, const CameraModel& camera, d
   for (int y = 0; y < live.height; ++y) {
     for (int x = 0; x < live.width; ++x) {
       const float d = depth_m.at<float>(y, x);
-      const cv::Vec2f ray = rays.at<cv::Vec2f>(y, x);
+      const cv::Vec2f& ray = rays.at<cv::Vec2f>(y, x);
       if (!(d >= depth_min_m && d <= depth_max_m) || std::isnan(ray[0])) continue;
       const size_t i = static_cast<size_t>(y) * live.width + x;
       live.depth[i] = d;
@@ -279,6 +279,7 @@ std::vector<int> SampleNodeVertices(const Mesh& mesh, double spacing_m) {
     }
   }
   std::vector<int> chosen;
+  chosen.reserve(cells.size());
   for (const auto& [key, cell] : cells) chosen.push_back(cell.best);
   std::sort(chosen.begin(), chosen.end());  // deterministic order
   return chosen;

@@ -352,9 +352,12 @@ nlohmann::json SiteWriter::MakePlan() {
 std::vector<SiteStream> SiteWriter::ListStreams() const {
   std::vector<SiteStream> streams;
   auto add = [&](const std::string& name, const std::string& kind, int source) {
-    for (const std::string& level : options_.qualities)
-      streams.push_back(
-          {name + "-" + level, kind, level, "streams/" + name + "-" + level, source, nullptr});
+    for (const std::string& level : options_.qualities) {
+      std::string stream = name;
+      stream += '-';
+      stream += level;
+      streams.push_back({stream, kind, level, "streams/" + stream, source, nullptr});
+    }
   };
   if (!mesh_files_.empty()) add("mesh", "mesh", -1);
   for (size_t m = 0; m < options_.models.size(); ++m) {
@@ -465,7 +468,8 @@ std::vector<CameraModel> SiteWriter::ErrorCameras(int64_t frame_index) const {
   std::vector<CameraModel> chosen;
   const int n = static_cast<int>(cameras_.size());
   for (int k = 0; k < std::min(options_.error_cameras, n); ++k) {
-    const CameraModel& camera = cameras_[(frame_index + k * std::max(1, n / 2)) % n];
+    const CameraModel& camera =
+        cameras_[(frame_index + static_cast<int64_t>(k) * std::max(1, n / 2)) % n];
     chosen.push_back(camera.Scaled(static_cast<double>(options_.error_width_px) / camera.width()));
   }
   return chosen;

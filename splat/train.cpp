@@ -298,7 +298,7 @@ void Trainer::AdamStep(double progress, double* opacity_step) {
   *opacity_step = moving > 0 ? moved / moving : 0;
   // A later frame's delta holds no higher harmonics: they stay as the frame before left them.
   step(gaussians_.sh, gradient_.sh, m.sh, s.sh, options_.sh_lr, temporal_ ? 0 : options_.sh_lr / 20,
-       3 * gaussians_.coefficients());
+       size_t{3} * gaussians_.coefficients());
 }
 
 // Bounded activations: scales between the floor and the cap (the floor keeps every covariance
@@ -688,7 +688,7 @@ void Trainer::StoreDelta(int64_t frame, const Gaussians& previous, SplatFrameSum
   WriteFileAtomic(SplatDeltaFile(model_dir_, frame), delta, /*durable=*/per_frame_);
   if (!per_frame_) {
     stored_.frames = frame + 1;
-    stored_.Save(model_dir_, /*gaussians_file=*/false);
+    stored_.Save(model_dir_, /*write_gaussians=*/false);
   }
   const SplatDeltaCounts counts = CountSplatDelta(delta);
   stored->added = counts.added;

@@ -322,7 +322,7 @@ TEST(Cli, ReportsGivenTogetherShareOnePlot) {
   ASSERT_FALSE(plot.empty());
   // One panel (heldout_psnr_db; the series only one run has are left out) below a legend of two.
   EXPECT_LT(plot.rows, 2 * 260);
-  auto pixels_of = [&](cv::Scalar bgr) {
+  auto pixels_of = [&](const cv::Scalar& bgr) {
     cv::Mat match;
     cv::inRange(plot, bgr, bgr, match);
     return cv::countNonZero(match);

@@ -47,11 +47,11 @@ std::filesystem::path WriteTake(const std::filesystem::path& dir, int sets, int 
       set.index = i;
       for (const char* name : {"cam0", "cam1", "cam2"}) {
         if (i == 3 && std::string(name) == "cam2") continue;
-        set.frames.push_back({name, cv::Mat(24, 32, CV_8UC3, cv::Scalar::all(10 * i)), 1000 * i,
-                              static_cast<uint64_t>(i)});
+        set.frames.push_back({name, cv::Mat(24, 32, CV_8UC3, cv::Scalar::all(10 * i)),
+                              int64_t{1000} * i, static_cast<uint64_t>(i)});
       }
-      set.frames.push_back({"depth0", cv::Mat(12, 16, CV_32FC1, cv::Scalar(1.5f)), 1000 * i,
-                            static_cast<uint64_t>(i)});
+      set.frames.push_back({"depth0", cv::Mat(12, 16, CV_32FC1, cv::Scalar(1.5f)),
+                            int64_t{1000} * i, static_cast<uint64_t>(i)});
       writer.Append(set);
     }
     writer.Close();
@@ -243,6 +243,7 @@ TEST(SceneFromRig, OneCameraOrParallelAxesDoNotConverge) {
   const auto ring = Ring(4, 3.0, 1.0, Eigen::Vector3d::Zero());
   EXPECT_FALSE(ViewOfRig({ring[0]}).converges);
   std::vector<CameraModel> parallel;
+  parallel.reserve(3);
   for (int i = 0; i < 3; ++i) {
     parallel.push_back(
         LookAt(Eigen::Vector3d(i, 0, 0), Eigen::Vector3d(i, 0, 5), -Eigen::Vector3d::UnitY()));

@@ -60,7 +60,7 @@ splat::Gaussians Truth(int count, double radius = 0.3, bool planar = false, bool
                                : 0.4 * p[(a + 1) % 3] / radius;
       g.sh[3 * i + a] = static_cast<float>(shade / 0.2820948);
     }
-    g.rotation[4 * i] = 1;
+    g.rotation[4 * static_cast<size_t>(i)] = 1;
     g.opacity[i] = 3;
   }
   return g;
