@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Fails when a source file includes what its folder may not (docs/ARCHITECTURE's table, kept
-# below as ALLOWED), when a file includes another folder's private header, or when a private
-# header sits outside an `internal/` folder.
+# Fails when a source file includes what its folder may not (the table ALLOWED below, the
+# folders each library links), when a file includes another folder's private header, or when a
+# private header sits outside an `internal/` folder.
 #
 #   private headers   <folder>/internal/*.h: included only by <folder>/ itself and by its own
 #                     tests (tests/<folder>/)
