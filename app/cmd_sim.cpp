@@ -1,4 +1,5 @@
 // holocap sim: record a take on the simulated rig, with exact ground truth in gt/.
+#include <algorithm>
 #include <cstdio>
 #include <iostream>
 
@@ -46,17 +47,21 @@ void AddVariantFlags(CLI::App* command, SimArgs* args) {
                     "Colour streams as bgra8 with the true silhouette in alpha");
 }
 
+// WIDTH or WIDTHxHEIGHT, each a whole decimal number of pixels (1e9 or 64.5 is refused, not
+// read as its first digits).
 void ParseSize(const std::string& text, int* width, int* height) {
   if (text.empty()) return;
-  int w = 0, h = 0;
-  char tail = 0;
-  int parsed = std::sscanf(text.c_str(), "%dx%d%c", &w, &h, &tail);
-  if (parsed == 1 && w > 0) {
-    *width = w;
-    *height = 0;
-    return;
-  }
-  if (parsed != 2 || w <= 0 || h <= 0)
+  const auto whole = [&](const std::string& part) {
+    if (part.empty() || part.size() > 6 ||
+        !std::all_of(part.begin(), part.end(), [](char c) { return c >= '0' && c <= '9'; }))
+      Fail("--size must be WIDTH or WIDTHxHEIGHT in whole pixels (at most 999999), got '", text,
+           "'");
+    return std::stoi(part);
+  };
+  const size_t x = text.find('x');
+  const int w = whole(text.substr(0, x));
+  const int h = x == std::string::npos ? 0 : whole(text.substr(x + 1));
+  if (w <= 0 || (x != std::string::npos && h <= 0))
     Fail("--size must be WIDTH or WIDTHxHEIGHT, got '", text, "'");
   *width = w;
   *height = h;

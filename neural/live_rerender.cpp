@@ -34,6 +34,7 @@ void LiveRerenderOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(validation_every, 2);
   HOLOCAP_CHECK_OPTION(image_width == 0 || image_width >= 32, image_width,
                        "0: native, else at least 32 px");
+  HOLOCAP_CHECK_OPTION(std::isfinite(minutes), minutes, "a budget must end");
   HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
                        "give a positive time budget (minutes) or an iteration count");
   HOLOCAP_CHECK_OPTION_GE(iterations, 0);

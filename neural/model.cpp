@@ -29,6 +29,7 @@ void NeuralVolumeOptions::Check() const {
   take.Check();
   HOLOCAP_CHECK_OPTION_GE(bounds_margin_m, 0);
   HOLOCAP_CHECK_OPTION_GE(occupancy_cells, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(minutes), minutes, "a budget must end");
   HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
                        "give a positive minutes budget or a number of iterations");
   HOLOCAP_CHECK_OPTION_GE(iterations, 0);

@@ -7,6 +7,7 @@
 
 #include "core/error.h"
 #include "core/fs.h"
+#include "core/threads.h"
 #include "neural/internal/nvol.h"
 
 namespace holocap::neural {
@@ -257,6 +258,8 @@ class MarchFunction : public torch::autograd::Function<MarchFunction> {
                                                 const torch::Tensor& rgba,
                                                 const torch::Tensor& warp,
                                                 int64_t context_address) {
+    // The autograd node carries the march context as its address (an int64 is what it stores).
+    // NOLINTNEXTLINE(performance-no-int-to-ptr)
     auto* context = reinterpret_cast<MarchContext*>(context_address);
     const bool has_warp = warp.numel() > 0;
     torch::Tensor rgba_c = rgba.contiguous();
@@ -276,6 +279,7 @@ class MarchFunction : public torch::autograd::Function<MarchFunction> {
 
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
                                                  torch::autograd::variable_list grads) {
+    // NOLINTNEXTLINE(performance-no-int-to-ptr): the address forward() saved
     auto* context = reinterpret_cast<MarchContext*>(ctx->saved_data["context"].toInt());
     const bool has_warp = ctx->saved_data["has_warp"].toBool();
     auto saved = ctx->get_saved_variables();
@@ -330,7 +334,7 @@ class NeuralVolumeAvatar : public AvatarModel {
 
   RenderedView Render(const CameraModel& camera, int64_t frame,
                       const ViewRenderOptions& options) override {
-    if (options.threads > 0) omp_set_num_threads(options.threads);
+    if (options.threads > 0) omp_set_num_threads(ResolveThreads(options.threads));
     const auto start = std::chrono::steady_clock::now();
     frame = std::clamp<int64_t>(frame, 0, frames_ - 1);
     Decode(frame, options.bake_scale);
@@ -365,8 +369,8 @@ class NeuralVolumeAvatar : public AvatarModel {
         float depth = std::numeric_limits<float>::quiet_NaN();
         if (alpha >= options.depth_min_alpha && alpha > 0) {
           const double t = context.outputs.depth[i] / alpha;
-          const Eigen::Vector3d d(context.rays.direction[3 * i], context.rays.direction[3 * i + 1],
-                                  context.rays.direction[3 * i + 2]);
+          const float* direction = &context.rays.direction[3 * static_cast<size_t>(i)];
+          const Eigen::Vector3d d(direction[0], direction[1], direction[2]);
           depth = static_cast<float>(t * d.dot(axis));
         }
         view.depth.at<float>(y, x) = depth;

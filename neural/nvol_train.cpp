@@ -18,6 +18,7 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
+#include "core/threads.h"
 #include "neural/internal/nvol.h"
 
 namespace holocap {
@@ -130,8 +131,10 @@ class Trainer {
         cv::Mat free;
         cv::compare(subject_anywhere, 0, free, cv::CmpTypes::CMP_EQ);
         free.convertTo(free, CV_32FC1, 1.0 / 255.0);
-        learnable.push_back(
-            torch::from_blob(free.data, {free.rows * free.cols, 1}, torch::kFloat32).clone());
+        learnable.push_back(torch::from_blob(free.data,
+                                             {static_cast<int64_t>(free.rows) * free.cols, 1},
+                                             torch::kFloat32)
+                                .clone());
       }
       background_learnable_ = torch::cat(learnable).contiguous();
     }
@@ -840,8 +843,8 @@ NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& 
                                       const NeuralVolumeOptions& options, Report* report) {
   options.Check();
   if (options.threads > 0) {
-    torch::set_num_threads(options.threads);
-    omp_set_num_threads(options.threads);
+    torch::set_num_threads(ResolveThreads(options.threads));
+    omp_set_num_threads(ResolveThreads(options.threads));
   }
   CreateDirectories(model_dir);
   if (report != nullptr) report->options() = options.ToJson();

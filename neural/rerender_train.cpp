@@ -205,7 +205,7 @@ Evaluation Score(const std::vector<std::vector<cv::Mat>>& images,
       count += static_cast<int64_t>(diff.total()) * 3;
       mse_subject +=
           cv::sum(diff.setTo(0, cameras[c]->subject_masks[f] == 0)).dot(cv::Scalar::all(1));
-      count_subject += cv::countNonZero(cameras[c]->subject_masks[f]) * 3;
+      count_subject += static_cast<int64_t>(cv::countNonZero(cameras[c]->subject_masks[f])) * 3;
       e.ssim += Ssim(images[c][f], cameras[c]->truth_images[f]);
       ++views;
     }
@@ -249,6 +249,7 @@ void RerenderOptions::Check() const {
   HOLOCAP_CHECK_OPTION(image_width == 0 || image_width >= 32, image_width,
                        "0: native, else at least 32 px");
   take.Check();
+  HOLOCAP_CHECK_OPTION(std::isfinite(minutes), minutes, "a budget must end");
   HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
                        "give a positive time budget (minutes) or an iteration count");
   HOLOCAP_CHECK_OPTION_GE(iterations, 0);
@@ -715,7 +716,8 @@ class RerenderTrainer {
       crop_h_ = std::min(crop_h_, d->features.size(2));
     }
     if (options_.crop_px > 0) {
-      const int64_t crop = (options_.crop_px + multiple_ - 1) / multiple_ * multiple_;
+      const int64_t crop =
+          static_cast<int64_t>((options_.crop_px + multiple_ - 1) / multiple_) * multiple_;
       crop_w_ = std::min(crop_w_, crop);
       crop_h_ = std::min(crop_h_, crop);
     }

@@ -43,6 +43,7 @@ void SplatOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(heldout_cameras, 0);
   take.Check();
   HOLOCAP_CHECK_OPTION_GE(minutes, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(minutes), minutes, "a budget must end");
   HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
                        "give a positive minutes budget or a number of iterations");
   HOLOCAP_CHECK_OPTION_GE(iterations, 0);
@@ -71,6 +72,7 @@ void SplatOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(threads, 0);
   HOLOCAP_CHECK_OPTION(IsOneOf(scene, {"auto", "static", "dynamic"}), scene);
   HOLOCAP_CHECK_OPTION_GE(frame_minutes, 0);
+  HOLOCAP_CHECK_OPTION(std::isfinite(frame_minutes), frame_minutes, "a budget must end");
   HOLOCAP_CHECK_OPTION(frame_minutes > 0 || frame_iterations > 0, frame_minutes,
                        "give later frames a positive frame_minutes budget or frame_iterations");
   HOLOCAP_CHECK_OPTION_GE(frame_iterations, 0);

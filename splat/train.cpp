@@ -19,6 +19,7 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
+#include "core/threads.h"
 #include "splat/splat.h"
 
 namespace holocap {
@@ -983,7 +984,7 @@ void Trainer::Finish(SplatSummary* summary) {
 SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
                            const SplatOptions& options, Report* report) {
   options.Check();
-  if (options.threads > 0) omp_set_num_threads(options.threads);
+  if (options.threads > 0) omp_set_num_threads(ResolveThreads(options.threads));
   CreateDirectories(model_dir);
   if (report != nullptr) report->options() = options.ToJson();
   Trainer trainer(scene, options, model_dir);
@@ -1024,7 +1025,7 @@ SplatSummary TrainSplats(const fs::path& take_dir, const fs::path& model_dir,
                          const SplatOptions& options, Report* report) {
   options.Check();
   if (options.segment_frames > 0) return TrainSplatFrames(take_dir, model_dir, options, report);
-  if (options.threads > 0) omp_set_num_threads(options.threads);
+  if (options.threads > 0) omp_set_num_threads(ResolveThreads(options.threads));
   CreateDirectories(model_dir);
   const SplatScene scene = LoadSplatScene(take_dir, model_dir, options);
   return TrainSplatsOn(scene, model_dir, options, report);
@@ -1351,7 +1352,7 @@ SplatSummary TrainSplatFrames(const fs::path& take_dir, const fs::path& model_di
                               const SplatOptions& options, Report* report) {
   options.Check();
   if (options.segment_frames <= 0) Fail("a per-frame splat run needs --segment-frames");
-  if (options.threads > 0) omp_set_num_threads(options.threads);
+  if (options.threads > 0) omp_set_num_threads(ResolveThreads(options.threads));
   CreateDirectories(model_dir);
   return FrameRun(take_dir, model_dir, options, report).Run();
 }

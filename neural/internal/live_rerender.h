@@ -21,6 +21,7 @@ struct LivePair {
   cv::Mat silhouette;   // CV_8U 255: the target frame's own composition covers the pixel
 };
 
+// NOLINTNEXTLINE(bugprone-exception-escape): its implicit members only move vectors and JSON
 struct LivePairs {
   std::vector<LivePair> train, validation;
   int64_t composed = 0, refused = 0;

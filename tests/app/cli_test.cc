@@ -252,6 +252,13 @@ TEST_F(SimulatedTake, OptionErrorsNameTheFlagTypedItsValueAndTheBound) {
       {"train nvol " + take_dir + out("nvol2") + " --frames 5:3",
        "--frames 5:3 violates last_frame < 0 || last_frame > first_frame (the range 5:3 is "
        "empty)"},
+      // A budget must end, and a number is read whole.
+      {"train splat " + take_dir + out("splat3") + " --minutes inf",
+       "--minutes inf violates std::isfinite(minutes) (a budget must end)"},
+      {"train nvol " + take_dir + out("nvol4") + " --minutes inf",
+       "--minutes inf violates std::isfinite(minutes) (a budget must end)"},
+      {"sim --rig single-rgbd --frames 1 --size 1e9" + out("sim1e9"),
+       "--size must be WIDTH or WIDTHxHEIGHT in whole pixels (at most 999999), got '1e9'"},
       // A method's options are its own: another method's flag is refused by name.
       {"train splat " + take_dir + out("splat2") + " --witness 2",
        "train splat has no option '--witness'"},
@@ -266,6 +273,25 @@ TEST_F(SimulatedTake, OptionErrorsNameTheFlagTypedItsValueAndTheBound) {
     ExpectOneLineError(RunCli(args), "holocap: error: " + line);
   }
   for (const auto& path : unwritten) EXPECT_FALSE(std::filesystem::exists(path)) << path;
+}
+
+// A thread count past the machine runs on the machine's limit (core/threads.h): each stage ends
+// in a state and a report, as with any count (it once ended in a segmentation fault).
+TEST_F(SimulatedTake, ThreadCountsPastTheMachineEndInAStateAndAReport) {
+  TempDir dir;
+  const std::string take_dir = take().string();
+  const std::vector<std::pair<std::string, std::filesystem::path>> runs = {
+      {"reconstruct " + take_dir + " --voxel 20mm --no-sweep --no-glb", dir / "recon"},
+      {"train splat " + take_dir + " --iterations 2 --width 32", dir / "splat"},
+  };
+  for (const auto& [args, out] : runs) {
+    SCOPED_TRACE(args);
+    const auto result = RunCli(args + " --threads 100000 --out " + out.string());
+    EXPECT_TRUE(result.exit_code == 0 || result.exit_code == 1)
+        << "exit " << result.exit_code << "\n"
+        << result.output;
+    EXPECT_TRUE(std::filesystem::exists(out / "report.json")) << result.output;
+  }
 }
 
 // holocap report reads what a run wrote: its outcome, metrics and series as text, the series
