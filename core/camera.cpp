@@ -37,7 +37,9 @@ CameraModel::CameraModel(std::string lensmodel, std::vector<double> intrinsics, 
 
 // Every model is checked here, wherever it comes from (a .cameramodel, an importer, a solver),
 // so no stage ever sees a lens that cannot be a camera's:
-//  - the imager size is positive and every intrinsic and pose entry finite;
+//  - the imager size is positive (and at most kMaxImagerSide a side) and every intrinsic and
+//    pose entry finite, the camera within kMaxCameraTranslationM of the rig's origin (a
+//    translation of 1e300 is a corrupt file, and no float computation survives it);
 //  - with an intrinsics core, fx and fy are positive (a negative focal length mirrors the image
 //    and projects the scene behind the camera onto it);
 //  - the principal point lies within one imager size of the image, cx in [-w, 2w] and cy in
@@ -59,6 +61,16 @@ void CameraModel::Validate() const {
   }
   if (!cam_from_world_.matrix().allFinite())
     Fail("camera model: extrinsics contain a non-finite value");
+  if (const double far = cam_from_world_.translation().cwiseAbs().maxCoeff();
+      far > kMaxCameraTranslationM) {
+    Fail("camera model: its translation reaches ", far, " m, more than the ",
+         kMaxCameraTranslationM,
+         " m a rig's camera may lie from its origin (a corrupt or mis-scaled model)");
+  }
+  if (width_ > kMaxImagerSide || height_ > kMaxImagerSide) {
+    Fail("camera model: imagersize ", width_, "x", height_, " is larger than ", kMaxImagerSide,
+         " on a side");
+  }
   if (!core) return;
   for (size_t i : {0, 1}) {
     if (!(intrinsics_[i] > 0))

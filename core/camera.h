@@ -16,6 +16,11 @@
 
 namespace holocap {
 
+// The farthest a camera may lie from its rig's origin, and the largest imager side a model may
+// have: past them a model is corrupt or in the wrong units.
+inline constexpr double kMaxCameraTranslationM = 1e6;
+inline constexpr int kMaxImagerSide = 1 << 16;
+
 class CameraModel {
  public:
   CameraModel() = default;

@@ -1,13 +1,12 @@
 #include "core/fs.h"
 
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
 #include <cstring>
-#include <fstream>
 #include <random>
-#include <sstream>
 
 #include "core/error.h"
 
@@ -40,17 +39,47 @@ void SyncDirectory(const fs::path& dir) {
 
 }  // namespace
 
-std::string ReadFileToString(const fs::path& file) {
-  std::ifstream in(file, std::ios::binary);
-  if (!in) {
-    std::error_code ec;
-    if (!fs::exists(file, ec)) Fail("'", file.string(), "' does not exist");
-    Fail("cannot read '", file.string(), "'");
+std::string ReadFileToString(const fs::path& file, uint64_t max_bytes) {
+  // O_NONBLOCK: opening a FIFO must not wait for a writer; it is refused below like a device.
+  const int fd = ::open(file.c_str(), O_RDONLY | O_CLOEXEC | O_NOCTTY | O_NONBLOCK);
+  if (fd < 0) {
+    const int err = errno;
+    if (err == ENOENT) Fail("'", file.string(), "' does not exist");
+    Fail("cannot read '", file.string(), "': ", ErrnoText(err));
   }
-  std::ostringstream out;
-  out << in.rdbuf();
-  if (in.bad()) Fail("error reading '", file.string(), "'");
-  return out.str();
+  struct FdCloser {
+    int fd;
+    ~FdCloser() { ::close(fd); }
+  } closer{fd};
+  struct stat status {};
+  if (::fstat(fd, &status) != 0) Fail("cannot read '", file.string(), "': ", ErrnoText(errno));
+  if (S_ISDIR(status.st_mode)) Fail("'", file.string(), "' is a folder, not a file");
+  if (!S_ISREG(status.st_mode)) {
+    Fail("'", file.string(), "' is not a regular file (a device, FIFO or socket); holocap reads ",
+         "regular files only");
+  }
+  const auto declared = static_cast<uint64_t>(status.st_size);
+  if (declared > max_bytes) {
+    Fail("'", file.string(), "' holds ", declared, " bytes, more than the ", max_bytes,
+         " such a file may have");
+  }
+  std::string bytes;
+  bytes.reserve(declared);
+  // Read to the end, not to the size stat gave: /proc files say 0, a file may grow meanwhile.
+  char buffer[1 << 16];
+  while (true) {
+    const ssize_t n = ::read(fd, buffer, sizeof(buffer));
+    if (n < 0) {
+      if (errno == EINTR) continue;
+      Fail("error reading '", file.string(), "': ", ErrnoText(errno));
+    }
+    if (n == 0) break;
+    if (bytes.size() + static_cast<uint64_t>(n) > max_bytes) {
+      Fail("'", file.string(), "' holds more than the ", max_bytes, " bytes such a file may have");
+    }
+    bytes.append(buffer, static_cast<size_t>(n));
+  }
+  return bytes;
 }
 
 void WriteFileAtomic(const fs::path& file, std::string_view bytes, bool durable) {

@@ -10,8 +10,11 @@ namespace holocap {
 
 namespace fs = std::filesystem;
 
-// Reads a whole file; throws Error naming the file when it is missing or unreadable.
-std::string ReadFileToString(const fs::path& file);
+// Reads a whole regular file (a link to one is followed); throws Error naming the file when it
+// is missing, unreadable, not a regular file (a device, FIFO or socket: refused without waiting
+// on it) or longer than `max_bytes`.
+inline constexpr uint64_t kAnyFileSize = ~uint64_t{0};
+std::string ReadFileToString(const fs::path& file, uint64_t max_bytes = kAnyFileSize);
 
 // Writes `bytes` to `file` through a temporary sibling and rename(2), so a reader sees either
 // the old or the new content. With `durable`, the data and the directory entry are fsync'ed.

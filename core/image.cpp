@@ -229,8 +229,17 @@ void CheckPngHeader(const std::filesystem::path& file, const std::string& bytes,
   if (bytes.size() < 8 + 8 + 13 || BigEndian32(p) != 13 || std::memcmp(p + 4, "IHDR", 4) != 0)
     Fail("'", file.string(), "' is not a PNG image: it does not start with its IHDR header");
   const int bit_depth = p[16];
-  CheckHeader(file, "PNG", BigEndian32(p + 8), BigEndian32(p + 12),
-              bit_depth == 16 ? CV_16U : CV_8U, declared);
+  const int64_t width = BigEndian32(p + 8), height = BigEndian32(p + 12);
+  CheckHeader(file, "PNG", width, height, bit_depth == 16 ? CV_16U : CV_8U, declared);
+  // Deflate shrinks data at most 1032 times: a header asking for more pixels than the file's
+  // bytes can hold is refused before the decoder allocates them.
+  constexpr int64_t kMostDeflateRatio = 1032;
+  const int64_t raw = height * (1 + width * 4 * (bit_depth == 16 ? 2 : 1));
+  const auto size = static_cast<int64_t>(bytes.size());
+  if (raw / 4 > kMostDeflateRatio * size + (int64_t{1} << 16)) {
+    Fail("'", file.string(), "': its PNG header says ", width, "x", height, ", more than its ",
+         size, " bytes can hold");
+  }
 }
 
 cv::Mat ReadPng(const std::filesystem::path& file, const ImageShape* declared) {
@@ -260,6 +269,35 @@ cv::Mat ReadImage(const std::filesystem::path& file, const ImageShape* declared)
 }
 
 }  // namespace
+
+void CheckImageFileEnds(const std::filesystem::path& file) {
+  const ImageCodec codec = CodecOfFile(file);
+  if (codec == ImageCodec::kExr) return;  // OpenEXR's reader checks its own chunk table
+  const std::string bytes = ReadFileToString(file);
+  size_t end = 0;
+  if (codec == ImageCodec::kPng) {
+    size_t at = 8;
+    while (at + 12 <= bytes.size()) {
+      const auto* p = reinterpret_cast<const unsigned char*>(bytes.data() + at);
+      const uint64_t length = BigEndian32(p);
+      at += 12 + length;
+      if (std::memcmp(p + 4, "IEND", 4) == 0) {
+        end = at;
+        break;
+      }
+    }
+  } else {
+    const size_t frame = bytes.size() < sizeof(ZstdHeader)
+                             ? 0
+                             : ZSTD_findFrameCompressedSize(bytes.data() + sizeof(ZstdHeader),
+                                                            bytes.size() - sizeof(ZstdHeader));
+    if (!ZSTD_isError(frame)) end = sizeof(ZstdHeader) + frame;
+  }
+  if (end == 0 || end > bytes.size()) Fail("'", file.string(), "' is truncated or corrupt");
+  if (end < bytes.size()) {
+    Fail("'", file.string(), "' has ", bytes.size() - end, " bytes after the end of its image");
+  }
+}
 
 cv::Mat ReadImage(const std::filesystem::path& file) { return ReadImage(file, nullptr); }
 

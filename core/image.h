@@ -38,6 +38,9 @@ inline constexpr int64_t kMaxUndeclaredImagePixels = int64_t{1} << 27;
 // checked before decoding: against `declared` where given (size and depth), else against
 // kMaxUndeclaredImagePixels, so a small file that claims a huge image costs no memory.
 cv::Mat ReadImage(const std::filesystem::path& file);
+// Throws Error naming `file` when bytes follow the end of its image (after a PNG's IEND chunk,
+// a zstd frame's end); no writer leaves them, so they are damage or something hidden.
+void CheckImageFileEnds(const std::filesystem::path& file);
 cv::Mat ReadImage(const std::filesystem::path& file, const ImageShape& declared);
 // Writes by extension.
 void WriteImage(const std::filesystem::path& file, const cv::Mat& image);

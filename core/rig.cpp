@@ -2,6 +2,7 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <algorithm>
 #include <set>
 
 #include "core/check_option.h"
@@ -44,21 +45,30 @@ const std::string& Utf8Scalar(const YAML::Node& node) {
   return node.Scalar();
 }
 
-nlohmann::json JsonFromYaml(const YAML::Node& node) {
+// The most values a rig's YAML may expand to. yaml-cpp keeps an alias as one shared node, but
+// copying it into JSON expands it: nested aliases ("billion laughs") would take gigabytes. A
+// rig of a thousand sensors is some ten thousand values.
+constexpr int64_t kMaxRigYamlValues = 200'000;
+
+nlohmann::json JsonFromYaml(const YAML::Node& node, int64_t* budget) {
+  if (--*budget < 0) {
+    throw YAML::ParserException(node.Mark(), Cat("it expands to more than ", kMaxRigYamlValues,
+                                                 " values (aliases nested in aliases?)"));
+  }
   switch (node.Type()) {
     case YAML::NodeType::Null:
     case YAML::NodeType::Undefined:
       return nullptr;
     case YAML::NodeType::Sequence: {
       nlohmann::json array = nlohmann::json::array();
-      for (const auto& item : node) array.push_back(JsonFromYaml(item));
+      for (const auto& item : node) array.push_back(JsonFromYaml(item, budget));
       return array;
     }
     case YAML::NodeType::Map: {
       nlohmann::json object = nlohmann::json::object();
       for (const auto& item : node)
         object[item.first.IsScalar() ? Utf8Scalar(item.first) : item.first.as<std::string>()] =
-            JsonFromYaml(item.second);
+            JsonFromYaml(item.second, budget);
       return object;
     }
     case YAML::NodeType::Scalar: {
@@ -205,7 +215,8 @@ RigDescription RigDescription::Load(const std::filesystem::path& file) {
 RigDescription RigDescription::ParseYaml(const std::string& text, const std::string& origin) {
   nlohmann::json json;
   try {
-    json = JsonFromYaml(YAML::Load(text));
+    int64_t budget = kMaxRigYamlValues;
+    json = JsonFromYaml(YAML::Load(text), &budget);
   } catch (const YAML::Exception& e) {
     Fail("'", origin, "' is not valid YAML: line ", e.mark.line + 1, ": ", e.msg);
   }
@@ -257,14 +268,19 @@ void RigDescription::Check() const {
   HOLOCAP_CHECK_OPTION_GT(fps, 0);
   HOLOCAP_CHECK_OPTION_LE(fps, 10000);
   HOLOCAP_CHECK_OPTION(!sensors.empty(), sensors, "the rig has no sensors");
+  // A sensor's name is a folder of the take (frames/NAME): no separator, no "." or "..", no
+  // control character.
   const auto is_plain_name = [](const std::string& name) {
-    return name.find_first_of("/\\ \t#") == std::string::npos;
+    return name.find_first_of("/\\ \t#") == std::string::npos && name != "." && name != ".." &&
+           std::none_of(name.begin(), name.end(),
+                        [](char c) { return static_cast<unsigned char>(c) < 0x20 || c == 0x7f; });
   };
   std::set<std::string> names;
   for (const auto& spec : sensors) {
     HOLOCAP_CHECK_OPTION(
         is_plain_name(spec.name), sensors,
-        Cat("sensor name '", spec.name, "' may not contain '/', '\\', '#' or spaces"));
+        Cat("sensor name '", spec.name,
+            "' may not be '.' or '..' or contain '/', '\\', '#', spaces or control characters"));
     HOLOCAP_CHECK_OPTION(names.count(spec.name) == 0, sensors,
                          Cat("sensor name '", spec.name, "' appears twice"));
     names.insert(spec.name);
@@ -286,7 +302,9 @@ void RigDescription::Check() const {
   for (const auto& [host, address] : hosts) {
     HOLOCAP_CHECK_OPTION(
         !host.empty() && is_plain_name(host), hosts,
-        Cat("host name '", host, "' may not be empty or contain '/', '\\', '#' or spaces"));
+        Cat("host name '", host,
+            "' may not be empty, '.' or '..' or contain '/', '\\', '#', spaces or control "
+            "characters"));
   }
 }
 

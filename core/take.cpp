@@ -91,6 +91,10 @@ std::string OutsideTake(const std::string& file) {
 void ParseIndexLine(const std::string& line, FrameSetEntry* entry, std::string* damage) {
   auto json = nlohmann::json::parse(line);
   entry->index = JsonInteger<int64_t>(json.at("set"), "set");
+  if (entry->index < 0) {
+    *damage = Cat("frame set ", entry->index, " is negative: sets count from 0");
+    return;
+  }
   if (json.contains("spread_ns"))
     entry->spread_ns = JsonInteger<int64_t>(json["spread_ns"], "spread_ns");
   for (const auto& frame : json.at("frames")) {
@@ -98,6 +102,11 @@ void ParseIndexLine(const std::string& line, FrameSetEntry* entry, std::string* 
     item.sensor = frame.at("sensor").get<std::string>();
     item.file = frame.at("file").get<std::string>();
     item.timestamp_ns = JsonInteger<int64_t>(frame.at("t_ns"), "t_ns");
+    if (item.timestamp_ns < 0) {
+      *damage = Cat("frame of '", item.sensor, "' in set ", entry->index, " has time ",
+                    item.timestamp_ns, " ns, before its clock's start");
+      return;
+    }
     if (frame.contains("seq")) item.sequence = JsonInteger<uint64_t>(frame["seq"], "seq");
     if (std::string why = OutsideTake(item.file); !why.empty()) {
       *damage = Cat("frame file '", item.file, "' ", why, ": frames must lie inside the take");
@@ -133,6 +142,11 @@ StreamInfo StreamInfo::FromJson(const nlohmann::json& json) {
   stream.role = SensorRoleFromString(json.value("role", "color"));
   stream.width = JsonInteger<int>(json.at("width"), "width");
   stream.height = JsonInteger<int>(json.at("height"), "height");
+  if (stream.width <= 0 || stream.height <= 0 ||
+      int64_t{stream.width} * stream.height > kMaxUndeclaredImagePixels) {
+    Fail("stream '", stream.name, "' declares ", stream.width, "x", stream.height,
+         " frames; a frame has 1 to ", kMaxUndeclaredImagePixels, " pixels");
+  }
   stream.pixel_format = json.at("pixel_format").get<std::string>();
   stream.codec = CodecFromName(json.value("codec", "png"));
   stream.clock = json.value("clock", "unknown");
@@ -369,8 +383,13 @@ Take Take::Parse(const std::filesystem::path& dir, const std::string& manifest_t
     }
     take.state_ = manifest.value("state", "recording");
     take.rig_ = RigDescription::FromJson(manifest.at("rig"), "take.json rig");
-    for (const auto& stream : manifest.at("streams"))
+    for (const auto& stream : manifest.at("streams")) {
       take.streams_.push_back(StreamInfo::FromJson(stream));
+      const std::string& name = take.streams_.back().name;
+      if (std::count_if(take.streams_.begin(), take.streams_.end(),
+                        [&](const StreamInfo& s) { return s.name == name; }) > 1)
+        Fail("stream '", name, "' is listed twice");
+    }
     take.metadata_ = manifest.value("metadata", nlohmann::json::object());
     if (manifest.contains("dropped")) {
       if (!manifest["dropped"].is_object()) Fail("'dropped' must be an object of counts");
@@ -393,6 +412,7 @@ void Take::ParseIndex(const std::string& index_text,
                       const std::function<bool(const std::string& file)>& frame_exists) {
   const std::string index_file = (dir_ / kIndex).string();
   std::map<int64_t, int64_t> line_of_set;
+  std::map<std::string, int64_t> line_of_file;
   int64_t line_number = 0;
   size_t start = 0;
   while (start < index_text.size()) {
@@ -430,6 +450,15 @@ void Take::ParseIndex(const std::string& index_text,
       if (!first)
         damage =
             Cat("frame set ", entry.index, " is listed again (first on line ", it->second, ")");
+    }
+    for (const auto& item : entry.items) {
+      if (!damage.empty()) break;
+      // One file is one frame: a file named twice would be read as two frames.
+      const std::string name = std::filesystem::path(item.file).lexically_normal().string();
+      auto [it, first] = line_of_file.emplace(name, line_number);
+      if (!first)
+        damage =
+            Cat("frame file '", item.file, "' is listed again (first on line ", it->second, ")");
     }
     if (!damage.empty()) Fail(where, damage);
     if (problem.empty()) {
@@ -472,6 +501,7 @@ FrameSet Take::Read(size_t i, const std::vector<std::string>& sensors) const {
     frame.timestamp_ns = item.timestamp_ns;
     frame.sequence = item.sequence;
     const StreamInfo& info = stream(item.sensor);
+    CheckFrameInsideTake(item.file);
     frame.image = ReadImage(dir_ / item.file, info.shape());
     if (frame.image.type() != info.cv_type() || frame.image.cols != info.width ||
         frame.image.rows != info.height) {
@@ -496,12 +526,48 @@ void Take::Verify() const {
          (dir_ / kIndex).string(), "' ",
          index_present_ ? Cat("lists ", count) : std::string("is missing or empty"));
   }
-  for (size_t i = 0; i < entries_.size(); ++i) Read(i);  // throws naming a bad frame file
+  std::map<std::string, std::pair<int64_t, int64_t>> last_time;  // sensor -> set, t_ns
+  for (size_t i = 0; i < entries_.size(); ++i) {
+    Read(i);  // throws naming a bad frame file
+    for (const auto& item : entries_[i].items) {
+      CheckImageFileEnds(dir_ / item.file);
+      auto [it, first] = last_time.try_emplace(item.sensor, entries_[i].index, item.timestamp_ns);
+      if (!first && item.timestamp_ns < it->second.second) {
+        Fail("'", (dir_ / kIndex).string(), "': the frame of '", item.sensor, "' in set ",
+             entries_[i].index, " has time ", item.timestamp_ns, " ns, before set ",
+             it->second.first, "'s ", it->second.second, " ns");
+      }
+      it->second = {entries_[i].index, item.timestamp_ns};
+    }
+  }
   for (const auto& s : streams_) {
     for (const auto& dir : {calib_dir(), gt_dir() / "cameras"}) {
       const std::filesystem::path file = dir / (s.name + ".cameramodel");
       if (std::filesystem::exists(file)) CameraModel::Read(file);  // throws naming the file
     }
+  }
+}
+
+void Take::CheckFrameInsideTake(const std::string& file) const {
+  // Without a symbolic link on the way, the index's checks (no '..', no absolute path) keep a
+  // frame inside the take; with one, where it leads is checked.
+  std::filesystem::path at = dir_;
+  bool linked = false;
+  std::error_code ec;
+  for (const auto& part : std::filesystem::path(file)) {
+    at /= part;
+    if (std::filesystem::is_symlink(at, ec)) {
+      linked = true;
+      break;
+    }
+  }
+  if (!linked) return;
+  const auto root = std::filesystem::weakly_canonical(dir_, ec);
+  const auto target = std::filesystem::weakly_canonical(dir_ / file, ec);
+  const auto relative = target.lexically_relative(root);
+  if (ec || relative.empty() || *relative.begin() == "..") {
+    Fail("'", (dir_ / file).string(), "' is a symbolic link to '", target.string(),
+         "', outside the take: a take's frames lie inside it");
   }
 }
 

@@ -198,6 +198,9 @@ class Take {
   CameraModel Camera(const std::string& sensor, bool ground_truth = false) const;
 
  private:
+  // Throws Error when the index's frame file `file` leads outside the take through a symbolic
+  // link.
+  void CheckFrameInsideTake(const std::string& file) const;
   void ParseIndex(const std::string& index_text,
                   const std::function<bool(const std::string& file)>& frame_exists);
 

@@ -6,6 +6,7 @@
 #include <cstring>
 
 #include "core/error.h"
+#include "core/fs.h"
 #include "splat/splat.h"
 
 namespace holocap {
@@ -71,10 +72,69 @@ class Reader {
 
 bool Bit(const char* bits, int64_t i) { return (static_cast<uint8_t>(bits[i / 8]) >> (i % 8)) & 1; }
 
-std::string Decompress(const std::string& delta) {
+// The bytes at the start of a decompressed delta: magic, the three counts and the steps.
+constexpr size_t kHeaderBytes = 4 + 3 * sizeof(uint32_t) + kGroups * sizeof(float);
+// The most Gaussians a delta may name (previous or added), whatever its header says.
+constexpr uint64_t kMaxDeltaGaussians = uint64_t{1} << 26;
+// Added Gaussians are trained floats, which zstd shrinks by a few times at most: a delta whose
+// added part would grow past this many times its compressed size (plus a slack) is a bomb.
+constexpr uint64_t kMaxAddedExpansion = 256;
+
+// The first `size` bytes of the decompressed delta (fewer only if it ends sooner).
+std::string DecompressStart(const std::string& delta, size_t size) {
+  std::string out(size, '\0');
+  ZSTD_DCtx* context = ZSTD_createDCtx();
+  if (context == nullptr) Fail("zstd cannot make a decompression context");
+  ZSTD_inBuffer in{delta.data(), delta.size(), 0};
+  ZSTD_outBuffer to{out.data(), out.size(), 0};
+  while (to.pos < to.size) {
+    const size_t before_in = in.pos, before_out = to.pos;
+    const size_t result = ZSTD_decompressStream(context, &to, &in);
+    if (ZSTD_isError(result)) {
+      ZSTD_freeDCtx(context);
+      Fail("a splat delta does not decompress: ", ZSTD_getErrorName(result));
+    }
+    if (result == 0 || (in.pos == before_in && to.pos == before_out)) break;
+  }
+  ZSTD_freeDCtx(context);
+  out.resize(to.pos);
+  return out;
+}
+
+// The delta decompressed, once its header has been read and what it declares (the previous
+// frame's `expected_previous` Gaussians when known, -1 when not) bounds what it may expand to.
+std::string Decompress(const std::string& delta, int64_t expected_previous) {
   const unsigned long long size = ZSTD_getFrameContentSize(delta.data(), delta.size());
-  if (size == ZSTD_CONTENTSIZE_ERROR || size == ZSTD_CONTENTSIZE_UNKNOWN || size > (1ull << 31))
+  if (size == ZSTD_CONTENTSIZE_ERROR || size == ZSTD_CONTENTSIZE_UNKNOWN)
     Fail("a splat delta is not a zstd frame of known size");
+  const std::string start = DecompressStart(delta, kHeaderBytes);
+  if (start.size() < kHeaderBytes) Fail("a splat delta is shorter than its header");
+  if (std::memcmp(start.data(), kMagic, 4) != 0) Fail("a splat delta does not start HSD1");
+  uint32_t counts[3];
+  std::memcpy(counts, start.data() + 4, sizeof(counts));
+  const uint64_t previous = counts[0], added = counts[1], degree = counts[2];
+  if (degree > static_cast<uint64_t>(splat::kMaxShDegree))
+    Fail("a splat delta names degree ", degree);
+  if (expected_previous >= 0 && previous != static_cast<uint64_t>(expected_previous)) {
+    Fail("a splat delta of ", previous, " Gaussians does not follow a frame of ",
+         expected_previous);
+  }
+  if (previous > kMaxDeltaGaussians || added > kMaxDeltaGaussians)
+    Fail("a splat delta names ", previous, " and ", added, " Gaussians, past the ",
+         kMaxDeltaGaussians, " a frame may have");
+  const uint64_t floats = 11 + 3 * (degree + 1) * (degree + 1);
+  const uint64_t added_bytes = added * floats * sizeof(float);
+  if (added_bytes > kMaxAddedExpansion * delta.size() + (uint64_t{1} << 20)) {
+    Fail("a splat delta of ", delta.size(), " bytes declares ", added,
+         " added Gaussians, more than its bytes can hold");
+  }
+  uint64_t values = 0;
+  for (const int count : kGroupValues) values += static_cast<uint64_t>(count);
+  const uint64_t most = kHeaderBytes + (1 + kGroups) * ((previous + 7) / 8) +
+                        previous * values * sizeof(int16_t) + added_bytes;
+  if (size > most) {
+    Fail("a splat delta would decompress to ", size, " bytes; its header allows ", most);
+  }
   std::string bytes(size, '\0');
   const size_t n = ZSTD_decompress(bytes.data(), bytes.size(), delta.data(), delta.size());
   if (ZSTD_isError(n) || n != size) Fail("a splat delta does not decompress");
@@ -167,7 +227,7 @@ std::string EncodeSplatDelta(const splat::Gaussians& previous, const splat::Gaus
 }
 
 splat::Gaussians ApplySplatDelta(const splat::Gaussians& previous, const std::string& delta) {
-  const std::string bytes = Decompress(delta);
+  const std::string bytes = Decompress(delta, previous.size());
   Reader reader(bytes);
   const Header header = ReadHeader(&reader);
   if (static_cast<int64_t>(header.previous) != previous.size() ||
@@ -209,8 +269,18 @@ splat::Gaussians ApplySplatDelta(const splat::Gaussians& previous, const std::st
   return next;
 }
 
+splat::Gaussians ApplySplatDeltaFile(const splat::Gaussians& previous,
+                                     const std::filesystem::path& file) {
+  const std::string delta = ReadFileToString(file);
+  try {
+    return ApplySplatDelta(previous, delta);
+  } catch (const Error& e) {
+    Fail("'", file.string(), "': ", e.what());
+  }
+}
+
 SplatDeltaCounts CountSplatDelta(const std::string& delta) {
-  const std::string bytes = Decompress(delta);
+  const std::string bytes = Decompress(delta, -1);
   Reader reader(bytes);
   const Header header = ReadHeader(&reader);
   const int64_t n = header.previous;
@@ -230,7 +300,7 @@ SplatDeltaCounts CountSplatDelta(const std::string& delta) {
 }
 
 std::vector<int64_t> SplatDeltaOrigins(const std::string& delta) {
-  const std::string bytes = Decompress(delta);
+  const std::string bytes = Decompress(delta, -1);
   Reader reader(bytes);
   const Header header = ReadHeader(&reader);
   const char* kept = reader.Take(static_cast<size_t>((header.previous + 7) / 8));

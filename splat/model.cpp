@@ -275,57 +275,80 @@ void SplatModel::Save(const fs::path& dir, bool write_gaussians) const {
 }
 
 SplatModel SplatModel::Load(const fs::path& dir) {
+  const fs::path file = dir / "model.json";
+  const fs::path binary = dir / "gaussians.bin";
   nlohmann::json json;
   try {
-    json = nlohmann::json::parse(ReadFileToString(dir / "model.json"));
+    json = nlohmann::json::parse(ReadFileToString(file));
   } catch (const nlohmann::json::exception& e) {
-    Fail("cannot read ", (dir / "model.json").string(), ": ", e.what());
+    Fail("cannot read ", file.string(), ": ", e.what());
   }
   SplatModel model;
-  if (json.value("method", "") != "splat") Fail(dir.string(), " does not hold a splat model");
-  const int64_t count = json.at("gaussians").get<int64_t>();
-  model.gaussians.sh_degree = json.at("sh_degree").get<int>();
-  if (count < 0 || model.gaussians.sh_degree < 0 ||
-      model.gaussians.sh_degree > splat::kMaxShDegree) {
-    Fail(dir.string(), "/model.json: bad count or degree");
-  }
-  model.gaussians.Resize(count);
-  const std::string bytes = ReadFileToString(dir / "gaussians.bin");
-  size_t offset = 0;
-  for (const Field& field : kFields) {
-    std::vector<float>& values = model.gaussians.*field.member;
-    const size_t size = values.size() * sizeof(float);
-    if (offset + size > bytes.size())
-      Fail((dir / "gaussians.bin").string(), " is shorter than model.json says");
-    std::memcpy(values.data(), bytes.data() + offset, size);
-    offset += size;
-  }
-  if (offset != bytes.size())
-    Fail((dir / "gaussians.bin").string(), " is longer than model.json says");
-  for (const auto& name : json.at("cameras"))
-    model.cameras.push_back(
-        CameraModel::Read(dir / "cameras" / (name.get<std::string>() + ".cameramodel")));
-  const auto lo = json.at("box_min").get<std::vector<double>>();
-  const auto hi = json.at("box_max").get<std::vector<double>>();
-  model.box = Box{Eigen::Vector3d(lo[0], lo[1], lo[2]), Eigen::Vector3d(hi[0], hi[1], hi[2])};
-  model.plan = json.value("plan", nlohmann::json::object());
-  model.frames = json.value("frames", int64_t{1});
-  model.frame_sets = json.value("frame_sets", std::vector<int64_t>{});
-  if (model.frames < 1) Fail(dir.string(), "/model.json: frames must be at least 1");
-  const int version = json.value("format_version", 1);
-  if (version > 2)
-    Fail(dir.string(), "/model.json: format version ", version,
-         " is newer than this program's (2)");
-  if (version == 2) {
-    model.bases = json.at("delta_bases").get<std::vector<int64_t>>();
-    if (static_cast<int64_t>(model.bases.size()) != model.frames)
-      Fail(dir.string(), "/model.json: delta_bases must name a base for each of its frames");
-    for (int64_t f = 0; f < model.frames; ++f) {
-      if (f == 0 ? model.bases[f] != -1 : model.bases[f] < 0 || model.bases[f] >= f)
-        Fail(dir.string(), "/model.json: frame ", f, "'s base ", model.bases[f],
-             " is not an earlier frame");
+  std::vector<std::string> camera_names;
+  if (!json.is_object() || json.value("method", "") != "splat")
+    Fail(dir.string(), " does not hold a splat model");
+  try {
+    const int64_t count = json.at("gaussians").get<int64_t>();
+    model.gaussians.sh_degree = json.at("sh_degree").get<int>();
+    if (count < 0 || model.gaussians.sh_degree < 0 ||
+        model.gaussians.sh_degree > splat::kMaxShDegree) {
+      Fail("bad count or degree");
     }
+    // The count is checked against gaussians.bin's real size before anything is allocated.
+    const uint64_t per_gaussian =
+        sizeof(float) *
+        (11 + 3 * static_cast<uint64_t>(splat::ShCoefficients(model.gaussians.sh_degree)));
+    const std::string bytes = ReadFileToString(binary);
+    if (static_cast<uint64_t>(count) != bytes.size() / per_gaussian ||
+        bytes.size() % per_gaussian != 0) {
+      Fail("it declares ", count, " Gaussians of degree ", model.gaussians.sh_degree, " (",
+           per_gaussian, " bytes each) but '", binary.string(), "' holds ", bytes.size(), " bytes");
+    }
+    model.gaussians.Resize(count);
+    size_t offset = 0;
+    for (const Field& field : kFields) {
+      std::vector<float>& values = model.gaussians.*field.member;
+      const size_t size = values.size() * sizeof(float);
+      std::memcpy(values.data(), bytes.data() + offset, size);
+      offset += size;
+    }
+    for (const auto& name : json.at("cameras")) {
+      camera_names.push_back(name.get<std::string>());
+      const std::string& text = camera_names.back();
+      if (text.empty() || text.find_first_of("/\\") != std::string::npos || text == "." ||
+          text == "..")
+        Fail("camera name '", text, "' is not a plain name");
+    }
+    const auto lo = json.at("box_min").get<std::vector<double>>();
+    const auto hi = json.at("box_max").get<std::vector<double>>();
+    if (lo.size() != 3 || hi.size() != 3 ||
+        !std::all_of(lo.begin(), lo.end(), [](double v) { return std::isfinite(v); }) ||
+        !std::all_of(hi.begin(), hi.end(), [](double v) { return std::isfinite(v); }))
+      Fail("box_min and box_max must be 3 finite numbers each");
+    model.box = Box{Eigen::Vector3d(lo[0], lo[1], lo[2]), Eigen::Vector3d(hi[0], hi[1], hi[2])};
+    model.plan = json.value("plan", nlohmann::json::object());
+    model.frames = json.value("frames", int64_t{1});
+    model.frame_sets = json.value("frame_sets", std::vector<int64_t>{});
+    if (model.frames < 1) Fail("frames must be at least 1");
+    const int version = json.value("format_version", 1);
+    if (version > 2) Fail("format version ", version, " is newer than this program's (2)");
+    if (version == 2) {
+      model.bases = json.at("delta_bases").get<std::vector<int64_t>>();
+      if (static_cast<int64_t>(model.bases.size()) != model.frames)
+        Fail("delta_bases must name a base for each of its frames");
+      for (int64_t f = 0; f < model.frames; ++f) {
+        if (f == 0 ? model.bases[f] != -1 : model.bases[f] < 0 || model.bases[f] >= f)
+          Fail("frame ", f, "'s base ", model.bases[f], " is not an earlier frame");
+      }
+    }
+  } catch (const nlohmann::json::exception& e) {
+    Fail(file.string(), ": ", e.what());
+  } catch (const Error& e) {
+    Fail(file.string(), ": ", e.what());
   }
+  // A camera model's errors name its own file.
+  for (const auto& name : camera_names)
+    model.cameras.push_back(CameraModel::Read(dir / "cameras" / (name + ".cameramodel")));
   return model;
 }
 
@@ -351,7 +374,7 @@ splat::Gaussians SplatModel::Frame(const fs::path& dir, int64_t frame,
   }
   splat::Gaussians current = resume ? *previous : gaussians;
   for (auto k = way.rbegin(); k != way.rend(); ++k)
-    current = ApplySplatDelta(current, ReadFileToString(SplatDeltaFile(dir, *k)));
+    current = ApplySplatDeltaFile(current, SplatDeltaFile(dir, *k));
   return current;
 }
 

@@ -339,6 +339,9 @@ std::string EncodeSplatDelta(const splat::Gaussians& previous, const splat::Gaus
 // The frame a delta encodes, from the frame before. Throws Error for a delta that does not
 // fit `previous` or is corrupt.
 splat::Gaussians ApplySplatDelta(const splat::Gaussians& previous, const std::string& delta);
+// ApplySplatDelta on the delta file `file` (a regular file); its errors name the file.
+splat::Gaussians ApplySplatDeltaFile(const splat::Gaussians& previous,
+                                     const std::filesystem::path& file);
 // Counts of a delta: survivors changed per group summed, removed, added.
 struct SplatDeltaCounts {
   int64_t changed = 0, removed = 0, added = 0;

@@ -1199,7 +1199,7 @@ class FrameRun {
       const int64_t set = scene_->later_frames[f - 1].set;
       if (!options_.tasks.redo) {
         if (const auto record = records_->Complete(set)) {
-          current = ApplySplatDelta(base, ReadFileToString(SplatDeltaFile(out_, f)));
+          current = ApplySplatDeltaFile(base, SplatDeltaFile(out_, f));
           results_.push_back((*record)["result"]);
           ++skipped_;
           continue;

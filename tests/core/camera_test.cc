@@ -269,6 +269,28 @@ TEST(CameraModel, RefusesAModelNoCameraCanHaveNamingFileAndField) {
   }
 }
 
+// A translation of 1e300 m is finite, and was accepted: every projection through it is
+// rounding noise. A camera farther than kMaxCameraTranslationM from the rig's origin is refused,
+// naming the file.
+TEST(CameraModel, RefusesACameraFartherThanARigCanReach) {
+  const std::string good = CameraModel::Pinhole(500, 640, 480).ToString();
+  std::string text = good;
+  const size_t from = text.find("'extrinsics': [") + 15;
+  text.replace(from, text.find(']', from) - from, "0, 0, 0, 1e300, 0, 0");
+  try {
+    CameraModel::Parse(text, "calib/cam0.cameramodel");
+    ADD_FAILURE();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("'calib/cam0.cameramodel': camera model: its translation "
+                                         "reaches 1e+300 m, more than the 1e+06 m"),
+              std::string::npos)
+        << e.what();
+  }
+  text = good;
+  text.replace(from, text.find(']', from) - from, "0, 0, 0, 999999, 0, 0");
+  EXPECT_NO_THROW(CameraModel::Parse(text, "calib/cam0.cameramodel"));
+}
+
 // Issue 18 case 7: libmrcal printed its own line on stderr and holocap's error gave no reason.
 // Its words now are part of the one error, and nothing reaches stderr.
 TEST(CameraModel, LibmrcalsComplaintIsFoldedIntoTheOneError) {

@@ -106,6 +106,40 @@ TEST(RigDescription, YamlStringsMustBeUtf8) {
   }
 }
 
+// Nested aliases ("billion laughs") expanded to 3.8 GB before bad_alloc; the expansion now
+// stops at kMaxRigYamlValues with the file's name. A sensor named ".." wrote its frames into
+// the take's root; names are plain file names.
+TEST(RigDescription, NestedAliasesAndPathNamesAreRefused) {
+  std::string laughs = "a: &a [x, x, x, x, x, x, x, x, x, x]\n";
+  for (char c = 'b'; c <= 'i'; ++c) {
+    laughs += Cat(c, ": &", c, " [");
+    for (int k = 0; k < 10; ++k) laughs += Cat(k ? ", *" : "*", static_cast<char>(c - 1));
+    laughs += "]\n";
+  }
+  laughs += "sensors: [{name: a, uri: 'sim:x'}]\n";
+  try {
+    RigDescription::ParseYaml(laughs, "laughs.yaml");
+    ADD_FAILURE();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("'laughs.yaml' is not valid YAML: line "),
+              std::string::npos)
+        << e.what();
+    EXPECT_NE(std::string(e.what()).find("expands to more than 200000 values"), std::string::npos)
+        << e.what();
+  }
+  for (const std::string& name : {"'..'", "'.'", "'a\\nb'", "'a\\x01'"}) {
+    try {
+      RigDescription::ParseYaml(
+          "sensors: [{name: \"" + name.substr(1, name.size() - 2) + "\", uri: 'sim:x'}]",
+          "names.yaml");
+      ADD_FAILURE() << name;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("may not be '.' or '..'"), std::string::npos)
+          << e.what();
+    }
+  }
+}
+
 TEST(RigDescription, JsonNumbersItCannotHoldGiveAnError) {
   EXPECT_THROW(RigDescription::ParseJson("6E12644", "big.json"), Error);
   EXPECT_THROW(RigDescription::ParseJson("{\"fps\": 1e999, \"sensors\": []}", "big.json"), Error);

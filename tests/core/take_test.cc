@@ -2,10 +2,12 @@
 
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <random>
 #include <thread>
 
@@ -431,6 +433,108 @@ TEST_F(DamagedTake, AFrameWhoseHeaderClaimsAHugeImageIsRefusedBeforeDecoding) {
   // Read with no declared size, the pixel budget refuses it.
   const std::string alone = ErrorOf([&] { ReadImage(take() / "frames/cam0/000001.png"); });
   EXPECT_NE(alone.find("more than the 134217728 pixels"), std::string::npos) << alone;
+}
+
+// The index claims what --verify now checks: each stream once, sets and times counted from 0
+// and never going back, each frame file named once, nothing after an image's end, frames that
+// are regular files inside the take. Each of these passed info --verify before.
+TEST_F(DamagedTake, AStreamListedTwiceIsRefused) {
+  std::string manifest = ReadFileToString(take() / "take.json");
+  nlohmann::json json = nlohmann::json::parse(manifest);
+  json["streams"].push_back(json["streams"][0]);
+  std::ofstream(take() / "take.json") << json.dump(2);
+  const std::string error = ErrorOf([&] { Take::Open(take()); });
+  EXPECT_NE(error.find("take.json': stream 'cam0' is listed twice"), std::string::npos) << error;
+}
+
+TEST_F(DamagedTake, ANegativeSetOrTimeIsRefused) {
+  std::string line = Line(3);
+  line.replace(line.find("\"set\":2"), 7, "\"set\":-5");
+  WriteIndex(Line(1) + Line(2) + line);
+  std::string error = ErrorOf([&] { Take::Open(take()); });
+  EXPECT_NE(error.find("line 3: frame set -5 is negative"), std::string::npos) << error;
+  line = Line(3);
+  const size_t at = line.find("\"t_ns\":");
+  line.replace(at, line.find_first_of(",}", at) - at, "\"t_ns\":-9223372036854775808");
+  WriteIndex(Line(1) + Line(2) + line);
+  error = ErrorOf([&] { Take::Open(take()); });
+  EXPECT_NE(error.find("line 3: frame of 'cam0' in set 2 has time -9223372036854775808 ns"),
+            std::string::npos)
+      << error;
+}
+
+TEST_F(DamagedTake, AFrameFileNamedTwiceIsRefused) {
+  // Set 2's line naming set 1's files: two frame sets read from one pair of files.
+  std::string line = Line(2);
+  line.replace(line.find("\"set\":1"), 7, "\"set\":2");
+  WriteIndex(Line(1) + Line(2) + line);
+  const std::string error = ErrorOf([&] { Take::Open(take()); });
+  EXPECT_NE(error.find("line 3: frame file 'frames/cam0/000001.png' is listed again (first on "
+                       "line 2)"),
+            std::string::npos)
+      << error;
+}
+
+TEST_F(DamagedTake, TimesGoingBackAreRefused) {
+  std::string line = Line(3);
+  const size_t at = line.find("\"t_ns\":");
+  line.replace(at, line.find_first_of(",}", at) - at, "\"t_ns\":5");
+  WriteIndex(Line(1) + Line(2) + line);
+  const std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });
+  EXPECT_NE(error.find("the frame of 'cam0' in set 2 has time 5 ns, before set 1's 1000017 ns"),
+            std::string::npos)
+      << error;
+}
+
+TEST_F(DamagedTake, BytesAfterAnImagesEndAreRefused) {
+  std::ofstream(take() / "frames/cam0/000001.png", std::ios::binary | std::ios::app)
+      << std::string(4096, 'x');
+  const std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });
+  EXPECT_NE(error.find("000001.png' has 4096 bytes after the end of its image"), std::string::npos)
+      << error;
+}
+
+TEST_F(DamagedTake, AFrameLinkedOutsideTheTakeIsRefused) {
+  std::filesystem::create_directories(dir_ / "other");
+  std::filesystem::rename(take() / "frames/cam0/000001.png", dir_ / "other/000001.png");
+  std::filesystem::create_symlink(dir_ / "other/000001.png", take() / "frames/cam0/000001.png");
+  const std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });
+  EXPECT_NE(error.find("000001.png' is a symbolic link to '" + (dir_ / "other").string()),
+            std::string::npos)
+      << error;
+  EXPECT_NE(error.find("outside the take"), std::string::npos) << error;
+  // A link that stays inside the take is a frame like any other.
+  std::filesystem::rename(dir_ / "other/000001.png", take() / "frames/cam0/kept.png");
+  std::filesystem::remove(take() / "frames/cam0/000001.png");
+  std::filesystem::create_symlink("kept.png", take() / "frames/cam0/000001.png");
+  EXPECT_NO_THROW(Take::Open(take()).Verify());
+}
+
+TEST_F(DamagedTake, AFrameThatIsAFifoOrADeviceIsRefusedWithoutWaiting) {
+  const auto frame = take() / "frames/cam0/000001.png";
+  std::filesystem::remove(frame);
+  ASSERT_EQ(mkfifo(frame.c_str(), 0644), 0);
+  std::string error = ErrorOf([&] { Take::Open(take()).Verify(); });  // no writer: would hang
+  EXPECT_NE(error.find("000001.png' is not a regular file"), std::string::npos) << error;
+  std::filesystem::remove(frame);
+  // /dev/zero inside the take's own tree is still no frame: it never ends.
+  std::filesystem::create_symlink("/dev/zero", frame);
+  error = ErrorOf([&] { Take::Open(take()).Verify(); });
+  EXPECT_FALSE(error.empty());
+  error = ErrorOf([&] { ReadFileToString("/dev/zero"); });
+  EXPECT_NE(error.find("'/dev/zero' is not a regular file"), std::string::npos) << error;
+}
+
+TEST_F(DamagedTake, AStreamDeclaringFramesPastThePixelLimitIsRefused) {
+  nlohmann::json json = nlohmann::json::parse(ReadFileToString(take() / "take.json"));
+  json["streams"][0]["width"] = 30000;
+  json["streams"][0]["height"] = 30000;
+  std::ofstream(take() / "take.json") << json.dump(2);
+  const std::string error = ErrorOf([&] { Take::Open(take()); });
+  EXPECT_NE(error.find("stream 'cam0' declares 30000x30000 frames; a frame has 1 to 134217728 "
+                       "pixels"),
+            std::string::npos)
+      << error;
 }
 
 }  // namespace

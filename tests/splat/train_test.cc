@@ -12,6 +12,7 @@
 
 #include "avatar/image_metrics.h"
 #include "core/error.h"
+#include "core/fs.h"
 #include "core/report.h"
 #include "neural/neural.h"
 #include "splat/splat.h"
@@ -489,6 +490,79 @@ TEST(SplatDynamic, DeltaNamesWhereEachGaussianComesFrom) {
   EXPECT_EQ(SplatDeltaOrigins(delta), origin);
   EXPECT_EQ(CountSplatDelta(delta).removed, 16);
   EXPECT_THROW(SplatDeltaOrigins(delta.substr(0, delta.size() / 2)), Error);
+}
+
+// A 68 KB delta decompressed to 2.1 GB: what a delta may expand to now follows from its header
+// (the previous frame's count, its added Gaussians) and its own size, checked before anything
+// is allocated; the error names the file.
+TEST(SplatDynamic, ADeltaThatWouldExpandPastItsBytesIsRefusedNamingItsFile) {
+  const splat::Gaussians previous = Truth(20);
+  splat::Gaussians next = previous;
+  std::vector<int64_t> origin(20);
+  for (int i = 0; i < 20; ++i) origin[i] = i;
+  for (int k = 0; k < 300000; ++k) {  // one Gaussian added 300000 times: zstd folds it away
+    next.AppendFrom(previous, 0);
+    origin.push_back(-1);
+  }
+  const std::string delta = EncodeSplatDelta(previous, next, origin, SplatDeltaSteps{});
+  ASSERT_LT(delta.size(), 64u << 10);
+  const fs::path file = fs::temp_directory_path() / ("holocap-bomb-" + std::to_string(getpid()));
+  WriteFileAtomic(file, delta);
+  try {
+    ApplySplatDeltaFile(previous, file);
+    ADD_FAILURE();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("'" + file.string() + "': a splat delta of " +
+                                         std::to_string(delta.size()) +
+                                         " bytes declares 300000 added Gaussians, more than its "
+                                         "bytes can hold"),
+              std::string::npos)
+        << e.what();
+  }
+  fs::remove(file);
+  // Twenty added Gaussians of trained values are what a frame adds: they decode.
+  next = previous;
+  origin.resize(20);
+  const splat::Gaussians more = Truth(40);
+  for (int k = 20; k < 40; ++k) {
+    next.AppendFrom(more, k);
+    origin.push_back(-1);
+  }
+  EXPECT_EQ(ApplySplatDelta(previous, EncodeSplatDelta(previous, next, origin, {})).size(), 40);
+}
+
+// model.json declaring 2000000000 Gaussians made render take 22 GB: the count is checked
+// against gaussians.bin's real size first, and every error names the file.
+TEST(SplatModelFile, ACountThatGaussiansBinCannotHoldIsRefusedBeforeAllocating) {
+  const fs::path dir = fs::temp_directory_path() / ("holocap-model-" + std::to_string(getpid()));
+  SplatModel model;
+  model.gaussians = Truth(20);
+  model.cameras = {LookAt(Eigen::Vector3d(0, -2, 0), Eigen::Vector3d::Zero())};
+  model.box = Box{Eigen::Vector3d::Constant(-1), Eigen::Vector3d::Constant(1)};
+  model.Save(dir);
+  ASSERT_EQ(SplatModel::Load(dir).gaussians.size(), 20);
+  const std::string saved = ReadFileToString(dir / "model.json");
+  auto with = [&](const std::string& from, const std::string& to) {
+    std::string text = saved;
+    text.replace(text.find(from), from.size(), to);
+    WriteFileAtomic(dir / "model.json", text);
+  };
+  auto error = [&] {
+    try {
+      SplatModel::Load(dir);
+    } catch (const Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  with("\"gaussians\": 20", "\"gaussians\": 2000000000");
+  EXPECT_NE(error().find("model.json: it declares 2000000000 Gaussians"), std::string::npos)
+      << error();
+  with("\"gaussians\": 20", "\"gaussians\": \"many\"");
+  EXPECT_NE(error().find((dir / "model.json").string() + ": [json.exception.type_error"),
+            std::string::npos)
+      << error();
+  fs::remove_all(dir);
 }
 
 }  // namespace
