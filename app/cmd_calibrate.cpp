@@ -98,8 +98,15 @@ void AddCalibrateCommand(CLI::App& app) {
   command->add_option("--threads", args->threads, "Detection threads (0: all cores)")
       ->capture_default_str();
   command->callback([args] {
-    // Calibration writes the take's calib/: one writer at a time.
+    // Calibration writes the take's calib/: one writer at a time, never through a link.
     const TakeLock lock = TakeLock::Acquire(args->take, "calibrate");
+    const std::filesystem::path calib = std::filesystem::path(args->take) / "calib";
+    if (std::error_code ec; std::filesystem::is_symlink(calib, ec)) {
+      Fail("'", calib.string(), "' is a symbolic link (to '",
+           std::filesystem::read_symlink(calib, ec).string(),
+           "'); calibrate writes the take's own calib/ folder, never through a link (remove the "
+           "link first)");
+    }
     TakeCalibrationOptions options;
     options.board_file = args->board;
     options.lensmodel = args->lensmodel;
@@ -114,8 +121,7 @@ void AddCalibrateCommand(CLI::App& app) {
     report.SetFailureDestination(std::filesystem::path(args->take) / "calib" / "report.json");
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
     PrintSummary(summary);
-    std::printf("report: %s\n",
-                (std::filesystem::path(args->take) / "calib" / "report.json").c_str());
+    std::printf("report: %s\n", summary.report_file.c_str());
     // The state line is printed above; an unusable state ends in one error line and exit 1.
     FailUnlessUsable(summary, "calibration");
   });

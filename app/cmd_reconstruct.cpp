@@ -120,10 +120,10 @@ void AddReconstructCommand(CLI::App& app) {
     options.tsdf_hull_completion = !args->no_completion;
     if (!args->shard.empty()) options.tasks.shard = Shard::Parse(args->shard);
     options.tasks.redo = args->redo;
-    const OutputDirectory claimed =
-        OutputDirectory::Claim(args->out.empty() ? std::filesystem::path(args->take) / "recon"
-                                                 : std::filesystem::path(args->out),
-                               {"reconstruct", args->overwrite, {}, !options.tasks.shard.whole()});
+    const OutputDirectory claimed = OutputDirectory::Claim(
+        args->out.empty() ? std::filesystem::path(args->take) / "recon"
+                          : std::filesystem::path(args->out),
+        {"reconstruct", args->overwrite, {}, !options.tasks.shard.whole(), args->take});
     const std::filesystem::path& out = claimed.path();
     Report report("reconstruct");
     report.SetFailureDestination(TaskReportPath(out, options.tasks.shard));

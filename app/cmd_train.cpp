@@ -56,7 +56,8 @@ struct SharedTrainArgs {
   // The model directory, claimed for `train <method>` (core/output.h): the take is locked
   // while the returned object lives.
   OutputDirectory Claim(const char* method) const {
-    return OutputDirectory::Claim(Out(method), {std::string("train ") + method, overwrite, {}});
+    return OutputDirectory::Claim(Out(method),
+                                  {std::string("train ") + method, overwrite, {}, false, take});
   }
 };
 
@@ -351,8 +352,9 @@ void TrainLiveRerenderCommand(const RerenderArgs& args) {
   o.Check();
   // A bad scan is refused before any output is claimed.
   ReadScanAlbedo(args.scan, ReadScan(args.scan));
-  const OutputDirectory claimed = OutputDirectory::Claim(
-      shared.Out("rerender"), {"train rerender", shared.overwrite, {args.scan}});
+  const OutputDirectory claimed =
+      OutputDirectory::Claim(shared.Out("rerender"),
+                             {"train rerender", shared.overwrite, {args.scan}, false, shared.take});
   const std::filesystem::path& out = claimed.path();
   Report report("train rerender");
   report.SetFailureDestination(out / "report.json");
@@ -521,7 +523,8 @@ void AddSplatCommand(CLI::App* train) {
     }
     o.Check();
     const OutputDirectory claimed = OutputDirectory::Claim(
-        shared.Out("splat"), {"train splat", shared.overwrite, {}, !o.tasks.shard.whole()});
+        shared.Out("splat"),
+        {"train splat", shared.overwrite, {}, !o.tasks.shard.whole(), shared.take});
     const std::filesystem::path& out = claimed.path();
     Report report("train splat");
     report.SetFailureDestination(o.segment_frames > 0 ? TaskReportPath(out, o.tasks.shard)

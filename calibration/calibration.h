@@ -367,6 +367,7 @@ struct TakeCalibrationSummary : Summary {
   bool has_ground_truth = false;
   GroundTruthComparison ground_truth;
   std::vector<std::filesystem::path> written;  // models, report and pictures
+  std::filesystem::path report_file;           // where its report went
 };
 
 // The lens model the take's rig asks for `sensor` (its option calib_lensmodel), else OPENCV8.

@@ -339,8 +339,9 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
   Report& r = report != nullptr ? *report : local;
   FillReport(options, sensors, result, r);
   const fs::path report_file = take.calib_dir() / "report.json";
-  r.Write(report_file);
-  result.written.push_back(report_file);
+  // A failed run's report goes beside a previous good one (calib/report.failed.json).
+  result.report_file = r.Write(report_file);
+  result.written.push_back(result.report_file);
   return result;
 }
 

@@ -4,7 +4,9 @@
 #include <sys/file.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
+#include <cstdio>
 #include <cstring>
 #include <map>
 #include <mutex>
@@ -82,17 +84,64 @@ bool EmptyButForMarkerBeingWritten(const fs::path& dir) {
   const std::string temporary = std::string(kOutputMarkerFile) + ".tmp";
   std::error_code ec;
   for (const auto& entry : fs::directory_iterator(dir, ec)) {
-    if (entry.path().filename().string().rfind(temporary, 0) != 0) return false;
+    const std::string name = entry.path().filename().string();
+    if (name.rfind(temporary, 0) != 0 && name != kTakeLockFile) return false;
   }
   return !ec;
 }
 
-std::string ReadMarker(const fs::path& dir) {
+// An output's marker: the command that made it, then (since markers name it) "source PATH".
+struct Marker {
+  std::string command;
+  std::string source;  // "" in a marker that names none
+};
+
+Marker ReadMarker(const fs::path& dir) {
   std::error_code ec;
-  if (!fs::is_regular_file(dir / kOutputMarkerFile, ec)) return "";
-  std::string text = ReadFileToString(dir / kOutputMarkerFile);
-  while (!text.empty() && (text.back() == '\n' || text.back() == ' ')) text.pop_back();
+  if (!fs::is_regular_file(dir / kOutputMarkerFile, ec)) return {};
+  const std::string text = ReadFileToString(dir / kOutputMarkerFile, 1 << 16);
+  Marker marker;
+  size_t start = 0;
+  for (int line = 0; start < text.size(); ++line) {
+    size_t end = text.find('\n', start);
+    if (end == std::string::npos) end = text.size();
+    std::string content = text.substr(start, end - start);
+    while (!content.empty() && content.back() == ' ') content.pop_back();
+    if (line == 0) {
+      marker.command = content;
+    } else if (content.rfind("source ", 0) == 0) {
+      marker.source = content.substr(7);
+    }
+    start = end + 1;
+  }
+  return marker;
+}
+
+std::string MarkerText(const OutputRequest& request) {
+  std::string text = request.command + "\n";
+  if (!request.source.empty()) text += "source " + Canonical(request.source).string() + "\n";
   return text;
+}
+
+// Refuses a path that names a place inside a take but leads, through a symbolic link, out of it
+// (into another take or anywhere else): the claim is made where the path leads.
+void RefuseLinkOutOfItsTake(const fs::path& shown, const fs::path& canonical) {
+  std::error_code ec;
+  const fs::path lexical = fs::absolute(shown, ec).lexically_normal();
+  if (ec) return;
+  // The nearest take above the path as written, found without following the final parts.
+  fs::path dir = lexical.parent_path();
+  while (true) {
+    if (IsTakeDirectory(dir)) break;
+    if (!dir.has_parent_path() || dir.parent_path() == dir) return;
+    dir = dir.parent_path();
+  }
+  const fs::path take = Canonical(dir);
+  if (!IsAtOrUnder(canonical, take)) {
+    Fail("'", shown.string(), "' lies in the take '", dir.string(),
+         "' but a symbolic link leads it to '", canonical.string(),
+         "', outside that take; give the folder it leads to, or a folder that is no link");
+  }
 }
 
 // This process's command line, as one printable line.
@@ -165,9 +214,10 @@ TakeLock TakeLock::Acquire(const fs::path& take, const std::string& command, boo
       if (err != EWOULDBLOCK) {
         Fail("cannot lock take '", take.string(), "' (", file.string(), "): ", std::strerror(err));
       }
-      Fail("take '", take.string(), "' is being written by ",
-           holder.empty() ? std::string("another process") : holder,
-           "; one command writes into a take at a time (run ", command,
+      const bool is_take = IsTakeDirectory(key);
+      Fail(is_take ? "take '" : "'", take.string(), "' is being written by ",
+           holder.empty() ? std::string("another process") : holder, "; one command writes into ",
+           is_take ? "a take" : "an output", " at a time (run ", command,
            " again when it has ended)");
     }
     const std::string line = "pid " + std::to_string(::getpid()) + " (" + OwnCommandLine() + ")\n";
@@ -211,6 +261,7 @@ TakeLock& TakeLock::operator=(TakeLock&& other) noexcept {
 
 OutputDirectory OutputDirectory::Claim(const fs::path& dir, const OutputRequest& request) {
   const fs::path canonical = Canonical(dir);
+  RefuseLinkOutOfItsTake(dir, canonical);
   if (IsTakeDirectory(canonical)) {
     Fail("'", dir.string(), "' is a take's directory; holocap ", request.command,
          " writes its results into a folder of their own, e.g. '", (dir / request.command).string(),
@@ -219,26 +270,44 @@ OutputDirectory OutputDirectory::Claim(const fs::path& dir, const OutputRequest&
   RefuseRecordedData(dir, canonical);
   RefuseInputsUnder(dir, canonical, request);
   std::error_code ec;
-  bool fresh = true;
+  bool fresh = true, rewrite_marker = false;
   if (fs::exists(canonical, ec)) {
     if (!fs::is_directory(canonical, ec)) Fail("'", dir.string(), "' exists and is not a folder");
     if (!EmptyButForMarkerBeingWritten(canonical)) {
       fresh = false;
-      const std::string maker = ReadMarker(canonical);
-      if (maker != request.command && !request.overwrite) {
+      const Marker marker = ReadMarker(canonical);
+      if (marker.command != request.command && !request.overwrite) {
         Fail("'", dir.string(), "' is not empty and holocap ", request.command,
-             " did not make it (", maker.empty() ? "no holocap output" : "holocap " + maker,
+             " did not make it (",
+             marker.command.empty() ? "no holocap output" : "holocap " + marker.command,
              "); pass --overwrite to write into it (nothing there is removed)");
+      }
+      const std::string source =
+          request.source.empty() ? std::string() : Canonical(request.source).string();
+      if (marker.command == request.command && !marker.source.empty() && !source.empty() &&
+          marker.source != source) {
+        if (!request.overwrite) {
+          Fail("'", dir.string(), "' holds holocap ", request.command, "'s results of '",
+               marker.source, "', not of '", source,
+               "'; choose another folder, or pass --overwrite to write into it (its files of "
+               "the same names are replaced, nothing else is removed)");
+        }
+        std::fprintf(stderr,
+                     "holocap %s: writing into '%s', which holds results of '%s' (--overwrite: "
+                     "its files of the same names are replaced)\n",
+                     request.command.c_str(), dir.c_str(), marker.source.c_str());
+        rewrite_marker = true;
       }
     }
   }
   OutputDirectory output;
   output.dir_ = dir;
-  if (const auto take = EnclosingTake(canonical)) {
-    output.lock_ = TakeLock::Acquire(*take, request.command, request.shared);
-  }
+  const auto take = EnclosingTake(canonical);
+  if (take) output.lock_ = TakeLock::Acquire(*take, request.command, request.shared);
   CreateDirectories(dir);
-  if (fresh) WriteFileAtomic(dir / kOutputMarkerFile, request.command + "\n");
+  // Outside a take the output is its own lock's home: one writer at a time all the same.
+  if (!take) output.lock_ = TakeLock::Acquire(dir, request.command, request.shared);
+  if (fresh || rewrite_marker) WriteFileAtomic(dir / kOutputMarkerFile, MarkerText(request));
   return output;
 }
 
@@ -274,16 +343,60 @@ TakeLock ClaimTakeDirectory(const fs::path& dir, const OutputRequest& request) {
   }
   nlohmann::json manifest;
   try {
-    manifest = nlohmann::json::parse(ReadFileToString(canonical / "take.json"));
+    manifest = nlohmann::json::parse(ReadFileToString(canonical / "take.json", 64 << 20));
   } catch (const nlohmann::json::exception&) {
     Fail("'", dir.string(), "' holds a take.json that is not JSON; it is not replaced");
   }
-  if (manifest.is_object() && manifest.contains("metadata") && manifest["metadata"].is_object() &&
-      manifest["metadata"].contains("capture")) {
+  if (!manifest.is_object() || manifest.value("format", "") != "holocap-take") {
+    Fail("'", dir.string(),
+         "' holds a take.json that is not a holocap take's; it is not replaced (--overwrite "
+         "replaces only a take holocap made)");
+  }
+  const nlohmann::json metadata = manifest.value("metadata", nlohmann::json::object());
+  if (metadata.is_object() && metadata.contains("capture")) {
     Fail("'", dir.string(),
          "' holds a recording made by holocap capture; no command replaces a recording (move it "
          "away first)");
   }
+  // Who made it: take.json says since it has made_by; before, sim and import marked their
+  // metadata.
+  std::string maker = manifest.value("made_by", "");
+  if (maker.empty() && metadata.is_object()) {
+    if (metadata.value("simulated", false)) maker = "sim";
+    if (metadata.contains("interop")) maker = "import";
+  }
+  if (maker != request.command) {
+    Fail("'", dir.string(), "' holds a take made by ",
+         maker.empty() ? std::string("another program") : "holocap " + maker, "; holocap ",
+         request.command, " --overwrite replaces only a take it made (move it away first)");
+  }
+  // Only what a take writer makes is replaced: results of other commands (recon/, models/) and
+  // files of the user's stay, so the take is not replaced while they are there.
+  std::vector<std::string> foreign;
+  std::error_code listing;
+  for (const auto& entry : fs::directory_iterator(canonical, listing)) {
+    const std::string name = entry.path().filename().string();
+    bool ours = name == kTakeLockFile;
+    for (const char* part : {"frames", "gt", "calib", "take.json", "index.jsonl", "report.json"})
+      ours = ours || name == part;
+    if (!ours) foreign.push_back(name);
+  }
+  if (!foreign.empty()) {
+    std::sort(foreign.begin(), foreign.end());
+    std::string names;
+    for (size_t i = 0; i < foreign.size() && i < 4; ++i) names += (i ? ", " : "") + foreign[i];
+    if (foreign.size() > 4) names += Cat(" and ", foreign.size() - 4, " more");
+    Fail("'", dir.string(), "' holds ", names, ", which holocap ", request.command,
+         " did not make (results of other commands, or files of yours); --overwrite replaces a "
+         "take only when it holds nothing else: move them away first");
+  }
+  std::fprintf(stderr,
+               "holocap %s: replacing the take '%s' (made by holocap %s, %lld frame sets)\n",
+               request.command.c_str(), dir.c_str(), maker.c_str(),
+               static_cast<long long>(manifest.contains("frame_sets") &&
+                                              manifest["frame_sets"].is_number_integer()
+                                          ? manifest["frame_sets"].get<int64_t>()
+                                          : 0));
   return TakeLock::Acquire(canonical, request.command);
 }
 

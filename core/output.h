@@ -19,6 +19,10 @@ struct OutputRequest {
   // One task of a sharded run (--shard K/N): the take's lock is shared with the run's other
   // tasks, which write other frames into the same output; any other writer is still refused.
   bool shared = false;
+  // What the output is made from (a take, a model): kept in the output's marker. An output made
+  // by the same command from another source is written into only with --overwrite (a second
+  // take's results never mix into the first's unasked).
+  std::filesystem::path source;
 };
 
 // The take directory at or above `path` (the nearest one holding take.json), if any.
@@ -51,8 +55,10 @@ inline constexpr const char* kTakeLockFile = ".holocap.lock";
 inline constexpr const char* kOutputMarkerFile = ".holocap-output";
 
 // A directory of results (reconstruct's meshes, a model, rendered frames, an export): checked
-// as above, created, marked as this command's, and the take holding it locked while this
-// object lives. Throws Error with one line saying what was refused and why.
+// as above, created, marked as this command's (and its source's), and locked while this object
+// lives: the take holding it, or, outside a take, the directory itself (its own lock file), so
+// two commands never write one output at once. A path that a symbolic link leads out of the take
+// it names is refused. Throws Error with one line saying what was refused and why.
 class OutputDirectory {
  public:
   static OutputDirectory Claim(const std::filesystem::path& dir, const OutputRequest& request);
@@ -70,8 +76,11 @@ TakeLock ClaimOutputFile(const std::filesystem::path& file, const OutputRequest&
 
 // A take directory about to be written (import, simulate, capture): refused inside another
 // take's recorded data or where it would hold an input; an existing non-empty directory is
-// replaced only with --overwrite, only when it is a take, and never when it is a recording
-// made by `holocap capture`. Returns the lock of the take being replaced (if any).
+// replaced only with --overwrite, only when it is a take this same command made (take.json's
+// made_by, or for older takes its metadata), holding nothing but what a take writer makes (no
+// results of other commands, no files of the user's), and never when it is a recording made by
+// `holocap capture`; what is replaced is said on stderr. Returns the lock of the take being
+// replaced (if any).
 TakeLock ClaimTakeDirectory(const std::filesystem::path& dir, const OutputRequest& request);
 
 }  // namespace holocap

@@ -1,5 +1,6 @@
 #include "core/report.h"
 
+#include "core/error.h"
 #include "core/fs.h"
 
 namespace holocap {
@@ -70,17 +71,46 @@ void Report::AddPointAt(const std::string& metric, double value, int64_t iter, d
   json_["series"].push_back({{"t_s", t}, {"iter", iter}, {"metric", metric}, {"value", value}});
 }
 
-void Report::Write(const std::filesystem::path& file) const {
+std::filesystem::path ReportDestination(const std::filesystem::path& file,
+                                        const nlohmann::json& report) {
+  const auto usable = [](const nlohmann::json& json) {
+    if (!json.is_object() || !json.contains("summary") || !json["summary"].is_object())
+      return false;
+    const std::string state = json["summary"].value("termination", "");
+    for (Termination t :
+         {Termination::kSuccess, Termination::kConvergence, Termination::kNoConvergence})
+      if (state == ToString(t)) return true;
+    return false;
+  };
+  if (usable(report)) return file;
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(file, ec)) return file;
+  nlohmann::json previous;
+  try {
+    previous = nlohmann::json::parse(ReadFileToString(file), nullptr, false);
+  } catch (const Error&) {
+    return file;
+  }
+  if (!usable(previous)) return file;
+  std::filesystem::path beside = file;
+  beside.replace_extension(".failed.json");
+  return beside;
+}
+
+std::filesystem::path Report::Write(const std::filesystem::path& file) const {
   std::string text;
+  std::filesystem::path destination;
   {
     std::lock_guard lock(mutex_);
     nlohmann::json copy = json_;
     copy["elapsed_s"] = ElapsedSeconds();
     text = copy.dump(2, ' ', false, nlohmann::json::error_handler_t::replace) + "\n";
+    destination = ReportDestination(file, copy);
   }
-  if (file.has_parent_path()) CreateDirectories(file.parent_path());
-  WriteFileAtomic(file, text);
+  if (destination.has_parent_path()) CreateDirectories(destination.parent_path());
+  WriteFileAtomic(destination, text);
   written_ = true;
+  return destination;
 }
 
 Report::~Report() {
@@ -108,10 +138,11 @@ std::vector<std::filesystem::path> WritePendingFailureReports(const std::string&
     report.json["summary"] = {{"termination", ToString(Termination::kFailure)},
                               {"message", message}};
     try {
+      const std::filesystem::path destination = ReportDestination(report.file, report.json);
       WriteFileAtomic(
-          report.file,
+          destination,
           report.json.dump(2, ' ', false, nlohmann::json::error_handler_t::replace) + "\n");
-      written.push_back(report.file);
+      written.push_back(destination);
     } catch (...) {
       // A full disk or a vanished folder: the error line is all there is.
     }

@@ -74,8 +74,10 @@ class Report {
   void AddPointAt(const std::string& metric, double value, int64_t iter, double t_s);
   double ElapsedSeconds() const;
 
-  // Writes atomically (report.json stays readable if the process dies mid-write).
-  void Write(const std::filesystem::path& file) const;
+  // Writes atomically (report.json stays readable if the process dies mid-write) and returns
+  // where: a report of a run that is not usable never replaces a usable one (a previous good
+  // result's), it goes beside it instead (report.failed.json; see ReportDestination).
+  std::filesystem::path Write(const std::filesystem::path& file) const;
   // Where this report goes if the command ends by an error first: set once the command has
   // claimed its output (core/output.h), so a refused output never receives a report.
   void SetFailureDestination(const std::filesystem::path& file) { failure_file_ = file; }
@@ -93,5 +95,11 @@ class Report {
 // FAILURE and `message` (the error line's text): options, plan, metrics and series so far are
 // kept. Returns the files written; errors while writing are swallowed (the error line stands).
 std::vector<std::filesystem::path> WritePendingFailureReports(const std::string& message);
+
+// Where `report` (a report's JSON) goes when asked to go to `file`: `file`, unless `report` is
+// not usable (DEGENERATE, FAILURE) and `file` holds a usable report; then beside it, the same
+// name with ".failed.json" (report.json -> report.failed.json).
+std::filesystem::path ReportDestination(const std::filesystem::path& file,
+                                        const nlohmann::json& report);
 
 }  // namespace holocap

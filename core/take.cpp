@@ -251,6 +251,7 @@ void TakeWriter::WriteManifest(const std::string& state) {
   nlohmann::json manifest;
   manifest["format"] = "holocap-take";
   manifest["format_version"] = kTakeFormatVersion;
+  if (!options_.command.empty()) manifest["made_by"] = options_.command;  // --overwrite's check
   manifest["state"] = state;
   manifest["updated"] = NowIso8601();
   manifest["rig"] = rig_.ToJson();

@@ -51,6 +51,18 @@ void CheckSbatchValue(const std::string& value, const char* flag) {
   }
 }
 
+// Text written into a batch script: a newline or another control character would end the line
+// it stands in (an #SBATCH line, the command) and start one of its own, so it is refused.
+void CheckScriptText(const std::string& text, const std::string& what) {
+  for (char c : text) {
+    const auto byte = static_cast<unsigned char>(c);
+    if (byte < 0x20 || byte == 0x7f) {
+      Fail(what, " '", Printable(text), "' holds a control character (byte ", int{byte},
+           "); a batch script cannot carry it: rename it");
+    }
+  }
+}
+
 struct ProgramResult {
   int exit_code = -1;
   std::string output;  // stdout and stderr together
@@ -161,6 +173,16 @@ SlurmScripts MakeSlurmScripts(const SlurmOptions& options) {
   SlurmScripts scripts;
   scripts.out = std::filesystem::absolute(PerFrameOutput(command, options.take, options.args));
   const std::filesystem::path logs = SlurmDirectory(scripts.out) / "logs";
+  CheckScriptText(std::filesystem::absolute(options.take).string(), "the take's path");
+  CheckScriptText(scripts.out.string(), "the output's path");
+  CheckScriptText(options.holocap.string(), "holocap's path");
+  for (const auto& arg : options.args) CheckScriptText(arg, "the argument");
+  // An #SBATCH line is split at blanks and quotes, the shell's words are not: its path holds none.
+  if (logs.string().find_first_of(" \t\"'\\") != std::string::npos) {
+    Fail("the output's path '", scripts.out.string(),
+         "' holds a blank, quote or backslash, which an #SBATCH --output line cannot carry; "
+         "choose an output without them");
+  }
   std::ostringstream header;
   if (!options.partition.empty()) header << "#SBATCH --partition=" << options.partition << "\n";
   if (!options.time.empty()) header << "#SBATCH --time=" << options.time << "\n";

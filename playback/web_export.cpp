@@ -789,7 +789,8 @@ nlohmann::json WebStreamMetrics::ToJson() const {
 WebExportSummary ExportWebSite(const fs::path& take_dir, const fs::path& site_dir,
                                const WebExportOptions& options, Report* report) {
   options.Check();
-  OutputRequest request{kCommand, options.overwrite, {take_dir}, !options.tasks.shard.whole()};
+  OutputRequest request{
+      kCommand, options.overwrite, {take_dir}, !options.tasks.shard.whole(), take_dir};
   for (const auto& model : options.models) request.inputs.push_back(model);
   if (!options.recon.empty()) request.inputs.push_back(options.recon);
   const OutputDirectory claimed = OutputDirectory::Claim(site_dir, request);

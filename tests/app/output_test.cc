@@ -201,5 +201,118 @@ TEST_F(OutputSafety, ASecondWriterOfATakeIsRefusedNamingTheFirst) {
   EXPECT_EQ(Contents(take()), before);
 }
 
+// `sim --overwrite` into a folder holding any JSON take.json removed everything else there (a
+// source tree, a take's recon/ and models/). A take is replaced only when this command made it
+// and it holds nothing but what a take writer makes; the folder's bytes stay as they were.
+TEST_F(OutputSafety, OverwriteReplacesOnlyATakeItMadeHoldingNothingElse) {
+  TempDir dir;
+  const std::string sim = "sim --rig single-rgbd --frames 1 --size 64x48 --overwrite --out ";
+  fs::create_directories(dir / "proj/src");
+  std::ofstream(dir / "proj/src/main.c") << "int main() {}\n";
+  std::ofstream(dir / "proj/take.json") << R"({"name": "cfg"})";
+  auto before = Contents(dir / "proj");
+  ExpectOneLineError(RunCli(sim + (dir / "proj").string()), "not a holocap take's");
+  EXPECT_EQ(Contents(dir / "proj"), before);
+
+  fs::copy(take(), dir / "made", fs::copy_options::recursive);
+  fs::create_directories(dir / "made/recon");
+  std::ofstream(dir / "made/recon/mesh.ply") << "ply";
+  std::ofstream(dir / "made/notes.txt") << "the user's";
+  before = Contents(dir / "made");
+  ExpectOneLineError(RunCli(sim + (dir / "made").string()),
+                     "holds notes.txt, recon, which holocap sim did not make");
+  EXPECT_EQ(Contents(dir / "made"), before);
+
+  fs::remove_all(dir / "made/recon");
+  fs::remove(dir / "made/notes.txt");
+  auto manifest = nlohmann::json::parse(ReadFileToString(dir / "made/take.json"));
+  EXPECT_EQ(manifest["made_by"], "sim");
+  manifest["made_by"] = "import";
+  WriteFileAtomic(dir / "made/take.json", manifest.dump(2));
+  before = Contents(dir / "made");
+  ExpectOneLineError(RunCli(sim + (dir / "made").string()), "holds a take made by holocap import");
+  EXPECT_EQ(Contents(dir / "made"), before);
+
+  manifest["made_by"] = "sim";
+  WriteFileAtomic(dir / "made/take.json", manifest.dump(2));
+  const auto result = RunCli(sim + (dir / "made").string());
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  EXPECT_NE(result.output.find("holocap sim: replacing the take '" + (dir / "made").string() +
+                               "' (made by holocap sim, 2 frame sets)"),
+            std::string::npos)
+      << result.output;
+}
+
+// A calibration that fails kept nothing of the take's previous good report: its FAILURE
+// replaced calib/report.json. It now goes beside it, as calib/report.failed.json.
+TEST_F(OutputSafety, AFailedCalibrationLeavesThePreviousGoodReport) {
+  TempDir dir;
+  fs::copy(take(), dir / "take", fs::copy_options::recursive);
+  fs::create_directories(dir / "take/calib");
+  WriteFileAtomic(dir / "take/calib/report.json",
+                  R"({"command": "calibrate", "summary": {"termination": "SUCCESS"}})");
+  const auto before = Contents(dir / "take/calib");
+  const auto result = RunCli("calibrate " + (dir / "take").string());
+  EXPECT_NE(result.exit_code, 0) << result.output;
+  auto after = Contents(dir / "take/calib");
+  ASSERT_EQ(after.count("report.failed.json"), 1u) << result.output;
+  after.erase("report.failed.json");
+  EXPECT_EQ(after, before);
+  const auto failed =
+      nlohmann::json::parse(ReadFileToString(dir / "take/calib/report.failed.json"));
+  EXPECT_EQ(failed["summary"]["termination"], "FAILURE");
+}
+
+// calibrate wrote through a calib/ that was a symbolic link into another take.
+TEST_F(OutputSafety, CalibrateNeverWritesThroughALinkedCalibFolder) {
+  TempDir dir;
+  fs::copy(take(), dir / "a", fs::copy_options::recursive);
+  fs::copy(take(), dir / "b", fs::copy_options::recursive);
+  fs::create_directories(dir / "b/calib");
+  std::ofstream(dir / "b/calib/report.json") << "{}";
+  fs::create_directory_symlink(dir / "b/calib", dir / "a/calib");
+  const auto before = Contents(dir / "b");
+  ExpectOneLineError(RunCli("calibrate " + (dir / "a").string()), "is a symbolic link");
+  EXPECT_EQ(Contents(dir / "b"), before);
+}
+
+// reconstruct A --out B/recon replaced some of B's sets: a mix of two takes, SUCCESS. The
+// marker names its source; another take's results are written into only with --overwrite, and a
+// link leading out of the take the path names is refused.
+TEST_F(OutputSafety, AnotherTakesResultsAreNotMixedIn) {
+  TempDir dir;
+  fs::copy(take(), dir / "b", fs::copy_options::recursive);
+  auto result = RunCli("reconstruct " + (dir / "b").string());
+  ASSERT_EQ(result.exit_code, 0) << result.output;
+  const auto before = Contents(dir / "b");
+  ExpectOneLineError(
+      RunCli("reconstruct " + take().string() + " --out " + (dir / "b/recon").string()),
+      "holds holocap reconstruct's results of '" + fs::canonical(dir / "b").string() +
+          "', not of '" + fs::canonical(take()).string() + "'");
+  EXPECT_EQ(Contents(dir / "b"), before);
+  // b/elsewhere, a link into another folder: where it leads is no part of take b.
+  fs::create_directories(dir / "outside");
+  fs::create_directory_symlink(dir / "outside", dir / "b/elsewhere");
+  ExpectOneLineError(
+      RunCli("reconstruct " + (dir / "b").string() + " --out " + (dir / "b/elsewhere").string()),
+      "but a symbolic link leads it to");
+  EXPECT_TRUE(fs::is_empty(dir / "outside"));
+}
+
+// Two train splat into one --out outside a take both ended SUCCESS, the later one replacing the
+// first's model: an output outside a take now holds a lock like a take's.
+TEST_F(OutputSafety, AnOutputOutsideATakeHasOneWriterAtATime) {
+  TempDir dir;
+  const fs::path out = dir / "model";
+  const auto held = OutputDirectory::Claim(out, {"train splat", false, {}, false, take()});
+  ExpectOneLineError(
+      RunCli("train splat " + take().string() + " --iterations 1 --out " + out.string()),
+      "is being written by pid " + std::to_string(::getpid()) + " (");
+  ExpectOneLineError(
+      RunCli("train splat " + take().string() + " --iterations 1 --out " + out.string()),
+      "one command writes into an output at a time");
+  EXPECT_FALSE(fs::exists(out / "model.json"));
+}
+
 }  // namespace
 }  // namespace holocap

@@ -98,6 +98,23 @@ TEST(SubmitSlurm, OneShardPerArrayTaskAndAMergeAfterThem) {
                      "give --segment-frames S");
 }
 
+// A newline in a take's path broke the #SBATCH --output line and made the rest of the path a
+// command of the script (touch PWNED ran on the cluster). Control characters are refused in
+// everything the script carries, blanks and quotes in the #SBATCH line's path.
+TEST(SubmitSlurm, APathThatWouldBreakTheScriptIsRefused) {
+  TempDir dir("holocap-submit");
+  const std::string injected = (dir.path() / "E/nl\ntouch PWNED\n#x/take").string();
+  ExpectOneLineError(RunCli("submit slurm reconstruct '" + injected + "' --tasks 2 --dry-run"),
+                     "holds a control character (byte 10)");
+  ExpectOneLineError(RunCli("submit slurm reconstruct '" + (dir.path() / "my take").string() +
+                            "' --tasks 2 --dry-run"),
+                     "which an #SBATCH --output line cannot carry");
+  ExpectOneLineError(RunCli("submit slurm reconstruct '" + (dir.path() / "take").string() +
+                            "' --voxel \"$(printf '8mm\\nx')\" --tasks 2 --dry-run"),
+                     "the argument '8mm");
+  EXPECT_FALSE(fs::exists(dir.path() / "E"));
+}
+
 // A simulated take reconstructed by 3 array tasks; one is cancelled in the middle of its second
 // frame; the merge job reports the run incomplete; a resubmission redoes only what was lost,
 // and the merged meshes and report are those of one process's run. Then the take's splats by 2
