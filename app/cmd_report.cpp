@@ -52,6 +52,17 @@ nlohmann::json LoadReport(const std::filesystem::path& file) {
   if (!json.contains("command") || !json.contains("summary")) {
     Fail("'", file.string(), "' is not a holocap report (no command or summary)");
   }
+  const auto string_or_absent = [](const nlohmann::json& object, const char* key) {
+    return !object.is_object() || !object.contains(key) || object[key].is_string();
+  };
+  if (!json["command"].is_string() || !json["summary"].is_object() ||
+      !string_or_absent(json["summary"], "termination") ||
+      !string_or_absent(json["summary"], "message") ||
+      (json.contains("elapsed_s") && !json["elapsed_s"].is_number())) {
+    Fail("'", file.string(),
+         "' is not a holocap report: its command, termination or message is no string, its "
+         "summary no object or its elapsed_s no number");
+  }
   return json;
 }
 
@@ -96,19 +107,22 @@ void FlattenMetrics(const nlohmann::json& json, const std::string& prefix,
 void PrintReport(const std::filesystem::path& file, const nlohmann::json& report,
                  const Series& series, int rows) {
   const auto& summary = report["summary"];
-  std::printf("%s  (%s, %.1f s)\n", file.c_str(), report["command"].get<std::string>().c_str(),
+  // A report's text is printed through Printable: escape sequences in a file never reach the
+  // terminal.
+  std::printf("%s  (%s, %.1f s)\n", Printable(file.string()).c_str(),
+              Printable(report["command"].get<std::string>()).c_str(),
               report.value("elapsed_s", 0.0));
-  std::printf("  %s: %s\n", summary.value("termination", "?").c_str(),
-              summary.value("message", "").c_str());
+  std::printf("  %s: %s\n", Printable(summary.value("termination", "?")).c_str(),
+              Printable(summary.value("message", "")).c_str());
   if (report.contains("metrics")) {
     std::vector<std::pair<std::string, std::string>> metrics;
     FlattenMetrics(report["metrics"], "", &metrics);
     if (!metrics.empty()) std::printf("  metrics\n");
     for (const auto& [name, value] : metrics)
-      std::printf("    %-40s %s\n", name.c_str(), value.c_str());
+      std::printf("    %-40s %s\n", Printable(name).c_str(), Printable(value).c_str());
   }
   for (const auto& [metric, points] : series) {
-    std::printf("  %s against time (%zu points)\n    %10s %10s %14s\n", metric.c_str(),
+    std::printf("  %s against time (%zu points)\n    %10s %10s %14s\n", Printable(metric).c_str(),
                 points.size(), "t_s", "iter", "value");
     // Evenly spread rows, always the first and the last.
     const size_t shown = std::min<size_t>(points.size(), std::max(rows, 2));
@@ -320,8 +334,14 @@ void AddReportCommand(CLI::App& app) {
     std::vector<Run> runs;
     for (const auto& file : files) {
       const nlohmann::json report = LoadReport(file);
-      const Series series = SeriesOf(report, args->metrics);
-      PrintReport(file, report, series, args->rows);
+      Series series;
+      try {
+        series = SeriesOf(report, args->metrics);
+        PrintReport(file, report, series, args->rows);
+      } catch (const nlohmann::json::exception& e) {
+        std::fflush(stdout);
+        Fail("'", file.string(), "' holds a field of the wrong type: ", e.what());
+      }
       runs.push_back(
           {Cat(report["command"].get<std::string>(), " (", file.parent_path().string(), ")"),
            series});

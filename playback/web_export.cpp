@@ -688,13 +688,57 @@ WebExportSummary SiteWriter::FinishTask(size_t groups) {
 // A stream's metrics and manifest entry summed from its frames in the groups' records.
 class StreamSum {
  public:
-  StreamSum(const SiteStream& stream, Report* report) : stream_(stream), report_(report) {
+  StreamSum(const SiteStream& stream, fs::path site, Report* report)
+      : stream_(stream), site_(std::move(site)), report_(report) {
     metrics_ = {.name = stream.name, .kind = stream.kind, .quality = stream.quality};
   }
 
-  void Add(const nlohmann::json& frame) {
-    chunks_.push_back(frame.at("chunk"));
-    if (frame.at("chunk").is_null()) return;
+  // Adds frame set `set`'s frame. A record is checked before it is believed: its chunk a plain
+  // file name of this stream's folder, there with the bytes the record counts, its figures
+  // finite and in range (a squared error past 1 a value is no image's).
+  void Add(int64_t set, const nlohmann::json& frame) {
+    const auto refuse = [&](const std::string& why) {
+      Fail("'", site_.string(), "': the frame record of set ", set, " for stream '",
+           Printable(stream_.name), "' ", why, "; run the export's group again (--redo)");
+    };
+    if (!frame.is_object() || !frame.contains("chunk")) refuse("has no chunk");
+    const nlohmann::json& chunk = frame["chunk"];
+    if (!chunk.is_null()) {
+      if (!chunk.is_object() || !chunk.contains("file") || !chunk["file"].is_string() ||
+          !chunk.contains("bytes") || !chunk["bytes"].is_number_unsigned())
+        refuse("lists a chunk without its file name and size");
+      const std::string file = chunk["file"].get<std::string>();
+      const bool plain =
+          !file.empty() && file.size() <= 64 &&
+          file.find_first_not_of("0123456789abcdefghijklmnopqrstuvwxyz_-.") == std::string::npos &&
+          file.find("..") == std::string::npos && file.front() != '.';
+      if (!plain)
+        refuse(Cat("names the chunk '", Printable(file), "', which is no plain file name"));
+      const fs::path path = site_ / stream_.folder / file;
+      std::error_code ec;
+      const bool regular = fs::is_regular_file(fs::symlink_status(path, ec));
+      if (!regular || fs::file_size(path, ec) != chunk["bytes"].get<uint64_t>()) {
+        refuse(Cat("counts ", chunk["bytes"].get<uint64_t>(), " bytes in '", path.string(),
+                   "', which ", regular ? "holds another size" : "is no regular file"));
+      }
+      for (const char* field : {"squared", "count"})
+        if (!frame.contains(field) || !frame[field].is_number())
+          refuse(Cat("has no number '", field, "'"));
+      const double squared = frame["squared"].get<double>();
+      const double count = frame["count"].get<double>();
+      if (!std::isfinite(squared) || squared < 0 || !(count >= 0) || count > 1e12 ||
+          count != std::floor(count) || squared > count)
+        refuse(Cat("holds a squared error of ", squared, " over ", count,
+                   " values, which no image gives (0 to 1 a value)"));
+      for (const char* field : {"max_position_error_mm", "faces", "gaussians", "stored"}) {
+        if (!frame.contains(field)) continue;
+        if (!frame[field].is_number() || !std::isfinite(frame[field].get<double>()) ||
+            frame[field].get<double>() < 0)
+          refuse(Cat("holds '", field, "' ", frame[field].dump(), ", not a finite count"));
+      }
+    }
+    chunks_.push_back(chunk);
+    if (chunk.is_null()) return;
     bytes_ += frame.at("chunk").at("bytes").get<uint64_t>();
     squared_ += frame.at("squared").get<double>();
     count_ += frame.at("count").get<int64_t>();
@@ -729,6 +773,7 @@ class StreamSum {
 
  private:
   SiteStream stream_;
+  fs::path site_;
   Report* report_;
   WebStreamMetrics metrics_;
   nlohmann::json chunks_ = nlohmann::json::array();
@@ -830,9 +875,10 @@ WebExportSummary MergeWebSite(const fs::path& site_dir, Report* report) {
   nlohmann::json streams = nlohmann::json::array();
   for (const auto& planned : plan.at("streams")) {
     const SiteStream stream = SiteStream::FromJson(planned);
-    StreamSum sum(stream, report);
+    StreamSum sum(stream, site_dir, report);
     for (const auto& [set, record] : run.complete)
-      for (const auto& frame : record.at("result").at("streams").at(stream.name)) sum.Add(frame);
+      for (const auto& frame : record.at("result").at("streams").at(stream.name))
+        sum.Add(set, frame);
     streams.push_back(sum.End(plan.at("head").at("fps").get<double>(), &summary));
   }
   for (const auto& [path, bytes] : web::PlayerFiles()) {

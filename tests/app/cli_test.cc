@@ -325,6 +325,29 @@ TEST(Cli, ReportShowsOutcomeMetricsAndTheErrorAgainstTime) {
   ExpectOneLineError(RunCli("report " + (dir / "empty").string()), "does not exist");
 }
 
+// report printed a report.json's escape sequences raw (a file could retitle or clear the
+// terminal) and ended wrong JSON types with nlohmann's bare "[json.exception.type_error.306]".
+TEST(Cli, ReportPrintsNoEscapeSequenceAndNamesAFileOfWrongTypes) {
+  TempDir dir;
+  Report report("train");
+  report.metrics()["psnr\x1b[2J"] = "\x1b]0;owned\x07";
+  report.AddPoint("loss\x1b[31m", 1.0, 0);
+  report.SetSummary({Termination::kSuccess, "done\x1b[2J\x1b]0;owned\x07"});
+  report.Write(dir / "run/report.json");
+  auto shown = RunCli("report " + (dir / "run/report.json").string());
+  ASSERT_EQ(shown.exit_code, 0) << shown.output;
+  EXPECT_EQ(shown.output.find('\x1b'), std::string::npos) << shown.output;
+  EXPECT_EQ(shown.output.find('\x07'), std::string::npos) << shown.output;
+  EXPECT_NE(shown.output.find("SUCCESS: done"), std::string::npos) << shown.output;
+  std::ofstream(dir / "types.json") << R"({"command": "x", "summary": {"termination": 5}})";
+  ExpectOneLineError(RunCli("report " + (dir / "types.json").string()),
+                     "'" + (dir / "types.json").string() + "' is not a holocap report");
+  std::ofstream(dir / "series.json")
+      << R"({"command": "x", "summary": {}, "series": [{"metric": 5, "value": 1}]})";
+  ExpectOneLineError(RunCli("report " + (dir / "series.json").string()),
+                     "'" + (dir / "series.json").string() + "' holds a field of the wrong type");
+}
+
 // Several reports given at once share one plot: the series they all have, one line per run
 // (two methods' held-out PSNR against time, say), each in its own colour.
 TEST(Cli, ReportsGivenTogetherShareOnePlot) {

@@ -5,6 +5,7 @@
 
 #include <filesystem>
 #include <map>
+#include <nlohmann/json.hpp>
 
 #include "core/fs.h"
 #include "splat/splat.h"
@@ -111,6 +112,32 @@ TEST_F(ShardedWebExport, ARerunSkipsCompleteGroupsAndRedoesDamagedOnes) {
   EXPECT_GT(after.at(3), before.at(3));
   EXPECT_GT(after.at(5), before.at(5));
   ExpectSameSite(out("whole"), out("damaged"));
+}
+
+// report SITE --merge believed a tampered frame record: the manifest listed the chunk
+// '../../../../etc/passwd' and a PSNR of -3026 dB, SUCCESS. Records are checked before they are
+// merged, and the site's manifest is left as it was.
+TEST_F(ShardedWebExport, AMergeRefusesATamperedFrameRecord) {
+  struct Tamper {
+    std::string field, value, expected;
+  };
+  for (const Tamper& t :
+       {Tamper{"file", "\"../../../../etc/passwd\"", "which is no plain file name"},
+        Tamper{"squared", "1e300", "which no image gives"},
+        Tamper{"bytes", "7", "holds another size"}}) {
+    fs::remove_all(out("tampered"));
+    fs::copy(out("whole"), out("tampered"), fs::copy_options::recursive);
+    const fs::path record = FrameRecordPath(out("tampered"), 3);
+    nlohmann::json json = nlohmann::json::parse(ReadFileToString(record));
+    nlohmann::json& frame = json["result"]["streams"].begin().value()[0];
+    ASSERT_TRUE(frame["chunk"].is_object()) << json.dump();
+    nlohmann::json& target = t.field == "squared" ? frame : frame["chunk"];
+    target[t.field] = nlohmann::json::parse(t.value);
+    WriteFileAtomic(record, json.dump());
+    const std::string manifest = ReadFileToString(out("tampered") + "/manifest.json");
+    ExpectOneLineError(RunCli("report " + out("tampered") + " --merge"), t.expected);
+    EXPECT_EQ(ReadFileToString(out("tampered") + "/manifest.json"), manifest) << t.field;
+  }
 }
 
 TEST_F(ShardedWebExport, AShardKilledMidGroupRedoesOnlyItsUnfinishedGroup) {
