@@ -46,24 +46,7 @@ struct ReportArgs {
 };
 
 nlohmann::json LoadReport(const std::filesystem::path& file) {
-  const std::string text = ReadFileToString(file);
-  nlohmann::json json = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
-  if (json.is_discarded() || !json.is_object()) Fail("'", file.string(), "' is not valid JSON");
-  if (!json.contains("command") || !json.contains("summary")) {
-    Fail("'", file.string(), "' is not a holocap report (no command or summary)");
-  }
-  const auto string_or_absent = [](const nlohmann::json& object, const char* key) {
-    return !object.is_object() || !object.contains(key) || object[key].is_string();
-  };
-  if (!json["command"].is_string() || !json["summary"].is_object() ||
-      !string_or_absent(json["summary"], "termination") ||
-      !string_or_absent(json["summary"], "message") ||
-      (json.contains("elapsed_s") && !json["elapsed_s"].is_number())) {
-    Fail("'", file.string(),
-         "' is not a holocap report: its command, termination or message is no string, its "
-         "summary no object or its elapsed_s no number");
-  }
-  return json;
+  return ParseReport(ReadFileToString(file), file.string());
 }
 
 Series SeriesOf(const nlohmann::json& report, const std::vector<std::string>& only) {

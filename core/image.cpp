@@ -242,18 +242,23 @@ void CheckPngHeader(const std::filesystem::path& file, const std::string& bytes,
   }
 }
 
-cv::Mat ReadPng(const std::filesystem::path& file, const ImageShape* declared) {
-  std::string bytes = ReadFileToString(file);
+cv::Mat DecodePngBytes(const std::filesystem::path& file, const std::string& bytes,
+                       const ImageShape* declared) {
   cv::Mat image;
   if (!PngStructureIsComplete(bytes)) Fail("'", file.string(), "' is truncated or not a PNG image");
   CheckPngHeader(file, bytes, declared);
   try {
-    image = cv::imdecode(cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, bytes.data()),
-                         cv::IMREAD_UNCHANGED);
+    image = cv::imdecode(
+        cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, const_cast<char*>(bytes.data())),
+        cv::IMREAD_UNCHANGED);
   } catch (const cv::Exception&) {
   }
   if (image.empty()) Fail("'", file.string(), "' is truncated or not a PNG image");
   return image;
+}
+
+cv::Mat ReadPng(const std::filesystem::path& file, const ImageShape* declared) {
+  return DecodePngBytes(file, ReadFileToString(file), declared);
 }
 
 cv::Mat ReadImage(const std::filesystem::path& file, const ImageShape* declared) {
@@ -269,6 +274,10 @@ cv::Mat ReadImage(const std::filesystem::path& file, const ImageShape* declared)
 }
 
 }  // namespace
+
+cv::Mat DecodePng(const std::string& bytes, const std::string& origin) {
+  return DecodePngBytes(origin, bytes, nullptr);
+}
 
 void CheckImageFileEnds(const std::filesystem::path& file) {
   const ImageCodec codec = CodecOfFile(file);

@@ -38,6 +38,10 @@ inline constexpr int64_t kMaxUndeclaredImagePixels = int64_t{1} << 27;
 // checked before decoding: against `declared` where given (size and depth), else against
 // kMaxUndeclaredImagePixels, so a small file that claims a huge image costs no memory.
 cv::Mat ReadImage(const std::filesystem::path& file);
+// Decodes PNG bytes (as stored) once their structure is complete and their header asks for no
+// more than kMaxUndeclaredImagePixels pixels and what the bytes can hold; `origin` names them in
+// errors. Throws Error.
+cv::Mat DecodePng(const std::string& bytes, const std::string& origin);
 // Throws Error naming `file` when bytes follow the end of its image (after a PNG's IEND chunk,
 // a zstd frame's end); no writer leaves them, so they are damage or something hidden.
 void CheckImageFileEnds(const std::filesystem::path& file);

@@ -71,6 +71,26 @@ void Report::AddPointAt(const std::string& metric, double value, int64_t iter, d
   json_["series"].push_back({{"t_s", t}, {"iter", iter}, {"metric", metric}, {"value", value}});
 }
 
+nlohmann::json ParseReport(const std::string& text, const std::string& origin) {
+  nlohmann::json json = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+  if (json.is_discarded() || !json.is_object()) Fail("'", origin, "' is not valid JSON");
+  if (!json.contains("command") || !json.contains("summary")) {
+    Fail("'", origin, "' is not a holocap report (no command or summary)");
+  }
+  const auto string_or_absent = [](const nlohmann::json& object, const char* key) {
+    return !object.is_object() || !object.contains(key) || object[key].is_string();
+  };
+  if (!json["command"].is_string() || !json["summary"].is_object() ||
+      !string_or_absent(json["summary"], "termination") ||
+      !string_or_absent(json["summary"], "message") ||
+      (json.contains("elapsed_s") && !json["elapsed_s"].is_number())) {
+    Fail("'", origin,
+         "' is not a holocap report: its command, termination or message is no string, its "
+         "summary no object or its elapsed_s no number");
+  }
+  return json;
+}
+
 std::filesystem::path ReportDestination(const std::filesystem::path& file,
                                         const nlohmann::json& report) {
   const auto usable = [](const nlohmann::json& json) {

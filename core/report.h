@@ -96,6 +96,11 @@ class Report {
 // kept. Returns the files written; errors while writing are swallowed (the error line stands).
 std::vector<std::filesystem::path> WritePendingFailureReports(const std::string& message);
 
+// A report.json's text, checked to be a report (`origin` names it in errors): an object with a
+// string command, a summary object whose termination and message are strings, a numeric
+// elapsed_s. Throws Error.
+nlohmann::json ParseReport(const std::string& text, const std::string& origin);
+
 // Where `report` (a report's JSON) goes when asked to go to `file`: `file`, unless `report` is
 // not usable (DEGENERATE, FAILURE) and `file` holds a usable report; then beside it, the same
 // name with ".failed.json" (report.json -> report.failed.json).

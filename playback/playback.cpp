@@ -1,4 +1,5 @@
 #include "playback/playback.h"
+#include "playback/internal/camera_path.h"
 
 #include <ImfChannelList.h>
 #include <ImfFrameBuffer.h>
@@ -38,25 +39,10 @@ double FitFovDeg(const AvatarModel& model, double distance, int width, int heigh
   return 2 * half_h * 180 / std::numbers::pi;
 }
 
-CameraModel LookAtCamera(const Eigen::Vector3d& eye, const Eigen::Vector3d& target,
-                         const Eigen::Vector3d& up, double fov_deg, int width, int height) {
-  const double focal = 0.5 * width / std::tan(0.5 * fov_deg * std::numbers::pi / 180);
-  return CameraModel::Pinhole(focal, width, height, CamFromWorldLookAt(eye, target, up));
-}
-
 std::string ViewName(int64_t index, const char* extension) {
   char name[32];
   std::snprintf(name, sizeof(name), "%06lld%s", static_cast<long long>(index), extension);
   return name;
-}
-
-Eigen::Vector3d JsonVector(const nlohmann::json& json, const std::string& field,
-                           const fs::path& file) {
-  if (!json.contains(field) || !json[field].is_array() || json[field].size() != 3) {
-    Fail(file.string(), ": \"", field, "\" must be an array of 3 numbers");
-  }
-  return Eigen::Vector3d(json[field][0].get<double>(), json[field][1].get<double>(),
-                         json[field][2].get<double>());
 }
 
 // Straight-alpha BGRA 8-bit from premultiplied colour.
@@ -205,71 +191,7 @@ CameraPath OrbitPath(const AvatarModel& model, const OrbitOptions& options) {
 }
 
 CameraPath ReadCameraPath(const fs::path& file, const AvatarModel& model, int width, int height) {
-  if (width < 2 || height < 2 || width % 2 || height % 2)
-    Fail("output size must be even and at least 2x2, got ", width, "x", height);
-  nlohmann::json json;
-  try {
-    json = nlohmann::json::parse(ReadFileToString(file));
-  } catch (const nlohmann::json::exception& e) {
-    Fail(file.string(), " is not valid JSON: ", e.what());
-  }
-  if (!json.contains("keys") || !json["keys"].is_array() || json["keys"].empty())
-    Fail(file.string(), ": \"keys\" must be a non-empty array");
-  CameraPath path;
-  path.fps = json.value("fps", 30.0);
-  if (!(path.fps > 0)) Fail(file.string(), ": \"fps\" must be positive");
-  const Eigen::Vector3d default_up = ModelUp(model);
-  const auto& keys = json["keys"];
-  const bool model_keys = keys[0].contains("cameramodel");
-  try {
-    if (model_keys) {
-      for (const auto& key : keys) {
-        if (!key.contains("cameramodel"))
-          Fail(file.string(), ": every key must name a cameramodel when the first does");
-        CameraModel camera =
-            CameraModel::Read(file.parent_path() / key["cameramodel"].get<std::string>());
-        if (camera.width() != width)
-          camera = camera.Scaled(static_cast<double>(width) / camera.width());
-        path.cameras.push_back(camera);
-        path.frames.push_back(key.value("frame", int64_t{0}));
-      }
-      return path;
-    }
-    struct Key {
-      Eigen::Vector3d eye, look_at, up;
-      double fov;
-      double frame;
-    };
-    std::vector<Key> parsed;
-    for (const auto& key : keys) {
-      Key k;
-      k.eye = JsonVector(key, "eye", file);
-      k.look_at = JsonVector(key, "look_at", file);
-      k.up = key.contains("up") ? JsonVector(key, "up", file) : default_up;
-      k.fov = key.value("fov_deg", 40.0);
-      k.frame = key.value("frame", 0.0);
-      if (!(k.fov > 0 && k.fov < 179)) Fail(file.string(), ": fov_deg must be in (0, 179)");
-      parsed.push_back(k);
-    }
-    const int views = json.value("views", static_cast<int>(parsed.size()));
-    if (views < 1) Fail(file.string(), ": \"views\" must be at least 1");
-    for (int i = 0; i < views; ++i) {
-      const double s = views == 1 ? 0 : static_cast<double>(i) * (parsed.size() - 1) / (views - 1);
-      const size_t a = std::min(static_cast<size_t>(s), parsed.size() - 1);
-      const size_t b = std::min(a + 1, parsed.size() - 1);
-      const double t = s - a;
-      const Key& ka = parsed[a];
-      const Key& kb = parsed[b];
-      path.cameras.push_back(LookAtCamera((1 - t) * ka.eye + t * kb.eye,
-                                          (1 - t) * ka.look_at + t * kb.look_at,
-                                          ((1 - t) * ka.up + t * kb.up).normalized(),
-                                          (1 - t) * ka.fov + t * kb.fov, width, height));
-      path.frames.push_back(std::lround((1 - t) * ka.frame + t * kb.frame));
-    }
-  } catch (const nlohmann::json::exception& e) {
-    Fail(file.string(), ": ", e.what());
-  }
-  return path;
+  return ParseCameraPath(ReadFileToString(file), file, ModelUp(model), width, height);
 }
 
 void WriteViewExr(const fs::path& file, const RenderedView& view) {

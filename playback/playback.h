@@ -59,6 +59,10 @@ CameraPath OrbitPath(const AvatarModel& model, const OrbitOptions& options);
 // file and field for a malformed path.
 CameraPath ReadCameraPath(const std::filesystem::path& file, const AvatarModel& model, int width,
                           int height);
+// The same on the text of a path file (`file` names it in errors and anchors its cameramodel
+// keys); `default_up` for keys without "up". At most a million keys and views.
+CameraPath ParseCameraPath(const std::string& text, const std::filesystem::path& file,
+                           const Eigen::Vector3d& default_up, int width, int height);
 
 // The up direction and centre the orbit uses: the mean of the training cameras' image-up
 // axes in the world, and the box centre.

@@ -82,8 +82,7 @@ TEST_F(ReaderCeiling, ARigOfNestedAliases) {
   }
   std::ofstream(dir_ / "laughs.yaml") << laughs << "sensors: [{name: a, uri: 'sim:x'}]\n";
   ExpectOneLineError(UnderCeiling("sim --rig '" + (dir_ / "laughs.yaml").string() +
-                                  "' --frames 1 --size 64 --out '" + (dir_ / "out").string() +
-                                  "'"),
+                                  "' --frames 1 --size 64 --out '" + (dir_ / "out").string() + "'"),
                      "expands to more than 200000 values");
 }
 
@@ -93,10 +92,10 @@ TEST_F(ReaderCeiling, ASplatModelDeclaringTwoBillionGaussians) {
                   R"({"method": "splat", "gaussians": 2000000000, "sh_degree": 3,
                       "cameras": [], "box_min": [-1, -1, -1], "box_max": [1, 1, 1]})");
   WriteFileAtomic(dir_ / "model/gaussians.bin", std::string(236, '\0'));
-  ExpectOneLineError(UnderCeiling("render '" + take().string() + "' --model '" +
-                                  (dir_ / "model").string() + "' --size 64 --views 1 --out '" +
-                                  (dir_ / "renders").string() + "'"),
-                     "it declares 2000000000 Gaussians");
+  ExpectOneLineError(
+      UnderCeiling("render '" + take().string() + "' --model '" + (dir_ / "model").string() +
+                   "' --size 64 --views 1 --out '" + (dir_ / "renders").string() + "'"),
+      "it declares 2000000000 Gaussians");
 }
 
 }  // namespace
