@@ -1,14 +1,26 @@
-// holocap view SITE|TAKE [--port N]: serves a site of `holocap export web` on 127.0.0.1 (a take
-// is exported to a temporary site first), and runs `holocap export web`.
+// holocap view SITE|TAKE [--port N] [--host NAME]: serves a site of `holocap export web` on
+// 127.0.0.1 (a take is exported to a temporary site first), and runs `holocap export web`.
+#include <fcntl.h>
+#include <poll.h>
+#include <signal.h>
+#include <sys/prctl.h>
+#include <sys/signalfd.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <cstdio>
+#include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <optional>
+#include <string>
+#include <vector>
 
 #include "app/commands.h"
 #include "app/options.h"
 #include "core/error.h"
+#include "core/fs.h"
 #include "core/report.h"
 #include "neural/rerender.h"
 #include "playback/playback.h"
@@ -85,24 +97,146 @@ Summary ExportDemoSite(DemoContext& context) {
 }
 HOLOCAP_DEMO_STAGE(60, "web", ExportDemoSite);
 
-// A temporary site, removed when the command ends (served and stopped, or failed).
+// SIGINT and SIGTERM held pending from the start of the command to its end: blocked in its
+// thread before it starts any other, so that every thread after (the server's) inherits the mask
+// and none is ended by them. The export's wait reads them from a signalfd; ServeSite's watcher
+// takes them while it serves. They stay blocked to the end, so that a second Ctrl-C cannot cut
+// the removal of the temporary site short.
+class StopSignals {
+ public:
+  StopSignals() {
+    sigemptyset(&signals_);
+    sigaddset(&signals_, SIGINT);
+    sigaddset(&signals_, SIGTERM);
+    pthread_sigmask(SIG_BLOCK, &signals_, nullptr);
+    fd_ = ::signalfd(-1, &signals_, SFD_CLOEXEC | SFD_NONBLOCK);
+    if (fd_ < 0) Fail("cannot wait for SIGINT and SIGTERM: ", std::strerror(errno));
+  }
+  ~StopSignals() { ::close(fd_); }
+  StopSignals(const StopSignals&) = delete;
+  StopSignals& operator=(const StopSignals&) = delete;
+
+  int fd() const { return fd_; }
+  // Takes a pending SIGINT or SIGTERM; false when none is pending.
+  bool Take() const {
+    signalfd_siginfo info{};
+    return ::read(fd_, &info, sizeof(info)) == static_cast<ssize_t>(sizeof(info));
+  }
+
+ private:
+  sigset_t signals_{};
+  int fd_ = -1;
+};
+
+// A temporary site: a folder made for it alone (mkdtemp: never one that was there before, nor a
+// link), the export writing into a fresh sub-folder `site`; removed with everything in it when
+// the object dies (the command served and stopped, failed, or was stopped during the export).
 class TemporarySite {
  public:
-  TemporarySite()
-      : dir_(fs::temp_directory_path() / ("holocap-view-" + std::to_string(::getpid()))) {}
+  TemporarySite() {
+    std::string dir = (fs::temp_directory_path() / "holocap-view-XXXXXX").string();
+    if (::mkdtemp(dir.data()) == nullptr)
+      Fail("cannot make a temporary folder '", dir, "': ", std::strerror(errno));
+    dir_ = dir;
+  }
   ~TemporarySite() {
     std::error_code ignored;
     fs::remove_all(dir_, ignored);
   }
-  const fs::path& dir() const { return dir_; }
+  TemporarySite(const TemporarySite&) = delete;
+  TemporarySite& operator=(const TemporarySite&) = delete;
+
+  fs::path site() const { return dir_ / "site"; }
 
  private:
   fs::path dir_;
 };
 
+// Runs this program as `holocap export web ARGUMENTS...` in a child process, so that SIGINT or
+// SIGTERM can end the export at any moment: the child is killed and reaped, and nothing writes
+// into the temporary site once this returns. The child's stdout is dropped; its stderr (progress)
+// is passed on, but for its error line, which is thrown as this command's Error. Returns false
+// when a stop signal came first.
+bool ExportInChild(const std::vector<std::string>& arguments, const StopSignals& stop) {
+  std::error_code error;
+  std::string program = fs::read_symlink("/proc/self/exe", error).string();
+  if (error) Fail("cannot find this program to export the take: ", error.message());
+  std::vector<std::string> words = arguments;
+  std::vector<char*> argv{program.data()};
+  for (std::string& word : words) argv.push_back(word.data());
+  argv.push_back(nullptr);
+  int output[2];
+  if (::pipe2(output, O_CLOEXEC) != 0) Fail("cannot start the export: ", std::strerror(errno));
+  const int null_output = ::open("/dev/null", O_WRONLY | O_CLOEXEC);
+  sigset_t none;
+  sigemptyset(&none);
+  const pid_t parent = ::getpid();
+  std::fflush(nullptr);
+  const pid_t child = ::fork();
+  if (child == 0) {
+    // Async-signal-safe calls only until exec. Killed when this process ends, however it ends.
+    ::prctl(PR_SET_PDEATHSIG, SIGKILL);
+    if (::getppid() != parent) ::_exit(1);
+    sigprocmask(SIG_SETMASK, &none, nullptr);
+    ::dup2(null_output, STDOUT_FILENO);
+    ::dup2(output[1], STDERR_FILENO);
+    ::execv(program.c_str(), argv.data());
+    ::_exit(127);
+  }
+  ::close(output[1]);
+  if (null_output >= 0) ::close(null_output);
+  if (child < 0) {
+    ::close(output[0]);
+    Fail("cannot start the export: ", std::strerror(errno));
+  }
+  constexpr std::string_view kErrorPrefix = "holocap: error: ";
+  std::string pending, error_line;
+  const auto pass_on = [&](const std::string& line) {
+    if (line.starts_with(kErrorPrefix)) {
+      error_line = line.substr(kErrorPrefix.size());
+      while (!error_line.empty() && error_line.back() == '\n') error_line.pop_back();
+    } else {
+      std::fputs(line.c_str(), stderr);
+    }
+  };
+  bool stopped = false;
+  pollfd polled[2] = {{output[0], POLLIN, 0}, {stop.fd(), POLLIN, 0}};
+  while (true) {
+    if (::poll(polled, 2, -1) < 0) {
+      if (errno == EINTR) continue;
+      break;
+    }
+    if (polled[1].revents != 0 && stop.Take()) {
+      stopped = true;
+      break;
+    }
+    if (polled[0].revents == 0) continue;
+    char buffer[4096];
+    const ssize_t read = ::read(output[0], buffer, sizeof(buffer));
+    if (read <= 0) break;  // the child has ended
+    pending.append(buffer, static_cast<size_t>(read));
+    for (size_t end; (end = pending.find('\n')) != std::string::npos; pending.erase(0, end + 1))
+      pass_on(pending.substr(0, end + 1));
+  }
+  ::close(output[0]);
+  if (!pending.empty()) pass_on(pending + "\n");
+  // A Ctrl-C on a terminal reaches the export too, which may end before the signal is seen here.
+  stopped = stopped || stop.Take();
+  if (stopped) ::kill(child, SIGKILL);
+  int status = 0;
+  while (::waitpid(child, &status, 0) < 0 && errno == EINTR) {
+  }
+  if (stopped) return false;
+  if (WIFEXITED(status) && WEXITSTATUS(status) == 0) return true;
+  if (!error_line.empty()) throw Error(error_line);
+  Fail("export web ended ", WIFSIGNALED(status) ? Cat("by signal ", WTERMSIG(status))
+                                                : Cat("with status ", WEXITSTATUS(status)));
+}
+
 struct ViewArgs {
   std::string input;
   int port = 8080;
+  std::string host;
   std::vector<std::string> models;
 };
 
@@ -111,37 +245,52 @@ void FillViewCommand(CLI::App* command) {
   command->add_option("SITE", args->input, "A site of `holocap export web`, or a take")->required();
   command->add_option("--port", args->port, "Port on 127.0.0.1 (0: any free one)")
       ->capture_default_str();
+  command->add_option("--host", args->host,
+                      "One more Host header value to answer besides 127.0.0.1, localhost and "
+                      "[::1], with or without the port (the name a browser reaches this machine "
+                      "by, through an SSH tunnel or a proxy); the server still listens on "
+                      "127.0.0.1 only");
   command->add_option("--model", args->models,
                       "A take: the models to stream (default TAKE/models/nvol and "
                       "TAKE/models/splat when trained)");
+  NameFieldFlags(command, {{"ViewServerOptions::allowed_host", "--host"}});
   command->callback([args] {
     ViewServerOptions options;
     options.port = args->port;
+    options.allowed_host = args->host;
     options.Check();
+    const StopSignals stop;
     fs::path site = args->input;
     std::optional<TemporarySite> temporary;
     if (fs::is_regular_file(site / "take.json")) {
       temporary.emplace();
-      WebExportRequest request;
-      request.take = args->input;
-      request.out = temporary->dir().string();
-      request.models = args->models;
+      std::vector<std::string> models = args->models;
       for (const char* model : {"nvol", "splat"})
         if (args->models.empty() && fs::is_regular_file(site / "models" / model / "model.json"))
-          request.models.push_back((site / "models" / model).string());
-      request.overwrite = true;
-      Report report("export web");
-      const WebExportSummary summary = ExportWeb(request, &report);
-      FailUnlessUsable(summary, "export web");
-      std::printf("exported %s to %s (%s; removed when the server stops)\n", args->input.c_str(),
-                  temporary->dir().c_str(), summary.message.c_str());
-      site = temporary->dir();
+          models.push_back((site / "models" / model).string());
+      std::vector<std::string> arguments = {"export", "web", fs::absolute(site).string(), "--out",
+                                            temporary->site().string()};
+      for (const std::string& model : models) {
+        arguments.emplace_back("--model");
+        arguments.push_back(fs::absolute(model).string());
+      }
+      if (!ExportInChild(arguments, stop)) {
+        temporary.reset();
+        std::puts("stopped during the export; the temporary site is removed");
+        return;
+      }
+      site = temporary->site();
+      const nlohmann::json report = nlohmann::json::parse(ReadFileToString(site / "report.json"));
+      std::printf("exported %s to %s (%s; removed when the command ends)\n", args->input.c_str(),
+                  site.c_str(), report.at("summary").value("message", "").c_str());
     }
     ServeSite(site, options, [](const std::string& url) {
       std::printf("serving on %s (Ctrl-C stops)\n", url.c_str());
       std::fflush(stdout);
     });
-    std::printf("stopped\n");
+    const bool removed = temporary.has_value();
+    temporary.reset();
+    std::puts(removed ? "stopped; the temporary site is removed" : "stopped");
   });
 }
 

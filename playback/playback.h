@@ -222,13 +222,28 @@ bool IsWebSite(const std::filesystem::path& dir, std::string* why);
 
 struct ViewServerOptions {
   int port = 8080;                 // 0: any free port
-  std::string host = "127.0.0.1";  // loopback only
+  std::string host = "127.0.0.1";  // the address listened on: loopback only
+  std::string allowed_host;        // one more Host header value answered (--host: a name the
+                                   // browser reaches this machine by, through a tunnel or a
+                                   // proxy), with or without the port; empty: none
+  int idle_timeout_s = 2;          // a connection silent this long is closed
+  int workers = 64;                // connections served at once; an idle one holds a worker
+                                   // for idle_timeout_s at most
+  int max_ranges = 8;              // byte ranges one request may ask for
   void Check() const;
 };
 
 // Serves `site` over HTTP until SIGINT (Ctrl-C) or SIGTERM arrives, then returns (so that the
 // caller can clean up); `listening` gets the URL once the port is bound. Throws Error (one line)
 // for a folder that is not a site or a port that is taken.
+//
+// What it answers: GET and HEAD of a regular file inside the site once every symbolic link is
+// resolved (`/` and a path ending in `/`: its index.html); 404 for anything else there (a link
+// out of the site, a folder, a device, a FIFO, a path with `..`); 403 to a Host header that is
+// not 127.0.0.1, localhost or [::1] (or options.allowed_host), with or without the port, so that
+// a page of another site cannot read it through a DNS name rebound to 127.0.0.1; 416 (with
+// `Content-Range: bytes */SIZE`) to a Range header of more than options.max_ranges ranges, of a
+// range past the end, or of ranges longer together than the file; 405 to any other method.
 void ServeSite(const std::filesystem::path& site, const ViewServerOptions& options,
                const std::function<void(const std::string& url)>& listening);
 

@@ -5,9 +5,7 @@
 // native renders, synthetic input, scrubbing across a splat key frame, a truncated chunk, a site of
 // an unknown version, no console error.
 #include <gtest/gtest.h>
-#include <signal.h>
 #include <sys/wait.h>
-#include <unistd.h>
 
 #include <cmath>
 #include <cstdio>
@@ -23,6 +21,7 @@
 #include "playback/internal/web_stream.h"
 #include "playback/playback.h"
 #include "splat/splat.h"
+#include "tests/playback/view_server.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
@@ -39,57 +38,7 @@ namespace fs = std::filesystem;
 using testing::RunCli;
 using testing::RunShell;
 using testing::TempDir;
-
-// `holocap view` as a child process; stopped (SIGTERM to its pid) when the object dies.
-class ViewServer {
- public:
-  explicit ViewServer(const fs::path& site) {
-    int fds[2];
-    if (pipe(fds) != 0) return;
-    pid_ = fork();
-    if (pid_ == 0) {
-      dup2(fds[1], STDOUT_FILENO);
-      dup2(fds[1], STDERR_FILENO);
-      close(fds[0]);
-      const std::string cli = testing::CliPath();
-      execl(cli.c_str(), cli.c_str(), "view", site.c_str(), "--port", "0", nullptr);
-      _exit(127);
-    }
-    close(fds[1]);
-    output_ = fdopen(fds[0], "r");
-    char line[512];
-    while (output_ != nullptr && fgets(line, sizeof(line), output_) != nullptr) {
-      first_line_ = line;
-      printed_ += line;
-      const auto at = first_line_.find("http://");
-      if (at != std::string::npos) {
-        url_ = first_line_.substr(at, first_line_.find(' ', at) - at);
-        break;
-      }
-    }
-  }
-  ~ViewServer() {
-    Stop();
-    if (output_ != nullptr) fclose(output_);
-  }
-  // SIGTERM, then the server's exit status (-1 if it was not running).
-  int Stop() {
-    int status = -1;
-    if (pid_ > 0) {
-      kill(pid_, SIGTERM);
-      waitpid(pid_, &status, 0);
-      pid_ = -1;
-    }
-    return status;
-  }
-  const std::string& url() const { return url_; }
-  const std::string& first_line() const { return first_line_; }
-  const std::string& printed() const { return printed_; }  // up to the URL
- private:
-  pid_t pid_ = -1;
-  FILE* output_ = nullptr;
-  std::string url_, first_line_, printed_;
-};
+using testing::ViewServer;
 
 class WebTest : public ::testing::Test {
  protected:
