@@ -1,6 +1,9 @@
 #include "core/mesh.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
+#include <limits>
 #include <random>
 #include <sstream>
 
@@ -169,6 +172,14 @@ double ReadBinary(const char* p, const std::string& type) {
 
 }  // namespace
 
+namespace {
+
+// A colour channel as a byte: values outside 0..255 (a signed char property's negatives, a
+// float's 300) are clamped.
+uint8_t ColorByte(double value) { return static_cast<uint8_t>(std::clamp(value, 0.0, 255.0)); }
+
+}  // namespace
+
 Mesh ReadPly(const std::filesystem::path& file) {
   const std::string origin = file.string();
   std::string bytes = ReadFileToString(file);
@@ -226,15 +237,28 @@ Mesh ReadPly(const std::filesystem::path& file) {
   for (const auto& element : elements) {
     const bool is_vertex = element.name == "vertex";
     const bool is_face = element.name == "face";
-    for (size_t i = 0; i < element.count; ++i) {
+    // An element of no properties holds no bytes, however many it counts.
+    const size_t count = element.properties.empty() ? 0 : element.count;
+    for (size_t i = 0; i < count; ++i) {
       Eigen::Vector3f position = Eigen::Vector3f::Zero(), normal = Eigen::Vector3f::Zero();
       Eigen::Matrix<uint8_t, 3, 1> color = Eigen::Matrix<uint8_t, 3, 1>::Zero();
       bool has_normal = false, has_color = false;
       for (const auto& property : element.properties) {
         if (!property.count_type.empty()) {
-          int count = static_cast<int>(next(property.count_type));
+          // A list's length and entries are whole numbers in range: a face of at most 255
+          // corners (a uchar count, as every writer uses), indices within int.
+          const double length = next(property.count_type);
+          if (!(length >= 0 && length <= 255) || length != std::floor(length))
+            Fail("'", origin, "': a list of length ", length, " (0 to 255)");
+          const int count = static_cast<int>(length);
           std::vector<int> indices(count);
-          for (int k = 0; k < count; ++k) indices[k] = static_cast<int>(next(property.type));
+          for (int k = 0; k < count; ++k) {
+            const double index = next(property.type);
+            if (!(index >= 0 && index <= std::numeric_limits<int>::max()) ||
+                index != std::floor(index))
+              Fail("'", origin, "': a face refers to vertex ", index);
+            indices[k] = static_cast<int>(index);
+          }
           if (is_face && property.name.find("vertex_ind") == 0) {
             for (int k = 1; k + 1 < count; ++k)
               mesh.faces.emplace_back(indices[0], indices[k], indices[k + 1]);
@@ -243,6 +267,7 @@ Mesh ReadPly(const std::filesystem::path& file) {
         }
         double value = next(property.type);
         if (!is_vertex) continue;
+        if (!std::isfinite(value)) Fail("'", origin, "': vertex ", i, " holds ", value);
         const std::string& n = property.name;
         if (n == "x")
           position.x() = value;
@@ -258,12 +283,12 @@ Mesh ReadPly(const std::filesystem::path& file) {
         else if (n == "nz")
           normal.z() = value;
         else if (n == "red") {
-          color.x() = static_cast<uint8_t>(value);
+          color.x() = ColorByte(value);
           has_color = true;
         } else if (n == "green")
-          color.y() = static_cast<uint8_t>(value);
+          color.y() = ColorByte(value);
         else if (n == "blue")
-          color.z() = static_cast<uint8_t>(value);
+          color.z() = ColorByte(value);
       }
       if (is_vertex) {
         mesh.vertices.push_back(position);

@@ -220,6 +220,14 @@ WebExportSummary MergeWebSite(const std::filesystem::path& site_dir, Report* rep
 // missing or wrong when not.
 bool IsWebSite(const std::filesystem::path& dir, std::string* why);
 
+// Throws Error (naming the site, the set and the stream) unless `frame`, a frame of stream
+// `stream` (files in SITE/`folder`) in set `set`'s record, is believable: its chunk null or a
+// plain file name of the stream's folder, there with the bytes the record counts; its squared
+// error and count finite, whole and in range (a squared error past 1 a value is no image's);
+// its other figures finite and not negative.
+void CheckWebFrameRecord(const nlohmann::json& frame, const std::filesystem::path& site,
+                         const std::string& folder, const std::string& stream, int64_t set);
+
 struct ViewServerOptions {
   int port = 8080;                 // 0: any free port
   std::string host = "127.0.0.1";  // the address listened on: loopback only

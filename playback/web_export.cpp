@@ -693,50 +693,10 @@ class StreamSum {
     metrics_ = {.name = stream.name, .kind = stream.kind, .quality = stream.quality};
   }
 
-  // Adds frame set `set`'s frame. A record is checked before it is believed: its chunk a plain
-  // file name of this stream's folder, there with the bytes the record counts, its figures
-  // finite and in range (a squared error past 1 a value is no image's).
+  // Adds frame set `set`'s frame, once CheckWebFrameRecord has found it believable.
   void Add(int64_t set, const nlohmann::json& frame) {
-    const auto refuse = [&](const std::string& why) {
-      Fail("'", site_.string(), "': the frame record of set ", set, " for stream '",
-           Printable(stream_.name), "' ", why, "; run the export's group again (--redo)");
-    };
-    if (!frame.is_object() || !frame.contains("chunk")) refuse("has no chunk");
+    CheckWebFrameRecord(frame, site_, stream_.folder, stream_.name, set);
     const nlohmann::json& chunk = frame["chunk"];
-    if (!chunk.is_null()) {
-      if (!chunk.is_object() || !chunk.contains("file") || !chunk["file"].is_string() ||
-          !chunk.contains("bytes") || !chunk["bytes"].is_number_unsigned())
-        refuse("lists a chunk without its file name and size");
-      const std::string file = chunk["file"].get<std::string>();
-      const bool plain =
-          !file.empty() && file.size() <= 64 &&
-          file.find_first_not_of("0123456789abcdefghijklmnopqrstuvwxyz_-.") == std::string::npos &&
-          file.find("..") == std::string::npos && file.front() != '.';
-      if (!plain)
-        refuse(Cat("names the chunk '", Printable(file), "', which is no plain file name"));
-      const fs::path path = site_ / stream_.folder / file;
-      std::error_code ec;
-      const bool regular = fs::is_regular_file(fs::symlink_status(path, ec));
-      if (!regular || fs::file_size(path, ec) != chunk["bytes"].get<uint64_t>()) {
-        refuse(Cat("counts ", chunk["bytes"].get<uint64_t>(), " bytes in '", path.string(),
-                   "', which ", regular ? "holds another size" : "is no regular file"));
-      }
-      for (const char* field : {"squared", "count"})
-        if (!frame.contains(field) || !frame[field].is_number())
-          refuse(Cat("has no number '", field, "'"));
-      const double squared = frame["squared"].get<double>();
-      const double count = frame["count"].get<double>();
-      if (!std::isfinite(squared) || squared < 0 || !(count >= 0) || count > 1e12 ||
-          count != std::floor(count) || squared > count)
-        refuse(Cat("holds a squared error of ", squared, " over ", count,
-                   " values, which no image gives (0 to 1 a value)"));
-      for (const char* field : {"max_position_error_mm", "faces", "gaussians", "stored"}) {
-        if (!frame.contains(field)) continue;
-        if (!frame[field].is_number() || !std::isfinite(frame[field].get<double>()) ||
-            frame[field].get<double>() < 0)
-          refuse(Cat("holds '", field, "' ", frame[field].dump(), ", not a finite count"));
-      }
-    }
     chunks_.push_back(chunk);
     if (chunk.is_null()) return;
     bytes_ += frame.at("chunk").at("bytes").get<uint64_t>();
@@ -941,29 +901,6 @@ double PsnrInsideBoxDb(const cv::Mat& picture, const cv::Mat& reference, const C
   }
   if (pixels != nullptr) *pixels = count / 3;
   return Psnr(squared, count);
-}
-
-bool IsWebSite(const fs::path& dir, std::string* why) {
-  const fs::path manifest = dir / "manifest.json";
-  if (!fs::is_regular_file(manifest) || !fs::is_regular_file(dir / "index.html")) {
-    *why = "'" + dir.string() + "' is not a site made by holocap export web (no manifest.json " +
-           "and index.html)";
-    return false;
-  }
-  const nlohmann::json json = nlohmann::json::parse(ReadFileToString(manifest), nullptr, false);
-  if (json.is_discarded() || json.value("format", "") != "holocap-stream") {
-    *why = manifest.string() + " is not a holocap stream manifest";
-    return false;
-  }
-  const int version = json.value("version", -1);
-  if (version < kOldestWebStreamFormatVersion || version > kWebStreamFormatVersion) {
-    *why = manifest.string() + " is stream format version " +
-           json.value("version", nlohmann::json()).dump() + "; this holocap plays versions " +
-           std::to_string(kOldestWebStreamFormatVersion) + " to " +
-           std::to_string(kWebStreamFormatVersion);
-    return false;
-  }
-  return true;
 }
 
 }  // namespace holocap

@@ -80,7 +80,7 @@ SplatModel SplatModel::Load(const fs::path& dir) {
   }
   SplatModel model;
   std::vector<std::string> camera_names;
-  if (!json.is_object() || json.value("method", "") != "splat")
+  if (!json.is_object() || !json.contains("method") || json["method"] != "splat")
     Fail(dir.string(), " does not hold a splat model");
   try {
     const int64_t count = json.at("gaussians").get<int64_t>();

@@ -5,11 +5,20 @@
 #include <cstring>
 #include <string>
 
+#include <unistd.h>
+
+#include <nlohmann/json.hpp>
+
 #include "core/camera.h"
 #include "core/error.h"
+#include "core/fs.h"
+#include "core/mesh.h"
+#include "core/report.h"
 #include "core/rig.h"
 #include "core/take.h"
 #include "interop/interop.h"
+#include "playback/playback.h"
+#include "splat/splat.h"
 
 namespace holocap::fuzz {
 namespace {
@@ -125,6 +134,106 @@ void RigJson(const std::string& text) {
   MustReadBack("rig.json", [&] { RigDescription::ParseJson(rig.ToJson().dump(), "rig.json'"); });
 }
 
+// A folder of this process's own for the readers that take files (removed at exit).
+const std::filesystem::path& Scratch() {
+  static const std::filesystem::path dir = [] {
+    std::string pattern = (std::filesystem::temp_directory_path() / "holocap-fuzz-XXXXXX").string();
+    if (::mkdtemp(pattern.data()) == nullptr) std::abort();
+    std::atexit([] {
+      std::error_code ignored;
+      std::filesystem::remove_all(Scratch(), ignored);
+    });
+    return std::filesystem::path(pattern);
+  }();
+  return dir;
+}
+
+// Input bytes cut at the first NUL: (text before it, bytes after it).
+std::pair<std::string, std::string> SplitAtNul(const std::string& text) {
+  const size_t at = text.find('\0');
+  if (at == std::string::npos) return {text, ""};
+  return {text.substr(0, at), text.substr(at + 1)};
+}
+
+// model.json, a NUL, then gaussians.bin: the model read, saved and read back.
+void SplatModelFiles(const std::string& text) {
+  const auto [json, binary] = SplitAtNul(text);
+  const std::filesystem::path dir = Scratch() / "model";
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  WriteFileAtomic(dir / "model.json", json);
+  WriteFileAtomic(dir / "gaussians.bin", binary);
+  const SplatModel model = SplatModel::Load(dir);
+  MustReadBack("a splat model", [&] {
+    model.Save(Scratch() / "saved");
+    SplatModel::Load(Scratch() / "saved");
+  });
+}
+
+// Two bytes choose the previous frame (0-63 Gaussians, degree 0-3); the rest is its delta.
+void SplatDelta(const std::string& text) {
+  if (text.size() < 2) return;
+  splat::Gaussians previous;
+  previous.sh_degree = static_cast<unsigned char>(text[1]) % 4;
+  previous.Resize(static_cast<unsigned char>(text[0]) % 64);
+  const std::string delta = text.substr(2);
+  const splat::Gaussians next = ApplySplatDelta(previous, delta);
+  const SplatDeltaCounts counts = CountSplatDelta(delta);
+  const std::vector<int64_t> origin = SplatDeltaOrigins(delta);
+  if (static_cast<int64_t>(origin.size()) != next.size() ||
+      counts.added + previous.size() - counts.removed != next.size()) {
+    std::fprintf(stderr, "a splat delta's counts disagree with what it decodes to\n");
+    std::abort();
+  }
+}
+
+// A site's manifest.json (beside an index.html).
+void WebManifest(const std::string& text) {
+  const std::filesystem::path dir = Scratch() / "site";
+  std::filesystem::create_directories(dir);
+  if (!std::filesystem::exists(dir / "index.html")) WriteFileAtomic(dir / "index.html", "<html>");
+  WriteFileAtomic(dir / "manifest.json", text);
+  std::string why;
+  IsWebSite(dir, &why);
+}
+
+// One frame of a sharded export's record, against a stream folder holding a 16-byte chunk.
+void WebRecord(const std::string& text) {
+  const std::filesystem::path site = Scratch() / "records";
+  if (!std::filesystem::exists(site / "streams/s/000001.hcc")) {
+    std::filesystem::create_directories(site / "streams/s");
+    WriteFileAtomic(site / "streams/s/000001.hcc", std::string(16, 'c'));
+  }
+  const nlohmann::json frame = nlohmann::json::parse(text, nullptr, false);
+  if (frame.is_discarded()) return;
+  CheckWebFrameRecord(frame, site, "streams/s", "s", 1);
+}
+
+void Ply(const std::string& text) {
+  WriteFileAtomic(Scratch() / "mesh.ply", text);
+  const Mesh mesh = ReadPly(Scratch() / "mesh.ply");
+  MustReadBack("a PLY mesh", [&] {
+    WritePly(Scratch() / "again.ply", mesh);
+    ReadPly(Scratch() / "again.ply");
+  });
+}
+
+void Glb(const std::string& text) {
+  WriteFileAtomic(Scratch() / "mesh.glb", text);
+  ReadTexturedGlb(Scratch() / "mesh.glb");
+}
+
+void CameraPathJson(const std::string& text) {
+  ParseCameraPath(text, Scratch() / "path.json", Eigen::Vector3d::UnitZ(), 64, 48);
+}
+
+void ReportJson(const std::string& text) {
+  const nlohmann::json report = ParseReport(text, "report.json");
+  Printable(report["command"].get<std::string>());
+  const nlohmann::json& summary = report["summary"];
+  if (summary.contains("message")) Printable(summary["message"].get<std::string>());
+}
+
 using Parser = void (*)(const std::string& text);
 struct NamedParser {
   const char* name;
@@ -143,6 +252,14 @@ constexpr NamedParser kTargets[] = {
     {"index_jsonl", IndexJsonl},
     {"rig_yaml", RigYaml},
     {"rig_json", RigJson},
+    {"splat_model", SplatModelFiles},
+    {"splat_delta", SplatDelta},
+    {"web_manifest", WebManifest},
+    {"web_record", WebRecord},
+    {"ply", Ply},
+    {"glb", Glb},
+    {"camera_path", CameraPathJson},
+    {"report_json", ReportJson},
 };
 
 Parser Find(const char* target) {

@@ -314,5 +314,31 @@ TEST_F(OutputSafety, AnOutputOutsideATakeHasOneWriterAtATime) {
   EXPECT_FALSE(fs::exists(out / "model.json"));
 }
 
+// A frame that was a symbolic link to a file outside the take passed --verify and was copied
+// out by export colmap; a rig sensor named ".." made sim write frames into the take's root.
+TEST_F(OutputSafety, NoFrameIsReadThroughALinkOutOfItsTakeAndNoSensorIsAPath) {
+  TempDir dir;
+  fs::copy(take(), dir / "take", fs::copy_options::recursive);
+  const auto index = ReadFileToString(dir / "take/index.jsonl");
+  const size_t at = index.find("\"file\":\"") + 8;
+  const fs::path frame = dir / "take" / index.substr(at, index.find('"', at) - at);
+  std::ofstream(dir / "secret.png") << "not the take's";
+  fs::remove(frame);
+  fs::create_symlink(dir / "secret.png", frame);
+  ExpectOneLineError(RunCli("export colmap " + (dir / "take").string() + " --ground-truth --out " +
+                            (dir / "colmap").string()),
+                     "outside the take: a take's frames lie inside it");
+  if (fs::exists(dir / "colmap/images")) {
+    for (const auto& entry : fs::recursive_directory_iterator(dir / "colmap/images"))
+      EXPECT_FALSE(entry.is_regular_file()) << entry.path() << ": no frame is copied out";
+  }
+  std::ofstream(dir / "dots.yaml")
+      << "name: dots\nsensors:\n  - {name: \"..\", uri: \"sim:x#a\"}\n";
+  ExpectOneLineError(RunCli("sim --rig " + (dir / "dots.yaml").string() +
+                            " --frames 1 --size 64 --out " + (dir / "dots").string()),
+                     "sensor name '..' may not be '.' or '..'");
+  EXPECT_FALSE(fs::exists(dir / "dots"));
+}
+
 }  // namespace
 }  // namespace holocap
