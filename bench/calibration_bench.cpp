@@ -1,4 +1,4 @@
-// Calibration on the simulated studio8 board sequence: holocap's figures against the issue's
+// Calibration on the simulated studio8 board sequence: holocap's figures against the
 // targets, and peers on the same detections in the same run: OpenCV calibrateCamera /
 // stereoCalibrate, and mrcal's own mrcal-calibrate-cameras on the same corners (corners.vnl).
 //
@@ -11,7 +11,7 @@
 // Without --take it simulates `holocap sim --rig studio8 --board --frames N` into a temporary
 // directory first (288 sets: about 60 board views per camera). The rendered corners are found
 // to a few hundredths of a pixel, so Gaussian noise is added to every detected corner until
-// the total detection noise is --corner-noise per coordinate (the 0.3 px).
+// the total detection noise is --corner-noise per coordinate (the target's 0.3 px).
 // --true-corners replaces every detected corner by its exact projection before the noise is
 // added (detection bias removed: what is left is the board sequence's statistics);
 // --planned renders nothing: the sim's board poses for --frames sets are projected through the
@@ -399,7 +399,7 @@ class CalibrationBench {
     comparison_ = CompareWithTruth(summary_, in_.truth, in_.world_from_board, in_.layout);
   }
 
-  // holocap's ending, its stages and its figures against the targets.
+  // holocap's ending, its stages and its figures against its targets.
   void PrintHolocapTables() const {
     const CalibrationSummary& s = summary_;
     const GroundTruthComparison& g = comparison_;

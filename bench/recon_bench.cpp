@@ -576,7 +576,7 @@ void VoxelSweep(const std::vector<BenchFrame>& frames, int threads) {
   std::printf("\n");
 }
 
-// The figure: the pipeline's TSDF from the depth sensors, with and without the
+// The target figure: the pipeline's TSDF from the depth sensors, with and without the
 // hull-constrained completion of what they did not see, every frame against the whole truth.
 void PipelineTsdf(const fs::path& take_dir, int frame_count, int threads) {
   std::printf(

@@ -1,4 +1,4 @@
-// Captures a user brings, as simulator variants (issue 19): each is simulated on studio8 and
+// Captures a user brings, as simulator variants: each is simulated on studio8 and
 // reconstructed with reconstruct's defaults (no bounds, voxel, up axis or silhouette threshold;
 // what `holocap reconstruct TAKE --no-sweep --no-glb` does), and the table shows the plan the
 // take got (bounds, up axis, silhouette source, voxel), the termination, the quality against the
@@ -73,7 +73,7 @@ std::vector<Variant> Variants(int size, int frames, int threads) {
   o = plate;
   o.alpha = true;
   add("alpha-plate", "--clean-plate 1 --alpha", o);
-  // The three captures of issue 19 as the simulator can stage them.
+  // The three captures as the simulator can stage them.
   o = base;
   o.color_only = true;
   o.world_scale = 0.05;

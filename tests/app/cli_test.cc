@@ -114,7 +114,7 @@ TEST_F(SimulatedTake, CorruptTakesGiveOneClearError) {
   ExpectOneLineError(RunCli("info " + (dir / "nothing-here").string()), "does not exist");
 }
 
-// Issue 18 case 6 through the CLI: info --verify exited 0 on a take marked complete that had
+// Through the CLI: info --verify exited 0 on a take marked complete that had
 // lost data; each damage now fails it with one line naming the file and line.
 TEST_F(SimulatedTake, VerifyRefusesATakeThatLostDataInOneLine) {
   TempDir dir;
@@ -136,7 +136,7 @@ TEST_F(SimulatedTake, VerifyRefusesATakeThatLostDataInOneLine) {
                      "index.jsonl' line 4: frame set 1 is listed again (first on line 2)");
 }
 
-// Issue 18 case 3 through the CLI: a model with a negative focal length in a take is refused by
+// Through the CLI: a model with a negative focal length in a take is refused by
 // every command that reads it (info --verify reads them all), naming file and field.
 TEST_F(SimulatedTake, VerifyRefusesANegativeFocalLength) {
   TempDir dir;
@@ -151,7 +151,7 @@ TEST_F(SimulatedTake, VerifyRefusesANegativeFocalLength) {
                      "cam0.cameramodel': camera model: intrinsics[0] (fx) is -");
 }
 
-// Issue 18 case 7: third-party stderr, binary bytes and allocation failures all end as the one
+// Third-party stderr, binary bytes and allocation failures all end as the one
 // error line.
 TEST(Cli, ErrorsStayOneEscapedLine) {
   TempDir dir;

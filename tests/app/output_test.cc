@@ -1,4 +1,4 @@
-// Issue cases of "nothing recorded is ever lost", through the CLI: no command writes into a
+// "Nothing recorded is ever lost", through the CLI: no command writes into a
 // take's recording or over its own input, a non-empty folder another command made is written
 // into only with --overwrite (which removes nothing), a replaced take is put back when its
 // replacement fails, and a take has one writer at a time.
@@ -48,7 +48,7 @@ class OutputSafety : public ::testing::Test {
 };
 TempDir* OutputSafety::dir_ = nullptr;
 
-// Case 1: render (and every other writer) refuses the take's recorded data and the take itself;
+// `render` (and every other writer) refuses the take's recorded data and the take itself;
 // the refusal comes before any model is read, and the take's bytes do not change.
 TEST_F(OutputSafety, NoCommandWritesIntoATakesRecording) {
   const auto before = Contents(take());
@@ -94,7 +94,7 @@ TEST_F(OutputSafety, AForeignFolderNeedsOverwriteAndKeepsWhatIsThere) {
       "(holocap export)");
 }
 
-// Case 2: import --overwrite never removes its own source, and replaces a take whole.
+// `import --overwrite` never removes its own source, and replaces a take whole.
 TEST(ImportOutput, OverwriteNeverRemovesTheSourceAndAFailedReplacementPutsTheTakeBack) {
   TempDir dir;
   const fs::path dino = dir / "dino";
@@ -151,7 +151,7 @@ TEST_F(OutputSafety, ARecordingIsNeverReplaced) {
   EXPECT_EQ(Contents(dir / "recorded"), before);
 }
 
-// Case 7's allocation: a render size no frame buffer can hold is refused by name, not bad_alloc.
+// A render size no frame buffer can hold is refused by name, not bad_alloc.
 TEST_F(OutputSafety, AnImpossibleRenderSizeIsOneLine) {
   TempDir dir;
   ExpectOneLineError(
@@ -181,7 +181,7 @@ TEST_F(OutputSafety, AFailedRunLeavesItsReport) {
   EXPECT_FALSE(fs::exists(dir / "mine/report.json"));
 }
 
-// Case 8: a take has one writer at a time; the second gets one line naming the first, and the
+// A take has one writer at a time; the second gets one line naming the first, and the
 // take is free again once the first has ended.
 TEST_F(OutputSafety, ASecondWriterOfATakeIsRefusedNamingTheFirst) {
   const auto before = Contents(take());

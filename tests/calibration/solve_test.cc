@@ -63,7 +63,7 @@ void Print(const char* name, const CalibrationSummary& s, const GroundTruthCompa
       s.uncertainty_seconds);
 }
 
-// The figures on a reduced problem (3 cameras, ~75 views each, 0.3 px noise). The
+// The calibration targets on a reduced problem (3 cameras, ~75 views each, 0.3 px noise). The
 // principal point and the rotation are entangled (0.5 px at f = 500 is 0.057 degrees), and
 // at this noise and view count their error is ~0.3-0.6 px and ~0.03 degrees: the bounds below
 // are what this data supports, and the report in the closing note says so.

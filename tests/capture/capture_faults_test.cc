@@ -137,7 +137,7 @@ TEST(CaptureFaults, KilledRecorderLeavesATakeWithEveryCompleteSet) {
   EXPECT_EQ(RunCli("info '" + take.string() + "' --verify").exit_code, 0);
 }
 
-// Case 9 of issue 18: a camera killed mid-capture was noticed only when its software trigger
+// A camera killed mid-capture was noticed only when its software trigger
 // timed out, seconds later, and the frames it left unmatched were counted against the camera
 // that survived. Now it is declared lost once silent for --lost-after-periods frame periods, no
 // trigger goes out after that, and what it did not deliver is counted against it.
@@ -294,7 +294,7 @@ TEST(CaptureFaults, FullDiskStopsTheTakeCleanly) {
   for (size_t i = 0; i < take.size(); ++i) EXPECT_EQ(take.Read(i).frames.size(), 2u);
 }
 
-// Case 7 of issue 18 (capture): a full disk refused the report too, which added a warning
+// Capture: a full disk refused the report too, which added a warning
 // line before the error. Now it is said in the one error line.
 TEST(CaptureFaults, FullDiskIsOneErrorLine) {
   TempDir dir;

@@ -227,7 +227,7 @@ TEST(CameraModel, TruncatedAndMalformedFilesGiveAnError) {
   }
 }
 
-// Issue 18 case 3: a negative focal length in a .cameramodel was accepted, and reconstruct
+// A negative focal length in a .cameramodel was accepted, and reconstruct
 // reported SUCCESS on a meaningless surface. Every model is validated where it is made; a file's
 // error names the file and the field.
 TEST(CameraModel, RefusesAModelNoCameraCanHaveNamingFileAndField) {
@@ -291,7 +291,7 @@ TEST(CameraModel, RefusesACameraFartherThanARigCanReach) {
   EXPECT_NO_THROW(CameraModel::Parse(text, "calib/cam0.cameramodel"));
 }
 
-// Issue 18 case 7: libmrcal printed its own line on stderr and holocap's error gave no reason.
+// libmrcal printed its own line on stderr and holocap's error gave no reason.
 // Its words now are part of the one error, and nothing reaches stderr.
 TEST(CameraModel, LibmrcalsComplaintIsFoldedIntoTheOneError) {
   const std::string text =
@@ -314,7 +314,7 @@ TEST(CameraModel, LibmrcalsComplaintIsFoldedIntoTheOneError) {
   EXPECT_EQ(message.find('\n'), std::string::npos) << message;
 }
 
-// Issue 18 case 4: rotations are checked where they are read (finite, entries in [-1, 1],
+// Rotations are checked where they are read (finite, entries in [-1, 1],
 // det +1, orthonormal to 1e-6); a nearly orthonormal one becomes the nearest rotation.
 TEST(Pose, CheckRotationRefusesNonRotationsAndReorthonormalisesNearOnes) {
   const Eigen::Matrix3d rotation = CamFromWorldLookAt({1, 2, 3}, {0, 0, 0}).linear();

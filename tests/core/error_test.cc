@@ -7,7 +7,7 @@
 namespace holocap {
 namespace {
 
-// Issue 18 case 7: a garbage file quoted in an error sent its binary bytes to the terminal.
+// A garbage file quoted in an error sent its binary bytes to the terminal.
 TEST(Error, PrintableEscapesControlAndInvalidBytesAndKeepsUtf8) {
   EXPECT_EQ(Printable("plain text: 'a b'"), "plain text: 'a b'");
   EXPECT_EQ(Printable(std::string("a\nb\tc\rd\x1b[2J\x7f", 12)), "a\\nb\\tc\\rd\\x1b[2J\\x7f");

@@ -298,7 +298,7 @@ TEST(Take, IndexLineWithAnImpossibleFileNameIsSkipped) {
   EXPECT_EQ(take.skipped_index_lines(), 1);
 }
 
-// Issue 18 case 6: info --verify passed a take marked complete that had lost data. Each damage
+// `info --verify` passed a take marked complete that had lost data. Each damage
 // is refused by Take::Verify (what info --verify runs), or by Open where no writer could have
 // left it, with one message naming the file and line.
 class DamagedTake : public ::testing::Test {
@@ -404,7 +404,7 @@ TEST_F(DamagedTake, ACutShortTakeStillVerifiesWithItsTornLastLine) {
   EXPECT_NE(error.find("index.jsonl' line 4: torn"), std::string::npos) << error;
 }
 
-// Issue 18 case 5: a small PNG whose header claims 20000x20000x16-bit was decoded whole (2.5 GB)
+// A small PNG whose header claims 20000x20000x16-bit was decoded whole (2.5 GB)
 // before its size was compared with its stream's. The header is now checked first.
 TEST_F(DamagedTake, AFrameWhoseHeaderClaimsAHugeImageIsRefusedBeforeDecoding) {
   // A valid PNG of a header alone: IHDR 20000x20000, 16-bit RGB, then IEND (CRCs correct).

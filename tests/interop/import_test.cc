@@ -535,7 +535,7 @@ std::string ErrorOf(const std::function<void()>& call) {
   return "";
 }
 
-// Issue 18 case 4: a rotation entry of 1e308 in a Middlebury _par.txt or a KRT file imported as
+// A rotation entry of 1e308 in a Middlebury _par.txt or a KRT file imported as
 // SUCCESS (take.json held nulls, the camera turned by pi). It is refused naming file, line and
 // entry, and nothing is written.
 TEST(InteropImport, RotationEntriesNoRotationHasAreRefusedNamingFileLineAndEntry) {
@@ -612,7 +612,7 @@ TEST(InteropImport, NearlyOrthonormalRotationsAreReorthonormalisedAndSaidSo) {
   }
 }
 
-// Issue 18 case 3: import mrcal accepted a negative focal length. Refused, naming file and field.
+// `import mrcal` accepted a negative focal length. Refused, naming file and field.
 TEST(InteropImport, MrcalModelWithANegativeFocalLengthIsRefused) {
   TempDir dir;
   std::string model = CameraModel::Pinhole(40, 32, 24).ToString();

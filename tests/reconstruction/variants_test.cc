@@ -1,4 +1,4 @@
-// Captures a user brings, as simulator variants (issue 19): `holocap reconstruct TAKE` with no
+// Captures a user brings, as simulator variants: `holocap reconstruct TAKE` with no
 // bounds, voxel, up axis or silhouette threshold given must end with a correct result or
 // DEGENERATE with its reason, never SUCCESS on a wrong surface. "Correct": the mean symmetric
 // Chamfer to the true mesh (in the take's own units) within two of the voxels the plan chose
