@@ -37,7 +37,7 @@ double Seconds(std::chrono::steady_clock::time_point since) {
 }
 
 // A copy of the take's manifest in which the named cameras are witnesses (reconstruction uses
-// colour and depth sensors only); frames, index, calibration and ground truth are linked.
+// colour and depth sensors only); frames, index, calibration and ground truth are hard-linked.
 void WriteWitnessView(const Take& take, const std::set<std::string>& witnesses,
                       const std::filesystem::path& dir) {
   std::filesystem::remove_all(dir);
@@ -54,10 +54,21 @@ void WriteWitnessView(const Take& take, const std::set<std::string>& witnesses,
     mark(manifest["rig"]["sensors"]);
   WriteFileAtomic(dir / "take.json", manifest.dump(2));
   const std::string index = manifest.value("index", std::string("index.jsonl"));
+  // Hard links (copies across file systems): a take's frames lie inside it, so a link out of
+  // the view would be refused by every reader.
   for (const std::string& entry :
        {std::string("frames"), std::string("calib"), std::string("gt"), index}) {
-    const auto target = std::filesystem::absolute(take.dir() / entry);
-    if (std::filesystem::exists(target)) std::filesystem::create_symlink(target, dir / entry);
+    const auto target = take.dir() / entry;
+    if (!std::filesystem::exists(target)) continue;
+    std::error_code linked;
+    std::filesystem::copy(
+        target, dir / entry,
+        std::filesystem::copy_options::recursive | std::filesystem::copy_options::create_hard_links,
+        linked);
+    if (linked) {
+      std::filesystem::remove_all(dir / entry);
+      std::filesystem::copy(target, dir / entry, std::filesystem::copy_options::recursive);
+    }
   }
 }
 
