@@ -32,9 +32,9 @@ bool IsWebSite(const fs::path& dir, std::string* why) {
   if (version < kOldestWebStreamFormatVersion || version > kWebStreamFormatVersion) {
     *why = manifest.string() + " is stream format version " +
            Printable(json.value("version", nlohmann::json())
-                     .dump(-1, ' ', false, nlohmann::json::error_handler_t::replace)) + "; this holocap plays versions " +
-           std::to_string(kOldestWebStreamFormatVersion) + " to " +
-           std::to_string(kWebStreamFormatVersion);
+                         .dump(-1, ' ', false, nlohmann::json::error_handler_t::replace)) +
+           "; this holocap plays versions " + std::to_string(kOldestWebStreamFormatVersion) +
+           " to " + std::to_string(kWebStreamFormatVersion);
     return false;
   }
   return true;
@@ -43,8 +43,8 @@ bool IsWebSite(const fs::path& dir, std::string* why) {
 void CheckWebFrameRecord(const nlohmann::json& frame, const fs::path& site,
                          const std::string& folder, const std::string& stream, int64_t set) {
   const auto refuse = [&](const std::string& why) {
-    Fail("'", site.string(), "': the frame record of set ", set, " for stream '",
-         Printable(stream), "' ", why, "; run the export's group again (--redo)");
+    Fail("'", site.string(), "': the frame record of set ", set, " for stream '", Printable(stream),
+         "' ", why, "; run the export's group again (--redo)");
   };
   if (!frame.is_object() || !frame.contains("chunk")) refuse("has no chunk");
   const nlohmann::json& chunk = frame["chunk"];
@@ -57,8 +57,7 @@ void CheckWebFrameRecord(const nlohmann::json& frame, const fs::path& site,
         !file.empty() && file.size() <= 64 &&
         file.find_first_not_of("0123456789abcdefghijklmnopqrstuvwxyz_-.") == std::string::npos &&
         file.find("..") == std::string::npos && file.front() != '.';
-    if (!plain)
-      refuse(Cat("names the chunk '", Printable(file), "', which is no plain file name"));
+    if (!plain) refuse(Cat("names the chunk '", Printable(file), "', which is no plain file name"));
     const fs::path path = site / folder / file;
     std::error_code ec;
     const bool regular = fs::is_regular_file(fs::symlink_status(path, ec));
