@@ -127,9 +127,13 @@ void FillRenderCommand(CLI::App* command) {
       orbit.frame = std::max<int64_t>(args->frame, 0);
       path = OrbitPath(*model, orbit);
     } else {
-      const CameraModel& first = model->cameras().front();
-      const int height =
-          2 * static_cast<int>(std::lround(0.5 * args->size * first.height() / first.width()));
+      // The training cameras' aspect; square for a model that names none.
+      int height = args->size;
+      if (!model->cameras().empty()) {
+        const CameraModel& first = model->cameras().front();
+        height =
+            2 * static_cast<int>(std::lround(0.5 * args->size * first.height() / first.width()));
+      }
       path = ReadCameraPath(args->path, *model, args->size, height);
       if (args->frame >= 0)
         for (auto& f : path.frames) f = args->frame;

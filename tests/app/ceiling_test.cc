@@ -98,5 +98,27 @@ TEST_F(ReaderCeiling, ASplatModelDeclaringTwoBillionGaussians) {
       "it declares 2000000000 Gaussians");
 }
 
+TEST_F(ReaderCeiling, ACameraPathOfTwoBillionViews) {
+  fs::create_directories(dir_ / "model");
+  WriteFileAtomic(dir_ / "model/model.json",
+                  R"({"method": "splat", "gaussians": 1, "sh_degree": 0,
+                      "cameras": [], "box_min": [-1, -1, -1], "box_max": [1, 1, 1]})");
+  WriteFileAtomic(dir_ / "model/gaussians.bin", std::string(56, '\0'));
+  WriteFileAtomic(dir_ / "path.json",
+                  R"({"views": 2000000000, "keys": [{"eye": [0, -3, 1], "look_at": [0, 0, 1]},
+                                                   {"eye": [3, 0, 1], "look_at": [0, 0, 1]}]})");
+  ExpectOneLineError(
+      UnderCeiling("render '" + take().string() + "' --model '" + (dir_ / "model").string() +
+                   "' --path '" + (dir_ / "path.json").string() + "' --size 64 --out '" +
+                   (dir_ / "renders").string() + "'"),
+      "\"views\" must be in [1, 1000000]");
+}
+
+TEST_F(ReaderCeiling, AReportOfAMillionNestedArrays) {
+  WriteFileAtomic(dir_ / "report.json", std::string(1000000, '[') + std::string(1000000, ']'));
+  ExpectOneLineError(UnderCeiling("report '" + (dir_ / "report.json").string() + "'"),
+                     "is not valid JSON");
+}
+
 }  // namespace
 }  // namespace holocap
