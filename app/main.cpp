@@ -59,7 +59,17 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    return app.exit(e);
+    // --help and --version print as CLI11 prints them; a flag CLI11 cannot read (a count of
+    // "1e9", a missing value) is one error line like every other, naming where help is.
+    if (e.get_exit_code() == 0) return app.exit(e);
+    const CLI::App& command = CommandRun(app);
+    std::string name = &command == &app ? std::string() : command.get_name();
+    for (const CLI::App* parent = command.get_parent(); parent != nullptr && parent != &app;
+         parent = parent->get_parent())
+      name = parent->get_name() + " " + name;
+    PrintError(std::string(e.what()) + " (holocap " + (name.empty() ? "" : name + " ") +
+               "--help lists the options)");
+    return e.get_exit_code();
   } catch (const holocap::OptionError& e) {
     // The commands check their options while parsing (in their callbacks): the line names the
     // flag the user typed where one fills the field.

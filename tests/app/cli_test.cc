@@ -325,6 +325,19 @@ TEST(Cli, ReportShowsOutcomeMetricsAndTheErrorAgainstTime) {
   ExpectOneLineError(RunCli("report " + (dir / "empty").string()), "does not exist");
 }
 
+// A number CLI11 cannot read as the flag's type ("1e9" for a count, "2.5" threads) printed
+// CLI11's two lines; it is one error line like every other, and the number is never cut short.
+TEST(Cli, NumbersAreReadWholeOrRefusedInOneLine) {
+  ExpectOneLineError(RunCli("sim --rig studio8 --frames 1e9 --out /nonexistent/x"),
+                     "Could not convert: --frames = 1e9 (holocap sim --help lists the options)");
+  ExpectOneLineError(RunCli("reconstruct /nonexistent --threads 2.5"),
+                     "Could not convert: --threads = 2.5");
+  ExpectOneLineError(RunCli("sim --rig studio8 --size 1e9 --out /nonexistent/x"), "--size");
+  ExpectOneLineError(RunCli(""), "A subcommand is required (holocap --help lists the options)");
+  const auto help = RunCli("sim --help");
+  EXPECT_EQ(help.exit_code, 0) << help.output;
+}
+
 // report printed a report.json's escape sequences raw (a file could retitle or clear the
 // terminal) and ended wrong JSON types with nlohmann's bare "[json.exception.type_error.306]".
 TEST(Cli, ReportPrintsNoEscapeSequenceAndNamesAFileOfWrongTypes) {
