@@ -5,6 +5,7 @@
 #include <exception>
 #include <new>
 #include <string>
+#include <vector>
 
 #include "app/commands.h"
 #include "app/options.h"
@@ -43,7 +44,10 @@ std::string CommandLine(int argc, char** argv) {
 
 }  // namespace
 
-int main(int argc, char** argv) {
+namespace {
+
+// The program: parses the command line, runs the command, and ends every error in one line.
+int Run(int argc, char** argv) {
   holocap::SetProgramArguments(argc, argv);
   CLI::App app{
       "holocap: record multi-camera takes, calibrate the rig, reconstruct geometry, learn an "
@@ -63,12 +67,15 @@ int main(int argc, char** argv) {
     // "1e9", a missing value) is one error line like every other, naming where help is.
     if (e.get_exit_code() == 0) return app.exit(e);
     const CLI::App& command = CommandRun(app);
-    std::string name = &command == &app ? std::string() : command.get_name();
-    for (const CLI::App* parent = command.get_parent(); parent != nullptr && parent != &app;
-         parent = parent->get_parent())
-      name = parent->get_name() + " " + name;
-    PrintError(std::string(e.what()) + " (holocap " + (name.empty() ? "" : name + " ") +
-               "--help lists the options)");
+    std::vector<std::string> names;  // the command's words, innermost first
+    for (const CLI::App* at = &command; at != nullptr && at != &app; at = at->get_parent())
+      names.push_back(at->get_name());
+    std::string message = e.what();
+    message += " (holocap ";
+    for (auto name = names.rbegin(); name != names.rend(); ++name)
+      message.append(*name).append(" ");
+    message += "--help lists the options)";
+    PrintError(message);
     return e.get_exit_code();
   } catch (const holocap::OptionError& e) {
     // The commands check their options while parsing (in their callbacks): the line names the
@@ -93,4 +100,16 @@ int main(int argc, char** argv) {
     return 1;
   }
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return Run(argc, argv);
+  } catch (...) {
+    // Run ends every std::exception in one line; anything else is no error of the input's.
+    std::fputs("holocap: error: an unexpected failure (not a std::exception)\n", stderr);
+    return 1;
+  }
 }
