@@ -2,8 +2,8 @@
 # Installs the Debian packages holocap needs (only the missing ones), then configures and
 # builds it with every core. Idempotent; works as root or through sudo.
 #   scripts/setup.sh            build dependencies + the holocap CLI alone
-#   scripts/setup.sh --tests    also the packages the tests and peer checks use (clang and its
-#                               libFuzzer for the fuzz.parsers test, clang-tidy for
+#   scripts/setup.sh --tests    also the packages the tests and peer checks use (clang, its
+#                               libFuzzer and OpenMP for the fuzz.parsers test, clang-tidy for
 #                               scripts/check-tidy.sh), and every test suite and benchmark
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -27,7 +27,7 @@ packages=(
   ffmpeg libcpp-httplib-dev zlib1g-dev libwebp-dev libmeshoptimizer-dev
 )
 if [ "$want_tests" = 1 ]; then
-  packages+=(googletest libgtest-dev clang-format clang-tidy clang libclang-rt-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium slurm-wlm munge)
+  packages+=(googletest libgtest-dev clang-format clang-tidy clang libclang-rt-14-dev libomp-14-dev python3-mrcal mrcal python3-numpy python3-opencv python3-open3d iproute2 chromium slurm-wlm munge)
   # Node.js and npm only where no npm runs yet: a machine with NodeSource's nodejs has its
   # own npm, and Debian's npm package conflicts with it.
   command -v npm >/dev/null 2>&1 || packages+=(nodejs npm)

@@ -14,7 +14,7 @@ build=${HOLOCAP_FUZZ_BUILD:-$root/build-fuzz}
 work=$build/runs
 
 skip() {
-  echo "run.sh: skipped: $1 (scripts/setup.sh --tests installs clang and libclang-rt-14-dev)"
+  echo "run.sh: skipped: $1 (scripts/setup.sh --tests installs clang, libclang-rt-14-dev and libomp-14-dev)"
   exit 77
 }
 command -v clang++ >/dev/null || skip "clang++ is missing"
@@ -24,6 +24,9 @@ echo 'extern "C" int LLVMFuzzerTestOneInput(const char*, unsigned long) { return
   >"$probe/probe.cpp"
 clang++ -fsanitize=fuzzer,address,undefined "$probe/probe.cpp" -o "$probe/probe" 2>/dev/null ||
   skip "clang++ cannot link libFuzzer with ASan and UBSan"
+printf '#include <omp.h>\nint main() { return omp_get_max_threads() > 0 ? 0 : 1; }\n' >"$probe/omp.cpp"
+clang++ -fopenmp "$probe/omp.cpp" -o "$probe/omp" 2>/dev/null ||
+  skip "clang++ has no OpenMP (the splat kernels the splat readers use need it)"
 
 launcher=()
 command -v ccache >/dev/null && launcher=(-DCMAKE_CXX_COMPILER_LAUNCHER=ccache)
