@@ -21,6 +21,12 @@
 namespace holocap {
 namespace {
 
+// Where a run's report went: OUT/report.json, or beside it (report.failed.json) when the run
+// is not usable and a usable one was there (core/report.h).
+std::string ReportWhere(const std::filesystem::path& out, const Report& report) {
+  return ReportDestination(out / "report.json", report.json()).string();
+}
+
 // `train` takes words no method knows, to name an unknown method (AddTrainCommand), and the
 // methods added after it inherit that; so each method refuses here, by name and before it runs,
 // the words it was given that are not its own (whether it kept them or handed them up).
@@ -185,7 +191,7 @@ void FillNvolCommand(CLI::App* command) {
     std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
     std::printf("held-out     PSNR %.2f dB (subject %.2f dB), SSIM %.4f\n", summary.heldout_psnr_db,
                 summary.heldout_psnr_fg_db, summary.heldout_ssim);
-    std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+    std::printf("model: %s\nreport: %s\n", out.c_str(), ReportWhere(out, report).c_str());
     EndCommand(summary, "training");
   });
 }
@@ -366,7 +372,7 @@ void TrainLiveRerenderCommand(const RerenderArgs& args) {
   std::printf("loss         %.6f -> %.6f\n", summary.first_loss, summary.last_loss);
   std::printf("validation   PSNR %.2f dB (raw composition %.2f dB) inside the silhouettes\n",
               summary.validation_psnr_db, summary.raw_psnr_db);
-  std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+  std::printf("model: %s\nreport: %s\n", out.c_str(), ReportWhere(out, report).c_str());
   EndCommand(summary, "training");
 }
 
@@ -411,7 +417,7 @@ void FillRerenderCommand(CLI::App* command) {
                 summary.raw_render_ssim);
     std::printf("flicker      %.3f x truth's (raw render %.3f x)\n", summary.flicker_ratio,
                 summary.raw_flicker_ratio);
-    std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+    std::printf("model: %s\nreport: %s\n", out.c_str(), ReportWhere(out, report).c_str());
     EndCommand(summary, "training");
   });
 }
@@ -561,7 +567,7 @@ void AddSplatCommand(CLI::App* train) {
           summary.frames.size(), later_s / later, largest, summary.frames.back().heldout_psnr_db,
           summary.frames.back().heldout_psnr_fg_db);
     }
-    std::printf("model: %s\nreport: %s\n", out.c_str(), (out / "report.json").c_str());
+    std::printf("model: %s\nreport: %s\n", out.c_str(), ReportWhere(out, report).c_str());
     EndCommand(summary, "training");
   });
 }

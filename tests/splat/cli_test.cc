@@ -9,6 +9,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/error.h"
+#include "core/fs.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
@@ -82,6 +83,22 @@ TEST_F(SplatCli, EmptyReconstructionIsDegenerate) {
             std::string::npos)
       << result.output;
   EXPECT_EQ(ReadJson(root_ / "degenerate" / "report.json")["summary"]["termination"], "DEGENERATE");
+  // Over a usable run's report, the DEGENERATE one goes beside it, and the command says where.
+  const fs::path good = root_ / "degenerate" / "report.json";
+  nlohmann::json usable = ReadJson(good);
+  usable["summary"]["termination"] = "SUCCESS";
+  WriteFileAtomic(good, usable.dump());
+  const std::string before = ReadFileToString(good);
+  const CommandResult again = RunCli(
+      "train splat " + (root_ / "dino").string() + " --out " + (root_ / "degenerate").string() +
+      " --iterations 10 --width 160 --recon " + (root_ / "empty_recon").string());
+  EXPECT_EQ(again.exit_code, 1) << again.output;
+  EXPECT_EQ(ReadFileToString(good), before);
+  EXPECT_NE(again.output.find("report: " + (root_ / "degenerate" / "report.failed.json").string()),
+            std::string::npos)
+      << again.output;
+  EXPECT_EQ(ReadJson(root_ / "degenerate" / "report.failed.json")["summary"]["termination"],
+            "DEGENERATE");
 }
 
 // A simulated dynamic take: frame 0 trained, each later frame a delta within its bound, scored
