@@ -158,9 +158,10 @@ void FillRenderCommand(CLI::App* command) {
     report.SetSummary(summary);
     const std::filesystem::path report_file =
         to_video ? std::filesystem::path(out.string() + ".report.json") : out / "report.json";
-    report.Write(report_file);
+    // Beside a usable report when this run's is not (core/report.h): printed where it went.
+    const std::filesystem::path written = report.Write(report_file);
     std::printf("%s model, %lld frame(s) -> %s\nreport: %s\n", model->method().c_str(),
-                static_cast<long long>(model->frame_count()), out.c_str(), report_file.c_str());
+                static_cast<long long>(model->frame_count()), out.c_str(), written.c_str());
     EndCommand(summary, "rendering");
   });
 }
