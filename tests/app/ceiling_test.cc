@@ -39,6 +39,17 @@ class ReaderCeiling : public ::testing::Test {
     const size_t at = index.find("\"file\":\"") + 8;
     return take() / index.substr(at, index.find('"', at) - at);
   }
+  // DIR/model: a splat model.json declaring `declared` Gaussians of `degree`, beside a
+  // gaussians.bin of `bytes` zero bytes; returns the folder.
+  fs::path SplatModel(int64_t declared, int degree, size_t bytes) const {
+    fs::create_directories(dir_ / "model");
+    WriteFileAtomic(dir_ / "model/model.json",
+                    R"({"method": "splat", "gaussians": )" + std::to_string(declared) +
+                        R"(, "sh_degree": )" + std::to_string(degree) +
+                        R"(, "cameras": [], "box_min": [-1, -1, -1], "box_max": [1, 1, 1]})");
+    WriteFileAtomic(dir_ / "model/gaussians.bin", std::string(bytes, '\0'));
+    return dir_ / "model";
+  }
   void Verify(const std::string& needle) const {
     ExpectOneLineError(UnderCeiling("info '" + take().string() + "' --verify"), needle);
   }
@@ -87,11 +98,7 @@ TEST_F(ReaderCeiling, ARigOfNestedAliases) {
 }
 
 TEST_F(ReaderCeiling, ASplatModelDeclaringTwoBillionGaussians) {
-  fs::create_directories(dir_ / "model");
-  WriteFileAtomic(dir_ / "model/model.json",
-                  R"({"method": "splat", "gaussians": 2000000000, "sh_degree": 3,
-                      "cameras": [], "box_min": [-1, -1, -1], "box_max": [1, 1, 1]})");
-  WriteFileAtomic(dir_ / "model/gaussians.bin", std::string(236, '\0'));
+  SplatModel(2000000000, 3, 236);  // one Gaussian's bytes at degree 3
   ExpectOneLineError(
       UnderCeiling("render '" + take().string() + "' --model '" + (dir_ / "model").string() +
                    "' --size 64 --views 1 --out '" + (dir_ / "renders").string() + "'"),
@@ -99,11 +106,7 @@ TEST_F(ReaderCeiling, ASplatModelDeclaringTwoBillionGaussians) {
 }
 
 TEST_F(ReaderCeiling, ACameraPathOfTwoBillionViews) {
-  fs::create_directories(dir_ / "model");
-  WriteFileAtomic(dir_ / "model/model.json",
-                  R"({"method": "splat", "gaussians": 1, "sh_degree": 0,
-                      "cameras": [], "box_min": [-1, -1, -1], "box_max": [1, 1, 1]})");
-  WriteFileAtomic(dir_ / "model/gaussians.bin", std::string(56, '\0'));
+  SplatModel(1, 0, 56);  // one Gaussian at degree 0
   WriteFileAtomic(dir_ / "path.json",
                   R"({"views": 2000000000, "keys": [{"eye": [0, -3, 1], "look_at": [0, 0, 1]},
                                                    {"eye": [3, 0, 1], "look_at": [0, 0, 1]}]})");
