@@ -16,6 +16,7 @@ namespace {
 
 struct CalibrateArgs {
   std::string take;
+  std::string from;
   std::string board;
   std::string lensmodel;
   std::vector<std::string> sensors;
@@ -75,6 +76,9 @@ void AddCalibrateCommand(CLI::App& app) {
       "calibrate", "Calibrate a take's cameras from board views (AprilTag/chessboard, mrcal)");
   auto args = std::make_shared<CalibrateArgs>();
   command->add_option("take", args->take, "The take directory")->required();
+  command->add_option("--from", args->from,
+                      "Take over the calibration of another take of the same rig (a calibrated "
+                      "board take, or a folder of <sensor>.cameramodel files) instead of solving");
   command->add_option("--board", args->board,
                       "Board layout YAML (default: the take's gt/board.json)");
   command->add_option("--lens-model", args->lensmodel,
@@ -106,6 +110,16 @@ void AddCalibrateCommand(CLI::App& app) {
            std::filesystem::read_symlink(calib, ec).string(),
            "'); calibrate writes the take's own calib/ folder, never through a link (remove the "
            "link first)");
+    }
+    if (!args->from.empty()) {
+      Report report("calibrate");
+      report.options() = {{"from", args->from}};
+      report.SetFailureDestination(calib / "report.json");
+      const TakeCalibrationSummary summary = AdoptCalibration(args->take, args->from, &report);
+      std::printf("%s: %s\nreport: %s\n", ToString(summary.termination), summary.message.c_str(),
+                  summary.report_file.c_str());
+      FailUnlessUsable(summary, "calibration");
+      return;
     }
     TakeCalibrationOptions options;
     options.board_file = args->board;
@@ -153,15 +167,11 @@ Summary CalibrateDemoTake(DemoContext& context) {
     metrics["gt"].erase("cameras");
   }
   context.report->metrics()["calibration"] = metrics;
-  // The demo's own take is of the same rig: it gets these models.
-  if (IsUsable(summary.termination) && std::filesystem::exists(context.take)) {
-    CreateDirectories(context.take / "calib");
-    for (const auto& file : summary.written) {
-      if (file.extension() == ".cameramodel") {
-        std::filesystem::copy_file(file, context.take / "calib" / file.filename(),
-                                   std::filesystem::copy_options::overwrite_existing);
-      }
-    }
+  // The demo's own take is of the same rig: it gets these models, as a studio's takes get the
+  // calibration of its board take.
+  if (IsUsable(summary.termination) && std::filesystem::exists(context.take / "take.json")) {
+    const TakeCalibrationSummary adopted = AdoptCalibration(context.take, take);
+    std::printf("%s\n", adopted.message.c_str());
   }
   return summary;
 }

@@ -385,4 +385,14 @@ TakeCalibrationSummary CalibrateTake(const std::filesystem::path& take_dir,
                                      const TakeCalibrationOptions& options,
                                      Report* report = nullptr);
 
+// Takes over the calibration of another take of the same rig (`from`: a calibrated take, or a
+// folder of <sensor>.cameramodel files): writes take_dir/calib/<sensor>.cameramodel for every
+// colour and depth sensor, each model scaled when its sensor records at another size by one
+// factor (a binned mode), and calib/report.json naming where they came from. Throws Error when a
+// sensor has no model there, a size is not the same imager scaled, or the source's own report
+// did not end usable. A studio calibrates one board take and gives its models to every take.
+TakeCalibrationSummary AdoptCalibration(const std::filesystem::path& take_dir,
+                                        const std::filesystem::path& from,
+                                        Report* report = nullptr);
+
 }  // namespace holocap

@@ -70,14 +70,35 @@ TEST(CalibrationWorld, ATakeWithoutTruthComesOutZUpOnTheFloorAndReconstructsAsWe
 
   // The walk take: with the true cameras, with these models (no flags), and with these models
   // laid on the true world (what the calibration of a simulated take wrote before).
-  ASSERT_TRUE(Ran("sim --rig studio8 --frames 2 --clean-plate 1 --out " + walk.string()));
+  // The walk is recorded at half the board take's size: it takes the board take's calibration
+  // over (`calibrate --from`), each lens scaled by 0.5, as a studio's takes do.
+  ASSERT_TRUE(
+      Ran("sim --rig studio8 --frames 2 --clean-plate 1 --size 320 --out " + walk.string()));
   const std::string walk_args = walk.string() + " --no-sweep --no-glb";
   ASSERT_TRUE(
       Ran("reconstruct " + walk_args + " --ground-truth-cameras --out " + (dir / "gt").string()));
-  fs::create_directories(walk / "calib");
-  for (const auto& [name, model] : solved) model.Write(walk / "calib" / (name + ".cameramodel"));
+  // Uncalibrated, the walk is refused; then it takes the board take's models.
+  testing::ExpectOneLineError(RunCli("reconstruct " + walk_args), "run holocap calibrate first");
+  // The truth is never taken over as a calibration.
+  testing::ExpectOneLineError(
+      RunCli("calibrate " + walk.string() + " --from " + (walk / "gt" / "cameras").string()),
+      "is a simulated take's truth, not a calibration");
+  EXPECT_FALSE(fs::exists(walk / "calib" / "cam0.cameramodel"));
+  const auto adopted = RunCli("calibrate " + walk.string() + " --from " + cal.string());
+  ASSERT_EQ(adopted.exit_code, 0) << adopted.output;
+  EXPECT_NE(adopted.output.find("taken over for 10 sensors (scaled: cam0 x0.5"), std::string::npos)
+      << adopted.output;
+  const auto adopted_report =
+      nlohmann::json::parse(ReadFileToString(walk / "calib" / "report.json"));
+  EXPECT_EQ(adopted_report["plan"]["adopted"]["termination"], report["summary"]["termination"]);
+  for (const auto& [name, model] : solved) {
+    const CameraModel scaled = CameraModel::Read(walk / "calib" / (name + ".cameramodel"));
+    EXPECT_EQ(scaled.width() * 2, model.width()) << name;
+    EXPECT_LT((scaled.cam_from_world().matrix() - model.cam_from_world().matrix()).norm(), 1e-9);
+  }
   ASSERT_TRUE(Ran("reconstruct " + walk_args + " --out " + (dir / "take-world").string()));
   for (auto [name, model] : solved) {
+    model = model.Scaled(0.5);
     model.set_cam_from_world(model.cam_from_world() * true_from_written.inverse());
     model.Write(walk / "calib" / (name + ".cameramodel"));
   }
@@ -89,8 +110,7 @@ TEST(CalibrationWorld, ATakeWithoutTruthComesOutZUpOnTheFloorAndReconstructsAsWe
       "laid on the true world %.3f mm\n",
       with_truth, take_world, true_world);
   EXPECT_LT(std::abs(take_world - true_world), 0.1 * true_world);
-  // Calibrated without gt/, the walk reconstructs as with the true cameras, within 10 %
-  // (3.594 against 3.515 mm here).
+  // Calibrated without gt/, the walk reconstructs as with the true cameras, within 10 %.
   EXPECT_LT(std::abs(take_world - with_truth), 0.1 * with_truth);
 }
 
