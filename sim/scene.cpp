@@ -281,7 +281,11 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
       center = viewpoint + distance * ray_in_world;
       max_tilt = 45 * kDeg;
     }
-    if ((center - viewpoint).norm() < 1e-3) continue;
+    // A view straight up or down has no upright (two cameras facing each other across the stage
+    // put the point between them above it): the attempt is skipped.
+    const Eigen::Vector3d view = center - viewpoint;
+    if (view.norm() < 1e-3 || view.normalized().cross(Eigen::Vector3d::UnitZ()).norm() < 1e-3)
+      continue;
     const Pose upright = CamFromWorldLookAt(viewpoint, center).inverse();
     const double tilt = tilt_scale * (0.25 + 0.75 * unit(rng)) * max_tilt;
     const double axis_angle = 2 * kPi * unit(rng);
