@@ -10,7 +10,9 @@
 //       compositions rasterised as the network sees them),
 // with each frame's alignment residual, inlier fraction, deformation and seconds; then
 // `holocap live`'s own run (LiveTake) on the take with this scan and with a scan of another
-// subject (the object scene), which it must refuse.
+// subject (the object scene), which it must refuse. Every take is calibrated as a user's is:
+// a board take of its rig, solved, its models taken over (bench/calibrated_sim.h); the truth only
+// scores.
 //
 //   build/bench/live_bench [--frames N] [--scan-frames M] [--width W] [--keep DIR]
 //                          [--rerender-minutes T] [--rerender-iterations I] [--rerender-lr R]
@@ -21,6 +23,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "bench/calibrated_sim.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/take.h"
@@ -181,9 +184,7 @@ cv::Mat Bgr(const cv::Mat& frame) {
 Row Measure(const fs::path& live_take, const fs::path& scan_dir, const LiveRerenderModel& model,
             const fs::path& coverage_dir) {
   const Take take = Take::Open(live_take);
-  TakeSelection selection;
-  selection.ground_truth_cameras = true;
-  const TakePlan plan = PlanTake(take, selection);
+  const TakePlan plan = PlanTake(take, TakeSelection{});
   const Mesh scan = ReadScan(scan_dir);
   std::string unlit;
   const std::optional<ScanAlbedo> albedo = ReadScanAlbedo(scan_dir, scan, &unlit);
@@ -332,9 +333,12 @@ int Run(int argc, char** argv) {
   scan_sim.trajectory_deg_per_s = 360.0 * scan_sim.fps / static_cast<double>(args.scan_frames);
   scan_sim.image_width = args.width;
   SimulateTake(scan_sim, work / "scan-take");
+  std::printf("scan take: %s\n",
+              bench::CalibrateFromBoardTake(scan_sim, work / "scan-take").c_str());
+  ScanOptions turning;
+  turning.subject_turns = true;  // holocap scan --turn
   const auto scan_start = std::chrono::steady_clock::now();
-  const ScanSummary scan =
-      ScanTake(work / "scan-take", TakeSelection{}, work / "scan", ScanOptions{});
+  const ScanSummary scan = ScanTake(work / "scan-take", TakeSelection{}, work / "scan", turning);
   std::printf("scan: %s (%s), %lld vertices, %.1f s\n", ToString(scan.termination),
               scan.message.c_str(), static_cast<long long>(scan.vertices),
               std::chrono::duration<double>(std::chrono::steady_clock::now() - scan_start).count());
@@ -361,6 +365,8 @@ int Run(int argc, char** argv) {
   live_sim.fps = 10;
   live_sim.image_width = args.width;
   SimulateTake(live_sim, work / "live-take");
+  std::printf("live take: %s\n",
+              bench::CalibrateFromBoardTake(live_sim, work / "live-take").c_str());
   if (!args.keep.empty()) CreateDirectories(work / "coverage");
   const Row row =
       Measure(work / "live-take", work / "scan", model, args.keep.empty() ? "" : work / "coverage");
@@ -404,7 +410,8 @@ int Run(int argc, char** argv) {
   SimOptions other = scan_sim;
   other.scene = "object";
   SimulateTake(other, work / "object-take");
-  ScanTake(work / "object-take", TakeSelection{}, work / "object-scan", ScanOptions{});
+  AdoptCalibration(work / "object-take", work / "scan-take-board");
+  ScanTake(work / "object-take", TakeSelection{}, work / "object-scan", turning);
   const LiveSummary wrong = LiveTake(work / "live-take", TakeSelection{}, work / "object-scan",
                                      work / "live-wrong", LiveOptions{});
   std::printf("holocap live with a scan of the object scene: %s (%s)\n",
