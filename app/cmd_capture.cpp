@@ -43,10 +43,11 @@ struct LiveFlags {
 
 // `holocap capture --live SCAN`: the rig's one depth sensor and its paired colour camera,
 // composed with the scan as the sets are written. Their models: --calib's files, else what the
-// drivers know.
+// drivers know; `calibrated` says whether they are a calibration (not a simulation's truth).
 std::unique_ptr<LiveStream> StartLive(const RigDescription& rig, const Recorder& recorder,
                                       const LiveFlags& flags, const std::string& take,
-                                      std::map<std::string, CameraModel>* models) {
+                                      std::map<std::string, CameraModel>* models,
+                                      bool* calibrated) {
   const SensorSpec* depth = nullptr;
   for (const SensorSpec& spec : rig.sensors) {
     if (spec.role != SensorRole::kDepth) continue;
@@ -57,7 +58,9 @@ std::unique_ptr<LiveStream> StartLive(const RigDescription& rig, const Recorder&
   if (depth->paired_with.empty())
     Fail("capture --live: depth sensor '", depth->name, "' names no paired colour camera");
   *models = recorder.KnownModels();
+  *calibrated = recorder.TrueModelSensors().empty();
   if (!flags.calib.empty()) {
+    *calibrated = true;
     models->clear();
     for (const SensorSpec& spec : rig.sensors) {
       const std::filesystem::path file =
@@ -74,15 +77,24 @@ std::unique_ptr<LiveStream> StartLive(const RigDescription& rig, const Recorder&
   }
   const std::filesystem::path out =
       flags.out.empty() ? std::filesystem::path(take) / "live" : std::filesystem::path(flags.out);
+  std::cout << "live        cameras: "
+            << (!flags.calib.empty() ? "--calib " + flags.calib
+                : *calibrated        ? std::string("the drivers' calibrations")
+                                     : std::string("the simulation's true models (never written "
+                                                          "to calib/)"))
+            << "\n";
   return std::make_unique<LiveStream>(flags.scan, depth->name, models->at(depth->name),
                                       depth->paired_with, models->at(depth->paired_with), out,
                                       false, LiveOptions{});
 }
 
-// After a live capture: the models it composed with go into the take's calib/ when they cover
-// every sensor of the take, so that `holocap live TAKE --scan SCAN` can compose every set.
-void RecordLiveModels(const std::map<std::string, CameraModel>& models, const std::string& take) {
+// After a live capture: the models it composed with go into the take's calib/ when they are a
+// calibration and cover every sensor of the take, so that `holocap live TAKE --scan SCAN` can
+// compose every set. A simulation's true models never become a calibration.
+void RecordLiveModels(const std::map<std::string, CameraModel>& models, bool calibrated,
+                      const std::string& take) {
   const std::filesystem::path dir(take);
+  if (!calibrated) return;
   if (!std::filesystem::exists(dir / "take.json")) return;
   const Take opened = Take::Open(dir);
   for (const StreamInfo& stream : opened.streams())
@@ -165,9 +177,10 @@ static void AddCaptureCommand(CLI::App& app) {
     if (!args->live.scan.empty()) args->options.take.inputs.push_back(args->live.scan);
     Recorder recorder(rig, args->out, args->options);
     std::map<std::string, CameraModel> live_models;
+    bool live_calibrated = false;
     std::unique_ptr<LiveStream> live;
     if (!args->live.scan.empty()) {
-      live = StartLive(rig, recorder, args->live, args->out, &live_models);
+      live = StartLive(rig, recorder, args->live, args->out, &live_models, &live_calibrated);
       recorder.set_on_set_written([&live](const FrameSet& set) { live->Offer(set); });
     }
     Report report("capture");
@@ -232,7 +245,7 @@ static void AddCaptureCommand(CLI::App& app) {
     if (live) {
       composed = live->Finish();
       PrintLive(*composed, live->status());
-      RecordLiveModels(live_models, args->out);
+      RecordLiveModels(live_models, live_calibrated, args->out);
     }
     FailUnlessUsable(summary, "capture");
     if (composed) FailUnlessUsable(*composed, "capture --live");

@@ -39,8 +39,9 @@ static void AddExportCommand(CLI::App& app) {
   command->add_option("FORMAT", args->format, "colmap | nerf | web")->required();
   command->add_option("TAKE", args->take, "The take directory")->required();
   command->add_option("--out", args->out, "The directory to write")->required();
-  command->add_flag("--ground-truth", args->options.ground_truth,
-                    "Export the true cameras (gt/cameras, simulated takes) instead of calib/");
+  command->add_flag("--ground-truth-cameras,--ground-truth", args->options.ground_truth,
+                    "Use a simulated take's true cameras (gt/cameras) instead of calib/ (an "
+                    "uncalibrated take is refused otherwise)");
   command->add_flag("--no-images", args->no_images, "Write the cameras only, not the frames");
   command->add_flag(
       "--skip-unrepresentable", args->options.skip_unrepresentable,

@@ -36,6 +36,7 @@ struct RenderArgs {
   int threads = 0;
   std::string recon;
   std::vector<std::string> cameras;
+  bool ground_truth_cameras = false;
 };
 
 // --recon: every composed frame at the named cameras of the take.
@@ -50,9 +51,10 @@ void RenderLiveCommand(const RenderArgs& args) {
                       {"model", args.model},
                       {"recon", args.recon},
                       {"cameras", args.cameras},
+                      {"ground_truth_cameras", args.ground_truth_cameras},
                       {"out", args.out}};
-  const LiveRenderSummary summary =
-      RenderLiveRecon(args.take, args.recon, args.model, args.cameras, out, &report);
+  const LiveRenderSummary summary = RenderLiveRecon(args.take, args.recon, args.model, args.cameras,
+                                                    out, args.ground_truth_cameras, &report);
   report.Write(out / "report.json");
   std::printf("%s\nimages (<camera>/<set>.png) and report: %s\n", summary.message.c_str(),
               out.c_str());
@@ -89,6 +91,8 @@ void FillRenderCommand(CLI::App* command) {
       ->add_option("--cameras", args->cameras,
                    "With --recon: cameras of TAKE to render at (names, comma-separated)")
       ->delimiter(',');
+  command->add_flag("--ground-truth-cameras", args->ground_truth_cameras,
+                    "With --recon: a simulated take's true cameras (gt/cameras) instead of calib/");
   NameFieldFlags(command, {{"OrbitOptions::width", "--size"},
                            {"OrbitOptions::height", "--size"},
                            {"render.step_voxels", "--step"}});

@@ -99,7 +99,7 @@ void AddScanCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_flag("--turn", o.subject_turns,
                     "The subject turned before a still sensor: the floor is left out and the "
-                    "light found (a simulated take says so itself)");
+                    "light found");
   command->add_flag("--no-refine", args->no_refine, "No keyframe pose graph at the end");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY only (no texture)");
   command->add_option("--threads", o.threads, "Threads (0: all cores)")->capture_default_str();

@@ -154,7 +154,10 @@ void FillNvolCommand(CLI::App* command) {
       ->capture_default_str();
   command->add_option("--rays", o.rays_per_batch, "Rays per iteration")->capture_default_str();
   command->add_option("--scene", o.scene, "auto, static or dynamic")->capture_default_str();
-  command->add_option("--bounds", args->bounds, "Volume bounds: auto, hull, gt or stage")
+  command
+      ->add_option("--bounds", args->bounds,
+                   "Volume bounds: auto (the hull, else the stage), hull, stage, or gt (a "
+                   "simulated take's true meshes, when asked for)")
       ->capture_default_str();
   command->add_option("--kl-weight", o.kl_weight, "KL weight of the latent (dynamic scenes)")
       ->capture_default_str();
@@ -355,6 +358,7 @@ void TrainLiveRerenderCommand(const RerenderArgs& args) {
   o.learning_rate = shared.learning_rate;
   o.seed = shared.seed;
   o.threads = shared.threads;
+  o.ground_truth_cameras = shared.selection.ground_truth_cameras;
   o.Check();
   // A bad scan is refused before any output is claimed.
   ReadScanAlbedo(args.scan, ReadScan(args.scan));

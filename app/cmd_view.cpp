@@ -238,6 +238,7 @@ struct ViewArgs {
   int port = 8080;
   std::string host;
   std::vector<std::string> models;
+  bool ground_truth_cameras = false;
 };
 
 void FillViewCommand(CLI::App* command) {
@@ -253,6 +254,9 @@ void FillViewCommand(CLI::App* command) {
   command->add_option("--model", args->models,
                       "A take: the models to stream (default TAKE/models/nvol and "
                       "TAKE/models/splat when trained)");
+  command->add_flag("--ground-truth-cameras", args->ground_truth_cameras,
+                    "A take: export it with a simulated take's true cameras (gt/cameras) instead "
+                    "of calib/");
   NameFieldFlags(command, {{"ViewServerOptions::allowed_host", "--host"}});
   command->callback([args] {
     ViewServerOptions options;
@@ -274,6 +278,7 @@ void FillViewCommand(CLI::App* command) {
         arguments.emplace_back("--model");
         arguments.push_back(fs::absolute(model).string());
       }
+      if (args->ground_truth_cameras) arguments.emplace_back("--ground-truth-cameras");
       if (!ExportInChild(arguments, stop)) {
         temporary.reset();
         std::puts("stopped during the export; the temporary site is removed");

@@ -28,8 +28,10 @@ void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags) {
                       "as 0-9,15,20-29 (ranges inclusive) (default: all)");
   command->add_option("--clean-plate", flags->clean_plate,
                       "Leading frame sets without the subject (default: from the take, else 0)");
-  command->add_flag("--ground-truth-cameras", flags->ground_truth_cameras,
-                    "Use the simulation's true cameras (gt/cameras) even when calib/ exists");
+  command->add_flag(
+      "--ground-truth-cameras", flags->ground_truth_cameras,
+      "Use a simulated take's true cameras (gt/cameras) instead of calib/: measures a "
+      "stage apart from calibration (an uncalibrated take is refused otherwise)");
 }
 
 void SceneFlags::Apply(TakeSelection* selection) const {

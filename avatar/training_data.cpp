@@ -375,7 +375,8 @@ class TrainingDataLoader {
     return (hi_.array() > lo_.array()).all();
   }
 
-  // The hull of every frame, else the ground-truth meshes, else the take plan's bounds.
+  // The hull of every frame, else the take plan's bounds; the ground-truth meshes only when asked
+  // for (--bounds gt): the truth never stands in by itself.
   void ChooseBounds() {
     VolumeBoundsSource source = options_.bounds;
     lo_ = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
@@ -388,15 +389,11 @@ class TrainingDataLoader {
         if (options_.bounds == VolumeBoundsSource::kHull)
           Fail("the visual hull of the training views is empty: no volume to bound");
         hulls_.clear();
-        source = VolumeBoundsSource::kGroundTruth;
+        source = VolumeBoundsSource::kStage;
       }
     }
-    if (source == VolumeBoundsSource::kGroundTruth && !GroundTruthBounds()) {
-      if (options_.bounds == VolumeBoundsSource::kGroundTruth) {
-        Fail("take ", take_.dir().string(), " has no gt/meshes to bound the volume");
-      }
-      source = VolumeBoundsSource::kStage;
-    }
+    if (source == VolumeBoundsSource::kGroundTruth && !GroundTruthBounds())
+      Fail("take ", take_.dir().string(), " has no gt/meshes to bound the volume");
     if (source == VolumeBoundsSource::kStage) {
       // The take plan's scene bounds: the user's, else the rig's own (never a fixed studio).
       lo_ = take_plan_.bounds.min;

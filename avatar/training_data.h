@@ -21,9 +21,9 @@ namespace holocap {
 
 // The source of the box that bounds the volume, in order of preference for kAuto.
 enum class VolumeBoundsSource {
-  kAuto,         // hull, then ground-truth meshes, then the stage
+  kAuto,         // hull, then the stage
   kHull,         // the visual hull of the training views (reconstruction/), per frame
-  kGroundTruth,  // the take's gt/meshes (simulated takes)
+  kGroundTruth,  // the take's gt/meshes (simulated takes): only when asked for, never by kAuto
   kStage,        // the take plan's bounds (--bounds, else from the rig; see core/take_plan.h)
 };
 const char* ToString(VolumeBoundsSource source);

@@ -53,6 +53,9 @@ class Sensor {
   virtual void Trigger() {}
   // The exact lens and pose, where the driver knows them (simulation, replayed calibration).
   virtual std::optional<CameraModel> known_model() const { return std::nullopt; }
+  // True when known_model() is a simulation's truth rather than a calibration: it may measure
+  // or be used when asked for, never pass as a calibration (written into a take's calib/).
+  virtual bool known_model_is_truth() const { return false; }
   // Counters since Start(). Thread-safe: the recorder reads them while Grab() runs.
   virtual SensorStats stats() const { return {}; }
 };

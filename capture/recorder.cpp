@@ -697,6 +697,14 @@ std::map<std::string, CameraModel> Recorder::KnownModels() const {
   return models;
 }
 
+std::set<std::string> Recorder::TrueModelSensors() const {
+  std::set<std::string> names;
+  for (size_t s = 0; s < sensors_.size(); ++s) {
+    if (sensors_[s]->known_model_is_truth()) names.insert(streams_[s].name);
+  }
+  return names;
+}
+
 void Recorder::Session::WriteLoop() {
   while (true) {
     FrameSet set;

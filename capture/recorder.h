@@ -32,6 +32,7 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -184,6 +185,8 @@ class Recorder {
   const std::vector<StreamInfo>& streams() const { return streams_; }
   // The exact models the drivers know (simulation, a replayed take's calibration), by sensor.
   std::map<std::string, CameraModel> KnownModels() const;
+  // The sensors whose known model is a simulation's truth, not a calibration.
+  std::set<std::string> TrueModelSensors() const;
 
  private:
   class Session;  // one run: its threads and what they share (recorder.cpp)

@@ -138,7 +138,6 @@ nlohmann::json TakePlan::ToJson() const {
   return {{"cameras", cameras_source},
           {"color_sensors", color_sensors},
           {"depth_sensors", depth_sensors},
-          {"sensor_motion", sensor_motion},
           {"clean_plate_frames", clean_plate_frames},
           {"frame_sets", sets},
           {"heldout", heldout},
@@ -164,18 +163,18 @@ void ChooseCameraSource(const Take& take, const TakeSelection& selection, TakePl
     plan.cameras_source = "gt/cameras (asked for)";
   } else if (take.has_calibration()) {
     plan.cameras_source = "calib/";
-  } else if (has_truth) {
-    plan.ground_truth_cameras = true;
-    plan.cameras_source = "gt/cameras (the take has no calib/: true models of the simulation)";
   } else {
+    // A simulated take is uncalibrated like any other: its truth only measures, unless asked.
     Fail("take '", take.dir().string(),
          "' is not calibrated (no calib/<sensor>.cameramodel for every sensor): run holocap "
-         "calibrate first");
+         "calibrate first",
+         has_truth ? " (or holocap calibrate TAKE --from BOARD_TAKE; --ground-truth-cameras uses "
+                     "the simulation's true cameras)"
+                   : "");
   }
 }
 
 void ChooseFrameSets(const Take& take, const TakeSelection& selection, TakePlan& plan) {
-  plan.sensor_motion = take.metadata().value("trajectory", std::string("fixed"));
   plan.clean_plate_frames = selection.clean_plate_frames >= 0
                                 ? selection.clean_plate_frames
                                 : take.metadata().value("clean_plate_frames", int64_t{0});

@@ -76,11 +76,7 @@ struct TakePlan {
   std::string cameras_source;              // "calib/" or "gt/cameras (...why...)"
   std::vector<std::string> color_sensors;  // in the take's order
   std::vector<std::string> depth_sensors;
-  std::set<std::string> paired_color;  // colour sensors a depth sensor is paired with
-  // How the sensors move over the take (its metadata's "trajectory", written by the simulator
-  // and by captures that know it): "fixed", or "orbit", "handheld", "turn" (the subject turns
-  // before fixed sensors). A take with one moving depth sensor is a scan (`holocap scan`).
-  std::string sensor_motion = "fixed";
+  std::set<std::string> paired_color;          // colour sensors a depth sensor is paired with
   std::map<std::string, CameraModel> cameras;  // every colour and depth sensor's model
   int64_t clean_plate_frames = 0;              // the plate is the last of these sets
   std::vector<int64_t> sets;                   // frame sets to work on (indices into the take)
@@ -117,8 +113,6 @@ struct TakePlan {
   void LeaveOut(const std::string& what, const std::string& why) { left_out[what] = why; }
   // Throws Error naming the first set and sensor of `names` that the take lacks.
   void RequireFrames(const Take& take, const std::vector<std::string>& names) const;
-  // One depth sensor moving relative to the subject: the take is a scan.
-  bool is_scan() const { return sensor_motion != "fixed" && depth_sensors.size() == 1; }
   // The colour sensors that are not held out (the ones a reconstruction reads).
   std::vector<std::string> ReconstructionSensors() const;
   // Sets bounds (cut at the floor, if any) and the voxel size they imply (ImpliedVoxel), with

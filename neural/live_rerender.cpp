@@ -51,6 +51,7 @@ void LiveRerenderOptions::Check() const {
 Json LiveRerenderOptions::ToJson() const {
   return {{"net", net.ToJson()},
           {"live", live.ToJson()},
+          {"ground_truth_cameras", ground_truth_cameras},
           {"live_frames", live_frames},
           {"targets_per_frame", targets_per_frame},
           {"min_turn_deg", min_turn_deg},
@@ -180,7 +181,9 @@ class PairBuilder {
 
  private:
   void PlanSensors() {
-    plan_ = PlanTake(take_, TakeSelection{});
+    TakeSelection selection;
+    selection.ground_truth_cameras = options_.ground_truth_cameras;
+    plan_ = PlanTake(take_, selection);
     if (plan_.depth_sensors.size() != 1) {
       Fail("live rerender: scan take '", take_.dir().string(), "' has ", plan_.depth_sensors.size(),
            " depth sensors; it needs exactly one (the scan's)");
@@ -384,10 +387,12 @@ RenderedView LiveRerenderModel::Render(const Mesh& composed, const CameraModel& 
 LiveRenderSummary RenderLiveRecon(const fs::path& take_dir, const fs::path& recon_dir,
                                   const fs::path& model_dir,
                                   const std::vector<std::string>& cameras, const fs::path& out,
-                                  Report* report) {
+                                  bool ground_truth_cameras, Report* report) {
   const LiveRerenderModel model(model_dir);
   const Take take = Take::Open(take_dir);
-  const TakePlan plan = PlanTake(take, TakeSelection{});
+  TakeSelection selection;
+  selection.ground_truth_cameras = ground_truth_cameras;
+  const TakePlan plan = PlanTake(take, selection);
   if (cameras.empty()) Fail("name the cameras to render (--cameras)");
   for (const std::string& name : cameras) {
     if (!plan.cameras.count(name))

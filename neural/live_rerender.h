@@ -52,6 +52,7 @@ struct LiveRerenderOptions {
   double jitter_deg = 3;
   int image_width = 0;  // training width (cameras rescaled); 0: the colour camera's own
   int supersample = 2;  // raster samples per pixel along each axis (playback alike)
+  bool ground_truth_cameras = false;  // the scan take's gt/cameras instead of calib/ (asked for)
 
   // Optimisation.
   double minutes = 3;           // wall-clock budget
@@ -125,13 +126,15 @@ struct LiveRenderSummary : Summary {
   int64_t frames = 0, images = 0;
 };
 // Renders every recon/<set>.ply of `recon_dir` (a `holocap live` output) at the named cameras
-// of `take_dir` into OUT/<camera>/<set>.png (8-bit, over black). Throws Error for a model of
-// another kind, an unknown camera or an empty recon directory.
+// of `take_dir` (its calib/, or with `ground_truth_cameras` a simulated take's gt/cameras) into
+// OUT/<camera>/<set>.png (8-bit, over black). Throws Error for a model of another kind, an
+// unknown camera, an uncalibrated take or an empty recon directory.
 LiveRenderSummary RenderLiveRecon(const std::filesystem::path& take_dir,
                                   const std::filesystem::path& recon_dir,
                                   const std::filesystem::path& model_dir,
                                   const std::vector<std::string>& cameras,
-                                  const std::filesystem::path& out, Report* report = nullptr);
+                                  const std::filesystem::path& out, bool ground_truth_cameras,
+                                  Report* report = nullptr);
 
 // Lets OpenModel (avatar/avatar.h) name "live-rerender" model directories: such a model renders
 // the meshes of `holocap live`, not a viewpoint of its own, so opening one as an avatar fails

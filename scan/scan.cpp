@@ -308,7 +308,8 @@ class Scanner {
       color_name_.clear();
     }
     rays_ = NormalisedRays(depth_lens_);
-    turntable_ = plan.sensor_motion == "turn" || options.subject_turns;
+    // How the subject and sensor move is the user's to say (--turn), never the take's metadata.
+    turntable_ = options.subject_turns;
   }
 
   ScanSummary Run(const std::filesystem::path& out) {
@@ -797,9 +798,9 @@ void Scanner::WriteLight(const std::filesystem::path& out, const Mesh& mesh) {
   if (!turntable_) {
     // A sensor moving through the room carries no light with it: the light cannot be told from
     // the colours, which are kept as seen.
-    light.why = Cat("the sensor moved (", plan_.sensor_motion,
-                    "): a light is found only when the subject turns before a still sensor "
-                    "(--turn)");
+    light.why =
+        "the sensor moved: a light is found only when the subject turns before a still sensor "
+        "(--turn)";
   } else {
     Mesh lit = mesh;
     if (lit.normals.size() != lit.vertices.size()) lit.ComputeNormals();
@@ -840,11 +841,12 @@ void Scanner::WriteReport(const std::filesystem::path& out) {
   if (summary_.errors) m["gt"] = summary_.errors->ToJson();
   if (report_ == nullptr) return;
   report_->plan() = plan_.ToJson();
-  report_->plan()["scan"] = {{"depth_sensor", depth_name_},
-                             {"color_sensor", color_name_},
-                             {"sensor_motion", plan_.sensor_motion},
-                             {"subject_turns", turntable_},
-                             {"floor_removed", turntable_ && std::isfinite(plan_.floor_m)}};
+  report_->plan()["scan"] = {
+      {"depth_sensor", depth_name_},
+      {"color_sensor", color_name_},
+      {"sensor_motion", turntable_ ? "still (the subject turns: --turn)" : "moving (the default)"},
+      {"subject_turns", turntable_},
+      {"floor_removed", turntable_ && std::isfinite(plan_.floor_m)}};
   if (volume_) {
     const Box& b = volume_->volume().bounds();
     report_->plan()["scan"]["volume"] = {b.min.x(), b.min.y(), b.min.z(),

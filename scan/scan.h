@@ -103,8 +103,8 @@ struct ScanOptions {
   // Fused frames (spread over the scan) whose colours give the scan's light and albedo
   // (scan/light.h: lighting.json, albedo.ply).
   int light_views = 36;
-  // The subject turned on the spot before a still sensor (a simulated take's metadata says so
-  // itself): the floor is left out of tracking and fusion, and the light found.
+  // The subject turned on the spot before a still sensor (the user says so: --turn; a take's
+  // metadata never does): the floor is left out of tracking and fusion, and the light found.
   bool subject_turns = false;
   bool write_glb = true;
   int threads = 0;  // 0: all cores

@@ -47,6 +47,7 @@ class SimSensor : public Sensor {
   void Stop() override { started_ = false; }
   bool ended() const override { return ended_; }
   std::optional<CameraModel> known_model() const override { return world_->sensor(index_).model; }
+  bool known_model_is_truth() const override { return true; }
 
   bool Grab(Frame* frame, std::chrono::milliseconds timeout) override {
     if (!started_ || ended_) return false;

@@ -10,8 +10,11 @@ namespace {
 
 class ReplaySensor : public Sensor {
  public:
-  ReplaySensor(Take take, std::string sensor, bool recorded_pace, bool loop)
-      : take_(std::move(take)), recorded_pace_(recorded_pace), loop_(loop) {
+  ReplaySensor(Take take, std::string sensor, bool recorded_pace, bool loop, bool true_cameras)
+      : take_(std::move(take)),
+        recorded_pace_(recorded_pace),
+        loop_(loop),
+        true_cameras_(true_cameras) {
     stream_ = take_.stream(sensor);
     stream_.uri = "replay:" + take_.dir().string() + "#" + sensor;
     for (size_t i = 0; i < take_.size(); ++i) {
@@ -61,20 +64,23 @@ class ReplaySensor : public Sensor {
     return true;
   }
 
+  // The take's calibration; a simulated take's true model only when the rig asks for it
+  // (option cameras: truth): the truth never stands in for a calibration by itself.
   std::optional<CameraModel> known_model() const override {
-    for (bool ground_truth : {false, true}) {
-      std::filesystem::path file = (ground_truth ? take_.gt_dir() / "cameras" : take_.calib_dir()) /
-                                   (stream_.name + ".cameramodel");
-      if (std::filesystem::exists(file)) return CameraModel::Read(file);
-    }
+    const std::filesystem::path file =
+        (true_cameras_ ? take_.gt_dir() / "cameras" : take_.calib_dir()) /
+        (stream_.name + ".cameramodel");
+    if (std::filesystem::exists(file)) return CameraModel::Read(file);
     return std::nullopt;
   }
+  bool known_model_is_truth() const override { return true_cameras_; }
 
  private:
   Take take_;
   StreamInfo stream_;
   bool recorded_pace_;
   bool loop_;
+  bool true_cameras_;
   bool started_ = false;
   std::vector<size_t> sets_with_frame_;
   size_t next_ = 0;
@@ -99,10 +105,14 @@ class ReplayDriver : public Driver {
     std::string pace = spec.options.value("pace", "fast");
     if (pace != "fast" && pace != "recorded")
       Fail("replay pace must be 'fast' or 'recorded', got '", pace, "'");
+    const std::string cameras = spec.options.value("cameras", "calib");
+    if (cameras != "calib" && cameras != "truth")
+      Fail("replay cameras must be 'calib' or 'truth' (a simulated take's gt/), got '", cameras,
+           "'");
     Take take = Take::Open(uri.path);
     take.stream(uri.fragment);  // a clear error if the take lacks that sensor
     return std::make_unique<ReplaySensor>(std::move(take), uri.fragment, pace == "recorded",
-                                          spec.options.value("loop", false));
+                                          spec.options.value("loop", false), cameras == "truth");
   }
 };
 

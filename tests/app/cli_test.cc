@@ -281,8 +281,10 @@ TEST_F(SimulatedTake, ThreadCountsPastTheMachineEndInAStateAndAReport) {
   TempDir dir;
   const std::string take_dir = take().string();
   const std::vector<std::pair<std::string, std::filesystem::path>> runs = {
-      {"reconstruct " + take_dir + " --voxel 20mm --no-sweep --no-glb", dir / "recon"},
-      {"train splat " + take_dir + " --iterations 2 --width 32", dir / "splat"},
+      {"reconstruct " + take_dir + " --ground-truth-cameras --voxel 20mm --no-sweep --no-glb",
+       dir / "recon"},
+      {"train splat " + take_dir + " --ground-truth-cameras --iterations 2 --width 32",
+       dir / "splat"},
   };
   for (const auto& [args, out] : runs) {
     SCOPED_TRACE(args);

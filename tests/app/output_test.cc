@@ -89,9 +89,9 @@ TEST_F(OutputSafety, AForeignFolderNeedsOverwriteAndKeepsWhatIsThere) {
   ASSERT_EQ(result.exit_code, 0) << result.output;
   result = RunCli(export_to + (dir / "exported").string());  // its own output: no flag needed
   ASSERT_EQ(result.exit_code, 0) << result.output;
-  ExpectOneLineError(
-      RunCli("reconstruct " + take().string() + " --out " + (dir / "exported").string()),
-      "(holocap export)");
+  ExpectOneLineError(RunCli("reconstruct " + take().string() + " --ground-truth-cameras --out " +
+                            (dir / "exported").string()),
+                     "(holocap export)");
 }
 
 // `import --overwrite` never removes its own source, and replaces a take whole.
@@ -166,9 +166,9 @@ TEST_F(OutputSafety, AFailedRunLeavesItsReport) {
   TempDir dir;
   const fs::path out = dir / "recon";
   // The take has one colour camera: a hull needs two (refused once the output is claimed).
-  ExpectOneLineError(
-      RunCli("reconstruct " + take().string() + " --method hull --out " + out.string()),
-      "at least two colour cameras");
+  ExpectOneLineError(RunCli("reconstruct " + take().string() +
+                            " --ground-truth-cameras --method hull --out " + out.string()),
+                     "at least two colour cameras");
   const auto report = nlohmann::json::parse(ReadFileToString(out / "report.json"));
   EXPECT_EQ(report["summary"]["termination"], "FAILURE");
   EXPECT_NE(report["summary"]["message"].get<std::string>().find("at least two colour cameras"),
@@ -176,7 +176,8 @@ TEST_F(OutputSafety, AFailedRunLeavesItsReport) {
   EXPECT_EQ(report["command"], "reconstruct");
   fs::create_directories(dir / "mine");
   std::ofstream(dir / "mine/notes.txt") << "the user's";
-  ExpectOneLineError(RunCli("reconstruct " + take().string() + " --out " + (dir / "mine").string()),
+  ExpectOneLineError(RunCli("reconstruct " + take().string() + " --ground-truth-cameras --out " +
+                            (dir / "mine").string()),
                      "did not make it");
   EXPECT_FALSE(fs::exists(dir / "mine/report.json"));
 }
@@ -187,8 +188,9 @@ TEST_F(OutputSafety, ASecondWriterOfATakeIsRefusedNamingTheFirst) {
   const auto before = Contents(take());
   {
     const TakeLock held = TakeLock::Acquire(take(), "reconstruct");
-    ExpectOneLineError(RunCli("reconstruct " + take().string() + " --method hull"),
-                       "is being written by pid " + std::to_string(::getpid()));
+    ExpectOneLineError(
+        RunCli("reconstruct " + take().string() + " --ground-truth-cameras --method hull"),
+        "is being written by pid " + std::to_string(::getpid()));
     ExpectOneLineError(RunCli("export nerf " + take().string() +
                               " --ground-truth --no-images --out " + (take() / "nerf").string()),
                        "one command writes into a take at a time");
@@ -282,20 +284,21 @@ TEST_F(OutputSafety, CalibrateNeverWritesThroughALinkedCalibFolder) {
 TEST_F(OutputSafety, AnotherTakesResultsAreNotMixedIn) {
   TempDir dir;
   fs::copy(take(), dir / "b", fs::copy_options::recursive);
-  auto result = RunCli("reconstruct " + (dir / "b").string());
+  auto result = RunCli("reconstruct " + (dir / "b").string() + " --ground-truth-cameras");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   const auto before = Contents(dir / "b");
-  ExpectOneLineError(
-      RunCli("reconstruct " + take().string() + " --out " + (dir / "b/recon").string()),
-      "holds holocap reconstruct's results of '" + fs::canonical(dir / "b").string() +
-          "', not of '" + fs::canonical(take()).string() + "'");
+  ExpectOneLineError(RunCli("reconstruct " + take().string() + " --ground-truth-cameras --out " +
+                            (dir / "b/recon").string()),
+                     "holds holocap reconstruct's results of '" +
+                         fs::canonical(dir / "b").string() + "', not of '" +
+                         fs::canonical(take()).string() + "'");
   EXPECT_EQ(Contents(dir / "b"), before);
   // b/elsewhere, a link into another folder: where it leads is no part of take b.
   fs::create_directories(dir / "outside");
   fs::create_directory_symlink(dir / "outside", dir / "b/elsewhere");
-  ExpectOneLineError(
-      RunCli("reconstruct " + (dir / "b").string() + " --out " + (dir / "b/elsewhere").string()),
-      "but a symbolic link leads it to");
+  ExpectOneLineError(RunCli("reconstruct " + (dir / "b").string() +
+                            " --ground-truth-cameras --out " + (dir / "b/elsewhere").string()),
+                     "but a symbolic link leads it to");
   EXPECT_TRUE(fs::is_empty(dir / "outside"));
 }
 
@@ -305,12 +308,12 @@ TEST_F(OutputSafety, AnOutputOutsideATakeHasOneWriterAtATime) {
   TempDir dir;
   const fs::path out = dir / "model";
   const auto held = OutputDirectory::Claim(out, {"train splat", false, {}, false, take()});
-  ExpectOneLineError(
-      RunCli("train splat " + take().string() + " --iterations 1 --out " + out.string()),
-      "is being written by pid " + std::to_string(::getpid()) + " (");
-  ExpectOneLineError(
-      RunCli("train splat " + take().string() + " --iterations 1 --out " + out.string()),
-      "one command writes into an output at a time");
+  ExpectOneLineError(RunCli("train splat " + take().string() +
+                            " --ground-truth-cameras --iterations 1 --out " + out.string()),
+                     "is being written by pid " + std::to_string(::getpid()) + " (");
+  ExpectOneLineError(RunCli("train splat " + take().string() +
+                            " --ground-truth-cameras --iterations 1 --out " + out.string()),
+                     "one command writes into an output at a time");
   EXPECT_FALSE(fs::exists(out / "model.json"));
 }
 

@@ -70,7 +70,9 @@ void WriteModels(const std::filesystem::path& folder) {
   }
 }
 
-TEST(TakePlan, NeedsCameraModelsAndPrefersTheCalibration) {
+// A simulated take is uncalibrated like any other: its true models (gt/cameras) are used only
+// when asked for, never in place of a missing calibration.
+TEST(TakePlan, NeedsACalibrationAndUsesTheTruthOnlyWhenAskedFor) {
   TempDir dir;
   const Take bare = Take::Open(WriteTake(dir.path() / "take", 3, 1));
   try {
@@ -82,9 +84,20 @@ TEST(TakePlan, NeedsCameraModelsAndPrefersTheCalibration) {
   std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
   WriteModels(dir.path() / "take" / "gt" / "cameras");
   const Take simulated = Take::Open(dir.path() / "take");
-  TakePlan truth = PlanTake(simulated, TakeSelection{});
+  try {
+    PlanTake(simulated, TakeSelection{});
+    FAIL() << "a simulated take without calib/ was planned with its true cameras";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("run holocap calibrate first"), std::string::npos)
+        << e.what();
+    EXPECT_NE(std::string(e.what()).find("--ground-truth-cameras"), std::string::npos) << e.what();
+  }
+  TakeSelection asked;
+  asked.ground_truth_cameras = true;
+  const TakePlan truth = PlanTake(simulated, asked);
   EXPECT_TRUE(truth.ground_truth_cameras);
-  EXPECT_EQ(truth.cameras_source.rfind("gt/cameras", 0), 0u) << truth.cameras_source;
+  EXPECT_EQ(truth.cameras_source, "gt/cameras (asked for)");
+  EXPECT_EQ(truth.ToJson()["cameras"], "gt/cameras (asked for)");  // every report says which
   std::filesystem::create_directories(dir.path() / "take" / "calib");
   WriteModels(dir.path() / "take" / "calib");
   const Take calibrated = Take::Open(dir.path() / "take");
@@ -97,8 +110,8 @@ TEST(TakePlan, NeedsCameraModelsAndPrefersTheCalibration) {
 TEST(TakePlan, ChoosesSensorsPlateAndFrameSetsOnce) {
   TempDir dir;
   WriteTake(dir.path() / "take", 6, 1);
-  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
-  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  std::filesystem::create_directories(dir.path() / "take" / "calib");
+  WriteModels(dir.path() / "take" / "calib");
   const Take take = Take::Open(dir.path() / "take");
   TakePlan plan = PlanTake(take, TakeSelection{});
   EXPECT_EQ(plan.color_sensors, (std::vector<std::string>{"cam0", "cam1", "cam2"}));
@@ -140,8 +153,8 @@ TEST(TakePlan, ChoosesSensorsPlateAndFrameSetsOnce) {
 TEST(TakePlan, RefusesSelectionsThatSelectNothing) {
   TempDir dir;
   WriteTake(dir.path() / "take", 3, 1);
-  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
-  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  std::filesystem::create_directories(dir.path() / "take" / "calib");
+  WriteModels(dir.path() / "take" / "calib");
   const Take take = Take::Open(dir.path() / "take");
   TakeSelection past_the_end;
   past_the_end.first_frame = 2;  // two sets after the plate: 0 and 1
@@ -269,8 +282,8 @@ TEST(SceneFromRig, OneCameraOrParallelAxesDoNotConverge) {
 TEST(SceneFromRig, ThePlanRecordsTheUsersSceneAndSilhouettesOrTheTakes) {
   TempDir dir;
   WriteTake(dir.path() / "take", 4, 0);
-  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
-  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  std::filesystem::create_directories(dir.path() / "take" / "calib");
+  WriteModels(dir.path() / "take" / "calib");
   const Take take = Take::Open(dir.path() / "take");
   TakePlan plan = PlanTake(take, TakeSelection{});
   EXPECT_EQ(plan.silhouettes, SilhouetteSource::kOtsu) << plan.silhouette_reason;

@@ -160,7 +160,7 @@ class ShardedReconstruct : public ::testing::Test {
     auto result = RunCli(
         "sim --rig studio8 --frames 6 --clean-plate 1 --size 128 --threads 2 --out " + take());
     ASSERT_EQ(result.exit_code, 0) << result.output;
-    result = RunCli("reconstruct " + take() + " --out " + out("whole"));
+    result = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("whole"));
     ASSERT_EQ(result.exit_code, 0) << result.output;
   }
   static void TearDownTestSuite() { delete dir_; }
@@ -176,7 +176,8 @@ TEST_F(ShardedReconstruct, TwoShardsMergeIntoTheOneProcessRunsBytes) {
   ASSERT_EQ(whole.sets.size(), 5u);
   EXPECT_EQ(ReadJson(out("whole") + "/report.json")["summary"]["termination"], "SUCCESS");
 
-  auto first = RunCli("reconstruct " + take() + " --out " + out("split") + " --shard 0/2");
+  auto first = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("split") +
+                      " --shard 0/2");
   ASSERT_EQ(first.exit_code, 0) << first.output;
   EXPECT_NE(first.output.find("shard 0/2: 2 of the run's 5 frame set(s)"), std::string::npos)
       << first.output;
@@ -187,7 +188,8 @@ TEST_F(ShardedReconstruct, TwoShardsMergeIntoTheOneProcessRunsBytes) {
   ExpectOneLineError(early, "2 of 5 frame sets complete; incomplete: 3 (no record)");
   EXPECT_EQ(ReadJson(out("split") + "/report.json")["summary"]["termination"], "FAILURE");
 
-  auto second = RunCli("reconstruct " + take() + " --out " + out("split") + " --shard 1/2");
+  auto second = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("split") +
+                       " --shard 1/2");
   ASSERT_EQ(second.exit_code, 0) << second.output;
   EXPECT_NE(second.output.find("the run is complete"), std::string::npos) << second.output;
   EXPECT_EQ(ExpectSameRun(out("whole"), out("split")), 10u);  // 5 PLY + 5 glTF
@@ -205,7 +207,7 @@ TEST_F(ShardedReconstruct, ARerunRedoesOnlyTheFramesWhoseOutputsAreNotComplete) 
   fs::remove(FrameRecordPath(out("damaged"), 2));
   const std::string glb = out("damaged") + "/000004.glb";
   fs::resize_file(glb, fs::file_size(glb) / 2);
-  auto rerun = RunCli("reconstruct " + take() + " --out " + out("damaged"));
+  auto rerun = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("damaged"));
   ASSERT_EQ(rerun.exit_code, 0) << rerun.output;
   EXPECT_NE(rerun.output.find("3 of 5 frame set(s) skipped"), std::string::npos) << rerun.output;
   const std::map<int64_t, double> after = RecordTimes(out("damaged"));
@@ -213,7 +215,8 @@ TEST_F(ShardedReconstruct, ARerunRedoesOnlyTheFramesWhoseOutputsAreNotComplete) 
   for (int64_t set : {2, 4}) EXPECT_GT(after.at(set), before.at(set)) << "set " << set;
   ExpectSameRun(out("whole"), out("damaged"));
   // Other options make another run: nothing of this one is taken as done.
-  auto other = RunCli("reconstruct " + take() + " --out " + out("damaged") + " --no-glb");
+  auto other = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("damaged") +
+                      " --no-glb");
   ASSERT_EQ(other.exit_code, 0) << other.output;
   EXPECT_EQ(other.output.find("skipped"), std::string::npos) << other.output;
 }
@@ -224,8 +227,8 @@ TEST_F(ShardedReconstruct, ATaskKilledMidFrameLeavesNothingTakenAsComplete) {
   ASSERT_GE(child, 0);
   if (child == 0) {
     const std::string cli = testing::CliPath();
-    execl(cli.c_str(), cli.c_str(), "reconstruct", take().c_str(), "--out", dir.c_str(),
-          "--threads", "1", static_cast<char*>(nullptr));
+    execl(cli.c_str(), cli.c_str(), "reconstruct", take().c_str(), "--ground-truth-cameras",
+          "--out", dir.c_str(), "--threads", "1", static_cast<char*>(nullptr));
     _exit(127);
   }
   // Kill -9 as soon as the first frame is recorded: the second is being written.
@@ -240,7 +243,7 @@ TEST_F(ShardedReconstruct, ATaskKilledMidFrameLeavesNothingTakenAsComplete) {
   ASSERT_GE(killed.complete.size(), 1u);
   ASSERT_FALSE(killed.done());
   const size_t complete = killed.complete.size();
-  auto rerun = RunCli("reconstruct " + take() + " --out " + dir);
+  auto rerun = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + dir);
   ASSERT_EQ(rerun.exit_code, 0) << rerun.output;
   EXPECT_NE(rerun.output.find(std::to_string(complete) + " of 5 frame set(s) skipped"),
             std::string::npos)
@@ -250,7 +253,8 @@ TEST_F(ShardedReconstruct, ATaskKilledMidFrameLeavesNothingTakenAsComplete) {
 
 TEST_F(ShardedReconstruct, TheFirstTaskPlansTheRunAndTheOthersReadItsPlan) {
   const std::string dir = out("planned");
-  auto first = RunCli("reconstruct " + take() + " --out " + dir + " --shard 0/2");
+  auto first =
+      RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + dir + " --shard 0/2");
   ASSERT_EQ(first.exit_code, 0) << first.output;
   EXPECT_NE(first.output.find("plan: made by this task (no plan yet)"), std::string::npos)
       << first.output;
@@ -258,7 +262,8 @@ TEST_F(ShardedReconstruct, TheFirstTaskPlansTheRunAndTheOthersReadItsPlan) {
   const auto plan = ReadJson(dir + "/plan/plan.json");
   EXPECT_NE(plan["plan"]["bounds_source"].get<std::string>().find("coarse hull"),
             std::string::npos);
-  auto second = RunCli("reconstruct " + take() + " --out " + dir + " --shard 1/2");
+  auto second =
+      RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + dir + " --shard 1/2");
   ASSERT_EQ(second.exit_code, 0) << second.output;
   EXPECT_NE(second.output.find("plan: read from " + dir + "/plan"), std::string::npos)
       << second.output;
@@ -269,7 +274,8 @@ TEST_F(ShardedReconstruct, TheFirstTaskPlansTheRunAndTheOthersReadItsPlan) {
   EXPECT_EQ(ExpectSameRun(out("whole"), dir), 10u);
   // A task that finds no plan plans itself, to the same bytes.
   fs::remove_all(dir + "/plan");
-  auto alone = RunCli("reconstruct " + take() + " --out " + dir + " --shard 1/2 --redo");
+  auto alone = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + dir +
+                      " --shard 1/2 --redo");
   ASSERT_EQ(alone.exit_code, 0) << alone.output;
   EXPECT_NE(alone.output.find("plan: made by this task (no plan yet)"), std::string::npos)
       << alone.output;
@@ -278,13 +284,14 @@ TEST_F(ShardedReconstruct, TheFirstTaskPlansTheRunAndTheOthersReadItsPlan) {
 
 TEST_F(ShardedReconstruct, AFrameListIsARunThatShardsSplit) {
   const std::string frames = " --no-sweep --frames 0,2-3";
-  auto whole = RunCli("reconstruct " + take() + " --out " + out("listed") + frames);
+  auto whole =
+      RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("listed") + frames);
   ASSERT_EQ(whole.exit_code, 0) << whole.output;
   // After the clean plate (set 0): sets 1, 3 and 4 of the take.
   EXPECT_EQ(ReadRunState(out("listed")).sets, (std::vector<int64_t>{1, 3, 4}));
   for (const char* shard : {"0/2", "1/2"}) {
-    auto task = RunCli("reconstruct " + take() + " --out " + out("listed-split") + frames +
-                       " --shard " + shard);
+    auto task = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " +
+                       out("listed-split") + frames + " --shard " + shard);
     ASSERT_EQ(task.exit_code, 0) << task.output;
     const std::string part = std::string(shard) == "0/2" ? "1 of" : "2 of";
     EXPECT_NE(
@@ -295,7 +302,8 @@ TEST_F(ShardedReconstruct, AFrameListIsARunThatShardsSplit) {
   EXPECT_EQ(ExpectSameRun(out("listed"), out("listed-split")), 6u);
   EXPECT_EQ(ReadRunState(out("listed-split")).complete.begin()->first, 1);
 
-  const std::string bad = "reconstruct " + take() + " --out " + out("bad-list") + " --frames ";
+  const std::string bad =
+      "reconstruct " + take() + " --ground-truth-cameras --out " + out("bad-list") + " --frames ";
   ExpectOneLineError(RunCli(bad + "3-1"), "--frames: '3-1' is not a range A-B with 0 <= A <= B");
   ExpectOneLineError(RunCli(bad + "0,9"),
                      "--frames lists frame set 9; the take has 5 frame sets after its clean "
@@ -306,13 +314,16 @@ TEST_F(ShardedReconstruct, AFrameListIsARunThatShardsSplit) {
 }
 
 TEST_F(ShardedReconstruct, BadShardsAndMergesEndInOneLine) {
-  ExpectOneLineError(RunCli("reconstruct " + take() + " --out " + out("bad") + " --shard 2/2"),
+  ExpectOneLineError(RunCli("reconstruct " + take() + " --ground-truth-cameras --out " +
+                            out("bad") + " --shard 2/2"),
                      "--shard 2/2 violates index < count (2) (K/N needs 0 <= K < N)");
-  ExpectOneLineError(RunCli("reconstruct " + take() + " --out " + out("bad") + " --shard two"),
+  ExpectOneLineError(RunCli("reconstruct " + take() + " --ground-truth-cameras --out " +
+                            out("bad") + " --shard two"),
                      "--shard must be K/N");
-  ExpectOneLineError(RunCli("report " + take() + " --merge"), "holds no run.json");
-  auto empty =
-      RunCli("reconstruct " + take() + " --out " + out("wide") + " --shard 0/7 --no-sweep");
+  ExpectOneLineError(RunCli("report " + take() + " --ground-truth-cameras --merge"),
+                     "holds no run.json");
+  auto empty = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("wide") +
+                      " --shard 0/7 --no-sweep");
   EXPECT_EQ(empty.exit_code, 0) << empty.output;
   EXPECT_NE(empty.output.find("holds none of the 5 frame sets"), std::string::npos) << empty.output;
 }

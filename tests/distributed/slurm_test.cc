@@ -135,14 +135,14 @@ TEST(SlurmCluster, ACancelledTaskIsRedoneAndTheMergeIsTheOneProcessRun) {
   const std::string split = (dir.path() / "split").string();
   auto sim = RunCli("sim --rig studio8 --frames 7 --clean-plate 1 --size 192 --out " + take);
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
-  auto one = RunCli("reconstruct " + take + " --out " + whole);
+  auto one = RunCli("reconstruct " + take + " --ground-truth-cameras --out " + whole);
   ASSERT_EQ(one.exit_code, 0) << one.output;
 
   LocalSlurm cluster(dir.path() / "cluster");
   std::string why;
   ASSERT_TRUE(cluster.Start(&why)) << why;
-  const std::string submit =
-      "submit slurm reconstruct " + take + " --out " + split + " --tasks 3 --cpus 1";
+  const std::string submit = "submit slurm reconstruct " + take + " --ground-truth-cameras --out " +
+                             split + " --tasks 3 --cpus 1";
   auto first = RunCli(submit);
   ASSERT_EQ(first.exit_code, 0) << first.output;
   const auto [array_job, merge_job] = JobIds(first.output);
@@ -190,10 +190,11 @@ TEST(SlurmCluster, ACancelledTaskIsRedoneAndTheMergeIsTheOneProcessRun) {
                              "--width 48 --seed-points 800 --heldout 1";
   const std::string splat_whole = (dir.path() / "splat-whole").string();
   const std::string splat_split = (dir.path() / "splat-split").string();
-  auto one_splat = RunCli("train splat " + take + " --out " + splat_whole + splats);
+  auto one_splat =
+      RunCli("train splat " + take + " --ground-truth-cameras --out " + splat_whole + splats);
   ASSERT_EQ(one_splat.exit_code, 0) << one_splat.output;
-  auto splat = RunCli("submit slurm train splat " + take + " --out " + splat_split + splats +
-                      " --tasks 2 --cpus 1");
+  auto splat = RunCli("submit slurm train splat " + take + " --ground-truth-cameras --out " +
+                      splat_split + splats + " --tasks 2 --cpus 1");
   ASSERT_EQ(splat.exit_code, 0) << splat.output;
   const auto [splat_array, splat_merge] = JobIds(splat.output);
   ASSERT_TRUE(LocalSlurm::WaitForJob(splat_array)) << "the splat array did not end";

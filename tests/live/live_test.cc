@@ -446,7 +446,9 @@ sensors:
                             turn)
                 .exit_code,
             0);
-  const testing::CommandResult scan = testing::RunCli("scan " + turn);
+  // The truth stands in for a calibration here, and the test says so; the subject turns (--turn).
+  const testing::CommandResult scan =
+      testing::RunCli("scan " + turn + " --ground-truth-cameras --turn");
   ASSERT_EQ(scan.exit_code, 0) << scan.output;
   ASSERT_EQ(testing::RunCli("sim --rig " + (dir / "live-rig.yaml").string() +
                             " --frames 3 --size 160x120 --out " + walk)
@@ -456,7 +458,8 @@ sensors:
   const cv::Mat depth = ReadImage(lost);
   WriteExrDepth(lost,
                 cv::Mat(depth.size(), CV_32F, cv::Scalar(std::numeric_limits<float>::quiet_NaN())));
-  const testing::CommandResult live = testing::RunCli("live " + walk + " --scan " + turn + "/scan");
+  const testing::CommandResult live =
+      testing::RunCli("live " + walk + " --ground-truth-cameras --scan " + turn + "/scan");
   ASSERT_EQ(live.exit_code, 0) << live.output;
   EXPECT_NE(live.output.find("2 composed, 1 without depth, 0 refused"), std::string::npos)
       << live.output;
@@ -498,8 +501,22 @@ sensors:
                                      << "#depth0\", role: depth, paired_with: cam0, options: "
                                         "{pace: recorded}}\n";
   const std::string captured = (dir / "captured").string(), sensor = (dir / "sensor.yaml").string();
-  const testing::CommandResult streamed = testing::RunCli(
-      "capture --rig " + sensor + " --frames 3 --out " + captured + " --live " + turn + "/scan");
+  // The studio's calibration of this sensor (here the simulation's models, copied by the test
+  // into a folder of its own: what a user gives with --calib).
+  const std::filesystem::path studio = dir / "studio-calib";
+  std::filesystem::create_directories(studio);
+  for (const char* name : {"cam0", "depth0"}) {
+    std::filesystem::copy_file(
+        dir / "walk" / "gt" / "cameras" / (std::string(name) + ".cameramodel"),
+        studio / (std::string(name) + ".cameramodel"));
+  }
+  // The replayed take is not calibrated: its driver knows no model, and --live says so.
+  testing::ExpectOneLineError(testing::RunCli("capture --rig " + sensor + " --frames 3 --out " +
+                                              (dir / "c0").string() + " --live " + turn + "/scan"),
+                              "knows no model of it; give --calib DIR");
+  const testing::CommandResult streamed =
+      testing::RunCli("capture --rig " + sensor + " --frames 3 --out " + captured + " --live " +
+                      turn + "/scan --calib " + studio.string());
   ASSERT_EQ(streamed.exit_code, 0) << streamed.output;
   EXPECT_NE(streamed.output.find("3 sets offered"), std::string::npos) << streamed.output;
   EXPECT_EQ(Take::Open(captured).size(), 3u);  // every set recorded, whatever was composed
@@ -521,6 +538,26 @@ sensors:
   ASSERT_EQ(later.exit_code, 0) << later.output;
   EXPECT_NE(later.output.find("2 composed, 1 without depth, 0 refused"), std::string::npos)
       << later.output;
+  // The simulation's true models, asked for by the rig (cameras: truth), compose but never
+  // become the new take's calibration.
+  std::ofstream(dir / "truth.yaml") << "name: rgbd\nsync: free-run\nfps: 10\nsensors:\n"
+                                    << "  - {name: cam0, uri: \"replay:" << walk
+                                    << "#cam0\", role: color, options: {cameras: truth}}\n"
+                                    << "  - {name: depth0, uri: \"replay:" << walk
+                                    << "#depth0\", role: depth, paired_with: cam0, options: "
+                                       "{cameras: truth}}\n";
+  const testing::CommandResult truth =
+      testing::RunCli("capture --rig " + (dir / "truth.yaml").string() + " --frames 3 --out " +
+                      (dir / "truth").string() + " --live " + turn + "/scan");
+  ASSERT_EQ(truth.exit_code, 0) << truth.output;
+  EXPECT_NE(truth.output.find("the simulation's true models (never written to calib/)"),
+            std::string::npos)
+      << truth.output;
+  EXPECT_EQ(Take::Open(dir / "truth").size(), 3u);
+  EXPECT_FALSE(std::filesystem::exists(dir / "truth" / "calib"));
+  testing::ExpectOneLineError(
+      testing::RunCli("live " + (dir / "truth").string() + " --scan " + turn + "/scan"),
+      "is not calibrated");
   // Bad set-ups are one error line each, before anything is recorded.
   testing::ExpectOneLineError(
       testing::RunCli("capture --rig " + sensor + " --frames 3 --out " + (dir / "c2").string() +
@@ -530,6 +567,7 @@ sensors:
       testing::RunCli("capture --rig " + sensor + " --frames 3 --out " + (dir / "c3").string() +
                       " --live " + (dir / "nothing").string()),
       "is not a directory");
+  EXPECT_FALSE(std::filesystem::exists(dir / "c0"));
   EXPECT_FALSE(std::filesystem::exists(dir / "c2"));
   EXPECT_FALSE(std::filesystem::exists(dir / "c3"));
 }

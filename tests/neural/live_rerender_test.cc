@@ -37,12 +37,13 @@ TEST(LiveRerenderCli, TrainsOnTheScanTakeAndRerendersTheLiveCompositions) {
       testing::RunCli("sim --rig single-rgbd --frames 2 --size 160x120 --out " + walk.string())
           .exit_code,
       0);
-  ASSERT_EQ(
-      testing::RunCli("live " + walk.string() + " --scan " + (turn / "scan").string()).exit_code,
-      0);
+  ASSERT_EQ(testing::RunCli("live " + walk.string() + " --ground-truth-cameras --scan " +
+                            (turn / "scan").string())
+                .exit_code,
+            0);
   const testing::CommandResult train = testing::RunCli(
-      "train rerender " + turn.string() + " --scan " + (turn / "scan").string() + " --out " +
-      model.string() +
+      "train rerender " + turn.string() + " --ground-truth-cameras --scan " +
+      (turn / "scan").string() + " --out " + model.string() +
       " --iterations 120 --validate-every 40 --lr 1e-3 --live-frames 8 --targets-per-frame 2 "
       "--crop 32 --unet-width 8 --unet-depth 3 --threads 2");
   ASSERT_EQ(train.exit_code, 0) << train.output;
@@ -69,9 +70,9 @@ TEST(LiveRerenderCli, TrainsOnTheScanTakeAndRerendersTheLiveCompositions) {
   EXPECT_EQ(ReadImage(model / "validation.png").cols, 3 * 160);
 
   const fs::path out = dir / "rerendered";
-  const testing::CommandResult render =
-      testing::RunCli("render " + walk.string() + " --model " + model.string() + " --recon " +
-                      (walk / "live" / "recon").string() + " --cameras cam0 --out " + out.string());
+  const testing::CommandResult render = testing::RunCli(
+      "render " + walk.string() + " --ground-truth-cameras --model " + model.string() +
+      " --recon " + (walk / "live" / "recon").string() + " --cameras cam0 --out " + out.string());
   ASSERT_EQ(render.exit_code, 0) << render.output;
   const cv::Mat image = ReadImage(out / "cam0" / "000001.png");
   ASSERT_EQ(image.cols, 160);
@@ -86,9 +87,9 @@ TEST(LiveRerenderCli, TrainsOnTheScanTakeAndRerendersTheLiveCompositions) {
   fs::create_directories(dir / "nvol");
   std::ofstream(dir / "nvol" / "model.json") << R"({"method": "nvol"})";
   testing::ExpectOneLineError(
-      testing::RunCli("render " + walk.string() + " --model " + (dir / "nvol").string() +
-                      " --recon " + (walk / "live" / "recon").string() + " --cameras cam0 --out " +
-                      (dir / "refused").string()),
+      testing::RunCli("render " + walk.string() + " --ground-truth-cameras --model " +
+                      (dir / "nvol").string() + " --recon " + (walk / "live" / "recon").string() +
+                      " --cameras cam0 --out " + (dir / "refused").string()),
       "is a nvol model, not one trained on a scan take");
   EXPECT_FALSE(fs::exists(dir / "refused" / "cam0"));
 }
@@ -96,17 +97,18 @@ TEST(LiveRerenderCli, TrainsOnTheScanTakeAndRerendersTheLiveCompositions) {
 TEST(LiveRerenderCli, RefusesAMissingScanOrOneWithoutItsTrajectory) {
   testing::TempDir dir("holocap-live-rerender");
   fs::create_directories(dir / "take");
-  testing::ExpectOneLineError(
-      testing::RunCli("train rerender " + (dir / "take").string() + " --scan " +
-                      (dir / "none").string() + " --iterations 5"),
-      "is not a directory");
+  testing::ExpectOneLineError(testing::RunCli("train rerender " + (dir / "take").string() +
+                                              " --ground-truth-cameras --scan " +
+                                              (dir / "none").string() + " --iterations 5"),
+                              "is not a directory");
   EXPECT_FALSE(fs::exists(dir / "take" / "models"));
   const fs::path turn = dir / "turn";
   ScanHalfTurn(turn);
   fs::remove(turn / "scan" / "trajectory.json");
   testing::ExpectOneLineError(
-      testing::RunCli("train rerender " + turn.string() + " --scan " + (turn / "scan").string() +
-                      " --iterations 5 --out " + (dir / "model").string()),
+      testing::RunCli("train rerender " + turn.string() + " --ground-truth-cameras --scan " +
+                      (turn / "scan").string() + " --iterations 5 --out " +
+                      (dir / "model").string()),
       "holds no trajectory.json");
 }
 

@@ -282,6 +282,7 @@ TEST(RerenderNet, HolesAndNanBuffersGiveFiniteOutput) {
 
 TEST(RerenderOptions, ChecksExplainBadValues) {
   RerenderOptions options;
+  options.take.ground_truth_cameras = true;
   options.net.depth = 9;
   EXPECT_THROW(options.Check(), Error);
   options = {};
@@ -333,24 +334,27 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
       "sim --rig studio8 --frames 4 --clean-plate 1 --size 128 --no-noise --out " + take.string());
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   const auto model = dir / "model";
-  auto too_many = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                                  " --witness 6");
+  auto too_many =
+      testing::RunCli("train rerender " + take.string() + " --ground-truth-cameras --out " +
+                      model.string() + " --witness 6");
   EXPECT_NE(too_many.exit_code, 0);
   EXPECT_NE(too_many.output.find("for the reconstruction"), std::string::npos) << too_many.output;
-  auto bad_bounds = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                                    " --recon-bounds 1,2,3");
+  auto bad_bounds =
+      testing::RunCli("train rerender " + take.string() + " --ground-truth-cameras --out " +
+                      model.string() + " --recon-bounds 1,2,3");
   EXPECT_NE(bad_bounds.exit_code, 0);
   EXPECT_NE(bad_bounds.output.find("--recon-bounds must be six numbers"), std::string::npos)
       << bad_bounds.output;
-  auto bad_method = testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                                    " --recon-method sculpt");
+  auto bad_method =
+      testing::RunCli("train rerender " + take.string() + " --ground-truth-cameras --out " +
+                      model.string() + " --recon-method sculpt");
   EXPECT_NE(bad_method.exit_code, 0);
   EXPECT_NE(bad_method.output.find("sculpt"), std::string::npos) << bad_method.output;
 
-  auto train =
-      testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                      " --witness-folds 1 --iterations 60 --width 64 --crop 0 --unet-width 8 "
-                      "--unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
+  auto train = testing::RunCli(
+      "train rerender " + take.string() + " --ground-truth-cameras --out " + model.string() +
+      " --witness-folds 1 --iterations 60 --width 64 --crop 0 --unet-width 8 "
+      "--unet-depth 3 --recon-voxel 0.012 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   std::ifstream file(model / "report.json");
   const nlohmann::json report = nlohmann::json::parse(file);
@@ -384,10 +388,11 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
     }
   }
   const auto nothing = dir / "nothing";
-  auto degenerate = testing::RunCli("train rerender " + take.string() + " --out " +
-                                    nothing.string() + " --recon " + empty.string() +
-                                    " --witness-folds 1 --iterations 10 --width 64 --crop 0 "
-                                    "--unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
+  auto degenerate =
+      testing::RunCli("train rerender " + take.string() + " --ground-truth-cameras --out " +
+                      nothing.string() + " --recon " + empty.string() +
+                      " --witness-folds 1 --iterations 10 --width 64 --crop 0 "
+                      "--unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
   EXPECT_NE(degenerate.exit_code, 0);
   EXPECT_NE(degenerate.output.find("DEGENERATE"), std::string::npos) << degenerate.output;
   EXPECT_NE(degenerate.output.find("no more of the subject than the background alone"),
@@ -415,17 +420,17 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
       "sim --rig studio8 --frames 3 --clean-plate 1 --size 96 --no-noise --out " + take.string());
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   const auto model = dir / "model";
-  auto no_trainer =
-      testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                      " --witness 1 --witness-folds 1 --validation-witnesses 1 --iterations 1");
+  auto no_trainer = testing::RunCli(
+      "train rerender " + take.string() + " --ground-truth-cameras --out " + model.string() +
+      " --witness 1 --witness-folds 1 --validation-witnesses 1 --iterations 1");
   EXPECT_NE(no_trainer.exit_code, 0);
   EXPECT_NE(no_trainer.output.find("leave no witness to train on"), std::string::npos)
       << no_trainer.output;
-  auto train =
-      testing::RunCli("train rerender " + take.string() + " --out " + model.string() +
-                      " --heldout 1 --witness-folds 3 --validation-witnesses 1 --supersample 3 "
-                      "--iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
-                      " --recon-voxel 0.016 --eval-every 1000 --threads 1");
+  auto train = testing::RunCli(
+      "train rerender " + take.string() + " --ground-truth-cameras --out " + model.string() +
+      " --heldout 1 --witness-folds 3 --validation-witnesses 1 --supersample 3 "
+      "--iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+      " --recon-voxel 0.016 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   const nlohmann::json report = nlohmann::json::parse(std::ifstream(model / "report.json"));
   const auto& plan = report.at("plan");
@@ -469,11 +474,11 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
             metrics.at("validation_raw_psnr_db").get<double>() - 0.1);
   // More folds than cameras to spare: as many as there are, and the plan says so.
   const auto fewer = dir / "fewer";
-  auto again =
-      testing::RunCli("train rerender " + take.string() + " --out " + fewer.string() +
-                      " --heldout 1 --witness-folds 5 --recon " + (model / "recon").string() +
-                      " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
-                      " --recon-voxel 0.016 --eval-every 1000 --threads 1");
+  auto again = testing::RunCli(
+      "train rerender " + take.string() + " --ground-truth-cameras --out " + fewer.string() +
+      " --heldout 1 --witness-folds 5 --recon " + (model / "recon").string() +
+      " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+      " --recon-voxel 0.016 --eval-every 1000 --threads 1");
   ASSERT_EQ(again.exit_code, 0) << again.output;
   const nlohmann::json fewer_report = nlohmann::json::parse(std::ifstream(fewer / "report.json"));
   EXPECT_EQ(fewer_report.at("plan").at("folds").size(), 3u);
@@ -511,17 +516,18 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   const auto named = dir / "named";
   // The first fold's reconstruction saw the second fold's witnesses: refused for that fold.
   auto leaked = testing::RunCli(
-      "train rerender " + take.string() + " --out " + named.string() + " --heldout-names " +
-      heldout + " --witness-names " + names(folds[0].at("witness")) + " --fold-witnesses " +
-      names(folds[1].at("witness")) + " --recon " + (model / "recon").string() + " --fold-recon " +
-      (model / "recon").string() + " --iterations 1 --width 48 --threads 1");
+      "train rerender " + take.string() + " --ground-truth-cameras --out " + named.string() +
+      " --heldout-names " + heldout + " --witness-names " + names(folds[0].at("witness")) +
+      " --fold-witnesses " + names(folds[1].at("witness")) + " --recon " +
+      (model / "recon").string() + " --fold-recon " + (model / "recon").string() +
+      " --iterations 1 --width 48 --threads 1");
   EXPECT_NE(leaked.exit_code, 0);
   EXPECT_NE(leaked.output.find("was built with camera"), std::string::npos) << leaked.output;
   auto by_name = testing::RunCli(
-      "train rerender " + take.string() + " --out " + named.string() + " --heldout-names " +
-      heldout + " --witness-names " + names(folds[0].at("witness")) + " --fold-witnesses " +
-      names(folds[1].at("witness")) + " --recon " + (model / "recon").string() + " --fold-recon " +
-      (model / "recon-1").string() +
+      "train rerender " + take.string() + " --ground-truth-cameras --out " + named.string() +
+      " --heldout-names " + heldout + " --witness-names " + names(folds[0].at("witness")) +
+      " --fold-witnesses " + names(folds[1].at("witness")) + " --recon " +
+      (model / "recon").string() + " --fold-recon " + (model / "recon-1").string() +
       " --witness-scales 1,0.5 --validation-witnesses 1"
       " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3 --eval-every 1000 "
       "--threads 1");

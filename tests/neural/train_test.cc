@@ -51,6 +51,7 @@ class NeuralTrainTest : public ::testing::Test {
 
   static NeuralVolumeOptions StaticOptions() {
     NeuralVolumeOptions options;
+    options.take.ground_truth_cameras = true;
     options.grid = 32;
     options.image_width = 96;
     options.iterations = 500;
@@ -65,6 +66,7 @@ TempDir* NeuralTrainTest::dir_ = nullptr;
 
 TEST_F(NeuralTrainTest, DynamicCiConfigurationLearnsTheSubject) {
   NeuralVolumeOptions options;
+  options.take.ground_truth_cameras = true;
   options.grid = 32;
   options.image_width = 96;
   options.latent_dim = 64;
@@ -272,15 +274,16 @@ TEST_F(NeuralTrainTest, CliTrainsAndRejectsUnknownMethods) {
   const auto out = Dir() / "cli-model";
   // 100 iterations put the held-out subject above the background alone (26.2 dB against 25.4).
   auto result = RunCli("train nvol '" + Object().string() +
-                       "' --grid 16 --width 64 --iterations 100 --out '" + out.string() + "'");
+                       "' --grid 16 --width 64 --iterations 100 --out '" + out.string() +
+                       "' --ground-truth-cameras");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   EXPECT_NE(result.output.find("held-out"), std::string::npos) << result.output;
   EXPECT_NE(result.output.find("left_out"), std::string::npos) << result.output;
   EXPECT_TRUE(std::filesystem::exists(out / "model.json"));
   // 5 do not (the volume still renders fog where the object stands): DEGENERATE, exit 1.
-  auto short_run =
-      RunCli("train nvol '" + Object().string() + "' --grid 16 --width 64 --iterations 5 --out '" +
-             (Dir() / "cli-short").string() + "'");
+  auto short_run = RunCli("train nvol '" + Object().string() +
+                          "' --ground-truth-cameras --grid 16 --width 64 --iterations 5 --out '" +
+                          (Dir() / "cli-short").string() + "'");
   EXPECT_EQ(short_run.exit_code, 1) << short_run.output;
   EXPECT_NE(short_run.output.find("DEGENERATE: the subject in the held-out views"),
             std::string::npos)
@@ -290,13 +293,13 @@ TEST_F(NeuralTrainTest, CliTrainsAndRejectsUnknownMethods) {
   EXPECT_NE(bad.output.find("holocap: error: unknown training method 'nerf'"), std::string::npos)
       << bad.output;
   // Each method takes only its own flags: a rerendering flag is refused under nvol, by name.
-  auto foreign =
-      RunCli("train nvol '" + Object().string() + "' --witness 2 --out '" + out.string() + "'");
+  auto foreign = RunCli("train nvol '" + Object().string() +
+                        "' --ground-truth-cameras --witness 2 --out '" + out.string() + "'");
   EXPECT_NE(foreign.exit_code, 0);
   EXPECT_NE(foreign.output.find("--witness"), std::string::npos) << foreign.output;
   // Option errors name the flag the user typed, not the field behind it.
-  auto bad_rays =
-      RunCli("train nvol '" + Object().string() + "' --rays 3 --out '" + out.string() + "'");
+  auto bad_rays = RunCli("train nvol '" + Object().string() +
+                         "' --ground-truth-cameras --rays 3 --out '" + out.string() + "'");
   EXPECT_NE(bad_rays.exit_code, 0);
   EXPECT_NE(bad_rays.output.find("holocap: error: --rays 3 violates rays_per_batch >= 16"),
             std::string::npos)

@@ -33,6 +33,7 @@ class PlaybackTest : public ::testing::Test {
         (dir_->path() / "take").string() + "'");
     ASSERT_EQ(sim.exit_code, 0) << sim.output;
     NeuralVolumeOptions options;
+    options.take.ground_truth_cameras = true;
     options.grid = 32;
     options.image_width = 96;
     options.iterations = 250;
@@ -181,6 +182,7 @@ TEST(PlaybackDynamicTest, BakedFramesRenderLikeWarpAndTemplate) {
                     (dir.path() / "take").string() + "'");
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   NeuralVolumeOptions options;
+  options.take.ground_truth_cameras = true;
   options.grid = 32;
   options.image_width = 64;
   options.latent_dim = 32;

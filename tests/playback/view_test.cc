@@ -356,10 +356,11 @@ class ViewTakeTest : public ::testing::Test {
     auto sim =
         RunCli("sim --rig studio8 --frames 2 --clean-plate 1 --size 64 --seed 3 --out " + take);
     ASSERT_EQ(sim.exit_code, 0) << sim.output;
-    auto recon = RunCli("reconstruct " + take + " --voxel 8mm --no-sweep");
+    auto recon = RunCli("reconstruct " + take + " --ground-truth-cameras --voxel 8mm --no-sweep");
     ASSERT_EQ(recon.exit_code, 0) << recon.output;
-    auto splat = RunCli("train splat " + take +
-                        " --iterations 20 --width 64 --seed-points 500 --eval-every 1000");
+    auto splat = RunCli(
+        "train splat " + take +
+        " --ground-truth-cameras --iterations 20 --width 64 --seed-points 500 --eval-every 1000");
     ASSERT_TRUE(fs::exists(Take() / "models" / "splat" / "model.json")) << splat.output;
   }
   static void TearDownTestSuite() {
@@ -389,7 +390,8 @@ class ViewTakeTest : public ::testing::Test {
     return false;
   }
   static ViewServer::Start ViewTake(std::function<void(pid_t)> before_exec = {}) {
-    return {{Take().string(), "--port", "0"}, Tmp(), std::move(before_exec)};
+    return {
+        {Take().string(), "--ground-truth-cameras", "--port", "0"}, Tmp(), std::move(before_exec)};
   }
   static TempDir* dir_;
 };

@@ -31,10 +31,12 @@ class ShardedWebExport : public ::testing::Test {
     auto result = RunCli("sim --rig studio8 --frames 7 --clean-plate 1 --size 96 --seed 8 --out " +
                          take() + " --threads 2");
     ASSERT_EQ(result.exit_code, 0) << result.output;
-    result = RunCli("reconstruct " + take() + " --voxel 10mm --no-sweep --threads 2");
+    result = RunCli("reconstruct " + take() +
+                    " --ground-truth-cameras --voxel 10mm --no-sweep --threads 2");
     ASSERT_EQ(result.exit_code, 0) << result.output;
     // Splats frame to frame, seeded from the take's reconstruction (a few iterations).
     SplatOptions splats;
+    splats.take.ground_truth_cameras = true;
     splats.recon_dir = take() + "/recon";
     splats.image_width = 48;
     splats.max_seed_points = 1500;
@@ -52,7 +54,7 @@ class ShardedWebExport : public ::testing::Test {
   static std::string take() { return (dir_->path() / "take").string(); }
   static std::string out(const std::string& name) { return (dir_->path() / name).string(); }
   static std::string Export(const std::string& name, const std::string& extra) {
-    return "export web " + take() + " --model " + out("splat") +
+    return "export web " + take() + " --ground-truth-cameras --model " + out("splat") +
            " --quality medium --key-every 2 --ground-truth --out " + out(name) + extra;
   }
   static TempDir* dir_;

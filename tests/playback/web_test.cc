@@ -47,9 +47,11 @@ class WebTest : public ::testing::Test {
     auto sim = RunCli("sim --rig studio8 --frames 4 --clean-plate 1 --size 128 --seed 8 --out '" +
                       Take().string() + "'");
     ASSERT_EQ(sim.exit_code, 0) << sim.output;
-    auto recon = RunCli("reconstruct '" + Take().string() + "' --voxel 8mm --no-sweep");
+    auto recon = RunCli("reconstruct '" + Take().string() +
+                        "' --ground-truth-cameras --voxel 8mm --no-sweep");
     ASSERT_EQ(recon.exit_code, 0) << recon.output;
     NeuralVolumeOptions options;
+    options.take.ground_truth_cameras = true;
     options.grid = 32;
     options.image_width = 64;
     options.latent_dim = 32;
@@ -65,6 +67,7 @@ class WebTest : public ::testing::Test {
     // Splats frame to frame, seeded from the take's reconstruction: few iterations, one thread
     // (a loaded machine's spinning OpenMP threads cost more than they give at this size).
     SplatOptions splats;
+    splats.take.ground_truth_cameras = true;
     splats.recon_dir = (Take() / "recon").string();
     splats.image_width = 64;
     splats.max_seed_points = 4000;
@@ -90,11 +93,12 @@ class WebTest : public ::testing::Test {
     // site is exported as two shards (groups {0, 1} and {2}), so the page plays a sharded site
     // (web_shard_test.cc checks that one is the bytes of one process's).
     for (const char* shard : {"0/2", "1/2"}) {
-      auto exported = RunCli("export web '" + Take().string() + "' --model '" + Model().string() +
-                             "' --model '" + SplatModelDir().string() + "' --model '" +
-                             VividModelDir().string() +
-                             "' --quality low,high,lossless --key-every 2 --ground-truth --out '" +
-                             Site().string() + "' --shard " + shard);
+      auto exported =
+          RunCli("export web '" + Take().string() + "' --ground-truth-cameras --model '" +
+                 Model().string() + "' --model '" + SplatModelDir().string() + "' --model '" +
+                 VividModelDir().string() +
+                 "' --quality low,high,lossless --key-every 2 --ground-truth --out '" +
+                 Site().string() + "' --shard " + shard);
       ASSERT_EQ(exported.exit_code, 0) << exported.output;
     }
   }

@@ -51,10 +51,10 @@ nlohmann::json RunPipeline(ReconstructionMethod method, double voxel, const fs::
   options.sweep_voxels_m.clear();
   Report report("reconstruct");
   ReconstructionSummary summary =
-      ReconstructTake(StudioTake(), TakeSelection{}, out, options, &report);
+      ReconstructTake(StudioTake(), testing::TrueCameras(), out, options, &report);
   EXPECT_EQ(summary.termination, Termination::kSuccess) << summary.message;
-  EXPECT_EQ(summary.plan["cameras"].get<std::string>().rfind("gt/cameras", 0), 0u)
-      << "the simulated take is not calibrated: true models are used";
+  EXPECT_EQ(summary.plan["cameras"], "gt/cameras (asked for)")
+      << "the test asks for the simulation's true cameras";
   return report.json();
 }
 
@@ -89,7 +89,7 @@ TEST(StudioTest, TsdfFromTheDepthSensorsIsWithinFourMillimetres) {
   options.sweep_voxels_m.clear();
   options.tsdf_hull_completion = false;
   TempDir plain_out;
-  TakeSelection first_set;
+  TakeSelection first_set = testing::TrueCameras();
   first_set.last_frame = 1;
   ReconstructionSummary plain =
       ReconstructTake(StudioTake(), first_set, plain_out.path(), options, nullptr);
@@ -156,7 +156,8 @@ TEST(StudioTest, HullContainsTheTrueSurface) {
 TEST(StudioTest, CliWritesMeshesThatOpen3dReads) {
   TempDir out;
   auto result = RunCli("reconstruct '" + StudioTake().string() +
-                       "' --frames 0:1 --voxel 8mm --no-sweep --out '" + out.path().string() + "'");
+                       "' --ground-truth-cameras --frames 0:1 --voxel 8mm --no-sweep --out '" +
+                       out.path().string() + "'");
   ASSERT_EQ(result.exit_code, 0) << result.output;
   EXPECT_NE(result.output.find("gt/ (not calibrated)"), std::string::npos) << result.output;
   ASSERT_TRUE(fs::exists(out / "000001.ply"));
@@ -219,23 +220,32 @@ TEST(StudioTest, CalibratedTakePrefersCalib) {
   ReconstructionSummary calibrated =
       ReconstructTake(take_dir, first_set, calibrated_out.path(), options, nullptr);
   EXPECT_EQ(calibrated.plan["cameras"], "calib/");
+  TakeSelection truth_cameras = testing::TrueCameras();
+  truth_cameras.last_frame = 1;
   ReconstructionSummary truth =
-      ReconstructTake(StudioTake(), first_set, truth_out.path(), options, nullptr);
-  EXPECT_EQ(truth.plan["cameras"].get<std::string>().rfind("gt/cameras", 0), 0u);
+      ReconstructTake(StudioTake(), truth_cameras, truth_out.path(), options, nullptr);
+  EXPECT_EQ(truth.plan["cameras"], "gt/cameras (asked for)");
   const Eigen::Vector3d moved =
       centroid(calibrated_out / "000001.ply") - centroid(truth_out / "000001.ply");
   EXPECT_LT((moved - shift).norm(), 0.005) << moved.transpose();
 }
 
+// A simulated take is uncalibrated like any other until it is calibrated: its truth only
+// measures. Without calib/ (with its gt/ or without) reconstruct stops with the calibrate line,
+// before anything is written.
 TEST(StudioTest, TakeWithoutCalibrationIsAClearError) {
   TempDir dir;
+  auto simulated = RunCli("reconstruct '" + StudioTake().string() + "' --out '" +
+                          (dir / "simulated").string() + "'");
+  testing::ExpectOneLineError(simulated, "is not calibrated");
+  EXPECT_NE(simulated.output.find("run holocap calibrate first"), std::string::npos)
+      << simulated.output;
+  EXPECT_FALSE(fs::exists(dir / "simulated" / "000001.ply"));
   auto copy = RunShell("cp -r '" + StudioTake().string() + "' '" + (dir / "take").string() +
                        "' && rm -rf '" + (dir / "take" / "gt").string() + "'");
   ASSERT_EQ(copy.exit_code, 0) << copy.output;
   auto result = RunCli("reconstruct '" + (dir / "take").string() + "'");
-  EXPECT_NE(result.exit_code, 0);
-  EXPECT_NE(result.output.find("holocap: error: "), std::string::npos) << result.output;
-  EXPECT_NE(result.output.find("not calibrated"), std::string::npos) << result.output;
+  testing::ExpectOneLineError(result, "is not calibrated");
 }
 
 TEST(StudioTest, MissingFramesAreAClearError) {
@@ -245,7 +255,8 @@ TEST(StudioTest, MissingFramesAreAClearError) {
       RunCli("sim --rig studio8 --frames 4 --clean-plate 1 --size 160 --drop 0.3 --seed 2 --out '" +
              (dir / "take").string() + "'");
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
-  auto result = RunCli("reconstruct '" + (dir / "take").string() + "' --method hull --no-sweep");
+  auto result = RunCli("reconstruct '" + (dir / "take").string() +
+                       "' --ground-truth-cameras --method hull --no-sweep");
   EXPECT_NE(result.exit_code, 0);
   EXPECT_NE(result.output.find("holocap: error: "), std::string::npos) << result.output;
   EXPECT_TRUE(result.output.find("has no frame from") != std::string::npos ||
@@ -265,7 +276,7 @@ TEST(StudioTest, BoundsFromTheRigGiveTheSameHullAsTheStageBox) {
     options.write_glb = false;
     options.texture.atlas = false;
     options.sweep_voxels_m.clear();
-    TakeSelection selection;
+    TakeSelection selection = testing::TrueCameras();
     selection.bounds = bounds;
     Report report("reconstruct");
     ReconstructionSummary summary =
@@ -307,7 +318,7 @@ TEST(StudioTest, BoundsFromTheRigGiveTheSameHullAsTheStageBox) {
 // do bounds that no camera looks at.
 TEST(StudioTest, AHullFillingItsBoundsOrUnseenBoundsAreDegenerate) {
   TempDir dir;
-  const std::string take = "'" + StudioTake().string() + "'";
+  const std::string take = "'" + StudioTake().string() + "' --ground-truth-cameras";
   auto filled = RunCli("reconstruct " + take +
                        " --method hull --silhouette-threshold 0.01 --voxel 16mm --no-sweep "
                        "--no-glb --out '" +

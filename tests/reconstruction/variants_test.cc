@@ -43,7 +43,8 @@ fs::path Simulate(const TempDir& dir, const std::string& sim_flags,
 // changes the mesh) and any `flags`.
 Outcome Reconstruct(const fs::path& take, const std::string& flags = "") {
   Outcome outcome;
-  outcome.cli = RunCli("reconstruct '" + take.string() + "' --no-sweep --no-glb " + flags);
+  outcome.cli = RunCli("reconstruct '" + take.string() +
+                       "' --ground-truth-cameras --no-sweep --no-glb " + flags);
   std::ifstream file(take / "recon" / "report.json");
   if (file) outcome.report = nlohmann::json::parse(file);
   return outcome;
@@ -124,7 +125,8 @@ TEST(VariantsTest, DepthOutOfRangeFallsBackToTheHullAndSaysSo) {
       WriteExrDepth(entry.path(), depth * 100);
     }
   }
-  const auto cli = RunCli("reconstruct '" + take.string() + "' --no-sweep --no-glb");
+  const auto cli =
+      RunCli("reconstruct '" + take.string() + "' --ground-truth-cameras --no-sweep --no-glb");
   std::ifstream file(take / "recon" / "report.json");
   ASSERT_TRUE(file) << cli.output;
   const nlohmann::json report = nlohmann::json::parse(file);

@@ -36,7 +36,7 @@ class TrackerFixture {
     sim.seed = 7;
     EXPECT_TRUE(SimulateTake(sim, dir_ / "take").IsUsable());
     take_ = std::make_unique<Take>(Take::Open(dir_ / "take"));
-    plan_ = PlanTake(*take_, TakeSelection{});
+    plan_ = PlanTake(*take_, testing::TrueCameras());
     truth_ = TrueTrajectory(*take_, "depth0");
     depth_lens_ = plan_.cameras.at("depth0");
     color_lens_ = plan_.cameras.at(take_->stream("depth0").paired_with);

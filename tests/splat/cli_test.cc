@@ -112,7 +112,7 @@ TEST_F(SplatCli, DynamicTakeTrainsFrameToFrameAndPlays) {
   ASSERT_EQ(simulated.exit_code, 0) << simulated.output;
   const fs::path model = root_ / "walk_splat";
   const CommandResult trained =
-      RunCli("train splat " + take.string() + " --out " + model.string() +
+      RunCli("train splat " + take.string() + " --ground-truth-cameras --out " + model.string() +
              " --iterations 40 --frame-iterations 10 --width 64 --seed-points 2000 --threads 2");
   ASSERT_EQ(trained.exit_code, 0) << trained.output;
   const nlohmann::json report = ReadJson(model / "report.json");
@@ -140,9 +140,10 @@ TEST_F(SplatCli, DynamicTakeTrainsFrameToFrameAndPlays) {
 
   // A static scene from a list of frame sets trains the first listed set alone.
   const fs::path listed = root_ / "walk_listed";
-  const CommandResult one = RunCli("train splat " + take.string() + " --out " + listed.string() +
-                                   " --scene static --frames 2,3 --iterations 10 --width 64 " +
-                                   "--seed-points 2000 --threads 2");
+  const CommandResult one =
+      RunCli("train splat " + take.string() + " --ground-truth-cameras --out " + listed.string() +
+             " --scene static --frames 2,3 --iterations 10 --width 64 " +
+             "--seed-points 2000 --threads 2");
   ASSERT_EQ(one.exit_code, 0) << one.output;
   const nlohmann::json listed_report = ReadJson(listed / "report.json");
   EXPECT_EQ(listed_report["plan"]["scene"], "static");

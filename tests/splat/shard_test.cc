@@ -39,7 +39,7 @@ class ShardedSplats : public ::testing::Test {
         take());
     ASSERT_EQ(result.exit_code, 0) << result.output;
     // The seeds from one reconstruction (a run without --recon reconstructs its own first).
-    result = RunCli("reconstruct " + take() + " --out " + out("recon") +
+    result = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("recon") +
                     " --voxel 12mm --no-sweep --no-glb --threads 2");
     ASSERT_EQ(result.exit_code, 0) << result.output;
     result = RunCli(Train("whole", " --threads 2"));
@@ -49,8 +49,8 @@ class ShardedSplats : public ::testing::Test {
   static std::string take() { return (dir_->path() / "take").string(); }
   static std::string out(const std::string& name) { return (dir_->path() / name).string(); }
   static std::string Train(const std::string& name, const std::string& extra) {
-    return "train splat " + take() + " --out " + out(name) + " --recon " + out("recon") + kBudget +
-           extra;
+    return "train splat " + take() + " --ground-truth-cameras --out " + out(name) + " --recon " +
+           out("recon") + kBudget + extra;
   }
   static TempDir* dir_;
 };
@@ -79,7 +79,7 @@ TEST_F(ShardedSplats, SegmentsStartFromFrameZeroAndPlayBack) {
 
   // The web stream: a delta where the frame before is the delta's base, a key frame where a
   // segment starts again from frame 0; the export decodes each chunk as the player does.
-  auto site = RunCli("export web " + take() + " --model " + out("whole") +
+  auto site = RunCli("export web " + take() + " --ground-truth-cameras --model " + out("whole") +
                      " --no-meshes --quality medium --out " + out("site"));
   ASSERT_EQ(site.exit_code, 0) << site.output;
   const nlohmann::json manifest = ReadJson(out("site") + "/manifest.json");
@@ -158,11 +158,11 @@ TEST_F(ShardedSplats, WallClockBudgetsAndShardsWithoutSegmentsEndInOneLine) {
                      "--minutes is a wall-clock budget; a per-frame run");
   ExpectOneLineError(RunCli(Train("bad", " --frame-minutes 1")),
                      "--frame-minutes is a wall-clock budget");
-  ExpectOneLineError(
-      RunCli("train splat " + take() + " --out " + out("bad") + " --iterations 10 --shard 0/2"),
-      "--shard splits a per-frame run: give --segment-frames too");
-  ExpectOneLineError(RunCli("train splat " + take() + " --out " + out("bad") +
-                            " --segment-frames 2 --iterations 10"),
+  ExpectOneLineError(RunCli("train splat " + take() + " --ground-truth-cameras --out " +
+                            out("bad") + " --iterations 10 --shard 0/2"),
+                     "--shard splits a per-frame run: give --segment-frames too");
+  ExpectOneLineError(RunCli("train splat " + take() + " --ground-truth-cameras --out " +
+                            out("bad") + " --segment-frames 2 --iterations 10"),
                      "trains every frame for a number of iterations");
 }
 

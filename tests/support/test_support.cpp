@@ -51,6 +51,12 @@ CommandResult RunCli(const std::string& args) {
   return RunShell("HOLOCAP_NO_PROGRESS=1 '" + CliPath() + "' " + args);
 }
 
+TakeSelection TrueCameras() {
+  TakeSelection selection;
+  selection.ground_truth_cameras = true;
+  return selection;
+}
+
 void ExpectOneLineError(const CommandResult& result, const std::string& needle) {
   EXPECT_NE(result.exit_code, 0) << result.output;
   std::string output = result.output;

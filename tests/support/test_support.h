@@ -5,6 +5,8 @@
 #include <filesystem>
 #include <string>
 
+#include "core/take_plan.h"
+
 namespace holocap::testing {
 
 // A fresh directory under the system temp dir, removed when the object dies.
@@ -33,6 +35,10 @@ struct CommandResult {
 CommandResult RunCli(const std::string& args);
 // Runs any shell command and captures its output.
 CommandResult RunShell(const std::string& command);
+
+// A selection that uses a simulated take's true cameras (gt/cameras): for tests that measure a
+// stage apart from calibration, saying so (an uncalibrated take is refused otherwise).
+TakeSelection TrueCameras();
 
 // The error contract: exit status non-zero and exactly one line, starting "holocap: error:",
 // that holds `needle` (a GoogleTest expectation).
