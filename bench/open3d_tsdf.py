@@ -1,7 +1,7 @@
 """Open3D's TSDF volumes on the depth maps and poses recon_bench wrote: the peers that
 recon_bench compares holocap's TSDF against. Run with /usr/bin/python3 (Debian python3-open3d).
 
-usage: open3d_tsdf.py DIR VOXEL_M TRUNCATION_VOXELS DEPTH_MAX_M PEERS OUT_PREFIX
+usage: open3d_tsdf.py DIR VOXEL_M TRUNCATION_VOXELS DEPTH_MAX_M PEERS OUT_PREFIX [BLOCK_COUNT]
 DIR/frames.json lists frames, each a list of depth maps (raw float32 z-depth in metres, 0 =
 none) with their pinhole intrinsics and cam_from_world (4x4, row-major). PEERS is a comma list
 of "vbg" (o3d.t.geometry.VoxelBlockGrid, CPU, 8^3 blocks like holocap's), "legacy"
@@ -11,11 +11,15 @@ false), so a NaN pixel's voxels take +truncation: with NaN outside the subject i
 free space around the subject's silhouette. "vbg-dense" is VoxelBlockGrid with the blocks of
 every pixel: Open3D 0.16 finds a depth map's blocks from every 4th pixel across and down, which
 leaves blocks of the surface out once a block spans fewer than 4 pixels (2 mm at 3 m). Each peer fuses every frame into a fresh volume
-and meshes it (frame i's mesh to OUT_PREFIX-PEER-i.ply). Prints one line per peer:
-  PEER integrate_s_per_frame mesh_s_per_frame triangles_of_frame_0 peak_rss_growth_mb
+and meshes it (frame i's mesh to OUT_PREFIX-PEER-i.ply). VoxelBlockGrid is made with
+BLOCK_COUNT blocks (default 50000), which it allocates and zeroes when it is made. Prints one line
+per peer:
+  PEER integrate_s_per_frame mesh_s_per_frame triangles_of_frame_0 peak_rss_growth_mb blocks
 "vbg-sequence" and "legacy-sequence" fuse every frame into one volume, in order, and mesh it
 once; they print "PEER-times" and the seconds of each frame first.
-where the last is the process's peak RSS less its RSS before the first volume (Linux ru_maxrss).
+where peak_rss_growth_mb is the process's peak RSS less its RSS before the first volume (Linux
+ru_maxrss) and blocks the most blocks one volume held (VoxelBlockGrid's hash map, its one far
+block included; 0 for the legacy volume): what a reservation sized to the scene must hold.
 Both peers fuse with the same voxel, truncation (voxels) and depth limit as holocap, weight 1
 per measurement, and mesh every voxel observed at least once (weight > 0, as holocap does).
 """
@@ -51,8 +55,8 @@ class Vbg:
     def __init__(self, voxel, trunc_voxels, depth_max):
         self.grid = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight"), attr_dtypes=(o3d.core.float32, o3d.core.float32),
-            attr_channels=((1), (1)), voxel_size=voxel, block_resolution=8, block_count=50000,
-            device=o3d.core.Device("CPU:0"))
+            attr_channels=((1), (1)), voxel_size=voxel, block_resolution=8,
+            block_count=Vbg.block_count, device=o3d.core.Device("CPU:0"))
         # Open3D 0.16's mesh extraction asserts that a voxel's buffer index is > 0, so a
         # surface crossing the first block allocated aborts it: an empty block far away takes
         # index 0 (weight 0: it never meshes and is never integrated).
@@ -62,6 +66,10 @@ class Vbg:
         self.trunc_voxels, self.depth_max = trunc_voxels, depth_max
 
     nan_for_zero = False
+    block_count = 50000
+
+    def blocks_held(self):
+        return self.grid.hashmap().size()
 
     def prepare(self, maps, depth_max):
         def image(depth):
@@ -113,6 +121,10 @@ class Legacy:
     def mesh(self):
         return self.volume.extract_triangle_mesh()
 
+    @staticmethod
+    def blocks_held():
+        return 0
+
 
 class VbgNan(Vbg):
     nan_for_zero = True
@@ -135,13 +147,14 @@ PEERS = {"vbg": Vbg, "vbg-nan": VbgNan, "vbg-dense": VbgDense, "legacy": Legacy}
 def run(peer, frames, voxel, trunc_voxels, depth_max, out_prefix):
     """A fresh volume per frame: seconds per frame to integrate and to mesh."""
     integrate_s = mesh_s = 0.0
-    triangles = 0
+    triangles = blocks = 0
     for i, maps in enumerate(frames):
         volume = PEERS[peer](voxel, trunc_voxels, depth_max)
         inputs = volume.prepare(maps, depth_max)
         start = time.perf_counter()
         volume.integrate(inputs)
         integrate_s += time.perf_counter() - start
+        blocks = max(blocks, volume.blocks_held())
         start = time.perf_counter()
         mesh = volume.mesh()
         mesh_s += time.perf_counter() - start
@@ -149,7 +162,7 @@ def run(peer, frames, voxel, trunc_voxels, depth_max, out_prefix):
         o3d.io.write_triangle_mesh("%s-%s-%d.ply" % (out_prefix, peer, i), mesh,
                                    write_ascii=False, write_vertex_normals=False,
                                    write_vertex_colors=False)
-    return integrate_s / len(frames), mesh_s / len(frames), triangles
+    return integrate_s / len(frames), mesh_s / len(frames), triangles, blocks
 
 
 def run_sequence(peer, frames, voxel, trunc_voxels, depth_max):
@@ -163,26 +176,28 @@ def run_sequence(peer, frames, voxel, trunc_voxels, depth_max):
         times.append(time.perf_counter() - start)
     start = time.perf_counter()
     mesh = volume.mesh()
-    return times, time.perf_counter() - start, len(mesh.triangles)
+    return times, time.perf_counter() - start, len(mesh.triangles), volume.blocks_held()
 
 
 def main():
     folder, voxel, trunc_voxels, depth_max = (sys.argv[1], float(sys.argv[2]),
                                               float(sys.argv[3]), float(sys.argv[4]))
     peers, out_prefix = sys.argv[5].split(","), sys.argv[6]
+    if len(sys.argv) > 7:
+        Vbg.block_count = int(sys.argv[7])
     frames = load(folder)
     base_mb = rss_mb()
     for peer in peers:
         if peer.endswith("-sequence"):
-            times, mesh_s, triangles = run_sequence(peer[:-9], frames, voxel, trunc_voxels,
-                                                    depth_max)
+            times, mesh_s, triangles, blocks = run_sequence(peer[:-9], frames, voxel,
+                                                            trunc_voxels, depth_max)
             print("%s-times %s" % (peer, " ".join("%.6f" % t for t in times)))
             integrate_s = sum(times) / len(times)
         else:
-            integrate_s, mesh_s, triangles = run(peer, frames, voxel, trunc_voxels, depth_max,
-                                                 out_prefix)
+            integrate_s, mesh_s, triangles, blocks = run(peer, frames, voxel, trunc_voxels,
+                                                         depth_max, out_prefix)
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base_mb
-        print("%s %.6f %.6f %d %.1f" % (peer, integrate_s, mesh_s, triangles, peak_mb),
+        print("%s %.6f %.6f %d %.1f %d" % (peer, integrate_s, mesh_s, triangles, peak_mb, blocks),
               flush=True)
 
 

@@ -13,6 +13,7 @@
 //      silhouettes and method; IoU against the plan's own silhouette and the README's recipe.
 //   6. Larger fusion cases: studio8 with a depth sensor beside each of its 8 cameras at 4 and
 //      2 mm against both peers, and 60 frame sets fused into one growing volume.
+//   m. Section 1's peak memory alone (each method in a process of its own, equal reservations).
 // Usage: recon_bench [frames=2] [threads=2] [work_dir=/tmp/holocap-recon-bench]
 //                    [sections=1234] [repeats=5]
 // (bench/recon_bench_results.txt: `recon_bench 2 2 /tmp/holocap-recon-bench 16 7`).
@@ -225,18 +226,22 @@ std::vector<std::vector<DepthInput>> ReadOpen3dInput(const fs::path& dir) {
 struct PeerResult {
   double integrate_s = 0, mesh_s = 0, peak_mb = 0;
   long triangles = 0;
+  long blocks = 0;  // the most blocks one volume held (0: the method does not say)
 };
 
 // Runs bench/open3d_tsdf.py for `peers` ("vbg", "legacy", comma-separated, in that order) on
-// `threads` OpenMP threads that wait passively; meshes go to dir/mesh-PEER-i.ply.
+// `threads` OpenMP threads that wait passively; meshes go to dir/mesh-PEER-i.ply. VoxelBlockGrid
+// is made with `block_count` blocks (0: the script's 50000).
 std::map<std::string, PeerResult> RunOpen3d(const fs::path& dir, double voxel,
-                                            const std::string& peers, int threads) {
+                                            const std::string& peers, int threads,
+                                            size_t block_count = 0) {
   const TsdfOptions defaults;
   std::string command =
       "OMP_NUM_THREADS=" + std::to_string(threads) + " OMP_WAIT_POLICY=PASSIVE /usr/bin/python3 '" +
       std::string(HOLOCAP_BENCH_DIR) + "/open3d_tsdf.py' '" + dir.string() + "' " +
       std::to_string(voxel) + " " + std::to_string(defaults.truncation_voxels) + " " +
-      std::to_string(defaults.depth_max_m) + " " + peers + " '" + (dir / "mesh").string() + "'";
+      std::to_string(defaults.depth_max_m) + " " + peers + " '" + (dir / "mesh").string() + "'" +
+      (block_count > 0 ? " " + std::to_string(block_count) : "");
   FILE* pipe = popen(command.c_str(), "r");
   if (pipe == nullptr) Fail("cannot run ", command);
   std::map<std::string, PeerResult> results;
@@ -244,8 +249,8 @@ std::map<std::string, PeerResult> RunOpen3d(const fs::path& dir, double voxel,
   while (std::fgets(line, sizeof(line), pipe)) {
     char name[32] = {};
     PeerResult r;
-    if (std::sscanf(line, "%31s %lf %lf %ld %lf", name, &r.integrate_s, &r.mesh_s, &r.triangles,
-                    &r.peak_mb) == 5)
+    if (std::sscanf(line, "%31s %lf %lf %ld %lf %ld", name, &r.integrate_s, &r.mesh_s, &r.triangles,
+                    &r.peak_mb, &r.blocks) >= 5)
       results[name] = r;
   }
   if (pclose(pipe) != 0 ||
@@ -412,49 +417,86 @@ double RssMb() {
 }
 
 // The peak-memory mode (a process of its own): fuses and meshes the peers' input at one voxel
-// size and prints "holocap integrate_s mesh_s triangles peak_rss_growth_mb", as open3d_tsdf.py.
-int PeakMemoryMode(const fs::path& dir, double voxel, int threads) {
+// size, with `reserve_blocks` blocks made ready in each volume (TsdfOptions::reserve_blocks), and
+// prints "holocap integrate_s mesh_s triangles peak_rss_growth_mb blocks", as open3d_tsdf.py.
+int PeakMemoryMode(const fs::path& dir, double voxel, int threads, size_t reserve_blocks) {
   auto inputs = ReadOpen3dInput(dir);
   const double base = RssMb();
-  HolocapRun run = RunHolocap(inputs, PlainTsdf(voxel), threads);
-  std::printf("holocap %.6f %.6f %zu %.1f\n", run.integrate_s, run.mesh_s,
-              run.meshes[0].faces.size(), PeakRssMb() - base);
+  TsdfOptions options = PlainTsdf(voxel);
+  options.reserve_blocks = reserve_blocks;
+  HolocapRun run = RunHolocap(inputs, options, threads);
+  std::printf("holocap %.6f %.6f %zu %.1f %zu\n", run.integrate_s, run.mesh_s,
+              run.meshes[0].faces.size(), PeakRssMb() - base, run.blocks);
   return 0;
+}
+
+PeerResult RunHolocapPeakMemory(const fs::path& dir, double voxel, int threads,
+                                size_t reserve_blocks, const char* self) {
+  const std::string command = "OMP_WAIT_POLICY=PASSIVE '" + std::string(self) +
+                              "' --peak-memory '" + dir.string() + "' " + std::to_string(voxel) +
+                              " " + std::to_string(threads) + " " + std::to_string(reserve_blocks);
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) Fail("cannot run ", command);
+  PeerResult r;
+  bool read = false;
+  char line[512] = {};
+  while (std::fgets(line, sizeof(line), pipe)) {
+    char name[32] = {};
+    read = read || std::sscanf(line, "%31s %lf %lf %ld %lf %ld", name, &r.integrate_s, &r.mesh_s,
+                               &r.triangles, &r.peak_mb, &r.blocks) == 6;
+  }
+  if (pclose(pipe) != 0 || !read) Fail("recon_bench --peak-memory failed: ", command);
+  return r;
 }
 
 // Peak memory of each method at `voxel`, each in a process of its own (peak RSS less the RSS
 // before the first volume), on the maps FusionAgainstOpen3d wrote for that voxel size.
+// VoxelBlockGrid allocates and zeroes its block_count blocks when it is made; holocap's volume
+// does so when asked (reserve_blocks). So each is measured with the same reservation: the
+// script's 50000 blocks for both, then each sized to the blocks the scene needs of it (the most
+// one volume held in a first run, 50000 reserved) plus the same headroom, kSizedHeadroom.
+constexpr double kSizedHeadroom = 0.1;
 void PeakMemory(const std::vector<std::vector<DepthInput>>& pinhole, double voxel, int threads,
                 const fs::path& work, const char* self) {
   const fs::path dir = work / ("open3d-memory-" + std::to_string(static_cast<int>(voxel * 1e4)));
   WriteOpen3dInput(pinhole, dir);
   std::printf(
       "== peak memory at %.0f mm: %zu frame(s) x %zu depth maps, each method in its own "
-      "process (peak RSS growth while fusing and meshing); load %s\n",
-      voxel * 1e3, pinhole.size(), pinhole[0].size(), LoadNow().c_str());
-  std::printf("%-20s %12s %10s %10s %10s\n", "method", "peak_MB", "integr_s", "mesh_s",
-              "triangles");
-  std::string command = "OMP_WAIT_POLICY=PASSIVE '" + std::string(self) + "' --peak-memory '" +
-                        dir.string() + "' " + std::to_string(voxel) + " " + std::to_string(threads);
-  FILE* pipe = popen(command.c_str(), "r");
-  char line[512] = {};
-  while (pipe && std::fgets(line, sizeof(line), pipe)) {
-    char name[32] = {};
-    PeerResult r;
-    if (std::sscanf(line, "%31s %lf %lf %ld %lf", name, &r.integrate_s, &r.mesh_s, &r.triangles,
-                    &r.peak_mb) == 5)
-      std::printf("%-20s %12.1f %10.3f %10.3f %10ld\n", "holocap", r.peak_mb, r.integrate_s,
-                  r.mesh_s, r.triangles);
-  }
-  if (pipe) pclose(pipe);
-  for (auto [name, label] :
-       {std::pair{"vbg", "Open3D VBG"}, std::pair{"vbg-dense", "Open3D VBG dense"},
-        std::pair{"legacy", "Open3D Scalable"}}) {
-    PeerResult r = RunOpen3d(dir, voxel, name, threads).at(name);
-    std::printf("%-20s %12.1f %10.3f %10.3f %10ld\n", label, r.peak_mb, r.integrate_s, r.mesh_s,
-                r.triangles);
-  }
-  std::printf("\n");
+      "process (peak RSS growth while fusing and meshing; reserved: blocks allocated and zeroed "
+      "when a volume is made, sized: the blocks the scene needs of that method plus %.0f%%); "
+      "load %s\n",
+      voxel * 1e3, pinhole.size(), pinhole[0].size(), 100 * kSizedHeadroom, LoadNow().c_str());
+  std::printf("%-20s %9s %9s %12s %10s %10s %10s\n", "method", "reserved", "held", "peak_MB",
+              "integr_s", "mesh_s", "triangles");
+  const auto row = [](const char* label, size_t reserved, const PeerResult& r) {
+    std::printf("%-20s %9zu %9ld %12.1f %10.3f %10.3f %10ld\n", label, reserved, r.blocks,
+                r.peak_mb, r.integrate_s, r.mesh_s, r.triangles);
+  };
+  const auto sized = [](long blocks) {
+    return static_cast<size_t>(std::ceil((1 + kSizedHeadroom) * static_cast<double>(blocks)));
+  };
+  const PeerResult holocap_grown = RunHolocapPeakMemory(dir, voxel, threads, 0, self);
+  const PeerResult holocap_reserved =
+      RunHolocapPeakMemory(dir, voxel, threads, kPeerBlockCount, self);
+  const PeerResult vbg_reserved = RunOpen3d(dir, voxel, "vbg", threads, kPeerBlockCount).at("vbg");
+  const PeerResult dense_reserved =
+      RunOpen3d(dir, voxel, "vbg-dense", threads, kPeerBlockCount).at("vbg-dense");
+  row("holocap", kPeerBlockCount, holocap_reserved);
+  row("Open3D VBG", kPeerBlockCount, vbg_reserved);
+  row("Open3D VBG dense", kPeerBlockCount, dense_reserved);
+  const size_t holocap_blocks = sized(holocap_reserved.blocks);
+  const size_t vbg_blocks = sized(vbg_reserved.blocks);
+  const size_t dense_blocks = sized(dense_reserved.blocks);
+  row("holocap sized", holocap_blocks,
+      RunHolocapPeakMemory(dir, voxel, threads, holocap_blocks, self));
+  row("Open3D VBG sized", vbg_blocks, RunOpen3d(dir, voxel, "vbg", threads, vbg_blocks).at("vbg"));
+  row("Open3D VBG dense sz", dense_blocks,
+      RunOpen3d(dir, voxel, "vbg-dense", threads, dense_blocks).at("vbg-dense"));
+  row("holocap as touched", 0, holocap_grown);
+  row("Open3D Scalable", 0, RunOpen3d(dir, voxel, "legacy", threads).at("legacy"));
+  std::printf(
+      "(Scalable and holocap as touched reserve nothing: they take each block's memory "
+      "when a frame first touches it)\n\n");
 }
 
 // Fuses a sequence into one volume (the subject walks, the volume grows): seconds per frame
@@ -887,7 +929,8 @@ void LargerFusionCases(const fs::path& work, int threads, int repeats) {
 }  // namespace
 
 // Usage: recon_bench [frames=2] [threads=2] [work_dir] [sections=1234] [repeats=5]
-//        recon_bench --peak-memory DIR VOXEL_M THREADS   (one process per measurement)
+//        recon_bench --peak-memory DIR VOXEL_M THREADS RESERVE_BLOCKS  (one process per
+//                    measurement)
 //        recon_bench --stages DIR VOXEL_M THREADS REPEATS  (integration by stage)
 int main(int argc, char** argv) {
   // Every side of the comparisons waits passively: libgomp's spinning threads on a shared
@@ -901,8 +944,9 @@ int main(int argc, char** argv) {
                       std::atoi(argv[5]));
     return 0;
   }
-  if (argc == 5 && std::string(argv[1]) == "--peak-memory")
-    return PeakMemoryMode(argv[2], std::atof(argv[3]), std::atoi(argv[4]));
+  if (argc == 6 && std::string(argv[1]) == "--peak-memory")
+    return PeakMemoryMode(argv[2], std::atof(argv[3]), std::atoi(argv[4]),
+                          std::strtoull(argv[5], nullptr, 10));
   const int frame_count = argc > 1 ? std::atoi(argv[1]) : 2;
   const int threads = argc > 2 ? std::atoi(argv[2]) : 2;
   const fs::path work = argc > 3 ? argv[3] : "/tmp/holocap-recon-bench";
@@ -912,7 +956,7 @@ int main(int argc, char** argv) {
     fs::create_directories(work);
     if (sections.find('5') != std::string::npos) MiddleburyNoFlags(work, threads);
     if (sections.find('6') != std::string::npos) LargerFusionCases(work, threads, repeats);
-    if (sections.find_first_of("1234") == std::string::npos) return 0;
+    if (sections.find_first_of("1234m") == std::string::npos) return 0;
     const fs::path take_dir = work / "studio8";
     SimulateOnce("studio8", take_dir, frame_count);
     std::vector<BenchFrame> frames = LoadFrames(take_dir, frame_count);
@@ -933,6 +977,8 @@ int main(int argc, char** argv) {
       IntegrationStages(pinhole, {0.008, 0.004}, threads, repeats);
       if (sections.find('p') == std::string::npos)
         PeakMemory(pinhole, 0.002, threads, work, argv[0]);
+    } else if (sections.find('m') != std::string::npos) {
+      PeakMemory(Pinhole(frames), 0.002, threads, work, argv[0]);
     }
     if (sections.find('2') != std::string::npos) VoxelSweep(frames, threads);
     if (sections.find('2') != std::string::npos)
