@@ -7,6 +7,13 @@
 // (core/frame_tasks.h PlanOnce); every run's CPU seconds per task (from its frames' records) and
 // the plan's give the efficiency on a quiet node, where each task has its CPU to itself.
 //
+// The runs that measure scaling reconstruct a copy of the simulated take without its true meshes
+// (gt/meshes): what a real take gives, where no frame is scored against the truth. Scoring a
+// frame (Chamfer, F-score, completeness against gt/meshes) is measured apart, by one process with
+// one thread on the take as simulated, interleaved with the others. The cameras are the take's
+// true models, asked for with --ground-truth-cameras (the take has no calib/; this bench measures
+// scaling, not calibration).
+//
 //   build/bench/slurm_bench [SIZE=192] [SETS=24] [REPEATS=2] [WORK=/tmp/holocap-slurm-bench]
 #include <fcntl.h>
 #include <unistd.h>
@@ -140,16 +147,23 @@ int Main(int argc, char** argv) {
   const std::string cli = testing::CliPath();
   fs::remove_all(work);
   CreateDirectories(work);
-  const fs::path take = work / "take";
+  const fs::path scored_take = work / "take-scored";
   Run("HOLOCAP_NO_PROGRESS=1 '" + cli + "' sim --rig studio8 --frames " + std::to_string(sets + 1) +
-      " --clean-plate 1 --size " + std::to_string(size) + " --out " + take.string());
-  const std::string recon = "reconstruct " + take.string() + " --no-sweep";
+      " --clean-plate 1 --size " + std::to_string(size) + " --out " + scored_take.string());
+  // The same frames without the true meshes: nothing to score a frame against.
+  const fs::path take = work / "take";
+  fs::copy(scored_take, take, fs::copy_options::recursive | fs::copy_options::create_hard_links);
+  fs::remove_all(take / "gt" / "meshes");
+  const std::string options = " --no-sweep --ground-truth-cameras";
+  const std::string recon = "reconstruct " + take.string() + options;
   std::vector<Measure> measures;
-  auto one_process = [&](int threads, int rep) {
-    Measure m{Cat("1 process, ", threads, " thread(s)"), 0, 0, 0, Load()};
-    const fs::path out = work / Cat("process-", threads, "-", rep);
+  const std::string scored_label = "1 process, 1 thread(s), scored";
+  auto one_process = [&](int threads, int rep, bool scored = false) {
+    Measure m{scored ? scored_label : Cat("1 process, ", threads, " thread(s)"), 0, 0, 0, Load()};
+    const fs::path out = work / Cat(scored ? "scored-" : "process-", threads, "-", rep);
     const double t0 = Now();
-    Run("HOLOCAP_NO_PROGRESS=1 '" + cli + "' " + recon + " --threads " + std::to_string(threads) +
+    Run("HOLOCAP_NO_PROGRESS=1 '" + cli + "' reconstruct " +
+        (scored ? scored_take : take).string() + options + " --threads " + std::to_string(threads) +
         " --out " + out.string());
     m.wall_s = Now() - t0;
     ReadRun(out, &m);
@@ -180,20 +194,23 @@ int Main(int argc, char** argv) {
     slurm(1, rep);
     last = slurm(2, rep);
     one_process(2, rep);
+    one_process(1, rep, /*scored=*/true);
   }
   std::printf(
-      "holocap submit slurm reconstruct: studio8 at %d px, %d frame sets, --no-sweep, "
-      "one-node cluster on this machine (%u cores); load = 1-min load average at start\n\n",
+      "holocap submit slurm reconstruct: studio8 at %d px, %d frame sets, --no-sweep, no frame "
+      "scored against the truth (but the \"scored\" row), one-node cluster on this machine (%u "
+      "cores); load = 1-min load average at start\n\n",
       size, sets, std::thread::hardware_concurrency());
   std::printf(
       "| run | wall s | frames/min | mean frame s | task overhead s | CPU s (all tasks) | plan "
       "CPU s | quiet-node s | load |\n");
   std::printf("|---|---|---|---|---|---|---|---|---|\n");
-  std::map<std::string, std::vector<double>> fpm, quiet;
+  std::map<std::string, std::vector<double>> fpm, quiet, cpu;
   for (const Measure& m : measures) {
     const double rate = 60.0 * sets / m.wall_s;
     fpm[m.what].push_back(rate);
     quiet[m.what].push_back(m.quiet_s);
+    cpu[m.what].push_back(m.cpu_s);
     char quiet_s[32] = "-";
     if (m.quiet_s > 0) std::snprintf(quiet_s, sizeof(quiet_s), "%.1f", m.quiet_s);
     std::printf("| %s | %.1f | %.2f | %.2f | %.1f | %.1f | %.1f | %s | %s |\n", m.what.c_str(),
@@ -219,6 +236,15 @@ int Main(int argc, char** argv) {
       "on a quiet node, from the CPU seconds (compute only, Slurm's start and merge aside): "
       "%.1f s / (2 x %.1f s) = %.0f %%\n",
       quiet_one, quiet_two, 100.0 * quiet_one / (2 * quiet_two));
+  const double cpu_plain = mean(cpu["1 process, 1 thread(s)"]) / sets;
+  const double cpu_scored = mean(cpu[scored_label]) / sets;
+  std::printf(
+      "scoring against the true meshes, apart (1 process, 1 thread, mean of %d): %.3f CPU s a "
+      "frame set scored, %.3f unscored: scoring costs %.3f s, %.0f %% of a scored set's CPU "
+      "(%.2f frames/min scored against %.2f)\n",
+      repeats, cpu_scored, cpu_plain, cpu_scored - cpu_plain,
+      100.0 * (cpu_scored - cpu_plain) / cpu_scored, mean(fpm[scored_label]),
+      mean(fpm["1 process, 1 thread(s)"]));
 
   // The model: N nodes like this one each run 2 tasks at the measured rate; every frame reads
   // its frame set from, and writes its meshes and record to, the shared filesystem.
