@@ -68,7 +68,7 @@ DepthInput ToPinhole(const DepthInput& in) {
   for (int y = 0; y < h; ++y)
     for (int x = 0; x < w; ++x) rays.col(y * w + x) << (x - k[2]) / k[0], (y - k[3]) / k[1], 1;
   Eigen::Matrix2Xd source = in.camera.ProjectMany(rays);
-  auto resample = [&](const cv::Mat& image, cv::Scalar outside) {
+  auto resample = [&](const cv::Mat& image, const cv::Scalar& outside) {
     cv::Mat out(h, w, image.type(), outside);
     for (int i = 0; i < w * h; ++i) {
       int sx = static_cast<int>(std::lround(source(0, i))),
@@ -575,7 +575,7 @@ void FusionSequence(const std::vector<std::vector<DepthInput>>& pinhole, double 
 // offset), written as a sim rig file.
 fs::path Studio8WithEightDepthSensors(const fs::path& work) {
   nlohmann::json rig = BuiltinRig("studio8").ToJson();
-  const fs::path file = work / "studio8-depth8.json";
+  fs::path file = work / "studio8-depth8.json";
   nlohmann::json sensors = nlohmann::json::array(), depth;
   for (const auto& sensor : rig["sensors"]) {
     if (sensor["role"] == "depth") {
@@ -599,6 +599,7 @@ fs::path Studio8WithEightDepthSensors(const fs::path& work) {
 
 void VoxelSweep(const std::vector<BenchFrame>& frames, int threads) {
   std::vector<std::vector<DepthInput>> original;
+  original.reserve(frames.size());
   for (const BenchFrame& f : frames) original.push_back(f.depth);
   for (const auto& d : original[0]) TsdfVolume(TsdfOptions{}).Integrate(d.depth, d.camera);
   std::printf("== holocap TSDF as the voxel varies (true lenses, filtered; %d threads)\n", threads);
@@ -820,7 +821,7 @@ void MiddleburyNoFlags(const fs::path& work, int threads) {
   std::printf("== Middlebury dinoSparseRing, no flags: leave-one-out through ReconstructTake\n");
   double own_sum = 0, recipe_sum = 0, own_worst = 1, recipe_worst = 1, seconds = 0;
   std::string plan_line;
-  const auto streams = take.streams();
+  const auto& streams = take.streams();
   for (const StreamInfo& held : streams) {
     TakeSelection selection;
     selection.heldout = {held.name};
@@ -926,13 +927,11 @@ void LargerFusionCases(const fs::path& work, int threads, int repeats) {
   FusionSequence(Pinhole(sequence), 0.004, threads, work);
 }
 
-}  // namespace
-
 // Usage: recon_bench [frames=2] [threads=2] [work_dir] [sections=1234] [repeats=5]
 //        recon_bench --peak-memory DIR VOXEL_M THREADS RESERVE_BLOCKS  (one process per
 //                    measurement)
 //        recon_bench --stages DIR VOXEL_M THREADS REPEATS  (integration by stage)
-int main(int argc, char** argv) {
+int Main(int argc, char** argv) {
   // Every side of the comparisons waits passively: libgomp's spinning threads on a shared
   // machine measure the load, not the code. The variable is read when libgomp loads.
   if (std::getenv("OMP_WAIT_POLICY") == nullptr) {
@@ -991,4 +990,17 @@ int main(int argc, char** argv) {
     return 1;
   }
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return Main(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "recon_bench: error: %s\n", e.what());
+  } catch (...) {
+    std::fprintf(stderr, "recon_bench: error: an unknown exception\n");
+  }
+  return 1;
 }

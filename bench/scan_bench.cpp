@@ -20,8 +20,9 @@
 // turntable mode leaves out (the sensor stands still: the floor does not turn with the subject).
 // Every frame counts for both: a frame holocap
 // loses keeps the pose it gave it (the last good one), and after a stopped scan the last pose
-// holds. The methods run one after another, R times (interleaved), in one process each, with
-// the same threads and OMP_WAIT_POLICY=PASSIVE; fps and CPU ms are the medians.
+// holds. The methods run one after another, R times (interleaved; holocap in this process,
+// Open3D in its own), with the same threads and OMP_WAIT_POLICY=PASSIVE; fps and CPU ms are the
+// medians.
 #include <omp.h>
 #include <unistd.h>
 
@@ -53,7 +54,7 @@ using Json = nlohmann::json;
 struct Args {
   // The sensor's own rate (the rig's 30 fps) for 6 s at 30 deg/s: half an orbit, 1 degree a
   // frame. Open3D's dense SLAM starts each frame from the previous pose with a few iterations
-  // (6/3/1); at 10 fps (3 degrees, ~12 cm a frame) it moved 2.3 of 11.5 cm in a frame.
+  // (6/3/1); at 10 fps (3 degrees, ~11.5 cm a frame) it recovered 2.3 cm of the first step.
   int64_t frames = 180;
   double fps = 30;
   std::vector<std::pair<int, int>> sizes = {{320, 240}, {640, 480}};
@@ -163,7 +164,7 @@ void ExportForOpen3d(const Take& take, const TakePlan& plan, const fs::path& dir
         const int u = static_cast<int>(std::lround(pc.x())),
                   v = static_cast<int>(std::lround(pc.y()));
         if (u < 0 || v < 0 || u >= color.cols || v >= color.rows) continue;
-        const uint8_t* bgr = color.ptr<uint8_t>(v) + u * color.channels();
+        const uint8_t* bgr = color.ptr<uint8_t>(v) + static_cast<ptrdiff_t>(u) * color.channels();
         for (int c = 0; c < 3; ++c) out_color[3 * i + c] = bgr[2 - c] / 255.0f;
       }
     }
@@ -448,17 +449,7 @@ void QualitySection(const Args& args, const fs::path& work) {
   }
 }
 
-}  // namespace
-}  // namespace holocap
-
-int main(int argc, char** argv) {
-  using namespace holocap;
-  // Both sides wait passively: libgomp's spinning threads on a shared machine measure the load,
-  // not the code. The variable is read when libgomp loads.
-  if (std::getenv("OMP_WAIT_POLICY") == nullptr) {
-    setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
-    execv("/proc/self/exe", argv);
-  }
+Args ParseArgs(int argc, char** argv) {
   Args args;
   for (int i = 1; i + 1 < argc; i += 2) {
     const std::string flag = argv[i], value = argv[i + 1];
@@ -482,15 +473,33 @@ int main(int argc, char** argv) {
       }
     }
   }
-  const std::filesystem::path work =
-      args.keep.empty() ? std::filesystem::temp_directory_path() / "holocap-scan-bench" : args.keep;
-  std::printf("# scan_bench: one moving RGB-D sensor (single-rgbd), load at start %s\n",
-              Uptime().c_str());
+  return args;
+}
+
+}  // namespace
+}  // namespace holocap
+
+int main(int argc, char** argv) {
+  // Both sides wait passively: libgomp's spinning threads on a shared machine measure the load,
+  // not the code. The variable is read when libgomp loads.
+  if (std::getenv("OMP_WAIT_POLICY") == nullptr) {
+    setenv("OMP_WAIT_POLICY", "PASSIVE", 1);
+    execv("/proc/self/exe", argv);
+  }
   try {
-    TrackingSection(args, work);
-    QualitySection(args, work);
-  } catch (const Error& e) {
+    const holocap::Args args = holocap::ParseArgs(argc, argv);
+    const std::filesystem::path work =
+        args.keep.empty() ? std::filesystem::temp_directory_path() / "holocap-scan-bench"
+                          : args.keep;
+    std::printf("# scan_bench: one moving RGB-D sensor (single-rgbd), load at start %s\n",
+                holocap::Uptime().c_str());
+    holocap::TrackingSection(args, work);
+    holocap::QualitySection(args, work);
+  } catch (const std::exception& e) {
     std::printf("error: %s\n", e.what());
+    return 1;
+  } catch (...) {
+    std::printf("error: an unknown exception\n");
     return 1;
   }
   return 0;

@@ -176,7 +176,7 @@ int Main(int argc, char** argv) {
   if (!cluster.Start(&why)) Fail("the cluster did not start: ", why);
   auto slurm = [&](int tasks, int rep) {
     Measure m{Cat("Slurm, ", tasks, " task(s) x 1 CPU"), 0, 0, 0, Load()};
-    const fs::path out = work / Cat("slurm-", tasks, "-", rep);
+    fs::path out = work / Cat("slurm-", tasks, "-", rep);
     const double t0 = Now();
     const std::string submitted =
         Run("HOLOCAP_NO_PROGRESS=1 '" + cli + "' submit slurm " + recon + " --out " + out.string() +
@@ -292,7 +292,7 @@ int Main(int argc, char** argv) {
 int main(int argc, char** argv) {
   try {
     return holocap::Main(argc, argv);
-  } catch (const holocap::Error& e) {
+  } catch (const std::exception& e) {
     std::fprintf(stderr, "slurm_bench: %s\n", e.what());
     return 1;
   }

@@ -149,6 +149,7 @@ class LocalSlurm {
 
   void Spawn(const std::vector<std::string>& argv) {
     std::vector<char*> args;
+    args.reserve(argv.size() + 1);
     for (const auto& a : argv) args.push_back(const_cast<char*>(a.c_str()));
     args.push_back(nullptr);
     const std::string log = (dir_ / "daemons.out").string();
