@@ -320,7 +320,7 @@ TEST_F(ShardedReconstruct, BadShardsAndMergesEndInOneLine) {
   ExpectOneLineError(RunCli("reconstruct " + take() + " --ground-truth-cameras --out " +
                             out("bad") + " --shard two"),
                      "--shard must be K/N");
-  ExpectOneLineError(RunCli("report " + take() + " --ground-truth-cameras --merge"),
+  ExpectOneLineError(RunCli("report " + take() + " --merge"),
                      "holds no run.json");
   auto empty = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("wide") +
                       " --shard 0/7 --no-sweep");

@@ -23,7 +23,8 @@ void ScanHalfTurn(const fs::path& turn) {
                             turn.string())
                 .exit_code,
             0);
-  const testing::CommandResult scan = testing::RunCli("scan " + turn.string());
+  const testing::CommandResult scan =
+      testing::RunCli("scan " + turn.string() + " --ground-truth-cameras --turn");
   ASSERT_EQ(scan.exit_code, 0) << scan.output;
 }
 

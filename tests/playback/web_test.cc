@@ -408,7 +408,9 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
 }
 
 TEST_F(WebTest, ViewOfATakeRemovesItsTemporarySiteWhenStopped) {
-  ViewServer server(Take());
+  ViewServer server(
+      ViewServer::Start{{Take().string(), "--ground-truth-cameras", "--port", "0"}, {}, {}});
+  server.WaitForUrl();
   ASSERT_FALSE(server.url().empty()) << server.printed();
   const std::string& printed = server.printed();
   const auto at = printed.find(" to ");
