@@ -156,6 +156,9 @@ struct WebExportOptions {
   int error_width_px = 160;                   // width of the views the export's error is
                                               // measured on (the capture cameras, rescaled)
   int error_cameras = 2;                      // capture cameras measured per frame
+  int camera_score_every = 10;                // every k-th frame of the timeline (from the
+                                              // first) is scored against the images of the
+                                              // capture cameras each source never saw
   TakeSelection take;                         // cameras (calib/ or gt/cameras)
   bool overwrite = false;                     // write into a non-empty site made by export
   FrameTaskOptions tasks;                     // this task's groups (--shard K/N), --redo
@@ -177,11 +180,26 @@ struct WebStreamMetrics {
   double mean_stored_gaussians = 0;  // splats: Gaussians whose codes a chunk carries (changed
                                      // or added in a delta, every one in a key frame)
   int64_t key_frames = 0;            // splats: chunks that decode alone
+  // Against the camera: pictures through the capture cameras the stream's source was never
+  // trained on nor reconstructed from (`heldout`), each over the stream's background for that
+  // camera, against what the camera captured inside the subject's silhouette (grown by 3 px;
+  // the simulation's true one where the take has gt/, else background subtraction against the
+  // clean plate), in the camera's pinhole core (avatar/camera_score.h). NaN where unmeasured,
+  // `unscored` saying why.
+  std::vector<std::string> heldout;
+  std::string unscored;
+  double camera_native_psnr_db = 0;      // the source rendered natively (holocap render)
+  double camera_streamed_psnr_db = 0;    // the decoded chunks drawn as the page draws them
+  double camera_background_psnr_db = 0;  // the background alone (an empty picture)
+  int64_t camera_pixels = 0;             // subject pixels compared, over every view scored
   nlohmann::json ToJson() const;
 };
 
-// SUCCESS once every chunk and the player are written; DEGENERATE when the take has nothing to
-// stream (no meshes, no model), with the reason.
+// SUCCESS once every chunk and the player are written and every stream scored against the
+// camera is closer to it than its background alone; DEGENERATE when the take has nothing to
+// stream (no meshes, no model), or when a stream's native render or its decoded chunks score no
+// better against a held-out camera than the background alone on the same pixels (the site is
+// written, the reason names the stream and both figures).
 struct WebExportSummary : Summary {
   int64_t frames = 0;
   uint64_t bytes = 0;  // the whole site

@@ -7,9 +7,12 @@
 #include <map>
 #include <memory>
 #include <numeric>
+#include <opencv2/imgcodecs.hpp>
 #include <optional>
 #include <set>
+#include <tuple>
 
+#include "avatar/camera_score.h"
 #include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
@@ -96,17 +99,45 @@ struct SiteStream {
   std::string folder;       // its chunks, relative to the site
   int source = -1;          // -1: the meshes; else its model's index in options.models
   nlohmann::json encoding;  // splats: the stream's quantisation over the whole timeline
+  // The capture cameras its source never saw (scored against), or why there are none.
+  std::vector<std::string> heldout;
+  std::string unscored;
+  // Per capture camera, the picture behind the subject (relative to the plan folder and to the
+  // site): the model's backgrounds or the take's clean plate, in the camera's pinhole core.
+  nlohmann::json backgrounds = nlohmann::json::object();
 
   nlohmann::json ToJson() const {
-    return {{"name", name},   {"kind", kind},     {"quality", quality},
-            {"path", folder}, {"source", source}, {"encoding", encoding}};
+    return {{"name", name},       {"kind", kind},         {"quality", quality},
+            {"path", folder},     {"source", source},     {"encoding", encoding},
+            {"heldout", heldout}, {"unscored", unscored}, {"backgrounds", backgrounds}};
   }
   static SiteStream FromJson(const nlohmann::json& json) {
-    return {json.at("name").get<std::string>(),    json.at("kind").get<std::string>(),
-            json.at("quality").get<std::string>(), json.at("path").get<std::string>(),
-            json.at("source").get<int>(),          json.at("encoding")};
+    return {json.at("name").get<std::string>(),
+            json.at("kind").get<std::string>(),
+            json.at("quality").get<std::string>(),
+            json.at("path").get<std::string>(),
+            json.at("source").get<int>(),
+            json.at("encoding"),
+            json.value("heldout", std::vector<std::string>{}),
+            json.value("unscored", std::string()),
+            json.value("backgrounds", nlohmann::json::object())};
   }
 };
+
+// The capture cameras a source was never trained on nor reconstructed from: its plan's
+// "heldout" (a model's model.json, a reconstruction's report.json).
+std::vector<std::string> HeldOutOf(const fs::path& file) {
+  std::error_code ec;
+  if (!fs::exists(file, ec)) return {};
+  const nlohmann::json json = nlohmann::json::parse(ReadFileToString(file), nullptr, false);
+  if (json.is_discarded() || !json.contains("plan") || !json["plan"].is_object()) return {};
+  const nlohmann::json& heldout = json["plan"].value("heldout", nlohmann::json::array());
+  std::vector<std::string> names;
+  if (heldout.is_array())
+    for (const auto& name : heldout)
+      if (name.is_string()) names.push_back(name.get<std::string>());
+  return names;
+}
 
 // A splat model's frames, each from its delta's base (the frame before, or frame 0 where a
 // per-frame run's segment starts), with where each Gaussian of the frame came from in its base.
@@ -138,8 +169,10 @@ class SplatSequence {
 };
 
 RenderedView SplatView(const splat::Gaussians& gaussians, const CameraModel& camera) {
+  const SplatRender render = RenderSplats(gaussians, camera);
   RenderedView view;
-  view.color = RenderSplats(gaussians, camera).color;
+  view.color = render.color;
+  view.alpha = render.alpha;
   return view;
 }
 
@@ -181,8 +214,17 @@ class SiteWriter {
   nlohmann::json ReportPlan() const;
   nlohmann::json Identity() const;
   void PlanSite();
-  nlohmann::json MakePlan();
+  nlohmann::json MakePlan(std::vector<std::string>* files);
   std::vector<SiteStream> ListStreams() const;
+  // Writes the stream's backgrounds into the plan folder (once per source) and lists them.
+  void PlanBackgrounds(SiteStream* stream, std::vector<std::string>* files);
+  // Timeline frame i of a stream against its held-out cameras' images (on every
+  // camera_score_every-th frame): the native render of its source (`native`, the same for every
+  // level), the decoded chunk drawn as the page draws it (`streamed`) and the background alone,
+  // each over the stream's background, inside the subject's silhouette. Adds "camera" to `tally`.
+  using ViewOf = std::function<RenderedView(const CameraModel&)>;
+  void ScoreAgainstCameras(const SiteStream& stream, size_t i, const ViewOf& native,
+                           const ViewOf& streamed, nlohmann::json* tally);
   nlohmann::json ManifestHead() const;
   web::SplatEncoding EncodingOver(int source, const std::string& level);
   void StartRecords();
@@ -203,7 +245,7 @@ class SiteWriter {
                                  const splat::Gaussians& gaussians,
                                  const web::SplatEncoding& encoding, bool key,
                                  const std::vector<int64_t>& origin, web::SplatCodes* decoded,
-                                 std::vector<std::string>* outputs) const;
+                                 std::vector<std::string>* outputs);
   // Writes timeline frame i's chunk durably (`entry`: more fields of its manifest entry).
   nlohmann::json WriteChunk(const SiteStream& stream, size_t i, const std::string& chunk,
                             const nlohmann::json& entry, std::vector<std::string>* outputs) const;
@@ -235,6 +277,10 @@ class SiteWriter {
   std::map<int, std::vector<int64_t>> model_frames_;
   std::map<int, std::unique_ptr<AvatarModel>> volumes_;
   std::map<int, std::unique_ptr<SplatSequence>> sequences_;
+  std::map<std::pair<size_t, std::string>, CameraTruth> truths_;  // by timeline frame, camera
+  std::map<std::string, cv::Mat> background_images_;              // by path in the plan folder
+  // Per source, timeline frame and camera: the native render's and the background's errors.
+  std::map<std::tuple<int, size_t, std::string>, std::pair<SquaredError, SquaredError>> natives_;
   bool manifest_withdrawn_ = false;
   int64_t written_ = 0, skipped_ = 0;
   WebExportSummary summary_;
@@ -326,7 +372,7 @@ nlohmann::json SiteWriter::Identity() const {
 void SiteWriter::PlanSite() {
   const StoredPlan stored =
       PlanOnce(site_, kCommand, HashBytes(identity_.dump()), task_,
-               [this](std::vector<std::string>* /*files*/) { return MakePlan(); });
+               [this](std::vector<std::string>* files) { return MakePlan(files); });
   for (const auto& stream : stored.plan.at("streams"))
     streams_.push_back(SiteStream::FromJson(stream));
   plan_origin_ = stored.made ? Cat("made by this task (", stored.why, ")")
@@ -336,11 +382,12 @@ void SiteWriter::PlanSite() {
               options_.splat_key_every, streams_.size(), plan_origin_.c_str());
 }
 
-nlohmann::json SiteWriter::MakePlan() {
+nlohmann::json SiteWriter::MakePlan(std::vector<std::string>* files) {
   nlohmann::json streams = nlohmann::json::array();
   for (SiteStream& stream : ListStreams()) {
     if (stream.kind == "splats")
       stream.encoding = EncodingOver(stream.source, stream.quality).ToJson();
+    PlanBackgrounds(&stream, files);
     streams.push_back(stream.ToJson());
   }
   return {{"head", ManifestHead()},
@@ -351,22 +398,116 @@ nlohmann::json SiteWriter::MakePlan() {
 
 std::vector<SiteStream> SiteWriter::ListStreams() const {
   std::vector<SiteStream> streams;
-  auto add = [&](const std::string& name, const std::string& kind, int source) {
+  const bool silhouettes = take_.has_ground_truth() || plan_.has_clean_plate();
+  // `described_by`: the source's model.json or report.json, whose plan names its held-out cameras.
+  auto add = [&](const std::string& name, const std::string& kind, int source,
+                 const fs::path& described_by) {
+    std::vector<std::string> heldout;
+    for (const std::string& camera : HeldOutOf(described_by))
+      if (std::find(camera_names_.begin(), camera_names_.end(), camera) != camera_names_.end())
+        heldout.push_back(camera);
+    std::string unscored;
+    if (heldout.empty()) {
+      unscored = Cat("no capture camera of the take was held out of ", described_by.string());
+    } else if (!silhouettes) {
+      unscored = "the take has neither true silhouettes (gt/) nor a clean plate to find them";
+      heldout.clear();
+    }
     for (const std::string& level : options_.qualities) {
       std::string stream = name;
       stream += '-';
       stream += level;
-      streams.push_back({stream, kind, level, "streams/" + stream, source, nullptr});
+      streams.push_back(
+          {stream, kind, level, "streams/" + stream, source, nullptr, heldout, unscored});
     }
   };
-  if (!mesh_files_.empty()) add("mesh", "mesh", -1);
+  if (!mesh_files_.empty()) add("mesh", "mesh", -1, recon_ / "report.json");
   for (size_t m = 0; m < options_.models.size(); ++m) {
     const fs::path& model_dir = options_.models[m];
     const std::string kind = OpenModel(model_dir)->method();
     const std::string name = options_.models.size() > 1 ? model_dir.filename().string() : kind;
-    add(name, kind == "splat" ? "splats" : "volume", static_cast<int>(m));
+    add(name, kind == "splat" ? "splats" : "volume", static_cast<int>(m), model_dir / "model.json");
   }
   return streams;
+}
+
+void SiteWriter::PlanBackgrounds(SiteStream* stream, std::vector<std::string>* files) {
+  const fs::path learned =
+      stream->source >= 0 ? options_.models[stream->source] / "backgrounds" : fs::path();
+  const bool has_learned = !learned.empty() && fs::is_directory(learned);
+  if (!has_learned && !plan_.has_clean_plate()) return;  // black behind the subject
+  const std::string label =
+      has_learned ? stream->name.substr(0, stream->name.rfind('-')) : std::string("plate");
+  for (size_t c = 0; c < camera_names_.size(); ++c) {
+    const std::string& name = camera_names_[c];
+    const std::string file = Cat("backgrounds/", label, "/", name, ".png");
+    if (std::find(files->begin(), files->end(), file) == files->end()) {
+      cv::Mat image;
+      if (has_learned) {
+        const fs::path source = learned / (name + ".png");
+        if (!fs::exists(source)) continue;
+        image = cv::imread(source.string(), cv::IMREAD_COLOR);
+        if (image.empty()) Fail("cannot read the background ", source.string());
+      } else {
+        image = take_.ReadFrame(static_cast<size_t>(plan_.plate_set()), name);
+      }
+      std::vector<uint8_t> png;
+      cv::imencode(".png", BackgroundInPinhole(image, cameras_[c]), png);
+      CreateDirectories((site_ / kPlanDir / file).parent_path());
+      WriteFileAtomic(site_ / kPlanDir / file,
+                      std::string_view(reinterpret_cast<char*>(png.data()), png.size()),
+                      /*durable=*/true);
+      files->push_back(file);
+    }
+    stream->backgrounds[name] = file;
+  }
+}
+
+void SiteWriter::ScoreAgainstCameras(const SiteStream& stream, size_t i, const ViewOf& native,
+                                     const ViewOf& streamed, nlohmann::json* tally) {
+  if (stream.heldout.empty() || i % static_cast<size_t>(options_.camera_score_every) != 0) return;
+  SquaredError native_sum, streamed_sum, background_sum;
+  std::vector<std::string> scored;
+  for (const std::string& name : stream.heldout) {
+    const size_t c = static_cast<size_t>(
+        std::find(camera_names_.begin(), camera_names_.end(), name) - camera_names_.begin());
+    auto [truth, read] = truths_.try_emplace({i, name});
+    if (read) {
+      truth->second = ReadCameraTruth(take_, name, cameras_[c], sets_[i],
+                                      plan_.has_clean_plate() ? plan_.plate_set() : -1);
+    }
+    const CameraTruth& seen = truth->second;
+    if (seen.subject.empty()) continue;
+    cv::Mat background;
+    if (stream.backgrounds.contains(name)) {
+      const std::string file = stream.backgrounds[name].get<std::string>();
+      cv::Mat& image = background_images_[file];
+      if (image.empty()) image = cv::imread((site_ / kPlanDir / file).string(), cv::IMREAD_COLOR);
+      if (image.empty())
+        Fail("cannot read the plan's background ", (site_ / kPlanDir / file).string());
+      background = image;
+    }
+    auto [cached, fresh] = natives_.try_emplace({stream.source, i, name});
+    if (fresh) {
+      cached->second.first.Add(OverBackground(native(seen.pinhole), background), seen.image,
+                               seen.subject);
+      const cv::Mat behind =
+          background.empty() ? cv::Mat(seen.image.size(), CV_8UC3, cv::Scalar::all(0)) : background;
+      cached->second.second.Add(behind, seen.image, seen.subject);
+    }
+    streamed_sum.Add(OverBackground(streamed(seen.pinhole), background), seen.image, seen.subject);
+    native_sum.squared += cached->second.first.squared;
+    native_sum.count += cached->second.first.count;
+    background_sum.squared += cached->second.second.squared;
+    background_sum.count += cached->second.second.count;
+    scored.push_back(name);
+  }
+  if (scored.empty()) return;
+  (*tally)["camera"] = {{"cameras", scored},
+                        {"count", native_sum.count},
+                        {"native", native_sum.squared},
+                        {"streamed", streamed_sum.squared},
+                        {"background", background_sum.squared}};
 }
 
 // The manifest but its streams.
@@ -495,6 +636,9 @@ nlohmann::json SiteWriter::WriteMeshFrame(const SiteStream& stream,
                 {"count", count},
                 {"faces", decoded.faces()},
                 {"max_position_error_mm", 1e3 * max_error_m}});
+  ScoreAgainstCameras(
+      stream, i, [&](const CameraModel& camera) { return RenderTexturedMesh(mesh, camera); },
+      [&](const CameraModel& camera) { return RenderTexturedMesh(decoded, camera); }, &tally);
   return tally;
 }
 
@@ -521,6 +665,15 @@ nlohmann::json SiteWriter::WriteVolumeFrame(const SiteStream& stream,
                     web::RenderBakedFrame(baked, camera, render.min_transmittance), &squared,
                     &count);
   tally.update({{"squared", squared}, {"count", count}});
+  ScoreAgainstCameras(
+      stream, i,
+      [&](const CameraModel& camera) {
+        return VolumeModel(stream.source).Render(camera, frame, render);
+      },
+      [&](const CameraModel& camera) {
+        return web::RenderBakedFrame(decoded, camera, render.min_transmittance);
+      },
+      &tally);
   return tally;
 }
 
@@ -563,7 +716,7 @@ nlohmann::json SiteWriter::WriteSplatChunk(const SiteStream& stream, size_t i,
                                            const web::SplatEncoding& encoding, bool key,
                                            const std::vector<int64_t>& origin,
                                            web::SplatCodes* decoded,
-                                           std::vector<std::string>* outputs) const {
+                                           std::vector<std::string>* outputs) {
   const web::SplatCodes* previous = key ? nullptr : decoded;
   web::SplatCodes codes;
   const std::string chunk =
@@ -582,6 +735,9 @@ nlohmann::json SiteWriter::WriteSplatChunk(const SiteStream& stream, size_t i,
                 {"count", count},
                 {"gaussians", gaussians.size()},
                 {"stored", parsed.header.at("stored")}});
+  ScoreAgainstCameras(
+      stream, i, [&](const CameraModel& camera) { return SplatView(gaussians, camera); },
+      [&](const CameraModel& camera) { return SplatView(drawn, camera); }, &tally);
   return tally;
 }
 
@@ -709,6 +865,13 @@ class StreamSum {
     metrics_.mean_gaussians += frame.value("gaussians", 0.0);
     metrics_.mean_stored_gaussians += frame.value("stored", 0.0);
     metrics_.key_frames += frame.at("chunk").value("key", false) ? 1 : 0;
+    if (frame.contains("camera")) {
+      const nlohmann::json& camera = frame["camera"];
+      camera_count_ += camera.at("count").get<int64_t>();
+      native_.squared += camera.at("native").get<double>();
+      streamed_.squared += camera.at("streamed").get<double>();
+      background_.squared += camera.at("background").get<double>();
+    }
     report_->AddPoint(metrics_.name + ".psnr_db", Psnr(squared_, count_), metrics_.frames);
   }
 
@@ -722,13 +885,24 @@ class StreamSum {
     metrics.mean_stored_gaussians /= frames;
     metrics.mbps = metrics.mb_per_frame * 8 * fps;
     metrics.psnr_db = Psnr(squared_, count_);
+    metrics.heldout = stream_.heldout;
+    metrics.unscored = stream_.unscored;
+    native_.count = streamed_.count = background_.count = camera_count_;
+    metrics.camera_native_psnr_db = native_.PsnrDb();
+    metrics.camera_streamed_psnr_db = streamed_.PsnrDb();
+    metrics.camera_background_psnr_db = background_.PsnrDb();
+    metrics.camera_pixels = camera_count_ / 3;
+    if (camera_count_ == 0 && metrics.unscored.empty())
+      metrics.unscored = "no subject pixel in the held-out cameras' frames scored";
     summary->bytes += bytes_;
     summary->streams.push_back(metrics);
     report_->metrics()["streams"][metrics.name] = metrics.ToJson();
-    return {{"name", metrics.name},       {"kind", metrics.kind},
-            {"quality", metrics.quality}, {"path", stream_.folder},
-            {"chunks", chunks_},          {"mb_per_frame", metrics.mb_per_frame},
-            {"mbps", metrics.mbps},       {"psnr_db", metrics.psnr_db}};
+    nlohmann::json entry = {{"name", metrics.name},       {"kind", metrics.kind},
+                            {"quality", metrics.quality}, {"path", stream_.folder},
+                            {"chunks", chunks_},          {"mb_per_frame", metrics.mb_per_frame},
+                            {"mbps", metrics.mbps},       {"psnr_db", metrics.psnr_db}};
+    if (!stream_.backgrounds.empty()) entry["backgrounds"] = stream_.backgrounds;
+    return entry;
   }
 
  private:
@@ -740,7 +914,33 @@ class StreamSum {
   uint64_t bytes_ = 0;
   double squared_ = 0;
   int64_t count_ = 0;
+  SquaredError native_, streamed_, background_;  // against the camera
+  int64_t camera_count_ = 0;
 };
+
+// Finite values as numbers, NaN as null.
+nlohmann::json Number(double value) {
+  return std::isfinite(value) ? nlohmann::json(value) : nlohmann::json();
+}
+
+// Why a stream that was scored against the camera is no better there than its background
+// alone; empty when it is (or was not scored).
+std::string NoBetterThanBackground(const WebStreamMetrics& s) {
+  if (s.camera_pixels == 0) return "";
+  std::string why;
+  for (const auto& [what, db] :
+       {std::pair<const char*, double>{"native render", s.camera_native_psnr_db},
+        {"streamed picture", s.camera_streamed_psnr_db}}) {
+    if (db > s.camera_background_psnr_db) continue;
+    why += Cat(why.empty() ? "" : ", ", "its ", what, " scores ", db, " dB");
+  }
+  if (why.empty()) return "";
+  std::string cameras;
+  for (const std::string& c : s.heldout) cameras += (cameras.empty() ? "" : ", ") + c;
+  return Cat(s.name, ": ", why, " against held-out ", cameras,
+             " inside the subject, no better than the background alone (",
+             s.camera_background_psnr_db, " dB)");
+}
 
 }  // namespace
 
@@ -751,6 +951,7 @@ void WebExportOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GT(step_voxels, 0);
   HOLOCAP_CHECK_OPTION_GE(error_width_px, 8);
   HOLOCAP_CHECK_OPTION_GE(error_cameras, 0);
+  HOLOCAP_CHECK_OPTION_GE(camera_score_every, 1);
   HOLOCAP_CHECK_OPTION_GE(splat_key_every, 1);
   take.Check();
   tasks.Check();
@@ -767,6 +968,7 @@ nlohmann::json WebExportOptions::ToJson() const {
           {"step_voxels", step_voxels},
           {"error_width_px", error_width_px},
           {"error_cameras", error_cameras},
+          {"camera_score_every", camera_score_every},
           {"splat_key_every", splat_key_every},
           {"take", take.ToJson()},
           {"overwrite", overwrite},
@@ -783,6 +985,12 @@ nlohmann::json WebStreamMetrics::ToJson() const {
       {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
       {"max_position_error_mm", max_position_error_mm},
       {"mean_faces", mean_faces}};
+  json["camera"] = {{"heldout", heldout},
+                    {"native_psnr_db", Number(camera_native_psnr_db)},
+                    {"streamed_psnr_db", Number(camera_streamed_psnr_db)},
+                    {"background_psnr_db", Number(camera_background_psnr_db)},
+                    {"pixels", camera_pixels}};
+  if (!unscored.empty()) json["camera"]["unscored"] = unscored;
   if (kind == "splats") {
     json["mean_gaussians"] = mean_gaussians;
     json["mean_stored_gaussians"] = mean_stored_gaussians;
@@ -845,13 +1053,33 @@ WebExportSummary MergeWebSite(const fs::path& site_dir, Report* report) {
     CreateDirectories((site_dir / path).parent_path());
     WriteFileAtomic(site_dir / path, bytes, /*durable=*/true);
   }
+  // The streams' backgrounds, from the plan folder to where the manifest names them.
+  std::set<std::string> backgrounds;
+  for (const auto& planned : plan.at("streams")) {
+    const nlohmann::json listed = planned.value("backgrounds", nlohmann::json::object());
+    for (const auto& [camera, file] : listed.items()) backgrounds.insert(file.get<std::string>());
+  }
+  for (const std::string& file : backgrounds) {
+    CreateDirectories((site_dir / file).parent_path());
+    WriteFileAtomic(site_dir / file, ReadFileToString(site_dir / kPlanDir / file),
+                    /*durable=*/true);
+  }
   // Last: a player opens the site only once every chunk it lists is in place.
   nlohmann::json manifest = plan.at("head");
   manifest["streams"] = streams;
   WriteFileAtomic(site_dir / "manifest.json", manifest.dump(1) + "\n", /*durable=*/true);
   summary.seconds = report->ElapsedSeconds();
-  summary.End(Termination::kSuccess,
-              Cat(summary.frames, " frame(s), ", summary.streams.size(), " stream(s)"));
+  std::string degenerate;
+  for (const WebStreamMetrics& s : summary.streams) {
+    const std::string why = NoBetterThanBackground(s);
+    if (!why.empty()) degenerate += (degenerate.empty() ? "" : "; ") + why;
+  }
+  if (degenerate.empty()) {
+    summary.End(Termination::kSuccess,
+                Cat(summary.frames, " frame(s), ", summary.streams.size(), " stream(s)"));
+  } else {
+    summary.End(Termination::kDegenerate, Cat("the site is written, but ", degenerate));
+  }
   report->metrics()["frames"] = summary.frames;
   report->metrics()["bytes"] = summary.bytes;
   report->metrics()["seconds"] = summary.seconds;

@@ -76,6 +76,23 @@ void CheckWebFrameRecord(const nlohmann::json& frame, const fs::path& site,
         count != std::floor(count) || squared > count)
       refuse(Cat("holds a squared error of ", squared, " over ", count,
                  " values, which no image gives (0 to 1 a value)"));
+    if (frame.contains("camera")) {
+      // Against the camera: squared errors of 0..1 values over `count` values each.
+      const nlohmann::json& camera = frame["camera"];
+      const bool numbers = camera.is_object() && camera.contains("count") &&
+                           camera["count"].is_number() && camera.contains("cameras") &&
+                           camera["cameras"].is_array();
+      if (!numbers) refuse("holds a score against the camera without its cameras and count");
+      const double values = camera["count"].get<double>();
+      if (!(values >= 0) || values > 1e12 || values != std::floor(values))
+        refuse(Cat("scores ", values, " values against the camera, not a count"));
+      for (const char* field : {"native", "streamed", "background"}) {
+        if (!camera.contains(field) || !camera[field].is_number() ||
+            !std::isfinite(camera[field].get<double>()) || camera[field].get<double>() < 0 ||
+            camera[field].get<double>() > values)
+          refuse(Cat("holds a squared error '", field, "' against the camera that no image gives"));
+      }
+    }
     for (const char* field : {"max_position_error_mm", "faces", "gaussians", "stored"}) {
       if (!frame.contains(field)) continue;
       if (!frame[field].is_number() || !std::isfinite(frame[field].get<double>()) ||

@@ -7,6 +7,7 @@
 #include <opencv2/imgproc.hpp>
 #include <optional>
 
+#include "avatar/camera_score.h"
 #include "avatar/training_data.h"
 #include "core/error.h"
 #include "core/fs.h"
@@ -24,44 +25,6 @@ std::string SetName(int64_t set) {
   std::snprintf(name, sizeof(name), "%06lld", static_cast<long long>(set));
   return name;
 }
-
-// The pinhole of a lens's intrinsics core and the maps that resample the lens's images into it.
-struct Undistortion {
-  CameraModel pinhole;
-  cv::Mat map_x, map_y;
-
-  explicit Undistortion(const CameraModel& lens) {
-    const auto& k = lens.intrinsics();
-    pinhole = CameraModel("LENSMODEL_PINHOLE", {k[0], k[1], k[2], k[3]}, lens.width(),
-                          lens.height(), lens.cam_from_world());
-    const int w = lens.width(), h = lens.height();
-    Eigen::Matrix3Xd rays(3, static_cast<int64_t>(w) * h);
-    for (int y = 0; y < h; ++y) {
-      for (int x = 0; x < w; ++x)
-        rays.col(static_cast<int64_t>(y) * w + x) << (x - k[2]) / k[0], (y - k[3]) / k[1], 1.0;
-    }
-    const Eigen::Matrix2Xd pixels = lens.ProjectMany(rays);
-    map_x.create(h, w, CV_32FC1);
-    map_y.create(h, w, CV_32FC1);
-    for (int y = 0; y < h; ++y) {
-      for (int x = 0; x < w; ++x) {
-        map_x.at<float>(y, x) = static_cast<float>(pixels(0, static_cast<int64_t>(y) * w + x));
-        map_y.at<float>(y, x) = static_cast<float>(pixels(1, static_cast<int64_t>(y) * w + x));
-      }
-    }
-  }
-  // Colour bilinear, a silhouette nearest.
-  cv::Mat Color(const cv::Mat& image) const {
-    cv::Mat out;
-    cv::remap(image, out, map_x, map_y, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
-    return out;
-  }
-  cv::Mat Mask(const cv::Mat& mask) const {
-    cv::Mat out;
-    cv::remap(mask, out, map_x, map_y, cv::INTER_NEAREST, cv::BORDER_CONSTANT);
-    return out;
-  }
-};
 
 // `selection` narrowed to its first frame set (a static scene; the seed of one frame), whether
 // it names a range A:B or a list of frame sets.

@@ -1,13 +1,15 @@
 // The holocap player: plays a site written by `holocap export web` (manifest.json + chunks).
 // The URL's hash is the permalink: frame=K, stream=NAME, and either camera=N (look through
-// capture camera N) or eye=x,y,z&target=x,y,z&fov=DEG; play=1, speed=S, loop=0, helpers=0 and
-// ui=0 (no overlays) are optional. window.holocap exposes the state for tests and tools.
+// capture camera N) or eye=x,y,z&target=x,y,z&fov=DEG; play=1, speed=S, loop=0, helpers=0,
+// background=0 (the subject alone over black where the stream has a background behind it when
+// looking through a capture camera) and ui=0 (no overlays) are optional. window.holocap exposes the state for tests and tools.
 import { captureCamera, cameraCentre, cross, dot, lookAt, multiply, normalize, projectionMatrix,
          scale, add, sub, norm, viewMatrix } from './math.js';
 import { FormatError, StreamBuffer, decodeChunk, loadManifest, parseChunk } from './stream.js';
 import { MeshRenderer } from './mesh.js';
 import { VolumeRenderer } from './volume.js';
 import { SplatRenderer } from './splat.js';
+import { BackgroundRenderer } from './background.js';
 import { LineRenderer, floorLines, frustumLines } from './helpers.js';
 
 const $ = (id) => document.getElementById(id);
@@ -15,7 +17,8 @@ const base = new URL('.', window.location.href);
 
 const state = {
   manifest: null, buffers: [], stream: 0, frame: 0, time: 0, playing: false, loop: true,
-  speed: 1, helpers: true, drawnFrame: -1, drawnStream: null, messages: [],
+  speed: 1, helpers: true, background: true, drawnBackground: null, drawnFrame: -1,
+  drawnStream: null, messages: [],
   fatal: null, timeToFirstFrameMs: null, decoded: [], drawTimes: [], fly: false,
   view: null,  // {mode: 'orbit', target, radius, azimuth, elevation, fov} | {mode: 'capture', index}
                // | {mode: 'fly', eye, yaw, pitch, fov}
@@ -123,6 +126,7 @@ function writeHash() {
   if (state.speed !== 1) parts.push(`speed=${state.speed}`);
   if (!state.loop) parts.push('loop=0');
   if (!state.helpers) parts.push('helpers=0');
+  if (!state.background) parts.push('background=0');
   if (document.body.classList.contains('bare')) parts.push('ui=0');
   const hash = '#' + parts.join('&');
   if (window.location.hash !== hash) history.replaceState(null, '', hash);
@@ -154,6 +158,7 @@ function readHash() {
   state.speed = Number(p.get('speed')) || 1;
   state.loop = p.get('loop') !== '0';
   state.helpers = p.get('helpers') !== '0';
+  state.background = p.get('background') !== '0';
   document.body.classList.toggle('bare', p.get('ui') === '0');
 }
 
@@ -296,11 +301,18 @@ function draw(gl, renderers) {
   const centre = boundsCentre(), distance = norm(sub(cameraCentre(camera), centre));
   const projection = projectionMatrix(camera, W, H, Math.max(0.01, distance * 0.01), distance * 10 + 20);
   const view = viewMatrix(camera);
+  const stream = state.manifest.streams[state.stream];
+  // Through a capture camera, what the stream's source sees behind the subject there.
+  state.drawnBackground = null;
+  if (state.background && state.view.mode === 'capture' && stream?.backgrounds) {
+    const c = state.manifest.cameras[state.view.index];
+    const url = stream.backgrounds[c.name];
+    if (url) state.drawnBackground = renderers.background.draw(url, c, W, H);
+  }
   if (state.helpers) {
     renderers.floor.draw(view, projection);
     renderers.frusta.draw(view, projection);
   }
-  const stream = state.manifest.streams[state.stream];
   const entry = state.buffers[state.stream]?.get(state.frame);
   if (!stream || !entry) return;
   if (entry.state === 'ready') {
@@ -312,6 +324,7 @@ function draw(gl, renderers) {
     if (state.drawnFrame !== state.frame && state.timeToFirstFrameMs === null)
       state.timeToFirstFrameMs = performance.now();
   }
+  if (state.drawnBackground === 'loading') return;  // the frame is drawn once its background is
   if (entry.state === 'ready' || entry.state === 'failed' || entry.state === 'empty') {
     state.drawnFrame = state.frame;
     state.drawnStream = stream.name;
@@ -370,7 +383,8 @@ async function main() {
   state.view = defaultView();
   readHash();
   const renderers = { mesh: new MeshRenderer(gl), volume: new VolumeRenderer(gl), splats: new SplatRenderer(gl),
-                      floor: new LineRenderer(gl), frusta: new LineRenderer(gl) };
+                      floor: new LineRenderer(gl), frusta: new LineRenderer(gl),
+                      background: new BackgroundRenderer(gl, base) };
   buildUi(renderers);
   const moveFly = installInput(canvas);
   window.addEventListener('hashchange', () => readHash());

@@ -2,7 +2,11 @@
 // SwiftShader) through the DevTools protocol, for tests/playback/web_test.cc and bench/web_bench.
 //
 //   node drive.mjs shots URL OUT W H FRAME CAMERA STREAM...   one PNG per stream (OUT/STREAM.png)
-//                                                             of capture camera CAMERA at FRAME
+//                                                             of capture camera CAMERA at FRAME,
+//                                                             the subject alone (background=0)
+//   node drive.mjs camera URL OUT W H FRAME CAMERA STREAM...  the same with each stream's
+//                                                             background behind the subject, as
+//                                                             a viewer sees it
 //   node drive.mjs interact URL OUT BROKEN_FRAME             drag, zoom, play, scrub, a broken
 //                                                             chunk, an unknown version, the
 //                                                             player's picture (OUT/player.png)
@@ -46,7 +50,8 @@ const state = (page) => page.evaluate(() => {
   const s = window.holocap;
   return { frame: s.frame, drawnFrame: s.drawnFrame, drawnStream: s.drawnStream,
            drawnState: s.drawnState, playing: s.playing, messages: s.messages, fatal: s.fatal,
-           hash: window.location.hash, timeToFirstFrameMs: s.timeToFirstFrameMs, stats: s.stats };
+           hash: window.location.hash, timeToFirstFrameMs: s.timeToFirstFrameMs, stats: s.stats,
+           drawnBackground: s.drawnBackground };
 });
 
 async function waitFor(page, predicate, what, timeoutMs = 60000) {
@@ -59,16 +64,17 @@ async function waitFor(page, predicate, what, timeoutMs = 60000) {
   }
 }
 
-async function shots([width, height, frame, camera, ...streams]) {
+async function shots([width, height, frame, camera, ...streams], background) {
   const results = {};
   for (const stream of streams) {
-    const page = await open(`frame=${frame}&camera=${camera}&stream=${stream}&helpers=0&ui=0`, +width, +height);
+    const page = await open(`frame=${frame}&camera=${camera}&stream=${stream}&helpers=0&ui=0` +
+                            (background ? '' : '&background=0'), +width, +height);
     const s = await waitFor(page, (s) => s.drawnFrame === +frame && s.drawnStream === stream, `${stream} frame ${frame}`);
     // Two more animation frames: the drawn frame is on the canvas.
     await page.evaluate(() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r))));
     const file = path.join(out, `${stream}.png`);
     await page.screenshot({ path: file, clip: { x: 0, y: 0, width: +width, height: +height } });
-    results[stream] = { file, state: s.drawnState, messages: s.messages };
+    results[stream] = { file, state: s.drawnState, background: s.drawnBackground, messages: s.messages };
     await page.close();
   }
   return results;
@@ -133,7 +139,7 @@ async function interact([brokenFrame]) {
 }
 
 async function scrub([width, height, camera, stream, first, ...targets]) {
-  const page = await open(`frame=${first}&camera=${camera}&stream=${stream}&helpers=0&ui=0`, +width, +height);
+  const page = await open(`frame=${first}&camera=${camera}&stream=${stream}&helpers=0&ui=0&background=0`, +width, +height);
   await waitFor(page, (s) => s.drawnFrame === +first && s.drawnState === 'ready', `${stream} frame ${first}`);
   const results = { first: +first, frames: [] };
   for (const target of targets.map(Number)) {
@@ -177,7 +183,8 @@ async function bench(streams) {
 
 let results;
 try {
-  if (mode === 'shots') results = await shots(rest);
+  if (mode === 'shots') results = await shots(rest, false);
+  else if (mode === 'camera') results = await shots(rest, true);
   else if (mode === 'interact') results = await interact(rest);
   else if (mode === 'scrub') results = await scrub(rest);
   else if (mode === 'bench') results = await bench(rest);
