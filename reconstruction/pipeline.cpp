@@ -3,6 +3,7 @@
 #include <omp.h>
 #include <opencv2/imgproc.hpp>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -632,25 +633,29 @@ FrameResult FrameResultFromJson(const nlohmann::json& json) {
   return f;
 }
 
-// SUCCESS when at least one frame set gave a surface (the first failure is named); DEGENERATE
-// when none did. Frames whose depth fusion fell back to the colour cameras' hull: the plan and
-// the message say so, with the first one's reason.
+// SUCCESS only when every frame set gave a surface: a run with a failed frame set is
+// DEGENERATE (its other meshes are written and usable alone), its message naming the failed
+// sets (the first ten, and how many more) and the first one's reason. Frames whose depth fusion
+// fell back to the colour cameras' hull: the plan and the message say so, with the first one's
+// reason.
 void EndByFrames(const std::vector<FrameResult>& frames, const std::string& method,
                  ReconstructionSummary* summary) {
   const int count = static_cast<int>(frames.size());
-  int usable = 0;
-  for (const FrameResult& f : frames) usable += f.IsUsable();
-  if (usable == count) {
+  std::vector<const FrameResult*> failed;
+  for (const FrameResult& f : frames) {
+    if (!f.IsUsable()) failed.push_back(&f);
+  }
+  if (failed.empty()) {
     summary->End(Termination::kSuccess, Cat(count, " frame set(s) reconstructed by ", method));
   } else {
-    std::string message = Cat(usable, " of ", count, " frame sets gave a surface; first failure: ");
-    for (const FrameResult& f : frames) {
-      if (!f.IsUsable()) {
-        message += Cat("set ", f.set, ": ", f.message);
-        break;
-      }
-    }
-    summary->End(usable == 0 ? Termination::kDegenerate : Termination::kSuccess, message);
+    constexpr size_t kNamed = 10;
+    std::string sets;
+    for (size_t i = 0; i < std::min(failed.size(), kNamed); ++i)
+      sets += Cat(i == 0 ? "" : ", ", failed[i]->set);
+    if (failed.size() > kNamed) sets += Cat(" and ", failed.size() - kNamed, " more");
+    summary->End(Termination::kDegenerate,
+                 Cat(failed.size(), " of ", count, " frame sets gave no surface (set(s) ", sets,
+                     "); first failure: set ", failed.front()->set, ": ", failed.front()->message));
   }
   int fallbacks = 0;
   std::string first;

@@ -556,8 +556,9 @@ struct ReconstructionSummary : Summary {
 
 // Reconstructs the plan's frame sets of a take into `out` (recon/<set:06d>.ply and .glb,
 // report.json) with the plan's cameras (calib/, or gt/ on an uncalibrated simulated take).
-// SUCCESS when at least one frame set gave a surface (failed sets are named in the message and
-// metrics), DEGENERATE when none did, when the cameras do not see the bounds, or when the
+// SUCCESS when every frame set gave a surface; DEGENERATE when any did not (the failed sets are
+// named in the message and each frame's result is in the metrics; the others' meshes are
+// written), when the cameras do not see the bounds, or when the
 // result is implausible (a hull filling its bounds, a mesh larger than the cameras' shared
 // view). Held-out cameras of the plan are never reconstructed from; the mesh's silhouette in
 // each is compared with the plan's silhouette of its image (metrics "heldout_iou"). Throws Error

@@ -264,6 +264,36 @@ TEST(StudioTest, MissingFramesAreAClearError) {
       << result.output;
 }
 
+// A run is SUCCESS only when every frame set gave a surface: with the subject gone from one
+// frame set (its frames are the clean plate's), that set's hull is empty and the run is
+// DEGENERATE, naming the set, while the other set's mesh is still written.
+TEST(StudioTest, AFrameSetWithoutASurfaceMakesTheRunDegenerate) {
+  TempDir dir;
+  const fs::path take = dir / "take";
+  ASSERT_EQ(RunCli("sim --rig studio8 --frames 3 --clean-plate 1 --size 160 --seed 3 --no-noise "
+                   "--out '" +
+                   take.string() + "'")
+                .exit_code,
+            0);
+  for (const auto& camera : fs::directory_iterator(take / "frames")) {
+    if (camera.path().filename().string().rfind("cam", 0) != 0) continue;
+    fs::copy_file(camera.path() / "000000.png", camera.path() / "000002.png",
+                  fs::copy_options::overwrite_existing);
+  }
+  auto result = RunCli("reconstruct '" + take.string() +
+                       "' --ground-truth-cameras --method hull --no-sweep --no-glb --no-atlas");
+  EXPECT_EQ(result.exit_code, 1) << result.output;
+  EXPECT_NE(result.output.find("DEGENERATE: 1 of 2 frame sets gave no surface (set(s) 2)"),
+            std::string::npos)
+      << result.output;
+  EXPECT_NE(result.output.find("the hull is empty"), std::string::npos) << result.output;
+  EXPECT_TRUE(fs::exists(take / "recon" / "000001.ply"));
+  std::ifstream file(take / "recon" / "report.json");
+  const nlohmann::json report = nlohmann::json::parse(file);
+  EXPECT_EQ(report["summary"]["termination"], "DEGENERATE");
+  EXPECT_EQ(report["metrics"]["frames"][0]["termination"], "SUCCESS");
+}
+
 // With no bounds given, the plan takes them from the rig: the box the cameras share, cut at the
 // floor the depth sensors see and tightened to a coarse hull. The hull in it is the hull in the
 // old hand-set stage box: the same Chamfer against the truth.
