@@ -315,6 +315,9 @@ class TrainingDataLoader {
     hull_options.min_views = std::max(2, static_cast<int>(std::ceil(0.6 * training.size())));
     hull_options.tolerated_bad_views = training.size() >= 8 ? 1 : 0;
     hull_options.margin_px = 1.0;
+    // Views at the training width (a 48 px one shows a person 7 px across): the hull bounds
+    // what the silhouettes hold, however few pixels that is; an empty one is refused below.
+    hull_options.min_subject_px = 0;
     hull_options.threads = options_.threads;
     for (size_t f = 0; f < data_.sets.size(); ++f) {
       std::vector<View> views;

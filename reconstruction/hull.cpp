@@ -28,6 +28,7 @@ void HullOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(min_views, 1);
   HOLOCAP_CHECK_OPTION_GT(margin_px, -10);
   HOLOCAP_CHECK_OPTION_LT(margin_px, 100);
+  HOLOCAP_CHECK_OPTION_GE(min_subject_px, 0);
   HOLOCAP_CHECK_OPTION_GE(threads, 0);
 }
 
@@ -167,6 +168,25 @@ std::vector<HullView> PrepareViews(const std::vector<View>& views, double margin
   return hull_views;
 }
 
+// How many pixels across a ball of `diameter_m` at `centre` spans: the median over the views
+// whose image its centre projects into (0 when none does).
+double MedianSpanPx(const std::vector<View>& views, const Eigen::Vector3d& centre,
+                    double diameter_m) {
+  std::vector<double> spans;
+  for (const View& view : views) {
+    const Eigen::Vector3d in_cam = view.camera.cam_from_world() * centre;
+    const Eigen::Vector3d half(0.5 * diameter_m, 0, 0);
+    Eigen::Vector2d middle, left, right;
+    if (in_cam.z() <= 0 || !view.camera.Project(in_cam, &middle) || !view.camera.InImage(middle) ||
+        !view.camera.Project(in_cam - half, &left) || !view.camera.Project(in_cam + half, &right))
+      continue;
+    spans.push_back((right - left).norm());
+  }
+  if (spans.empty()) return 0;
+  std::nth_element(spans.begin(), spans.begin() + spans.size() / 2, spans.end());
+  return spans[spans.size() / 2];
+}
+
 }  // namespace
 
 VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
@@ -301,11 +321,22 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
                        static_cast<double>(hull.inside_blocks.size()) * kBlockVoxels) *
                       voxel * voxel * voxel;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double diameter_m = std::cbrt(6 * summary.volume_m3 / M_PI);
+  if (summary.volume_m3 > 0)
+    summary.subject_px = MedianSpanPx(views, hull.Extent().center(), diameter_m);
   if (summary.volume_m3 <= 0) {
     summary.End(Termination::kDegenerate,
                 Cat("the hull is empty: no point in the bounds lies inside ",
                     tolerated > 0 ? "all but " + std::to_string(tolerated) + " of " : "all ",
                     views.size(), " silhouettes"));
+  } else if (summary.subject_px < options.min_subject_px) {
+    summary.End(
+        Termination::kDegenerate,
+        Cat("the hull is too small to be a subject: its ", std::round(summary.volume_m3 * 1e7) / 10,
+            " cm3 are a ball ", std::round(diameter_m * 1e4) / 10, " mm across, ",
+            std::round(summary.subject_px * 10) / 10, " px in the views (at least ",
+            options.min_subject_px,
+            " px: smaller is where specks or edges of the silhouettes meet)"));
   } else {
     summary.End(Termination::kSuccess,
                 Cat("hull of ", summary.volume_m3 * 1e3, " litres from ", views.size(), " views"));

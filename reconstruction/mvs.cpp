@@ -33,6 +33,7 @@ void MvsOptions::Check() const {
   HOLOCAP_CHECK_OPTION_IN(min_consistent_views, 0, neighbors);
   HOLOCAP_CHECK_OPTION_GT(max_reprojection_px, 0);
   HOLOCAP_CHECK_OPTION_GT(max_relative_depth, 0);
+  HOLOCAP_CHECK_OPTION_IN(min_consistent_fraction, 0, 1);
   HOLOCAP_CHECK_OPTION_GE(threads, 0);
 }
 
@@ -435,10 +436,21 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
   }
   summary.pixels_consistent = consistent_total;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double fraction =
+      summary.pixels_searched > 0
+          ? static_cast<double>(summary.pixels_consistent) / summary.pixels_searched
+          : 0;
   if (summary.pixels_consistent == 0) {
     summary.End(Termination::kDegenerate,
                 Cat("no depth survived: ", summary.pixels_matched, " of ", summary.pixels_searched,
                     " pixels matched, none consistent across views"));
+  } else if (fraction < options.min_consistent_fraction) {
+    summary.End(
+        Termination::kDegenerate,
+        Cat("too few consistent depths: ", summary.pixels_consistent, " of ",
+            summary.pixels_searched, " pixels inside the hull's silhouettes (",
+            std::round(1000 * fraction) / 10, "%, at least ", 100 * options.min_consistent_fraction,
+            "%): the views do not match on the subject"));
   } else {
     summary.End(Termination::kSuccess, Cat(summary.pixels_consistent, " consistent depths of ",
                                            summary.pixels_searched, " pixels searched"));

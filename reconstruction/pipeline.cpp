@@ -366,6 +366,7 @@ class FrameReconstructor {
     VisualHull hull = Hull(voxel_, options_.hull.margin_px, plan_.hull_min_views, &summary);
     out_.metrics["hull"] = {{"seconds", summary.seconds},
                             {"volume_m3", summary.volume_m3},
+                            {"subject_px", summary.subject_px},
                             {"surface_blocks", summary.surface_blocks},
                             {"octree_cells", summary.octree_cells}};
     out_.End(summary.termination, summary.message);
@@ -472,6 +473,7 @@ class FrameReconstructor {
     MvsSummary mvs_summary;
     std::vector<cv::Mat> depths = ComputeMvsDepth(views_, hull, mvs_options, &mvs_summary);
     out_.metrics["mvs"] = {{"seconds", mvs_summary.seconds},
+                           {"pixels_searched", mvs_summary.pixels_searched},
                            {"pixels_matched", mvs_summary.pixels_matched},
                            {"pixels_consistent", mvs_summary.pixels_consistent},
                            {"planes", mvs_summary.planes}};

@@ -475,6 +475,36 @@ TEST_F(HullTest, EmptySilhouetteEmptiesTheStrictHullButNotTheConservativeOne) {
   EXPECT_GE(ContainedFraction(hull, 0), 0.99);
 }
 
+// A hull is a subject only when a ball of its volume spans min_subject_px (8) pixels in the
+// views: silhouettes of a sphere 2 cm across (3.8 px at 1.5 m with a 288 px focal length) give
+// a hull that is not empty but DEGENERATE; a sphere 8 cm across (15 px) gives a SUCCESS.
+TEST_F(HullTest, AHullTooSmallToBeASubjectIsDegenerate) {
+  options_.voxel_m = 0.002;
+  options_.bounds = {sphere_.centre - Eigen::Vector3d::Constant(0.1),
+                     sphere_.centre + Eigen::Vector3d::Constant(0.1)};
+  auto hull_of = [&](double radius) {
+    const Sphere small{sphere_.centre, radius};
+    std::vector<View> views;
+    for (size_t i = 0; i < cameras_.size(); ++i) {
+      View view{"cam" + std::to_string(i), cameras_[i], {}, {}};
+      RenderSphere(cameras_[i], small, nullptr, &view.mask);
+      views.push_back(view);
+    }
+    HullSummary summary;
+    ComputeVisualHull(views, options_, &summary);
+    return summary;
+  };
+  const HullSummary speck = hull_of(0.01);
+  EXPECT_GT(speck.volume_m3, 0);
+  EXPECT_LT(speck.subject_px, options_.min_subject_px);
+  EXPECT_EQ(speck.termination, Termination::kDegenerate) << speck.message;
+  EXPECT_NE(speck.message.find("too small to be a subject"), std::string::npos) << speck.message;
+  const HullSummary ball = hull_of(0.04);
+  EXPECT_EQ(ball.termination, Termination::kSuccess) << ball.message;
+  EXPECT_GT(ball.subject_px, 12);
+  EXPECT_LT(ball.subject_px, 20);
+}
+
 TEST_F(HullTest, SilhouetteOfTheWrongSizeIsAnError) {
   views_[1].mask = cv::Mat::zeros(10, 10, CV_8U);
   EXPECT_THROW(ComputeVisualHull(views_, options_), Error);

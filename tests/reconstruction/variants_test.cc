@@ -150,6 +150,41 @@ TEST(VariantsTest, WorldScaleColourRingIsCorrectOrDegenerate) {
   EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
 }
 
+// The same ring with the subject's pixels replaced by noise that differs from view to view:
+// the silhouettes and the hull are the subject's, but the views do not see one surface. A few
+// pixels stay consistent by chance (77 of 5939 here), far below the tenth of the hull's pixels
+// a subject keeps (56 % on the ring above): the stereo, and so the run, is DEGENERATE.
+TEST(VariantsTest, StereoOfViewsThatDoNotMatchIsDegenerate) {
+  TempDir dir;
+  const fs::path take =
+      Simulate(dir, "--frames 2 --clean-plate 1 --color-only --world-scale 0.05 --no-noise");
+  cv::RNG rng(1);
+  for (const auto& camera : fs::directory_iterator(take / "frames")) {
+    const cv::Mat plate = ReadImage(camera.path() / "000000.png");
+    cv::Mat image = ReadImage(camera.path() / "000001.png");
+    cv::Mat difference;
+    cv::absdiff(plate, image, difference);
+    cv::Mat subject;
+    cv::cvtColor(difference, subject, cv::COLOR_BGR2GRAY);
+    subject = subject > 8;
+    cv::Mat noise(image.size(), image.type());
+    rng.fill(noise, cv::RNG::UNIFORM, 0, 256);
+    noise.copyTo(image, subject);
+    WriteImage(camera.path() / "000001.png", image);
+  }
+  const Outcome outcome = Reconstruct(take, "--ground-truth-cameras");
+  ASSERT_FALSE(outcome.report.is_null()) << outcome.cli.output;
+  EXPECT_EQ(outcome.report["plan"]["method"], "mvs");
+  EXPECT_EQ(outcome.cli.exit_code, 1) << outcome.cli.output;
+  EXPECT_EQ(outcome.report["summary"]["termination"], "DEGENERATE");
+  const nlohmann::json& mvs = outcome.report["metrics"]["frames"][0]["metrics"]["mvs"];
+  EXPECT_GT(mvs["pixels_consistent"].get<int64_t>(), 0) << mvs;
+  EXPECT_LT(mvs["pixels_consistent"].get<int64_t>(), mvs["pixels_searched"].get<int64_t>() / 10)
+      << mvs;
+  EXPECT_NE(outcome.cli.output.find("mvs: too few consistent depths"), std::string::npos)
+      << outcome.cli.output;
+}
+
 // A y-down world (--up -y, CMU Panoptic's): the plan's up axis comes from the rig.
 TEST(VariantsTest, UpMinusYIsCorrectOrDegenerate) {
   TempDir dir;
