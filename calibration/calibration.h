@@ -160,7 +160,13 @@ struct CalibrationOptions {
                                       // ill-conditioned (degenerate)
   // Cross-validation.
   bool cross_validation = false;  // also solve two disjoint halves of the frames
-  bool verbose = false;           // mrcal's own iteration log on stderr
+  // ... whose projections may differ by at most this many times the 1-sigma the halves' own
+  // uncertainty predicts for their difference (RMS over the imager where the board was seen,
+  // of sqrt(sigma_a^2 + sigma_b^2) in each half's worst direction), else DEGENERATE: were the
+  // uncertainty right, the mean squared difference is at most twice that sigma squared (a
+  // round distribution), so its RMS is at most 1.41 sigma; 2 is passed by chance rarely.
+  double max_cross_validation_ratio = 2;
+  bool verbose = false;  // mrcal's own iteration log on stderr
 
   void Check() const;
   nlohmann::json ToJson() const;
@@ -229,6 +235,8 @@ struct SolveStage {
 // |                | group, or is ill-conditioned (projection 1-sigma above the limit); the | | |
 // | message names each camera and why                                      |      | | FAILURE |
 // mrcal failed or gave NaN, or the seed does not fit (wrong board/lens)  | 1    |
+// With cross-validation, halves that differ by more than max_cross_validation_ratio times their
+// predicted sigma make it DEGENERATE too, naming the cameras (metrics "cross_validation").
 struct CalibrationSummary : Summary {
   std::string lensmodel;  // the model solved
   std::string reference_camera;

@@ -660,6 +660,7 @@ void CalibrationOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(min_views_per_camera, 3);
   HOLOCAP_CHECK_OPTION_GE(min_points_per_view, 4);
   HOLOCAP_CHECK_OPTION_GT(max_seed_rms_px, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_cross_validation_ratio, 0);
   HOLOCAP_CHECK_OPTION_GE(uncertainty_grid_x, 2);
   HOLOCAP_CHECK_OPTION_GE(uncertainty_grid_y, 2);
   HOLOCAP_CHECK_OPTION_GE(uncertainty_distance_m, 0, "0: automatic");
@@ -680,7 +681,8 @@ nlohmann::json CalibrationOptions::ToJson() const {
           {"uncertainty_distance_m", uncertainty_distance_m},
           {"observed_pixel_sigma", observed_pixel_sigma},
           {"max_uncertainty_px", max_uncertainty_px},
-          {"cross_validation", cross_validation}};
+          {"cross_validation", cross_validation},
+          {"max_cross_validation_ratio", max_cross_validation_ratio}};
 }
 
 const CalibratedCamera* CalibrationSummary::Find(const std::string& name) const {
@@ -820,7 +822,7 @@ Pose FitImpliedTransform(const CameraModel& b, const std::vector<Eigen::Vector3d
 // distance, in each camera's own frame, set against the sum of the two 1-sigma estimates.
 nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSummary& b) {
   nlohmann::json result = nlohmann::json::object();
-  double worst_ratio = 0;
+  double worst_ratio = 0, worst_to_predicted = 0;
   for (const auto& ca : a.cameras) {
     const CalibratedCamera* cb = b.Find(ca.name);
     if (!ca.solved || cb == nullptr || !cb->solved || ca.uncertainty.grid_x == 0 ||
@@ -872,22 +874,30 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
     }
     if (n == 0) continue;
     const double rms = std::sqrt(sum2 / n);
-    double sigma_sum = 0;
+    double sigma_sum = 0, predicted2 = 0;
     for (int k = 0; k < pixels.cols(); ++k) {
       const int gx = k % ca.uncertainty.grid_x, gy = k / ca.uncertainty.grid_x;
       if (ca.uncertainty.observed.size() > 0 && !ca.uncertainty.observed(gy, gx)) continue;
-      sigma_sum +=
-          (ca.uncertainty.worst_sigma_px(gy, gx) + cb->uncertainty.worst_sigma_px(gy, gx)) / n;
+      const double sa = ca.uncertainty.worst_sigma_px(gy, gx);
+      const double sb = cb->uncertainty.worst_sigma_px(gy, gx);
+      sigma_sum += (sa + sb) / n;
+      predicted2 += (sa * sa + sb * sb) / n;  // the halves are independent
     }
+    const double predicted = std::sqrt(predicted2);
+    const double to_predicted = predicted > 0 ? rms / predicted : 0;
     worst_ratio = std::max(worst_ratio, sigma_sum > 0 ? rms / sigma_sum : 0);
+    worst_to_predicted = std::max(worst_to_predicted, to_predicted);
     result[ca.name] = {{"diff_rms_px", rms},
                        {"diff_max_px", worst},
                        {"sigma_sum_mean_px", sigma_sum},
                        {"ratio", sigma_sum > 0 ? rms / sigma_sum : 0},
+                       {"predicted_sigma_px", predicted},
+                       {"ratio_to_predicted", to_predicted},
                        {"within_sigma_sum_fraction", static_cast<double>(within) / n}};
   }
   return {{"cameras", result},
           {"worst_ratio", worst_ratio},
+          {"worst_ratio_to_predicted", worst_to_predicted},
           {"method",
            "implied rigid transform fitted to the pixels where the board was seen, then projection "
            "differences"},
@@ -936,6 +946,7 @@ class Calibrator {
   void EstimateUncertainty();
   bool CameraUncertaintyOf(int m, Factorization& joint, bool joint_ok);
   void CrossValidation();
+  std::string CrossValidationBeyondPrediction() const;
   void Conclude();
 
   // Runs mrcal on `q`, records the stage and says how mrcal's solve ended.
@@ -1495,6 +1506,22 @@ void Calibrator::CrossValidation() {
   summary_.cross_validation = CrossValidate(a, b);
 }
 
+// The cameras whose cross-validation halves differ by more than max_cross_validation_ratio
+// times their predicted sigma ("cam1 (2.8x the predicted 0.05 px)"), or empty.
+std::string Calibrator::CrossValidationBeyondPrediction() const {
+  if (!summary_.cross_validation.is_object() || !summary_.cross_validation.contains("cameras"))
+    return "";
+  std::string beyond;
+  for (const auto& [name, camera] : summary_.cross_validation["cameras"].items()) {
+    const double ratio = camera.value("ratio_to_predicted", 0.0);
+    if (ratio <= options_.max_cross_validation_ratio) continue;
+    beyond += Cat(beyond.empty() ? "" : ", ", name, " (", std::round(ratio * 10) / 10,
+                  "x the predicted ", camera.value("predicted_sigma_px", 0.0), " px, limit ",
+                  options_.max_cross_validation_ratio, "x)");
+  }
+  return beyond;
+}
+
 // The trust checks: a flagged camera (too few views, unconnected, ill-conditioned) makes the
 // result degenerate; otherwise mrcal's own ending decides between convergence and a budget
 // spent while the cost still fell.
@@ -1511,6 +1538,14 @@ void Calibrator::Conclude() {
     for (const auto& f : flagged) list += (list.empty() ? "" : "; ") + f;
     summary_.End(Termination::kDegenerate, Cat(flagged.size(), " of ", cameras_.size(),
                                                " cameras cannot be trusted: ", list));
+  } else if (const std::string beyond = CrossValidationBeyondPrediction(); !beyond.empty()) {
+    summary_.End(Termination::kDegenerate,
+                 Cat(solved,
+                     "; cross-validation: the halves differ beyond what the uncertainty "
+                     "predicts in ",
+                     beyond,
+                     ": the uncertainty understates the error (an unmodelled lens, a camera that "
+                     "moved, a bending board, or noise above the one assumed)"));
   } else if (!unconverged_.empty()) {
     summary_.End(Termination::kNoConvergence,
                  Cat(solved, "; mrcal stopped while the cost still fell in: ", unconverged_));

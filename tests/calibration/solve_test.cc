@@ -342,15 +342,24 @@ TEST(Calibrate, SolvesAnEightKImager) {
   EXPECT_GE(g.within_3sigma_fraction, 0.9);
 }
 
-TEST(Calibrate, CrossValidationHalvesAgreeWithinTheirUncertainty) {
+// Two studio cameras and 120 board poses, and a solve that cross-validates on an 8x6 grid.
+SyntheticOptions CrossValidationRig() {
   SyntheticOptions options = ReducedRig();
   options.lenses = StudioLenses(2);
   options.frames = 120;
-  const SyntheticRig rig = MakeSyntheticRig(options);
+  return options;
+}
+CalibrationOptions CrossValidated() {
   CalibrationOptions solve;
   solve.cross_validation = true;
   solve.uncertainty_grid_x = 8;
   solve.uncertainty_grid_y = 6;
+  return solve;
+}
+
+TEST(Calibrate, CrossValidationHalvesAgreeWithinTheirUncertainty) {
+  const SyntheticRig rig = MakeSyntheticRig(CrossValidationRig());
+  const CalibrationOptions solve = CrossValidated();
   const CalibrationSummary s = Calibrate(rig.layout, rig.cameras, rig.observations, solve);
   ASSERT_TRUE(IsUsable(s.termination)) << s.message;
   std::printf("[cross-validation] %s\n", s.cross_validation.dump().c_str());
@@ -359,7 +368,29 @@ TEST(Calibrate, CrossValidationHalvesAgreeWithinTheirUncertainty) {
   for (const auto& [name, j] : s.cross_validation["cameras"].items()) {
     EXPECT_GE(j["within_sigma_sum_fraction"].get<double>(), 0.7) << name;
     EXPECT_LT(j["diff_rms_px"].get<double>(), 0.3) << name;
+    EXPECT_LE(j["ratio_to_predicted"].get<double>(), solve.max_cross_validation_ratio) << name;
   }
+}
+
+// The same rig with the corner noise stated six times too small (0.05 px for the 0.3 px the
+// observations carry): the uncertainty predicts a sixth of the halves' real difference, the
+// cross-validation sees them differ by far more than twice that, and the solve, converged as
+// it is, ends DEGENERATE naming the cameras.
+TEST(Calibrate, CrossValidationBeyondThePredictionIsDegenerate) {
+  const SyntheticOptions options = CrossValidationRig();
+  const SyntheticRig rig = MakeSyntheticRig(options);
+  CalibrationOptions solve = CrossValidated();
+  solve.observed_pixel_sigma = options.noise_px / 6;
+  solve.max_uncertainty_px = 1e9;  // the understated noise judged by the halves alone
+  const CalibrationSummary s = Calibrate(rig.layout, rig.cameras, rig.observations, solve);
+  std::printf("[cross-validation, noise understated] %s\n", s.cross_validation.dump().c_str());
+  EXPECT_EQ(s.termination, Termination::kDegenerate) << s.message;
+  EXPECT_NE(s.message.find("cross-validation: the halves differ beyond what the uncertainty "
+                           "predicts in cam0 ("),
+            std::string::npos)
+      << s.message;
+  EXPECT_GT(s.cross_validation["worst_ratio_to_predicted"].get<double>(),
+            2 * solve.max_cross_validation_ratio);
 }
 
 // Each ending of a solve, from its residuals and Jacobian: a linear least-squares problem
