@@ -52,6 +52,9 @@ static void AddExportCommand(CLI::App& app) {
   command->add_option("--recon", args->web.recon,
                       "web: the reconstruction's meshes (default TAKE/recon)");
   command->add_flag("--no-meshes", args->web.no_meshes, "web: no mesh stream");
+  command->add_flag("--partial-model", args->web.partial_models,
+                    "web: stream models whose training did not finish (their report.json says "
+                    "FAILURE or DEGENERATE); refused without it");
   command
       ->add_option("--quality", args->qualities,
                    "web: quality levels, one stream each: low, medium, high, lossless")
@@ -87,10 +90,11 @@ static void AddExportCommand(CLI::App& app) {
       return;
     }
     if (!args->web.models.empty() || !args->web.recon.empty() || args->web.no_meshes ||
-        !args->web.frames.empty() || !args->web.shard.empty() || args->web.redo)
+        !args->web.frames.empty() || !args->web.shard.empty() || args->web.redo ||
+        args->web.partial_models)
       Fail(
-          "--model, --recon, --no-meshes, --frames, --shard and --redo are options of export web "
-          "only");
+          "--model, --recon, --no-meshes, --frames, --shard, --redo and --partial-model are "
+          "options of export web only");
     ExportOptions options = args->options;
     options.format = InteropFormatFromString(args->format);
     options.copy_images = !args->no_images;

@@ -7,6 +7,7 @@
 
 #include "app/commands.h"
 #include "app/options.h"
+#include "avatar/model_training.h"
 #include "core/error.h"
 #include "core/report.h"
 #include "neural/live_rerender.h"
@@ -31,6 +32,7 @@ struct RenderArgs {
   bool no_skip = false;
   bool no_exr = false;
   bool overwrite = false;
+  bool partial_model = false;
   double fps = 30;
   double step = 1.0;
   int threads = 0;
@@ -84,6 +86,9 @@ void FillRenderCommand(CLI::App* command) {
   AddOverwriteFlag(command, &args->overwrite);
   command->add_flag("--no-skip", args->no_skip, "Evaluate every sample (no empty-space skipping)");
   command->add_flag("--no-exr", args->no_exr, "Directory output: PNG frames only");
+  command->add_flag("--partial-model", args->partial_model,
+                    "Render a model whose training did not finish (its report.json says "
+                    "FAILURE or DEGENERATE); refused without it");
   command->add_option("--recon", args->recon,
                       "Composed frames of `holocap live` (its recon/): rerender each at --cameras "
                       "with a model trained by `holocap train rerender SCAN_TAKE --scan SCAN`");
@@ -119,6 +124,9 @@ void FillRenderCommand(CLI::App* command) {
     } else {
       claimed = OutputDirectory::Claim(out, request);
     }
+    const std::string partial =
+        RequireFinishedModel(model_dir, args->partial_model, "--partial-model");
+    if (!partial.empty()) std::printf("render: %s\n", partial.c_str());
     auto model = OpenModel(model_dir);
     CameraPath path;
     if (args->path == "orbit") {
@@ -151,13 +159,20 @@ void FillRenderCommand(CLI::App* command) {
     Report report("render");
     report.SetFailureDestination(to_video ? std::filesystem::path(out.string() + ".report.json")
                                           : out / "report.json");
-    report.options() = {
-        {"take", args->take},           {"model", model_dir.string()}, {"path", args->path},
-        {"size", args->size},           {"views", args->views},        {"frame", args->frame},
-        {"skip_empty", !args->no_skip}, {"step_voxels", args->step},   {"out", args->out}};
+    report.options() = {{"take", args->take},
+                        {"model", model_dir.string()},
+                        {"path", args->path},
+                        {"size", args->size},
+                        {"views", args->views},
+                        {"frame", args->frame},
+                        {"skip_empty", !args->no_skip},
+                        {"step_voxels", args->step},
+                        {"out", args->out},
+                        {"partial_model", args->partial_model}};
     report.plan() = {{"method", model->method()},
                      {"model_frames", model->frame_count()},
                      {"views", path.size()}};
+    if (!partial.empty()) report.plan()["partial_model"] = partial;
     PlaybackSummary summary = RenderPath(*model, path, options, &report);
     report.SetSummary(summary);
     const std::filesystem::path report_file =

@@ -19,6 +19,7 @@
 
 #include "app/commands.h"
 #include "app/options.h"
+#include "avatar/model_training.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/report.h"
@@ -50,8 +51,23 @@ WebExportSummary ExportWeb(const WebExportRequest& request, Report* report) {
 }
 
 void RunWebExport(const WebExportRequest& request) {
+  // Models whose training did not finish: refused, or (--partial-model) said here and in the
+  // report.
+  nlohmann::json partial = nlohmann::json::array();
+  for (const auto& model : request.models) {
+    const std::string note = RequireFinishedModel(model, request.partial_models, "--partial-model");
+    if (note.empty()) continue;
+    std::printf("export web: %s\n", note.c_str());
+    partial.push_back(note);
+  }
   Report report("export web");
   WebExportSummary summary = ExportWeb(request, &report);
+  if (!partial.empty()) {
+    report.options()["partial_models"] = true;
+    report.plan()["partial_models"] = partial;
+    const Shard shard = request.shard.empty() ? Shard{} : Shard::Parse(request.shard);
+    report.Write(TaskReportPath(request.out, shard));
+  }
   for (const auto& s : summary.streams) {
     std::printf(
         "  %-16s %3lld frames  %8.3f MB/frame  %7.2f Mbps  PSNR %5.1f dB against uncompressed\n",

@@ -108,9 +108,10 @@ struct WebExportRequest {
   int key_every = 0;  // --key-every (0: the default)
   bool ground_truth_cameras = false;
   bool overwrite = false;
-  std::string frames;  // --frames (the timeline's sets, counted after the clean plate)
-  std::string shard;   // --shard K/N (empty: the whole run)
-  bool redo = false;   // --redo
+  std::string frames;           // --frames (the timeline's sets, counted after the clean plate)
+  std::string shard;            // --shard K/N (empty: the whole run)
+  bool redo = false;            // --redo
+  bool partial_models = false;  // --partial-model: models whose training did not finish too
 };
 std::function<void(const WebExportRequest&)>& WebExportCommand();
 

@@ -1,7 +1,10 @@
 #include "avatar/avatar.h"
 
+#include "avatar/model_training.h"
 #include "core/error.h"
+#include "core/frame_tasks.h"
 #include "core/fs.h"
+#include "core/report.h"
 
 namespace holocap {
 
@@ -56,6 +59,49 @@ std::unique_ptr<AvatarModel> AvatarKindRegistry::Open(const std::filesystem::pat
 
 std::unique_ptr<AvatarModel> OpenModel(const std::filesystem::path& dir) {
   return AvatarKindRegistry::Global().Open(dir);
+}
+
+std::string ModelTraining::Describe() const {
+  if (!reported) return "no report.json";
+  return Cat(ToString(termination), ": ", message);
+}
+
+ModelTraining ReadModelTraining(const std::filesystem::path& dir) {
+  ModelTraining training;
+  // A per-frame run (train splat --segment-frames) is finished once every frame's record is:
+  // its report.json is merged only then, and one from an earlier run may stand beside it.
+  if (std::filesystem::is_regular_file(dir / "run.json")) {
+    const RunState run = ReadRunState(dir);
+    if (!run.done()) {
+      training.reported = true;
+      training.termination = Termination::kFailure;
+      training.message = "the run is incomplete: " + run.Describe();
+      return training;
+    }
+  }
+  const std::filesystem::path file = dir / "report.json";
+  if (!std::filesystem::is_regular_file(file)) return training;
+  const nlohmann::json report = ParseReport(ReadFileToString(file), file.string());
+  training.reported = true;
+  training.message = report["summary"]["message"].get<std::string>();
+  const std::string state = report["summary"]["termination"].get<std::string>();
+  for (Termination t : {Termination::kSuccess, Termination::kConvergence,
+                        Termination::kNoConvergence, Termination::kDegenerate}) {
+    if (state == ToString(t)) training.termination = t;
+  }
+  return training;
+}
+
+std::string RequireFinishedModel(const std::filesystem::path& dir, bool allow_partial,
+                                 const std::string& flag) {
+  const ModelTraining training = ReadModelTraining(dir);
+  if (training.finished()) return "";
+  if (!allow_partial) {
+    Fail("the model in ", dir.string(), " is not a finished training: its report.json says ",
+         training.Describe(), " (", flag, " uses it as it is)");
+  }
+  return Cat("the model in ", dir.string(), " is used as it is (", flag, "): its training ended ",
+             training.Describe());
 }
 
 }  // namespace holocap

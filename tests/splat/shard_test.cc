@@ -153,6 +153,46 @@ TEST_F(ShardedSplats, AShardKilledMidFrameRedoesOnlyItsUnfinishedFrames) {
   ExpectSameModel(out("whole"), dir);
 }
 
+// A model whose training did not finish is refused by render and export web in one line: a
+// run with a frame's record gone (as a run killed mid-frame leaves it), and a run whose
+// report.json says FAILURE. --partial-model uses it, and the reports and output say so.
+TEST_F(ShardedSplats, RenderAndExportRefuseAModelWhoseTrainingDidNotFinish) {
+  fs::copy(out("whole"), out("partial"), fs::copy_options::recursive);
+  const std::vector<int64_t> sets = ReadRunState(out("partial")).sets;
+  fs::remove(FrameRecordPath(out("partial"), sets[2]));
+  const std::string render =
+      "render " + take() + " --model " + out("partial") + " --views 1 --size 32 --no-exr --out ";
+  const std::string web =
+      "export web " + take() + " --model " + out("partial") + " --no-meshes --out ";
+  ExpectOneLineError(RunCli(render + out("partial-frames")),
+                     "is not a finished training: its report.json says FAILURE: the run is "
+                     "incomplete: 3 of 4 frame sets complete");
+  ExpectOneLineError(RunCli(web + out("partial-site")), "(--partial-model uses it as it is)");
+
+  fs::copy(out("whole"), out("failed"), fs::copy_options::recursive);
+  nlohmann::json report = ReadJson(out("failed") + "/report.json");
+  report["summary"]["termination"] = "FAILURE";
+  report["summary"]["message"] = "stopped by a signal";
+  WriteFileAtomic(out("failed") + "/report.json", report.dump());
+  ExpectOneLineError(RunCli("render " + take() + " --model " + out("failed") +
+                            " --views 1 --size 32 --no-exr --out " + out("failed-frames")),
+                     "its report.json says FAILURE: stopped by a signal");
+
+  auto rendered = RunCli(render + out("partial-frames") + " --partial-model");
+  ASSERT_EQ(rendered.exit_code, 0) << rendered.output;
+  EXPECT_NE(rendered.output.find("is used as it is (--partial-model)"), std::string::npos)
+      << rendered.output;
+  const nlohmann::json render_report = ReadJson(out("partial-frames") + "/report.json");
+  EXPECT_NE(render_report["plan"]["partial_model"].get<std::string>().find("3 of 4"),
+            std::string::npos);
+  EXPECT_EQ(render_report["options"]["partial_model"], true);
+  auto site = RunCli(web + out("partial-site") + " --partial-model");
+  ASSERT_EQ(site.exit_code, 0) << site.output;
+  EXPECT_NE(site.output.find("is used as it is (--partial-model)"), std::string::npos)
+      << site.output;
+  EXPECT_EQ(ReadJson(out("partial-site") + "/report.json")["options"]["partial_models"], true);
+}
+
 TEST_F(ShardedSplats, WallClockBudgetsAndShardsWithoutSegmentsEndInOneLine) {
   ExpectOneLineError(RunCli(Train("bad", " --minutes 1")),
                      "--minutes is a wall-clock budget; a per-frame run");
