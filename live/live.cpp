@@ -223,6 +223,12 @@ void Conclude(const LiveOptions& options, LiveSummary* summary) {
              summary->refused > options.max_refused_fraction * static_cast<double>(with_depth)) {
     summary->End(Termination::kDegenerate, Cat("the scan does not match the live subject (", counts,
                                                "; first ", first_refusal, ")"));
+  } else if (summary->refused > 0) {
+    // A refused frame has no composition: the output misses it, whatever the others show.
+    summary->End(Termination::kDegenerate,
+                 Cat(summary->refused, " of ", with_depth,
+                     " frames with depth were refused and are missing from the output (", counts,
+                     "; first ", first_refusal, ")"));
   } else {
     summary->End(Termination::kSuccess, counts);
   }

@@ -91,8 +91,8 @@ struct LiveOptions {
   // and fits 62 % or more rigidly; a scanned knot moved by 31-55 cm, fitting 16-33 % rigidly).
   double min_rigid_inlier_fraction = 0.4;
   double max_deformation_rms_m = 0.2;
-  // More than this fraction of refused frames makes the run DEGENERATE: the scan is not this
-  // subject.
+  // Any refused frame makes the run DEGENERATE (its composition is missing); more than this
+  // fraction of them is diagnosed as a scan that is not this subject.
   double max_refused_fraction = 0.2;
 
   // Composition.
@@ -271,10 +271,10 @@ class LiveCompositor {
   Eigen::AlignedBox3f scan_box_;
 };
 
-// SUCCESS: every frame with depth composed, or refused no more often than
-// max_refused_fraction (refused and depthless frames named); DEGENERATE: the scan does not fit
-// the live subject (too many refused frames, the reason of the first), or no frame could be
-// composed; FAILURE: an output could not be written.
+// SUCCESS: every frame with depth composed (depthless frames counted); DEGENERATE: a frame was
+// refused (how many, and the first one's reason), diagnosed as a scan that does not fit the live
+// subject above max_refused_fraction, or no frame could be composed; FAILURE: an output could
+// not be written.
 struct LiveSummary : Summary {
   std::vector<LiveFrame> frames;
   int64_t composed = 0, no_depth = 0, refused = 0;

@@ -558,6 +558,27 @@ sensors:
   testing::ExpectOneLineError(
       testing::RunCli("live " + (dir / "truth").string() + " --scan " + turn + "/scan"),
       "is not calibrated");
+  // One frame of six whose depth the scan does not fit (a wall 4 m away, behind where the subject
+  // stood): refused, well under the fifth that calls the scan another subject, and still not a
+  // SUCCESS: the output misses that frame, and the termination says how many and why.
+  const std::string six = (dir / "six").string();
+  ASSERT_EQ(testing::RunCli("sim --rig " + (dir / "live-rig.yaml").string() +
+                            " --frames 6 --size 160x120 --out " + six)
+                .exit_code,
+            0);
+  const std::filesystem::path wall = dir / "six" / "frames" / "depth0" / "000003.exr";
+  WriteExrDepth(wall, cv::Mat(ReadImage(wall).size(), CV_32F, cv::Scalar(4.0f)));
+  const testing::CommandResult refused =
+      testing::RunCli("live " + six + " --ground-truth-cameras --scan " + turn + "/scan");
+  EXPECT_EQ(refused.exit_code, 1) << refused.output;
+  EXPECT_NE(refused.output.find("DEGENERATE: 1 of 6 frames with depth were refused"),
+            std::string::npos)
+      << refused.output;
+  EXPECT_NE(refused.output.find("first set 3: "), std::string::npos) << refused.output;
+  const auto refused_report =
+      nlohmann::json::parse(ReadFileToString(dir / "six" / "live" / "report.json"));
+  EXPECT_EQ(refused_report["summary"]["termination"], "DEGENERATE");
+  EXPECT_EQ(refused_report["metrics"]["per_frame"][3]["state"], "refused");
   // Bad set-ups are one error line each, before anything is recorded.
   testing::ExpectOneLineError(
       testing::RunCli("capture --rig " + sensor + " --frames 3 --out " + (dir / "c2").string() +
