@@ -127,6 +127,18 @@ void AddSharedTrainFlags(CLI::App* command, SharedTrainArgs* args) {
                            {"eval_every_s", "--eval-every"}});
 }
 
+// --cpu-minutes, which nvol and splat take alike.
+void AddCpuMinutesFlag(CLI::App* command, double* cpu_minutes, const char* what_counts,
+                       const char* more = "") {
+  command
+      ->add_option("--cpu-minutes", *cpu_minutes,
+                   Cat("A budget of this process's CPU minutes (user + system, every thread) "
+                       "instead of the wall clock (--minutes): ",
+                       what_counts, " spend it; scoring the held-out views does not", more,
+                       " (0: off)"))
+      ->capture_default_str();
+}
+
 void PrintPlan(const nlohmann::json& plan) {
   std::printf("plan:\n");
   for (const auto& [key, value] : plan.items())
@@ -174,6 +186,11 @@ void FillNvolCommand(CLI::App* command) {
                    "Mean squared warp displacement (dynamic scenes)")
       ->capture_default_str();
   command->add_flag("--resume", o.resume, "Continue from the model directory's checkpoint");
+  AddCpuMinutesFlag(command, &o.cpu_minutes, "loading the take and every training step");
+  command
+      ->add_option("--eval-frames", o.eval_frames,
+                   "Frames the held-out cameras are scored on, spread over the take")
+      ->capture_default_str();
   NameFieldFlags(command, {{"rays_per_batch", "--rays"}});
   command->callback([command, args] {
     RefuseForeignFlags(command);
@@ -467,6 +484,16 @@ void AddSplatCommand(CLI::App* train) {
       ->add_option("--seed-points", o.max_seed_points, "Surface samples the Gaussians start from")
       ->capture_default_str();
   command->add_option("--recon", o.recon_dir, "Seed from this reconstruction (recon/<set>.ply)");
+  command
+      ->add_option("--seed-method", o.seed_method,
+                   "The seed's reconstruction: auto (TSDF fusion of the depth sensors, else "
+                   "multi-view stereo; with --no-depth, colour cameras only), hull (the colour "
+                   "cameras' visual hull), tsdf or mvs")
+      ->capture_default_str();
+  AddCpuMinutesFlag(command, &o.cpu_minutes,
+                    "loading the take, the seed's reconstruction and every training step",
+                    "; --minutes and --frame-minutes then share it between frame 0 and each "
+                    "later frame");
   command->add_option("--initial-opacity", o.initial_opacity, "Opacity of every seeded Gaussian")
       ->capture_default_str();
   command

@@ -18,6 +18,7 @@ TakeSelection TakeSelectionFlags::Parse() const {
   ParseFrames(frames, &selection);
   selection.clean_plate_frames = clean_plate;
   selection.ground_truth_cameras = ground_truth_cameras;
+  selection.color_only = no_depth;
   selection.Check();
   return selection;
 }
@@ -32,6 +33,9 @@ void AddTakeSelectionFlags(CLI::App* command, TakeSelectionFlags* flags) {
       "--ground-truth-cameras", flags->ground_truth_cameras,
       "Use a simulated take's true cameras (gt/cameras) instead of calib/: measures a "
       "stage apart from calibration (an uncalibrated take is refused otherwise)");
+  command->add_flag("--no-depth", flags->no_depth,
+                    "Leave the take's depth sensors out: colour cameras only, as if the rig had "
+                    "no depth sensor (no floor from depth, no depth fusion)");
 }
 
 void SceneFlags::Apply(TakeSelection* selection) const {

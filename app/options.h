@@ -24,6 +24,7 @@ struct TakeSelectionFlags {
   std::string frames;
   int64_t clean_plate = -1;
   bool ground_truth_cameras = false;
+  bool no_depth = false;
 
   TakeSelection Parse() const;  // throws Error naming the flag
 };

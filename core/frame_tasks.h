@@ -155,4 +155,31 @@ double PeakRssMb();
 // The CPU time this process has used so far (user + system), in seconds.
 double CpuSeconds();
 
+// A run's CPU clock: this process's CPU seconds (user + system, every thread) since `origin`,
+// less those spent inside its Excluded scopes (the held-out scoring, which a CPU budget of
+// training does not pay for, so that how often a run is scored does not change what it learns).
+class CpuClock {
+ public:
+  explicit CpuClock(double origin = CpuSeconds()) : origin_(origin) {}
+  double Now() const { return CpuSeconds() - origin_ - excluded_; }
+  double excluded() const { return excluded_; }
+
+  // While it lives, the process's CPU seconds are not the clock's.
+  class Excluded {
+   public:
+    explicit Excluded(CpuClock* clock) : clock_(clock), start_(CpuSeconds()) {}
+    ~Excluded() { clock_->excluded_ += CpuSeconds() - start_; }
+    Excluded(const Excluded&) = delete;
+    Excluded& operator=(const Excluded&) = delete;
+
+   private:
+    CpuClock* clock_;
+    double start_;
+  };
+
+ private:
+  double origin_;
+  double excluded_ = 0;
+};
+
 }  // namespace holocap

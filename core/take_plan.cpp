@@ -55,6 +55,7 @@ nlohmann::json TakeSelection::ToJson() const {
                          {"last_frame", last_frame},
                          {"clean_plate_frames", clean_plate_frames},
                          {"ground_truth_cameras", ground_truth_cameras},
+                         {"color_only", color_only},
                          {"heldout", heldout},
                          {"silhouettes", silhouettes},
                          {"silhouette_threshold", silhouette_threshold}};
@@ -355,11 +356,18 @@ TakePlan PlanTake(const Take& take, const TakeSelection& selection) {
   plan.take_dir = take.dir();
   for (const StreamInfo& stream : take.streams()) {
     if (stream.role == SensorRole::kColor) plan.color_sensors.push_back(stream.name);
-    if (stream.role == SensorRole::kDepth) plan.depth_sensors.push_back(stream.name);
+    if (stream.role != SensorRole::kDepth) continue;
+    if (selection.color_only) {
+      plan.LeaveOut("depth sensors", "colour cameras only, asked for (--no-depth)");
+      continue;
+    }
+    plan.depth_sensors.push_back(stream.name);
     if (!stream.paired_with.empty()) plan.paired_color.insert(stream.paired_with);
   }
   if (plan.color_sensors.empty() && plan.depth_sensors.empty()) {
-    Fail("take '", take.dir().string(), "' has no colour or depth sensor");
+    Fail("take '", take.dir().string(), "' has no colour ",
+         selection.color_only ? "camera (--no-depth leaves its depth sensors out)"
+                              : "or depth sensor");
   }
   ChooseCameraSource(take, selection, plan);
   for (const auto& name : plan.color_sensors)

@@ -56,6 +56,8 @@ struct TakeSelection {
   int64_t clean_plate_frames = -1;    // leading sets without the subject; -1: the take's own
                                       // metadata (the simulator writes it), else 0
   bool ground_truth_cameras = false;  // gt/cameras even when calib/ exists (simulated takes)
+  bool color_only = false;  // the take's depth sensors left out (--no-depth): nothing of the
+                            // stage reads them (no floor, no fusion), as if the rig had none
   std::vector<std::string> heldout;   // colour cameras never reconstructed from (--heldout-names)
   std::optional<Box> bounds;          // the scene's box (--bounds); else from the rig
   std::optional<Eigen::Vector3d> up;  // the world's up axis (--up); else from the rig

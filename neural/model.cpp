@@ -30,8 +30,10 @@ void NeuralVolumeOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(bounds_margin_m, 0);
   HOLOCAP_CHECK_OPTION_GE(occupancy_cells, 0);
   HOLOCAP_CHECK_OPTION(std::isfinite(minutes), minutes, "a budget must end");
-  HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
+  HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0 || cpu_minutes > 0, minutes,
                        "give a positive minutes budget or a number of iterations");
+  HOLOCAP_CHECK_OPTION_GE(cpu_minutes, 0, "0: the wall clock (minutes)");
+  HOLOCAP_CHECK_OPTION(std::isfinite(cpu_minutes), cpu_minutes, "a budget must end");
   HOLOCAP_CHECK_OPTION_GE(iterations, 0);
   HOLOCAP_CHECK_OPTION_GE(rays_per_batch, 16);
   HOLOCAP_CHECK_OPTION_GE(frames_per_batch, 1);
@@ -106,6 +108,7 @@ nlohmann::json NeuralVolumeOptions::ToJson() const {
           {"eval_every_s", eval_every_s},
           {"eval_every_iterations", eval_every_iterations},
           {"eval_frames", eval_frames},
+          {"cpu_minutes", cpu_minutes},
           {"checkpoint_every_s", checkpoint_every_s},
           {"resume", resume},
           {"divergence_factor", divergence_factor},

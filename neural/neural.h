@@ -62,6 +62,10 @@ struct NeuralVolumeOptions {
 
   // Optimisation.
   double minutes = 5;                    // wall-clock budget of training
+  // > 0: a budget of the process's CPU seconds (user + system, every thread) instead of the
+  // wall clock, counted from the start of TrainNeuralVolume: loading the take spends it too;
+  // scoring the held-out views does not.
+  double cpu_minutes = 0;
   int64_t iterations = 0;                // > 0: stop after this many iterations (whichever first)
   int rays_per_batch = 4096;             // random pixels per iteration, across cameras and frames
   int frames_per_batch = 1;              // frames decoded per iteration (dynamic scenes)
@@ -125,6 +129,9 @@ struct NeuralVolumeSummary : Summary {
                                      // score of an empty volume: what training must beat)
   double heldout_ssim = 0;
   int divergences = 0;  // restored checkpoints
+  // Process CPU seconds (user + system, every thread): loading the take, training (everything
+  // after it but the held-out scoring) and the held-out scoring.
+  double cpu_s_loading = 0, cpu_s_training = 0, cpu_s_scoring = 0;
   bool built_encoder = false;
   bool built_warp = false;
   double samples_per_ray = 0;  // mean over the last training batch

@@ -15,6 +15,7 @@
 #include "avatar/image_metrics.h"
 #include "avatar/training_data.h"
 #include "core/error.h"
+#include "core/frame_tasks.h"
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
@@ -74,8 +75,14 @@ struct StepTerms {
 
 class Trainer {
  public:
-  Trainer(const TrainingData& data, const NeuralVolumeOptions& options, const fs::path& model_dir)
-      : data_(data), options_(options), model_dir_(model_dir), rng_(options.seed) {
+  // `cpu_origin`: the process's CPU seconds when the run began (before its data was loaded).
+  Trainer(const TrainingData& data, const NeuralVolumeOptions& options, const fs::path& model_dir,
+          double cpu_origin)
+      : data_(data),
+        options_(options),
+        model_dir_(model_dir),
+        rng_(options.seed),
+        cpu_(cpu_origin) {
     config_.dynamic = data.dynamic;
     config_.grid = options.grid;
     config_.latent_dim = options.latent_dim;
@@ -297,6 +304,7 @@ class Trainer {
   std::vector<std::vector<int32_t>> box_pixels_;
   std::vector<std::vector<std::pair<int, int32_t>>> subject_pixels_;  // [frame] (view, pixel)
   std::vector<int64_t> eval_frames_;
+  CpuClock cpu_;  // since the run began, held-out scoring excluded
   std::unique_ptr<torch::optim::Adam> optimizer_;
   std::vector<double> base_lrs_;  // of each group, before the schedule
   double lr_scale_ = 1;
@@ -482,6 +490,7 @@ Evaluation Trainer::Evaluate(bool write_images) {
   torch::NoGradGuard no_grad;
   Evaluation result;
   if (heldout_.empty()) return result;
+  const CpuClock::Excluded scoring(&cpu_);
   double mse_sum = 0, mse_fg_sum = 0, mse_background_sum = 0, ssim_sum = 0, alpha_outside_sum = 0;
   // A take whose silhouettes are its alpha is also scored as its dataset publishes (on white).
   const bool alpha_take = data_.alpha_masks;
@@ -722,10 +731,15 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   auto elapsed = [&] {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   };
-  const double budget_s = options_.minutes * 60.0;
+  // A CPU budget replaces the wall clock; what loading the data spent of it is gone.
+  const bool cpu_budget = options_.cpu_minutes > 0;
+  const double budget_s = cpu_budget ? 0.0 : options_.minutes * 60.0;
+  const double cpu_start = cpu_.Now();
+  const double cpu_span = std::max(options_.cpu_minutes * 60.0 - cpu_start, 1e-9);
   const int64_t first_iteration = iteration;
-  Progress progress("nvol train",
-                    options_.iterations > 0 ? options_.iterations : static_cast<int64_t>(budget_s));
+  Progress progress("nvol train", options_.iterations > 0 ? options_.iterations
+                                  : cpu_budget            ? static_cast<int64_t>(cpu_span)
+                                                          : static_cast<int64_t>(budget_s));
   std::deque<double> recent;
   std::vector<double> photo_history;
   double running = 0, first_finite_loss = -1;
@@ -738,13 +752,16 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
       report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, it);
       report->AddPoint("heldout_ssim", last_eval.ssim, it);
       report->AddPoint("heldout_alpha_outside", last_eval.alpha_outside, it);
+      report->AddPoint("cpu_s", cpu_.Now(), it);
       report->Write(model_dir_ / "report.json");
     }
   };
   while (true) {
     const double t = elapsed();
+    const double cpu_t = cpu_budget ? cpu_.Now() - cpu_start : 0.0;
     if (options_.iterations > 0 && iteration - first_iteration >= options_.iterations) break;
-    if (options_.minutes > 0 && t >= budget_s) break;
+    if (budget_s > 0 && t >= budget_s) break;
+    if (cpu_budget && cpu_t >= cpu_span) break;
     const bool eval_due = options_.eval_every_iterations > 0
                               ? (iteration - first_iteration) % options_.eval_every_iterations == 0
                               : t >= next_eval;
@@ -757,7 +774,8 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
     double progress_fraction = 0;
     if (options_.iterations > 0)
       progress_fraction = static_cast<double>(iteration - first_iteration) / options_.iterations;
-    if (options_.minutes > 0) progress_fraction = std::max(progress_fraction, t / budget_s);
+    if (budget_s > 0) progress_fraction = std::max(progress_fraction, t / budget_s);
+    if (cpu_budget) progress_fraction = std::max(progress_fraction, cpu_t / cpu_span);
     ScheduleLearningRate(progress_fraction, iteration);
     const double loss = TrainStep(iteration, &photo, &samples);
     // Against the running mean, or the first loss until there is one: an explosion in the
@@ -807,7 +825,9 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
       report->AddPoint("gain_drift", terms.gain_drift, iteration);
       report->AddPoint("bias_drift", terms.bias_drift, iteration);
     }
-    progress.Update(options_.iterations > 0 ? iteration - first_iteration : static_cast<int64_t>(t),
+    progress.Update(options_.iterations > 0 ? iteration - first_iteration
+                    : cpu_budget            ? static_cast<int64_t>(cpu_t)
+                                            : static_cast<int64_t>(t),
                     Cat("it ", iteration, " loss ", photo, " held-out ", last_eval.psnr_db, " dB"));
     if (elapsed() >= next_checkpoint) {
       snapshot = TakeSnapshot(model_, backgrounds_, iteration);
@@ -832,6 +852,9 @@ NeuralVolumeSummary Trainer::Run(Report* report) {
   summary.heldout_psnr_white_db = last_eval.psnr_white_db;
   summary.background_psnr_fg_db = last_eval.background_psnr_fg_db;
   summary.heldout_ssim = last_eval.ssim;
+  summary.cpu_s_loading = cpu_start;
+  summary.cpu_s_training = cpu_.Now() - cpu_start;
+  summary.cpu_s_scoring = cpu_.excluded();
   if (summary.divergences <= options_.max_divergences) Judge(iteration, &summary);
   SaveModel(summary.plan);
   return summary;
@@ -846,12 +869,13 @@ NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& 
     torch::set_num_threads(ResolveThreads(options.threads));
     omp_set_num_threads(ResolveThreads(options.threads));
   }
+  const double cpu_origin = CpuSeconds();
   CreateDirectories(model_dir);
   if (report != nullptr) report->options() = options.ToJson();
   TrainingData data = LoadTrainingData(take_dir, options.data_options());
   NeuralVolumeSummary summary;
   try {
-    Trainer trainer(data, options, model_dir);
+    Trainer trainer(data, options, model_dir, cpu_origin);
     summary = trainer.Run(report);
   } catch (const c10::Error& e) {
     // LibTorch reports broken preconditions (shapes, devices) with a backtrace: one line here.
@@ -861,6 +885,10 @@ NeuralVolumeSummary TrainNeuralVolume(const fs::path& take_dir, const fs::path& 
     report->plan() = summary.plan;
     report->metrics() = TrainingMetrics(summary);
     report->metrics()["samples_per_ray"] = summary.samples_per_ray;
+    report->metrics()["cpu_s_loading"] = summary.cpu_s_loading;
+    report->metrics()["cpu_s_training"] = summary.cpu_s_training;
+    report->metrics()["cpu_s_scoring"] = summary.cpu_s_scoring;
+    if (options.cpu_minutes > 0) report->metrics()["cpu_s_budget"] = options.cpu_minutes * 60;
     if (std::isfinite(summary.heldout_psnr_white_db)) {
       report->metrics()["heldout_psnr_white_db"] = summary.heldout_psnr_white_db;
       report->metrics()["heldout_psnr_white_convention"] =

@@ -35,6 +35,16 @@ void SplatOptions::Check() const {
   HOLOCAP_CHECK_OPTION(minutes > 0 || iterations > 0, minutes,
                        "give a positive minutes budget or a number of iterations");
   HOLOCAP_CHECK_OPTION_GE(iterations, 0);
+  HOLOCAP_CHECK_OPTION_GE(cpu_minutes, 0, "0: the wall clock (minutes)");
+  HOLOCAP_CHECK_OPTION(std::isfinite(cpu_minutes), cpu_minutes, "a budget must end");
+  HOLOCAP_CHECK_OPTION(cpu_minutes == 0 || (minutes > 0 && frame_minutes > 0), cpu_minutes,
+                       "minutes and frame_minutes share a CPU budget between the frames: both "
+                       "must be positive");
+  HOLOCAP_CHECK_OPTION(cpu_minutes == 0 || segment_frames == 0, cpu_minutes,
+                       "a per-frame run trains for iterations only");
+  HOLOCAP_CHECK_OPTION(IsOneOf(seed_method, {"auto", "hull", "tsdf", "mvs"}), seed_method);
+  HOLOCAP_CHECK_OPTION(!take.color_only || seed_method != "tsdf", seed_method,
+                       "TSDF fusion reads the depth sensors that take.color_only leaves out");
   HOLOCAP_CHECK_OPTION_GT(learning_rate, 0);
   HOLOCAP_CHECK_OPTION_GT(position_lr, 0);
   HOLOCAP_CHECK_OPTION_GT(sh_lr, 0);
@@ -126,7 +136,9 @@ nlohmann::json SplatOptions::ToJson() const {
           {"heldout", heldout},
           {"take", take.ToJson()},
           {"recon_dir", recon_dir},
+          {"seed_method", seed_method},
           {"minutes", minutes},
+          {"cpu_minutes", cpu_minutes},
           {"iterations", iterations},
           {"learning_rate", learning_rate},
           {"position_lr", position_lr},

@@ -10,6 +10,7 @@
 #include "avatar/camera_score.h"
 #include "avatar/training_data.h"
 #include "core/error.h"
+#include "core/frame_tasks.h"
 #include "core/fs.h"
 #include "core/mesh.h"
 #include "reconstruction/reconstruction.h"
@@ -58,6 +59,7 @@ std::vector<Mesh> SeedSurfaces(const fs::path& take_dir, const fs::path& model_d
     recon.sweep_voxels_m.clear();
     recon.write_glb = false;
     recon.threads = options.threads;
+    recon.method = ReconstructionMethodFromString(options.seed_method);
     const ReconstructionSummary summary = ReconstructTake(take_dir, selection, recon_dir, recon);
     *source = Cat("reconstructed now (", summary.plan.value("method", std::string("?")), ", voxel ",
                   recon.voxel_m * 1000, " mm): ", summary.message);
@@ -125,6 +127,7 @@ SplatSeed SeedFrom(const Mesh& mesh, const std::vector<SplatView>& views, int64_
 SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
                           const SplatOptions& options, const SplatFramesNeeded& needed_frames) {
   options.Check();
+  const double cpu_start = CpuSeconds();
   TrainingDataOptions data_options;
   data_options.image_width = options.image_width;
   data_options.heldout_cameras = options.heldout_cameras;
@@ -180,10 +183,13 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
                                                " distorting lens(es): images, silhouettes and "
                                                "backgrounds resampled to the pinhole of each "
                                                "lens's intrinsics core (held-out scored there)"));
-  if (scene.plan["left_out"].contains("depth sensors"))
+  if (options.take.color_only) {
+    scene.plan["seed_sensors"] = "colour cameras only (--no-depth)";
+  } else if (scene.plan["left_out"].contains("depth sensors")) {
     scene.plan["left_out"]["depth sensors"] =
         "splats learn from colour alone (the seed's "
         "reconstruction may fuse their depth)";
+  }
   scene.plan["frame_set"] = data.sets.front();
   scene.plan["scene"] = dynamic ? "dynamic" : "static";
   if (dynamic) {
@@ -211,6 +217,7 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
     scene.later_frames[f].seed =
         SeedFrom(meshes[f + 1], views, options.max_seed_points, options.seed + f + 1);
   }
+  scene.load_cpu_s = CpuSeconds() - cpu_start;
   return scene;
 }
 

@@ -100,11 +100,19 @@ struct SplatOptions {
   TakeSelection take;                // frame sets, clean plate and cameras (core/take_plan.h)
   std::string recon_dir;             // seed from this reconstruction (recon/<set>.ply) instead
                                      // of running one
+  std::string seed_method = "auto";  // the seed's reconstruction when run now: "auto" (TSDF
+                                     // fusion with depth sensors, else multi-view stereo),
+                                     // "hull", "tsdf" or "mvs" (take.color_only: no depth)
   std::string scene = "auto";        // "auto" (dynamic iff several frame sets), "static" (the
                                      // first frame set only), "dynamic"
 
   // Optimisation.
   double minutes = 5;           // wall-clock budget
+  // > 0: a budget of the process's CPU seconds (user + system, every thread) instead of the
+  // wall clock, counted from the start of LoadSplatScene: reading the take and the seed's
+  // reconstruction spend it too; scoring the held-out views does not. A dynamic take shares
+  // what the seed left between frame 0 and the later frames as minutes : frame_minutes.
+  double cpu_minutes = 0;
   int64_t iterations = 0;       // > 0: stop after this many iterations (whichever first)
   double learning_rate = 1.0;   // multiplies every parameter group's rate (1: the paper's)
   double position_lr = 1.6e-4;  // x the scene's extent, decaying to 1/100 over the run
@@ -205,6 +213,8 @@ struct SplatScene {
   SplatSeed seed;
   Box box = Box::Empty();  // the volume the subject lives in (Gaussians leaving it are removed)
   nlohmann::json plan = nlohmann::json::object();
+  double load_cpu_s = 0;  // process CPU seconds LoadSplatScene took (the take read, the seed's
+                          // reconstruction and colouring): within options.cpu_minutes
 };
 
 // One frame of a dynamic take, scored as soon as it is trained.
@@ -252,6 +262,9 @@ struct SplatSummary : Summary {
   int64_t pruned_transparent = 0, pruned_large = 0, pruned_degenerate = 0, pruned_outside = 0;
   int64_t floored_scales = 0;  // scale values lifted to the floor (collapsing Gaussians)
   int divergences = 0;
+  // Process CPU seconds (user + system, every thread): loading the take and seeding, training
+  // (everything after the seed but the held-out scoring) and the held-out scoring.
+  double cpu_s_seed = 0, cpu_s_training = 0, cpu_s_scoring = 0;
   double megabytes = 0;   // the stored model (frame 0)
   double render_fps = 0;  // held-out view at the training size, after training
   // Dynamic takes: every frame, frame 0 first (static takes: frame 0 alone). The scores above

@@ -17,6 +17,7 @@
 #include "avatar/image_metrics.h"
 #include "core/error.h"
 #include "core/fs.h"
+#include "core/frame_tasks.h"
 #include "core/image.h"
 #include "core/progress.h"
 #include "core/threads.h"
@@ -60,6 +61,7 @@ struct FrameBudget {
   bool first = true;       // frame 0: the degree raised progressively, the paper's densification
                            // schedule and opacity resets; later frames: full degree, higher
                            // harmonics frozen, densified every frame_densify_every
+  double cpu_deadline_s = 0;  // > 0: stop when the run's CPU clock (Trainer::cpu_) reaches this
 };
 
 struct Evaluation {
@@ -70,7 +72,11 @@ struct Evaluation {
 class Trainer {
  public:
   Trainer(const SplatScene& scene, const SplatOptions& options, const fs::path& model_dir)
-      : scene_(scene), options_(options), model_dir_(model_dir), rng_(options.seed) {
+      : scene_(scene),
+        options_(options),
+        model_dir_(model_dir),
+        rng_(options.seed),
+        cpu_(CpuSeconds() - scene.load_cpu_s) {
     for (size_t v = 0; v < scene.views.size(); ++v) {
       const SplatView& view = scene.views[v];
       (view.heldout ? heldout_ : training_).push_back(static_cast<int>(v));
@@ -113,6 +119,7 @@ class Trainer {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
   }
   void MeasureScene();
+  double CpuDeadline(int64_t frame) const;
   void Seed(SplatSummary* summary);
   void SeedGaussian(int64_t i, const SplatSeed& seed, size_t s, float log_scale);
   double TrainStep(int active_degree, int view);
@@ -142,6 +149,8 @@ class Trainer {
   std::vector<std::vector<float>> targets_, backgrounds_;
   std::vector<const cv::Mat*> images_, masks_;  // the frame being trained, per view
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
+  CpuClock cpu_;                 // since LoadSplatScene began, held-out scoring excluded
+  double train_cpu_start_ = 0;   // cpu_ when training began (after the seed)
   int64_t total_iterations_ = 0;  // over the frames before the one being trained
   bool temporal_ = false;         // training a later frame
   int64_t add_room_ = -1;         // Gaussians the frame may still add (-1: no limit but the cap)
@@ -473,6 +482,7 @@ bool Trainer::Finite() const {
 Evaluation Trainer::Evaluate(bool write_images) {
   Evaluation result;
   if (heldout_.empty()) return result;
+  const CpuClock::Excluded scoring(&cpu_);
   double mse = 0, mse_fg = 0, mse_background = 0, ssim = 0;
   for (int v : heldout_) {
     const SplatView& view = scene_.views[v];
@@ -509,6 +519,7 @@ Evaluation Trainer::Evaluate(bool write_images) {
 }
 
 double Trainer::TrainingPsnr() {
+  const CpuClock::Excluded scoring(&cpu_);
   double mse = 0;
   for (int v : training_) {
     const SplatView& view = scene_.views[v];
@@ -581,7 +592,12 @@ SplatSummary Trainer::Run(Report* report) {
   Seed(&summary);
   BoundParameters();
   start_ = std::chrono::steady_clock::now();
-  TrainFrame(0, FrameBudget{options_.iterations, options_.minutes * 60.0, true}, &summary, report);
+  train_cpu_start_ = cpu_.Now();
+  const bool cpu_budget = options_.cpu_minutes > 0;
+  TrainFrame(0,
+             FrameBudget{options_.iterations, cpu_budget ? 0.0 : options_.minutes * 60.0, true,
+                         cpu_budget ? CpuDeadline(0) : 0.0},
+             &summary, report);
   summary.seconds = Elapsed();
   summary.iterations = total_iterations_;
   Finish(&summary);
@@ -589,8 +605,20 @@ SplatSummary Trainer::Run(Report* report) {
   first.megabytes = summary.megabytes;
   Record(first, &summary, report);
   if (summary.divergences <= options_.max_divergences) TrainLaterFrames(&summary, report);
+  summary.cpu_s_seed = scene_.load_cpu_s;
+  summary.cpu_s_training = cpu_.Now() - scene_.load_cpu_s;
+  summary.cpu_s_scoring = cpu_.excluded();
   if (summary.divergences <= options_.max_divergences) Judge(summary.iterations, &summary);
   return summary;
+}
+
+// Where frame `frame`'s training ends on the CPU clock: what the seed left of the budget, shared
+// as minutes (frame 0) : frame_minutes (each later frame), a frame's unspent share passing on.
+double Trainer::CpuDeadline(int64_t frame) const {
+  const double later = static_cast<double>(scene_.later_frames.size());
+  const double share = (options_.minutes + static_cast<double>(frame) * options_.frame_minutes) /
+                       (options_.minutes + later * options_.frame_minutes);
+  return train_cpu_start_ + std::max(0.0, options_.cpu_minutes * 60 - train_cpu_start_) * share;
 }
 
 // The views show frame `frame` (0: the scene's views, else a later frame's images).
@@ -731,6 +759,7 @@ void Trainer::Record(const SplatFrameSummary& frame, SplatSummary* summary, Repo
     report->AddPoint("heldout_psnr_db", frame.heldout_psnr_db, total_iterations_);
     report->AddPoint("heldout_psnr_fg_db", frame.heldout_psnr_fg_db, total_iterations_);
     report->AddPoint("heldout_ssim", frame.heldout_ssim, total_iterations_);
+    report->AddPoint("cpu_s", cpu_.Now(), total_iterations_);
     report->AddPoint("frame_heldout_psnr_db", frame.heldout_psnr_db, frame.frame);
     report->AddPoint("frame_heldout_psnr_fg_db", frame.heldout_psnr_fg_db, frame.frame);
   }
@@ -792,7 +821,10 @@ void Trainer::TrainLaterFrames(SplatSummary* summary, Report* report) {
   summary->temporal = !scene_.later_frames.empty();
   for (size_t f = 0; f < scene_.later_frames.size(); ++f) {
     SplatFrameSummary scored;
-    const FrameBudget budget{options_.frame_iterations, options_.frame_minutes * 60.0, false};
+    const bool cpu_budget = options_.cpu_minutes > 0;
+    const FrameBudget budget{options_.frame_iterations,
+                             cpu_budget ? 0.0 : options_.frame_minutes * 60.0, false,
+                             cpu_budget ? CpuDeadline(static_cast<int64_t>(f) + 1) : 0.0};
     if (!TrainLaterFrame(static_cast<int64_t>(f) + 1, budget, summary, report, &scored)) return;
   }
   summary->seconds = Elapsed();
@@ -836,9 +868,13 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
   Snapshot snapshot{gaussians_, moments_, 0, adam_step_, origin_};
   const double frame_start = Elapsed();
   auto elapsed = [&] { return Elapsed() - frame_start; };
-  Progress progress(
-      frame == 0 ? "splat train" : Cat("splat frame ", frame),
-      budget.iterations > 0 ? budget.iterations : static_cast<int64_t>(budget.seconds));
+  const double cpu_start = cpu_.Now();
+  const bool cpu_budget = budget.cpu_deadline_s > 0;
+  const double cpu_span = std::max(budget.cpu_deadline_s - cpu_start, 1e-9);
+  Progress progress(frame == 0 ? "splat train" : Cat("splat frame ", frame),
+                    budget.iterations > 0 ? budget.iterations
+                    : cpu_budget          ? static_cast<int64_t>(cpu_span)
+                                          : static_cast<int64_t>(budget.seconds));
   std::vector<double> reference(scene_.views.size(), -1), losses;
   std::vector<int> order;
   size_t cursor = 0;
@@ -852,13 +888,16 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
     report->AddPoint("heldout_psnr_fg_db", last_eval.psnr_fg_db, total_iterations_ + it);
     report->AddPoint("heldout_ssim", last_eval.ssim, total_iterations_ + it);
     report->AddPoint("gaussians", static_cast<double>(gaussians_.size()), total_iterations_ + it);
+    report->AddPoint("cpu_s", cpu_.Now(), total_iterations_ + it);
     report->Write(model_dir_ / "report.json");
   };
   int64_t iteration = 0;
   while (true) {
     const double t = elapsed();
+    const double cpu_t = cpu_budget ? cpu_.Now() - cpu_start : 0.0;
     if (budget.iterations > 0 && iteration >= budget.iterations) break;
     if (budget.seconds > 0 && t >= budget.seconds) break;
+    if (cpu_budget && cpu_t >= cpu_span) break;
     // Later frames are scored once, when trained.
     const bool eval_due = budget.first && (options_.eval_every_iterations > 0
                                                ? iteration % options_.eval_every_iterations == 0
@@ -870,6 +909,7 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
     double fraction = 0;
     if (budget.iterations > 0) fraction = static_cast<double>(iteration) / budget.iterations;
     if (budget.seconds > 0) fraction = std::max(fraction, t / budget.seconds);
+    if (cpu_budget) fraction = std::max(fraction, cpu_t / cpu_span);
     if (cursor == order.size()) {
       order = training_;
       std::shuffle(order.begin(), order.end(), rng_);
@@ -942,7 +982,9 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
       report->AddPoint("gaussians", static_cast<double>(gaussians_.size()),
                        total_iterations_ + iteration);
     }
-    progress.Update(budget.iterations > 0 ? iteration : static_cast<int64_t>(t),
+    progress.Update(budget.iterations > 0 ? iteration
+                    : cpu_budget          ? static_cast<int64_t>(cpu_t)
+                                          : static_cast<int64_t>(t),
                     Cat("it ", iteration, " loss ", loss, " held-out ", last_eval.psnr_db, " dB, ",
                         gaussians_.size(), " Gaussians"));
   }
@@ -971,6 +1013,7 @@ void Trainer::Finish(SplatSummary* summary) {
   stored_.Save(model_dir_);
   summary->megabytes = static_cast<double>(fs::file_size(model_dir_ / "gaussians.bin")) / 1e6;
   const SplatView& view = scene_.views[heldout_.empty() ? training_.front() : heldout_.front()];
+  const CpuClock::Excluded timing(&cpu_);
   const auto start = std::chrono::steady_clock::now();
   const int renders = 3;
   for (int k = 0; k < renders; ++k) RenderSplats(gaussians_, view.camera, {}, options_.sh_degree);
@@ -1006,7 +1049,11 @@ SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
                               {"floored_scales", summary.floored_scales},
                               {"megabytes", summary.megabytes},
                               {"render_fps", summary.render_fps},
-                              {"temporal", summary.temporal}});
+                              {"temporal", summary.temporal},
+                              {"cpu_s_seed", summary.cpu_s_seed},
+                              {"cpu_s_training", summary.cpu_s_training},
+                              {"cpu_s_scoring", summary.cpu_s_scoring}});
+    if (options.cpu_minutes > 0) report->metrics()["cpu_s_budget"] = options.cpu_minutes * 60;
     nlohmann::json frames = nlohmann::json::array();
     double largest_mb = 0;
     for (const auto& frame : summary.frames) {
