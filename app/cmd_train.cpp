@@ -131,11 +131,11 @@ void AddSharedTrainFlags(CLI::App* command, SharedTrainArgs* args) {
 void AddCpuMinutesFlag(CLI::App* command, double* cpu_minutes, const char* what_counts,
                        const char* more = "") {
   command
-      ->add_option("--cpu-minutes", *cpu_minutes,
-                   Cat("A budget of this process's CPU minutes (user + system, every thread) "
-                       "instead of the wall clock (--minutes): ",
-                       what_counts, " spend it; scoring the held-out views does not", more,
-                       " (0: off)"))
+      ->add_option(
+          "--cpu-minutes", *cpu_minutes,
+          Cat("A budget of this process's CPU minutes (user + system, every thread) "
+              "instead of the wall clock (--minutes): ",
+              what_counts, " spend it; scoring the held-out views does not", more, " (0: off)"))
       ->capture_default_str();
 }
 

@@ -166,8 +166,8 @@ double MeanPsnr(const std::vector<double>& psnrs) {
 // excluded) and its wall clock, as the run's report recorded it.
 void PrintCpuSeries(const ChildRun& run, const nlohmann::json& report) {
   std::printf("\n%s, %s, %s: held-out PSNR against CPU seconds\n%8s %8s %7s %10s %10s  %s\n",
-              run.data_set.c_str(), run.row.c_str(), run.method.c_str(), "cpu_s", "wall_s",
-              "iter", "whole_dB", "subject_dB", "scored on");
+              run.data_set.c_str(), run.row.c_str(), run.method.c_str(), "cpu_s", "wall_s", "iter",
+              "whole_dB", "subject_dB", "scored on");
   const auto& series = report["series"];
   const bool splat = run.method == "splats";
   for (size_t i = 0; i < series.size(); ++i) {
@@ -224,8 +224,8 @@ int RunEqualWork(const fs::path& root, const std::string& holocap, double cpu_mi
     }
   }
   const fs::path dino = bench::ImportDinoOnce(root);
-  std::printf("studio8: %s (calib/ from %s), %d frames at %d px, trained at %d px\n",
-              walk.c_str(), cal.c_str(), frames, studio8_size, studio8_width);
+  std::printf("studio8: %s (calib/ from %s), %d frames at %d px, trained at %d px\n", walk.c_str(),
+              cal.c_str(), frames, studio8_size, studio8_width);
   std::printf("dinoSparseRing: %s (its own calibration), trained at %d px, 1 camera held out\n",
               dino.c_str(), dino_width);
 
@@ -251,10 +251,11 @@ int RunEqualWork(const fs::path& root, const std::string& holocap, double cpu_mi
   const std::string all_frames = std::to_string(frames);
   for (const bool depth : {false, true}) {
     const std::string row = depth ? "depth" : "colour";
-    std::vector<std::string> nvol = {holocap,    "train",         "nvol", walk.string(), "--width",
-                                     Cat(studio8_width), "--eval-frames", all_frames};
-    std::vector<std::string> splat = {holocap, "train", "splat", walk.string(), "--width",
-                                      Cat(studio8_width)};
+    std::vector<std::string> nvol = {holocap,         "train",   "nvol",
+                                     walk.string(),   "--width", Cat(studio8_width),
+                                     "--eval-frames", all_frames};
+    std::vector<std::string> splat = {holocap,       "train",   "splat",
+                                      walk.string(), "--width", Cat(studio8_width)};
     if (!depth) {
       nvol.emplace_back("--no-depth");
       for (const char* word : {"--no-depth", "--seed-method", "hull"}) splat.emplace_back(word);
@@ -322,8 +323,8 @@ int RunEqualWork(const fs::path& root, const std::string& holocap, double cpu_mi
     for (std::string item; std::getline(in, item, '|');) f.push_back(item);
     std::printf("%-8s %-7s %-15s %8.1f %9.1f %8.1f %9.1f %8.1f %9.2f %10.2f %8s %-15s\n",
                 f[0].c_str(), f[1].c_str(), f[2].c_str(), std::stod(f[3]), std::stod(f[4]),
-                std::stod(f[5]), std::stod(f[6]), std::stod(f[7]), std::stod(f[8]),
-                std::stod(f[9]), f[10].c_str(), f[11].c_str());
+                std::stod(f[5]), std::stod(f[6]), std::stod(f[7]), std::stod(f[8]), std::stod(f[9]),
+                f[10].c_str(), f[11].c_str());
   }
   std::printf("logs and reports: %s\n", (root / "runs").c_str());
   return 0;
@@ -411,8 +412,8 @@ int main(int argc, char** argv) {
       holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
       return RunPlayback(playback, root, std::max(1, rounds));
     }
-    return RunEqualWork(root, fs::absolute(holocap).string(), cpu_minutes, width, dino_width,
-                        size, frames, eval_s, nice_level);
+    return RunEqualWork(root, fs::absolute(holocap).string(), cpu_minutes, width, dino_width, size,
+                        frames, eval_s, nice_level);
   } catch (const holocap::Error& e) {
     std::fprintf(stderr, "splat_bench: error: %s\n", e.what());
     return 1;

@@ -61,7 +61,7 @@ struct NeuralVolumeOptions {
   int occupancy_cells = 32;       // cells per axis of the skipping grid (0: no skipping)
 
   // Optimisation.
-  double minutes = 5;                    // wall-clock budget of training
+  double minutes = 5;  // wall-clock budget of training
   // > 0: a budget of the process's CPU seconds (user + system, every thread) instead of the
   // wall clock, counted from the start of TrainNeuralVolume: loading the take spends it too;
   // scoring the held-out views does not.

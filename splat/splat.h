@@ -107,7 +107,7 @@ struct SplatOptions {
                                      // first frame set only), "dynamic"
 
   // Optimisation.
-  double minutes = 5;           // wall-clock budget
+  double minutes = 5;  // wall-clock budget
   // > 0: a budget of the process's CPU seconds (user + system, every thread) instead of the
   // wall clock, counted from the start of LoadSplatScene: reading the take and the seed's
   // reconstruction spend it too; scoring the held-out views does not. A dynamic take shares

@@ -16,8 +16,8 @@
 #include "avatar/avatar.h"
 #include "avatar/image_metrics.h"
 #include "core/error.h"
-#include "core/fs.h"
 #include "core/frame_tasks.h"
+#include "core/fs.h"
 #include "core/image.h"
 #include "core/progress.h"
 #include "core/threads.h"
@@ -56,11 +56,11 @@ struct Snapshot {
 
 // The budget of one frame's training and what it may do.
 struct FrameBudget {
-  int64_t iterations = 0;  // > 0: stop after this many
-  double seconds = 0;      // > 0: stop after this long
-  bool first = true;       // frame 0: the degree raised progressively, the paper's densification
-                           // schedule and opacity resets; later frames: full degree, higher
-                           // harmonics frozen, densified every frame_densify_every
+  int64_t iterations = 0;     // > 0: stop after this many
+  double seconds = 0;         // > 0: stop after this long
+  bool first = true;          // frame 0: the degree raised progressively, the paper's densification
+                              // schedule and opacity resets; later frames: full degree, higher
+                              // harmonics frozen, densified every frame_densify_every
   double cpu_deadline_s = 0;  // > 0: stop when the run's CPU clock (Trainer::cpu_) reaches this
 };
 
@@ -149,8 +149,8 @@ class Trainer {
   std::vector<std::vector<float>> targets_, backgrounds_;
   std::vector<const cv::Mat*> images_, masks_;  // the frame being trained, per view
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
-  CpuClock cpu_;                 // since LoadSplatScene began, held-out scoring excluded
-  double train_cpu_start_ = 0;   // cpu_ when training began (after the seed)
+  CpuClock cpu_;                  // since LoadSplatScene began, held-out scoring excluded
+  double train_cpu_start_ = 0;    // cpu_ when training began (after the seed)
   int64_t total_iterations_ = 0;  // over the frames before the one being trained
   bool temporal_ = false;         // training a later frame
   int64_t add_room_ = -1;         // Gaussians the frame may still add (-1: no limit but the cap)

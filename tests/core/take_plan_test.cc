@@ -150,6 +150,24 @@ TEST(TakePlan, ChoosesSensorsPlateAndFrameSetsOnce) {
   EXPECT_THROW(plan.ColorIndex("depth0", "held-out"), Error);
 }
 
+TEST(TakePlan, NoDepthLeavesTheDepthSensorsOutOfEverything) {
+  TempDir dir;
+  WriteTake(dir.path() / "take", 6, 1);
+  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
+  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  const Take take = Take::Open(dir.path() / "take");
+  TakeSelection colour;
+  colour.color_only = true;
+  const TakePlan plan = PlanTake(take, colour);
+  EXPECT_EQ(plan.color_sensors, (std::vector<std::string>{"cam0", "cam1", "cam2"}));
+  EXPECT_TRUE(plan.depth_sensors.empty());
+  EXPECT_TRUE(plan.paired_color.empty());
+  EXPECT_EQ(plan.cameras.count("depth0"), 0u);  // no stage can reach its model
+  EXPECT_EQ(plan.ToJson().at("left_out").at("depth sensors"),
+            "colour cameras only, asked for (--no-depth)");
+  EXPECT_EQ(colour.ToJson().at("color_only"), true);
+}
+
 TEST(TakePlan, RefusesSelectionsThatSelectNothing) {
   TempDir dir;
   WriteTake(dir.path() / "take", 3, 1);

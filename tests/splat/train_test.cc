@@ -205,6 +205,28 @@ TEST(SplatTrain, LearnsTheSubjectAndBeatsTheBackground) {
   EXPECT_EQ(model.gaussians.size(), summary.gaussians);
 }
 
+// A CPU budget counts what loading and seeding spent: a seed that took it all leaves frame 0
+// no iteration (the iteration cap only stops a run that ignores it), and the seconds are
+// reported apart.
+TEST(SplatTrain, CpuBudgetIncludesTheSeed) {
+  SplatScene scene = MakeScene({});
+  scene.load_cpu_s = 1000;
+  SplatOptions options = TestOptions(200);
+  options.minutes = 1;
+  options.cpu_minutes = 1;
+  Report report("train splat");
+  const SplatSummary spent = TrainSplatsOn(scene, Dir("cpu_spent"), options, &report);
+  EXPECT_EQ(spent.iterations, 0) << spent.message;
+  EXPECT_EQ(spent.cpu_s_seed, 1000);
+  EXPECT_EQ(report.json()["metrics"]["cpu_s_budget"], 60.0);
+  // The same budget with a seed that spent nothing trains until the cap.
+  scene.load_cpu_s = 0;
+  const SplatSummary trained = TrainSplatsOn(scene, Dir("cpu_left"), options);
+  EXPECT_EQ(trained.iterations, 200) << trained.message;
+  EXPECT_GT(trained.cpu_s_training, 0);
+  EXPECT_LT(trained.cpu_s_seed + trained.cpu_s_training, 60) << "the budget was not the bound";
+}
+
 TEST(SplatTrain, OneCameraTrainsWithoutHeldOutViews) {
   SceneSpec spec;
   spec.cameras = 1;
@@ -448,6 +470,21 @@ TEST(SplatDynamic, DeltasStayWithinTheirBoundAndPlayBackAsTrained) {
   // Frame by frame from the one before, as playback applies them, gives the same frame.
   const splat::Gaussians first = model.Frame(Path("bounded"), 1);
   EXPECT_EQ(model.Frame(Path("bounded"), 2, &first, 1).position, last.position);
+}
+
+// A dynamic scene's later frames get their minutes : frame_minutes share of what seeding left
+// of a CPU budget: nothing when seeding spent it all.
+TEST(SplatDynamic, CpuBudgetSpentLeavesLaterFramesNoIteration) {
+  SplatScene scene = MakeScene(Moving(3));
+  scene.load_cpu_s = 1000;
+  SplatOptions options = TestOptions(100);
+  options.minutes = 1;
+  options.frame_minutes = 1;
+  options.frame_iterations = 100;
+  options.cpu_minutes = 1;
+  const SplatSummary summary = TrainSplatsOn(scene, Dir("cpu_dynamic"), options);
+  ASSERT_EQ(summary.frames.size(), 3u) << summary.message;
+  for (const SplatFrameSummary& frame : summary.frames) EXPECT_EQ(frame.iterations, 0);
 }
 
 TEST(SplatDynamic, StaticSceneTrainsNothingTemporal) {
