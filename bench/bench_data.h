@@ -12,7 +12,7 @@ namespace holocap::bench {
 inline std::filesystem::path ImportDinoOnce(const std::filesystem::path& root) {
   const std::filesystem::path source = std::filesystem::path(HOLOCAP_TEST_DATA_DIR) / "middlebury" /
                                        "dinoSparseRing" / "dinoSR_par.txt";
-  const std::filesystem::path take = root / "dino";
+  std::filesystem::path take = root / "dino";
   if (!std::filesystem::exists(take / "take.json")) {
     ImportOptions import;
     import.format = InteropFormat::kMiddlebury;

@@ -24,6 +24,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <exception>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -377,9 +378,7 @@ int RunPlayback(const fs::path& model_dir, const fs::path& root, int rounds) {
   return 0;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+int Main(int argc, char** argv) {
   CLI::App app("splats against Neural Volumes, the same inputs and CPU seconds");
   double cpu_minutes = 3;
   int width = 160, dino_width = 320, size = 640, frames = 8, nice_level = 5;
@@ -407,15 +406,23 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
   const fs::path root = fs::absolute(work);
   fs::create_directories(root);
-  try {
-    if (!playback.empty()) {
-      holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
-      return RunPlayback(playback, root, std::max(1, rounds));
-    }
-    return RunEqualWork(root, fs::absolute(holocap).string(), cpu_minutes, width, dino_width, size,
-                        frames, eval_s, nice_level);
-  } catch (const holocap::Error& e) {
-    std::fprintf(stderr, "splat_bench: error: %s\n", e.what());
-    return 1;
+  if (!playback.empty()) {
+    holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
+    return RunPlayback(playback, root, std::max(1, rounds));
   }
+  return RunEqualWork(root, fs::absolute(holocap).string(), cpu_minutes, width, dino_width, size,
+                      frames, eval_s, nice_level);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return Main(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "splat_bench: error: %s\n", e.what());
+  } catch (...) {
+    std::fprintf(stderr, "splat_bench: error: an unknown exception\n");
+  }
+  return 1;
 }
