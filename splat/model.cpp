@@ -44,7 +44,7 @@ void SplatOptions::Check() const {
                        "a per-frame run trains for iterations only");
   HOLOCAP_CHECK_OPTION(IsOneOf(seed_method, {"auto", "hull", "tsdf", "mvs"}), seed_method);
   HOLOCAP_CHECK_OPTION(!take.color_only || seed_method != "tsdf", seed_method,
-                       "TSDF fusion reads the depth sensors that take.color_only leaves out");
+                       "TSDF fusion reads the depth sensors that --no-depth leaves out");
   HOLOCAP_CHECK_OPTION_GT(learning_rate, 0);
   HOLOCAP_CHECK_OPTION_GT(position_lr, 0);
   HOLOCAP_CHECK_OPTION_GT(sh_lr, 0);
