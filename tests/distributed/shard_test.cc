@@ -320,8 +320,7 @@ TEST_F(ShardedReconstruct, BadShardsAndMergesEndInOneLine) {
   ExpectOneLineError(RunCli("reconstruct " + take() + " --ground-truth-cameras --out " +
                             out("bad") + " --shard two"),
                      "--shard must be K/N");
-  ExpectOneLineError(RunCli("report " + take() + " --merge"),
-                     "holds no run.json");
+  ExpectOneLineError(RunCli("report " + take() + " --merge"), "holds no run.json");
   auto empty = RunCli("reconstruct " + take() + " --ground-truth-cameras --out " + out("wide") +
                       " --shard 0/7 --no-sweep");
   EXPECT_EQ(empty.exit_code, 0) << empty.output;
