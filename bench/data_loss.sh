@@ -8,6 +8,8 @@
 #   4 reconstruct A --out B/recon, B's own results there
 #   5 two train splat into one --out outside a take, the second 1.5 s after the first
 # Usage: bench/data_loss.sh [HOLOCAP] (default build/app/holocap). Equal hashes: nothing lost.
+# The small simulated takes run on their true cameras (--ground-truth-cameras): what is measured
+# is what the commands keep and write, not their accuracy.
 set -uo pipefail
 H=$(realpath "${1:-build/app/holocap}")
 W=$(mktemp -d /tmp/holocap-data-loss.XXXXXX)
@@ -30,11 +32,11 @@ cp -a base a3; cp -a base b3; mkdir -p b3/calib; echo '{}' > b3/calib/report.jso
 b=$(tree b3); out=$($H calibrate a3 2>&1); rc=$?
 echo "3 calibrate through a linked calib/, other take | $b | $(tree b3) | $rc | $(echo "$out" | tail -1 | cut -c1-110)"
 # 4
-cp -a base b4; $H reconstruct b4 >/dev/null 2>&1
-b=$(tree b4/recon); out=$($H reconstruct base --out b4/recon 2>&1); rc=$?
+cp -a base b4; $H reconstruct b4 --ground-truth-cameras >/dev/null 2>&1
+b=$(tree b4/recon); out=$($H reconstruct base --ground-truth-cameras --out b4/recon 2>&1); rc=$?
 echo "4 reconstruct A --out B/recon | $b | $(tree b4/recon) | $rc | $(echo "$out" | tail -1 | cut -c1-110)"
 # 5
-$H sim --rig studio8 --frames 2 --clean-plate 1 --size 64 --out s5 >/dev/null 2>&1; $H reconstruct s5 --voxel 20mm --no-sweep >/dev/null 2>&1
-$H train splat s5 --iterations 200 --threads 1 --out m5 > o1.txt 2>&1 & p1=$!
-sleep 1.5; $H train splat s5 --iterations 30 --threads 1 --out m5 > o2.txt 2>&1; rc2=$?; wait $p1; rc1=$?
+$H sim --rig studio8 --frames 2 --clean-plate 1 --size 64 --out s5 >/dev/null 2>&1; $H reconstruct s5 --ground-truth-cameras --voxel 20mm --no-sweep >/dev/null 2>&1
+$H train splat s5 --ground-truth-cameras --iterations 200 --threads 1 --out m5 > o1.txt 2>&1 & p1=$!
+sleep 1.5; $H train splat s5 --ground-truth-cameras --iterations 30 --threads 1 --out m5 > o2.txt 2>&1; rc2=$?; wait $p1; rc1=$?
 echo "5 two train splat into one --out | first exit $rc1 ($(grep -o '^[A-Z_]*:' o1.txt | tail -1)) | second exit $rc2 | $(tail -1 o2.txt | cut -c1-110)"

@@ -16,6 +16,7 @@
 
 #include "avatar/image_metrics.h"
 #include "bench/bench_data.h"
+#include "bench/calibrated_sim.h"
 #include "core/report.h"
 #include "interop/interop.h"
 #include "neural/neural.h"
@@ -238,8 +239,9 @@ int main(int argc, char** argv) {
       sim.image_width = sim_width;
       sim.overwrite = true;
       SimSummary s = SimulateTake(sim, take);
-      std::printf("simulated %s: %lld frame sets in %.1f s\n", take.c_str(),
-                  static_cast<long long>(s.frame_sets), s.seconds);
+      std::printf("simulated %s: %lld frame sets in %.1f s; %s\n", take.c_str(),
+                  static_cast<long long>(s.frame_sets), s.seconds,
+                  bench::CalibrateFromBoardTake(sim, take).c_str());
     }
     NeuralVolumeOptions options;
     options.grid = grid;

@@ -29,6 +29,7 @@
 #include <sstream>
 #include <string>
 
+#include "bench/calibrated_sim.h"
 #include "core/error.h"
 #include "core/mesh.h"
 #include "core/take.h"
@@ -874,6 +875,9 @@ void SimulateOnce(const std::string& rig, const fs::path& dir, int frame_sets) {
   sim.seed = 7;
   sim.overwrite = true;
   SimulateTake(sim, dir);
+  // Calibrated as a user's take is (a board take of the rig, its models taken over); the truth
+  // only scores.
+  std::printf("%s: %s\n", dir.c_str(), bench::CalibrateFromBoardTake(sim, dir).c_str());
 }
 
 // Frame sets 1..count of a take: each depth map's foreground (against the clean plate of set 0),

@@ -24,6 +24,7 @@
 #include <string>
 
 #include "bench/bench_data.h"
+#include "bench/calibrated_sim.h"
 #include "core/mesh.h"
 #include "core/report.h"
 #include "interop/interop.h"
@@ -226,8 +227,9 @@ void RunStudio8(const BenchArgs& args, const fs::path& root) {
     sim.image_width = args.sim_width;
     sim.overwrite = true;
     SimSummary s = SimulateTake(sim, take);
-    std::printf("simulated %s: %lld frame sets in %.1f s\n", take.c_str(),
-                static_cast<long long>(s.frame_sets), s.seconds);
+    std::printf("simulated %s: %lld frame sets in %.1f s; %s\n", take.c_str(),
+                static_cast<long long>(s.frame_sets), s.seconds,
+                bench::CalibrateFromBoardTake(sim, take).c_str());
   }
   RerenderOptions options = args.base;
   options.minutes = args.minutes;

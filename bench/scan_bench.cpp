@@ -35,6 +35,7 @@
 #include <optional>
 #include <sstream>
 
+#include "bench/calibrated_sim.h"
 #include "calibration/calibration.h"
 #include "core/error.h"
 #include "core/fs.h"
@@ -79,37 +80,22 @@ double Median(std::vector<double> values) {
   return n % 2 == 1 ? values[n / 2] : 0.5 * (values[n / 2 - 1] + values[n / 2]);
 }
 
-// A board take of the same rig at the same size, calibrated; its models go into the scan take's
-// calib/ (what `holocap calibrate` of a board take hands a scan take of the same rig).
+// A board take of the same rig at the same size, calibrated; the scan take takes its models over
+// (`holocap calibrate SCAN_TAKE --from BOARD_TAKE`).
 void CalibrateLikeAUser(const fs::path& board_dir, const fs::path& scan_dir, int width, int height,
                         int threads) {
-  if (!fs::exists(board_dir / "calib" / "depth0.cameramodel")) {
-    SimOptions sim;
-    sim.rig = "single-rgbd";
-    sim.scene = "board";
-    sim.frames = 30;
-    sim.image_width = width;
-    sim.image_height = height;
-    sim.seed = 3;
-    sim.overwrite = true;
-    sim.threads = threads;
-    SimulateTake(sim, board_dir);
-    TakeCalibrationOptions options;
-    options.pictures = false;
-    const TakeCalibrationSummary calibrated = CalibrateTake(board_dir, options);
-    if (!calibrated.IsUsable())
-      Fail("calibrating ", board_dir.string(), ": ", ToString(calibrated.termination), ": ",
-           calibrated.message);
-    std::printf("(board take %s: %s, %.3f px RMS, world: %s)\n", board_dir.filename().c_str(),
-                ToString(calibrated.termination), calibrated.calibration.rms_reprojection_px,
-                calibrated.world_frame.c_str());
-  }
-  CreateDirectories(scan_dir / "calib");
-  for (const auto& entry : fs::directory_iterator(board_dir / "calib")) {
-    if (entry.path().extension() == ".cameramodel")
-      fs::copy_file(entry.path(), scan_dir / "calib" / entry.path().filename(),
-                    fs::copy_options::overwrite_existing);
-  }
+  SimOptions sim;
+  sim.rig = "single-rgbd";
+  sim.scene = "board";
+  sim.frames = 30;
+  sim.image_width = width;
+  sim.image_height = height;
+  sim.seed = 3;
+  sim.overwrite = true;
+  sim.threads = threads;
+  std::printf("(board take %s: %s)\n", board_dir.filename().c_str(),
+              bench::CalibrateBoardTake(sim, board_dir).c_str());
+  AdoptCalibration(scan_dir, board_dir);
 }
 
 // The plan with the depth sensor's lens reduced to its pinhole part (fx, fy, cx, cy): the camera

@@ -4,15 +4,16 @@
 # repeats: the wall time of one process, of 3 shards one after another, and of 2 shards at
 # once; each site compared byte for byte with one process's (records and reports aside).
 # Usage: bench/web_shard_bench.sh [HOLOCAP] (default build/app/holocap). Note `uptime`: the
-# timings mean something only against each other in the same run.
+# timings mean something only against each other in the same run. The simulated take runs on its
+# true cameras (--ground-truth-cameras): the sites are compared with each other, not scored.
 set -euo pipefail
 H=$(realpath "${1:-build/app/holocap}")
 D=$(mktemp -d /tmp/holocap-web-shard-bench.XXXXXX)
 trap 'rm -rf "$D"' EXIT
 export HOLOCAP_NO_PROGRESS=1
 "$H" sim --rig studio8 --frames 13 --clean-plate 1 --size 128 --seed 3 --threads 2 --out "$D/take" >/dev/null
-"$H" reconstruct "$D/take" --voxel 8mm --no-sweep --threads 2 >/dev/null
-"$H" train splat "$D/take" --recon "$D/take/recon" --iterations 60 --frame-iterations 10 --width 64 \
+"$H" reconstruct "$D/take" --ground-truth-cameras --voxel 8mm --no-sweep --threads 2 >/dev/null
+"$H" train splat "$D/take" --ground-truth-cameras --recon "$D/take/recon" --iterations 60 --frame-iterations 10 --width 64 \
   --seed-points 3000 --heldout 1 --threads 2 --out "$D/splat" >/dev/null
 args=(export web "$D/take" --model "$D/splat" --quality medium,high --key-every 3 --ground-truth)
 seconds() { local start; start=$(date +%s.%N); "$@" >/dev/null; echo "$(date +%s.%N) - $start" | bc; }
