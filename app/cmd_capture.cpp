@@ -77,15 +77,17 @@ std::unique_ptr<LiveStream> StartLive(const RigDescription& rig, const Recorder&
   }
   const std::filesystem::path out =
       flags.out.empty() ? std::filesystem::path(take) / "live" : std::filesystem::path(flags.out);
+  // The stream checks the scan first: a bad one is the command's only line.
+  auto stream = std::make_unique<LiveStream>(flags.scan, depth->name, models->at(depth->name),
+                                             depth->paired_with, models->at(depth->paired_with),
+                                             out, false, LiveOptions{});
   std::cout << "live        cameras: "
             << (!flags.calib.empty() ? "--calib " + flags.calib
                 : *calibrated        ? std::string("the drivers' calibrations")
                                      : std::string("the simulation's true models (never written "
                                                           "to calib/)"))
             << "\n";
-  return std::make_unique<LiveStream>(flags.scan, depth->name, models->at(depth->name),
-                                      depth->paired_with, models->at(depth->paired_with), out,
-                                      false, LiveOptions{});
+  return stream;
 }
 
 // After a live capture: the models it composed with go into the take's calib/ when they are a

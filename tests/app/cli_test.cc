@@ -71,7 +71,13 @@ TEST_F(SimulatedTake, ReplayReproducesEveryFrameBitExactly) {
       ++count;
     }
     EXPECT_EQ(count, recorded.size()) << stream.name;
-    ASSERT_TRUE(sensor->known_model().has_value());
+    // The take is not calibrated: its replay knows no model (the truth only when asked for).
+    EXPECT_FALSE(sensor->known_model().has_value());
+    auto truth = registry.Open({.name = stream.name,
+                                .uri = "replay:" + take().string() + "#" + stream.name,
+                                .options = {{"cameras", "truth"}}});
+    ASSERT_TRUE(truth->known_model().has_value());
+    EXPECT_TRUE(truth->known_model_is_truth());
   }
 }
 

@@ -153,8 +153,8 @@ TEST(TakePlan, ChoosesSensorsPlateAndFrameSetsOnce) {
 TEST(TakePlan, NoDepthLeavesTheDepthSensorsOutOfEverything) {
   TempDir dir;
   WriteTake(dir.path() / "take", 6, 1);
-  std::filesystem::create_directories(dir.path() / "take" / "gt" / "cameras");
-  WriteModels(dir.path() / "take" / "gt" / "cameras");
+  std::filesystem::create_directories(dir.path() / "take" / "calib");
+  WriteModels(dir.path() / "take" / "calib");
   const Take take = Take::Open(dir.path() / "take");
   TakeSelection colour;
   colour.color_only = true;

@@ -162,8 +162,8 @@ TEST_F(ShardedSplats, RenderAndExportRefuseAModelWhoseTrainingDidNotFinish) {
   fs::remove(FrameRecordPath(out("partial"), sets[2]));
   const std::string render =
       "render " + take() + " --model " + out("partial") + " --views 1 --size 32 --no-exr --out ";
-  const std::string web =
-      "export web " + take() + " --model " + out("partial") + " --no-meshes --out ";
+  const std::string web = "export web " + take() + " --ground-truth-cameras --model " +
+                          out("partial") + " --no-meshes --out ";
   ExpectOneLineError(RunCli(render + out("partial-frames")),
                      "is not a finished training: its report.json says FAILURE: the run is "
                      "incomplete: 3 of 4 frame sets complete");
