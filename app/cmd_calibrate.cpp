@@ -156,7 +156,7 @@ Summary CalibrateDemoTake(DemoContext& context) {
   options.solve.uncertainty_grid_x = 12;
   options.solve.uncertainty_grid_y = 9;
   Report report("calibrate");
-  const TakeCalibrationSummary summary = CalibrateTake(take, options, &report);
+  TakeCalibrationSummary summary = CalibrateTake(take, options, &report);
   PrintSummary(summary);
   nlohmann::json metrics = {{"termination", ToString(summary.termination)},
                             {"rms_reprojection_px", summary.calibration.rms_reprojection_px},

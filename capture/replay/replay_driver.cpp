@@ -10,7 +10,8 @@ namespace {
 
 class ReplaySensor : public Sensor {
  public:
-  ReplaySensor(Take take, std::string sensor, bool recorded_pace, bool loop, bool true_cameras)
+  ReplaySensor(Take take, const std::string& sensor, bool recorded_pace, bool loop,
+               bool true_cameras)
       : take_(std::move(take)),
         recorded_pace_(recorded_pace),
         loop_(loop),
