@@ -4,13 +4,9 @@
 // scores against the camera's image: the subject composited over it as the native render is.
 // The PNG's texels are copied as they are (no colour conversion, no premultiplication),
 // sampled bilinearly where the canvas is not the camera's size.
-import { compile } from './mesh.js';
+import { compile, FULL_SCREEN_VERTEX } from './mesh.js';
 
-const VERTEX = `#version 300 es
-void main() {
-  vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
-  gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
-}`;
+const VERTEX = FULL_SCREEN_VERTEX;
 
 const FRAGMENT = `#version 300 es
 precision highp float;

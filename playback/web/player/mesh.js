@@ -16,7 +16,15 @@ function compile(gl, vertex, fragment) {
     throw new Error(`program: ${gl.getProgramInfoLog(program)}`);
   return program;
 }
-export { compile };
+// One triangle over the whole canvas (three vertices, no buffer): the vertex stage of the passes
+// that shade every pixel (the volume's ray-march, a camera's background).
+const FULL_SCREEN_VERTEX = `#version 300 es
+void main() {
+  vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
+  gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+}`;
+
+export { compile, FULL_SCREEN_VERTEX };
 
 const VERTEX = `#version 300 es
 in vec3 position;

@@ -4,13 +4,9 @@
 // accumulated front to back, a ray stopped once its transmittance falls below the stream's
 // minimum, and empty occupancy cells left without a read (the same lattice, so skipping
 // changes no pixel).
-import { compile } from './mesh.js';
+import { compile, FULL_SCREEN_VERTEX } from './mesh.js';
 
-const VERTEX = `#version 300 es
-void main() {
-  vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
-  gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
-}`;
+const VERTEX = FULL_SCREEN_VERTEX;
 
 const FRAGMENT = `#version 300 es
 precision highp float;
