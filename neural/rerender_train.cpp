@@ -982,7 +982,9 @@ class RerenderTrainer {
   }
 
   // FAILURE on a non-finite loss; DEGENERATE when the kept network shows the held-out cameras
-  // no more of the subject than the background alone; CONVERGENCE when the validation
+  // no more of the subject than the background alone, or scores them no better than the raw
+  // render (near the subject where both are measured), or the weights kept are the untrained
+  // network's (validation peaked at iteration 0); CONVERGENCE when the validation
   // witnesses peaked before the budget ran out (those weights are kept); else NO_CONVERGENCE.
   void Summarise() {
     const int64_t iteration = summary_.iterations;
@@ -1006,6 +1008,20 @@ class RerenderTrainer {
                         " colour cameras, renders worse than no subject at all: give it more "
                         "cameras or depth)")
                   : std::string()));
+    } else if (!eval_cameras_.empty() &&
+               (!(scores.shown > scores.raw) ||
+                (!validation_cameras_.empty() && summary_.kept_iteration == 0))) {
+      // Rerendering exists to repair the raw render: a network that leaves the held-out
+      // cameras no better (or kept the untrained weights, the raw render itself) is no result.
+      summary_.End(Termination::kDegenerate,
+                   Cat("the network's output is no better than the raw render on the held-out "
+                       "cameras: ",
+                       scores.near ? "near the subject" : "over the whole image", " they score ",
+                       scores.shown, " dB, the raw render ", scores.raw, " dB",
+                       summary_.kept_iteration == 0 && !validation_cameras_.empty()
+                           ? " (the validation witnesses peaked at iteration 0: the weights kept "
+                             "are the untrained network's)"
+                           : ""));
     } else {
       const bool peaked_early = !validation_cameras_.empty() && summary_.kept_iteration < iteration;
       summary_.End(peaked_early ? Termination::kConvergence : Termination::kNoConvergence,

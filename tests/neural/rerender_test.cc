@@ -360,14 +360,13 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
   const nlohmann::json report = nlohmann::json::parse(file);
   const auto& m = report.at("metrics");
   EXPECT_EQ(m.at("iterations").get<int>(), 60);
-  // The raw render of this take is already close to the truth (vertex colours filled where no
-  // camera saw): 60 steps move the loss less than the spread between random batches, so the
-  // check is that training stays stable, not that it falls.
   EXPECT_TRUE(std::isfinite(m.at("last_loss").get<double>()));
-  EXPECT_LT(m.at("last_loss").get<double>(), 1.25 * m.at("first_loss").get<double>());
   EXPECT_GT(m.at("raw_render_psnr_db").get<double>(), 10);
-  // Training on witnesses must not make the held-out view worse than what it started from.
-  EXPECT_GT(m.at("heldout_psnr_db").get<double>(), m.at("raw_render_psnr_db").get<double>() - 0.5);
+  // What rerendering promises: the network repairs the raw render on a camera it never trained
+  // on (near the subject, where both are scored; a run that does not is DEGENERATE).
+  EXPECT_EQ(report.at("summary").at("termination"), "NO_CONVERGENCE");
+  EXPECT_GT(m.at("heldout_psnr_subject_db").get<double>(),
+            m.at("raw_render_psnr_subject_db").get<double>());
   EXPECT_EQ(report.at("plan").at("witness").size(), 2u);
   EXPECT_EQ(report.at("plan").at("temporal_term"), "on");
   // The take has a clean plate: alpha learns from the witnesses' silhouettes, and the
@@ -400,6 +399,23 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
       << degenerate.output;
   EXPECT_TRUE(std::filesystem::exists(nothing / "report.json")) << degenerate.output;
 
+  // A step far too large scrambles the network: finite, but the held-out camera scores below
+  // the raw render it started from, which training reports as DEGENERATE, not as a model.
+  const auto scrambled = dir / "scrambled";
+  auto worse =
+      testing::RunCli("train rerender " + take.string() + " --ground-truth-cameras --out " +
+                      scrambled.string() + " --recon " + (model / "recon").string() +
+                      " --witness-folds 1 --iterations 1 --lr 0.3 --width 64 --crop 0 "
+                      "--unet-width 8 --unet-depth 3 --eval-every 1000 --threads 1");
+  EXPECT_EQ(worse.exit_code, 1) << worse.output;
+  EXPECT_NE(worse.output.find("DEGENERATE: the network's output is no better than the raw render"),
+            std::string::npos)
+      << worse.output;
+  const nlohmann::json worse_report =
+      nlohmann::json::parse(std::ifstream(scrambled / "report.json"));
+  EXPECT_LT(worse_report.at("metrics").at("heldout_psnr_subject_db").get<double>(),
+            worse_report.at("metrics").at("raw_render_psnr_subject_db").get<double>());
+
   const auto frames = dir / "frames";
   auto render = testing::RunCli("render " + take.string() + " --model " + model.string() +
                                 " --views 3 --size 64 --no-exr --out " + frames.string());
@@ -413,6 +429,24 @@ TEST(RerenderCli, TrainsAndRendersATinyTake) {
 
 // Further witness folds: every fold's witnesses are seen through a reconstruction built without
 // them (and without the held-out camera), and the network trains on all of them.
+// A run of a step or two, made to check the plan: it trains and ends with its report, either
+// short of convergence or DEGENERATE because two steps have not yet made a network better than
+// the raw render (or, through folds that never saw the held-out camera, than its background).
+void ExpectPlanOnlyEnding(const std::filesystem::path& model, const testing::CommandResult& run) {
+  ASSERT_TRUE(std::filesystem::exists(model / "report.json")) << run.output;
+  const nlohmann::json summary =
+      nlohmann::json::parse(std::ifstream(model / "report.json")).at("summary");
+  const std::string termination = summary.at("termination");
+  if (termination == "DEGENERATE") {
+    EXPECT_EQ(run.exit_code, 1) << run.output;
+    EXPECT_NE(run.output.find("training ended DEGENERATE: the network's output"), std::string::npos)
+        << run.output;
+  } else {
+    EXPECT_EQ(termination, "NO_CONVERGENCE") << run.output;
+    EXPECT_EQ(run.exit_code, 0) << run.output;
+  }
+}
+
 TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   testing::TempDir dir("rerender-folds");
   const auto take = dir / "take";
@@ -429,8 +463,8 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   auto train = testing::RunCli(
       "train rerender " + take.string() + " --ground-truth-cameras --out " + model.string() +
       " --heldout 1 --witness-folds 3 --validation-witnesses 1 --supersample 3 "
-      "--iterations 10 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
-      " --recon-voxel 0.016 --eval-every 1000 --threads 1");
+      "--iterations 60 --lr 0.003 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
+      " --recon-method hull --recon-voxel 0.016 --eval-every 1000 --threads 1");
   ASSERT_EQ(train.exit_code, 0) << train.output;
   const nlohmann::json report = nlohmann::json::parse(std::ifstream(model / "report.json"));
   const auto& plan = report.at("plan");
@@ -462,16 +496,20 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
   EXPECT_EQ(all_witnesses.size(), witnesses);
   EXPECT_EQ(plan.at("witness").size(), witnesses);
   EXPECT_GT(witnesses, 4u);
-  EXPECT_EQ(report.at("metrics").at("iterations").get<int>(), 10);
+  EXPECT_EQ(report.at("metrics").at("iterations").get<int>(), 60);
   // Early stopping: the last fold's witness is scored, not trained on, and the weights kept are
-  // those of an evaluation (the first, iteration 0, is the raw render itself).
+  // those of an evaluation after training (iteration 0 is the raw render itself: a run that
+  // keeps it is DEGENERATE). The hulls of five or six cameras keep phantom volume that the
+  // network learns to remove, so it scores the validation witness and the held-out camera
+  // above the raw render.
   ASSERT_EQ(plan.at("validation").size(), 1u);
   EXPECT_EQ(plan.at("validation").at(0), folds.back().at("witness").back());
   const auto& metrics = report.at("metrics");
-  const int kept = metrics.at("kept_iteration").get<int>();
-  EXPECT_TRUE(kept == 0 || kept == 10) << kept;
+  EXPECT_EQ(metrics.at("kept_iteration").get<int>(), 60);
   EXPECT_GT(metrics.at("validation_psnr_db").get<double>(),
-            metrics.at("validation_raw_psnr_db").get<double>() - 0.1);
+            metrics.at("validation_raw_psnr_db").get<double>());
+  EXPECT_GT(metrics.at("heldout_psnr_subject_db").get<double>(),
+            metrics.at("raw_render_psnr_subject_db").get<double>());
   // More folds than cameras to spare: as many as there are, and the plan says so.
   const auto fewer = dir / "fewer";
   auto again = testing::RunCli(
@@ -479,7 +517,8 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
       " --heldout 1 --witness-folds 5 --recon " + (model / "recon").string() +
       " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3"
       " --recon-voxel 0.016 --eval-every 1000 --threads 1");
-  ASSERT_EQ(again.exit_code, 0) << again.output;
+  // Two steps rarely lift the network above the raw render: this run checks the plan only.
+  ExpectPlanOnlyEnding(fewer, again);
   const nlohmann::json fewer_report = nlohmann::json::parse(std::ifstream(fewer / "report.json"));
   EXPECT_EQ(fewer_report.at("plan").at("folds").size(), 3u);
   EXPECT_NE(
@@ -531,7 +570,7 @@ TEST(RerenderCli, WitnessFoldsTrainThroughReconstructionsThatNeverSawThem) {
       " --witness-scales 1,0.5 --validation-witnesses 1"
       " --iterations 2 --width 48 --crop 0 --unet-width 8 --unet-depth 3 --eval-every 1000 "
       "--threads 1");
-  ASSERT_EQ(by_name.exit_code, 0) << by_name.output;
+  ExpectPlanOnlyEnding(named, by_name);
   const nlohmann::json named_plan =
       nlohmann::json::parse(std::ifstream(named / "report.json")).at("plan");
   ASSERT_EQ(named_plan.at("folds").size(), 2u) << named_plan.dump();
