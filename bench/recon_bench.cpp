@@ -689,7 +689,7 @@ void HullAndMvs(const fs::path& take_dir, const std::vector<BenchFrame>& frames,
       std::vector<View> views;
       for (const StreamInfo& s : take.streams()) {
         if (s.role != SensorRole::kColor) continue;
-        View view{s.name, take.Camera(s.name, true), take.ReadFrame(frame.set, s.name), {}};
+        View view{s.name, take.Camera(s.name), take.ReadFrame(frame.set, s.name), {}};
         view.mask = ExtractSilhouette(view.image, take.ReadFrame(0, s.name), SilhouetteOptions{});
         iou += MaskIoU(view.mask,
                        ReadImage(take.gt_dir() / "masks" / s.name / (SetName(frame.set) + ".png")));
@@ -892,7 +892,7 @@ std::vector<BenchFrame> LoadFrames(const fs::path& take_dir, int count) {
     std::vector<std::pair<CameraModel, cv::Mat>> seen;
     for (const StreamInfo& s : take.streams()) {
       if (s.role != SensorRole::kDepth) continue;
-      CameraModel camera = take.Camera(s.name, true);
+      CameraModel camera = take.Camera(s.name);
       cv::Mat raw = take.ReadFrame(set, s.name);
       cv::Mat foreground =
           DepthForeground(raw, take.ReadFrame(0, s.name), TsdfOptions{}.depth_noise_k);
