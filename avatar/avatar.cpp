@@ -62,7 +62,10 @@ std::unique_ptr<AvatarModel> OpenModel(const std::filesystem::path& dir) {
 }
 
 std::string ModelTraining::Describe() const {
-  if (!reported) return "no report.json";
+  if (!reported) {
+    return "no report.json (every holocap training writes one when it ends: this one was "
+           "stopped before it ended, or the folder was not written by a training)";
+  }
   return Cat(ToString(termination), ": ", message);
 }
 
@@ -89,6 +92,23 @@ ModelTraining ReadModelTraining(const std::filesystem::path& dir) {
                         Termination::kNoConvergence, Termination::kDegenerate}) {
     if (state == ToString(t)) training.termination = t;
   }
+  // A later run into the same folder that did not end usable leaves the good report.json and
+  // writes its own beside it (report.failed.json); once it rewrote the model, the report no
+  // longer describes the model.json that is there.
+  const std::filesystem::path model = dir / "model.json";
+  std::error_code ec;
+  if (IsUsable(training.termination) && std::filesystem::is_regular_file(model, ec) &&
+      std::filesystem::last_write_time(model, ec) > std::filesystem::last_write_time(file, ec)) {
+    const std::filesystem::path failed = dir / "report.failed.json";
+    std::string later = "which left no report";
+    if (std::filesystem::is_regular_file(failed, ec)) {
+      const nlohmann::json newer = ParseReport(ReadFileToString(failed), failed.string());
+      later = Cat("whose report.failed.json says ", newer["summary"].value("termination", "?"),
+                  ": ", newer["summary"].value("message", ""));
+    }
+    training.termination = Termination::kFailure;
+    training.message = Cat("its model.json was written after report.json, by a later run ", later);
+  }
   return training;
 }
 
@@ -97,11 +117,12 @@ std::string RequireFinishedModel(const std::filesystem::path& dir, bool allow_pa
   const ModelTraining training = ReadModelTraining(dir);
   if (training.finished()) return "";
   if (!allow_partial) {
-    Fail("the model in ", dir.string(), " is not a finished training: its report.json says ",
+    Fail("the model in ", dir.string(),
+         " is not a finished training: ", training.reported ? "its report.json says " : "",
          training.Describe(), " (", flag, " uses it as it is)");
   }
-  return Cat("the model in ", dir.string(), " is used as it is (", flag, "): its training ended ",
-             training.Describe());
+  return Cat("the model in ", dir.string(), " is used as it is (", flag,
+             "): ", training.reported ? "its training ended " : "", training.Describe());
 }
 
 }  // namespace holocap

@@ -40,7 +40,7 @@ class ReaderCeiling : public ::testing::Test {
     return take() / index.substr(at, index.find('"', at) - at);
   }
   // DIR/model: a splat model.json declaring `declared` Gaussians of `degree`, beside a
-  // gaussians.bin of `bytes` zero bytes; returns the folder.
+  // gaussians.bin of `bytes` zero bytes and a finished training's report; returns the folder.
   fs::path SplatModel(int64_t declared, int degree, size_t bytes) const {
     fs::create_directories(dir_ / "model");
     WriteFileAtomic(dir_ / "model/model.json",
@@ -48,6 +48,10 @@ class ReaderCeiling : public ::testing::Test {
                         R"(, "sh_degree": )" + std::to_string(degree) +
                         R"(, "cameras": [], "box_min": [-1, -1, -1], "box_max": [1, 1, 1]})");
     WriteFileAtomic(dir_ / "model/gaussians.bin", std::string(bytes, '\0'));
+    // A finished training's report, so that playback reads the model (and meets its sizes).
+    WriteFileAtomic(dir_ / "model/report.json",
+                    R"({"command": "train splat", "summary": {"termination": "CONVERGENCE",
+                        "message": "written by hand"}})");
     return dir_ / "model";
   }
   void Verify(const std::string& needle) const {

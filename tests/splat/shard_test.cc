@@ -4,6 +4,7 @@
 // as one process's run, and a complete frame is skipped; the model plays along its deltas' bases.
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <filesystem>
 #include <map>
 
@@ -154,8 +155,9 @@ TEST_F(ShardedSplats, AShardKilledMidFrameRedoesOnlyItsUnfinishedFrames) {
 }
 
 // A model whose training did not finish is refused by render and export web in one line: a
-// run with a frame's record gone (as a run killed mid-frame leaves it), and a run whose
-// report.json says FAILURE. --partial-model uses it, and the reports and output say so.
+// run with a frame's record gone (as a run killed mid-frame leaves it), a run whose
+// report.json says FAILURE, one without a report.json, and one a later failed run rewrote.
+// --partial-model uses it, and the reports and output say so.
 TEST_F(ShardedSplats, RenderAndExportRefuseAModelWhoseTrainingDidNotFinish) {
   fs::copy(out("whole"), out("partial"), fs::copy_options::recursive);
   const std::vector<int64_t> sets = ReadRunState(out("partial")).sets;
@@ -177,6 +179,28 @@ TEST_F(ShardedSplats, RenderAndExportRefuseAModelWhoseTrainingDidNotFinish) {
   ExpectOneLineError(RunCli("render " + take() + " --model " + out("failed") +
                             " --views 1 --size 32 --no-exr --out " + out("failed-frames")),
                      "its report.json says FAILURE: stopped by a signal");
+
+  // A run killed before it ended leaves no report.json: refused as well.
+  fs::copy(out("whole"), out("unreported"), fs::copy_options::recursive);
+  fs::remove(out("unreported") + "/report.json");
+  ExpectOneLineError(
+      RunCli("render " + take() + " --model " + out("unreported") +
+             " --views 1 --size 32 --no-exr --out " + out("unreported-frames")),
+      "is not a finished training: no report.json (every holocap training writes one");
+  // A later run that failed beside the good report (report.failed.json) after rewriting the
+  // model: the good report no longer describes it.
+  fs::copy(out("whole"), out("rewritten"), fs::copy_options::recursive);
+  report = ReadJson(out("rewritten") + "/report.json");
+  report["summary"]["termination"] = "FAILURE";
+  report["summary"]["message"] = "stopped by a signal";
+  WriteFileAtomic(out("rewritten") + "/report.failed.json", report.dump());
+  fs::last_write_time(
+      out("rewritten") + "/model.json",
+      fs::last_write_time(out("rewritten") + "/report.json") + std::chrono::seconds(5));
+  ExpectOneLineError(RunCli("render " + take() + " --model " + out("rewritten") +
+                            " --views 1 --size 32 --no-exr --out " + out("rewritten-frames")),
+                     "its model.json was written after report.json, by a later run whose "
+                     "report.failed.json says FAILURE: stopped by a signal");
 
   auto rendered = RunCli(render + out("partial-frames") + " --partial-model");
   ASSERT_EQ(rendered.exit_code, 0) << rendered.output;
