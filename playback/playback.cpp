@@ -5,7 +5,6 @@
 #include <ImfFrameBuffer.h>
 #include <ImfHeader.h>
 #include <ImfOutputFile.h>
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <Imath/half.h>
@@ -21,6 +20,7 @@
 #include "core/image.h"
 #include "core/pose.h"
 #include "core/progress.h"
+#include "core/video.h"
 
 namespace holocap {
 namespace {
@@ -77,50 +77,6 @@ cv::Mat OverBackground(const RenderedView& view, const Eigen::Vector3d& backgrou
   }
   return out;
 }
-
-// ffmpeg reading raw BGR frames from a pipe into an H.264 MP4 (written to a temporary name
-// and renamed when ffmpeg succeeds).
-class VideoWriter {
- public:
-  VideoWriter(const fs::path& file, int width, int height, double fps, int crf) : file_(file) {
-    temp_ = file;
-    temp_ += ".partial.mp4";
-    const std::string command =
-        Cat("ffmpeg -hide_banner -loglevel error -y -f rawvideo -pix_fmt bgr24 -s ", width, "x",
-            height, " -r ", fps, " -i - -c:v libx264 -preset veryfast -crf ", crf,
-            " -pix_fmt yuv420p -movflags +faststart '", temp_.string(), "'");
-    pipe_ = popen(command.c_str(), "w");
-    if (pipe_ == nullptr) Fail("cannot start ffmpeg for ", file.string());
-  }
-  ~VideoWriter() {
-    if (pipe_ != nullptr) {
-      pclose(pipe_);
-      std::error_code ec;
-      fs::remove(temp_, ec);
-    }
-  }
-  void Write(const cv::Mat& bgr) {
-    const cv::Mat contiguous = bgr.isContinuous() ? bgr : bgr.clone();
-    const size_t bytes = contiguous.total() * contiguous.elemSize();
-    if (std::fwrite(contiguous.data, 1, bytes, pipe_) != bytes)
-      Fail("ffmpeg stopped reading frames for ", file_.string());
-  }
-  void Close() {
-    const int status = pclose(pipe_);
-    pipe_ = nullptr;
-    if (status != 0) {
-      std::error_code ec;
-      fs::remove(temp_, ec);
-      Fail("ffmpeg failed writing ", file_.string(), " (exit status ",
-           WIFEXITED(status) ? WEXITSTATUS(status) : status, ")");
-    }
-    fs::rename(temp_, file_);
-  }
-
- private:
-  fs::path file_, temp_;
-  FILE* pipe_ = nullptr;
-};
 
 }  // namespace
 
@@ -242,7 +198,7 @@ PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path,
   if (path.size() == 0) Fail("the camera path has no view");
   const auto start = std::chrono::steady_clock::now();
   const bool video = options.out.extension() == ".mp4";
-  std::unique_ptr<VideoWriter> writer;
+  std::unique_ptr<Mp4Writer> writer;
   if (options.write_frames) {
     if (video) {
       if (options.out.has_parent_path()) CreateDirectories(options.out.parent_path());
@@ -251,8 +207,8 @@ PlaybackSummary RenderPath(AvatarModel& model, const CameraPath& path,
         if (camera.width() != first.width() || camera.height() != first.height())
           Fail("every view of a video must have one size");
       }
-      writer = std::make_unique<VideoWriter>(options.out, first.width(), first.height(), path.fps,
-                                             options.crf);
+      writer = std::make_unique<Mp4Writer>(options.out, first.width(), first.height(), path.fps,
+                                           options.crf);
     } else {
       CreateDirectories(options.out);
     }
