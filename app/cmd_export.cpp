@@ -1,6 +1,7 @@
-// holocap export colmap|nerf|web TAKE --out DIR: a take's cameras and colour frames for other
-// tools, or (web) a static site that plays the take's meshes and volumes in a browser, in one
-// process or as shards (--shard K/N) of a per-frame run.
+// holocap export colmap|nerf|images|web TAKE --out DIR: a take's cameras and colour frames for
+// other tools, its frames as image folders or MP4s (images), or (web) a static site that plays the
+// take's meshes and volumes in a browser, in one process or as shards (--shard K/N) of a per-frame
+// run.
 #include <cstdio>
 #include <memory>
 #include <sstream>
@@ -21,7 +22,27 @@ struct ExportArgs {
   ExportOptions options;
   WebExportRequest web;
   std::string qualities = "medium";
+  ImageExportOptions images;
+  std::string video;
 };
+
+void RunExportImages(const ExportArgs& args, const CLI::App& command) {
+  for (const char* web_only : {"--model", "--recon", "--no-meshes", "--partial-model", "--quality",
+                               "--key-every", "--frames", "--shard", "--redo",
+                               "--ground-truth-cameras", "--no-images", "--skip-unrepresentable"}) {
+    if (command.count(web_only) > 0) Fail(web_only, " is not an option of export images");
+  }
+  ImageExportOptions options = args.images;
+  if (!args.video.empty() && args.video != "mp4")
+    Fail("--video ", args.video, ": the one video format is mp4");
+  options.video = !args.video.empty();
+  options.fps = args.web.fps;
+  options.overwrite = args.options.overwrite;
+  Report report("export");
+  const ImageExportSummary summary = ExportImages(args.take, args.out, options, &report);
+  report.Write(std::filesystem::path(args.out) / "report.json");
+  EndCommand(summary, "export");
+}
 
 }  // namespace
 
@@ -33,10 +54,11 @@ std::function<void(const WebExportRequest&)>& WebExportCommand() {
 static void AddExportCommand(CLI::App& app) {
   auto* command = app.add_subcommand(
       "export",
-      "Export a take's cameras and frames as a COLMAP model or a NeRF transforms.json, or a "
-      "static web site that plays its meshes and volumes (web)");
+      "Export a take's cameras and frames as a COLMAP model or a NeRF transforms.json, its frames "
+      "as images or videos (images), or a static web site that plays its meshes and volumes "
+      "(web)");
   auto args = std::make_shared<ExportArgs>();
-  command->add_option("FORMAT", args->format, "colmap | nerf | web")->required();
+  command->add_option("FORMAT", args->format, "colmap | nerf | images | web")->required();
   command->add_option("TAKE", args->take, "The take directory")->required();
   command->add_option("--out", args->out, "The directory to write")->required();
   command->add_flag("--ground-truth-cameras,--ground-truth", args->options.ground_truth,
@@ -59,7 +81,24 @@ static void AddExportCommand(CLI::App& app) {
       ->add_option("--quality", args->qualities,
                    "web: quality levels, one stream each: low, medium, high, lossless")
       ->capture_default_str();
-  command->add_option("--fps", args->web.fps, "web: playback rate (default: the take's)");
+  command->add_option("--fps", args->web.fps,
+                      "web: playback rate; images --video: the videos' rate (default: the take's)");
+  command
+      ->add_option("--format", args->images.format,
+                   "images: jpg or png, one folder per camera, files named by frame set")
+      ->capture_default_str();
+  command->add_option("--video", args->video,
+                      "images: mp4, one H.264 video per camera instead of image folders");
+  command->add_option("--jpeg-quality", args->images.jpeg_quality, "images: JPEG quality 1..100")
+      ->capture_default_str();
+  command
+      ->add_option("--crf", args->images.crf,
+                   "images --video: H.264 constant rate factor (0 lossless .. 51)")
+      ->capture_default_str();
+  command
+      ->add_option("--sensors", args->images.sensors,
+                   "images: colour cameras to export, comma-separated (default: all)")
+      ->delimiter(',');
   command->add_option("--key-every", args->web.key_every,
                       "web: a splat key frame at every multiple of it on the timeline "
                       "(default 10; 1: every frame a key frame); also the frames of a group, "
@@ -75,7 +114,15 @@ static void AddExportCommand(CLI::App& app) {
   command->add_flag("--redo", args->web.redo,
                     "web: write groups whose chunks are complete from an earlier run too");
   NameFieldFlags(command, {{"splat_key_every", "--key-every"}, {"qualities", "--quality"}});
-  command->callback([args] {
+  command->callback([args, command] {
+    if (args->format == "images") {
+      RunExportImages(*args, *command);
+      return;
+    }
+    if (command->count("--format") + command->count("--video") + command->count("--jpeg-quality") +
+            command->count("--crf") + command->count("--sensors") >
+        0)
+      Fail("--format, --video, --jpeg-quality, --crf and --sensors are options of export images");
     if (args->format == "web") {
       WebExportRequest request = args->web;
       request.take = args->take;

@@ -41,7 +41,8 @@ void PrintTakeInfo(const Take& take, std::ostream& out) {
   }
   const bool calibrated = take.has_calibration();
   const bool ground_truth = take.has_ground_truth();
-  out << "calibration " << (calibrated ? "yes (calib/)" : "no") << "\n";
+  out << "calibration " << (calibrated ? "yes (calib/)" : "no: uncalibrated (holocap calibrate)")
+      << "\n";
   out << "ground truth " << (ground_truth ? "yes (gt/)" : "no") << "\n";
   out << "sensors     " << take.streams().size() << "\n";
   for (const auto& stream : take.streams()) {

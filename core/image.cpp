@@ -242,17 +242,27 @@ void CheckPngHeader(const std::filesystem::path& file, const std::string& bytes,
   }
 }
 
-cv::Mat DecodePngBytes(const std::filesystem::path& file, const std::string& bytes,
-                       const ImageShape* declared) {
+}  // namespace
+
+cv::Mat DecodeImageBytes(const std::string& bytes) {
   cv::Mat image;
-  if (!PngStructureIsComplete(bytes)) Fail("'", file.string(), "' is truncated or not a PNG image");
-  CheckPngHeader(file, bytes, declared);
   try {
     image = cv::imdecode(
         cv::Mat(1, static_cast<int>(bytes.size()), CV_8UC1, const_cast<char*>(bytes.data())),
         cv::IMREAD_UNCHANGED);
   } catch (const cv::Exception&) {
   }
+  return image;
+}
+
+namespace {
+
+cv::Mat DecodePngBytes(const std::filesystem::path& file, const std::string& bytes,
+                       const ImageShape* declared) {
+  cv::Mat image;
+  if (!PngStructureIsComplete(bytes)) Fail("'", file.string(), "' is truncated or not a PNG image");
+  CheckPngHeader(file, bytes, declared);
+  image = DecodeImageBytes(bytes);
   if (image.empty()) Fail("'", file.string(), "' is truncated or not a PNG image");
   return image;
 }

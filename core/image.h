@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <opencv2/core.hpp>
+#include <string>
 
 namespace holocap {
 
@@ -42,6 +43,9 @@ cv::Mat ReadImage(const std::filesystem::path& file);
 // more than kMaxUndeclaredImagePixels pixels and what the bytes can hold; `origin` names them in
 // errors. Throws Error.
 cv::Mat DecodePng(const std::string& bytes, const std::string& origin);
+// Bytes of any format OpenCV reads, decoded as stored (IMREAD_UNCHANGED); an empty Mat when
+// they do not decode.
+cv::Mat DecodeImageBytes(const std::string& bytes);
 // Throws Error naming `file` when bytes follow the end of its image (after a PNG's IEND chunk,
 // a zstd frame's end); no writer leaves them, so they are damage or something hidden.
 void CheckImageFileEnds(const std::filesystem::path& file);

@@ -11,28 +11,36 @@
 #include "core/fs.h"
 #include "core/image.h"
 #include "core/take.h"
+#include "interop/internal/import_frames.h"
 #include "interop/interop.h"
 
 namespace holocap {
-namespace {
 
-// One camera as a source describes it, before sensor names are chosen.
-struct SourceView {
-  std::string source_name;
-  CameraModel camera;
-  std::map<int64_t, fs::path> frames;
-};
+namespace interop_internal {
 
-bool IsImageFile(const fs::path& file) {
+std::string LowerExtension(const fs::path& file) {
   std::string ext = file.extension().string();
   std::transform(ext.begin(), ext.end(), ext.begin(),
                  [](unsigned char c) { return std::tolower(c); });
-  static const std::set<std::string> known = {".png", ".jpg",  ".jpeg", ".bmp",
-                                              ".tif", ".tiff", ".ppm",  ".pgm"};
-  return known.count(ext) > 0;
+  return ext;
 }
 
-// The trailing number of a file's stem ("image0042" -> 42), if any.
+bool IsImageFile(const fs::path& file) {
+  static const std::set<std::string> known = {".png", ".jpg",  ".jpeg", ".bmp",
+                                              ".tif", ".tiff", ".ppm",  ".pgm"};
+  return known.count(LowerExtension(file)) > 0;
+}
+
+std::vector<fs::path> ImageFilesIn(const fs::path& folder) {
+  std::vector<fs::path> files;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(folder, ec)) {
+    if (entry.is_regular_file() && IsImageFile(entry.path())) files.push_back(entry.path());
+  }
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
 std::optional<int64_t> TrailingNumber(const fs::path& file) {
   std::string stem = file.stem().string();
   size_t start = stem.size();
@@ -41,15 +49,150 @@ std::optional<int64_t> TrailingNumber(const fs::path& file) {
   return std::stoll(stem.substr(start));
 }
 
+namespace {
+
+// Whether JPEG bytes end their last scan with the end-of-image marker. Entropy-coded data
+// never holds 0xFF 0xD9 (a 0xFF there is followed by 0x00 or a restart marker), and libjpeg
+// completes a cut scan with grey, warning only: this is how a truncated photograph is told.
+bool JpegIsComplete(const std::string& bytes) {
+  size_t last_scan = std::string::npos;
+  for (size_t at = 0; at + 1 < bytes.size(); ++at) {
+    if (static_cast<unsigned char>(bytes[at]) == 0xFF &&
+        static_cast<unsigned char>(bytes[at + 1]) == 0xDA)
+      last_scan = at;
+  }
+  if (last_scan == std::string::npos) return false;
+  for (size_t at = last_scan + 2; at + 1 < bytes.size(); ++at) {
+    if (static_cast<unsigned char>(bytes[at]) == 0xFF &&
+        static_cast<unsigned char>(bytes[at + 1]) == 0xD9)
+      return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+cv::Mat ReadSourceImage(const fs::path& file) {
+  if (!fs::is_regular_file(file)) Fail("image '", file.string(), "' does not exist");
+  const std::string bytes = ReadFileToString(file);
+  const std::string ext = LowerExtension(file);
+  if (ext == ".png") return DecodePng(bytes, file.string());
+  if ((ext == ".jpg" || ext == ".jpeg") && !JpegIsComplete(bytes))
+    Fail("image '", file.string(), "' is truncated (its JPEG data has no end after its last scan)");
+  const cv::Mat image = DecodeImageBytes(bytes);
+  if (image.empty()) Fail("image '", file.string(), "' cannot be decoded");
+  return image;
+}
+
+std::string SanitizedName(const std::string& text) {
+  std::string name;
+  for (unsigned char c : text)
+    name += (std::isalnum(c) || c == '_' || c == '-' || c == '.') ? c : '_';
+  if (name.empty()) name = "cam";
+  return name;
+}
+
+PixelFormat PixelFormatOf(const cv::Mat& image, const std::string& origin) {
+  switch (image.type()) {
+    case CV_8UC1:
+      return {"mono8"};
+    case CV_8UC3:
+      return {"bgr8"};
+    case CV_8UC4:
+      return {"bgra8"};
+    case CV_16UC1:
+      return {"mono16"};
+    case CV_16UC3:
+      return {"bgr16"};
+    case CV_16UC4:
+      return {"bgr16", true};
+  }
+  Fail("image '", origin, "' has ", image.channels(), " channel(s) of depth ", image.depth(),
+       "; takes hold 8/16-bit mono or colour");
+}
+
+void AlphaCounts::AddNotes(std::vector<std::string>* notes) const {
+  if (kept > 0) {
+    notes->push_back(Cat("alpha kept in ", kept,
+                         " image(s) (bgra8: the silhouettes the reconstruction uses "
+                         "first)"));
+  }
+  if (dropped > 0) {
+    notes->push_back(Cat("alpha channel of ", dropped,
+                         " 16-bit image(s) dropped (takes hold alpha at 8 bits; colour kept "
+                         "exactly)"));
+  }
+}
+
+cv::Mat ConformedFrame(cv::Mat image, const StreamInfo& stream, const std::string& origin,
+                       const std::string& expected, AlphaCounts* alpha) {
+  if (image.cols != stream.width || image.rows != stream.height) {
+    Fail("image '", origin, "' is ", image.cols, "x", image.rows, " but camera '", stream.name,
+         "' ", expected, " ", stream.width, "x", stream.height);
+  }
+  const PixelFormat format = PixelFormatOf(image, origin);
+  if (format.name != stream.pixel_format) {
+    Fail("image '", origin, "' is ", format.name, " but the earlier images of '", stream.name,
+         "' are ", stream.pixel_format);
+  }
+  if (format.drops_alpha) {
+    cv::cvtColor(image, image, cv::COLOR_BGRA2BGR);
+    ++alpha->dropped;
+  } else if (image.channels() == 4) {
+    ++alpha->kept;
+  }
+  return image;
+}
+
+void AddImportedStream(const std::string& sensor, const std::string& format, int width, int height,
+                       const std::string& pixel_format, const std::string& clock,
+                       RigDescription* rig, std::vector<StreamInfo>* streams) {
+  SensorSpec spec;
+  spec.name = sensor;
+  spec.uri = Cat("import:", format, "#", sensor);
+  rig->sensors.push_back(spec);
+  StreamInfo stream;
+  stream.name = sensor;
+  stream.uri = spec.uri;
+  stream.width = width;
+  stream.height = height;
+  stream.pixel_format = pixel_format;
+  stream.codec = ImageCodec::kPng;
+  stream.clock = clock;
+  streams->push_back(stream);
+}
+
+TakeWriterOptions ImportWriterOptions(int png_compression, bool overwrite,
+                                      std::vector<fs::path> inputs) {
+  TakeWriterOptions options;
+  options.png_compression = png_compression;
+  options.overwrite = overwrite;
+  options.command = "import";
+  options.inputs = std::move(inputs);
+  return options;
+}
+
+}  // namespace interop_internal
+
+namespace {
+
+using interop_internal::IsImageFile;
+using interop_internal::PixelFormatOf;
+using interop_internal::ReadSourceImage;
+using interop_internal::SanitizedName;
+using interop_internal::TrailingNumber;
+
+// One camera as a source describes it, before sensor names are chosen.
+struct SourceView {
+  std::string source_name;
+  CameraModel camera;
+  std::map<int64_t, fs::path> frames;
+};
+
 // The images of one camera's folder, keyed by the number in their names (by name order when
 // the names carry no distinct numbers).
 std::map<int64_t, fs::path> NumberedImages(const fs::path& folder) {
-  std::vector<fs::path> files;
-  std::error_code ec;
-  for (const auto& entry : fs::directory_iterator(folder, ec)) {
-    if (entry.is_regular_file() && IsImageFile(entry.path())) files.push_back(entry.path());
-  }
-  std::sort(files.begin(), files.end());
+  const std::vector<fs::path> files = interop_internal::ImageFilesIn(folder);
   std::map<int64_t, fs::path> frames;
   bool numbered = true;
   for (const auto& file : files) {
@@ -66,22 +209,7 @@ std::map<int64_t, fs::path> NumberedImages(const fs::path& folder) {
   return frames;
 }
 
-cv::Mat ReadSourceImage(const fs::path& file) {
-  if (!fs::is_regular_file(file)) Fail("image '", file.string(), "' does not exist");
-  cv::Mat image = cv::imread(file.string(), cv::IMREAD_UNCHANGED);
-  if (image.empty()) Fail("image '", file.string(), "' cannot be decoded");
-  return image;
-}
-
 cv::Size ImageSize(const fs::path& file) { return ReadSourceImage(file).size(); }
-
-std::string SanitizedName(const std::string& text) {
-  std::string name;
-  for (unsigned char c : text)
-    name += (std::isalnum(c) || c == '_' || c == '-' || c == '.') ? c : '_';
-  if (name.empty()) name = "cam";
-  return name;
-}
 
 // Sensor names: each camera's image folder when every camera has its own, else each camera's
 // first image stem (or its source name), made unique.
@@ -564,30 +692,6 @@ void ReadNerf(const fs::path& source, const ImportOptions& options, ImportedRig*
   rig->world_from_source = scale * Eigen::Matrix3d::Identity();
 }
 
-struct PixelFormat {
-  std::string name;
-  bool drops_alpha = false;
-};
-
-PixelFormat PixelFormatOf(const cv::Mat& image, const fs::path& file) {
-  switch (image.type()) {
-    case CV_8UC1:
-      return {"mono8"};
-    case CV_8UC3:
-      return {"bgr8"};
-    case CV_8UC4:
-      return {"bgra8"};
-    case CV_16UC1:
-      return {"mono16"};
-    case CV_16UC3:
-      return {"bgr16"};
-    case CV_16UC4:
-      return {"bgr16", true};
-  }
-  Fail("image '", file.string(), "' has ", image.channels(), " channel(s) of depth ", image.depth(),
-       "; takes hold 8/16-bit mono or colour");
-}
-
 }  // namespace
 
 void ImportOptions::Check() const {
@@ -656,23 +760,13 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
   description.name = SanitizedName(rig.source.stem().string());
   description.fps = options.fps;
   std::vector<StreamInfo> streams;
-  int64_t alpha_dropped = 0, alpha_kept = 0;
+  interop_internal::AlphaCounts alpha;
   for (const auto& view : rig.views) {
     const fs::path& first = view.frames.begin()->second;
-    cv::Mat image = ReadSourceImage(first);
-    SensorSpec spec;
-    spec.name = view.sensor;
-    spec.uri = Cat("import:", ToString(rig.format), "#", view.sensor);
-    description.sensors.push_back(spec);
-    StreamInfo stream;
-    stream.name = view.sensor;
-    stream.uri = spec.uri;
-    stream.width = view.camera.width();
-    stream.height = view.camera.height();
-    stream.pixel_format = PixelFormatOf(image, first).name;
-    stream.codec = ImageCodec::kPng;
-    stream.clock = "none (imported: set index / fps)";
-    streams.push_back(stream);
+    interop_internal::AddImportedStream(view.sensor, ToString(rig.format), view.camera.width(),
+                                        view.camera.height(),
+                                        PixelFormatOf(ReadSourceImage(first), first.string()).name,
+                                        "none (imported: set index / fps)", &description, &streams);
   }
   description.Check();
   nlohmann::json metadata;
@@ -682,16 +776,14 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
   interop["world_from_source"] = RowMajor(rig.world_from_source);
   for (const auto& view : rig.views) interop["source_names"][view.sensor] = view.source_name;
   interop["notes"] = rig.notes;
-  TakeWriterOptions writer_options;
-  writer_options.png_compression = options.png_compression;
-  writer_options.overwrite = options.overwrite;
-  writer_options.command = "import";
-  writer_options.inputs = {source, rig.source};
-  if (!options.images.empty()) writer_options.inputs.push_back(options.images);
+  std::vector<fs::path> inputs = {source, rig.source};
+  if (!options.images.empty()) inputs.push_back(options.images);
   for (const auto& view : rig.views) {
-    for (const auto& [number, file] : view.frames) writer_options.inputs.push_back(file);
+    for (const auto& [number, file] : view.frames) inputs.push_back(file);
   }
-  TakeWriter writer(take_dir, description, streams, metadata, writer_options);
+  TakeWriter writer(
+      take_dir, description, streams, metadata,
+      interop_internal::ImportWriterOptions(options.png_compression, options.overwrite, inputs));
   // A failed import leaves its report in a new take; a replaced take is put back untouched.
   if (report != nullptr && !writer.replacing())
     report->SetFailureDestination(take_dir / "report.json");
@@ -706,22 +798,9 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
     for (size_t v = 0; v < rig.views.size(); ++v) {
       auto it = rig.views[v].frames.find(number);
       if (it == rig.views[v].frames.end()) continue;
-      cv::Mat image = ReadSourceImage(it->second);
-      if (image.cols != streams[v].width || image.rows != streams[v].height) {
-        Fail("image '", it->second.string(), "' is ", image.cols, "x", image.rows, " but camera '",
-             rig.views[v].sensor, "' is calibrated for ", streams[v].width, "x", streams[v].height);
-      }
-      PixelFormat format = PixelFormatOf(image, it->second);
-      if (format.name != streams[v].pixel_format) {
-        Fail("image '", it->second.string(), "' is ", format.name, " but the earlier images of '",
-             rig.views[v].sensor, "' are ", streams[v].pixel_format);
-      }
-      if (format.drops_alpha) {
-        cv::cvtColor(image, image, cv::COLOR_BGRA2BGR);
-        ++alpha_dropped;
-      } else if (image.channels() == 4) {
-        ++alpha_kept;
-      }
+      cv::Mat image =
+          interop_internal::ConformedFrame(ReadSourceImage(it->second), streams[v],
+                                           it->second.string(), "is calibrated for", &alpha);
       set.frames.push_back(
           {rig.views[v].sensor, image, set_index * period_ns, static_cast<uint64_t>(number)});
     }
@@ -735,19 +814,11 @@ ImportSummary ImportTake(const fs::path& source, const fs::path& take_dir,
   summary.frame_sets = set_index;
   summary.frames = frames;
   summary.metrics = rig.metrics;
-  summary.metrics["alpha_channels_dropped"] = alpha_dropped;
-  summary.metrics["alpha_channels_kept"] = alpha_kept;
+  summary.metrics["alpha_channels_dropped"] = alpha.dropped;
+  summary.metrics["alpha_channels_kept"] = alpha.kept;
   std::string message = Cat("imported ", summary.sensors, " camera(s), ", frames, " frame(s) in ",
                             set_index, " frame set(s) from ", ToString(rig.format));
-  if (alpha_kept > 0) {
-    rig.notes.push_back(Cat("alpha kept in ", alpha_kept,
-                            " image(s) (bgra8: the silhouettes the reconstruction uses first)"));
-  }
-  if (alpha_dropped > 0) {
-    rig.notes.push_back(Cat("alpha channel of ", alpha_dropped,
-                            " 16-bit image(s) dropped (takes hold alpha at 8 bits; colour kept "
-                            "exactly)"));
-  }
+  alpha.AddNotes(&rig.notes);
   for (const auto& note : rig.notes) message += "; " + note;
   summary.End(Termination::kSuccess, std::move(message));
   if (report != nullptr) {

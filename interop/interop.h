@@ -221,4 +221,88 @@ ExportSummary ExportTake(const std::filesystem::path& take_dir,
                          const std::filesystem::path& out_dir, const ExportOptions& options,
                          Report* report = nullptr);
 
+// ---------------------------------------------------------------------------------------------
+// Photographs and videos as a take (holocap import images), and a take's frames as images or
+// videos (holocap export images).
+//
+// Each camera is one source: a folder of images, a glob of image files, or a video file (read
+// with OpenCV's FFmpeg backend; frame i of a video is numbered i and timed by its position in
+// the video). Frames of different cameras are paired into frame sets by
+//   number  the trailing number of the file name (left07.jpg with right07.jpg);
+//   time    their timestamps: a video's own, or for images a sidecar file `timestamps.txt` in
+//           the images' folder, one line per image: "<file name> <seconds>" ('#' comments);
+//           frames of different cameras within the tolerance of each other share a set;
+//   order   their rank (images in name order).
+// kAuto takes number where every camera's frames carry distinct numbers and at least half of
+// each camera's frames find a partner by them, else time where every frame has a timestamp,
+// else order. A frame without a partner still forms a frame set alone (a camera's own view of
+// a board helps its lens), and is counted and named as unpaired.
+//
+// No camera model is written: the take is uncalibrated until `holocap calibrate` solves it.
+// Frames are kept as decoded (grey stays grey, 16-bit stays 16-bit, bgra8 keeps its alpha),
+// losslessly as PNG. Every source is read and checked before the take's folder is made, so bad
+// input (nothing found, an unreadable or truncated image, a camera named twice, a camera whose
+// images differ in size or format) is one Error and no take.
+
+enum class FramePairing { kAuto, kNumber, kTime, kOrder };
+const char* ToString(FramePairing pairing);                    // "auto", "number", ...
+FramePairing FramePairingFromString(const std::string& text);  // throws Error naming the choices
+
+struct CameraSource {
+  std::string camera;  // the sensor name in the take
+  std::string source;  // a folder, a glob of image files, or a video file
+};
+
+struct ImageImportOptions {
+  FramePairing pairing = FramePairing::kAuto;
+  // Pairing by time: frames of different cameras at most this far apart share a set; 0: half
+  // the shortest interval between two frames of one camera.
+  double time_tolerance_s = 0;
+  double fps = 30;          // sets stamped i / fps where the frames carry no timestamps
+  int png_compression = 1;  // 0..9, lossless at every level
+  bool overwrite = false;   // replace an existing imported take
+  void Check() const;
+};
+
+// The cameras of FOLDER: each sub-folder holding images is a camera of its name, and so is
+// each video file directly in FOLDER (named by its stem). Throws Error when it finds none.
+std::vector<CameraSource> CameraSourcesInFolder(const std::filesystem::path& folder);
+
+struct ImageImportSummary : Summary {
+  int cameras = 0;
+  int64_t frame_sets = 0;
+  int64_t frames = 0;
+  FramePairing pairing = FramePairing::kAuto;  // the rule used (never kAuto)
+  std::string pairing_reason;                  // why that rule
+  std::vector<std::string> unpaired;           // frames alone in their set ("left/left07.jpg")
+  nlohmann::json metrics = nlohmann::json::object();
+  std::string PairingLine() const;  // "paired by number ...: N sets; K unpaired (names)"
+};
+// Writes the take. `report` (optional) receives options, plan and metrics.
+ImageImportSummary ImportImages(const std::vector<CameraSource>& cameras,
+                                const std::filesystem::path& take_dir,
+                                const ImageImportOptions& options, Report* report = nullptr);
+
+struct ImageExportOptions {
+  std::string format = "jpg";  // jpg | png: DIR/<sensor>/<set:06d>.<format>
+  int jpeg_quality = 95;       // 1..100
+  // true: one H.264 MP4 per camera (DIR/<sensor>.mp4, ffmpeg) instead of image folders, over
+  // the frame sets that hold every exported camera (a video has no gaps).
+  bool video = false;
+  int crf = 18;                      // H.264 constant rate factor (0 lossless .. 51)
+  double fps = 0;                    // video frame rate; 0: the take's
+  std::vector<std::string> sensors;  // colour sensors to export; empty: all
+  bool overwrite = false;            // allow a non-empty output directory
+  void Check() const;
+};
+struct ImageExportSummary : Summary {
+  int cameras = 0;
+  int64_t images = 0;              // frames written (images, or video frames)
+  int64_t sets_left_out = 0;       // video: frame sets missing a camera
+  std::vector<std::string> notes;  // conversions (16-bit to 8, grey to colour in a video)
+};
+ImageExportSummary ExportImages(const std::filesystem::path& take_dir,
+                                const std::filesystem::path& out_dir,
+                                const ImageExportOptions& options, Report* report = nullptr);
+
 }  // namespace holocap
