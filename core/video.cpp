@@ -6,8 +6,7 @@
 
 namespace holocap {
 
-Mp4Writer::Mp4Writer(const std::filesystem::path& file, int width, int height, double fps,
-                     int crf)
+Mp4Writer::Mp4Writer(const std::filesystem::path& file, int width, int height, double fps, int crf)
     : file_(file), temp_(file) {
   temp_ += ".partial.mp4";
   const std::string command =

@@ -98,9 +98,8 @@ ImageExportSummary ExportImages(const fs::path& take_dir, const fs::path& out_di
   if (options.video) {
     std::vector<std::unique_ptr<Mp4Writer>> writers;
     for (const StreamInfo* stream : streams) {
-      writers.push_back(std::make_unique<Mp4Writer>(out_dir / (stream->name + ".mp4"),
-                                                    stream->width, stream->height, fps,
-                                                    options.crf));
+      writers.push_back(std::make_unique<Mp4Writer>(
+          out_dir / (stream->name + ".mp4"), stream->width, stream->height, fps, options.crf));
     }
     for (size_t i = 0; i < take.size(); ++i) {
       bool complete = true;
@@ -111,8 +110,8 @@ ImageExportSummary ExportImages(const fs::path& take_dir, const fs::path& out_di
         continue;
       }
       for (size_t s = 0; s < streams.size(); ++s) {
-        writers[s]->Write(EightBit(take.ReadFrame(i, streams[s]->name), true, streams[s]->name,
-                                   &notes));
+        writers[s]->Write(
+            EightBit(take.ReadFrame(i, streams[s]->name), true, streams[s]->name, &notes));
         ++summary.images;
       }
     }
@@ -135,8 +134,8 @@ ImageExportSummary ExportImages(const fs::path& take_dir, const fs::path& out_di
         } else {
           std::vector<uint8_t> bytes;
           cv::imencode(".jpg", EightBit(frame, false, stream->name, &notes), bytes, jpeg);
-          WriteFileAtomic(file, std::string_view(reinterpret_cast<const char*>(bytes.data()),
-                                                 bytes.size()));
+          WriteFileAtomic(
+              file, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
         }
         ++summary.images;
       }
@@ -144,12 +143,11 @@ ImageExportSummary ExportImages(const fs::path& take_dir, const fs::path& out_di
   }
   summary.cameras = static_cast<int>(streams.size());
   summary.notes.assign(notes.begin(), notes.end());
-  std::string message =
-      Cat("exported ", summary.cameras, " camera(s), ", summary.images, " frame(s) as ",
-          options.video ? Cat("MP4 (H.264, crf ", options.crf, ", ", fps, " fps)")
-                        : (options.format == "jpg" ? Cat("JPEG (quality ", options.jpeg_quality,
-                                                         ")")
-                                                   : std::string("PNG")));
+  std::string message = Cat(
+      "exported ", summary.cameras, " camera(s), ", summary.images, " frame(s) as ",
+      options.video ? Cat("MP4 (H.264, crf ", options.crf, ", ", fps, " fps)")
+                    : (options.format == "jpg" ? Cat("JPEG (quality ", options.jpeg_quality, ")")
+                                               : std::string("PNG")));
   for (const auto& note : summary.notes) message += "; " + note;
   summary.End(Termination::kSuccess, std::move(message));
   if (report != nullptr) {

@@ -3,8 +3,8 @@
 #include <glob.h>
 
 #include <algorithm>
-#include <cstdlib>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
 #include <map>
 #include <opencv2/videoio.hpp>
@@ -387,7 +387,8 @@ Pairing PairFrames(const std::vector<CameraFrames>& cameras, const ImageImportOp
           const int64_t paired = PairedFrames(sets, c);
           if (2 * paired < static_cast<int64_t>(cameras[c].frames.size())) {
             why_not_number = Cat("only ", paired, " of camera '", cameras[c].camera, "''s ",
-                                 cameras[c].frames.size(), " frames share a number with another "
+                                 cameras[c].frames.size(),
+                                 " frames share a number with another "
                                  "camera's");
           }
         }
@@ -400,8 +401,8 @@ Pairing PairFrames(const std::vector<CameraFrames>& cameras, const ImageImportOp
         pairing.reason = Cat("not by number (", why_not_number, "); every frame has a timestamp");
       } else {
         pairing.rule = FramePairing::kOrder;
-        pairing.reason = Cat("not by number (", why_not_number, "), not by time (", time_problem,
-                             ")");
+        pairing.reason =
+            Cat("not by number (", why_not_number, "), not by time (", time_problem, ")");
       }
       break;
     }
@@ -411,8 +412,8 @@ Pairing PairFrames(const std::vector<CameraFrames>& cameras, const ImageImportOp
       pairing.sets = PairByNumber(cameras);
       break;
     case FramePairing::kTime: {
-      const double tolerance = options.time_tolerance_s > 0 ? options.time_tolerance_s
-                                                            : DefaultTimeTolerance(cameras);
+      const double tolerance =
+          options.time_tolerance_s > 0 ? options.time_tolerance_s : DefaultTimeTolerance(cameras);
       pairing.reason += Cat("; tolerance ", tolerance, " s");
       pairing.sets = PairByTime(cameras, tolerance);
       break;
@@ -465,8 +466,8 @@ const char* ToString(FramePairing pairing) {
 }
 
 FramePairing FramePairingFromString(const std::string& text) {
-  for (FramePairing pairing : {FramePairing::kAuto, FramePairing::kNumber, FramePairing::kTime,
-                               FramePairing::kOrder}) {
+  for (FramePairing pairing :
+       {FramePairing::kAuto, FramePairing::kNumber, FramePairing::kTime, FramePairing::kOrder}) {
     if (text == ToString(pairing)) return pairing;
   }
   Fail("unknown pairing '", text, "' (known: auto, number, time, order)");
@@ -504,9 +505,9 @@ std::vector<CameraSource> CameraSourcesInFolder(const fs::path& folder) {
 }
 
 std::string ImageImportSummary::PairingLine() const {
-  std::string line = Cat("paired by ", ToString(pairing), " (", pairing_reason, "): ", frame_sets,
-                         " frame set(s) of ", cameras, " camera(s); ", unpaired.size(),
-                         " frame(s) unpaired");
+  std::string line =
+      Cat("paired by ", ToString(pairing), " (", pairing_reason, "): ", frame_sets,
+          " frame set(s) of ", cameras, " camera(s); ", unpaired.size(), " frame(s) unpaired");
   for (size_t i = 0; i < unpaired.size() && i < 5; ++i)
     line += Cat(i == 0 ? ": " : ", ", unpaired[i]);
   if (unpaired.size() > 5) line += Cat(", ... (", unpaired.size() - 5, " more in report.json)");
@@ -596,8 +597,8 @@ ImageImportSummary ImportImages(const std::vector<CameraSource>& sources, const 
       if (paired.frame_of[c] < 0) continue;
       const SourceFrame& frame = cameras[c].frames[paired.frame_of[c]];
       cv::Mat image = videos[c] ? videos[c]->Read(frame.video_index) : ReadSourceImage(frame.file);
-      image = interop_internal::ConformedFrame(image, streams[c], frame.Name(),
-                                               "has images of", &alpha);
+      image = interop_internal::ConformedFrame(image, streams[c], frame.Name(), "has images of",
+                                               &alpha);
       const int64_t timestamp_ns =
           timed ? std::llround((*frame.time_s - earliest_s) * 1e9) : set.index * period_ns;
       const uint64_t sequence =
@@ -627,12 +628,9 @@ ImageImportSummary ImportImages(const std::vector<CameraSource>& sources, const 
   for (const auto& note : notes) message += "; " + note;
   summary.End(Termination::kSuccess, std::move(message));
   if (report != nullptr) {
-    report->plan() = {{"sensors", summary.cameras},
-                      {"frame_sets", summary.frame_sets},
-                      {"frames", summary.frames},
-                      {"pair_by", ToString(pairing.rule)},
-                      {"pairing_reason", pairing.reason},
-                      {"unpaired", summary.unpaired}};
+    report->plan() = {{"sensors", summary.cameras},       {"frame_sets", summary.frame_sets},
+                      {"frames", summary.frames},         {"pair_by", ToString(pairing.rule)},
+                      {"pairing_reason", pairing.reason}, {"unpaired", summary.unpaired}};
     report->metrics() = summary.metrics;
     report->SetSummary(summary);
   }

@@ -53,8 +53,8 @@ cv::Mat ConformedFrame(cv::Mat image, const StreamInfo& stream, const std::strin
 
 // A colour sensor `sensor` of an imported take (URI "import:<format>#<sensor>", PNG frames)
 // added to the rig and its streams.
-void AddImportedStream(const std::string& sensor, const std::string& format, int width,
-                       int height, const std::string& pixel_format, const std::string& clock,
+void AddImportedStream(const std::string& sensor, const std::string& format, int width, int height,
+                       const std::string& pixel_format, const std::string& clock,
                        RigDescription* rig, std::vector<StreamInfo>* streams);
 
 // The writer settings of an import: PNG frames (lossless), replacing only an imported take,

@@ -5,10 +5,12 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "core/camera.h"
 #include "core/fs.h"
 #include "core/take.h"
 #include "tests/support/test_support.h"
@@ -95,6 +97,42 @@ double WorstSigmas(const PairCalibration& a, const PairCalibration& b,
   return worst;
 }
 
+// The true pair (gt/cameras) in the same terms; no sigma.
+PairCalibration TruePair(const std::filesystem::path& take) {
+  PairCalibration out;
+  std::map<std::string, CameraModel> cameras;
+  for (const std::string camera : {"left", "right"}) {
+    cameras.emplace(camera, CameraModel::Read(take / "gt" / "cameras" / (camera + ".cameramodel")));
+    const auto& intrinsics = cameras.at(camera).intrinsics();
+    out.intrinsics[camera].assign(intrinsics.begin(), intrinsics.begin() + 4);
+  }
+  out.baseline_mm =
+      1000 * (cameras.at("right").center_in_world() - cameras.at("left").center_in_world()).norm();
+  return out;
+}
+
+// One table row per figure: the route's difference to the direct solve and to the truth, the
+// direct solve's 1-sigma and the route's own (bench/images_calibration.sh keeps them).
+void PrintAgreement(const std::string& route, const PairCalibration& a,
+                    const PairCalibration& direct, const PairCalibration& truth) {
+  const char* names[] = {"fx", "fy", "cx", "cy"};
+  const auto row = [&](const std::string& figure, double value, double to_direct, double to_truth,
+                       double sigma_direct, double sigma_own) {
+    std::printf("%-5s %-12s %10.4f %+9.4f %+9.4f %8.4f %8.4f %6.2f\n", route.c_str(),
+                figure.c_str(), value, to_direct, to_truth, sigma_direct, sigma_own,
+                std::abs(to_direct) / sigma_direct);
+  };
+  for (const std::string camera : {"left", "right"}) {
+    for (int k = 0; k < 4; ++k) {
+      const double v = a.intrinsics.at(camera)[k];
+      row(camera + " " + names[k], v, v - direct.intrinsics.at(camera)[k],
+          v - truth.intrinsics.at(camera)[k], direct.sigma.at(camera)[k], a.sigma.at(camera)[k]);
+    }
+  }
+  row("baseline_mm", a.baseline_mm, a.baseline_mm - direct.baseline_mm,
+      a.baseline_mm - truth.baseline_mm, direct.baseline_sigma_mm, a.baseline_sigma_mm);
+}
+
 std::string Calibrate(const std::filesystem::path& take, const std::filesystem::path& board) {
   return "calibrate " + take.string() + " --no-pictures --lens-model LENSMODEL_OPENCV5" +
          (board.empty() ? std::string() : " --board " + board.string());
@@ -117,6 +155,10 @@ TEST(ImportImages, BoardTakeCalibratesFromJpegFoldersAndMp4sAsFromTheTake) {
   r = RunCli(Calibrate(take, ""));
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const PairCalibration direct = ReadCalibration(take);
+  const PairCalibration truth = TruePair(take);
+  std::printf("%-5s %-12s %10s %9s %9s %8s %8s %6s\n", "route", "figure", "value", "-direct",
+              "-truth", "sigma", "own_sig", "/sigma");
+  PrintAgreement("take", direct, direct, truth);
 
   // JPEG folders: left/000000.jpg ..., right/ without 000005.jpg.
   r = RunCli("export images " + take.string() + " --out " + (dir / "jpg").string());
@@ -134,6 +176,7 @@ TEST(ImportImages, BoardTakeCalibratesFromJpegFoldersAndMp4sAsFromTheTake) {
   r = RunCli(Calibrate(dir / "from-jpg", board));
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const PairCalibration jpeg = ReadCalibration(dir / "from-jpg");
+  PrintAgreement("jpeg", jpeg, direct, truth);
   // The JPEG frames hold the take's pixels up to quality-95 rounding, and the same noise: the
   // two solves differ by far less than the direct solve's 1-sigma (measured: at most 0.5).
   std::string where;
@@ -146,12 +189,12 @@ TEST(ImportImages, BoardTakeCalibratesFromJpegFoldersAndMp4sAsFromTheTake) {
              " --camera right=" + (dir / "mp4" / "right.mp4").string() + " --out " +
              (dir / "from-mp4").string());
   ASSERT_EQ(r.exit_code, 0) << r.output;
-  EXPECT_NE(r.output.find("24 frame set(s) of 2 camera(s); 0 frame(s) unpaired"),
-            std::string::npos)
+  EXPECT_NE(r.output.find("24 frame set(s) of 2 camera(s); 0 frame(s) unpaired"), std::string::npos)
       << r.output;
   r = RunCli(Calibrate(dir / "from-mp4", board));
   ASSERT_EQ(r.exit_code, 0) << r.output;
   const PairCalibration video = ReadCalibration(dir / "from-mp4");
+  PrintAgreement("mp4", video, direct, truth);
   // Lossy video adds an error of its own, independent of the take's noise (the corners' RMS
   // residual grows about 5 times), so the difference is a draw of the video solve's own error,
   // whose 1-sigma that solve reports from the residuals it saw: held to 3 of those sigmas over
@@ -274,9 +317,9 @@ TEST(ImportImages, PairsByTimestampsBesideTheImagesElseByOrder) {
   EXPECT_NE(r.output.find("1 frame(s) unpaired: " + (root / "b" / "z.png").string()),
             std::string::npos)
       << r.output;
-  ExpectOneLineError(RunCli("import images " + root.string() + " --pair-by number --out " +
-                            (temp / "n").string()),
-                     "has no number in its name");
+  ExpectOneLineError(
+      RunCli("import images " + root.string() + " --pair-by number --out " + (temp / "n").string()),
+      "has no number in its name");
   EXPECT_FALSE(std::filesystem::exists(temp / "n"));
 }
 
@@ -298,9 +341,9 @@ TEST(ImportImages, BadInputGivesOneErrorAndNoTake) {
   for (int i = 0; i < 3; ++i)
     cv::imwrite((dir / "good" / ("g" + std::to_string(i) + ".jpg")).string(),
                 Pattern(64, 48, CV_8UC3, i));
-  expect_refused("--camera left=" + (dir / "good").string() + " --camera left=" +
-                     (dir / "good").string(),
-                 "camera 'left' is given twice");
+  expect_refused(
+      "--camera left=" + (dir / "good").string() + " --camera left=" + (dir / "good").string(),
+      "camera 'left' is given twice");
 
   // A JPEG cut in half decodes with grey in libjpeg; it must be refused.
   std::filesystem::create_directories(dir / "cut");
