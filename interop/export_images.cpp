@@ -97,6 +97,7 @@ ImageExportSummary ExportImages(const fs::path& take_dir, const fs::path& out_di
   std::set<std::string> notes;
   if (options.video) {
     std::vector<std::unique_ptr<Mp4Writer>> writers;
+    writers.reserve(streams.size());
     for (const StreamInfo* stream : streams) {
       writers.push_back(std::make_unique<Mp4Writer>(
           out_dir / (stream->name + ".mp4"), stream->width, stream->height, fps, options.crf));

@@ -79,7 +79,7 @@ cv::Mat ReadSourceImage(const fs::path& file) {
   if (ext == ".png") return DecodePng(bytes, file.string());
   if ((ext == ".jpg" || ext == ".jpeg") && !JpegIsComplete(bytes))
     Fail("image '", file.string(), "' is truncated (its JPEG data has no end after its last scan)");
-  const cv::Mat image = DecodeImageBytes(bytes);
+  cv::Mat image = DecodeImageBytes(bytes);
   if (image.empty()) Fail("image '", file.string(), "' cannot be decoded");
   return image;
 }
@@ -424,6 +424,7 @@ void ReadNeuralVolumes(const fs::path& source, const ImportOptions& options, Imp
   std::vector<KrtCamera> cameras = ParseNeuralVolumesKrt(ReadFileToString(file), file.string());
   fs::path root = ImageRoot(options, file.parent_path());
   std::vector<std::vector<fs::path>> candidates;
+  candidates.reserve(cameras.size());
   for (const auto& camera : cameras)
     candidates.push_back({root / ("cam" + camera.name), root / camera.name});
   std::vector<std::map<int64_t, fs::path>> frames;
@@ -455,6 +456,7 @@ void ReadPanoptic(const fs::path& source, const ImportOptions& options, Imported
   std::vector<KrtCamera> cameras = ParsePanopticCalibration(ReadFileToString(file), file.string());
   fs::path root = ImageRoot(options, file.parent_path());
   std::vector<std::vector<fs::path>> candidates;
+  candidates.reserve(cameras.size());
   for (const auto& camera : cameras) {
     candidates.push_back({root / "hdImgs" / camera.name, root / "vgaImgs" / camera.name,
                           root / "kinectImgs" / camera.name, root / camera.name});
@@ -506,12 +508,12 @@ void ReadMrcalFolders(const fs::path& source, const ImportOptions& options, Impo
 // Views with identical camera models are one camera filmed several times. When every camera
 // has one image they all form frame set 0; otherwise a camera's images are numbered as
 // NumberedImages does, so numbered files of different cameras line up.
-void GroupViews(std::vector<std::pair<std::string, SourceView>> items,
+void GroupViews(const std::vector<std::pair<std::string, SourceView>>& items,
                 std::vector<SourceView>* views) {
   std::map<std::string, size_t> group_of;
   std::vector<std::vector<fs::path>> files;
   const size_t first = views->size();
-  for (auto& [key, view] : items) {
+  for (const auto& [key, view] : items) {
     auto [it, inserted] = group_of.emplace(key, views->size());
     if (inserted) {
       views->push_back(view);
@@ -603,7 +605,7 @@ void ReadColmap(const fs::path& source, const ImportOptions& options, ImportedRi
     items.push_back(
         {ModelKey(converted), SourceView{image.name, converted, {{0, root / image.name}}}});
   }
-  GroupViews(std::move(items), views);
+  GroupViews(items, views);
   rig->world_from_source = scale * Eigen::Matrix3d::Identity();
 
   // The points' reprojection error through the imported cameras, next to the file's own.
@@ -688,7 +690,7 @@ void ReadNerf(const fs::path& source, const ImportOptions& options, ImportedRig*
                                         size.height, Cat(file.string(), ": frames[", i, "]"));
     items.push_back({ModelKey(camera), SourceView{frames[i].file_path, camera, {{0, image}}}});
   }
-  GroupViews(std::move(items), views);
+  GroupViews(items, views);
   rig->world_from_source = scale * Eigen::Matrix3d::Identity();
 }
 

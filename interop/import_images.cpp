@@ -271,6 +271,7 @@ std::vector<PairedSet> PairByNumber(const std::vector<CameraFrames>& cameras) {
     }
   }
   std::vector<PairedSet> sets;
+  sets.reserve(by_number.size());
   for (auto& [number, set] : by_number) sets.push_back(std::move(set));
   return sets;
 }
@@ -534,6 +535,7 @@ ImageImportSummary ImportImages(const std::vector<CameraSource>& sources, const 
   }
   // Everything is read and checked before the take's folder is made.
   std::vector<CameraFrames> cameras;
+  cameras.reserve(sources.size());
   for (const auto& source : sources) cameras.push_back(ResolveCamera(source));
   Pairing pairing = PairFrames(cameras, options);
 
@@ -585,6 +587,7 @@ ImageImportSummary ImportImages(const std::vector<CameraSource>& sources, const 
   if (report != nullptr && !writer.replacing())
     report->SetFailureDestination(take_dir / "report.json");
   std::vector<std::unique_ptr<VideoFrames>> videos;
+  videos.reserve(cameras.size());
   for (const auto& camera : cameras) {
     videos.push_back(camera.video ? std::make_unique<VideoFrames>(camera.source) : nullptr);
   }
