@@ -31,6 +31,7 @@
 
 #include "bench/calibrated_sim.h"
 #include "core/error.h"
+#include "core/rig_alignment.h"
 #include "core/mesh.h"
 #include "core/take.h"
 #include "interop/interop.h"
@@ -884,22 +885,38 @@ void SimulateOnce(const std::string& rig, const fs::path& dir, int frame_sets) {
 // the true mesh and the truth filters.
 std::vector<BenchFrame> LoadFrames(const fs::path& take_dir, int count) {
   const Take take = Take::Open(take_dir);
+  // The inputs are the calibration's cameras, in the world it chose; the truth is laid into that
+  // world to score (the rigid motion that best lays the true rig onto the solved one, as the
+  // pipeline's own scores do), so every side is scored alike.
+  std::map<std::string, CameraModel> solved;
+  std::map<std::string, CameraModel> truth;
+  for (const StreamInfo& s : take.streams()) {
+    solved.emplace(s.name, take.Camera(s.name));
+    truth.emplace(s.name, take.Camera(s.name, true));
+  }
+  const Pose solved_from_true = AlignRigs(truth, solved);
   std::vector<BenchFrame> frames;
   for (int64_t set = 1; set <= count && set < static_cast<int64_t>(take.size()); ++set) {
     BenchFrame frame;
     frame.set = set;
     frame.truth = ReadPly(take.gt_dir() / "meshes" / (SetName(set) + ".ply"));
+    const Eigen::Isometry3f moved = solved_from_true.cast<float>();
+    for (auto& v : frame.truth.vertices) v = moved * v;
+    for (auto& n : frame.truth.normals) n = moved.linear() * n;
     std::vector<std::pair<CameraModel, cv::Mat>> seen;
     for (const StreamInfo& s : take.streams()) {
       if (s.role != SensorRole::kDepth) continue;
-      CameraModel camera = take.Camera(s.name);
+      const CameraModel& camera = solved.at(s.name);
       cv::Mat raw = take.ReadFrame(set, s.name);
       cv::Mat foreground =
           DepthForeground(raw, take.ReadFrame(0, s.name), TsdfOptions{}.depth_noise_k);
       cv::Mat depth = raw.clone();
       depth.setTo(std::numeric_limits<float>::quiet_NaN(), foreground == 0);
       frame.depth.push_back({camera, depth, raw, foreground});
-      seen.emplace_back(camera,
+      // The true depth was rendered by the true camera: the same camera in the solved world.
+      CameraModel true_camera = truth.at(s.name);
+      true_camera.set_cam_from_world(true_camera.cam_from_world() * solved_from_true.inverse());
+      seen.emplace_back(true_camera,
                         ReadImage(take.gt_dir() / "depth" / s.name / (SetName(set) + ".exr")));
     }
     frame.seen = SeenInDepthMaps(seen);
