@@ -17,6 +17,7 @@ struct SimArgs {
   std::string out;
   std::string size;
   std::string up;
+  std::string board_layout;
   bool board = false;
   bool no_noise = false;
   bool dark = false;
@@ -82,6 +83,17 @@ static void AddSimCommand(CLI::App& app) {
                     "Film the calibration board sequence (same as --scene board)");
   command->add_option("--scene", o.scene, "subject (walking humanoid), object (static) or board")
       ->capture_default_str();
+  command->add_option("--board-layout", args->board_layout,
+                      "The board scene's board: a layout YAML as holocap board prints (e.g. a "
+                      "square chessboard); default: the 5x4 AprilTag board");
+  command->add_flag("--board-still", o.board_still,
+                    "The board never moves: every frame set shows the first pose cam0 and cam1 "
+                    "share (no lens can be calibrated from it)");
+  command
+      ->add_option("--upside-down", o.upside_down,
+                   "Sensors mounted upside down (turned 180 degrees about their optical axes), "
+                   "comma-separated")
+      ->delimiter(',');
   command->add_option("--seed", o.seed, "Seed of board poses, clocks, noise and drops")
       ->capture_default_str();
   command->add_option("--size", args->size,
@@ -117,6 +129,7 @@ static void AddSimCommand(CLI::App& app) {
   command->callback([args] {
     SimOptions options = args->options;
     if (args->board) options.scene = "board";
+    if (!args->board_layout.empty()) options.board = BoardLayout::Load(args->board_layout);
     if (args->no_noise) options.noise = false;
     if (!args->up.empty()) options.up = ParseUp(args->up);
     if (args->dark) {

@@ -399,7 +399,10 @@ Scene::Scene(SceneKind kind, const BoardLayout& board,
 
 Pose Scene::WorldFromBoard(int64_t set) const {
   if (!board_) Fail("scene '", ToString(kind_), "' has no board");
-  return PlanBoardPose(*board_, board_cameras_, set, seed_);
+  // The sequence's first shared view is the first set of its second round.
+  const auto cameras = static_cast<int64_t>(board_cameras_.size());
+  const int64_t planned = !board_still_ ? set : cameras > 1 ? cameras : 0;
+  return PlanBoardPose(*board_, board_cameras_, planned, seed_);
 }
 
 void Scene::HoldStill(std::function<Pose(double)> world_from_subject) {

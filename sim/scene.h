@@ -110,6 +110,9 @@ class Scene {
   bool IsCleanPlate(int64_t set) const { return set < clean_plate_frames_; }
   const Board* board() const { return board_ ? &*board_ : nullptr; }
   Pose WorldFromBoard(int64_t set) const;  // board scene only
+  // From now on the board stays at the first pose two cameras share (the first of a single
+  // camera's poses) in every frame set.
+  void HoldBoardStill() { board_still_ = true; }
   const std::vector<Part>& parts() const { return parts_; }
   // world_from_part of every part at `t_s` (the humanoid's walk; the object is static).
   std::vector<Pose> PartPoses(double t_s) const;
@@ -122,6 +125,7 @@ class Scene {
  private:
   std::vector<Pose> MovingPartPoses(double t_s) const;  // the walk, or the static object
   SceneKind kind_;
+  bool board_still_ = false;
   std::vector<Part> parts_;
   std::optional<Board> board_;
   std::vector<CameraModel> board_cameras_;

@@ -81,6 +81,12 @@ struct SimOptions {
   double fps = 0;                  // frame sets per second; 0: the rig's fps
   int64_t clean_plate_frames = 0;  // leading frame sets rendered without the subject/object
   BoardLayout board = DefaultSimBoard();  // the board of the "board" scene
+  // The board scene's board stays where the first pose two cameras share puts it (cam0 and
+  // cam1 of a ring) in every frame set: a take from which no lens can be calibrated.
+  bool board_still = false;
+  // Sensors mounted upside down: turned 180 degrees about their optical axes, so that they see
+  // the board (and everything) rotated by 180 degrees against the other cameras.
+  std::vector<std::string> upside_down;
   // How the sensors move (scan takes): "fixed"; "orbit" (every sensor circles the vertical
   // axis through the subject's centre, bobbing 3 cm); "handheld" (an uneven walk around the
   // subject: distance and height wander by 15 and 10 cm, the aim drifts, the hand trembles,

@@ -1,5 +1,7 @@
 #include "sim/world.h"
 
+#include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <numbers>
 #include <random>
@@ -69,6 +71,8 @@ void SimOptions::Check() const {
   HOLOCAP_CHECK_OPTION_LE(subject_albedo, 1);
   HOLOCAP_CHECK_OPTION_GT(background_albedo, 0);
   HOLOCAP_CHECK_OPTION_LE(background_albedo, 1);
+  HOLOCAP_CHECK_OPTION(!board_still || sim::SceneKindFromString(scene) == sim::SceneKind::kBoard,
+                       board_still, "a still board needs the board scene");
 }
 
 nlohmann::json SimOptions::ToJson() const {
@@ -81,6 +85,8 @@ nlohmann::json SimOptions::ToJson() const {
           {"fps", fps},
           {"clean_plate_frames", clean_plate_frames},
           {"board", board.ToJson()},
+          {"board_still", board_still},
+          {"upside_down", upside_down},
           {"trajectory", trajectory},
           {"trajectory_deg_per_s", trajectory_deg_per_s},
           {"noise", noise},
@@ -150,6 +156,9 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options), frame_(option
     std::erase_if(rig_.sensors, [](const SensorSpec& s) { return s.role == SensorRole::kDepth; });
   }
   rig_.Check();
+  for (const std::string& name : options_.upside_down) {
+    if (rig_.IndexOf(name) < 0) Fail("upside_down: the rig has no sensor '", name, "'");
+  }
   fps_ = options_.fps > 0 ? options_.fps : rig_.fps;
   if (!(fps_ > 0)) Fail("sim: the rig's fps must be > 0");
   const std::filesystem::path base_dir = std::filesystem::exists(options_.rig)
@@ -162,6 +171,12 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options), frame_(option
     state.spec = spec;
     state.sim_model =
         SimSensorModel(rig_, spec, options_.image_width, options_.image_height, base_dir);
+    if (std::ranges::find(options_.upside_down, spec.name) != options_.upside_down.end()) {
+      Pose turned = Pose::Identity();
+      turned.linear() =
+          Eigen::AngleAxisd(std::numbers::pi, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+      state.sim_model.set_cam_from_world(turned * state.sim_model.cam_from_world());
+    }
     state.model = frame_.Camera(state.sim_model);
     state.stream.name = spec.name;
     state.stream.uri = spec.uri;
@@ -191,6 +206,7 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options), frame_(option
   scene_ = std::make_unique<Scene>(SceneKindFromString(options_.scene), options_.board,
                                    colour_cameras, options_.clean_plate_frames, options_.seed,
                                    Appearance{options_.subject_albedo, options_.background_albedo});
+  if (options_.board_still) scene_->HoldBoardStill();
   trajectory_ = std::make_unique<Trajectory>(TrajectoryKindFromString(options_.trajectory),
                                              options_.trajectory_deg_per_s, scene_->CenterAtStart(),
                                              options_.seed);
