@@ -33,6 +33,12 @@ void PrintSummary(const TakeCalibrationSummary& s) {
   std::printf("detected %lld board views in %lld frames (%.1f frames/s)\n",
               static_cast<long long>(s.detection.views), static_cast<long long>(s.detection.frames),
               s.detection.frames_per_second);
+  if (c.reordered_views > 0 || !c.dropped_views.empty()) {
+    std::printf(
+        "board numbering: %d views turned to agree with their frame set's other cameras, %zu "
+        "left out (no turn agreed)\n",
+        c.reordered_views, c.dropped_views.size());
+  }
   std::printf("%s: %s\n", ToString(c.termination), c.message.c_str());
   std::printf("lens model %s, reference %s, solve %.2f s, uncertainty %.2f s\n",
               c.lensmodel.c_str(), c.reference_camera.c_str(), c.solve_seconds,

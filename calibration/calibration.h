@@ -149,6 +149,10 @@ struct CalibrationOptions {
   bool outlier_rejection = true;  // mrcal's outlier rejection in the final stage
   bool solve_board_warp = false;  // solve mrcal's board warp (printed boards that bow)
   double max_seed_rms_px = 50;    // a seed solve worse than this is reported as failed
+  // Symmetric boards: a view whose seeded pose relative to its frame set's anchor view is
+  // farther than this (rotation or baseline direction) from the two cameras' relative pose
+  // under every numbering of the board is left out.
+  double max_order_disagreement_deg = 20;
   // Uncertainty.
   bool uncertainty = true;            // propagate the observation noise (the costliest part)
   int uncertainty_grid_x = 16;        // imager sample points across ...
@@ -251,6 +255,11 @@ struct CalibrationSummary : Summary {
   int outliers = 0;
   double solve_seconds = 0;
   double uncertainty_seconds = 0;
+  // Symmetric chessboards (a square one, say) may be numbered from different ends in the
+  // cameras of one frame set: views whose numbering was turned to agree with the other cameras
+  // of their frame set, and views that no turn made agree (left out of the solve).
+  int reordered_views = 0;
+  std::vector<RejectedView> dropped_views;
   // Solved board poses (ref_from_board) per frame set, for comparisons with truth.
   std::map<int64_t, Pose> ref_from_board;
   nlohmann::json cross_validation;  // empty unless requested

@@ -1,6 +1,7 @@
 // Solved calibration against the simulated truth.
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "calibration/calibration.h"
 #include "calibration/internal/common.h"
@@ -13,13 +14,33 @@ Pose WorldFromReference(const CalibrationSummary& summary, const CameraModel& re
                         const std::map<int64_t, Pose>& world_from_board, const BoardLayout& layout,
                         bool* from_boards) {
   const std::vector<Eigen::Vector3d> grid = Board(layout).GridPoints();
+  // A symmetric board's solved numbering may be turned against the truth's in any frame set:
+  // each frame's points are matched under the turn that lays them closest to the true ones,
+  // the solved rig placed by the reference camera's true pose for this.
+  std::vector<std::vector<int>> orders;
+  for (int turn : AmbiguousBoardTurns(layout))
+    orders.push_back(TurnedGridOrder(layout.width_n(), layout.height_n(), turn));
+  const Pose rough_world_from_ref = reference_truth.world_from_cam();
   std::vector<Eigen::Vector3d> in_ref, in_world;
   for (const auto& [set, ref_from_board] : summary.ref_from_board) {
     auto it = world_from_board.find(set);
     if (it == world_from_board.end()) continue;
-    for (const auto& g : grid) {
-      in_ref.push_back(ref_from_board * g);
-      in_world.push_back(it->second * g);
+    const std::vector<int>* best = &orders.front();
+    double best_distance = std::numeric_limits<double>::infinity();
+    for (const auto& order : orders) {
+      double distance = 0;
+      for (size_t r = 0; r < grid.size(); ++r) {
+        distance += (rough_world_from_ref * ref_from_board * grid[r] - it->second * grid[order[r]])
+                        .squaredNorm();
+      }
+      if (distance < best_distance) {
+        best_distance = distance;
+        best = &order;
+      }
+    }
+    for (size_t r = 0; r < grid.size(); ++r) {
+      in_ref.push_back(ref_from_board * grid[r]);
+      in_world.push_back(it->second * grid[(*best)[r]]);
     }
   }
   if (from_boards != nullptr) *from_boards = in_ref.size() >= 3;

@@ -172,6 +172,36 @@ void FamilyGeometry(const std::string& family, int* width_at_border, int* total_
   d.destroy_family(d.family);
 }
 
+std::vector<int> TurnedGridOrder(int width_n, int height_n, int quarter_turns) {
+  const int turns = ((quarter_turns % 4) + 4) % 4;
+  if (turns % 2 == 1 && width_n != height_n) Fail("only a square grid turns by a quarter");
+  std::vector<int> order(static_cast<size_t>(width_n) * height_n);
+  for (int j = 0; j < height_n; ++j) {
+    for (int i = 0; i < width_n; ++i) {
+      int oi = i, oj = j;
+      if (turns == 1) {
+        oi = j;
+        oj = width_n - 1 - i;
+      } else if (turns == 2) {
+        oi = width_n - 1 - i;
+        oj = height_n - 1 - j;
+      } else if (turns == 3) {
+        oi = height_n - 1 - j;
+        oj = i;
+      }
+      order[static_cast<size_t>(j) * width_n + i] = oj * width_n + oi;
+    }
+  }
+  return order;
+}
+
+std::vector<int> AmbiguousBoardTurns(const BoardLayout& layout) {
+  if (layout.type != BoardType::kChessboard) return {0};
+  const int w = layout.chessboard_width_n, h = layout.chessboard_height_n;
+  if (w != h) return (w + h) % 2 == 1 ? std::vector<int>{0} : std::vector<int>{0, 2};
+  return w % 2 == 1 ? std::vector<int>{0, 2} : std::vector<int>{0, 1, 2, 3};
+}
+
 }  // namespace calibration_internal
 
 int BoardObservation::seen() const {
@@ -302,18 +332,22 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   if (board_.layout().type == BoardType::kChessboard) {
     std::vector<cv::Point2f> corners;
     const cv::Size size(width_n, height_n);
+    // The fast check turns frames without a board away in milliseconds, not seconds.
     if (!cv::findChessboardCorners(grey, size, corners,
-                                   cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE)) {
+                                   cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE |
+                                       cv::CALIB_CB_FAST_CHECK)) {
       *reason = "no chessboard found";
       return false;
     }
     cv::cornerSubPix(grey, corners, cv::Size(5, 5), cv::Size(-1, -1),
                      cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
     if (options_.refine_corners) RefineChessboard(grey, width_n, height_n, &corners);
-    // OpenCV may start from either end of a board. On holocap's chessboards the square
-    // diagonally outside the first corner is black and its neighbour along the first column
-    // white; a board with width_n + height_n even looks the same from both ends and cannot be
-    // told apart (BoardLayout documents odd + even sizes).
+    // OpenCV may start from any end of a board. On holocap's chessboards the square diagonally
+    // outside the first corner is black and its neighbour along the first column white. Where
+    // the other ends' corner squares differ in colour (width_n + height_n odd: the opposite end;
+    // a square board with an odd side: the ends a quarter turn away) that fixes the numbering
+    // here; the turns that keep the colours (calibration_internal::AmbiguousBoardTurns) are
+    // left to the solve, which makes every camera of a frame set agree.
     const Eigen::Vector2d c0(corners[0].x, corners[0].y);
     const Eigen::Vector2d c1(corners[1].x, corners[1].y);
     const Eigen::Vector2d cw(corners[width_n].x, corners[width_n].y);
@@ -321,9 +355,17 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
     const Eigen::Vector2d beside = c0 - 0.5 * (c1 - c0) + 0.5 * (cw - c0);
     const double diagonal_value = Bilinear(grey, diagonal.x(), diagonal.y());
     const double beside_value = Bilinear(grey, beside.x(), beside.y());
-    const bool reversed = std::isfinite(diagonal_value) && std::isfinite(beside_value) &&
-                          diagonal_value > beside_value;
-    if (reversed) std::reverse(corners.begin(), corners.end());
+    const bool other_colour = std::isfinite(diagonal_value) && std::isfinite(beside_value) &&
+                              diagonal_value > beside_value;
+    const bool square = width_n == height_n;
+    const int colour_turn = (width_n + height_n) % 2 == 1 ? 2 : square && width_n % 2 == 1 ? 1 : 0;
+    if (other_colour && colour_turn != 0) {
+      const std::vector<int> order =
+          calibration_internal::TurnedGridOrder(width_n, height_n, colour_turn);
+      std::vector<cv::Point2f> turned(corners.size());
+      for (size_t r = 0; r < order.size(); ++r) turned[r] = corners[order[r]];
+      corners = turned;
+    }
     for (int k = 0; k < static_cast<int>(corners.size()); ++k) {
       observation->points.row(k) << corners[k].x, corners[k].y, 1.0;
     }

@@ -9,6 +9,7 @@
 #include <numbers>
 #include <numeric>
 #include <opencv2/calib3d.hpp>
+#include <optional>
 #include <queue>
 #include <random>
 #include <set>
@@ -660,6 +661,8 @@ void CalibrationOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(min_views_per_camera, 3);
   HOLOCAP_CHECK_OPTION_GE(min_points_per_view, 4);
   HOLOCAP_CHECK_OPTION_GT(max_seed_rms_px, 0);
+  HOLOCAP_CHECK_OPTION_IN(max_order_disagreement_deg, 1, 45,
+                          "a numbering a quarter turn away differs by 90 degrees");
   HOLOCAP_CHECK_OPTION_GT(max_cross_validation_ratio, 0);
   HOLOCAP_CHECK_OPTION_GE(uncertainty_grid_x, 2);
   HOLOCAP_CHECK_OPTION_GE(uncertainty_grid_y, 2);
@@ -676,6 +679,7 @@ nlohmann::json CalibrationOptions::ToJson() const {
           {"outlier_rejection", outlier_rejection},
           {"solve_board_warp", solve_board_warp},
           {"max_seed_rms_px", max_seed_rms_px},
+          {"max_order_disagreement_deg", max_order_disagreement_deg},
           {"uncertainty", uncertainty},
           {"uncertainty_grid", {uncertainty_grid_x, uncertainty_grid_y}},
           {"uncertainty_distance_m", uncertainty_distance_m},
@@ -741,6 +745,11 @@ nlohmann::json CalibrationSummary::ToJson() const {
                           {"cost", s.cost},
                           {"expected_decrease", s.expected_decrease}});
   }
+  nlohmann::json dropped_json = nlohmann::json::array();
+  for (const auto& d : dropped_views) {
+    dropped_json.push_back(
+        {{"sensor", d.sensor}, {"frame_set", d.frame_set}, {"reason", d.reason}});
+  }
   nlohmann::json j = {
       {"termination", ToString(termination)},
       {"message", message},
@@ -751,6 +760,8 @@ nlohmann::json CalibrationSummary::ToJson() const {
       {"frames", frames},
       {"observations", observations},
       {"outliers", outliers},
+      {"reordered_views", reordered_views},
+      {"dropped_views", dropped_json},
       {"warnings", warnings},
       {"notes", notes},
       {"cameras", cams},
@@ -916,6 +927,17 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
 
 namespace {
 
+// How far apart two estimates of one camera's pose relative to another are: the angle between
+// their rotations or between their baselines' directions, whichever is larger (a seed's focal
+// length scales the baseline, not its direction).
+double RelativePoseApartDeg(const Pose& a, const Pose& b) {
+  const double rotation = RotationAngleDeg(a.linear().transpose() * b.linear());
+  const Eigen::Vector3d ta = a.translation(), tb = b.translation();
+  if (ta.norm() == 0 || tb.norm() == 0) return rotation;
+  const double cosine = std::clamp(ta.normalized().dot(tb.normalized()), -1.0, 1.0);
+  return std::max(rotation, std::acos(cosine) * 180 / std::numbers::pi);
+}
+
 // The calibration of one rig: each step a method, the state between steps in members.
 class Calibrator {
  public:
@@ -927,7 +949,18 @@ class Calibrator {
         cameras_(cameras),
         observations_(observations),
         options_(options),
-        report_(report) {}
+        report_(report),
+        turns_(calibration_internal::AmbiguousBoardTurns(layout)) {
+    for (int turn : turns_) {
+      const std::vector<int> order =
+          calibration_internal::TurnedGridOrder(board_.width_n(), board_.height_n(), turn);
+      const std::vector<Eigen::Vector3d> grid = board_.GridPoints();
+      std::vector<Eigen::Vector3d> original;
+      for (int index : order) original.push_back(grid[index]);
+      orders_.push_back(order);
+      board_from_turned_.push_back(calibration_internal::FitRigid(grid, original));
+    }
+  }
 
   CalibrationSummary Run();
 
@@ -936,6 +969,9 @@ class Calibrator {
   void SelectViews();
   void SeedCamera(int c);
   bool PlaceCameras();
+  Pose RelativePose(const std::vector<std::pair<int, int>>& pairs) const;
+  void OrderViews();
+  void Turn(int k, size_t turn);
   void BuildProblem();
   void NoteLensModels();
   bool SolveStereographic();
@@ -959,9 +995,14 @@ class Calibrator {
   const BoardLayout& layout_;
   const Board board_;
   const std::vector<CalibrationCamera>& cameras_;
-  const std::vector<BoardObservation>& observations_;
+  std::vector<BoardObservation> observations_;  // numbered alike within each frame set
   const CalibrationOptions& options_;
   Report* report_;
+  // The board's ambiguous turns (calibration_internal::AmbiguousBoardTurns), each as the grid
+  // order and the rigid motion from the turned board frame to the board's own.
+  std::vector<int> turns_;
+  std::vector<std::vector<int>> orders_;
+  std::vector<Pose> board_from_turned_;
   std::chrono::steady_clock::time_point start_;
 
   CalibrationSummary summary_;
@@ -993,6 +1034,7 @@ CalibrationSummary Calibrator::Run() {
                                                summary_.cameras[reference_].flag));
     return summary_;
   }
+  OrderViews();
   BuildProblem();
   NoteLensModels();
   if (!SolveStereographic()) return summary_;
@@ -1134,11 +1176,7 @@ bool Calibrator::PlaceCameras() {
       }
     }
     if (best_to < 0) break;
-    std::vector<Pose> estimates;  // b_from_a
-    for (const auto& [ka, kb] : shared(best_from, best_to)) {
-      estimates.push_back(cam_from_board_[kb] * cam_from_board_[ka].inverse());
-    }
-    cam_from_ref_[best_to] = AveragePoses(estimates) * cam_from_ref_[best_from];
+    cam_from_ref_[best_to] = RelativePose(shared(best_from, best_to)) * cam_from_ref_[best_from];
     placed_[best_to] = true;
   }
   for (size_t c = 0; c < n; ++c) {
@@ -1147,6 +1185,153 @@ bool Calibrator::PlaceCameras() {
     }
   }
   return true;
+}
+
+// b_from_a of two cameras from the views they share (pairs of observation indices, a's first).
+// A symmetric board may be numbered from other ends in the two views of one pair: each pair
+// offers one estimate per turn of the board, and the estimate the other pairs lie closest to
+// under their best turns wins (ties: the one most pairs give unturned, OpenCV's numbering);
+// the pairs within max_order_disagreement_deg of it are averaged. An estimate differs from
+// another by the angle between their rotations or between their baselines' directions, which
+// the seeds' focal lengths do not scale. A wrong turn moves camera b around the board's normal:
+// its estimates scatter from pair to pair as the board moves, while the right ones stay within
+// the seeds' errors (a few degrees).
+Pose Calibrator::RelativePose(const std::vector<std::pair<int, int>>& pairs) const {
+  auto estimate = [&](const std::pair<int, int>& pair, size_t t) {
+    return cam_from_board_.at(pair.second) * board_from_turned_[t] *
+           cam_from_board_.at(pair.first).inverse();
+  };
+  const double tolerance = options_.max_order_disagreement_deg;
+  Pose best = estimate(pairs.front(), 0);
+  double best_cost = std::numeric_limits<double>::infinity();
+  int best_unturned = -1;
+  for (const auto& candidate_pair : pairs) {
+    for (size_t t = 0; t < turns_.size(); ++t) {
+      const Pose candidate = estimate(candidate_pair, t);
+      double cost = 0;
+      int unturned = 0;
+      for (const auto& pair : pairs) {
+        double closest = tolerance;
+        size_t closest_turn = turns_.size();
+        for (size_t u = 0; u < turns_.size(); ++u) {
+          const double apart = RelativePoseApartDeg(candidate, estimate(pair, u));
+          if (apart < closest) {
+            closest = apart;
+            closest_turn = u;
+          }
+        }
+        cost += closest;
+        unturned += closest_turn == 0;
+      }
+      if (cost < best_cost - 1e-9 || (cost <= best_cost + 1e-9 && unturned > best_unturned)) {
+        best = candidate;
+        best_cost = cost;
+        best_unturned = unturned;
+      }
+    }
+  }
+  std::vector<Pose> agreeing;
+  for (const auto& pair : pairs) {
+    double closest = tolerance;
+    std::optional<Pose> nearest;
+    for (size_t u = 0; u < turns_.size(); ++u) {
+      const Pose e = estimate(pair, u);
+      if (const double apart = RelativePoseApartDeg(best, e); apart <= closest) {
+        closest = apart;
+        nearest = e;
+      }
+    }
+    if (nearest) agreeing.push_back(*nearest);
+  }
+  return agreeing.empty() ? best : AveragePoses(agreeing);
+}
+
+// Observation k numbered after the board's turn `turn` (an index into turns_), its seeded pose
+// with it.
+void Calibrator::Turn(int k, size_t turn) {
+  BoardObservation& obs = observations_[k];
+  const auto original = obs.points;
+  for (size_t r = 0; r < orders_[turn].size(); ++r) {
+    obs.points.row(static_cast<Eigen::Index>(r)) = original.row(orders_[turn][r]);
+  }
+  cam_from_board_[k] = cam_from_board_[k] * board_from_turned_[turn];
+}
+
+// Symmetric boards: within each frame set, every placed camera's view numbered as the view
+// of the camera with the most views (the anchor). Each view takes the turn that brings its
+// pose relative to the anchor's camera closest to the two cameras' relative pose: from the
+// views they share (RelativePose) when they share two or more, else from the placed rig. A
+// view farther than max_order_disagreement_deg from it under every turn is left out.
+void Calibrator::OrderViews() {
+  if (turns_.size() < 2) return;
+  std::map<int64_t, std::vector<std::pair<int, int>>> by_set;  // set -> (camera, observation)
+  std::vector<std::map<int64_t, int>> view_in_set(cameras_.size());
+  for (size_t c = 0; c < cameras_.size(); ++c) {
+    if (!placed_[c] || !summary_.cameras[c].flag.empty()) continue;
+    for (int k : views_[c]) {
+      by_set[observations_[k].frame_set].emplace_back(static_cast<int>(c), k);
+      view_in_set[c][observations_[k].frame_set] = k;
+    }
+  }
+  std::map<std::pair<int, int>, Pose> relative;  // (a, b) -> b_from_a
+  auto relative_pose = [&](int a, int b) {
+    auto it = relative.find({a, b});
+    if (it != relative.end()) return it->second;
+    std::vector<std::pair<int, int>> pairs;
+    for (const auto& [set, ka] : view_in_set[a]) {
+      if (auto kb = view_in_set[b].find(set); kb != view_in_set[b].end())
+        pairs.emplace_back(ka, kb->second);
+    }
+    const Pose pose =
+        pairs.size() >= 2 ? RelativePose(pairs) : cam_from_ref_[b] * cam_from_ref_[a].inverse();
+    relative.emplace(std::make_pair(a, b), pose);
+    return pose;
+  };
+  const double tolerance = options_.max_order_disagreement_deg;
+  std::set<int> dropped;
+  for (const auto& [set, members] : by_set) {
+    if (members.size() < 2) continue;
+    const auto anchor = *std::max_element(members.begin(), members.end(), [&](auto x, auto y) {
+      return views_[x.first].size() < views_[y.first].size();
+    });
+    for (const auto& [c, k] : members) {
+      if (k == anchor.second) continue;
+      const Pose expected = relative_pose(anchor.first, c);
+      size_t chosen = 0;
+      double closest = std::numeric_limits<double>::infinity();
+      for (size_t t = 0; t < turns_.size(); ++t) {
+        const Pose seen = cam_from_board_.at(k) * board_from_turned_[t] *
+                          cam_from_board_.at(anchor.second).inverse();
+        const double apart = RelativePoseApartDeg(expected, seen);
+        if (apart < closest) {
+          closest = apart;
+          chosen = t;
+        }
+      }
+      if (!(closest <= tolerance)) {
+        dropped.insert(k);
+        summary_.dropped_views.push_back(
+            {cameras_[c].name, set,
+             Cat("no numbering of the board agrees with ", cameras_[anchor.first].name,
+                 "'s view of the frame set: the closest (", 90 * turns_[chosen],
+                 " degrees turned) is ", std::round(closest * 10) / 10, " degrees off (limit ",
+                 tolerance, ")")});
+      } else if (chosen != 0) {
+        Turn(k, chosen);
+        ++summary_.reordered_views;
+      }
+    }
+  }
+  if (dropped.empty()) return;
+  for (size_t c = 0; c < cameras_.size(); ++c) {
+    std::erase_if(views_[c], [&](int k) { return dropped.count(k) > 0; });
+    CalibratedCamera& out = summary_.cameras[c];
+    out.views = static_cast<int>(views_[c].size());
+    if (out.flag.empty() && out.views < options_.min_views_per_camera) {
+      out.flag = Cat("only ", out.views, " board views numbered as the other cameras' (needs ",
+                     options_.min_views_per_camera, ")");
+    }
+  }
 }
 
 // The mrcal problem: the reference camera first (mrcal's reference frame), then the rest.

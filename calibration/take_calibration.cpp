@@ -271,6 +271,8 @@ void FillReport(const TakeCalibrationOptions& options, const std::vector<std::st
   m["rms_reprojection_px"] = cal.rms_reprojection_px;
   m["observed_pixel_sigma"] = cal.observed_pixel_sigma;
   m["outliers"] = cal.outliers;
+  m["reordered_views"] = cal_json["reordered_views"];
+  m["dropped_views"] = cal_json["dropped_views"];
   m["cameras"] = cal_json["cameras"];
   m["stages"] = cal_json["stages"];
   if (cal_json.contains("mrcal")) m["mrcal"] = cal_json["mrcal"];

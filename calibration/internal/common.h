@@ -27,6 +27,18 @@ Pose FitRigid(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen::Ve
 void FamilyGeometry(const std::string& family, int* width_at_border, int* total_width,
                     bool* reversed_border = nullptr);
 
+// A board's grid numbered after turning it by `quarter_turns` x 90 degrees in its own plane
+// (2: numbered from the opposite end; 1 and 3 only for a square grid): order[r] is the index,
+// in the grid's own numbering, of the point the turned numbering gives index r.
+std::vector<int> TurnedGridOrder(int width_n, int height_n, int quarter_turns);
+
+// The turns (in quarter turns, 0 first) that map a board onto itself as a detector sees it once
+// its own asymmetry is used: {0} for AprilTag boards and chessboards whose width_n + height_n is
+// odd (their corner squares' colours tell the ends apart), {0, 2} for other non-square
+// chessboards and square ones with an odd side (a quarter turn changes the corner colour),
+// {0, 1, 2, 3} for square chessboards with an even side.
+std::vector<int> AmbiguousBoardTurns(const BoardLayout& layout);
+
 // Throws Error unless mrcal knows the (configured) lens model name.
 void CheckLensmodelName(const std::string& name);
 
