@@ -162,6 +162,13 @@ struct CalibrationOptions {
   double observed_pixel_sigma = 0;    // noise of one corner coordinate; 0: from the residuals
   double max_uncertainty_px = 1.0;    // worst 1-sigma where the board was seen above this:
                                       // ill-conditioned (degenerate)
+  // A lens whose focal length's 1-sigma from the views alone (CalibratedCamera::
+  // focal_sigma_views_rel) exceeds this share of it: its views do not constrain the lens
+  // (degenerate), whatever the model. Checked with or without `uncertainty`.
+  double max_focal_sigma_rel = 0.01;
+  // A camera whose views' board normals all lie within this of each other saw the board in one
+  // pose, however many frames repeat it: degenerate (one plane pose fixes no lens).
+  double min_normal_spread_deg = 5;
   // Cross-validation.
   bool cross_validation = false;  // also solve two disjoint halves of the frames
   // ... whose projections may differ by at most this many times the 1-sigma the halves' own
@@ -188,6 +195,16 @@ struct CameraUncertainty {
   double mean_px = 0;
 };
 
+// How a camera saw the board: what decides whether its views can constrain its lens.
+struct PoseSpread {
+  // The angle between the board's normal and the ray to its centre, over the camera's views.
+  double tilt_min_deg = 0, tilt_max_deg = 0;
+  double normal_spread_deg = 0;  // the largest angle between two of its views' board normals
+  double distance_min_m = 0, distance_max_m = 0;  // to the board's centre
+  double coverage = 0;  // share of the imager's 8 x 6 cells holding an inlier corner
+  nlohmann::json ToJson() const;
+};
+
 struct CalibratedCamera {
   std::string name;
   bool solved = false;  // false: flagged (see `flag`), no model
@@ -198,6 +215,7 @@ struct CalibratedCamera {
   int outliers = 0;   // points mrcal rejected
   double rms_px = 0;  // of its inlier residuals
   double median_board_distance_m = 0;
+  PoseSpread pose_spread;
   CameraUncertainty uncertainty;
   std::vector<Eigen::Vector2d> observed;   // inlier observed pixels (for pictures)
   std::vector<Eigen::Vector2d> residuals;  // their residuals (observed - projected)
@@ -207,6 +225,11 @@ struct CalibratedCamera {
   std::vector<double> intrinsics_sigma;
   double rotation_sigma_deg = std::numeric_limits<double>::quiet_NaN();  // worst axis
   double center_sigma_mm = std::numeric_limits<double>::quiet_NaN();     // worst direction
+  // The focal length's 1-sigma relative to it (the larger of fx and fy) from the views alone,
+  // without the regularisation that holds what no view fixes at its prior: infinite where the
+  // views leave the focal length free (a board that never moves). NaN where it is not solved
+  // (a splined model's core) or could not be computed.
+  double focal_sigma_views_rel = std::numeric_limits<double>::quiet_NaN();
 };
 
 // One mrcal_optimize call and how it ended, in mrcal's own figures. mrcal 2.2 returns the RMS

@@ -429,6 +429,9 @@ struct Factorization {
   Eigen::SparseMatrix<double> jobs_t_jobs;  // the observations' share of J*tJ*
   int nmeas_observations = 0;
   bool regularized = false;
+  // Jobs^t Jobs alone (regularised problems): what the views constrain without the
+  // regularisation's pull, which holds parameters no view fixes at its prior.
+  Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>> views_only;
 };
 
 // The solve's J*tJ* factored for the noise propagation.
@@ -443,6 +446,7 @@ bool Factor(Problem& p, Factorization* f) {
   if (f->regularized) {
     const Eigen::SparseMatrix<double> jobs_t = f->jt.leftCols(f->nmeas_observations);
     f->jobs_t_jobs = jobs_t * Eigen::SparseMatrix<double>(jobs_t.transpose());
+    f->views_only.compute(f->jobs_t_jobs);
   }
   return true;
 }
@@ -478,14 +482,25 @@ CameraState StateOf(Problem& p, int icam) {
 
 // Covariance of functions of the state whose gradients (by the unpacked state) are the
 // columns of `gradients`, propagated from the observation noise like the projections.
+// `views_only`: from the views alone, without the regularisation (Jobs^t Jobs inverted).
 Eigen::MatrixXd StateCovariance(Problem& p, Factorization& f, Eigen::MatrixXd gradients,
-                                double sigma) {
+                                double sigma, bool views_only = false) {
   for (int c = 0; c < gradients.cols(); ++c) {
     Eigen::VectorXd column = gradients.col(c);
     mrcal_unpack_solver_state_vector(column.data(), p.ncams(), p.next(),
                                      static_cast<int>(p.frames.size()), 0, 0, p.selections,
                                      &p.parsed);
     gradients.col(c) = column;
+  }
+  if (views_only && f.regularized && f.views_only.info() != Eigen::Success) {
+    return Eigen::MatrixXd::Constant(gradients.cols(), gradients.cols(),
+                                     std::numeric_limits<double>::infinity());
+  }
+  if (views_only) {
+    // Singular where the views leave a direction free: its variance is then huge or not finite.
+    const Eigen::MatrixXd a =
+        f.regularized ? Eigen::MatrixXd(f.views_only.solve(gradients)) : f.ldlt.solve(gradients);
+    return gradients.transpose() * a * sigma * sigma;
   }
   const Eigen::MatrixXd a = f.ldlt.solve(gradients);
   const Eigen::MatrixXd b = f.regularized ? Eigen::MatrixXd(f.jobs_t_jobs * a) : gradients;
@@ -506,6 +521,18 @@ void ParameterSigma(Problem& p, Factorization& f, int icam, double sigma, Calibr
     const Eigen::MatrixXd cov = StateCovariance(p, f, gradients, sigma);
     for (int c = 0; c < k; ++c)
       out->intrinsics_sigma[state.first_optimized + c] = std::sqrt(cov(c, c));
+    if (state.first_optimized == 0 && mrcal_lensmodel_metadata(&p.parsed).has_core) {
+      const Eigen::MatrixXd alone =
+          StateCovariance(p, f, gradients.leftCols(2), sigma, /*views_only=*/true);
+      const double* intrinsics = p.intrinsics.data() + icam * nparams;
+      double worst = 0;
+      for (int c = 0; c < 2; ++c) {
+        const double relative = std::sqrt(alone(c, c)) / std::abs(intrinsics[c]);
+        worst = std::isfinite(relative) ? std::max(worst, relative)
+                                        : std::numeric_limits<double>::infinity();
+      }
+      out->focal_sigma_views_rel = worst;
+    }
   }
   if (state.extrinsics < 0) return;
   // Rotation (the rt's r, radians) and camera centre -R^t t (numeric derivatives by rt).
@@ -669,6 +696,8 @@ void CalibrationOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(uncertainty_distance_m, 0, "0: automatic");
   HOLOCAP_CHECK_OPTION_GE(observed_pixel_sigma, 0, "0: from the residuals");
   HOLOCAP_CHECK_OPTION_GT(max_uncertainty_px, 0);
+  HOLOCAP_CHECK_OPTION_GT(max_focal_sigma_rel, 0);
+  HOLOCAP_CHECK_OPTION_GE(min_normal_spread_deg, 0);
 }
 
 nlohmann::json CalibrationOptions::ToJson() const {
@@ -685,8 +714,16 @@ nlohmann::json CalibrationOptions::ToJson() const {
           {"uncertainty_distance_m", uncertainty_distance_m},
           {"observed_pixel_sigma", observed_pixel_sigma},
           {"max_uncertainty_px", max_uncertainty_px},
+          {"max_focal_sigma_rel", max_focal_sigma_rel},
+          {"min_normal_spread_deg", min_normal_spread_deg},
           {"cross_validation", cross_validation},
           {"max_cross_validation_ratio", max_cross_validation_ratio}};
+}
+
+nlohmann::json PoseSpread::ToJson() const {
+  return {{"tilt_min_deg", tilt_min_deg},           {"tilt_max_deg", tilt_max_deg},
+          {"normal_spread_deg", normal_spread_deg}, {"distance_min_m", distance_min_m},
+          {"distance_max_m", distance_max_m},       {"coverage", coverage}};
 }
 
 const CalibratedCamera* CalibrationSummary::Find(const std::string& name) const {
@@ -705,7 +742,8 @@ nlohmann::json CalibrationSummary::ToJson() const {
                         {"points", c.points},
                         {"outliers", c.outliers},
                         {"rms_px", c.rms_px},
-                        {"median_board_distance_m", c.median_board_distance_m}};
+                        {"median_board_distance_m", c.median_board_distance_m},
+                        {"pose_spread", c.pose_spread.ToJson()}};
     if (c.solved) {
       j["lensmodel"] = c.model.lensmodel();
       j["intrinsics"] = c.model.intrinsics();
@@ -715,6 +753,7 @@ nlohmann::json CalibrationSummary::ToJson() const {
         j["intrinsics_sigma"] = c.intrinsics_sigma;
         j["rotation_sigma_deg"] = c.rotation_sigma_deg;
         j["center_sigma_mm"] = c.center_sigma_mm;
+        j["focal_sigma_views_rel"] = c.focal_sigma_views_rel;
       }
       if (c.uncertainty.grid_x > 0) {
         std::vector<std::vector<double>> grid;
@@ -927,6 +966,36 @@ nlohmann::json CrossValidate(const CalibrationSummary& a, const CalibrationSumma
 
 namespace {
 
+// A camera's board distances, tilts and normals (one per view) and its inlier corners, summed up.
+PoseSpread SpreadOf(const std::vector<double>& distances, const std::vector<double>& tilts,
+                    const std::vector<Eigen::Vector3d>& normals,
+                    const std::vector<Eigen::Vector2d>& observed, int width, int height) {
+  PoseSpread spread;
+  if (distances.empty()) return spread;
+  const auto [dmin, dmax] = std::minmax_element(distances.begin(), distances.end());
+  const auto [tmin, tmax] = std::minmax_element(tilts.begin(), tilts.end());
+  spread.distance_min_m = *dmin;
+  spread.distance_max_m = *dmax;
+  spread.tilt_min_deg = *tmin;
+  spread.tilt_max_deg = *tmax;
+  for (size_t a = 0; a < normals.size(); ++a) {
+    for (size_t b = a + 1; b < normals.size(); ++b) {
+      spread.normal_spread_deg = std::max(
+          spread.normal_spread_deg,
+          std::acos(std::clamp(normals[a].dot(normals[b]), -1.0, 1.0)) * 180 / std::numbers::pi);
+    }
+  }
+  constexpr int kCellsX = 8, kCellsY = 6;
+  std::set<int> cells;
+  for (const auto& p : observed) {
+    const int x = std::clamp(static_cast<int>((p.x() + 0.5) * kCellsX / width), 0, kCellsX - 1);
+    const int y = std::clamp(static_cast<int>((p.y() + 0.5) * kCellsY / height), 0, kCellsY - 1);
+    cells.insert(y * kCellsX + x);
+  }
+  spread.coverage = static_cast<double>(cells.size()) / (kCellsX * kCellsY);
+  return spread;
+}
+
 // How far apart two estimates of one camera's pose relative to another are: the angle between
 // their rotations or between their baselines' directions, whichever is larger (a seed's focal
 // length scales the baseline, not its direction).
@@ -965,6 +1034,7 @@ class Calibrator {
   CalibrationSummary Run();
 
  private:
+  CalibrationSummary Solve();
   void CheckInput();
   void SelectViews();
   void SeedCamera(int c);
@@ -981,6 +1051,7 @@ class Calibrator {
   void CollectResiduals();
   void EstimateUncertainty();
   bool CameraUncertaintyOf(int m, Factorization& joint, bool joint_ok);
+  std::string UnconstrainedLens(const CalibratedCamera& out) const;
   void CrossValidation();
   std::string CrossValidationBeyondPrediction() const;
   void Conclude();
@@ -1026,6 +1097,20 @@ class Calibrator {
 CalibrationSummary Calibrator::Run() {
   CheckInput();
   start_ = std::chrono::steady_clock::now();
+  // Past the preconditions, whatever goes wrong is the solve's ending, never an exception: a
+  // model with a negative focal length (corners numbered from other ends, say) is FAILURE.
+  try {
+    return Solve();
+  } catch (const std::exception& e) {
+    for (CalibratedCamera& camera : summary_.cameras) camera.solved = false;  // nothing written
+    return End(Termination::kFailure,
+               Cat("the solve gave no usable model: ", e.what(),
+                   " (corners numbered inconsistently between cameras, or views that do not "
+                   "constrain the lens?)"));
+  }
+}
+
+CalibrationSummary Calibrator::Solve() {
   SelectViews();
   focal_.assign(cameras_.size(), 0);
   for (size_t c = 0; c < cameras_.size(); ++c) SeedCamera(static_cast<int>(c));
@@ -1044,7 +1129,7 @@ CalibrationSummary Calibrator::Run() {
   }
   summary_.solve_seconds = Elapsed();
   CollectResiduals();
-  if (options_.uncertainty) EstimateUncertainty();
+  EstimateUncertainty();
   if (options_.cross_validation) CrossValidation();
   Conclude();
   return summary_;
@@ -1531,13 +1616,23 @@ void Calibrator::Absorb(const Problem& q, int only) {
   const int nobs = static_cast<int>(q.observations.size());
   const int np = q.nparams();
   std::vector<std::vector<double>> distances(q.ncams());
+  std::vector<std::vector<Eigen::Vector3d>> normals(q.ncams());
+  std::vector<std::vector<double>> tilts(q.ncams());
+  const Eigen::Vector3d board_centre((q.width_n - 1) * q.layout.spacing / 2,
+                                     (q.height_n - 1) * q.layout.spacing / 2, 0);
   for (int o = 0; o < nobs; ++o) {
     const int m = q.observations[o].icam.intrinsics;
     if (only >= 0 && m != only) continue;
     CalibratedCamera& out = summary_.cameras[q.camera_index[m]];
     const int base = mrcal_measurement_index_boards(o, nobs, 0, q.width_n, q.height_n);
     const Pose ref_from_board = FromMrcal(q.frames[q.observations[o].iframe]);
-    distances[m].push_back((q.CamFromRef(m) * ref_from_board).translation().norm());
+    const Pose cam_from_board = q.CamFromRef(m) * ref_from_board;
+    distances[m].push_back((cam_from_board * board_centre).norm());
+    const Eigen::Vector3d normal = cam_from_board.linear().col(2);
+    const Eigen::Vector3d ray = (cam_from_board * board_centre).normalized();
+    normals[m].push_back(normal);
+    tilts[m].push_back(std::acos(std::clamp(std::abs(normal.dot(ray)), 0.0, 1.0)) * 180 /
+                       std::numbers::pi);
     const auto& source = observations_[q.observation_source[o]].points;
     for (int r = 0; r < q.width_n * q.height_n; ++r) {
       const mrcal_point3_t& point = q.pool[static_cast<size_t>(o) * q.width_n * q.height_n + r];
@@ -1560,6 +1655,8 @@ void Calibrator::Absorb(const Problem& q, int only) {
     auto& d = distances[m];
     std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
     out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
+    out.pose_spread = SpreadOf(d, tilts[m], normals[m], out.observed, q.imagersizes[2 * m],
+                               q.imagersizes[2 * m + 1]);
     std::vector<double> intrinsics(q.intrinsics.begin() + m * np,
                                    q.intrinsics.begin() + (m + 1) * np);
     out.model = CameraModel(q.lensmodel, intrinsics, q.imagersizes[2 * m], q.imagersizes[2 * m + 1],
@@ -1631,11 +1728,14 @@ bool Calibrator::CameraUncertaintyOf(int m, Factorization& joint, bool joint_ok)
     Problem& q = it == alone_.end() ? p_ : mono;
     Factorization& f = it == alone_.end() ? joint : own;
     const int icam = it == alone_.end() ? m : 0;
-    out.uncertainty = Uncertainty(q, f, icam, distance, sigma, options_.uncertainty_grid_x,
-                                  options_.uncertainty_grid_y);
+    if (options_.uncertainty) {
+      out.uncertainty = Uncertainty(q, f, icam, distance, sigma, options_.uncertainty_grid_x,
+                                    options_.uncertainty_grid_y);
+    }
     ParameterSigma(q, f, icam, sigma, &out);
   } else {
     out.uncertainty.worst_px = out.uncertainty.mean_px = std::numeric_limits<double>::infinity();
+    out.focal_sigma_views_rel = std::numeric_limits<double>::infinity();  // singular
   }
   // Where the board never was (a fisheye's corners), any model is a guess; judge the solve
   // where it has data.
@@ -1663,11 +1763,38 @@ bool Calibrator::CameraUncertaintyOf(int m, Factorization& joint, bool joint_ok)
   } else {
     u.worst_observed_px = std::numeric_limits<double>::infinity();
   }
-  if (!(u.worst_observed_px <= options_.max_uncertainty_px)) {
+  if (options_.uncertainty && !(u.worst_observed_px <= options_.max_uncertainty_px)) {
     out.flag = Cat("ill-conditioned: worst projection 1-sigma where the board was seen ",
                    u.worst_observed_px, " px (limit ", options_.max_uncertainty_px, ")");
   }
+  if (const std::string why = UnconstrainedLens(out); !why.empty())
+    out.flag += (out.flag.empty() ? "" : "; ") + why;
   return ok;
+}
+
+// Why the views leave the camera's lens unconstrained (its focal length's 1-sigma beyond
+// max_focal_sigma_rel of it, or not computable), with its pose spread; empty when they do not.
+std::string Calibrator::UnconstrainedLens(const CalibratedCamera& out) const {
+  // NaN: no focal length in the state (a splined model's core held fixed); the projection
+  // uncertainty judges those.
+  const PoseSpread& s = out.pose_spread;
+  if (out.views > 0 && s.normal_spread_deg < options_.min_normal_spread_deg) {
+    return Cat("its ", out.views, " views show the board in one pose (normals within ",
+               std::round(s.normal_spread_deg * 100) / 100, " deg, limit ",
+               options_.min_normal_spread_deg, "; distance ",
+               std::round(s.distance_min_m * 100) / 100, "..",
+               std::round(s.distance_max_m * 100) / 100,
+               " m): one plane pose does not constrain a lens, however many frames repeat it");
+  }
+  const double worst = out.focal_sigma_views_rel;
+  if (std::isnan(worst) || worst <= options_.max_focal_sigma_rel) return "";
+  return Cat("its views do not constrain its lens: focal length 1-sigma from the views alone ",
+             std::round(worst * 1e4) / 100, "% of it (limit ", 100 * options_.max_focal_sigma_rel,
+             "%); board tilt ", std::round(s.tilt_min_deg), "..", std::round(s.tilt_max_deg),
+             " deg, normals within ", std::round(s.normal_spread_deg * 10) / 10, " deg, distance ",
+             std::round(s.distance_min_m * 100) / 100, "..",
+             std::round(s.distance_max_m * 100) / 100, " m, ", std::round(s.coverage * 100),
+             "% of the imager covered");
 }
 
 // Two disjoint halves of the frame sets solved alone and compared.
@@ -1686,6 +1813,8 @@ void Calibrator::CrossValidation() {
   half_options.cross_validation = false;
   half_options.min_views_per_camera = std::max(3, options_.min_views_per_camera / 2);
   half_options.max_uncertainty_px = 1e9;  // judged here against each other instead
+  half_options.max_focal_sigma_rel = 1e9;
+  half_options.min_normal_spread_deg = 0;
   const CalibrationSummary a = Calibrator(layout_, cameras_, half[0], half_options, nullptr).Run();
   const CalibrationSummary b = Calibrator(layout_, cameras_, half[1], half_options, nullptr).Run();
   summary_.cross_validation = CrossValidate(a, b);
