@@ -1098,15 +1098,16 @@ CalibrationSummary Calibrator::Run() {
   CheckInput();
   start_ = std::chrono::steady_clock::now();
   // Past the preconditions, whatever goes wrong is the solve's ending, never an exception: a
-  // model with a negative focal length (corners numbered from other ends, say) is FAILURE.
+  // model with a negative focal length (corners numbered from other ends, say) or a camera
+  // millions of metres away (a board layout in micrometres) is FAILURE.
   try {
     return Solve();
   } catch (const std::exception& e) {
     for (CalibratedCamera& camera : summary_.cameras) camera.solved = false;  // nothing written
     return End(Termination::kFailure,
                Cat("the solve gave no usable model: ", e.what(),
-                   " (corners numbered inconsistently between cameras, or views that do not "
-                   "constrain the lens?)"));
+                   " (a board layout not in metres, corners numbered inconsistently between "
+                   "cameras, or views that do not constrain the lens?)"));
   }
 }
 
