@@ -524,7 +524,7 @@ void ParameterSigma(Problem& p, Factorization& f, int icam, double sigma, Calibr
     if (state.first_optimized == 0 && mrcal_lensmodel_metadata(&p.parsed).has_core) {
       const Eigen::MatrixXd alone =
           StateCovariance(p, f, gradients.leftCols(2), sigma, /*views_only=*/true);
-      const double* intrinsics = p.intrinsics.data() + icam * nparams;
+      const double* intrinsics = p.intrinsics.data() + static_cast<ptrdiff_t>(icam) * nparams;
       double worst = 0;
       for (int c = 0; c < 2; ++c) {
         const double relative = std::sqrt(alone(c, c)) / std::abs(intrinsics[c]);
@@ -577,7 +577,7 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
     }
   }
   const int nparams = p.nparams();
-  const double* intrinsics = p.intrinsics.data() + icam * nparams;
+  const double* intrinsics = p.intrinsics.data() + static_cast<ptrdiff_t>(icam) * nparams;
   const int nstate = p.nstate();
   const int nframes = static_cast<int>(p.frames.size());
   const CameraState state = StateOf(p, icam);
@@ -1025,6 +1025,7 @@ class Calibrator {
           calibration_internal::TurnedGridOrder(board_.width_n(), board_.height_n(), turn);
       const std::vector<Eigen::Vector3d> grid = board_.GridPoints();
       std::vector<Eigen::Vector3d> original;
+      original.reserve(order.size());
       for (int index : order) original.push_back(grid[index]);
       orders_.push_back(order);
       board_from_turned_.push_back(calibration_internal::FitRigid(grid, original));
@@ -1368,7 +1369,7 @@ void Calibrator::OrderViews() {
       if (auto kb = view_in_set[b].find(set); kb != view_in_set[b].end())
         pairs.emplace_back(ka, kb->second);
     }
-    const Pose pose =
+    Pose pose =
         pairs.size() >= 2 ? RelativePose(pairs) : cam_from_ref_[b] * cam_from_ref_[a].inverse();
     relative.emplace(std::make_pair(a, b), pose);
     return pose;
@@ -1656,12 +1657,12 @@ void Calibrator::Absorb(const Problem& q, int only) {
     auto& d = distances[m];
     std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
     out.median_board_distance_m = d.empty() ? 0 : d[d.size() / 2];
-    out.pose_spread = SpreadOf(d, tilts[m], normals[m], out.observed, q.imagersizes[2 * m],
-                               q.imagersizes[2 * m + 1]);
-    std::vector<double> intrinsics(q.intrinsics.begin() + m * np,
-                                   q.intrinsics.begin() + (m + 1) * np);
-    out.model = CameraModel(q.lensmodel, intrinsics, q.imagersizes[2 * m], q.imagersizes[2 * m + 1],
-                            q.CamFromRef(m));
+    const int width = q.imagersizes[2 * static_cast<size_t>(m)];
+    const int height = q.imagersizes[2 * static_cast<size_t>(m) + 1];
+    out.pose_spread = SpreadOf(d, tilts[m], normals[m], out.observed, width, height);
+    std::vector<double> intrinsics(q.intrinsics.begin() + static_cast<ptrdiff_t>(m) * np,
+                                   q.intrinsics.begin() + static_cast<ptrdiff_t>(m + 1) * np);
+    out.model = CameraModel(q.lensmodel, intrinsics, width, height, q.CamFromRef(m));
     out.solved = true;
   }
 }

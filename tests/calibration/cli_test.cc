@@ -124,7 +124,7 @@ TEST(CalibrateCli, ASquareChessboardSeenUpsideDownCalibrates) {
 // A take of a two-camera ring (studio8's cam0 and cam1) at 480 px: the board moving, or never
 // moving.
 std::string PairTake(const std::filesystem::path& dir, bool still) {
-  const std::string take = (dir / (still ? "still" : "moving")).string();
+  std::string take = (dir / (still ? "still" : "moving")).string();
   const auto r =
       RunCli("sim --rig " + WriteRingRig(dir, 2) + " --board" +
              (still ? " --board-still --frames 10" : " --frames 16") + " --size 480 --out " + take);
@@ -137,11 +137,12 @@ std::string PairTake(const std::filesystem::path& dir, bool still) {
 TEST(CalibrateCli, ABoardThatNeverMovesIsDegenerateForEveryLensModel) {
   TempDir dir("holocap-calib-still");
   const std::string still = PairTake(dir.path(), true);
+  const std::string calibrate_still = "calibrate " + still + " --no-pictures --lens-model ";
   for (const std::string model :
        {"LENSMODEL_STEREOGRAPHIC", "LENSMODEL_OPENCV4", "LENSMODEL_OPENCV8",
         "LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=16_Ny=12_fov_x_deg=120"}) {
     std::filesystem::remove_all(std::filesystem::path(still) / "calib");
-    const auto r = RunCli("calibrate " + still + " --no-pictures --lens-model " + model);
+    const auto r = RunCli(calibrate_still + model);
     EXPECT_NE(r.exit_code, 0) << model;
     EXPECT_NE(r.output.find("DEGENERATE"), std::string::npos) << model << r.output;
     EXPECT_NE(r.output.find("show the board in one pose"), std::string::npos) << model << r.output;
