@@ -31,8 +31,8 @@
 
 #include "bench/calibrated_sim.h"
 #include "core/error.h"
-#include "core/rig_alignment.h"
 #include "core/mesh.h"
+#include "core/rig_alignment.h"
 #include "core/take.h"
 #include "interop/interop.h"
 #include "reconstruction/reconstruction.h"

@@ -47,6 +47,21 @@ void CheckLensmodelName(const std::string& name) {
       !mrcal_lensmodel_type_is_valid(model.type)) {
     Fail("unknown or unconfigured lens model '", name, "'");
   }
+  // Names mrcal parses but its optimiser stops on with an assertion: refused as input.
+  if (model.type == MRCAL_LENSMODEL_CAHVORE) {
+    Fail("lens model '", name,
+         "': mrcal does not optimise CAHVORE; use LENSMODEL_CAHVOR, an OPENCV model or a "
+         "splined one");
+  }
+  if (model.type == MRCAL_LENSMODEL_SPLINED_STEREOGRAPHIC) {
+    const auto& config = model.LENSMODEL_SPLINED_STEREOGRAPHIC__config;
+    if ((config.order != 2 && config.order != 3) || config.Nx < 4 || config.Ny < 4 ||
+        config.fov_x_deg == 0) {
+      Fail("lens model '", name,
+           "': a splined model needs order 2 or 3, a control grid of at least 4 x 4 and a "
+           "field of view above 0 degrees");
+    }
+  }
 }
 
 SolverEnd JudgeSolverEnd(const Eigen::SparseMatrix<double>& jt, const Eigen::VectorXd& x,

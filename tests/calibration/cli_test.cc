@@ -5,6 +5,9 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <numbers>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "core/fs.h"
 #include "tests/support/test_support.h"
@@ -153,6 +156,13 @@ TEST(CalibrateCli, ABoardThatNeverMovesIsDegenerateForEveryLensModel) {
       EXPECT_EQ(camera["views"].get<int>(), 10) << model << name;  // enough views, one pose
       EXPECT_LT(camera["pose_spread"]["normal_spread_deg"].get<double>(), 1.0) << model << name;
     }
+  }
+  // Names mrcal parses but cannot optimise are bad input: one line, before any solve.
+  for (const auto& [model, needle] : std::vector<std::pair<std::string, std::string>>{
+           {"LENSMODEL_CAHVORE_linearity=0.00", "mrcal does not optimise CAHVORE"},
+           {"LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=3_Ny=12_fov_x_deg=120",
+            "a control grid of at least 4 x 4"}}) {
+    testing::ExpectOneLineError(RunCli(calibrate_still + model), needle);
   }
   const std::string moving = PairTake(dir.path(), false);
   const auto r = RunCli("calibrate " + moving + " --no-pictures");
