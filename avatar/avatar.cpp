@@ -62,10 +62,7 @@ std::unique_ptr<AvatarModel> OpenModel(const std::filesystem::path& dir) {
 }
 
 std::string ModelTraining::Describe() const {
-  if (!reported) {
-    return "no report.json (every holocap training writes one when it ends: this one was "
-           "stopped before it ended, or the folder was not written by a training)";
-  }
+  if (!reported) return "no report.json";
   return Cat(ToString(termination), ": ", message);
 }
 

@@ -13,13 +13,14 @@ namespace holocap {
 // per-frame run, its frame records: a run whose frames are not all done is FAILURE): a run
 // killed or failed part way (FAILURE, e.g. "the run is incomplete: 3 of 5 frame sets complete")
 // or whose result its own checks refuted (DEGENERATE) leaves a model that is not the one asked
-// for. So does one without a report.json (a run killed before it ended: every holocap training
-// writes one), and one whose model.json a later, failed run rewrote after the good report.
+// for. So does one whose model.json a later, failed run rewrote after the good report. A
+// directory without a report.json (a model written through the library, or by hand) is taken as
+// it is: a holocap training writes its model.json only as it ends, just before its report.
 struct ModelTraining {
   bool reported = false;  // the directory holds a report.json (every holocap training writes one)
   Termination termination = Termination::kFailure;  // when reported
   std::string message;                              // when reported
-  bool finished() const { return reported && IsUsable(termination); }
+  bool finished() const { return !reported || IsUsable(termination); }
   // "TERMINATION: message", or that no report was found.
   std::string Describe() const;
 };
