@@ -6,6 +6,7 @@
 #include "app/commands.h"
 #include "app/options.h"
 #include "calibration/calibration.h"
+#include "calibration/chessboard_finders.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/take.h"
@@ -21,6 +22,8 @@ struct CalibrateArgs {
   std::string lensmodel;
   std::vector<std::string> sensors;
   std::string reference;
+  std::string detector = "holocap";
+  bool compare_detectors = false;
   int64_t floor_board_set = -1;
   bool no_uncertainty = false;
   bool cross_validation = false;
@@ -100,6 +103,15 @@ void AddCalibrateCommand(CLI::App& app) {
                       "floor and origin (default: the take's metadata floor_board_set, else the "
                       "floor seen by depth sensors, else the cameras' up and the lowest board "
                       "point)");
+  command
+      ->add_option("--detector", args->detector,
+                   "Chessboard finder: holocap (OpenCV's, refined on the image edges) or "
+                   "mrgingham (mrcal's; square chessboards, the mrgingham program)")
+      ->capture_default_str();
+  command->add_flag("--compare-detectors", args->compare_detectors,
+                    "Also run holocap's, OpenCV's and mrgingham's chessboard finders on every "
+                    "view and report how far their corners lie apart (and from the truth on a "
+                    "simulated take); the solve is unchanged");
   command->add_flag("--no-uncertainty", args->no_uncertainty, "Skip the projection uncertainty");
   command->add_flag("--cross-validate", args->cross_validation,
                     "Also solve two halves of the frames");
@@ -127,6 +139,7 @@ void AddCalibrateCommand(CLI::App& app) {
       FailUnlessUsable(summary, "calibration");
       return;
     }
+    SetChessboardFinder(ParseChessboardFinder(args->detector));
     TakeCalibrationOptions options;
     options.board_file = args->board;
     options.lensmodel = args->lensmodel;
@@ -141,6 +154,15 @@ void AddCalibrateCommand(CLI::App& app) {
     report.SetFailureDestination(std::filesystem::path(args->take) / "calib" / "report.json");
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
     PrintSummary(summary);
+    report.options()["detector"] = args->detector;
+    if (args->compare_detectors) {
+      std::string table;
+      report.metrics()["detector_agreement"] =
+          CompareChessboardFinders(args->take, BoardLayout::FromJson(report.options()["board"]),
+                                   args->sensors, args->threads, &table);
+      std::printf("chessboard corners, detector against detector:\n%s", table.c_str());
+    }
+    report.Write(calib / "report.json");
     std::printf("report: %s\n", summary.report_file.c_str());
     // The state line is printed above; an unusable state ends in one error line and exit 1.
     FailUnlessUsable(summary, "calibration");

@@ -1,5 +1,5 @@
 // Board detection: libapriltag (quad_decimate = 1) or OpenCV's chessboard finder, corners
-// refined on the image edges, views checked for consistency.
+// refined on the image edges (or mrgingham's chessboard corners), views checked for consistency.
 #include <Eigen/Dense>
 #include <algorithm>
 #include <array>
@@ -15,6 +15,7 @@
 #include <thread>
 
 #include "calibration/calibration.h"
+#include "calibration/chessboard_finders.h"
 #include "calibration/internal/common.h"
 #include "core/check_option.h"
 #include "core/error.h"
@@ -332,16 +333,23 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   if (board_.layout().type == BoardType::kChessboard) {
     std::vector<cv::Point2f> corners;
     const cv::Size size(width_n, height_n);
-    // The fast check turns frames without a board away in milliseconds, not seconds.
-    if (!cv::findChessboardCorners(grey, size, corners,
-                                   cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE |
-                                       cv::CALIB_CB_FAST_CHECK)) {
-      *reason = "no chessboard found";
-      return false;
+    if (CurrentChessboardFinder() == ChessboardFinder::kMrgingham) {
+      // mrgingham's corners as it gives them, row-major from one end as OpenCV's.
+      if (width_n != height_n) Fail("mrgingham finds square grids only");
+      if (!FindChessboardMrgingham(grey, width_n, &corners, reason)) return false;
+    } else {
+      // The fast check turns frames without a board away in milliseconds, not seconds.
+      if (!cv::findChessboardCorners(grey, size, corners,
+                                     cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE |
+                                         cv::CALIB_CB_FAST_CHECK)) {
+        *reason = "no chessboard found";
+        return false;
+      }
+      cv::cornerSubPix(
+          grey, corners, cv::Size(5, 5), cv::Size(-1, -1),
+          cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
+      if (options_.refine_corners) RefineChessboard(grey, width_n, height_n, &corners);
     }
-    cv::cornerSubPix(grey, corners, cv::Size(5, 5), cv::Size(-1, -1),
-                     cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
-    if (options_.refine_corners) RefineChessboard(grey, width_n, height_n, &corners);
     // OpenCV may start from any end of a board. On holocap's chessboards the square diagonally
     // outside the first corner is black and its neighbour along the first column white. Where
     // the other ends' corner squares differ in colour (width_n + height_n odd: the opposite end;
@@ -483,6 +491,7 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
                                                  const DetectionOptions& options,
                                                  DetectionSummary* summary) {
   options.Check();
+  if (CurrentChessboardFinder() == ChessboardFinder::kMrgingham) CheckMrginghamFits(layout);
   const std::vector<std::string> sensors = ChooseColorSensors(take, sensors_in);
   if (take.size() == 0) Fail("take ", take.dir().string(), " has no complete frame sets");
 

@@ -19,7 +19,7 @@ done
 packages=(
   build-essential cmake ninja-build pkg-config git
   libeigen3-dev libopencv-dev libopenexr-dev libzstd-dev
-  libmrcal-dev libapriltag-dev libceres-dev
+  libmrcal-dev mrgingham libapriltag-dev libceres-dev
   libcamera-dev libaravis-dev aravis-tools libusb-1.0-0-dev libv4l-dev
   libtorch-dev
   nlohmann-json3-dev libcli11-dev libyaml-cpp-dev
