@@ -77,8 +77,7 @@ bool FindChessboardMrgingham(const cv::Mat& grey, int gridn, std::vector<cv::Poi
       Cat("holocap-mrgingham-", ::getpid(), "-", temp_counter++, ".png");
   if (!cv::imwrite(file.string(), grey)) Fail("cannot write ", file.string());
   std::string output;
-  FILE* pipe =
-      popen(Cat("mrgingham --gridn ", gridn, " '", file.string(), "' 2>&1").c_str(), "r");
+  FILE* pipe = popen(Cat("mrgingham --gridn ", gridn, " '", file.string(), "' 2>&1").c_str(), "r");
   if (pipe != nullptr) {
     char buffer[512];
     while (std::fgets(buffer, sizeof(buffer), pipe) != nullptr) output += buffer;
@@ -129,9 +128,9 @@ std::optional<Corners> ToCorners(const std::vector<cv::Point2f>& points) {
 // 15 px squares).
 std::optional<Corners> FindOpenCv(const cv::Mat& grey, int width_n, int height_n) {
   std::vector<cv::Point2f> points;
-  if (!cv::findChessboardCorners(grey, cv::Size(width_n, height_n), points,
-                                 cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE |
-                                     cv::CALIB_CB_FAST_CHECK)) {
+  if (!cv::findChessboardCorners(
+          grey, cv::Size(width_n, height_n), points,
+          cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK)) {
     return std::nullopt;
   }
   double spacing = INFINITY;
@@ -139,7 +138,8 @@ std::optional<Corners> FindOpenCv(const cv::Mat& grey, int width_n, int height_n
     for (int i = 0; i < width_n; ++i) {
       const cv::Point2f& p = points[static_cast<size_t>(j) * width_n + i];
       if (i + 1 < width_n) spacing = std::min(spacing, cv::norm(points[j * width_n + i + 1] - p));
-      if (j + 1 < height_n) spacing = std::min(spacing, cv::norm(points[(j + 1) * width_n + i] - p));
+      if (j + 1 < height_n)
+        spacing = std::min(spacing, cv::norm(points[(j + 1) * width_n + i] - p));
     }
   }
   const int half = std::clamp(static_cast<int>(0.5 * spacing), 2, 11);
@@ -156,8 +156,7 @@ std::vector<double> MatchedDistances(const Corners& a, const Corners& b, int wid
   double best_sum = INFINITY;
   for (int turn = 0; turn < 4; ++turn) {
     if (turn % 2 == 1 && width_n != height_n) continue;
-    const std::vector<int> order =
-        calibration_internal::TurnedGridOrder(width_n, height_n, turn);
+    const std::vector<int> order = calibration_internal::TurnedGridOrder(width_n, height_n, turn);
     std::vector<double> d(a.size());
     double sum = 0;
     for (size_t r = 0; r < a.size(); ++r) {
@@ -181,8 +180,8 @@ struct Tally {
     double mean = 0;
     for (double d : sorted) mean += d;
     const bool any = !sorted.empty();
-    const size_t p95 = any ? std::min(sorted.size() - 1, static_cast<size_t>(0.95 * sorted.size()))
-                           : 0;
+    const size_t p95 =
+        any ? std::min(sorted.size() - 1, static_cast<size_t>(0.95 * sorted.size())) : 0;
     return {{"views", views},
             {"corners", sorted.size()},
             {"mean_px", any ? mean / static_cast<double>(sorted.size()) : 0.0},
@@ -275,7 +274,8 @@ nlohmann::json CompareChessboardFinders(const std::filesystem::path& take_dir,
         }
         found[k][1] = FindOpenCv(grey, width_n, height_n);
         std::vector<cv::Point2f> points;
-        if (FindChessboardMrgingham(grey, width_n, &points, &reason)) found[k][2] = ToCorners(points);
+        if (FindChessboardMrgingham(grey, width_n, &points, &reason))
+          found[k][2] = ToCorners(points);
         const auto camera = truth_cameras.find(jobs[k].sensor);
         const auto pose = poses.find(take.entry(jobs[k].set).index);
         if (camera != truth_cameras.end() && pose != poses.end()) {
@@ -335,8 +335,8 @@ nlohmann::json CompareChessboardFinders(const std::filesystem::path& take_dir,
       {"truth", nlohmann::json::array()}};
   std::ostringstream out;
   char line[160];
-  std::snprintf(line, sizeof(line), "%-22s %6s %8s %9s %9s %9s\n", "detectors", "views",
-                "corners", "mean_px", "p95_px", "max_px");
+  std::snprintf(line, sizeof(line), "%-22s %6s %8s %9s %9s %9s\n", "detectors", "views", "corners",
+                "mean_px", "p95_px", "max_px");
   out << line;
   auto row = [&](const std::string& name, const nlohmann::json& j) {
     std::snprintf(line, sizeof(line), "%-22s %6d %8d %9.4f %9.4f %9.4f\n", name.c_str(),

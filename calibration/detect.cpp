@@ -317,6 +317,7 @@ std::vector<int> BoardDetector::DetectTagIds(const cv::Mat& image) const {
   std::vector<TagSeen> tags = RunApriltag(d.detector, grey, options_, true);
   impl_->Release(d);
   std::vector<int> ids;
+  ids.reserve(tags.size());
   for (const auto& t : tags) ids.push_back(t.id);
   std::sort(ids.begin(), ids.end());
   return ids;
