@@ -31,6 +31,7 @@
 #include <cstdio>
 #include <exception>
 #include <fstream>
+#include <functional>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <string>
@@ -69,26 +70,27 @@ CameraModel PinholeOf(const nlohmann::json& camera) {
                      camera.at("width"), camera.at("height"), pose);
 }
 
-int RunBench(int argc, char** argv) {
-  holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
-  holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
-  const int frames = argc > 1 ? std::atoi(argv[1]) : 10;
-  const int width = argc > 2 ? std::atoi(argv[2]) : 320;
-  const int iterations = argc > 3 ? std::atoi(argv[3]) : 300;
-  const std::string voxel = argc > 4 ? argv[4] : "8mm";
-  const int splat_iterations = argc > 6 ? std::atoi(argv[6]) : 1000;
-  const fs::path cli = HOLOCAP_BENCH_CLI;
-  const fs::path driver = fs::path(HOLOCAP_BENCH_SOURCE_DIR) / "tests/playback/browser/drive.mjs";
-  const fs::path dir =
-      argc > 5 ? fs::path(argv[5])
-               : fs::temp_directory_path() / ("holocap-web-bench-" + std::to_string(getpid()));
-  const std::string heldout = "cam1";
-  fs::create_directories(dir);
-  const std::string q = "HOLOCAP_NO_PROGRESS=1 '" + cli.string() + "' ";
-  const auto start = std::chrono::steady_clock::now();
-  auto elapsed = [&] {
-    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  };
+// What the bench streams, made with the CLI unless DIR already holds it: the take, its
+// calibration from a board take of the rig, the reconstruction and both models, each without the
+// held-out camera.
+struct BenchInputs {
+  int frames;
+  int width;
+  int iterations;
+  std::string voxel;
+  int splat_iterations;
+  fs::path dir;
+  std::string heldout;
+  std::string q;  // the CLI's command prefix
+};
+
+void MakeInputs(const BenchInputs& in, const std::function<double()>& elapsed) {
+  const fs::path& dir = in.dir;
+  const std::string& q = in.q;
+  const std::string& heldout = in.heldout;
+  const std::string& voxel = in.voxel;
+  const int frames = in.frames, width = in.width, iterations = in.iterations;
+  const int splat_iterations = in.splat_iterations;
   if (!fs::exists(dir / "take" / "take.json")) {
     Run(q + "sim --rig studio8 --frames " + std::to_string(frames + 1) +
         " --clean-plate 1 --size " + std::to_string(width) + " --seed 3 --out '" +
@@ -128,6 +130,29 @@ int RunBench(int argc, char** argv) {
     std::printf("# splats: %d iterations (then %d a frame) without %s (%.0f s)\n", splat_iterations,
                 std::max(1, splat_iterations / 10), heldout.c_str(), elapsed());
   }
+}
+
+int RunBench(int argc, char** argv) {
+  holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
+  holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
+  const int frames = argc > 1 ? std::atoi(argv[1]) : 10;
+  const int width = argc > 2 ? std::atoi(argv[2]) : 320;
+  const int iterations = argc > 3 ? std::atoi(argv[3]) : 300;
+  const std::string voxel = argc > 4 ? argv[4] : "8mm";
+  const int splat_iterations = argc > 6 ? std::atoi(argv[6]) : 1000;
+  const fs::path cli = HOLOCAP_BENCH_CLI;
+  const fs::path driver = fs::path(HOLOCAP_BENCH_SOURCE_DIR) / "tests/playback/browser/drive.mjs";
+  const fs::path dir =
+      argc > 5 ? fs::path(argv[5])
+               : fs::temp_directory_path() / ("holocap-web-bench-" + std::to_string(getpid()));
+  const std::string heldout = "cam1";
+  fs::create_directories(dir);
+  const std::string q = "HOLOCAP_NO_PROGRESS=1 '" + cli.string() + "' ";
+  const auto start = std::chrono::steady_clock::now();
+  auto elapsed = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  };
+  MakeInputs({frames, width, iterations, voxel, splat_iterations, dir, heldout, q}, elapsed);
   fs::remove_all(dir / "site");
   const std::string export_output =
       Run(q + "export web '" + (dir / "take").string() + "' --model '" + (dir / "nvol").string() +
