@@ -148,6 +148,7 @@ nlohmann::json TakePlan::ToJson() const {
           {"view_bounds", box(view_bounds)},
           {"up", {{"axis", {up.x(), up.y(), up.z()}}, {"source", up_source}}},
           {"floor_m", std::isfinite(floor_m) ? nlohmann::json(floor_m) : nlohmann::json(nullptr)},
+          {"floor_tolerance_m", floor_tolerance_m},
           {"voxel", {{"m", voxel_m}, {"source", voxel_source}}},
           {"silhouettes", silhouette}};
 }
@@ -226,7 +227,10 @@ void FindFloor(const Take& take, const TakeSelection& selection, TakePlan& plan)
     plan.up = SnapToAxis(normal, 5, &why);
     plan.up_source = why;
   }
-  if ((plan.up.array() != 0).count() == 1) plan.floor_m = plan.up.dot(normal) * offset - tolerance;
+  if ((plan.up.array() != 0).count() == 1) {
+    plan.floor_m = plan.up.dot(normal) * offset - tolerance;
+    plan.floor_tolerance_m = tolerance;
+  }
 }
 
 // Bounds, the box the cameras share and the up axis: the user's, else the rig's own.

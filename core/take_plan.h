@@ -96,6 +96,8 @@ struct TakePlan {
   // tolerance (a floor seen a little high must not cut the subject's feet); NaN: none. Nothing
   // below it is part of the scene.
   double floor_m = std::numeric_limits<double>::quiet_NaN();
+  // That tolerance: the floor plane itself lies at floor_m + floor_tolerance_m (0 with no floor).
+  double floor_tolerance_m = 0;
   double voxel_m = 0;
   std::string voxel_source;
   SilhouetteSource silhouettes = SilhouetteSource::kNone;

@@ -69,7 +69,8 @@ Mesh KeepFaces(const Mesh& mesh, const std::vector<bool>& keep) {
 
 // A scan that kept the floor it stood on (a wide flat layer at its bottom, most of its vertices)
 // loses it: the floor does not move with the subject, and the live frame has its own.
-void CutFloor(Mesh* scan, const Eigen::Vector3d& up) {
+// Returns the floor's height along `up` (NaN: no floor layer, nothing cut).
+double CutFloor(Mesh* scan, const Eigen::Vector3d& up) {
   constexpr double kBin = 0.01, kReach = 0.1, kLayer = 0.02, kCut = 0.03, kShare = 0.25;
   std::vector<double> height(scan->vertices.size());
   double lowest = std::numeric_limits<double>::infinity();
@@ -87,7 +88,8 @@ void CutFloor(Mesh* scan, const Eigen::Vector3d& up) {
   const double level = lowest + (peak + 0.5) * kBin;
   int64_t layer = 0;
   for (double h : height) layer += std::abs(h - level) <= kLayer;
-  if (layer < kShare * static_cast<double>(height.size())) return;
+  if (layer < kShare * static_cast<double>(height.size()))
+    return std::numeric_limits<double>::quiet_NaN();
   std::vector<bool> keep(scan->faces.size());
   for (size_t f = 0; f < scan->faces.size(); ++f) {
     const Eigen::Vector3i& face = scan->faces[f];
@@ -95,6 +97,7 @@ void CutFloor(Mesh* scan, const Eigen::Vector3d& up) {
               height[face[2]] > level + kCut;
   }
   *scan = KeepFaces(*scan, keep);
+  return level;
 }
 
 }  // namespace
@@ -141,8 +144,11 @@ Mesh MeshLiveSurface(const LiveSurface& live, const cv::Mat& subject, const cv::
 }
 
 LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vector3d up,
-                               double floor_m, std::optional<ScanAlbedo> albedo)
-    : scan_(std::move(scan)), options_(options), up_(up.normalized()), floor_m_(floor_m) {
+                               double floor_level_m, std::optional<ScanAlbedo> albedo)
+    : scan_(std::move(scan)),
+      options_(options),
+      up_(up.normalized()),
+      floor_level_m_(floor_level_m) {
   options_.Check();
   if (scan_.normals.size() != scan_.vertices.size()) scan_.ComputeNormals();
   if (scan_.colors.size() != scan_.vertices.size())
@@ -158,7 +164,7 @@ LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vec
     albedo->colors = std::move(cut.colors);
     albedo_ = std::move(albedo);
   }
-  CutFloor(&scan_, up_);
+  scan_floor_m_ = CutFloor(&scan_, up_);
   if (scan_.faces.empty()) Fail("live: the scan has no triangles (besides a floor)");
   scan_centroid_ = Eigen::Vector3d::Zero();
   for (const Eigen::Vector3f& v : scan_.vertices) {
@@ -183,12 +189,13 @@ Pose LiveCompositor::PredictedPose(int64_t set) const {
   return pose;
 }
 
-// The scan moved so that its centroid sits behind the centroid of the nearest live points (by
-// the scan's own half depth along the view), for when the scan was made elsewhere in the world
-// than the live take.
+// The scan turned by `yaw_rad` about the up axis and moved so that the centroid of its side
+// that faces the sensor sits on the centroid of the nearest live points: where the scan was made
+// elsewhere in the world than the live take (two takes calibrated apart share no world).
+// Matching the seen side, not the whole scan, puts the scan's depth behind the live surface by
+// what the subject's own shape says at that heading.
 Pose LiveCompositor::CentredPose(const LiveSurface& live, double yaw_rad) const {
   const Eigen::AlignedBox3f& box = scan_box_;
-  const Eigen::Vector3d& scan_centroid = scan_centroid_;
   std::vector<float> depths;
   for (float d : live.depth)
     if (!std::isnan(d)) depths.push_back(d);
@@ -207,8 +214,23 @@ Pose LiveCompositor::CentredPose(const LiveSurface& live, double yaw_rad) const 
   const Eigen::Vector3d view = (live_centroid - live.camera.center_in_world()).normalized();
   Pose pose = Pose::Identity();
   pose.linear() = Eigen::AngleAxisd(yaw_rad, up_.normalized()).toRotationMatrix();
-  pose.translation() =
-      live_centroid + view * (0.25 * box.sizes().minCoeff()) - pose.linear() * scan_centroid;
+  // The scan's side facing the sensor at this heading (normals towards it; what the subject
+  // hides from itself is not told apart).
+  const Eigen::Vector3f toward = -(pose.linear().transpose() * view).cast<float>();
+  Eigen::Vector3d seen = Eigen::Vector3d::Zero();
+  int64_t facing = 0;
+  for (size_t v = 0; v < scan_.vertices.size(); ++v) {
+    if (scan_.normals[v].dot(toward) <= 0) continue;
+    seen += scan_.vertices[v].cast<double>();
+    ++facing;
+  }
+  const Eigen::Vector3d anchor =
+      facing > 0 ? Eigen::Vector3d(seen / static_cast<double>(facing)) : scan_centroid_;
+  pose.translation() = live_centroid - pose.linear() * anchor;
+  // A subject stands on the floor in both takes: the scan's floor onto the live one.
+  if (std::isfinite(floor_level_m_) && std::isfinite(scan_floor_m_)) {
+    pose.translation() += (floor_level_m_ - up_.dot(pose * (scan_floor_m_ * up_))) * up_;
+  }
   return pose;
 }
 
@@ -318,10 +340,10 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
   frame.set = set;
   LiveSurface live =
       MakeLiveSurface(depth_m, depth_camera, options_.depth_min_m, options_.depth_max_m);
-  if (std::isfinite(floor_m_)) {
+  if (std::isfinite(floor_level_m_)) {
     for (size_t i = 0; i < live.points.size(); ++i) {
       if (!live.points[i].allFinite() ||
-          up_.cast<float>().dot(live.points[i]) >= floor_m_ + options_.floor_margin_m)
+          up_.cast<float>().dot(live.points[i]) >= floor_level_m_ + options_.floor_margin_m)
         continue;
       if (live.normals[i].allFinite()) --live.valid;
       live.points[i] = live.normals[i] = Eigen::Vector3f::Constant(kNaN);
@@ -361,7 +383,9 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
     // skipped, a quick turn): the last two composed frames' motion carried on to this set, and
     // the scan moved onto the subject's nearest points turned to kHeadings headings about the
     // up axis; the best fit wins.
-    // The headings are searched only when the motion does not fit either.
+    // The first frame has nothing to go by (the scan may lie where it was made, or in a world
+    // of its own: two takes calibrated apart) and tries every heading; a later frame searches
+    // the headings only until one fits.
     auto try_start = [&](const Pose& start_pose) {
       const RigidAlignment candidate = AlignRigid(previous, live, start_pose, options_);
       if (candidate.fit.inlier_fraction <= rigid.fit.inlier_fraction) return;
@@ -371,9 +395,8 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
     if (poses_.size() == 2) try_start(PredictedPose(set));
     constexpr int kHeadings = 8;
     for (int k = 0; k < kHeadings; ++k) {
-      // The first frame always tries the scan moved onto the subject as it is turned.
       const bool fits = rigid.fit.inlier_fraction >= options_.min_rigid_inlier_fraction;
-      if (fits && !(first && k == 0)) break;
+      if (fits && !first) break;
       try_start(CentredPose(live, 2 * M_PI * k / kHeadings));
     }
   }

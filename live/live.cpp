@@ -300,7 +300,8 @@ LiveSummary LiveTake(const fs::path& take_dir, const TakeSelection& selection,
   summary.relit = albedo.has_value();
   summary.relit_why = albedo ? "" : unlit;
   if (albedo) summary.scan_light = albedo->light.light;
-  LiveCompositor compositor(std::move(scan), options, plan.up, plan.floor_m, std::move(albedo));
+  LiveCompositor compositor(std::move(scan), options, plan.up,
+                            plan.floor_m + plan.floor_tolerance_m, std::move(albedo));
   const fs::path recon = out / "recon";
   CreateDirectories(recon);
   Progress progress("live", static_cast<int64_t>(plan.sets.size()));

@@ -103,7 +103,7 @@ struct LiveOptions {
   double subject_reach_m = 0.3;
   double observed_gate_m = 0.03;   // scan vertices this close to the live subject are observed
   double max_depth_jump_m = 0.04;  // no live triangle across a larger jump in depth
-  double floor_margin_m = 0.02;    // live points this close to the plan's floor are left out
+  double floor_margin_m = 0.03;    // live points this close above the floor plane are left out
 
   // The scan's unobserved part relit (step 3) when the scan holds its light and albedo; false
   // composes the colours as the scan saw them.
@@ -231,11 +231,12 @@ class LiveCompositor {
  public:
   // `scan`: the scan's mesh (world coordinates of the scan take) with vertex colours; a floor
   // it kept (a flat layer at its bottom, along `up`, holding a quarter of its vertices) is cut.
-  // `floor_m`: the floor's height along `up` (NaN: none). `albedo` (one colour per scan
-  // vertex): the unobserved scan is relit with it (LiveOptions::relight).
+  // `floor_level_m`: the floor plane's own height along `up` (NaN: none; a TakePlan's is
+  // floor_m + floor_tolerance_m). `albedo` (one colour per scan vertex): the unobserved scan is
+  // relit with it (LiveOptions::relight).
   LiveCompositor(Mesh scan, const LiveOptions& options,
                  Eigen::Vector3d up = Eigen::Vector3d::UnitZ(),
-                 double floor_m = std::numeric_limits<double>::quiet_NaN(),
+                 double floor_level_m = std::numeric_limits<double>::quiet_NaN(),
                  std::optional<ScanAlbedo> albedo = std::nullopt);
   // `depth_m` from `depth_camera`, `color_bgr` (CV_8UC3, may be empty) from `color_camera`.
   LiveResult Process(int64_t set, const cv::Mat& depth_m, const CameraModel& depth_camera,
@@ -243,7 +244,8 @@ class LiveCompositor {
 
  private:
   // The scan turned by `yaw_rad` about the up axis and moved onto the live subject's nearest
-  // points (where a search for its pose starts).
+  // points, its floor on the live floor where both are known (where a search for its pose
+  // starts).
   Pose CentredPose(const LiveSurface& live, double yaw_rad) const;
   // The last composed frame's pose moved on to `set` at the rate of the last two composed frames
   // (turning about the scan's centre, which moves on in a straight line).
@@ -263,7 +265,8 @@ class LiveCompositor {
   std::optional<DeformationGraph> rest_graph_;  // the scan's graph at rest
   LiveOptions options_;
   Eigen::Vector3d up_;
-  double floor_m_;
+  double floor_level_m_;
+  double scan_floor_m_ = std::numeric_limits<double>::quiet_NaN();  // the floor the scan stood on
   bool has_pose_ = false;
   Pose last_world_from_scan_ = Pose::Identity();
   std::vector<std::pair<int64_t, Pose>> poses_;  // the last two composed frames' sets and poses

@@ -85,7 +85,7 @@ void LiveStream::State::Start(const cv::Mat& first_depth) {
                     {"up", {up.x(), up.y(), up.z()}},
                     {"up_source", up_source},
                     {"floor_m", std::isfinite(floor_m) ? Json(floor_m) : Json(nullptr)}};
-  compositor.emplace(std::move(scan), options, up, floor_m, std::move(albedo));
+  compositor.emplace(std::move(scan), options, up, floor_m + tolerance, std::move(albedo));
 }
 
 LiveFrame LiveStream::State::Compose(const Pending& job) {

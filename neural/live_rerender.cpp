@@ -214,7 +214,8 @@ class PairBuilder {
       Fail("live rerender: the scan fused ", fused.size(), " frames of '", take_.dir().string(),
            "' (is it this take's scan?)");
     const size_t count = std::min<size_t>(options_.live_frames, fused.size());
-    LiveCompositor compositor(scan_, options_.live, plan_.up, plan_.floor_m, albedo_);
+    LiveCompositor compositor(scan_, options_.live, plan_.up,
+                              plan_.floor_m + plan_.floor_tolerance_m, albedo_);
     Progress progress("live rerender: compose", static_cast<int64_t>(count));
     for (size_t k = 0; k < count; ++k) {
       ComposedFrame frame;

@@ -427,6 +427,74 @@ TEST(LiveCli, RefusesAMissingOrDamagedScan) {
   EXPECT_FALSE(std::filesystem::exists(dir / "take" / "live"));
 }
 
+// A scan take and a live take calibrated apart each have a world of their own (z up, the floor
+// at 0, but the origin and heading wherever each calibration put them): the scan does not lie on
+// the live subject, and the first frame must find it there. The live depth's floor must not pull
+// that search (nor the fit) down.
+TEST(LiveCli, FindsAScanCalibratedInAnotherWorld) {
+  testing::TempDir dir("holocap-live-world");
+  const std::string turn = (dir / "turn").string(), walk = (dir / "walk").string();
+  ASSERT_EQ(testing::RunCli("sim --rig single-rgbd --trajectory turn --fps 10 --frames 36 "
+                            "--trajectory-speed 50 --size 320x240 --out " +
+                            turn)
+                .exit_code,
+            0);
+  // The scan take's calibration: its true models in a world turned 100 degrees about the
+  // vertical and moved 2.9 m along the floor (what a calibration of the scan take alone gives).
+  Pose other_from_sim = Pose::Identity();
+  other_from_sim.linear() =
+      Eigen::AngleAxisd(100 * M_PI / 180, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  other_from_sim.translation() = Eigen::Vector3d(2.7, -1.1, 0);
+  std::filesystem::create_directories(dir / "turn" / "calib");
+  for (const char* name : {"cam0", "depth0"}) {
+    CameraModel model =
+        CameraModel::Read(dir / "turn" / "gt" / "cameras" / (std::string(name) + ".cameramodel"));
+    model.set_cam_from_world(model.cam_from_world() * other_from_sim.inverse());
+    model.Write(dir / "turn" / "calib" / (std::string(name) + ".cameramodel"));
+  }
+  const testing::CommandResult scan = testing::RunCli("scan " + turn + " --turn");
+  ASSERT_EQ(scan.exit_code, 0) << scan.output;
+  // The same scan in the simulation's world, the live take's: where the subject lies.
+  const testing::CommandResult same = testing::RunCli(
+      "scan " + turn + " --turn --ground-truth-cameras --out " + (dir / "same").string());
+  ASSERT_EQ(same.exit_code, 0) << same.output;
+  ASSERT_EQ(
+      testing::RunCli("sim --rig single-rgbd --frames 3 --size 320x240 --out " + walk).exit_code,
+      0);
+  auto live = [&](const std::string& scan_dir, const std::string& out) {
+    const testing::CommandResult run =
+        testing::RunCli("live " + walk + " --ground-truth-cameras --scan " + scan_dir + " --out " +
+                        (dir / out).string());
+    EXPECT_EQ(run.exit_code, 0) << run.output;
+    return nlohmann::json::parse(ReadFileToString(dir / out / "report.json"));
+  };
+  const auto elsewhere = live(turn + "/scan", "elsewhere"),
+             here = live((dir / "same").string(), "here");
+  EXPECT_EQ(elsewhere["summary"]["termination"], "SUCCESS");
+  const auto& frames = elsewhere["metrics"]["per_frame"];
+  ASSERT_EQ(frames.size(), 3u);
+  // The scans differ by the worlds' motion: where one lies on the subject, the other must.
+  auto pose = [](const nlohmann::json& rows) {
+    Pose p = Pose::Identity();
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 4; ++c) p.matrix()(r, c) = rows[r][c].get<double>();
+    }
+    return p;
+  };
+  for (size_t i = 0; i < frames.size(); ++i) {
+    const auto& reference = here["metrics"]["per_frame"][i];
+    EXPECT_EQ(frames[i]["state"], "composed") << frames[i].dump();
+    const Pose expected = pose(reference["world_from_scan"]) * other_from_sim.inverse();
+    const Pose found = pose(frames[i]["world_from_scan"]);
+    EXPECT_LT((found.translation() - expected.translation()).norm(), 0.01) << i;
+    EXPECT_LT(Eigen::AngleAxisd(found.linear() * expected.linear().transpose()).angle(), M_PI / 180)
+        << i;
+    EXPECT_NEAR(frames[i]["inlier_fraction"].get<double>(),
+                reference["inlier_fraction"].get<double>(), 0.02)
+        << frames[i].dump() << reference.dump();
+  }
+}
+
 // The README's workflow on a small simulated take: a half turn scanned, three frames of the walk
 // seen by the fixed sensor beside two held-out cameras, one frame's depth lost.
 TEST(LiveCli, CompletesASimulatedWalkAndReportsADepthlessFrame) {
