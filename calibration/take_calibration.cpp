@@ -161,7 +161,9 @@ void CompareTakeWithTruth(const Take& take, const BoardLayout& layout, const Pos
       if (fs::exists(file)) truth.emplace(name, CameraModel::Read(file));
     }
   }
-  if (result->has_ground_truth && !cal.ref_from_board.empty()) {
+  // Without a solved board pose there is nothing to compare: no figures, not zeros.
+  result->has_ground_truth = result->has_ground_truth && !cal.ref_from_board.empty();
+  if (result->has_ground_truth) {
     result->ground_truth =
         CompareWithTruth(cal, truth, TrueBoardPoses(take), layout, world_from_ref, depth_in_ref);
   }
