@@ -164,7 +164,11 @@ TEST(StudioTest, CliWritesMeshesThatOpen3dReads) {
   ASSERT_TRUE(fs::exists(out / "000001.glb"));
   nlohmann::json report = nlohmann::json::parse(std::ifstream(out / "report.json"));
   EXPECT_EQ(report["metrics"]["timing"]["per_frame_s"].size(), 1u);
-  EXPECT_GT(report["metrics"]["gt"]["fscore_5mm"].get<double>(), 0.3);
+  // The true cameras and an 8 mm volume: the surface lies within half a voxel of the truth on
+  // average (2.8 mm here; 3.1 mm even at 16 mm), and most of it within 5 mm (F-score 0.87). A
+  // mesh written a few millimetres off (another world, a half-voxel shift) fails both.
+  EXPECT_LE(report["metrics"]["gt"]["chamfer_mm"].get<double>(), 4.0);
+  EXPECT_GT(report["metrics"]["gt"]["fscore_5mm"].get<double>(), 0.6);
   EXPECT_EQ(report["plan"]["method"], "tsdf");
   Mesh ply = ReadPly(out / "000001.ply");
   auto open3d =
