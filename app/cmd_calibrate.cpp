@@ -10,6 +10,7 @@
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/take.h"
+#include "interop/interop.h"
 #include "sim/sim.h"
 
 namespace holocap {
@@ -28,6 +29,7 @@ struct CalibrateArgs {
   bool no_uncertainty = false;
   bool cross_validation = false;
   bool no_pictures = false;
+  std::string write_corners;
   int threads = 0;
 };
 
@@ -117,6 +119,11 @@ void AddCalibrateCommand(CLI::App& app) {
                     "Also solve two halves of the frames");
   command->add_flag("--no-pictures", args->no_pictures,
                     "Skip the residual/coverage/uncertainty PNGs");
+  command->add_option(
+      "--write-corners", args->write_corners,
+      "Also write the corners the solve used as mrcal's corners.vnl, each view's image named "
+      "<camera>/<frame set, 6 digits>.png as `export images --format png` names it (for "
+      "mrcal-calibrate-cameras --corners-cache FILE 'CAMERA/*.png' ...)");
   command->add_option("--threads", args->threads, "Detection threads (0: all cores)")
       ->capture_default_str();
   command->callback([args] {
@@ -155,6 +162,16 @@ void AddCalibrateCommand(CLI::App& app) {
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
     PrintSummary(summary);
     report.options()["detector"] = args->detector;
+    if (!args->write_corners.empty()) {
+      WriteCornersVnl(
+          summary.calibration.solved_views,
+          [](const BoardObservation& view) {
+            return view.sensor + "/" + ExportedImageName(view.frame_set, "png");
+          },
+          args->write_corners);
+      std::printf("corners: %zu views written to %s\n", summary.calibration.solved_views.size(),
+                  args->write_corners.c_str());
+    }
     if (args->compare_detectors) {
       std::string table;
       report.metrics()["detector_agreement"] =

@@ -585,18 +585,7 @@ class CalibrationBench {
   }
 
   void WriteMrcalCorners(const std::filesystem::path& dir) const {
-    std::ofstream vnl(dir / "corners.vnl");
-    vnl << "# filename x y level\n";
-    for (const auto& obs : in_.observations) {
-      const std::string name = MrcalImageName(obs);
-      for (int r = 0; r < obs.points.rows(); ++r) {
-        if (obs.points(r, 2) > 0) {
-          vnl << name << " " << obs.points(r, 0) << " " << obs.points(r, 1) << " 0\n";
-        } else {
-          vnl << name << " - - -\n";
-        }
-      }
-    }
+    WriteCornersVnl(in_.observations, MrcalImageName, dir / "corners.vnl");
   }
 
   // The tool takes one --imagersize for all cameras but reads each camera's size from its

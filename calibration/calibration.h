@@ -131,6 +131,14 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
                                                  const DetectionOptions& options,
                                                  DetectionSummary* summary);
 
+// Writes board views as mrcal's corners file (the corners.vnl that mrcal-calibrate-cameras
+// reads with --corners-cache): `# filename x y level`, then per view its width_n * height_n
+// points in grid order, `IMAGE x y 0` for a point seen and `IMAGE - - -` for one not, IMAGE
+// being image_name(view). Throws Error when the file cannot be written.
+void WriteCornersVnl(const std::vector<BoardObservation>& views,
+                     const std::function<std::string(const BoardObservation&)>& image_name,
+                     const std::filesystem::path& file);
+
 // ---------------------------------------------------------------------------------------------
 // The solve.
 
@@ -283,6 +291,10 @@ struct CalibrationSummary : Summary {
   // of their frame set, and views that no turn made agree (left out of the solve).
   int reordered_views = 0;
   std::vector<RejectedView> dropped_views;
+  // The views the solve was given, numbered alike within each frame set (turned as above, the
+  // views left out removed), per camera in frame-set order: what `calibrate --write-corners`
+  // writes.
+  std::vector<BoardObservation> solved_views;
   // Solved board poses (ref_from_board) per frame set, for comparisons with truth.
   std::map<int64_t, Pose> ref_from_board;
   nlohmann::json cross_validation;  // empty unless requested

@@ -6,6 +6,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <map>
 #include <mutex>
 #include <opencv2/calib3d.hpp>
@@ -19,6 +20,7 @@
 #include "calibration/internal/common.h"
 #include "core/check_option.h"
 #include "core/error.h"
+#include "core/fs.h"
 #include "core/progress.h"
 #include "core/take.h"
 #include "core/take_plan.h"
@@ -579,6 +581,25 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
          ToString(layout.type), " ", layout.width_n(), "x", layout.height_n(), ")");
   }
   return observations;
+}
+
+void WriteCornersVnl(const std::vector<BoardObservation>& views,
+                     const std::function<std::string(const BoardObservation&)>& image_name,
+                     const std::filesystem::path& file) {
+  std::string vnl = "# filename x y level\n";
+  for (const auto& view : views) {
+    const std::string name = image_name(view);
+    for (Eigen::Index r = 0; r < view.points.rows(); ++r) {
+      if (view.points(r, 2) > 0) {
+        std::array<char, 64> xy{};
+        std::snprintf(xy.data(), xy.size(), " %.6f %.6f 0\n", view.points(r, 0), view.points(r, 1));
+        vnl += name + xy.data();
+      } else {
+        vnl += name + " - - -\n";
+      }
+    }
+  }
+  WriteFileAtomic(file, vnl);
 }
 
 }  // namespace holocap

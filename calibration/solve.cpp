@@ -1141,6 +1141,9 @@ CalibrationSummary Calibrator::Solve() {
     return summary_;
   }
   OrderViews();
+  for (const auto& views : views_) {
+    for (int k : views) summary_.solved_views.push_back(observations_[k]);
+  }
   BuildProblem();
   NoteLensModels();
   if (!SolveStereographic()) return summary_;

@@ -37,13 +37,13 @@ cv::Mat EightBit(const cv::Mat& frame, bool bgr, const std::string& sensor,
   return image;
 }
 
-std::string SetFileName(int64_t set_index, const std::string& format) {
+}  // namespace
+
+std::string ExportedImageName(int64_t set_index, const std::string& format) {
   char buffer[32];
   std::snprintf(buffer, sizeof(buffer), "%06lld.", static_cast<long long>(set_index));
   return buffer + format;
 }
-
-}  // namespace
 
 void ImageExportOptions::Check() const {
   HOLOCAP_CHECK_OPTION(format == "jpg" || format == "png", format, "jpg or png");
@@ -127,7 +127,7 @@ ImageExportSummary ExportImages(const fs::path& take_dir, const fs::path& out_di
       for (const StreamInfo* stream : streams) {
         if (take.entry(i).Find(stream->name) == nullptr) continue;
         const fs::path file =
-            out_dir / stream->name / SetFileName(take.entry(i).index, options.format);
+            out_dir / stream->name / ExportedImageName(take.entry(i).index, options.format);
         CreateDirectories(file.parent_path());
         const cv::Mat frame = take.ReadFrame(i, stream->name);
         if (options.format == "png") {

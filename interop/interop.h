@@ -301,6 +301,8 @@ struct ImageExportSummary : Summary {
   int64_t sets_left_out = 0;       // video: frame sets missing a camera
   std::vector<std::string> notes;  // conversions (16-bit to 8, grey to colour in a video)
 };
+// The file name export images gives a frame set's image in its camera's folder: 000012.png.
+std::string ExportedImageName(int64_t set_index, const std::string& format);
 ImageExportSummary ExportImages(const std::filesystem::path& take_dir,
                                 const std::filesystem::path& out_dir,
                                 const ImageExportOptions& options, Report* report = nullptr);
