@@ -65,8 +65,9 @@ std::map<int64_t, Pose> TrueBoardPoses(const Take& take) {
 double ProjectionDiffRms(const CameraModel& a, const CameraModel& b, double distance) {
   Eigen::Matrix2Xd pixels(2, 16 * 12);
   for (int k = 0; k < pixels.cols(); ++k) {
-    pixels.col(k) << ((k % 16) + 0.5) * a.width() / 16 - 0.5,
-        ((k / 16) + 0.5) * a.height() / 12 - 0.5;
+    const int column = k % 16;
+    const int row = k / 16;
+    pixels.col(k) << (column + 0.5) * a.width() / 16 - 0.5, (row + 0.5) * a.height() / 12 - 0.5;
   }
   const Eigen::Matrix3Xd ra = a.UnprojectMany(pixels), rb = b.UnprojectMany(pixels);
   Eigen::Matrix3d h = Eigen::Matrix3d::Zero();
@@ -673,7 +674,7 @@ int Run(int argc, char** argv) {
 int main(int argc, char** argv) {
   try {
     return holocap::Run(argc, argv);
-  } catch (const holocap::Error& e) {
+  } catch (const std::exception& e) {
     std::fprintf(stderr, "calibration_bench: error: %s\n", e.what());
     return 1;
   }

@@ -231,7 +231,8 @@ Problem CameraAlone(const Problem& p, int m, const std::vector<mrcal_point3_t>& 
   q.width_n = p.width_n;
   q.height_n = p.height_n;
   q.camera_index = {p.camera_index[m]};
-  q.imagersizes = {p.imagersizes[2 * m], p.imagersizes[2 * m + 1]};
+  q.imagersizes = {p.imagersizes[2 * static_cast<size_t>(m)],
+                   p.imagersizes[2 * static_cast<size_t>(m) + 1]};
   if (p.extrinsics_of[m] >= 0) q.extrinsics.push_back(p.extrinsics[p.extrinsics_of[m]]);
   q.extrinsics_of = {q.extrinsics.empty() ? -1 : 0};
   const size_t per_view = static_cast<size_t>(p.width_n) * p.height_n;
@@ -586,7 +587,8 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
   u.grid_x = grid_x;
   u.grid_y = grid_y;
   u.distance_m = distance;
-  const int width = p.imagersizes[2 * icam], height = p.imagersizes[2 * icam + 1];
+  const int width = p.imagersizes[2 * static_cast<size_t>(icam)],
+            height = p.imagersizes[2 * static_cast<size_t>(icam) + 1];
   const int n = grid_x * grid_y;
   u.pixels.resize(2, n);
   for (int gy = 0; gy < grid_y; ++gy) {
@@ -610,7 +612,8 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
   const int chunk = 16;
   for (int start = 0; start < n; start += chunk) {
     const int count = std::min(chunk, n - start);
-    Eigen::MatrixXd dq_db = Eigen::MatrixXd::Zero(nstate, 2 * count);  // columns: (dq/db*)^t
+    Eigen::MatrixXd dq_db =
+        Eigen::MatrixXd::Zero(nstate, Eigen::Index{2} * count);  // columns: (dq/db*)^t
     std::vector<bool> valid(count, true);
     for (int k = 0; k < count; ++k) {
       mrcal_point2_t q{{u.pixels(0, start + k), u.pixels(1, start + k)}};
@@ -624,7 +627,7 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
       mrcal_point3_t pc{{p_cam.x(), p_cam.y(), p_cam.z()}};
       mrcal_point2_t q2;
       mrcal_point3_t dq_dp[2];
-      std::vector<double> dq_dintr(2 * nparams);
+      std::vector<double> dq_dintr(2 * static_cast<size_t>(nparams));
       if (!mrcal_project(&q2, dq_dp, dq_dintr.data(), &pc, 1, &p.parsed, intrinsics)) {
         valid[k] = false;
         continue;
@@ -676,8 +679,8 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
     const Eigen::MatrixXd b = f.regularized ? Eigen::MatrixXd(f.jobs_t_jobs * a) : dq_db;
     for (int k = 0; k < count; ++k) {
       if (!valid[k]) continue;
-      const Eigen::Matrix2d cov =
-          b.middleCols(2 * k, 2).transpose() * a.middleCols(2 * k, 2) * sigma * sigma;
+      const Eigen::Matrix2d cov = b.middleCols(Eigen::Index{2} * k, 2).transpose() *
+                                  a.middleCols(Eigen::Index{2} * k, 2) * sigma * sigma;
       u.covariance[start + k] = cov;
       const int index = start + k;
       u.worst_sigma_px(index / grid_x, index % grid_x) = WorstDirectionSigma(cov);
@@ -778,6 +781,7 @@ nlohmann::json CalibrationSummary::ToJson() const {
         std::vector<std::vector<double>> grid;
         for (int y = 0; y < c.uncertainty.grid_y; ++y) {
           std::vector<double> row;
+          row.reserve(c.uncertainty.grid_x);
           for (int x = 0; x < c.uncertainty.grid_x; ++x)
             row.push_back(c.uncertainty.worst_sigma_px(y, x));
           grid.push_back(row);
@@ -850,11 +854,11 @@ Pose FitImpliedTransform(const CameraModel& b, const std::vector<Eigen::Vector3d
   const int n = static_cast<int>(points_a.size());
   auto residuals = [&](const Rt& x, Eigen::VectorXd* r) {
     const Pose pose = PoseFromRt(x);
-    r->resize(2 * n);
+    r->resize(Eigen::Index{2} * n);
     for (int k = 0; k < n; ++k) {
       Eigen::Vector2d q;
       if (!b.Project(pose * points_a[k], &q)) return false;
-      r->segment<2>(2 * k) = q - pixels[k];
+      r->segment<2>(Eigen::Index{2} * k) = q - pixels[k];
     }
     return true;
   };
