@@ -1,0 +1,27 @@
+#!/bin/bash
+# holocap calibrate beside mrcal's own tool and OpenCV on the same images: a simulated take of
+# three 640x480 cameras (bench/calibration_peers_rig.yaml, OPENCV5 lenses) filming a square
+# chessboard (10 x 10 inner corners, 0.06 m squares) in 40 frame sets is written as PNG folders
+# (`export images --format png`) and calibrated in LENSMODEL_OPENCV5 (OpenCV's standard
+# 5-coefficient model) by holocap, by mrgingham + mrcal-calibrate-cameras and by OpenCV
+# (findChessboardCorners + cornerSubPix, calibrateCamera, stereoCalibrate), each on its own
+# corners and again on holocap's (`calibrate --write-corners`); then mrcal's recommended path,
+# its splined model, on mrgingham's corners. Scored against the take's gt/ (which only scores):
+# bench/calibration_peers.py says how.
+# Usage: bash bench/calibration_peers.sh [BUILD] (default build) > bench/calibration_peers_results.txt
+set -euo pipefail
+build=${1:-build}
+holocap=$(realpath "$build/app/holocap")
+here=$(dirname "$(realpath "$0")")
+dir=$(mktemp -d)
+trap 'rm -rf "$dir"' EXIT
+echo "# bash bench/calibration_peers.sh $build ($(date -u '+%Y-%m-%d %H:%M UTC'), at $(git rev-parse --short HEAD), $(nproc) cores, shared)"
+echo "# $(uptime)"
+export HOLOCAP_NO_PROGRESS=1
+printf 'type: chessboard\nchessboard_width_n: 10\nchessboard_height_n: 10\nspacing: 0.06\nmargin: 0.2\n' >"$dir/square.yaml"
+"$holocap" sim --rig "$here/calibration_peers_rig.yaml" --board --board-layout "$dir/square.yaml" \
+  --frames 40 --out "$dir/take" >/dev/null
+/usr/bin/python3 "$here/calibration_peers.py" run --holocap "$holocap" --take "$dir/take" \
+  --work "$dir/work" --lensmodel LENSMODEL_OPENCV5 \
+  --splined LENSMODEL_SPLINED_STEREOGRAPHIC_order=3_Nx=16_Ny=12_fov_x_deg=70
+echo "# $(uptime)"
