@@ -245,9 +245,13 @@ def solve_holocap(args, take, work, detector):
     metrics = report["metrics"]
     models = {c: mrcal.cameramodel(os.path.join(take.path, "calib", c + ".cameramodel"))
               for c in take.cameras}
+    # The solve's own 1-sigma of the principal point, the worst camera's: how far apart two
+    # solves of the same views may honestly land.
+    pp_sigma = max(max(c["intrinsics_sigma"][2:4]) for c in metrics["cameras"].values())
     result.update(models=models_from_ref(models, take.cameras),
                   rms=metrics["rms_reprojection_px"],
-                  views=sum(c["views"] for c in metrics["cameras"].values()))
+                  views=sum(c["views"] for c in metrics["cameras"].values()),
+                  note=f"{state}, principal point 1-sigma {pp_sigma:.3f} px")
     return result
 
 
