@@ -38,7 +38,8 @@ cv::Mat CoveragePicture(const CalibratedCamera& cam) {
   const int gw = (cam.model.width() + cell - 1) / cell, gh = (cam.model.height() + cell - 1) / cell;
   cv::Mat counts = cv::Mat::zeros(gh, gw, CV_32F);
   for (const auto& q : cam.observed) {
-    const int x = static_cast<int>(q.x() + 0.5) / cell, y = static_cast<int>(q.y() + 0.5) / cell;
+    const int x = static_cast<int>(std::lround(q.x())) / cell,
+              y = static_cast<int>(std::lround(q.y())) / cell;
     if (x >= 0 && y >= 0 && x < gw && y < gh) counts.at<float>(y, x) += 1;
   }
   cv::GaussianBlur(counts, counts, cv::Size(5, 5), 1.0);
@@ -111,8 +112,7 @@ std::map<int64_t, Pose> TrueBoardPoses(const Take& take) {
 std::string RigLensModel(const Take& take, const std::string& sensor) {
   const int in_rig = take.rig().IndexOf(sensor);
   if (in_rig >= 0 && take.rig().sensors[in_rig].options.contains("calib_lensmodel")) {
-    const std::string model =
-        take.rig().sensors[in_rig].options["calib_lensmodel"].get<std::string>();
+    std::string model = take.rig().sensors[in_rig].options["calib_lensmodel"].get<std::string>();
     calibration_internal::CheckLensmodelName(model);
     return model;
   }

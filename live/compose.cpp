@@ -143,7 +143,7 @@ Mesh MeshLiveSurface(const LiveSurface& live, const cv::Mat& subject, const cv::
   return mesh;
 }
 
-LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, Eigen::Vector3d up,
+LiveCompositor::LiveCompositor(Mesh scan, const LiveOptions& options, const Eigen::Vector3d& up,
                                double floor_level_m, std::optional<ScanAlbedo> albedo)
     : scan_(std::move(scan)),
       options_(options),

@@ -235,7 +235,7 @@ class LiveCompositor {
   // floor_m + floor_tolerance_m). `albedo` (one colour per scan vertex): the unobserved scan is
   // relit with it (LiveOptions::relight).
   LiveCompositor(Mesh scan, const LiveOptions& options,
-                 Eigen::Vector3d up = Eigen::Vector3d::UnitZ(),
+                 const Eigen::Vector3d& up = Eigen::Vector3d::UnitZ(),
                  double floor_level_m = std::numeric_limits<double>::quiet_NaN(),
                  std::optional<ScanAlbedo> albedo = std::nullopt);
   // `depth_m` from `depth_camera`, `color_bgr` (CV_8UC3, may be empty) from `color_camera`.

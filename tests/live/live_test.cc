@@ -26,7 +26,7 @@ namespace {
 // A tube of `radius` along a centreline that runs up +z for `length` and bends by `bend_rad`
 // about +y at its middle. The same ring and segment of every tube is the same vertex, so a bent
 // tube is the straight one's vertices moved.
-Mesh Tube(double length, double radius, double bend_rad, Eigen::Vector3d base) {
+Mesh Tube(double length, double radius, double bend_rad, const Eigen::Vector3d& base) {
   constexpr int kRings = 61, kSegments = 24;
   Mesh mesh;
   const Eigen::Matrix3d turn =
