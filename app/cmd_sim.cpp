@@ -75,7 +75,10 @@ static void AddSimCommand(CLI::App& app) {
       "sim", "Record a take on the simulated rig (exact lenses, poses, clocks and ground truth)");
   auto args = std::make_shared<SimArgs>();
   SimOptions& o = args->options;
-  command->add_option("--rig", o.rig, "studio8, single-rgbd, or a rig file (YAML/JSON)")
+  command
+      ->add_option("--rig", o.rig,
+                   "studio8, single-rgbd, sphereN (N colour cameras on a sphere around the object "
+                   "scene, e.g. sphere100), or a rig file (YAML/JSON)")
       ->capture_default_str();
   command->add_option("--frames", o.frames, "Frame sets to record")->capture_default_str();
   command->add_option("--out", args->out, "The take directory to create")->required();

@@ -120,6 +120,48 @@ RigDescription SingleRgbd() {
       {{"name", rig}, {"sync", "hardware"}, {"fps", 30}, {"sensors", sensors}}, rig);
 }
 
+// `count` pinhole colour cameras (800x800, 40 degrees across) spread evenly over the sphere of
+// radius 2 m around the object scene's knot, from 20 degrees below its equator to its top:
+// lower, the pedestal and the floor hide the knot. Each looks at the sphere's centre, as the
+// 100 views of an object capture spread over a dome do. They lie on one spiral from the
+// bottom up (equal areas, steps of one spacing along it; Saff and Kuijlaars), so that
+// consecutive cameras are neighbours: the board take's shared poses link them.
+RigDescription Sphere(int count) {
+  const std::string rig = Cat("sphere", count);
+  const Eigen::Vector3d centre(0, 0, 1.0);
+  const double radius = 2.0;
+  const double focal = 400 / std::tan(20 * std::numbers::pi / 180);
+  const double lowest = std::sin(-20 * std::numbers::pi / 180);  // of the elevation's sine
+  // The spacing of `count` points on the cap, in radians of arc.
+  const double spacing = std::sqrt(2 * std::numbers::pi * (1 - lowest) / count);
+  Json sensors = Json::array();
+  double azimuth = 0;
+  for (int i = 0; i < count; ++i) {
+    // Equal steps in the elevation's sine are equal areas of the sphere; never the very top,
+    // where the view direction would be parallel to up.
+    const double sine = lowest + (1 - lowest) * (i + 0.5) / count;
+    const double cosine = std::sqrt(1 - sine * sine);
+    if (i > 0) azimuth += spacing / std::max(cosine, spacing);
+    const Eigen::Vector3d position =
+        centre +
+        radius * Eigen::Vector3d(cosine * std::cos(azimuth), cosine * std::sin(azimuth), sine);
+    sensors.push_back(ColorCamera(rig, "cam" + std::to_string(i), "LENSMODEL_PINHOLE",
+                                  {focal, focal, 399.5, 399.5}, 800, 800, position, centre));
+  }
+  return RigDescription::FromJson(
+      {{"name", rig}, {"sync", "hardware"}, {"fps", 30}, {"sensors", sensors}}, rig);
+}
+
+// The N of a rig named sphereN (2 to 1000 cameras); 0 for any other name.
+int SphereCount(const std::string& name) {
+  if (name.rfind("sphere", 0) != 0 || name.size() == 6 || name.size() > 10) return 0;
+  for (size_t i = 6; i < name.size(); ++i) {
+    if (name[i] < '0' || name[i] > '9') return 0;
+  }
+  const int count = std::stoi(name.substr(6));
+  return count >= 2 && count <= 1000 ? count : 0;
+}
+
 Eigen::Vector3d Vector3(const Json& options, const char* key, const std::string& where) {
   const Json& value = options.at(key);
   if (!value.is_array() || value.size() != 3) Fail(where, ": '", key, "' must be [x, y, z]");
@@ -147,15 +189,18 @@ std::vector<std::string> BuiltinRigNames() { return {"studio8", "single-rgbd"}; 
 RigDescription BuiltinRig(const std::string& name) {
   if (name == "studio8") return Studio8();
   if (name == "single-rgbd") return SingleRgbd();
-  Fail("unknown built-in sim rig '", name, "' (known: studio8, single-rgbd)");
+  if (const int count = SphereCount(name); count > 0) return Sphere(count);
+  Fail("unknown built-in sim rig '", name, "' (known: studio8, single-rgbd, sphereN)");
 }
 
 RigDescription LoadSimRig(const std::string& name_or_path) {
   for (const std::string& name : BuiltinRigNames()) {
     if (name == name_or_path) return BuiltinRig(name);
   }
+  if (SphereCount(name_or_path) > 0) return Sphere(SphereCount(name_or_path));
   if (!std::filesystem::exists(name_or_path)) {
-    Fail("sim rig '", name_or_path, "' is neither built in (studio8, single-rgbd) nor a file");
+    Fail("sim rig '", name_or_path,
+         "' is neither built in (studio8, single-rgbd, sphereN with N from 2 to 1000) nor a file");
   }
   return RigDescription::Load(name_or_path);
 }

@@ -16,7 +16,8 @@
 // quantised to millimetres like Z16 devices), with noise sigma(z) = depth_noise_k * z^2 and
 // no measurement (NaN) at grazing incidence, at depth edges and outside their range.
 //
-// Rig files. Built-in rigs are "studio8" and "single-rgbd"; any other name is a rig file
+// Rig files. Built-in rigs are "studio8", "single-rgbd" and "sphereN" (N colour cameras, 2 to
+// 1000, spread over a sphere around the object scene; see BuiltinRig); any other name is a rig file
 // (RigDescription::Load, YAML or JSON) whose sensors carry their simulation settings in
 // `options`:
 //
@@ -177,7 +178,8 @@ SimSummary SimulateTake(const SimOptions& options, const std::filesystem::path& 
 // the rest OPENCV4/5/8 with modest distortion) and two 640x480 depth sensors paired with cam2
 // and cam6. "single-rgbd": one colour camera cam0 and one depth sensor depth0.
 std::vector<std::string> BuiltinRigNames();
-RigDescription BuiltinRig(const std::string& name);  // throws Error for an unknown name
+// studio8, single-rgbd or sphereN; throws Error for an unknown name.
+RigDescription BuiltinRig(const std::string& name);
 // A built-in rig by name, otherwise the rig file at `name_or_path`.
 RigDescription LoadSimRig(const std::string& name_or_path);
 
