@@ -7,6 +7,23 @@
 
 namespace holocap {
 
+namespace {
+
+// Seconds between plain lines: HOLOCAP_PROGRESS_SECONDS where it is a number >= 0 (0: a line
+// at every step, as tests that look for the lines want), else kLineEverySeconds. Read once.
+double LineEverySeconds() {
+  static const double seconds = [] {
+    const char* text = std::getenv("HOLOCAP_PROGRESS_SECONDS");
+    if (text == nullptr) return Progress::kLineEverySeconds;
+    char* end = nullptr;
+    const double value = std::strtod(text, &end);
+    return end != text && value >= 0 ? value : Progress::kLineEverySeconds;
+  }();
+  return seconds;
+}
+
+}  // namespace
+
 bool Progress::IsTerminal() {
   return ::isatty(STDERR_FILENO) == 1 && std::getenv("HOLOCAP_NO_PROGRESS") == nullptr;
 }
@@ -29,7 +46,7 @@ void Progress::Update(int64_t done, const std::string& status) {
   auto now = std::chrono::steady_clock::now();
   if (mode_ == Mode::kLines) {
     const double elapsed = std::chrono::duration<double>(now - start_).count();
-    if (!finished_ && now - last_draw_ >= std::chrono::duration<double>(kLineEverySeconds)) {
+    if (!finished_ && now - last_draw_ >= std::chrono::duration<double>(LineEverySeconds())) {
       last_draw_ = now;
       PrintLine(elapsed);
     }

@@ -1,6 +1,7 @@
 // Progress for long work, on stderr: a single updating line on a terminal; where stderr is not
-// a terminal (a pipe, a log file, a batch job), one plain line every kLineEverySeconds and a
-// last one when the work took longer than that; nothing with HOLOCAP_NO_PROGRESS set.
+// a terminal (a pipe, a log file, a batch job), one plain line every kLineEverySeconds (or every
+// HOLOCAP_PROGRESS_SECONDS seconds where that is set; 0: at every step) and a last one when the
+// work printed a line before; nothing with HOLOCAP_NO_PROGRESS set.
 #pragma once
 
 #include <chrono>
