@@ -25,6 +25,7 @@ struct ReconstructArgs {
   std::string voxel;
   std::string simplify;
   int conservative = 0;
+  int stereo_views = MvsOptions().max_reference_views;
   int threads = 0;
   bool no_glb = false;
   bool no_atlas = false;
@@ -86,6 +87,12 @@ void AddReconstructCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--simplify", args->simplify,
                       "Vertex-clustering cell for simplification (e.g. 8mm)");
+  command
+      ->add_option("--stereo-views", args->stereo_views,
+                   "Multi-view stereo searches the depth of at most this many views, spread over "
+                   "the directions they see the subject from (every view is still matched "
+                   "against); 0: every view")
+      ->capture_default_str();
   command->add_option("--threads", args->threads, "Threads (0: all cores)")->capture_default_str();
   command->add_option("--shard", args->shard,
                       "Do task K of N of the run (K from 0): the K-th of N contiguous blocks of "
@@ -101,8 +108,9 @@ void AddReconstructCommand(CLI::App& app) {
   command->add_flag(
       "--no-completion", args->no_completion,
       "TSDF: mesh only what the depth sensors saw (no completion from the visual hull)");
-  NameFieldFlags(command,
-                 {{"tolerated_bad_views", "--conservative"}, {"simplify_cell_m", "--simplify"}});
+  NameFieldFlags(command, {{"tolerated_bad_views", "--conservative"},
+                           {"simplify_cell_m", "--simplify"},
+                           {"max_reference_views", "--stereo-views"}});
   command->callback([args] {
     ReconstructionOptions options;
     options.method = ReconstructionMethodFromString(args->method);
@@ -113,6 +121,7 @@ void AddReconstructCommand(CLI::App& app) {
     options.hull.tolerated_bad_views = args->conservative;
     if (!args->simplify.empty())
       options.meshing.simplify_cell_m = ParseLength(args->simplify, "--simplify");
+    options.mvs.max_reference_views = args->stereo_views;
     options.threads = args->threads;
     options.write_glb = !args->no_glb;
     options.texture.atlas = !args->no_atlas;

@@ -124,7 +124,11 @@ nlohmann::json ReconstructionOptions::ToJson() const {
             {"window_radius", mvs.window_radius},
             {"depth_step_px", mvs.depth_step_px},
             {"min_ncc", mvs.min_ncc},
-            {"min_consistent_views", mvs.min_consistent_views}}},
+            {"min_consistent_views", mvs.min_consistent_views},
+            {"min_angle_deg", mvs.min_angle_deg},
+            {"max_angle_deg", mvs.max_angle_deg},
+            {"max_reference_views", mvs.max_reference_views},
+            {"tile_px", mvs.tile_px}}},
           {"tsdf_hull_completion", tsdf_hull_completion},
           {"completion_margin_px", completion_margin_px},
           {"meshing", {{"simplify_cell_m", meshing.simplify_cell_m}}},
@@ -166,6 +170,7 @@ struct MethodPlan {
   bool hull_completion = false;  // TSDF: completed from the visual hull
   SilhouetteOptions silhouette;  // the plan's source applied to the options' parameters
   MvsOptions mvs;                // the options' search scaled to the scene
+  MvsViewChoice mvs_views;       // MVS: the reference views and each one's partners
   // Depths fused (TSDF: the depth sensors'; MVS: the stereo's), from the scene's distances.
   double depth_min_m = 0;
   double depth_max_m = 0;
@@ -275,6 +280,7 @@ class FrameReconstructor {
 
   FrameOutput Run(int64_t set) {
     out_.End(Termination::kSuccess, "");  // until a step finds the frame cannot give a surface
+    set_ = set;
     ReadViews(set);
     if (plan_.method == ReconstructionMethod::kHull) {
       HullFrame();
@@ -471,12 +477,19 @@ class FrameReconstructor {
     MvsOptions mvs_options = plan_.mvs;
     mvs_options.threads = threads_;
     MvsSummary mvs_summary;
-    std::vector<cv::Mat> depths = ComputeMvsDepth(views_, hull, mvs_options, &mvs_summary);
+    std::vector<cv::Mat> depths =
+        ComputeMvsDepth(views_, hull, mvs_options, &mvs_summary, &plan_.mvs_views,
+                        Cat("reconstruct ", SetName(set_), ": stereo views"));
     out_.metrics["mvs"] = {{"seconds", mvs_summary.seconds},
+                           {"range_seconds", mvs_summary.range_seconds},
+                           {"sweep_seconds", mvs_summary.sweep_seconds},
+                           {"consistency_seconds", mvs_summary.consistency_seconds},
+                           {"reference_views", mvs_summary.reference_views},
                            {"pixels_searched", mvs_summary.pixels_searched},
                            {"pixels_matched", mvs_summary.pixels_matched},
                            {"pixels_consistent", mvs_summary.pixels_consistent},
-                           {"planes", mvs_summary.planes}};
+                           {"planes", mvs_summary.planes},
+                           {"pixel_hypotheses", mvs_summary.pixel_hypotheses}};
     if (!IsUsable(mvs_summary.termination)) {
       out_.End(mvs_summary.termination, "mvs: " + mvs_summary.message);
       return;
@@ -488,6 +501,7 @@ class FrameReconstructor {
     double seconds = 0;
     int64_t valid = 0, measured = 0;
     for (size_t i = 0; i < views_.size(); ++i) {
+      if (depths[i].empty()) continue;  // not a reference view: no depth of its own
       const TsdfFrameStats stats = tsdf_->Integrate(depths[i], views_[i].camera, views_[i].mask,
                                                     views_[i].image, &views_[i].camera);
       seconds += stats.seconds;
@@ -511,6 +525,7 @@ class FrameReconstructor {
   const double voxel_;
   const int threads_;
   TsdfOptions tsdf_options_;  // the options' with the frame's voxel, bounds and depth range
+  int64_t set_ = 0;           // the frame set Run reconstructs
   FrameSet frames_;
   std::vector<View> views_;
   std::optional<TsdfVolume> tsdf_;  // the fused volume, when the method fuses
@@ -775,6 +790,7 @@ class TakeReconstructor {
     ChooseDepthRange();
     CheckBoundsSeen();
     ChooseTaskFrames();
+    PlanStereo();
     DescribePlan();
     CreateDirectories(out_);
     if (!implausible_.empty()) {
@@ -1004,6 +1020,21 @@ class TakeReconstructor {
             Fixed(farthest, 4), " m)");
   }
 
+  // MVS: which views are searched and against which (around the bounds' centre), and what the
+  // sweeps will cost: an estimate from the first frame set's silhouettes and a rate measured
+  // now. A simulated take's voxel sweep would run the whole stereo again at each voxel (its
+  // cost follows the pixels, not the voxel): left out.
+  void PlanStereo() {
+    if (plan_.method != ReconstructionMethod::kMvs || !implausible_.empty()) return;
+    const Eigen::Vector3d subject = take_plan_.bounds.center();
+    plan_.mvs_views =
+        ChooseMvsViews(take_plan_.Cameras(take_plan_.ReconstructionSensors()), subject, plan_.mvs);
+    if (!take_plan_.sets.empty()) {
+      stereo_estimate_ = EstimateMvs(SilhouetteViews(take_plan_.sets[0]), plan_.mvs_views, subject,
+                                     plan_.mvs, plan_.inner_threads);
+    }
+  }
+
   // Cameras that do not see the bounds cannot reconstruct anything in them.
   void CheckBoundsSeen() {
     if (!implausible_.empty()) return;
@@ -1182,6 +1213,21 @@ class TakeReconstructor {
         described.LeaveOut("depth sensors", "the method reads colour cameras only");
       described.depth_sensors.clear();
     }
+    const bool stereo = plan_.method == ReconstructionMethod::kMvs && implausible_.empty();
+    const std::vector<std::string> names = take_plan_.ReconstructionSensors();
+    std::vector<std::string> references;
+    for (int i : plan_.mvs_views.references) references.push_back(names[i]);
+    if (stereo && references.size() < names.size()) {
+      described.LeaveOut("stereo depth of every view",
+                         Cat(names.size() - references.size(), " of the ", names.size(),
+                             " views are only matched against, their own depth not searched: ",
+                             plan_.mvs_views.why));
+    }
+    if (stereo && SweepsVoxels()) {
+      described.LeaveOut("voxel sweep",
+                         "multi-view stereo's cost follows the pixels and planes, not the voxel: "
+                         "each sweep voxel would run the whole stereo again");
+    }
     nlohmann::json plan = described.ToJson();
     plan["method"] = ToString(plan_.method);
     plan["method_reason"] =
@@ -1208,6 +1254,19 @@ class TakeReconstructor {
     }
     plan["mvs_search"] = {{"hull_margin_m", plan_.mvs.hull_margin_m},
                           {"search_depth_m", plan_.mvs.search_depth_m}};
+    if (stereo) {
+      plan["stereo_views"] = {
+          {"references", references}, {"why", plan_.mvs_views.why}, {"partners", StereoPartners()}};
+      plan["stereo_estimate"] = {
+          {"seconds", stereo_estimate_.seconds},
+          {"pixel_hypotheses", stereo_estimate_.pixel_hypotheses},
+          {"seconds_per_hypothesis", stereo_estimate_.seconds_per_hypothesis},
+          {"threads", stereo_estimate_.threads},
+          {"basis",
+           "an estimate of each frame set's sweeps: the first frame set's silhouette "
+           "tiles x the planes of the hull margin and search depth x the source views, "
+           "at the sweep's rate measured on this machine as the run was planned"}};
+    }
     plan["parallel"] = plan_.outer_threads > 1
                            ? Cat(plan_.outer_threads, " frames at once, 1 thread each")
                            : Cat("one frame at a time, ", plan_.inner_threads, " threads each");
@@ -1229,6 +1288,16 @@ class TakeReconstructor {
                   take_plan_.silhouette_reason.c_str());
     }
     if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
+    if (stereo) {
+      std::printf("  stereo views: %zu of %zu searched: %s\n", references.size(), names.size(),
+                  plan_.mvs_views.why.c_str());
+      std::printf("  stereo partners: %s\n", StereoPartners().c_str());
+      std::printf(
+          "  stereo estimate: %.0f s per frame set (%.3g pixel x plane x source hypotheses at "
+          "%.3g ns each, %d thread(s); the rate measured now): an estimate\n",
+          stereo_estimate_.seconds, static_cast<double>(stereo_estimate_.pixel_hypotheses),
+          stereo_estimate_.seconds_per_hypothesis * 1e9, stereo_estimate_.threads);
+    }
     std::printf("  %s\n", plan["parallel"].get<std::string>().c_str());
     std::printf("  plan: %s\n", plan_origin_.c_str());
     if (!options_.tasks.shard.whole()) {
@@ -1336,13 +1405,27 @@ class TakeReconstructor {
     }
   }
 
+  // Whether the run's first frame is also reconstructed at the sweep's voxels: on simulated
+  // takes, unless stereo, whose cost does not follow the voxel, would run again at each.
+  bool SweepsVoxels() const {
+    return take_.has_ground_truth() && !options_.sweep_voxels_m.empty() &&
+           plan_.method != ReconstructionMethod::kMvs;
+  }
+
+  // How each stereo reference view chooses its partners, in words.
+  std::string StereoPartners() const {
+    return Cat("each reference view is matched against its ", plan_.mvs.neighbors,
+               " nearest views by the angle the two make at the subject (their baseline as it "
+               "sees it) plus ln of their distances' ratio, within ",
+               plan_.mvs.min_angle_deg, " to ", plan_.mvs.max_angle_deg,
+               " degrees (a view opposite or at a grazing angle is never one), and its depth "
+               "checked against its nearest reference views alike");
+  }
+
   // Error against time as the voxel size varies, on the run's first frame (simulated takes).
   nlohmann::json SweepVoxels(const FrameResult& first) {
     nlohmann::json sweep = nlohmann::json::array();
-    if (!take_.has_ground_truth() || options_.sweep_voxels_m.empty() ||
-        !first.metrics.contains("gt")) {
-      return sweep;
-    }
+    if (!SweepsVoxels() || !first.metrics.contains("gt")) return sweep;
     std::vector<double> voxels = options_.sweep_voxels_m;
     voxels.push_back(voxel_);
     std::sort(voxels.begin(), voxels.end(), std::greater<double>());
@@ -1379,10 +1462,13 @@ class TakeReconstructor {
     options.erase("tasks");
     nlohmann::json plan = summary_.plan;
     plan.erase("parallel");
+    // The estimate is a measured rate: the run's own, not what decides its frames' bytes.
+    nlohmann::json identity_plan = plan;
+    identity_plan.erase("stereo_estimate");
     const nlohmann::json take = TakeIdentity();
     records_.emplace(out_, "reconstruct",
                      nlohmann::json{{"options", options},
-                                    {"plan", plan},
+                                    {"plan", identity_plan},
                                     {"recording", take["recording"]},
                                     {"cameras", take["cameras"]}},
                      take_plan_.sets);
@@ -1442,6 +1528,7 @@ class TakeReconstructor {
   Report* report_;
   const std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
   MethodPlan plan_;
+  MvsEstimate stereo_estimate_;  // MVS: what each frame set's sweeps will cost
   Plates plates_;
   std::string completion_;
   std::string implausible_;  // why the run cannot give a plausible result, before any frame
