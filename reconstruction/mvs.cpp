@@ -91,6 +91,7 @@ std::vector<int> SpreadViews(const std::vector<CameraModel>& cameras,
                              int count) {
   const int n = static_cast<int>(candidates.size());
   std::vector<Eigen::Vector3d> directions;
+  directions.reserve(candidates.size());
   for (int i : candidates)
     directions.push_back((cameras[i].center_in_world() - subject).normalized());
   std::vector<int> chosen = {0};  // indices into candidates
@@ -486,7 +487,7 @@ cv::Mat HullFar(const VisualHull& hull, const CameraModel& camera, const cv::Mat
       const int x = std::min(i * kFarStridePx + kFarStridePx / 2, w - 1);
       const int y = std::min(j * kFarStridePx + kFarStridePx / 2, h - 1);
       const double z0 = near.at<float>(y, x);
-      const cv::Vec2f ray = rays.at<cv::Vec2f>(y, x);
+      const cv::Vec2f& ray = rays.at<cv::Vec2f>(y, x);
       if (!std::isfinite(z0) || !std::isfinite(ray[0])) continue;
       const Eigen::Vector3d origin = world_from_cam.translation();
       const Eigen::Vector3d direction =
@@ -611,6 +612,7 @@ double MeasureSweepRate(const MvsOptions& options) {
   const int sources = options.neighbors;
   cv::RNG rng(1);
   std::vector<View> views;
+  views.reserve(sources + 1);
   for (int i = 0; i <= sources; ++i) {
     Pose cam_from_world = Pose::Identity();
     cam_from_world.translation() = Eigen::Vector3d(-0.05 * i, 0, 0);
@@ -620,8 +622,10 @@ double MeasureSweepRate(const MvsOptions& options) {
     views.push_back(std::move(view));
   }
   std::vector<cv::Mat> grays;
+  grays.reserve(views.size());
   for (const View& view : views) grays.push_back(Gray(view.image));
   std::vector<int> source_list;
+  source_list.reserve(sources);
   for (int i = 1; i <= sources; ++i) source_list.push_back(i);
   const cv::Mat near(side, side, CV_32F, cv::Scalar(1.0f));
   const cv::Mat far(side, side, CV_32F,
@@ -689,6 +693,7 @@ std::vector<cv::Mat> ComputeMvsDepth(const std::vector<View>& views, const Visua
   MvsViewChoice chosen;
   if (choice_in == nullptr) {
     std::vector<CameraModel> cameras;
+    cameras.reserve(views.size());
     for (const View& view : views) cameras.push_back(view.camera);
     chosen = ChooseMvsViews(cameras, hull.Extent().center(), options);
   }
