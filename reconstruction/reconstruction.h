@@ -373,8 +373,8 @@ struct MvsOptions {
   // directions the views see the subject from by farthest-point sampling (the first view,
   // then each time the view farthest in angle from those chosen); every view still serves as
   // a source. 0: every view. Each reference view costs one sweep; fewer views fuse a little
-  // less of the subject's outline (97 views of the simulator's knot on a sphere: held-out
-  // IoU 0.9893 with 40, 0.9912 with 60; bench/mvs_many_views_results.txt).
+  // less of the subject's outline (the simulator's knot seen by 97 views on a sphere, true
+  // cameras: held-out IoU 0.9893 with 40, 0.9912 with 60; bench/mvs_many_views_results.txt).
   int max_reference_views = 60;
   // The sweep runs tile by tile: each tile of this side (pixels) searches only the planes its
   // pixels' ranges along their rays reach.
