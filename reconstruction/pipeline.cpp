@@ -1418,8 +1418,9 @@ class TakeReconstructor {
                " nearest views by the angle the two make at the subject (their baseline as it "
                "sees it) plus ln of their distances' ratio, within ",
                plan_.mvs.min_angle_deg, " to ", plan_.mvs.max_angle_deg,
-               " degrees (a view opposite or at a grazing angle is never one), and its depth "
-               "checked against its nearest reference views alike");
+               " degrees (beyond, short of 90 degrees, only to fill up a sparse rig's; a view "
+               "opposite is never one), and its depth checked against its nearest reference "
+               "views alike");
   }
 
   // Error against time as the voxel size varies, on the run's first frame (simulated takes).

@@ -364,8 +364,10 @@ struct MvsOptions {
   // subject (their baseline as the subject sees it) plus how much their distances differ
   // (ln of the ratio), among those within [min_angle_deg, max_angle_deg]. Closer than the
   // minimum, a pair triangulates nothing; wider than the maximum, the source sees what the
-  // reference faces at a grazing angle, or its far side. On a ring of eight, the two at 45
-  // degrees qualify; on Middlebury's ring of 16, four.
+  // reference faces at a grazing angle, or its far side: such views fill up only a sparse
+  // rig's reference views that have fewer than `neighbors` within it, and never from 90
+  // degrees. On a ring of eight, the two at 45 degrees qualify and the two at 90 fill up; on
+  // Middlebury's ring of 16, four qualify.
   int neighbors = 4;
   double min_angle_deg = 3;
   double max_angle_deg = 60;

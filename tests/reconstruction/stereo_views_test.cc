@@ -36,7 +36,8 @@ double AngleDeg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
 // The reference (view 0) at +x, 2 m out. Of the others, the three nearest by angle within
 // [3, 60] degrees at similar distances are its sources, nearest first: not the one 1 degree
 // away (no baseline), not the opposite one, not the one at a grazing 85 degrees, not one 12
-// degrees away at three times the distance, not one that looks away from the subject.
+// degrees away at three times the distance, not one that looks away from the subject. Views
+// beyond 60 degrees serve only a view with fewer than three within it, and never from 90.
 TEST(StereoViewsTest, SourcesAreTheNearestByAngleAndBaseline) {
   const std::vector<CameraModel> cameras = {
       CameraAt(0, 2),                             // 0: the reference
@@ -58,12 +59,21 @@ TEST(StereoViewsTest, SourcesAreTheNearestByAngleAndBaseline) {
   // View 5 does not see the subject: it searches nothing and is no one's partner.
   EXPECT_TRUE(std::find(choice.references.begin(), choice.references.end(), 5) ==
               choice.references.end());
-  // Every partner of every view lies within the angles asked for.
+  // Every partner of every view lies within the angles asked for, or (a view with fewer than
+  // three there, such as the one at 85 degrees) short of 90 degrees: never opposite.
   for (int r : choice.references) {
-    for (int s : choice.sources[r]) {
-      const double angle = AngleDeg(cameras[r].center_in_world(), cameras[s].center_in_world());
-      EXPECT_GE(angle, options.min_angle_deg) << r << " " << s;
-      EXPECT_LE(angle, options.max_angle_deg) << r << " " << s;
+    const std::vector<int>& sources = choice.sources[r];
+    for (size_t k = 0; k < sources.size(); ++k) {
+      const double angle =
+          AngleDeg(cameras[r].center_in_world(), cameras[sources[k]].center_in_world());
+      EXPECT_GE(angle, options.min_angle_deg) << r << " " << sources[k];
+      EXPECT_LT(angle, 90) << r << " " << sources[k];
+      // The views within the angles come first.
+      if (k > 0 && angle <= options.max_angle_deg) {
+        EXPECT_LE(AngleDeg(cameras[r].center_in_world(), cameras[sources[k - 1]].center_in_world()),
+                  options.max_angle_deg)
+            << r;
+      }
     }
   }
 }
