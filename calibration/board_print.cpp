@@ -3,7 +3,6 @@
 #include <cstdio>
 
 #include "calibration/calibration.h"
-#include "calibration/internal/common.h"
 #include "core/error.h"
 #include "core/fs.h"
 #include "core/image.h"
@@ -12,33 +11,6 @@ namespace holocap {
 namespace {
 
 constexpr double kMetresPerInch = 0.0254;
-
-// The pattern's square cells: side, origin (board coordinates) and count per axis.
-struct CellLattice {
-  double cell = 0;
-  double origin = 0;
-  int across = 0;
-  int down = 0;
-};
-
-CellLattice LatticeOf(const Board& board) {
-  const BoardLayout& layout = board.layout();
-  CellLattice lattice;
-  if (layout.type == BoardType::kChessboard) {
-    lattice.cell = layout.spacing;
-    lattice.origin = -layout.spacing;
-    lattice.across = layout.chessboard_width_n + 1;
-    lattice.down = layout.chessboard_height_n + 1;
-    return lattice;
-  }
-  int border = 0, total = 0;
-  calibration_internal::FamilyGeometry(layout.family, &border, &total);
-  lattice.cell = layout.spacing / border;
-  lattice.origin = -lattice.cell * (total - border) / 2;
-  lattice.across = (2 * layout.tags_across - 1) * border + total - border;
-  lattice.down = (2 * layout.tags_down - 1) * border + total - border;
-  return lattice;
-}
 
 std::string Number(double value) {
   char buffer[32];
@@ -76,29 +48,16 @@ void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& fil
   }
   if (extension != ".pdf") Fail("board print '", file.string(), "': use a .png or .pdf name");
   const Board board(layout);
-  const CellLattice lattice = LatticeOf(board);
   const double pt_per_m = 72.0 / kMetresPerInch;
   const double page_w = (board.u_max() - board.u_min()) * pt_per_m;
   const double page_h = (board.v_max() - board.v_min()) * pt_per_m;
-  // Black cells as horizontal runs; PDF's y axis points up, the board's v axis down.
+  // Black runs of the pattern's cells; PDF's y axis points up, the board's v axis down.
   std::string content = "0 g\n";
-  for (int cv = 0; cv < lattice.down; ++cv) {
-    const double v = lattice.origin + (cv + 0.5) * lattice.cell;
-    int run_start = -1;
-    for (int cu = 0; cu <= lattice.across; ++cu) {
-      const double u = lattice.origin + (cu + 0.5) * lattice.cell;
-      const bool black = cu < lattice.across && board.Reflectance(u, v) < 0.5;
-      if (black && run_start < 0) run_start = cu;
-      if (!black && run_start >= 0) {
-        const double x = (lattice.origin + run_start * lattice.cell - board.u_min()) * pt_per_m;
-        const double y =
-            page_h - (lattice.origin + (cv + 1) * lattice.cell - board.v_min()) * pt_per_m;
-        content += Number(x) + " " + Number(y) + " " +
-                   Number((cu - run_start) * lattice.cell * pt_per_m) + " " +
-                   Number(lattice.cell * pt_per_m) + " re\n";
-        run_start = -1;
-      }
-    }
+  for (const Eigen::Vector4d& r : board.BlackRectangles()) {
+    const double x = (r[0] - board.u_min()) * pt_per_m;
+    const double y = page_h - (r[1] + r[3] - board.v_min()) * pt_per_m;
+    content += Number(x) + " " + Number(y) + " " + Number(r[2] * pt_per_m) + " " +
+               Number(r[3] * pt_per_m) + " re\n";
   }
   content += "f\n";
   std::vector<std::string> objects = {

@@ -6,6 +6,8 @@
 #include <cmath>
 #include <cstdlib>
 #include <memory>
+#include <opencv2/aruco/charuco.hpp>
+#include <utility>
 
 #include "core/check_option.h"
 #include "core/error.h"
@@ -103,24 +105,132 @@ T YamlField(const YAML::Node& node, const char* key, T fallback, const std::stri
   }
 }
 
+// OpenCV's predefined ArUco dictionaries by name, in its enum's order.
+constexpr std::pair<const char*, cv::aruco::PREDEFINED_DICTIONARY_NAME> kArucoDictionaries[] = {
+    {"DICT_4X4_50", cv::aruco::DICT_4X4_50},
+    {"DICT_4X4_100", cv::aruco::DICT_4X4_100},
+    {"DICT_4X4_250", cv::aruco::DICT_4X4_250},
+    {"DICT_4X4_1000", cv::aruco::DICT_4X4_1000},
+    {"DICT_5X5_50", cv::aruco::DICT_5X5_50},
+    {"DICT_5X5_100", cv::aruco::DICT_5X5_100},
+    {"DICT_5X5_250", cv::aruco::DICT_5X5_250},
+    {"DICT_5X5_1000", cv::aruco::DICT_5X5_1000},
+    {"DICT_6X6_50", cv::aruco::DICT_6X6_50},
+    {"DICT_6X6_100", cv::aruco::DICT_6X6_100},
+    {"DICT_6X6_250", cv::aruco::DICT_6X6_250},
+    {"DICT_6X6_1000", cv::aruco::DICT_6X6_1000},
+    {"DICT_7X7_50", cv::aruco::DICT_7X7_50},
+    {"DICT_7X7_100", cv::aruco::DICT_7X7_100},
+    {"DICT_7X7_250", cv::aruco::DICT_7X7_250},
+    {"DICT_7X7_1000", cv::aruco::DICT_7X7_1000},
+    {"DICT_ARUCO_ORIGINAL", cv::aruco::DICT_ARUCO_ORIGINAL},
+    {"DICT_APRILTAG_16h5", cv::aruco::DICT_APRILTAG_16h5},
+    {"DICT_APRILTAG_25h9", cv::aruco::DICT_APRILTAG_25h9},
+    {"DICT_APRILTAG_36h10", cv::aruco::DICT_APRILTAG_36h10},
+    {"DICT_APRILTAG_36h11", cv::aruco::DICT_APRILTAG_36h11},
+};
+
+cv::Ptr<cv::aruco::Dictionary> ArucoDictionary(const std::string& name) {
+  const int id = ArucoDictionaryId(name);
+  if (id < 0) Fail("unknown ArUco dictionary '", name, "' (known: ", ArucoDictionaryNames(), ")");
+  return cv::aruco::getPredefinedDictionary(id);
+}
+
+// Black area of the cells of a lattice (side `cell`, top-left corner `u0`, `v0`, `across` x
+// `down` cells, `black` row-major) inside a convex polygon whose bounding box is given.
+double LatticeBlackArea(const std::vector<Eigen::Vector2d>& polygon, const Eigen::Vector4d& box,
+                        double u0, double v0, double cell, int across, int down,
+                        const std::vector<uint8_t>& black) {
+  const int cu0 = std::max(0, static_cast<int>(std::floor((box[0] - u0) / cell)));
+  const int cu1 = std::min(across - 1, static_cast<int>(std::floor((box[1] - u0) / cell)));
+  const int cv0 = std::max(0, static_cast<int>(std::floor((box[2] - v0) / cell)));
+  const int cv1 = std::min(down - 1, static_cast<int>(std::floor((box[3] - v0) / cell)));
+  double area = 0;
+  for (int cv = cv0; cv <= cv1; ++cv) {
+    for (int cu = cu0; cu <= cu1; ++cu) {
+      if (black[static_cast<size_t>(cv) * across + cu] == 0) continue;
+      const double u = u0 + cu * cell;
+      const double v = v0 + cv * cell;
+      area += ClippedArea(polygon, u, v, u + cell, v + cell);
+    }
+  }
+  return area;
+}
+
+// Appends the runs of black cells along each row of a lattice as rectangles.
+void AppendBlackRuns(double u0, double v0, double cell, int across, int down,
+                     const std::vector<uint8_t>& black, std::vector<Eigen::Vector4d>* rectangles) {
+  for (int cv = 0; cv < down; ++cv) {
+    int run_start = -1;
+    for (int cu = 0; cu <= across; ++cu) {
+      const bool is_black = cu < across && black[static_cast<size_t>(cv) * across + cu] != 0;
+      if (is_black && run_start < 0) run_start = cu;
+      if (!is_black && run_start >= 0) {
+        rectangles->emplace_back(u0 + run_start * cell, v0 + cv * cell, (cu - run_start) * cell,
+                                 cell);
+        run_start = -1;
+      }
+    }
+  }
+}
+
 }  // namespace
 
+int ArucoDictionaryId(const std::string& name) {
+  for (const auto& [known, id] : kArucoDictionaries) {
+    if (name == known) return static_cast<int>(id);
+  }
+  return -1;
+}
+
+std::string ArucoDictionaryNames() {
+  std::string names;
+  for (const auto& [known, id] : kArucoDictionaries)
+    names += (names.empty() ? "" : ", ") + std::string(known);
+  return names;
+}
+
 const char* ToString(BoardType type) {
-  return type == BoardType::kAprilGrid ? "apriltag" : "chessboard";
+  switch (type) {
+    case BoardType::kAprilGrid:
+      return "apriltag";
+    case BoardType::kChessboard:
+      return "chessboard";
+    case BoardType::kCharuco:
+      return "charuco";
+  }
+  return "unknown";
 }
 
 BoardType BoardTypeFromString(const std::string& text) {
   if (text == "apriltag") return BoardType::kAprilGrid;
   if (text == "chessboard") return BoardType::kChessboard;
-  Fail("unknown board type '", text, "' (known: apriltag, chessboard)");
+  if (text == "charuco") return BoardType::kCharuco;
+  Fail("unknown board type '", text, "' (known: apriltag, chessboard, charuco)");
 }
 
 int BoardLayout::width_n() const {
-  return type == BoardType::kAprilGrid ? 2 * tags_across : chessboard_width_n;
+  switch (type) {
+    case BoardType::kAprilGrid:
+      return 2 * tags_across;
+    case BoardType::kChessboard:
+      return chessboard_width_n;
+    case BoardType::kCharuco:
+      return squares_across - 1;
+  }
+  return 0;
 }
 
 int BoardLayout::height_n() const {
-  return type == BoardType::kAprilGrid ? 2 * tags_down : chessboard_height_n;
+  switch (type) {
+    case BoardType::kAprilGrid:
+      return 2 * tags_down;
+    case BoardType::kChessboard:
+      return chessboard_height_n;
+    case BoardType::kCharuco:
+      return squares_down - 1;
+  }
+  return 0;
 }
 
 void BoardLayout::Check() const {
@@ -132,6 +242,26 @@ void BoardLayout::Check() const {
     HOLOCAP_CHECK_OPTION_GE(chessboard_width_n, 2, "a chessboard needs at least 2x2 inner corners");
     HOLOCAP_CHECK_OPTION_GE(chessboard_height_n, 2,
                             "a chessboard needs at least 2x2 inner corners");
+    HOLOCAP_CHECK_OPTION(
+        margin >= spacing * (1 - 1e-9), margin,
+        Cat("the margin cuts the outer squares: it needs >= spacing ", spacing, " m"));
+    return;
+  }
+  if (type == BoardType::kCharuco) {
+    HOLOCAP_CHECK_OPTION_GE(squares_across, 3, "a ChArUco board needs at least 3x3 squares");
+    HOLOCAP_CHECK_OPTION_GE(squares_down, 3, "a ChArUco board needs at least 3x3 squares");
+    HOLOCAP_CHECK_OPTION_GT(marker_side, 0);
+    HOLOCAP_CHECK_OPTION(
+        marker_side < spacing, marker_side,
+        Cat("the marker must be smaller than its square (spacing ", spacing, " m)"));
+    HOLOCAP_CHECK_OPTION(ArucoDictionaryId(dictionary) >= 0, dictionary,
+                         Cat("known: ", ArucoDictionaryNames()));
+    const int markers = squares_across * squares_down / 2;
+    const int codes = ArucoDictionary(dictionary)->bytesList.rows;
+    HOLOCAP_CHECK_OPTION_GE(first_id, 0);
+    HOLOCAP_CHECK_OPTION(first_id + markers <= codes, first_id,
+                         Cat("marker ids ", first_id, "..", first_id + markers - 1, " exceed ",
+                             dictionary, " (", codes, " markers)"));
     HOLOCAP_CHECK_OPTION(
         margin >= spacing * (1 - 1e-9), margin,
         Cat("the margin cuts the outer squares: it needs >= spacing ", spacing, " m"));
@@ -161,9 +291,15 @@ nlohmann::json BoardLayout::ToJson() const {
     json["tags_across"] = tags_across;
     json["tags_down"] = tags_down;
     json["first_id"] = first_id;
-  } else {
+  } else if (type == BoardType::kChessboard) {
     json["chessboard_width_n"] = chessboard_width_n;
     json["chessboard_height_n"] = chessboard_height_n;
+  } else {
+    json["squares_across"] = squares_across;
+    json["squares_down"] = squares_down;
+    json["marker_side"] = marker_side;
+    json["dictionary"] = dictionary;
+    json["first_id"] = first_id;
   }
   json["width_n"] = width_n();
   json["height_n"] = height_n();
@@ -180,6 +316,10 @@ BoardLayout BoardLayout::FromJson(const nlohmann::json& json, const std::string&
     layout.tags_down = json.value("tags_down", layout.tags_down);
     layout.chessboard_width_n = json.value("chessboard_width_n", layout.chessboard_width_n);
     layout.chessboard_height_n = json.value("chessboard_height_n", layout.chessboard_height_n);
+    layout.squares_across = json.value("squares_across", layout.squares_across);
+    layout.squares_down = json.value("squares_down", layout.squares_down);
+    layout.marker_side = json.value("marker_side", layout.marker_side);
+    layout.dictionary = json.value("dictionary", layout.dictionary);
     layout.spacing = json.value("spacing", layout.spacing);
     layout.first_id = json.value("first_id", layout.first_id);
     layout.margin = json.value("margin", layout.margin);
@@ -216,6 +356,10 @@ BoardLayout BoardLayout::Load(const std::filesystem::path& file) {
       YamlField(node, "chessboard_width_n", layout.chessboard_width_n, origin);
   layout.chessboard_height_n =
       YamlField(node, "chessboard_height_n", layout.chessboard_height_n, origin);
+  layout.squares_across = YamlField(node, "squares_across", layout.squares_across, origin);
+  layout.squares_down = YamlField(node, "squares_down", layout.squares_down, origin);
+  layout.marker_side = YamlField(node, "marker_side", layout.marker_side, origin);
+  layout.dictionary = YamlField(node, "dictionary", layout.dictionary, origin);
   layout.spacing = YamlField(node, "spacing", layout.spacing, origin);
   layout.first_id = YamlField(node, "first_id", layout.first_id, origin);
   layout.margin = YamlField(node, "margin", layout.margin, origin);
@@ -237,9 +381,15 @@ void BoardLayout::Save(const std::filesystem::path& file) const {
     out << YAML::Key << "tags_across" << YAML::Value << tags_across;
     out << YAML::Key << "tags_down" << YAML::Value << tags_down;
     out << YAML::Key << "first_id" << YAML::Value << first_id;
-  } else {
+  } else if (type == BoardType::kChessboard) {
     out << YAML::Key << "chessboard_width_n" << YAML::Value << chessboard_width_n;
     out << YAML::Key << "chessboard_height_n" << YAML::Value << chessboard_height_n;
+  } else {
+    out << YAML::Key << "squares_across" << YAML::Value << squares_across;
+    out << YAML::Key << "squares_down" << YAML::Value << squares_down;
+    out << YAML::Key << "marker_side" << YAML::Value << marker_side;
+    out << YAML::Key << "dictionary" << YAML::Value << dictionary;
+    out << YAML::Key << "first_id" << YAML::Value << first_id;
   }
   out << YAML::Key << "spacing" << YAML::Value << spacing;
   out << YAML::Key << "margin" << YAML::Value << margin;
@@ -254,15 +404,16 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
   u_max_ = (layout_.width_n() - 1) * s + layout_.margin;
   v_max_ = (layout_.height_n() - 1) * s + layout_.margin;
 
-  if (layout_.type == BoardType::kChessboard) {
+  if (layout_.type != BoardType::kAprilGrid) {
     cell_ = s;
     origin_ = -s;
-    cells_u_ = layout_.chessboard_width_n + 1;
-    cells_v_ = layout_.chessboard_height_n + 1;
+    cells_u_ = layout_.width_n() + 1;
+    cells_v_ = layout_.height_n() + 1;
     black_.resize(static_cast<size_t>(cells_u_) * cells_v_);
     for (int cv = 0; cv < cells_v_; ++cv) {
       for (int cu = 0; cu < cells_u_; ++cu) black_[cv * cells_u_ + cu] = (cu + cv) % 2 == 0;
     }
+    if (layout_.type == BoardType::kCharuco) BuildCharuco();
     return;
   }
 
@@ -290,6 +441,44 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
   }
 }
 
+// The markers where OpenCV's CharucoBoard puts them (its object points, shifted from its frame
+// to holocap's by one square), each drawn by OpenCV at one pixel per bit.
+void Board::BuildCharuco() {
+  const cv::Ptr<cv::aruco::Dictionary> dictionary = ArucoDictionary(layout_.dictionary);
+  const cv::Ptr<cv::aruco::CharucoBoard> charuco = cv::aruco::CharucoBoard::create(
+      layout_.squares_across, layout_.squares_down, static_cast<float>(layout_.spacing),
+      static_cast<float>(layout_.marker_side), dictionary);
+  marker_of_cell_.assign(static_cast<size_t>(cells_u_) * cells_v_, -1);
+  const int bits = dictionary->markerSize + 2;
+  for (size_t k = 0; k < charuco->ids.size(); ++k) {
+    // The marker's corner 0 is its top-left; float object points, so the square it sits in
+    // comes from its centre and its offset from the layout, exactly.
+    const std::vector<cv::Point3f>& corners = charuco->objPoints[k];
+    const double centre_u = 0.5 * (corners[0].x + corners[2].x) - layout_.spacing;
+    const double centre_v = 0.5 * (corners[0].y + corners[2].y) - layout_.spacing;
+    const int cu = static_cast<int>(std::floor((centre_u - origin_) / cell_));
+    const int cv = static_cast<int>(std::floor((centre_v - origin_) / cell_));
+    if (cu < 0 || cv < 0 || cu >= cells_u_ || cv >= cells_v_ || CellIsBlack(cu, cv)) {
+      Fail("ChArUco marker ", k, " is not inside a white square of the board");
+    }
+    Marker marker;
+    marker.bits = bits;
+    marker.bit = layout_.marker_side / bits;
+    marker.u0 = origin_ + cu * cell_ + 0.5 * (cell_ - layout_.marker_side);
+    marker.v0 = origin_ + cv * cell_ + 0.5 * (cell_ - layout_.marker_side);
+    cv::Mat image;
+    dictionary->drawMarker(layout_.first_id + static_cast<int>(k), bits, image, 1);
+    marker.black.resize(static_cast<size_t>(bits) * bits);
+    for (int y = 0; y < bits; ++y) {
+      for (int x = 0; x < bits; ++x) {
+        marker.black[static_cast<size_t>(y) * bits + x] = image.at<uint8_t>(y, x) < 128;
+      }
+    }
+    marker_of_cell_[static_cast<size_t>(cv) * cells_u_ + cu] = static_cast<int>(markers_.size());
+    markers_.push_back(std::move(marker));
+  }
+}
+
 int Board::tag_count() const {
   return layout_.type == BoardType::kAprilGrid ? layout_.tags_across * layout_.tags_down : 0;
 }
@@ -308,7 +497,8 @@ std::vector<Eigen::Vector3d> Board::GridPoints() const {
 }
 
 TagCorner Board::TagCornerOf(int i, int j) const {
-  if (layout_.type != BoardType::kAprilGrid) Fail("a chessboard has no tag corners");
+  if (layout_.type != BoardType::kAprilGrid)
+    Fail("a ", ToString(layout_.type), " has no tag corners");
   if (i < 0 || j < 0 || i >= width_n() || j >= height_n()) {
     Fail("grid point (", i, ", ", j, ") is off the ", width_n(), "x", height_n(), " board");
   }
@@ -343,7 +533,24 @@ bool Board::CellIsBlack(int cu, int cv) const {
 double Board::Reflectance(double u, double v) const {
   const int cu = static_cast<int>(std::floor((u - origin_) / cell_));
   const int cv = static_cast<int>(std::floor((v - origin_) / cell_));
-  return CellIsBlack(cu, cv) ? 0.0 : 1.0;
+  if (CellIsBlack(cu, cv)) return 0.0;
+  if (markers_.empty() || cu < 0 || cv < 0 || cu >= cells_u_ || cv >= cells_v_) return 1.0;
+  const int index = marker_of_cell_[static_cast<size_t>(cv) * cells_u_ + cu];
+  if (index < 0) return 1.0;
+  const Marker& m = markers_[index];
+  const int bu = static_cast<int>(std::floor((u - m.u0) / m.bit));
+  const int bv = static_cast<int>(std::floor((v - m.v0) / m.bit));
+  if (bu < 0 || bv < 0 || bu >= m.bits || bv >= m.bits) return 1.0;
+  return m.black[static_cast<size_t>(bv) * m.bits + bu] != 0 ? 0.0 : 1.0;
+}
+
+std::vector<Eigen::Vector4d> Board::BlackRectangles() const {
+  std::vector<Eigen::Vector4d> rectangles;
+  AppendBlackRuns(origin_, origin_, cell_, cells_u_, cells_v_, black_, &rectangles);
+  for (const Marker& m : markers_) {
+    AppendBlackRuns(m.u0, m.v0, m.bit, m.bits, m.bits, m.black, &rectangles);
+  }
+  return rectangles;
 }
 
 double Board::MeanReflectance(const std::vector<Eigen::Vector2d>& polygon) const {
@@ -359,17 +566,21 @@ double Board::MeanReflectance(const std::vector<Eigen::Vector2d>& polygon) const
     lo_v = std::min(lo_v, p.y());
     hi_v = std::max(hi_v, p.y());
   }
-  const int cu0 = std::max(0, static_cast<int>(std::floor((lo_u - origin_) / cell_)));
-  const int cu1 = std::min(cells_u_ - 1, static_cast<int>(std::floor((hi_u - origin_) / cell_)));
-  const int cv0 = std::max(0, static_cast<int>(std::floor((lo_v - origin_) / cell_)));
-  const int cv1 = std::min(cells_v_ - 1, static_cast<int>(std::floor((hi_v - origin_) / cell_)));
-  double black = 0;
-  for (int cv = cv0; cv <= cv1; ++cv) {
-    for (int cu = cu0; cu <= cu1; ++cu) {
-      if (!CellIsBlack(cu, cv)) continue;
-      const double u0 = origin_ + cu * cell_;
-      const double v0 = origin_ + cv * cell_;
-      black += ClippedArea(polygon, u0, v0, u0 + cell_, v0 + cell_);
+  const Eigen::Vector4d box(lo_u, hi_u, lo_v, hi_v);
+  double black =
+      LatticeBlackArea(polygon, box, origin_, origin_, cell_, cells_u_, cells_v_, black_);
+  if (!markers_.empty()) {
+    const int cu0 = std::max(0, static_cast<int>(std::floor((lo_u - origin_) / cell_)));
+    const int cu1 = std::min(cells_u_ - 1, static_cast<int>(std::floor((hi_u - origin_) / cell_)));
+    const int cv0 = std::max(0, static_cast<int>(std::floor((lo_v - origin_) / cell_)));
+    const int cv1 = std::min(cells_v_ - 1, static_cast<int>(std::floor((hi_v - origin_) / cell_)));
+    for (int cv = cv0; cv <= cv1; ++cv) {
+      for (int cu = cu0; cu <= cu1; ++cu) {
+        const int index = marker_of_cell_[static_cast<size_t>(cv) * cells_u_ + cu];
+        if (index < 0) continue;
+        const Marker& m = markers_[index];
+        black += LatticeBlackArea(polygon, box, m.u0, m.v0, m.bit, m.bits, m.bits, m.black);
+      }
     }
   }
   return std::clamp(1.0 - black / area, 0.0, 1.0);

@@ -12,6 +12,11 @@
 // image as seen from the front: 0 = (-u, +v), 1 = (+u, +v), 2 = (+u, -v), 3 = (-u, -v).
 // Chessboards put the grid on the inner corners: (width_n + 1) x (height_n + 1) squares with
 // the square at (-spacing, -spacing) black.
+// ChArUco boards (OpenCV's CharucoBoard, as OpenCV 4.6 draws it) are such a chessboard of
+// squares_across x squares_down squares, the square at (-spacing, -spacing) black, with an ArUco
+// marker of side marker_side centred in every white square; markers are numbered row by row from
+// first_id. ChArUco corner id k is grid point (k % width_n, k / width_n): OpenCV's board frame
+// is holocap's shifted by one square (x right, y down, seen from the front).
 #pragma once
 
 #include <Eigen/Core>
@@ -23,24 +28,29 @@
 
 namespace holocap {
 
-enum class BoardType { kAprilGrid, kChessboard };
-const char* ToString(BoardType type);                    // "apriltag", "chessboard"
+enum class BoardType { kAprilGrid, kChessboard, kCharuco };
+const char* ToString(BoardType type);                    // "apriltag", "chessboard", "charuco"
 BoardType BoardTypeFromString(const std::string& text);  // throws Error
 
 struct BoardLayout {
-  BoardType type = BoardType::kAprilGrid;  // tags on one corner grid, or a chessboard
+  BoardType type = BoardType::kAprilGrid;  // tags on one corner grid, a chessboard, a ChArUco
   std::string family = "tag36h11";         // AprilTag family: "tag36h11" or "tagStandard41h12"
   int tags_across = 6;          // AprilTag boards: tags per row (grid is 2x as many points)
   int tags_down = 5;            // AprilTag boards: tags per column
   int chessboard_width_n = 9;   // chessboards: inner corners per row
   int chessboard_height_n = 6;  // chessboards: inner corners per column
-  double spacing = 0.04;        // metres between neighbouring grid points (the tag side)
-  int first_id = 0;             // id of the top-left tag; ids run row by row
-  double margin = 0.04;         // metres of white between the outermost grid points and
-                                // the board's edge (covers the tags' outer bits)
+  int squares_across = 5;       // ChArUco boards: squares per row (grid: one point fewer)
+  int squares_down = 7;         // ChArUco boards: squares per column
+  double marker_side = 0.03;    // ChArUco boards: metres, the ArUco marker's black outline
+  std::string dictionary = "DICT_5X5_1000";  // ChArUco boards: OpenCV's ArUco dictionary name
+  double spacing = 0.04;  // metres between neighbouring grid points (the tag or square side)
+  int first_id = 0;       // id of the top-left tag or marker; ids run row by row
+  double margin = 0.04;   // metres of white between the outermost grid points and
+                          // the board's edge (covers the tags' outer bits)
 
-  // Throws Error with the reason for an inconsistent layout (unknown family, too few points,
-  // ids beyond the family, a margin that cuts the tags' outer bits).
+  // Throws Error with the reason for an inconsistent layout (unknown family or dictionary, too
+  // few points, ids beyond the family or dictionary, a marker not smaller than its square, a
+  // margin that cuts the tags' outer bits or the outer squares).
   void Check() const;
 
   int width_n() const;   // grid points per row
@@ -48,11 +58,17 @@ struct BoardLayout {
 
   nlohmann::json ToJson() const;
   static BoardLayout FromJson(const nlohmann::json& json, const std::string& origin = "board");
-  // YAML (or JSON, which YAML reads) with the field names above; `type` is "apriltag" or
-  // "chessboard". Missing fields keep their defaults. Throws Error naming file and field.
+  // YAML (or JSON, which YAML reads) with the field names above; `type` is "apriltag",
+  // "chessboard" or "charuco". Missing fields keep their defaults. Throws Error naming file and
+  // field.
   static BoardLayout Load(const std::filesystem::path& file);
   void Save(const std::filesystem::path& file) const;  // YAML, atomic
 };
+
+// OpenCV's cv::aruco::PREDEFINED_DICTIONARY_NAME value of a dictionary name ("DICT_5X5_1000"),
+// -1 for a name OpenCV does not define; and the names it knows, comma-separated.
+int ArucoDictionaryId(const std::string& name);
+std::string ArucoDictionaryNames();
 
 // Which tag corner a grid point is (AprilTag boards).
 struct TagCorner {
@@ -61,7 +77,8 @@ struct TagCorner {
 };
 
 // A board built from its layout: the grid points and an exact texture built from
-// libapriltag's own family bitmaps. Immutable and safe to share between threads.
+// libapriltag's own family bitmaps, or from OpenCV's own ArUco marker bitmaps placed where its
+// CharucoBoard puts them. Immutable and safe to share between threads.
 class Board {
  public:
   explicit Board(const BoardLayout& layout);  // checks the layout
@@ -73,7 +90,7 @@ class Board {
   // All grid points in board coordinates (z = 0), row-major: index j * width_n + i.
   std::vector<Eigen::Vector3d> GridPoints() const;
   Eigen::Vector3d GridPoint(int i, int j) const;
-  // AprilTag boards only (throws Error for chessboards).
+  // AprilTag boards only (throws Error for the others).
   TagCorner TagCornerOf(int i, int j) const;
   // The grid point of a tag corner; false when the id is not on this board.
   bool GridPointOf(int tag_id, int corner, int* i, int* j) const;
@@ -89,6 +106,9 @@ class Board {
   // The printed side's reflectance at (u, v): 0 black, 1 white; 1 outside the pattern but on
   // the board, and also off the board (callers test Contains()).
   double Reflectance(double u, double v) const;
+  // The printed pattern as black rectangles (u, v of the top-left corner, width, height): runs
+  // of black cells along each row of the pattern's lattices, for vector prints.
+  std::vector<Eigen::Vector4d> BlackRectangles() const;
   // Mean reflectance over a convex polygon (board coordinates, either winding): the exact
   // area integral of Reflectance(), for anti-aliasing a pixel's footprint.
   double MeanReflectance(const std::vector<Eigen::Vector2d>& polygon) const;
@@ -96,6 +116,17 @@ class Board {
  private:
   // The pattern is a lattice of square cells of side cell_ starting at (origin_, origin_).
   bool CellIsBlack(int cu, int cv) const;
+  // ChArUco boards: a marker's bits, a finer lattice inside one white cell.
+  struct Marker {
+    double u0 = 0, v0 = 0;       // the marker's top-left corner
+    double bit = 0;              // side of one bit
+    int bits = 0;                // bits per side, black border included
+    std::vector<uint8_t> black;  // bits x bits, row-major
+  };
+  void BuildCharuco();
+
+  std::vector<Marker> markers_;
+  std::vector<int> marker_of_cell_;  // cells_u_ x cells_v_: index into markers_, or -1
 
   BoardLayout layout_;
   double cell_ = 0;

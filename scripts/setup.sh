@@ -18,7 +18,7 @@ done
 
 packages=(
   build-essential cmake ninja-build pkg-config git
-  libeigen3-dev libopencv-dev libopenexr-dev libzstd-dev
+  libeigen3-dev libopencv-dev libopencv-contrib-dev libopenexr-dev libzstd-dev
   libmrcal-dev mrgingham libapriltag-dev libceres-dev
   libcamera-dev libaravis-dev aravis-tools libusb-1.0-0-dev libv4l-dev
   libtorch-dev

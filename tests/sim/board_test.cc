@@ -4,6 +4,7 @@
 
 #include <random>
 #include <set>
+#include <string>
 
 #include "core/error.h"
 #include "tests/support/test_support.h"
@@ -108,6 +109,56 @@ TEST(BoardTest, YamlRoundTripAndChecks) {
   bad = layout;
   bad.spacing = 0;
   EXPECT_THROW(bad.Check(), Error);
+}
+
+// A ChArUco layout reads back as written; each inconsistency is one error naming its field.
+TEST(BoardTest, CharucoYamlRoundTripAndChecks) {
+  testing::TempDir dir;
+  BoardLayout layout;
+  layout.type = BoardType::kCharuco;
+  layout.squares_across = 9;
+  layout.squares_down = 6;
+  layout.spacing = 0.03;
+  layout.marker_side = 0.022;
+  layout.dictionary = "DICT_6X6_250";
+  layout.first_id = 11;
+  layout.margin = 0.03;
+  layout.Save(dir / "board.yaml");
+  const BoardLayout loaded = BoardLayout::Load(dir / "board.yaml");
+  EXPECT_EQ(loaded.type, BoardType::kCharuco);
+  EXPECT_EQ(loaded.squares_across, 9);
+  EXPECT_EQ(loaded.squares_down, 6);
+  EXPECT_DOUBLE_EQ(loaded.marker_side, 0.022);
+  EXPECT_EQ(loaded.dictionary, "DICT_6X6_250");
+  EXPECT_EQ(loaded.first_id, 11);
+  EXPECT_EQ(loaded.width_n(), 8);
+  EXPECT_EQ(loaded.height_n(), 5);
+  EXPECT_EQ(BoardLayout::FromJson(layout.ToJson()).ToJson(), layout.ToJson());
+
+  auto expect_error = [&](const BoardLayout& bad, const std::string& needle) {
+    try {
+      bad.Check();
+      ADD_FAILURE() << "no error for " << needle;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  };
+  BoardLayout bad = layout;
+  bad.marker_side = 0.03;
+  expect_error(bad, "smaller than its square");
+  bad = layout;
+  bad.dictionary = "DICT_5X5";
+  expect_error(bad, "DICT_5X5_1000");  // the known names
+  bad = layout;
+  bad.dictionary = "DICT_4X4_50";
+  bad.first_id = 30;  // 27 markers: ids 30..56
+  expect_error(bad, "exceed DICT_4X4_50 (50 markers)");
+  bad = layout;
+  bad.squares_down = 2;
+  expect_error(bad, "3x3 squares");
+  bad = layout;
+  bad.margin = 0.01;
+  expect_error(bad, "outer squares");
 }
 
 }  // namespace
