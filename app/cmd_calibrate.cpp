@@ -84,7 +84,8 @@ void PrintSummary(const TakeCalibrationSummary& s) {
 
 void AddCalibrateCommand(CLI::App& app) {
   auto* command = app.add_subcommand(
-      "calibrate", "Calibrate a take's cameras from board views (AprilTag/chessboard, mrcal)");
+      "calibrate",
+      "Calibrate a take's cameras from board views (AprilTag/chessboard/ChArUco, mrcal)");
   auto args = std::make_shared<CalibrateArgs>();
   command->add_option("take", args->take, "The take directory")->required();
   command->add_option("--from", args->from,

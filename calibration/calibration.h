@@ -63,7 +63,8 @@ struct DetectionOptions {
   int refine_half_window_px = 0;      // edge-refinement reach across an edge; 0: automatic
   int max_hamming = 1;                // reject tags decoded with more corrected bits
   double min_decision_margin = 30;    // reject weak decodes (libapriltag's decision_margin)
-  int min_tags = 4;                   // AprilTag boards: fewer tags seen = partial, rejected
+  int min_tags = 4;                   // AprilTag (ChArUco) boards: fewer tags (markers) seen =
+                                      // partial, rejected
   double min_tag_side_px = 12;        // reject tags whose sides are shorter (too far, too blurred)
   double quad_sigma = 0;              // libapriltag's blur before quad finding
   double max_corner_residual_px = 2;  // reject a view whose corners leave a local homography by
@@ -99,14 +100,16 @@ class BoardDetector {
 
   const Board& board() const { return board_; }
   // Detects the board in an 8-bit grey or BGR image. Returns false with the reason when the
-  // board is absent, partial or ambiguous. Safe to call from several threads.
+  // board is absent, partial or ambiguous (a ChArUco board may be partial: every corner found
+  // between two of its markers is kept). Safe to call from several threads.
   bool Detect(const cv::Mat& image, BoardObservation* observation, std::string* reason) const;
-  // Tag ids of the layout's family found in the image, whether or not they belong to the board
-  // (for telling "no board" from "a different board").
+  // Tag (or ArUco marker) ids of the layout's family (dictionary) found in the image, whether
+  // or not they belong to the board (for telling "no board" from "a different board").
   std::vector<int> DetectTagIds(const cv::Mat& image) const;
 
  private:
   struct Impl;
+  bool DetectCharuco(const cv::Mat& grey, BoardObservation* observation, std::string* reason) const;
   Board board_;
   DetectionOptions options_;
   Impl* impl_;

@@ -1,5 +1,6 @@
 // Board detection: libapriltag (quad_decimate = 1) or OpenCV's chessboard finder, corners
-// refined on the image edges (or mrgingham's chessboard corners), views checked for consistency.
+// refined on the image edges (or mrgingham's chessboard corners), views checked for consistency;
+// ChArUco boards through OpenCV's aruco module.
 #include <Eigen/Dense>
 #include <algorithm>
 #include <array>
@@ -9,6 +10,7 @@
 #include <cstdio>
 #include <map>
 #include <mutex>
+#include <opencv2/aruco/charuco.hpp>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 #include <optional>
@@ -242,6 +244,7 @@ struct BoardDetector::Impl {
   std::vector<Detector> idle;
   std::string family;
   DetectionOptions options;
+  cv::Ptr<cv::aruco::CharucoBoard> charuco;  // ChArUco boards: OpenCV's model of the layout
 
   Detector Acquire() {
     {
@@ -268,6 +271,15 @@ BoardDetector::BoardDetector(const BoardLayout& layout, const DetectionOptions& 
   options_.Check();
   impl_->family = layout.family;
   impl_->options = options_;
+  if (layout.type == BoardType::kCharuco) {
+    impl_->charuco = cv::aruco::CharucoBoard::create(
+        layout.squares_across, layout.squares_down, static_cast<float>(layout.spacing),
+        static_cast<float>(layout.marker_side),
+        cv::aruco::getPredefinedDictionary(ArucoDictionaryId(layout.dictionary)));
+    std::vector<int> ids(impl_->charuco->ids.size());
+    for (size_t k = 0; k < ids.size(); ++k) ids[k] = layout.first_id + static_cast<int>(k);
+    impl_->charuco->setIds(ids);
+  }
 }
 
 BoardDetector::~BoardDetector() { delete impl_; }
@@ -304,6 +316,18 @@ std::vector<TagSeen> RunApriltag(apriltag_detector_t* detector, const cv::Mat& g
   return tags;
 }
 
+struct MarkersSeen {
+  std::vector<std::vector<cv::Point2f>> corners;
+  std::vector<int> ids;
+};
+
+MarkersSeen RunAruco(const cv::Mat& grey, const cv::aruco::CharucoBoard& board) {
+  MarkersSeen markers;
+  const cv::Ptr<cv::aruco::DetectorParameters> parameters = cv::aruco::DetectorParameters::create();
+  cv::aruco::detectMarkers(grey, board.dictionary, markers.corners, markers.ids, parameters);
+  return markers;
+}
+
 double MinSide(const std::array<Eigen::Vector2d, 4>& corners) {
   double side = 1e300;
   for (int k = 0; k < 4; ++k) side = std::min(side, (corners[(k + 1) % 4] - corners[k]).norm());
@@ -313,6 +337,11 @@ double MinSide(const std::array<Eigen::Vector2d, 4>& corners) {
 }  // namespace
 
 std::vector<int> BoardDetector::DetectTagIds(const cv::Mat& image) const {
+  if (board_.layout().type == BoardType::kCharuco) {
+    std::vector<int> ids = RunAruco(ToGrey(image), *impl_->charuco).ids;
+    std::sort(ids.begin(), ids.end());
+    return ids;
+  }
   if (board_.layout().type != BoardType::kAprilGrid) return {};
   const cv::Mat grey = ToGrey(image);
   Detector d = impl_->Acquire();
@@ -382,6 +411,8 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
     }
     return true;
   }
+
+  if (board_.layout().type == BoardType::kCharuco) return DetectCharuco(grey, observation, reason);
 
   Detector d = impl_->Acquire();
   std::vector<TagSeen> tags = RunApriltag(d.detector, grey, options_, true);
@@ -474,6 +505,72 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   return true;
 }
 
+// ChArUco: the markers, then every chessboard corner between two of them that OpenCV's
+// interpolateCornersCharuco finds (local homographies, then cornerSubPix). A partial view keeps
+// the corners it has; the rows of the others stay at weight -1, as for AprilTag boards.
+bool BoardDetector::DetectCharuco(const cv::Mat& grey, BoardObservation* observation,
+                                  std::string* reason) const {
+  const BoardLayout& layout = board_.layout();
+  const cv::Ptr<cv::aruco::CharucoBoard>& charuco = impl_->charuco;
+  const MarkersSeen seen = RunAruco(grey, *charuco);
+  // Ids seen twice are ambiguous (a second board, a reflection): both are dropped.
+  std::map<int, int> count;
+  for (int id : seen.ids) ++count[id];
+  const int markers = static_cast<int>(charuco->ids.size());
+  MarkersSeen kept;
+  int foreign = 0;
+  for (size_t k = 0; k < seen.ids.size(); ++k) {
+    const int id = seen.ids[k];
+    if (id < layout.first_id || id >= layout.first_id + markers) {
+      ++foreign;
+      continue;
+    }
+    if (count[id] > 1) continue;
+    kept.ids.push_back(id);
+    kept.corners.push_back(seen.corners[k]);
+  }
+  const int used = static_cast<int>(kept.ids.size());
+  if (used < options_.min_tags) {
+    *reason = used == 0 && foreign > 0
+                  ? Cat(foreign, " markers of ", layout.dictionary, " not on this board")
+                  : Cat("partial board: ", used, " markers (needs ", options_.min_tags, ")");
+    return false;
+  }
+  std::vector<cv::Point2f> corners;
+  std::vector<int> ids;
+  // A corner needs both markers beside it: one alone can place it on the wrong square.
+  cv::aruco::interpolateCornersCharuco(kept.corners, kept.ids, grey, charuco, corners, ids,
+                                       cv::noArray(), cv::noArray(), 2);
+  // interpolateCornersCharuco leaves its corners where the markers' homographies put them, half
+  // a pixel off (its own cornerSubPix stops at once); cornerSubPix again, each corner with the
+  // widest window that stays clear of the markers beside it: nearer than its nearest marker
+  // corner by a pixel, in both axes.
+  const cv::TermCriteria criteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001);
+  for (cv::Point2f& corner : corners) {
+    double nearest = 1e300;
+    for (const auto& marker : kept.corners) {
+      for (const cv::Point2f& m : marker) nearest = std::min(nearest, cv::norm(m - corner));
+    }
+    const int half = std::clamp(static_cast<int>(nearest / std::sqrt(2.0) - 1), 2, 5);
+    std::vector<cv::Point2f> one = {corner};
+    cv::cornerSubPix(grey, one, cv::Size(half, half), cv::Size(-1, -1), criteria);
+    corner = one[0];
+  }
+  const int width_n = board_.width_n();
+  for (size_t k = 0; k < ids.size(); ++k) {
+    const int i = ids[k] % width_n;
+    const int j = ids[k] / width_n;
+    observation->points.row(static_cast<Eigen::Index>(j) * width_n + i) << corners[k].x,
+        corners[k].y, 1.0;
+  }
+  if (ids.size() < 4) {
+    *reason = Cat("partial board: ", ids.size(), " ChArUco corners");
+    observation->points.col(2).setConstant(-1);
+    return false;
+  }
+  return true;
+}
+
 nlohmann::json DetectionSummary::ToJson() const {
   nlohmann::json rejected_json = nlohmann::json::array();
   for (const auto& r : rejected) {
@@ -531,8 +628,7 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
           results[k] = std::move(observation);
         } else {
           reasons[k] = reason;
-          if (layout.type == BoardType::kAprilGrid &&
-              reason.find("not on this board") != std::string::npos) {
+          if (reason.find("not on this board") != std::string::npos) {
             foreign_ids[k] = detector.DetectTagIds(image);
           }
         }
@@ -573,9 +669,13 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
   for (const auto& name : sensors) s.views_per_sensor.emplace(name, 0);
   if (observations.empty()) {
     if (!foreign.empty()) {
-      Fail("the board file does not match the prints: the take shows ", layout.family,
-           " tags with ids ", *foreign.begin(), "..", *foreign.rbegin(), " but the board has ids ",
-           layout.first_id, "..", layout.first_id + layout.tags_across * layout.tags_down - 1);
+      const bool charuco = layout.type == BoardType::kCharuco;
+      const int markers = charuco ? layout.squares_across * layout.squares_down / 2
+                                  : layout.tags_across * layout.tags_down;
+      Fail("the board file does not match the prints: the take shows ",
+           charuco ? layout.dictionary + " markers" : layout.family + " tags", " with ids ",
+           *foreign.begin(), "..", *foreign.rbegin(), " but the board has ids ", layout.first_id,
+           "..", layout.first_id + markers - 1);
     }
     Fail("no board visible in any of the ", s.frames, " frames of ", take.dir().string(), " (",
          ToString(layout.type), " ", layout.width_n(), "x", layout.height_n(), ")");
