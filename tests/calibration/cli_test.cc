@@ -4,13 +4,17 @@
 #include <algorithm>
 #include <cmath>
 #include <fstream>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <numbers>
+#include <sstream>
 #include <string>
 #include <utility>
 #include <vector>
 
+#include "core/camera.h"
 #include "core/fs.h"
+#include "core/pose.h"
 #include "tests/support/test_support.h"
 
 namespace holocap {
@@ -149,6 +153,87 @@ TEST(CalibrateCli, ASquareChessboardSeenUpsideDownCalibrates) {
     EXPECT_GT(camera["pose_spread"]["normal_spread_deg"].get<double>(), 20) << name;
     EXPECT_GT(camera["pose_spread"]["coverage"].get<double>(), 0.2) << name;
   }
+}
+
+// A ChArUco board (6 x 5 squares of 16 cm, 4x4 markers) filmed by a two-camera ring at 640 px:
+// the corners of partial views count as the AprilTag boards' do, and the solve lands on the true
+// lenses within its own uncertainty. The same take with ChArUco corner ids turned into the wrong
+// grid points (transposed) ends far from the truth, which the bounds here catch.
+TEST(CalibrateCli, CalibratesAChArUcoBoardTake) {
+  TempDir dir("holocap-calib-charuco");
+  const std::filesystem::path layout = dir / "charuco.yaml";
+  std::ofstream(layout) << "type: charuco\nsquares_across: 6\nsquares_down: 5\nspacing: 0.16\n"
+                           "marker_side: 0.12\ndictionary: DICT_4X4_50\nmargin: 0.16\n";
+  const std::string take = (dir / "take").string();
+  auto r = RunCli("sim --rig " + WriteRingRig(dir.path(), 2) + " --board --board-layout " +
+                  layout.string() + " --frames 16 --size 640 --out " + take);
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = RunCli("calibrate " + take + " --no-pictures --board " + layout.string() +
+             " --write-corners " + (dir / "corners.vnl").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto report =
+      nlohmann::json::parse(ReadFileToString(dir / "take" / "calib" / "report.json"));
+  const auto& m = report["metrics"];
+  EXPECT_EQ(report["summary"]["termination"], "CONVERGENCE") << report["summary"].dump();
+
+  // Every corner the solve used against the true grid projected by the true camera.
+  const nlohmann::json board = nlohmann::json::parse(ReadFileToString(dir / "take/gt/board.json"));
+  std::map<int64_t, Pose> world_from_board;
+  for (const auto& entry : board["world_from_board"]) {
+    const auto rt = entry["rt"].get<std::vector<double>>();
+    world_from_board[entry["set"].get<int64_t>()] =
+        PoseFromRt({rt[0], rt[1], rt[2], rt[3], rt[4], rt[5]});
+  }
+  const int width_n = 5;
+  std::map<std::string, int> row_of_view;
+  double error_sum = 0, error_max = 0;
+  int corners = 0, partial_views = 0;
+  std::map<std::string, int> seen_in_view;
+  std::istringstream vnl(ReadFileToString(dir / "corners.vnl"));
+  for (std::string line; std::getline(vnl, line);) {
+    if (line.empty() || line[0] == '#') continue;
+    std::istringstream fields(line);
+    std::string name, x, y;
+    fields >> name >> x >> y;
+    const int row = row_of_view[name]++;
+    if (x == "-") continue;
+    ++seen_in_view[name];
+    const std::string camera = name.substr(0, name.find('/'));
+    const int64_t set = std::stoll(name.substr(name.find('/') + 1));
+    const CameraModel truth =
+        CameraModel::Read(dir / "take/gt/cameras" / (camera + ".cameramodel"));
+    const Eigen::Vector3d point((row % width_n) * 0.16, (row / width_n) * 0.16, 0);
+    Eigen::Vector2d pixel;
+    ASSERT_TRUE(truth.Project(truth.cam_from_world() * world_from_board.at(set) * point, &pixel));
+    const double error = (pixel - Eigen::Vector2d(std::stod(x), std::stod(y))).norm();
+    error_sum += error;
+    error_max = std::max(error_max, error);
+    ++corners;
+  }
+  for (const auto& [name, seen] : seen_in_view) partial_views += seen < 20;
+  std::printf("ChArUco take: %d corners in %zu views (%d partial): mean %.4f px, max %.4f px\n",
+              corners, seen_in_view.size(), partial_views, error_sum / corners, error_max);
+  EXPECT_GE(corners, 20 * 16);
+  EXPECT_LT(error_sum / corners, 0.1);
+  EXPECT_LT(error_max, 0.5);
+  for (const auto& [name, camera] : m["cameras"].items()) {
+    ASSERT_TRUE(camera["solved"].get<bool>()) << name;
+    EXPECT_GE(camera["views"].get<int>(), 10) << name;
+    // fx, fy, cx, cy and their 1-sigma from the solve's own noise model.
+    const auto& sigma = camera["intrinsics_sigma"];
+    const double focal_sigma_px = std::max(sigma[0].get<double>(), sigma[1].get<double>());
+    const double centre_sigma_px = std::hypot(sigma[2].get<double>(), sigma[3].get<double>());
+    const auto& truth = m["gt"]["cameras"][name];
+    const double focal_err_px =
+        truth["focal_rel_err"].get<double>() * camera["intrinsics"][0].get<double>();
+    std::printf("%s: focal %.3f px (1-sigma %.3f), principal point %.3f px (1-sigma %.3f)\n",
+                name.c_str(), focal_err_px, focal_sigma_px,
+                truth["principal_point_err_px"].get<double>(), centre_sigma_px);
+    EXPECT_LT(focal_err_px, 4 * focal_sigma_px) << name;
+    EXPECT_LT(truth["principal_point_err_px"].get<double>(), 4 * centre_sigma_px) << name;
+  }
+  EXPECT_LT(m["rms_reprojection_px"].get<double>(), 0.3);
+  EXPECT_LT(m["gt"]["projection_diff_rms_observed_px"].get<double>(), 0.3);
 }
 
 // A take of a two-camera ring (studio8's cam0 and cam1) at 480 px: the board moving, or never
