@@ -10,7 +10,6 @@
 #include <cstdio>
 #include <map>
 #include <mutex>
-#include <opencv2/aruco/charuco.hpp>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 #include <optional>
@@ -20,6 +19,7 @@
 #include "calibration/calibration.h"
 #include "calibration/chessboard_finders.h"
 #include "calibration/internal/common.h"
+#include "core/charuco.h"
 #include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
@@ -271,15 +271,7 @@ BoardDetector::BoardDetector(const BoardLayout& layout, const DetectionOptions& 
   options_.Check();
   impl_->family = layout.family;
   impl_->options = options_;
-  if (layout.type == BoardType::kCharuco) {
-    impl_->charuco = cv::aruco::CharucoBoard::create(
-        layout.squares_across, layout.squares_down, static_cast<float>(layout.spacing),
-        static_cast<float>(layout.marker_side),
-        cv::aruco::getPredefinedDictionary(ArucoDictionaryId(layout.dictionary)));
-    std::vector<int> ids(impl_->charuco->ids.size());
-    for (size_t k = 0; k < ids.size(); ++k) ids[k] = layout.first_id + static_cast<int>(k);
-    impl_->charuco->setIds(ids);
-  }
+  if (layout.type == BoardType::kCharuco) impl_->charuco = MakeCharucoBoard(layout);
 }
 
 BoardDetector::~BoardDetector() { delete impl_; }

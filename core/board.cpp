@@ -6,9 +6,9 @@
 #include <cmath>
 #include <cstdlib>
 #include <memory>
-#include <opencv2/aruco/charuco.hpp>
 #include <utility>
 
+#include "core/charuco.h"
 #include "core/check_option.h"
 #include "core/error.h"
 #include "core/fs.h"
@@ -188,6 +188,18 @@ std::string ArucoDictionaryNames() {
   for (const auto& [known, id] : kArucoDictionaries)
     names += (names.empty() ? "" : ", ") + std::string(known);
   return names;
+}
+
+cv::Ptr<cv::aruco::CharucoBoard> MakeCharucoBoard(const BoardLayout& layout) {
+  if (layout.type != BoardType::kCharuco) Fail("a ", ToString(layout.type), " is no ChArUco board");
+  layout.Check();
+  cv::Ptr<cv::aruco::CharucoBoard> board = cv::aruco::CharucoBoard::create(
+      layout.squares_across, layout.squares_down, static_cast<float>(layout.spacing),
+      static_cast<float>(layout.marker_side), ArucoDictionary(layout.dictionary));
+  std::vector<int> ids(board->ids.size());
+  for (size_t k = 0; k < ids.size(); ++k) ids[k] = layout.first_id + static_cast<int>(k);
+  board->setIds(ids);
+  return board;
 }
 
 const char* ToString(BoardType type) {
@@ -434,7 +446,7 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
       for (int y = 0; y < total; ++y) {
         for (int x = 0; x < total; ++x) {
           black_[static_cast<size_t>(2 * tj * border + y) * cells_u_ + 2 * ti * border + x] =
-              bits[y * total + x];
+              bits[static_cast<size_t>(y) * total + x];
         }
       }
     }
@@ -444,10 +456,8 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
 // The markers where OpenCV's CharucoBoard puts them (its object points, shifted from its frame
 // to holocap's by one square), each drawn by OpenCV at one pixel per bit.
 void Board::BuildCharuco() {
-  const cv::Ptr<cv::aruco::Dictionary> dictionary = ArucoDictionary(layout_.dictionary);
-  const cv::Ptr<cv::aruco::CharucoBoard> charuco = cv::aruco::CharucoBoard::create(
-      layout_.squares_across, layout_.squares_down, static_cast<float>(layout_.spacing),
-      static_cast<float>(layout_.marker_side), dictionary);
+  const cv::Ptr<cv::aruco::CharucoBoard> charuco = MakeCharucoBoard(layout_);
+  const cv::Ptr<cv::aruco::Dictionary>& dictionary = charuco->dictionary;
   marker_of_cell_.assign(static_cast<size_t>(cells_u_) * cells_v_, -1);
   const int bits = dictionary->markerSize + 2;
   for (size_t k = 0; k < charuco->ids.size(); ++k) {
@@ -467,7 +477,7 @@ void Board::BuildCharuco() {
     marker.u0 = origin_ + cu * cell_ + 0.5 * (cell_ - layout_.marker_side);
     marker.v0 = origin_ + cv * cell_ + 0.5 * (cell_ - layout_.marker_side);
     cv::Mat image;
-    dictionary->drawMarker(layout_.first_id + static_cast<int>(k), bits, image, 1);
+    dictionary->drawMarker(charuco->ids[k], bits, image, 1);
     marker.black.resize(static_cast<size_t>(bits) * bits);
     for (int y = 0; y < bits; ++y) {
       for (int x = 0; x < bits; ++x) {

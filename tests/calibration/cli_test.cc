@@ -202,7 +202,9 @@ TEST(CalibrateCli, CalibratesAChArUcoBoardTake) {
     const int64_t set = std::stoll(name.substr(name.find('/') + 1));
     const CameraModel truth =
         CameraModel::Read(dir / "take/gt/cameras" / (camera + ".cameramodel"));
-    const Eigen::Vector3d point((row % width_n) * 0.16, (row / width_n) * 0.16, 0);
+    const int i = row % width_n;
+    const int j = row / width_n;
+    const Eigen::Vector3d point(i * 0.16, j * 0.16, 0);
     Eigen::Vector2d pixel;
     ASSERT_TRUE(truth.Project(truth.cam_from_world() * world_from_board.at(set) * point, &pixel));
     const double error = (pixel - Eigen::Vector2d(std::stod(x), std::stod(y))).norm();

@@ -172,16 +172,7 @@ TEST(BoardDetector, NamesTagsOfADifferentBoard) {
 }
 
 BoardLayout SevenByFiveCharuco() {
-  BoardLayout layout;
-  layout.type = BoardType::kCharuco;
-  layout.squares_across = 7;
-  layout.squares_down = 5;
-  layout.spacing = 0.06;
-  layout.marker_side = 0.045;
-  layout.dictionary = "DICT_5X5_100";
-  layout.first_id = 3;
-  layout.margin = 0.06;
-  return layout;
+  return testing::CharucoLayout(7, 5, 0.06, 0.045, "DICT_5X5_100", 3);
 }
 
 // The simulator's ChArUco texture is OpenCV's own drawing of the board, pixel for pixel, at
@@ -198,15 +189,8 @@ TEST(CharucoBoard, TextureIsOpenCVsDrawing) {
   };
   for (const Case& c : {Case{5, 7, 0.04, 0.03, "DICT_4X4_50", 0, 16},
                         Case{6, 4, 0.0625, 0.0546875, "DICT_5X5_1000", 17, 32}}) {
-    BoardLayout layout;
-    layout.type = BoardType::kCharuco;
-    layout.squares_across = c.across;
-    layout.squares_down = c.down;
-    layout.spacing = c.square;
-    layout.marker_side = c.marker;
-    layout.dictionary = c.dictionary;
-    layout.first_id = c.first_id;
-    layout.margin = c.square;
+    const BoardLayout layout =
+        testing::CharucoLayout(c.across, c.down, c.square, c.marker, c.dictionary, c.first_id);
     const Board board(layout);
     const cv::Ptr<cv::aruco::CharucoBoard> opencv = cv::aruco::CharucoBoard::create(
         c.across, c.down, static_cast<float>(c.square), static_cast<float>(c.marker),

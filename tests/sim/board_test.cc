@@ -114,15 +114,7 @@ TEST(BoardTest, YamlRoundTripAndChecks) {
 // A ChArUco layout reads back as written; each inconsistency is one error naming its field.
 TEST(BoardTest, CharucoYamlRoundTripAndChecks) {
   testing::TempDir dir;
-  BoardLayout layout;
-  layout.type = BoardType::kCharuco;
-  layout.squares_across = 9;
-  layout.squares_down = 6;
-  layout.spacing = 0.03;
-  layout.marker_side = 0.022;
-  layout.dictionary = "DICT_6X6_250";
-  layout.first_id = 11;
-  layout.margin = 0.03;
+  const BoardLayout layout = testing::CharucoLayout(9, 6, 0.03, 0.022, "DICT_6X6_250", 11);
   layout.Save(dir / "board.yaml");
   const BoardLayout loaded = BoardLayout::Load(dir / "board.yaml");
   EXPECT_EQ(loaded.type, BoardType::kCharuco);

@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <string>
 
+#include "core/board.h"
 #include "core/take_plan.h"
 
 namespace holocap::testing {
@@ -35,6 +36,22 @@ struct CommandResult {
 CommandResult RunCli(const std::string& args);
 // Runs any shell command and captures its output.
 CommandResult RunShell(const std::string& command);
+
+// A ChArUco layout: `across` x `down` squares of side `square` (m), `marker` (m) markers of
+// OpenCV's `dictionary` numbered from `first_id`, a margin of one square.
+inline BoardLayout CharucoLayout(int across, int down, double square, double marker,
+                                 const std::string& dictionary, int first_id = 0) {
+  BoardLayout layout;
+  layout.type = BoardType::kCharuco;
+  layout.squares_across = across;
+  layout.squares_down = down;
+  layout.spacing = square;
+  layout.marker_side = marker;
+  layout.dictionary = dictionary;
+  layout.first_id = first_id;
+  layout.margin = square;
+  return layout;
+}
 
 // A selection that uses a simulated take's true cameras (gt/cameras): for tests that measure a
 // stage apart from calibration, saying so (an uncalibrated take is refused otherwise).
