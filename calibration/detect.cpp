@@ -497,6 +497,44 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   return true;
 }
 
+namespace {
+
+// ChArUco corners (OpenCV's ids) refined on the four square edges that leave each, as a
+// chessboard's are, measured no further across an edge than the white margin between the
+// square's side and the marker inside the white square beside it. The directions to the grid
+// neighbours come from the homography of all the corners seen.
+void RefineCharucoCorners(const cv::Mat& grey, const BoardLayout& layout,
+                          const std::vector<int>& ids, std::vector<cv::Point2f>* corners) {
+  if (ids.size() < 4) return;
+  const int width_n = layout.width_n();
+  std::vector<cv::Point2f> grid;
+  for (int id : ids) {
+    grid.emplace_back(static_cast<float>(id % width_n), static_cast<float>(id / width_n));
+  }
+  const cv::Mat h = cv::findHomography(grid, *corners, 0);
+  if (h.empty()) return;
+  auto at = [&](double i, double j) {
+    const cv::Mat p = h * (cv::Mat_<double>(3, 1) << i, j, 1);
+    return Eigen::Vector2d(p.at<double>(0) / p.at<double>(2), p.at<double>(1) / p.at<double>(2));
+  };
+  const double margin = 0.5 * (layout.spacing - layout.marker_side) / layout.spacing;
+  for (size_t k = 0; k < ids.size(); ++k) {
+    const double i = grid[k].x, j = grid[k].y;
+    const Eigen::Vector2d u = at(i + 1, j) - at(i, j);
+    const Eigen::Vector2d v = at(i, j + 1) - at(i, j);
+    const double side = std::min(u.norm(), v.norm());
+    const double reach = std::min(margin * side - 1.0, 4.0);
+    if (reach < 1.0) continue;
+    const double length = side - 1.5 * reach - 2;
+    Eigen::Vector2d p((*corners)[k].x, (*corners)[k].y);
+    if (calibration_internal::RefineEdgeCorner(grey, {u, v, -u, -v}, reach, reach, length, &p)) {
+      (*corners)[k] = cv::Point2f(static_cast<float>(p.x()), static_cast<float>(p.y()));
+    }
+  }
+}
+
+}  // namespace
+
 // ChArUco: the markers, then every chessboard corner between two of them that OpenCV's
 // interpolateCornersCharuco finds (local homographies, then cornerSubPix). A partial view keeps
 // the corners it has; the rows of the others stay at weight -1, as for AprilTag boards.
@@ -549,6 +587,7 @@ bool BoardDetector::DetectCharuco(const cv::Mat& grey, BoardObservation* observa
     corner = one[0];
   }
   const int width_n = board_.width_n();
+  if (options_.refine_corners) RefineCharucoCorners(grey, layout, ids, &corners);
   for (size_t k = 0; k < ids.size(); ++k) {
     const int i = ids[k] % width_n;
     const int j = ids[k] / width_n;

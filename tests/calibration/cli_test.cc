@@ -186,7 +186,7 @@ TEST(CalibrateCli, CalibratesAChArUcoBoardTake) {
   }
   const int width_n = 5;
   std::map<std::string, int> row_of_view;
-  double error_sum = 0, error_max = 0;
+  double error_sum = 0, error_square_sum = 0, error_max = 0;
   int corners = 0, partial_views = 0;
   std::map<std::string, int> seen_in_view;
   std::istringstream vnl(ReadFileToString(dir / "corners.vnl"));
@@ -209,6 +209,7 @@ TEST(CalibrateCli, CalibratesAChArUcoBoardTake) {
     ASSERT_TRUE(truth.Project(truth.cam_from_world() * world_from_board.at(set) * point, &pixel));
     const double error = (pixel - Eigen::Vector2d(std::stod(x), std::stod(y))).norm();
     error_sum += error;
+    error_square_sum += error * error;
     error_max = std::max(error_max, error);
     ++corners;
   }
@@ -216,8 +217,20 @@ TEST(CalibrateCli, CalibratesAChArUcoBoardTake) {
   std::printf("ChArUco take: %d corners in %zu views (%d partial): mean %.4f px, max %.4f px\n",
               corners, seen_in_view.size(), partial_views, error_sum / corners, error_max);
   EXPECT_GE(corners, 20 * 16);
-  EXPECT_LT(error_sum / corners, 0.1);
-  EXPECT_LT(error_max, 0.5);
+  // Measured 0.013 px on average, 0.096 px at most.
+  EXPECT_LT(error_sum / corners, 0.05);
+  EXPECT_LT(error_max, 0.25);
+
+  // The solve's 1-sigma assumes its residuals' noise (~0.002 px on these noise-free renders);
+  // the corners lie further from the truth than that, by a bias the residuals cannot show. The
+  // uncertainty scales with the noise, so the bounds scale it to the corners' RMS error.
+  const double corner_rms_px = std::sqrt(error_square_sum / (2.0 * corners));
+  const double noise_scale = std::max(1.0, corner_rms_px / m["rms_reprojection_px"].get<double>());
+  std::printf(
+      "residuals %.4f px RMS, corners %.4f px RMS from the truth (per coordinate); "
+      "projection %.4f px RMS from the truth where seen\n",
+      m["rms_reprojection_px"].get<double>(), corner_rms_px,
+      m["gt"]["projection_diff_rms_observed_px"].get<double>());
   for (const auto& [name, camera] : m["cameras"].items()) {
     ASSERT_TRUE(camera["solved"].get<bool>()) << name;
     EXPECT_GE(camera["views"].get<int>(), 10) << name;
@@ -228,11 +241,15 @@ TEST(CalibrateCli, CalibratesAChArUcoBoardTake) {
     const auto& truth = m["gt"]["cameras"][name];
     const double focal_err_px =
         truth["focal_rel_err"].get<double>() * camera["intrinsics"][0].get<double>();
-    std::printf("%s: focal %.3f px (1-sigma %.3f), principal point %.3f px (1-sigma %.3f)\n",
-                name.c_str(), focal_err_px, focal_sigma_px,
-                truth["principal_point_err_px"].get<double>(), centre_sigma_px);
-    EXPECT_LT(focal_err_px, 4 * focal_sigma_px) << name;
-    EXPECT_LT(truth["principal_point_err_px"].get<double>(), 4 * centre_sigma_px) << name;
+    std::printf(
+        "%s: focal %.3f px (1-sigma %.3f, at the corners' noise %.3f), principal point "
+        "%.3f px (1-sigma %.3f, %.3f)\n",
+        name.c_str(), focal_err_px, focal_sigma_px, noise_scale * focal_sigma_px,
+        truth["principal_point_err_px"].get<double>(), centre_sigma_px,
+        noise_scale * centre_sigma_px);
+    EXPECT_LT(focal_err_px, 4 * noise_scale * focal_sigma_px) << name;
+    EXPECT_LT(truth["principal_point_err_px"].get<double>(), 4 * noise_scale * centre_sigma_px)
+        << name;
   }
   EXPECT_LT(m["rms_reprojection_px"].get<double>(), 0.3);
   EXPECT_LT(m["gt"]["projection_diff_rms_observed_px"].get<double>(), 0.3);
