@@ -3,6 +3,7 @@
 #include <cstdio>
 #include <fstream>
 #include <opencv2/aruco/charuco.hpp>
+#include <utility>
 
 #include "calibration/calibration.h"
 #include "core/error.h"
@@ -157,20 +158,6 @@ TEST(BoardDetector, RejectsAPartialBoardAndAnEmptyImage) {
   EXPECT_FALSE(BoardDetector(layout).Detect(blank, &obs, &reason));
 }
 
-// Another board's tags (ids outside this layout) are told apart from "no board".
-TEST(BoardDetector, NamesTagsOfADifferentBoard) {
-  BoardLayout printed = testing::TestBoard();
-  printed.first_id = 100;
-  const Board board(printed);
-  const Scene scene(board);
-  const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board);
-  BoardObservation obs;
-  std::string reason;
-  EXPECT_FALSE(BoardDetector(testing::TestBoard()).Detect(image, &obs, &reason));
-  EXPECT_NE(reason.find("not on this board"), std::string::npos) << reason;
-  EXPECT_EQ(BoardDetector(testing::TestBoard()).DetectTagIds(image).front(), 100);
-}
-
 BoardLayout SevenByFiveCharuco() {
   return testing::CharucoLayout(7, 5, 0.06, 0.045, "DICT_5X5_100", 3);
 }
@@ -246,19 +233,23 @@ TEST(CharucoBoard, CornersLieOnTheTrueGridAlsoInAPartialView) {
   }
 }
 
-// Markers of another board (ids outside this layout) are told apart from "no board".
-TEST(CharucoBoard, NamesMarkersOfADifferentBoard) {
-  BoardLayout printed = SevenByFiveCharuco();
-  printed.first_id = 40;
-  const Board board(printed);
-  const Scene scene(board);
-  const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board);
-  BoardObservation obs;
-  std::string reason;
-  EXPECT_FALSE(BoardDetector(SevenByFiveCharuco()).Detect(image, &obs, &reason));
-  EXPECT_NE(reason.find("not on this board"), std::string::npos) << reason;
-  EXPECT_EQ(obs.seen(), 0);
-  EXPECT_EQ(BoardDetector(SevenByFiveCharuco()).DetectTagIds(image).front(), 40);
+// Another board's tags or ArUco markers (ids outside this layout) are told apart from "no
+// board".
+TEST(BoardDetector, NamesTagsOfADifferentBoard) {
+  for (const auto& [layout, foreign_id] :
+       {std::pair{testing::TestBoard(), 100}, std::pair{SevenByFiveCharuco(), 40}}) {
+    BoardLayout printed = layout;
+    printed.first_id = foreign_id;
+    const Board board(printed);
+    const Scene scene(board);
+    const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board);
+    BoardObservation obs;
+    std::string reason;
+    EXPECT_FALSE(BoardDetector(layout).Detect(image, &obs, &reason));
+    EXPECT_NE(reason.find("not on this board"), std::string::npos) << reason;
+    EXPECT_EQ(obs.seen(), 0);
+    EXPECT_EQ(BoardDetector(layout).DetectTagIds(image).front(), foreign_id);
+  }
 }
 
 TEST(BoardPrint, PdfPageIsTheBoardsSizeAndThePngDetects) {
