@@ -508,8 +508,11 @@ void RefineCharucoCorners(const cv::Mat& grey, const BoardLayout& layout,
   if (ids.size() < 4) return;
   const int width_n = layout.width_n();
   std::vector<cv::Point2f> grid;
+  grid.reserve(ids.size());
   for (int id : ids) {
-    grid.emplace_back(static_cast<float>(id % width_n), static_cast<float>(id / width_n));
+    const int i = id % width_n;
+    const int j = id / width_n;
+    grid.emplace_back(static_cast<float>(i), static_cast<float>(j));
   }
   const cv::Mat h = cv::findHomography(grid, *corners, 0);
   if (h.empty()) return;

@@ -445,8 +445,9 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
           TagBits(family, layout_.first_id + tj * layout_.tags_across + ti);
       for (int y = 0; y < total; ++y) {
         for (int x = 0; x < total; ++x) {
-          black_[static_cast<size_t>(2 * tj * border + y) * cells_u_ + 2 * ti * border + x] =
-              bits[static_cast<size_t>(y) * total + x];
+          const size_t row = static_cast<size_t>(2 * tj * border + y);
+          const size_t column = static_cast<size_t>(2 * ti * border + x);
+          black_[row * cells_u_ + column] = bits[static_cast<size_t>(y) * total + x];
         }
       }
     }
