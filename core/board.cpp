@@ -445,8 +445,8 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
           TagBits(family, layout_.first_id + tj * layout_.tags_across + ti);
       for (int y = 0; y < total; ++y) {
         for (int x = 0; x < total; ++x) {
-          const size_t row = static_cast<size_t>(2 * tj * border + y);
-          const size_t column = static_cast<size_t>(2 * ti * border + x);
+          const size_t row = 2 * static_cast<size_t>(tj) * border + y;
+          const size_t column = 2 * static_cast<size_t>(ti) * border + x;
           black_[row * cells_u_ + column] = bits[static_cast<size_t>(y) * total + x];
         }
       }
