@@ -7,11 +7,13 @@
 #include <cmath>
 #include <cstdio>
 #include <deque>
+#include <map>
 #include <numbers>
 #include <numeric>
 #include <opencv2/imgproc.hpp>
 #include <random>
 
+#include "avatar/camera_score.h"
 #include "avatar/image_metrics.h"
 #include "avatar/training_data.h"
 #include "core/error.h"
@@ -125,6 +127,18 @@ class Trainer {
           pixels.push_back(static_cast<int32_t>(i));
       }
       box_pixels_.push_back(std::move(pixels));
+    }
+    for (int v : heldout_) {
+      const CameraModel& lens = data.views[v].camera;
+      if (lens.lensmodel() == "LENSMODEL_PINHOLE") continue;
+      PinholeScoring scoring{Undistortion(lens), {}, {}};
+      scoring.rays =
+          CameraRaysAllPixels(scoring.undistortion.pinhole, data.box_min_f(), data.box_max_f());
+      for (int64_t i = 0; i < scoring.rays.size(); ++i) {
+        if (scoring.rays.t_far[i] > scoring.rays.t_near[i])
+          scoring.box_pixels.push_back(static_cast<int32_t>(i));
+      }
+      pinhole_scoring_.emplace(v, std::move(scoring));
     }
     // The backgrounds are refined only where no frame shows the subject (silhouettes grown by
     // 4 pixels): a per-pixel background would otherwise absorb a subject that moves little
@@ -302,6 +316,15 @@ class Trainer {
   torch::Tensor background_learnable_;  // [P, 1]: 1 where no frame's silhouette reaches
   std::vector<RayBatch> all_rays_;
   std::vector<std::vector<int32_t>> box_pixels_;
+  // A held-out camera with a distorting lens is scored in the pinhole of its intrinsics core,
+  // as the splats and `holocap export web` score it: its rays there, the pixels of them that
+  // meet the box, and the resampling of its images (keyed by view).
+  struct PinholeScoring {
+    Undistortion undistortion;
+    RayBatch rays;
+    std::vector<int32_t> box_pixels;
+  };
+  std::map<int, PinholeScoring> pinhole_scoring_;
   std::vector<std::vector<std::pair<int, int32_t>>> subject_pixels_;  // [frame] (view, pixel)
   std::vector<int64_t> eval_frames_;
   CpuClock cpu_;  // since the run began, held-out scoring excluded
@@ -503,32 +526,50 @@ Evaluation Trainer::Evaluate(bool write_images) {
     if (warp.defined()) warp = warp.contiguous();
     for (int v : heldout_) {
       const int h = data_.views[v].camera.height(), w = data_.views[v].camera.width();
+      const auto pinhole = pinhole_scoring_.find(v);
+      const PinholeScoring* scoring =
+          pinhole == pinhole_scoring_.end() ? nullptr : &pinhole->second;
       MarchContext context;
       context.box_min = data_.box_min_f();
       context.box_max = data_.box_max_f();
       context.occupancy = &data_.occupancy[f];
       context.options.step_m = static_cast<float>(step_m_);
       context.options.min_transmittance = static_cast<float>(options_.min_transmittance);
-      context.rays = all_rays_[v];
+      context.rays = scoring != nullptr ? scoring->rays : all_rays_[v];
       auto out = neural::MarchRays(rgba, warp, &context);
       torch::Tensor alpha = out[1].unsqueeze(1);
-      torch::Tensor prediction =
-          (out[0] + (1 - alpha) * backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w))
-              .clamp(0, 1);
-      cv::Mat predicted(h, w, CV_32FC3), truth;
+      // The view's background (learned where training cameras see it), in the scored geometry.
+      cv::Mat background(h, w, CV_32FC3);
+      std::memcpy(background.data,
+                  backgrounds_.narrow(0, offset_[v], static_cast<int64_t>(h) * w)
+                      .detach()
+                      .contiguous()
+                      .data_ptr<float>(),
+                  sizeof(float) * h * w * 3);
+      cv::Mat truth, silhouette = data_.masks[f][v];
+      if (scoring != nullptr) {
+        background = scoring->undistortion.Color(background);
+        scoring->undistortion.Color(data_.images[f][v]).convertTo(truth, CV_32FC3, 1.0 / 255.0);
+        silhouette = scoring->undistortion.Mask(silhouette);
+      } else {
+        data_.images[f][v].convertTo(truth, CV_32FC3, 1.0 / 255.0);
+      }
+      const torch::Tensor background_tensor =
+          torch::from_blob(background.data, {static_cast<int64_t>(h) * w, 3}, torch::kFloat32);
+      torch::Tensor prediction = (out[0] + (1 - alpha) * background_tensor).clamp(0, 1);
+      cv::Mat predicted(h, w, CV_32FC3);
       std::memcpy(predicted.data, prediction.contiguous().data_ptr<float>(),
                   sizeof(float) * h * w * 3);
-      data_.images[f][v].convertTo(truth, CV_32FC3, 1.0 / 255.0);
       // The subject's silhouette in the held-out view, grown by 3 pixels.
       cv::Mat mask;
-      cv::dilate(data_.masks[f][v], mask, cv::Mat(), cv::Point(-1, -1), 3);
+      cv::dilate(silhouette, mask, cv::Mat(), cv::Point(-1, -1), 3);
       mse_sum += std::pow(10.0, -PsnrDb(predicted, truth) / 10.0);
       mse_fg_sum += std::pow(10.0, -PsnrDb(predicted, truth, mask) / 10.0);
       if (alpha_take) {
         cv::Mat on_white(h, w, CV_32FC3), coverage, truth_white;
         const torch::Tensor white = (out[0] + (1 - alpha)).clamp(0, 1).contiguous();
         std::memcpy(on_white.data, white.data_ptr<float>(), sizeof(float) * h * w * 3);
-        data_.masks[f][v].convertTo(coverage, CV_32F, 1.0 / 255.0);
+        silhouette.convertTo(coverage, CV_32F, 1.0 / 255.0);
         cv::cvtColor(coverage, coverage, cv::COLOR_GRAY2BGR);
         truth_white = truth.mul(coverage) + (cv::Scalar::all(1.0) - coverage);
         mse_white_sum += std::pow(10.0, -PsnrDb(on_white, truth_white) / 10.0);
@@ -537,16 +578,17 @@ Evaluation Trainer::Evaluate(bool write_images) {
         const float* a = out[1].contiguous().data_ptr<float>();
         double sum = 0;
         int64_t n = 0;
-        for (int32_t p : box_pixels_[v]) {
+        for (int32_t p : scoring != nullptr ? scoring->box_pixels : box_pixels_[v]) {
           if (mask.data[p] != 0) continue;
           sum += a[p];
           ++n;
         }
         if (n > 0) alpha_outside_sum += sum / n;
       }
-      cv::Mat background;
-      data_.views[v].background.convertTo(background, CV_32FC3, 1.0 / 255.0);
-      mse_background_sum += std::pow(10.0, -PsnrDb(background, truth, mask) / 10.0);
+      cv::Mat plain = data_.views[v].background;
+      if (scoring != nullptr) plain = scoring->undistortion.Color(plain);
+      plain.convertTo(plain, CV_32FC3, 1.0 / 255.0);
+      mse_background_sum += std::pow(10.0, -PsnrDb(plain, truth, mask) / 10.0);
       ssim_sum += Ssim(predicted, truth);
       ++count;
       if (write_images) {
@@ -679,6 +721,13 @@ void Trainer::DescribePlan(NeuralVolumeSummary* out) const {
   }
   summary.plan["losses"] = losses;
   summary.plan["step_m"] = step_m_;
+  if (!pinhole_scoring_.empty()) {
+    summary.plan["heldout_scoring"] =
+        Cat(pinhole_scoring_.size(),
+            " held-out camera(s) with a distorting lens scored in the pinhole of the lens's "
+            "intrinsics core (images, silhouettes and backgrounds resampled there), as splats "
+            "and `holocap export web` score them");
+  }
 }
 
 // How a run that did not diverge ended: not finite, a subject no better than the background
