@@ -70,6 +70,11 @@ void AddLiveCommand(CLI::App& app) {
                    "Fraction of the scan's visible points that must fit the live surface")
       ->capture_default_str();
   command
+      ->add_option("--min-explained", o.min_explained_fraction,
+                   "Fraction of the live surface joined to the fitted scan that must lie on it "
+                   "(a scan of something smaller fits a part of the subject)")
+      ->capture_default_str();
+  command
       ->add_option("--max-residual", o.max_residual_m,
                    "Largest point-to-plane RMS of a fitting scan (metres)")
       ->capture_default_str();
@@ -90,7 +95,8 @@ void AddLiveCommand(CLI::App& app) {
   command->add_flag("--no-relight", args->no_relight,
                     "Compose the scan in the colours it was seen in, not relit in its light");
   command->add_flag("--no-glb", args->no_glb, "Write the PLY meshes only");
-  NameFieldFlags(command, {{"min_inlier_fraction", "--min-inliers"}});
+  NameFieldFlags(command, {{"min_inlier_fraction", "--min-inliers"},
+                           {"min_explained_fraction", "--min-explained"}});
   command->callback([args] {
     LiveOptions options = args->options;
     if (args->rigid_only) options.nonrigid = false;

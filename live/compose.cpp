@@ -246,7 +246,8 @@ void LiveCompositor::Relight(Mesh* deformed, const CameraModel& sensor) const {
   }
 }
 
-cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deformed) const {
+cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deformed,
+                                    double* explained_fraction) const {
   const cv::Mat scan_depth = RenderDepth(deformed, live.camera);
   cv::Mat subject(live.height, live.width, CV_8U, cv::Scalar(0));
   std::vector<int> front;  // the subject's pixels, grown from those near the scan
@@ -273,7 +274,8 @@ cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deforme
   // swung further than the scan's) is joined to the body without a jump in depth. Only within
   // subject_reach_m of the deformed scan's box, and 5 cm above its soles: the floor joins the
   // feet without a jump, and a floor known to a few centimetres is not cut exactly.
-  if (deformed.vertices.empty() || options_.subject_reach_m <= 0) return subject;
+  const bool reach = options_.subject_reach_m > 0;
+  if (deformed.vertices.empty() || (!reach && explained_fraction == nullptr)) return subject;
   Eigen::AlignedBox3f box;
   float lowest = std::numeric_limits<float>::infinity();
   const Eigen::Vector3f up = up_.cast<float>();
@@ -286,23 +288,34 @@ cv::Mat LiveCompositor::SubjectMask(const LiveSurface& live, const Mesh& deforme
   constexpr float kAboveSoles = 0.05f;
   const float above = lowest + kAboveSoles;
   const float jump = static_cast<float>(options_.max_depth_jump_m);
-  while (!front.empty()) {
-    const int i = front.back();
-    front.pop_back();
-    const int x = i % live.width, y = i / live.width;
-    const float d = live.depth[static_cast<size_t>(i)];
-    const int next[4][2] = {{x - 1, y}, {x + 1, y}, {x, y - 1}, {x, y + 1}};
-    for (const auto& [xx, yy] : next) {
-      if (xx < 0 || yy < 0 || xx >= live.width || yy >= live.height) continue;
-      const size_t j = static_cast<size_t>(yy) * live.width + xx;
-      if (subject.at<uint8_t>(yy, xx) || !(std::abs(live.depth[j] - d) < jump) ||
-          !live.points[j].allFinite() || !box.contains(live.points[j]) ||
-          up.dot(live.points[j]) < above)
-        continue;
-      subject.at<uint8_t>(yy, xx) = 255;
-      front.push_back(static_cast<int>(j));
+  // Grown from the pixels on the scan without a jump in depth, above the soles: within the box
+  // (`inside`, the subject) or anywhere (`joined`, what the scan should explain).
+  auto grow = [&](cv::Mat* mask, std::vector<int> seeds, bool inside) {
+    while (!seeds.empty()) {
+      const int i = seeds.back();
+      seeds.pop_back();
+      const int x = i % live.width, y = i / live.width;
+      const float d = live.depth[static_cast<size_t>(i)];
+      const int next[4][2] = {{x - 1, y}, {x + 1, y}, {x, y - 1}, {x, y + 1}};
+      for (const auto& [xx, yy] : next) {
+        if (xx < 0 || yy < 0 || xx >= live.width || yy >= live.height) continue;
+        const size_t j = static_cast<size_t>(yy) * live.width + xx;
+        if (mask->at<uint8_t>(yy, xx) || !(std::abs(live.depth[j] - d) < jump) ||
+            !live.points[j].allFinite() || (inside && !box.contains(live.points[j])) ||
+            up.dot(live.points[j]) < above)
+          continue;
+        mask->at<uint8_t>(yy, xx) = 255;
+        seeds.push_back(static_cast<int>(j));
+      }
     }
+  };
+  if (explained_fraction != nullptr) {
+    cv::Mat joined = subject.clone();
+    grow(&joined, front, /*inside=*/false);
+    const int on_scan = static_cast<int>(front.size()), all = cv::countNonZero(joined);
+    *explained_fraction = all > 0 ? static_cast<double>(on_scan) / all : 0;
   }
+  if (reach) grow(&subject, std::move(front), /*inside=*/true);
   return subject;
 }
 
@@ -445,12 +458,21 @@ LiveResult LiveCompositor::Process(int64_t set, const cv::Mat& depth_m,
                                            Fixed(1e3 * fit.after.residual_m, 1), " mm (at most ",
                                            Fixed(1e3 * options_.max_residual_m, 1), " mm)"));
   }
+  double explained = 0;
+  const cv::Mat subject = SubjectMask(live, fit.deformed, &explained);
+  frame.explained_fraction = explained;
+  // Only a fit that bends the scan is held to it: a rigid one leaves the limbs that moved.
+  if (graph_ && explained < options_.min_explained_fraction) {
+    return finish(LiveState::kRefused, Cat("the scan explains ", Fixed(100 * explained, 1),
+                                           " % of the live surface joined to it (needs ",
+                                           Fixed(100 * options_.min_explained_fraction, 1),
+                                           " %): it fits a part of a larger subject"));
+  }
   has_pose_ = true;
   last_world_from_scan_ = rigid.world_from_scan;
   if (poses_.size() == 2) poses_.erase(poses_.begin());
   poses_.emplace_back(set, rigid.world_from_scan);
   if (graph_) graph_->TakeMotions(*posed, rigid.world_from_scan);
-  const cv::Mat subject = SubjectMask(live, fit.deformed);
   frame.subject_pixels = cv::countNonZero(subject);
   result.live = MeshLiveSurface(live, subject, color_bgr, color_camera, options_.max_depth_jump_m);
   if (albedo_) Relight(&fit.deformed, live.camera);

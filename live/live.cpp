@@ -36,6 +36,7 @@ void LiveOptions::Check() const {
   HOLOCAP_CHECK_OPTION_IN(min_inlier_fraction, 0, 1);
   HOLOCAP_CHECK_OPTION_GT(max_residual_m, 0);
   HOLOCAP_CHECK_OPTION_IN(min_rigid_inlier_fraction, 0, 1);
+  HOLOCAP_CHECK_OPTION_IN(min_explained_fraction, 0, 1);
   HOLOCAP_CHECK_OPTION_GT(max_deformation_rms_m, 0);
   HOLOCAP_CHECK_OPTION_IN(max_refused_fraction, 0, 1);
   HOLOCAP_CHECK_OPTION_GT(subject_gate_m, 0);
@@ -65,6 +66,7 @@ Json LiveOptions::ToJson() const {
           {"min_inlier_fraction", min_inlier_fraction},
           {"max_residual_m", max_residual_m},
           {"min_rigid_inlier_fraction", min_rigid_inlier_fraction},
+          {"min_explained_fraction", min_explained_fraction},
           {"max_deformation_rms_m", max_deformation_rms_m},
           {"max_refused_fraction", max_refused_fraction},
           {"subject_gate_m", subject_gate_m},
@@ -108,6 +110,7 @@ Json LiveFrame::ToJson() const {
           {"deformation_rms_m", deformation_rms_m},
           {"deformation_max_m", deformation_max_m},
           {"subject_pixels", subject_pixels},
+          {"explained_fraction", number(explained_fraction)},
           {"live_faces", live_faces},
           {"scan_faces", scan_faces},
           {"seconds", seconds}};

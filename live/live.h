@@ -91,6 +91,13 @@ struct LiveOptions {
   // and fits 62 % or more rigidly; a scanned knot moved by 31-55 cm, fitting 16-33 % rigidly).
   double min_rigid_inlier_fraction = 0.4;
   double max_deformation_rms_m = 0.2;
+  // ... and when the fitted scan explains less than this fraction of the live surface joined
+  // to it (the live pixels it lies on, grown without a jump in depth above its soles and the
+  // floor): a scan of something smaller than the subject fits a part of it, whatever it fits.
+  // On the simulated walk the subject's own scan explains 87-100 % in every frame, a scanned
+  // knot bent onto the subject 10-65 %. Checked on non-rigid fits only (a rigid one leaves the
+  // limbs that moved: 62-100 % for the subject's own scan).
+  double min_explained_fraction = 0.75;
   // Any refused frame makes the run DEGENERATE (its composition is missing); more than this
   // fraction of them is diagnosed as a scan that is not this subject.
   double max_refused_fraction = 0.2;
@@ -207,9 +214,11 @@ struct LiveFrame {
   double deformation_rms_m = 0;
   double deformation_max_m = 0;
   int64_t subject_pixels = 0;  // live pixels kept as the subject
-  int64_t live_faces = 0;      // triangles from the live frame
-  int64_t scan_faces = 0;      // ... and from the scan (what the sensor does not see)
-  double seconds = 0;          // alignment + composition
+  // Of the live surface joined to the fitted scan, the fraction it lies on (NaN: not measured)
+  double explained_fraction = std::numeric_limits<double>::quiet_NaN();
+  int64_t live_faces = 0;  // triangles from the live frame
+  int64_t scan_faces = 0;  // ... and from the scan (what the sensor does not see)
+  double seconds = 0;      // alignment + composition
   nlohmann::json ToJson() const;
 };
 
@@ -250,7 +259,10 @@ class LiveCompositor {
   // The last composed frame's pose moved on to `set` at the rate of the last two composed frames
   // (turning about the scan's centre, which moves on in a straight line).
   Pose PredictedPose(int64_t set) const;
-  cv::Mat SubjectMask(const LiveSurface& live, const Mesh& deformed) const;
+  // The live pixels that are the subject; `explained_fraction` (optional): of the live surface
+  // joined to the scan without a depth jump above its soles (however far), the fraction on it.
+  cv::Mat SubjectMask(const LiveSurface& live, const Mesh& deformed,
+                      double* explained_fraction = nullptr) const;
   Mesh UnobservedScan(const Mesh& deformed, const LiveSurface& live, const cv::Mat& subject) const;
 
   // The deformed scan's colours: its albedo in the light of the sensor `sensor`.

@@ -379,6 +379,39 @@ TEST(LiveCompositor, RefusesAScanOfAnotherShape) {
   EXPECT_TRUE(result.composed.empty());
 }
 
+// A scan of something smaller than the subject fits a part of it perfectly: a tube a third as
+// long as the live one lies on its lower part, every visible point within the gate. The live
+// surface joined to it goes on up the tube, so it explains about half of that surface and the
+// frame is refused; the same frame composes when that check is off.
+TEST(LiveCompositor, RefusesAScanOfAPartOfALargerSubject) {
+  const Mesh live_tube = Tube(0.9, 0.08, 0, Eigen::Vector3d(0, 0, 0.6));
+  const Mesh short_tube = Tube(0.3, 0.08, 0, Eigen::Vector3d(0, 0, 0.6));
+  const CameraModel camera = SideCamera();
+  LiveCompositor compositor(short_tube, LiveOptions());
+  const LiveResult refused =
+      compositor.Process(0, SensorDepth(live_tube, camera), camera, cv::Mat(), camera);
+  EXPECT_EQ(refused.frame.state, LiveState::kRefused);
+  EXPECT_GT(refused.frame.inlier_fraction, 0.9) << "the short tube fits where it lies";
+  EXPECT_LT(refused.frame.explained_fraction, 0.6);
+  EXPECT_NE(refused.frame.why.find("of the live surface joined to it"), std::string::npos)
+      << refused.frame.why;
+  EXPECT_TRUE(refused.composed.empty());
+
+  LiveOptions unchecked;
+  unchecked.min_explained_fraction = 0;
+  LiveCompositor composes(short_tube, unchecked);
+  const LiveResult composed =
+      composes.Process(0, SensorDepth(live_tube, camera), camera, cv::Mat(), camera);
+  EXPECT_EQ(composed.frame.state, LiveState::kComposed) << composed.frame.why;
+
+  // The whole tube as the scan explains all of it.
+  LiveCompositor whole(live_tube, LiveOptions());
+  const LiveResult fits =
+      whole.Process(0, SensorDepth(live_tube, camera), camera, cv::Mat(), camera);
+  ASSERT_EQ(fits.frame.state, LiveState::kComposed) << fits.frame.why;
+  EXPECT_GT(fits.frame.explained_fraction, 0.95);
+}
+
 TEST(LiveCompositor, ReportsADepthlessFrameWithoutComposingIt) {
   const Mesh tube = Tube(0.6, 0.08, 0, Eigen::Vector3d(0, 0, 0.7));
   const CameraModel camera = SideCamera();
