@@ -452,6 +452,7 @@ struct SplatArgs {
   SharedTrainArgs shared;
   SplatOptions options;
   std::string shard;
+  bool profile = false;
 };
 
 // A per-frame run's outcome (its frames are in its report).
@@ -537,6 +538,10 @@ void AddSplatCommand(CLI::App* train) {
       "of its segments; the first task trains frame 0 into OUT/plan, the others "
       "wait for it and read it; the model and report.json are merged when every "
       "frame is done (holocap report OUT --merge)");
+  command->add_flag("--profile", args->profile,
+                    "Print the wall time of one iteration by stage (projection, sort, binning, "
+                    "forward, loss and SSIM, backward, reduction, Adam, densification); "
+                    "report.json holds it as metrics.profile either way");
   command->add_flag("--redo", o.tasks.redo,
                     "A per-frame run: train frames whose deltas are complete from an earlier run "
                     "too");
@@ -585,6 +590,7 @@ void AddSplatCommand(CLI::App* train) {
                 static_cast<long long>(summary.seed_points),
                 summary.cap_reached ? "the cap bit" : "under the cap", summary.megabytes,
                 summary.render_fps);
+    if (args->profile) std::printf("profile      %s", FormatSplatProfile(summary.profile).c_str());
     if (summary.temporal) {
       double largest = 0, later_s = 0;
       for (size_t f = 1; f < summary.frames.size(); ++f) {

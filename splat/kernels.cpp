@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -12,6 +13,19 @@
 
 namespace holocap::splat {
 namespace {
+
+// Adds the seconds since the last lap (or the start) to *target, when there is a target.
+class StageTimer {
+ public:
+  void Lap(double* target) {
+    const auto now = std::chrono::steady_clock::now();
+    if (target != nullptr) *target += std::chrono::duration<double>(now - last_).count();
+    last_ = now;
+  }
+
+ private:
+  std::chrono::steady_clock::time_point last_ = std::chrono::steady_clock::now();
+};
 
 // A number with its gradient with respect to three inputs: enough to differentiate the
 // spherical-harmonic basis by the direction without writing 48 derivatives out by hand.
@@ -362,7 +376,9 @@ void RadixSortByKey(std::vector<uint32_t>* keys, std::vector<int32_t>* order,
 // Per-tile lists, front to back: Gaussians sorted once by depth, then binned in that order, so
 // each tile's list is already sorted.
 template <typename T>
-void BinTiles(const ProjectedArrays<T>& p, const PinholeCamera& camera, RasterState* state) {
+void BinTiles(const ProjectedArrays<T>& p, const PinholeCamera& camera, RasterState* state,
+              KernelTimes* times) {
+  StageTimer timer;
   const int64_t n = static_cast<int64_t>(p.radius.size());
   std::vector<int32_t>& order = state->depth_order;
   std::vector<uint32_t>& keys = state->depth_keys;
@@ -374,6 +390,7 @@ void BinTiles(const ProjectedArrays<T>& p, const PinholeCamera& camera, RasterSt
     keys.push_back(SortKey(static_cast<float>(p.depth[i])));
   }
   if (!order.empty()) RadixSortByKey(&keys, &order, &state->key_scratch, &state->order_scratch);
+  timer.Lap(times != nullptr ? &times->sort : nullptr);
   // Each Gaussian's tiles once, in parallel; the two passes below only read them.
   const int64_t drawn = static_cast<int64_t>(order.size());
   std::vector<int32_t>& rects = state->tile_rects;
@@ -402,6 +419,7 @@ void BinTiles(const ProjectedArrays<T>& p, const PinholeCamera& camera, RasterSt
         state->entries[state->tile_end[ty * camera.tiles_x() + tx]++] = order[k];
     }
   }
+  timer.Lap(times != nullptr ? &times->binning : nullptr);
 }
 
 // The exponent of Gaussian i's footprint at (dx, dy) from its mean.
@@ -702,7 +720,8 @@ template <typename T>
 void RasterizeForward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
                       const RasterOptions& options, const T* background, T* color, T* alpha,
                       T* depth, RasterState* state) {
-  BinTiles(p, camera, state);
+  BinTiles(p, camera, state, options.times);
+  StageTimer timer;
   const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
   state->final_transmittance.resize(pixels);
   state->last_contributor.resize(pixels);
@@ -724,6 +743,7 @@ void RasterizeForward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
     }
     ForwardTileScalar(p, options, tile, out);
   }
+  timer.Lap(options.times != nullptr ? &options.times->forward : nullptr);
 }
 
 namespace {
@@ -834,6 +854,7 @@ void RasterizeBackward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   // them (per-thread sums would add in the order the tiles happened to run).
   // Reused between calls by the calling thread (each tile writes all of its slots): a view
   // allocates nothing. The workers write through `slots`, never through their own copy.
+  StageTimer timer;
   static thread_local std::vector<T> entry_gradient;
   entry_gradient.resize(kEntryGradient * state.entries.size());
   T* const slots = entry_gradient.data();
@@ -841,6 +862,7 @@ void RasterizeBackward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   for (int tile = 0; tile < tiles; ++tile) {
     BackwardTile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha, slots);
   }
+  timer.Lap(options.times != nullptr ? &options.times->backward : nullptr);
   gradients->Resize(n);
   for (int tile = 0; tile < tiles; ++tile) {
     for (int32_t e = state.tile_start[tile]; e < state.tile_end[tile]; ++e) {
@@ -855,6 +877,7 @@ void RasterizeBackward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
       gradients->opacity[i] += g[8];
     }
   }
+  timer.Lap(options.times != nullptr ? &options.times->reduction : nullptr);
 }
 
 namespace {

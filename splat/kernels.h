@@ -89,6 +89,15 @@ struct RasterState {
   std::vector<uint32_t> depth_keys, key_scratch;
 };
 
+// Wall seconds the kernels spent in each stage of their own, added to (RasterOptions::times).
+struct KernelTimes {
+  double sort = 0;       // RasterizeForward: the drawn Gaussians ordered by depth
+  double binning = 0;    // RasterizeForward: each Gaussian's tiles and the per-tile lists
+  double forward = 0;    // RasterizeForward: the tiles composited
+  double backward = 0;   // RasterizeBackward: the tiles' gradients per (tile, Gaussian) entry
+  double reduction = 0;  // RasterizeBackward: the entries' gradients summed per Gaussian
+};
+
 struct RasterOptions {
   float min_transmittance = 1e-4f;      // a pixel stops compositing below this much light
   float min_alpha = 1.0f / 255.0f;      // smaller contributions are skipped (0: none; the box a
@@ -101,6 +110,7 @@ struct RasterOptions {
                            // always for double: the scalar loop, the reference it is tested on
   int lanes = 0;           // vectorized: 4 (SSE2), 8 (AVX2; 4 on CPUs without it), 0: the widest
                            // this CPU runs
+  KernelTimes* times = nullptr;  // not nullptr: the rasteriser adds its stages' seconds here
 };
 
 // The real spherical-harmonic basis up to `degree` at a unit direction (x, y, z); out holds

@@ -271,7 +271,15 @@ struct SplatSummary : Summary {
   // are the last frame's.
   std::vector<SplatFrameSummary> frames;
   bool temporal = false;  // frames after the first were trained
+  // Wall time of one iteration by stage over the run's iterations (report.json metrics
+  // "profile"): {"iterations", "seconds", "iterations_per_s", "stages": [{"stage",
+  // "ms_per_iteration", "share"}]}, the stages projection, sort, binning, forward, loss_ssim,
+  // backward, reduction, project_backward, statistic, adam, densification and other.
+  nlohmann::json profile;
 };
+
+// The profile above as a table, one stage a line.
+std::string FormatSplatProfile(const nlohmann::json& profile);
 
 // Reads a take into a splat scene: the same views, held-out cameras, silhouettes and
 // backgrounds as Neural Volumes (avatar/training_data.h), distortion removed, and the seed from the

@@ -64,6 +64,60 @@ struct FrameBudget {
   double cpu_deadline_s = 0;  // > 0: stop when the run's CPU clock (Trainer::cpu_) reaches this
 };
 
+// Wall seconds of training's stages, summed over the iterations trained (the held-out scoring
+// is no part of an iteration). The rasteriser's own stages come from the kernels.
+struct StageProfile {
+  splat::KernelTimes kernels;
+  double projection = 0;     // ProjectGaussians
+  double loss = 0;           // L1 + D-SSIM and its gradient
+  double parameters = 0;     // ProjectBackward: projected gradients to the raw parameters
+  double statistic = 0;      // densification's positional-gradient statistic
+  double adam = 0;           // Adam, the parameters' bounds and the finite check
+  double densification = 0;  // densify, prune, opacity reset
+  double iteration = 0;      // the whole iteration (the rest: snapshots, bookkeeping)
+  int64_t iterations = 0;
+
+  // {"iterations", "iterations_per_s", "stages": [{"stage", "ms_per_iteration", "share"}]}
+  nlohmann::json ToJson() const {
+    const double n = static_cast<double>(std::max<int64_t>(iterations, 1));
+    const std::pair<const char*, double> stages[] = {
+        {"projection", projection},
+        {"sort", kernels.sort},
+        {"binning", kernels.binning},
+        {"forward", kernels.forward},
+        {"loss_ssim", loss},
+        {"backward", kernels.backward},
+        {"reduction", kernels.reduction},
+        {"project_backward", parameters},
+        {"statistic", statistic},
+        {"adam", adam},
+        {"densification", densification}};
+    nlohmann::json rows = nlohmann::json::array();
+    double counted = 0;
+    for (const auto& [name, seconds] : stages) {
+      counted += seconds;
+      rows.push_back({{"stage", name},
+                      {"ms_per_iteration", 1e3 * seconds / n},
+                      {"share", seconds / std::max(iteration, 1e-12)}});
+    }
+    rows.push_back({{"stage", "other"},
+                    {"ms_per_iteration", 1e3 * std::max(0.0, iteration - counted) / n},
+                    {"share", std::max(0.0, iteration - counted) / std::max(iteration, 1e-12)}});
+    return {{"iterations", iterations},
+            {"seconds", iteration},
+            {"iterations_per_s", iterations / std::max(iteration, 1e-12)},
+            {"stages", rows}};
+  }
+};
+
+// Seconds since `start`, and `start` moved to now.
+double Lap(std::chrono::steady_clock::time_point* start) {
+  const auto now = std::chrono::steady_clock::now();
+  const double seconds = std::chrono::duration<double>(now - *start).count();
+  *start = now;
+  return seconds;
+}
+
 struct Evaluation {
   double psnr_db = 0, psnr_fg_db = 0, background_psnr_fg_db = 0, ssim = 0;
   bool subject_seen = false;  // a held-out silhouette holds any pixel
@@ -103,6 +157,7 @@ class Trainer {
   SplatSummary TrainFromBase(int64_t frame, const Gaussians& base, const nlohmann::json& state,
                              int64_t iterations);
   const Gaussians& gaussians() const { return gaussians_; }
+  const StageProfile& profile() const { return profile_; }
 
  private:
   void TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary* summary, Report* report);
@@ -170,6 +225,7 @@ class Trainer {
   int64_t floored_ = 0;
   bool reset_done_ = false;
   bool subject_seen_ = false;  // by the last evaluation's held-out silhouettes
+  StageProfile profile_;
   // Scratch of one iteration.
   splat::ProjectedArrays<float> projected_;
   splat::ProjectedGradients<float> projected_gradients_;
@@ -233,21 +289,28 @@ double Trainer::TrainStep(int active_degree, int v) {
   const splat::PinholeCamera& camera = cameras_[v];
   splat::RasterOptions raster;
   raster.active_sh_degree = active_degree;
+  raster.times = &profile_.kernels;
+  auto clock = std::chrono::steady_clock::now();
   splat::ProjectGaussians(gaussians_, camera, raster, &projected_);
+  profile_.projection += Lap(&clock);
   const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
   image_.resize(3 * pixels);
   dloss_.resize(3 * pixels);
   splat::RasterizeForward(projected_, camera, raster, backgrounds_[v].data(), image_.data(),
                           static_cast<float*>(nullptr), static_cast<float*>(nullptr), &raster_);
+  Lap(&clock);
   const double loss = splat::PhotometricLoss(image_.data(), targets_[v].data(), camera.width,
                                              camera.height, options_.ssim_weight, dloss_.data());
+  profile_.loss += Lap(&clock);
   if (!std::isfinite(loss)) return loss;
   splat::RasterizeBackward(projected_, camera, raster, raster_, backgrounds_[v].data(),
                            dloss_.data(), static_cast<const float*>(nullptr),
                            &projected_gradients_);
+  Lap(&clock);
   gradient_.Resize(0);
   gradient_.Resize(gaussians_.size());
   splat::ProjectBackward(gaussians_, camera, raster, projected_, projected_gradients_, &gradient_);
+  profile_.parameters += Lap(&clock);
   // The paper's statistic: the positional gradient in normalised device coordinates.
   const float half_w = 0.5f * camera.width, half_h = 0.5f * camera.height;
   for (int64_t i = 0; i < gaussians_.size(); ++i) {
@@ -257,6 +320,7 @@ double Trainer::TrainStep(int active_degree, int v) {
     grad_accum_[i] += std::sqrt(gu * gu + gv * gv);
     ++grad_count_[i];
   }
+  profile_.statistic += Lap(&clock);
   return loss;
 }
 
@@ -605,6 +669,7 @@ SplatSummary Trainer::Run(Report* report) {
   first.megabytes = summary.megabytes;
   Record(first, &summary, report);
   if (summary.divergences <= options_.max_divergences) TrainLaterFrames(&summary, report);
+  summary.profile = profile_.ToJson();
   summary.cpu_s_seed = scene_.load_cpu_s;
   summary.cpu_s_training = cpu_.Now() - scene_.load_cpu_s;
   summary.cpu_s_scoring = cpu_.excluded();
@@ -916,10 +981,13 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
       cursor = 0;
     }
     const int v = order[cursor++];
+    auto iteration_start = std::chrono::steady_clock::now();
+    auto clock = iteration_start;
     const double loss = TrainStep(budget.first ? ActiveDegree(iteration) : options_.sh_degree, v);
     bool diverged = !std::isfinite(loss) ||
                     (reference[v] > 0 && loss > options_.divergence_factor * reference[v]);
     double opacity_step = 0;
+    Lap(&clock);
     if (!diverged) {
       AdamStep(std::min(fraction, 1.0), &opacity_step);
       BoundParameters();
@@ -927,6 +995,7 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
       // from the start, has not yet doubled.
       diverged = !Finite() || opacity_step > options_.max_opacity_step;
     }
+    profile_.adam += Lap(&clock);
     if (diverged) {
       ++summary->divergences;
       gaussians_ = snapshot.gaussians;
@@ -963,6 +1032,7 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
                                             iteration <= options_.densify_until &&
                                             iteration % options_.densify_every == 0
                                       : iteration % options_.frame_densify_every == 0;
+    Lap(&clock);
     if (densify) {
       Densify(summary);
       Prune(reset_done_, summary);
@@ -973,10 +1043,13 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
       ResetOpacity();
       changed = true;
     }
+    profile_.densification += Lap(&clock);
     // A changed model renders differently: each view's reference starts again.
     if (changed) std::fill(reference.begin(), reference.end(), -1.0);
     if (iteration % options_.snapshot_every == 0)
       snapshot = Snapshot{gaussians_, moments_, iteration, adam_step_, origin_};
+    profile_.iteration += Lap(&iteration_start);
+    ++profile_.iterations;
     if (report != nullptr && iteration % 10 == 0) {
       report->AddPoint("loss", loss, total_iterations_ + iteration);
       report->AddPoint("gaussians", static_cast<double>(gaussians_.size()),
@@ -1024,6 +1097,20 @@ void Trainer::Finish(SplatSummary* summary) {
 
 }  // namespace
 
+std::string FormatSplatProfile(const nlohmann::json& profile) {
+  if (!profile.is_object() || !profile.contains("stages")) return "no iteration profiled\n";
+  std::string table = Cat(profile.at("iterations").get<int64_t>(), " iterations, ",
+                          profile.at("iterations_per_s").get<double>(), " per second\n");
+  char line[96];
+  for (const nlohmann::json& row : profile.at("stages")) {
+    std::snprintf(line, sizeof(line), "  %-17s %9.2f ms %5.1f %%\n",
+                  row.at("stage").get<std::string>().c_str(),
+                  row.at("ms_per_iteration").get<double>(), 100 * row.at("share").get<double>());
+    table += line;
+  }
+  return table;
+}
+
 SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
                            const SplatOptions& options, Report* report) {
   options.Check();
@@ -1052,7 +1139,8 @@ SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
                               {"temporal", summary.temporal},
                               {"cpu_s_seed", summary.cpu_s_seed},
                               {"cpu_s_training", summary.cpu_s_training},
-                              {"cpu_s_scoring", summary.cpu_s_scoring}});
+                              {"cpu_s_scoring", summary.cpu_s_scoring},
+                              {"profile", summary.profile}});
     if (options.cpu_minutes > 0) report->metrics()["cpu_s_budget"] = options.cpu_minutes * 60;
     nlohmann::json frames = nlohmann::json::array();
     double largest_mb = 0;
