@@ -840,6 +840,167 @@ void BackwardTile(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   }
 }
 
+// The sum of a vector's lanes, lane 0 first (a fixed order: the same bytes on every run).
+template <typename Lanes>
+inline float SumLanes(const Lanes& lanes) {
+  float sum = 0;
+  for (size_t k = 0; k < sizeof(Lanes) / sizeof(float); ++k) sum += lanes[k];
+  return sum;
+}
+
+// BackwardTile with kWidth pixels of a row at once: the same pixels and entries as the scalar
+// loop (ForwardTileLanes' footprint and ExpNonPositive, so that the alphas are the forward's
+// own), each entry's gradient summed over its lanes at the end. Within float rounding of the
+// scalar loop (1 / (1 - alpha) is multiplied, not divided; the sums run in another order).
+template <int kWidth>
+__attribute__((always_inline)) inline void BackwardTileLanes(
+    const ProjectedArrays<float>& p, const PinholeCamera& camera, const RasterOptions& options,
+    const RasterState& state, int tile, const float* background, const float* dloss_dcolor,
+    const float* dloss_dalpha, float* entry_gradient) {
+  using Lanes = typename LaneTypes<kWidth>::Lanes;
+  using Mask = typename LaneTypes<kWidth>::Mask;
+  static_assert(kTileSide % kWidth == 0, "a tile row is whole lane groups");
+  const int tiles_x = camera.tiles_x();
+  const int x0 = (tile % tiles_x) * kTileSide, y0 = (tile / tiles_x) * kTileSide;
+  const int w = std::min(kTileSide, camera.width - x0), h = std::min(kTileSide, camera.height - y0);
+  constexpr int kGroupsPerRow = kTileSide / kWidth, kGroups = kTileSide * kGroupsPerRow;
+  Lanes transmittance[kGroups], behind_r[kGroups], behind_g[kGroups], behind_b[kGroups],
+      grad_r[kGroups], grad_g[kGroups], grad_b[kGroups], grad_alpha[kGroups];
+  Mask last[kGroups];
+  int32_t max_last = 0;
+  for (int k = 0; k < kGroups; ++k) {
+    transmittance[k] = Lanes{} + 1.0f;
+    behind_r[k] = behind_g[k] = behind_b[k] = grad_r[k] = grad_g[k] = grad_b[k] = grad_alpha[k] =
+        Lanes{};
+    last[k] = Mask{};
+  }
+  for (int ly = 0; ly < h; ++ly) {
+    for (int lx = 0; lx < w; ++lx) {
+      const int k = ly * kGroupsPerRow + lx / kWidth, lane = lx % kWidth;
+      const size_t pixel = static_cast<size_t>(y0 + ly) * camera.width + x0 + lx;
+      const float final_t = state.final_transmittance[pixel];
+      transmittance[k][lane] = final_t;
+      grad_r[k][lane] = dloss_dcolor[3 * pixel];
+      grad_g[k][lane] = dloss_dcolor[3 * pixel + 1];
+      grad_b[k][lane] = dloss_dcolor[3 * pixel + 2];
+      if (background != nullptr) {
+        behind_r[k][lane] = final_t * background[3 * pixel];
+        behind_g[k][lane] = final_t * background[3 * pixel + 1];
+        behind_b[k][lane] = final_t * background[3 * pixel + 2];
+      }
+      grad_alpha[k][lane] = dloss_dalpha != nullptr ? dloss_dalpha[pixel] * final_t : 0.0f;
+      last[k][lane] = state.last_contributor[pixel];
+      max_last = std::max(max_last, state.last_contributor[pixel]);
+    }
+  }
+  const int32_t begin = state.tile_start[tile];
+  const float min_alpha = options.min_alpha, max_alpha = options.max_alpha;
+  float* const slots = entry_gradient + kEntryGradient * static_cast<size_t>(begin);
+  std::fill(slots + kEntryGradient * static_cast<size_t>(max_last),
+            slots + kEntryGradient * static_cast<size_t>(state.tile_end[tile] - begin), 0.0f);
+  Mask lane_x;
+  for (int k = 0; k < kWidth; ++k) lane_x[k] = k;
+  for (int32_t local = max_last - 1; local >= 0; --local) {
+    const int32_t i = state.entries[begin + local];
+    float* out = slots + kEntryGradient * static_cast<size_t>(local);
+    int range[4];
+    if (!PixelRange(p, i, x0, y0, w, h, range)) {
+      std::fill(out, out + kEntryGradient, 0.0f);
+      continue;
+    }
+    const float a = p.conic[3 * i], b = p.conic[3 * i + 1], c = p.conic[3 * i + 2];
+    const float mx = p.mean2d[2 * i], my = p.mean2d[2 * i + 1], o = p.opacity[i];
+    const float cr = p.color[3 * i], cg = p.color[3 * i + 1], cb = p.color[3 * i + 2];
+    const float cutoff = PowerCutoff(o, options.min_alpha);
+    const int first_group = range[0] / kWidth, last_group = range[1] / kWidth;
+    Lanes dx[kGroupsPerRow];
+    Mask in_range[kGroupsPerRow];
+    for (int g = first_group; g <= last_group; ++g) {
+      const Mask column = lane_x + g * kWidth;
+      dx[g] = __builtin_convertvector(column + x0, Lanes) - mx;
+      in_range[g] = (column >= range[0]) & (column <= range[1]);
+    }
+    const Mask entry = Mask{} + local;
+    Lanes d_mx{}, d_my{}, d_a_conic{}, d_b_conic{}, d_c_conic{}, d_r{}, d_g{}, d_b{}, d_o{};
+    for (int ly = range[2]; ly <= range[3]; ++ly) {
+      const float dy = float(y0 + ly) - my, c_dy_dy = c * dy * dy;
+      for (int g = first_group; g <= last_group; ++g) {
+        const int k = ly * kGroupsPerRow + g;
+        const Lanes power = -0.5f * (a * dx[g] * dx[g] + c_dy_dy) - b * dx[g] * dy;
+        Mask draw = in_range[g] & (entry < last[k]) & (power <= 0.0f) & (power >= cutoff);
+        if (!AnyLane(draw)) continue;
+        Lanes gauss;
+        ExpNonPositive<Lanes, Mask>(power, &gauss);
+        const Lanes raw = o * gauss;
+        const Lanes alpha = raw < max_alpha ? raw : Lanes{} + max_alpha;
+        draw &= alpha >= min_alpha;
+        if (!AnyLane(draw)) continue;
+        const Lanes inverse = 1.0f / (1.0f - alpha);
+        const Lanes t = draw ? transmittance[k] * inverse : transmittance[k];
+        transmittance[k] = t;
+        const Lanes weight = draw ? alpha * t : Lanes{};
+        d_r += weight * grad_r[k];
+        d_g += weight * grad_g[k];
+        d_b += weight * grad_b[k];
+        Lanes d_alpha = grad_r[k] * (t * cr - behind_r[k] * inverse) +
+                        grad_g[k] * (t * cg - behind_g[k] * inverse) +
+                        grad_b[k] * (t * cb - behind_b[k] * inverse) + grad_alpha[k] * inverse;
+        behind_r[k] += weight * cr;
+        behind_g[k] += weight * cg;
+        behind_b[k] += weight * cb;
+        // Clamped at max_alpha: no gradient through the footprint.
+        d_alpha = draw & (raw <= max_alpha) ? d_alpha : Lanes{};
+        d_o += d_alpha * gauss;
+        const Lanes d_power = d_alpha * raw;
+        d_mx += d_power * (a * dx[g] + b * dy);
+        d_my += d_power * (c * dy + b * dx[g]);
+        d_a_conic += d_power * -0.5f * dx[g] * dx[g];
+        d_b_conic += d_power * -(dx[g] * dy);
+        d_c_conic += d_power * (-0.5f * dy * dy);
+      }
+    }
+    out[0] = SumLanes(d_mx);
+    out[1] = SumLanes(d_my);
+    out[2] = SumLanes(d_a_conic);
+    out[3] = SumLanes(d_b_conic);
+    out[4] = SumLanes(d_c_conic);
+    out[5] = SumLanes(d_r);
+    out[6] = SumLanes(d_g);
+    out[7] = SumLanes(d_b);
+    out[8] = SumLanes(d_o);
+  }
+}
+
+using BackwardTileFunction = void (*)(const ProjectedArrays<float>&, const PinholeCamera&,
+                                      const RasterOptions&, const RasterState&, int, const float*,
+                                      const float*, const float*, float*);
+
+void BackwardTileVector4(const ProjectedArrays<float>& p, const PinholeCamera& camera,
+                         const RasterOptions& options, const RasterState& state, int tile,
+                         const float* background, const float* dloss_dcolor,
+                         const float* dloss_dalpha, float* entry_gradient) {
+  BackwardTileLanes<4>(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha,
+                       entry_gradient);
+}
+
+#ifdef HOLOCAP_SPLAT_AVX2
+__attribute__((target("avx2"))) void BackwardTileVector8(
+    const ProjectedArrays<float>& p, const PinholeCamera& camera, const RasterOptions& options,
+    const RasterState& state, int tile, const float* background, const float* dloss_dcolor,
+    const float* dloss_dalpha, float* entry_gradient) {
+  BackwardTileLanes<8>(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha,
+                       entry_gradient);
+}
+#endif
+
+// The vector backward tile loop of `lanes` (0: the widest) this CPU runs.
+BackwardTileFunction VectorBackwardTile(int lanes) {
+#ifdef HOLOCAP_SPLAT_AVX2
+  if (VectorForwardTile(lanes) == ForwardTileVector8) return BackwardTileVector8;
+#endif
+  return BackwardTileVector4;
+}
+
 }  // namespace
 
 template <typename T>
@@ -858,8 +1019,18 @@ void RasterizeBackward(const ProjectedArrays<T>& p, const PinholeCamera& camera,
   static thread_local std::vector<T> entry_gradient;
   entry_gradient.resize(kEntryGradient * state.entries.size());
   T* const slots = entry_gradient.data();
+  BackwardTileFunction vector_tile = nullptr;
+  if constexpr (std::is_same_v<T, float>) {
+    if (options.vectorized) vector_tile = VectorBackwardTile(options.lanes);
+  }
 #pragma omp parallel for schedule(dynamic, 1)
   for (int tile = 0; tile < tiles; ++tile) {
+    if constexpr (std::is_same_v<T, float>) {
+      if (vector_tile != nullptr) {
+        vector_tile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha, slots);
+        continue;
+      }
+    }
     BackwardTile(p, camera, options, state, tile, background, dloss_dcolor, dloss_dalpha, slots);
   }
   timer.Lap(options.times != nullptr ? &options.times->backward : nullptr);
@@ -1032,102 +1203,200 @@ void ProjectBackward(const GaussianArrays<T>& g, const PinholeCamera& camera,
 #pragma omp parallel for schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     if (p.radius[i] <= 0) continue;
+    // Drawn but reached by no pixel (hidden behind others): every term would add zero.
+    bool reached = pg.opacity[i] != T(0);
+    for (int k = 0; k < 3 && !reached; ++k)
+      reached = pg.conic[3 * i + k] != T(0) || pg.color[3 * i + k] != T(0);
+    for (int k = 0; k < 2 && !reached; ++k) reached = pg.mean2d[2 * i + k] != T(0);
+    if (!reached) continue;
     ProjectBackwardOne(g, camera, options, p, pg, center, i, out);
   }
 }
 
 namespace {
 
-// Separable 11-tap Gaussian blur (sigma 1.5) with zero padding: symmetric, so it is its own
-// adjoint, which the SSIM gradient relies on.
+// The 11-tap Gaussian window of SSIM (sigma 1.5), normalised.
 template <typename T>
-void Blur(const std::vector<T>& in, int width, int height, std::vector<T>* out) {
-  static const std::array<double, 11> kernel = [] {
+const std::array<T, 11>& SsimWindow() {
+  static const std::array<T, 11> window = [] {
     std::array<double, 11> k{};
     double sum = 0;
     for (int i = 0; i < 11; ++i) sum += k[i] = std::exp(-(i - 5) * (i - 5) / (2 * 1.5 * 1.5));
-    for (double& v : k) v /= sum;
-    return k;
+    std::array<T, 11> out{};
+    for (int i = 0; i < 11; ++i) out[i] = T(k[i] / sum);
+    return out;
   }();
-  std::vector<T> rows(in.size());
-#pragma omp parallel for schedule(static)
-  for (int y = 0; y < height; ++y) {
-    for (int x = 0; x < width; ++x) {
-      T sum = 0;
-      for (int k = std::max(0, 5 - x); k < 11 && x + k - 5 < width; ++k)
-        sum += T(kernel[k]) * in[static_cast<size_t>(y) * width + x + k - 5];
-      rows[static_cast<size_t>(y) * width + x] = sum;
-    }
-  }
-  out->assign(in.size(), T(0));
-#pragma omp parallel for schedule(static)
-  for (int y = 0; y < height; ++y) {
-    for (int k = std::max(0, 5 - y); k < 11 && y + k - 5 < height; ++k) {
-      const T weight = T(kernel[k]);
-      const T* source = &rows[static_cast<size_t>(y + k - 5) * width];
-      T* target = &(*out)[static_cast<size_t>(y) * width];
-      for (int x = 0; x < width; ++x) target[x] += weight * source[x];
-    }
-  }
+  return window;
 }
+
+// out[j] += weight x source[j]: the blur's one operation. The float one also in an AVX2 clone
+// chosen at run time (no FMA: the same rounding as the SSE2 one).
+__attribute__((target_clones("avx2", "default"))) void AddScaled(const float* source, float weight,
+                                                                 int count, float* out) {
+  for (int j = 0; j < count; ++j) out[j] += weight * source[j];
+}
+void AddScaled(const double* source, double weight, int count, double* out) {
+  for (int j = 0; j < count; ++j) out[j] += weight * source[j];
+}
+
+// The horizontal pass of the separable blur on one interleaved row (`values` = 3 x width
+// values, a pixel's three channels together), zero padded: `padded` holds the row at offset
+// 15 with 15 zeros either side, so that every output is the same 11 products, channel by
+// channel, in the same order, without a bounds test.
+template <typename T>
+inline void BlurRow(const T* padded, int values, T* out) {
+  const std::array<T, 11>& w = SsimWindow<T>();
+  std::fill(out, out + values, T(0));
+  for (int k = 0; k < 11; ++k) AddScaled(padded + 3 * k, w[k], values, out);
+}
+
+// The vertical pass for row y of a map whose rows were blurred horizontally (`rows`, `values`
+// a row), zero padded: out = sum over the rows inside the image, top to bottom.
+template <typename T>
+inline void BlurColumn(const T* rows, int values, int height, int y, T* out) {
+  const std::array<T, 11>& w = SsimWindow<T>();
+  std::fill(out, out + values, T(0));
+  for (int k = std::max(0, 5 - y); k < 11 && y + k - 5 < height; ++k)
+    AddScaled(rows + static_cast<size_t>(y + k - 5) * values, w[k], values, out);
+}
+
+// What the loss keeps between calls, so that a frame of the same size allocates nothing.
+template <typename T>
+struct LossScratch {
+  std::vector<T> rows;                   // 5 horizontally blurred maps (x, y, xx, yy, xy)
+  std::vector<T> gradient_maps;          // the SSIM map's 3 gradients (mu, xx, xy)
+  std::vector<T> gradient_rows;          // those blurred horizontally
+  std::vector<double> l1_row, ssim_row;  // per image row
+};
 
 }  // namespace
 
+// The SSIM of all three channels at once, on the interleaved images: each separable blur runs
+// along rows of 3 x width values (a tap steps by a pixel, 3 values), so channels never need
+// separating. Four passes over the rows in one parallel region (products and horizontal blur
+// with L1; vertical blur and the SSIM map's gradient; the gradient's horizontal blur; its
+// vertical blur into dloss), each a static share of rows, per-row sums added in row order: the
+// same value whatever the threads.
 template <typename T>
 double PhotometricLoss(const T* image, const T* target, int width, int height, double lambda,
                        T* dloss_dimage) {
-  const size_t pixels = static_cast<size_t>(width) * height, values = 3 * pixels;
-  double l1 = 0;
-  for (size_t k = 0; k < values; ++k) {
-    const T d = image[k] - target[k];
-    l1 += std::abs(static_cast<double>(d));
-    if (dloss_dimage != nullptr)
-      dloss_dimage[k] = T((1 - lambda) * (d > T(0) ? 1.0 : (d < T(0) ? -1.0 : 0.0)) / values);
+  const int values = 3 * width;
+  const size_t pixels = static_cast<size_t>(width) * height, count = 3 * pixels;
+  static thread_local LossScratch<T> scratch;
+  LossScratch<T>& s = scratch;
+  s.l1_row.assign(height, 0.0);
+  s.ssim_row.assign(height, 0.0);
+  const bool ssim = lambda > 0;
+  if (ssim) {
+    s.rows.resize(5 * count);
+    if (dloss_dimage != nullptr) {
+      s.gradient_maps.resize(3 * count);
+      s.gradient_rows.resize(3 * count);
+    }
   }
-  l1 /= values;
-  if (lambda <= 0) return l1;
+  const T l1_step = T((1 - lambda) / static_cast<double>(count));
   const T c1 = T(0.01 * 0.01), c2 = T(0.03 * 0.03);
-  double ssim_sum = 0;
-  std::vector<T> x(pixels), y(pixels), xx(pixels), yy(pixels), xy(pixels);
-  std::vector<T> mx, my, sxx, syy, sxy, g_mu(pixels), g_xx(pixels), g_xy(pixels), b_mu, b_xx, b_xy;
-  for (int c = 0; c < 3; ++c) {
-    for (size_t k = 0; k < pixels; ++k) {
-      x[k] = image[3 * k + c];
-      y[k] = target[3 * k + c];
-      xx[k] = x[k] * x[k];
-      yy[k] = y[k] * y[k];
-      xy[k] = x[k] * y[k];
+  const T scale = T(-lambda / static_cast<double>(count));
+  T* const rows = s.rows.data();
+  T* const gradient_maps = s.gradient_maps.data();
+  T* const gradient_rows = s.gradient_rows.data();
+  double* const l1_row = s.l1_row.data();
+  double* const ssim_row = s.ssim_row.data();
+#pragma omp parallel
+  {
+    static thread_local std::vector<T> row;  // a padded row, then 5 vertical results
+    row.assign(6 * static_cast<size_t>(values) + 30, T(0));
+    T* const padded = row.data();
+#pragma omp for schedule(static)
+    for (int y = 0; y < height; ++y) {
+      const T* x_row = image + static_cast<size_t>(y) * values;
+      const T* y_row = target + static_cast<size_t>(y) * values;
+      double l1 = 0;
+      for (int j = 0; j < values; ++j) {
+        const T d = x_row[j] - y_row[j];
+        l1 += std::abs(static_cast<double>(d));
+        if (dloss_dimage != nullptr) {
+          dloss_dimage[static_cast<size_t>(y) * values + j] =
+              d > T(0) ? l1_step : (d < T(0) ? -l1_step : T(0));
+        }
+      }
+      l1_row[y] = l1;
+      if (!ssim) continue;
+      for (int map = 0; map < 5; ++map) {
+        T* inner = padded + 15;
+        for (int j = 0; j < values; ++j) {
+          const T a = x_row[j], b = y_row[j];
+          inner[j] = map == 0 ? a : map == 1 ? b : map == 2 ? a * a : map == 3 ? b * b : a * b;
+        }
+        BlurRow(padded, values, rows + map * count + static_cast<size_t>(y) * values);
+      }
     }
-    Blur(x, width, height, &mx);
-    Blur(y, width, height, &my);
-    Blur(xx, width, height, &sxx);
-    Blur(yy, width, height, &syy);
-    Blur(xy, width, height, &sxy);
-    for (size_t k = 0; k < pixels; ++k) {
-      const T var_x = sxx[k] - mx[k] * mx[k], var_y = syy[k] - my[k] * my[k];
-      const T cov = sxy[k] - mx[k] * my[k];
-      const T a1 = 2 * mx[k] * my[k] + c1, a2 = 2 * cov + c2;
-      const T b1 = mx[k] * mx[k] + my[k] * my[k] + c1, b2 = var_x + var_y + c2;
-      const T s = a1 * a2 / (b1 * b2);
-      ssim_sum += s;
-      // dS/dmu_x, dS/dvar_x, dS/dcov; var_x = E[x^2] - mu_x^2 and cov = E[xy] - mu_x mu_y.
-      const T ds_dmu = 2 * my[k] * a2 / (b1 * b2) - 2 * mx[k] * s / b1;
-      const T ds_dvar = -s / b2;
-      const T ds_dcov = 2 * a1 / (b1 * b2);
-      g_mu[k] = ds_dmu - 2 * mx[k] * ds_dvar - my[k] * ds_dcov;
-      g_xx[k] = ds_dvar;
-      g_xy[k] = ds_dcov;
+    if (ssim) {
+      // 5 rows of `values`: mu_x, mu_y, E[xx], E[yy], E[xy]; then the row's SSIM values.
+      T* const blurred = padded;
+      T* const map_row = padded + 5 * static_cast<size_t>(values);
+#pragma omp for schedule(static)
+      for (int y = 0; y < height; ++y) {
+        for (int map = 0; map < 5; ++map)
+          BlurColumn(rows + map * count, values, height, y, blurred + map * values);
+        const T *mx = blurred, *my = blurred + values, *sxx = blurred + 2 * values,
+                *syy = blurred + 3 * values, *sxy = blurred + 4 * values;
+        const size_t at = static_cast<size_t>(y) * values;
+        const bool gradient = dloss_dimage != nullptr;
+        for (int j = 0; j < values; ++j) {
+          const T var_x = sxx[j] - mx[j] * mx[j], var_y = syy[j] - my[j] * my[j];
+          const T cov = sxy[j] - mx[j] * my[j];
+          const T a1 = 2 * mx[j] * my[j] + c1, a2 = 2 * cov + c2;
+          const T b1 = mx[j] * mx[j] + my[j] * my[j] + c1, b2 = var_x + var_y + c2;
+          const T value = a1 * a2 / (b1 * b2);
+          map_row[j] = value;
+          if (!gradient) continue;
+          // dS/dmu_x, dS/dvar_x, dS/dcov; var_x = E[x^2] - mu_x^2 and cov = E[xy] - mu_x mu_y.
+          const T ds_dmu = 2 * my[j] * a2 / (b1 * b2) - 2 * mx[j] * value / b1;
+          const T ds_dvar = -value / b2;
+          const T ds_dcov = 2 * a1 / (b1 * b2);
+          gradient_maps[at + j] = ds_dmu - 2 * mx[j] * ds_dvar - my[j] * ds_dcov;
+          gradient_maps[count + at + j] = ds_dvar;
+          gradient_maps[2 * count + at + j] = ds_dcov;
+        }
+        double sum = 0;
+        for (int j = 0; j < values; ++j) sum += map_row[j];
+        ssim_row[y] = sum;
+      }
     }
-    if (dloss_dimage == nullptr) continue;
-    Blur(g_mu, width, height, &b_mu);
-    Blur(g_xx, width, height, &b_xx);
-    Blur(g_xy, width, height, &b_xy);
-    const T scale = T(-lambda / values);
-    for (size_t k = 0; k < pixels; ++k)
-      dloss_dimage[3 * k + c] += scale * (b_mu[k] + 2 * x[k] * b_xx[k] + y[k] * b_xy[k]);
+    if (ssim && dloss_dimage != nullptr) {
+#pragma omp for schedule(static)
+      for (int y = 0; y < height; ++y) {
+        const size_t at = static_cast<size_t>(y) * values;
+        for (int map = 0; map < 3; ++map) {
+          std::copy(gradient_maps + map * count + at, gradient_maps + map * count + at + values,
+                    padded + 15);
+          std::fill(padded, padded + 15, T(0));
+          std::fill(padded + 15 + values, padded + 30 + values, T(0));
+          BlurRow(padded, values, gradient_rows + map * count + at);
+        }
+      }
+#pragma omp for schedule(static)
+      for (int y = 0; y < height; ++y) {
+        for (int map = 0; map < 3; ++map)
+          BlurColumn(gradient_rows + map * count, values, height, y, padded + map * values);
+        const T *b_mu = padded, *b_xx = padded + values, *b_xy = padded + 2 * values;
+        const size_t at = static_cast<size_t>(y) * values;
+        for (int j = 0; j < values; ++j) {
+          dloss_dimage[at + j] +=
+              scale * (b_mu[j] + 2 * image[at + j] * b_xx[j] + target[at + j] * b_xy[j]);
+        }
+      }
+    }
   }
-  const double ssim = ssim_sum / values;
-  return (1 - lambda) * l1 + lambda * (1 - ssim);
+  double l1 = 0, ssim_sum = 0;
+  for (int y = 0; y < height; ++y) {
+    l1 += l1_row[y];
+    ssim_sum += ssim_row[y];
+  }
+  l1 /= static_cast<double>(count);
+  if (!ssim) return l1;
+  return (1 - lambda) * l1 + lambda * (1 - ssim_sum / static_cast<double>(count));
 }
 
 // The two scalars every kernel is built for: float runs, double checks.
