@@ -538,6 +538,12 @@ void AddSplatCommand(CLI::App* train) {
       "of its segments; the first task trains frame 0 into OUT/plan, the others "
       "wait for it and read it; the model and report.json are merged when every "
       "frame is done (holocap report OUT --merge)");
+  command
+      ->add_option("--pixel-budget", o.pixel_budget,
+                   "Pixels an iteration draws at the start: views larger than this train halved "
+                   "until they fit, reaching full resolution halfway through the budget (0: "
+                   "full resolution throughout)")
+      ->capture_default_str();
   command->add_flag("--profile", args->profile,
                     "Print the wall time of one iteration by stage (projection, sort, binning, "
                     "forward, loss and SSIM, backward, reduction, Adam, densification); "

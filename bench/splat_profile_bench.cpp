@@ -14,6 +14,7 @@
 //   splat_profile_bench --scene synthetic|dino|studio8|object-ring [--width 640]
 //                       [--iterations 20] [--threads 2] [--work /tmp/splat-profile]
 //                       [--holocap build/app/holocap] [--sim-size 1280] [--gaussians 100000]
+//                       [--pixel-budget 0]
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <cstdio>
@@ -87,9 +88,9 @@ SplatScene Synthetic(int64_t count, int width) {
     const double angle = 2 * M_PI * c / 16;
     SplatView view;
     view.name = Cat("cam", c);
-    view.camera =
-        Ring(Eigen::Vector3d(1.2 * std::cos(angle), 1.2 * std::sin(angle), 0.3 * std::sin(3 * angle)),
-             width);
+    view.camera = Ring(
+        Eigen::Vector3d(1.2 * std::cos(angle), 1.2 * std::sin(angle), 0.3 * std::sin(3 * angle)),
+        width);
     const SplatRender render = RenderSplats(truth, view.camera, background, 0);
     render.color.convertTo(view.image, CV_8UC3, 255.0);
     background.convertTo(view.background, CV_8UC3, 255.0);
@@ -106,15 +107,15 @@ fs::path SimulateOnce(const fs::path& work, const std::string& name, const std::
   const fs::path take = work / Cat(name, "-", size);
   if (fs::exists(take / "take.json")) return take;
   fs::create_directories(work);
-  const std::string command = Cat(holocap, " sim --rig studio8 --frames 1 --size ", size, " ",
-                                  flags, " --out ", take.string(), " --overwrite > ",
-                                  (work / Cat(name, "-sim.log")).string(), " 2>&1");
+  const std::string command =
+      Cat(holocap, " sim --rig studio8 --frames 1 --size ", size, " ", flags, " --out ",
+          take.string(), " --overwrite > ", (work / Cat(name, "-sim.log")).string(), " 2>&1");
   if (std::system(command.c_str()) != 0) Fail("'", command, "' failed");
   return take;
 }
 
 int Run(const std::string& name, int width, int64_t iterations, int threads, const fs::path& work,
-        const std::string& holocap, int sim_size, int64_t gaussians) {
+        const std::string& holocap, int sim_size, int64_t gaussians, int64_t pixel_budget) {
   SplatOptions options;
   options.minutes = 0;
   options.iterations = iterations;
@@ -128,6 +129,7 @@ int Run(const std::string& name, int width, int64_t iterations, int threads, con
   options.eval_every_s = 1e9;  // scored once before the first iteration and at the end
   options.seed_method = "hull";
   options.heldout_cameras = 1;
+  options.pixel_budget = pixel_budget;
   const fs::path model = work / "runs" / Cat(name, "-", width);
   fs::remove_all(model);
   SplatScene scene;
@@ -172,8 +174,9 @@ int main(int argc, char** argv) {
   std::string scene = "synthetic", holocap = "build/app/holocap";
   std::string work = "/tmp/splat-profile";
   int width = 640, threads = 2, sim_size = 1280;
-  int64_t iterations = 20, gaussians = 100000;
-  app.add_option("--scene", scene, "synthetic, dino, studio8 or object-ring")->capture_default_str();
+  int64_t iterations = 20, gaussians = 100000, pixel_budget = 0;
+  app.add_option("--scene", scene, "synthetic, dino, studio8 or object-ring")
+      ->capture_default_str();
   app.add_option("--width", width, "Training width (height 3/4 of it)")->capture_default_str();
   app.add_option("--iterations", iterations, "Iterations profiled")->capture_default_str();
   app.add_option("--threads", threads, "OpenMP threads")->capture_default_str();
@@ -184,9 +187,14 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--gaussians", gaussians, "Gaussians of the synthetic scene")
       ->capture_default_str();
+  app.add_option("--pixel-budget", pixel_budget,
+                 "Pixels an iteration draws at the start (0: every iteration at --width; the "
+                 "stages then compare size for size)")
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   try {
-    return Run(scene, width, iterations, threads, fs::absolute(work), holocap, sim_size, gaussians);
+    return Run(scene, width, iterations, threads, fs::absolute(work), holocap, sim_size, gaussians,
+               pixel_budget);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "splat_profile_bench: error: %s\n", e.what());
     return 1;

@@ -53,13 +53,15 @@ void SplatOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GT(rotation_lr, 0);
   HOLOCAP_CHECK_OPTION_IN(ssim_weight, 0, 1);
   HOLOCAP_CHECK_OPTION_GT(min_scale_px, 0);
-  HOLOCAP_CHECK_OPTION_GT(max_scale_extent, 0);
+  HOLOCAP_CHECK_OPTION_GE(pixel_budget, 0);
+  HOLOCAP_CHECK_OPTION_IN(full_resolution_at, 0, 1);
+  HOLOCAP_CHECK_OPTION_GT(max_scale_view, 0);
   HOLOCAP_CHECK_OPTION_GE(densify_every, 1);
   HOLOCAP_CHECK_OPTION_GT(densify_gradient, 0);
-  HOLOCAP_CHECK_OPTION_GT(percent_dense, 0);
+  HOLOCAP_CHECK_OPTION_GT(split_scale_view, 0);
   HOLOCAP_CHECK_OPTION_GT(prune_opacity, 0);
   HOLOCAP_CHECK_OPTION_LT(prune_opacity, 1);
-  HOLOCAP_CHECK_OPTION_GT(prune_extent, 0);
+  HOLOCAP_CHECK_OPTION_GT(prune_scale_view, 0);
   HOLOCAP_CHECK_OPTION_GE(opacity_reset_every, 0);
   HOLOCAP_CHECK_OPTION_GT(eval_every_s, 0);
   HOLOCAP_CHECK_OPTION_GE(eval_every_iterations, 0);
@@ -148,15 +150,17 @@ nlohmann::json SplatOptions::ToJson() const {
           {"rotation_lr", rotation_lr},
           {"ssim_weight", ssim_weight},
           {"min_scale_px", min_scale_px},
-          {"max_scale_extent", max_scale_extent},
+          {"pixel_budget", pixel_budget},
+          {"full_resolution_at", full_resolution_at},
+          {"max_scale_view", max_scale_view},
           {"seed", seed},
           {"densify_from", densify_from},
           {"densify_until", densify_until},
           {"densify_every", densify_every},
           {"densify_gradient", densify_gradient},
-          {"percent_dense", percent_dense},
+          {"split_scale_view", split_scale_view},
           {"prune_opacity", prune_opacity},
-          {"prune_extent", prune_extent},
+          {"prune_scale_view", prune_scale_view},
           {"opacity_reset_every", opacity_reset_every},
           {"eval_every_s", eval_every_s},
           {"eval_every_iterations", eval_every_iterations},

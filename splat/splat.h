@@ -120,10 +120,18 @@ struct SplatOptions {
   double opacity_lr = 0.05;
   double scale_lr = 5e-3;
   double rotation_lr = 1e-3;
-  double ssim_weight = 0.2;       // lambda of (1 - lambda) L1 + lambda D-SSIM
-  double min_scale_px = 0.1;      // scale floor: this many pixels' footprint at the scene's
-                                  // median distance (keeps covariances positive definite)
-  double max_scale_extent = 0.5;  // scale cap, x the scene's extent
+  double ssim_weight = 0.2;  // lambda of (1 - lambda) L1 + lambda D-SSIM
+  // Training resolution (the plan's "resolution"): an iteration draws at most this many pixels
+  // at the start (the views halved until they fit; 0: full resolution throughout), halving
+  // less as training goes, full resolution from full_resolution_at of the budget on.
+  int64_t pixel_budget = 640 * 480;
+  double full_resolution_at = 0.5;
+  double min_scale_px = 0.1;  // scale floor: this many pixels' footprint at the scene's
+                              // median distance (keeps covariances positive definite)
+  // Bounds in the image: x the view's width, the width the image spans at the scene's median
+  // distance (image width x distance / focal, metres), so that a bound is the same share of
+  // the picture, the same pixels, for a 10 cm object and a 2 m person.
+  double max_scale_view = 0.5;  // scale cap, x the view's width
   uint64_t seed = 1;
   FrameTaskOptions tasks;  // per-frame runs: this task's shard and --redo (never part of what
                            // decides a frame's bytes)
@@ -134,9 +142,9 @@ struct SplatOptions {
   int64_t densify_every = 100;         // iterations between densifications
   double densify_gradient = 2e-4;      // mean view-space positional gradient (NDC units, as the
                                        // paper's) above which a Gaussian is cloned or split
-  double percent_dense = 0.01;         // larger than this x the extent: split, else clone
+  double split_scale_view = 0.01;      // larger than this x the view's width: split, else clone
   double prune_opacity = 0.005;        // more transparent Gaussians are removed
-  double prune_extent = 0.1;           // larger than this x the extent (world): removed
+  double prune_scale_view = 0.1;       // larger than this x the view's width: removed
   int64_t opacity_reset_every = 3000;  // opacities lowered to 0.01 (0: never)
 
   // Bookkeeping.

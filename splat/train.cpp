@@ -75,23 +75,23 @@ struct StageProfile {
   double adam = 0;           // Adam, the parameters' bounds and the finite check
   double densification = 0;  // densify, prune, opacity reset
   double iteration = 0;      // the whole iteration (the rest: snapshots, bookkeeping)
+  double pixels = 0;         // drawn, over the iterations (the resolution schedule's)
   int64_t iterations = 0;
 
   // {"iterations", "iterations_per_s", "stages": [{"stage", "ms_per_iteration", "share"}]}
   nlohmann::json ToJson() const {
     const double n = static_cast<double>(std::max<int64_t>(iterations, 1));
-    const std::pair<const char*, double> stages[] = {
-        {"projection", projection},
-        {"sort", kernels.sort},
-        {"binning", kernels.binning},
-        {"forward", kernels.forward},
-        {"loss_ssim", loss},
-        {"backward", kernels.backward},
-        {"reduction", kernels.reduction},
-        {"project_backward", parameters},
-        {"statistic", statistic},
-        {"adam", adam},
-        {"densification", densification}};
+    const std::pair<const char*, double> stages[] = {{"projection", projection},
+                                                     {"sort", kernels.sort},
+                                                     {"binning", kernels.binning},
+                                                     {"forward", kernels.forward},
+                                                     {"loss_ssim", loss},
+                                                     {"backward", kernels.backward},
+                                                     {"reduction", kernels.reduction},
+                                                     {"project_backward", parameters},
+                                                     {"statistic", statistic},
+                                                     {"adam", adam},
+                                                     {"densification", densification}};
     nlohmann::json rows = nlohmann::json::array();
     double counted = 0;
     for (const auto& [name, seconds] : stages) {
@@ -105,6 +105,7 @@ struct StageProfile {
                     {"share", std::max(0.0, iteration - counted) / std::max(iteration, 1e-12)}});
     return {{"iterations", iterations},
             {"seconds", iteration},
+            {"pixels_per_iteration", pixels / n},
             {"iterations_per_s", iterations / std::max(iteration, 1e-12)},
             {"stages", rows}};
   }
@@ -142,6 +143,14 @@ class Trainer {
     }
     if (training_.empty()) Fail("no training view: every camera is held out");
     MeasureScene();
+    levels_.resize(scene.views.size());
+    const SplatView& first = scene.views.front();
+    if (options.pixel_budget > 0) {
+      while ((first.image.cols >> start_level_) * (first.image.rows >> start_level_) >
+                 options.pixel_budget &&
+             (first.image.cols >> (start_level_ + 1)) >= splat::kTileSide)
+        ++start_level_;
+    }
   }
 
   SplatSummary Run(Report* report);
@@ -177,16 +186,17 @@ class Trainer {
   double CpuDeadline(int64_t frame) const;
   void Seed(SplatSummary* summary);
   void SeedGaussian(int64_t i, const SplatSeed& seed, size_t s, float log_scale);
-  double TrainStep(int active_degree, int view);
-  void AdamStep(double progress, double* opacity_step);
+  double TrainStep(int active_degree, int view, int level);
+  bool AdamStep(double progress, double* opacity_step);
+  int64_t BoundGaussian(int64_t i);
   void BoundParameters();
+  void ZeroGradient();
   void Densify(SplatSummary* summary);
   void Prune(bool prune_large, SplatSummary* summary);
   void Keep(const std::vector<int64_t>& indices);
   void ResetOpacity();
   Evaluation Evaluate(bool write_images);
   double TrainingPsnr();
-  bool Finite() const;
   void DescribePlan(SplatSummary* summary) const;
   void Judge(int64_t iteration, SplatSummary* summary) const;
   void Finish(SplatSummary* summary);
@@ -202,6 +212,16 @@ class Trainer {
   std::vector<int> training_, heldout_;
   std::vector<splat::PinholeCamera> cameras_;
   std::vector<std::vector<float>> targets_, backgrounds_;
+  // The views halved `level` times (index level - 1), made when first drawn; a frame shown
+  // anew clears them. start_level_: the level training starts at (the pixel budget's).
+  struct ViewLevel {
+    splat::PinholeCamera camera;
+    std::vector<float> target, background;
+  };
+  std::vector<std::vector<ViewLevel>> levels_;
+  int start_level_ = 0;
+  const ViewLevel& Level(int v, int level);
+  int LevelAt(double fraction) const;
   std::vector<const cv::Mat*> images_, masks_;  // the frame being trained, per view
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
   CpuClock cpu_;                  // since LoadSplatScene began, held-out scoring excluded
@@ -215,6 +235,8 @@ class Trainer {
                                   // durable, no model.json or held-out images written
   double extent_ = 1;             // the paper's "cameras extent": 1.1 x the farthest camera from
                                   // their mean centre
+  double pixel_m_ = 1e-3;         // a pixel's width at the scene's median distance (metres)
+  double view_width_m_ = 1;       // the image's width there: the bounds' unit (SplatOptions)
   double min_log_scale_ = -20, max_log_scale_ = 0;
   Gaussians gaussians_, gradient_;
   Moments moments_;
@@ -249,8 +271,11 @@ void Trainer::MeasureScene() {
   std::nth_element(distances.begin(), distances.begin() + distances.size() / 2, distances.end());
   const double median_distance = distances[distances.size() / 2];
   const double focal = scene_.views.front().camera.intrinsics()[0];
-  min_log_scale_ = std::log(options_.min_scale_px * median_distance / focal);
-  max_log_scale_ = std::log(options_.max_scale_extent * extent_);
+  const int width = scene_.views.front().camera.width();
+  pixel_m_ = median_distance / focal;
+  view_width_m_ = width * pixel_m_;
+  min_log_scale_ = std::log(options_.min_scale_px * pixel_m_);
+  max_log_scale_ = std::log(options_.max_scale_view * view_width_m_);
 }
 
 // Gaussian i becomes seed point s: isotropic at `log_scale`, the seed's colour as the degree-0
@@ -285,8 +310,37 @@ void Trainer::Seed(SplatSummary* summary) {
   summary->seed_points = n;
 }
 
-double Trainer::TrainStep(int active_degree, int v) {
-  const splat::PinholeCamera& camera = cameras_[v];
+// The level an iteration at `fraction` of the budget draws at: start_level_ at the start, one
+// level less at each equal step, 0 (full resolution) from options.full_resolution_at on.
+int Trainer::LevelAt(double fraction) const {
+  if (start_level_ == 0 || fraction >= options_.full_resolution_at) return 0;
+  const double share = fraction / std::max(options_.full_resolution_at, 1e-12);
+  return start_level_ - static_cast<int>(share * start_level_);
+}
+
+const Trainer::ViewLevel& Trainer::Level(int v, int level) {
+  std::vector<ViewLevel>& made = levels_[v];
+  if (made.size() < static_cast<size_t>(level)) made.resize(level);
+  ViewLevel& out = made[level - 1];
+  if (out.target.empty()) {
+    const double scale = std::ldexp(1.0, -level);
+    const CameraModel camera = scene_.views[v].camera.Scaled(scale);
+    out.camera = ToPinhole(camera);
+    const cv::Size size(camera.width(), camera.height());
+    cv::Mat image, background;
+    cv::resize(*images_[v], image, size, 0, 0, cv::INTER_AREA);
+    cv::resize(scene_.views[v].background, background, size, 0, 0, cv::INTER_AREA);
+    out.target = ToFloat(image);
+    out.background = ToFloat(background);
+  }
+  return out;
+}
+
+double Trainer::TrainStep(int active_degree, int v, int level) {
+  const ViewLevel* scaled = level > 0 ? &Level(v, level) : nullptr;
+  const splat::PinholeCamera& camera = scaled != nullptr ? scaled->camera : cameras_[v];
+  const std::vector<float>& target = scaled != nullptr ? scaled->target : targets_[v];
+  const std::vector<float>& background = scaled != nullptr ? scaled->background : backgrounds_[v];
   splat::RasterOptions raster;
   raster.active_sh_degree = active_degree;
   raster.times = &profile_.kernels;
@@ -296,19 +350,18 @@ double Trainer::TrainStep(int active_degree, int v) {
   const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
   image_.resize(3 * pixels);
   dloss_.resize(3 * pixels);
-  splat::RasterizeForward(projected_, camera, raster, backgrounds_[v].data(), image_.data(),
+  profile_.pixels += static_cast<double>(pixels);
+  splat::RasterizeForward(projected_, camera, raster, background.data(), image_.data(),
                           static_cast<float*>(nullptr), static_cast<float*>(nullptr), &raster_);
   Lap(&clock);
-  const double loss = splat::PhotometricLoss(image_.data(), targets_[v].data(), camera.width,
+  const double loss = splat::PhotometricLoss(image_.data(), target.data(), camera.width,
                                              camera.height, options_.ssim_weight, dloss_.data());
   profile_.loss += Lap(&clock);
   if (!std::isfinite(loss)) return loss;
-  splat::RasterizeBackward(projected_, camera, raster, raster_, backgrounds_[v].data(),
-                           dloss_.data(), static_cast<const float*>(nullptr),
-                           &projected_gradients_);
+  splat::RasterizeBackward(projected_, camera, raster, raster_, background.data(), dloss_.data(),
+                           static_cast<const float*>(nullptr), &projected_gradients_);
   Lap(&clock);
-  gradient_.Resize(0);
-  gradient_.Resize(gaussians_.size());
+  ZeroGradient();
   splat::ProjectBackward(gaussians_, camera, raster, projected_, projected_gradients_, &gradient_);
   profile_.parameters += Lap(&clock);
   // The paper's statistic: the positional gradient in normalised device coordinates.
@@ -324,10 +377,25 @@ double Trainer::TrainStep(int active_degree, int v) {
   return loss;
 }
 
-// Adam on every group with its own rate; the position's decays exponentially to 1/100.
-// opacity_step receives the mean |change| of the opacity logits that had a gradient.
-void Trainer::AdamStep(double progress, double* opacity_step) {
-  const std::vector<float> opacity_before = gaussians_.opacity;
+// The gradient sized as the Gaussians and zero, without giving its memory back.
+void Trainer::ZeroGradient() {
+  gradient_.Resize(gaussians_.size());
+  std::vector<float>* const fields[] = {&gradient_.position, &gradient_.rotation,
+                                        &gradient_.log_scale, &gradient_.opacity, &gradient_.sh};
+#pragma omp parallel
+  for (std::vector<float>* field : fields) {
+    float* values = field->data();
+    const int64_t count = static_cast<int64_t>(field->size());
+#pragma omp for schedule(static) nowait
+    for (int64_t k = 0; k < count; ++k) values[k] = 0;
+  }
+}
+
+// Adam on every group with its own rate; the position's decays exponentially to 1/100. Then
+// the bounds (BoundParameters). One pass over the Gaussians, each Gaussian's groups in turn.
+// opacity_step receives the mean |change| of the opacity logits that had a gradient; returns
+// whether every position, scale, opacity and colour value is finite after the bounds.
+bool Trainer::AdamStep(double progress, double* opacity_step) {
   ++adam_step_;
   const double beta1 = 0.9, beta2 = 0.999, epsilon = 1e-15;
   const double correction1 = 1 - std::pow(beta1, adam_step_);
@@ -337,42 +405,77 @@ void Trainer::AdamStep(double progress, double* opacity_step) {
                                  ? options_.position_lr * extent_ *
                                        options_.frame_position_lr_scale * std::pow(0.1, progress)
                                  : options_.position_lr * extent_ * std::pow(0.01, progress);
-  // Elements whose index within a stride-long block is below 3 move at lr_first, the others at
-  // lr_rest (the spherical harmonics: degree 0 at the full rate, the rest at 1/20).
+  const double scale = lr_scale_ * options_.learning_rate;
+  const float b1 = static_cast<float>(beta1), b2 = static_cast<float>(beta2);
+  const float c1 = static_cast<float>(1 / correction1), c2 = static_cast<float>(1 / correction2);
+  const float eps = static_cast<float>(epsilon);
+  // Adam on `count` values from `at`, the first `first_count` at `first`, the rest at `rest`.
   auto step = [&](std::vector<float>& p, const std::vector<float>& g, std::vector<float>& m,
-                  std::vector<float>& s, double lr_first, double lr_rest, size_t stride) {
-    const double scale = lr_scale_ * options_.learning_rate;
-    const float first = static_cast<float>(lr_first * scale);
-    const float rest = static_cast<float>(lr_rest * scale);
-    const float b1 = static_cast<float>(beta1), b2 = static_cast<float>(beta2);
-    const float c1 = static_cast<float>(1 / correction1), c2 = static_cast<float>(1 / correction2);
-    const size_t n = p.size();
-#pragma omp parallel for schedule(static)
-    for (size_t k = 0; k < n; ++k) {
-      const float rate = stride == 0 || k % stride < 3 ? first : rest;
+                  std::vector<float>& s, size_t at, size_t count, size_t first_count, float first,
+                  float rest) {
+    for (size_t k = at; k < at + count; ++k) {
+      const float rate = k - at < first_count ? first : rest;
       m[k] = b1 * m[k] + (1 - b1) * g[k];
       s[k] = b2 * s[k] + (1 - b2) * g[k] * g[k];
-      p[k] -= rate * (m[k] * c1) / (std::sqrt(s[k] * c2) + static_cast<float>(epsilon));
+      p[k] -= rate * (m[k] * c1) / (std::sqrt(s[k] * c2) + eps);
     }
   };
+  auto rate = [&](double lr) { return static_cast<float>(lr * scale); };
+  const float position_rate = rate(position_lr), rotation_rate = rate(options_.rotation_lr);
+  const float scale_rate = rate(options_.scale_lr), opacity_rate = rate(options_.opacity_lr);
+  // A later frame's delta holds no higher harmonics: they stay as the frame before left them.
+  const float sh_first = rate(options_.sh_lr), sh_rest = rate(temporal_ ? 0 : options_.sh_lr / 20);
+  const size_t sh_stride = size_t{3} * gaussians_.coefficients();
+  Gaussians& p = gaussians_;
+  const Gaussians& g = gradient_;
   Gaussians& m = moments_.first;
   Gaussians& s = moments_.second;
-  step(gaussians_.position, gradient_.position, m.position, s.position, position_lr, 0, 0);
-  step(gaussians_.rotation, gradient_.rotation, m.rotation, s.rotation, options_.rotation_lr, 0, 0);
-  step(gaussians_.log_scale, gradient_.log_scale, m.log_scale, s.log_scale, options_.scale_lr, 0,
-       0);
-  step(gaussians_.opacity, gradient_.opacity, m.opacity, s.opacity, options_.opacity_lr, 0, 0);
+  const int64_t n = gaussians_.size();
   double moved = 0;
-  int64_t moving = 0;
-  for (size_t i = 0; i < opacity_before.size(); ++i) {
-    if (gradient_.opacity[i] == 0) continue;
-    moved += std::abs(gaussians_.opacity[i] - opacity_before[i]);
-    ++moving;
+  int64_t moving = 0, floored = 0, not_finite = 0;
+#pragma omp parallel for schedule(static) reduction(+ : moved, moving, floored, not_finite)
+  for (int64_t i = 0; i < n; ++i) {
+    const auto u = static_cast<size_t>(i);
+    const float opacity_before = p.opacity[u];
+    step(p.position, g.position, m.position, s.position, 3 * u, 3, 3, position_rate, 0);
+    step(p.rotation, g.rotation, m.rotation, s.rotation, 4 * u, 4, 4, rotation_rate, 0);
+    step(p.log_scale, g.log_scale, m.log_scale, s.log_scale, 3 * u, 3, 3, scale_rate, 0);
+    step(p.opacity, g.opacity, m.opacity, s.opacity, u, 1, 1, opacity_rate, 0);
+    step(p.sh, g.sh, m.sh, s.sh, sh_stride * u, sh_stride, 3, sh_first, sh_rest);
+    if (g.opacity[u] != 0) {
+      moved += std::abs(p.opacity[u] - opacity_before);
+      ++moving;
+    }
+    floored += BoundGaussian(i);
+    bool finite = std::isfinite(p.opacity[u]);
+    for (size_t k = 3 * u; k < 3 * u + 3; ++k)
+      finite = finite && std::isfinite(p.position[k]) && std::isfinite(p.log_scale[k]);
+    for (size_t k = sh_stride * u; k < sh_stride * (u + 1); ++k)
+      finite = finite && std::isfinite(p.sh[k]);
+    not_finite += finite ? 0 : 1;
   }
-  *opacity_step = moving > 0 ? moved / moving : 0;
-  // A later frame's delta holds no higher harmonics: they stay as the frame before left them.
-  step(gaussians_.sh, gradient_.sh, m.sh, s.sh, options_.sh_lr, temporal_ ? 0 : options_.sh_lr / 20,
-       size_t{3} * gaussians_.coefficients());
+  floored_ += floored;
+  *opacity_step = moving > 0 ? moved / static_cast<double>(moving) : 0;
+  return not_finite == 0;
+}
+
+// Gaussian i's scales between the floor and the cap, its opacity logit within +-12 and its
+// quaternion reset when it lost its length; returns how many scale values it lifted.
+int64_t Trainer::BoundGaussian(int64_t i) {
+  const float lo = static_cast<float>(min_log_scale_), hi = static_cast<float>(max_log_scale_);
+  int64_t floored = 0;
+  for (int a = 0; a < 3; ++a) {
+    float& s = gaussians_.log_scale[3 * i + a];
+    if (s < lo) ++floored;
+    s = std::clamp(s, lo, hi);
+  }
+  gaussians_.opacity[i] = std::clamp(gaussians_.opacity[i], -kMaxOpacityLogit, kMaxOpacityLogit);
+  float* q = &gaussians_.rotation[4 * i];
+  if (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] < 1e-12f) {
+    q[0] = 1;
+    q[1] = q[2] = q[3] = 0;
+  }
+  return floored;
 }
 
 // Bounded activations: scales between the floor and the cap (the floor keeps every covariance
@@ -380,21 +483,8 @@ void Trainer::AdamStep(double progress, double* opacity_step) {
 // logits within +-12, quaternions that lost their length reset.
 void Trainer::BoundParameters() {
   int64_t floored = 0;
-  const float lo = static_cast<float>(min_log_scale_), hi = static_cast<float>(max_log_scale_);
 #pragma omp parallel for schedule(static) reduction(+ : floored)
-  for (int64_t i = 0; i < gaussians_.size(); ++i) {
-    for (int a = 0; a < 3; ++a) {
-      float& s = gaussians_.log_scale[3 * i + a];
-      if (s < lo) ++floored;
-      s = std::clamp(s, lo, hi);
-    }
-    gaussians_.opacity[i] = std::clamp(gaussians_.opacity[i], -kMaxOpacityLogit, kMaxOpacityLogit);
-    float* q = &gaussians_.rotation[4 * i];
-    if (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] < 1e-12f) {
-      q[0] = 1;
-      q[1] = q[2] = q[3] = 0;
-    }
-  }
+  for (int64_t i = 0; i < gaussians_.size(); ++i) floored += BoundGaussian(i);
   floored_ += floored;
 }
 
@@ -433,7 +523,7 @@ void Trainer::Keep(const std::vector<int64_t>& indices) {
 // (large ones: each sampled from the original, scales / 1.6). Stops at max_gaussians.
 void Trainer::Densify(SplatSummary* summary) {
   const int64_t n = gaussians_.size();
-  const double split_above = options_.percent_dense * extent_;
+  const double split_above = options_.split_scale_view * view_width_m_;
   std::vector<int64_t> keep, clones, splits;
   for (int64_t i = 0; i < n; ++i) {
     const bool hot = grad_count_[i] > 0 && grad_accum_[i] / grad_count_[i] >=
@@ -492,7 +582,7 @@ void Trainer::Densify(SplatSummary* summary) {
 // degenerate ones (a value not finite) and those that left the volume.
 void Trainer::Prune(bool prune_large, SplatSummary* summary) {
   const float min_logit = Logit(options_.prune_opacity);
-  const float max_log = static_cast<float>(std::log(options_.prune_extent * extent_));
+  const float max_log = static_cast<float>(std::log(options_.prune_scale_view * view_width_m_));
   const Eigen::Vector3d grow = Eigen::Vector3d::Constant(0.05 * scene_.box.size().norm());
   const Box volume{scene_.box.min - grow, scene_.box.max + grow};
   std::vector<int64_t> keep;
@@ -532,15 +622,6 @@ void Trainer::ResetOpacity() {
     moments_.first.opacity[i] = moments_.second.opacity[i] = 0;
   }
   reset_done_ = true;
-}
-
-bool Trainer::Finite() const {
-  for (const std::vector<float>* field :
-       {&gaussians_.position, &gaussians_.log_scale, &gaussians_.opacity, &gaussians_.sh}) {
-    for (float value : *field)
-      if (!std::isfinite(value)) return false;
-  }
-  return true;
 }
 
 Evaluation Trainer::Evaluate(bool write_images) {
@@ -610,8 +691,37 @@ void Trainer::DescribePlan(SplatSummary* summary) const {
   for (int v : heldout_) summary->plan["heldout"].push_back(scene_.views[v].name);
   summary->plan["extent_m"] = extent_;
   summary->plan["scale_bounds_m"] = {std::exp(min_log_scale_), std::exp(max_log_scale_)};
+  // The bounds in the image: pixels at the median distance, the same for any subject's size.
+  const double view_px = view_width_m_ / pixel_m_;
+  summary->plan["view_width_m"] = view_width_m_;
+  summary->plan["scale_bounds_px"] = {options_.min_scale_px, options_.max_scale_view * view_px};
+  summary->plan["split_above_px"] = options_.split_scale_view * view_px;
+  summary->plan["prune_above_px"] = options_.prune_scale_view * view_px;
+  summary->plan["split_above_m"] = options_.split_scale_view * view_width_m_;
+  summary->plan["prune_above_m"] = options_.prune_scale_view * view_width_m_;
   summary->plan["losses"] = {{"l1", 1 - options_.ssim_weight}, {"dssim", options_.ssim_weight}};
   summary->plan["device"] = "cpu (splat/kernels.h, OpenMP over 16x16 tiles)";
+  const SplatView& first = scene_.views.front();
+  nlohmann::json levels = nlohmann::json::array();
+  for (int level = start_level_; level >= 0; --level) {
+    const double from = start_level_ == 0
+                            ? 0.0
+                            : options_.full_resolution_at * (start_level_ - level) / start_level_;
+    const double scale = std::ldexp(1.0, -level);
+    levels.push_back({{"width", std::lround(first.image.cols * scale)},
+                      {"height", std::lround(first.image.rows * scale)},
+                      {"from_fraction", from}});
+  }
+  summary->plan["resolution"] = {
+      {"pixel_budget", options_.pixel_budget},
+      {"full", {first.image.cols, first.image.rows}},
+      {"schedule", levels},
+      {"why", start_level_ == 0
+                  ? "the views fit the pixel budget: every iteration at full resolution"
+                  : Cat("the views exceed the pixel budget of ", options_.pixel_budget,
+                        " pixels an iteration: halved ", start_level_,
+                        " times at the start, full resolution from ", options_.full_resolution_at,
+                        " of the budget on")}};
 }
 
 // How a run that did not diverge ended: not finite, no subject to judge, or a subject no better
@@ -693,6 +803,7 @@ void Trainer::ShowFrame(int64_t frame) {
     images_[v] = frame == 0 ? &view.image : &scene_.later_frames[frame - 1].images[v];
     masks_[v] = frame == 0 ? &view.mask : &scene_.later_frames[frame - 1].masks[v];
     if (!view.heldout) targets_[v] = ToFloat(*images_[v]);
+    levels_[v].clear();
   }
 }
 
@@ -983,17 +1094,17 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
     const int v = order[cursor++];
     auto iteration_start = std::chrono::steady_clock::now();
     auto clock = iteration_start;
-    const double loss = TrainStep(budget.first ? ActiveDegree(iteration) : options_.sh_degree, v);
+    const double loss = TrainStep(budget.first ? ActiveDegree(iteration) : options_.sh_degree, v,
+                                  budget.first ? LevelAt(fraction) : 0);
     bool diverged = !std::isfinite(loss) ||
                     (reference[v] > 0 && loss > options_.divergence_factor * reference[v]);
     double opacity_step = 0;
     Lap(&clock);
     if (!diverged) {
-      AdamStep(std::min(fraction, 1.0), &opacity_step);
-      BoundParameters();
+      const bool finite = AdamStep(std::min(fraction, 1.0), &opacity_step);
       // A step that flips opacities (a rate far too high) diverges even while the loss, noisy
       // from the start, has not yet doubled.
-      diverged = !Finite() || opacity_step > options_.max_opacity_step;
+      diverged = !finite || opacity_step > options_.max_opacity_step;
     }
     profile_.adam += Lap(&clock);
     if (diverged) {
