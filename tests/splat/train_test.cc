@@ -236,6 +236,25 @@ TEST(SplatTrain, SceneTwentyTimesSmallerTrainsAlike) {
               full.plan["split_above_px"].get<double>(), 1e-6);
 }
 
+// A pixel budget of a quarter of the views: the first half of the iterations draw them halved
+// (32 x 32), the rest at full size, as the plan's schedule says; the subject is still learned.
+TEST(SplatTrain, PixelBudgetDrawsHalvedViewsFirst) {
+  SplatOptions options = TestOptions(200);
+  options.pixel_budget = kSide * kSide / 4;
+  const SplatSummary summary = TrainSplatsOn(MakeScene({}), Dir("budget"), options);
+  ASSERT_TRUE(summary.IsUsable()) << summary.message;
+  const nlohmann::json& schedule = summary.plan["resolution"]["schedule"];
+  ASSERT_EQ(schedule.size(), 2u) << summary.plan["resolution"].dump();
+  EXPECT_EQ(schedule[0]["width"].get<int>(), kSide / 2);
+  EXPECT_EQ(schedule[1]["width"].get<int>(), kSide);
+  EXPECT_DOUBLE_EQ(schedule[1]["from_fraction"].get<double>(), 0.5);
+  // 100 iterations of 32 x 32 pixels and 100 of 64 x 64.
+  EXPECT_NEAR(summary.profile["pixels_per_iteration"].get<double>(),
+              0.5 * (kSide * kSide / 4 + kSide * kSide), 1e-6);
+  EXPECT_EQ(summary.profile["iterations"].get<int64_t>(), 200);
+  EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db + 5) << summary.message;
+}
+
 // A CPU budget counts what loading and seeding spent: a seed that took it all leaves frame 0
 // no iteration (the iteration cap only stops a run that ignores it), and the seconds are
 // reported apart.
