@@ -942,6 +942,35 @@ std::string NoBetterThanBackground(const WebStreamMetrics& s) {
              s.camera_background_psnr_db, " dB)");
 }
 
+// The ladders: per source (mesh, each model), its streams' levels from the fewest Mbps up, which
+// the page chooses among by the throughput and decode time it measures. A stream's source is its
+// name without the level ("nvol-high": "nvol").
+nlohmann::json Ladders(const nlohmann::json& streams) {
+  nlohmann::json ladders = nlohmann::json::array();
+  for (const auto& stream : streams) {
+    const std::string name = stream.at("name").get<std::string>();
+    const std::string quality = stream.at("quality").get<std::string>();
+    const std::string source =
+        name.substr(0, name.size() - std::min(name.size(), quality.size() + 1));
+    auto ladder = std::find_if(ladders.begin(), ladders.end(),
+                               [&](const nlohmann::json& l) { return l.at("name") == source; });
+    if (ladder == ladders.end()) {
+      ladders.push_back(
+          {{"name", source}, {"kind", stream.at("kind")}, {"levels", nlohmann::json::array()}});
+      ladder = ladders.end() - 1;
+    }
+    (*ladder)["levels"].push_back(
+        {{"stream", name}, {"quality", quality}, {"mbps", stream.at("mbps")}});
+  }
+  for (auto& ladder : ladders) {
+    auto& levels = ladder["levels"];
+    std::stable_sort(levels.begin(), levels.end(), [](const auto& a, const auto& b) {
+      return a.at("mbps").template get<double>() < b.at("mbps").template get<double>();
+    });
+  }
+  return ladders;
+}
+
 }  // namespace
 
 void WebExportOptions::Check() const {
@@ -1067,6 +1096,7 @@ WebExportSummary MergeWebSite(const fs::path& site_dir, Report* report) {
   // Last: a player opens the site only once every chunk it lists is in place.
   nlohmann::json manifest = plan.at("head");
   manifest["streams"] = streams;
+  manifest["ladders"] = Ladders(streams);
   WriteFileAtomic(site_dir / "manifest.json", manifest.dump(1) + "\n", /*durable=*/true);
   summary.seconds = report->ElapsedSeconds();
   std::string degenerate;
