@@ -2,10 +2,15 @@
 // The URL's hash is the permalink: frame=K, stream=NAME, and either camera=N (look through
 // capture camera N) or eye=x,y,z&target=x,y,z&fov=DEG; play=1, speed=S, loop=0, helpers=0,
 // background=0 (the subject alone over black where the stream has a background behind it when
-// looking through a capture camera) and ui=0 (no overlays) are optional. window.holocap exposes the state for tests and tools.
+// looking through a capture camera) and ui=0 (no overlays) are optional. A stream named alone
+// is pinned; level=auto lets the page move along its ladder (a ladder's name, e.g. stream=mesh,
+// or no stream at all, is adaptive too), level=QUALITY pins that level of the ladder; buffer=N
+// fetches N frames ahead of the play head (8; the page keeps 3N of a stream's frames decoded).
+// window.holocap exposes the state for tests and tools (window.holocap.abr: the level choice).
 import { captureCamera, cameraCentre, cross, dot, lookAt, multiply, normalize, projectionMatrix,
          scale, add, sub, norm, viewMatrix } from './math.js';
 import { FormatError, StreamBuffer, decodeChunk, loadManifest, parseChunk } from './stream.js';
+import { ThroughputMeter, chooseLevel, isKeyFrame, laddersOf } from './ladder.js';
 import { MeshRenderer } from './mesh.js';
 import { VolumeRenderer } from './volume.js';
 import { SplatRenderer } from './splat.js';
@@ -22,6 +27,14 @@ const state = {
   fatal: null, timeToFirstFrameMs: null, decoded: [], drawTimes: [], fly: false,
   view: null,  // {mode: 'orbit', target, radius, azimuth, elevation, fov} | {mode: 'capture', index}
                // | {mode: 'fly', eye, yaw, pitch, fov}
+  ladders: [], meter: new ThroughputMeter(),
+  decodeMs: [],  // per stream: decode time per frame, smoothed
+  // The level choice: auto (or pinned), the pending switch {stream, at} (at: the target's key
+  // frame where it happens), every switch made, and the stalls while playing (a stall: the next
+  // frame due and not decoded), measured in frames at the playing speed.
+  ahead: 8,  // frames fetched ahead of the play head
+  abr: { auto: true, pending: null, switches: [], stalls: 0, longestStallFrames: 0,
+         stalledSince: null, framesPlayed: 0 },
 };
 window.holocap = state;
 
@@ -115,6 +128,7 @@ function writeHash() {
   const v = state.view, parts = [`frame=${state.frame}`];
   const stream = state.manifest.streams[state.stream];
   if (stream) parts.push(`stream=${encodeURIComponent(stream.name)}`);
+  if (state.abr.auto) parts.push('level=auto');
   if (v.mode === 'capture') {
     parts.push(`camera=${v.index}`);
   } else {
@@ -127,6 +141,7 @@ function writeHash() {
   if (!state.loop) parts.push('loop=0');
   if (!state.helpers) parts.push('helpers=0');
   if (!state.background) parts.push('background=0');
+  if (state.ahead !== 8) parts.push(`buffer=${state.ahead}`);
   if (document.body.classList.contains('bare')) parts.push('ui=0');
   const hash = '#' + parts.join('&');
   if (window.location.hash !== hash) history.replaceState(null, '', hash);
@@ -139,11 +154,28 @@ function readHash() {
   const frames = state.manifest.frames.length;
   if (p.has('frame')) state.frame = Math.max(0, Math.min(frames - 1, parseInt(p.get('frame'), 10) || 0));
   state.time = state.frame;
+  // A stream named alone is pinned, as its permalink drew it; a ladder's name starts it from its
+  // lowest level, adaptively.
+  let auto = !p.has('stream');
   if (p.has('stream')) {
     const index = state.manifest.streams.findIndex((s) => s.name === p.get('stream'));
+    const ladder = state.ladders.find((l) => l.name === p.get('stream'));
     if (index >= 0) state.stream = index;
+    else if (ladder) state.stream = ladder.levels[0].index;
     else message(`no stream '${p.get('stream')}' in this site`);
+    auto = index < 0;
   }
+  if (p.has('level')) {
+    const level = p.get('level');
+    const pinned = ladderOf(state.stream).levels.find((l) => l.quality === level);
+    if (level === 'auto') auto = true;
+    else if (pinned) {
+      auto = false;
+      state.stream = pinned.index;
+    } else message(`no level '${level}' in the ladder ${ladderOf(state.stream).name}`);
+  }
+  if (state.buffers.length > 0) setLevelMode(state.stream, auto);
+  else state.abr.auto = auto;
   const camera = parseInt(p.get('camera'), 10);
   if (p.has('camera') && camera >= 0 && camera < state.manifest.cameras.length) {
     state.view = { mode: 'capture', index: camera };
@@ -159,6 +191,8 @@ function readHash() {
   state.loop = p.get('loop') !== '0';
   state.helpers = p.get('helpers') !== '0';
   state.background = p.get('background') !== '0';
+  state.ahead = Math.max(1, Math.min(64, parseInt(p.get('buffer'), 10) || 8));
+  for (const buffer of state.buffers) buffer.capacity = 3 * state.ahead;
   document.body.classList.toggle('bare', p.get('ui') === '0');
 }
 
@@ -248,6 +282,7 @@ function setFrame(index) {
 
 function stepFrame(delta) {
   state.playing = false;
+  state.abr.pending = null;
   setFrame(state.frame + delta);
 }
 
@@ -256,19 +291,139 @@ function togglePlay() {
   if (state.playing && !state.loop && state.frame === frameCount() - 1) setFrame(0);
 }
 
-function advance(dt) {
-  if (!state.playing) return;
-  const buffer = state.buffers[state.stream];
+// Frames from `from` to `to` in playing order (wrapping when looping).
+function framesBetween(from, to) {
+  const n = frameCount();
+  return state.loop ? ((to - from) % n + n) % n : to - from;
+}
+
+// Stream `s`'s first key frame from frame `from` on (wrapping when looping); -1 when none.
+function nextKeyFrame(s, from) {
+  const stream = state.manifest.streams[s], n = frameCount();
+  for (let k = 0; k < n; ++k) {
+    let i = from + k;
+    if (i >= n) {
+      if (!state.loop) return -1;
+      i %= n;
+    }
+    if (isKeyFrame(stream, i)) return i;
+  }
+  return -1;
+}
+
+function stalled(now, stalling) {
+  const abr = state.abr;
+  if (stalling && abr.stalledSince === null) abr.stalledSince = now;
+  if (stalling || abr.stalledSince === null) return;
+  abr.longestStallFrames = Math.max(abr.longestStallFrames, stallFrames(now));
+  ++abr.stalls;
+  abr.stalledSince = null;
+  // A level that stalled (and every one above it) is not climbed to again for a while: a short
+  // chunk's throughput reads high (a link's first packets come in a burst).
+  if (abr.auto) abr.stalledLevel = { stream: state.stream, until: abr.framesPlayed + 4 * state.ahead };
+}
+
+function stallFrames(now) {
+  const since = state.abr.stalledSince;
+  return since === null ? 0 : (now - since) / 1000 * state.manifest.fps * state.speed;
+}
+
+const ready = (entry) => entry && entry.state !== 'loading';
+
+function advance(dt, now) {
+  if (!state.playing) return stalled(now, false);
   const next = state.frame + 1 < frameCount() ? state.frame + 1 : (state.loop ? 0 : -1);
   if (next < 0) {
     state.playing = false;
+    return stalled(now, false);
+  }
+  // At a pending switch's key frame: the new stream's frame when it is here, else the old one's
+  // (the switch moves to the new stream's next key frame), else whichever comes first.
+  const pending = state.abr.pending;
+  let stream = state.stream;
+  if (pending && next === pending.at && (ready(state.buffers[pending.stream].get(next)) ||
+                                         !ready(state.buffers[stream].get(next))))
+    stream = pending.stream;
+  const entry = state.buffers[stream].get(next);
+  // Waits for a frame still on its way (buffering: a stall once it is due); a failed or empty one
+  // is passed over.
+  state.time = Math.min(state.time + dt * state.speed * state.manifest.fps, state.frame + 1);
+  if (!ready(entry)) {
+    if (state.time >= state.frame + 1 && state.timeToFirstFrameMs !== null) stalled(now, true);
     return;
   }
-  const entry = buffer.get(next);
-  // Waits for a frame still on its way (buffering); a failed or empty one is passed over.
-  if (!entry || entry.state === 'loading') return;
-  state.time += dt * state.speed * state.manifest.fps;
-  if (state.time >= state.frame + 1) setFrame(next);
+  stalled(now, false);
+  if (state.time < state.frame + 1) return;
+  if (pending && next === pending.at) {
+    if (stream === pending.stream) switchTo(stream, next);
+    else pending.at = nextKeyFrame(pending.stream, next + 1);
+    if (state.abr.pending && state.abr.pending.at < 0) state.abr.pending = null;
+  }
+  setFrame(next);
+  ++state.abr.framesPlayed;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The ladder: the level chosen from the measured throughput and decode time
+
+function ladderOf(s) {
+  const name = state.manifest.streams[s].name;
+  return state.ladders.find((l) => l.levels.some((level) => level.stream === name));
+}
+function levelOf(s) {
+  return ladderOf(s).levels.findIndex((level) => level.index === s);
+}
+
+function switchTo(s, frame) {
+  const abr = state.abr, streams = state.manifest.streams;
+  if (s !== state.stream) {
+    abr.switches.push({ frame, from: streams[state.stream].name, to: streams[s].name,
+                        fromMbps: streams[state.stream].mbps, toMbps: streams[s].mbps,
+                        throughputMbps: state.meter.estimate(), auto: abr.auto,
+                        key: isKeyFrame(streams[s], frame) });
+  }
+  state.stream = s;
+  abr.pending = null;
+}
+
+// Pins stream `s` (auto = false) or lets the page choose along its ladder.
+function setLevelMode(s, auto) {
+  state.abr.auto = auto;
+  state.abr.pending = null;
+  if (s !== state.stream) switchTo(s, state.frame);
+  fillLevels();
+}
+
+// Plans a switch when the level the page can keep up with is not the one playing: at the new
+// stream's first key frame after the frames of the old one already decoded ahead.
+function chooseAdaptively() {
+  const abr = state.abr;
+  if (!abr.auto || !state.playing) return;
+  const ladder = ladderOf(state.stream), current = levelOf(state.stream);
+  const decodeMs = ladder.levels.map((level) => state.decodeMs[level.index]);
+  const stalledAt = abr.stalledLevel && abr.framesPlayed < abr.stalledLevel.until
+      ? ladder.levels.findIndex((level) => level.index === abr.stalledLevel.stream) : -1;
+  let best = chooseLevel(ladder, current, state.meter.estimate(), decodeMs, state.speed,
+                           state.manifest.fps);
+  if (stalledAt >= 0) best = Math.min(best, Math.max(0, stalledAt - 1));
+  if (best === current) {
+    abr.pending = null;
+    return;
+  }
+  const target = ladder.levels[best].index;
+  if (abr.pending?.stream === target) return;
+  const ahead = Math.max(1, state.buffers[state.stream].readyAhead(state.frame));
+  const at = nextKeyFrame(target, (state.frame + ahead) % frameCount());
+  abr.pending = at < 0 ? null : { stream: target, at };
+}
+
+// The frames to fetch: the playing stream's ahead of the play head (up to a pending switch's key
+// frame), the new stream's from there.
+function prefetch() {
+  const pending = state.abr.pending, ahead = state.ahead;
+  if (!pending) return state.buffers[state.stream].prefetch(state.frame, ahead, state.loop);
+  state.buffers[state.stream].prefetch(state.frame, framesBetween(state.frame, pending.at) + 1, state.loop);
+  state.buffers[pending.stream].prefetch(pending.at, ahead, state.loop);
 }
 
 function updateStats(now) {
@@ -280,11 +435,28 @@ function updateStats(now) {
   const ahead = buffer ? buffer.readyAhead(state.frame) : 0;
   state.stats = { fps: state.drawTimes.length, decodedMBps: bytes / 1e6, decodedFramesPerSecond: state.decoded.length,
                   bufferAheadFrames: ahead, bufferAheadS: ahead / state.manifest.fps };
+  const stream = state.manifest.streams[state.stream], abr = state.abr;
+  const throughput = state.meter.estimate();
+  abr.stream = stream.name;
+  abr.ladder = ladderOf(state.stream).name;
+  abr.level = stream.quality;
+  abr.mbps = stream.mbps;
+  abr.throughputMbps = throughput;
+  abr.decodeMs = state.decodeMs[state.stream] ?? null;
+  abr.stallingFrames = stallFrames(now);
+  abr.switchingTo = abr.pending ? { stream: state.manifest.streams[abr.pending.stream].name, at: abr.pending.at } : null;
+  for (const [key, value] of Object.entries({ stream: stream.name, level: stream.quality,
+                                              levelMode: abr.auto ? 'auto' : 'pinned',
+                                              mbps: stream.mbps.toFixed(2) }))
+    document.body.dataset[key] = value;
   $('stats').textContent =
       `fps        ${state.stats.fps}\n` +
       `decoded    ${state.stats.decodedMBps.toFixed(2)} MB/s (${state.decoded.length} frames/s)\n` +
       `buffer     ${ahead} frames (${state.stats.bufferAheadS.toFixed(2)} s ahead)\n` +
-      `stream     ${state.manifest.streams[state.stream]?.name ?? '-'}` +
+      `stream     ${stream.name}\n` +
+      `level      ${stream.quality} ${stream.mbps.toFixed(1)} Mbps ${abr.auto ? 'auto' : 'pinned'}` +
+      (abr.switchingTo ? ` -> ${abr.switchingTo.stream} at ${abr.switchingTo.at}` : '') + '\n' +
+      `link       ${throughput === null ? '-' : throughput.toFixed(1) + ' Mbps measured'}` +
       (state.drawnSplats ? `\nsplats     ${state.drawnSplats.drawn} of ${state.drawnSplats.count} drawn` : '');
 }
 
@@ -341,6 +513,17 @@ function resize(canvas) {
   }
 }
 
+// The level menu: auto, then the ladder's levels from the fewest Mbps up.
+function fillLevels() {
+  const menu = $('level'), ladder = ladderOf(state.stream);
+  if (!menu) return;
+  menu.replaceChildren(new Option(`auto (${ladder.name})`, 'auto'));
+  for (const level of ladder.levels)
+    menu.add(new Option(`${level.quality} (${level.mbps.toFixed(1)} Mbps)`, String(level.index)));
+  menu.value = state.abr.auto ? 'auto' : String(state.stream);
+  $('stream').value = String(state.stream);
+}
+
 function buildUi(renderers) {
   const m = state.manifest;
   $('timeline').max = String(frameCount() - 1);
@@ -348,11 +531,21 @@ function buildUi(renderers) {
     $('stream').add(new Option(`${s.name} (${s.mbps.toFixed(1)} Mbps)`, String(i)));
   for (const [i, c] of m.cameras.entries()) $('camera').add(new Option(`${i}: ${c.name}`, String(i)));
   $('stream').value = String(state.stream);
-  $('stream').onchange = () => { state.stream = Number($('stream').value); };
+  $('stream').onchange = () => setLevelMode(Number($('stream').value), false);
+  $('level').onchange = () => {
+    const value = $('level').value;
+    if (value === 'auto') setLevelMode(state.stream, true);
+    else setLevelMode(Number(value), false);
+  };
+  fillLevels();
   $('play').onclick = togglePlay;
   $('back').onclick = () => stepFrame(-1);
   $('forward').onclick = () => stepFrame(1);
-  $('timeline').oninput = () => { state.playing = false; setFrame(Number($('timeline').value)); };
+  $('timeline').oninput = () => {
+    state.playing = false;
+    state.abr.pending = null;
+    setFrame(Number($('timeline').value));
+  };
   $('loop').checked = state.loop;
   $('loop').onchange = () => { state.loop = $('loop').checked; };
   $('speed').value = String(state.speed);
@@ -378,8 +571,13 @@ async function main() {
   }
   const m = state.manifest;
   if (m.frames.length === 0 || m.streams.length === 0) return fatal('this site holds no frames');
-  state.buffers = m.streams.map((s) => new StreamBuffer(base, s, (i, text) => message(text),
-      (bytes) => state.decoded.push({ t: performance.now(), bytes })));
+  state.ladders = laddersOf(m);
+  state.buffers = m.streams.map((s, index) => new StreamBuffer(base, s, (i, text) => message(text),
+      (bytes, decodeMs) => {
+        state.decoded.push({ t: performance.now(), bytes });
+        const before = state.decodeMs[index];
+        state.decodeMs[index] = before === undefined ? decodeMs : 0.7 * before + 0.3 * decodeMs;
+      }, state.meter));
   state.view = defaultView();
   readHash();
   const renderers = { mesh: new MeshRenderer(gl), volume: new VolumeRenderer(gl), splats: new SplatRenderer(gl),
@@ -394,8 +592,9 @@ async function main() {
     last = now;
     resize(canvas);
     moveFly(dt);
-    advance(dt);
-    state.buffers[state.stream].prefetch(state.frame, 8, state.loop);
+    advance(dt, now);
+    chooseAdaptively();
+    prefetch();
     const look = state.view.mode === 'capture' ? state.view.index : -1;
     if (look !== selected) {
       renderers.frusta.set(frustumLines(m, look));

@@ -358,13 +358,16 @@ export function decodeChunk(parsed, previous) {
 // Fetches and decodes chunks of one stream ahead of the play head; remembers failures so that a
 // broken chunk is reported once and skipped.
 export class StreamBuffer {
-  constructor(base, stream, onError, onBytes) {
+  // `onBytes(bytes, decodeMs)` after each frame decoded; `meter` (a ThroughputMeter, or null)
+  // is told when each fetch starts and ends.
+  constructor(base, stream, onError, onBytes, meter = null) {
     this.base = base;
     this.stream = stream;
     this.onError = onError;
     this.onBytes = onBytes;
+    this.meter = meter;
     this.frames = new Map();  // index -> {state: 'loading'|'ready'|'failed', data, error}
-    this.capacity = 24;
+    this.capacity = 24;  // frames kept decoded
   }
 
   get(index) { return this.frames.get(index); }
@@ -390,9 +393,15 @@ export class StreamBuffer {
     // A splat delta decodes from the frame before as decoded (fetched too when it is not here).
     const before = this.stream.kind === 'splats' && !chunk.key ? this.decoded(index - 1) : null;
     entry.promise = (async () => {
-      const response = await fetch(url);
-      if (!response.ok) throw new FormatError(`HTTP ${response.status}`);
-      const buffer = await response.arrayBuffer();
+      this.meter?.started(performance.now());
+      let buffer = null;
+      try {
+        const response = await fetch(url);
+        if (!response.ok) throw new FormatError(`HTTP ${response.status}`);
+        buffer = await response.arrayBuffer();
+      } finally {
+        this.meter?.ended(performance.now(), buffer ? buffer.byteLength : 0);
+      }
       if (buffer.byteLength !== chunk.bytes)
         throw new FormatError(`chunk truncated: ${buffer.byteLength} of ${chunk.bytes} bytes`);
       const parsed = parseChunk(buffer);
