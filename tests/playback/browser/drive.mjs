@@ -16,6 +16,20 @@
 //                                                             (OUT/scrub-FRAME.png each)
 //   node drive.mjs bench URL OUT STREAM...                    time to first frame and frames
 //                                                             decoded per second per stream
+//   node drive.mjs ladder URL OUT LADDER SPEED MBPS LATENCY_MS BUFFER
+//                                                             plays LADDER adaptively at SPEED,
+//                                                             fetching BUFFER frames ahead: up
+//                                                             to its top level, the connection
+//                                                             throttled to MBPS (LATENCY_MS: down
+//                                                             a level, held there two loops), then
+//                                                             freed again; the levels, switches
+//                                                             and stalls the page reports
+//   node drive.mjs playback URL OUT W H MBPS LATENCY_MS STREAM...
+//                                                             per stream at W x H: time to first
+//                                                             frame over a link of MBPS and
+//                                                             LATENCY_MS, frames drawn and shown
+//                                                             per second playing it (5 s), decode
+//                                                             ms per frame
 //   node drive.mjs picture URL OUT W H STREAM                 the whole page, its bar shown, at
 //                                                             frame 0 of STREAM (OUT/player.png;
 //                                                             the documentation's picture)
@@ -33,8 +47,9 @@ const browser = await puppeteer.launch({
          '--ignore-gpu-blocklist', '--disable-dev-shm-usage'],
 });
 
-async function open(hash, width, height, intercept) {
+async function open(hash, width, height, intercept, prepare) {
   const page = await browser.newPage();
+  if (prepare) await prepare(page);
   await page.setViewport({ width, height, deviceScaleFactor: 1 });
   page.on('console', (m) => { if (m.type() === 'error') consoleErrors.push(`${m.text()} (${m.location()?.url ?? ''})`); });
   page.on('pageerror', (e) => consoleErrors.push(`page error: ${e.message}`));
@@ -181,6 +196,101 @@ async function bench(streams) {
   return results;
 }
 
+async function ladder([name, speed, mbps, latencyMs, buffer]) {
+  const page = await open(`frame=0&stream=${name}&level=auto&play=1&speed=${speed}&buffer=${buffer}` +
+                          '&helpers=0', 320, 240);
+  const client = await page.createCDPSession();
+  await client.send('Network.enable');
+  const abr = () => page.evaluate(() => {
+    const s = window.holocap;
+    return { ...s.abr, pending: undefined, frame: s.frame, fatal: s.fatal, messages: s.messages,
+             levels: s.ladders.find((l) => l.name === s.abr.ladder)?.levels.map((l) => l.stream),
+             dataset: { ...document.body.dataset } };
+  });
+  const until = async (predicate, what, timeoutMs = 120000) => {
+    const start = Date.now();
+    for (;;) {
+      const a = await abr();
+      if (a.stream !== undefined && predicate(a)) return a;
+      if (a.fatal || Date.now() - start > timeoutMs)
+        throw new Error(`timed out waiting for ${what}: ${JSON.stringify(a)}`);
+      await new Promise((r) => setTimeout(r, 50));
+    }
+  };
+  // Each phase's longest stall: the page's figure, cleared as the phase begins.
+  const newPhase = () => page.evaluate(() => { window.holocap.abr.longestStallFrames = 0; });
+  const phase = (a, since) => ({ stream: a.stream, mbps: a.mbps, throughputMbps: a.throughputMbps,
+                                 framesPlayed: a.framesPlayed, framesSince: a.framesPlayed - since,
+                                 stalls: a.stalls, longestStallFrames: a.longestStallFrames,
+                                 dataset: a.dataset });
+  const first = await until((a) => a.levels !== undefined, 'the ladder');
+  const top = first.levels[first.levels.length - 1];
+  const results = { levels: first.levels, frames: await page.evaluate(() => window.holocap.manifest.frames.length) };
+  // Up the ladder on the open connection.
+  const opened = await until((a) => a.stream === top, `the top level ${top}`);
+  results.open = phase(opened, 0);
+  // Throttled: down to a level whose rate at this speed fits, then held there for two loops.
+  const throttle = (download, latency) => client.send('Network.emulateNetworkConditions', {
+    offline: false, latency, downloadThroughput: download, uploadThroughput: download });
+  await throttle(+mbps * 1e6 / 8, +latencyMs);
+  await newPhase();
+  const throttledAt = (await abr()).framesPlayed;
+  const down = await until((a) => a.stream !== top, `a level below ${top}`, 60000);
+  results.down = phase(down, throttledAt);
+  await newPhase();
+  let highest = 0;
+  const held = await until((a) => {
+    highest = Math.max(highest, a.mbps);
+    return a.framesPlayed >= down.framesPlayed + 2 * results.frames;
+  }, 'two loops throttled');
+  results.held = { ...phase(held, down.framesPlayed), highestMbps: highest };
+  // Free again: back up to the top level.
+  await throttle(-1, 0);
+  await newPhase();
+  const freedAt = held.framesPlayed;
+  const up = await until((a) => a.stream === top, `the top level ${top} again`);
+  results.up = phase(up, freedAt);
+  results.switches = up.switches;
+  results.messages = up.messages;
+  await page.close();
+  return results;
+}
+
+async function playback([width, height, mbps, latencyMs, ...streams]) {
+  const results = {};
+  const throttled = async (page) => {
+    const client = await page.createCDPSession();
+    await client.send('Network.enable');
+    await client.send('Network.emulateNetworkConditions', {
+      offline: false, latency: +latencyMs, downloadThroughput: +mbps * 1e6 / 8,
+      uploadThroughput: +mbps * 1e6 / 8 });
+  };
+  for (const stream of streams) {
+    const first = await open(`frame=0&stream=${stream}&helpers=0`, +width, +height, null, throttled);
+    const s = await waitFor(first, (s) => s.drawnStream === stream && s.timeToFirstFrameMs !== null,
+                            `${stream} first frame`, 300000);
+    await first.close();
+    const page = await open(`frame=0&stream=${stream}&helpers=0&play=1`, +width, +height);
+    await waitFor(page, (s) => s.drawnStream === stream && s.drawnState === 'ready', `${stream} playing`, 120000);
+    const count = () => page.evaluate(() => ({ played: window.holocap.abr.framesPlayed, fps: window.holocap.stats.fps,
+                                                t: performance.now() }));
+    const start = await count();
+    const drawn = [];
+    for (let i = 0; i < 5; ++i) {
+      await new Promise((r) => setTimeout(r, 1000));
+      drawn.push((await count()).fps);
+    }
+    const end = await count();
+    const decode = await page.evaluate((name) => window.holocap.benchDecode(name), stream);
+    results[stream] = { timeToFirstFrameMs: s.timeToFirstFrameMs, mbps, latencyMs,
+                        drawnPerSecond: drawn.reduce((a, b) => a + b, 0) / drawn.length,
+                        shownPerSecond: (end.played - start.played) / ((end.t - start.t) / 1000),
+                        decodeMsPerFrame: decode.decodeSeconds * 1000 / decode.frames, decode };
+    await page.close();
+  }
+  return results;
+}
+
 let results;
 try {
   if (mode === 'shots') results = await shots(rest, false);
@@ -189,6 +299,8 @@ try {
   else if (mode === 'scrub') results = await scrub(rest);
   else if (mode === 'bench') results = await bench(rest);
   else if (mode === 'picture') results = await picture(rest);
+  else if (mode === 'ladder') results = await ladder(rest);
+  else if (mode === 'playback') results = await playback(rest);
   else throw new Error(`unknown mode '${mode}'`);
   results.ok = true;
 } catch (error) {

@@ -1,0 +1,139 @@
+// The adaptive level ladder: `holocap export web` of a small simulated take's meshes at three
+// levels lists them as one ladder in the manifest, and a real headless Chromium
+// (tests/playback/browser/drive.mjs ladder) plays it: up the ladder on the open connection, down
+// when the connection is throttled (Chromium's network emulation) and back up when it is freed,
+// switching at key frames; the stalls measured in frames.
+#include <gtest/gtest.h>
+
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "core/fs.h"
+#include "tests/playback/view_server.h"
+#include "tests/support/test_support.h"
+
+namespace holocap {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::RunCli;
+using testing::RunShell;
+using testing::TempDir;
+using testing::ViewServer;
+
+// 16 frame sets: more than the page keeps decoded at buffer=4 (12), so that a looping stream is
+// fetched again and again, through whatever the connection allows.
+constexpr int kFrames = 16;
+constexpr int kBuffer = 4;
+
+class WebLadderTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new TempDir("holocap-ladder");
+    auto sim = RunCli("sim --rig studio8 --frames " + std::to_string(kFrames) +
+                      " --clean-plate 1 --size 96 --seed 8 --out '" + Take().string() + "'");
+    ASSERT_EQ(sim.exit_code, 0) << sim.output;
+    auto recon = RunCli("reconstruct '" + Take().string() +
+                        "' --ground-truth-cameras --voxel 16mm --no-sweep");
+    ASSERT_EQ(recon.exit_code, 0) << recon.output;
+    auto exported = RunCli("export web '" + Take().string() +
+                           "' --ground-truth-cameras --quality high,low,medium --out '" +
+                           Site().string() + "'");
+    ASSERT_EQ(exported.exit_code, 0) << exported.output;
+  }
+  static void TearDownTestSuite() {
+    delete dir_;
+    dir_ = nullptr;
+  }
+  static fs::path Take() { return dir_->path() / "take"; }
+  static fs::path Site() { return dir_->path() / "site"; }
+  static TempDir* dir_;
+};
+TempDir* WebLadderTest::dir_ = nullptr;
+
+// The manifest's ladder: each source's levels from the fewest Mbps up.
+void ExpectOneMeshLadder(const fs::path& site) {
+  const auto manifest = nlohmann::json::parse(ReadFileToString(site / "manifest.json"));
+  ASSERT_EQ(manifest.at("ladders").size(), 1u) << manifest.at("ladders").dump(1);
+  const auto& ladder = manifest.at("ladders").at(0);
+  EXPECT_EQ(ladder.at("name"), "mesh");
+  EXPECT_EQ(ladder.at("kind"), "mesh");
+  const auto& levels = ladder.at("levels");
+  ASSERT_EQ(levels.size(), 3u);
+  for (size_t i = 0; i < levels.size(); ++i) {
+    const auto& level = levels[i];
+    bool listed = false;
+    for (const auto& s : manifest.at("streams")) {
+      if (s.at("name") != level.at("stream")) continue;
+      listed = true;
+      EXPECT_EQ(s.at("quality"), level.at("quality"));
+      EXPECT_EQ(s.at("mbps"), level.at("mbps"));
+    }
+    EXPECT_TRUE(listed) << level.dump();
+    if (i > 0) {
+      EXPECT_GT(level.at("mbps").get<double>(), levels[i - 1].at("mbps").get<double>());
+    }
+  }
+  // Listed high, low, medium: the ladder is in rate order, whatever the order asked for.
+  EXPECT_EQ(levels[0].at("quality"), "low");
+  EXPECT_EQ(levels[2].at("quality"), "high");
+}
+
+TEST_F(WebLadderTest, PageMovesDownWhenThrottledAndBackUpWhenFreed) {
+  ExpectOneMeshLadder(Site());
+  if (RunShell("command -v chromium").exit_code != 0)
+    GTEST_SKIP() << "Debian's chromium is not installed (scripts/setup.sh --tests installs it)";
+  const fs::path driver = testing::SourceDir() / "tests/playback/browser";
+  if (!fs::exists(driver / "node_modules/puppeteer-core"))
+    GTEST_SKIP() << "puppeteer-core is not installed (scripts/setup.sh --tests: npm ci in "
+                 << driver << ")";
+  ViewServer server(Site());
+  ASSERT_FALSE(server.url().empty()) << server.first_line();
+  const fs::path out = dir_->path() / "browser";
+  fs::create_directories(out);
+  // At a quarter of the take's speed the top level needs about 1.9 Mbps, the lowest 0.3; the
+  // throttle (1 Mbps, 20 ms) holds the lower levels and not the top one.
+  const double speed = 0.25, throttle_mbps = 1.0;
+  auto run = RunShell("node '" + (driver / "drive.mjs").string() + "' ladder " + server.url() +
+                      " '" + out.string() + "' mesh " + std::to_string(speed) + " " +
+                      std::to_string(throttle_mbps) + " 20 " + std::to_string(kBuffer));
+  const auto r = nlohmann::json::parse(ReadFileToString(out / "ladder.json"));
+  ASSERT_TRUE(r.at("ok").get<bool>()) << run.output;
+  std::printf("%s\n", r.dump(1).c_str());
+  EXPECT_TRUE(r.at("consoleErrors").empty()) << r.dump(1);
+  const std::string top = r.at("levels").back().get<std::string>();
+  const double top_mbps = r.at("open").at("mbps").get<double>();
+  const int frames = r.at("frames").get<int>();
+  // A mesh stream's every chunk is a key frame: one frame is its key-frame interval.
+  const double key_interval_frames = 1;
+  // Open: up from the lowest level to the top one, no stall.
+  EXPECT_EQ(r.at("open").at("stream"), top);
+  EXPECT_EQ(r.at("open").at("dataset").at("levelMode"), "auto");
+  EXPECT_EQ(r.at("open").at("stalls"), 0);
+  // Throttled: down a level within one loop of frames, and no climb back while throttled.
+  const auto& down = r.at("down");
+  EXPECT_LT(down.at("mbps").get<double>(), top_mbps);
+  EXPECT_LE(down.at("framesSince").get<int>(), frames);
+  const auto& held = r.at("held");
+  EXPECT_LT(held.at("highestMbps").get<double>(), top_mbps);
+  EXPECT_LT(held.at("throughputMbps").get<double>(), top_mbps * speed);
+  EXPECT_LE(held.at("longestStallFrames").get<double>(), key_interval_frames) << held.dump();
+  // Freed: back to the top within one loop after the page's hold on a level that stalled (4
+  // buffers of frames), without a stall longer than a key-frame interval.
+  const auto& up = r.at("up");
+  EXPECT_EQ(up.at("stream"), top);
+  EXPECT_LE(up.at("framesSince").get<int>(), 4 * kBuffer + frames);
+  EXPECT_LE(up.at("longestStallFrames").get<double>(), key_interval_frames) << up.dump();
+  // The moment of the throttle: what was fetched at the top level has to arrive over the
+  // throttled link before the first lower frame can.
+  EXPECT_LE(down.at("longestStallFrames").get<double>(), kBuffer) << down.dump();
+  // Every switch at a key frame of the stream switched to, made by the page itself.
+  for (const auto& s : r.at("switches")) {
+    EXPECT_TRUE(s.at("key").get<bool>()) << s.dump();
+    EXPECT_TRUE(s.at("auto").get<bool>()) << s.dump();
+  }
+  EXPECT_GE(r.at("switches").size(), 3u);
+}
+
+}  // namespace
+}  // namespace holocap
