@@ -33,9 +33,11 @@ export function isKeyFrame(stream, i) {
   return stream.kind !== 'splats' || !chunk || chunk.key === true;
 }
 
-// The throughput of the chunk fetches: bytes over the time at least one fetch was in flight (the
-// fetches ahead share the connection, so one fetch's own rate would undercount it), smoothed over
-// chunks by two moving averages, a fast one and a slow one; the estimate is the smaller.
+// The throughput of the chunk fetches: bytes over the time at least one response body was
+// arriving (the fetches ahead share the connection, so one fetch's own rate would undercount it;
+// the round trip before a body is left out: it would make small chunks read slow), smoothed over
+// chunks by two moving averages, a fast one and a slow one. While fetches are in flight it also
+// watches the bytes arriving: a link that slows down shows before the chunks on it end.
 export class ThroughputMeter {
   constructor() {
     this.active = 0;
@@ -44,17 +46,29 @@ export class ThroughputMeter {
     this.sampledMs = 0;   // busy time and bytes up to the last sample
     this.bytes = 0;
     this.sampledBytes = 0;
+    this.periodBytes = 0;  // bytes since the link last went busy
     this.fast = new MovingAverage(2);  // half-lives in samples (about chunks)
     this.slow = new MovingAverage(6);
     this.samples = 0;
+    this.rttMs = null;     // the shortest time to a response's first byte seen
   }
 
   started(now) {
-    if (this.active++ === 0) this.busySince = now;
+    if (this.active++ === 0) {
+      this.busySince = now;
+      this.periodBytes = 0;
+    }
   }
 
-  ended(now, bytes) {
+  // A response's headers arrived, `ms` after its request.
+  responded(ms) { this.rttMs = this.rttMs === null ? ms : Math.min(this.rttMs, ms); }
+
+  progress(bytes) {
     this.bytes += bytes;
+    this.periodBytes += bytes;
+  }
+
+  ended(now) {
     if (--this.active === 0) this.busyMs += now - this.busySince;
     const busy = this.busyMs + (this.active > 0 ? now - this.busySince : 0);
     const ms = busy - this.sampledMs;
@@ -67,8 +81,17 @@ export class ThroughputMeter {
     ++this.samples;
   }
 
-  // Mbps, or null before the first sample.
-  estimate() { return this.samples > 0 ? Math.min(this.fast.value, this.slow.value) : null; }
+  // Mbps, or null before the first sample: the smaller moving average, or less when bodies have
+  // been arriving for longer than `minMs` (and 4 round trips) and brought fewer bytes over that
+  // time.
+  estimate(now = performance.now(), minMs = Infinity) {
+    if (this.samples === 0) return null;
+    let mbps = Math.min(this.fast.value, this.slow.value);
+    const busyMs = now - this.busySince;
+    if (this.active > 0 && busyMs >= Math.max(minMs, 4 * (this.rttMs ?? 0)))
+      mbps = Math.min(mbps, this.periodBytes * 8 / 1e3 / busyMs);
+    return mbps;
+  }
 }
 
 class MovingAverage {

@@ -347,19 +347,24 @@ function advance(dt, now) {
   const entry = state.buffers[stream].get(next);
   // Waits for a frame still on its way (buffering: a stall once it is due); a failed or empty one
   // is passed over.
-  state.time = Math.min(state.time + dt * state.speed * state.manifest.fps, state.frame + 1);
+  state.time += dt * state.speed * state.manifest.fps;
   if (!ready(entry)) {
+    state.time = Math.min(state.time, state.frame + 1);
     if (state.time >= state.frame + 1 && state.timeToFirstFrameMs !== null) stalled(now, true);
     return;
   }
   stalled(now, false);
   if (state.time < state.frame + 1) return;
+  // What is left of the tick counts towards the next frame (a frame at most: a slow page drops
+  // frames rather than run behind).
+  const carry = Math.min(state.time - (state.frame + 1), 0.99);
   if (pending && next === pending.at) {
     if (stream === pending.stream) switchTo(stream, next);
     else pending.at = nextKeyFrame(pending.stream, next + 1);
     if (state.abr.pending && state.abr.pending.at < 0) state.abr.pending = null;
   }
   setFrame(next);
+  state.time += carry;
   ++state.abr.framesPlayed;
 }
 
@@ -403,8 +408,11 @@ function chooseAdaptively() {
   const decodeMs = ladder.levels.map((level) => state.decodeMs[level.index]);
   const stalledAt = abr.stalledLevel && abr.framesPlayed < abr.stalledLevel.until
       ? ladder.levels.findIndex((level) => level.index === abr.stalledLevel.stream) : -1;
-  let best = chooseLevel(ladder, current, state.meter.estimate(), decodeMs, state.speed,
-                           state.manifest.fps);
+  // The link watched live over a frame's time at least: a slowing link shows before the
+  // chunks on it end.
+  const frameMs = 1000 / (state.manifest.fps * Math.max(state.speed, 1e-3));
+  let best = chooseLevel(ladder, current, state.meter.estimate(performance.now(), frameMs),
+                         decodeMs, state.speed, state.manifest.fps);
   if (stalledAt >= 0) best = Math.min(best, Math.max(0, stalledAt - 1));
   if (best === current) {
     abr.pending = null;
@@ -414,15 +422,18 @@ function chooseAdaptively() {
   if (abr.pending?.stream === target) return;
   const ahead = Math.max(1, state.buffers[state.stream].readyAhead(state.frame));
   const at = nextKeyFrame(target, (state.frame + ahead) % frameCount());
-  abr.pending = at < 0 ? null : { stream: target, at };
+  abr.pending = at < 0 ? null : { stream: target, at, down: best < current };
 }
 
-// The frames to fetch: the playing stream's ahead of the play head (up to a pending switch's key
-// frame), the new stream's from there.
+// The frames to fetch: the playing stream's ahead of the play head up to a pending switch's key
+// frame (on the way down, before it: the link is left to the new stream, and the old stream's
+// frames in flight beyond are dropped), the new stream's from there.
 function prefetch() {
   const pending = state.abr.pending, ahead = state.ahead;
   if (!pending) return state.buffers[state.stream].prefetch(state.frame, ahead, state.loop);
-  state.buffers[state.stream].prefetch(state.frame, framesBetween(state.frame, pending.at) + 1, state.loop);
+  const old = state.buffers[state.stream];
+  const span = Math.max(1, framesBetween(state.frame, pending.at) + (pending.down ? 0 : 1));
+  old.cancel(old.prefetch(state.frame, span, state.loop));
   state.buffers[pending.stream].prefetch(pending.at, ahead, state.loop);
 }
 

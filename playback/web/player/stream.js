@@ -382,7 +382,7 @@ export class StreamBuffer {
 
   request(index) {
     if (index < 0 || index >= this.stream.chunks.length || this.frames.has(index)) return;
-    const entry = { state: 'loading' };
+    const entry = { state: 'loading', abort: new AbortController() };
     this.frames.set(index, entry);
     const chunk = this.stream.chunks[index];
     if (!chunk) {
@@ -393,14 +393,18 @@ export class StreamBuffer {
     // A splat delta decodes from the frame before as decoded (fetched too when it is not here).
     const before = this.stream.kind === 'splats' && !chunk.key ? this.decoded(index - 1) : null;
     entry.promise = (async () => {
-      this.meter?.started(performance.now());
+      // The meter times the bodies: a small chunk's request time is mostly the round trip.
+      const requested = performance.now();
+      const response = await fetch(url, { signal: entry.abort.signal });
+      if (!response.ok) throw new FormatError(`HTTP ${response.status}`);
+      const responded = performance.now();
+      this.meter?.responded(responded - requested);
+      this.meter?.started(responded);
       let buffer = null;
       try {
-        const response = await fetch(url);
-        if (!response.ok) throw new FormatError(`HTTP ${response.status}`);
-        buffer = await response.arrayBuffer();
+        buffer = await this.body(response);
       } finally {
-        this.meter?.ended(performance.now(), buffer ? buffer.byteLength : 0);
+        this.meter?.ended(performance.now());
       }
       if (buffer.byteLength !== chunk.bytes)
         throw new FormatError(`chunk truncated: ${buffer.byteLength} of ${chunk.bytes} bytes`);
@@ -413,9 +417,9 @@ export class StreamBuffer {
           throw new FormatError(`the frame before did not decode (${error.message})`);
         }
       }
-      const started = performance.now();
+      const decodeStart = performance.now();
       const data = await decodeChunk(parsed, previous);
-      this.onBytes(buffer.byteLength, performance.now() - started);
+      this.onBytes(buffer.byteLength, performance.now() - decodeStart);
       return data;
     })();
     entry.promise.catch(() => {});  // reported below, once
@@ -423,13 +427,47 @@ export class StreamBuffer {
       entry.state = 'ready';
       entry.data = data;
     }, (error) => {
+      if (entry.abort.signal.aborted) return;  // dropped on purpose (cancel)
       entry.state = 'failed';
       entry.error = error;
       this.onError(index, `${this.stream.name} frame ${index} (${chunk.file}): ${error.message}`);
     });
   }
 
+  // A response's body, its bytes told to the meter as they arrive.
+  async body(response) {
+    if (!this.meter || !response.body) return response.arrayBuffer();
+    const reader = response.body.getReader(), parts = [];
+    let length = 0;
+    for (;;) {
+      const { done, value } = await reader.read();
+      if (done) break;
+      parts.push(value);
+      length += value.length;
+      this.meter.progress(value.length);
+    }
+    const bytes = new Uint8Array(length);
+    let offset = 0;
+    for (const part of parts) {
+      bytes.set(part, offset);
+      offset += part.length;
+    }
+    return bytes.buffer;
+  }
+
+  // Stops the fetches in flight of frames outside `wanted` (a set of indices) and forgets them;
+  // not in a splat stream, where such a frame may be the one a wanted delta decodes from.
+  cancel(wanted) {
+    if (this.stream.kind === 'splats') return;
+    for (const [i, entry] of this.frames) {
+      if (entry.state !== 'loading' || wanted.has(i)) continue;
+      entry.abort.abort();
+      this.frames.delete(i);
+    }
+  }
+
   // Keeps the frames from `index` on (wrapping when looping) and drops the rest.
+  // Returns the indices wanted.
   prefetch(index, ahead, loop) {
     const count = this.stream.chunks.length;
     const wanted = new Set();
@@ -447,6 +485,7 @@ export class StreamBuffer {
         if (!wanted.has(i) && entry.state !== 'loading' && entry.state !== 'failed')
           this.frames.delete(i);
     }
+    return wanted;
   }
 
   // Frames ready from `index` on, before the first that is not.
