@@ -29,10 +29,10 @@ const state = {
                // | {mode: 'fly', eye, yaw, pitch, fov}
   ladders: [], meter: new ThroughputMeter(),
   decodeMs: [],  // per stream: decode time per frame, smoothed
-  // The level choice: auto (or pinned), the pending switch {stream, at} (at: the target's key
-  // frame where it happens), every switch made, and the stalls while playing (a stall: the next
-  // frame due and not decoded), measured in frames at the playing speed.
   ahead: 8,  // frames fetched ahead of the play head
+  // The level choice: auto (or pinned), the pending switch {stream, at, down} (at: the target's
+  // key frame where it happens), every switch made, and the stalls while playing (a stall: the
+  // next frame due and not decoded), measured in frames at the playing speed.
   abr: { auto: true, pending: null, switches: [], stalls: 0, longestStallFrames: 0,
          stalledSince: null, framesPlayed: 0 },
 };
