@@ -28,7 +28,7 @@ struct ExportArgs {
 
 void RunExportImages(const ExportArgs& args, const CLI::App& command) {
   for (const char* web_only : {"--model", "--recon", "--no-meshes", "--partial-model", "--quality",
-                               "--key-every", "--frames", "--shard", "--redo",
+                               "--key-every", "--splat-mbps", "--frames", "--shard", "--redo",
                                "--ground-truth-cameras", "--no-images", "--skip-unrepresentable"}) {
     if (command.count(web_only) > 0) Fail(web_only, " is not an option of export images");
   }
@@ -103,6 +103,10 @@ static void AddExportCommand(CLI::App& app) {
                       "web: a splat key frame at every multiple of it on the timeline "
                       "(default 10; 1: every frame a key frame); also the frames of a group, "
                       "the unit of --shard");
+  command->add_option("--splat-mbps", args->web.splat_mbps,
+                      "web: a size budget for the splat streams (Mbps at the site's rate): each "
+                      "quantised level's encoding the finest rung that fits it (fewer bits, "
+                      "coarser motion, faint Gaussians pruned); 0: the level's own");
   command->add_option("--frames", args->web.frames,
                       "web: only these frame sets of the meshes and models (a:b, or a list "
                       "0-9,15,20-29; counted after the clean plate)");
@@ -113,7 +117,9 @@ static void AddExportCommand(CLI::App& app) {
                       "(holocap report SITE --merge)");
   command->add_flag("--redo", args->web.redo,
                     "web: write groups whose chunks are complete from an earlier run too");
-  NameFieldFlags(command, {{"splat_key_every", "--key-every"}, {"qualities", "--quality"}});
+  NameFieldFlags(command, {{"splat_key_every", "--key-every"},
+                           {"splat_mbps", "--splat-mbps"},
+                           {"qualities", "--quality"}});
   command->callback([args, command] {
     if (args->format == "images") {
       RunExportImages(*args, *command);

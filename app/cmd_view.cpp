@@ -42,6 +42,7 @@ WebExportSummary ExportWeb(const WebExportRequest& request, Report* report) {
   for (const auto& model : request.models) options.models.push_back(model);
   options.fps = request.fps;
   if (request.key_every != 0) options.splat_key_every = request.key_every;
+  options.splat_mbps = request.splat_mbps;
   options.take.ground_truth_cameras = request.ground_truth_cameras;
   if (!request.frames.empty()) ParseFrames(request.frames, &options.take);
   options.overwrite = request.overwrite;

@@ -135,9 +135,11 @@ double PsnrInsideBoxDb(const cv::Mat& picture, const cv::Mat& reference, const C
 // modules, manifest.json and per-frame chunks; README "The stream format") that plays a take's
 // textured meshes, baked Neural Volumes and splats in a browser; `holocap view` serves it.
 
-// Version 3 added the splat stream (a version-2 player would take its chunks for volumes); this
-// holocap still plays version-2 sites.
-inline constexpr int kWebStreamFormatVersion = 3;
+// Version 3 added the splat stream (a version-2 player would take its chunks for volumes);
+// version 4 codes splat frames in Morton order, their motion as cells' mean motion plus residuals
+// and holds attributes that barely change (its player refuses version-3 splat chunks by name).
+// This holocap still plays version-2 sites.
+inline constexpr int kWebStreamFormatVersion = 4;
 inline constexpr int kOldestWebStreamFormatVersion = 2;
 
 struct WebExportOptions {
@@ -153,6 +155,9 @@ struct WebExportOptions {
                                               // of it on the timeline (1: every frame; the
                                               // others are deltas); also the frames of a
                                               // group, the unit of --shard
+  double splat_mbps = 0;                      // > 0: a budget (Mbps at the site's rate) for
+                                              // the quantised splat streams, each the first
+                                              // rung (its level's own first) that fits it
   int error_width_px = 160;                   // width of the views the export's error is
                                               // measured on (the capture cameras, rescaled)
   int error_cameras = 2;                      // capture cameras measured per frame

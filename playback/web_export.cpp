@@ -241,6 +241,9 @@ class SiteWriter {
                                   std::vector<std::string>* outputs);
   // A splat frame: a key frame or a delta of the frame before as decoded (`decoded`, which
   // becomes this frame's).
+  // The model frame shown at timeline frame i of a group starting at `begin` (-1: none) and,
+  // for a delta, where its Gaussians come from in the frame before (empty: a key frame).
+  int64_t SplatChunkOf(int source, size_t i, size_t begin, std::vector<int64_t>* origin);
   nlohmann::json WriteSplatChunk(const SiteStream& stream, size_t i,
                                  const splat::Gaussians& gaussians,
                                  const web::SplatEncoding& encoding, bool key,
@@ -542,7 +545,40 @@ web::SplatEncoding SiteWriter::EncodingOver(int source, const std::string& level
       web::SplatEncoding::For(web::QualityByName(level), sequence.sh_degree());
   for (int64_t frame : FramesOf(source))
     if (frame >= 0) encoding.Include(sequence.Frame(frame));
-  return encoding;
+  if (options_.splat_mbps <= 0 || encoding.float32) return encoding;
+  // The budget: the first rung whose first group's chunks fit it, measured by encoding them.
+  const size_t end = std::min(sets_.size(), static_cast<size_t>(options_.splat_key_every));
+  const double budget_bytes = options_.splat_mbps * 1e6 / 8 / fps_;
+  double bytes_per_frame = 0;
+  web::SplatEncoding rung;
+  int r = 0;
+  for (; r < web::kSplatRungs; ++r) {
+    rung = web::SplatRung(encoding, r);
+    double bytes = 0;
+    web::SplatCodes previous;
+    for (size_t i = 0; i < end; ++i) {
+      std::vector<int64_t> origin;
+      const int64_t frame = SplatChunkOf(source, i, 0, &origin);
+      if (frame < 0) continue;
+      const bool key = origin.empty();
+      web::SplatCodes codes;
+      bytes +=
+          static_cast<double>(web::EncodeSplats(sequence.Frame(frame), static_cast<int64_t>(i),
+                                                rung, key ? nullptr : &previous, origin, &codes)
+                                  .Serialise()
+                                  .size());
+      previous = std::move(codes);
+    }
+    bytes_per_frame = end > 0 ? bytes / static_cast<double>(end) : 0;
+    if (bytes_per_frame <= budget_bytes) break;
+  }
+  std::printf(
+      "  splat-%s: rung %d of %d, %.3f MB/frame (%.2f Mbps) over the first group for a "
+      "budget of %.2f Mbps%s\n",
+      level.c_str(), std::min(r, web::kSplatRungs - 1), web::kSplatRungs - 1, bytes_per_frame / 1e6,
+      bytes_per_frame * 8 * fps_ / 1e6, options_.splat_mbps,
+      r < web::kSplatRungs ? "" : " (no rung fits: the coarsest)");
+  return rung;
 }
 
 void SiteWriter::StartRecords() {
@@ -690,25 +726,36 @@ nlohmann::json SiteWriter::WriteSplatFrames(const SiteStream& stream, size_t beg
       frames.push_back({{"chunk", nullptr}});
       continue;
     }
-    const int64_t previous_frame = i > begin ? model_frames[i - 1] : -1;
-    const splat::Gaussians& gaussians = sequence.Frame(frame);
-    // A delta follows the frame before when that shows the same model frame or the base of
-    // this frame's delta (where a segment of a per-frame run starts, frame 0: a key frame); a
-    // group starts with a key frame, so no delta reaches into the group before.
-    const bool follows =
-        previous_frame >= 0 && (frame == previous_frame || sequence.Base(frame) == previous_frame);
-    const bool key = !follows || i % static_cast<size_t>(options_.splat_key_every) == 0;
     std::vector<int64_t> origin;
-    if (!key && frame == previous_frame) {
-      origin.resize(gaussians.size());
-      std::iota(origin.begin(), origin.end(), int64_t{0});
-    } else if (!key) {
-      origin = sequence.origin();
-    }
-    frames.push_back(
-        WriteSplatChunk(stream, i, gaussians, encoding, key, origin, &previous, outputs));
+    SplatChunkOf(stream.source, i, begin, &origin);
+    const bool key = origin.empty();
+    frames.push_back(WriteSplatChunk(stream, i, sequence.Frame(frame), encoding, key, origin,
+                                     &previous, outputs));
   }
   return frames;
+}
+
+int64_t SiteWriter::SplatChunkOf(int source, size_t i, size_t begin, std::vector<int64_t>* origin) {
+  const std::vector<int64_t>& model_frames = FramesOf(source);
+  const int64_t frame = model_frames[i];
+  origin->clear();
+  if (frame < 0) return frame;
+  SplatSequence& sequence = Sequence(source);
+  const int64_t previous_frame = i > begin ? model_frames[i - 1] : -1;
+  const splat::Gaussians& gaussians = sequence.Frame(frame);
+  // A delta follows the frame before when that shows the same model frame or the base of
+  // this frame's delta (where a segment of a per-frame run starts, frame 0: a key frame); a
+  // group starts with a key frame, so no delta reaches into the group before.
+  const bool follows =
+      previous_frame >= 0 && (frame == previous_frame || sequence.Base(frame) == previous_frame);
+  if (!follows || i % static_cast<size_t>(options_.splat_key_every) == 0) return frame;
+  if (frame == previous_frame) {
+    origin->resize(gaussians.size());
+    std::iota(origin->begin(), origin->end(), int64_t{0});
+  } else {
+    *origin = sequence.origin();
+  }
+  return frame;
 }
 
 nlohmann::json SiteWriter::WriteSplatChunk(const SiteStream& stream, size_t i,
@@ -726,6 +773,9 @@ nlohmann::json SiteWriter::WriteSplatChunk(const SiteStream& stream, size_t i,
   // Decoded again as the page decodes it, from the frame before as decoded.
   const web::Chunk parsed = web::ParseChunk(chunk);
   *decoded = web::DecodeSplats(parsed, previous);
+  if (decoded->records != codes.records)
+    Fail("splat frame ", i, " of ", stream.name, " decodes to other codes than its encoder held");
+  decoded->order = std::move(codes.order);
   const splat::Gaussians drawn = web::SplatsFromCodes(*decoded, encoding);
   double squared = 0;
   int64_t count = 0;
@@ -982,6 +1032,7 @@ void WebExportOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(error_cameras, 0);
   HOLOCAP_CHECK_OPTION_GE(camera_score_every, 1);
   HOLOCAP_CHECK_OPTION_GE(splat_key_every, 1);
+  HOLOCAP_CHECK_OPTION_GE(splat_mbps, 0);
   take.Check();
   tasks.Check();
 }
@@ -999,6 +1050,7 @@ nlohmann::json WebExportOptions::ToJson() const {
           {"error_cameras", error_cameras},
           {"camera_score_every", camera_score_every},
           {"splat_key_every", splat_key_every},
+          {"splat_mbps", splat_mbps},
           {"take", take.ToJson()},
           {"overwrite", overwrite},
           {"tasks", tasks.ToJson()}};

@@ -40,6 +40,9 @@ inline constexpr char kChunkMagic[9] = "HOLOCAPC";
 
 // A chunk: magic, u32 format version, u32 header size, the JSON header (kind, frame, sections
 // [{name, offset, bytes, codec, raw_bytes}], the kind's fields), then the sections' bytes.
+// (nlohmann::json's default constructor checks its invariant with an assertion that clang-tidy
+// counts as a throw; it throws nothing.)
+// NOLINTNEXTLINE(bugprone-exception-escape)
 struct Chunk {
   nlohmann::json header;
   std::string payload;
@@ -124,6 +127,21 @@ struct SplatEncoding {
   double dc_min = 0, dc_max = 0;
   int rest_bits = 6;  // higher coefficients over [-rest_max, rest_max]
   double rest_max = 0;
+  // Deltas (quantised only): each survivor's position is its code in the frame before, plus the
+  // mean motion of its cell (cells of 2^motion_cell_bits codes a side, over the frame before's
+  // codes), plus a residual in steps of motion_step codes, chosen against what the decoder
+  // holds (so that errors do not accumulate).
+  int motion_cell_bits = 6;
+  int motion_step = 1;
+  // The other groups of a survivor are sent again only when a code moved more than `hold` steps
+  // from what the decoder holds (rotation: a component of the quaternion, in its steps).
+  int hold = 0;
+  // The encoder's choices (recorded, not needed to decode): Gaussians fainter than
+  // prune_opacity are left out of the stream; a survivor's position residual stays 0 while
+  // its error is within dead_zone motion steps, widened up to 8 times for faint Gaussians
+  // (0.5 / opacity).
+  double prune_opacity = 0;
+  double dead_zone = 0.5;
 
   // The encoding of a quality level for Gaussians of at most `model_degree` (ranges empty until
   // Include widens them over every frame of the stream).
@@ -134,6 +152,11 @@ struct SplatEncoding {
   // Bytes per Gaussian of each attribute group: position, rotation, scale, opacity, colour.
   std::array<size_t, 5> RecordBytes() const;
 };
+// The rungs a size budget (`export web --splat-mbps`) climbs down, coarsest last: rung 0 is the
+// level's own encoding, each later one fewer bits, larger motion steps and holds, fainter
+// Gaussians pruned (never more bits or a higher degree than the level's). Ranges as `level`'s.
+inline constexpr int kSplatRungs = 10;
+SplatEncoding SplatRung(const SplatEncoding& level, int rung);
 inline constexpr int kSplatGroups = 5;
 inline constexpr const char* kSplatGroupNames[kSplatGroups] = {"position", "rotation", "scale",
                                                                "opacity", "color"};
@@ -143,14 +166,19 @@ inline constexpr const char* kSplatGroupNames[kSplatGroups] = {"position", "rota
 struct SplatCodes {
   int64_t count = 0;
   std::array<std::string, kSplatGroups> records;
+  // The encoder's side only: the Gaussian of the model's frame each record stands for (the
+  // stream orders Gaussians its own way: a key frame in Morton order of their positions, a delta
+  // its survivors in the frame before's order, then the added ones in Morton order).
+  std::vector<int64_t> order;
 };
 SplatCodes QuantiseSplats(const splat::Gaussians& gaussians, const SplatEncoding& encoding);
 // The Gaussians the codes stand for (degree encoding.sh_degree, raw parameters as the kernels
 // take them).
 splat::Gaussians SplatsFromCodes(const SplatCodes& codes, const SplatEncoding& encoding);
 // Encodes a frame of Gaussians: a key frame when `previous` is null, else a delta of the frame
-// before as decoded (`origin[i]`: the index in `previous` that Gaussian i continues, ascending
-// over the survivors, or -1 for an added one). `codes` receives the frame's codes.
+// before as decoded (`origin[i]`: the index in the model's frame before that Gaussian i continues,
+// ascending over the survivors, or -1 for an added one; previous->order maps it to the stream's
+// order). `codes` receives the frame's codes as the decoder reads them, with their order.
 Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const SplatEncoding& encoding,
                    const SplatCodes* previous, const std::vector<int64_t>& origin,
                    SplatCodes* codes);

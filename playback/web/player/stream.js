@@ -1,8 +1,10 @@
-// The holocap stream format, version 3 (README "The stream format"): the manifest and the
-// per-frame chunks, fetched ahead of the play head and decoded in the page. Version 2 sites (no
-// splat streams) are read too.
+// The holocap stream format, version 4 (README "The stream format"): the manifest and the
+// per-frame chunks, fetched ahead of the play head and decoded in the page. Version 2 and 3
+// sites are read too, but for version-3 splat chunks (another coding of the Gaussians), which
+// are refused by name.
 
-export const FORMAT_VERSION = 3;
+export const FORMAT_VERSION = 4;
+const SPLAT_FORMAT_VERSION = 4;
 export const OLDEST_FORMAT_VERSION = 2;
 const readable = (version) => version >= OLDEST_FORMAT_VERSION && version <= FORMAT_VERSION;
 const versions = `versions ${OLDEST_FORMAT_VERSION} to ${FORMAT_VERSION}`;
@@ -47,7 +49,7 @@ export function parseChunk(buffer) {
                             `bytes, ${payload.length} arrived`);
     sections[s.name] = { ...s, data: payload.subarray(s.offset, s.offset + s.bytes) };
   }
-  return { header, sections };
+  return { header, sections, version };
 }
 
 async function sectionBytes(chunk, name) {
@@ -299,15 +301,44 @@ function splatsFromCodes(records, e, count) {
   return g;
 }
 
+// Zigzagged 16-bit numbers back to signed ones.
+const unzigzag = (z) => (z & 1 ? -((z + 1) >> 1) : z >> 1);
+
+// Position records (three 16-bit codes) stored as each code's zigzagged difference (mod 2^16)
+// from the record before's, from byte `from` on, back to codes.
+function unchained(chained, from) {
+  const count = (chained.length - from) / 6, out = new Uint8Array(6 * count), before = [0, 0, 0];
+  for (let i = 0, at = from; i < count; ++i, at += 6) {
+    for (let a = 0; a < 3; ++a) {
+      const z = chained[at + 2 * a] | (chained[at + 2 * a + 1] << 8);
+      before[a] = (before[a] + unzigzag(z)) & 0xffff;
+      out[6 * i + 2 * a] = before[a] & 0xff;
+      out[6 * i + 2 * a + 1] = before[a] >> 8;
+    }
+  }
+  return out;
+}
+
+// The motion cell of position record i: its codes over 2^bits (as one number below 2^48).
+function cellOf(position, i, bits) {
+  const code = (a) => position[6 * i + 2 * a] | (position[6 * i + 2 * a + 1] << 8);
+  return (code(0) >> bits) * 4294967296 + (code(1) >> bits) * 65536 + (code(2) >> bits);
+}
+
 // A splat chunk -> its codes (what the next frame's delta refers to), expand() giving its
 // Gaussians. A delta needs the frame before as decoded.
 export async function decodeSplats(chunk, previous) {
-  const h = chunk.header, e = h.encoding, count = h.count;
+  if (chunk.version !== undefined && chunk.version < SPLAT_FORMAT_VERSION)
+    throw new FormatError(`a splat chunk of stream format version ${chunk.version}; this player ` +
+                          `reads splat streams of version ${SPLAT_FORMAT_VERSION} (export the ` +
+                          'site again)');
+  const h = chunk.header, e = h.encoding, count = h.count, quantised = e.values !== 'float32';
   const widths = splatRecordBytes(e);
   const records = [];
   if (h.key) {
     for (const [g, name] of SPLAT_GROUPS.entries())
       records.push(fromPlanes(await sectionBytes(chunk, name), widths[g], count, name));
+    if (quantised) records[0] = unchained(records[0], 0);
   } else {
     const n = h.previous;
     if (!previous || previous.count !== n)
@@ -317,18 +348,43 @@ export async function decodeSplats(chunk, previous) {
     const bit = (offset, i) => (masks[offset + (i >> 3)] >> (i & 7)) & 1;
     let survivors = 0;
     for (let i = 0; i < n; ++i) survivors += bit(0, i);
-    if (survivors + h.added !== count)
+    if (h.added < 0 || survivors + h.added !== count)
       throw new FormatError('splat delta: survivors and added Gaussians do not make its count');
+    // Quantised: each cell's mean motion (cells of the frame before's survivors, in key order).
+    const motion = new Map();
+    if (quantised) {
+      const keys = [];
+      for (let i = 0; i < n; ++i) if (bit(0, i)) keys.push(cellOf(previous.records[0], i, e.motion_cell_bits));
+      keys.sort((x, y) => x - y);
+      const cells = keys.filter((key, k) => k === 0 || key !== keys[k - 1]);
+      if (cells.length !== h.cells)
+        throw new FormatError(`splat delta: ${h.cells} motion cells where the survivors fill ${cells.length}`);
+      const bytes = fromPlanes(await sectionBytes(chunk, 'motion'), 6, cells.length, 'motion');
+      cells.forEach((key, c) => motion.set(key, [0, 1, 2].map(
+        (a) => unzigzag(bytes[6 * c + 2 * a] | (bytes[6 * c + 2 * a + 1] << 8)))));
+    }
+    const top = 2 ** e.position_bits - 1;
     for (const [g, name] of SPLAT_GROUPS.entries()) {
       const w = widths[g], offset = (1 + g) * B, before = previous.records[g];
+      const moving = g === 0 && quantised;
       let changed = 0;
-      for (let i = 0; i < n; ++i) changed += bit(0, i) & bit(offset, i);
+      for (let i = 0; i < n; ++i) changed += bit(0, i) & (moving ? 1 : bit(offset, i));
       const stored = fromPlanes(await sectionBytes(chunk, name), w, changed + h.added, name);
       const out = new Uint8Array(w * count);
       let next = 0, o = 0;
       for (let i = 0; i < n; ++i) {
         if (!bit(0, i)) continue;
-        if (bit(offset, i)) {  // each byte stored as its difference (mod 256) from the one before
+        if (moving) {  // the code before + its cell's motion + the residual in motion steps
+          const m = motion.get(cellOf(before, i, e.motion_cell_bits));
+          for (let a = 0; a < 3; ++a) {
+            const r = unzigzag(stored[w * next + 2 * a] | (stored[w * next + 2 * a + 1] << 8));
+            const code = Math.min(top, Math.max(0, (before[w * i + 2 * a] | (before[w * i + 2 * a + 1] << 8)) +
+                                                       m[a] + r * e.motion_step));
+            out[o + 2 * a] = code & 0xff;
+            out[o + 2 * a + 1] = code >> 8;
+          }
+          ++next;
+        } else if (bit(offset, i)) {  // each byte stored as its difference (mod 256) from the one before
           for (let b = 0; b < w; ++b) out[o + b] = (stored[w * next + b] + before[w * i + b]) & 0xff;
           ++next;
         } else {
@@ -336,7 +392,7 @@ export async function decodeSplats(chunk, previous) {
         }
         o += w;
       }
-      out.set(stored.subarray(w * next), o);
+      out.set(moving ? unchained(stored, w * next) : stored.subarray(w * next), o);
       records.push(out);
     }
   }

@@ -14,6 +14,9 @@
 //                                                             capture camera CAMERA, scrubs the
 //                                                             timeline to each next FRAME in turn
 //                                                             (OUT/scrub-FRAME.png each)
+//   node drive.mjs refused URL OUT FRAME STREAM               the messages the page shows for
+//                                                             FRAME of STREAM once it names a
+//                                                             problem (a chunk it cannot play)
 //   node drive.mjs bench URL OUT STREAM...                    time to first frame and frames
 //                                                             decoded per second per stream
 //   node drive.mjs ladder URL OUT LADDER SPEED MBPS LATENCY_MS BUFFER
@@ -291,6 +294,13 @@ async function playback([width, height, mbps, latencyMs, ...streams]) {
   return results;
 }
 
+async function refused([frame, stream]) {
+  const page = await open(`frame=${frame}&stream=${stream}&helpers=0&ui=0`, 320, 240);
+  const s = await waitFor(page, (s) => s.messages.length > 0, `a message about ${stream}`);
+  await page.close();
+  return { messages: s.messages, drawnFrame: s.drawnFrame };
+}
+
 let results;
 try {
   if (mode === 'shots') results = await shots(rest, false);
@@ -298,6 +308,7 @@ try {
   else if (mode === 'interact') results = await interact(rest);
   else if (mode === 'scrub') results = await scrub(rest);
   else if (mode === 'bench') results = await bench(rest);
+  else if (mode === 'refused') results = await refused(rest);
   else if (mode === 'picture') results = await picture(rest);
   else if (mode === 'ladder') results = await ladder(rest);
   else if (mode === 'playback') results = await playback(rest);
