@@ -17,6 +17,9 @@
 //                 already in it (DIR/take with recon/, DIR/nvol, DIR/splat) are used as they are
 //     SPLAT_ITERATIONS  splat training iterations of frame 0 (1000; a tenth for each later
 //                 frame), seeded from the take's reconstruction
+//     SPLAT_MBPS  the splats exported again alone at `low` with `--splat-mbps SPLAT_MBPS` (10;
+//                 0: not), served as a site of their own and measured the same way (the row
+//                 splat-low@SPLAT_MBPS)
 // Camera cam1 is held out of the reconstruction and the training: the scores are measured in it,
 // at the middle frame of the timeline. The take is calibrated as a user's is: a board take of the
 // rig (DIR/board, 48 frame sets at 640 px) is solved and its models taken over
@@ -159,36 +162,69 @@ int RunBench(int argc, char** argv) {
           "' --model '" + (dir / "splat").string() +
           "' --quality low,medium,high,lossless --fps 30 --out '" + (dir / "site").string() + "'");
   std::printf("# exported (%.0f s)\n%s", elapsed(), export_output.c_str());
+  const double splat_mbps = argc > 7 ? std::atof(argv[7]) : 10;
+  std::vector<std::string> sites = {"site"};
+  if (splat_mbps > 0) {
+    fs::remove_all(dir / "site-budget");
+    char budget[32];
+    std::snprintf(budget, sizeof(budget), "%g", splat_mbps);
+    const std::string budget_output =
+        Run(q + "export web '" + (dir / "take").string() + "' --no-meshes --model '" +
+            (dir / "splat").string() + "' --quality low --splat-mbps " + budget +
+            " --fps 30 --out '" + (dir / "site-budget").string() + "'");
+    std::printf("# exported the splats alone with --splat-mbps %s (%.0f s)\n%s", budget, elapsed(),
+                budget_output.c_str());
+    sites.push_back("site-budget");
+  }
   const nlohmann::json manifest =
       nlohmann::json::parse(ReadFileToString(dir / "site" / "manifest.json"));
-
-  // The server, on any free port, for the page.
-  const std::string pid = Run("(" + q + "view '" + (dir / "site").string() + "' --port 0 > '" +
-                              (dir / "view.log").string() + "' 2>&1 & echo $!)");
-  std::string url;
-  for (int i = 0; i < 100 && url.empty(); ++i) {
-    usleep(100000);
-    const std::string log = fs::exists(dir / "view.log") ? ReadFileToString(dir / "view.log") : "";
-    const auto at = log.find("http://");
-    if (at != std::string::npos) url = log.substr(at, log.find(' ', at) - at);
-  }
-  std::vector<std::string> names;
-  for (const auto& s : manifest.at("streams")) names.push_back(s.at("name"));
-  std::string list;
-  for (const auto& n : names) list += " " + n;
-  fs::create_directories(dir / "browser");
-  Run("node '" + driver.string() + "' bench " + url + " '" + (dir / "browser").string() + "'" +
-      list);
   int camera_index = 0;
   while (manifest.at("cameras").at(camera_index).at("name") != heldout) ++camera_index;
   const int frame = frames / 2;
   const CameraModel camera = PinholeOf(manifest.at("cameras").at(camera_index));
-  Run("node '" + driver.string() + "' camera " + url + " '" + (dir / "browser").string() + "' " +
-      std::to_string(camera.width()) + " " + std::to_string(camera.height()) + " " +
-      std::to_string(frame) + " " + std::to_string(camera_index) + list);
-  kill(std::stoi(pid), SIGTERM);
-  const auto bench = nlohmann::json::parse(ReadFileToString(dir / "browser" / "bench.json"));
-  const auto report = nlohmann::json::parse(ReadFileToString(dir / "site" / "report.json"));
+
+  // Each site served on any free port, its streams timed and shot in the page.
+  nlohmann::json manifests, bench, report;
+  for (const std::string& site : sites) {
+    const fs::path browser = dir / (site == "site" ? "browser" : "browser-budget");
+    const fs::path log_file = dir / (site + "-view.log");
+    fs::remove(log_file);
+    const std::string pid = Run("(" + q + "view '" + (dir / site).string() + "' --port 0 > '" +
+                                log_file.string() + "' 2>&1 & echo $!)");
+    std::string url;
+    for (int i = 0; i < 100 && url.empty(); ++i) {
+      usleep(100000);
+      const std::string log = fs::exists(log_file) ? ReadFileToString(log_file) : "";
+      const auto at = log.find("http://");
+      if (at != std::string::npos) url = log.substr(at, log.find(' ', at) - at);
+    }
+    manifests[site] = nlohmann::json::parse(ReadFileToString(dir / site / "manifest.json"));
+    std::string list;
+    for (const auto& s : manifests[site].at("streams"))
+      list += " " + s.at("name").get<std::string>();
+    fs::create_directories(browser);
+    // node drive.mjs MODE URL BROWSER [VIEW] STREAM...
+    auto drive = [&](const std::string& mode, const std::string& view) {
+      std::string command = "node '";
+      command += driver.string();
+      command += "' ";
+      command += mode;
+      command += " ";
+      command += url;
+      command += " '";
+      command += browser.string();
+      command += "' ";
+      command += view;
+      command += list;
+      Run(command);
+    };
+    drive("bench", "");
+    drive("camera", std::to_string(camera.width()) + " " + std::to_string(camera.height()) + " " +
+                        std::to_string(frame) + " " + std::to_string(camera_index));
+    kill(std::stoi(pid), SIGTERM);
+    bench[site] = nlohmann::json::parse(ReadFileToString(browser / "bench.json"));
+    report[site] = nlohmann::json::parse(ReadFileToString(dir / site / "report.json"));
+  }
 
   // What the held-out camera captured at the frame, in its pinhole core, with the subject's true
   // silhouette; the native renders through that pinhole.
@@ -218,35 +254,41 @@ int RunBench(int argc, char** argv) {
   std::printf("%-15s %7s %9s %8s %6s %6s %6s %6s %7s %11s %8s %9s\n", "stream", "faces", "MB/frame",
               "Mbps@30", "page", "native", "loss", "bg", "exp unc", "exp cam", "TTFF ms",
               "decoded/s");
-  for (const auto& s : manifest.at("streams")) {
-    const std::string name = s.at("name");
-    const cv::Mat shot = cv::imread((dir / "browser" / (name + ".png")).string());
-    const std::string kind = s.at("kind");
-    const RenderedView& native = kind == "volume"   ? nvol_native
-                                 : kind == "splats" ? splat_native
-                                                    : mesh_native;
-    cv::Mat background(truth.image.size(), CV_8UC3, cv::Scalar::all(0));
-    if (s.contains("backgrounds") && s.at("backgrounds").contains(heldout))
-      background =
-          cv::imread((dir / "site" / s.at("backgrounds").at(heldout).get<std::string>()).string());
-    SquaredError page, native_error, background_error;
-    page.Add(shot, truth.image, truth.subject);
-    native_error.Add(OverBackground(native, background), truth.image, truth.subject);
-    background_error.Add(background, truth.image, truth.subject);
-    const auto& b = bench.at(name);
-    const auto& metrics = report.at("metrics").at("streams").at(name);
-    const auto& own = metrics.at("camera");
-    auto db = [](const nlohmann::json& v) { return v.is_number() ? v.get<double>() : NAN; };
-    char exp_cam[64];
-    std::snprintf(exp_cam, sizeof(exp_cam), "%.2f/%.2f", db(own.at("native_psnr_db")),
-                  db(own.at("streamed_psnr_db")));
-    std::printf(
-        "%-15s %7.0f %9.4f %8.2f %6.2f %6.2f %6.2f %6.2f %7.2f %11s %8.0f %9.1f\n", name.c_str(),
-        metrics.value("mean_faces", 0.0) + metrics.value("mean_gaussians", 0.0),
-        s.at("mb_per_frame").get<double>(), s.at("mb_per_frame").get<double>() * 8 * 30,
-        page.PsnrDb(), native_error.PsnrDb(), native_error.PsnrDb() - page.PsnrDb(),
-        background_error.PsnrDb(), s.at("psnr_db").get<double>(), exp_cam,
-        b.at("timeToFirstFrameMs").get<double>(), b.at("framesDecodedPerSecond").get<double>());
+  for (const std::string& site : sites) {
+    for (const auto& s : manifests[site].at("streams")) {
+      const std::string name = s.at("name");
+      const fs::path browser = dir / (site == "site" ? "browser" : "browser-budget");
+      char budget_row[64];
+      std::snprintf(budget_row, sizeof(budget_row), "%s@%g", name.c_str(), splat_mbps);
+      const std::string row = site == "site" ? name : budget_row;
+      const cv::Mat shot = cv::imread((browser / (name + ".png")).string());
+      const std::string kind = s.at("kind");
+      const RenderedView& native = kind == "volume"   ? nvol_native
+                                   : kind == "splats" ? splat_native
+                                                      : mesh_native;
+      cv::Mat background(truth.image.size(), CV_8UC3, cv::Scalar::all(0));
+      if (s.contains("backgrounds") && s.at("backgrounds").contains(heldout))
+        background =
+            cv::imread((dir / site / s.at("backgrounds").at(heldout).get<std::string>()).string());
+      SquaredError page, native_error, background_error;
+      page.Add(shot, truth.image, truth.subject);
+      native_error.Add(OverBackground(native, background), truth.image, truth.subject);
+      background_error.Add(background, truth.image, truth.subject);
+      const auto& b = bench[site].at(name);
+      const auto& metrics = report[site].at("metrics").at("streams").at(name);
+      const auto& own = metrics.at("camera");
+      auto db = [](const nlohmann::json& v) { return v.is_number() ? v.get<double>() : NAN; };
+      char exp_cam[64];
+      std::snprintf(exp_cam, sizeof(exp_cam), "%.2f/%.2f", db(own.at("native_psnr_db")),
+                    db(own.at("streamed_psnr_db")));
+      std::printf(
+          "%-15s %7.0f %9.4f %8.2f %6.2f %6.2f %6.2f %6.2f %7.2f %11s %8.0f %9.1f\n", row.c_str(),
+          metrics.value("mean_faces", 0.0) + metrics.value("mean_gaussians", 0.0),
+          s.at("mb_per_frame").get<double>(), s.at("mb_per_frame").get<double>() * 8 * 30,
+          page.PsnrDb(), native_error.PsnrDb(), native_error.PsnrDb() - page.PsnrDb(),
+          background_error.PsnrDb(), s.at("psnr_db").get<double>(), exp_cam,
+          b.at("timeToFirstFrameMs").get<double>(), b.at("framesDecodedPerSecond").get<double>());
+    }
   }
   if (fs::exists(dir / "browser" / "player.png")) std::printf("# player picture kept\n");
   std::printf("# outputs under %s\n", dir.c_str());
