@@ -474,8 +474,14 @@ TEST_F(WebTest, BudgetedSplatStreamFitsAndThePageDecodesItAsNatively) {
                                           std::to_string(camera.height()) + " " +
                                           std::to_string(frame) + " " + std::to_string(camera_index)
                                     : "0";
-    auto run = RunShell("node '" + (driver / "drive.mjs").string() + "' " + mode + " " +
-                        server.url() + " '" + out.string() + "' " + view + " splat-low");
+    std::string command = "node '";
+    command += (driver / "drive.mjs").string();
+    command += "' " + mode + " ";
+    command += server.url();
+    command += " '" + out.string() + "' ";
+    command += view;
+    command += " splat-low";
+    auto run = RunShell(command);
     results[s] = nlohmann::json::parse(ReadFileToString(out / (mode + ".json")));
     ASSERT_TRUE(results[s].at("ok").get<bool>()) << run.output;
   }
