@@ -28,7 +28,7 @@ splat::Gaussians RandomGaussians(int64_t count, int degree, uint32_t seed) {
     for (int c = 0; c < 4; ++c) g.rotation[4 * i + c] = unit(random);
     g.opacity[i] = 4 * unit(random);
     for (int k = 0; k < g.coefficients() * 3; ++k)
-      g.sh[3 * g.coefficients() * i + k] = (k < 3 ? 1.5f : 0.3f) * unit(random);
+      g.sh[3 * i * g.coefficients() + k] = (k < 3 ? 1.5f : 0.3f) * unit(random);
   }
   return g;
 }
@@ -83,7 +83,7 @@ void ExpectWithinSteps(const splat::Gaussians& model, const splat::Gaussians& de
     worst[3] =
         std::max(worst[3], std::abs(Sigmoid(decoded.opacity[i]) - Sigmoid(model.opacity[i])) * 255);
     for (int j = 0; j < 3 * k; ++j) {
-      const double d = std::abs(decoded.sh[3 * k * i + j] - model.sh[3 * k_model * i + j]);
+      const double d = std::abs(decoded.sh[3 * i * k + j] - model.sh[3 * i * k_model + j]);
       worst[4] = std::max(worst[4], d / (j < 3 ? dc_step : rest_step));
     }
   }
