@@ -536,7 +536,9 @@ TEST(WebViewTest, RefusesAFolderThatIsNotASiteAndAPortInUse) {
   WriteFileAtomic(dir.path() / "site" / "manifest.json",
                   R"({"format": "holocap-stream", "version": 1})");
   testing::ExpectOneLineError(RunCli("view '" + (dir.path() / "site").string() + "'"),
-                              "version 1; this holocap plays versions 2 to 3");
+                              "version 1; this holocap plays versions " +
+                                  std::to_string(kOldestWebStreamFormatVersion) + " to " +
+                                  std::to_string(kWebStreamFormatVersion));
   WriteFileAtomic(dir.path() / "site" / "manifest.json",
                   R"({"format": "holocap-stream", "version": 2})");
   ViewServer first(dir.path() / "site");
