@@ -104,7 +104,7 @@ SplatScene Synthetic(int64_t count, int width) {
 // A simulated take under `work`, made once with `flags`.
 fs::path SimulateOnce(const fs::path& work, const std::string& name, const std::string& holocap,
                       int size, const std::string& flags) {
-  const fs::path take = work / Cat(name, "-", size);
+  fs::path take = work / Cat(name, "-", size);
   if (fs::exists(take / "take.json")) return take;
   fs::create_directories(work);
   const std::string command =
@@ -167,9 +167,7 @@ int Run(const std::string& name, int width, int64_t iterations, int threads, con
   return 0;
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+int Main(int argc, char** argv) {
   CLI::App app("The wall time of one splat training iteration by stage");
   std::string scene = "synthetic", holocap = "build/app/holocap";
   std::string work = "/tmp/splat-profile";
@@ -192,11 +190,19 @@ int main(int argc, char** argv) {
                  "stages then compare size for size)")
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  return Run(scene, width, iterations, threads, fs::absolute(work), holocap, sim_size, gaussians,
+             pixel_budget);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
   try {
-    return Run(scene, width, iterations, threads, fs::absolute(work), holocap, sim_size, gaussians,
-               pixel_budget);
+    return Main(argc, argv);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "splat_profile_bench: error: %s\n", e.what());
-    return 1;
+  } catch (...) {
+    std::fprintf(stderr, "splat_profile_bench: error: an unknown exception\n");
   }
+  return 1;
 }

@@ -111,7 +111,7 @@ template <typename T>
 Footprint<T> FootprintOf(const T* position, const PinholeCamera& camera) {
   Footprint<T> f;
   const double* w = camera.cam_from_world_rotation;
-  for (int row = 0; row < 3; ++row) {
+  for (size_t row = 0; row < 3; ++row) {
     f.p[row] = T(w[3 * row]) * position[0] + T(w[3 * row + 1]) * position[1] +
                T(w[3 * row + 2]) * position[2] + T(camera.cam_from_world_translation[row]);
   }
@@ -194,7 +194,8 @@ void GaussianArrays<T>::AppendFrom(const GaussianArrays& other, int64_t i) {
   rotation.insert(rotation.end(), &other.rotation[4 * i], &other.rotation[4 * i + 4]);
   log_scale.insert(log_scale.end(), &other.log_scale[3 * i], &other.log_scale[3 * i + 3]);
   opacity.push_back(other.opacity[i]);
-  sh.insert(sh.end(), &other.sh[3 * k * i], &other.sh[3 * k * (i + 1)]);
+  sh.insert(sh.end(), &other.sh[3 * static_cast<int64_t>(k) * i],
+            &other.sh[3 * static_cast<int64_t>(k) * (i + 1)]);
 }
 
 void PinholeCamera::CenterInWorld(double center[3]) const {
@@ -628,11 +629,12 @@ __attribute__((always_inline)) inline void ForwardTileLanes(const ProjectedArray
   const int32_t begin = state.tile_start[tile], end = state.tile_end[tile];
   for (int32_t e = begin; e < end && remaining > 0; ++e) {
     const int32_t i = state.entries[e];
+    const size_t at = static_cast<size_t>(i);
     int range[4];
     if (!PixelRange(p, i, x0, y0, w, h, range)) continue;
-    const float a = p.conic[3 * i], b = p.conic[3 * i + 1], c = p.conic[3 * i + 2];
-    const float mx = p.mean2d[2 * i], my = p.mean2d[2 * i + 1], o = p.opacity[i];
-    const float cr = p.color[3 * i], cg = p.color[3 * i + 1], cb = p.color[3 * i + 2];
+    const float a = p.conic[3 * at], b = p.conic[3 * at + 1], c = p.conic[3 * at + 2];
+    const float mx = p.mean2d[2 * at], my = p.mean2d[2 * at + 1], o = p.opacity[at];
+    const float cr = p.color[3 * at], cg = p.color[3 * at + 1], cb = p.color[3 * at + 2];
     const float depth_i = p.depth[i], cutoff = PowerCutoff(o, options.min_alpha);
     const int first_group = range[0] / kWidth, last_group = range[1] / kWidth;
     Lanes dx[kGroupsPerRow];
@@ -902,15 +904,16 @@ __attribute__((always_inline)) inline void BackwardTileLanes(
   for (int k = 0; k < kWidth; ++k) lane_x[k] = k;
   for (int32_t local = max_last - 1; local >= 0; --local) {
     const int32_t i = state.entries[begin + local];
+    const size_t at = static_cast<size_t>(i);
     float* out = slots + kEntryGradient * static_cast<size_t>(local);
     int range[4];
     if (!PixelRange(p, i, x0, y0, w, h, range)) {
       std::fill(out, out + kEntryGradient, 0.0f);
       continue;
     }
-    const float a = p.conic[3 * i], b = p.conic[3 * i + 1], c = p.conic[3 * i + 2];
-    const float mx = p.mean2d[2 * i], my = p.mean2d[2 * i + 1], o = p.opacity[i];
-    const float cr = p.color[3 * i], cg = p.color[3 * i + 1], cb = p.color[3 * i + 2];
+    const float a = p.conic[3 * at], b = p.conic[3 * at + 1], c = p.conic[3 * at + 2];
+    const float mx = p.mean2d[2 * at], my = p.mean2d[2 * at + 1], o = p.opacity[at];
+    const float cr = p.color[3 * at], cg = p.color[3 * at + 1], cb = p.color[3 * at + 2];
     const float cutoff = PowerCutoff(o, options.min_alpha);
     const int first_group = range[0] / kWidth, last_group = range[1] / kWidth;
     Lanes dx[kGroupsPerRow];
@@ -1102,8 +1105,8 @@ void ProjectBackwardOne(const GaussianArrays<T>& g, const PinholeCamera& camera,
   // T = J W: dL/dJ = dL/dT W^T.
   const double* w = camera.cam_from_world_rotation;
   T d_j[6];
-  for (int row = 0; row < 2; ++row) {
-    for (int col = 0; col < 3; ++col) {
+  for (size_t row = 0; row < 2; ++row) {
+    for (size_t col = 0; col < 3; ++col) {
       d_j[3 * row + col] = d_t[3 * row] * T(w[3 * col]) + d_t[3 * row + 1] * T(w[3 * col + 1]) +
                            d_t[3 * row + 2] * T(w[3 * col + 2]);
     }
@@ -1400,6 +1403,7 @@ double PhotometricLoss(const T* image, const T* target, int width, int height, d
 }
 
 // The two scalars every kernel is built for: float runs, double checks.
+// NOLINTBEGIN(bugprone-macro-parentheses): T is a type
 #define HOLOCAP_SPLAT_INSTANTIATE(T)                                                               \
   template struct GaussianArrays<T>;                                                               \
   template struct ProjectedGradients<T>;                                                           \
@@ -1418,5 +1422,6 @@ double PhotometricLoss(const T* image, const T* target, int width, int height, d
 HOLOCAP_SPLAT_INSTANTIATE(float)
 HOLOCAP_SPLAT_INSTANTIATE(double)
 #undef HOLOCAP_SPLAT_INSTANTIATE
+// NOLINTEND(bugprone-macro-parentheses)
 
 }  // namespace holocap::splat

@@ -124,7 +124,7 @@ struct SplatOptions {
   // Training resolution (the plan's "resolution"): an iteration draws at most this many pixels
   // at the start (the views halved until they fit; 0: full resolution throughout), halving
   // less as training goes, full resolution from full_resolution_at of the budget on.
-  int64_t pixel_budget = 640 * 480;
+  int64_t pixel_budget = int64_t{640} * 480;
   double full_resolution_at = 0.5;
   double min_scale_px = 0.1;  // scale floor: this many pixels' footprint at the scene's
                               // median distance (keeps covariances positive definite)

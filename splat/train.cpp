@@ -146,7 +146,8 @@ class Trainer {
     levels_.resize(scene.views.size());
     const SplatView& first = scene.views.front();
     if (options.pixel_budget > 0) {
-      while ((first.image.cols >> start_level_) * (first.image.rows >> start_level_) >
+      while (static_cast<int64_t>(first.image.cols >> start_level_) *
+                     (first.image.rows >> start_level_) >
                  options.pixel_budget &&
              (first.image.cols >> (start_level_ + 1)) >= splat::kTileSide)
         ++start_level_;

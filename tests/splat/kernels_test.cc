@@ -113,6 +113,7 @@ GaussianArrays<double> Analytic(const GaussianArrays<double>& g, const PinholeCa
 
 // Compares every parameter's analytic derivative with a central difference; returns the worst
 // error relative to max(1, |derivative|) scale of the field.
+// NOLINTNEXTLINE(performance-unnecessary-value-param): g is a copy, perturbed in place
 void ExpectMatches(GaussianArrays<double> g, const PinholeCamera& camera,
                    const RasterOptions& options, const LinearLoss& loss) {
   const GaussianArrays<double> analytic = Analytic(g, camera, options, loss);
@@ -200,7 +201,8 @@ TEST(SplatGradient, PhotometricLossL1AndSsim) {
   const int width = 23, height = 17;
   std::mt19937_64 rng(11);
   std::uniform_real_distribution<double> unit(0, 1);
-  std::vector<double> image(3 * width * height), target(image.size()), gradient(image.size());
+  std::vector<double> image(size_t{3} * width * height), target(image.size()),
+      gradient(image.size());
   for (size_t k = 0; k < image.size(); ++k) {
     target[k] = unit(rng);
     image[k] = target[k] + (unit(rng) < 0.5 ? -1 : 1) * (0.05 + 0.2 * unit(rng));
@@ -235,7 +237,7 @@ TEST(SplatGradient, ForwardComposite) {
   g.sh_degree = 0;
   g.Resize(2);
   for (int i = 0; i < 2; ++i) {
-    g.rotation[4 * i] = 1;
+    g.rotation[4 * static_cast<size_t>(i)] = 1;
     for (int k = 0; k < 3; ++k) g.log_scale[3 * i + k] = std::log(0.2);
     g.position[3 * i + 2] = i == 0 ? -0.5 : 0.5;  // i = 0 nearer
   }
@@ -248,15 +250,17 @@ TEST(SplatGradient, ForwardComposite) {
   options.active_sh_degree = 0;
   ProjectedArrays<double> projected;
   ProjectGaussians(g, camera, options, &projected);
-  std::vector<double> color(3 * 32 * 32), alpha(32 * 32), background(3 * 32 * 32, 0.25);
+  std::vector<double> color(size_t{3} * 32 * 32), alpha(size_t{32} * 32),
+      background(size_t{3} * 32 * 32, 0.25);
   RasterState state;
   RasterizeForward(projected, camera, options, background.data(), color.data(), alpha.data(),
                    static_cast<double*>(nullptr), &state);
   // Both centres project near pixel (15.5, 15.5); sample (15, 15), 0.5 px off in each axis.
   const size_t p = 15 * 32 + 15;
   auto footprint = [&](int i) {
-    const double* c = &projected.conic[3 * i];
-    const double dx = 15 - projected.mean2d[2 * i], dy = 15 - projected.mean2d[2 * i + 1];
+    const double* c = &projected.conic[3 * static_cast<size_t>(i)];
+    const double dx = 15 - projected.mean2d[2 * static_cast<size_t>(i)],
+                 dy = 15 - projected.mean2d[2 * static_cast<size_t>(i) + 1];
     return std::exp(-0.5 * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy);
   };
   const double a0 = 0.6 * footprint(0), a1 = 0.5 * footprint(1);
@@ -425,7 +429,8 @@ TEST(SplatGradient, PhotometricLossFloatMatchesDouble) {
   const int width = 61, height = 37;
   std::mt19937_64 rng(17);
   std::uniform_real_distribution<double> unit(0, 1);
-  std::vector<double> image(3 * width * height), target(image.size()), gradient(image.size());
+  std::vector<double> image(size_t{3} * width * height), target(image.size()),
+      gradient(image.size());
   for (size_t k = 0; k < image.size(); ++k) {
     target[k] = unit(rng);
     image[k] = std::clamp(target[k] + 0.3 * (unit(rng) - 0.5), 0.0, 1.0);
@@ -457,7 +462,7 @@ TEST(SplatRaster, TileListsFrontToBack) {
   ProjectedArrays<double> projected;
   ProjectGaussians(g, camera, options, &projected);
   RasterState state;
-  std::vector<double> color(3 * 64 * 48);
+  std::vector<double> color(size_t{3} * 64 * 48);
   RasterizeForward(projected, camera, options, static_cast<const double*>(nullptr), color.data(),
                    static_cast<double*>(nullptr), static_cast<double*>(nullptr), &state);
   int64_t pairs = 0;

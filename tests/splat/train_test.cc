@@ -250,7 +250,7 @@ TEST(SplatTrain, PixelBudgetDrawsHalvedViewsFirst) {
   EXPECT_DOUBLE_EQ(schedule[1]["from_fraction"].get<double>(), 0.5);
   // 100 iterations of 32 x 32 pixels and 100 of 64 x 64.
   EXPECT_NEAR(summary.profile["pixels_per_iteration"].get<double>(),
-              0.5 * (kSide * kSide / 4 + kSide * kSide), 1e-6);
+              0.5 * (kSide * kSide / 4.0 + kSide * kSide), 1e-6);
   EXPECT_EQ(summary.profile["iterations"].get<int64_t>(), 200);
   EXPECT_GT(summary.heldout_psnr_fg_db, summary.background_psnr_fg_db + 5) << summary.message;
 }
