@@ -27,6 +27,7 @@
 
 #include "bench/bench_data.h"
 #include "core/error.h"
+#include "core/pose.h"
 #include "splat/splat.h"
 
 namespace {
@@ -43,15 +44,8 @@ std::string Load() {
 
 // A pinhole of `width` x 3/4 width at `center` looking at the origin, z up.
 CameraModel Ring(const Eigen::Vector3d& center, int width) {
-  const Eigen::Vector3d z = (-center).normalized();
-  const Eigen::Vector3d x = z.cross(Eigen::Vector3d::UnitZ()).normalized();
-  const Eigen::Vector3d y = z.cross(x);
-  Eigen::Matrix3d world_from_cam;
-  world_from_cam << x, y, z;
-  Pose cam_from_world = Pose::Identity();
-  cam_from_world.linear() = world_from_cam.transpose();
-  cam_from_world.translation() = -world_from_cam.transpose() * center;
-  return CameraModel::Pinhole(0.9 * width, width, width * 3 / 4, cam_from_world);
+  return CameraModel::Pinhole(0.9 * width, width, width * 3 / 4,
+                              CamFromWorldLookAt(center, Eigen::Vector3d::Zero()));
 }
 
 // `count` opaque Gaussians on a sphere of 0.3 m (colour bands), 16 views 1.2 m away, the seed

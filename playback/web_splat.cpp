@@ -434,6 +434,77 @@ double CodeUnits(double value, double lo, double hi, int bits) {
   return hi > lo ? std::clamp((value - lo) / (hi - lo), 0.0, 1.0) * levels : 0.0;
 }
 
+// A key frame's sections: the streamed Gaussians (Morton order where quantised), positions
+// chained from the Gaussian before, every other group as it is.
+void AddKeyFrameSections(const SplatCodes& all, const std::array<size_t, kSplatGroups>& widths,
+                         const std::vector<bool>& streamed, bool quantised, SplatCodes* codes,
+                         Chunk* chunk) {
+  for (int64_t i = 0; i < static_cast<int64_t>(streamed.size()); ++i)
+    if (streamed[i]) codes->order.push_back(i);
+  if (quantised) MortonSort(all.records[0], &codes->order);
+  for (int group = 0; group < kSplatGroups; ++group)
+    for (int64_t i : codes->order)
+      codes->records[group].append(all.records[group], i * widths[group], widths[group]);
+  std::string position = codes->records[0];
+  if (quantised) {
+    position.clear();
+    AppendChained(codes->records[0], &position);
+  }
+  chunk->AddSection(kSplatGroupNames[0], ToPlanes(position, widths[0]), "deflate");
+  for (int group = 1; group < kSplatGroups; ++group)
+    chunk->AddSection(kSplatGroupNames[group], ToPlanes(codes->records[group], widths[group]),
+                      "deflate");
+}
+
+// The stream's place (slot) of each of the model's Gaussians of the frame before (-1: not
+// streamed), after checking that frame's codes hold its count.
+std::vector<int64_t> SlotsOf(const SplatCodes& previous,
+                             const std::array<size_t, kSplatGroups>& widths) {
+  const int64_t n = previous.count;
+  for (int group = 0; group < kSplatGroups; ++group)
+    if (previous.records[group].size() != widths[group] * n)
+      Fail("a splat delta's frame before does not match its count");
+  std::vector<int64_t> slot_of;
+  if (previous.order.empty()) {
+    slot_of.resize(n);
+    std::iota(slot_of.begin(), slot_of.end(), int64_t{0});
+  } else {
+    if (static_cast<int64_t>(previous.order.size()) != n) Fail("a splat delta's order");
+    slot_of.assign(*std::max_element(previous.order.begin(), previous.order.end()) + 1, -1);
+    for (int64_t s = 0; s < n; ++s) slot_of[previous.order[s]] = s;
+  }
+  return slot_of;
+}
+
+// Each motion cell's mean motion (code units, rounded) over the survivors (slot in the frame
+// before, Gaussian now) whose frame-before position lies in it, written to `bytes` (zigzag, 2
+// bytes an axis, in the cells' order); `target`: each survivor's position now in code units.
+std::map<uint64_t, std::array<int32_t, 3>> CellMotion(
+    const splat::Gaussians& gaussians, const SplatEncoding& e, const std::string& before_position,
+    const std::vector<std::pair<int64_t, int64_t>>& survivors,
+    std::vector<std::array<double, 3>>* target, std::string* bytes) {
+  std::map<uint64_t, std::array<double, 4>> cells;  // sums of motion (codes) and the count
+  for (size_t k = 0; k < survivors.size(); ++k) {
+    const auto [slot, i] = survivors[k];
+    auto& cell = cells[CellOf(before_position, slot, e.motion_cell_bits)];
+    for (int a = 0; a < 3; ++a) {
+      (*target)[k][a] =
+          CodeUnits(gaussians.position[3 * i + a], e.box_min[a], e.box_max[a], e.position_bits);
+      cell[a] += (*target)[k][a] - PositionCode(before_position, slot, a);
+    }
+    cell[3] += 1;
+  }
+  std::map<uint64_t, std::array<int32_t, 3>> motion;
+  for (const auto& [key, sum] : cells) {
+    auto& m = motion[key];
+    for (int a = 0; a < 3; ++a) {
+      m[a] = static_cast<int32_t>(std::clamp<double>(std::lround(sum[a] / sum[3]), -32767, 32767));
+      Put<uint16_t>(bytes, Zigzag16(m[a]));
+    }
+  }
+  return motion;
+}
+
 }  // namespace
 
 Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const SplatEncoding& e,
@@ -467,38 +538,13 @@ Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const Splat
     codes->records[group].append(all.records[group], i * widths[group], widths[group]);
   };
   if (previous == nullptr) {
-    for (int64_t i = 0; i < gaussians.size(); ++i)
-      if (streamed[i]) codes->order.push_back(i);
-    if (quantised) MortonSort(all.records[0], &codes->order);
-    for (int group = 0; group < kSplatGroups; ++group)
-      for (int64_t i : codes->order) append(group, i);
-    std::string position = codes->records[0];
-    if (quantised) {
-      position.clear();
-      AppendChained(codes->records[0], &position);
-    }
-    chunk.AddSection(kSplatGroupNames[0], ToPlanes(position, widths[0]), "deflate");
-    for (int group = 1; group < kSplatGroups; ++group)
-      chunk.AddSection(kSplatGroupNames[group], ToPlanes(codes->records[group], widths[group]),
-                       "deflate");
+    AddKeyFrameSections(all, widths, streamed, quantised, codes, &chunk);
     return chunk;
   }
   if (static_cast<int64_t>(origin.size()) != gaussians.size())
     Fail("a splat delta needs one origin per Gaussian");
   const int64_t n = previous->count;
-  for (int group = 0; group < kSplatGroups; ++group)
-    if (previous->records[group].size() != widths[group] * n)
-      Fail("a splat delta's frame before does not match its count");
-  // The stream's place (slot) of each of the model's Gaussians of the frame before.
-  std::vector<int64_t> slot_of;
-  if (previous->order.empty()) {
-    slot_of.resize(n);
-    std::iota(slot_of.begin(), slot_of.end(), int64_t{0});
-  } else {
-    if (static_cast<int64_t>(previous->order.size()) != n) Fail("a splat delta's order");
-    slot_of.assign(*std::max_element(previous->order.begin(), previous->order.end()) + 1, -1);
-    for (int64_t s = 0; s < n; ++s) slot_of[previous->order[s]] = s;
-  }
+  const std::vector<int64_t> slot_of = SlotsOf(*previous, widths);
   std::vector<std::pair<int64_t, int64_t>> survivors;  // (slot, i)
   std::vector<int64_t> added;
   int64_t last = -1;
@@ -529,29 +575,11 @@ Chunk EncodeSplats(const splat::Gaussians& gaussians, int64_t frame, const Splat
   int64_t changed_any = 0;
   // Quantised positions: the motion of the cells, then each survivor's residual.
   const std::string& before_position = previous->records[0];
-  std::map<uint64_t, std::array<double, 4>> cells;  // sums of motion (codes) and the count
   std::vector<std::array<double, 3>> target(survivors.size());
-  if (quantised) {
-    for (size_t k = 0; k < survivors.size(); ++k) {
-      const auto [slot, i] = survivors[k];
-      auto& cell = cells[CellOf(before_position, slot, e.motion_cell_bits)];
-      for (int a = 0; a < 3; ++a) {
-        target[k][a] =
-            CodeUnits(gaussians.position[3 * i + a], e.box_min[a], e.box_max[a], e.position_bits);
-        cell[a] += target[k][a] - PositionCode(before_position, slot, a);
-      }
-      cell[3] += 1;
-    }
-  }
-  std::map<uint64_t, std::array<int32_t, 3>> motion;
   std::string motion_bytes;
-  for (const auto& [key, sum] : cells) {
-    auto& m = motion[key];
-    for (int a = 0; a < 3; ++a) {
-      m[a] = static_cast<int32_t>(std::clamp<double>(std::lround(sum[a] / sum[3]), -32767, 32767));
-      Put<uint16_t>(&motion_bytes, Zigzag16(m[a]));
-    }
-  }
+  const std::map<uint64_t, std::array<int32_t, 3>> motion =
+      quantised ? CellMotion(gaussians, e, before_position, survivors, &target, &motion_bytes)
+                : std::map<uint64_t, std::array<int32_t, 3>>{};
   const int32_t top = (int32_t{1} << e.position_bits) - 1;
   for (size_t k = 0; k < survivors.size(); ++k) {
     const auto [slot, i] = survivors[k];
