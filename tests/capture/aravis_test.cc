@@ -308,6 +308,15 @@ void ExpectEveryTriggerAccountedFor(const RecorderSummary& summary, int64_t trig
   }
 }
 
+// The packet-loss tests are about what lost packets do to frames, not about noticing a camera
+// gone (CaptureFaults.KilledCameraIsLostWithinThreePeriodsAndCountedAgainstItself and
+// FakeGige.CameraVanishingMidTakeEndsItCleanly are): eight fake cameras, their receivers and a
+// test beside them share two cores, and a host that holds one camera's process for 100 ms (3
+// periods at 30 Hz, the default bound) would end the take as that camera's loss. A second of
+// silence (30 periods) is far beyond any scheduling delay and still ends a take whose camera
+// really went away.
+constexpr int kPatientLostAfterPeriods = 30;
+
 // 8 cameras at 30 Hz leaving 20 GVSP packets per thousand unsent on first sending (as
 // arv-fake-gv-camera-0.8 --gvsp-lost-ratio 20 does), served by holocap's peer, which keeps its
 // last frames' packets: the driver sees each gap, asks for the missing packets again and
@@ -321,6 +330,7 @@ TEST(FakeGige, UnderPacketLossLostPacketsAreResentAndNoTornFrameIsWritten) {
   TempDir dir;
   RecorderOptions options;
   options.sync_tolerance_ns = 16'666'666;
+  options.lost_after_periods = kPatientLostAfterPeriods;
   RecorderSummary summary =
       RecordTriggered(cameras, 8, 30, options, 60, {{"roi", {0, 0, 256, 256}}}, dir / "take");
   ASSERT_EQ(summary.termination, Termination::kSuccess) << summary.message;
@@ -350,6 +360,7 @@ TEST(FakeGige, UnderPacketLossWithoutResendEveryFrameIsCompleteOrCountedLost) {
   TempDir dir;
   RecorderOptions options;
   options.sync_tolerance_ns = 16'666'666;
+  options.lost_after_periods = kPatientLostAfterPeriods;
   RecorderSummary summary = RecordTriggered(
       cameras, 8, 30, options, 60,
       {{"roi", {0, 0, 128, 64}}, {"frame_retention_ms", 20}, {"packet_timeout_ms", 5}},
