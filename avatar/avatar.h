@@ -14,6 +14,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cmath>
 #include <cstdint>
 #include <filesystem>
 #include <functional>
@@ -27,6 +28,7 @@
 
 #include "core/box.h"
 #include "core/camera.h"
+#include "core/error.h"
 
 namespace holocap {
 
@@ -115,6 +117,13 @@ class AvatarKindRegistry {
 
 // AvatarKindRegistry::Global().Open(dir).
 std::unique_ptr<AvatarModel> OpenModel(const std::filesystem::path& dir);
+
+// "; on white, as NeRF-synthetic scores, X dB" for a take scored on white (alpha), else "".
+inline std::string OnWhiteClause(double heldout_psnr_white_db) {
+  return std::isfinite(heldout_psnr_white_db)
+             ? Cat("; on white, as NeRF-synthetic scores, ", heldout_psnr_white_db, " dB")
+             : std::string();
+}
 
 // The metrics every trained model's report.json starts with, by the same names (Neural Volumes,
 // splats): held-out scores, the background alone's, the budget spent and the loss's course.

@@ -755,11 +755,7 @@ void Trainer::Judge(int64_t iteration, NeuralVolumeSummary* summary) const {
             : Cat("trained ", iteration, " iterations in ", summary->seconds, " s; held-out PSNR ",
                   summary->heldout_psnr_db, " dB (subject ", summary->heldout_psnr_fg_db,
                   " dB, background alone ", summary->background_psnr_fg_db, " dB",
-                  std::isfinite(summary->heldout_psnr_white_db)
-                      ? Cat("; on white, as NeRF-synthetic scores, ",
-                            summary->heldout_psnr_white_db, " dB")
-                      : std::string(),
-                  ")"));
+                  OnWhiteClause(summary->heldout_psnr_white_db), ")"));
   }
 }
 

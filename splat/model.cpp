@@ -105,7 +105,7 @@ int64_t SplatOptions::SegmentStartIterations() const {
 }
 
 nlohmann::json SplatFrameSummary::ToJson() const {
-  return {{"frame", frame},
+  nlohmann::json json = {{"frame", frame},
           {"set", set},
           {"iterations", iterations},
           {"seconds", seconds},
@@ -124,6 +124,8 @@ nlohmann::json SplatFrameSummary::ToJson() const {
           {"coarsened", coarsened},
           {"megabytes", megabytes},
           {"divergences", divergences}};
+  if (std::isfinite(heldout_psnr_white_db)) json["heldout_psnr_white_db"] = heldout_psnr_white_db;
+  return json;
 }
 
 nlohmann::json SplatOptions::ToJson() const {

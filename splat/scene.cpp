@@ -143,6 +143,7 @@ SplatScene LoadSplatScene(const fs::path& take_dir, const fs::path& model_dir,
   scene.plan.erase("encoder_views");
   scene.plan.erase("occupancy");
   scene.box = data.box;
+  scene.alpha_masks = data.alpha_masks;
   std::vector<std::string> undistorted;
   scene.later_frames.resize(dynamic ? data.sets.size() - 1 : 0);
   const int64_t frames = 1 + static_cast<int64_t>(scene.later_frames.size());

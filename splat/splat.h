@@ -65,6 +65,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
@@ -220,6 +221,7 @@ struct SplatScene {
   std::vector<SplatFrame> later_frames;  // dynamic takes: frames 1, 2, ... (else empty)
   SplatSeed seed;
   Box box = Box::Empty();  // the volume the subject lives in (Gaussians leaving it are removed)
+  bool alpha_masks = false;  // the silhouettes are the frames' own alpha (scored on white too)
   nlohmann::json plan = nlohmann::json::object();
   double load_cpu_s = 0;  // process CPU seconds LoadSplatScene took (the take read, the seed's
                           // reconstruction and colouring): within options.cpu_minutes
@@ -235,6 +237,9 @@ struct SplatFrameSummary {
   double heldout_psnr_fg_db = 0;
   double background_psnr_fg_db = 0;
   double heldout_ssim = 0;
+  // Composited on white against the frames' own alpha, as alpha datasets publish (NaN without
+  // alpha).
+  double heldout_psnr_white_db = std::numeric_limits<double>::quiet_NaN();
   int64_t gaussians = 0;
   int64_t added = 0, added_surface = 0, removed = 0, changed = 0;  // as the delta stores them
                                                                    // (added_surface: of added)
@@ -262,6 +267,7 @@ struct SplatSummary : Summary {
   double heldout_psnr_fg_db = 0;     // inside the subject's silhouettes (grown 3 px)
   double background_psnr_fg_db = 0;  // the same pixels as background alone
   double heldout_ssim = 0;
+  double heldout_psnr_white_db = std::numeric_limits<double>::quiet_NaN();  // alpha takes
   double train_psnr_db = 0;  // the training views at the end
   int64_t gaussians = 0;
   int64_t seed_points = 0;

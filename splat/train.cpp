@@ -111,6 +111,23 @@ struct StageProfile {
   }
 };
 
+// The mean squared error of a held-out render composited on white against the captured image
+// composited on white by its own alpha (`coverage`, 0-255), as alpha datasets are published:
+// the render over `background` is its colour plus (1 - alpha) x background, so on white it is
+// that plus (1 - alpha) x (1 - background).
+double OnWhiteMse(const SplatRender& render, const cv::Mat& background, const cv::Mat& truth,
+                  const cv::Mat& coverage) {
+  cv::Mat clear, clear3, weight, weight3, on_white, truth_white;
+  cv::subtract(cv::Scalar::all(1.0), render.alpha, clear);
+  cv::cvtColor(clear, clear3, cv::COLOR_GRAY2BGR);
+  on_white = render.color + clear3.mul(cv::Scalar::all(1.0) - background);
+  cv::min(cv::max(on_white, 0.0), 1.0, on_white);
+  coverage.convertTo(weight, CV_32F, 1.0 / 255.0);
+  cv::cvtColor(weight, weight3, cv::COLOR_GRAY2BGR);
+  truth_white = truth.mul(weight3) + (cv::Scalar::all(1.0) - weight3);
+  return std::pow(10.0, -PsnrDb(on_white, truth_white) / 10.0);
+}
+
 // Seconds since `start`, and `start` moved to now.
 double Lap(std::chrono::steady_clock::time_point* start) {
   const auto now = std::chrono::steady_clock::now();
@@ -121,6 +138,7 @@ double Lap(std::chrono::steady_clock::time_point* start) {
 
 struct Evaluation {
   double psnr_db = 0, psnr_fg_db = 0, background_psnr_fg_db = 0, ssim = 0;
+  double psnr_white_db = std::numeric_limits<double>::quiet_NaN();  // on white (alpha takes)
   bool subject_seen = false;  // a held-out silhouette holds any pixel
 };
 
@@ -629,7 +647,7 @@ Evaluation Trainer::Evaluate(bool write_images) {
   Evaluation result;
   if (heldout_.empty()) return result;
   const CpuClock::Excluded scoring(&cpu_);
-  double mse = 0, mse_fg = 0, mse_background = 0, ssim = 0;
+  double mse = 0, mse_fg = 0, mse_background = 0, ssim = 0, mse_white = 0;
   for (int v : heldout_) {
     const SplatView& view = scene_.views[v];
     cv::Mat background;
@@ -648,6 +666,7 @@ Evaluation Trainer::Evaluate(bool write_images) {
       mse_background += std::pow(10.0, -PsnrDb(background, truth, mask) / 10.0);
     }
     ssim += Ssim(predicted, truth);
+    if (scene_.alpha_masks) mse_white += OnWhiteMse(render, background, truth, *masks_[v]);
     if (write_images) {
       cv::Mat side_by_side, image8;
       cv::hconcat(predicted, truth, side_by_side);
@@ -661,6 +680,7 @@ Evaluation Trainer::Evaluate(bool write_images) {
   result.psnr_fg_db = -10.0 * std::log10(mse_fg / count);
   result.background_psnr_fg_db = -10.0 * std::log10(mse_background / count);
   result.ssim = ssim / count;
+  if (scene_.alpha_masks) result.psnr_white_db = -10.0 * std::log10(mse_white / count);
   return result;
 }
 
@@ -748,8 +768,9 @@ void Trainer::Judge(int64_t iteration, SplatSummary* summary) const {
                   " s (no held-out camera); training views ", summary->train_psnr_db, " dB")
             : Cat("trained ", iteration, " iterations in ", summary->seconds, " s; held-out PSNR ",
                   summary->heldout_psnr_db, " dB (subject ", summary->heldout_psnr_fg_db,
-                  " dB, background alone ", summary->background_psnr_fg_db, " dB), ",
-                  summary->gaussians, " Gaussians"));
+                  " dB, background alone ", summary->background_psnr_fg_db, " dB",
+                  OnWhiteClause(summary->heldout_psnr_white_db), "), ", summary->gaussians,
+                  " Gaussians"));
   }
 }
 
@@ -918,6 +939,7 @@ SplatFrameSummary Trainer::ScoreFrame(int64_t frame, double seconds, int64_t ite
   scored.heldout_psnr_fg_db = eval.psnr_fg_db;
   scored.background_psnr_fg_db = eval.background_psnr_fg_db;
   scored.heldout_ssim = eval.ssim;
+  scored.heldout_psnr_white_db = eval.psnr_white_db;
   scored.gaussians = gaussians_.size();
   return scored;
 }
@@ -929,6 +951,7 @@ void Trainer::Record(const SplatFrameSummary& frame, SplatSummary* summary, Repo
   summary->heldout_psnr_fg_db = frame.heldout_psnr_fg_db;
   summary->background_psnr_fg_db = frame.background_psnr_fg_db;
   summary->heldout_ssim = frame.heldout_ssim;
+  summary->heldout_psnr_white_db = frame.heldout_psnr_white_db;
   summary->gaussians = gaussians_.size();
   if (report == nullptr) return;
   if (!heldout_.empty()) {
@@ -1254,6 +1277,8 @@ SplatSummary TrainSplatsOn(const SplatScene& scene, const fs::path& model_dir,
                               {"cpu_s_scoring", summary.cpu_s_scoring},
                               {"profile", summary.profile}});
     if (options.cpu_minutes > 0) report->metrics()["cpu_s_budget"] = options.cpu_minutes * 60;
+    if (std::isfinite(summary.heldout_psnr_white_db))
+      report->metrics()["heldout_psnr_white_db"] = summary.heldout_psnr_white_db;
     nlohmann::json frames = nlohmann::json::array();
     double largest_mb = 0;
     for (const auto& frame : summary.frames) {
