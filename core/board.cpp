@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <initializer_list>
 #include <memory>
 #include <utility>
 
@@ -224,7 +225,7 @@ BoardType BoardTypeFromString(const std::string& text) {
 int BoardLayout::width_n() const {
   switch (type) {
     case BoardType::kAprilGrid:
-      return 2 * tags_across;
+      return (tags_across - 1) * (tag_steps + gap_steps) + tag_steps + 1;
     case BoardType::kChessboard:
       return chessboard_width_n;
     case BoardType::kCharuco:
@@ -236,7 +237,7 @@ int BoardLayout::width_n() const {
 int BoardLayout::height_n() const {
   switch (type) {
     case BoardType::kAprilGrid:
-      return 2 * tags_down;
+      return (tags_down - 1) * (tag_steps + gap_steps) + tag_steps + 1;
     case BoardType::kChessboard:
       return chessboard_height_n;
     case BoardType::kCharuco:
@@ -244,6 +245,8 @@ int BoardLayout::height_n() const {
   }
   return 0;
 }
+
+int BoardLayout::feature_steps() const { return type == BoardType::kAprilGrid ? tag_steps : 1; }
 
 void BoardLayout::Check() const {
   HOLOCAP_CHECK_OPTION_GT(spacing, 0);
@@ -291,9 +294,15 @@ void BoardLayout::Check() const {
                        first_id,
                        Cat("tag ids ", first_id, "..", first_id + tags_across * tags_down - 1,
                            " exceed ", this->family, " (", family->ncodes, " codes)"));
-  const double outer = spacing * OuterBits(family) / family->width_at_border;
+  HOLOCAP_CHECK_OPTION_GE(tag_steps, 1);
+  HOLOCAP_CHECK_OPTION_GE(gap_steps, 1);
+  const double bit = tag_steps * spacing / family->width_at_border;
+  const double outer = bit * OuterBits(family);
   HOLOCAP_CHECK_OPTION(margin >= outer * (1 - 1e-9), margin,
                        Cat("the margin cuts the tags' outer bits: it needs >= ", outer, " m"));
+  HOLOCAP_CHECK_OPTION(gap_steps * spacing >= 2 * outer * (1 - 1e-9), gap_steps,
+                       Cat("the gap between tags (", gap_steps * spacing,
+                           " m) must hold both tags' outer bits: >= ", 2 * outer, " m"));
 }
 
 nlohmann::json BoardLayout::ToJson() const {
@@ -302,6 +311,9 @@ nlohmann::json BoardLayout::ToJson() const {
     json["family"] = family;
     json["tags_across"] = tags_across;
     json["tags_down"] = tags_down;
+    json["tag_steps"] = tag_steps;
+    json["gap_steps"] = gap_steps;
+    json["ids_upward"] = ids_upward;
     json["first_id"] = first_id;
   } else if (type == BoardType::kChessboard) {
     json["chessboard_width_n"] = chessboard_width_n;
@@ -333,6 +345,9 @@ BoardLayout BoardLayout::FromJson(const nlohmann::json& json, const std::string&
     layout.marker_side = json.value("marker_side", layout.marker_side);
     layout.dictionary = json.value("dictionary", layout.dictionary);
     layout.spacing = json.value("spacing", layout.spacing);
+    layout.tag_steps = json.value("tag_steps", layout.tag_steps);
+    layout.gap_steps = json.value("gap_steps", layout.gap_steps);
+    layout.ids_upward = json.value("ids_upward", layout.ids_upward);
     layout.first_id = json.value("first_id", layout.first_id);
     layout.margin = json.value("margin", layout.margin);
     layout.Check();
@@ -354,6 +369,7 @@ BoardLayout BoardLayout::Load(const std::filesystem::path& file) {
     Fail(origin, ": not YAML: ", e.what());
   }
   if (!node.IsMap()) Fail(origin, ": a board layout must be a mapping");
+  if (node["target_type"]) return FromKalibrYaml(text, origin);
   BoardLayout layout;
   try {
     layout.type =
@@ -373,8 +389,107 @@ BoardLayout BoardLayout::Load(const std::filesystem::path& file) {
   layout.marker_side = YamlField(node, "marker_side", layout.marker_side, origin);
   layout.dictionary = YamlField(node, "dictionary", layout.dictionary, origin);
   layout.spacing = YamlField(node, "spacing", layout.spacing, origin);
+  layout.tag_steps = YamlField(node, "tag_steps", layout.tag_steps, origin);
+  layout.gap_steps = YamlField(node, "gap_steps", layout.gap_steps, origin);
+  layout.ids_upward = YamlField(node, "ids_upward", layout.ids_upward, origin);
   layout.first_id = YamlField(node, "first_id", layout.first_id, origin);
   layout.margin = YamlField(node, "margin", layout.margin, origin);
+  try {
+    layout.Check();
+  } catch (const Error& e) {
+    Fail(origin, ": ", e.what());
+  }
+  return layout;
+}
+
+namespace {
+
+// A Kalibr field that must be there.
+template <typename T>
+T KalibrField(const YAML::Node& node, const char* key, const std::string& origin) {
+  if (!node[key]) Fail(origin, ": Kalibr's target needs field '", key, "'");
+  return YamlField<T>(node, key, T{}, origin);
+}
+
+// Refuses a field of a Kalibr target that holocap does not read.
+void RefuseOtherKalibrFields(const YAML::Node& node, std::initializer_list<const char*> known,
+                             const std::string& origin, const std::string& target_type) {
+  std::string names;
+  for (const char* k : known) names += (names.empty() ? "" : ", ") + std::string(k);
+  for (const auto& entry : node) {
+    const std::string key = entry.first.as<std::string>();
+    if (std::none_of(known.begin(), known.end(), [&](const char* k) { return key == k; })) {
+      Fail(origin, ": field '", key, "' of a Kalibr ", target_type,
+           " is not supported (read: ", names, ")");
+    }
+  }
+}
+
+}  // namespace
+
+BoardLayout BoardLayout::FromKalibrYaml(const std::string& text, const std::string& origin) {
+  YAML::Node node;
+  try {
+    node = YAML::Load(text);
+  } catch (const YAML::Exception& e) {
+    Fail(origin, ": not YAML: ", e.what());
+  }
+  if (!node.IsMap()) Fail(origin, ": Kalibr's target must be a mapping");
+  const std::string target_type = KalibrField<std::string>(node, "target_type", origin);
+  BoardLayout layout;
+  if (target_type == "checkerboard") {
+    RefuseOtherKalibrFields(
+        node, {"target_type", "targetCols", "targetRows", "rowSpacingMeters", "colSpacingMeters"},
+        origin, target_type);
+    const double row_spacing = KalibrField<double>(node, "rowSpacingMeters", origin);
+    const double col_spacing = KalibrField<double>(node, "colSpacingMeters", origin);
+    if (!(std::abs(row_spacing - col_spacing) <= 1e-9 * std::abs(col_spacing))) {
+      Fail(origin, ": field 'rowSpacingMeters': holocap's chessboards have square cells, but ",
+           row_spacing, " != colSpacingMeters ", col_spacing);
+    }
+    layout.type = BoardType::kChessboard;
+    layout.chessboard_width_n = KalibrField<int>(node, "targetCols", origin);
+    layout.chessboard_height_n = KalibrField<int>(node, "targetRows", origin);
+    layout.spacing = col_spacing;
+    layout.margin = col_spacing;
+  } else if (target_type == "aprilgrid") {
+    RefuseOtherKalibrFields(node, {"target_type", "tagCols", "tagRows", "tagSize", "tagSpacing"},
+                            origin, target_type);
+    const double tag_size = KalibrField<double>(node, "tagSize", origin);
+    const double tag_spacing = KalibrField<double>(node, "tagSpacing", origin);
+    if (!(tag_size > 0) || !std::isfinite(tag_size))
+      Fail(origin, ": field 'tagSize': must be a positive length in metres, got ", tag_size);
+    if (!(tag_spacing > 0) || !std::isfinite(tag_spacing))
+      Fail(origin, ": field 'tagSpacing': must be a positive fraction of tagSize, got ",
+           tag_spacing);
+    // The smallest grid that holds every tag corner: tagSize / steps with tagSpacing * steps
+    // whole (0.3: tenths of a tag, 0.25: quarters).
+    int steps = 0;
+    for (int k = 1; k <= kMaxKalibrTagSteps && steps == 0; ++k) {
+      const double gap = tag_spacing * k;
+      if (std::abs(gap - std::round(gap)) <= 1e-6 * k) steps = k;
+    }
+    if (steps == 0) {
+      Fail(origin, ": field 'tagSpacing': ", tag_spacing, " times no whole number of steps up to ",
+           kMaxKalibrTagSteps,
+           " is whole, so the tag corners lie on no grid holocap solves (use a "
+           "tagSpacing in multiples of 1/",
+           kMaxKalibrTagSteps, ")");
+    }
+    layout.type = BoardType::kAprilGrid;
+    layout.family = "tag36h11";
+    layout.tags_across = KalibrField<int>(node, "tagCols", origin);
+    layout.tags_down = KalibrField<int>(node, "tagRows", origin);
+    layout.tag_steps = steps;
+    layout.gap_steps = static_cast<int>(std::lround(tag_spacing * steps));
+    layout.spacing = tag_size / steps;
+    layout.ids_upward = true;
+    layout.first_id = 0;
+    layout.margin = layout.gap_steps * layout.spacing;
+  } else {
+    Fail(origin, ": field 'target_type': Kalibr's '", target_type,
+         "' is not supported (supported: aprilgrid, checkerboard)");
+  }
   try {
     layout.Check();
   } catch (const Error& e) {
@@ -392,6 +507,9 @@ void BoardLayout::Save(const std::filesystem::path& file) const {
     out << YAML::Key << "family" << YAML::Value << family;
     out << YAML::Key << "tags_across" << YAML::Value << tags_across;
     out << YAML::Key << "tags_down" << YAML::Value << tags_down;
+    out << YAML::Key << "tag_steps" << YAML::Value << tag_steps;
+    out << YAML::Key << "gap_steps" << YAML::Value << gap_steps;
+    out << YAML::Key << "ids_upward" << YAML::Value << ids_upward;
     out << YAML::Key << "first_id" << YAML::Value << first_id;
   } else if (type == BoardType::kChessboard) {
     out << YAML::Key << "chessboard_width_n" << YAML::Value << chessboard_width_n;
@@ -429,27 +547,34 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
     return;
   }
 
-  // Tags repeat every 2 * spacing = 2 * width_at_border bits, so one bit lattice covers all.
+  BuildAprilTags();
+}
+
+// One cell per tag, a tag pitch wide, the tag's whole image (its outer bits included) at the
+// cell's top left: Check() keeps the gap wide enough for both neighbours' outer bits, so the
+// image never leaves its cell.
+void Board::BuildAprilTags() {
   const apriltag_family_t* family = FindFamily(layout_.family);
   const int border = family->width_at_border;
   const int total = family->total_width;
-  const int outer = OuterBits(family);
-  cell_ = s / border;
-  origin_ = -outer * cell_;
-  cells_u_ = (2 * layout_.tags_across - 1) * border + total - border;
-  cells_v_ = (2 * layout_.tags_down - 1) * border + total - border;
+  const double bit = layout_.tag_steps * layout_.spacing / border;
+  cell_ = (layout_.tag_steps + layout_.gap_steps) * layout_.spacing;
+  origin_ = -OuterBits(family) * bit;
+  cells_u_ = layout_.tags_across;
+  cells_v_ = layout_.tags_down;
   black_.assign(static_cast<size_t>(cells_u_) * cells_v_, 0);
+  marker_of_cell_.assign(static_cast<size_t>(cells_u_) * cells_v_, -1);
   for (int tj = 0; tj < layout_.tags_down; ++tj) {
     for (int ti = 0; ti < layout_.tags_across; ++ti) {
-      const std::vector<uint8_t> bits =
-          TagBits(family, layout_.first_id + tj * layout_.tags_across + ti);
-      for (int y = 0; y < total; ++y) {
-        for (int x = 0; x < total; ++x) {
-          const size_t row = 2 * static_cast<size_t>(tj) * border + y;
-          const size_t column = 2 * static_cast<size_t>(ti) * border + x;
-          black_[row * cells_u_ + column] = bits[static_cast<size_t>(y) * total + x];
-        }
-      }
+      const int row = layout_.ids_upward ? layout_.tags_down - 1 - tj : tj;
+      Marker marker;
+      marker.bits = total;
+      marker.bit = bit;
+      marker.u0 = origin_ + ti * cell_;
+      marker.v0 = origin_ + tj * cell_;
+      marker.black = TagBits(family, layout_.first_id + row * layout_.tags_across + ti);
+      marker_of_cell_[static_cast<size_t>(tj) * cells_u_ + ti] = static_cast<int>(markers_.size());
+      markers_.push_back(std::move(marker));
     }
   }
 }
@@ -507,28 +632,35 @@ std::vector<Eigen::Vector3d> Board::GridPoints() const {
   return points;
 }
 
-TagCorner Board::TagCornerOf(int i, int j) const {
+bool Board::TagCornerOf(int i, int j, TagCorner* corner) const {
   if (layout_.type != BoardType::kAprilGrid)
     Fail("a ", ToString(layout_.type), " has no tag corners");
   if (i < 0 || j < 0 || i >= width_n() || j >= height_n()) {
     Fail("grid point (", i, ", ", j, ") is off the ", width_n(), "x", height_n(), " board");
   }
-  TagCorner result;
-  result.tag_id = layout_.first_id + (j / 2) * layout_.tags_across + i / 2;
-  const bool right = i % 2 == 1;
-  const bool bottom = j % 2 == 1;
-  result.corner = bottom ? (right ? 1 : 0) : (right ? 2 : 3);
-  return result;
+  const int pitch = layout_.tag_steps + layout_.gap_steps;
+  const int di = i % pitch, dj = j % pitch;
+  if ((di != 0 && di != layout_.tag_steps) || (dj != 0 && dj != layout_.tag_steps)) return false;
+  const int tj = j / pitch;
+  const int row = layout_.ids_upward ? layout_.tags_down - 1 - tj : tj;
+  corner->tag_id = layout_.first_id + row * layout_.tags_across + i / pitch;
+  const bool right = di != 0;
+  const bool bottom = dj != 0;
+  corner->corner = bottom ? (right ? 1 : 0) : (right ? 2 : 3);
+  return true;
 }
 
 bool Board::GridPointOf(int tag_id, int corner, int* i, int* j) const {
   if (layout_.type != BoardType::kAprilGrid || corner < 0 || corner > 3) return false;
   const int index = tag_id - layout_.first_id;
   if (index < 0 || index >= tag_count()) return false;
+  const int pitch = layout_.tag_steps + layout_.gap_steps;
+  const int row = index / layout_.tags_across;
+  const int tj = layout_.ids_upward ? layout_.tags_down - 1 - row : row;
   const bool right = corner == 1 || corner == 2;
   const bool bottom = corner == 0 || corner == 1;
-  *i = 2 * (index % layout_.tags_across) + (right ? 1 : 0);
-  *j = 2 * (index / layout_.tags_across) + (bottom ? 1 : 0);
+  *i = pitch * (index % layout_.tags_across) + (right ? layout_.tag_steps : 0);
+  *j = pitch * tj + (bottom ? layout_.tag_steps : 0);
   return true;
 }
 

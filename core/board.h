@@ -4,12 +4,19 @@
 // board is seen from its printed (front) side, which faces -z. Grid points lie at
 // (i * spacing, j * spacing, 0) for i < width_n, j < height_n, exactly mrcal's board model.
 //
-// AprilTag boards put the tags' detection corners on that one grid: every tag is `spacing`
-// wide (its detection square, i.e. libapriltag's width_at_border bits) and neighbouring tags
-// are one `spacing` apart, so grid point (i, j) is a corner of exactly one tag:
-// tag (i / 2, j / 2) of the tag grid, with id first_id + (j / 2) * tags_across + i / 2. The
-// corner numbering is libapriltag's detection order, which wraps counter-clockwise in the
-// image as seen from the front: 0 = (-u, +v), 1 = (+u, +v), 2 = (+u, -v), 3 = (-u, -v).
+// AprilTag boards put the tags' detection corners on that one grid: every tag is
+// tag_steps * spacing wide (its detection square, i.e. libapriltag's width_at_border bits) and
+// neighbouring tags are gap_steps * spacing apart. holocap's own boards have tag_steps =
+// gap_steps = 1, so grid point (i, j) is a corner of exactly one tag: tag (i / 2, j / 2) of the
+// tag grid, with id first_id + (j / 2) * tags_across + i / 2. Kalibr's aprilgrid (tags
+// tagSize apart by tagSpacing * tagSize) is not one uniform grid of corners; it becomes one with
+// spacing tagSize / tag_steps when tagSpacing * tag_steps is a whole number (gap_steps), and
+// the grid points between the tag corners are never seen (mrcal's weight < 0). Ids run row by
+// row from the top row down, or with ids_upward from the bottom row up (Kalibr's: tag 0 at the
+// bottom left). The corner numbering is libapriltag's detection order, which wraps
+// counter-clockwise in the image as seen from the front: 0 = (-u, +v), 1 = (+u, +v),
+// 2 = (+u, -v), 3 = (-u, -v); Kalibr numbers a tag's corners the same way (bottom left, bottom
+// right, top right, top left).
 // Chessboards put the grid on the inner corners: (width_n + 1) x (height_n + 1) squares with
 // the square at (-spacing, -spacing) black.
 // ChArUco boards (OpenCV's CharucoBoard, as OpenCV 4.6 draws it) are such a chessboard of
@@ -43,10 +50,15 @@ struct BoardLayout {
   int squares_down = 7;         // ChArUco boards: squares per column
   double marker_side = 0.03;    // ChArUco boards: metres, the ArUco marker's black outline
   std::string dictionary = "DICT_5X5_1000";  // ChArUco boards: OpenCV's ArUco dictionary name
-  double spacing = 0.04;  // metres between neighbouring grid points (the tag or square side)
-  int first_id = 0;       // id of the top-left tag or marker; ids run row by row
-  double margin = 0.04;   // metres of white between the outermost grid points and
-                          // the board's edge (covers the tags' outer bits)
+  double spacing = 0.04;    // metres between neighbouring grid points (the square side; the
+                            // tag side over tag_steps)
+  int tag_steps = 1;        // AprilTag boards: grid steps along a tag's side
+  int gap_steps = 1;        // AprilTag boards: grid steps between neighbouring tags
+  bool ids_upward = false;  // AprilTag boards: ids run from the bottom row up (Kalibr's order)
+  int first_id = 0;      // id of the top-left tag or marker (bottom-left with ids_upward); ids run
+                         // row by row
+  double margin = 0.04;  // metres of white between the outermost grid points and
+                         // the board's edge (covers the tags' outer bits)
 
   // Throws Error with the reason for an inconsistent layout (unknown family or dictionary, too
   // few points, ids beyond the family or dictionary, a marker not smaller than its square, a
@@ -55,13 +67,26 @@ struct BoardLayout {
 
   int width_n() const;   // grid points per row
   int height_n() const;  // grid points per column
+  // Grid steps along the side of what a detector needs large enough to see: a tag's side for
+  // AprilTag boards, 1 (a square) for the others.
+  int feature_steps() const;
 
   nlohmann::json ToJson() const;
   static BoardLayout FromJson(const nlohmann::json& json, const std::string& origin = "board");
   // YAML (or JSON, which YAML reads) with the field names above; `type` is "apriltag",
-  // "chessboard" or "charuco". Missing fields keep their defaults. Throws Error naming file and
+  // "chessboard" or "charuco". Missing fields keep their defaults. A file with Kalibr's
+  // `target_type` is read as Kalibr's target (FromKalibrYaml). Throws Error naming file and
   // field.
   static BoardLayout Load(const std::filesystem::path& file);
+  // Kalibr's target YAML: target_type 'aprilgrid' (tagCols, tagRows, tagSize in metres,
+  // tagSpacing as a fraction of tagSize; tag36h11, ids from the bottom-left tag) or
+  // 'checkerboard' with square cells (targetCols x targetRows inner corners, rowSpacingMeters
+  // = colSpacingMeters). The aprilgrid's grid spacing is tagSize / tag_steps for the smallest
+  // tag_steps <= kMaxKalibrTagSteps that makes tagSpacing * tag_steps whole. Throws Error
+  // naming the field for anything else (other target types, unknown or missing fields, a
+  // tagSpacing without such a divisor).
+  static BoardLayout FromKalibrYaml(const std::string& text, const std::string& origin);
+  static constexpr int kMaxKalibrTagSteps = 10;
   void Save(const std::filesystem::path& file) const;  // YAML, atomic
 };
 
@@ -90,8 +115,9 @@ class Board {
   // All grid points in board coordinates (z = 0), row-major: index j * width_n + i.
   std::vector<Eigen::Vector3d> GridPoints() const;
   Eigen::Vector3d GridPoint(int i, int j) const;
-  // AprilTag boards only (throws Error for the others).
-  TagCorner TagCornerOf(int i, int j) const;
+  // AprilTag boards only (throws Error for the others): the tag corner at grid point (i, j);
+  // false for a point between tags' corners (boards with tag_steps > 1).
+  bool TagCornerOf(int i, int j, TagCorner* corner) const;
   // The grid point of a tag corner; false when the id is not on this board.
   bool GridPointOf(int tag_id, int corner, int* i, int* j) const;
   int tag_count() const;
@@ -116,7 +142,8 @@ class Board {
  private:
   // The pattern is a lattice of square cells of side cell_ starting at (origin_, origin_).
   bool CellIsBlack(int cu, int cv) const;
-  // ChArUco boards: a marker's bits, a finer lattice inside one white cell.
+  // ChArUco boards: a marker's bits, a finer lattice inside one white cell. AprilTag boards:
+  // a tag's bits (its total_width), at the top left of its cell, one cell per tag.
   struct Marker {
     double u0 = 0, v0 = 0;       // the marker's top-left corner
     double bit = 0;              // side of one bit
@@ -124,6 +151,7 @@ class Board {
     std::vector<uint8_t> black;  // bits x bits, row-major
   };
   void BuildCharuco();
+  void BuildAprilTags();
 
   std::vector<Marker> markers_;
   std::vector<int> marker_of_cell_;  // cells_u_ x cells_v_: index into markers_, or -1

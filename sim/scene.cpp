@@ -178,7 +178,7 @@ Eigen::Vector3d BoardCenter(const Board& board) {
                          0.5 * (board.v_min() + board.v_max()), 0);
 }
 
-// Smallest grid spacing the board shows any of `viewers`, in pixels; 0 when a viewer does not
+// Smallest tag (square) side the board shows any of `viewers`, in pixels; 0 when a viewer does not
 // see the whole board in its image or the board leaves the room.
 double BoardPoseScore(const Board& board, const Pose& world_from_board,
                       const std::vector<const CameraModel*>& viewers) {
@@ -203,12 +203,13 @@ double BoardPoseScore(const Board& board, const Pose& world_from_board,
         return 0;
       }
     }
-    // The grid spacing at the board's four outer grid points, both ways.
+    // A tag's (square's) side at the board's four outer grid points, both ways.
+    const int step = board.layout().feature_steps();
     for (int j : {0, board.height_n() - 1}) {
       for (int i : {0, board.width_n() - 1}) {
         const Eigen::Vector3d p = world_from_board * board.GridPoint(i, j);
-        const Eigen::Vector3d pu = world_from_board * board.GridPoint(i == 0 ? 1 : i - 1, j);
-        const Eigen::Vector3d pv = world_from_board * board.GridPoint(i, j == 0 ? 1 : j - 1);
+        const Eigen::Vector3d pu = world_from_board * board.GridPoint(i == 0 ? step : i - step, j);
+        const Eigen::Vector3d pv = world_from_board * board.GridPoint(i, j == 0 ? step : j - step);
         Eigen::Vector2d q, qu, qv;
         if (!camera->ProjectWorld(p, &q) || !camera->ProjectWorld(pu, &qu) ||
             !camera->ProjectWorld(pv, &qv)) {
@@ -241,7 +242,7 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
   const CameraModel& neighbour = cameras[(c + 1) % std::max(n, 1)];
   const double board_width = board.u_max() - board.u_min();
   const Eigen::Vector3d board_center = BoardCenter(board);
-  // Tags need about 12 px to decode; the grid spacing is a tag's side.
+  // Tags need about 12 px to decode.
   const double min_spacing_px = 14;
   std::vector<const CameraModel*> viewers = {&camera};
   if (shared) viewers.push_back(&neighbour);
@@ -294,7 +295,7 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
     const double roll = (2 * unit(rng) - 1) * 25 * kDeg;
     const Eigen::Matrix3d rotation =
         Eigen::AngleAxisd(tilt, axis).matrix() * upright.linear() * RotZ(roll);
-    const Pose world_from_board = MakePose(rotation, center - rotation * board_center);
+    Pose world_from_board = MakePose(rotation, center - rotation * board_center);
     const double score = BoardPoseScore(board, world_from_board, viewers);
     if (score >= min_spacing_px) return world_from_board;
     if (score > best_score) {

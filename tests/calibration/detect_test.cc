@@ -252,6 +252,38 @@ TEST(BoardDetector, NamesTagsOfADifferentBoard) {
   }
 }
 
+// Kalibr's aprilgrid (6 x 6 tags of 5 cm, gaps of 0.3 tags) turned about its normal by 0, 90,
+// 180 and 270 degrees: the detector numbers every corner from the tag libapriltag decodes, so
+// each lies on the true projection of the grid point Kalibr's numbering gives it, whichever
+// way up the board is, and only the 144 tag corners of the 76 x 76 grid are seen.
+TEST(KalibrAprilgrid, CornersKeepKalibrsNumberingOnATurnedBoard) {
+  TempDir dir;
+  std::ofstream(dir / "kalibr.yaml") << "target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\n"
+                                        "tagSize: 0.05\ntagSpacing: 0.3\n";
+  const BoardLayout layout = BoardLayout::Load(dir / "kalibr.yaml");
+  const Board board(layout);
+  ASSERT_EQ(board.width_n() * board.height_n(), 76 * 76);
+  const Eigen::Vector3d centre((board.width_n() - 1) * layout.spacing / 2,
+                               (board.height_n() - 1) * layout.spacing / 2, 0);
+  for (int quarter = 0; quarter < 4; ++quarter) {
+    Scene scene(board, 20, 0.8);
+    Pose turn = Pose::Identity();
+    turn.linear() = Eigen::AngleAxisd(quarter * M_PI / 2, Eigen::Vector3d::UnitZ()).matrix();
+    turn.translation() = centre - turn.linear() * centre;
+    scene.cam_from_board = scene.cam_from_board * turn;
+    const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board, 2.0);
+    BoardObservation obs;
+    std::string reason;
+    ASSERT_TRUE(BoardDetector(layout).Detect(image, &obs, &reason)) << reason;
+    const CornerErrors e = Errors(obs, scene, board);
+    std::printf("Kalibr aprilgrid turned %d degrees: %d corners, mean %.3f max %.3f px\n",
+                90 * quarter, e.count, e.mean, e.max);
+    EXPECT_EQ(e.count, 144) << quarter;
+    EXPECT_LT(e.mean, 0.06) << quarter;
+    EXPECT_LT(e.max, 0.2) << quarter;
+  }
+}
+
 TEST(BoardPrint, PdfPageIsTheBoardsSizeAndThePngDetects) {
   TempDir dir;
   const BoardLayout layout = testing::TestBoard();

@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <fstream>
 #include <random>
 #include <set>
 #include <string>
@@ -25,7 +26,8 @@ TEST(BoardTest, EveryGridPointIsACornerOfExactlyOneTag) {
     std::set<std::pair<int, int>> seen;
     for (int j = 0; j < board.height_n(); ++j) {
       for (int i = 0; i < board.width_n(); ++i) {
-        const TagCorner corner = board.TagCornerOf(i, j);
+        TagCorner corner;
+        ASSERT_TRUE(board.TagCornerOf(i, j, &corner));
         EXPECT_TRUE(seen.insert({corner.tag_id, corner.corner}).second) << family;
         int ri = -1, rj = -1;
         ASSERT_TRUE(board.GridPointOf(corner.tag_id, corner.corner, &ri, &rj));
@@ -151,6 +153,109 @@ TEST(BoardTest, CharucoYamlRoundTripAndChecks) {
   bad = layout;
   bad.margin = 0.01;
   expect_error(bad, "outer squares");
+}
+
+// Kalibr's aprilgrid YAML (its README's 6 x 6 board): every tag corner sits where Kalibr's own
+// target puts it. Kalibr's points are numbered row by row from the bottom (y up), two rows and
+// columns per tag, at x = (c / 2) (1 + tagSpacing) tagSize + (c % 2) tagSize; tag k's corners
+// are its points base, base + 1, base + cols + 1, base + cols with base = (k / tagCols) 2 cols
+// + (k % tagCols) 2 (GridCalibrationTargetAprilgrid). holocap's board frame has v down.
+TEST(KalibrAprilgrid, EveryTagCornerIsWhereKalibrPutsIt) {
+  testing::TempDir dir;
+  std::ofstream(dir / "kalibr.yaml") << "target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\n"
+                                        "tagSize: 0.088\ntagSpacing: 0.3\n";
+  const BoardLayout layout = BoardLayout::Load(dir / "kalibr.yaml");
+  EXPECT_EQ(layout.family, "tag36h11");
+  EXPECT_EQ(layout.tag_steps, 10);
+  EXPECT_EQ(layout.gap_steps, 3);
+  EXPECT_DOUBLE_EQ(layout.spacing, 0.0088);
+  const Board board(layout);
+  ASSERT_EQ(board.width_n(), 76);
+  ASSERT_EQ(board.height_n(), 76);
+  const double tag_size = 0.088, tag_spacing = 0.3;
+  const int cols = 12;  // Kalibr's points per row: 2 per tag
+  const double top = (board.height_n() - 1) * layout.spacing;
+  auto kalibr_point = [&](int index) {
+    const int r = index / cols, c = index % cols;
+    const int tag_column = c / 2, tag_row = r / 2;
+    return Eigen::Vector2d(tag_column * (1 + tag_spacing) * tag_size + (c % 2) * tag_size,
+                           tag_row * (1 + tag_spacing) * tag_size + (r % 2) * tag_size);
+  };
+  for (int id = 0; id < 36; ++id) {
+    const int base = (id / 6) * cols * 2 + (id % 6) * 2;
+    const int kalibr_index[4] = {base, base + 1, base + cols + 1, base + cols};
+    for (int corner = 0; corner < 4; ++corner) {
+      int i = -1, j = -1;
+      ASSERT_TRUE(board.GridPointOf(id, corner, &i, &j));
+      const Eigen::Vector3d p = board.GridPoint(i, j);
+      const Eigen::Vector2d expected = kalibr_point(kalibr_index[corner]);
+      EXPECT_NEAR(p.x(), expected.x(), 1e-12) << "tag " << id << " corner " << corner;
+      EXPECT_NEAR(top - p.y(), expected.y(), 1e-12) << "tag " << id << " corner " << corner;
+      TagCorner back;
+      ASSERT_TRUE(board.TagCornerOf(i, j, &back));
+      EXPECT_EQ(back.tag_id, id);
+      EXPECT_EQ(back.corner, corner);
+    }
+  }
+  // Only the 144 tag corners are corners; the other 5632 grid points are never observed.
+  int corners = 0;
+  for (int j = 0; j < board.height_n(); ++j) {
+    for (int i = 0; i < board.width_n(); ++i) {
+      TagCorner c;
+      corners += board.TagCornerOf(i, j, &c);
+    }
+  }
+  EXPECT_EQ(corners, 144);
+  // The printed tags are black up to their corners, with white in the gaps between them.
+  const double eps = layout.spacing / 10;
+  for (int id : {0, 5, 30, 35}) {
+    int i = 0, j = 0;
+    board.GridPointOf(id, 0, &i, &j);  // bottom left
+    const Eigen::Vector3d p = board.GridPoint(i, j);
+    EXPECT_EQ(board.Reflectance(p.x() + eps, p.y() - eps), 0.0) << id;
+    EXPECT_EQ(board.Reflectance(p.x() - eps, p.y() + eps), 1.0) << id;
+  }
+  // holocap's own layout written back and read again is the same board.
+  layout.Save(dir / "saved.yaml");
+  EXPECT_EQ(BoardLayout::Load(dir / "saved.yaml").ToJson(), layout.ToJson());
+}
+
+// Anything of a Kalibr target file holocap does not read is one error naming it.
+TEST(KalibrAprilgrid, RefusesWhatItDoesNotReadByName) {
+  testing::TempDir dir;
+  auto error_of = [&](const std::string& yaml) -> std::string {
+    std::ofstream(dir / "target.yaml") << yaml;
+    try {
+      BoardLayout::Load(dir / "target.yaml");
+    } catch (const Error& e) {
+      return e.what();
+    }
+    return "no error";
+  };
+  const std::string grid = "target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\ntagSize: 0.088\n";
+  EXPECT_NE(error_of(grid + "tagSpacing: 0.3\ncodeOffset: 36\n").find("field 'codeOffset'"),
+            std::string::npos);
+  EXPECT_NE(error_of(grid).find("needs field 'tagSpacing'"), std::string::npos);
+  EXPECT_NE(error_of(grid + "tagSpacing: 0.33\n").find("field 'tagSpacing': 0.33"),
+            std::string::npos);
+  EXPECT_NE(error_of(grid + "tagSpacing: 0.1\n").find("outer bits"), std::string::npos);
+  EXPECT_NE(error_of(grid + "tagSpacing: -0.3\n").find("field 'tagSpacing'"), std::string::npos);
+  EXPECT_NE(error_of("target_type: 'circlegrid'\ntargetCols: 6\n").find("'circlegrid'"),
+            std::string::npos);
+  EXPECT_NE(error_of("target_type: 'checkerboard'\ntargetCols: 6\ntargetRows: 7\n"
+                     "rowSpacingMeters: 0.06\ncolSpacingMeters: 0.05\n")
+                .find("square cells"),
+            std::string::npos);
+
+  // Kalibr's checkerboard with square cells is holocap's chessboard.
+  std::ofstream(dir / "checker.yaml") << "target_type: 'checkerboard'\ntargetCols: 6\n"
+                                         "targetRows: 7\nrowSpacingMeters: 0.06\n"
+                                         "colSpacingMeters: 0.06\n";
+  const BoardLayout chess = BoardLayout::Load(dir / "checker.yaml");
+  EXPECT_EQ(chess.type, BoardType::kChessboard);
+  EXPECT_EQ(chess.width_n(), 6);
+  EXPECT_EQ(chess.height_n(), 7);
+  EXPECT_DOUBLE_EQ(chess.spacing, 0.06);
 }
 
 }  // namespace
