@@ -20,7 +20,9 @@ void AddBoardCommand(CLI::App& app) {
   auto* command =
       app.add_subcommand("board", "Print a calibration board (YAML layout) to scale as PNG or PDF");
   auto args = std::make_shared<BoardArgs>();
-  command->add_option("board", args->board, "Board layout (YAML: type, family, tags_across, ...)")
+  command
+      ->add_option("board", args->board,
+                   "Board layout (YAML: type, family, tags_across, ...; or Kalibr's target YAML)")
       ->required();
   command->add_option("--out", args->out, "board.png or board.pdf")->required();
   command->add_option("--dpi", args->dpi, "PNG resolution")->capture_default_str();

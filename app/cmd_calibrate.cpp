@@ -91,8 +91,10 @@ void AddCalibrateCommand(CLI::App& app) {
   command->add_option("--from", args->from,
                       "Take over the calibration of another take of the same rig (a calibrated "
                       "board take, or a folder of <sensor>.cameramodel files) instead of solving");
-  command->add_option("--board", args->board,
-                      "Board layout YAML (default: the take's gt/board.json)");
+  command->add_option(
+      "--board", args->board,
+      "Board layout YAML, holocap's or Kalibr's target YAML (target_type: aprilgrid) "
+      "(default: the take's gt/board.json)");
   command->add_option("--lens-model", args->lensmodel,
                       "mrcal lens model for every camera (default: per camera from the rig, "
                       "else LENSMODEL_OPENCV8)");

@@ -88,7 +88,8 @@ static void AddSimCommand(CLI::App& app) {
       ->capture_default_str();
   command->add_option("--board-layout", args->board_layout,
                       "The board scene's board: a layout YAML as holocap board prints (e.g. a "
-                      "square chessboard, a ChArUco board); default: the 5x4 AprilTag board");
+                      "square chessboard, a ChArUco board, Kalibr's aprilgrid YAML); default: the "
+                      "5x4 AprilTag board");
   command->add_flag("--board-still", o.board_still,
                     "The board never moves: every frame set shows the first pose cam0 and cam1 "
                     "share (no lens can be calibrated from it)");

@@ -311,6 +311,18 @@ TEST(CalibrateCli, CalibratesAKalibrAprilgridTake) {
   ExpectIntrinsicsWithinTheirSigma(m, corners, 10);
   EXPECT_LT(m["rms_reprojection_px"].get<double>(), 0.3);
   EXPECT_LT(m["gt"]["projection_diff_rms_observed_px"].get<double>(), 0.3);
+
+  // A Kalibr field holocap does not read, or another target type: one error naming it.
+  std::ofstream(dir / "offset.yaml") << "target_type: 'aprilgrid'\ntagCols: 4\ntagRows: 3\n"
+                                        "tagSize: 0.15\ntagSpacing: 0.3\ncodeOffset: 12\n";
+  ExpectOneLineError(RunCli("calibrate " + (dir / "take").string() + " --no-pictures --board " +
+                            (dir / "offset.yaml").string()),
+                     "field 'codeOffset' of a Kalibr aprilgrid is not supported");
+  std::ofstream(dir / "circles.yaml") << "target_type: 'circlegrid'\ntargetCols: 6\n";
+  ExpectOneLineError(RunCli("sim --rig " + WriteRingRig(dir.path(), 2) + " --board --frames 1 " +
+                            "--board-layout " + (dir / "circles.yaml").string() + " --out " +
+                            (dir / "circles").string()),
+                     "Kalibr's 'circlegrid' is not supported");
 }
 
 // A take of a two-camera ring (studio8's cam0 and cam1) at 480 px: the board moving, or never
