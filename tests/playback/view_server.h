@@ -126,4 +126,15 @@ class ViewServer {
   std::string url_, first_line_, printed_;
 };
 
+// Why the browser tests cannot run here (empty when they can): Debian's chromium and
+// puppeteer-core beside tests/playback/browser/drive.mjs (`driver`).
+inline std::string BrowserMissing(const std::filesystem::path& driver) {
+  if (RunShell("command -v chromium").exit_code != 0)
+    return "Debian's chromium is not installed (scripts/setup.sh --tests installs it)";
+  if (!std::filesystem::exists(driver / "node_modules/puppeteer-core"))
+    return "puppeteer-core is not installed (scripts/setup.sh --tests: npm ci in " +
+           driver.string() + ")";
+  return "";
+}
+
 }  // namespace holocap::testing

@@ -36,7 +36,11 @@ export function isKeyFrame(stream, i) {
 // The throughput of the chunk fetches: bytes over the time at least one response body was
 // arriving (the fetches ahead share the connection, so one fetch's own rate would undercount it;
 // the round trip before a body is left out: it would make small chunks read slow), smoothed over
-// chunks by two moving averages, a fast one and a slow one. While fetches are in flight it also
+// chunks by two moving averages, a fast one and a slow one, each of bytes over busy time (a
+// sample weighs as much as the time it spans: fetches that end moments apart make a short
+// sample whose rate says little). Fetches in flight together are timed once: their bytes over
+// the union of their intervals, not each one's bytes over its own interval, summed (which
+// counts the shared time once per fetch). While fetches are in flight it also
 // watches the bytes arriving: a link that slows down shows before the chunks on it end.
 export class ThroughputMeter {
   constructor() {
@@ -76,8 +80,8 @@ export class ThroughputMeter {
     const mbps = (this.bytes - this.sampledBytes) * 8 / 1e3 / ms;
     this.sampledMs = busy;
     this.sampledBytes = this.bytes;
-    this.fast.add(mbps);
-    this.slow.add(mbps);
+    this.fast.add(mbps, ms);
+    this.slow.add(mbps, ms);
     ++this.samples;
   }
 
@@ -94,15 +98,17 @@ export class ThroughputMeter {
   }
 }
 
+// An exponential moving average of values each of a weight, decayed per sample: the weighted
+// mean of the recent ones.
 class MovingAverage {
   constructor(halfLife) {
     this.alpha = 0.5 ** (1 / halfLife);
     this.sum = 0;
     this.weight = 0;
   }
-  add(value) {
-    this.sum = this.alpha * this.sum + (1 - this.alpha) * value;
-    this.weight = this.alpha * this.weight + (1 - this.alpha);
+  add(value, weight = 1) {
+    this.sum = this.alpha * this.sum + (1 - this.alpha) * value * weight;
+    this.weight = this.alpha * this.weight + (1 - this.alpha) * weight;
   }
   get value() { return this.sum / this.weight; }  // without the bias towards 0 of the start
 }

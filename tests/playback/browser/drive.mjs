@@ -33,6 +33,13 @@
 //                                                             LATENCY_MS, frames drawn and shown
 //                                                             per second playing it (5 s), decode
 //                                                             ms per frame
+//   node drive.mjs meter URL OUT MBPS LATENCY_MS PARALLEL STREAM
+//                                                             the page's ThroughputMeter over
+//                                                             STREAM's chunks fetched PARALLEL
+//                                                             at a time through its StreamBuffer,
+//                                                             the link throttled to MBPS and
+//                                                             LATENCY_MS; each fetch's interval
+//                                                             and bytes beside the meter's figure
 //   node drive.mjs picture URL OUT W H STREAM                 the whole page, its bar shown, at
 //                                                             frame 0 of STREAM (OUT/player.png;
 //                                                             the documentation's picture)
@@ -259,6 +266,65 @@ async function ladder([name, speed, mbps, latencyMs, buffer]) {
   return results;
 }
 
+async function meter([mbps, latencyMs, parallel, name]) {
+  // The manifest as the page (its modules load from the site), nothing of the player running.
+  const page = await browser.newPage();
+  page.on('pageerror', (e) => consoleErrors.push(`page error: ${e.message}`));
+  await page.goto(new URL('manifest.json', url).href, { waitUntil: 'load' });
+  const client = await page.createCDPSession();
+  await client.send('Network.enable');
+  await client.send('Network.setCacheDisabled', { cacheDisabled: true });
+  await client.send('Network.emulateNetworkConditions', {
+    offline: false, latency: +latencyMs, downloadThroughput: +mbps * 1e6 / 8,
+    uploadThroughput: +mbps * 1e6 / 8 });
+  const results = await page.evaluate(async (parallel, name) => {
+    const { ThroughputMeter } = await import('./player/ladder.js');
+    const { StreamBuffer } = await import('./player/stream.js');
+    const manifest = await (await fetch('manifest.json')).json();
+    const stream = manifest.streams.find((s) => s.name === name);
+    const meter = new ThroughputMeter();
+    const buffer = new StreamBuffer(new URL('.', location.href), stream, (i, e) => { throw new Error(e); },
+                                    () => {}, meter);
+    // Each fetch's body: its interval (as the meter times it) and bytes.
+    const fetches = [], body = buffer.body.bind(buffer);
+    buffer.body = async (response) => {
+      const start = performance.now(), bytes = await body(response);
+      fetches.push({ start, end: performance.now(), bytes: bytes.byteLength });
+      return bytes;
+    };
+    const indices = stream.chunks.map((c, i) => (c ? i : -1)).filter((i) => i >= 0);
+    const t0 = performance.now();
+    let next = 0, inFlight = 0, maxInFlight = 0;
+    await new Promise((resolve, reject) => {
+      const more = () => {
+        while (inFlight < parallel && next < indices.length) {
+          const i = indices[next++];
+          maxInFlight = Math.max(maxInFlight, ++inFlight);
+          buffer.decoded(i).then(() => { --inFlight; if (next < indices.length) more(); else if (inFlight === 0) resolve(); },
+                                 reject);
+        }
+      };
+      more();
+    });
+    const t1 = performance.now();
+    // Each fetch's own rate (its chunk's bytes over its own interval): what summing or taking
+    // the best of per-fetch rates would make of the link.
+    const perFetch = fetches.map((f) => f.bytes * 8 / 1e3 / (f.end - f.start));
+    // The most fetches whose bodies were on the link at once.
+    const edges = fetches.flatMap((f) => [[f.start, 1], [f.end, -1]]).sort((a, b) => a[0] - b[0] || a[1] - b[1]);
+    let overlap = 0, maxOverlap = 0;
+    for (const [, d] of edges) maxOverlap = Math.max(maxOverlap, overlap += d);
+    const bytes = indices.reduce((s, i) => s + stream.chunks[i].bytes, 0);
+    return { chunks: indices.length, bytes, parallel, maxInFlight, maxOverlap,
+             meterMbps: meter.estimate(), meterBusyMbps: meter.bytes * 8 / 1e3 / meter.busyMs,
+             wallMbps: bytes * 8 / 1e3 / (t1 - t0),
+             perFetchMeanMbps: perFetch.reduce((a, b) => a + b, 0) / perFetch.length,
+             perFetchBestMbps: Math.max(...perFetch) };
+  }, +parallel, name);
+  await page.close();
+  return { mbps: +mbps, latencyMs: +latencyMs, ...results };
+}
+
 async function playback([width, height, mbps, latencyMs, ...streams]) {
   const results = {};
   const throttled = async (page) => {
@@ -312,6 +378,7 @@ try {
   else if (mode === 'picture') results = await picture(rest);
   else if (mode === 'ladder') results = await ladder(rest);
   else if (mode === 'playback') results = await playback(rest);
+  else if (mode === 'meter') results = await meter(rest);
   else throw new Error(`unknown mode '${mode}'`);
   results.ok = true;
 } catch (error) {
