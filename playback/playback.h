@@ -156,8 +156,9 @@ struct WebExportOptions {
                                               // others are deltas); also the frames of a
                                               // group, the unit of --shard
   double splat_mbps = 0;                      // > 0: a budget (Mbps at the site's rate) for
-                                              // the quantised splat streams, each the first
-                                              // rung (its level's own first) that fits it
+                                              // every chunk of the quantised splat streams,
+                                              // each chunk at the finest rung (its level's own
+                                              // first) that fits it
   int error_width_px = 160;                   // width of the views the export's error is
                                               // measured on (the capture cameras, rescaled)
   int error_cameras = 2;                      // capture cameras measured per frame
@@ -176,9 +177,11 @@ struct WebStreamMetrics {
   std::string kind;     // "mesh" | "volume" | "splats"
   std::string quality;  // the level
   int64_t frames = 0;
-  double mb_per_frame = 0;  // mean chunk size, 10^6 bytes
-  double mbps = 0;          // at the manifest's fps
-  double psnr_db = 0;       // decoded stream against the uncompressed one (capture cameras)
+  double mb_per_frame = 0;    // mean chunk size, 10^6 bytes
+  double mbps = 0;            // at the manifest's fps
+  double max_chunk_mbps = 0;  // the largest chunk's size at the manifest's fps (a budget, e.g.
+                              // --splat-mbps, holds every chunk, not only the mean)
+  double psnr_db = 0;         // decoded stream against the uncompressed one (capture cameras)
   double max_position_error_mm = 0;  // meshes: simplification and quantisation of the vertices
   double mean_faces = 0;             // meshes: faces per frame streamed
   double mean_gaussians = 0;         // splats: Gaussians per frame

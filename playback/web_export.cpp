@@ -239,6 +239,11 @@ class SiteWriter {
                                   size_t i, std::vector<std::string>* outputs);
   nlohmann::json WriteSplatFrames(const SiteStream& stream, size_t begin, size_t end,
                                   std::vector<std::string>* outputs);
+  // Under a budget (--splat-mbps), the encoding of each of a group's splat chunks [begin, end):
+  // per key frame the finest rung whose chunk fits a frame's share of the budget and the deltas
+  // after it can fit too, per delta the finest delta rung that fits (web::SplatDeltaRung).
+  std::vector<web::SplatEncoding> BudgetedSplatEncodings(const SiteStream& stream, size_t begin,
+                                                         size_t end);
   // A splat frame: a key frame or a delta of the frame before as decoded (`decoded`, which
   // becomes this frame's).
   // The model frame shown at timeline frame i of a group starting at `begin` (-1: none) and,
@@ -538,47 +543,14 @@ nlohmann::json SiteWriter::ManifestHead() const {
 }
 
 // A splat stream's quantisation: the same ranges for every chunk of the stream, over every
-// frame the timeline shows.
+// frame the timeline shows (under a budget, each chunk's rung of it: BudgetedSplatEncodings).
 web::SplatEncoding SiteWriter::EncodingOver(int source, const std::string& level) {
   SplatSequence& sequence = Sequence(source);
   web::SplatEncoding encoding =
       web::SplatEncoding::For(web::QualityByName(level), sequence.sh_degree());
   for (int64_t frame : FramesOf(source))
     if (frame >= 0) encoding.Include(sequence.Frame(frame));
-  if (options_.splat_mbps <= 0 || encoding.float32) return encoding;
-  // The budget: the first rung whose first group's chunks fit it, measured by encoding them.
-  const size_t end = std::min(sets_.size(), static_cast<size_t>(options_.splat_key_every));
-  const double budget_bytes = options_.splat_mbps * 1e6 / 8 / fps_;
-  double bytes_per_frame = 0;
-  web::SplatEncoding rung;
-  int r = 0;
-  for (; r < web::kSplatRungs; ++r) {
-    rung = web::SplatRung(encoding, r);
-    double bytes = 0;
-    web::SplatCodes previous;
-    for (size_t i = 0; i < end; ++i) {
-      std::vector<int64_t> origin;
-      const int64_t frame = SplatChunkOf(source, i, 0, &origin);
-      if (frame < 0) continue;
-      const bool key = origin.empty();
-      web::SplatCodes codes;
-      bytes +=
-          static_cast<double>(web::EncodeSplats(sequence.Frame(frame), static_cast<int64_t>(i),
-                                                rung, key ? nullptr : &previous, origin, &codes)
-                                  .Serialise()
-                                  .size());
-      previous = std::move(codes);
-    }
-    bytes_per_frame = end > 0 ? bytes / static_cast<double>(end) : 0;
-    if (bytes_per_frame <= budget_bytes) break;
-  }
-  std::printf(
-      "  splat-%s: rung %d of %d, %.3f MB/frame (%.2f Mbps) over the first group for a "
-      "budget of %.2f Mbps%s\n",
-      level.c_str(), std::min(r, web::kSplatRungs - 1), web::kSplatRungs - 1, bytes_per_frame / 1e6,
-      bytes_per_frame * 8 * fps_ / 1e6, options_.splat_mbps,
-      r < web::kSplatRungs ? "" : " (no rung fits: the coarsest)");
-  return rung;
+  return encoding;
 }
 
 void SiteWriter::StartRecords() {
@@ -717,10 +689,15 @@ nlohmann::json SiteWriter::WriteSplatFrames(const SiteStream& stream, size_t beg
                                             std::vector<std::string>* outputs) {
   SplatSequence& sequence = Sequence(stream.source);
   const std::vector<int64_t>& model_frames = FramesOf(stream.source);
-  const web::SplatEncoding encoding = web::SplatEncoding::FromJson(stream.encoding);
+  const web::SplatEncoding level = web::SplatEncoding::FromJson(stream.encoding);
+  const std::vector<web::SplatEncoding> encodings =
+      options_.splat_mbps > 0 && !level.float32
+          ? BudgetedSplatEncodings(stream, begin, end)
+          : std::vector<web::SplatEncoding>(end - begin, level);
   nlohmann::json frames = nlohmann::json::array();
   web::SplatCodes previous;
   for (size_t i = begin; i < end; ++i) {
+    const web::SplatEncoding& encoding = encodings[i - begin];
     const int64_t frame = model_frames[i];
     if (frame < 0) {
       frames.push_back({{"chunk", nullptr}});
@@ -733,6 +710,63 @@ nlohmann::json SiteWriter::WriteSplatFrames(const SiteStream& stream, size_t beg
                                      &previous, outputs));
   }
   return frames;
+}
+
+std::vector<web::SplatEncoding> SiteWriter::BudgetedSplatEncodings(const SiteStream& stream,
+                                                                   size_t begin, size_t end) {
+  SplatSequence& sequence = Sequence(stream.source);
+  const web::SplatEncoding level = web::SplatEncoding::FromJson(stream.encoding);
+  const double budget_bytes = options_.splat_mbps * 1e6 / 8 / fps_;
+  constexpr int kCoarsest = web::kSplatRungs - 1;
+  std::vector<web::SplatEncoding> chosen(end - begin, level);
+  web::SplatCodes previous;
+  // The chunk's size at `encoding`; its codes (what the next delta follows) in `codes`.
+  auto encoded_bytes = [&](size_t i, const web::SplatEncoding& encoding, bool key,
+                           const std::vector<int64_t>& origin, web::SplatCodes* codes) {
+    return static_cast<double>(web::EncodeSplats(sequence.Frame(FramesOf(stream.source)[i]),
+                                                 static_cast<int64_t>(i), encoding,
+                                                 key ? nullptr : &previous, origin, codes)
+                                   .Serialise()
+                                   .size());
+  };
+  // Each key frame and the deltas that follow it, up to the next key frame: the key frame's
+  // rung raised until it and every one of those deltas fit (a delta that fits at no rung of
+  // its own asks for fewer bits, which only the key frame sets); the coarsest rung where none
+  // does (the chunk over the budget is in the report's largest chunk).
+  size_t key = begin;
+  while (key < end) {
+    size_t next = end;
+    for (int key_rung = 0; key_rung <= kCoarsest; ++key_rung) {
+      bool fits = true;
+      for (size_t i = key; i < end; ++i) {
+        std::vector<int64_t> origin;
+        if (SplatChunkOf(stream.source, i, begin, &origin) < 0) continue;
+        const bool is_key = origin.empty();
+        if (is_key && i > key) {
+          next = i;
+          break;
+        }
+        web::SplatCodes codes;
+        int rung = key_rung;
+        web::SplatEncoding encoding = web::SplatDeltaRung(level, key_rung, rung);
+        double bytes = encoded_bytes(i, encoding, is_key, origin, &codes);
+        // A delta: its own rung raised until it fits.
+        while (!is_key && bytes > budget_bytes && rung < kCoarsest) {
+          encoding = web::SplatDeltaRung(level, key_rung, ++rung);
+          bytes = encoded_bytes(i, encoding, false, origin, &codes);
+        }
+        chosen[i - begin] = encoding;
+        previous = std::move(codes);
+        if (bytes > budget_bytes && key_rung < kCoarsest) {
+          fits = false;
+          break;
+        }
+      }
+      if (fits) break;
+    }
+    key = next;
+  }
+  return chosen;
 }
 
 int64_t SiteWriter::SplatChunkOf(int source, size_t i, size_t begin, std::vector<int64_t>* origin) {
@@ -906,6 +940,7 @@ class StreamSum {
     chunks_.push_back(chunk);
     if (chunk.is_null()) return;
     bytes_ += frame.at("chunk").at("bytes").get<uint64_t>();
+    max_chunk_bytes_ = std::max(max_chunk_bytes_, frame.at("chunk").at("bytes").get<uint64_t>());
     squared_ += frame.at("squared").get<double>();
     count_ += frame.at("count").get<int64_t>();
     ++metrics_.frames;
@@ -934,6 +969,7 @@ class StreamSum {
     metrics.mean_gaussians /= frames;
     metrics.mean_stored_gaussians /= frames;
     metrics.mbps = metrics.mb_per_frame * 8 * fps;
+    metrics.max_chunk_mbps = static_cast<double>(max_chunk_bytes_) * 8 * fps / 1e6;
     metrics.psnr_db = Psnr(squared_, count_);
     metrics.heldout = stream_.heldout;
     metrics.unscored = stream_.unscored;
@@ -961,7 +997,7 @@ class StreamSum {
   Report* report_;
   WebStreamMetrics metrics_;
   nlohmann::json chunks_ = nlohmann::json::array();
-  uint64_t bytes_ = 0;
+  uint64_t bytes_ = 0, max_chunk_bytes_ = 0;
   double squared_ = 0;
   int64_t count_ = 0;
   SquaredError native_, streamed_, background_;  // against the camera
@@ -1063,6 +1099,7 @@ nlohmann::json WebStreamMetrics::ToJson() const {
       {"frames", frames},
       {"mb_per_frame", mb_per_frame},
       {"mbps", mbps},
+      {"max_chunk_mbps", max_chunk_mbps},
       {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
       {"max_position_error_mm", max_position_error_mm},
       {"mean_faces", mean_faces}};

@@ -194,22 +194,33 @@ void SplatEncoding::Include(const splat::Gaussians& g) {
   }
 }
 
+namespace {
+
+struct Rung {
+  int position_bits, rotation_bits, value_bits;
+  int step_at_12_bits;  // the motion step in codes of 12-bit positions
+  int hold;
+  double prune_opacity, dead_zone;
+  int sh_degree;
+};
+constexpr Rung kRungs[kSplatRungs - 1] = {
+    {14, 10, 8, 1, 1, 0.01, 0.5, 3}, {13, 9, 7, 2, 2, 0.02, 0.5, 1},
+    {13, 8, 6, 4, 3, 0.02, 1.0, 0},  {12, 7, 5, 8, 3, 0.05, 1.0, 0},
+    {12, 7, 5, 16, 6, 0.05, 1.0, 0}, {12, 7, 5, 32, 6, 0.05, 1.0, 0},
+    {12, 7, 5, 64, 6, 0.10, 1.0, 0}, {12, 6, 5, 64, 8, 0.10, 2.0, 0},
+    {11, 6, 4, 128, 8, 0.15, 2.0, 0}};
+const Rung& RungAt(int rung) { return kRungs[std::clamp(rung, 1, kSplatRungs - 1) - 1]; }
+
+// Rung `r`'s motion step for positions of `position_bits` bits.
+int MotionStep(const Rung& r, int position_bits) {
+  return std::max(1, static_cast<int>(std::ldexp(r.step_at_12_bits, position_bits - 12)));
+}
+
+}  // namespace
+
 SplatEncoding SplatRung(const SplatEncoding& level, int rung) {
   if (rung <= 0 || level.float32) return level;
-  struct Rung {
-    int position_bits, rotation_bits, value_bits;
-    int step_at_12_bits;  // the motion step in codes of 12-bit positions
-    int hold;
-    double prune_opacity, dead_zone;
-    int sh_degree;
-  };
-  static constexpr Rung kRungs[kSplatRungs - 1] = {
-      {14, 10, 8, 1, 1, 0.01, 0.5, 3}, {13, 9, 7, 2, 2, 0.02, 0.5, 1},
-      {13, 8, 6, 4, 3, 0.02, 1.0, 0},  {12, 7, 5, 8, 3, 0.05, 1.0, 0},
-      {12, 7, 5, 16, 6, 0.05, 1.0, 0}, {12, 7, 5, 32, 6, 0.05, 1.0, 0},
-      {12, 7, 5, 64, 6, 0.10, 1.0, 0}, {12, 6, 5, 64, 8, 0.10, 2.0, 0},
-      {11, 6, 4, 128, 8, 0.15, 2.0, 0}};
-  const Rung& r = kRungs[std::min(rung, kSplatRungs - 1) - 1];
+  const Rung& r = RungAt(rung);
   SplatEncoding e = level;
   e.position_bits = std::min(level.position_bits, r.position_bits);
   e.rotation_bits = std::min(level.rotation_bits, r.rotation_bits);
@@ -219,11 +230,22 @@ SplatEncoding SplatRung(const SplatEncoding& level, int rung) {
   e.rest_bits = std::min(level.rest_bits, r.value_bits);
   e.sh_degree = std::min(level.sh_degree, r.sh_degree);
   e.motion_cell_bits = std::max(0, e.position_bits - 4);
-  e.motion_step =
-      std::max(1, static_cast<int>(std::ldexp(r.step_at_12_bits, e.position_bits - 12)));
+  e.motion_step = MotionStep(r, e.position_bits);
   e.hold = std::max(level.hold, r.hold);
   e.prune_opacity = std::max(level.prune_opacity, r.prune_opacity);
   e.dead_zone = std::max(level.dead_zone, r.dead_zone);
+  return e;
+}
+
+SplatEncoding SplatDeltaRung(const SplatEncoding& level, int key_rung, int rung) {
+  const SplatEncoding key = SplatRung(level, key_rung);
+  if (rung <= key_rung || level.float32) return key;
+  SplatEncoding e = key;
+  const Rung& r = RungAt(rung);
+  e.motion_step = std::max(key.motion_step, MotionStep(r, key.position_bits));
+  e.hold = std::max(key.hold, r.hold);
+  e.prune_opacity = std::max(key.prune_opacity, r.prune_opacity);
+  e.dead_zone = std::max(key.dead_zone, r.dead_zone);
   return e;
 }
 

@@ -157,6 +157,11 @@ struct SplatEncoding {
 // Gaussians pruned (never more bits or a higher degree than the level's). Ranges as `level`'s.
 inline constexpr int kSplatRungs = 10;
 SplatEncoding SplatRung(const SplatEncoding& level, int rung);
+// A delta's rung: what a delta that follows a key frame at `key_rung` can change (a delta's
+// records are byte differences from the frame before's, so it keeps the key frame's bits and
+// degree): rung `rung`'s motion step (in the key frame's position codes), hold, pruning and
+// dead zone, never finer than the key frame's. The key frame's encoding where rung <= key_rung.
+SplatEncoding SplatDeltaRung(const SplatEncoding& level, int key_rung, int rung);
 inline constexpr int kSplatGroups = 5;
 inline constexpr const char* kSplatGroupNames[kSplatGroups] = {"position", "rotation", "scale",
                                                                "opacity", "color"};

@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -35,6 +36,7 @@ const bool kAvatarKindsRegistered = [] {
 }();
 
 namespace fs = std::filesystem;
+using testing::BrowserMissing;
 using testing::RunCli;
 using testing::RunShell;
 using testing::TempDir;
@@ -289,17 +291,6 @@ TEST_F(WebTest, SimplifiedMeshChunkDecodesToTheExportedMeshWithinItsBound) {
   EXPECT_GT(cv::mean(b.alpha)[0], 0.01) << "the view shows too little of the mesh";
 }
 
-// Why the page cannot be driven here (empty: it can): Debian's chromium and the driver's
-// puppeteer-core under `driver`.
-std::string BrowserMissing(const fs::path& driver) {
-  if (RunShell("command -v chromium").exit_code != 0)
-    return "Debian's chromium is not installed (scripts/setup.sh --tests installs it)";
-  if (!fs::exists(driver / "node_modules/puppeteer-core"))
-    return "puppeteer-core is not installed (scripts/setup.sh --tests: npm ci in " +
-           driver.string() + ")";
-  return "";
-}
-
 TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
   const fs::path driver = testing::SourceDir() / "tests/playback/browser";
   if (const std::string why = BrowserMissing(driver); !why.empty()) GTEST_SKIP() << why;
@@ -414,6 +405,15 @@ TEST_F(WebTest, PagePlaysTheStreamLikeTheNativeRenderer) {
     fs::copy_file(out / "player.png", keep, fs::copy_options::overwrite_existing);
 }
 
+// A stream's chunks as written under `site`.
+std::vector<web::Chunk> ChunksOf(const fs::path& site, const nlohmann::json& stream) {
+  std::vector<web::Chunk> chunks;
+  for (const auto& c : stream.at("chunks"))
+    chunks.push_back(web::ParseChunk(ReadFileToString(site / stream.at("path").get<std::string>() /
+                                                      c.at("file").get<std::string>())));
+  return chunks;
+}
+
 // `--splat-mbps`: the splats exported to half of splat-low's own rate fit it (a coarser rung than
 // the level's), their last frame (a delta of a delta) drawn by the page like the native
 // rasteriser draws what the C++ decoder reads from the same chunks; a version-3 splat chunk is
@@ -439,10 +439,7 @@ TEST_F(WebTest, BudgetedSplatStreamFitsAndThePageDecodesItAsNatively) {
               budget, mbps);
   EXPECT_LE(mbps, budget);
   const auto& stream = StreamNamed(budget_manifest, "splat-low");
-  std::vector<web::Chunk> chunks;
-  for (const auto& c : stream.at("chunks"))
-    chunks.push_back(web::ParseChunk(ReadFileToString(site / stream.at("path").get<std::string>() /
-                                                      c.at("file").get<std::string>())));
+  const std::vector<web::Chunk> chunks = ChunksOf(site, stream);
   ASSERT_EQ(chunks.size(), 3u);
   const web::SplatEncoding e = web::SplatEncoding::FromJson(chunks[2].header.at("encoding"));
   EXPECT_GT(e.motion_step, 1) << "the level's own encoding does not fit half its rate";
@@ -500,6 +497,56 @@ TEST_F(WebTest, BudgetedSplatStreamFitsAndThePageDecodesItAsNatively) {
   EXPECT_GT(cv::mean(native.alpha)[0], 0.01) << "the view shows too little of the splats";
   const std::string messages = results[1].at("messages").dump();
   EXPECT_NE(messages.find("splat chunk of stream format version 3"), std::string::npos) << messages;
+}
+
+// `--splat-mbps` holds every chunk, not the mean: the budget halfway between splat-low's mean rate
+// at its level's own encoding and its key frame's (one group of a key frame and two deltas; a
+// rule on the group's mean keeps the level's encoding there, the key frame over the budget).
+// Budgeted, each chunk's rung is its own and every chunk fits one frame's share of the budget;
+// the chunks decode in turn, each by the encoding in its header.
+TEST_F(WebTest, BudgetHoldsEveryChunkOfASplatStream) {
+  const fs::path own = dir_->path() / "own-rate", held = dir_->path() / "held";
+  auto export_at = [&](const fs::path& site, const std::string& budget) {
+    return RunCli("export web '" + Take().string() +
+                  "' --ground-truth-cameras --no-meshes --model '" + SplatModelDir().string() +
+                  "' --quality low --key-every 3" + budget + " --out '" + site.string() + "'");
+  };
+  auto exported = export_at(own, "");
+  ASSERT_EQ(exported.exit_code, 0) << exported.output;
+  const nlohmann::json own_manifest =
+      nlohmann::json::parse(ReadFileToString(own / "manifest.json"));
+  const double fps = own_manifest.at("fps").get<double>();
+  auto chunk_mbps = [&](const nlohmann::json& chunk) {
+    return chunk.at("bytes").get<double>() * 8 * fps / 1e6;
+  };
+  const auto& level = StreamNamed(own_manifest, "splat-low");
+  ASSERT_EQ(level.at("chunks").size(), 3u);
+  double largest = 0;
+  for (const auto& chunk : level.at("chunks")) largest = std::max(largest, chunk_mbps(chunk));
+  const double mean = level.at("mbps").get<double>(), budget = (mean + largest) / 2;
+  ASSERT_TRUE(level.at("chunks").at(0).at("key").get<bool>());
+  ASSERT_EQ(chunk_mbps(level.at("chunks").at(0)), largest) << "the key frame is the largest";
+  exported = export_at(held, " --splat-mbps " + std::to_string(budget));
+  ASSERT_EQ(exported.exit_code, 0) << exported.output;
+  std::printf("splat-low at its own encoding: mean %.3f Mbps, key frame %.3f; budget %.3f\n%s",
+              mean, largest, budget, exported.output.c_str());
+  const nlohmann::json manifest = nlohmann::json::parse(ReadFileToString(held / "manifest.json"));
+  const auto& stream = StreamNamed(manifest, "splat-low");
+  for (const auto& chunk : stream.at("chunks"))
+    EXPECT_LE(chunk_mbps(chunk), budget) << chunk.dump();
+  const nlohmann::json report = nlohmann::json::parse(ReadFileToString(held / "report.json"));
+  const auto& metrics = report.at("metrics").at("streams").at("splat-low");
+  EXPECT_LE(metrics.at("max_chunk_mbps").get<double>(), budget);
+  EXPECT_LE(metrics.at("mbps").get<double>(), metrics.at("max_chunk_mbps").get<double>());
+  EXPECT_NE(exported.output.find("largest chunk"), std::string::npos) << exported.output;
+  const std::vector<web::Chunk> chunks = ChunksOf(held, stream);
+  ASSERT_EQ(chunks.size(), 3u);
+  web::SplatCodes codes = web::DecodeSplats(chunks[0], nullptr);
+  for (size_t f = 1; f < chunks.size(); ++f) {
+    ASSERT_FALSE(chunks[f].header.at("key").get<bool>());
+    codes = web::DecodeSplats(chunks[f], &codes);
+    EXPECT_EQ(codes.count, chunks[f].header.at("count").get<int64_t>());
+  }
 }
 
 TEST_F(WebTest, ViewOfATakeRemovesItsTemporarySiteWhenStopped) {
