@@ -103,10 +103,13 @@ static void AddExportCommand(CLI::App& app) {
                       "web: a splat key frame at every multiple of it on the timeline "
                       "(default 10; 1: every frame a key frame); also the frames of a group, "
                       "the unit of --shard");
-  command->add_option("--splat-mbps", args->web.splat_mbps,
-                      "web: a size budget for the splat streams (Mbps at the site's rate): each "
-                      "quantised level's encoding the finest rung that fits it (fewer bits, "
-                      "coarser motion, faint Gaussians pruned); 0: the level's own");
+  command
+      ->add_option("--splat-mbps", args->web.splat_mbps,
+                   "web: a size budget for every chunk of the splat streams (Mbps at the "
+                   "site's rate): each chunk at the finest rung that fits a frame's share of "
+                   "it (fewer bits, coarser motion, faint Gaussians pruned); 0: the level's "
+                   "own; several (4,8,16): a stream per level and budget, one ladder")
+      ->delimiter(',');
   command->add_option("--frames", args->web.frames,
                       "web: only these frame sets of the meshes and models (a:b, or a list "
                       "0-9,15,20-29; counted after the clean plate)");

@@ -105,8 +105,8 @@ struct WebExportRequest {
   std::vector<std::string> qualities;  // --quality low,medium,high,lossless
   bool no_meshes = false;
   double fps = 0;
-  int key_every = 0;      // --key-every (0: the default)
-  double splat_mbps = 0;  // --splat-mbps (0: each level's own encoding)
+  int key_every = 0;               // --key-every (0: the default)
+  std::vector<double> splat_mbps;  // --splat-mbps (empty or 0: each level's own encoding)
   bool ground_truth_cameras = false;
   bool overwrite = false;
   std::string frames;           // --frames (the timeline's sets, counted after the clean plate)

@@ -155,20 +155,21 @@ struct WebExportOptions {
                                               // of it on the timeline (1: every frame; the
                                               // others are deltas); also the frames of a
                                               // group, the unit of --shard
-  double splat_mbps = 0;                      // > 0: a budget (Mbps at the site's rate) for
-                                              // every chunk of the quantised splat streams,
-                                              // each chunk at the finest rung (its level's own
-                                              // first) that fits it
-  int error_width_px = 160;                   // width of the views the export's error is
-                                              // measured on (the capture cameras, rescaled)
-  int error_cameras = 2;                      // capture cameras measured per frame
-  int camera_score_every = 10;                // every k-th frame of the timeline (from the
-                                              // first) is scored against the images of the
-                                              // capture cameras each source never saw
-  TakeSelection take;                         // cameras (calib/ or gt/cameras)
-  bool overwrite = false;                     // write into a non-empty site made by export
-  FrameTaskOptions tasks;                     // this task's groups (--shard K/N), --redo
-  void Check() const;                         // throws Error naming the flag
+  // Budgets (Mbps at the site's rate) for every chunk of the quantised splat streams, each chunk
+  // at the finest rung (its level's own first) that fits; empty or {0}: the levels' own
+  // encodings. Several: one stream per level and budget (0: the level's own), named
+  // "<model>-<level>-<budget>mbps" (the level's own: "<model>-<level>"), levels of one ladder.
+  std::vector<double> splat_mbps;
+  int error_width_px = 160;     // width of the views the export's error is
+                                // measured on (the capture cameras, rescaled)
+  int error_cameras = 2;        // capture cameras measured per frame
+  int camera_score_every = 10;  // every k-th frame of the timeline (from the
+                                // first) is scored against the images of the
+                                // capture cameras each source never saw
+  TakeSelection take;           // cameras (calib/ or gt/cameras)
+  bool overwrite = false;       // write into a non-empty site made by export
+  FrameTaskOptions tasks;       // this task's groups (--shard K/N), --redo
+  void Check() const;           // throws Error naming the flag
   nlohmann::json ToJson() const;
 };
 

@@ -105,11 +105,21 @@ struct SiteStream {
   // Per capture camera, the picture behind the subject (relative to the plan folder and to the
   // site): the model's backgrounds or the take's clean plate, in the camera's pinhole core.
   nlohmann::json backgrounds = nlohmann::json::object();
+  std::string level;       // the quality level (`quality` with its budget, if any)
+  double budget_mbps = 0;  // splats: every chunk's budget (0: none)
 
   nlohmann::json ToJson() const {
-    return {{"name", name},       {"kind", kind},         {"quality", quality},
-            {"path", folder},     {"source", source},     {"encoding", encoding},
-            {"heldout", heldout}, {"unscored", unscored}, {"backgrounds", backgrounds}};
+    return {{"name", name},
+            {"kind", kind},
+            {"quality", quality},
+            {"path", folder},
+            {"source", source},
+            {"encoding", encoding},
+            {"heldout", heldout},
+            {"unscored", unscored},
+            {"backgrounds", backgrounds},
+            {"level", level},
+            {"budget_mbps", budget_mbps}};
   }
   static SiteStream FromJson(const nlohmann::json& json) {
     return {json.at("name").get<std::string>(),
@@ -120,7 +130,9 @@ struct SiteStream {
             json.at("encoding"),
             json.value("heldout", std::vector<std::string>{}),
             json.value("unscored", std::string()),
-            json.value("backgrounds", nlohmann::json::object())};
+            json.value("backgrounds", nlohmann::json::object()),
+            json.value("level", json.at("quality").get<std::string>()),
+            json.value("budget_mbps", 0.0)};
   }
 };
 
@@ -394,7 +406,7 @@ nlohmann::json SiteWriter::MakePlan(std::vector<std::string>* files) {
   nlohmann::json streams = nlohmann::json::array();
   for (SiteStream& stream : ListStreams()) {
     if (stream.kind == "splats")
-      stream.encoding = EncodingOver(stream.source, stream.quality).ToJson();
+      stream.encoding = EncodingOver(stream.source, stream.level).ToJson();
     PlanBackgrounds(&stream, files);
     streams.push_back(stream.ToJson());
   }
@@ -421,12 +433,17 @@ std::vector<SiteStream> SiteWriter::ListStreams() const {
       unscored = "the take has neither true silhouettes (gt/) nor a clean plate to find them";
       heldout.clear();
     }
+    // Splats: a stream per level and budget (one budget: the level's name alone).
+    std::vector<double> budgets = {0};
+    if (kind == "splats" && !options_.splat_mbps.empty()) budgets = options_.splat_mbps;
     for (const std::string& level : options_.qualities) {
-      std::string stream = name;
-      stream += '-';
-      stream += level;
-      streams.push_back(
-          {stream, kind, level, "streams/" + stream, source, nullptr, heldout, unscored});
+      for (const double budget : budgets) {
+        const std::string quality =
+            budgets.size() > 1 && budget > 0 ? Cat(level, "-", budget, "mbps") : level;
+        const std::string stream = Cat(name, "-", quality);
+        streams.push_back({stream, kind, quality, "streams/" + stream, source, nullptr, heldout,
+                           unscored, nlohmann::json::object(), level, budget});
+      }
     }
   };
   if (!mesh_files_.empty()) add("mesh", "mesh", -1, recon_ / "report.json");
@@ -691,7 +708,7 @@ nlohmann::json SiteWriter::WriteSplatFrames(const SiteStream& stream, size_t beg
   const std::vector<int64_t>& model_frames = FramesOf(stream.source);
   const web::SplatEncoding level = web::SplatEncoding::FromJson(stream.encoding);
   const std::vector<web::SplatEncoding> encodings =
-      options_.splat_mbps > 0 && !level.float32
+      stream.budget_mbps > 0 && !level.float32
           ? BudgetedSplatEncodings(stream, begin, end)
           : std::vector<web::SplatEncoding>(end - begin, level);
   nlohmann::json frames = nlohmann::json::array();
@@ -716,7 +733,7 @@ std::vector<web::SplatEncoding> SiteWriter::BudgetedSplatEncodings(const SiteStr
                                                                    size_t begin, size_t end) {
   SplatSequence& sequence = Sequence(stream.source);
   const web::SplatEncoding level = web::SplatEncoding::FromJson(stream.encoding);
-  const double budget_bytes = options_.splat_mbps * 1e6 / 8 / fps_;
+  const double budget_bytes = stream.budget_mbps * 1e6 / 8 / fps_;
   constexpr int kCoarsest = web::kSplatRungs - 1;
   std::vector<web::SplatEncoding> chosen(end - begin, level);
   web::SplatCodes previous;
@@ -1068,7 +1085,11 @@ void WebExportOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(error_cameras, 0);
   HOLOCAP_CHECK_OPTION_GE(camera_score_every, 1);
   HOLOCAP_CHECK_OPTION_GE(splat_key_every, 1);
-  HOLOCAP_CHECK_OPTION_GE(splat_mbps, 0);
+  HOLOCAP_CHECK_OPTION(std::ranges::all_of(splat_mbps, [](double b) { return b >= 0; }), splat_mbps,
+                       "budgets of 0 Mbps (the level's own encoding) or more");
+  HOLOCAP_CHECK_OPTION(
+      std::set<double>(splat_mbps.begin(), splat_mbps.end()).size() == splat_mbps.size(),
+      splat_mbps, "each budget once");
   take.Check();
   tasks.Check();
 }
