@@ -238,7 +238,7 @@ SplatEncoding SplatRung(const SplatEncoding& level, int rung) {
 }
 
 SplatEncoding SplatDeltaRung(const SplatEncoding& level, int key_rung, int rung) {
-  const SplatEncoding key = SplatRung(level, key_rung);
+  SplatEncoding key = SplatRung(level, key_rung);
   if (rung <= key_rung || level.float32) return key;
   SplatEncoding e = key;
   const Rung& r = RungAt(rung);
