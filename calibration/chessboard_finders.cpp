@@ -8,13 +8,11 @@
 #include <cmath>
 #include <cstdio>
 #include <map>
-#include <mutex>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <optional>
 #include <sstream>
-#include <thread>
 
 #include "calibration/calibration.h"
 #include "calibration/internal/common.h"
@@ -24,7 +22,6 @@
 #include "core/pose.h"
 #include "core/take.h"
 #include "core/take_plan.h"
-#include "core/threads.h"
 
 namespace holocap {
 namespace {
@@ -240,65 +237,40 @@ nlohmann::json CompareChessboardFinders(const std::filesystem::path& take_dir,
     }
   }
 
-  struct Job {
-    size_t set;
-    std::string sensor;
-  };
-  std::vector<Job> jobs;
-  for (size_t i = 0; i < take.size(); ++i) {
-    for (const auto& s : sensors) {
-      if (take.entry(i).Find(s) != nullptr) jobs.push_back({i, s});
-    }
-  }
+  const std::vector<calibration_internal::ViewJob> jobs =
+      calibration_internal::ViewJobs(take, sensors);
   const HolocapFinderScope holocap_finder;
   BoardDetector holocap(layout);
   std::vector<std::array<std::optional<Corners>, kFinders>> found(jobs.size());
   std::vector<std::optional<Corners>> truth(jobs.size());
-  std::atomic<size_t> next{0};
-  std::mutex error_mutex;
-  std::string first_error;
-  auto work = [&] {
-    for (size_t k = next++; k < jobs.size(); k = next++) {
-      try {
-        const cv::Mat image = take.ReadFrame(jobs[k].set, jobs[k].sensor);
-        cv::Mat grey = image;
-        if (image.channels() == 3) cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
-        if (grey.depth() == CV_16U) grey.convertTo(grey, CV_8U, 1.0 / 257.0);
-        BoardObservation observation;
-        std::string reason;
-        if (holocap.Detect(image, &observation, &reason)) {
-          Corners c;
-          for (Eigen::Index r = 0; r < observation.points.rows(); ++r)
-            c.emplace_back(observation.points(r, 0), observation.points(r, 1));
-          found[k][0] = c;
-        }
-        found[k][1] = FindOpenCv(grey, width_n, height_n);
-        std::vector<cv::Point2f> points;
-        if (FindChessboardMrgingham(grey, width_n, &points, &reason))
-          found[k][2] = ToCorners(points);
-        const auto camera = truth_cameras.find(jobs[k].sensor);
-        const auto pose = poses.find(take.entry(jobs[k].set).index);
-        if (camera != truth_cameras.end() && pose != poses.end()) {
-          Corners c;
-          for (const auto& p : board.GridPoints()) {
-            Eigen::Vector2d pixel;
-            if (!camera->second.ProjectWorld(pose->second * p, &pixel)) pixel.setConstant(NAN);
-            c.push_back(pixel);
-          }
-          truth[k] = c;
-        }
-      } catch (const Error& e) {
-        std::lock_guard<std::mutex> lock(error_mutex);
-        if (first_error.empty()) first_error = e.what();
-      }
+  calibration_internal::RunViewJobs(jobs.size(), threads, [&](size_t k) {
+    const cv::Mat image = take.ReadFrame(jobs[k].set, jobs[k].sensor);
+    cv::Mat grey = image;
+    if (image.channels() == 3) cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+    if (grey.depth() == CV_16U) grey.convertTo(grey, CV_8U, 1.0 / 257.0);
+    BoardObservation observation;
+    std::string reason;
+    if (holocap.Detect(image, &observation, &reason)) {
+      Corners c;
+      for (Eigen::Index r = 0; r < observation.points.rows(); ++r)
+        c.emplace_back(observation.points(r, 0), observation.points(r, 1));
+      found[k][0] = c;
     }
-  };
-  std::vector<std::thread> pool;
-  const int count = ResolveThreads(threads, static_cast<int>(jobs.size()));
-  for (int t = 1; t < count; ++t) pool.emplace_back(work);
-  work();
-  for (auto& t : pool) t.join();
-  if (!first_error.empty()) Fail(first_error);
+    found[k][1] = FindOpenCv(grey, width_n, height_n);
+    std::vector<cv::Point2f> points;
+    if (FindChessboardMrgingham(grey, width_n, &points, &reason)) found[k][2] = ToCorners(points);
+    const auto camera = truth_cameras.find(jobs[k].sensor);
+    const auto pose = poses.find(take.entry(jobs[k].set).index);
+    if (camera != truth_cameras.end() && pose != poses.end()) {
+      Corners c;
+      for (const auto& p : board.GridPoints()) {
+        Eigen::Vector2d pixel;
+        if (!camera->second.ProjectWorld(pose->second * p, &pixel)) pixel.setConstant(NAN);
+        c.push_back(pixel);
+      }
+      truth[k] = c;
+    }
+  });
 
   std::array<int, kFinders> views_found{};
   std::map<std::pair<int, int>, Tally> pairs;

@@ -200,6 +200,38 @@ std::vector<int> TurnedGridOrder(int width_n, int height_n, int quarter_turns) {
   return order;
 }
 
+std::vector<ViewJob> ViewJobs(const Take& take, const std::vector<std::string>& sensors) {
+  std::vector<ViewJob> jobs;
+  for (size_t i = 0; i < take.size(); ++i) {
+    for (const auto& s : sensors) {
+      if (take.entry(i).Find(s) != nullptr) jobs.push_back({i, s});
+    }
+  }
+  return jobs;
+}
+
+void RunViewJobs(size_t count, int threads, const std::function<void(size_t)>& work) {
+  std::atomic<size_t> next{0};
+  std::mutex error_mutex;
+  std::string first_error;
+  auto run = [&] {
+    for (size_t k = next++; k < count; k = next++) {
+      try {
+        work(k);
+      } catch (const Error& e) {
+        std::lock_guard<std::mutex> lock(error_mutex);
+        if (first_error.empty()) first_error = e.what();
+      }
+    }
+  };
+  std::vector<std::thread> pool;
+  const int started = ResolveThreads(threads, static_cast<int>(count));
+  for (int t = 1; t < started; ++t) pool.emplace_back(run);
+  run();
+  for (auto& t : pool) t.join();
+  if (!first_error.empty()) Fail(first_error);
+}
+
 std::vector<int> AmbiguousBoardTurns(const BoardLayout& layout) {
   if (layout.type != BoardType::kChessboard) return {0};
   const int w = layout.chessboard_width_n, h = layout.chessboard_height_n;
@@ -629,57 +661,33 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
   const std::vector<std::string> sensors = ChooseColorSensors(take, sensors_in);
   if (take.size() == 0) Fail("take ", take.dir().string(), " has no complete frame sets");
 
-  struct Job {
-    size_t set;
-    std::string sensor;
-  };
-  std::vector<Job> jobs;
-  for (size_t i = 0; i < take.size(); ++i) {
-    for (const auto& s : sensors) {
-      if (take.entry(i).Find(s) != nullptr) jobs.push_back({i, s});
-    }
-  }
+  const std::vector<calibration_internal::ViewJob> jobs =
+      calibration_internal::ViewJobs(take, sensors);
   BoardDetector detector(layout, options);
   std::vector<std::optional<BoardObservation>> results(jobs.size());
   std::vector<std::string> reasons(jobs.size());
   std::vector<std::vector<int>> foreign_ids(jobs.size());
-  std::atomic<size_t> next{0};
-  std::mutex error_mutex;
-  std::string first_error;
   Progress progress("detect", static_cast<int64_t>(jobs.size()));
   const auto start = std::chrono::steady_clock::now();
-  auto work = [&] {
-    for (size_t k = next++; k < jobs.size(); k = next++) {
-      try {
-        const FrameSetEntry& entry = take.entry(jobs[k].set);
-        const cv::Mat image = take.ReadFrame(jobs[k].set, jobs[k].sensor);
-        BoardObservation observation;
-        observation.sensor = jobs[k].sensor;
-        observation.frame_set = entry.index;
-        observation.timestamp_ns = entry.Find(jobs[k].sensor)->timestamp_ns;
-        std::string reason;
-        if (detector.Detect(image, &observation, &reason)) {
-          results[k] = std::move(observation);
-        } else {
-          reasons[k] = reason;
-          if (reason.find("not on this board") != std::string::npos) {
-            foreign_ids[k] = detector.DetectTagIds(image);
-          }
-        }
-      } catch (const Error& e) {
-        std::lock_guard<std::mutex> lock(error_mutex);
-        if (first_error.empty()) first_error = e.what();
+  calibration_internal::RunViewJobs(jobs.size(), options.threads, [&](size_t k) {
+    const FrameSetEntry& entry = take.entry(jobs[k].set);
+    const cv::Mat image = take.ReadFrame(jobs[k].set, jobs[k].sensor);
+    BoardObservation observation;
+    observation.sensor = jobs[k].sensor;
+    observation.frame_set = entry.index;
+    observation.timestamp_ns = entry.Find(jobs[k].sensor)->timestamp_ns;
+    std::string reason;
+    if (detector.Detect(image, &observation, &reason)) {
+      results[k] = std::move(observation);
+    } else {
+      reasons[k] = reason;
+      if (reason.find("not on this board") != std::string::npos) {
+        foreign_ids[k] = detector.DetectTagIds(image);
       }
-      progress.Increment();
     }
-  };
-  const int threads = ResolveThreads(options.threads, static_cast<int>(jobs.size()));
-  std::vector<std::thread> pool;
-  for (int t = 1; t < threads; ++t) pool.emplace_back(work);
-  work();
-  for (auto& t : pool) t.join();
+    progress.Increment();
+  });
   progress.Finish();
-  if (!first_error.empty()) Fail(first_error);
 
   DetectionSummary local;
   DetectionSummary& s = summary != nullptr ? *summary : local;

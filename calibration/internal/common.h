@@ -4,6 +4,8 @@
 #include <Eigen/Core>
 #include <Eigen/SparseCore>
 #include <algorithm>
+#include <cstddef>
+#include <functional>
 #include <limits>
 #include <map>
 #include <opencv2/core.hpp>
@@ -38,6 +40,19 @@ std::vector<int> TurnedGridOrder(int width_n, int height_n, int quarter_turns);
 // chessboards and square ones with an odd side (a quarter turn changes the corner colour),
 // {0, 1, 2, 3} for square chessboards with an even side.
 std::vector<int> AmbiguousBoardTurns(const BoardLayout& layout);
+
+// One image of a take to look at: the frame set's position in the take and the sensor.
+struct ViewJob {
+  size_t set = 0;
+  std::string sensor;
+};
+
+// Every image the take holds of `sensors`, frame set by frame set, sensors in the given order.
+std::vector<ViewJob> ViewJobs(const Take& take, const std::vector<std::string>& sensors);
+
+// Runs work(k) for every k < `count` on `threads` threads (0: all cores), each k once. An Error
+// thrown by work stops nothing else; the first one is thrown again once every thread is done.
+void RunViewJobs(size_t count, int threads, const std::function<void(size_t)>& work);
 
 // Throws Error unless mrcal knows the (configured) lens model name.
 void CheckLensmodelName(const std::string& name);
