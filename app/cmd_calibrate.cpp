@@ -108,11 +108,13 @@ void AddCalibrateCommand(CLI::App& app) {
                       "floor and origin (default: the take's metadata floor_board_set, else the "
                       "floor seen by depth sensors, else the cameras' up and the lowest board "
                       "point)");
-  command
-      ->add_option("--detector", args->detector,
-                   "Chessboard finder: holocap (OpenCV's, refined on the image edges) or "
-                   "mrgingham (mrcal's; square chessboards, the mrgingham program)")
-      ->capture_default_str();
+  CLI::Option* detector =
+      command
+          ->add_option("--detector", args->detector,
+                       "Chessboard finder: holocap (OpenCV's, refined on the image edges) or "
+                       "mrgingham (mrcal's; square chessboards, the mrgingham program). With "
+                       "--from, the finder the board take's calibration must have used")
+          ->capture_default_str();
   command->add_flag("--compare-detectors", args->compare_detectors,
                     "Also run holocap's, OpenCV's and mrgingham's chessboard finders on every "
                     "view and report how far their corners lie apart (and from the truth on a "
@@ -129,7 +131,7 @@ void AddCalibrateCommand(CLI::App& app) {
       "mrcal-calibrate-cameras --corners-cache FILE 'CAMERA/*.png' ...)");
   command->add_option("--threads", args->threads, "Detection threads (0: all cores)")
       ->capture_default_str();
-  command->callback([args] {
+  command->callback([args, detector] {
     // Calibration writes the take's calib/: one writer at a time, never through a link.
     const TakeLock lock = TakeLock::Acquire(args->take, "calibrate");
     const std::filesystem::path calib = std::filesystem::path(args->take) / "calib";
@@ -141,16 +143,18 @@ void AddCalibrateCommand(CLI::App& app) {
     }
     if (!args->from.empty()) {
       Report report("calibrate");
-      report.options() = {{"from", args->from}};
       report.SetFailureDestination(calib / "report.json");
-      const TakeCalibrationSummary summary = AdoptCalibration(args->take, args->from, &report);
+      std::optional<ChessboardFinder> finder;
+      if (detector->count() > 0) finder = ParseChessboardFinder(args->detector);
+      const TakeCalibrationSummary summary =
+          AdoptCalibration(args->take, args->from, &report, finder);
       std::printf("%s: %s\nreport: %s\n", ToString(summary.termination), summary.message.c_str(),
                   summary.report_file.c_str());
       FailUnlessUsable(summary, "calibration");
       return;
     }
-    SetChessboardFinder(ParseChessboardFinder(args->detector));
     TakeCalibrationOptions options;
+    options.detection.chessboard_finder = ParseChessboardFinder(args->detector);
     options.board_file = args->board;
     options.lensmodel = args->lensmodel;
     options.sensors = args->sensors;
@@ -164,7 +168,6 @@ void AddCalibrateCommand(CLI::App& app) {
     report.SetFailureDestination(std::filesystem::path(args->take) / "calib" / "report.json");
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
     PrintSummary(summary);
-    report.options()["detector"] = args->detector;
     if (!args->write_corners.empty()) {
       WriteCornersVnl(
           summary.calibration.solved_views,

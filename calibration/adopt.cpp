@@ -35,12 +35,39 @@ void CheckSourceReport(const fs::path& folder, nlohmann::json* source) {
   (*source)["report"] = file.string();
   (*source)["termination"] = termination;
   (*source)["command"] = report.value("command", std::string());
+  const nlohmann::json& options = report.contains("options") ? report["options"] : nlohmann::json();
+  (*source)["detector"] = options.contains("detector") ? options["detector"] : nlohmann::json();
+  if (options.contains("board") && options["board"].contains("type"))
+    (*source)["board_type"] = options["board"]["type"];
+}
+
+// Throws Error unless the source's corners came from `asked` (the finder the caller named).
+void CheckSourceDetector(const fs::path& folder, const nlohmann::json& source,
+                         ChessboardFinder asked) {
+  const std::string name = ToString(asked);
+  const nlohmann::json& detector = source.contains("detector") ? source["detector"] : nullptr;
+  if (!detector.is_string()) {
+    Fail("--detector ", name, ": '", folder.string(),
+         "' does not say which detector found its corners (no report.json naming one); leave "
+         "--detector out to take its models over as they are");
+  }
+  const std::string board_type = source.value("board_type", std::string());
+  if (asked == ChessboardFinder::kMrgingham && board_type != "chessboard") {
+    Fail("--detector mrgingham finds chessboards only; the calibration in '", folder.string(),
+         "' was solved on a ", board_type, " board");
+  }
+  if (detector.get<std::string>() != name) {
+    Fail("--detector ", name, ": the calibration in '", folder.string(), "' was solved on the ",
+         detector.get<std::string>(), " finder's corners (calibrate that take with --detector ",
+         name, ", or leave --detector out)");
+  }
 }
 
 }  // namespace
 
 TakeCalibrationSummary AdoptCalibration(const fs::path& take_dir, const fs::path& from,
-                                        Report* report) {
+                                        Report* report,
+                                        const std::optional<ChessboardFinder>& chessboard_finder) {
   const Take take = Take::Open(take_dir);
   const fs::path folder = ModelFolder(from);
   if (!fs::is_directory(folder))
@@ -57,6 +84,7 @@ TakeCalibrationSummary AdoptCalibration(const fs::path& take_dir, const fs::path
     Fail("'", from.string(), "' is the take's own calibration");
   nlohmann::json source = {{"from", fs::absolute(from).lexically_normal().string()}};
   CheckSourceReport(folder, &source);
+  if (chessboard_finder) CheckSourceDetector(folder, source, *chessboard_finder);
 
   TakeCalibrationSummary result;
   std::map<std::string, CameraModel> models;
@@ -101,6 +129,8 @@ TakeCalibrationSummary AdoptCalibration(const fs::path& take_dir, const fs::path
 
   Report local("calibrate");
   Report& r = report != nullptr ? *report : local;
+  r.options()["from"] = source["from"];
+  r.options()["detector"] = source.contains("detector") ? source["detector"] : nlohmann::json();
   r.plan()["adopted"] = source;
   r.plan()["sensors"] = sensors;
   r.SetSummary(result);

@@ -31,6 +31,7 @@
 #include <map>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -57,8 +58,17 @@ void WriteBoardPrint(const BoardLayout& layout, const std::filesystem::path& fil
 // ---------------------------------------------------------------------------------------------
 // Detection.
 
+// Which finder reads chessboard layouts: holocap's own (OpenCV's findChessboardCorners, each
+// corner refined on the image edges) or mrcal's `mrgingham` program (square grids only).
+// AprilTag and ChArUco boards have one detector each and ignore it.
+enum class ChessboardFinder { kHolocap, kMrgingham };
+// "holocap" or "mrgingham"; anything else throws Error naming the choices.
+ChessboardFinder ParseChessboardFinder(const std::string& name);
+const char* ToString(ChessboardFinder finder);
+
 struct DetectionOptions {
-  int threads = 0;                    // frames detected in parallel; 0: all cores
+  int threads = 0;  // frames detected in parallel; 0: all cores
+  ChessboardFinder chessboard_finder = ChessboardFinder::kHolocap;  // chessboard layouts' finder
   bool refine_corners = true;         // refine libapriltag's corners on the image edges
   int refine_half_window_px = 0;      // edge-refinement reach across an edge; 0: automatic
   int max_hamming = 1;                // reject tags decoded with more corrected bits
@@ -446,8 +456,13 @@ TakeCalibrationSummary CalibrateTake(const std::filesystem::path& take_dir,
 // factor (a binned mode), and calib/report.json naming where they came from. Throws Error when a
 // sensor has no model there, a size is not the same imager scaled, or the source's own report
 // did not end usable. A studio calibrates one board take and gives its models to every take.
-TakeCalibrationSummary AdoptCalibration(const std::filesystem::path& take_dir,
-                                        const std::filesystem::path& from,
-                                        Report* report = nullptr);
+// The report's options name the detector the source's corners came from (its report's, null
+// when it has none). `chessboard_finder`, when set (the CLI's --detector), is the finder the
+// caller asks for: a source whose report does not say it solved that finder's corners (another
+// finder, none named, or mrgingham asked of a board that is not a chessboard) is refused.
+TakeCalibrationSummary AdoptCalibration(
+    const std::filesystem::path& take_dir, const std::filesystem::path& from,
+    Report* report = nullptr,
+    const std::optional<ChessboardFinder>& chessboard_finder = std::nullopt);
 
 }  // namespace holocap

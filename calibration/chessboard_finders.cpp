@@ -26,7 +26,6 @@
 namespace holocap {
 namespace {
 
-std::atomic<ChessboardFinder> finder_in_use{ChessboardFinder::kHolocap};
 std::atomic<int64_t> temp_counter{0};
 
 bool OnPath(const std::string& program) {
@@ -40,9 +39,6 @@ bool OnPath(const std::string& program) {
 }
 
 }  // namespace
-
-void SetChessboardFinder(ChessboardFinder finder) { finder_in_use = finder; }
-ChessboardFinder CurrentChessboardFinder() { return finder_in_use; }
 
 ChessboardFinder ParseChessboardFinder(const std::string& name) {
   if (name == "holocap") return ChessboardFinder::kHolocap;
@@ -203,20 +199,6 @@ std::map<int64_t, Pose> BoardPosesOf(const Take& take) {
   return poses;
 }
 
-// Switches BoardDetector to holocap's own finder while it lives.
-class HolocapFinderScope {
- public:
-  HolocapFinderScope() : saved_(CurrentChessboardFinder()) {
-    SetChessboardFinder(ChessboardFinder::kHolocap);
-  }
-  ~HolocapFinderScope() { SetChessboardFinder(saved_); }
-  HolocapFinderScope(const HolocapFinderScope&) = delete;
-  HolocapFinderScope& operator=(const HolocapFinderScope&) = delete;
-
- private:
-  ChessboardFinder saved_;
-};
-
 }  // namespace
 
 nlohmann::json CompareChessboardFinders(const std::filesystem::path& take_dir,
@@ -239,8 +221,9 @@ nlohmann::json CompareChessboardFinders(const std::filesystem::path& take_dir,
 
   const std::vector<calibration_internal::ViewJob> jobs =
       calibration_internal::ViewJobs(take, sensors);
-  const HolocapFinderScope holocap_finder;
-  BoardDetector holocap(layout);
+  DetectionOptions holocap_options;
+  holocap_options.chessboard_finder = ChessboardFinder::kHolocap;
+  BoardDetector holocap(layout, holocap_options);
   std::vector<std::array<std::optional<Corners>, kFinders>> found(jobs.size());
   std::vector<std::optional<Corners>> truth(jobs.size());
   calibration_internal::RunViewJobs(jobs.size(), threads, [&](size_t k) {

@@ -9,18 +9,11 @@
 #include <string>
 #include <vector>
 
+#include "calibration/calibration.h"
 #include "core/board.h"
 
 namespace holocap {
 
-// Which finder BoardDetector::Detect uses on chessboard layouts, for the whole process (the CLI
-// sets it once, before detection starts). mrgingham finds square grids only.
-enum class ChessboardFinder { kHolocap, kMrgingham };
-void SetChessboardFinder(ChessboardFinder finder);
-ChessboardFinder CurrentChessboardFinder();
-// "holocap" or "mrgingham"; anything else throws Error naming the choices.
-ChessboardFinder ParseChessboardFinder(const std::string& name);
-const char* ToString(ChessboardFinder finder);
 // Throws Error (one line) unless mrgingham can run on `layout`: a chessboard with as many inner
 // corners per row as per column, and the `mrgingham` program on PATH.
 void CheckMrginghamFits(const BoardLayout& layout);

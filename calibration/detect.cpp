@@ -260,6 +260,7 @@ void DetectionOptions::Check() const {
 
 nlohmann::json DetectionOptions::ToJson() const {
   return {{"threads", threads},
+          {"detector", ToString(chessboard_finder)},
           {"refine_corners", refine_corners},
           {"refine_half_window_px", refine_half_window_px},
           {"max_hamming", max_hamming},
@@ -389,7 +390,7 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   if (board_.layout().type == BoardType::kChessboard) {
     std::vector<cv::Point2f> corners;
     const cv::Size size(width_n, height_n);
-    if (CurrentChessboardFinder() == ChessboardFinder::kMrgingham) {
+    if (options_.chessboard_finder == ChessboardFinder::kMrgingham) {
       // mrgingham's corners as it gives them, row-major from one end as OpenCV's.
       if (width_n != height_n) Fail("mrgingham finds square grids only");
       if (!FindChessboardMrgingham(grey, width_n, &corners, reason)) return false;
@@ -657,7 +658,7 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
                                                  const DetectionOptions& options,
                                                  DetectionSummary* summary) {
   options.Check();
-  if (CurrentChessboardFinder() == ChessboardFinder::kMrgingham) CheckMrginghamFits(layout);
+  if (options.chessboard_finder == ChessboardFinder::kMrgingham) CheckMrginghamFits(layout);
   const std::vector<std::string> sensors = ChooseColorSensors(take, sensors_in);
   if (take.size() == 0) Fail("take ", take.dir().string(), " has no complete frame sets");
 

@@ -316,6 +316,7 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
   if (report != nullptr) {
     report->options() = {{"take", take_dir.string()},
                          {"board", layout.ToJson()},
+                         {"detector", ToString(options.detection.chessboard_finder)},
                          {"detection", options.detection.ToJson()},
                          {"solve", options.solve.ToJson()},
                          {"lensmodel", options.lensmodel}};

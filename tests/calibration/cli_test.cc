@@ -580,5 +580,55 @@ TEST(CalibrateCli, TheMrginghamDetectorRefusesWhatItCannotFind) {
                      "unknown chessboard detector 'opencv'");
 }
 
+// The detector is part of the calibration request: the board take's report names it, a take
+// given that calibration through --from names it too, and --from with --detector is refused
+// unless the board take's corners came from that finder (it was once ignored there).
+TEST(CalibrateCli, TheDetectorTravelsWithTheCalibrationThroughFrom) {
+  TempDir dir("holocap-calib-from-detector");
+  std::ofstream(dir / "chessboard.yaml")
+      << "type: chessboard\nchessboard_width_n: 9\nchessboard_height_n: 6\nspacing: 0.1\n"
+         "margin: 0.2\n";
+  const std::string rig = WriteRingRig(dir.path(), 2);
+  const std::string board = (dir / "board").string();
+  const std::string other = (dir / "other").string();
+  auto r = RunCli("sim --rig " + rig + " --board --board-layout " +
+                  (dir / "chessboard.yaml").string() + " --frames 16 --size 480 --out " + board);
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = RunCli("sim --rig " + rig + " --board --frames 1 --size 480 --out " + other);
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  r = RunCli("calibrate " + board + " --no-pictures --no-uncertainty");
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  const auto board_report =
+      nlohmann::json::parse(ReadFileToString(dir / "board" / "calib" / "report.json"));
+  EXPECT_EQ(board_report["options"]["detector"], "holocap");
+  EXPECT_EQ(board_report["options"]["detection"]["detector"], "holocap");
+
+  ExpectOneLineError(RunCli("calibrate " + other + " --from " + board + " --detector mrgingham"),
+                     "was solved on the holocap finder's corners");
+  EXPECT_FALSE(std::filesystem::exists(dir / "other" / "calib" / "cam0.cameramodel"));
+  for (const std::string flags : {"", " --detector holocap"}) {
+    r = RunCli("calibrate " + other + " --from " + board + flags);
+    ASSERT_EQ(r.exit_code, 0) << flags << r.output;
+    const auto report =
+        nlohmann::json::parse(ReadFileToString(dir / "other" / "calib" / "report.json"));
+    EXPECT_EQ(report["options"]["detector"], "holocap") << flags;
+    EXPECT_EQ(report["plan"]["adopted"]["detector"], "holocap") << flags;
+  }
+  // A folder of models has no report to say which finder found its corners.
+  std::filesystem::create_directories(dir / "models");
+  for (const std::string camera : {"cam0", "cam1"}) {
+    std::filesystem::copy_file(dir / "board" / "calib" / (camera + ".cameramodel"),
+                               dir / "models" / (camera + ".cameramodel"));
+  }
+  ExpectOneLineError(
+      RunCli("calibrate " + other + " --from " + (dir / "models").string() + " --detector holocap"),
+      "does not say which detector found its corners");
+  r = RunCli("calibrate " + other + " --from " + (dir / "models").string());
+  ASSERT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_TRUE(nlohmann::json::parse(
+                  ReadFileToString(dir / "other" / "calib" / "report.json"))["options"]["detector"]
+                  .is_null());
+}
+
 }  // namespace
 }  // namespace holocap

@@ -141,6 +141,41 @@ TEST(BoardDetector, FindsChessboardCornersInHolocapOrder) {
   }
 }
 
+// The finder travels in each detector's options: holocap's and mrgingham's detectors, alive
+// together in one process, each read the same square chessboard their own way (mrgingham's
+// corners lie ~0.1 px from holocap's on such renders).
+TEST(BoardDetector, EachDetectorUsesTheFinderItsOptionsName) {
+  BoardLayout layout = NineBySixChessboard();
+  layout.chessboard_width_n = 7;
+  layout.chessboard_height_n = 7;
+  const Board board(layout);
+  const Scene scene(board, 20, 0.9);
+  const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board, 2.0);
+  DetectionOptions holocap_options, mrgingham_options;
+  mrgingham_options.chessboard_finder = ChessboardFinder::kMrgingham;
+  const BoardDetector holocap(layout, holocap_options);
+  const BoardDetector mrgingham(layout, mrgingham_options);
+  BoardObservation a, b, again;
+  std::string reason;
+  ASSERT_TRUE(mrgingham.Detect(image, &b, &reason)) << reason;
+  ASSERT_TRUE(holocap.Detect(image, &a, &reason)) << reason;
+  ASSERT_TRUE(mrgingham.Detect(image, &again, &reason)) << reason;
+  EXPECT_EQ(a.seen(), 49);
+  EXPECT_EQ(b.seen(), 49);
+  // A square board's numbering may start at any corner (the solve makes cameras agree): each
+  // of holocap's corners against mrgingham's nearest.
+  double largest_gap = 0;
+  for (Eigen::Index r = 0; r < a.points.rows(); ++r) {
+    double nearest = INFINITY;
+    for (Eigen::Index q = 0; q < b.points.rows(); ++q)
+      nearest = std::min(nearest, (a.points.row(r) - b.points.row(q)).head<2>().norm());
+    largest_gap = std::max(largest_gap, nearest);
+  }
+  EXPECT_GT(largest_gap, 1e-3) << "both detectors ran the same finder";
+  EXPECT_LT(largest_gap, 1.0);
+  EXPECT_EQ(again.points, b.points);
+}
+
 TEST(BoardDetector, RejectsAPartialBoardAndAnEmptyImage) {
   const BoardLayout layout = testing::TestBoard();
   const Board board(layout);
