@@ -116,9 +116,10 @@ void AddCalibrateCommand(CLI::App& app) {
                        "--from, the finder the board take's calibration must have used")
           ->capture_default_str();
   command->add_flag("--compare-detectors", args->compare_detectors,
-                    "Also run holocap's, OpenCV's and mrgingham's chessboard finders on every "
+                    "Also run every detector that reads the board (chessboards: holocap's, "
+                    "OpenCV's and mrgingham's finders; ChArUco: holocap's and OpenCV's) on every "
                     "view and report how far their corners lie apart (and from the truth on a "
-                    "simulated take); the solve is unchanged");
+                    "simulated take); the solve is unchanged. Refused on AprilTag boards");
   command->add_flag("--no-uncertainty", args->no_uncertainty, "Skip the projection uncertainty");
   command->add_flag("--cross-validate", args->cross_validation,
                     "Also solve two halves of the frames");
@@ -164,6 +165,7 @@ void AddCalibrateCommand(CLI::App& app) {
     options.solve.cross_validation = args->cross_validation;
     options.pictures = !args->no_pictures;
     options.detection.threads = args->threads;
+    options.compare_detectors = args->compare_detectors;
     Report report("calibrate");
     report.SetFailureDestination(std::filesystem::path(args->take) / "calib" / "report.json");
     const TakeCalibrationSummary summary = CalibrateTake(args->take, options, &report);
@@ -179,13 +181,10 @@ void AddCalibrateCommand(CLI::App& app) {
                   args->write_corners.c_str());
     }
     if (args->compare_detectors) {
-      std::string table;
-      report.metrics()["detector_agreement"] =
-          CompareChessboardFinders(args->take, BoardLayout::FromJson(report.options()["board"]),
-                                   args->sensors, args->threads, &table);
-      std::printf("chessboard corners, detector against detector:\n%s", table.c_str());
+      std::printf("%s corners, detector against detector:\n%s",
+                  summary.detector_agreement.value("board", std::string()).c_str(),
+                  summary.detector_table.c_str());
     }
-    report.Write(calib / "report.json");
     std::printf("report: %s\n", summary.report_file.c_str());
     // The state line is printed above; an unusable state ends in one error line and exit 1.
     FailUnlessUsable(summary, "calibration");

@@ -416,6 +416,10 @@ struct TakeCalibrationOptions {
                                      // take's metadata "floor_board_set", else none
   bool pictures = true;              // residual, coverage and uncertainty PNGs
   bool depth_sensors = true;         // depth_from_color for paired depth sensors
+  // Also run every detector that reads the board (chessboards, ChArUco) on every view and
+  // measure their agreement (CompareBoardDetectors); the solve is the same. An AprilTag board
+  // is refused before detection.
+  bool compare_detectors = false;
   DetectionOptions detection;
   CalibrationOptions solve;
   DepthAlignmentOptions depth;
@@ -433,6 +437,9 @@ struct TakeCalibrationSummary : Summary {
   GroundTruthComparison ground_truth;
   std::vector<std::filesystem::path> written;  // models, report and pictures
   std::filesystem::path report_file;           // where its report went
+  // With compare_detectors: metrics.detector_agreement and its printed table.
+  nlohmann::json detector_agreement;
+  std::string detector_table;
 };
 
 // The lens model the take's rig asks for `sensor` (its option calib_lensmodel), else OPENCV8.

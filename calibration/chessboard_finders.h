@@ -14,9 +14,11 @@
 
 namespace holocap {
 
-// Throws Error (one line) unless mrgingham can run on `layout`: a chessboard with as many inner
-// corners per row as per column, and the `mrgingham` program on PATH.
-void CheckMrginghamFits(const BoardLayout& layout);
+// Why mrgingham cannot run on `layout` (one line): not a chessboard, a chessboard with unequal
+// sides, or no `mrgingham` program on PATH; empty when it can.
+std::string WhyMrginghamCannotRun(const BoardLayout& layout);
+// Throws Error (one line, `flag` first) unless mrgingham can run on `layout`.
+void CheckMrginghamFits(const BoardLayout& layout, const std::string& flag);
 
 // The gridn x gridn inner corners mrgingham finds in `grey` (8-bit), row-major from the corner
 // it starts at (its "top-left"), x along a row; false with `reason` when it finds no board. The
@@ -24,15 +26,23 @@ void CheckMrginghamFits(const BoardLayout& layout);
 bool FindChessboardMrgingham(const cv::Mat& grey, int gridn, std::vector<cv::Point2f>* corners,
                              std::string* reason);
 
-// Runs holocap's finder, OpenCV's recipe (findChessboardCorners, then cornerSubPix with an 11 x 11
-// window) and mrgingham on every colour view of `take_dir` (`sensors`; empty: all colour
-// cameras), and measures, per pair of finders, the corner distances over the corners both found
-// (numbered alike up to the turns that leave the board unchanged), and on a simulated take each
-// finder's distance to the true corners (gt/cameras and gt/board.json). Returns the JSON that
-// goes into report.json as metrics.detector_agreement; `table` gets the printed table.
-nlohmann::json CompareChessboardFinders(const std::filesystem::path& take_dir,
-                                        const BoardLayout& layout,
-                                        const std::vector<std::string>& sensors, int threads,
-                                        std::string* table);
+// Throws Error (one line) unless CompareBoardDetectors can compare detectors of `layout`: an
+// AprilTag board has one detector (libapriltag).
+void CheckDetectorsComparable(const BoardLayout& layout);
+
+// Runs every detector that reads `layout` on every colour view of `take_dir` (`sensors`; empty:
+// all colour cameras): for a chessboard holocap's finder, OpenCV's recipe (findChessboardCorners,
+// then cornerSubPix with an 11 x 11 window) and mrgingham where it can run (a square grid, the
+// program on PATH); for a ChArUco board holocap's detector and OpenCV's own (detectMarkers, then
+// interpolateCornersCharuco). Measures, per pair of detectors, the corner distances over the
+// corners both found (a chessboard's numbered alike up to the turns that leave the board
+// unchanged; a ChArUco board's by their ids), and on a simulated take each detector's distance
+// to the true corners (gt/cameras and gt/board.json). Returns the JSON that goes into
+// report.json as metrics.detector_agreement (a detector that cannot read the board under
+// "left_out", with why); `table` gets the printed table. Throws as CheckDetectorsComparable.
+nlohmann::json CompareBoardDetectors(const std::filesystem::path& take_dir,
+                                     const BoardLayout& layout,
+                                     const std::vector<std::string>& sensors, int threads,
+                                     std::string* table);
 
 }  // namespace holocap

@@ -658,7 +658,8 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
                                                  const DetectionOptions& options,
                                                  DetectionSummary* summary) {
   options.Check();
-  if (options.chessboard_finder == ChessboardFinder::kMrgingham) CheckMrginghamFits(layout);
+  if (options.chessboard_finder == ChessboardFinder::kMrgingham)
+    CheckMrginghamFits(layout, "--detector mrgingham");
   const std::vector<std::string> sensors = ChooseColorSensors(take, sensors_in);
   if (take.size() == 0) Fail("take ", take.dir().string(), " has no complete frame sets");
 

@@ -4,6 +4,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "calibration/calibration.h"
+#include "calibration/chessboard_finders.h"
 #include "calibration/internal/common.h"
 #include "core/error.h"
 #include "core/fs.h"
@@ -299,6 +300,7 @@ void FillReport(const TakeCalibrationOptions& options, const std::vector<std::st
   for (const auto& d : result.depth) depth_json.push_back(d.ToJson());
   m["depth"] = depth_json;
   if (result.has_ground_truth) m["gt"] = result.ground_truth.ToJson();
+  if (options.compare_detectors) m["detector_agreement"] = result.detector_agreement;
   r.SetSummary(result);
 }
 
@@ -309,6 +311,7 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
   options.Check();
   const Take take = Take::Open(take_dir);
   const BoardLayout layout = FindBoard(take, options);
+  if (options.compare_detectors) CheckDetectorsComparable(layout);
   std::vector<std::string> sensors;
   const std::vector<CalibrationCamera> cameras = CamerasToCalibrate(take, options, &sensors);
 
@@ -333,6 +336,10 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
   result.world_frame = world.frame;
   result.world_reason = world.why;
   CompareTakeWithTruth(take, layout, world.world_from_ref, depth_in_ref, &result);
+  if (options.compare_detectors) {
+    result.detector_agreement = CompareBoardDetectors(
+        take_dir, layout, options.sensors, options.detection.threads, &result.detector_table);
+  }
   WriteModelsAndPictures(take, world.world_from_ref, depth_in_ref, options.pictures, &result);
 
   result.End(cal.termination, cal.message);
