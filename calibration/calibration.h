@@ -190,6 +190,20 @@ struct CalibrationOptions {
   // A camera whose views' board normals all lie within this of each other saw the board in one
   // pose, however many frames repeat it: degenerate (one plane pose fixes no lens).
   double min_normal_spread_deg = 5;
+  // The lens model's fit. A model that describes the lens leaves residuals at the corners'
+  // noise; one that cannot (a pinhole for a distorted lens) leaves them far above it. The noise
+  // expected is observed_pixel_sigma where given, else the RMS residual of each camera solved
+  // again in a richer model (LENSMODEL_OPENCV8, for cameras whose model has fewer parameters
+  // and is not splined; others are not checked). A camera whose RMS residual exceeds that noise
+  // by more than max_residual_to_noise, or by more than the chi-square bound of its residual
+  // count at p = 1e-6 where that is larger, makes the solve DEGENERATE.
+  bool check_model_fit = true;
+  // Under Gaussian noise an adequate model's RMS stays within sqrt(chi2_{1-1e-6}(n) / n) of the
+  // noise: under 1.5 for n >= 48 residuals, about 1.05 for thousands. Corners carry a bias
+  // besides their scatter (a richer model absorbs some of it), which that bound does not allow
+  // for: 2 (4x the expected cost) keeps an adequate model clear of it while a lens model that
+  // misses the distortion leaves residuals tens of times the noise.
+  double max_residual_to_noise = 2;
   // Cross-validation.
   bool cross_validation = false;  // also solve two disjoint halves of the frames
   // ... whose projections may differ by at most this many times the 1-sigma the halves' own
@@ -311,6 +325,9 @@ struct CalibrationSummary : Summary {
   // Solved board poses (ref_from_board) per frame set, for comparisons with truth.
   std::map<int64_t, Pose> ref_from_board;
   nlohmann::json cross_validation;  // empty unless requested
+  // The lens model's fit (CalibrationOptions::check_model_fit): the noise expected, where it
+  // came from, and per camera the RMS and worst residual coordinate against it and the limit.
+  nlohmann::json model_fit;
 
   const CalibratedCamera* Find(const std::string& name) const;
   nlohmann::json ToJson() const;

@@ -720,6 +720,7 @@ void CalibrationOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GT(max_uncertainty_px, 0);
   HOLOCAP_CHECK_OPTION_GT(max_focal_sigma_rel, 0);
   HOLOCAP_CHECK_OPTION_GE(min_normal_spread_deg, 0);
+  HOLOCAP_CHECK_OPTION_GE(max_residual_to_noise, 1, "an adequate model's RMS is the noise");
 }
 
 nlohmann::json CalibrationOptions::ToJson() const {
@@ -738,6 +739,8 @@ nlohmann::json CalibrationOptions::ToJson() const {
           {"max_uncertainty_px", max_uncertainty_px},
           {"max_focal_sigma_rel", max_focal_sigma_rel},
           {"min_normal_spread_deg", min_normal_spread_deg},
+          {"check_model_fit", check_model_fit},
+          {"max_residual_to_noise", max_residual_to_noise},
           {"cross_validation", cross_validation},
           {"max_cross_validation_ratio", max_cross_validation_ratio}};
 }
@@ -828,6 +831,7 @@ nlohmann::json CalibrationSummary::ToJson() const {
       {"notes", notes},
       {"cameras", cams},
       {"stages", stage_json},
+      {"model_fit", model_fit},
       {"timing", {{"solve_s", solve_seconds}, {"uncertainty_s", uncertainty_seconds}}}};
   for (const auto& s : stages) {
     if (s.name != "everything") continue;
@@ -1078,6 +1082,7 @@ class Calibrator {
   std::string UnconstrainedLens(const CalibratedCamera& out) const;
   void CrossValidation();
   std::string CrossValidationBeyondPrediction() const;
+  void CheckModelFit();
   void Conclude();
 
   // Runs mrcal on `q`, records the stage and says how mrcal's solve ended.
@@ -1116,6 +1121,7 @@ class Calibrator {
   std::map<int, Problem> alone_;            // cameras re-solved alone, by mrcal camera
   std::vector<double> all_residuals_;       // every inlier residual coordinate
   std::string unconverged_;                 // stages whose cost still fell
+  std::string model_mismatch_;              // why the lens model cannot describe the lenses
 };
 
 CalibrationSummary Calibrator::Run() {
@@ -1159,6 +1165,7 @@ CalibrationSummary Calibrator::Solve() {
   CollectResiduals();
   EstimateUncertainty();
   if (options_.cross_validation) CrossValidation();
+  CheckModelFit();
   Conclude();
   return summary_;
 }
@@ -1848,6 +1855,117 @@ void Calibrator::CrossValidation() {
   summary_.cross_validation = CrossValidate(a, b);
 }
 
+namespace {
+
+// The model the fit check solves again in: mrcal's richest OpenCV model, a rational radial
+// term over the tangential ones.
+constexpr const char* kRicherLensModel = "LENSMODEL_OPENCV8";
+
+int LensModelParameters(const std::string& name) {
+  mrcal_lensmodel_t parsed;
+  if (!mrcal_lensmodel_from_name(&parsed, name.c_str())) return 0;
+  return mrcal_lensmodel_num_params(&parsed);
+}
+
+// The share of n squared standard normal values' mean that chance exceeds with probability
+// 1e-6: chi2_{1-1e-6}(n) / n by Wilson and Hilferty's cube-root approximation.
+double ChiSquareMeanBound(int n) {
+  constexpr double kZ = 4.753;  // the standard normal's 1 - 1e-6 quantile
+  const double a = 2.0 / (9.0 * n);
+  return std::pow(1 - a + kZ * std::sqrt(a), 3);
+}
+
+}  // namespace
+
+// Each camera's residuals against the noise expected of its corners: a lens model that cannot
+// describe the lens leaves them far above it (mrcal's practice: residuals that look like the
+// noise, not above it and not structured).
+void Calibrator::CheckModelFit() {
+  if (!options_.check_model_fit) return;
+  nlohmann::json& fit = summary_.model_fit;
+  std::map<std::string, double> noise;  // per camera name
+  if (options_.observed_pixel_sigma > 0) {
+    fit["noise_from"] = "observed_pixel_sigma";
+    for (const auto& c : summary_.cameras) noise[c.name] = options_.observed_pixel_sigma;
+  } else {
+    std::vector<CalibrationCamera> richer = cameras_;
+    const int richer_parameters = LensModelParameters(kRicherLensModel);
+    bool any = false;
+    for (CalibrationCamera& c : richer) {
+      const int own = LensModelParameters(c.lensmodel);
+      if (own < richer_parameters && c.lensmodel.rfind("LENSMODEL_SPLINED", 0) != 0) {
+        c.lensmodel = kRicherLensModel;
+        any = true;
+      }
+    }
+    if (!any) {
+      fit["checked"] = false;
+      fit["why"] = Cat("no camera's model is poorer than ", kRicherLensModel,
+                       " (and observed_pixel_sigma is not given)");
+      return;
+    }
+    CalibrationOptions richer_options = options_;
+    richer_options.check_model_fit = false;
+    richer_options.cross_validation = false;
+    richer_options.uncertainty = false;
+    richer_options.max_uncertainty_px = 1e9;
+    richer_options.max_focal_sigma_rel = 1e9;
+    richer_options.min_normal_spread_deg = 0;
+    const CalibrationSummary solved =
+        Calibrator(layout_, richer, observations_, richer_options, nullptr).Run();
+    if (!IsUsable(solved.termination)) {
+      fit["checked"] = false;
+      fit["why"] = Cat("the ", kRicherLensModel, " solve ended ", ToString(solved.termination),
+                       ": ", solved.message);
+      return;
+    }
+    fit["noise_from"] = Cat(kRicherLensModel, "'s residuals on the same corners");
+    for (size_t k = 0; k < richer.size(); ++k) {
+      const CalibratedCamera* c = solved.Find(richer[k].name);
+      if (richer[k].lensmodel != cameras_[k].lensmodel && c != nullptr && c->solved &&
+          c->rms_px > 0) {
+        noise[richer[k].name] = c->rms_px;
+      }
+    }
+  }
+  fit["checked"] = true;
+  fit["cameras"] = nlohmann::json::object();
+  std::string beyond, worst_line;
+  double worst_ratio = 0;
+  for (const CalibratedCamera& c : summary_.cameras) {
+    const auto expected = noise.find(c.name);
+    if (!c.solved || c.points == 0 || expected == noise.end()) continue;
+    double worst_px = 0;
+    for (const auto& r : c.residuals)
+      worst_px = std::max({worst_px, std::abs(r.x()), std::abs(r.y())});
+    const double bound = std::sqrt(ChiSquareMeanBound(2 * c.points));
+    const double limit = std::max(options_.max_residual_to_noise, bound);
+    const double ratio = c.rms_px / expected->second;
+    fit["cameras"][c.name] = {{"rms_px", c.rms_px},
+                              {"worst_px", worst_px},
+                              {"noise_px", expected->second},
+                              {"ratio", ratio},
+                              {"chi_square_bound", bound},
+                              {"limit", limit},
+                              {"lensmodel", c.model.lensmodel()}};
+    if (ratio <= limit) continue;
+    beyond += Cat(beyond.empty() ? "" : ", ", c.name);
+    if (ratio > worst_ratio) {
+      worst_ratio = ratio;
+      worst_line = Cat(c.model.lensmodel(), " cannot describe the lens of ", c.name, ": residuals ",
+                       c.rms_px, " px RMS (worst ", worst_px,
+                       " px) against the expected corner noise ", expected->second, " px (",
+                       fit["noise_from"].get<std::string>(), "), ", std::round(ratio * 10) / 10,
+                       "x where ", std::round(limit * 100) / 100, "x is the limit");
+    }
+  }
+  if (!beyond.empty()) {
+    model_mismatch_ = Cat(worst_line, "; cameras beyond the limit: ", beyond,
+                          ": use a richer lens model (--lens-model ", kRicherLensModel,
+                          ", or a splined one for a wide lens)");
+  }
+}
+
 // The cameras whose cross-validation halves differ by more than max_cross_validation_ratio
 // times their predicted sigma ("cam1 (2.8x the predicted 0.05 px)"), or empty.
 std::string Calibrator::CrossValidationBeyondPrediction() const {
@@ -1888,6 +2006,8 @@ void Calibrator::Conclude() {
                      beyond,
                      ": the uncertainty understates the error (an unmodelled lens, a camera that "
                      "moved, a bending board, or noise above the one assumed)"));
+  } else if (!model_mismatch_.empty()) {
+    summary_.End(Termination::kDegenerate, Cat(solved, "; ", model_mismatch_));
   } else if (!unconverged_.empty()) {
     summary_.End(Termination::kNoConvergence,
                  Cat(solved, "; mrcal stopped while the cost still fell in: ", unconverged_));

@@ -296,6 +296,7 @@ void FillReport(const TakeCalibrationOptions& options, const std::vector<std::st
                       {"worst_observed_px", worst_observed},
                       {"observed_pixel_sigma", cal.observed_pixel_sigma}};
   if (!cal.cross_validation.is_null()) m["cross_validation"] = cal.cross_validation;
+  if (!cal.model_fit.is_null()) m["model_fit"] = cal.model_fit;
   nlohmann::json depth_json = nlohmann::json::array();
   for (const auto& d : result.depth) depth_json.push_back(d.ToJson());
   m["depth"] = depth_json;

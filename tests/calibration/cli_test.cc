@@ -377,6 +377,47 @@ TEST(CalibrateCli, ABoardThatNeverMovesIsDegenerateForEveryLensModel) {
   EXPECT_LT(report["metrics"]["gt"]["focal_rel_err_max"].get<double>(), 0.005);
 }
 
+// A lens model that cannot describe the lens converges all the same; its residuals give it away:
+// far above the corners' noise, which the same corners solved in a richer model show. The ring's
+// lenses are OPENCV4 and OPENCV5 with real distortion (k1 -0.08 and -0.12): PINHOLE, LONLAT and
+// LATLON end DEGENERATE naming the model, its RMS and the noise, and suggest a richer model;
+// OPENCV5, which describes both, stays CONVERGENCE with its residuals at the noise.
+TEST(CalibrateCli, ALensModelThatCannotDescribeTheLensIsDegenerate) {
+  TempDir dir("holocap-calib-model-fit");
+  const std::string take = PairTake(dir.path(), false);
+  const auto calibrate = [&](const std::string& model) {
+    std::filesystem::remove_all(std::filesystem::path(take) / "calib");
+    const auto r =
+        RunCli("calibrate " + take + " --no-pictures --no-uncertainty --lens-model " + model);
+    const auto report = nlohmann::json::parse(
+        ReadFileToString(std::filesystem::path(take) / "calib" / "report.json"));
+    return std::make_pair(r, report);
+  };
+  for (const std::string model : {"LENSMODEL_PINHOLE", "LENSMODEL_LONLAT", "LENSMODEL_LATLON"}) {
+    const auto [r, report] = calibrate(model);
+    EXPECT_NE(r.exit_code, 0) << model << r.output;
+    EXPECT_EQ(report["summary"]["termination"], "DEGENERATE") << model << report["summary"].dump();
+    const std::string message = report["summary"]["message"].get<std::string>();
+    EXPECT_NE(message.find(model + " cannot describe the lens of"), std::string::npos) << message;
+    EXPECT_NE(message.find("against the expected corner noise"), std::string::npos) << message;
+    EXPECT_NE(message.find("use a richer lens model"), std::string::npos) << message;
+    const auto& fit = report["metrics"]["model_fit"];
+    ASSERT_TRUE(fit["checked"].get<bool>()) << fit.dump();
+    for (const auto& [name, camera] : fit["cameras"].items()) {
+      EXPECT_GT(camera["ratio"].get<double>(), camera["limit"].get<double>()) << model << name;
+    }
+  }
+  const auto [r, report] = calibrate("LENSMODEL_OPENCV5");
+  EXPECT_EQ(r.exit_code, 0) << r.output;
+  EXPECT_EQ(report["summary"]["termination"], "CONVERGENCE") << report["summary"].dump();
+  const auto& fit = report["metrics"]["model_fit"];
+  ASSERT_TRUE(fit["checked"].get<bool>()) << fit.dump();
+  ASSERT_EQ(fit["cameras"].size(), 2u) << fit.dump();
+  for (const auto& [name, camera] : fit["cameras"].items()) {
+    EXPECT_LE(camera["ratio"].get<double>(), camera["limit"].get<double>()) << name;
+  }
+}
+
 // Whatever throws inside the solve is its ending, not a crash: a board layout written in
 // micrometres (spacing 100000) puts cam1 2.1e6 m from cam0, beyond what a camera model may be
 // (1e6 m). FAILURE with the reason, the solve's figures in report.json, one error line, exit 1
