@@ -94,6 +94,11 @@ static void AddSimCommand(CLI::App& app) {
                     "The board never moves: every frame set shows the first pose cam0 and cam1 "
                     "share (no lens can be calibrated from it)");
   command
+      ->add_option("--board-partial", o.board_partial,
+                   "Share (0..1) of the single-camera board views whose board reaches past the "
+                   "image's edge (35-85 % of its grid points in view)")
+      ->capture_default_str();
+  command
       ->add_option("--upside-down", o.upside_down,
                    "Sensors mounted upside down (turned 180 degrees about their optical axes), "
                    "comma-separated")

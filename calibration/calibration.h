@@ -163,9 +163,12 @@ struct CalibrationCamera {
 };
 
 struct CalibrationOptions {
-  std::string reference_camera;   // the camera at the rig's origin; empty: the first
-  int min_views_per_camera = 8;   // fewer board views: the camera is flagged, not solved
-  int min_points_per_view = 12;   // fewer seen points: the view is dropped
+  std::string reference_camera;  // the camera at the rig's origin; empty: the first
+  int min_views_per_camera = 8;  // fewer board views: the camera is flagged, not solved
+  // Fewer seen points: the view is left out (metrics.warnings counts them). A board pose takes a
+  // homography to seed (8 unknowns from 4 points); 6 points leave 4 equations to tell whether it
+  // fits. Whole AprilTag views hold 16 or more, a partial ChArUco view may hold fewer than 12.
+  int min_points_per_view = 6;
   bool regularization = true;     // mrcal's regularisation in the final stage
   bool outlier_rejection = true;  // mrcal's outlier rejection in the final stage
   bool solve_board_warp = false;  // solve mrcal's board warp (printed boards that bow)

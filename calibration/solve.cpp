@@ -1203,10 +1203,21 @@ void Calibrator::CheckInput() {
 
 void Calibrator::SelectViews() {
   views_.assign(cameras_.size(), {});
+  std::map<std::string, int> too_few;
   for (size_t k = 0; k < observations_.size(); ++k) {
     if (observations_[k].seen() >= options_.min_points_per_view) {
       views_[index_of_[observations_[k].sensor]].push_back(static_cast<int>(k));
+    } else {
+      ++too_few[observations_[k].sensor];
     }
+  }
+  if (!too_few.empty()) {
+    std::string counts;
+    for (const auto& [sensor, count] : too_few) {
+      counts += Cat(counts.empty() ? "" : ", ", sensor, " ", count);
+    }
+    summary_.warnings.push_back(Cat("views with fewer than ", options_.min_points_per_view,
+                                    " board points left out of the solve: ", counts));
   }
 }
 

@@ -222,6 +222,50 @@ double BoardPoseScore(const Board& board, const Pose& world_from_board,
   return std::isfinite(smallest) ? smallest : 0;
 }
 
+// A pose's score for a view meant to show the board partly: the smallest grid spacing among the
+// grid points `camera` sees in its image when 35-85 % of them are there (the others beyond the
+// image's edge), the board in front of the camera and inside the room; 0 otherwise.
+double PartialBoardPoseScore(const Board& board, const Pose& world_from_board,
+                             const CameraModel& camera) {
+  const double corners[4][2] = {{board.u_min(), board.v_min()},
+                                {board.u_max(), board.v_min()},
+                                {board.u_min(), board.v_max()},
+                                {board.u_max(), board.v_max()}};
+  for (const auto& c : corners) {
+    const Eigen::Vector3d p = world_from_board * Eigen::Vector3d(c[0], c[1], 0);
+    if (p.z() < 0.05 || p.z() > kRoomHeight - 0.05 || std::abs(p.x()) > kRoomHalf - 0.05 ||
+        std::abs(p.y()) > kRoomHalf - 0.05 || (camera.cam_from_world() * p).z() < 0.15) {
+      return 0;
+    }
+  }
+  const int width_n = board.width_n(), height_n = board.height_n();
+  std::vector<Eigen::Vector2d> pixels(static_cast<size_t>(width_n) * height_n);
+  std::vector<bool> inside(pixels.size(), false);
+  int seen = 0;
+  for (int j = 0; j < height_n; ++j) {
+    for (int i = 0; i < width_n; ++i) {
+      const size_t k = static_cast<size_t>(j) * width_n + i;
+      inside[k] = camera.ProjectWorld(world_from_board * board.GridPoint(i, j), &pixels[k]) &&
+                  camera.InImage(pixels[k], 2);
+      seen += inside[k] ? 1 : 0;
+    }
+  }
+  const double share = static_cast<double>(seen) / static_cast<double>(pixels.size());
+  if (share < 0.35 || share > 0.85) return 0;
+  double smallest = std::numeric_limits<double>::infinity();
+  for (int j = 0; j < height_n; ++j) {
+    for (int i = 0; i < width_n; ++i) {
+      const size_t k = static_cast<size_t>(j) * width_n + i;
+      if (!inside[k]) continue;
+      if (i + 1 < width_n && inside[k + 1])
+        smallest = std::min(smallest, (pixels[k + 1] - pixels[k]).norm());
+      if (j + 1 < height_n && inside[k + width_n])
+        smallest = std::min(smallest, (pixels[k + width_n] - pixels[k]).norm());
+    }
+  }
+  return std::isfinite(smallest) ? smallest : 0;
+}
+
 // Radians per pixel near the image centre.
 double AnglePerPixel(const CameraModel& camera) {
   const double cx = 0.5 * (camera.width() - 1), cy = 0.5 * (camera.height() - 1);
@@ -231,7 +275,7 @@ double AnglePerPixel(const CameraModel& camera) {
 }
 
 Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, int64_t set,
-                   uint64_t seed) {
+                   uint64_t seed, double partial_share) {
   std::mt19937_64 rng(seed * 0x9E3779B97F4A7C15ull + static_cast<uint64_t>(set) * 7919 + 17);
   std::uniform_real_distribution<double> unit(0, 1);
   const int n = static_cast<int>(cameras.size());
@@ -246,6 +290,10 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
   const double min_spacing_px = 14;
   std::vector<const CameraModel*> viewers = {&camera};
   if (shared) viewers.push_back(&neighbour);
+  // Partial views draw from their own generator, so that a take without them keeps its poses.
+  std::mt19937_64 partial_rng(seed * 0xD1B54A32D192ED03ull + static_cast<uint64_t>(set) * 104729 +
+                              3);
+  const bool partial = !shared && partial_share > 0 && unit(partial_rng) < partial_share;
 
   Pose best = Pose::Identity();
   double best_score = 0;
@@ -275,8 +323,20 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
       const double range_y = std::max(0.0, camera.height() - 2 * half_y);
       const int cell = static_cast<int>((round / 3) % 9);
       const int gx = cell % 3, gy = cell / 3;
-      const Eigen::Vector2d aim(half_x + (gx + 0.2 + 0.6 * unit(rng)) / 3 * range_x - 0.5,
-                                half_y + (gy + 0.2 + 0.6 * unit(rng)) / 3 * range_y - 0.5);
+      Eigen::Vector2d aim(half_x + (gx + 0.2 + 0.6 * unit(rng)) / 3 * range_x - 0.5,
+                          half_y + (gy + 0.2 + 0.6 * unit(rng)) / 3 * range_y - 0.5);
+      if (partial) {
+        // The board's centre on or just inside one of the image's four edges (a random point
+        // along it): about half of the board, up to a third more, lies beyond that edge.
+        const int edge = static_cast<int>(4 * unit(partial_rng)) % 4;
+        const double along = 0.15 + 0.7 * unit(partial_rng);
+        const double inward = 0.3 * unit(partial_rng);
+        const double w = camera.width() - 1.0, h = camera.height() - 1.0;
+        aim = edge == 0   ? Eigen::Vector2d(inward * half_x, along * h)
+              : edge == 1 ? Eigen::Vector2d(w - inward * half_x, along * h)
+              : edge == 2 ? Eigen::Vector2d(along * w, inward * half_y)
+                          : Eigen::Vector2d(along * w, h - inward * half_y);
+      }
       viewpoint = camera.center_in_world();
       const Eigen::Vector3d ray_in_world = camera.world_from_cam().linear() * camera.Unproject(aim);
       center = viewpoint + distance * ray_in_world;
@@ -295,8 +355,9 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
     const double roll = (2 * unit(rng) - 1) * 25 * kDeg;
     const Eigen::Matrix3d rotation =
         Eigen::AngleAxisd(tilt, axis).matrix() * upright.linear() * RotZ(roll);
-    Pose world_from_board = MakePose(rotation, center - rotation * board_center);
-    const double score = BoardPoseScore(board, world_from_board, viewers);
+    const Pose world_from_board = MakePose(rotation, center - rotation * board_center);
+    const double score = partial ? PartialBoardPoseScore(board, world_from_board, camera)
+                                 : BoardPoseScore(board, world_from_board, viewers);
     if (score >= min_spacing_px) return world_from_board;
     if (score > best_score) {
       best_score = score;
@@ -403,7 +464,7 @@ Pose Scene::WorldFromBoard(int64_t set) const {
   // The sequence's first shared view is the first set of its second round.
   const auto cameras = static_cast<int64_t>(board_cameras_.size());
   const int64_t planned = !board_still_ ? set : cameras > 1 ? cameras : 0;
-  return PlanBoardPose(*board_, board_cameras_, planned, seed_);
+  return PlanBoardPose(*board_, board_cameras_, planned, seed_, board_partial_);
 }
 
 void Scene::HoldStill(std::function<Pose(double)> world_from_subject) {

@@ -113,6 +113,9 @@ class Scene {
   // From now on the board stays at the first pose two cameras share (the first of a single
   // camera's poses) in every frame set.
   void HoldBoardStill() { board_still_ = true; }
+  // From now on this share of the single-camera board views reaches past the image's edge
+  // (SimOptions::board_partial).
+  void ShowBoardPartly(double share) { board_partial_ = share; }
   const std::vector<Part>& parts() const { return parts_; }
   // world_from_part of every part at `t_s` (the humanoid's walk; the object is static).
   std::vector<Pose> PartPoses(double t_s) const;
@@ -126,6 +129,7 @@ class Scene {
   std::vector<Pose> MovingPartPoses(double t_s) const;  // the walk, or the static object
   SceneKind kind_;
   bool board_still_ = false;
+  double board_partial_ = 0;
   std::vector<Part> parts_;
   std::optional<Board> board_;
   std::vector<CameraModel> board_cameras_;

@@ -85,6 +85,10 @@ struct SimOptions {
   // The board scene's board stays where the first pose two cameras share puts it (cam0 and
   // cam1 of a ring) in every frame set: a take from which no lens can be calibrated.
   bool board_still = false;
+  // The share (0..1) of the board scene's single-camera views whose board reaches past the
+  // image's edge: 35-85 % of its grid points in view, the rest outside (partial views, as a
+  // hand-held board gives). Shared views keep the whole board in both cameras.
+  double board_partial = 0;
   // Sensors mounted upside down: turned 180 degrees about their optical axes, so that they see
   // the board (and everything) rotated by 180 degrees against the other cameras.
   std::vector<std::string> upside_down;

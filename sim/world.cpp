@@ -73,6 +73,10 @@ void SimOptions::Check() const {
   HOLOCAP_CHECK_OPTION_LE(background_albedo, 1);
   HOLOCAP_CHECK_OPTION(!board_still || sim::SceneKindFromString(scene) == sim::SceneKind::kBoard,
                        board_still, "a still board needs the board scene");
+  HOLOCAP_CHECK_OPTION_IN(board_partial, 0, 1);
+  HOLOCAP_CHECK_OPTION(
+      board_partial == 0 || sim::SceneKindFromString(scene) == sim::SceneKind::kBoard,
+      board_partial, "partial board views need the board scene");
 }
 
 nlohmann::json SimOptions::ToJson() const {
@@ -86,6 +90,7 @@ nlohmann::json SimOptions::ToJson() const {
           {"clean_plate_frames", clean_plate_frames},
           {"board", board.ToJson()},
           {"board_still", board_still},
+          {"board_partial", board_partial},
           {"upside_down", upside_down},
           {"trajectory", trajectory},
           {"trajectory_deg_per_s", trajectory_deg_per_s},
@@ -207,6 +212,7 @@ SimWorld::SimWorld(const SimOptions& options) : options_(options), frame_(option
                                    colour_cameras, options_.clean_plate_frames, options_.seed,
                                    Appearance{options_.subject_albedo, options_.background_albedo});
   if (options_.board_still) scene_->HoldBoardStill();
+  if (options_.board_partial > 0) scene_->ShowBoardPartly(options_.board_partial);
   trajectory_ = std::make_unique<Trajectory>(TrajectoryKindFromString(options_.trajectory),
                                              options_.trajectory_deg_per_s, scene_->CenterAtStart(),
                                              options_.seed);
