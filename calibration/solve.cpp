@@ -1843,6 +1843,22 @@ std::string Calibrator::UnconstrainedLens(const CalibratedCamera& out) const {
              "% of the imager covered");
 }
 
+namespace {
+
+// The options of a solve whose result its caller judges (the cross-validation halves, the fit
+// check's richer model): none of the solve's own trust checks, no nested solves.
+CalibrationOptions OptionsJudgedByTheCaller(const CalibrationOptions& options) {
+  CalibrationOptions judged = options;
+  judged.cross_validation = false;
+  judged.check_model_fit = false;
+  judged.max_uncertainty_px = 1e9;
+  judged.max_focal_sigma_rel = 1e9;
+  judged.min_normal_spread_deg = 0;
+  return judged;
+}
+
+}  // namespace
+
 // Two disjoint halves of the frame sets solved alone and compared.
 void Calibrator::CrossValidation() {
   // A seeded shuffle, not odd/even: sequences often alternate their poses.
@@ -1855,12 +1871,9 @@ void Calibrator::CrossValidation() {
       half[2 * i < order.size() ? 0 : 1].push_back(observations_[k]);
     }
   }
-  CalibrationOptions half_options = options_;
-  half_options.cross_validation = false;
+  // Judged here against each other instead.
+  CalibrationOptions half_options = OptionsJudgedByTheCaller(options_);
   half_options.min_views_per_camera = std::max(3, options_.min_views_per_camera / 2);
-  half_options.max_uncertainty_px = 1e9;  // judged here against each other instead
-  half_options.max_focal_sigma_rel = 1e9;
-  half_options.min_normal_spread_deg = 0;
   const CalibrationSummary a = Calibrator(layout_, cameras_, half[0], half_options, nullptr).Run();
   const CalibrationSummary b = Calibrator(layout_, cameras_, half[1], half_options, nullptr).Run();
   summary_.cross_validation = CrossValidate(a, b);
@@ -1915,13 +1928,8 @@ void Calibrator::CheckModelFit() {
                        " (and observed_pixel_sigma is not given)");
       return;
     }
-    CalibrationOptions richer_options = options_;
-    richer_options.check_model_fit = false;
-    richer_options.cross_validation = false;
+    CalibrationOptions richer_options = OptionsJudgedByTheCaller(options_);
     richer_options.uncertainty = false;
-    richer_options.max_uncertainty_px = 1e9;
-    richer_options.max_focal_sigma_rel = 1e9;
-    richer_options.min_normal_spread_deg = 0;
     const CalibrationSummary solved =
         Calibrator(layout_, richer, observations_, richer_options, nullptr).Run();
     if (!IsUsable(solved.termination)) {

@@ -178,6 +178,21 @@ Eigen::Vector3d BoardCenter(const Board& board) {
                          0.5 * (board.v_min() + board.v_max()), 0);
 }
 
+// Whether the board's four outer corners lie in the room, 5 cm clear of its floor, ceiling and
+// walls.
+bool OutlineInsideRoom(const Board& board, const Pose& world_from_board) {
+  for (const double u : {board.u_min(), board.u_max()}) {
+    for (const double v : {board.v_min(), board.v_max()}) {
+      const Eigen::Vector3d p = world_from_board * Eigen::Vector3d(u, v, 0);
+      if (p.z() < 0.05 || p.z() > kRoomHeight - 0.05 || std::abs(p.x()) > kRoomHalf - 0.05 ||
+          std::abs(p.y()) > kRoomHalf - 0.05) {
+        return false;
+      }
+    }
+  }
+  return true;
+}
+
 // Smallest tag (square) side the board shows any of `viewers`, in pixels; 0 when a viewer does not
 // see the whole board in its image or the board leaves the room.
 double BoardPoseScore(const Board& board, const Pose& world_from_board,
@@ -186,13 +201,7 @@ double BoardPoseScore(const Board& board, const Pose& world_from_board,
                                 {board.u_max(), board.v_min()},
                                 {board.u_min(), board.v_max()},
                                 {board.u_max(), board.v_max()}};
-  for (const auto& c : corners) {
-    const Eigen::Vector3d p = world_from_board * Eigen::Vector3d(c[0], c[1], 0);
-    if (p.z() < 0.05 || p.z() > kRoomHeight - 0.05 || std::abs(p.x()) > kRoomHalf - 0.05 ||
-        std::abs(p.y()) > kRoomHalf - 0.05) {
-      return 0;
-    }
-  }
+  if (!OutlineInsideRoom(board, world_from_board)) return 0;
   double smallest = std::numeric_limits<double>::infinity();
   for (const CameraModel* camera : viewers) {
     for (const auto& c : corners) {
@@ -222,20 +231,17 @@ double BoardPoseScore(const Board& board, const Pose& world_from_board,
   return std::isfinite(smallest) ? smallest : 0;
 }
 
-// A pose's score for a view meant to show the board partly: the smallest grid spacing among the
-// grid points `camera` sees in its image when 35-85 % of them are there (the others beyond the
-// image's edge), the board in front of the camera and inside the room; 0 otherwise.
+// A pose's score for a view meant to show the board partly: the smallest tag (square) side, from
+// the grid spacing among the grid points `camera` sees in its image, when 35-85 % of them are
+// there (the others beyond the image's edge), the board in front of the camera and inside the
+// room; 0 otherwise.
 double PartialBoardPoseScore(const Board& board, const Pose& world_from_board,
                              const CameraModel& camera) {
-  const double corners[4][2] = {{board.u_min(), board.v_min()},
-                                {board.u_max(), board.v_min()},
-                                {board.u_min(), board.v_max()},
-                                {board.u_max(), board.v_max()}};
-  for (const auto& c : corners) {
-    const Eigen::Vector3d p = world_from_board * Eigen::Vector3d(c[0], c[1], 0);
-    if (p.z() < 0.05 || p.z() > kRoomHeight - 0.05 || std::abs(p.x()) > kRoomHalf - 0.05 ||
-        std::abs(p.y()) > kRoomHalf - 0.05 || (camera.cam_from_world() * p).z() < 0.15) {
-      return 0;
+  if (!OutlineInsideRoom(board, world_from_board)) return 0;
+  for (const double u : {board.u_min(), board.u_max()}) {
+    for (const double v : {board.v_min(), board.v_max()}) {
+      if ((camera.cam_from_world() * world_from_board * Eigen::Vector3d(u, v, 0)).z() < 0.15)
+        return 0;
     }
   }
   const int width_n = board.width_n(), height_n = board.height_n();
@@ -263,7 +269,7 @@ double PartialBoardPoseScore(const Board& board, const Pose& world_from_board,
         smallest = std::min(smallest, (pixels[k + width_n] - pixels[k]).norm());
     }
   }
-  return std::isfinite(smallest) ? smallest : 0;
+  return std::isfinite(smallest) ? smallest * board.layout().feature_steps() : 0;
 }
 
 // Radians per pixel near the image centre.
@@ -355,7 +361,7 @@ Pose PlanBoardPose(const Board& board, const std::vector<CameraModel>& cameras, 
     const double roll = (2 * unit(rng) - 1) * 25 * kDeg;
     const Eigen::Matrix3d rotation =
         Eigen::AngleAxisd(tilt, axis).matrix() * upright.linear() * RotZ(roll);
-    const Pose world_from_board = MakePose(rotation, center - rotation * board_center);
+    Pose world_from_board = MakePose(rotation, center - rotation * board_center);
     const double score = partial ? PartialBoardPoseScore(board, world_from_board, camera)
                                  : BoardPoseScore(board, world_from_board, viewers);
     if (score >= min_spacing_px) return world_from_board;

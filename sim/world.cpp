@@ -266,7 +266,8 @@ std::shared_ptr<const Snapshot> SimWorld::SnapshotAt(double t_s, int64_t set) co
   std::lock_guard lock(mutex_);
   snapshots_.emplace_back(key, snapshot);
   // Enough for every sensor of a free-running rig and the motion-blur samples of a set.
-  const size_t keep = static_cast<size_t>(2 * size() + 2 * options_.motion_blur_samples);
+  const size_t keep =
+      2 * static_cast<size_t>(size()) + 2 * static_cast<size_t>(options_.motion_blur_samples);
   while (snapshots_.size() > keep) snapshots_.pop_front();
   return snapshot;
 }

@@ -728,8 +728,9 @@ TEST(CalibrateCli, TheDetectorTravelsWithTheCalibrationThroughFrom) {
   ExpectOneLineError(RunCli("calibrate " + other + " --from " + board + " --detector mrgingham"),
                      "was solved on the holocap finder's corners");
   EXPECT_FALSE(std::filesystem::exists(dir / "other" / "calib" / "cam0.cameramodel"));
+  const std::string adopt = "calibrate " + other + " --from " + board;
   for (const std::string flags : {"", " --detector holocap"}) {
-    r = RunCli("calibrate " + other + " --from " + board + flags);
+    r = RunCli(adopt + flags);
     ASSERT_EQ(r.exit_code, 0) << flags << r.output;
     const auto report =
         nlohmann::json::parse(ReadFileToString(dir / "other" / "calib" / "report.json"));
