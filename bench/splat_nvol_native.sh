@@ -8,6 +8,9 @@
 #   - the simulator's alpha object (100 colour cameras on a sphere at 800x800, the silhouette in
 #     alpha, calibrated from a board take of the same rig as bench/mvs_many_views.sh does; the
 #     same three cameras held out from both), scored on white too, as alpha datasets publish.
+# Neural Volumes train at the width their plan picks (160 px on both) unless told: the rows
+# `*-nvol-native` give them `--width` of the images' own, so that both models are scored on the
+# same, native pixels. ROWS="name ..." runs only those rows (default: all six).
 # All runs go at once (the budgets are CPU seconds, so load moves wall time only). Prints one
 # row per run: held-out PSNR whole / inside the subject's silhouette / on white, iterations,
 # CPU seconds spent (loading and seeding + training; scoring apart) and the ending.
@@ -33,17 +36,32 @@ train() {  # name kind take flags...
     --overwrite > "$work/$name.log" 2>&1 &
   pids+=($!)
 }
-train dino-nvol nvol "$dino" --heldout 1
-train dino-splat splat "$dino" --heldout 1
-train object-nvol nvol "$object" --heldout-names cam10,cam50,cam90
-train object-splat splat "$object" --heldout-names cam10,cam50,cam90
+native_width() {  # a take's first colour stream's width
+  /usr/bin/python3 -c 'import json, sys
+print(next(s["width"] for s in json.load(open(sys.argv[1]))["streams"] if s["role"] == "color"))' \
+    "$1/take.json"
+}
+rows=${ROWS:-dino-nvol dino-nvol-native dino-splat object-nvol object-nvol-native object-splat}
+for row in $rows; do
+  case $row in
+    dino-nvol) train "$row" nvol "$dino" --heldout 1 ;;
+    dino-nvol-native) train "$row" nvol "$dino" --heldout 1 --width "$(native_width "$dino")" ;;
+    dino-splat) train "$row" splat "$dino" --heldout 1 ;;
+    object-nvol) train "$row" nvol "$object" --heldout-names cam10,cam50,cam90 ;;
+    object-nvol-native)
+      train "$row" nvol "$object" --heldout-names cam10,cam50,cam90 \
+        --width "$(native_width "$object")" ;;
+    object-splat) train "$row" splat "$object" --heldout-names cam10,cam50,cam90 ;;
+    *) echo "unknown row $row" >&2; exit 2 ;;
+  esac
+done
 for pid in "${pids[@]}"; do wait "$pid" || true; done
 echo "# load at end: $(uptime)"
 echo "# psnr: held-out, dB; subject: inside the held-out silhouettes grown 3 px; white: composited"
 echo "# on white by the frames' own alpha; cpu_s: loading and seeding + training (the budget's);"
 echo "# width: the scored images' width (the plan's image_size)"
 echo "run            width  psnr  subject  white  iterations   cpu_s  termination"
-for name in dino-nvol dino-splat object-nvol object-splat; do
+for name in $rows; do
   /usr/bin/python3 - "$name" "$work/$name/report.json" << 'PY'
 import json, math, sys
 name, path = sys.argv[1:]

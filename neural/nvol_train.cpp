@@ -747,15 +747,14 @@ void Trainer::Judge(int64_t iteration, NeuralVolumeSummary* summary) const {
                      " iterations: the volume does not hold the subject (bounds, silhouettes "
                      "or too short a run)"));
   } else {
-    summary->End(
-        Termination::kNoConvergence,
-        heldout_.empty()
-            ? Cat("trained ", iteration, " iterations in ", summary->seconds,
-                  " s (no held-out camera)")
-            : Cat("trained ", iteration, " iterations in ", summary->seconds, " s; held-out PSNR ",
-                  summary->heldout_psnr_db, " dB (subject ", summary->heldout_psnr_fg_db,
-                  " dB, background alone ", summary->background_psnr_fg_db, " dB",
-                  OnWhiteClause(summary->heldout_psnr_white_db), ")"));
+    summary->End(Termination::kNoConvergence,
+                 heldout_.empty() ? Cat("trained ", iteration, " iterations in ", summary->seconds,
+                                        " s (no held-out camera)")
+                                  : Cat("trained ", iteration, " iterations in ", summary->seconds,
+                                        " s; held-out PSNR ", summary->heldout_psnr_db,
+                                        " dB (subject ", summary->heldout_psnr_fg_db,
+                                        " dB, background alone ", summary->background_psnr_fg_db,
+                                        " dB", OnWhiteClause(summary->heldout_psnr_white_db), ")"));
   }
 }
 

@@ -106,24 +106,24 @@ int64_t SplatOptions::SegmentStartIterations() const {
 
 nlohmann::json SplatFrameSummary::ToJson() const {
   nlohmann::json json = {{"frame", frame},
-          {"set", set},
-          {"iterations", iterations},
-          {"seconds", seconds},
-          {"elapsed_s", elapsed_s},
-          {"heldout_psnr_db", heldout_psnr_db},
-          {"heldout_psnr_fg_db", heldout_psnr_fg_db},
-          {"background_psnr_fg_db", background_psnr_fg_db},
-          {"heldout_ssim", heldout_ssim},
-          {"gaussians", gaussians},
-          {"added", added},
-          {"added_surface", added_surface},
-          {"surface_uncovered", surface_uncovered},
-          {"add_cap_reached", add_cap_reached},
-          {"removed", removed},
-          {"changed", changed},
-          {"coarsened", coarsened},
-          {"megabytes", megabytes},
-          {"divergences", divergences}};
+                         {"set", set},
+                         {"iterations", iterations},
+                         {"seconds", seconds},
+                         {"elapsed_s", elapsed_s},
+                         {"heldout_psnr_db", heldout_psnr_db},
+                         {"heldout_psnr_fg_db", heldout_psnr_fg_db},
+                         {"background_psnr_fg_db", background_psnr_fg_db},
+                         {"heldout_ssim", heldout_ssim},
+                         {"gaussians", gaussians},
+                         {"added", added},
+                         {"added_surface", added_surface},
+                         {"surface_uncovered", surface_uncovered},
+                         {"add_cap_reached", add_cap_reached},
+                         {"removed", removed},
+                         {"changed", changed},
+                         {"coarsened", coarsened},
+                         {"megabytes", megabytes},
+                         {"divergences", divergences}};
   if (std::isfinite(heldout_psnr_white_db)) json["heldout_psnr_white_db"] = heldout_psnr_white_db;
   return json;
 }

@@ -220,7 +220,7 @@ struct SplatScene {
   std::vector<SplatView> views;          // frame 0's images and silhouettes
   std::vector<SplatFrame> later_frames;  // dynamic takes: frames 1, 2, ... (else empty)
   SplatSeed seed;
-  Box box = Box::Empty();  // the volume the subject lives in (Gaussians leaving it are removed)
+  Box box = Box::Empty();    // the volume the subject lives in (Gaussians leaving it are removed)
   bool alpha_masks = false;  // the silhouettes are the frames' own alpha (scored on white too)
   nlohmann::json plan = nlohmann::json::object();
   double load_cpu_s = 0;  // process CPU seconds LoadSplatScene took (the take read, the seed's

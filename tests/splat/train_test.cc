@@ -234,10 +234,10 @@ TEST(SplatTrain, AlphaTakeIsScoredOnWhite) {
   for (const auto& view : scene.views) {
     if (!view.heldout) continue;
     cv::Mat predicted, truth_image, coverage, coverage3, truth_white;
-    cv::min(cv::max(RenderSplats(model.gaussians, view.camera, white, model.gaussians.sh_degree)
-                        .color,
-                    0.0),
-            1.0, predicted);
+    cv::min(
+        cv::max(RenderSplats(model.gaussians, view.camera, white, model.gaussians.sh_degree).color,
+                0.0),
+        1.0, predicted);
     view.image.convertTo(truth_image, CV_32FC3, 1.0 / 255.0);
     view.mask.convertTo(coverage, CV_32F, 1.0 / 255.0);
     cv::cvtColor(coverage, coverage3, cv::COLOR_GRAY2BGR);
