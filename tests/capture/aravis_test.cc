@@ -30,7 +30,7 @@ int64_t BrokenRampPixels(const cv::Mat& mono8) {
 }
 
 RigDescription FakeRig(const FakeGigeCameras& cameras, int count, SyncMode sync, double fps,
-                       nlohmann::json options = nlohmann::json::object()) {
+                       const nlohmann::json& options = nlohmann::json::object()) {
   RigDescription rig;
   rig.name = "fake-gige";
   rig.sync = sync;
