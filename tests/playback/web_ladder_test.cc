@@ -82,12 +82,8 @@ void ExpectOneMeshLadder(const fs::path& site) {
 
 TEST_F(WebLadderTest, PageMovesDownWhenThrottledAndBackUpWhenFreed) {
   ExpectOneMeshLadder(Site());
-  if (RunShell("command -v chromium").exit_code != 0)
-    GTEST_SKIP() << "Debian's chromium is not installed (scripts/setup.sh --tests installs it)";
   const fs::path driver = testing::SourceDir() / "tests/playback/browser";
-  if (!fs::exists(driver / "node_modules/puppeteer-core"))
-    GTEST_SKIP() << "puppeteer-core is not installed (scripts/setup.sh --tests: npm ci in "
-                 << driver << ")";
+  if (const std::string why = BrowserMissing(driver); !why.empty()) GTEST_SKIP() << why;
   ViewServer server(Site());
   ASSERT_FALSE(server.url().empty()) << server.first_line();
   const fs::path out = dir_->path() / "browser";
