@@ -8,9 +8,10 @@
 // figures (report.json: decoded against uncompressed, and its own score against the camera),
 // time to first frame on loopback and frames decoded per second in the page.
 //
-//   bench/web_bench [FRAMES] [WIDTH] [ITERATIONS] [VOXEL] [DIR] [SPLAT_ITERATIONS]
+//   bench/web_bench [FRAMES] [SIZE] [ITERATIONS] [VOXEL] [DIR] [SPLAT_ITERATIONS]
 //     FRAMES      frame sets of the studio8 walk (10), after one clean plate
-//     WIDTH       image width of the simulated cameras (320)
+//     SIZE        the simulated cameras' size: a width (320; the sensors' own aspect ratio) or
+//                 WIDTHxHEIGHT (e.g. 640x480: the sensor's centre at that size)
 //     ITERATIONS  Neural Volumes training iterations (300)
 //     VOXEL       the reconstruction's voxel (8mm)
 //     DIR         work folder (default a new one under $TMP); a take, reconstruction and models
@@ -78,7 +79,7 @@ CameraModel PinholeOf(const nlohmann::json& camera) {
 // held-out camera.
 struct BenchInputs {
   int frames;
-  int width;
+  std::string size;  // --size of `holocap sim`
   int iterations;
   std::string voxel;
   int splat_iterations;
@@ -92,13 +93,14 @@ void MakeInputs(const BenchInputs& in, const std::function<double()>& elapsed) {
   const std::string& q = in.q;
   const std::string& heldout = in.heldout;
   const std::string& voxel = in.voxel;
-  const int frames = in.frames, width = in.width, iterations = in.iterations;
+  const int frames = in.frames, iterations = in.iterations;
   const int splat_iterations = in.splat_iterations;
   if (!fs::exists(dir / "take" / "take.json")) {
     Run(q + "sim --rig studio8 --frames " + std::to_string(frames + 1) +
-        " --clean-plate 1 --size " + std::to_string(width) + " --seed 3 --out '" +
+        " --clean-plate 1 --size " + in.size + " --seed 3 --out '" +
         (dir / "take").string() + "'");
-    std::printf("# simulated %d frame sets at %d px (%.0f s)\n", frames, width, elapsed());
+    std::printf("# simulated %d frame sets at %s px (%.0f s)\n", frames, in.size.c_str(),
+                elapsed());
   }
   if (!fs::exists(dir / "take" / "calib" / "report.json")) {
     if (!fs::exists(dir / "board" / "calib" / "report.json")) {
@@ -139,7 +141,7 @@ int RunBench(int argc, char** argv) {
   holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
   holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
   const int frames = argc > 1 ? std::atoi(argv[1]) : 10;
-  const int width = argc > 2 ? std::atoi(argv[2]) : 320;
+  const std::string size = argc > 2 ? argv[2] : "320";
   const int iterations = argc > 3 ? std::atoi(argv[3]) : 300;
   const std::string voxel = argc > 4 ? argv[4] : "8mm";
   const int splat_iterations = argc > 6 ? std::atoi(argv[6]) : 1000;
@@ -155,7 +157,7 @@ int RunBench(int argc, char** argv) {
   auto elapsed = [&] {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   };
-  MakeInputs({frames, width, iterations, voxel, splat_iterations, dir, heldout, q}, elapsed);
+  MakeInputs({frames, size, iterations, voxel, splat_iterations, dir, heldout, q}, elapsed);
   fs::remove_all(dir / "site");
   const std::string export_output =
       Run(q + "export web '" + (dir / "take").string() + "' --model '" + (dir / "nvol").string() +
