@@ -23,7 +23,7 @@
 //                 splat-low@SPLAT_MBPS)
 // Camera cam1 is held out of the reconstruction and the training: the scores are measured in it,
 // at the middle frame of the timeline. The take is calibrated as a user's is: a board take of the
-// rig (DIR/board, 48 frame sets at 640 px) is solved and its models taken over
+// rig (DIR/board, 48 frame sets at 640 px, or at SIZE where it is cropped) is solved and its models taken over
 // (`calibrate TAKE --from DIR/board`); every stage, the page and the native renders use them,
 // and the truth only scores (the subject's true silhouette).
 // Needs chromium and tests/playback/browser/node_modules (scripts/setup.sh --tests).
@@ -104,7 +104,10 @@ void MakeInputs(const BenchInputs& in, const std::function<double()>& elapsed) {
   }
   if (!fs::exists(dir / "take" / "calib" / "report.json")) {
     if (!fs::exists(dir / "board" / "calib" / "report.json")) {
-      Run(q + "sim --rig studio8 --board --frames 48 --size 640 --seed 3 --out '" +
+      // A cropped size (WIDTHxHEIGHT) is another imager: its board take is filmed at that size.
+      const std::string board_size =
+          in.size.find('x') == std::string::npos ? std::string("640") : in.size;
+      Run(q + "sim --rig studio8 --board --frames 48 --size " + board_size + " --seed 3 --out '" +
           (dir / "board").string() + "'");
       Run(q + "calibrate '" + (dir / "board").string() + "' --no-pictures");
     }
