@@ -544,6 +544,10 @@ void AddSplatCommand(CLI::App* train) {
                    "until they fit, reaching full resolution halfway through the budget (0: "
                    "full resolution throughout)")
       ->capture_default_str();
+  command->add_flag("--no-random-background{false}", o.random_background,
+                    "An alpha take: train over the view's background as takes without alpha are, "
+                    "not over a random colour each iteration (which learns only what the alpha "
+                    "holds)");
   command->add_flag("--profile", args->profile,
                     "Print the wall time of one iteration by stage (projection, sort, binning, "
                     "forward, loss and SSIM, backward, reduction, Adam, densification); "

@@ -23,7 +23,8 @@
 //                 splat-low@SPLAT_MBPS)
 // Camera cam1 is held out of the reconstruction and the training: the scores are measured in it,
 // at the middle frame of the timeline. The take is calibrated as a user's is: a board take of the
-// rig (DIR/board, 48 frame sets at 640 px, or at SIZE where it is cropped) is solved and its models taken over
+// rig (DIR/board, 48 frame sets at 640 px, or at SIZE where it is cropped) is solved and its models
+// taken over
 // (`calibrate TAKE --from DIR/board`); every stage, the page and the native renders use them,
 // and the truth only scores (the subject's true silhouette).
 // Needs chromium and tests/playback/browser/node_modules (scripts/setup.sh --tests).
@@ -97,8 +98,7 @@ void MakeInputs(const BenchInputs& in, const std::function<double()>& elapsed) {
   const int splat_iterations = in.splat_iterations;
   if (!fs::exists(dir / "take" / "take.json")) {
     Run(q + "sim --rig studio8 --frames " + std::to_string(frames + 1) +
-        " --clean-plate 1 --size " + in.size + " --seed 3 --out '" +
-        (dir / "take").string() + "'");
+        " --clean-plate 1 --size " + in.size + " --seed 3 --out '" + (dir / "take").string() + "'");
     std::printf("# simulated %d frame sets at %s px (%.0f s)\n", frames, in.size.c_str(),
                 elapsed());
   }

@@ -127,6 +127,12 @@ struct SplatOptions {
   // less as training goes, full resolution from full_resolution_at of the budget on.
   int64_t pixel_budget = int64_t{640} * 480;
   double full_resolution_at = 0.5;
+  // A take whose silhouettes are the frames' own alpha: every iteration composites the target
+  // over a random uniform colour by the alpha and renders over that colour, so that only what
+  // the alpha holds is learned (the subject, as alpha datasets publish it) and no Gaussian
+  // stands for the surroundings the frames also show (3D Gaussian splatting's random
+  // background). false: trained over the view's background as takes without alpha are.
+  bool random_background = true;
   double min_scale_px = 0.1;  // scale floor: this many pixels' footprint at the scene's
                               // median distance (keeps covariances positive definite)
   // Bounds in the image: x the view's width, the width the image spans at the scene's median

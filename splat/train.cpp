@@ -156,6 +156,7 @@ class Trainer {
       cameras_.push_back(ToPinhole(view.camera));
       targets_.push_back(ToFloat(view.image));
       backgrounds_.push_back(ToFloat(view.background));
+      if (RandomBackground()) coverages_.push_back(CoverageOf(view.mask));
       images_.push_back(&view.image);
       masks_.push_back(&view.mask);
     }
@@ -235,8 +236,16 @@ class Trainer {
   // anew clears them. start_level_: the level training starts at (the pixel budget's).
   struct ViewLevel {
     splat::PinholeCamera camera;
-    std::vector<float> target, background;
+    std::vector<float> target, background, coverage;  // coverage: alpha takes' (0-1)
   };
+  bool RandomBackground() const { return scene_.alpha_masks && options_.random_background; }
+  static std::vector<float> CoverageOf(const cv::Mat& alpha8) {
+    cv::Mat f;
+    alpha8.convertTo(f, CV_32F, 1.0 / 255.0);
+    return std::vector<float>(f.ptr<float>(), f.ptr<float>() + f.total());
+  }
+  std::vector<std::vector<float>> coverages_;           // per view at full resolution (alpha takes)
+  std::vector<float> mixed_target_, mixed_background_;  // RandomBackground's, per iteration
   std::vector<std::vector<ViewLevel>> levels_;
   int start_level_ = 0;
   const ViewLevel& Level(int v, int level);
@@ -351,6 +360,11 @@ const Trainer::ViewLevel& Trainer::Level(int v, int level) {
     cv::resize(scene_.views[v].background, background, size, 0, 0, cv::INTER_AREA);
     out.target = ToFloat(image);
     out.background = ToFloat(background);
+    if (RandomBackground()) {
+      cv::Mat coverage;
+      cv::resize(*masks_[v], coverage, size, 0, 0, cv::INTER_AREA);
+      out.coverage = CoverageOf(coverage);
+    }
   }
   return out;
 }
@@ -358,26 +372,45 @@ const Trainer::ViewLevel& Trainer::Level(int v, int level) {
 double Trainer::TrainStep(int active_degree, int v, int level) {
   const ViewLevel* scaled = level > 0 ? &Level(v, level) : nullptr;
   const splat::PinholeCamera& camera = scaled != nullptr ? scaled->camera : cameras_[v];
-  const std::vector<float>& target = scaled != nullptr ? scaled->target : targets_[v];
-  const std::vector<float>& background = scaled != nullptr ? scaled->background : backgrounds_[v];
+  const std::vector<float>* target = scaled != nullptr ? &scaled->target : &targets_[v];
+  const std::vector<float>* background = scaled != nullptr ? &scaled->background : &backgrounds_[v];
+  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
+  if (RandomBackground()) {
+    // The target over a random colour by its alpha, rendered over the same colour: a Gaussian
+    // outside the alpha is wrong against every colour, so only the subject is learned.
+    const std::vector<float>& coverage = scaled != nullptr ? scaled->coverage : coverages_[v];
+    std::uniform_real_distribution<float> unit(0.0f, 1.0f);
+    const float colour[3] = {unit(rng_), unit(rng_), unit(rng_)};
+    mixed_target_.resize(3 * pixels);
+    mixed_background_.resize(3 * pixels);
+    const float* captured = target->data();
+    for (size_t p = 0; p < pixels; ++p) {
+      const float a = coverage[p];
+      for (int c = 0; c < 3; ++c) {
+        mixed_target_[3 * p + c] = a * captured[3 * p + c] + (1 - a) * colour[c];
+        mixed_background_[3 * p + c] = colour[c];
+      }
+    }
+    target = &mixed_target_;
+    background = &mixed_background_;
+  }
   splat::RasterOptions raster;
   raster.active_sh_degree = active_degree;
   raster.times = &profile_.kernels;
   auto clock = std::chrono::steady_clock::now();
   splat::ProjectGaussians(gaussians_, camera, raster, &projected_);
   profile_.projection += Lap(&clock);
-  const size_t pixels = static_cast<size_t>(camera.width) * camera.height;
   image_.resize(3 * pixels);
   dloss_.resize(3 * pixels);
   profile_.pixels += static_cast<double>(pixels);
-  splat::RasterizeForward(projected_, camera, raster, background.data(), image_.data(),
+  splat::RasterizeForward(projected_, camera, raster, background->data(), image_.data(),
                           static_cast<float*>(nullptr), static_cast<float*>(nullptr), &raster_);
   Lap(&clock);
-  const double loss = splat::PhotometricLoss(image_.data(), target.data(), camera.width,
+  const double loss = splat::PhotometricLoss(image_.data(), target->data(), camera.width,
                                              camera.height, options_.ssim_weight, dloss_.data());
   profile_.loss += Lap(&clock);
   if (!std::isfinite(loss)) return loss;
-  splat::RasterizeBackward(projected_, camera, raster, raster_, background.data(), dloss_.data(),
+  splat::RasterizeBackward(projected_, camera, raster, raster_, background->data(), dloss_.data(),
                            static_cast<const float*>(nullptr), &projected_gradients_);
   Lap(&clock);
   ZeroGradient();
@@ -722,6 +755,11 @@ void Trainer::DescribePlan(SplatSummary* summary) const {
   summary->plan["prune_above_m"] = options_.prune_scale_view * view_width_m_;
   summary->plan["losses"] = {{"l1", 1 - options_.ssim_weight}, {"dssim", options_.ssim_weight}};
   summary->plan["device"] = "cpu (splat/kernels.h, OpenMP over 16x16 tiles)";
+  summary->plan["training_background"] =
+      RandomBackground()
+          ? "a random colour each iteration, the frames composited over it by their alpha: only "
+            "the alpha's subject is learned (--no-random-background: the view's background)"
+          : "the view's background (" + scene_.plan.value("background", std::string("given")) + ")";
   const SplatView& first = scene_.views.front();
   nlohmann::json levels = nlohmann::json::array();
   for (int level = start_level_; level >= 0; --level) {
@@ -825,6 +863,7 @@ void Trainer::ShowFrame(int64_t frame) {
     images_[v] = frame == 0 ? &view.image : &scene_.later_frames[frame - 1].images[v];
     masks_[v] = frame == 0 ? &view.mask : &scene_.later_frames[frame - 1].masks[v];
     if (!view.heldout) targets_[v] = ToFloat(*images_[v]);
+    if (RandomBackground() && !view.heldout) coverages_[v] = CoverageOf(*masks_[v]);
     levels_[v].clear();
   }
 }
