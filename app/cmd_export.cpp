@@ -105,10 +105,11 @@ static void AddExportCommand(CLI::App& app) {
                       "the unit of --shard");
   command
       ->add_option("--splat-mbps", args->web.splat_mbps,
-                   "web: a size budget for every chunk of the splat streams (Mbps at the "
-                   "site's rate): each chunk at the finest rung that fits a frame's share of "
-                   "it (fewer bits, coarser motion, faint Gaussians pruned); 0: the level's "
-                   "own; several (4,8,16): a stream per level and budget, one ladder")
+                   "web: a rate budget for every segment of the splat streams (a key frame "
+                   "and its deltas, Mbps over its playing time): each segment at the finest "
+                   "rung that fits (fewer bits, coarser motion, faint Gaussians pruned); "
+                   "DEGENERATE where the coarsest does not; 0: the level's own; several "
+                   "(4,8,16): a stream per level and budget, one ladder")
       ->delimiter(',');
   command->add_option("--frames", args->web.frames,
                       "web: only these frame sets of the meshes and models (a:b, or a list "

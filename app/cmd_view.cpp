@@ -71,10 +71,10 @@ void RunWebExport(const WebExportRequest& request) {
   }
   for (const auto& s : summary.streams) {
     std::printf(
-        "  %-16s %3lld frames  %8.3f MB/frame  %7.2f Mbps (largest chunk %7.2f)  PSNR %5.1f dB "
-        "against uncompressed\n",
-        s.name.c_str(), static_cast<long long>(s.frames), s.mb_per_frame, s.mbps, s.max_chunk_mbps,
-        s.psnr_db);
+        "  %-16s %3lld frames  %8.3f MB/frame  %7.2f Mbps (largest segment %7.2f, chunk %7.2f)  "
+        "PSNR %5.1f dB against uncompressed\n",
+        s.name.c_str(), static_cast<long long>(s.frames), s.mb_per_frame, s.mbps,
+        s.max_segment_mbps, s.max_chunk_mbps, s.psnr_db);
   }
   const Shard shard = request.shard.empty() ? Shard{} : Shard::Parse(request.shard);
   std::printf("%s: %s\nsite: %s\nreport: %s\n", ToString(summary.termination),

@@ -254,7 +254,7 @@ int RunBench(int argc, char** argv) {
   std::printf(
       "# exp unc: the export's decoded chunks against uncompressed (2 capture cameras at "
       "160 px, every frame); exp cam: the export's own native / streamed score against "
-      "the camera (its frames 0, 10, ...)\n");
+      "the camera (its frames 0, 7, 14, ...)\n");
   std::printf("# faces: meshes' faces per frame, splats' Gaussians per frame\n");
   std::printf("%-15s %7s %9s %8s %6s %6s %6s %6s %7s %11s %8s %9s\n", "stream", "faces", "MB/frame",
               "Mbps@30", "page", "native", "loss", "bg", "exp unc", "exp cam", "TTFF ms",

@@ -160,16 +160,17 @@ struct WebExportOptions {
   // encodings. Several: one stream per level and budget (0: the level's own), named
   // "<model>-<level>-<budget>mbps" (the level's own: "<model>-<level>"), levels of one ladder.
   std::vector<double> splat_mbps;
-  int error_width_px = 160;     // width of the views the export's error is
-                                // measured on (the capture cameras, rescaled)
-  int error_cameras = 2;        // capture cameras measured per frame
-  int camera_score_every = 10;  // every k-th frame of the timeline (from the
-                                // first) is scored against the images of the
-                                // capture cameras each source never saw
-  TakeSelection take;           // cameras (calib/ or gt/cameras)
-  bool overwrite = false;       // write into a non-empty site made by export
-  FrameTaskOptions tasks;       // this task's groups (--shard K/N), --redo
-  void Check() const;           // throws Error naming the flag
+  int error_width_px = 160;  // width of the views the export's error is
+                             // measured on (the capture cameras, rescaled)
+  int error_cameras = 2;     // capture cameras measured per frame
+  // Every k-th frame of the timeline (from the first) is scored against the images of the
+  // capture cameras each source never saw. 7, prime to the key-frame interval (10): the frames
+  // scored fall at every distance from their key frame, deltas as often as key frames.
+  int camera_score_every = 7;
+  TakeSelection take;      // cameras (calib/ or gt/cameras)
+  bool overwrite = false;  // write into a non-empty site made by export
+  FrameTaskOptions tasks;  // this task's groups (--shard K/N), --redo
+  void Check() const;      // throws Error naming the flag
   nlohmann::json ToJson() const;
 };
 
@@ -180,9 +181,13 @@ struct WebStreamMetrics {
   int64_t frames = 0;
   double mb_per_frame = 0;    // mean chunk size, 10^6 bytes
   double mbps = 0;            // at the manifest's fps
-  double max_chunk_mbps = 0;  // the largest chunk's size at the manifest's fps (a budget, e.g.
-                              // --splat-mbps, holds every chunk, not only the mean)
-  double psnr_db = 0;         // decoded stream against the uncompressed one (capture cameras)
+  double max_chunk_mbps = 0;  // the largest chunk's size at the manifest's fps
+  // The largest segment's rate (a key frame and the frames up to the next, every mesh and
+  // volume chunk its own): what a link must carry to fetch each segment within its playing time,
+  // the peak segment bit rate HLS calls BANDWIDTH; --splat-mbps holds it (budget_mbps).
+  double max_segment_mbps = 0;
+  double budget_mbps = 0;  // splats under --splat-mbps: the stream's budget (0: none)
+  double psnr_db = 0;      // decoded stream against the uncompressed one (capture cameras)
   double max_position_error_mm = 0;  // meshes: simplification and quantisation of the vertices
   double mean_faces = 0;             // meshes: faces per frame streamed
   double mean_gaussians = 0;         // splats: Gaussians per frame

@@ -106,7 +106,7 @@ struct SiteStream {
   // site): the model's backgrounds or the take's clean plate, in the camera's pinhole core.
   nlohmann::json backgrounds = nlohmann::json::object();
   std::string level;       // the quality level (`quality` with its budget, if any)
-  double budget_mbps = 0;  // splats: every chunk's budget (0: none)
+  double budget_mbps = 0;  // splats: every segment's budget (0: none)
 
   nlohmann::json ToJson() const {
     return {{"name", name},
@@ -252,8 +252,8 @@ class SiteWriter {
   nlohmann::json WriteSplatFrames(const SiteStream& stream, size_t begin, size_t end,
                                   std::vector<std::string>* outputs);
   // Under a budget (--splat-mbps), the encoding of each of a group's splat chunks [begin, end):
-  // per key frame the finest rung whose chunk fits a frame's share of the budget and the deltas
-  // after it can fit too, per delta the finest delta rung that fits (web::SplatDeltaRung).
+  // per segment (a key frame and its deltas) the finest rung (web::SplatDeltaRung) at which the
+  // segment fits its frames' share of the budget.
   std::vector<web::SplatEncoding> BudgetedSplatEncodings(const SiteStream& stream, size_t begin,
                                                          size_t end);
   // A splat frame: a key frame or a delta of the frame before as decoded (`decoded`, which
@@ -746,40 +746,31 @@ std::vector<web::SplatEncoding> SiteWriter::BudgetedSplatEncodings(const SiteStr
                                    .Serialise()
                                    .size());
   };
-  // Each key frame and the deltas that follow it, up to the next key frame: the key frame's
-  // rung raised until it and every one of those deltas fit (a delta that fits at no rung of
-  // its own asks for fewer bits, which only the key frame sets); the coarsest rung where none
-  // does (the chunk over the budget is in the report's largest chunk).
+  // Each segment (a key frame and the deltas that follow it, up to the next key frame) at the
+  // finest rung at which the segment's bytes fit its frames' share of the budget, the key frame
+  // and its deltas at one rung (a delta's records are byte differences from the frame before,
+  // so it keeps its key frame's bits); the coarsest rung where none does (the segment over the
+  // budget ends the export DEGENERATE).
   size_t key = begin;
   while (key < end) {
     size_t next = end;
-    for (int key_rung = 0; key_rung <= kCoarsest; ++key_rung) {
-      bool fits = true;
-      for (size_t i = key; i < end; ++i) {
+    for (size_t i = key + 1; i < end && next == end; ++i) {
+      std::vector<int64_t> origin;
+      if (SplatChunkOf(stream.source, i, begin, &origin) >= 0 && origin.empty()) next = i;
+    }
+    const double segment_budget = budget_bytes * static_cast<double>(next - key);
+    for (int rung = 0; rung <= kCoarsest; ++rung) {
+      const web::SplatEncoding encoding = web::SplatDeltaRung(level, rung, rung);
+      double bytes = 0;
+      for (size_t i = key; i < next; ++i) {
         std::vector<int64_t> origin;
         if (SplatChunkOf(stream.source, i, begin, &origin) < 0) continue;
-        const bool is_key = origin.empty();
-        if (is_key && i > key) {
-          next = i;
-          break;
-        }
         web::SplatCodes codes;
-        int rung = key_rung;
-        web::SplatEncoding encoding = web::SplatDeltaRung(level, key_rung, rung);
-        double bytes = encoded_bytes(i, encoding, is_key, origin, &codes);
-        // A delta: its own rung raised until it fits.
-        while (!is_key && bytes > budget_bytes && rung < kCoarsest) {
-          encoding = web::SplatDeltaRung(level, key_rung, ++rung);
-          bytes = encoded_bytes(i, encoding, false, origin, &codes);
-        }
+        bytes += encoded_bytes(i, encoding, origin.empty(), origin, &codes);
         chosen[i - begin] = encoding;
         previous = std::move(codes);
-        if (bytes > budget_bytes && key_rung < kCoarsest) {
-          fits = false;
-          break;
-        }
       }
-      if (fits) break;
+      if (bytes <= segment_budget) break;
     }
     key = next;
   }
@@ -955,7 +946,11 @@ class StreamSum {
     CheckWebFrameRecord(frame, site_, stream_.folder, stream_.name, set);
     const nlohmann::json& chunk = frame["chunk"];
     chunks_.push_back(chunk);
+    // A segment: a key frame (every mesh and volume chunk is one) and the frames up to the next.
+    if (!chunk.is_null() && chunk.value("key", true)) CloseSegment();
+    ++segment_frames_;
     if (chunk.is_null()) return;
+    segment_bytes_ += chunk.at("bytes").get<uint64_t>();
     bytes_ += frame.at("chunk").at("bytes").get<uint64_t>();
     max_chunk_bytes_ = std::max(max_chunk_bytes_, frame.at("chunk").at("bytes").get<uint64_t>());
     squared_ += frame.at("squared").get<double>();
@@ -987,6 +982,9 @@ class StreamSum {
     metrics.mean_stored_gaussians /= frames;
     metrics.mbps = metrics.mb_per_frame * 8 * fps;
     metrics.max_chunk_mbps = static_cast<double>(max_chunk_bytes_) * 8 * fps / 1e6;
+    CloseSegment();
+    metrics.max_segment_mbps = max_segment_bytes_per_frame_ * 8 * fps / 1e6;
+    metrics.budget_mbps = stream_.budget_mbps;
     metrics.psnr_db = Psnr(squared_, count_);
     metrics.heldout = stream_.heldout;
     metrics.unscored = stream_.unscored;
@@ -1014,7 +1012,19 @@ class StreamSum {
   Report* report_;
   WebStreamMetrics metrics_;
   nlohmann::json chunks_ = nlohmann::json::array();
+  void CloseSegment() {
+    if (segment_frames_ > 0) {
+      max_segment_bytes_per_frame_ =
+          std::max(max_segment_bytes_per_frame_,
+                   static_cast<double>(segment_bytes_) / static_cast<double>(segment_frames_));
+    }
+    segment_bytes_ = 0;
+    segment_frames_ = 0;
+  }
   uint64_t bytes_ = 0, max_chunk_bytes_ = 0;
+  uint64_t segment_bytes_ = 0;  // the segment being summed
+  int64_t segment_frames_ = 0;
+  double max_segment_bytes_per_frame_ = 0;
   double squared_ = 0;
   int64_t count_ = 0;
   SquaredError native_, streamed_, background_;  // against the camera
@@ -1028,6 +1038,15 @@ nlohmann::json Number(double value) {
 
 // Why a stream that was scored against the camera is no better there than its background
 // alone; empty when it is (or was not scored).
+// Why a budgeted stream is over its budget (empty: it is not): a segment at the coarsest rung
+// still needs more (rounded to the report's precision).
+std::string OverBudget(const WebStreamMetrics& s) {
+  if (s.budget_mbps <= 0 || s.max_segment_mbps <= s.budget_mbps * (1 + 1e-9)) return "";
+  return Cat(s.name, ": its largest segment needs ", s.max_segment_mbps,
+             " Mbps at the coarsest encoding, over its budget of ", s.budget_mbps,
+             " Mbps (raise --splat-mbps, or export fewer Gaussians)");
+}
+
 std::string NoBetterThanBackground(const WebStreamMetrics& s) {
   if (s.camera_pixels == 0) return "";
   std::string why;
@@ -1121,6 +1140,7 @@ nlohmann::json WebStreamMetrics::ToJson() const {
       {"mb_per_frame", mb_per_frame},
       {"mbps", mbps},
       {"max_chunk_mbps", max_chunk_mbps},
+      {"max_segment_mbps", max_segment_mbps},
       {"psnr_db", std::isfinite(psnr_db) ? nlohmann::json(psnr_db) : nlohmann::json()},
       {"max_position_error_mm", max_position_error_mm},
       {"mean_faces", mean_faces}};
@@ -1211,7 +1231,7 @@ WebExportSummary MergeWebSite(const fs::path& site_dir, Report* report) {
   summary.seconds = report->ElapsedSeconds();
   std::string degenerate;
   for (const WebStreamMetrics& s : summary.streams) {
-    const std::string why = NoBetterThanBackground(s);
+    const std::string why = NoBetterThanBackground(s) + OverBudget(s);
     if (!why.empty()) degenerate += (degenerate.empty() ? "" : "; ") + why;
   }
   if (degenerate.empty()) {

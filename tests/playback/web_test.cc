@@ -499,54 +499,98 @@ TEST_F(WebTest, BudgetedSplatStreamFitsAndThePageDecodesItAsNatively) {
   EXPECT_NE(messages.find("splat chunk of stream format version 3"), std::string::npos) << messages;
 }
 
-// `--splat-mbps` holds every chunk, not the mean: the budget halfway between splat-low's mean rate
-// at its level's own encoding and its key frame's (one group of a key frame and two deltas; a
-// rule on the group's mean keeps the level's encoding there, the key frame over the budget).
-// Budgeted, each chunk's rung is its own and every chunk fits one frame's share of the budget;
-// the chunks decode in turn, each by the encoding in its header.
-TEST_F(WebTest, BudgetHoldsEveryChunkOfASplatStream) {
-  const fs::path own = dir_->path() / "own-rate", held = dir_->path() / "held";
+// `--splat-mbps` holds every segment (a key frame and its deltas, up to the next key frame) to
+// the budget over its playing time, the peak segment rate HLS calls BANDWIDTH: not the stream's
+// mean (a key frame alone at the end of the timeline can be far above it), nor each chunk (a
+// key frame is larger than one frame's share by nature; holding it there would coarsen a
+// segment that fits). Key frames every 2 of the 3 frames: segments {key, delta} and {key}. The
+// budget lies between the stream's mean at the level's own encoding and its largest segment's
+// rate: the segment that fits keeps the level's encoding, the other is coarsened to fit, and
+// the chunks decode in turn, each by the encoding in its header. A budget no rung can meet
+// ends the export DEGENERATE, naming the stream.
+TEST_F(WebTest, BudgetHoldsEverySegmentOfASplatStream) {
+  const fs::path own = dir_->path() / "own-rate", held = dir_->path() / "held",
+                 starved = dir_->path() / "starved";
   auto export_at = [&](const fs::path& site, const std::string& budget) {
     return RunCli("export web '" + Take().string() +
                   "' --ground-truth-cameras --no-meshes --model '" + SplatModelDir().string() +
-                  "' --quality low --key-every 3" + budget + " --out '" + site.string() + "'");
+                  "' --quality low --key-every 2" + budget + " --out '" + site.string() + "'");
   };
   auto exported = export_at(own, "");
   ASSERT_EQ(exported.exit_code, 0) << exported.output;
   const nlohmann::json own_manifest =
       nlohmann::json::parse(ReadFileToString(own / "manifest.json"));
   const double fps = own_manifest.at("fps").get<double>();
-  auto chunk_mbps = [&](const nlohmann::json& chunk) {
-    return chunk.at("bytes").get<double>() * 8 * fps / 1e6;
+  // Each segment's rate (Mbps over its frames) and its chunks' sizes.
+  struct Segment {
+    double mbps = 0;
+    std::vector<double> bytes;
+  };
+  auto segments_of = [&](const nlohmann::json& stream) {
+    std::vector<Segment> segments;
+    for (const auto& chunk : stream.at("chunks")) {
+      if (chunk.at("key").get<bool>()) segments.emplace_back();
+      segments.back().bytes.push_back(chunk.at("bytes").get<double>());
+    }
+    for (Segment& segment : segments) {
+      double sum = 0;
+      for (double b : segment.bytes) sum += b;
+      segment.mbps = sum * 8 * fps / 1e6 / static_cast<double>(segment.bytes.size());
+    }
+    return segments;
   };
   const auto& level = StreamNamed(own_manifest, "splat-low");
   ASSERT_EQ(level.at("chunks").size(), 3u);
-  double largest = 0;
-  for (const auto& chunk : level.at("chunks")) largest = std::max(largest, chunk_mbps(chunk));
-  const double mean = level.at("mbps").get<double>(), budget = (mean + largest) / 2;
-  ASSERT_TRUE(level.at("chunks").at(0).at("key").get<bool>());
-  ASSERT_EQ(chunk_mbps(level.at("chunks").at(0)), largest) << "the key frame is the largest";
+  const std::vector<Segment> own_segments = segments_of(level);
+  ASSERT_EQ(own_segments.size(), 2u);
+  const double mean = level.at("mbps").get<double>();
+  const double largest = std::max(own_segments[0].mbps, own_segments[1].mbps);
+  ASSERT_GT(largest, mean * 1.01) << "a segment above the mean";
+  const double budget = (mean + largest) / 2;
   exported = export_at(held, " --splat-mbps " + std::to_string(budget));
   ASSERT_EQ(exported.exit_code, 0) << exported.output;
-  std::printf("splat-low at its own encoding: mean %.3f Mbps, key frame %.3f; budget %.3f\n%s",
-              mean, largest, budget, exported.output.c_str());
+  std::printf(
+      "splat-low at its own encoding: mean %.3f Mbps, segments %.3f and %.3f; budget %.3f\n%s",
+      mean, own_segments[0].mbps, own_segments[1].mbps, budget, exported.output.c_str());
   const nlohmann::json manifest = nlohmann::json::parse(ReadFileToString(held / "manifest.json"));
   const auto& stream = StreamNamed(manifest, "splat-low");
-  for (const auto& chunk : stream.at("chunks"))
-    EXPECT_LE(chunk_mbps(chunk), budget) << chunk.dump();
+  const std::vector<Segment> segments = segments_of(stream);
+  ASSERT_EQ(segments.size(), 2u);
+  double held_largest = 0;
+  int kept = 0, coarsened = 0;
+  for (size_t k = 0; k < segments.size(); ++k) {
+    EXPECT_LE(segments[k].mbps, budget) << "segment " << k;
+    held_largest = std::max(held_largest, segments[k].mbps);
+    if (own_segments[k].mbps <= budget) {
+      EXPECT_EQ(segments[k].bytes, own_segments[k].bytes) << "segment " << k << " fits as it is";
+      ++kept;
+    } else {
+      EXPECT_LT(segments[k].mbps, own_segments[k].mbps) << "segment " << k;
+      ++coarsened;
+    }
+  }
+  EXPECT_EQ(kept, 1);
+  EXPECT_EQ(coarsened, 1);
   const nlohmann::json report = nlohmann::json::parse(ReadFileToString(held / "report.json"));
   const auto& metrics = report.at("metrics").at("streams").at("splat-low");
-  EXPECT_LE(metrics.at("max_chunk_mbps").get<double>(), budget);
+  EXPECT_NEAR(metrics.at("max_segment_mbps").get<double>(), held_largest, 1e-6 * held_largest);
   EXPECT_LE(metrics.at("mbps").get<double>(), metrics.at("max_chunk_mbps").get<double>());
-  EXPECT_NE(exported.output.find("largest chunk"), std::string::npos) << exported.output;
+  EXPECT_NE(exported.output.find("largest segment"), std::string::npos) << exported.output;
   const std::vector<web::Chunk> chunks = ChunksOf(held, stream);
   ASSERT_EQ(chunks.size(), 3u);
-  web::SplatCodes codes = web::DecodeSplats(chunks[0], nullptr);
-  for (size_t f = 1; f < chunks.size(); ++f) {
-    ASSERT_FALSE(chunks[f].header.at("key").get<bool>());
-    codes = web::DecodeSplats(chunks[f], &codes);
+  web::SplatCodes codes;
+  for (size_t f = 0; f < chunks.size(); ++f) {
+    const bool key = chunks[f].header.at("key").get<bool>();
+    EXPECT_EQ(key, f % 2 == 0) << f;
+    codes = web::DecodeSplats(chunks[f], key ? nullptr : &codes);
     EXPECT_EQ(codes.count, chunks[f].header.at("count").get<int64_t>());
   }
+  // A budget the coarsest rung cannot meet: the site is written, and the export says so.
+  exported = export_at(starved, " --splat-mbps 0.001");
+  EXPECT_NE(exported.exit_code, 0) << exported.output;
+  EXPECT_NE(exported.output.find("DEGENERATE"), std::string::npos) << exported.output;
+  EXPECT_NE(exported.output.find("over its budget"), std::string::npos) << exported.output;
+  EXPECT_TRUE(fs::exists(starved / "report.json"));
 }
 
 TEST_F(WebTest, ViewOfATakeRemovesItsTemporarySiteWhenStopped) {
