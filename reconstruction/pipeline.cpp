@@ -51,6 +51,26 @@ ReconstructionMethod ReconstructionMethodFromString(const std::string& text) {
   Fail("unknown reconstruction method '", text, "' (known: auto, hull, tsdf, mvs)");
 }
 
+const char* ToString(SilhouetteMorphology morphology) {
+  switch (morphology) {
+    case SilhouetteMorphology::kAuto:
+      return "auto";
+    case SilhouetteMorphology::kRecipe:
+      return "recipe";
+    case SilhouetteMorphology::kNone:
+      return "none";
+  }
+  return "?";
+}
+
+SilhouetteMorphology SilhouetteMorphologyFromString(const std::string& text) {
+  for (auto m : {SilhouetteMorphology::kAuto, SilhouetteMorphology::kRecipe,
+                 SilhouetteMorphology::kNone}) {
+    if (text == ToString(m)) return m;
+  }
+  Fail("unknown silhouette morphology '", text, "' (known: auto, recipe, none)");
+}
+
 void ReconstructionOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(voxel_m, 0, "in (0, 1) m, or 0 for the plan's");
   HOLOCAP_CHECK_OPTION_LT(voxel_m, 1, "in (0, 1) m, or 0 for the plan's");
@@ -63,6 +83,9 @@ void ReconstructionOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(min_moving_fraction, 0);
   HOLOCAP_CHECK_OPTION_LT(min_moving_fraction, 1);
   HOLOCAP_CHECK_OPTION_GE(min_silhouette_agreement, 0);
+  HOLOCAP_CHECK_OPTION_IN(max_close_px_at_640, 0, 50);
+  HOLOCAP_CHECK_OPTION_GE(min_closing_gain, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_closing_gain, 1);
   HOLOCAP_CHECK_OPTION_LT(min_silhouette_agreement, 1);
   for (double size_m : sweep_voxels_m) {
     HOLOCAP_CHECK_OPTION(size_m > 0 && size_m < 1, sweep_voxels_m, "each in (0, 1) m");
@@ -91,7 +114,9 @@ nlohmann::json ReconstructionOptions::ToJson() const {
           {"max_view_ratio", max_view_ratio},
           {"min_silhouette_agreement", min_silhouette_agreement},
           {"min_moving_fraction", min_moving_fraction},
-          {"threshold_morphology", threshold_morphology},
+          {"silhouette_morphology", ToString(silhouette_morphology)},
+          {"max_close_px_at_640", max_close_px_at_640},
+          {"min_closing_gain", min_closing_gain},
           {"silhouette",
            {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
                      : silhouette.mode == SilhouetteMode::kOtsu    ? "otsu"
@@ -899,16 +924,86 @@ class TakeReconstructor {
         plan_.silhouette.mode = SilhouetteMode::kOtsu;
         break;
     }
-    const bool thresholded = plan_.silhouette.mode == SilhouetteMode::kThreshold ||
-                             plan_.silhouette.mode == SilhouetteMode::kOtsu;
-    if (thresholded && !stage_threshold && options_.threshold_morphology) {
-      // A subject on a dark background loses its darkest edge pixels to any threshold: close
-      // and grow its silhouette as the Middlebury recipe does, for its 640-pixel images.
-      plan_.silhouette.open_px = 0;
-      plan_.silhouette.dilate_px = 10;
-      plan_.silhouette.erode_px = 7;
-      plan_.silhouette.morphology_width = 640;
+    ChooseMorphology(stage_threshold);
+  }
+
+  bool Thresholded() const {
+    return plan_.silhouette.mode == SilhouetteMode::kThreshold ||
+           plan_.silhouette.mode == SilhouetteMode::kOtsu;
+  }
+
+  // Thresholded silhouettes take the closing measured on the take (auto), the Middlebury
+  // README's recipe or none; the others keep the options' morphology. A fixed threshold the
+  // stage asks for keeps the options' morphology too (rerendering's own silhouettes).
+  void ChooseMorphology(bool stage_threshold) {
+    const SilhouetteOptions& given = options_.silhouette;
+    const std::string given_text =
+        Cat("open ", given.open_px, " px, close as dilate ", given.dilate_px, " px and erode ",
+            given.erode_px, " px");
+    if (!Thresholded() || stage_threshold) {
+      morphology_ = "the options'";
+      morphology_why_ = Cat(given_text, stage_threshold ? " (a fixed threshold the stage asks for)"
+                                                        : " (silhouettes that are not thresholded)");
+      return;
     }
+    plan_.silhouette.open_px = 0;
+    plan_.silhouette.morphology_width = 0;
+    switch (options_.silhouette_morphology) {
+      case SilhouetteMorphology::kRecipe:
+        // The Middlebury README's, for its 640-pixel images, scaled to the take's width.
+        plan_.silhouette.dilate_px = 10;
+        plan_.silhouette.erode_px = 7;
+        plan_.silhouette.morphology_width = 640;
+        morphology_ = "recipe";
+        morphology_why_ =
+            "the Middlebury README's (dilate 10 px, erode 7 px at 640 px wide), asked for";
+        break;
+      case SilhouetteMorphology::kNone:
+        plan_.silhouette.dilate_px = 0;
+        plan_.silhouette.erode_px = 0;
+        morphology_ = "none";
+        morphology_why_ = "none, asked for";
+        break;
+      case SilhouetteMorphology::kAuto:
+        plan_.silhouette.dilate_px = closing_.close_px;
+        plan_.silhouette.erode_px = closing_.close_px;
+        morphology_ = closing_.close_px > 0 ? Cat("closing ", closing_.close_px, " px") : "none";
+        morphology_why_ = closing_measured_
+                              ? closing_.why
+                              : "none: not measured (the run reads no silhouettes, or its "
+                                "bounds are implausible)";
+        break;
+    }
+  }
+
+  // The closing of thresholded silhouettes measured on the run's first frame set: radii up to
+  // the recipe's dilation scaled to the images' width, each judged by how well the hull
+  // explains the closed silhouettes, at twice the run's voxel (a coarse hull is enough to show
+  // the tunnel a view's hole carves).
+  void MeasureClosing() {
+    if (!Thresholded() || options_.silhouette_morphology != SilhouetteMorphology::kAuto ||
+        !(needs_plate() || plan_.hull_completion) || !implausible_.empty() ||
+        take_plan_.sets.empty() ||
+        morphology_ == "the options'")
+      return;
+    const std::vector<View> views = SilhouetteViews(take_plan_.sets[0]);
+    int width = 0;
+    for (const View& view : views) width = std::max(width, view.mask.cols);
+    std::vector<int> radii = {0};
+    for (int at_640 : {2, 4, 6, 10}) {
+      if (at_640 > options_.max_close_px_at_640) break;
+      const int radius = std::max(1, static_cast<int>(std::lround(at_640 * width / 640.0)));
+      if (radius > radii.back()) radii.push_back(radius);
+    }
+    HullOptions hull_options = options_.hull;
+    hull_options.voxel_m = 2 * take_plan_.voxel_m;
+    hull_options.bounds = take_plan_.bounds;
+    hull_options.margin_px = 0;
+    hull_options.min_views = plan_.hull_min_views;
+    hull_options.threads = threads_;
+    closing_ = ChooseClosing(views, hull_options, radii, options_.min_closing_gain);
+    closing_measured_ = true;
+    ChooseMorphology(false);
   }
 
   // Colour silhouettes of one frame set from the cameras the run reconstructs from.
@@ -1096,6 +1191,7 @@ class TakeReconstructor {
                                          LearnBackground();
                                          ChooseMethodAndPlates();
                                          TightenBounds();
+                                         MeasureClosing();
                                          return SavePlan(files);
                                        });
     if (!stored.made) {
@@ -1159,6 +1255,7 @@ class TakeReconstructor {
             {"voxel_m", take_plan_.voxel_m},
             {"voxel_source", take_plan_.voxel_source},
             {"check_fill", plan_.check_fill},
+            {"closing", closing_measured_ ? closing_.ToJson() : nlohmann::json(nullptr)},
             {"implausible", implausible_}};
   }
 
@@ -1179,6 +1276,15 @@ class TakeReconstructor {
     take_plan_.voxel_m = stored.at("voxel_m").get<double>();
     take_plan_.voxel_source = stored.at("voxel_source").get<std::string>();
     plan_.check_fill = stored.at("check_fill").get<bool>();
+    closing_measured_ = !stored.at("closing").is_null();
+    if (closing_measured_) {
+      const nlohmann::json& closing = stored.at("closing");
+      closing_.close_px = closing.at("close_px").get<int>();
+      closing_.radii_px = closing.at("radii_px").get<std::vector<int>>();
+      closing_.agreement = closing.at("agreement_by_radius").get<std::vector<double>>();
+      closing_.added_fraction = closing.at("added_fraction_by_radius").get<std::vector<double>>();
+      closing_.why = closing.at("why").get<std::string>();
+    }
     implausible_ = stored.at("implausible").get<std::string>();
   }
 
@@ -1238,8 +1344,14 @@ class TakeReconstructor {
             : "no depth sensor, no clean plate and no alpha: the visual hull of thresholded "
               "silhouettes (a subject on a plain dark background gives stereo nothing to match "
               "around it)";
-    if (!needs_plate() && !plan_.hull_completion)
+    if (!needs_plate() && !plan_.hull_completion) {
       plan["silhouettes"] = {{"source", "not needed"}, {"why", "the method reads depth alone"}};
+    } else {
+      plan["silhouettes"]["morphology"] = {{"choice", morphology_},
+                                           {"asked", ToString(options_.silhouette_morphology)},
+                                           {"why", morphology_why_}};
+      if (closing_measured_) plan["silhouettes"]["morphology"]["measured"] = closing_.ToJson();
+    }
     plan["completion"] = completion_;
     if (plan_.method == ReconstructionMethod::kHull)
       plan["hull_min_views"] = {{"views", plan_.hull_min_views},
@@ -1286,6 +1398,8 @@ class TakeReconstructor {
     if (needs_plate() || plan_.hull_completion) {
       std::printf("  silhouettes: %s (%s)\n", ToString(take_plan_.silhouettes),
                   take_plan_.silhouette_reason.c_str());
+      std::printf("  silhouette morphology: %s: %s\n", morphology_.c_str(),
+                  morphology_why_.c_str());
     }
     if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
     if (stereo) {
@@ -1532,6 +1646,12 @@ class TakeReconstructor {
   MvsEstimate stereo_estimate_;  // MVS: what each frame set's sweeps will cost
   Plates plates_;
   std::string completion_;
+  // The closing measured for thresholded silhouettes (kAuto), and what the morphology is and
+  // why, for the plan.
+  ClosingChoice closing_;
+  bool closing_measured_ = false;
+  std::string morphology_;
+  std::string morphology_why_;
   std::string implausible_;  // why the run cannot give a plausible result, before any frame
   double voxel_ = 0;
   int threads_ = 1;

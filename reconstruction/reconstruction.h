@@ -54,6 +54,12 @@ enum class SilhouetteMode {
   kAlpha,                  // the image's own alpha channel (CV_8UC4), exact: no morphology
 };
 
+// The morphology of thresholded silhouettes (ReconstructionOptions::silhouette_morphology).
+enum class SilhouetteMorphology { kAuto, kRecipe, kNone };
+const char* ToString(SilhouetteMorphology morphology);
+// "auto", "recipe" or "none"; throws Error naming the choices otherwise.
+SilhouetteMorphology SilhouetteMorphologyFromString(const std::string& text);
+
 struct SilhouetteOptions {
   SilhouetteMode mode = SilhouetteMode::kBackgroundSubtraction;
   // Background subtraction: a pixel is foreground when its colour distance (Euclidean over
@@ -240,6 +246,34 @@ struct VisualHull {
 // is reported kDegenerate.
 VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
                              HullSummary* summary = nullptr);
+
+// The closing a take's thresholded silhouettes need, chosen from the silhouettes themselves.
+// Silhouettes of one subject agree with each other: the hull carved from them projects back
+// onto each. A hole, notch or gap that a threshold cut into one view's silhouette carves a
+// tunnel through the hull that the other views do not show, so they agree less; a closing that
+// fills such defects raises the agreement, and one larger than the defects changes little more
+// (or, filling the subject's own concavities that other views see open, lowers it).
+struct ClosingChoice {
+  int close_px = 0;  // the closing's radius, in the images' own pixels (0: none)
+  // Per radius measured (radii_px, from 0 up): the views' mean IoU of their closed silhouette
+  // and the silhouette of the hull carved from the closed silhouettes; and the mean fraction of
+  // a view's silhouette that the closing adds.
+  std::vector<int> radii_px;
+  std::vector<double> agreement;
+  std::vector<double> added_fraction;
+  std::string why;  // the rule and the measured numbers it read
+
+  nlohmann::json ToJson() const;
+};
+
+// Closes the views' masks (as thresholded, unclosed) by each of `radii_px` in turn (0 first,
+// increasing), carves a hull of each with `hull` and stops at the first radius after which
+// the next gains less than `min_gain` in agreement: the smallest closing that stabilises the
+// agreement; 0 when the first closing gains less (a clean boundary). A closing that fills the
+// subject's own gaps, which other views see open, gains nothing. Views need camera and mask;
+// a hull that is not usable counts as no agreement. Deterministic for given views and options.
+ClosingChoice ChooseClosing(const std::vector<View>& views, const HullOptions& hull,
+                            const std::vector<int>& radii_px, double min_gain);
 
 // ---------------------------------------------------------------------------------------------
 // Depth fusion
@@ -577,9 +611,17 @@ struct ReconstructionOptions {
   // not move: the run falls back to a threshold chosen per image and says so.
   double min_moving_fraction = 0.001;
   SilhouetteOptions silhouette;
-  // Thresholded silhouettes (Otsu or a given level) close and grow by the Middlebury recipe
-  // (dilate 10 px, erode 7 px, no opening) instead of `silhouette`'s morphology.
-  bool threshold_morphology = true;
+  // Thresholded silhouettes (Otsu or a given level) take this morphology instead of
+  // `silhouette`'s: kAuto the closing ChooseClosing measures on the take's first frame set (up
+  // to max_close_px_at_640 scaled to the images' width; none where the boundary is clean),
+  // kRecipe the Middlebury README's (dilate 10 px, erode 7 px at 640 px, no opening), kNone none.
+  SilhouetteMorphology silhouette_morphology = SilhouetteMorphology::kAuto;
+  // The closings kAuto measures: radii 2, 4, 6 and 10 px at 640 px wide (up to the recipe's
+  // dilation) scaled to the images' width, after no closing.
+  int max_close_px_at_640 = 10;
+  // A larger closing is taken only when the hull explains the silhouettes (the views' mean
+  // IoU) this much better than with the smaller one.
+  double min_closing_gain = 0.005;
   HullOptions hull;  // voxel and bounds are set from the fields above
   // Voxel and bounds likewise; the depth range fused is the plan's (from half the nearest to
   // four times the farthest z-depth of the bounds in the sensors whose depth is fused), so
