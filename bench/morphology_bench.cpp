@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
+#include <exception>
 #include <string>
 #include <vector>
 
@@ -70,8 +71,8 @@ Row LeaveOneOut(const fs::path& take_dir, const fs::path& work, SilhouetteMorpho
     options.threads = threads;
     options.silhouette_morphology = morphology;
     Report report("reconstruct");
-    const fs::path out = work / Cat(take_dir.filename().string(), "-", ToString(morphology)) /
-                         held.name;
+    const fs::path out =
+        work / Cat(take_dir.filename().string(), "-", ToString(morphology)) / held.name;
     const ReconstructionSummary summary =
         ReconstructTake(take_dir, selection, out, options, &report);
     row.seconds += summary.seconds;
@@ -104,15 +105,15 @@ Row LeaveOneOut(const fs::path& take_dir, const fs::path& work, SilhouetteMorpho
 
 void Table(const std::string& name, const fs::path& take_dir, const fs::path& work, int threads,
            const std::string& morphologies, std::vector<std::string>* lines) {
-  for (SilhouetteMorphology m : {SilhouetteMorphology::kRecipe, SilhouetteMorphology::kAuto,
-                                 SilhouetteMorphology::kNone}) {
+  for (SilhouetteMorphology m :
+       {SilhouetteMorphology::kRecipe, SilhouetteMorphology::kAuto, SilhouetteMorphology::kNone}) {
     if (morphologies.find(ToString(m)) == std::string::npos) continue;
     const Row row = LeaveOneOut(take_dir, work, m, threads);
     char line[256];
     std::snprintf(line, sizeof(line), "%-12s %-7s %-12s %-16s %-16s %-16s %6.1f", name.c_str(),
                   ToString(m), row.choice.c_str(), row.own.Text().c_str(),
-                  row.unclosed.Text().c_str(),
-                  row.truth.count ? row.truth.Text().c_str() : "-", row.seconds);
+                  row.unclosed.Text().c_str(), row.truth.count ? row.truth.Text().c_str() : "-",
+                  row.seconds);
     lines->push_back(line);
   }
 }
@@ -159,7 +160,7 @@ int main(int argc, char** argv) {
     std::printf("%-12s %-7s %-12s %-16s %-16s %-16s %6s\n", "set", "asked", "chosen", "own",
                 "unclosed", "truth", "time");
     for (const std::string& line : lines) std::printf("%s\n", line.c_str());
-  } catch (const Error& e) {
+  } catch (const std::exception& e) {
     std::fprintf(stderr, "morphology_bench: %s\n", e.what());
     return 1;
   }

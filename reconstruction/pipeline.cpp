@@ -64,8 +64,8 @@ const char* ToString(SilhouetteMorphology morphology) {
 }
 
 SilhouetteMorphology SilhouetteMorphologyFromString(const std::string& text) {
-  for (auto m : {SilhouetteMorphology::kAuto, SilhouetteMorphology::kRecipe,
-                 SilhouetteMorphology::kNone}) {
+  for (auto m :
+       {SilhouetteMorphology::kAuto, SilhouetteMorphology::kRecipe, SilhouetteMorphology::kNone}) {
     if (text == ToString(m)) return m;
   }
   Fail("unknown silhouette morphology '", text, "' (known: auto, recipe, none)");
@@ -937,13 +937,13 @@ class TakeReconstructor {
   // stage asks for keeps the options' morphology too (rerendering's own silhouettes).
   void ChooseMorphology(bool stage_threshold) {
     const SilhouetteOptions& given = options_.silhouette;
-    const std::string given_text =
-        Cat("open ", given.open_px, " px, close as dilate ", given.dilate_px, " px and erode ",
-            given.erode_px, " px");
+    const std::string given_text = Cat("open ", given.open_px, " px, close as dilate ",
+                                       given.dilate_px, " px and erode ", given.erode_px, " px");
     if (!Thresholded() || stage_threshold) {
       morphology_ = "the options'";
-      morphology_why_ = Cat(given_text, stage_threshold ? " (a fixed threshold the stage asks for)"
-                                                        : " (silhouettes that are not thresholded)");
+      morphology_why_ =
+          Cat(given_text, stage_threshold ? " (a fixed threshold the stage asks for)"
+                                          : " (silhouettes that are not thresholded)");
       return;
     }
     plan_.silhouette.open_px = 0;
@@ -983,8 +983,7 @@ class TakeReconstructor {
   void MeasureClosing() {
     if (!Thresholded() || options_.silhouette_morphology != SilhouetteMorphology::kAuto ||
         !(needs_plate() || plan_.hull_completion) || !implausible_.empty() ||
-        take_plan_.sets.empty() ||
-        morphology_ == "the options'")
+        take_plan_.sets.empty() || morphology_ == "the options'")
       return;
     const std::vector<View> views = SilhouetteViews(take_plan_.sets[0]);
     int width = 0;
@@ -1308,6 +1307,28 @@ class TakeReconstructor {
     plan_.depth_background = is_tsdf();
   }
 
+  // Whether stereo searches inside the hull to carve what silhouettes cannot (concavities,
+  // gaps between parts), and why.
+  nlohmann::json StereoInsideHull(bool stereo) const {
+    std::string why;
+    if (options_.method != ReconstructionMethod::kAuto) {
+      why = Cat(stereo ? "chosen" : "not chosen", ": the method is asked for (--method ",
+                ToString(options_.method), ")");
+    } else if (is_tsdf()) {
+      why = "not chosen: the depth sensors measure the surface, concavities included";
+    } else if (stereo) {
+      why =
+          "chosen: the silhouettes hold the whole subject (clean plate, background model or "
+          "alpha), so stereo inside their hull carves the concavities the hull keeps";
+    } else {
+      why =
+          "not chosen: thresholded silhouettes may lose the subject's darkest parts, and "
+          "stereo searches only inside their hull; a textured subject on a plain background "
+          "can ask for it (--method mvs)";
+    }
+    return {{"chosen", stereo}, {"why", why}};
+  }
+
   void DescribePlan() {
     const std::string skipped =
         is_tsdf() ? (plan_.hull_completion ? "stereo" : "silhouettes, hull, stereo")
@@ -1352,6 +1373,7 @@ class TakeReconstructor {
                                            {"why", morphology_why_}};
       if (closing_measured_) plan["silhouettes"]["morphology"]["measured"] = closing_.ToJson();
     }
+    plan["stereo_inside_hull"] = StereoInsideHull(stereo);
     plan["completion"] = completion_;
     if (plan_.method == ReconstructionMethod::kHull)
       plan["hull_min_views"] = {{"views", plan_.hull_min_views},
@@ -1402,6 +1424,8 @@ class TakeReconstructor {
                   morphology_why_.c_str());
     }
     if (is_tsdf()) std::printf("  completion: %s\n", completion_.c_str());
+    std::printf("  stereo inside the hull: %s\n",
+                plan["stereo_inside_hull"]["why"].get<std::string>().c_str());
     if (stereo) {
       std::printf("  stereo views: %zu of %zu searched: %s\n", references.size(), names.size(),
                   plan_.mvs_views.why.c_str());

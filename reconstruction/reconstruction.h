@@ -247,12 +247,13 @@ struct VisualHull {
 VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
                              HullSummary* summary = nullptr);
 
-// The closing a take's thresholded silhouettes need, chosen from the silhouettes themselves.
-// Silhouettes of one subject agree with each other: the hull carved from them projects back
-// onto each. A hole, notch or gap that a threshold cut into one view's silhouette carves a
-// tunnel through the hull that the other views do not show, so they agree less; a closing that
-// fills such defects raises the agreement, and one larger than the defects changes little more
-// (or, filling the subject's own concavities that other views see open, lowers it).
+// The closing a take's thresholded silhouettes need, chosen from the silhouettes themselves:
+// silhouettes of one subject agree with each other, the hull carved from them projecting back
+// onto each. A closing that adds to a view what the other views carve away (the subject's own
+// gaps, seen open elsewhere) gains no agreement; one that restores what a view lost where the
+// other views' outlines show it gains. Holes, bites and cracks cut into one view mostly hide
+// from the other views' outlines (they carve inside the hull), so they move the agreement
+// little: the measure guards against closings that add, more than it finds what to fill.
 struct ClosingChoice {
   int close_px = 0;  // the closing's radius, in the images' own pixels (0: none)
   // Per radius measured (radii_px, from 0 up): the views' mean IoU of their closed silhouette
@@ -269,8 +270,7 @@ struct ClosingChoice {
 // Closes the views' masks (as thresholded, unclosed) by each of `radii_px` in turn (0 first,
 // increasing), carves a hull of each with `hull` and stops at the first radius after which
 // the next gains less than `min_gain` in agreement: the smallest closing that stabilises the
-// agreement; 0 when the first closing gains less (a clean boundary). A closing that fills the
-// subject's own gaps, which other views see open, gains nothing. Views need camera and mask;
+// agreement; 0 when the first closing gains less. Views need camera and mask;
 // a hull that is not usable counts as no agreement. Deterministic for given views and options.
 ClosingChoice ChooseClosing(const std::vector<View>& views, const HullOptions& hull,
                             const std::vector<int>& radii_px, double min_gain);

@@ -25,8 +25,8 @@ std::vector<View> Closed(const std::vector<View>& views, int radius, double* add
   double sum = 0;
   for (View& view : out) {
     if (radius == 0) continue;
-    const cv::Mat disk = cv::getStructuringElement(cv::MORPH_ELLIPSE,
-                                                   cv::Size(2 * radius + 1, 2 * radius + 1));
+    const cv::Mat disk =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * radius + 1, 2 * radius + 1));
     cv::Mat closed;
     cv::morphologyEx(view.mask, closed, cv::MORPH_CLOSE, disk, cv::Point(-1, -1), 1,
                      cv::BORDER_REPLICATE);
@@ -63,7 +63,8 @@ nlohmann::json ClosingChoice::ToJson() const {
 
 ClosingChoice ChooseClosing(const std::vector<View>& views, const HullOptions& hull,
                             const std::vector<int>& radii_px, double min_gain) {
-  if (views.size() < 2) Fail("choosing a closing needs two views or more; ", views.size(), " given");
+  if (views.size() < 2)
+    Fail("choosing a closing needs two views or more; ", views.size(), " given");
   if (radii_px.empty() || radii_px.front() != 0 || !(min_gain >= 0))
     Fail("choosing a closing: the radii must start at 0 and min_gain (", min_gain,
          ") must not be negative");
@@ -95,11 +96,12 @@ ClosingChoice ChooseClosing(const std::vector<View>& views, const HullOptions& h
   } else {
     curve += Cat("; the largest closing measured");
   }
-  choice.why = choice.close_px == 0
-                   ? Cat("the boundary is clean: ", curve)
-                   : Cat("the smallest closing after which the views' agreement stabilises: ",
-                         curve, "; it adds ", Fixed3(100 * choice.added_fraction[chosen]),
-                         " % to a view's silhouette");
+  choice.why =
+      choice.close_px == 0
+          ? Cat("the boundary is clean: ", curve)
+          : Cat("the smallest closing after which the views' agreement stabilises: ", curve,
+                "; it adds ", Fixed3(100 * choice.added_fraction[chosen]),
+                " % to a view's silhouette");
   return choice;
 }
 

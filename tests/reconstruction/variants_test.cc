@@ -247,6 +247,48 @@ TEST(VariantsTest, DarkSubjectOnDarkBackgroundIsCorrectOrDegenerate) {
   EXPECT_EQ(outcome.report["plan"]["silhouettes"]["source"], "otsu");
 }
 
+// The dark object ring (a 9 cm object of columns on a near-black backdrop, colour only, no
+// plate): with no flags its Otsu silhouettes take the closing measured on the take, said in the
+// plan and its printed lines, the same on a second run. Their boundary is clean (the views agree
+// unclosed), so none: the Middlebury recipe (--silhouette-morphology recipe) grows every
+// silhouette by a rim and fills the gaps between the columns, a hull further from the truth.
+TEST(VariantsTest, ObjectRingSilhouettesTakeTheMeasuredMorphologyNotTheRecipe) {
+  TempDir dir;
+  const fs::path take = dir / "ring";
+  const auto sim = RunCli(
+      "sim --rig studio8 --size 320 --seed 3 --frames 1 --color-only "
+      "--world-scale 0.05 --dark --out '" +
+      take.string() + "'");
+  ASSERT_EQ(sim.exit_code, 0) << sim.output;
+  const Outcome automatic = Reconstruct(take);
+  ASSERT_EQ(automatic.cli.exit_code, 0) << automatic.cli.output;
+  const nlohmann::json& morphology = automatic.report["plan"]["silhouettes"]["morphology"];
+  EXPECT_EQ(automatic.report["plan"]["silhouettes"]["source"], "otsu");
+  EXPECT_EQ(morphology["asked"], "auto") << morphology;
+  EXPECT_EQ(morphology["choice"], "none") << morphology;
+  EXPECT_EQ(morphology["measured"]["close_px"], 0) << morphology;
+  EXPECT_GT(morphology["measured"]["agreement_by_radius"][0].get<double>(), 0.9) << morphology;
+  EXPECT_NE(automatic.cli.output.find("silhouette morphology: none: the boundary is clean"),
+            std::string::npos)
+      << automatic.cli.output;
+  const Outcome again = Reconstruct(take, "--overwrite");
+  EXPECT_EQ(again.report["plan"]["silhouettes"]["morphology"], morphology);
+
+  const Outcome recipe = Reconstruct(take, "--overwrite --silhouette-morphology recipe");
+  ASSERT_EQ(recipe.cli.exit_code, 0) << recipe.cli.output;
+  EXPECT_EQ(recipe.report["plan"]["silhouettes"]["morphology"]["choice"], "recipe");
+  const double automatic_mm = automatic.report["metrics"]["gt"]["chamfer_mm"].get<double>();
+  const double recipe_mm = recipe.report["metrics"]["gt"]["chamfer_mm"].get<double>();
+  std::printf("chamfer: %.3f mm (auto), %.3f mm (recipe)\n", automatic_mm, recipe_mm);
+  EXPECT_LT(automatic_mm, 0.8 * recipe_mm);
+
+  const Outcome unknown = Reconstruct(take, "--overwrite --silhouette-morphology open");
+  EXPECT_NE(unknown.cli.exit_code, 0);
+  EXPECT_NE(unknown.cli.output.find("holocap: error: unknown silhouette morphology 'open'"),
+            std::string::npos)
+      << unknown.cli.output;
+}
+
 // The same take with two views' silhouettes spoiled by a bright patch of background that the
 // other views do not see: the hull cannot explain those silhouettes, and the run ends
 // DEGENERATE rather than SUCCESS on a hull swollen where only those views could carve.
