@@ -24,7 +24,8 @@ namespace fs = std::filesystem;
 using testing::RunCli;
 using testing::TempDir;
 
-struct Outcome {
+// A test's value: what the json and string members throw (allocation) ends the test.
+struct Outcome {  // NOLINT(bugprone-exception-escape)
   testing::CommandResult cli;
   nlohmann::json report;  // TAKE/recon/report.json; null when none was written
 };
@@ -32,7 +33,7 @@ struct Outcome {
 // Simulates a small studio8 take with `sim_flags` into `dir`/`name`; returns its folder.
 fs::path Simulate(const TempDir& dir, const std::string& sim_flags,
                   const std::string& name = "take") {
-  const fs::path take = dir / name;
+  fs::path take = dir / name;
   const auto sim = RunCli("sim --rig studio8 --size 160 --seed 3 " + sim_flags + " --out '" +
                           take.string() + "'");
   EXPECT_EQ(sim.exit_code, 0) << sim.output;
