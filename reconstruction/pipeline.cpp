@@ -83,9 +83,9 @@ void ReconstructionOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(min_moving_fraction, 0);
   HOLOCAP_CHECK_OPTION_LT(min_moving_fraction, 1);
   HOLOCAP_CHECK_OPTION_GE(min_silhouette_agreement, 0);
-  HOLOCAP_CHECK_OPTION_IN(max_close_px_at_640, 0, 50);
-  HOLOCAP_CHECK_OPTION_GE(min_closing_gain, 0);
-  HOLOCAP_CHECK_OPTION_LT(min_closing_gain, 1);
+  HOLOCAP_CHECK_OPTION_IN(max_close_px_at_640, 2, 50);
+  HOLOCAP_CHECK_OPTION_GE(min_closing_jump_px, 0);
+  HOLOCAP_CHECK_OPTION_LT(min_closing_jump_px, 10);
   HOLOCAP_CHECK_OPTION_LT(min_silhouette_agreement, 1);
   for (double size_m : sweep_voxels_m) {
     HOLOCAP_CHECK_OPTION(size_m > 0 && size_m < 1, sweep_voxels_m, "each in (0, 1) m");
@@ -116,7 +116,7 @@ nlohmann::json ReconstructionOptions::ToJson() const {
           {"min_moving_fraction", min_moving_fraction},
           {"silhouette_morphology", ToString(silhouette_morphology)},
           {"max_close_px_at_640", max_close_px_at_640},
-          {"min_closing_gain", min_closing_gain},
+          {"min_closing_jump_px", min_closing_jump_px},
           {"silhouette",
            {{"mode", silhouette.mode == SilhouetteMode::kThreshold ? "threshold"
                      : silhouette.mode == SilhouetteMode::kOtsu    ? "otsu"
@@ -976,31 +976,24 @@ class TakeReconstructor {
     }
   }
 
-  // The closing of thresholded silhouettes measured on the run's first frame set: radii up to
-  // the recipe's dilation scaled to the images' width, each judged by how well the hull
-  // explains the closed silhouettes, at twice the run's voxel (a coarse hull is enough to show
-  // the tunnel a view's hole carves).
+  // The closing of thresholded silhouettes measured on the run's first frame set's unclosed
+  // silhouettes: radii up to the recipe's dilation scaled to the images' width (a few image
+  // operations per view and radius, no hull).
   void MeasureClosing() {
     if (!Thresholded() || options_.silhouette_morphology != SilhouetteMorphology::kAuto ||
         !(needs_plate() || plan_.hull_completion) || !implausible_.empty() ||
         take_plan_.sets.empty() || morphology_ == "the options'")
       return;
-    const std::vector<View> views = SilhouetteViews(take_plan_.sets[0]);
+    std::vector<cv::Mat> masks;
     int width = 0;
-    for (const View& view : views) width = std::max(width, view.mask.cols);
-    std::vector<int> radii = {0};
-    for (int at_640 : {2, 4, 6, 10}) {
-      if (at_640 > options_.max_close_px_at_640) break;
-      const int radius = std::max(1, static_cast<int>(std::lround(at_640 * width / 640.0)));
-      if (radius > radii.back()) radii.push_back(radius);
+    for (const View& view : SilhouetteViews(take_plan_.sets[0])) {
+      masks.push_back(view.mask);
+      width = std::max(width, view.mask.cols);
     }
-    HullOptions hull_options = options_.hull;
-    hull_options.voxel_m = 2 * take_plan_.voxel_m;
-    hull_options.bounds = take_plan_.bounds;
-    hull_options.margin_px = 0;
-    hull_options.min_views = plan_.hull_min_views;
-    hull_options.threads = threads_;
-    closing_ = ChooseClosing(views, hull_options, radii, options_.min_closing_gain);
+    if (masks.empty()) return;
+    const int max_radius =
+        std::max(2, static_cast<int>(std::lround(options_.max_close_px_at_640 * width / 640.0)));
+    closing_ = ChooseClosing(masks, max_radius, options_.min_closing_jump_px);
     closing_measured_ = true;
     ChooseMorphology(false);
   }
@@ -1276,14 +1269,7 @@ class TakeReconstructor {
     take_plan_.voxel_source = stored.at("voxel_source").get<std::string>();
     plan_.check_fill = stored.at("check_fill").get<bool>();
     closing_measured_ = !stored.at("closing").is_null();
-    if (closing_measured_) {
-      const nlohmann::json& closing = stored.at("closing");
-      closing_.close_px = closing.at("close_px").get<int>();
-      closing_.radii_px = closing.at("radii_px").get<std::vector<int>>();
-      closing_.agreement = closing.at("agreement_by_radius").get<std::vector<double>>();
-      closing_.added_fraction = closing.at("added_fraction_by_radius").get<std::vector<double>>();
-      closing_.why = closing.at("why").get<std::string>();
-    }
+    if (closing_measured_) closing_ = ClosingChoice::FromJson(stored.at("closing"));
     implausible_ = stored.at("implausible").get<std::string>();
   }
 

@@ -247,33 +247,35 @@ struct VisualHull {
 VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
                              HullSummary* summary = nullptr);
 
-// The closing a take's thresholded silhouettes need, chosen from the silhouettes themselves:
-// silhouettes of one subject agree with each other, the hull carved from them projecting back
-// onto each. A closing that adds to a view what the other views carve away (the subject's own
-// gaps, seen open elsewhere) gains no agreement; one that restores what a view lost where the
-// other views' outlines show it gains. Holes, bites and cracks cut into one view mostly hide
-// from the other views' outlines (they carve inside the hull), so they move the agreement
-// little: the measure guards against closings that add, more than it finds what to fill.
+// The closing a take's thresholded silhouettes need, measured on their boundaries (the rule
+// and why: reconstruction/silhouette_morphology.cpp). Closing by a disk of radius r fills
+// background narrower than 2r; a clean boundary gains steadily with r (its concave corners and
+// narrow concavities), a boundary that a threshold cut holes, cracks or bites into gains a jump
+// at the radius that spans them and then returns to the steady rate.
 struct ClosingChoice {
   int close_px = 0;  // the closing's radius, in the images' own pixels (0: none)
-  // Per radius measured (radii_px, from 0 up): the views' mean IoU of their closed silhouette
-  // and the silhouette of the hull carved from the closed silhouettes; and the mean fraction of
-  // a view's silhouette that the closing adds.
+  // Per radius 0..max (radii_px): the area the closing adds in fills that are holes or long
+  // and narrow (cracks, bites, narrow concavities), summed over the views and divided by their
+  // boundary pixels (a mean depth, px), and how many such fills.
   std::vector<int> radii_px;
-  std::vector<double> agreement;
-  std::vector<double> added_fraction;
-  std::string why;  // the rule and the measured numbers it read
+  std::vector<double> fill_px;
+  std::vector<int> fills;
+  double steady_step_px = 0;  // the median step of fill_px from one radius to the next
+  double min_jump_px = 0;     // the smallest step counted as a jump (besides twice the steady)
+  int holes = 0;              // background regions the masks enclose, over the views
+  std::string why;            // the rule and the measured numbers it read
 
   nlohmann::json ToJson() const;
+  static ClosingChoice FromJson(const nlohmann::json& json);  // throws on missing fields
 };
 
-// Closes the views' masks (as thresholded, unclosed) by each of `radii_px` in turn (0 first,
-// increasing), carves a hull of each with `hull` and stops at the first radius after which
-// the next gains less than `min_gain` in agreement: the smallest closing that stabilises the
-// agreement; 0 when the first closing gains less. Views need camera and mask;
-// a hull that is not usable counts as no agreement. Deterministic for given views and options.
-ClosingChoice ChooseClosing(const std::vector<View>& views, const HullOptions& hull,
-                            const std::vector<int>& radii_px, double min_gain);
+// The closing for thresholded, unclosed `masks` (CV_8UC1, 255 = subject; the views of one
+// frame set, or a few): radii 1..max_radius_px (2 or more) are measured; a step of the fill
+// curve larger than both twice its median step and `min_jump_px` at a radius up to half the
+// largest is a jump, and the closing is the last radius of the first run of jumps; 0 (none)
+// without one. Deterministic; throws Error on no masks or bad arguments.
+ClosingChoice ChooseClosing(const std::vector<cv::Mat>& masks, int max_radius_px,
+                            double min_jump_px);
 
 // ---------------------------------------------------------------------------------------------
 // Depth fusion
@@ -612,16 +614,18 @@ struct ReconstructionOptions {
   double min_moving_fraction = 0.001;
   SilhouetteOptions silhouette;
   // Thresholded silhouettes (Otsu or a given level) take this morphology instead of
-  // `silhouette`'s: kAuto the closing ChooseClosing measures on the take's first frame set (up
-  // to max_close_px_at_640 scaled to the images' width; none where the boundary is clean),
-  // kRecipe the Middlebury README's (dilate 10 px, erode 7 px at 640 px, no opening), kNone none.
+  // `silhouette`'s: kAuto the closing ChooseClosing measures on the first frame set's unclosed
+  // silhouettes (none where their boundary is clean; no growth: Otsu's hysteresis already
+  // takes the pixels connected to the subject down to half its level), kRecipe the
+  // Middlebury README's (dilate 10 px, erode 7 px at 640 px, no opening), kNone none.
   SilhouetteMorphology silhouette_morphology = SilhouetteMorphology::kAuto;
-  // The closings kAuto measures: radii 2, 4, 6 and 10 px at 640 px wide (up to the recipe's
-  // dilation) scaled to the images' width, after no closing.
+  // The largest closing kAuto measures, in pixels at 640 px wide (the recipe's dilation),
+  // scaled to the images' width.
   int max_close_px_at_640 = 10;
-  // A larger closing is taken only when the hull explains the silhouettes (the views' mean
-  // IoU) this much better than with the smaller one.
-  double min_closing_gain = 0.005;
+  // A step of the fill curve counts as a jump only above this depth (px per boundary pixel)
+  // as well as above twice the curve's steady step: 0.05 px is a 2 px crack 10 px long per
+  // 400 px of boundary, less than any closing would change in a hull.
+  double min_closing_jump_px = 0.05;
   HullOptions hull;  // voxel and bounds are set from the fields above
   // Voxel and bounds likewise; the depth range fused is the plan's (from half the nearest to
   // four times the farthest z-depth of the bounds in the sensors whose depth is fused), so
