@@ -10,7 +10,9 @@
 //   recipe   the view's Otsu silhouette with the recipe's morphology, and
 //   unclosed the same without morphology: each favours one row; cross, their mean, favours
 //            neither;
-//   truth    on simulated takes, the true silhouette (gt/masks: it only scores).
+//   truth    on simulated takes, the true silhouette (gt/masks: it only scores);
+// and, on simulated takes, the share of the true surface inside the mesh (inside), which sees
+// the tunnels a view's holes and cracks carve and no silhouette shows, and rewards growth.
 // Sets (each calibrated from a board take of the same rig, bench/calibrated_sim.h, except dino):
 //   dino         Middlebury dinoSparseRing (16 real views, Middlebury's calibration);
 //   ring-dark    `holocap sim --rig studio8 --size SIZE --seed 3 --frames 1 --color-only
@@ -27,6 +29,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <exception>
+#include <map>
 #include <random>
 #include <string>
 #include <vector>
@@ -37,6 +40,7 @@
 #include "core/error.h"
 #include "core/image.h"
 #include "core/mesh.h"
+#include "core/rig_alignment.h"
 #include "core/take.h"
 #include "interop/interop.h"
 #include "reconstruction/reconstruction.h"
@@ -64,10 +68,38 @@ struct Score {
 };
 
 struct Row {
-  Score own, recipe, unclosed, cross, truth;
+  Score own, recipe, unclosed, cross, truth, inside;
   std::vector<std::string> choices;  // what each run's plan chose
   std::string note;
 };
+
+// The fraction of `points` inside the closed `mesh` (a ray's crossings counted, odd = inside):
+// a visual hull holds the subject, and a tunnel that a crack or hole in one view carves through
+// it leaves the subject's surface outside, where no other view's silhouette shows it.
+double InsideFraction(const Mesh& mesh, const std::vector<Eigen::Vector3d>& points) {
+  const Eigen::Vector3d ray = Eigen::Vector3d(0.123, 0.456, 0.881).normalized();
+  int64_t inside = 0;
+  for (const Eigen::Vector3d& point : points) {
+    int crossings = 0;
+    for (const Eigen::Vector3i& face : mesh.faces) {
+      const Eigen::Vector3d a = mesh.vertices[face[0]].cast<double>();
+      const Eigen::Vector3d ab = mesh.vertices[face[1]].cast<double>() - a;
+      const Eigen::Vector3d ac = mesh.vertices[face[2]].cast<double>() - a;
+      const Eigen::Vector3d p = ray.cross(ac);
+      const double det = ab.dot(p);
+      if (std::abs(det) < 1e-18) continue;
+      const Eigen::Vector3d t = point - a;
+      const double u = t.dot(p) / det;
+      if (u < 0 || u > 1) continue;
+      const Eigen::Vector3d q = t.cross(ab);
+      const double v = ray.dot(q) / det;
+      if (v < 0 || u + v > 1) continue;
+      if (ac.dot(q) / det > 0) ++crossings;
+    }
+    inside += crossings % 2;
+  }
+  return points.empty() ? 0 : static_cast<double>(inside) / static_cast<double>(points.size());
+}
 
 SilhouetteOptions Otsu(bool recipe) {
   SilhouetteOptions options;
@@ -82,6 +114,20 @@ SilhouetteOptions Otsu(bool recipe) {
 Row LeaveOneOut(const fs::path& take_dir, const fs::path& work, SilhouetteMorphology morphology,
                 int threads, int stride) {
   const Take take = Take::Open(take_dir);
+  fs::path truth_mesh = take_dir / "gt" / "meshes" / "000000.ply";
+  if (!fs::exists(truth_mesh)) truth_mesh = take_dir / "gt" / "meshes" / "static.ply";
+  std::vector<Eigen::Vector3d> truth_points;
+  if (fs::exists(truth_mesh)) {
+    // Into the calibration's world, where the meshes are.
+    std::map<std::string, CameraModel> calibrated, truth;
+    for (const StreamInfo& stream : take.streams()) {
+      calibrated.emplace(stream.name, take.Camera(stream.name));
+      truth.emplace(stream.name, take.Camera(stream.name, true));
+    }
+    const Pose calibrated_from_truth = AlignRigs(truth, calibrated);
+    for (const Eigen::Vector3d& point : ReadPly(truth_mesh).SampleSurface(2000, 1))
+      truth_points.push_back(calibrated_from_truth * point);
+  }
   Row row;
   const std::vector<StreamInfo>& streams = take.streams();
   for (size_t index = 0; index < streams.size(); index += static_cast<size_t>(stride)) {
@@ -102,13 +148,14 @@ Row LeaveOneOut(const fs::path& take_dir, const fs::path& work, SilhouetteMorpho
     row.choices.push_back(plan["silhouettes"].contains("morphology")
                               ? plan["silhouettes"]["morphology"]["choice"].get<std::string>()
                               : "-");
-    double own = 0, against_recipe = 0, against_unclosed = 0, against_truth = 0;
+    double own = 0, against_recipe = 0, against_unclosed = 0, against_truth = 0, inside = 0;
     if (summary.IsUsable()) {
       own = report.json()["metrics"]["heldout_iou_mean"].get<double>();
       const int64_t set = take.metadata().value("clean_plate_frames", int64_t{0});
       const cv::Mat image = take.ReadFrame(static_cast<size_t>(set), held.name);
-      const cv::Mat rendered =
-          RenderSilhouette(ReadPly(out / "000000.ply"), take.Camera(held.name));
+      const Mesh mesh = ReadPly(out / "000000.ply");
+      const cv::Mat rendered = RenderSilhouette(mesh, take.Camera(held.name));
+      inside = InsideFraction(mesh, truth_points);
       against_recipe = MaskIoU(rendered, ExtractSilhouette(image, cv::Mat(), Otsu(true)));
       against_unclosed = MaskIoU(rendered, ExtractSilhouette(image, cv::Mat(), Otsu(false)));
       const fs::path truth = take_dir / "gt" / "masks" / held.name / "000000.png";
@@ -116,9 +163,9 @@ Row LeaveOneOut(const fs::path& take_dir, const fs::path& work, SilhouetteMorpho
     }
     std::printf(
         "  %-6s held out %-11s %-10s %-14s own %.4f  recipe %.4f  unclosed %.4f  truth %.4f  "
-        "%.1f s\n",
+        "inside %.4f  %.1f s\n",
         ToString(morphology), held.name.c_str(), ToString(summary.termination),
-        row.choices.back().c_str(), own, against_recipe, against_unclosed, against_truth,
+        row.choices.back().c_str(), own, against_recipe, against_unclosed, against_truth, inside,
         summary.seconds);
     std::fflush(stdout);
     row.own.Add(own);
@@ -126,6 +173,7 @@ Row LeaveOneOut(const fs::path& take_dir, const fs::path& work, SilhouetteMorpho
     row.unclosed.Add(against_unclosed);
     row.cross.Add(0.5 * (against_recipe + against_unclosed));
     if (fs::exists(take_dir / "gt")) row.truth.Add(against_truth);
+    if (!truth_points.empty()) row.inside.Add(inside);
   }
   return row;
 }
@@ -152,10 +200,11 @@ void Table(const std::string& name, const fs::path& take_dir, const fs::path& wo
   }
   const Row recipe = LeaveOneOut(take_dir, work, SilhouetteMorphology::kRecipe, threads, stride);
   const auto line = [&](const char* asked, const Row& row) {
-    char text[320];
-    std::snprintf(text, sizeof(text), "%-12s %-7s %-5d %-16s %-16s %-16s %-16s %-16s %s",
+    char text[400];
+    std::snprintf(text, sizeof(text), "%-12s %-7s %-5d %-16s %-16s %-16s %-16s %-16s %-35s %s",
                   name.c_str(), asked, row.own.count, Choices(row.choices).c_str(),
                   row.own.Text().c_str(), row.cross.Text().c_str(), row.truth.Text().c_str(),
+                  row.inside.Text().c_str(),
                   (row.recipe.Text() + " | " + row.unclosed.Text()).c_str(), row.note.c_str());
     lines->push_back(text);
   };
