@@ -293,9 +293,9 @@ int main(int argc, char** argv) {
         "\nleave-one-out held-out IoU, mean / worst over the held-out views; own: against the "
         "view's silhouette with the row's morphology; cross: the mean of the IoUs against its "
         "Otsu silhouette with the recipe's morphology and without any (each listed last); "
-        "truth: against gt/masks\n");
-    std::printf("%-12s %-7s %-5s %-16s %-16s %-16s %-16s %s\n", "set", "asked", "views", "chosen",
-                "own", "cross", "truth", "recipe | unclosed");
+        "truth: against gt/masks; inside: the share of the true surface inside the mesh\n");
+    std::printf("%-12s %-7s %-5s %-16s %-16s %-16s %-16s %-16s %s\n", "set", "asked", "views",
+                "chosen", "own", "cross", "truth", "inside", "recipe | unclosed");
     for (const std::string& line : lines) std::printf("%s\n", line.c_str());
   } catch (const std::exception& e) {
     std::fprintf(stderr, "morphology_bench: %s\n", e.what());

@@ -150,6 +150,11 @@ TEST(VariantsTest, WorldScaleColourRingIsCorrectOrDegenerate) {
   ExpectCorrectOrDegenerate(outcome);
   EXPECT_EQ(outcome.report["plan"]["method"], "mvs");
   EXPECT_EQ(outcome.report["summary"]["termination"], "SUCCESS");
+  // A clean plate holds the whole subject: stereo carves inside the hull, and the plan says so.
+  EXPECT_EQ(outcome.report["plan"]["stereo_inside_hull"]["chosen"], true);
+  EXPECT_NE(outcome.cli.output.find("stereo inside the hull: chosen: the silhouettes hold"),
+            std::string::npos)
+      << outcome.cli.output;
 }
 
 // The same ring with the subject's pixels replaced by noise that differs from view to view:
@@ -272,6 +277,11 @@ TEST(VariantsTest, ObjectRingSilhouettesTakeTheMeasuredMorphologyNotTheRecipe) {
   EXPECT_EQ(morphology["measured"]["close_px"], 0) << morphology;
   EXPECT_EQ(morphology["measured"]["fill_px"].size(), 6u) << morphology;  // 0..5 px at 320
   EXPECT_NE(automatic.cli.output.find("silhouette morphology: none: the boundary is clean"),
+            std::string::npos)
+      << automatic.cli.output;
+  // Thresholded silhouettes may lose the subject's darkest parts: no stereo inside their hull.
+  EXPECT_EQ(automatic.report["plan"]["stereo_inside_hull"]["chosen"], false);
+  EXPECT_NE(automatic.cli.output.find("stereo inside the hull: not chosen: thresholded"),
             std::string::npos)
       << automatic.cli.output;
   const Outcome again = Reconstruct(take, "--overwrite");
