@@ -254,6 +254,12 @@ struct CalibratedCamera {
   double rms_px = 0;  // of its inlier residuals
   double median_board_distance_m = 0;
   PoseSpread pose_spread;
+  // The side of the board's tags (AprilTag), ArUco markers (ChArUco) or squares (chessboards),
+  // pixels, in the views detection found (each view's median): the smallest view and the
+  // median one (metrics "feature_side_px"). A camera flagged for too few views whose median is
+  // under twice the size a detector reads them from says so in its flag. NaN: no view.
+  double feature_side_px_min = std::numeric_limits<double>::quiet_NaN();
+  double feature_side_px_median = std::numeric_limits<double>::quiet_NaN();
   CameraUncertainty uncertainty;
   std::vector<Eigen::Vector2d> observed;   // inlier observed pixels (for pictures)
   std::vector<Eigen::Vector2d> residuals;  // their residuals (observed - projected)

@@ -769,6 +769,10 @@ nlohmann::json CalibrationSummary::ToJson() const {
                         {"rms_px", c.rms_px},
                         {"median_board_distance_m", c.median_board_distance_m},
                         {"pose_spread", c.pose_spread.ToJson()}};
+    j["feature_side_px"] = nullptr;
+    if (std::isfinite(c.feature_side_px_median)) {
+      j["feature_side_px"] = {{"min", c.feature_side_px_min}, {"median", c.feature_side_px_median}};
+    }
     if (c.solved) {
       j["lensmodel"] = c.model.lensmodel();
       j["intrinsics"] = c.model.intrinsics();
@@ -1023,6 +1027,61 @@ PoseSpread SpreadOf(const std::vector<double>& distances, const std::vector<doub
   return spread;
 }
 
+// The side, in pixels, of what a detector reads on `layout` in one view: a tag (AprilTag
+// boards), an ArUco marker (ChArUco boards) or a square (chessboards), measured between
+// neighbouring seen grid points along the rows and the columns (per grid step between them),
+// the median over the view. NaN when no two seen points share a row or a column.
+double FeatureSidePx(const BoardObservation& view, const BoardLayout& layout, int width_n,
+                     int height_n) {
+  std::vector<double> steps;
+  const auto seen = [&](int i, int j) { return view.points(j * width_n + i, 2) > 0; };
+  const auto pixel = [&](int i, int j) {
+    return Eigen::Vector2d(view.points(j * width_n + i, 0), view.points(j * width_n + i, 1));
+  };
+  for (int j = 0; j < height_n; ++j) {
+    for (int i = 0; i < width_n; ++i) {
+      if (!seen(i, j)) continue;
+      for (int d = 1; i + d < width_n; ++d) {
+        if (!seen(i + d, j)) continue;
+        steps.push_back((pixel(i + d, j) - pixel(i, j)).norm() / d);
+        break;
+      }
+      for (int d = 1; j + d < height_n; ++d) {
+        if (!seen(i, j + d)) continue;
+        steps.push_back((pixel(i, j + d) - pixel(i, j)).norm() / d);
+        break;
+      }
+    }
+  }
+  if (steps.empty()) return std::numeric_limits<double>::quiet_NaN();
+  std::nth_element(steps.begin(), steps.begin() + static_cast<std::ptrdiff_t>(steps.size() / 2),
+                   steps.end());
+  const double step = steps[steps.size() / 2];
+  if (layout.type == BoardType::kCharuco) return step * layout.marker_side / layout.spacing;
+  return step * layout.feature_steps();
+}
+
+// What a detector reads on `layout` and from about how many pixels across: libapriltag and
+// OpenCV's ArUco decode a tag or marker from about one pixel per bit cell with its border (a
+// tag36h11 is 8 cells across its black border, 10 with the white one); OpenCV's chessboard finder
+// drops quadrilaterals under 25 px² once its dilation has eaten into the black squares.
+struct ReadableFeature {
+  const char* plural;
+  const char* one;
+  double px;
+};
+ReadableFeature ReadableFeatureOf(const BoardLayout& layout) {
+  switch (layout.type) {
+    case BoardType::kAprilGrid:
+      return {"tags", "a tag", 10};
+    case BoardType::kCharuco:
+      return {"markers", "a marker", 10};
+    case BoardType::kChessboard:
+      break;
+  }
+  return {"squares", "a square", 8};
+}
+
 // How far apart two estimates of one camera's pose relative to another are: the angle between
 // their rotations or between their baselines' directions, whichever is larger (a seed's focal
 // length scales the baseline, not its direction).
@@ -1066,6 +1125,8 @@ class Calibrator {
   void CheckInput();
   void SelectViews();
   void SeedCamera(int c);
+  void MeasureFeatures(int c);
+  void FlagTooFewViews(int c, const std::string& why);
   bool PlaceCameras();
   Pose RelativePose(const std::vector<std::pair<int, int>>& pairs) const;
   void OrderViews();
@@ -1224,10 +1285,11 @@ void Calibrator::SelectViews() {
 // A stereographic focal length for camera c and every one of its views' board poses.
 void Calibrator::SeedCamera(int c) {
   auto& out = summary_.cameras[c];
+  MeasureFeatures(c);
   out.views = static_cast<int>(views_[c].size());
   if (out.views < options_.min_views_per_camera) {
-    out.flag =
-        Cat("only ", out.views, " usable board views (needs ", options_.min_views_per_camera, ")");
+    FlagTooFewViews(c, Cat("only ", out.views, " usable board views (needs ",
+                           options_.min_views_per_camera, ")"));
     return;
   }
   std::vector<const BoardObservation*> list;
@@ -1265,9 +1327,40 @@ void Calibrator::SeedCamera(int c) {
   views_[c] = seeded;
   out.views = static_cast<int>(seeded.size());
   if (out.views < options_.min_views_per_camera) {
-    out.flag = Cat("only ", out.views, " board views could be seeded (needs ",
-                   options_.min_views_per_camera, ")");
+    FlagTooFewViews(c, Cat("only ", out.views, " board views could be seeded (needs ",
+                           options_.min_views_per_camera, ")"));
   }
+}
+
+// The size of the board's tags (markers, squares) in every view of camera c that detection
+// found, however few points it holds: the smallest and the median view.
+void Calibrator::MeasureFeatures(int c) {
+  std::vector<double> sides;
+  for (const auto& view : observations_) {
+    if (view.sensor != cameras_[c].name) continue;
+    const double side = FeatureSidePx(view, layout_, board_.width_n(), board_.height_n());
+    if (std::isfinite(side)) sides.push_back(side);
+  }
+  if (sides.empty()) return;
+  std::sort(sides.begin(), sides.end());
+  summary_.cameras[c].feature_side_px_min = sides.front();
+  summary_.cameras[c].feature_side_px_median = sides[sides.size() / 2];
+}
+
+// Flags camera c for too few views, saying why when the views found show the board's tags
+// (markers, squares) near the size a detector reads them from: the views missed are then likely
+// those where they were smaller still, and a larger board, a closer one or more pixels help.
+void Calibrator::FlagTooFewViews(int c, const std::string& why) {
+  CalibratedCamera& out = summary_.cameras[c];
+  out.flag = why;
+  const ReadableFeature feature = ReadableFeatureOf(layout_);
+  if (!(out.feature_side_px_median < 2 * feature.px)) return;
+  const auto rounded = [](double px) { return std::round(px * 10) / 10; };
+  out.flag += Cat("; the board's ", feature.plural, " were ", rounded(out.feature_side_px_min), "-",
+                  rounded(out.feature_side_px_median),
+                  " px across where found (the smallest and the median view), and ", feature.one,
+                  " is read from about ", feature.px, " px: print larger ", feature.plural,
+                  ", bring the board closer, or capture the board at full resolution");
 }
 
 // The camera graph: cameras joined by shared frame sets, explored from the reference camera
@@ -1459,8 +1552,9 @@ void Calibrator::OrderViews() {
     CalibratedCamera& out = summary_.cameras[c];
     out.views = static_cast<int>(views_[c].size());
     if (out.flag.empty() && out.views < options_.min_views_per_camera) {
-      out.flag = Cat("only ", out.views, " board views numbered as the other cameras' (needs ",
-                     options_.min_views_per_camera, ")");
+      FlagTooFewViews(static_cast<int>(c),
+                      Cat("only ", out.views, " board views numbered as the other cameras' (needs ",
+                          options_.min_views_per_camera, ")"));
     }
   }
 }

@@ -406,6 +406,50 @@ TEST(CalibrateCli, ABoardThatNeverMovesIsDegenerateForEveryLensModel) {
   EXPECT_LT(report["metrics"]["gt"]["focal_rel_err_max"].get<double>(), 0.005);
 }
 
+// A camera left with too few views says why when its views show the board's tags small: studio8
+// at 320 px sees the default board's 10 cm tags 13-16 px across where it finds them (measured from
+// the detected corners), near the ~10 px a tag is read from, and finds cam0's board twice in 40
+// frame sets. At 640 px and 6 frame sets the cameras have as few views, of tags over 20 px: the
+// cause is the frame count, and the message does not blame the tags.
+TEST(CalibrateCli, TooFewViewsOfSmallTagsSaySo) {
+  TempDir dir("holocap-calib-small-tags");
+  const auto board_take = [&](const std::string& name, const std::string& flags) {
+    const std::string take = (dir.path() / name).string();
+    const auto sim = RunCli("sim --rig studio8 --board " + flags + " --out " + take);
+    EXPECT_EQ(sim.exit_code, 0) << sim.output;
+    return take;
+  };
+  const std::string small = board_take("320", "--frames 40 --size 320");
+  const auto r = RunCli("calibrate " + small + " --no-pictures");
+  EXPECT_NE(r.exit_code, 0) << r.output;
+  EXPECT_NE(r.output.find("DEGENERATE: reference camera cam0: only 2 usable board views (needs "
+                          "8); the board's tags were "),
+            std::string::npos)
+      << r.output;
+  EXPECT_NE(r.output.find("and a tag is read from about 10 px: print larger tags, bring the "
+                          "board closer, or capture the board at full resolution"),
+            std::string::npos)
+      << r.output;
+  const auto report = nlohmann::json::parse(
+      ReadFileToString(std::filesystem::path(small) / "calib" / "report.json"));
+  EXPECT_EQ(report["summary"]["termination"], "DEGENERATE");
+  const auto& cam0 = report["metrics"]["cameras"]["cam0"]["feature_side_px"];
+  EXPECT_LT(cam0["median"].get<double>(), 20) << cam0.dump();
+  EXPECT_LE(cam0["min"].get<double>(), cam0["median"].get<double>());
+
+  const std::string few = board_take("640", "--frames 6 --size 640 --color-only");
+  const auto r640 = RunCli("calibrate " + few + " --no-pictures");
+  EXPECT_NE(r640.exit_code, 0) << r640.output;
+  EXPECT_NE(r640.output.find("DEGENERATE: reference camera cam0: only 1 usable board views (needs "
+                             "8)"),
+            std::string::npos)
+      << r640.output;
+  EXPECT_EQ(r640.output.find("read from about"), std::string::npos) << r640.output;
+  const auto report640 =
+      nlohmann::json::parse(ReadFileToString(std::filesystem::path(few) / "calib" / "report.json"));
+  EXPECT_GE(report640["metrics"]["cameras"]["cam0"]["feature_side_px"]["median"].get<double>(), 20);
+}
+
 // A lens model that cannot describe the lens converges all the same; its residuals give it away:
 // far above the corners' noise, which the same corners solved in a richer model show. The ring's
 // lenses are OPENCV4 and OPENCV5 with real distortion (k1 -0.08 and -0.12): PINHOLE, LONLAT and

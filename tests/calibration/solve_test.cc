@@ -1,8 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <vector>
 
 #include "calibration/calibration.h"
 #include "calibration/internal/common.h"
@@ -219,6 +221,63 @@ TEST(Calibrate, FlagsACameraWithOnlyThreeViews) {
   EXPECT_FALSE(s.Find("cam2")->solved);
   EXPECT_TRUE(s.Find("cam0")->solved);
   EXPECT_TRUE(s.Find("cam1")->solved);
+  // Its tags were large where found (6 cm at 0.6-1.2 m at f ~ 500 px): too few views is then
+  // not the board's size, and the flag does not blame it.
+  EXPECT_GT(s.Find("cam2")->feature_side_px_min, 20);
+  EXPECT_EQ(s.message.find("read from about"), std::string::npos) << s.message;
+}
+
+// The same camera with its three views' corners drawn in to a quarter about each view's centre
+// (as a board four times as far would show its tags, ~6-12 px): the flag says the tags were small
+// where found, measured from the views' own pixels (a quarter of the same views' sizes unshrunk).
+TEST(Calibrate, ACameraWithFewViewsOfSmallTagsIsToldSo) {
+  SyntheticOptions options = ReducedRig();
+  options.frames = 60;
+  SyntheticRig rig = MakeSyntheticRig(options);
+  std::vector<BoardObservation> kept;
+  std::vector<BoardObservation> shrunk;
+  int cam2 = 0;
+  for (auto obs : rig.observations) {
+    if (obs.sensor == "cam2" && ++cam2 > 3) continue;
+    kept.push_back(obs);
+    if (obs.sensor == "cam2") {
+      Eigen::Vector2d centre = Eigen::Vector2d::Zero();
+      int seen = 0;
+      for (int r = 0; r < obs.points.rows(); ++r) {
+        if (obs.points(r, 2) <= 0) continue;
+        centre += obs.points.row(r).head<2>().transpose();
+        ++seen;
+      }
+      centre /= seen;
+      for (int r = 0; r < obs.points.rows(); ++r) {
+        obs.points.row(r).head<2>() =
+            (centre + 0.25 * (obs.points.row(r).head<2>().transpose() - centre)).transpose();
+      }
+    }
+    shrunk.push_back(obs);
+  }
+  CalibrationOptions solve;
+  solve.uncertainty = false;
+  const CalibrationSummary large = Calibrate(rig.layout, rig.cameras, kept, solve);
+  const CalibrationSummary s = Calibrate(rig.layout, rig.cameras, shrunk, solve);
+  EXPECT_EQ(s.termination, Termination::kDegenerate);
+  const CalibratedCamera& flagged = *s.Find("cam2");
+  EXPECT_FALSE(flagged.solved);
+  // 6 cm tags 0.6-1.2 m away at f ~ 500 px are 25-50 px; a quarter of that here.
+  const CalibratedCamera& unshrunk = *large.Find("cam2");
+  EXPECT_GT(unshrunk.feature_side_px_min, 20);
+  EXPECT_LT(unshrunk.feature_side_px_median, 60);
+  EXPECT_NEAR(flagged.feature_side_px_min, 0.25 * unshrunk.feature_side_px_min, 1e-9);
+  EXPECT_NEAR(flagged.feature_side_px_median, 0.25 * unshrunk.feature_side_px_median, 1e-9);
+  EXPECT_NE(s.message.find("cam2 (only 3 usable board views (needs 8); the board's tags were "),
+            std::string::npos)
+      << s.message;
+  EXPECT_NE(s.message.find("px across where found (the smallest and the median view), and a tag "
+                           "is read from about 10 px: print larger tags, bring the board closer, "
+                           "or capture the board at full resolution"),
+            std::string::npos)
+      << s.message;
+  EXPECT_EQ(large.message.find("read from about"), std::string::npos) << large.message;
 }
 
 TEST(Calibrate, ReportsACameraThatNeverSharesAView) {
