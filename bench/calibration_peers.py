@@ -8,6 +8,14 @@ mrcal, cv2, numpy).
       Every solver runs on the PNGs of `holocap export images --format png` (written into
       DIR/images), each with its own corners and again with holocap's (`calibrate
       --write-corners`), and is scored against the truth: one table on stdout.
+  calibration_peers.py real --holocap BIN --data DIR --work DIR [--focal F]
+      Real photographs, no truth: DIR holds left*.jpg, right*.jpg (paired by number) and
+      board.yaml (a chessboard). `holocap import images` makes the take, and holocap, mrcal
+      (on holocap's corners; mrgingham reads square N x N grids only and is left out of a board
+      with unequal sides, with that reason) and OpenCV (its own corners and holocap's) solve it;
+      the table gives each one's fx fy cx cy per camera, the second camera's baseline and
+      rotation, RMS, outliers, holocap's cross-validation and CPU seconds, beside holocap's own
+      1-sigma of each figure, and how far holocap's corners lie from OpenCV's cornerSubPix.
   calibration_peers.py check-corners --holocap BIN [--work DIR]
       The bench's corner files checked on a tiny simulated take: holocap's corners.vnl read
       back lie on the true corners (each frame set numbered alike in every camera, up to a turn
@@ -123,6 +131,9 @@ class Take:
         self.world_from_board = {b["set"]: np.array(b["matrix"]) for b in board["world_from_board"]}
         self.truth = {c: mrcal.cameramodel(os.path.join(path, "gt", "cameras", c + ".cameramodel"))
                       for c in self.cameras}
+
+    def imagersize(self):
+        return tuple(int(v) for v in self.truth[self.cameras[0]].imagersize())
 
     def object_points(self):
         """The board's grid (z = 0) in grid order, j * width_n + i: mrcal's and holocap's."""
@@ -367,7 +378,7 @@ def solve_opencv(take, work, corners_vnl):
             camera, s = view_key(name)
             views[camera][s] = points
     obj = take.object_points().astype(np.float32)
-    size = tuple(int(v) for v in take.truth[take.cameras[0]].imagersize())
+    size = take.imagersize()
     K, dist, sq, n = {}, {}, 0.0, 0
     for c in take.cameras:
         frames = sorted(views[c])
@@ -541,6 +552,198 @@ def main_run(args):
     print_table(rows)
 
 
+class RealTake:
+    """An imported take of photographs: its cameras, the board of a chessboard YAML and the
+    images' size (no gt/)."""
+
+    def __init__(self, path, board_yaml, images):
+        self.path = path
+        with open(os.path.join(path, "take.json")) as f:
+            take = json.load(f)
+        self.cameras = [s["name"] for s in take["rig"]["sensors"] if s.get("role") == "color"]
+        fields = {}
+        with open(board_yaml) as f:
+            for line in f:
+                line = line.split("#", 1)[0]
+                if ":" in line:
+                    key, value = line.split(":", 1)
+                    fields[key.strip()] = value.strip()
+        if fields.get("type") != "chessboard":
+            sys.exit(f"calibration_peers.py: {board_yaml} is not a chessboard")
+        self.width_n = int(fields.get("chessboard_width_n", 9))
+        self.height_n = int(fields.get("chessboard_height_n", 6))
+        self.spacing = float(fields["spacing"])
+        first = sorted(glob.glob(os.path.join(images, self.cameras[0], "*.png")))[0]
+        h, w = cv2.imread(first, cv2.IMREAD_GRAYSCALE).shape
+        self.size = (w, h)
+
+    def imagersize(self):
+        return self.size
+
+    object_points = Take.object_points
+
+
+def corner_distances(take, images):
+    """holocap's corners (holocap.vnl) against OpenCV's findChessboardCorners + cornerSubPix on
+    the same images, each view's numbering turned to the closer one: every distance, px."""
+    orders = turn_orders(take.width_n, take.height_n)
+    distances = []
+    for name, points in read_vnl(os.path.join(images, "holocap.vnl")):
+        theirs = find_opencv_corners(os.path.join(images, name), take)
+        if theirs is None:
+            continue
+        both = (points[:, 2] > 0)
+        best = min((np.linalg.norm(points[both, :2] - theirs[o][both, :2], axis=1)
+                    for o in orders), key=lambda d: d.mean())
+        distances.append(best)
+    return np.concatenate(distances) if distances else np.zeros(0)
+
+
+def rig_figures(models, cameras):
+    """fx fy cx cy per camera, and each further camera's baseline (m) and rotation (degrees)
+    relative to the first."""
+    out = dict(intrinsics={c: models[c].intrinsics()[1][:4] for c in cameras})
+    rt = models[cameras[1]].extrinsics_rt_fromref()
+    out["baseline_m"] = float(np.linalg.norm(rt[3:]))
+    out["rotation_deg"] = float(np.degrees(np.linalg.norm(rt[:3])))
+    return out
+
+
+def solve_holocap_real(args, take, work, lensmodel):
+    """holocap calibrate as a user runs it (the board only; `lensmodel` None: its default), then
+    again with --cross-validate for the halves' agreement."""
+    clock = CpuClock()
+    command = [args.holocap, "calibrate", take.path, "--no-pictures",
+               "--board", args.board]
+    if lensmodel:
+        command += ["--lens-model", lensmodel]
+    else:
+        command += ["--write-corners", os.path.join(work, "images", "holocap.vnl")]
+    label = (lensmodel or "default").replace("LENSMODEL_", "")
+    rc, out = run(command, log=os.path.join(work, f"holocap-{label}.log"))
+    cpu = clock.seconds()
+    report_path = os.path.join(take.path, "calib", "report.json")
+    with open(report_path) as f:
+        report = json.load(f)
+    state = report["summary"]["termination"]
+    result = dict(cpu=cpu, note=state if rc == 0 else f"{state} (exit {rc})")
+    if rc != 0:
+        return result
+    metrics = report["metrics"]
+    models = {c: mrcal.cameramodel(os.path.join(take.path, "calib", c + ".cameramodel"))
+              for c in take.cameras}
+    cams = metrics["cameras"]
+    second = cams[take.cameras[1]]
+    result.update(models=models_from_ref(models, take.cameras),
+                  rms=metrics["rms_reprojection_px"], outliers=metrics["outliers"],
+                  views=sum(c["views"] for c in cams.values()),
+                  dropped=len(metrics["dropped_views"]) + len(metrics["detection"]["rejected"]),
+                  sigma=dict(intrinsics={c: cams[c]["intrinsics_sigma"][:4] for c in take.cameras},
+                             baseline_m=second["center_sigma_mm"] / 1000,
+                             rotation_deg=second["rotation_sigma_deg"]))
+    shutil.copytree(os.path.join(take.path, "calib"), os.path.join(work, f"calib-{label}"),
+                    dirs_exist_ok=True)
+    # The cross-validation: two disjoint halves of the frame sets against the prediction.
+    command = [c for c in command if not c.endswith("holocap.vnl") and c != "--write-corners"]
+    rc_cv, _ = run(command + ["--cross-validate"], log=os.path.join(work, f"holocap-{label}-cv.log"))
+    cv_path = report_path if rc_cv == 0 else os.path.join(take.path, "calib", "report.failed.json")
+    with open(cv_path) as f:
+        cv_report = json.load(f)
+    cv = cv_report["metrics"].get("cross_validation", {})
+    result["cross_validation"] = (
+        f"cross-validated: {cv_report['summary']['termination']}, the halves "
+        f"{cv.get('worst_ratio_to_predicted', 0):.1f}x their predicted difference (limit 2x)")
+    return result
+
+
+def solve_mrcal_real(args, take, work, lensmodel, label, extra=()):
+    r = solve_mrcal(args, take, work, "holocap.vnl", lensmodel, label, extra)
+    if "models" in r:
+        files = sorted(glob.glob(os.path.join(work, f"mrcal-{label}", "*.cameramodel")))
+        inputs = mrcal.cameramodel(files[0]).optimization_inputs()
+        r["outliers"] = int((inputs["observations_board"][..., 2] <= 0).sum())
+    return r
+
+
+def print_real_table(rows, cameras, sigma):
+    head = f"{'solver':<8} {'corners':<9} {'model':<8} {'views':>5} {'rms_px':>6} {'outl':>4}"
+    for c in cameras:
+        head += f" {c + '_fx':>9} {c + '_fy':>9} {c + '_cx':>9} {c + '_cy':>9}"
+    head += f" {'base_mm':>8} {'rot_deg':>7} {'cpu_s':>6}  note"
+    print(head)
+
+    def line(solver, corners, model, r):
+        if "models" not in r:
+            return f"{solver:<8} {corners:<9} {model:<8} {'-':>5} {'-':>6} {'-':>4}" + \
+                " ".join(f"{'-':>9}" for _ in range(4 * len(cameras))) + \
+                f" {'-':>8} {'-':>7} {r['cpu']:>6.1f}  {r['note']}"
+        f = rig_figures(r["models"], cameras)
+        text = f"{solver:<8} {corners:<9} {model:<8} {r['views']:>5} {r['rms']:>6.3f} " \
+            f"{r.get('outliers', 0):>4}"
+        for c in cameras:
+            text += "".join(f" {v:>9.2f}" for v in f["intrinsics"][c])
+        note = "; ".join(filter(None, (r["note"], r.get("cross_validation", ""))))
+        return text + f" {1000 * f['baseline_m']:>8.2f} {f['rotation_deg']:>7.3f} " \
+            f"{r['cpu']:>6.1f}  {note}"
+    for row in rows:
+        print(line(*row))
+    text = f"{'holocap':<8} {'1-sigma':<9} {'OPENCV5':<8} {'':>5} {'':>6} {'':>4}"
+    for c in cameras:
+        text += "".join(f" {v:>9.2f}" for v in sigma["intrinsics"][c])
+    print(text + f" {1000 * sigma['baseline_m']:>8.2f} {sigma['rotation_deg']:>7.3f}")
+
+
+def main_real(args):
+    work = os.path.abspath(args.work)
+    os.makedirs(work, exist_ok=True)
+    take_dir = os.path.join(work, "take")
+    args.board = os.path.join(args.data, "board.yaml")
+    rc, out = run([args.holocap, "import", "images", "--camera",
+                   f"left={os.path.join(args.data, 'left*.jpg')}", "--camera",
+                   f"right={os.path.join(args.data, 'right*.jpg')}", "--out", take_dir,
+                   "--overwrite"])
+    if rc != 0:
+        sys.exit(f"calibration_peers.py: import images failed: {out}")
+    print("# " + out.strip().splitlines()[0])
+    images = os.path.join(work, "images")
+    if os.path.exists(images):
+        shutil.rmtree(images)
+    rc, out = run([args.holocap, "export", "images", take_dir, "--out", images, "--format", "png"])
+    if rc != 0:
+        sys.exit(f"calibration_peers.py: export images failed: {out}")
+    take = RealTake(take_dir, args.board, images)
+    default = solve_holocap_real(args, take, work, None)
+    opencv5 = solve_holocap_real(args, take, work, "LENSMODEL_OPENCV5")
+    why = "mrgingham finds square grids only (--gridn N: N x N inner corners)"
+    rows = [("holocap", "holocap", "OPENCV8", default),
+            ("holocap", "holocap", "OPENCV5", opencv5),
+            ("mrcal", "holocap", "OPENCV8",
+             solve_mrcal_real(args, take, work, "LENSMODEL_OPENCV8", "holocap-8")),
+            ("mrcal", "holocap", "OPENCV5",
+             solve_mrcal_real(args, take, work, "LENSMODEL_OPENCV5", "holocap-5")),
+            ("opencv", "opencv", "standard", solve_opencv(take, work, None)),
+            ("opencv", "holocap", "standard",
+             solve_opencv(take, work, os.path.join(images, "holocap.vnl")))]
+    for solver, _, _, r in rows:
+        if solver == "opencv" and "models" in r:
+            r["note"] = "; ".join(filter(None, (r["note"], "every point kept (no outlier "
+                                                "rejection)")))
+    print(f"# board {take.width_n} x {take.height_n} inner corners, {1000 * take.spacing:g} mm "
+          "squares (assumed: lengths scale with it)")
+    print(f"# mrgingham left out: {why}; this board has {take.width_n} x {take.height_n}")
+    if "sigma" in opencv5:
+        print_real_table(rows, take.cameras, opencv5["sigma"])
+    else:
+        print_real_table(rows, take.cameras, dict(
+            intrinsics={c: [float("nan")] * 4 for c in take.cameras}, baseline_m=float("nan"),
+            rotation_deg=float("nan")))
+    d = corner_distances(take, images)
+    if d.size:
+        print(f"# corners, holocap against OpenCV's findChessboardCorners + cornerSubPix on the "
+              f"same images: {d.size} corners, mean {d.mean():.3f} px, p95 "
+              f"{np.percentile(d, 95):.3f} px, max {d.max():.3f} px")
+
+
 def main_check(args):
     work = args.work or os.path.join("/tmp", f"calibration-peers-check-{os.getpid()}")
     os.makedirs(work, exist_ok=True)
@@ -583,11 +786,17 @@ def main():
     r.add_argument("--focal", type=float, default=500,
                    help="mrcal-calibrate-cameras' seed focal length (a nominal guess, px)")
     r.add_argument("--splined", default="")
+    real = sub.add_parser("real")
+    real.add_argument("--holocap", required=True)
+    real.add_argument("--data", required=True)
+    real.add_argument("--work", required=True)
+    real.add_argument("--focal", type=float, default=500,
+                      help="mrcal-calibrate-cameras' seed focal length (a nominal guess, px)")
     c = sub.add_parser("check-corners")
     c.add_argument("--holocap", required=True)
     c.add_argument("--work", default="")
     args = parser.parse_args()
-    (main_run if args.command == "run" else main_check)(args)
+    {"run": main_run, "real": main_real, "check-corners": main_check}[args.command](args)
 
 
 if __name__ == "__main__":
