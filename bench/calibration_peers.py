@@ -239,28 +239,37 @@ def models_from_ref(models, cameras):
     return out
 
 
+def holocap_result(take, rc, cpu):
+    """What `holocap calibrate` (exit status rc) left in take/calib: a result (cpu, note: the
+    ending; models, relative to the first camera, when it trusted the solve) and the report's
+    metrics (None when it did not)."""
+    with open(os.path.join(take.path, "calib", "report.json")) as f:
+        report = json.load(f)
+    state = report["summary"]["termination"]
+    result = dict(cpu=cpu, note=state if rc == 0 else f"{state} (exit {rc})")
+    if rc != 0:
+        return result, None
+    models = {c: mrcal.cameramodel(os.path.join(take.path, "calib", c + ".cameramodel"))
+              for c in take.cameras}
+    result["models"] = models_from_ref(models, take.cameras)
+    return result, report["metrics"]
+
+
 def solve_holocap(args, take, work, detector):
     clock = CpuClock()
     command = [args.holocap, "calibrate", take.path, "--no-pictures", "--lens-model",
                args.lensmodel, "--detector", detector]
     if detector == "holocap":
         command += ["--write-corners", os.path.join(work, "images", "holocap.vnl")]
-    rc, out = run(command, log=os.path.join(work, f"holocap-{detector}.log"))
-    cpu = clock.seconds()
-    with open(os.path.join(take.path, "calib", "report.json")) as f:
-        report = json.load(f)
-    state = report["summary"]["termination"]
-    result = dict(cpu=cpu, note=state if rc == 0 else f"{state} (exit {rc})")
-    if rc != 0:
+    rc, _ = run(command, log=os.path.join(work, f"holocap-{detector}.log"))
+    result, metrics = holocap_result(take, rc, clock.seconds())
+    if metrics is None:
         return result
-    metrics = report["metrics"]
-    models = {c: mrcal.cameramodel(os.path.join(take.path, "calib", c + ".cameramodel"))
-              for c in take.cameras}
     # The solve's own 1-sigma of the principal point, the worst camera's: how far apart two
     # solves of the same views may honestly land.
     pp_sigma = max(max(c["intrinsics_sigma"][2:4]) for c in metrics["cameras"].values())
-    result.update(models=models_from_ref(models, take.cameras),
-                  rms=metrics["rms_reprojection_px"],
+    state = result["note"]
+    result.update(rms=metrics["rms_reprojection_px"],
                   views=sum(c["views"] for c in metrics["cameras"].values()),
                   note=f"{state}, principal point 1-sigma {pp_sigma:.3f} px")
     return result
@@ -620,22 +629,13 @@ def solve_holocap_real(args, take, work, lensmodel):
     else:
         command += ["--write-corners", os.path.join(work, "images", "holocap.vnl")]
     label = (lensmodel or "default").replace("LENSMODEL_", "")
-    rc, out = run(command, log=os.path.join(work, f"holocap-{label}.log"))
-    cpu = clock.seconds()
-    report_path = os.path.join(take.path, "calib", "report.json")
-    with open(report_path) as f:
-        report = json.load(f)
-    state = report["summary"]["termination"]
-    result = dict(cpu=cpu, note=state if rc == 0 else f"{state} (exit {rc})")
-    if rc != 0:
+    rc, _ = run(command, log=os.path.join(work, f"holocap-{label}.log"))
+    result, metrics = holocap_result(take, rc, clock.seconds())
+    if metrics is None:
         return result
-    metrics = report["metrics"]
-    models = {c: mrcal.cameramodel(os.path.join(take.path, "calib", c + ".cameramodel"))
-              for c in take.cameras}
     cams = metrics["cameras"]
     second = cams[take.cameras[1]]
-    result.update(models=models_from_ref(models, take.cameras),
-                  rms=metrics["rms_reprojection_px"], outliers=metrics["outliers"],
+    result.update(rms=metrics["rms_reprojection_px"], outliers=metrics["outliers"],
                   views=sum(c["views"] for c in cams.values()),
                   dropped=len(metrics["dropped_views"]) + len(metrics["detection"]["rejected"]),
                   sigma=dict(intrinsics={c: cams[c]["intrinsics_sigma"][:4] for c in take.cameras},
@@ -646,7 +646,8 @@ def solve_holocap_real(args, take, work, lensmodel):
     # The cross-validation: two disjoint halves of the frame sets against the prediction.
     command = [c for c in command if not c.endswith("holocap.vnl") and c != "--write-corners"]
     rc_cv, _ = run(command + ["--cross-validate"], log=os.path.join(work, f"holocap-{label}-cv.log"))
-    cv_path = report_path if rc_cv == 0 else os.path.join(take.path, "calib", "report.failed.json")
+    cv_path = os.path.join(take.path, "calib",
+                           "report.json" if rc_cv == 0 else "report.failed.json")
     with open(cv_path) as f:
         cv_report = json.load(f)
     cv = cv_report["metrics"].get("cross_validation", {})

@@ -413,41 +413,37 @@ TEST(CalibrateCli, ABoardThatNeverMovesIsDegenerateForEveryLensModel) {
 // cause is the frame count, and the message does not blame the tags.
 TEST(CalibrateCli, TooFewViewsOfSmallTagsSaySo) {
   TempDir dir("holocap-calib-small-tags");
-  const auto board_take = [&](const std::string& name, const std::string& flags) {
+  // Simulates and calibrates a studio8 board take; returns the output (the calibration must end
+  // DEGENERATE naming cam0's `views`) and cam0's measured tag sides.
+  const auto degenerate = [&](const std::string& name, const std::string& flags,
+                              const std::string& views) {
     const std::string take = (dir.path() / name).string();
     const auto sim = RunCli("sim --rig studio8 --board " + flags + " --out " + take);
     EXPECT_EQ(sim.exit_code, 0) << sim.output;
-    return take;
+    const auto r = RunCli("calibrate " + take + " --no-pictures");
+    EXPECT_NE(r.exit_code, 0) << r.output;
+    EXPECT_NE(r.output.find("DEGENERATE: reference camera cam0: only " + views +
+                            " usable board views (needs 8)"),
+              std::string::npos)
+        << r.output;
+    const auto report = nlohmann::json::parse(
+        ReadFileToString(std::filesystem::path(take) / "calib" / "report.json"));
+    EXPECT_EQ(report["summary"]["termination"], "DEGENERATE");
+    return std::make_pair(r.output, report["metrics"]["cameras"]["cam0"]["feature_side_px"]);
   };
-  const std::string small = board_take("320", "--frames 40 --size 320");
-  const auto r = RunCli("calibrate " + small + " --no-pictures");
-  EXPECT_NE(r.exit_code, 0) << r.output;
-  EXPECT_NE(r.output.find("DEGENERATE: reference camera cam0: only 2 usable board views (needs "
-                          "8); the board's tags were "),
+  const auto [small, small_px] = degenerate("320", "--frames 40 --size 320", "2");
+  EXPECT_NE(small.find("usable board views (needs 8); the board's tags were "), std::string::npos)
+      << small;
+  EXPECT_NE(small.find("and a tag is read from about 10 px: print larger tags, bring the board "
+                       "closer, or capture the board at full resolution"),
             std::string::npos)
-      << r.output;
-  EXPECT_NE(r.output.find("and a tag is read from about 10 px: print larger tags, bring the "
-                          "board closer, or capture the board at full resolution"),
-            std::string::npos)
-      << r.output;
-  const auto report = nlohmann::json::parse(
-      ReadFileToString(std::filesystem::path(small) / "calib" / "report.json"));
-  EXPECT_EQ(report["summary"]["termination"], "DEGENERATE");
-  const auto& cam0 = report["metrics"]["cameras"]["cam0"]["feature_side_px"];
-  EXPECT_LT(cam0["median"].get<double>(), 20) << cam0.dump();
-  EXPECT_LE(cam0["min"].get<double>(), cam0["median"].get<double>());
+      << small;
+  EXPECT_LT(small_px["median"].get<double>(), 20) << small_px.dump();
+  EXPECT_LE(small_px["min"].get<double>(), small_px["median"].get<double>());
 
-  const std::string few = board_take("640", "--frames 6 --size 640 --color-only");
-  const auto r640 = RunCli("calibrate " + few + " --no-pictures");
-  EXPECT_NE(r640.exit_code, 0) << r640.output;
-  EXPECT_NE(r640.output.find("DEGENERATE: reference camera cam0: only 1 usable board views (needs "
-                             "8)"),
-            std::string::npos)
-      << r640.output;
-  EXPECT_EQ(r640.output.find("read from about"), std::string::npos) << r640.output;
-  const auto report640 =
-      nlohmann::json::parse(ReadFileToString(std::filesystem::path(few) / "calib" / "report.json"));
-  EXPECT_GE(report640["metrics"]["cameras"]["cam0"]["feature_side_px"]["median"].get<double>(), 20);
+  const auto [few, few_px] = degenerate("640", "--frames 6 --size 640 --color-only", "1");
+  EXPECT_EQ(few.find("read from about"), std::string::npos) << few;
+  EXPECT_GE(few_px["median"].get<double>(), 20) << few_px.dump();
 }
 
 // A lens model that cannot describe the lens converges all the same; its residuals give it away:

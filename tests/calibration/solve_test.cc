@@ -33,6 +33,7 @@ std::vector<CameraModel> StudioLenses(int count) {
                   640, 480),
   };
   std::vector<CameraModel> out;
+  out.reserve(static_cast<size_t>(count));
   for (int i = 0; i < count; ++i) out.push_back(lenses[i % lenses.size()]);
   return out;
 }
