@@ -28,6 +28,7 @@ struct CalibrateArgs {
   int64_t floor_board_set = -1;
   bool no_uncertainty = false;
   bool cross_validation = false;
+  bool board_warp = false;
   bool no_pictures = false;
   std::string write_corners;
   int threads = 0;
@@ -123,6 +124,9 @@ void AddCalibrateCommand(CLI::App& app) {
   command->add_flag("--no-uncertainty", args->no_uncertainty, "Skip the projection uncertainty");
   command->add_flag("--cross-validate", args->cross_validation,
                     "Also solve two halves of the frames");
+  command->add_flag("--board-warp", args->board_warp,
+                    "Also solve the board's warp (mrcal's calobject_warp: a printed board that "
+                    "bows along each axis)");
   command->add_flag("--no-pictures", args->no_pictures,
                     "Skip the residual/coverage/uncertainty PNGs");
   command->add_option(
@@ -163,6 +167,7 @@ void AddCalibrateCommand(CLI::App& app) {
     options.floor_board_set = args->floor_board_set;
     options.solve.uncertainty = !args->no_uncertainty;
     options.solve.cross_validation = args->cross_validation;
+    options.solve.solve_board_warp = args->board_warp;
     options.pictures = !args->no_pictures;
     options.detection.threads = args->threads;
     options.compare_detectors = args->compare_detectors;

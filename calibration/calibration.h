@@ -172,7 +172,11 @@ struct CalibrationOptions {
   bool regularization = true;     // mrcal's regularisation in the final stage
   bool outlier_rejection = true;  // mrcal's outlier rejection in the final stage
   bool solve_board_warp = false;  // solve mrcal's board warp (printed boards that bow)
-  double max_seed_rms_px = 50;    // a seed solve worse than this is reported as failed
+  // AprilTag boards: the tag side, px, detection keeps a tag from (DetectionOptions::
+  // min_tag_side_px; a take's calibration passes it on), for the reason given to a camera with
+  // too few views; 0: that option's default.
+  double tag_read_px = 0;
+  double max_seed_rms_px = 50;  // a seed solve worse than this is reported as failed
   // Symmetric boards: a view whose seeded pose relative to its frame set's anchor view is
   // farther than this (rotation or baseline direction) from the two cameras' relative pose
   // under every numbering of the board is left out.
@@ -257,7 +261,7 @@ struct CalibratedCamera {
   // The side of the board's tags (AprilTag), ArUco markers (ChArUco) or squares (chessboards),
   // pixels, in the views detection found (each view's median): the smallest view and the
   // median one (metrics "feature_side_px"). A camera flagged for too few views whose median is
-  // under twice the size a detector reads them from says so in its flag. NaN: no view.
+  // under 1.5 times the size detection reads them from says so in its flag. NaN: no view.
   double feature_side_px_min = std::numeric_limits<double>::quiet_NaN();
   double feature_side_px_median = std::numeric_limits<double>::quiet_NaN();
   CameraUncertainty uncertainty;
@@ -334,6 +338,11 @@ struct CalibrationSummary : Summary {
   // Solved board poses (ref_from_board) per frame set, for comparisons with truth.
   std::map<int64_t, Pose> ref_from_board;
   nlohmann::json cross_validation;  // empty unless requested
+  // The board's warp (CalibrationOptions::solve_board_warp), mrcal's calobject_warp: metres the
+  // board's centre stands out of its plane along x and along y (metrics "board_warp_m"); NaN
+  // unless solved.
+  double board_warp_x_m = std::numeric_limits<double>::quiet_NaN();
+  double board_warp_y_m = std::numeric_limits<double>::quiet_NaN();
   // The lens model's fit (CalibrationOptions::check_model_fit): the noise expected, where it
   // came from, and per camera the RMS and worst residual coordinate against it and the limit.
   nlohmann::json model_fit;

@@ -709,6 +709,7 @@ CameraUncertainty Uncertainty(Problem& p, Factorization& f, int icam, double dis
 void CalibrationOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(min_views_per_camera, 3);
   HOLOCAP_CHECK_OPTION_GE(min_points_per_view, 4);
+  HOLOCAP_CHECK_OPTION_GE(tag_read_px, 0, "0: DetectionOptions::min_tag_side_px's default");
   HOLOCAP_CHECK_OPTION_GT(max_seed_rms_px, 0);
   HOLOCAP_CHECK_OPTION_IN(max_order_disagreement_deg, 1, 45,
                           "a numbering a quarter turn away differs by 90 degrees");
@@ -730,6 +731,7 @@ nlohmann::json CalibrationOptions::ToJson() const {
           {"regularization", regularization},
           {"outlier_rejection", outlier_rejection},
           {"solve_board_warp", solve_board_warp},
+          {"tag_read_px", tag_read_px},
           {"max_seed_rms_px", max_seed_rms_px},
           {"max_order_disagreement_deg", max_order_disagreement_deg},
           {"uncertainty", uncertainty},
@@ -836,6 +838,9 @@ nlohmann::json CalibrationSummary::ToJson() const {
       {"cameras", cams},
       {"stages", stage_json},
       {"model_fit", model_fit},
+      {"board_warp_m", std::isfinite(board_warp_x_m)
+                           ? nlohmann::json::array({board_warp_x_m, board_warp_y_m})
+                           : nlohmann::json(nullptr)},
       {"timing", {{"solve_s", solve_seconds}, {"uncertainty_s", uncertainty_seconds}}}};
   for (const auto& s : stages) {
     if (s.name != "everything") continue;
@@ -1061,25 +1066,32 @@ double FeatureSidePx(const BoardObservation& view, const BoardLayout& layout, in
   return step * layout.feature_steps();
 }
 
-// What a detector reads on `layout` and from about how many pixels across: libapriltag and
-// OpenCV's ArUco decode a tag or marker from about one pixel per bit cell with its border (a
-// tag36h11 is 8 cells across its black border, 10 with the white one); OpenCV's chessboard finder
-// drops quadrilaterals under 25 px² once its dilation has eaten into the black squares.
+// What detection reads on `layout` and from how many pixels across. AprilTag boards: holocap's
+// detection drops a tag whose sides are shorter than DetectionOptions::min_tag_side_px (passed on
+// as CalibrationOptions::tag_read_px). ChArUco markers: OpenCV's ArUco decodes a marker from about
+// one pixel per bit cell with its border (10 for 6 x 6 bits). Chessboards: OpenCV's finder drops
+// quadrilaterals under 25 px² once its dilation has eaten into the black squares.
+constexpr double kNearReadable = 1.5;
+
 struct ReadableFeature {
   const char* plural;
   const char* one;
+  std::string from;  // "from 12 px (...)", "from about 10 px"
   double px;
 };
-ReadableFeature ReadableFeatureOf(const BoardLayout& layout) {
+ReadableFeature ReadableFeatureOf(const BoardLayout& layout, const CalibrationOptions& options) {
   switch (layout.type) {
-    case BoardType::kAprilGrid:
-      return {"tags", "a tag", 10};
+    case BoardType::kAprilGrid: {
+      const double px =
+          options.tag_read_px > 0 ? options.tag_read_px : DetectionOptions{}.min_tag_side_px;
+      return {"tags", "a tag", Cat("from ", px, " px (min_tag_side_px)"), px};
+    }
     case BoardType::kCharuco:
-      return {"markers", "a marker", 10};
+      return {"markers", "a marker", "from about 10 px", 10};
     case BoardType::kChessboard:
       break;
   }
-  return {"squares", "a square", 8};
+  return {"squares", "a square", "from about 8 px", 8};
 }
 
 // How far apart two estimates of one camera's pose relative to another are: the angle between
@@ -1348,18 +1360,20 @@ void Calibrator::MeasureFeatures(int c) {
 }
 
 // Flags camera c for too few views, saying why when the views found show the board's tags
-// (markers, squares) near the size a detector reads them from: the views missed are then likely
-// those where they were smaller still, and a larger board, a closer one or more pixels help.
+// (markers, squares) near the size detection reads them from (the median view under
+// kNearReadable times it): half the views found were then within that factor of being lost, the
+// views missed were likely those where the board was smaller still, and a larger board, a closer
+// one or more pixels help.
 void Calibrator::FlagTooFewViews(int c, const std::string& why) {
   CalibratedCamera& out = summary_.cameras[c];
   out.flag = why;
-  const ReadableFeature feature = ReadableFeatureOf(layout_);
-  if (!(out.feature_side_px_median < 2 * feature.px)) return;
+  const ReadableFeature feature = ReadableFeatureOf(layout_, options_);
+  if (!(out.feature_side_px_median < kNearReadable * feature.px)) return;
   const auto rounded = [](double px) { return std::round(px * 10) / 10; };
   out.flag += Cat("; the board's ", feature.plural, " were ", rounded(out.feature_side_px_min), "-",
                   rounded(out.feature_side_px_median),
                   " px across where found (the smallest and the median view), and ", feature.one,
-                  " is read from about ", feature.px, " px: print larger ", feature.plural,
+                  " is read ", feature.from, ": print larger ", feature.plural,
                   ", bring the board closer, or capture the board at full resolution");
 }
 
@@ -1704,6 +1718,10 @@ bool Calibrator::SolveFinalModel() {
   if (!Stage("everything", p_, true).IsUsable()) {
     End(Termination::kFailure, "the final stage produced NaN");
     return false;
+  }
+  if (options_.solve_board_warp) {
+    summary_.board_warp_x_m = p_.warp.x2;
+    summary_.board_warp_y_m = p_.warp.y2;
   }
   return true;
 }

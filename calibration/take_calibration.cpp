@@ -276,6 +276,7 @@ void FillReport(const TakeCalibrationOptions& options, const std::vector<std::st
   m["outliers"] = cal.outliers;
   m["reordered_views"] = cal_json["reordered_views"];
   m["dropped_views"] = cal_json["dropped_views"];
+  m["board_warp_m"] = cal_json["board_warp_m"];
   m["cameras"] = cal_json["cameras"];
   m["stages"] = cal_json["stages"];
   if (cal_json.contains("mrcal")) m["mrcal"] = cal_json["mrcal"];
@@ -316,18 +317,20 @@ TakeCalibrationSummary CalibrateTake(const fs::path& take_dir,
   std::vector<std::string> sensors;
   const std::vector<CalibrationCamera> cameras = CamerasToCalibrate(take, options, &sensors);
 
+  CalibrationOptions solve = options.solve;
+  if (solve.tag_read_px == 0) solve.tag_read_px = options.detection.min_tag_side_px;
   TakeCalibrationSummary result;
   if (report != nullptr) {
     report->options() = {{"take", take_dir.string()},
                          {"board", layout.ToJson()},
                          {"detector", ToString(options.detection.chessboard_finder)},
                          {"detection", options.detection.ToJson()},
-                         {"solve", options.solve.ToJson()},
+                         {"solve", solve.ToJson()},
                          {"lensmodel", options.lensmodel}};
   }
   std::vector<BoardObservation> observations =
       DetectBoardsInTake(take, layout, sensors, options.detection, &result.detection);
-  result.calibration = Calibrate(layout, cameras, observations, options.solve, report);
+  result.calibration = Calibrate(layout, cameras, observations, solve, report);
   CalibrationSummary& cal = result.calibration;
 
   std::map<std::string, CameraModel> depth_in_ref;

@@ -121,6 +121,20 @@ TEST(CalibratePhotographs, OpenCvsStereoPairConvergesAndAgreesWithOpenCv) {
     EXPECT_EQ(counted, kFrameSets) << camera;
   }
 
+  // The board's warp is solved only when asked for (mrcal's calobject_warp, --board-warp): a
+  // bow of the printed sheet, well under a square.
+  EXPECT_TRUE(m["board_warp_m"].is_null()) << m["board_warp_m"].dump();
+  const auto warped = RunCli("calibrate " + take + " --board " + (Data() / "board.yaml").string() +
+                             " --no-pictures --board-warp");
+  ASSERT_EQ(warped.exit_code, 0) << warped.output;
+  const auto warp_report = nlohmann::json::parse(
+      ReadFileToString(std::filesystem::path(take) / "calib" / "report.json"));
+  EXPECT_EQ(warp_report["summary"]["termination"], "CONVERGENCE");
+  EXPECT_TRUE(warp_report["options"]["solve"]["solve_board_warp"].get<bool>());
+  const auto& warp = warp_report["metrics"]["board_warp_m"];
+  ASSERT_TRUE(warp.is_array() && warp.size() == 2) << warp.dump();
+  for (const auto& w : warp) EXPECT_LT(std::abs(w.get<double>()), 0.025) << warp.dump();
+
   // fx fy cx cy against OpenCV's calibration of the same images from its own corners: two
   // estimates whose errors are independent up to the images they share differ by about
   // hypot(holocap's 1-sigma, OpenCV's standard deviation); 4 such sigmas (a Gaussian exceeds
