@@ -618,17 +618,17 @@ def rig_figures(models, cameras):
     return out
 
 
-def solve_holocap_real(args, take, work, lensmodel):
-    """holocap calibrate as a user runs it (the board only; `lensmodel` None: its default), then
-    again with --cross-validate for the halves' agreement."""
+def solve_holocap_real(args, take, work, lensmodel, extra=()):
+    """holocap calibrate as a user runs it (the board only; `lensmodel` None: its default; then
+    `extra`, a tuple of flags), then again with --cross-validate for the halves' agreement."""
     clock = CpuClock()
     command = [args.holocap, "calibrate", take.path, "--no-pictures",
-               "--board", args.board]
+               "--board", args.board] + list(extra)
     if lensmodel:
         command += ["--lens-model", lensmodel]
-    else:
+    elif not extra:
         command += ["--write-corners", os.path.join(work, "images", "holocap.vnl")]
-    label = (lensmodel or "default").replace("LENSMODEL_", "")
+    label = (lensmodel or "default").replace("LENSMODEL_", "") + "".join(extra)
     rc, _ = run(command, log=os.path.join(work, f"holocap-{label}.log"))
     result, metrics = holocap_result(take, rc, clock.seconds())
     if metrics is None:
@@ -641,6 +641,9 @@ def solve_holocap_real(args, take, work, lensmodel):
                   sigma=dict(intrinsics={c: cams[c]["intrinsics_sigma"][:4] for c in take.cameras},
                              baseline_m=second["center_sigma_mm"] / 1000,
                              rotation_deg=second["rotation_sigma_deg"]))
+    if metrics.get("board_warp_m") is not None:
+        result["note"] = " ".join(extra + (result["note"],)) + \
+            ", board warp {:.3f} {:.3f} mm".format(*(1000 * w for w in metrics["board_warp_m"]))
     shutil.copytree(os.path.join(take.path, "calib"), os.path.join(work, f"calib-{label}"),
                     dirs_exist_ok=True)
     # The cross-validation: two disjoint halves of the frame sets against the prediction.
@@ -663,6 +666,9 @@ def solve_mrcal_real(args, take, work, lensmodel, label, extra=()):
         files = sorted(glob.glob(os.path.join(work, f"mrcal-{label}", "*.cameramodel")))
         inputs = mrcal.cameramodel(files[0]).optimization_inputs()
         r["outliers"] = int((inputs["observations_board"][..., 2] <= 0).sum())
+        if "--skip-calobject-warp-solve" not in extra:
+            r["note"] = "; ".join(filter(None, (r["note"], "board warp {:.3f} {:.3f} mm".format(
+                *(1000 * w for w in inputs["calobject_warp"])))))
     return r
 
 
@@ -716,8 +722,10 @@ def main_real(args):
     default = solve_holocap_real(args, take, work, None)
     opencv5 = solve_holocap_real(args, take, work, "LENSMODEL_OPENCV5")
     why = "mrgingham finds square grids only (--gridn N: N x N inner corners)"
+    warp = solve_holocap_real(args, take, work, None, ("--board-warp",))
     rows = [("holocap", "holocap", "OPENCV8", default),
             ("holocap", "holocap", "OPENCV5", opencv5),
+            ("holocap", "holocap", "OPENCV8", warp),
             ("mrcal", "holocap", "OPENCV8",
              solve_mrcal_real(args, take, work, "LENSMODEL_OPENCV8", "holocap-8")),
             ("mrcal", "holocap", "OPENCV5",
