@@ -12,6 +12,7 @@ namespace {
 struct BoardArgs {
   std::string board;
   std::string out;
+  std::string print;
   double dpi = 300;
   bool overwrite = false;
 };
@@ -26,9 +27,14 @@ void AddBoardCommand(CLI::App& app) {
       ->required();
   command->add_option("--out", args->out, "board.png or board.pdf")->required();
   command->add_option("--dpi", args->dpi, "PNG resolution")->capture_default_str();
+  command->add_option("--print", args->print,
+                      "tag36h11 boards: holocap (libapriltag's one-bit tag borders, the default) "
+                      "or kalibr (as kalibr_create_target_pdf prints them: two-bit borders and "
+                      "black squares at the tags' corners)");
   AddOverwriteFlag(command, &args->overwrite);
   command->callback([args] {
-    const BoardLayout layout = BoardLayout::Load(args->board);
+    BoardLayout layout = BoardLayout::Load(args->board);
+    ApplyBoardPrint(args->print, "--print", &layout);
     const TakeLock lock = ClaimOutputFile(args->out, {"board", args->overwrite, {args->board}});
     WriteBoardPrint(layout, args->out, args->dpi);
     const Board board(layout);

@@ -36,9 +36,14 @@ struct CalibrateArgs {
 
 void PrintSummary(const TakeCalibrationSummary& s) {
   const CalibrationSummary& c = s.calibration;
-  std::printf("detected %lld board views in %lld frames (%.1f frames/s)\n",
+  std::string borders;
+  for (const auto& [bits, views] : s.detection.views_per_tag_border_bits) {
+    borders += Cat(borders.empty() ? "; tags with " : ", ", bits, "-bit borders",
+                   bits == 2 ? " (Kalibr's print)" : "", " in ", views);
+  }
+  std::printf("detected %lld board views in %lld frames (%.1f frames/s%s)\n",
               static_cast<long long>(s.detection.views), static_cast<long long>(s.detection.frames),
-              s.detection.frames_per_second);
+              s.detection.frames_per_second, borders.c_str());
   if (c.reordered_views > 0 || !c.dropped_views.empty()) {
     std::printf(
         "board numbering: %d views turned to agree with their frame set's other cameras, %zu "

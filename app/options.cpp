@@ -164,6 +164,22 @@ double ParseLength(const std::string& text, const char* what) {
   return value * scale;
 }
 
+void ApplyBoardPrint(const std::string& print, const char* option, BoardLayout* layout) {
+  if (print.empty()) return;
+  if (print != "holocap" && print != "kalibr")
+    Fail(option, " must be holocap or kalibr, got '", print, "'");
+  if (layout->type != BoardType::kAprilGrid || layout->family != "tag36h11") {
+    Fail(option, " ", print, " prints tag36h11 AprilTag boards, not a ",
+         layout->type == BoardType::kAprilGrid ? layout->family : ToString(layout->type));
+  }
+  layout->border_bits = print == "kalibr" ? 2 : 1;
+  try {
+    layout->Check();
+  } catch (const Error& e) {
+    Fail(option, " ", print, ": ", e.what());
+  }
+}
+
 Box ParseBounds(const std::string& text, const char* option) {
   std::stringstream in(text);
   std::vector<double> v;

@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "core/board.h"
 #include "core/check_option.h"
 #include "core/output.h"
 #include "core/report.h"
@@ -54,6 +55,11 @@ double ParseLength(const std::string& text, const char* what);
 // A capture volume given as "xmin,ymin,zmin,xmax,ymax,zmax" (metres); throws Error naming
 // `option` when it is not six numbers with max above min on every axis.
 Box ParseBounds(const std::string& text, const char* option = "--bounds");
+// How an AprilTag board is printed: "holocap" (libapriltag's one-bit tag borders, as holocap
+// board prints) or "kalibr" (Kalibr's kalibr_create_target_pdf: two-bit borders and black
+// squares at the tags' corners) into layout->border_bits; "" leaves the layout's. Throws Error
+// naming `option` for another name or a board that is no tag36h11 AprilTag board.
+void ApplyBoardPrint(const std::string& print, const char* option, BoardLayout* layout);
 
 // Option errors name the flag the user typed. An OptionError (core/check_option.h) names a
 // field; the flag that fills it is the one `command`'s table gives (NameFieldFlags), else the

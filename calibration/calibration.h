@@ -91,6 +91,9 @@ struct BoardObservation {
   // width_n * height_n rows (row-major, grid index j * width_n + i): x, y pixel, weight
   // (1 = seen, < 0 = not seen or rejected).
   Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor> points;
+  // AprilTag boards: the black border, in bits, of most of the tags the corners come from (1:
+  // libapriltag's, holocap's prints; 2: Kalibr's prints); 0 for other boards.
+  int tag_border_bits = 0;
   int seen() const;  // points with weight > 0
 };
 
@@ -132,6 +135,8 @@ struct DetectionSummary {
   double seconds = 0;
   double frames_per_second = 0;
   std::map<std::string, int64_t> views_per_sensor;
+  // AprilTag boards: accepted views by the border of their tags (BoardObservation).
+  std::map<int, int64_t> views_per_tag_border_bits;
   std::vector<int> foreign_tag_ids;  // ids of the family seen that are not on the board
   nlohmann::json ToJson() const;
 };

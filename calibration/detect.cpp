@@ -19,6 +19,7 @@
 #include "calibration/calibration.h"
 #include "calibration/chessboard_finders.h"
 #include "calibration/internal/common.h"
+#include "core/apriltag_family.h"
 #include "core/charuco.h"
 #include "core/check_option.h"
 #include "core/error.h"
@@ -30,8 +31,6 @@
 extern "C" {
 #include <apriltag/apriltag.h>
 #include <apriltag/common/zarray.h>
-#include <apriltag/tag36h11.h>
-#include <apriltag/tagStandard41h12.h>
 }
 
 namespace holocap {
@@ -41,39 +40,41 @@ namespace {
 // are at integers. Measured against rendered boards whose corners are known exactly.
 constexpr double kApriltagPixelOffset = -0.5;
 
-struct Detector {
-  apriltag_detector_t* detector = nullptr;
-  apriltag_family_t* family = nullptr;
-  void (*destroy_family)(apriltag_family_t*) = nullptr;
+// The tag borders a board's detection tries: its own, or both for a layout that may have been
+// printed either way (Kalibr's target YAML).
+std::vector<int> BordersToTry(const BoardLayout& layout) {
+  if (layout.border_bits == 0) return {1, 2};
+  return {layout.border_bits};
+}
+
+struct ApriltagDetectorDeleter {
+  void operator()(apriltag_detector_t* detector) const { apriltag_detector_destroy(detector); }
 };
 
-Detector MakeDetector(const std::string& family_name, const DetectionOptions& options) {
+// A libapriltag detector and the families it decodes, one per border tried (border_bits[k] for
+// families[k]). Each family instance gets its own decode table (libapriltag keeps it in
+// family->impl), so every detector owns its families; the detector goes first.
+struct Detector {
+  std::vector<ApriltagFamilyPtr> families;
+  std::vector<int> border_bits;
+  std::unique_ptr<apriltag_detector_t, ApriltagDetectorDeleter> detector;
+};
+
+Detector MakeDetector(const BoardLayout& layout, const DetectionOptions& options) {
   Detector d;
-  if (family_name == "tag36h11") {
-    d.family = tag36h11_create();
-    d.destroy_family = tag36h11_destroy;
-  } else if (family_name == "tagStandard41h12") {
-    d.family = tagStandard41h12_create();
-    d.destroy_family = tagStandard41h12_destroy;
-  } else {
-    Fail("unknown AprilTag family '", family_name, "'");
+  d.detector.reset(apriltag_detector_create());
+  for (int border : BordersToTry(layout)) {
+    d.families.push_back(CreateApriltagFamily(layout.family, border));
+    d.border_bits.push_back(border);
+    apriltag_detector_add_family_bits(d.detector.get(), d.families.back().get(),
+                                      std::max(0, options.max_hamming));
   }
-  d.detector = apriltag_detector_create();
-  // Each family instance gets its own decode table (libapriltag keeps it in family->impl), so
-  // every detector owns its family.
-  apriltag_detector_add_family_bits(d.detector, d.family, std::max(0, options.max_hamming));
   d.detector->quad_decimate = 1;  // 3.3's decimated corners are biased
   d.detector->quad_sigma = static_cast<float>(options.quad_sigma);
   d.detector->nthreads = 1;  // frames run in parallel instead
   d.detector->refine_edges = true;
   d.detector->decode_sharpening = 0.25;
   return d;
-}
-
-void DestroyDetector(Detector* d) {
-  if (d->detector != nullptr) apriltag_detector_destroy(d->detector);
-  if (d->family != nullptr) d->destroy_family(d->family);
-  *d = Detector{};
 }
 
 cv::Mat ToGrey(const cv::Mat& image) {
@@ -106,9 +107,11 @@ double Bilinear(const cv::Mat& grey, double x, double y) {
 // stays within its one-bit border (`bits` bits span a side), clear of the data bits; outside,
 // a tag with a white border (tag36h11) is white well beyond a bit, one with a dark outer ring
 // (tagStandard41h12, reversed_border) only for one bit. `reach_px` > 0 caps both.
-void RefineQuad(const cv::Mat& grey, std::array<Eigen::Vector2d, 4>* corners, int bits,
-                bool reversed_border, double reach_px) {
+// Returns how many of the four corners it refined (the others stay as they were).
+int RefineQuad(const cv::Mat& grey, std::array<Eigen::Vector2d, 4>* corners, int bits,
+               bool reversed_border, double reach_px) {
   std::array<Eigen::Vector2d, 4> refined = *corners;
+  int count = 0;
   for (int k = 0; k < 4; ++k) {
     const Eigen::Vector2d& c = (*corners)[k];
     const Eigen::Vector2d to_next = (*corners)[(k + 1) % 4] - c;
@@ -122,10 +125,11 @@ void RefineQuad(const cv::Mat& grey, std::array<Eigen::Vector2d, 4>* corners, in
       inside = std::min(inside, reach_px);
       outside = std::min(outside, reach_px);
     }
-    calibration_internal::RefineEdgeCorner(grey, {to_next, to_previous}, inside, outside,
-                                           0.5 * side, &refined[k]);
+    count += calibration_internal::RefineEdgeCorner(grey, {to_next, to_previous}, inside, outside,
+                                                    0.5 * side, &refined[k]);
   }
   *corners = refined;
+  return count;
 }
 
 // A chessboard's inner corners (OpenCV's order, width_n per row), each from the four edges
@@ -158,24 +162,6 @@ void RefineChessboard(const cv::Mat& grey, int width_n, int height_n,
 }  // namespace
 
 namespace calibration_internal {
-
-void FamilyGeometry(const std::string& family, int* width_at_border, int* total_width,
-                    bool* reversed_border) {
-  Detector d;
-  if (family == "tag36h11") {
-    d.family = tag36h11_create();
-    d.destroy_family = tag36h11_destroy;
-  } else if (family == "tagStandard41h12") {
-    d.family = tagStandard41h12_create();
-    d.destroy_family = tagStandard41h12_destroy;
-  } else {
-    Fail("unknown AprilTag family '", family, "'");
-  }
-  *width_at_border = d.family->width_at_border;
-  *total_width = d.family->total_width;
-  if (reversed_border != nullptr) *reversed_border = d.family->reversed_border;
-  d.destroy_family(d.family);
-}
 
 std::vector<int> TurnedGridOrder(int width_n, int height_n, int quarter_turns) {
   const int turns = ((quarter_turns % 4) + 4) % 4;
@@ -275,7 +261,7 @@ nlohmann::json DetectionOptions::ToJson() const {
 struct BoardDetector::Impl {
   std::mutex mutex;
   std::vector<Detector> idle;
-  std::string family;
+  BoardLayout layout;
   DetectionOptions options;
   cv::Ptr<cv::aruco::CharucoBoard> charuco;  // ChArUco boards: OpenCV's model of the layout
 
@@ -283,26 +269,23 @@ struct BoardDetector::Impl {
     {
       std::lock_guard<std::mutex> lock(mutex);
       if (!idle.empty()) {
-        Detector d = idle.back();
+        Detector d = std::move(idle.back());
         idle.pop_back();
         return d;
       }
     }
-    return MakeDetector(family, options);
+    return MakeDetector(layout, options);
   }
   void Release(Detector d) {
     std::lock_guard<std::mutex> lock(mutex);
-    idle.push_back(d);
-  }
-  ~Impl() {
-    for (Detector& d : idle) DestroyDetector(&d);
+    idle.push_back(std::move(d));
   }
 };
 
 BoardDetector::BoardDetector(const BoardLayout& layout, const DetectionOptions& options)
     : board_(layout), options_(options), impl_(new Impl) {
   options_.Check();
-  impl_->family = layout.family;
+  impl_->layout = layout;
   impl_->options = options_;
   if (layout.type == BoardType::kCharuco) impl_->charuco = MakeCharucoBoard(layout);
 }
@@ -314,13 +297,19 @@ namespace {
 struct TagSeen {
   int id = 0;
   std::array<Eigen::Vector2d, 4> corners;
+  int border_bits = 1;      // the black border it was decoded with
+  int width_at_border = 0;  // its family's detection square, in bits
+  bool reversed_border = false;
+  int hamming = 0;
+  double decision_margin = 0;
+  bool shrunk = false;  // found in the shrunk image (FindTags), its corners not yet on the image
 };
 
-std::vector<TagSeen> RunApriltag(apriltag_detector_t* detector, const cv::Mat& grey,
+std::vector<TagSeen> RunApriltag(const Detector& d, const cv::Mat& grey,
                                  const DetectionOptions& options, bool filter) {
   image_u8_t image{grey.cols, grey.rows, static_cast<int32_t>(grey.step[0]),
                    const_cast<uint8_t*>(grey.ptr<uint8_t>(0))};
-  zarray_t* detections = apriltag_detector_detect(detector, &image);
+  zarray_t* detections = apriltag_detector_detect(d.detector.get(), &image);
   std::vector<TagSeen> tags;
   for (int k = 0; k < zarray_size(detections); ++k) {
     apriltag_detection_t* detection = nullptr;
@@ -331,6 +320,13 @@ std::vector<TagSeen> RunApriltag(apriltag_detector_t* detector, const cv::Mat& g
     }
     TagSeen tag;
     tag.id = detection->id;
+    for (size_t f = 0; f < d.families.size(); ++f) {
+      if (d.families[f].get() == detection->family) tag.border_bits = d.border_bits[f];
+    }
+    tag.width_at_border = detection->family->width_at_border;
+    tag.reversed_border = detection->family->reversed_border;
+    tag.hamming = detection->hamming;
+    tag.decision_margin = detection->decision_margin;
     for (int c = 0; c < 4; ++c) {
       tag.corners[c] = Eigen::Vector2d(detection->p[c][0], detection->p[c][1]) +
                        Eigen::Vector2d::Constant(kApriltagPixelOffset);
@@ -338,6 +334,57 @@ std::vector<TagSeen> RunApriltag(apriltag_detector_t* detector, const cv::Mat& g
     tags.push_back(tag);
   }
   apriltag_detections_destroy(detections);
+  return tags;
+}
+
+bool SameQuad(const TagSeen& a, const TagSeen& b, double tolerance_px) {
+  for (int c = 0; c < 4; ++c) {
+    if ((a.corners[c] - b.corners[c]).norm() > tolerance_px) return false;
+  }
+  return true;
+}
+
+// One decoding per quad: both borders can decode the same quad to the same id (a tag of one
+// border read with the other's bit grid, a bit or two corrected); the one with fewer corrected
+// bits, then the larger margin, is the tag's border.
+void KeepBestDecodingPerQuad(std::vector<TagSeen>* tags) {
+  std::vector<TagSeen> kept;
+  for (const TagSeen& t : *tags) {
+    auto same = std::find_if(kept.begin(), kept.end(),
+                             [&](const TagSeen& k) { return k.id == t.id && SameQuad(k, t, 1.0); });
+    if (same == kept.end()) {
+      kept.push_back(t);
+    } else if (t.hamming < same->hamming ||
+               (t.hamming == same->hamming && t.decision_margin > same->decision_margin)) {
+      *same = t;
+    }
+  }
+  *tags = std::move(kept);
+}
+
+// The tags of a board: libapriltag on the image and, where Kalibr's print may be seen, again on
+// the image with its dark regions shrunk by a pixel (each pixel the maximum of itself and its
+// left, upper and upper-left neighbours). Kalibr's black squares touch the tags' corners;
+// blurred, a corner's pixel joins tag and square into one black region whose outline is no
+// quad, and libapriltag finds no tag there. Shrinking cuts those joins, and a tag found only
+// there is added, marked `shrunk`: its square lost a pixel on its left and upper sides.
+std::vector<TagSeen> FindTags(const Detector& d, const cv::Mat& grey,
+                              const DetectionOptions& options) {
+  std::vector<TagSeen> tags = RunApriltag(d, grey, options, true);
+  KeepBestDecodingPerQuad(&tags);
+  if (std::find(d.border_bits.begin(), d.border_bits.end(), 2) == d.border_bits.end()) return tags;
+  cv::Mat shrunk;
+  cv::dilate(grey, shrunk, cv::Mat::ones(2, 2, CV_8U), cv::Point(1, 1));
+  std::vector<TagSeen> more = RunApriltag(d, shrunk, options, true);
+  KeepBestDecodingPerQuad(&more);
+  for (TagSeen& t : more) {
+    const bool known = std::any_of(tags.begin(), tags.end(), [&](const TagSeen& k) {
+      return k.id == t.id && SameQuad(k, t, 3.0);
+    });
+    if (known) continue;
+    t.shrunk = true;
+    tags.push_back(t);
+  }
   return tags;
 }
 
@@ -370,8 +417,8 @@ std::vector<int> BoardDetector::DetectTagIds(const cv::Mat& image) const {
   if (board_.layout().type != BoardType::kAprilGrid) return {};
   const cv::Mat grey = ToGrey(image);
   Detector d = impl_->Acquire();
-  std::vector<TagSeen> tags = RunApriltag(d.detector, grey, options_, true);
-  impl_->Release(d);
+  std::vector<TagSeen> tags = FindTags(d, grey, options_);
+  impl_->Release(std::move(d));
   std::vector<int> ids;
   ids.reserve(tags.size());
   for (const auto& t : tags) ids.push_back(t.id);
@@ -440,8 +487,8 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   if (board_.layout().type == BoardType::kCharuco) return DetectCharuco(grey, observation, reason);
 
   Detector d = impl_->Acquire();
-  std::vector<TagSeen> tags = RunApriltag(d.detector, grey, options_, true);
-  impl_->Release(d);
+  std::vector<TagSeen> tags = FindTags(d, grey, options_);
+  impl_->Release(std::move(d));
 
   // Ids seen twice are ambiguous (a second board, a reflection): both are dropped.
   std::map<int, int> count;
@@ -459,15 +506,26 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
     if (MinSide(t.corners) < options_.min_tag_side_px) continue;
     kept.push_back(t);
   }
-  if (options_.refine_corners) {
-    int border_bits = 0, total_bits = 0;
-    bool reversed = false;
-    calibration_internal::FamilyGeometry(board_.layout().family, &border_bits, &total_bits,
-                                         &reversed);
-    for (auto& t : kept) {
-      RefineQuad(grey, &t.corners, border_bits, reversed, options_.refine_half_window_px);
+  // A tag found in the shrunk image always has its corners refined on the image itself, from its
+  // square grown back by the pixel the shrinking took (half a pixel on every side, the centre
+  // half a pixel up and left); one whose corners do not all refine is left out.
+  std::vector<TagSeen> refined;
+  for (auto& t : kept) {
+    if (t.shrunk) {
+      const Eigen::Vector2d centre =
+          0.25 * (t.corners[0] + t.corners[1] + t.corners[2] + t.corners[3]);
+      for (Eigen::Vector2d& c : t.corners) {
+        c += std::sqrt(0.5) * (c - centre).normalized() - Eigen::Vector2d(0.5, 0.5);
+      }
     }
+    if (options_.refine_corners || t.shrunk) {
+      const int count = RefineQuad(grey, &t.corners, t.width_at_border, t.reversed_border,
+                                   options_.refine_half_window_px);
+      if (t.shrunk && count < 4) continue;
+    }
+    refined.push_back(t);
   }
+  kept = std::move(refined);
   for (size_t k = 0; k < kept.size(); ++k) {
     const int index = kept[k].id - board_.layout().first_id;
     tag_at[{index % board_.layout().tags_across, index / board_.layout().tags_across}] =
@@ -510,9 +568,11 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   }
 
   int used = 0;
+  int two_bit = 0;  // tags decoded with Kalibr's two-bit border
   for (size_t k = 0; k < kept.size(); ++k) {
     if (!consistent[k]) continue;
     ++used;
+    two_bit += kept[k].border_bits == 2;
     for (int c = 0; c < 4; ++c) {
       int i = 0, j = 0;
       board_.GridPointOf(kept[k].id, c, &i, &j);
@@ -527,6 +587,7 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
     observation->points.col(2).setConstant(-1);
     return false;
   }
+  observation->tag_border_bits = 2 * two_bit > used ? 2 : 1;
   return true;
 }
 
@@ -639,6 +700,8 @@ bool BoardDetector::DetectCharuco(const cv::Mat& grey, BoardObservation* observa
 }
 
 nlohmann::json DetectionSummary::ToJson() const {
+  nlohmann::json borders = nlohmann::json::object();
+  for (const auto& [bits, views] : views_per_tag_border_bits) borders[std::to_string(bits)] = views;
   nlohmann::json rejected_json = nlohmann::json::array();
   for (const auto& r : rejected) {
     rejected_json.push_back(
@@ -650,6 +713,7 @@ nlohmann::json DetectionSummary::ToJson() const {
           {"seconds", seconds},
           {"frames_per_second", frames_per_second},
           {"views_per_sensor", views_per_sensor},
+          {"views_per_tag_border_bits", borders},
           {"foreign_tag_ids", foreign_tag_ids}};
 }
 
@@ -702,6 +766,8 @@ std::vector<BoardObservation> DetectBoardsInTake(const Take& take, const BoardLa
   for (size_t k = 0; k < jobs.size(); ++k) {
     if (results[k]) {
       ++s.views_per_sensor[jobs[k].sensor];
+      if (results[k]->tag_border_bits > 0)
+        ++s.views_per_tag_border_bits[results[k]->tag_border_bits];
       observations.push_back(std::move(*results[k]));
     } else {
       s.rejected.push_back({jobs[k].sensor, take.entry(jobs[k].set).index, reasons[k]});

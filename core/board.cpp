@@ -9,6 +9,7 @@
 #include <memory>
 #include <utility>
 
+#include "core/apriltag_family.h"
 #include "core/charuco.h"
 #include "core/check_option.h"
 #include "core/error.h"
@@ -16,27 +17,19 @@
 
 extern "C" {
 #include <apriltag/apriltag.h>
-#include <apriltag/tag36h11.h>
-#include <apriltag/tagStandard41h12.h>
 }
 
 namespace holocap {
 namespace {
 
-// libapriltag's families, created once: their code tables are static data.
-struct FamilyHandle {
-  apriltag_family_t* family = nullptr;
-  void (*destroy)(apriltag_family_t*) = nullptr;
-  ~FamilyHandle() {
-    if (family != nullptr) destroy(family);
-  }
-};
-
-const apriltag_family_t* FindFamily(const std::string& name) {
-  static const FamilyHandle tag36h11{tag36h11_create(), tag36h11_destroy};
-  static const FamilyHandle standard41h12{tagStandard41h12_create(), tagStandard41h12_destroy};
-  if (name == "tag36h11") return tag36h11.family;
-  if (name == "tagStandard41h12") return standard41h12.family;
+// libapriltag's families as drawn, created once (never given to a detector, which would keep
+// its decode table in them); nullptr for a family or border holocap does not know.
+const apriltag_family_t* FindFamily(const std::string& name, int border_bits = 1) {
+  static const ApriltagFamilyPtr tag36h11 = CreateApriltagFamily("tag36h11");
+  static const ApriltagFamilyPtr tag36h11_kalibr = CreateApriltagFamily("tag36h11", 2);
+  static const ApriltagFamilyPtr standard41h12 = CreateApriltagFamily("tagStandard41h12");
+  if (name == "tag36h11") return border_bits == 2 ? tag36h11_kalibr.get() : tag36h11.get();
+  if (name == "tagStandard41h12" && border_bits == 1) return standard41h12.get();
   return nullptr;
 }
 
@@ -283,7 +276,11 @@ void BoardLayout::Check() const {
     return;
   }
   HOLOCAP_CHECK_OPTION(FindFamily(family) != nullptr, family, "known: tag36h11, tagStandard41h12");
-  const apriltag_family_t* family = FindFamily(this->family);
+  HOLOCAP_CHECK_OPTION_IN(border_bits, 0, 2);
+  HOLOCAP_CHECK_OPTION(
+      border_bits == 1 || this->family == "tag36h11", border_bits,
+      Cat("only tag36h11 is printed with Kalibr's two-bit borders, not ", this->family));
+  const apriltag_family_t* family = FindFamily(this->family, drawn_border_bits());
   HOLOCAP_CHECK_OPTION_GE(tags_across, 1, "an AprilTag board needs at least 2 tags");
   HOLOCAP_CHECK_OPTION_GE(tags_down, 1, "an AprilTag board needs at least 2 tags");
   HOLOCAP_CHECK_OPTION(
@@ -303,6 +300,10 @@ void BoardLayout::Check() const {
   HOLOCAP_CHECK_OPTION(gap_steps * spacing >= 2 * outer * (1 - 1e-9), gap_steps,
                        Cat("the gap between tags (", gap_steps * spacing,
                            " m) must hold both tags' outer bits: >= ", 2 * outer, " m"));
+  HOLOCAP_CHECK_OPTION(drawn_border_bits() == 1 || margin >= gap_steps * spacing * (1 - 1e-9),
+                       margin,
+                       Cat("Kalibr's print puts squares of the gap's side (", gap_steps * spacing,
+                           " m) at the outer tags' corners: the margin needs >= that"));
 }
 
 nlohmann::json BoardLayout::ToJson() const {
@@ -315,6 +316,7 @@ nlohmann::json BoardLayout::ToJson() const {
     json["gap_steps"] = gap_steps;
     json["ids_upward"] = ids_upward;
     json["first_id"] = first_id;
+    json["border_bits"] = border_bits;
   } else if (type == BoardType::kChessboard) {
     json["chessboard_width_n"] = chessboard_width_n;
     json["chessboard_height_n"] = chessboard_height_n;
@@ -349,6 +351,7 @@ BoardLayout BoardLayout::FromJson(const nlohmann::json& json, const std::string&
     layout.gap_steps = json.value("gap_steps", layout.gap_steps);
     layout.ids_upward = json.value("ids_upward", layout.ids_upward);
     layout.first_id = json.value("first_id", layout.first_id);
+    layout.border_bits = json.value("border_bits", layout.border_bits);
     layout.margin = json.value("margin", layout.margin);
     layout.Check();
   } catch (const nlohmann::json::exception& e) {
@@ -393,6 +396,7 @@ BoardLayout BoardLayout::Load(const std::filesystem::path& file) {
   layout.gap_steps = YamlField(node, "gap_steps", layout.gap_steps, origin);
   layout.ids_upward = YamlField(node, "ids_upward", layout.ids_upward, origin);
   layout.first_id = YamlField(node, "first_id", layout.first_id, origin);
+  layout.border_bits = YamlField(node, "border_bits", layout.border_bits, origin);
   layout.margin = YamlField(node, "margin", layout.margin, origin);
   try {
     layout.Check();
@@ -485,6 +489,7 @@ BoardLayout BoardLayout::FromKalibrYaml(const std::string& text, const std::stri
     layout.spacing = tag_size / steps;
     layout.ids_upward = true;
     layout.first_id = 0;
+    layout.border_bits = 0;  // printed by Kalibr (2) or by holocap board (1)
     layout.margin = layout.gap_steps * layout.spacing;
   } else {
     Fail(origin, ": field 'target_type': Kalibr's '", target_type,
@@ -511,6 +516,7 @@ void BoardLayout::Save(const std::filesystem::path& file) const {
     out << YAML::Key << "gap_steps" << YAML::Value << gap_steps;
     out << YAML::Key << "ids_upward" << YAML::Value << ids_upward;
     out << YAML::Key << "first_id" << YAML::Value << first_id;
+    out << YAML::Key << "border_bits" << YAML::Value << border_bits;
   } else if (type == BoardType::kChessboard) {
     out << YAML::Key << "chessboard_width_n" << YAML::Value << chessboard_width_n;
     out << YAML::Key << "chessboard_height_n" << YAML::Value << chessboard_height_n;
@@ -554,7 +560,7 @@ Board::Board(const BoardLayout& layout) : layout_(layout) {
 // cell's top left: Check() keeps the gap wide enough for both neighbours' outer bits, so the
 // image never leaves its cell.
 void Board::BuildAprilTags() {
-  const apriltag_family_t* family = FindFamily(layout_.family);
+  const apriltag_family_t* family = FindFamily(layout_.family, layout_.drawn_border_bits());
   const int border = family->width_at_border;
   const int total = family->total_width;
   const double bit = layout_.tag_steps * layout_.spacing / border;
@@ -575,6 +581,28 @@ void Board::BuildAprilTags() {
       marker.black = TagBits(family, layout_.first_id + row * layout_.tags_across + ti);
       marker_of_cell_[static_cast<size_t>(tj) * cells_u_ + ti] = static_cast<int>(markers_.size());
       markers_.push_back(std::move(marker));
+    }
+  }
+  if (layout_.drawn_border_bits() == 2) BuildCornerSquares();
+}
+
+// Kalibr's kalibr_create_target_pdf puts a black square of the gap's side diagonally beyond each
+// corner of every tag: together, one at every crossing of a gap column with a gap row, the
+// board's outer gaps (its margin) included.
+void Board::BuildCornerSquares() {
+  const int pitch = layout_.tag_steps + layout_.gap_steps;
+  Lattice& l = corner_squares_;
+  l.cell = layout_.spacing;
+  l.u0 = l.v0 = -layout_.gap_steps * layout_.spacing;
+  l.across = layout_.tags_across * pitch + layout_.gap_steps;
+  l.down = layout_.tags_down * pitch + layout_.gap_steps;
+  // Step k of the lattice lies in a gap when, counted from the first gap's start, it falls
+  // within the gap of its pitch.
+  auto in_gap = [&](int k) { return k % pitch < layout_.gap_steps; };
+  l.black.assign(static_cast<size_t>(l.across) * l.down, 0);
+  for (int cv = 0; cv < l.down; ++cv) {
+    for (int cu = 0; cu < l.across; ++cu) {
+      l.black[static_cast<size_t>(cv) * l.across + cu] = in_gap(cu) && in_gap(cv);
     }
   }
 }
@@ -674,6 +702,15 @@ bool Board::CellIsBlack(int cu, int cv) const {
 }
 
 double Board::Reflectance(double u, double v) const {
+  if (!corner_squares_.black.empty()) {
+    const Lattice& l = corner_squares_;
+    const int su = static_cast<int>(std::floor((u - l.u0) / l.cell));
+    const int sv = static_cast<int>(std::floor((v - l.v0) / l.cell));
+    if (su >= 0 && sv >= 0 && su < l.across && sv < l.down &&
+        l.black[static_cast<size_t>(sv) * l.across + su] != 0) {
+      return 0.0;
+    }
+  }
   const int cu = static_cast<int>(std::floor((u - origin_) / cell_));
   const int cv = static_cast<int>(std::floor((v - origin_) / cell_));
   if (CellIsBlack(cu, cv)) return 0.0;
@@ -693,6 +730,8 @@ std::vector<Eigen::Vector4d> Board::BlackRectangles() const {
   for (const Marker& m : markers_) {
     AppendBlackRuns(m.u0, m.v0, m.bit, m.bits, m.bits, m.black, &rectangles);
   }
+  const Lattice& l = corner_squares_;
+  AppendBlackRuns(l.u0, l.v0, l.cell, l.across, l.down, l.black, &rectangles);
   return rectangles;
 }
 
@@ -712,6 +751,11 @@ double Board::MeanReflectance(const std::vector<Eigen::Vector2d>& polygon) const
   const Eigen::Vector4d box(lo_u, hi_u, lo_v, hi_v);
   double black =
       LatticeBlackArea(polygon, box, origin_, origin_, cell_, cells_u_, cells_v_, black_);
+  // The corner squares lie in the gaps, clear of every tag's black bits.
+  const Lattice& l = corner_squares_;
+  if (!l.black.empty()) {
+    black += LatticeBlackArea(polygon, box, l.u0, l.v0, l.cell, l.across, l.down, l.black);
+  }
   if (!markers_.empty()) {
     const int cu0 = std::max(0, static_cast<int>(std::floor((lo_u - origin_) / cell_)));
     const int cu1 = std::min(cells_u_ - 1, static_cast<int>(std::floor((hi_u - origin_) / cell_)));

@@ -17,6 +17,11 @@
 // counter-clockwise in the image as seen from the front: 0 = (-u, +v), 1 = (+u, +v),
 // 2 = (+u, -v), 3 = (-u, -v); Kalibr numbers a tag's corners the same way (bottom left, bottom
 // right, top right, top left).
+// A tag's black square may carry a black border of one bit (libapriltag's tags, holocap's prints)
+// or of two bits (border_bits = 2: Kalibr's kalibr_create_target_pdf prints, which also fill
+// every crossing of the gaps between tags, outer ones included, with a black square of the gap's
+// side that touches the tags' corners); either way the tag side tag_steps * spacing is the black
+// square's, and its corners are the tag's corners.
 // Chessboards put the grid on the inner corners: (width_n + 1) x (height_n + 1) squares with
 // the square at (-spacing, -spacing) black.
 // ChArUco boards (OpenCV's CharucoBoard, as OpenCV 4.6 draws it) are such a chessboard of
@@ -55,6 +60,10 @@ struct BoardLayout {
   int tag_steps = 1;        // AprilTag boards: grid steps along a tag's side
   int gap_steps = 1;        // AprilTag boards: grid steps between neighbouring tags
   bool ids_upward = false;  // AprilTag boards: ids run from the bottom row up (Kalibr's order)
+  // AprilTag boards (tag36h11 only for other than 1): the printed tags' black border in bits,
+  // 1 (libapriltag's) or 2 (Kalibr's print, corner squares included); 0 when the print may be
+  // either (Kalibr's target YAML): detection tries both borders, and the board is drawn with 1.
+  int border_bits = 1;
   int first_id = 0;      // id of the top-left tag or marker (bottom-left with ids_upward); ids run
                          // row by row
   double margin = 0.04;  // metres of white between the outermost grid points and
@@ -70,6 +79,8 @@ struct BoardLayout {
   // Grid steps along the side of what a detector needs large enough to see: a tag's side for
   // AprilTag boards, 1 (a square) for the others.
   int feature_steps() const;
+  // The border the board is drawn with (AprilTag boards): border_bits, or 1 for 0.
+  int drawn_border_bits() const { return border_bits == 2 ? 2 : 1; }
 
   nlohmann::json ToJson() const;
   static BoardLayout FromJson(const nlohmann::json& json, const std::string& origin = "board");
@@ -79,7 +90,8 @@ struct BoardLayout {
   // field.
   static BoardLayout Load(const std::filesystem::path& file);
   // Kalibr's target YAML: target_type 'aprilgrid' (tagCols, tagRows, tagSize in metres,
-  // tagSpacing as a fraction of tagSize; tag36h11, ids from the bottom-left tag) or
+  // tagSpacing as a fraction of tagSize; tag36h11, ids from the bottom-left tag, border_bits 0:
+  // printed by Kalibr or by holocap board) or
   // 'checkerboard' with square cells (targetCols x targetRows inner corners, rowSpacingMeters
   // = colSpacingMeters). The aprilgrid's grid spacing is tagSize / tag_steps for the smallest
   // tag_steps <= kMaxKalibrTagSteps that makes tagSpacing * tag_steps whole. Throws Error
@@ -153,7 +165,17 @@ class Board {
   void BuildCharuco();
   void BuildAprilTags();
 
+  // Kalibr's prints: the black squares at the crossings of the gaps, one lattice of grid steps
+  // from (-gap, -gap), black where both its column and its row lie in a gap.
+  struct Lattice {
+    double u0 = 0, v0 = 0, cell = 0;
+    int across = 0, down = 0;
+    std::vector<uint8_t> black;  // across x down, row-major
+  };
+  void BuildCornerSquares();
+
   std::vector<Marker> markers_;
+  Lattice corner_squares_;
   std::vector<int> marker_of_cell_;  // cells_u_ x cells_v_: index into markers_, or -1
 
   BoardLayout layout_;

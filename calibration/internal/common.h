@@ -24,11 +24,6 @@ namespace holocap::calibration_internal {
 // The rigid transform b_from_a minimising sum |b - T a|² (Kabsch/Umeyama without scale).
 Pose FitRigid(const std::vector<Eigen::Vector3d>& a, const std::vector<Eigen::Vector3d>& b);
 
-// libapriltag's detection-square width and total width of a family, in bits, and whether its
-// border is light inside and dark outside.
-void FamilyGeometry(const std::string& family, int* width_at_border, int* total_width,
-                    bool* reversed_border = nullptr);
-
 // A board's grid numbered after turning it by `quarter_turns` x 90 degrees in its own plane
 // (2: numbered from the opposite end; 1 and 3 only for a square grid): order[r] is the index,
 // in the grid's own numbering, of the point the turned numbering gives index r.

@@ -316,6 +316,69 @@ TEST(KalibrAprilgrid, CornersKeepKalibrsNumberingOnATurnedBoard) {
     EXPECT_EQ(e.count, 144) << quarter;
     EXPECT_LT(e.mean, 0.06) << quarter;
     EXPECT_LT(e.max, 0.2) << quarter;
+    EXPECT_EQ(obs.tag_border_bits, 1) << quarter;  // holocap's print of Kalibr's YAML
+  }
+}
+
+// The same aprilgrid as Kalibr's kalibr_create_target_pdf prints it (tags with two-bit black
+// borders, black squares at the gaps' crossings touching the tags' corners), read with the
+// Kalibr YAML (printed by Kalibr or by holocap board, so both borders are tried), turned about
+// its normal by 0, 90, 180 and 270 degrees at 0.8 m (tags of about 32 px): every tag is found
+// with the two-bit border, and each corner lies on the true projection of where Kalibr's own
+// target puts it, from tag 0's bottom-left corner with y up: tag k's corner c at
+// x = (k % tagCols) (1 + tagSpacing) tagSize + [c is 1 or 2] tagSize,
+// y = (k / tagCols) (1 + tagSpacing) tagSize + [c is 2 or 3] tagSize
+// (GridCalibrationTargetAprilgrid), holocap's v = the grid's height - y.
+TEST(KalibrAprilgrid, FindsKalibrsOwnPrintWhereKalibrPutsItsCorners) {
+  TempDir dir;
+  std::ofstream(dir / "kalibr.yaml") << "target_type: 'aprilgrid'\ntagCols: 6\ntagRows: 6\n"
+                                        "tagSize: 0.05\ntagSpacing: 0.3\n";
+  const BoardLayout layout = BoardLayout::Load(dir / "kalibr.yaml");
+  EXPECT_EQ(layout.border_bits, 0);
+  BoardLayout kalibr_print = layout;
+  kalibr_print.border_bits = 2;
+  const Board printed(kalibr_print);
+  const Board board(layout);
+  const double tag_size = 0.05, tag_spacing = 0.3;
+  const double height = 5 * (1 + tag_spacing) * tag_size + tag_size;
+  const Eigen::Vector3d centre(height / 2, height / 2, 0);
+  for (int quarter = 0; quarter < 4; ++quarter) {
+    Scene scene(board, 20, 0.8);
+    Pose turn = Pose::Identity();
+    turn.linear() = Eigen::AngleAxisd(quarter * M_PI / 2, Eigen::Vector3d::UnitZ()).matrix();
+    turn.translation() = centre - turn.linear() * centre;
+    scene.cam_from_board = scene.cam_from_board * turn;
+    const cv::Mat image = RenderBoard(scene.camera, printed, scene.cam_from_board, 2.0);
+    BoardObservation obs;
+    std::string reason;
+    ASSERT_TRUE(BoardDetector(layout).Detect(image, &obs, &reason)) << reason;
+    EXPECT_EQ(obs.tag_border_bits, 2) << quarter;
+    int count = 0;
+    double sum = 0, max = 0;
+    for (int id = 0; id < 36; ++id) {
+      for (int c = 0; c < 4; ++c) {
+        int i = 0, j = 0;
+        ASSERT_TRUE(board.GridPointOf(id, c, &i, &j));
+        const auto row = static_cast<Eigen::Index>(j) * board.width_n() + i;
+        if (obs.points(row, 2) <= 0) continue;
+        const int tag_column = id % 6;
+        const int tag_row = id / 6;
+        const double x = tag_column * (1 + tag_spacing) * tag_size + (c == 1 || c == 2) * tag_size;
+        const double y = tag_row * (1 + tag_spacing) * tag_size + (c == 2 || c == 3) * tag_size;
+        Eigen::Vector2d truth;
+        ASSERT_TRUE(
+            scene.camera.Project(scene.cam_from_board * Eigen::Vector3d(x, height - y, 0), &truth));
+        const double d = (obs.points.row(row).head<2>().transpose() - truth).norm();
+        sum += d;
+        max = std::max(max, d);
+        ++count;
+      }
+    }
+    std::printf("Kalibr's print turned %d degrees: %d corners, mean %.3f max %.3f px\n",
+                90 * quarter, count, sum / std::max(count, 1), max);
+    EXPECT_EQ(count, 144) << quarter;
+    EXPECT_LT(sum / std::max(count, 1), 0.06) << quarter;
+    EXPECT_LT(max, 0.2) << quarter;
   }
 }
 

@@ -218,6 +218,34 @@ TEST(KalibrAprilgrid, EveryTagCornerIsWhereKalibrPutsIt) {
   // holocap's own layout written back and read again is the same board.
   layout.Save(dir / "saved.yaml");
   EXPECT_EQ(BoardLayout::Load(dir / "saved.yaml").ToJson(), layout.ToJson());
+
+  // Kalibr's own print of it (kalibr_create_target_pdf): the same black squares, now with
+  // black borders two bits (a tenth of a tag) wide, and a black square of the gap's side
+  // diagonally beyond each tag corner, white elsewhere in the gaps.
+  BoardLayout kalibr_print = layout;
+  kalibr_print.border_bits = 2;
+  const Board printed(kalibr_print);
+  const double bit = tag_size / 10, gap = tag_spacing * tag_size;
+  for (int id : {0, 5, 30, 35}) {
+    int i = 0, j = 0;
+    printed.GridPointOf(id, 0, &i, &j);  // bottom left: u right, v down
+    const Eigen::Vector3d p = printed.GridPoint(i, j);
+    EXPECT_EQ(printed.Reflectance(p.x() + eps, p.y() - eps), 0.0) << id;
+    EXPECT_EQ(printed.Reflectance(p.x() + 1.5 * bit, p.y() - 5 * bit), 0.0) << id;  // border
+    EXPECT_EQ(printed.Reflectance(p.x() - eps, p.y() + eps), 0.0) << id;            // corner square
+    EXPECT_EQ(printed.Reflectance(p.x() - gap + eps, p.y() + gap - eps), 0.0) << id;
+    EXPECT_EQ(printed.Reflectance(p.x() - gap - eps, p.y() + eps), 1.0) << id;  // beyond it
+    EXPECT_EQ(printed.Reflectance(p.x() + eps, p.y() + eps), 1.0) << id;        // the gap below
+    EXPECT_EQ(printed.Reflectance(p.x() - eps, p.y() - eps), 1.0) << id;        // the gap left
+  }
+  EXPECT_DOUBLE_EQ(printed.u_min(), -gap);  // the outer squares fill the margin
+  EXPECT_THROW(
+      [&] {
+        BoardLayout standard = kalibr_print;
+        standard.family = "tagStandard41h12";
+        standard.Check();
+      }(),
+      Error);
 }
 
 // Anything of a Kalibr target file holocap does not read is one error naming it.
