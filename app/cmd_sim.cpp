@@ -18,6 +18,7 @@ struct SimArgs {
   std::string size;
   std::string up;
   std::string board_layout;
+  std::string board_print;
   bool board = false;
   bool no_noise = false;
   bool dark = false;
@@ -90,6 +91,10 @@ static void AddSimCommand(CLI::App& app) {
                       "The board scene's board: a layout YAML as holocap board prints (e.g. a "
                       "square chessboard, a ChArUco board, Kalibr's aprilgrid YAML); default: the "
                       "5x4 AprilTag board");
+  command->add_option("--board-print", args->board_print,
+                      "How the board scene's tag36h11 board is printed: holocap (libapriltag's "
+                      "one-bit tag borders) or kalibr (kalibr_create_target_pdf's two-bit borders "
+                      "and black squares at the tags' corners); default: the layout's");
   command->add_flag("--board-still", o.board_still,
                     "The board never moves: every frame set shows the first pose cam0 and cam1 "
                     "share (no lens can be calibrated from it)");
@@ -139,6 +144,7 @@ static void AddSimCommand(CLI::App& app) {
     SimOptions options = args->options;
     if (args->board) options.scene = "board";
     if (!args->board_layout.empty()) options.board = BoardLayout::Load(args->board_layout);
+    ApplyBoardPrint(args->board_print, "--board-print", &options.board);
     if (args->no_noise) options.noise = false;
     if (!args->up.empty()) options.up = ParseUp(args->up);
     if (args->dark) {

@@ -354,6 +354,49 @@ TEST(CalibrateCli, CalibratesAKalibrAprilgridTake) {
                      "Kalibr's 'circlegrid' is not supported");
 }
 
+// The same aprilgrid as Kalibr's kalibr_create_target_pdf prints it (sim --board-print kalibr:
+// tags with two-bit black borders, black squares at the gaps' crossings touching the tags'
+// corners), calibrated with the same Kalibr YAML, which does not say how the board was printed:
+// every view is found with the two-bit border, its corners lie on the true grid (Kalibr's
+// numbering, checked by the truth as above), and the solve lands on the true lenses within its
+// own uncertainty.
+TEST(CalibrateCli, CalibratesAKalibrPrintedAprilgridTake) {
+  TempDir dir("holocap-calib-kalibr-print");
+  const std::filesystem::path layout = dir / "kalibr.yaml";
+  std::ofstream(layout) << "target_type: 'aprilgrid'\ntagCols: 4\ntagRows: 3\ntagSize: 0.15\n"
+                           "tagSpacing: 0.3\n";
+  nlohmann::json report;
+  ASSERT_NO_FATAL_FAILURE(
+      CalibrateRingTake(dir.path(), layout, &report, "--frames 16 --board-print kalibr"));
+  const auto& m = report["metrics"];
+  EXPECT_EQ(report["summary"]["termination"], "CONVERGENCE") << report["summary"].dump();
+  const auto& detection = m["detection"];
+  EXPECT_EQ(detection["views_per_tag_border_bits"],
+            nlohmann::json({{"2", detection["views"].get<int>()}}))
+      << detection.dump();
+
+  const CornerTruth corners = CornersAgainstTruth(dir / "take", dir / "corners.vnl", 50, 0.015);
+  std::printf("Kalibr-printed aprilgrid take: %d corners in %zu views: mean %.4f px, max %.4f px\n",
+              corners.count, corners.seen_in_view.size(), corners.mean_px, corners.max_px);
+  // As many views as of holocap's print of the YAML (26), nearly every tag in each.
+  EXPECT_GE(corners.count, 20 * 24);
+  // Measured 0.016 px on average, 0.067 px at most.
+  EXPECT_LT(corners.mean_px, 0.05);
+  EXPECT_LT(corners.max_px, 0.3);
+  ExpectIntrinsicsWithinTheirSigma(m, corners, 10);
+  EXPECT_LT(m["rms_reprojection_px"].get<double>(), 0.3);
+  EXPECT_LT(m["gt"]["projection_diff_rms_observed_px"].get<double>(), 0.3);
+
+  // Kalibr's print is a tag36h11 AprilTag board's; another print is refused by name.
+  const std::string sim = "sim --rig " + WriteRingRig(dir.path(), 2) + " --board --frames 1 ";
+  std::ofstream(dir / "chessboard.yaml") << "type: chessboard\n";
+  ExpectOneLineError(RunCli(sim + "--board-layout " + (dir / "chessboard.yaml").string() +
+                            " --board-print kalibr --out " + (dir / "chess").string()),
+                     "--board-print kalibr prints tag36h11 AprilTag boards, not a chessboard");
+  ExpectOneLineError(RunCli(sim + "--board-print pdf --out " + (dir / "pdf").string()),
+                     "--board-print must be holocap or kalibr, got 'pdf'");
+}
+
 // A take of a two-camera ring (studio8's cam0 and cam1) at 480 px: the board moving, or never
 // moving.
 std::string PairTake(const std::filesystem::path& dir, bool still) {
