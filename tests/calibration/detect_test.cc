@@ -287,6 +287,17 @@ TEST(BoardDetector, NamesTagsOfADifferentBoard) {
   }
 }
 
+// The board at 0.8 m, tilted 20 degrees and turned about its normal through `centre` by
+// `quarter` quarter turns.
+Scene TurnedScene(const Board& board, const Eigen::Vector3d& centre, int quarter) {
+  Scene scene(board, 20, 0.8);
+  Pose turn = Pose::Identity();
+  turn.linear() = Eigen::AngleAxisd(quarter * M_PI / 2, Eigen::Vector3d::UnitZ()).matrix();
+  turn.translation() = centre - turn.linear() * centre;
+  scene.cam_from_board = scene.cam_from_board * turn;
+  return scene;
+}
+
 // Kalibr's aprilgrid (6 x 6 tags of 5 cm, gaps of 0.3 tags) turned about its normal by 0, 90,
 // 180 and 270 degrees: the detector numbers every corner from the tag libapriltag decodes, so
 // each lies on the true projection of the grid point Kalibr's numbering gives it, whichever
@@ -301,11 +312,7 @@ TEST(KalibrAprilgrid, CornersKeepKalibrsNumberingOnATurnedBoard) {
   const Eigen::Vector3d centre((board.width_n() - 1) * layout.spacing / 2,
                                (board.height_n() - 1) * layout.spacing / 2, 0);
   for (int quarter = 0; quarter < 4; ++quarter) {
-    Scene scene(board, 20, 0.8);
-    Pose turn = Pose::Identity();
-    turn.linear() = Eigen::AngleAxisd(quarter * M_PI / 2, Eigen::Vector3d::UnitZ()).matrix();
-    turn.translation() = centre - turn.linear() * centre;
-    scene.cam_from_board = scene.cam_from_board * turn;
+    const Scene scene = TurnedScene(board, centre, quarter);
     const cv::Mat image = RenderBoard(scene.camera, board, scene.cam_from_board, 2.0);
     BoardObservation obs;
     std::string reason;
@@ -343,11 +350,7 @@ TEST(KalibrAprilgrid, FindsKalibrsOwnPrintWhereKalibrPutsItsCorners) {
   const double height = 5 * (1 + tag_spacing) * tag_size + tag_size;
   const Eigen::Vector3d centre(height / 2, height / 2, 0);
   for (int quarter = 0; quarter < 4; ++quarter) {
-    Scene scene(board, 20, 0.8);
-    Pose turn = Pose::Identity();
-    turn.linear() = Eigen::AngleAxisd(quarter * M_PI / 2, Eigen::Vector3d::UnitZ()).matrix();
-    turn.translation() = centre - turn.linear() * centre;
-    scene.cam_from_board = scene.cam_from_board * turn;
+    const Scene scene = TurnedScene(board, centre, quarter);
     const cv::Mat image = RenderBoard(scene.camera, printed, scene.cam_from_board, 2.0);
     BoardObservation obs;
     std::string reason;
