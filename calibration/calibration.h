@@ -122,6 +122,8 @@ class BoardDetector {
 
  private:
   struct Impl;
+  bool DetectChessboard(const cv::Mat& grey, BoardObservation* observation,
+                        std::string* reason) const;
   bool DetectCharuco(const cv::Mat& grey, BoardObservation* observation, std::string* reason) const;
   Board board_;
   DetectionOptions options_;

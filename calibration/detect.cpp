@@ -426,6 +426,58 @@ std::vector<int> BoardDetector::DetectTagIds(const cv::Mat& image) const {
   return ids;
 }
 
+bool BoardDetector::DetectChessboard(const cv::Mat& grey, BoardObservation* observation,
+                                     std::string* reason) const {
+  const int width_n = board_.width_n();
+  const int height_n = board_.height_n();
+  std::vector<cv::Point2f> corners;
+  const cv::Size size(width_n, height_n);
+  if (options_.chessboard_finder == ChessboardFinder::kMrgingham) {
+    // mrgingham's corners as it gives them, row-major from one end as OpenCV's.
+    if (width_n != height_n) Fail("mrgingham finds square grids only");
+    if (!FindChessboardMrgingham(grey, width_n, &corners, reason)) return false;
+  } else {
+    // The fast check turns frames without a board away in milliseconds, not seconds.
+    if (!cv::findChessboardCorners(grey, size, corners,
+                                   cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE |
+                                       cv::CALIB_CB_FAST_CHECK)) {
+      *reason = "no chessboard found";
+      return false;
+    }
+    cv::cornerSubPix(grey, corners, cv::Size(5, 5), cv::Size(-1, -1),
+                     cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
+    if (options_.refine_corners) RefineChessboard(grey, width_n, height_n, &corners);
+  }
+  // OpenCV may start from any end of a board. On holocap's chessboards the square diagonally
+  // outside the first corner is black and its neighbour along the first column white. Where
+  // the other ends' corner squares differ in colour (width_n + height_n odd: the opposite end;
+  // a square board with an odd side: the ends a quarter turn away) that fixes the numbering
+  // here; the turns that keep the colours (calibration_internal::AmbiguousBoardTurns) are
+  // left to the solve, which makes every camera of a frame set agree.
+  const Eigen::Vector2d c0(corners[0].x, corners[0].y);
+  const Eigen::Vector2d c1(corners[1].x, corners[1].y);
+  const Eigen::Vector2d cw(corners[width_n].x, corners[width_n].y);
+  const Eigen::Vector2d diagonal = c0 - 0.5 * (c1 - c0) - 0.5 * (cw - c0);
+  const Eigen::Vector2d beside = c0 - 0.5 * (c1 - c0) + 0.5 * (cw - c0);
+  const double diagonal_value = Bilinear(grey, diagonal.x(), diagonal.y());
+  const double beside_value = Bilinear(grey, beside.x(), beside.y());
+  const bool other_colour =
+      std::isfinite(diagonal_value) && std::isfinite(beside_value) && diagonal_value > beside_value;
+  const bool square = width_n == height_n;
+  const int colour_turn = (width_n + height_n) % 2 == 1 ? 2 : square && width_n % 2 == 1 ? 1 : 0;
+  if (other_colour && colour_turn != 0) {
+    const std::vector<int> order =
+        calibration_internal::TurnedGridOrder(width_n, height_n, colour_turn);
+    std::vector<cv::Point2f> turned(corners.size());
+    for (size_t r = 0; r < order.size(); ++r) turned[r] = corners[order[r]];
+    corners = turned;
+  }
+  for (int k = 0; k < static_cast<int>(corners.size()); ++k) {
+    observation->points.row(k) << corners[k].x, corners[k].y, 1.0;
+  }
+  return true;
+}
+
 bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
                            std::string* reason) const {
   const cv::Mat grey = ToGrey(image);
@@ -434,56 +486,8 @@ bool BoardDetector::Detect(const cv::Mat& image, BoardObservation* observation,
   observation->points.setZero(static_cast<Eigen::Index>(width_n) * height_n, 3);
   observation->points.col(2).setConstant(-1);
 
-  if (board_.layout().type == BoardType::kChessboard) {
-    std::vector<cv::Point2f> corners;
-    const cv::Size size(width_n, height_n);
-    if (options_.chessboard_finder == ChessboardFinder::kMrgingham) {
-      // mrgingham's corners as it gives them, row-major from one end as OpenCV's.
-      if (width_n != height_n) Fail("mrgingham finds square grids only");
-      if (!FindChessboardMrgingham(grey, width_n, &corners, reason)) return false;
-    } else {
-      // The fast check turns frames without a board away in milliseconds, not seconds.
-      if (!cv::findChessboardCorners(grey, size, corners,
-                                     cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE |
-                                         cv::CALIB_CB_FAST_CHECK)) {
-        *reason = "no chessboard found";
-        return false;
-      }
-      cv::cornerSubPix(
-          grey, corners, cv::Size(5, 5), cv::Size(-1, -1),
-          cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
-      if (options_.refine_corners) RefineChessboard(grey, width_n, height_n, &corners);
-    }
-    // OpenCV may start from any end of a board. On holocap's chessboards the square diagonally
-    // outside the first corner is black and its neighbour along the first column white. Where
-    // the other ends' corner squares differ in colour (width_n + height_n odd: the opposite end;
-    // a square board with an odd side: the ends a quarter turn away) that fixes the numbering
-    // here; the turns that keep the colours (calibration_internal::AmbiguousBoardTurns) are
-    // left to the solve, which makes every camera of a frame set agree.
-    const Eigen::Vector2d c0(corners[0].x, corners[0].y);
-    const Eigen::Vector2d c1(corners[1].x, corners[1].y);
-    const Eigen::Vector2d cw(corners[width_n].x, corners[width_n].y);
-    const Eigen::Vector2d diagonal = c0 - 0.5 * (c1 - c0) - 0.5 * (cw - c0);
-    const Eigen::Vector2d beside = c0 - 0.5 * (c1 - c0) + 0.5 * (cw - c0);
-    const double diagonal_value = Bilinear(grey, diagonal.x(), diagonal.y());
-    const double beside_value = Bilinear(grey, beside.x(), beside.y());
-    const bool other_colour = std::isfinite(diagonal_value) && std::isfinite(beside_value) &&
-                              diagonal_value > beside_value;
-    const bool square = width_n == height_n;
-    const int colour_turn = (width_n + height_n) % 2 == 1 ? 2 : square && width_n % 2 == 1 ? 1 : 0;
-    if (other_colour && colour_turn != 0) {
-      const std::vector<int> order =
-          calibration_internal::TurnedGridOrder(width_n, height_n, colour_turn);
-      std::vector<cv::Point2f> turned(corners.size());
-      for (size_t r = 0; r < order.size(); ++r) turned[r] = corners[order[r]];
-      corners = turned;
-    }
-    for (int k = 0; k < static_cast<int>(corners.size()); ++k) {
-      observation->points.row(k) << corners[k].x, corners[k].y, 1.0;
-    }
-    return true;
-  }
-
+  if (board_.layout().type == BoardType::kChessboard)
+    return DetectChessboard(grey, observation, reason);
   if (board_.layout().type == BoardType::kCharuco) return DetectCharuco(grey, observation, reason);
 
   Detector d = impl_->Acquire();
