@@ -262,23 +262,24 @@ class TrainingDataLoader {
     }
   }
 
+  bool Subtracted() const { return take_plan_.has_clean_plate() || !background_model_.empty(); }
+
   // The silhouettes the take plan chose, as reconstruction takes them: alpha, the clean plate
   // or the background model subtracted, else a threshold (Otsu's per image, or the given one)
-  // closed and grown by the Middlebury recipe for the training image's width.
-  cv::Mat SilhouetteOf(size_t f, int v) {
+  // closed by `close_px` (0: none; reconstruction's rule, MeasureClosing).
+  cv::Mat SilhouetteOf(size_t f, int v, int close_px) {
     if (!alpha_masks_.empty()) return alpha_masks_[f][v];
     SilhouetteOptions silhouette;
     silhouette.dilate_px = 2;
     silhouette.erode_px = 1;
-    const bool subtract = take_plan_.has_clean_plate() || !background_model_.empty();
-    if (subtract) {
+    if (Subtracted()) {
       silhouette.mode = SilhouetteMode::kBackgroundSubtraction;
       return ExtractSilhouette(data_.images[f][v], data_.views[v].background, silhouette);
     }
     silhouette.open_px = 0;
-    silhouette.dilate_px = 10;
-    silhouette.erode_px = 7;
-    silhouette.morphology_width = 640;
+    silhouette.dilate_px = close_px;
+    silhouette.erode_px = close_px;
+    silhouette.morphology_width = 0;
     if (take_plan_.silhouettes == SilhouetteSource::kThreshold) {
       silhouette.mode = SilhouetteMode::kThreshold;
       silhouette.threshold = take_plan_.silhouette_threshold;
@@ -286,6 +287,25 @@ class TrainingDataLoader {
       silhouette.mode = SilhouetteMode::kOtsu;
     }
     return ExtractSilhouette(data_.images[f][v], cv::Mat(), silhouette);
+  }
+
+  // Thresholded silhouettes take the closing reconstruction measures (ChooseClosing on the
+  // first frame set's unclosed silhouettes of the training views, at the training width, with
+  // reconstruction's defaults), not one dataset's recipe; the plan says which and why.
+  int MeasureClosing() {
+    if (!alpha_masks_.empty() || Subtracted() || data_.sets.empty()) return 0;
+    std::vector<cv::Mat> masks;
+    for (int v : data_.TrainingViews()) masks.push_back(SilhouetteOf(0, v, 0));
+    if (masks.empty()) return 0;
+    const ReconstructionOptions defaults;
+    const int width = data_.views.front().camera.width();
+    const int max_radius =
+        std::max(2, static_cast<int>(std::lround(defaults.max_close_px_at_640 * width / 640.0)));
+    const ClosingChoice closing = ChooseClosing(masks, max_radius, defaults.min_closing_jump_px);
+    plan_["silhouette_morphology"] = {
+        {"chosen", closing.close_px > 0 ? Cat("closing ", closing.close_px, " px") : "none"},
+        {"why", closing.why}};
+    return closing.close_px;
   }
 
   void ReadSilhouettes() {
@@ -297,10 +317,11 @@ class TrainingDataLoader {
     else
       silhouette_source_ =
           Cat(ToString(take_plan_.silhouettes), " (", take_plan_.silhouette_reason, ")");
+    const int close_px = MeasureClosing();
     data_.masks.resize(data_.sets.size());
     for (size_t f = 0; f < data_.sets.size(); ++f) {
       for (size_t v = 0; v < data_.views.size(); ++v)
-        data_.masks[f].push_back(SilhouetteOf(f, static_cast<int>(v)));
+        data_.masks[f].push_back(SilhouetteOf(f, static_cast<int>(v), close_px));
     }
   }
 
