@@ -74,8 +74,9 @@ TEST(TrainingData, ThresholdedSilhouettesCloseAsReconstructionMeasuresNotByAReci
   Roughen(take);
   const TrainingData ragged = LoadTrainingData(take, options);
   const std::string chosen = ragged.plan["silhouette_morphology"]["chosen"];
-  const auto recon = RunCli("reconstruct '" + take.string() + "' --out '" +
-                            (dir / "recon").string() + "' --ground-truth-cameras --no-sweep --no-glb");
+  const auto recon =
+      RunCli("reconstruct '" + take.string() + "' --out '" + (dir / "recon").string() +
+             "' --ground-truth-cameras --no-sweep --no-glb");
   ASSERT_EQ(recon.exit_code, 0) << recon.output;
   std::ifstream file(dir / "recon" / "report.json");
   const nlohmann::json report = nlohmann::json::parse(file);
