@@ -187,6 +187,44 @@ double MedianSpanPx(const std::vector<View>& views, const Eigen::Vector3d& centr
   return spans[spans.size() / 2];
 }
 
+// The hull's figures (octree cells tested, surface and inside blocks, volume, its span in the
+// views) and its ending: DEGENERATE when empty or too small to be a subject.
+HullSummary SummariseHull(const VisualHull& hull, const std::vector<View>& views,
+                          const HullOptions& options, int64_t tested, int64_t surface_blocks,
+                          int64_t inside_voxels, std::chrono::steady_clock::duration elapsed) {
+  const double voxel = options.voxel_m;
+  const int tolerated = options.tolerated_bad_views;
+  HullSummary summary;
+  summary.octree_cells = tested;
+  summary.surface_blocks = surface_blocks;
+  summary.inside_blocks = static_cast<int64_t>(hull.inside_blocks.size());
+  summary.volume_m3 = (static_cast<double>(inside_voxels) +
+                       static_cast<double>(hull.inside_blocks.size()) * kBlockVoxels) *
+                      voxel * voxel * voxel;
+  summary.seconds = std::chrono::duration<double>(elapsed).count();
+  const double diameter_m = std::cbrt(6 * summary.volume_m3 / M_PI);
+  if (summary.volume_m3 > 0)
+    summary.subject_px = MedianSpanPx(views, hull.Extent().center(), diameter_m);
+  if (summary.volume_m3 <= 0) {
+    summary.End(Termination::kDegenerate,
+                Cat("the hull is empty: no point in the bounds lies inside ",
+                    tolerated > 0 ? "all but " + std::to_string(tolerated) + " of " : "all ",
+                    views.size(), " silhouettes"));
+  } else if (summary.subject_px < options.min_subject_px) {
+    summary.End(
+        Termination::kDegenerate,
+        Cat("the hull is too small to be a subject: its ", std::round(summary.volume_m3 * 1e7) / 10,
+            " cm3 are a ball ", std::round(diameter_m * 1e4) / 10, " mm across, ",
+            std::round(summary.subject_px * 10) / 10, " px in the views (at least ",
+            options.min_subject_px,
+            " px: smaller is where specks or edges of the silhouettes meet)"));
+  } else {
+    summary.End(Termination::kSuccess,
+                Cat("hull of ", summary.volume_m3 * 1e3, " litres from ", views.size(), " views"));
+  }
+  return summary;
+}
+
 }  // namespace
 
 VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& options,
@@ -313,34 +351,9 @@ VisualHull ComputeVisualHull(const std::vector<View>& views, const HullOptions& 
       }
     }
   }
-  HullSummary summary;
-  summary.octree_cells = tested;
-  summary.surface_blocks = static_cast<int64_t>(surface.size());
-  summary.inside_blocks = static_cast<int64_t>(hull.inside_blocks.size());
-  summary.volume_m3 = (static_cast<double>(inside_voxels) +
-                       static_cast<double>(hull.inside_blocks.size()) * kBlockVoxels) *
-                      voxel * voxel * voxel;
-  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  const double diameter_m = std::cbrt(6 * summary.volume_m3 / M_PI);
-  if (summary.volume_m3 > 0)
-    summary.subject_px = MedianSpanPx(views, hull.Extent().center(), diameter_m);
-  if (summary.volume_m3 <= 0) {
-    summary.End(Termination::kDegenerate,
-                Cat("the hull is empty: no point in the bounds lies inside ",
-                    tolerated > 0 ? "all but " + std::to_string(tolerated) + " of " : "all ",
-                    views.size(), " silhouettes"));
-  } else if (summary.subject_px < options.min_subject_px) {
-    summary.End(
-        Termination::kDegenerate,
-        Cat("the hull is too small to be a subject: its ", std::round(summary.volume_m3 * 1e7) / 10,
-            " cm3 are a ball ", std::round(diameter_m * 1e4) / 10, " mm across, ",
-            std::round(summary.subject_px * 10) / 10, " px in the views (at least ",
-            options.min_subject_px,
-            " px: smaller is where specks or edges of the silhouettes meet)"));
-  } else {
-    summary.End(Termination::kSuccess,
-                Cat("hull of ", summary.volume_m3 * 1e3, " litres from ", views.size(), " views"));
-  }
+  HullSummary summary =
+      SummariseHull(hull, views, options, tested, static_cast<int64_t>(surface.size()),
+                    inside_voxels, std::chrono::steady_clock::now() - start);
   if (summary_out != nullptr) *summary_out = summary;
   return hull;
 }
