@@ -140,6 +140,58 @@ void MakeInputs(const BenchInputs& in, const std::function<double()>& elapsed) {
   }
 }
 
+// A site served on any free port, its streams timed and shot in the page: its manifest, the
+// page's figures (bench.json) and the export's report.
+struct PageRun {
+  nlohmann::json manifest, bench, report;
+};
+PageRun MeasureInPage(const fs::path& dir, const std::string& site, const std::string& q,
+                      const fs::path& driver, const CameraModel& camera, int frame,
+                      int camera_index) {
+  PageRun run;
+  const fs::path browser = dir / (site == "site" ? "browser" : "browser-budget");
+  const fs::path log_file = dir / (site + "-view.log");
+  fs::remove(log_file);
+  const std::string pid = Run("(" + q + "view '" + (dir / site).string() + "' --port 0 > '" +
+                              log_file.string() + "' 2>&1 & echo $!)");
+  std::string url;
+  for (int i = 0; i < 100 && url.empty(); ++i) {
+    usleep(100000);
+    const std::string log = fs::exists(log_file) ? ReadFileToString(log_file) : "";
+    const auto at = log.find("http://");
+    if (at != std::string::npos) url = log.substr(at, log.find(' ', at) - at);
+  }
+  run.manifest = nlohmann::json::parse(ReadFileToString(dir / site / "manifest.json"));
+  std::string list;
+  for (const auto& s : run.manifest.at("streams")) {
+    list += ' ';
+    list += s.at("name").get<std::string>();
+  }
+  fs::create_directories(browser);
+  // node drive.mjs MODE URL BROWSER [VIEW] STREAM...
+  auto drive = [&](const std::string& mode, const std::string& view) {
+    std::string command = "node '";
+    command += driver.string();
+    command += "' ";
+    command += mode;
+    command += " ";
+    command += url;
+    command += " '";
+    command += browser.string();
+    command += "' ";
+    command += view;
+    command += list;
+    Run(command);
+  };
+  drive("bench", "");
+  drive("camera", std::to_string(camera.width()) + " " + std::to_string(camera.height()) + " " +
+                      std::to_string(frame) + " " + std::to_string(camera_index));
+  kill(std::stoi(pid), SIGTERM);
+  run.bench = nlohmann::json::parse(ReadFileToString(browser / "bench.json"));
+  run.report = nlohmann::json::parse(ReadFileToString(dir / site / "report.json"));
+  return run;
+}
+
 int RunBench(int argc, char** argv) {
   holocap::RegisterNeuralVolumeAvatarKind(holocap::AvatarKindRegistry::Global());
   holocap::RegisterSplatAvatarKind(holocap::AvatarKindRegistry::Global());
@@ -191,44 +243,10 @@ int RunBench(int argc, char** argv) {
   // Each site served on any free port, its streams timed and shot in the page.
   nlohmann::json manifests, bench, report;
   for (const std::string& site : sites) {
-    const fs::path browser = dir / (site == "site" ? "browser" : "browser-budget");
-    const fs::path log_file = dir / (site + "-view.log");
-    fs::remove(log_file);
-    const std::string pid = Run("(" + q + "view '" + (dir / site).string() + "' --port 0 > '" +
-                                log_file.string() + "' 2>&1 & echo $!)");
-    std::string url;
-    for (int i = 0; i < 100 && url.empty(); ++i) {
-      usleep(100000);
-      const std::string log = fs::exists(log_file) ? ReadFileToString(log_file) : "";
-      const auto at = log.find("http://");
-      if (at != std::string::npos) url = log.substr(at, log.find(' ', at) - at);
-    }
-    manifests[site] = nlohmann::json::parse(ReadFileToString(dir / site / "manifest.json"));
-    std::string list;
-    for (const auto& s : manifests[site].at("streams"))
-      list += " " + s.at("name").get<std::string>();
-    fs::create_directories(browser);
-    // node drive.mjs MODE URL BROWSER [VIEW] STREAM...
-    auto drive = [&](const std::string& mode, const std::string& view) {
-      std::string command = "node '";
-      command += driver.string();
-      command += "' ";
-      command += mode;
-      command += " ";
-      command += url;
-      command += " '";
-      command += browser.string();
-      command += "' ";
-      command += view;
-      command += list;
-      Run(command);
-    };
-    drive("bench", "");
-    drive("camera", std::to_string(camera.width()) + " " + std::to_string(camera.height()) + " " +
-                        std::to_string(frame) + " " + std::to_string(camera_index));
-    kill(std::stoi(pid), SIGTERM);
-    bench[site] = nlohmann::json::parse(ReadFileToString(browser / "bench.json"));
-    report[site] = nlohmann::json::parse(ReadFileToString(dir / site / "report.json"));
+    PageRun run = MeasureInPage(dir, site, q, driver, camera, frame, camera_index);
+    manifests[site] = std::move(run.manifest);
+    bench[site] = std::move(run.bench);
+    report[site] = std::move(run.report);
   }
 
   // What the held-out camera captured at the frame, in its pinhole core, with the subject's true
