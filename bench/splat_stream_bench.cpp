@@ -107,16 +107,16 @@ int RunBench(int argc, char** argv) {
   Frames frames;
   for (int64_t f = 0; f < std::min<int64_t>({count, model.frames, std::ssize(sets)}); ++f) {
     if (f > 0 && model.Base(f) != f - 1) break;  // a per-frame run's segment starts again
-    frames.gaussians.push_back(
-        f == 0 ? model.Frame(model_dir, 0)
-               : model.Frame(model_dir, f, &frames.gaussians.back(), f - 1));
+    frames.gaussians.push_back(f == 0 ? model.Frame(model_dir, 0)
+                                      : model.Frame(model_dir, f, &frames.gaussians.back(), f - 1));
     frames.origin.push_back(
         f == 0 ? std::vector<int64_t>{}
                : SplatDeltaOrigins(ReadFileToString(SplatDeltaFile(model_dir, f))));
     frames.truth.push_back(ReadCameraTruth(take, camera, take.Camera(camera), sets[f], 0));
     if (frames.truth.back().subject.empty())
       Fail("no silhouette of ", camera, ": ", frames.truth.back().silhouette_source);
-    frames.native.push_back(RenderSplats(frames.gaussians.back(), frames.truth.back().pinhole).color);
+    frames.native.push_back(
+        RenderSplats(frames.gaussians.back(), frames.truth.back().pinhole).color);
   }
   web::SplatEncoding level =
       web::SplatEncoding::For(web::QualityByName("low"), frames.gaussians[0].sh_degree);

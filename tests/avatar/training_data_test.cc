@@ -6,11 +6,9 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
-#include <opencv2/imgproc.hpp>
+#include <opencv2/core.hpp>
 
 #include "avatar/training_data.h"
-#include "core/image.h"
-#include "core/take.h"
 #include "reconstruction/reconstruction.h"
 #include "tests/support/test_support.h"
 
@@ -30,24 +28,6 @@ cv::Mat Closed(const cv::Mat& image, int close_px) {
   return ExtractSilhouette(image, cv::Mat(), options);
 }
 cv::Mat Unclosed(const cv::Mat& image) { return Closed(image, 0); }
-
-// Holes (black discs of 1 and 2 px radius) and a crack (a line 2 px wide) cut into every
-// view's subject, as a threshold loses a subject's dark patches.
-void Roughen(const fs::path& take) {
-  for (const auto& entry : fs::directory_iterator(take / "gt" / "masks")) {
-    const fs::path frame = take / "frames" / entry.path().filename() / "000000.png";
-    const cv::Mat truth = ReadImage(entry.path() / "000000.png");
-    cv::Mat image = ReadImage(frame);
-    const cv::Rect box = cv::boundingRect(truth);
-    for (int i = 0; i < 8; ++i) {
-      const cv::Point at(box.x + box.width * (1 + i % 4) / 5, box.y + box.height * (1 + i / 4) / 3);
-      if (truth.at<uint8_t>(at) != 0) cv::circle(image, at, 1 + i % 2, cv::Scalar::all(0), -1);
-    }
-    cv::line(image, cv::Point(box.x, box.y + box.height / 2),
-             cv::Point(box.x + box.width, box.y + box.height * 5 / 8), cv::Scalar::all(0), 2);
-    WriteImage(frame, image);
-  }
-}
 
 // The dark object ring (colour only, no plate, so Otsu's silhouettes): clean boundaries take no
 // closing, where the Middlebury recipe grew every silhouette by a rim; with holes and a crack
@@ -71,7 +51,7 @@ TEST(TrainingData, ThresholdedSilhouettesCloseAsReconstructionMeasuresNotByAReci
     EXPECT_EQ(cv::norm(clean.masks[0][v], Unclosed(clean.images[0][v]), cv::NORM_INF), 0)
         << clean.views[v].name;
 
-  Roughen(take);
+  testing::CutHolesAndCrack(take);
   const TrainingData ragged = LoadTrainingData(take, options);
   const std::string chosen = ragged.plan["silhouette_morphology"]["chosen"];
   const auto recon =

@@ -302,19 +302,7 @@ TEST(VariantsTest, ObjectRingSilhouettesTakeTheMeasuredMorphologyNotTheRecipe) {
   // truth within 2 %), where the unclosed ones carve a tunnel along every crack and hole (on
   // this fat 8-view hull that moves the distance by over 5 %, here down: a tunnel carves fat
   // and subject alike).
-  for (const auto& entry : fs::directory_iterator(take / "gt" / "masks")) {
-    const fs::path frame = take / "frames" / entry.path().filename() / "000000.png";
-    const cv::Mat truth = ReadImage(entry.path() / "000000.png");
-    cv::Mat image = ReadImage(frame);
-    const cv::Rect box = cv::boundingRect(truth);
-    for (int i = 0; i < 8; ++i) {
-      const cv::Point at(box.x + box.width * (1 + i % 4) / 5, box.y + box.height * (1 + i / 4) / 3);
-      if (truth.at<uint8_t>(at) != 0) cv::circle(image, at, 1 + i % 2, cv::Scalar::all(0), -1);
-    }
-    cv::line(image, cv::Point(box.x, box.y + box.height / 2),
-             cv::Point(box.x + box.width, box.y + box.height * 5 / 8), cv::Scalar::all(0), 2);
-    WriteImage(frame, image);
-  }
+  testing::CutHolesAndCrack(take);
   const Outcome ragged = Reconstruct(take, "--overwrite");
   ASSERT_EQ(ragged.cli.exit_code, 0) << ragged.cli.output;
   const nlohmann::json& closing = ragged.report["plan"]["silhouettes"]["morphology"];

@@ -6,9 +6,11 @@
 
 #include <array>
 #include <cstdio>
+#include <opencv2/imgproc.hpp>
 #include <random>
 
 #include "core/error.h"
+#include "core/image.h"
 
 namespace holocap::testing {
 
@@ -64,6 +66,22 @@ void ExpectOneLineError(const CommandResult& result, const std::string& needle) 
   EXPECT_EQ(output.find('\n'), std::string::npos) << "more than one line:\n" << result.output;
   EXPECT_EQ(output.rfind("holocap: error: ", 0), 0u) << result.output;
   EXPECT_NE(output.find(needle), std::string::npos) << "expected '" << needle << "' in: " << output;
+}
+
+void CutHolesAndCrack(const std::filesystem::path& take) {
+  for (const auto& entry : std::filesystem::directory_iterator(take / "gt" / "masks")) {
+    const std::filesystem::path frame = take / "frames" / entry.path().filename() / "000000.png";
+    const cv::Mat truth = ReadImage(entry.path() / "000000.png");
+    cv::Mat image = ReadImage(frame);
+    const cv::Rect box = cv::boundingRect(truth);
+    for (int i = 0; i < 8; ++i) {
+      const cv::Point at(box.x + box.width * (1 + i % 4) / 5, box.y + box.height * (1 + i / 4) / 3);
+      if (truth.at<uint8_t>(at) != 0) cv::circle(image, at, 1 + i % 2, cv::Scalar::all(0), -1);
+    }
+    cv::line(image, cv::Point(box.x, box.y + box.height / 2),
+             cv::Point(box.x + box.width, box.y + box.height * 5 / 8), cv::Scalar::all(0), 2);
+    WriteImage(frame, image);
+  }
 }
 
 }  // namespace holocap::testing

@@ -57,6 +57,11 @@ inline BoardLayout CharucoLayout(int across, int down, double square, double mar
 // stage apart from calibration, saying so (an uncalibrated take is refused otherwise).
 TakeSelection TrueCameras();
 
+// Cuts holes (black discs of 1 and 2 px radius) and a crack (a black line 2 px wide across the
+// subject) into every view of frame set 0 of a simulated take, inside its true silhouettes
+// (gt/masks), as a threshold loses a subject's dark patches.
+void CutHolesAndCrack(const std::filesystem::path& take);
+
 // The error contract: exit status non-zero and exactly one line, starting "holocap: error:",
 // that holds `needle` (a GoogleTest expectation).
 void ExpectOneLineError(const CommandResult& result, const std::string& needle);
