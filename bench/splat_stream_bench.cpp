@@ -151,21 +151,16 @@ int RunBench(int argc, char** argv) {
         const Row row = Stream(frames, key_variant, delta_variant);
         const double deltas = std::max<double>(1, static_cast<double>(frames.gaussians.size()) - 1);
         auto share = [&](const char* name) {
+          // No delta (one frame): no share.
           return row.delta_bytes > 0 ? 100 * row.delta_sections.at(name) / row.delta_bytes : 0.0;
         };
         std::printf(
             "%-4d %-5d %-13s %7.2f %8.1f %8.1f %5.1f%% %5.1f%% %5.1f%% %5.1f%% %5.1f%% %5.1f%% "
             "%5.1f%% %7.2f %7.2f\n",
             k, d, variant, (row.key_bytes + row.delta_bytes) * 8 / seconds / 1e6,
-            row.key_bytes / 1e3, row.delta_bytes / deltas / 1e3,
-            frames.gaussians.size() > 1 ? share("masks") : 0.0,
-            frames.gaussians.size() > 1 ? share("motion") : 0.0,
-            frames.gaussians.size() > 1 ? share("position") : 0.0,
-            frames.gaussians.size() > 1 ? share("rotation") : 0.0,
-            frames.gaussians.size() > 1 ? share("scale") : 0.0,
-            frames.gaussians.size() > 1 ? share("opacity") : 0.0,
-            frames.gaussians.size() > 1 ? share("color") : 0.0, row.native.PsnrDb(),
-            row.camera.PsnrDb());
+            row.key_bytes / 1e3, row.delta_bytes / deltas / 1e3, share("masks"), share("motion"),
+            share("position"), share("rotation"), share("scale"), share("opacity"), share("color"),
+            row.native.PsnrDb(), row.camera.PsnrDb());
         std::fflush(stdout);
       }
     }

@@ -42,8 +42,8 @@ TEST(TrainingData, ThresholdedSilhouettesCloseAsReconstructionMeasuresNotByAReci
       take.string() + "'");
   ASSERT_EQ(sim.exit_code, 0) << sim.output;
   TrainingDataOptions options;
-  options.image_width = 0;  // native: the pixels reconstruction measures
-  options.take.ground_truth_cameras = true;
+  options.image_width = 0;                // native: the pixels reconstruction measures
+  options.take = testing::TrueCameras();  // the silhouettes measured apart from calibration
   const TrainingData clean = LoadTrainingData(take, options);
   ASSERT_TRUE(clean.plan.contains("silhouette_morphology")) << clean.plan.dump();
   EXPECT_EQ(clean.plan["silhouette_morphology"]["chosen"], "none") << clean.plan.dump();
