@@ -514,6 +514,12 @@ void AddSplatCommand(CLI::App* train) {
                    "Iterations of each frame after the first (0: time only)")
       ->capture_default_str();
   command
+      ->add_option("--frame-motion-spacings", o.frame_motion_spacings,
+                   "A later frame's motion: a field of nodes this many seed spacings apart, "
+                   "each Gaussian moved by its eight nodes' blend, so neighbours move together "
+                   "(0: each Gaussian learns its own motion)")
+      ->capture_default_str();
+  command
       ->add_option("--max-frame-mb", o.max_frame_megabytes,
                    "A later frame's delta is coarsened until it fits this many MB")
       ->capture_default_str();

@@ -78,6 +78,8 @@ void SplatOptions::Check() const {
   HOLOCAP_CHECK_OPTION_GE(frame_iterations, 0);
   HOLOCAP_CHECK_OPTION_GE(frame_densify_every, 1);
   HOLOCAP_CHECK_OPTION_GT(frame_position_lr_scale, 0);
+  HOLOCAP_CHECK_OPTION_GE(frame_motion_spacings, 0);
+  HOLOCAP_CHECK_OPTION_GE(frame_own_position_lr_scale, 0);
   HOLOCAP_CHECK_OPTION_GE(max_added_per_frame, 0);
   HOLOCAP_CHECK_OPTION_GT(new_surface_spacings, 0);
   HOLOCAP_CHECK_OPTION_GT(max_frame_megabytes, 0);
@@ -176,6 +178,8 @@ nlohmann::json SplatOptions::ToJson() const {
           {"frame_iterations", frame_iterations},
           {"frame_densify_every", frame_densify_every},
           {"frame_position_lr_scale", frame_position_lr_scale},
+          {"frame_motion_spacings", frame_motion_spacings},
+          {"frame_own_position_lr_scale", frame_own_position_lr_scale},
           {"max_added_per_frame", max_added_per_frame},
           {"new_surface_spacings", new_surface_spacings},
           {"max_frame_megabytes", max_frame_megabytes},

@@ -173,10 +173,21 @@ struct SplatOptions {
   double frame_position_lr_scale = 10;  // a later frame's position rate: this x position_lr
                                         // (the subject moves in few iterations), decaying to
                                         // 1/10 over the frame
-  int64_t max_added_per_frame = 1000;   // Gaussians a later frame may add (densified or seeded)
-  double new_surface_spacings = 3;      // a later frame's surface sample farther than this x the
-                                        // seed spacing from every Gaussian seeds a new one
-  double max_frame_megabytes = 1.0;     // a delta larger than this is coarsened until it fits
+  // A later frame's motion (after 3DGStream's deformation of the frame before): a translation
+  // field on a grid of nodes over the subject's box, frame_motion_spacings x the seed's spacing
+  // apart (at most 256 cells along the box's longest side), that moves every Gaussian by the
+  // trilinear blend of its eight nodes, learned at the position rate above from the Gaussians'
+  // positional gradients; each Gaussian's own position then learns at
+  // frame_own_position_lr_scale x position_lr only. A body moves as a whole, so its Gaussians
+  // move together and a stream codes the field, not every Gaussian's wander (with every
+  // Gaussian learning its own motion at the high rate, each wanders about three of its sizes a
+  // frame in no common direction). 0: every Gaussian learns its own motion.
+  double frame_motion_spacings = 7;
+  double frame_own_position_lr_scale = 0;
+  int64_t max_added_per_frame = 1000;  // Gaussians a later frame may add (densified or seeded)
+  double new_surface_spacings = 3;     // a later frame's surface sample farther than this x the
+                                       // seed spacing from every Gaussian seeds a new one
+  double max_frame_megabytes = 1.0;    // a delta larger than this is coarsened until it fits
   int64_t segment_frames = 0;  // > 0: a per-frame run (see the top of this file): the frames
                                // after the first in segments of this many, each segment's first
                                // frame a delta of frame 0; budgets in iterations only

@@ -4,6 +4,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -43,6 +44,85 @@ float Logit(double p) { return static_cast<float>(std::log(p / (1 - p))); }
 // Adam's moments of every parameter, laid out as the Gaussians are.
 struct Moments {
   Gaussians first, second;
+};
+
+// A later frame's translation field (SplatOptions::frame_motion_spacings): nodes `spacing` apart
+// from `origin`, `dims` a side, each node's motion learned by Adam from the positional gradients
+// of the Gaussians it blends (trilinear weights at each Gaussian's position; points outside the
+// grid take its nearest face).
+struct MotionField {
+  Eigen::Vector3d origin = Eigen::Vector3d::Zero();
+  double spacing = 1;
+  std::array<int64_t, 3> dims = {0, 0, 0};
+  std::vector<float> first, second, gradient, move;  // 3 a node
+  int64_t step = 0;
+
+  bool on() const { return dims[0] > 0; }
+  // Nodes `node_spacing` apart (at least a 256th of the box's longest side) covering `box`, the
+  // moments zero.
+  void Cover(const Box& box, double node_spacing) {
+    spacing = std::max({node_spacing, box.size().maxCoeff() / 256, 1e-6});
+    origin = box.min;
+    for (int a = 0; a < 3; ++a)
+      dims[a] = static_cast<int64_t>(std::floor(box.size()[a] / spacing)) + 2;
+    const size_t values = 3 * static_cast<size_t>(dims[0] * dims[1] * dims[2]);
+    first.assign(values, 0);
+    second.assign(values, 0);
+    gradient.assign(values, 0);
+    move.assign(values, 0);
+    step = 0;
+  }
+  // The eight nodes (index of node x, y, z: (x * dims[1] + y) * dims[2] + z) and weights of p.
+  void Corners(const float* p, int64_t* node, float* weight) const {
+    int64_t base[3];
+    float f[3];
+    for (int a = 0; a < 3; ++a) {
+      const double u = std::clamp((p[a] - origin[a]) / spacing, 0.0, double(dims[a] - 1));
+      base[a] = std::min<int64_t>(static_cast<int64_t>(u), dims[a] - 2);
+      f[a] = static_cast<float>(u - static_cast<double>(base[a]));
+    }
+    for (int k = 0; k < 8; ++k) {
+      const int64_t x = base[0] + (k & 1), y = base[1] + ((k >> 1) & 1), z = base[2] + (k >> 2);
+      node[k] = (x * dims[1] + y) * dims[2] + z;
+      weight[k] = ((k & 1) ? f[0] : 1 - f[0]) * (((k >> 1) & 1) ? f[1] : 1 - f[1]) *
+                  ((k >> 2) ? f[2] : 1 - f[2]);
+    }
+  }
+  // One Adam step of the nodes on the Gaussians' positional gradients at `rate`, each Gaussian
+  // moved by its nodes' blended step.
+  void Step(const Gaussians& gradients, float rate, Gaussians* gaussians) {
+    std::fill(gradient.begin(), gradient.end(), 0.0f);
+    const int64_t n = gaussians->size();
+    int64_t node[8];
+    float weight[8];
+    for (int64_t i = 0; i < n; ++i) {
+      Corners(&gaussians->position[3 * i], node, weight);
+      for (int k = 0; k < 8; ++k)
+        for (int a = 0; a < 3; ++a)
+          gradient[3 * node[k] + a] += weight[k] * gradients.position[3 * i + a];
+    }
+    ++step;
+    const float b1 = 0.9f, b2 = 0.999f;
+    const float c1 = 1 / (1 - std::pow(b1, static_cast<float>(step)));
+    const float c2 = 1 / (1 - std::pow(b2, static_cast<float>(step)));
+    for (size_t k = 0; k < gradient.size(); ++k) {
+      first[k] = b1 * first[k] + (1 - b1) * gradient[k];
+      second[k] = b2 * second[k] + (1 - b2) * gradient[k] * gradient[k];
+      move[k] = gradient[k] == 0 && first[k] == 0
+                    ? 0.0f
+                    : -rate * (first[k] * c1) / (std::sqrt(second[k] * c2) + 1e-15f);
+    }
+#pragma omp parallel for schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+      int64_t at[8];
+      float w[8];
+      Corners(&gaussians->position[3 * i], at, w);
+      float shift[3] = {0, 0, 0};
+      for (int k = 0; k < 8; ++k)
+        for (int a = 0; a < 3; ++a) shift[a] += w[k] * move[3 * at[k] + a];
+      for (int a = 0; a < 3; ++a) gaussians->position[3 * i + a] += shift[a];
+    }
+  }
 };
 
 // Everything the divergence guard restores.
@@ -268,6 +348,7 @@ class Trainer {
   double min_log_scale_ = -20, max_log_scale_ = 0;
   Gaussians gaussians_, gradient_;
   Moments moments_;
+  MotionField motion_;  // a later frame's (SplatOptions::frame_motion_spacings)
   int64_t adam_step_ = 0;
   double lr_scale_ = 1;
   std::vector<float> grad_accum_;  // densification's statistic, per Gaussian
@@ -457,6 +538,13 @@ bool Trainer::AdamStep(double progress, double* opacity_step) {
                                  ? options_.position_lr * extent_ *
                                        options_.frame_position_lr_scale * std::pow(0.1, progress)
                                  : options_.position_lr * extent_ * std::pow(0.01, progress);
+  // With a motion field, the field learns at the later frame's rate and each Gaussian's own
+  // position at frame_own_position_lr_scale x position_lr (decaying alike).
+  const bool field = temporal_ && motion_.on();
+  const double own_position_lr = field ? options_.position_lr * extent_ *
+                                             options_.frame_own_position_lr_scale *
+                                             std::pow(0.1, progress)
+                                       : position_lr;
   const double scale = lr_scale_ * options_.learning_rate;
   const float b1 = static_cast<float>(beta1), b2 = static_cast<float>(beta2);
   const float c1 = static_cast<float>(1 / correction1), c2 = static_cast<float>(1 / correction2);
@@ -473,7 +561,8 @@ bool Trainer::AdamStep(double progress, double* opacity_step) {
     }
   };
   auto rate = [&](double lr) { return static_cast<float>(lr * scale); };
-  const float position_rate = rate(position_lr), rotation_rate = rate(options_.rotation_lr);
+  if (field) motion_.Step(gradient_, rate(position_lr), &gaussians_);
+  const float position_rate = rate(own_position_lr), rotation_rate = rate(options_.rotation_lr);
   const float scale_rate = rate(options_.scale_lr), opacity_rate = rate(options_.opacity_lr);
   // A later frame's delta holds no higher harmonics: they stay as the frame before left them.
   const float sh_first = rate(options_.sh_lr), sh_rest = rate(temporal_ ? 0 : options_.sh_lr / 20);
@@ -600,19 +689,28 @@ void Trainer::Densify(SplatSummary* summary) {
     clones.resize(clone_room);
     std::sort(keep.begin(), keep.end());
   }
-  std::vector<int64_t> order = keep;
+  // A split's first half takes the original's place (in a later frame it continues that
+  // Gaussian: a delta changes it), its second half and the clones follow the rest (a delta adds
+  // them): each clone and each split adds one Gaussian, as the cap counts.
+  std::vector<int64_t> in_place = keep;
+  in_place.insert(in_place.end(), splits.begin(), splits.end());
+  std::sort(in_place.begin(), in_place.end());
+  std::vector<int64_t> order = in_place;
   order.insert(order.end(), clones.begin(), clones.end());
-  for (int64_t i : splits) {
-    order.push_back(i);
-    order.push_back(i);
-  }
+  order.insert(order.end(), splits.begin(), splits.end());
   const Gaussians before = gaussians_;
   Keep(order);
   // The split pairs: positions drawn from the original Gaussian, scales shrunk.
   std::normal_distribution<float> normal(0.0f, 1.0f);
-  const int64_t first_split = static_cast<int64_t>(keep.size() + clones.size());
-  for (int64_t j = first_split; j < gaussians_.size(); ++j) {
-    const int64_t i = splits[(j - first_split) / 2];
+  const size_t second_halves = in_place.size() + clones.size();
+  std::vector<int64_t> halves;
+  for (size_t k = 0; k < splits.size(); ++k) {
+    halves.push_back(std::lower_bound(in_place.begin(), in_place.end(), splits[k]) -
+                     in_place.begin());
+    halves.push_back(static_cast<int64_t>(second_halves + k));
+  }
+  for (size_t h = 0; h < halves.size(); ++h) {
+    const int64_t i = splits[h / 2], j = halves[h];
     const float* q = &before.rotation[4 * i];
     const Eigen::Quaternionf rotation = Eigen::Quaternionf(q[0], q[1], q[2], q[3]).normalized();
     Eigen::Vector3f offset;
@@ -876,6 +974,8 @@ void Trainer::ResetMoments() {
   adam_step_ = 0;
   grad_accum_.assign(gaussians_.size(), 0);
   grad_count_.assign(gaussians_.size(), 0);
+  if (temporal_ && options_.frame_motion_spacings > 0)
+    motion_.Cover(scene_.box, options_.frame_motion_spacings * scene_.seed.spacing_m);
 }
 
 // Seeds a Gaussian at each of the new frame's surface samples that lies farther than
@@ -1176,6 +1276,8 @@ void Trainer::TrainFrame(int64_t frame, const FrameBudget& budget, SplatSummary*
       moments_ = snapshot.moments;
       adam_step_ = snapshot.adam_step;
       origin_ = snapshot.origin;
+      if (motion_.on())
+        motion_.Cover(scene_.box, options_.frame_motion_spacings * scene_.seed.spacing_m);
       grad_accum_.assign(gaussians_.size(), 0);
       grad_count_.assign(gaussians_.size(), 0);
       lr_scale_ *= 0.5;

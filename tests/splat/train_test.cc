@@ -5,9 +5,11 @@
 #include <gtest/gtest.h>
 
 #include <unistd.h>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <map>
 #include <opencv2/imgproc.hpp>
 #include <random>
 
@@ -599,6 +601,66 @@ TEST(SplatDynamic, LaterFrameFromThePreviousNearsScratchInFewerIterations) {
   for (const auto& point : report.json()["series"])
     per_frame += point["metric"] == "frame_heldout_psnr_db";
   EXPECT_EQ(per_frame, 2);
+}
+
+// How far each surviving Gaussian's motion from frame 0 to frame 1 strays from the mean motion
+// of the survivors near it (cells of a tenth of the scene's box a side): RMS, metres.
+double MotionStray(const fs::path& dir, const Box& box) {
+  const SplatModel model = SplatModel::Load(dir);
+  const splat::Gaussians& before = model.gaussians;
+  const splat::Gaussians after = model.Frame(dir, 1);
+  const std::vector<int64_t> origin = SplatDeltaOrigins(ReadFileToString(SplatDeltaFile(dir, 1)));
+  std::map<std::array<int, 3>, std::pair<Eigen::Vector3d, int>> cells;
+  std::vector<std::pair<std::array<int, 3>, Eigen::Vector3d>> moves;
+  for (int64_t i = 0; i < after.size(); ++i) {
+    const int64_t from = origin[i];
+    if (from < 0) continue;
+    const Eigen::Vector3d p0(before.position[3 * from], before.position[3 * from + 1],
+                             before.position[3 * from + 2]);
+    const Eigen::Vector3d p1(after.position[3 * i], after.position[3 * i + 1],
+                             after.position[3 * i + 2]);
+    std::array<int, 3> cell;
+    for (int a = 0; a < 3; ++a)
+      cell[a] = static_cast<int>(std::floor(10 * (p0[a] - box.min[a]) / box.size()[a]));
+    auto& [sum, count] = cells[cell];
+    if (count == 0) sum.setZero();
+    sum += p1 - p0;
+    ++count;
+    moves.emplace_back(cell, p1 - p0);
+  }
+  double squared = 0;
+  for (const auto& [cell, move] : moves) {
+    const auto& [sum, count] = cells.at(cell);
+    squared += (move - sum / count).squaredNorm();
+  }
+  return std::sqrt(squared / static_cast<double>(std::max<size_t>(1, moves.size())));
+}
+
+// A later frame's motion is a field over the box (3DGStream's deformation): the Gaussians of a
+// neighbourhood move together, where each learning its own motion at the later frame's rate
+// wanders on its own; the field follows the subject as well.
+TEST(SplatDynamic, LaterFramesMoveTheGaussiansTogetherByAField) {
+  const SplatScene moving = MakeScene(Moving(2));
+  SplatOptions options = TestOptions(150);
+  options.frame_iterations = 100;
+  options.frame_minutes = 0;
+  // No densification in frame 1: a split Gaussian's half jumps by its size, whatever moved it.
+  options.frame_densify_every = 1000;
+  const SplatSummary field = TrainSplatsOn(moving, Dir("field"), options);
+  ASSERT_TRUE(field.IsUsable()) << field.message;
+  options.frame_motion_spacings = 0;
+  const SplatSummary own = TrainSplatsOn(moving, Dir("own"), options);
+  ASSERT_TRUE(own.IsUsable()) << own.message;
+  const double field_stray = MotionStray(Path("field"), moving.box);
+  const double own_stray = MotionStray(Path("own"), moving.box);
+  EXPECT_LT(field_stray, 0.5 * own_stray)
+      << "field " << 1e3 * field_stray << " mm, each its own " << 1e3 * own_stray << " mm";
+  EXPECT_GT(field.frames[1].heldout_psnr_db, own.frames[1].heldout_psnr_db - 1.0)
+      << "field " << field.frames[1].heldout_psnr_db << " dB, each its own "
+      << own.frames[1].heldout_psnr_db << " dB";
+  const double unmoved = HeldoutPsnr(SplatModel::Load(Path("field")).gaussians, moving, 1);
+  EXPECT_GT(field.frames[1].heldout_psnr_db, unmoved + 0.5)
+      << "trained " << field.frames[1].heldout_psnr_db << " dB, frame 0 as it was " << unmoved;
 }
 
 TEST(SplatDynamic, DeltasStayWithinTheirBoundAndPlayBackAsTrained) {
