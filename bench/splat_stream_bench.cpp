@@ -3,15 +3,17 @@
 // of the frame before as decoded), each chunk decoded as the page decodes it and rendered through
 // a held-out camera at its own size, against the native render of the same frame inside the
 // subject's silhouette (the loss a viewer sees) and against the camera's own image there (what
-// bench/web_bench scores).
+// bench/web_bench scores), each drawn over the take's clean plate as the page draws it (where
+// the model trained over one).
 //
-//   bench/splat_stream_bench TAKE MODEL CAMERA [FRAMES] [FPS] [KEY_RUNGS] [DELTA_RUNGS]
+//   bench/splat_stream_bench TAKE MODEL CAMERA [FRAMES] [FPS] [KEY_RUNGS] [DELTA_RUNGS] [FIRST]
 //     TAKE, MODEL  a calibrated take and a splat model trained on it (`holocap train splat`)
 //     CAMERA       the held-out camera scored (its silhouette as web_bench reads it)
-//     FRAMES       the model frames streamed from frame 0, one key frame then deltas (10)
+//     FRAMES       the model frames streamed from frame FIRST (0), one key frame then deltas
+//                  (10)
 //     FPS          the rate's frames a second (30)
 //     KEY_RUNGS, DELTA_RUNGS  comma lists of rungs (web::SplatRung; 0 the level "low" itself,
-//                  9 the coarsest): every pair with delta >= key (0,3,6,9 and 0,3,6,9)
+//                  11 the coarsest): every pair with delta >= key (0,3,6,9 and 0,3,6,9)
 //
 // Rows: the pair as the export would stream it (`as is`), then the same pair with one part made
 // exact, to show where the loss comes from: `exact motion` (the deltas' positions at motion step
@@ -51,6 +53,7 @@ struct Frames {
   std::vector<std::vector<int64_t>> origin;  // empty for frame 0
   std::vector<CameraTruth> truth;
   std::vector<cv::Mat> native;
+  cv::Mat background;  // the camera's clean plate, CV_32FC3 (what the page draws behind)
 };
 
 struct Row {
@@ -78,7 +81,7 @@ Row Stream(const Frames& frames, const web::SplatEncoding& key, const web::Splat
     decoded.order = std::move(codes.order);
     const splat::Gaussians drawn = web::SplatsFromCodes(decoded, encoding);
     const CameraTruth& truth = frames.truth[f];
-    const cv::Mat picture = RenderSplats(drawn, truth.pinhole).color;
+    const cv::Mat picture = RenderSplats(drawn, truth.pinhole, frames.background).color;
     row.native.Add(picture, frames.native[f], truth.subject);
     row.camera.Add(picture, truth.image, truth.subject);
   }
@@ -89,7 +92,7 @@ int RunBench(int argc, char** argv) {
   if (argc < 4) {
     std::fprintf(stderr,
                  "usage: splat_stream_bench TAKE MODEL CAMERA [FRAMES] [FPS] [KEY_RUNGS] "
-                 "[DELTA_RUNGS]\n");
+                 "[DELTA_RUNGS] [FIRST]\n");
     return 2;
   }
   const fs::path take_dir = argv[1], model_dir = argv[2];
@@ -98,6 +101,7 @@ int RunBench(int argc, char** argv) {
   const double fps = argc > 5 ? std::stod(argv[5]) : 30;
   const std::vector<int> key_rungs = Rungs(argc > 6 ? argv[6] : "0,3,6,9");
   const std::vector<int> delta_rungs = Rungs(argc > 7 ? argv[7] : "0,3,6,9");
+  const int64_t first = argc > 8 ? std::stoll(argv[8]) : 0;
 
   const Take take = Take::Open(take_dir);
   const SplatModel model = SplatModel::Load(model_dir);
@@ -105,23 +109,41 @@ int RunBench(int argc, char** argv) {
       nlohmann::json::parse(ReadFileToString(model_dir / "model.json"));
   const auto sets = model_json.at("frame_sets").get<std::vector<int64_t>>();
   Frames frames;
-  for (int64_t f = 0; f < std::min<int64_t>({count, model.frames, std::ssize(sets)}); ++f) {
-    if (f > 0 && model.Base(f) != f - 1) break;  // a per-frame run's segment starts again
-    frames.gaussians.push_back(f == 0 ? model.Frame(model_dir, 0)
-                                      : model.Frame(model_dir, f, &frames.gaussians.back(), f - 1));
+  // The page draws a splat stream over the take's clean plate where the model trained over one
+  // (its plan's background: "clean plate (frame set N)"), as the export's backgrounds hold it;
+  // else over black.
+  const std::string behind = model_json.at("plan").value("background", "");
+  const auto plate_at = behind.find("frame set ");
+  if (behind.starts_with("clean plate") && plate_at != std::string::npos) {
+    const int64_t plate_set = std::stoll(behind.substr(plate_at + 10));
+    ReadCameraTruth(take, camera, take.Camera(camera), plate_set, -1)
+        .image.convertTo(frames.background, CV_32FC3, 1.0 / 255);
+  }
+  splat::Gaussians current;
+  const int64_t last = std::min<int64_t>({first + count, model.frames, std::ssize(sets)});
+  for (int64_t f = 0; f < last; ++f) {
+    if (f > first && model.Base(f) != f - 1) break;  // a per-frame run's segment starts again
+    current = f == 0 ? model.Frame(model_dir, 0) : model.Frame(model_dir, f, &current, f - 1);
+    if (f < first) continue;
+    frames.gaussians.push_back(current);
     frames.origin.push_back(
-        f == 0 ? std::vector<int64_t>{}
-               : SplatDeltaOrigins(ReadFileToString(SplatDeltaFile(model_dir, f))));
+        f == first ? std::vector<int64_t>{}
+                   : SplatDeltaOrigins(ReadFileToString(SplatDeltaFile(model_dir, f))));
     frames.truth.push_back(ReadCameraTruth(take, camera, take.Camera(camera), sets[f], 0));
     if (frames.truth.back().subject.empty())
       Fail("no silhouette of ", camera, ": ", frames.truth.back().silhouette_source);
     frames.native.push_back(
-        RenderSplats(frames.gaussians.back(), frames.truth.back().pinhole).color);
+        RenderSplats(frames.gaussians.back(), frames.truth.back().pinhole, frames.background)
+            .color);
   }
+  if (frames.gaussians.empty()) Fail("the model has no frame ", first);
   web::SplatEncoding level =
       web::SplatEncoding::For(web::QualityByName("low"), frames.gaussians[0].sh_degree);
   for (const auto& g : frames.gaussians) level.Include(g);
   const double seconds = static_cast<double>(frames.gaussians.size()) / fps;
+  SquaredError native_camera;
+  for (size_t f = 0; f < frames.native.size(); ++f)
+    native_camera.Add(frames.native[f], frames.truth[f].image, frames.truth[f].subject);
 
   std::printf("# bench/splat_stream_bench");
   for (int a = 1; a < argc; ++a) std::printf(" %s", argv[a]);
@@ -129,9 +151,13 @@ int RunBench(int argc, char** argv) {
               frames.gaussians.size(), model_dir.c_str(),
               static_cast<long long>(frames.gaussians[0].size()), camera.c_str(),
               frames.truth[0].pinhole.width(), frames.truth[0].pinhole.height(), fps);
-  std::printf("%-4s %-5s %-13s %7s %8s %8s %6s %6s %6s %6s %6s %6s %6s %7s %7s\n", "key", "delta",
-              "variant", "Mbps", "key kB", "delta kB", "masks", "motion", "pos", "rot", "scale",
-              "opac", "color", "native", "camera");
+  std::printf(
+      "# drawn over %s; the native render against the camera inside the silhouette: %.2f dB "
+      "(loss: that minus the stream's `camera`)\n",
+      frames.background.empty() ? "black" : behind.c_str(), native_camera.PsnrDb());
+  std::printf("%-4s %-5s %-13s %7s %8s %8s %6s %6s %6s %6s %6s %6s %6s %7s %7s %6s\n", "key",
+              "delta", "variant", "Mbps", "key kB", "delta kB", "masks", "motion", "pos", "rot",
+              "scale", "opac", "color", "native", "camera", "loss");
   for (int k : key_rungs) {
     for (int d : delta_rungs) {
       if (d < k) continue;
@@ -156,11 +182,11 @@ int RunBench(int argc, char** argv) {
         };
         std::printf(
             "%-4d %-5d %-13s %7.2f %8.1f %8.1f %5.1f%% %5.1f%% %5.1f%% %5.1f%% %5.1f%% %5.1f%% "
-            "%5.1f%% %7.2f %7.2f\n",
+            "%5.1f%% %7.2f %7.2f %6.2f\n",
             k, d, variant, (row.key_bytes + row.delta_bytes) * 8 / seconds / 1e6,
             row.key_bytes / 1e3, row.delta_bytes / deltas / 1e3, share("masks"), share("motion"),
             share("position"), share("rotation"), share("scale"), share("opacity"), share("color"),
-            row.native.PsnrDb(), row.camera.PsnrDb());
+            row.native.PsnrDb(), row.camera.PsnrDb(), native_camera.PsnrDb() - row.camera.PsnrDb());
         std::fflush(stdout);
       }
     }

@@ -165,7 +165,7 @@ SplatEncoding SplatEncoding::For(const QualityLevel& quality, int model_degree) 
   e.position_bits = e.float32 ? 0 : quality.splat_position_bits;
   e.sh_degree = std::clamp(e.float32 ? model_degree : quality.splat_sh_degree, 0, model_degree);
   e.rest_bits = quality.splat_rest_bits;
-  e.motion_cell_bits = std::max(0, e.position_bits - 4);  // a sixteenth of the box a side
+  e.motion_cell_bits = std::max(0, e.position_bits - 5);  // a 32nd of the box a side
   const double inf = std::numeric_limits<double>::infinity();
   e.box_min.setConstant(inf);
   e.box_max.setConstant(-inf);
@@ -208,6 +208,7 @@ constexpr Rung kRungs[kSplatRungs - 1] = {
     {13, 8, 6, 4, 3, 0.02, 1.0, 0},  {12, 7, 5, 8, 3, 0.05, 1.0, 0},
     {12, 7, 5, 16, 6, 0.05, 1.0, 0}, {12, 7, 5, 32, 6, 0.05, 1.0, 0},
     {12, 7, 5, 64, 6, 0.10, 1.0, 0}, {12, 6, 5, 64, 8, 0.10, 2.0, 0},
+    {12, 6, 5, 64, 8, 0.15, 2.0, 0}, {11, 6, 5, 128, 8, 0.15, 2.0, 0},
     {11, 6, 4, 128, 8, 0.15, 2.0, 0}};
 const Rung& RungAt(int rung) { return kRungs[std::clamp(rung, 1, kSplatRungs - 1) - 1]; }
 
@@ -229,7 +230,7 @@ SplatEncoding SplatRung(const SplatEncoding& level, int rung) {
   e.dc_bits = std::min(level.dc_bits, r.value_bits);
   e.rest_bits = std::min(level.rest_bits, r.value_bits);
   e.sh_degree = std::min(level.sh_degree, r.sh_degree);
-  e.motion_cell_bits = std::max(0, e.position_bits - 4);
+  e.motion_cell_bits = std::max(0, e.position_bits - 5);
   e.motion_step = MotionStep(r, e.position_bits);
   e.hold = std::max(level.hold, r.hold);
   e.prune_opacity = std::max(level.prune_opacity, r.prune_opacity);

@@ -155,7 +155,7 @@ struct SplatEncoding {
 // The rungs a size budget (`export web --splat-mbps`) climbs down, coarsest last: rung 0 is the
 // level's own encoding, each later one fewer bits, larger motion steps and holds, fainter
 // Gaussians pruned (never more bits or a higher degree than the level's). Ranges as `level`'s.
-inline constexpr int kSplatRungs = 10;
+inline constexpr int kSplatRungs = 12;
 SplatEncoding SplatRung(const SplatEncoding& level, int rung);
 // A delta's rung: what a delta that follows a key frame at `key_rung` can change (a delta's
 // records are byte differences from the frame before's, so it keeps the key frame's bits and
