@@ -58,10 +58,13 @@ struct MotionField {
   int64_t step = 0;
 
   bool on() const { return dims[0] > 0; }
-  // Nodes `node_spacing` apart (at least a 256th of the box's longest side) covering `box`, the
-  // moments zero.
+  // Nodes `node_spacing` apart covering `box`, the moments zero: at least a 256th of the box's
+  // longest side and at most about 2 million nodes (a seed without a spacing: a 32nd).
   void Cover(const Box& box, double node_spacing) {
-    spacing = std::max({node_spacing, box.size().maxCoeff() / 256, 1e-6});
+    const double longest = std::max(box.size().maxCoeff(), 1e-6);
+    const Eigen::Vector3d padded = box.size().cwiseMax(longest / 256);
+    spacing = std::max({node_spacing > 0 ? node_spacing : longest / 32, longest / 256,
+                        std::cbrt(padded.prod() / 2e6)});
     origin = box.min;
     for (int a = 0; a < 3; ++a)
       dims[a] = static_cast<int64_t>(std::floor(box.size()[a] / spacing)) + 2;
