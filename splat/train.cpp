@@ -58,9 +58,8 @@ struct MotionField {
   int64_t step = 0;
 
   bool on() const { return dims[0] > 0; }
-  // Nodes `node_spacing` apart covering `box`, the moments zero: at least a 256th of the box's
-  // longest side and at most about 2 million nodes (a seed without a spacing: a 32nd).
-  void Cover(const Box& box, double node_spacing) {
+  // The grid alone (spacing, origin, dims), nothing allocated.
+  void Lay(const Box& box, double node_spacing) {
     const double longest = std::max(box.size().maxCoeff(), 1e-6);
     const Eigen::Vector3d padded = box.size().cwiseMax(longest / 256);
     spacing = std::max({node_spacing > 0 ? node_spacing : longest / 32, longest / 256,
@@ -68,6 +67,11 @@ struct MotionField {
     origin = box.min;
     for (int a = 0; a < 3; ++a)
       dims[a] = static_cast<int64_t>(std::floor(box.size()[a] / spacing)) + 2;
+  }
+  // Nodes `node_spacing` apart covering `box`, the moments zero: at least a 256th of the box's
+  // longest side and at most about 2 million nodes (a seed without a spacing: a 32nd).
+  void Cover(const Box& box, double node_spacing) {
+    Lay(box, node_spacing);
     const size_t values = 3 * static_cast<size_t>(dims[0] * dims[1] * dims[2]);
     first.assign(values, 0);
     second.assign(values, 0);
@@ -856,6 +860,22 @@ void Trainer::DescribePlan(SplatSummary* summary) const {
   summary->plan["prune_above_m"] = options_.prune_scale_view * view_width_m_;
   summary->plan["losses"] = {{"l1", 1 - options_.ssim_weight}, {"dssim", options_.ssim_weight}};
   summary->plan["device"] = "cpu (splat/kernels.h, OpenMP over 16x16 tiles)";
+  if (!scene_.later_frames.empty()) {
+    if (options_.frame_motion_spacings > 0) {
+      MotionField grid;
+      grid.Lay(scene_.box, options_.frame_motion_spacings * scene_.seed.spacing_m);
+      summary->plan["later_frame_motion"] = {
+          {"model",
+           "a field of nodes over the subject's box, each Gaussian moved by its eight "
+           "nodes' blend (--frame-motion-spacings)"},
+          {"node_spacing_m", grid.spacing},
+          {"nodes", grid.dims},
+          {"own_position_lr_scale", options_.frame_own_position_lr_scale}};
+    } else {
+      summary->plan["later_frame_motion"] = {
+          {"model", "each Gaussian its own (--frame-motion-spacings 0)"}};
+    }
+  }
   summary->plan["training_background"] =
       RandomBackground()
           ? "a random colour each iteration, the frames composited over it by their alpha: only "

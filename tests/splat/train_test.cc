@@ -651,6 +651,11 @@ TEST(SplatDynamic, LaterFramesMoveTheGaussiansTogetherByAField) {
   options.frame_motion_spacings = 0;
   const SplatSummary own = TrainSplatsOn(moving, Dir("own"), options);
   ASSERT_TRUE(own.IsUsable()) << own.message;
+  // The plan says which motion the later frames learned.
+  ASSERT_TRUE(field.plan.contains("later_frame_motion")) << field.plan.dump();
+  EXPECT_GT(field.plan["later_frame_motion"]["node_spacing_m"].get<double>(), 0);
+  EXPECT_EQ(own.plan["later_frame_motion"]["model"],
+            "each Gaussian its own (--frame-motion-spacings 0)");
   const double field_stray = MotionStray(Path("field"), moving.box);
   const double own_stray = MotionStray(Path("own"), moving.box);
   EXPECT_LT(field_stray, 0.5 * own_stray)
