@@ -467,41 +467,10 @@ void PrintFrameRun(const SplatSummary& summary, const std::filesystem::path& out
   EndCommand(summary, "training");
 }
 
-void AddSplatCommand(CLI::App* train) {
-  auto* command = train->add_subcommand(
-      "splat", "3D Gaussian splats seeded from the reconstruction, tiled CPU rasteriser");
-  auto args = std::make_shared<SplatArgs>();
+// A dynamic take's flags: the scene's kind, each later frame's budget, motion, delta and
+// additions, and the per-frame runs' segments and shards.
+void AddSplatFrameFlags(CLI::App* command, SplatArgs* args) {
   SplatOptions& o = args->options;
-  SharedTrainArgs& shared = args->shared;
-  TakeSharedDefaults(o, &shared);
-  shared.learning_rate = o.learning_rate;
-  AddSharedTrainFlags(command, &shared);
-  command->get_option("--lr")->description("Multiplies every parameter group's Adam rate");
-  command->add_option("--sh-degree", o.sh_degree, "Spherical-harmonic degree (0..3)")
-      ->capture_default_str();
-  command->add_option("--max-gaussians", o.max_gaussians, "Cap on the Gaussian count")
-      ->capture_default_str();
-  command
-      ->add_option("--seed-points", o.max_seed_points, "Surface samples the Gaussians start from")
-      ->capture_default_str();
-  command->add_option("--recon", o.recon_dir, "Seed from this reconstruction (recon/<set>.ply)");
-  command
-      ->add_option("--seed-method", o.seed_method,
-                   "The seed's reconstruction: auto (TSDF fusion of the depth sensors, else "
-                   "multi-view stereo; with --no-depth, colour cameras only), hull (the colour "
-                   "cameras' visual hull), tsdf or mvs")
-      ->capture_default_str();
-  AddCpuMinutesFlag(command, &o.cpu_minutes,
-                    "loading the take, the seed's reconstruction and every training step",
-                    "; --minutes and --frame-minutes then share it between frame 0 and each "
-                    "later frame");
-  command->add_option("--initial-opacity", o.initial_opacity, "Opacity of every seeded Gaussian")
-      ->capture_default_str();
-  command
-      ->add_option("--densify-until", o.densify_until, "Last iteration that densifies and prunes")
-      ->capture_default_str();
-  command->add_option("--ssim-weight", o.ssim_weight, "Lambda of (1 - lambda) L1 + lambda D-SSIM")
-      ->capture_default_str();
   command
       ->add_option("--scene", o.scene,
                    "auto (dynamic iff several frame sets), static (the first frame only) or "
@@ -544,6 +513,44 @@ void AddSplatCommand(CLI::App* train) {
       "of its segments; the first task trains frame 0 into OUT/plan, the others "
       "wait for it and read it; the model and report.json are merged when every "
       "frame is done (holocap report OUT --merge)");
+}
+
+void AddSplatCommand(CLI::App* train) {
+  auto* command = train->add_subcommand(
+      "splat", "3D Gaussian splats seeded from the reconstruction, tiled CPU rasteriser");
+  auto args = std::make_shared<SplatArgs>();
+  SplatOptions& o = args->options;
+  SharedTrainArgs& shared = args->shared;
+  TakeSharedDefaults(o, &shared);
+  shared.learning_rate = o.learning_rate;
+  AddSharedTrainFlags(command, &shared);
+  command->get_option("--lr")->description("Multiplies every parameter group's Adam rate");
+  command->add_option("--sh-degree", o.sh_degree, "Spherical-harmonic degree (0..3)")
+      ->capture_default_str();
+  command->add_option("--max-gaussians", o.max_gaussians, "Cap on the Gaussian count")
+      ->capture_default_str();
+  command
+      ->add_option("--seed-points", o.max_seed_points, "Surface samples the Gaussians start from")
+      ->capture_default_str();
+  command->add_option("--recon", o.recon_dir, "Seed from this reconstruction (recon/<set>.ply)");
+  command
+      ->add_option("--seed-method", o.seed_method,
+                   "The seed's reconstruction: auto (TSDF fusion of the depth sensors, else "
+                   "multi-view stereo; with --no-depth, colour cameras only), hull (the colour "
+                   "cameras' visual hull), tsdf or mvs")
+      ->capture_default_str();
+  AddCpuMinutesFlag(command, &o.cpu_minutes,
+                    "loading the take, the seed's reconstruction and every training step",
+                    "; --minutes and --frame-minutes then share it between frame 0 and each "
+                    "later frame");
+  command->add_option("--initial-opacity", o.initial_opacity, "Opacity of every seeded Gaussian")
+      ->capture_default_str();
+  command
+      ->add_option("--densify-until", o.densify_until, "Last iteration that densifies and prunes")
+      ->capture_default_str();
+  command->add_option("--ssim-weight", o.ssim_weight, "Lambda of (1 - lambda) L1 + lambda D-SSIM")
+      ->capture_default_str();
+  AddSplatFrameFlags(command, args.get());
   command
       ->add_option("--pixel-budget", o.pixel_budget,
                    "Pixels an iteration draws at the start: views larger than this train halved "
